@@ -1,0 +1,289 @@
+"""Physics configuration: one YAML file per configuration of the paper's Table 1
+(``msg_configs/<name>.yaml``), validated on load.
+
+Every field has a unique name across sections, so overrides can be flat
+(``Simulator.from_preset("HmJ", alpha=0.4)``) or dotted (``{"solver.alpha": 0.4}``).
+A bad file or override raises :class:`ConfigError` naming the field, e.g.
+``HmJ.yaml: solver.alpha: must be in (0, 2), got 2.5``.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+from dataclasses import dataclass, field, fields, asdict
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, of the wrong type, or out of range."""
+
+
+def _num(path, v, lo=None, hi=None, lo_open=False, hi_open=False):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{path}: expected a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise ConfigError(f"{path}: must be finite, got {v!r}")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise ConfigError(f"{path}: must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+    if hi is not None and (v > hi or (hi_open and v == hi)):
+        raise ConfigError(f"{path}: must be {'<' if hi_open else '<='} {hi:g}, got {v:g}")
+    return v
+
+
+def _int(path, v, lo=None):
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ConfigError(f"{path}: expected an integer, got {v!r}")
+    if lo is not None and v < lo:
+        raise ConfigError(f"{path}: must be >= {lo}, got {v}")
+    return v
+
+
+def _choice(path, v, choices):
+    if v not in choices:
+        raise ConfigError(f"{path}: must be one of {sorted(choices)}, got {v!r}")
+    return v
+
+
+def _bool(path, v):
+    if not isinstance(v, bool):
+        raise ConfigError(f"{path}: expected true or false, got {v!r}")
+    return v
+
+
+@dataclass
+class GroundConfig:
+    height: float = 0.0
+    normal: tuple = (0.0, 0.0, 1.0)
+    mu: float = 0.8
+
+    def validate(self, p):
+        self.height = _num(f"{p}.height", self.height)
+        n = self.normal
+        if not isinstance(n, (list, tuple)) or len(n) != 3:
+            raise ConfigError(f"{p}.normal: expected a list of 3 numbers, got {n!r}")
+        n = tuple(_num(f"{p}.normal[{i}]", x) for i, x in enumerate(n))
+        norm = math.sqrt(sum(x * x for x in n))
+        if norm < 1e-9:
+            raise ConfigError(f"{p}.normal: must not be the zero vector")
+        self.normal = tuple(x / norm for x in n)
+        self.mu = _num(f"{p}.mu", self.mu, lo=0.0)
+
+
+@dataclass
+class ContactConfig:
+    #: Newton-type impact law ε_N, ε_T (hard contacts; the paper uses 0)
+    restitution_normal: float = 0.0
+    restitution_tangential: float = 0.0
+    #: compliant model (Alg. 1): c_N, d_N, c_T, d_T
+    stiffness_normal: float = 30000.0
+    damping_normal: float = 50.0
+    stiffness_tangential: float = 30000.0
+    damping_tangential: float = 50.0
+    #: |γ_T| below which a slipping compliant contact counts as stopped (‖γ_T‖ ≈ 0)
+    slip_velocity: float = 1e-4
+
+    def validate(self, p):
+        self.restitution_normal = _num(f"{p}.restitution_normal", self.restitution_normal, 0, 1)
+        self.restitution_tangential = _num(f"{p}.restitution_tangential",
+                                           self.restitution_tangential, 0, 1)
+        for n in ("stiffness_normal", "stiffness_tangential"):
+            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0, lo_open=True))
+        for n in ("damping_normal", "damping_tangential", "slip_velocity"):
+            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0))
+
+
+@dataclass
+class SolverConfig:
+    scheme: str = "jor"          # jor | sor
+    form: str = "delassus"       # delassus (Eqn. 12-16) | velocity (Eqn. 17-19)
+    alpha: float = 0.6           # relaxation α ∈ (0, 2)
+    tol_rel: float = 1e-6        # T_rel
+    tol_abs: float = 1e-6        # T_abs [N s]
+    max_iterations: int = 1000
+    criterion: str = "impulse"   # impulse (paper) | energy (½ uᵀMu)
+    warm_start: bool = True      # start from the last step's impulses of the same contacts
+    #: on a non-converged solve, retry once with α·factor (0 disables)
+    fallback_alpha_factor: float = 0.5
+
+    def validate(self, p):
+        self.scheme = _choice(f"{p}.scheme", self.scheme, {"jor", "sor"})
+        self.form = _choice(f"{p}.form", self.form, {"delassus", "velocity"})
+        self.alpha = _num(f"{p}.alpha", self.alpha, 0.0, 2.0, lo_open=True, hi_open=True)
+        self.tol_rel = _num(f"{p}.tol_rel", self.tol_rel, lo=0.0)
+        self.tol_abs = _num(f"{p}.tol_abs", self.tol_abs, lo=0.0)
+        if self.tol_rel == 0 and self.tol_abs == 0:
+            raise ConfigError(f"{p}.tol_rel/tol_abs: at least one tolerance must be > 0")
+        self.max_iterations = _int(f"{p}.max_iterations", self.max_iterations, lo=1)
+        self.criterion = _choice(f"{p}.criterion", self.criterion, {"impulse", "energy"})
+        self.warm_start = _bool(f"{p}.warm_start", self.warm_start)
+        self.fallback_alpha_factor = _num(f"{p}.fallback_alpha_factor",
+                                          self.fallback_alpha_factor, 0.0, 1.0, hi_open=True)
+
+
+@dataclass
+class BilateralConfig:
+    method: str = "none"  # none (minimal coordinates) | prox (Eqn. 19) | direct (Eqn. 20)
+
+    def validate(self, p):
+        self.method = _choice(f"{p}.method", self.method, {"none", "prox", "direct"})
+
+
+@dataclass
+class PhysicsConfig:
+    name: str = "custom"
+    description: str = ""
+    robot: str = "starleth.urdf"   # a file in urdf/, or an absolute path
+    coordinates: str = "minimal"   # minimal | extended | maximal
+    contact_model: str = "hard"    # hard | compliant
+    control_rate: float = 400.0    # [Hz]; sim.step() advances 1/control_rate
+    steps_per_control: int = 1     # N: Δt = 1 / (N · control_rate)
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    bilateral: BilateralConfig = field(default_factory=BilateralConfig)
+    #: paper's figures for this configuration (Table 1), for benchmarks and reports
+    paper: dict = field(default_factory=dict)
+
+    _SECTIONS = ("ground", "contact", "solver", "bilateral")
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / (self.control_rate * self.steps_per_control)
+
+    @property
+    def control_period(self) -> float:
+        return 1.0 / self.control_rate
+
+    def validate(self, source="config"):
+        p = source
+        if not isinstance(self.name, str) or not self.name:
+            raise ConfigError(f"{p}: name: expected a non-empty string, got {self.name!r}")
+        if not isinstance(self.robot, str):
+            raise ConfigError(f"{p}: robot: expected a file name, got {self.robot!r}")
+        try:
+            self.coordinates = _choice("coordinates", self.coordinates,
+                                       {"minimal", "extended", "maximal"})
+            self.contact_model = _choice("contact_model", self.contact_model,
+                                         {"hard", "compliant"})
+            self.control_rate = _num("control_rate", self.control_rate, lo=0.0, lo_open=True)
+            self.steps_per_control = _int("steps_per_control", self.steps_per_control, lo=1)
+            for s in self._SECTIONS:
+                getattr(self, s).validate(s)
+            if self.coordinates == "minimal" and self.bilateral.method != "none":
+                raise ConfigError("bilateral.method: the minimal coordinates have no bilateral "
+                                  "constraints; use 'none'")
+            if self.coordinates != "minimal" and self.bilateral.method == "none":
+                raise ConfigError(f"bilateral.method: coordinates '{self.coordinates}' need "
+                                  "'prox' or 'direct'")
+            if not isinstance(self.paper, dict):
+                raise ConfigError(f"paper: expected a mapping, got {self.paper!r}")
+        except ConfigError as e:
+            raise ConfigError(f"{p}: {e}") from None
+        return self
+
+    # -- construction ---------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, data: dict, source="config") -> "PhysicsConfig":
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: expected a mapping at the top level, got "
+                              f"{type(data).__name__}")
+        cfg = cls()
+        top = {f.name for f in fields(cls)}
+        for key, value in data.items():
+            if key not in top or key.startswith("_"):
+                raise ConfigError(f"{source}: unknown field '{key}' (known: "
+                                  f"{', '.join(sorted(t for t in top if not t.startswith('_')))})")
+            if key in cls._SECTIONS:
+                if value is None:
+                    continue
+                if not isinstance(value, dict):
+                    raise ConfigError(f"{source}: {key}: expected a mapping, got {value!r}")
+                section = getattr(cfg, key)
+                names = {f.name for f in fields(section)}
+                for k, v in value.items():
+                    if k not in names:
+                        raise ConfigError(f"{source}: unknown field '{key}.{k}' (known: "
+                                          f"{', '.join(sorted(names))})")
+                    setattr(section, k, v)
+            else:
+                setattr(cfg, key, value)
+        return cfg.validate(source)
+
+    @classmethod
+    def from_yaml(cls, path: str) -> "PhysicsConfig":
+        name = os.path.basename(path)
+        try:
+            with open(path) as f:
+                data = yaml.safe_load(f)
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: no such configuration file") from None
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{name}: not valid YAML: {e}") from None
+        return cls.from_dict(data, source=name)
+
+    def with_overrides(self, **overrides) -> "PhysicsConfig":
+        """A validated copy with fields replaced; keys are unique field names (`alpha`) or
+        dotted paths (`solver.alpha`)."""
+        cfg = copy.deepcopy(self)
+        index = {}
+        for s in self._SECTIONS:
+            for f in fields(getattr(cfg, s)):
+                index.setdefault(f.name, []).append(s)
+        for key, value in overrides.items():
+            if "." in key:
+                sec, _, name = key.partition(".")
+                if sec not in self._SECTIONS or name not in {f.name for f in fields(getattr(cfg, sec))}:
+                    raise ConfigError(f"override '{key}': no such field")
+                setattr(getattr(cfg, sec), name, value)
+            elif key in {f.name for f in fields(cfg)} and not key.startswith("_"):
+                if key in self._SECTIONS:
+                    raise ConfigError(f"override '{key}': give the section's fields instead")
+                setattr(cfg, key, value)
+            elif key in index:
+                if len(index[key]) > 1:
+                    raise ConfigError(f"override '{key}': ambiguous, use one of "
+                                      f"{[s + '.' + key for s in index[key]]}")
+                setattr(getattr(cfg, index[key][0]), key, value)
+            else:
+                raise ConfigError(f"override '{key}': no such field")
+        return cfg.validate(f"{cfg.name} (with overrides)")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["ground"]["normal"] = list(d["ground"]["normal"])
+        return d
+
+
+def config_dir() -> str:
+    from .description import package_share_dir
+    return os.path.join(package_share_dir(), "msg_configs")
+
+
+def available_presets() -> list[str]:
+    d = config_dir()
+    return sorted(os.path.splitext(f)[0] for f in os.listdir(d)
+                  if f.endswith(".yaml") and not f.startswith("sim_node")
+                  and _is_physics_file(os.path.join(d, f)))
+
+
+def _is_physics_file(path):
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+        return isinstance(data, dict) and "contact_model" in data
+    except Exception:
+        return False
+
+
+def load_preset(name_or_path: str) -> PhysicsConfig:
+    """A preset name from msg_configs/ (e.g. 'HmJ') or the path of a YAML file."""
+    if os.path.sep in name_or_path or name_or_path.endswith((".yaml", ".yml")):
+        return PhysicsConfig.from_yaml(name_or_path)
+    path = os.path.join(config_dir(), f"{name_or_path}.yaml")
+    if not os.path.exists(path):
+        raise ConfigError(f"unknown physics preset '{name_or_path}' (available: "
+                          f"{', '.join(available_presets())})")
+    return PhysicsConfig.from_yaml(path)

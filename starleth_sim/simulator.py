@@ -1,0 +1,309 @@
+"""The public headless API: ``Simulator`` (no ROS anywhere in here).
+
+    from starleth_sim import Simulator
+    sim = Simulator.from_preset("HmJ")           # or "Cm", "HmS", a YAML path; **overrides
+    sim.reset()                                   # standing on the ground
+    sim.step(tau)                                 # one control period (1/400 s), 12 torques
+    sim.q, sim.u, sim.t, sim.contacts, sim.diagnostics
+
+Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
+URDF effort limits. Contact impulses are reported in the world frame, summed over the
+physics steps of the control period; forces are impulse / control period (F = Λ/Δt with one
+step per control update, as in the paper's Fig. 5).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import PhysicsConfig, load_preset, ConfigError
+from .coordinates import MinimalCoordinates
+from .description import (RobotDescription, starleth_description, leg_angles_for_height,
+                          urdf_path)
+from .stepper import MoreauStepper, SimulationError, PHASES
+from . import prox
+
+log = logging.getLogger("starleth_sim")
+
+_STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
+           prox.STATUS_NONFINITE: "non_finite"}
+
+
+@dataclass
+class ContactInfo:
+    name: str
+    active: bool            # closed (g_N ≤ 0 at the midpoint) in the last physics step
+    gap: float              # g_N at the last step's midpoint [m] (negative: penetration)
+    impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
+    force: np.ndarray       # impulse / control period [N]
+    position: np.ndarray    # contact point in the world frame [m]
+
+
+@dataclass
+class Diagnostics:
+    """Solver figures of the last control step (summed / worst over its physics steps)."""
+
+    iterations: int = 0            # prox iterations, summed over the physics steps
+    max_iterations_step: int = 0   # worst physics step
+    converged: bool = True         # every physics step converged
+    status: str = "converged"
+    residual: float = 0.0          # max |Λ^{k+1} − Λ^k| of the final iterations [N s]
+    active_contacts: int = 0
+    retried: bool = False          # a step needed the fallback α
+    step_time: float = 0.0         # wall time of the control step [s]
+    physics_steps: int = 0         # cumulative
+    nonconverged_steps: int = 0    # cumulative
+    timings: dict = field(default_factory=dict)  # cumulative per phase (profile=True) [s]
+
+
+class Simulator:
+    """One simulated robot (or body) on a ground plane."""
+
+    def __init__(self, config: PhysicsConfig, description: RobotDescription | None = None,
+                 profile: bool = False):
+        self.config = config
+        if description is None:
+            path = config.robot if config.robot.startswith("/") else urdf_path(config.robot)
+            description = starleth_description(path)
+        self.description = description
+        if config.coordinates == "minimal":
+            self.coords = MinimalCoordinates(description)
+        else:
+            raise ConfigError(f"coordinates '{config.coordinates}' are not available in this "
+                              "version (minimal only)")
+        self.stepper = MoreauStepper(self.coords, config, profile=profile)
+        self.joint_names = tuple(description.joint_names)
+        self.n_joints = len(self.joint_names)
+        self.contact_names = tuple(description.contact_names())
+        self.control_period = config.control_period
+        self._persistent_wrenches = {}
+        self._pending_wrenches = []
+        self._nonconv_logged = 0
+        self.reset()
+
+    # -- construction ---------------------------------------------------------------------
+    @classmethod
+    def from_preset(cls, name: str = "HmJ", description: RobotDescription | None = None,
+                    profile: bool = False, **overrides) -> "Simulator":
+        cfg = load_preset(name)
+        if overrides:
+            cfg = cfg.with_overrides(**overrides)
+        return cls(cfg, description=description, profile=profile)
+
+    # -- state ----------------------------------------------------------------------------
+    def default_state(self):
+        """StarlETH: standing posture at its nominal height, feet on the ground. Any other
+        body: neutral configuration resting with its lowest contact point on the ground."""
+        c = self.coords
+        q = c.neutral()
+        d = self.description
+        if d.standing_height is not None and self.n_joints == 12:
+            hfe, kfe = leg_angles_for_height(d.standing_height, d)
+            joints = np.array([0.0, hfe, kfe] * 2 + [0.0, -hfe, -kfe] * 2)
+            q = c.make_state([0.0, 0.0, d.standing_height], [0, 0, 0, 1], joints)
+        if c.n_contacts:
+            gap = np.zeros(c.n_contacts)
+            pos = np.zeros((c.n_contacts, 3))
+            Wt = np.zeros((c.n_contacts, 3, c.nv))
+            g = self.stepper.ground
+            c.contact_kinematics(q, g, gap, pos, Wt)
+            q[0:3] -= g.n * gap.min()
+        return q
+
+    def reset(self, q=None, u=None, t: float = 0.0):
+        q = self.default_state() if q is None else np.array(q, dtype=float)
+        u = np.zeros(self.coords.nv) if u is None else np.array(u, dtype=float)
+        if q.shape != (self.coords.nq,) or u.shape != (self.coords.nv,):
+            raise ValueError(f"reset: q must have {self.coords.nq} and u {self.coords.nv} "
+                             f"entries, got {q.shape} and {u.shape}")
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(u))):
+            raise ValueError("reset: q and u must be finite")
+        q[3:7] /= np.linalg.norm(q[3:7])
+        self._q, self._u, self._t = q, u, float(t)
+        self.stepper.reset_contact_state()
+        self._tau = np.zeros(self.n_joints)
+        nc = self.coords.n_contacts
+        self._impulse = np.zeros((nc, 3))
+        self._active = np.zeros(nc, dtype=bool)
+        self._gap = np.zeros(nc)
+        self._pending_wrenches.clear()
+        self.diagnostics = Diagnostics()
+
+    @property
+    def q(self):
+        return self._q.copy()
+
+    @property
+    def u(self):
+        return self._u.copy()
+
+    @property
+    def t(self) -> float:
+        return self._t
+
+    @property
+    def dt(self) -> float:
+        return self.stepper.dt
+
+    @property
+    def applied_torque(self):
+        """The saturated torques applied during the last control step."""
+        return self._tau.copy()
+
+    def joint_positions(self):
+        return self.coords.joint_positions(self._q)
+
+    def joint_velocities(self):
+        return self.coords.joint_velocities(self._u)
+
+    def base_state(self):
+        """dict: position, orientation (x, y, z, w), linear_velocity (world),
+        angular_velocity (base frame)."""
+        p, quat, v, w = self.coords.base_state(self._q, self._u)
+        return {"position": p, "orientation_xyzw": quat, "linear_velocity": v,
+                "angular_velocity": w}
+
+    def gaps(self):
+        """g_N of every contact point at the current configuration q."""
+        c = self.coords
+        gap = np.zeros(c.n_contacts)
+        c.contact_kinematics(self._q, self.stepper.ground, gap, np.zeros((c.n_contacts, 3)),
+                             np.zeros((c.n_contacts, 3, c.nv)))
+        return gap
+
+    @property
+    def contacts(self):
+        g = self.stepper.ground
+        frame = g.frame  # rows n, t1, t2
+        world = self._impulse @ frame
+        pos = self.stepper.position
+        return [ContactInfo(n, bool(self._active[i]), float(self._gap[i]), world[i].copy(),
+                            world[i] / self.control_period, pos[i].copy())
+                for i, n in enumerate(self.contact_names)]
+
+    def contact(self, name: str) -> ContactInfo:
+        try:
+            i = self.contact_names.index(name)
+        except ValueError:
+            raise KeyError(f"unknown contact '{name}'") from None
+        return self.contacts[i]
+
+    # -- external wrenches ----------------------------------------------------------------
+    def _check_link(self, link):
+        if link not in self.coords.link_names():
+            raise ValueError(f"unknown link '{link}' (links: {', '.join(self.coords.link_names())})")
+
+    @staticmethod
+    def _vec3(name, v):
+        a = np.asarray(v, dtype=float).reshape(-1)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} must be 3 finite numbers, got {v!r}")
+        return a
+
+    def apply_wrench(self, link: str, force, torque=(0.0, 0.0, 0.0), duration: float | None = None):
+        """Apply a wrench (world axes, at the origin of `link`) for `duration` seconds
+        (default: one control period) starting with the next step."""
+        self._check_link(link)
+        f, m = self._vec3("force", force), self._vec3("torque", torque)
+        duration = self.control_period if duration is None else float(duration)
+        if not (duration > 0 and np.isfinite(duration)):
+            raise ValueError("duration must be positive")
+        self._pending_wrenches.append([link, f, m, duration])
+
+    def set_persistent_wrench(self, link: str, force, torque=(0.0, 0.0, 0.0)):
+        """Apply a wrench on `link` at every step until cleared (a zero wrench clears it)."""
+        self._check_link(link)
+        f, m = self._vec3("force", force), self._vec3("torque", torque)
+        if not f.any() and not m.any():
+            self._persistent_wrenches.pop(link, None)
+        else:
+            self._persistent_wrenches[link] = (f, m)
+
+    def clear_wrenches(self):
+        self._persistent_wrenches.clear()
+        self._pending_wrenches.clear()
+
+    def _external_force(self, q, dt):
+        if not self._persistent_wrenches and not self._pending_wrenches:
+            return None
+        f_ext = np.zeros(self.coords.nv)
+        for link, (f, m) in self._persistent_wrenches.items():
+            f_ext += self.coords.wrench_generalized_force(q, link, f, m)
+        for w in self._pending_wrenches:
+            link, f, m, remaining = w
+            frac = min(remaining, dt) / dt
+            f_ext += frac * self.coords.wrench_generalized_force(q, link, f, m)
+            w[3] = remaining - dt
+        self._pending_wrenches[:] = [w for w in self._pending_wrenches if w[3] > 1e-12]
+        return f_ext
+
+    # -- stepping -------------------------------------------------------------------------
+    def _validated_torque(self, tau):
+        if tau is None:
+            tau = np.zeros(self.n_joints)
+        a = np.asarray(tau, dtype=float).reshape(-1) if not isinstance(tau, np.ndarray) \
+            else tau.astype(float).reshape(-1)
+        if a.shape != (self.n_joints,):
+            raise ValueError(f"tau must have {self.n_joints} entries (joint order "
+                             f"{', '.join(self.joint_names)}), got {a.shape[0]}")
+        if not np.all(np.isfinite(a)):
+            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
+            raise ValueError(f"tau has non-finite entries for {', '.join(bad)}")
+        lim = self.description.effort_limit
+        return np.clip(a, -lim, lim)
+
+    def step(self, tau=None):
+        """Advance one control period with joint torques `tau` (zero-order hold). On a bad
+        `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged."""
+        tau = self._validated_torque(tau)
+        t_wall = time.perf_counter()
+        q, u = self._q, self._u
+        n = self.config.steps_per_control
+        dt = self.stepper.dt
+        impulse = np.zeros_like(self._impulse)
+        d = Diagnostics(physics_steps=self.diagnostics.physics_steps,
+                        nonconverged_steps=self.diagnostics.nonconverged_steps)
+        pending_backup = [list(w) for w in self._pending_wrenches]
+        stepper_state = (self.stepper.last_impulse.copy(), self.stepper.last_active.copy(),
+                         self.stepper.closed.copy(), self.stepper.slip.copy(),
+                         self.stepper.anchor.copy())
+        try:
+            for _ in range(n):
+                f_ext = self._external_force(q, dt)
+                q, u, res = self.stepper.step(q, u, tau, f_ext)
+                impulse += res.impulse
+                d.iterations += res.iterations
+                d.max_iterations_step = max(d.max_iterations_step, res.iterations)
+                d.residual = max(d.residual, res.residual)
+                d.retried |= res.retried
+                if res.status != prox.STATUS_CONVERGED:
+                    d.converged = False
+                    d.status = _STATUS[res.status]
+                    d.nonconverged_steps += 1
+                d.physics_steps += 1
+        except SimulationError:
+            self._pending_wrenches[:] = pending_backup
+            (self.stepper.last_impulse[:], self.stepper.last_active[:], self.stepper.closed[:],
+             self.stepper.slip[:], self.stepper.anchor[:]) = stepper_state
+            raise
+        self._q, self._u = q, u
+        self._t += self.control_period
+        self._tau = tau
+        self._impulse = impulse
+        self._active = res.active
+        self._gap = res.gap
+        d.active_contacts = int(res.active.sum())
+        d.step_time = time.perf_counter() - t_wall
+        if self.stepper.profile:
+            d.timings = dict(zip(PHASES, self.stepper.stats.timings.tolist()))
+        self.diagnostics = d
+        if not d.converged:
+            self._nonconv_logged += 1
+            if self._nonconv_logged == 1 or self._nonconv_logged % 1000 == 0:
+                log.warning("t=%.4f s: prox iteration did not converge (%s, %d iterations, "
+                            "residual %.3g N s); %d such steps so far", self._t, d.status,
+                            d.max_iterations_step, d.residual, d.nonconverged_steps)
+        return d
