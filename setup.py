@@ -1,0 +1,43 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'starleth_sim'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/urdf', glob('urdf/*.urdf')),
+        ('share/' + package_name + '/msg_configs', glob('msg_configs/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.py')),
+    ],
+    install_requires=[
+        'setuptools',
+        'numpy',
+        'pyyaml',
+        'pin',
+        'numba',
+        'mcap',
+        'mcap-ros2-support',
+    ],
+    zip_safe=False,
+    maintainer='StarlETH sim developers',
+    maintainer_email='dev@example.com',
+    description='Python simulator of the StarlETH quadruped with a ROS 2 interface.',
+    license='BSD-3-Clause',
+    extras_require={'test': ['pytest']},
+    entry_points={
+        'console_scripts': [
+            'sim_node = starleth_sim.nodes.sim_node:main',
+            'controller_node = starleth_controller.controller_node:main',
+            'starleth-bench = starleth_sim.bench:main',
+            'starleth-demo = starleth_sim.demo:main',
+            'starleth-eval = starleth_sim.evaluation:main',
+            'starleth-analyze = starleth_sim.analysis:main',
+        ],
+    },
+)
