@@ -7,9 +7,9 @@ of StarlETH, more than CRBA and RNEA together. The tree below is extracted once 
 jitted call; ``test/test_kinematics.py`` checks positions and Jacobians against
 ``pin.framesForwardKinematics`` / ``pin.getFrameJacobian`` to 1e-12.
 
-Conventions (Pinocchio's, used throughout the minimal coordinates):
-    q = [r_IB (3), quaternion (x, y, z, w), joint angles]
-    u = [B_v_B (3, linear velocity in the *base* frame), B_ω_IB (3), joint rates]
+Conventions (the paper's minimal set, Eqn. 21, with Pinocchio's quaternion storage order):
+    q = [I_r_OB (3), quaternion (x, y, z, w), joint angles]
+    u = [I_v_B (3, trunk linear velocity in the *inertial* frame), B_ω_IB (3), joint rates]
 The Jacobians returned here map u to velocities in the world frame.
 """
 from __future__ import annotations
@@ -148,11 +148,9 @@ def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
         if jtype[k] == JT_FREEFLYER:
             R = oR[k]
             for c in range(3):
-                # linear velocity expressed in the joint frame
-                out[0, iv + c] = R[0, c]
-                out[1, iv + c] = R[1, c]
-                out[2, iv + c] = R[2, c]
-                # angular velocity in the joint frame: (R e_c) x d
+                # linear velocity of the root in the inertial frame
+                out[c, iv + c] = 1.0
+                # angular velocity in the root (body) frame: (R e_c) x d
                 a0, a1, a2 = R[0, c], R[1, c], R[2, c]
                 out[0, iv + 3 + c] = a1 * d2 - a2 * d1
                 out[1, iv + 3 + c] = a2 * d0 - a0 * d2

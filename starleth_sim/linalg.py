@@ -68,12 +68,3 @@ def cholesky_solve_cols(L, B):
             for k in range(i + 1, n):
                 s -= L[k, i] * B[k, c]
             B[i, c] = s / L[i, i]
-
-
-@nb.njit(cache=True)
-def symmetrize_upper(A):
-    """Copy the upper triangle into the lower one (pin.crba fills only the upper part)."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            A[i, j] = A[j, i]

@@ -19,7 +19,7 @@ import numba as nb
 
 from . import prox
 from .contact import GroundPlane, compliant_contact_forces, generalized_contact_force
-from .linalg import cholesky_upper_input, cholesky_solve_cols, cholesky_solve_vec, symmetrize_upper
+from .linalg import cholesky_upper_input, cholesky_solve_cols, cholesky_solve_vec
 
 #: Fig. 7 phases
 PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")
@@ -150,8 +150,7 @@ class MoreauStepper:
         if prof:
             t0 = time.perf_counter()
         qM = coords.integrate(q, u, 0.5 * dt)
-        M = coords.mass_matrix(qM)
-        h = coords.forces(qM, u, tau)
+        M, h = coords.dynamics(qM, u, tau)
         if f_ext is not None:
             h += f_ext
         if prof:
@@ -228,11 +227,7 @@ class MoreauStepper:
             Gdiag = np.empty(m)
             prox.delassus_diagonal(Wt, MinvW, Gdiag)
         mu = self.mu_all[:na]
-        if self.criterion == prox.CRITERION_ENERGY:
-            Msym = M.copy()
-            symmetrize_upper(Msym)
-        else:
-            Msym = self.empty_M
+        Msym = M if self.criterion == prox.CRITERION_ENERGY else self.empty_M
         if prof:
             t3 = time.perf_counter()
             self.stats.timings[2] += t3 - t2

@@ -1,0 +1,50 @@
+"""StarlETH standing on flat ground under a joint PD posture hold, for each contact model."""
+import numpy as np
+import pytest
+
+from starleth_sim import Simulator
+from starleth_sim.posture import PostureHold
+
+G = 9.81
+
+
+def stand(preset, seconds, **overrides):
+    sim = Simulator.from_preset(preset, **overrides)
+    hold = PostureHold(sim.joint_positions())
+    weight = sim.description.total_mass * G
+    feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
+    history = []
+    for _ in range(int(round(seconds / sim.control_period))):
+        d = sim.step(hold.torque(sim))
+        cs = sim.contacts
+        history.append((sim.t, sum(c.impulse[2] for c in cs), min(sim.gaps()[feet]),
+                        np.linalg.norm(sim.q[3:7]), d.converged, sim.q[2]))
+    return sim, np.array(history), weight
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "HmS"])
+def test_hard_contact_standing_balances_weight_without_penetration(preset):
+    sim, hist, weight = stand(preset, 6.0)
+    t, impulse_z, min_gap, qnorm, conv, z = hist.T
+    settled = t > 4.0  # the posture PD's sway has decayed
+    assert conv.all()
+    # Σ Λ_N per step = m g Δt once the trunk is at rest
+    np.testing.assert_allclose(impulse_z[settled], weight * sim.dt, rtol=1e-4)
+    assert min_gap.min() > -1e-4          # penetration < 0.1 mm over 6 s
+    assert np.abs(qnorm - 1.0).max() < 1e-12
+    assert z[-1] > 0.39                   # still standing
+    # only the four feet touch
+    active = [c.name for c in sim.contacts if c.active]
+    assert sorted(active) == sorted(sim.description.foot_names)
+
+
+def test_compliant_standing_sinks_by_weight_over_four_springs():
+    sim, hist, weight = stand("Cm", 6.0)
+    t, impulse_z, min_gap, qnorm, conv, z = hist.T
+    c_n = sim.config.contact.stiffness_normal
+    feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
+    sink = -sim.gaps()[feet]
+    assert sink.mean() == pytest.approx(weight / (4 * c_n), rel=0.2)
+    # force balance (averaged over the control period)
+    np.testing.assert_allclose(impulse_z[t > 5.0] / sim.control_period, weight, rtol=1e-3)
+    assert sim.config.steps_per_control == 2 and sim.dt == pytest.approx(1.25e-3)
