@@ -62,6 +62,8 @@ class Diagnostics:
 class Simulator:
     """One simulated robot (or body) on a ground plane."""
 
+    REST_OVERLAP = 1e-9  # [m]
+
     def __init__(self, config: PhysicsConfig, description: RobotDescription | None = None,
                  profile: bool = False):
         self.config = config
@@ -96,7 +98,9 @@ class Simulator:
     # -- state ----------------------------------------------------------------------------
     def default_state(self):
         """StarlETH: standing posture at its nominal height, feet on the ground. Any other
-        body: neutral configuration resting with its lowest contact point on the ground."""
+        body: neutral configuration resting with its lowest contact point on the ground.
+        Resting means a 1 nm overlap, so that round-off cannot leave a touching contact open
+        (the active set is g_N ≤ 0)."""
         c = self.coords
         q = c.neutral()
         d = self.description
@@ -110,7 +114,7 @@ class Simulator:
             Wt = np.zeros((c.n_contacts, 3, c.nv))
             g = self.stepper.ground
             c.contact_kinematics(q, g, gap, pos, Wt)
-            q[0:3] -= g.n * gap.min()
+            q[0:3] -= g.n * (gap.min() + self.REST_OVERLAP)
         return q
 
     def reset(self, q=None, u=None, t: float = 0.0):

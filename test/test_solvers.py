@@ -1,0 +1,112 @@
+"""The four prox schemes (JOR/SOR x Delassus/velocity form) solve the same contact problems
+as each other and as Pinocchio's own PGS solver (pin.PGSConstraintSolver)."""
+import numpy as np
+import pytest
+
+from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
+from starleth_sim import Simulator, prox
+from starleth_sim.stepper import free_velocity, gather_rows, minv_w, restitution_and_rhs
+
+SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
+
+
+def robot_problem(u_scale, seed, mu=0.8):
+    """The contact problem of one HmJ step from the standing posture with random velocities."""
+    sim = Simulator.from_preset("HmJ")
+    rng = np.random.default_rng(seed)
+    u = u_scale * rng.standard_normal(sim.coords.nv)
+    st = sim.stepper
+    q = sim.q
+    q[2] -= 5e-3  # 5 mm overlap: all four feet stay closed at the midpoint
+    qM = sim.coords.integrate(q, u, 0.5 * st.dt)
+    tau = 5.0 * rng.standard_normal(12)
+    M, h = sim.coords.dynamics(qM, u, tau)
+    sim.coords.contact_kinematics(qM, st.ground, st.gap, st.position, st.Wt_all)
+    active = np.flatnonzero(st.gap <= 0.0)
+    assert len(active) == 4
+    na, nv = len(active), sim.coords.nv
+    L, u_free = np.zeros((nv, nv)), np.zeros(nv)
+    assert free_velocity(M, h, st.dt, u, L, u_free)
+    Wt = np.empty((3 * na, nv))
+    gather_rows(st.Wt_all, active, Wt)
+    MinvW = np.empty((nv, 3 * na))
+    minv_w(L, Wt, MinvW)
+    bvec, c = np.empty(3 * na), np.empty(3 * na)
+    restitution_and_rhs(Wt, u, u_free, np.zeros(3 * na), bvec, c)
+    G = np.empty((3 * na, 3 * na))
+    prox.delassus(Wt, MinvW, G)
+    return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
+                mu=np.full(na, mu))
+
+
+def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
+    m = 3 * p["na"]
+    r = np.empty(m)
+    prox.prox_parameters(np.diag(p["G"]).copy(), p["na"], alpha, r)
+    lam = np.zeros(m)
+    u = np.empty(p["M"].shape[0])
+    it, status, res = prox.prox_solve(
+        prox.FORMS[form], prox.SCHEMES[scheme], p["Wt"], p["MinvW"], p["u_free"], p["bvec"],
+        p["G"], p["c"], p["na"], p["mu"], r, lam, 0.0, tol, max_iter, False, np.zeros((0, 0)),
+        criterion, p["M"], u)
+    return lam, u, it, status
+
+
+@pytest.mark.parametrize("u_scale,seed", [(0.0, 0), (0.05, 1), (0.5, 2), (1.0, 3)])
+def test_prox_schemes_agree_with_each_other_and_with_pinocchio_pgs(u_scale, seed):
+    p = robot_problem(u_scale, seed)
+    ref = pin_pgs_solve(p["G"], p["c"], p["mu"], tol=1e-14)
+    assert check_coulomb_ncp(p["G"], p["c"], p["mu"], ref) < 1e-9
+    for form, scheme in SCHEMES:
+        lam, u, it, status = solve(p, form, scheme)
+        assert status == prox.STATUS_CONVERGED, (form, scheme, it)
+        np.testing.assert_allclose(lam, ref, atol=1e-8, rtol=0, err_msg=f"{form}/{scheme}")
+        # the end velocity is u_free + M^-1 W Λ (Eqn. 17) and satisfies ξ = W^T u^E (ε = 0)
+        np.testing.assert_allclose(u, p["u_free"] + p["MinvW"] @ lam, atol=1e-10)
+        np.testing.assert_allclose(p["Wt"] @ u, p["G"] @ lam + p["c"], atol=1e-10)
+
+
+def test_problem_set_covers_stick_slip_and_open_contacts():
+    """The cross-check above is only meaningful if it exercises every branch of the laws."""
+    kinds = set()
+    for u_scale, seed in [(0.0, 0), (0.05, 1), (0.5, 2), (1.0, 3)]:
+        p = robot_problem(u_scale, seed)
+        lam = pin_pgs_solve(p["G"], p["c"], p["mu"], tol=1e-14).reshape(-1, 3)
+        for ln, t1, t2 in lam:
+            if ln < 1e-12:
+                kinds.add("open")
+            elif np.hypot(t1, t2) < 0.8 * ln * (1 - 1e-6):
+                kinds.add("stick")
+            else:
+                kinds.add("slip")
+    assert kinds == {"open", "stick", "slip"}
+
+
+@pytest.mark.parametrize("form,scheme", SCHEMES)
+def test_energy_criterion_terminates_at_the_same_solution(form, scheme):
+    p = robot_problem(0.5, 2)
+    lam_ref, u_ref, _, _ = solve(p, form, scheme)
+    lam, u, it, status = solve(p, form, scheme, tol=1e-14, criterion=prox.CRITERION_ENERGY)
+    assert status == prox.STATUS_CONVERGED
+    np.testing.assert_allclose(u, u_ref, atol=1e-6)
+
+
+def test_too_aggressive_alpha_is_reported_not_accepted():
+    """JOR on a box resting on 4 corners (rank-deficient G) needs α < ~0.5: α = 1.9 cycles."""
+    from starleth_sim import load_preset
+    from starleth_sim.description import RobotDescription, box_urdf
+    cfg = load_preset("HmJ").with_overrides(alpha=1.9, max_iterations=200,
+                                            fallback_alpha_factor=0.0, tol_abs=1e-12)
+    sim = Simulator(cfg, description=RobotDescription.from_urdf_xml(box_urdf()))
+    q = sim.q
+    q[2] -= 1e-9
+    sim.reset(q)
+    d = sim.step()
+    assert not d.converged and d.status == "max_iterations"
+    assert d.iterations == 200 and d.nonconverged_steps == 1
+    assert np.all(np.isfinite(sim.q))
+    # with the fallback (α·0.5, then accepted) the same step converges and says it retried
+    sim2 = Simulator(cfg.with_overrides(fallback_alpha_factor=0.1), description=sim.description)
+    sim2.reset(q)
+    d2 = sim2.step()
+    assert d2.converged and d2.retried
