@@ -84,6 +84,12 @@ class ContactConfig:
     damping_tangential: float = 50.0
     #: |γ_T| below which a slipping compliant contact counts as stopped (‖γ_T‖ ≈ 0)
     slip_velocity: float = 1e-4
+    #: hard contacts: a contact is in the active set when g_N(q^M) ≤ activation_gap. The
+    #: paper uses 0; a tiny positive margin keeps a loaded foot whose gap round-off or the
+    #: solver tolerance made 1e-8 m positive from being dropped for a whole step (it then
+    #: sinks by ~0.4 mm in one 2.5 ms step). Contacts in the margin can still separate
+    #: (Λ_N ≥ 0); an approaching body is stopped at most this far above the ground [m].
+    activation_gap: float = 1e-5
 
     def validate(self, p):
         self.restitution_normal = _num(f"{p}.restitution_normal", self.restitution_normal, 0, 1)
@@ -91,7 +97,7 @@ class ContactConfig:
                                            self.restitution_tangential, 0, 1)
         for n in ("stiffness_normal", "stiffness_tangential"):
             setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0, lo_open=True))
-        for n in ("damping_normal", "damping_tangential", "slip_velocity"):
+        for n in ("damping_normal", "damping_tangential", "slip_velocity", "activation_gap"):
             setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0))
 
 

@@ -35,7 +35,7 @@ _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterat
 @dataclass
 class ContactInfo:
     name: str
-    active: bool            # closed (g_N ≤ 0 at the midpoint) in the last physics step
+    active: bool            # in the active set (g_N ≤ activation gap at the midpoint)
     gap: float              # g_N at the last step's midpoint [m] (negative: penetration)
     impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
     force: np.ndarray       # impulse / control period [N]

@@ -2,7 +2,8 @@
 
 One step over Δt = t^E − t^S:
     q^M = q^S ⊕ ½Δt F(q^S) u^S                                  (6)
-    M, h, W evaluated at (q^M, u^S); active set I = {i | g_N,i(q^M) ≤ 0}
+    M, h, W evaluated at (q^M, u^S); active set I = {i | g_N,i(q^M) ≤ g_act}
+    (g_act = contact.activation_gap, 10 µm by default; the paper's 0 is allowed)
     M (u^E − u^S) − h Δt − W_U Λ_U − W_B Λ_B = 0, (ξ, Λ) ∈ U × B   (7)
     q^E = q^M ⊕ ½Δt F(q^M) u^E                                   (8)
 Hard contacts solve (7) with the JOR/SOR prox iterations of :mod:`starleth_sim.prox`;
@@ -110,6 +111,7 @@ class MoreauStepper:
                                   config.ground.mu)
         self.dt = config.dt
         self.hard = config.contact_model == "hard"
+        self.activation_gap = config.contact.activation_gap if self.hard else 0.0
         nc, nv = coords.n_contacts, coords.nv
         self.nc, self.nv = nc, nv
         self.gap = np.zeros(nc)
@@ -197,10 +199,11 @@ class MoreauStepper:
             t1 = time.perf_counter()
         if not free_velocity(M, h, dt, uS, self.L, self.u_free):
             raise SimulationError("mass matrix not positive definite (non-finite state?)")
-        active = np.flatnonzero(self.gap <= 0.0)
+        is_active = self.gap <= self.activation_gap
+        active = np.flatnonzero(is_active)
         na = active.shape[0]
         impulse = np.zeros((self.nc, 3))
-        res = StepResult(active=self.gap <= 0.0, gap=self.gap.copy(), impulse=impulse)
+        res = StepResult(active=is_active, gap=self.gap.copy(), impulse=impulse)
         if na == 0:
             if prof:
                 self.stats.timings[1] += time.perf_counter() - t1
