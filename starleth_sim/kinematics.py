@@ -107,13 +107,24 @@ def axis_angle_to_rot(a, theta, R):
     R[2, 2] = t * z * z + c
 
 
+@nb.njit(cache=True, inline="always")
+def _matmul3(A, B, out):
+    """out = A B for 3x3 matrices (explicit loops: BLAS calls cost more than the flops)."""
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = A[r, 0] * B[0, c] + A[r, 1] * B[1, c] + A[r, 2] * B[2, c]
+
+
 @nb.njit(cache=True)
 def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
     """World placements (oR[j], op[j]) of all joint frames: oM_j = oM_parent · placement_j · M_j(q)."""
     nj = parent.shape[0]
-    oR[0, :, :] = np.eye(3)
-    op[0, :] = 0.0
+    for r in range(3):
+        for c in range(3):
+            oR[0, r, c] = 1.0 if r == c else 0.0
+        op[0, r] = 0.0
     Rq = np.empty((3, 3))
+    tmp = np.empty((3, 3))
     pq = np.zeros(3)
     for j in range(1, nj):
         iq = idx_q[j]
@@ -124,19 +135,29 @@ def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
             pq[2] = q[iq + 2]
         else:
             axis_angle_to_rot(axis[j], q[iq], Rq)
-            pq[:] = 0.0
+            pq[0] = 0.0
+            pq[1] = 0.0
+            pq[2] = 0.0
         par = parent[j]
-        Rpar = oR[par]
-        RplRq = pl_R[j] @ Rq
-        oR[j] = Rpar @ RplRq
-        op[j] = op[par] + Rpar @ (pl_p[j] + pl_R[j] @ pq)
+        # p_local = placement.p + placement.R pq ; op = op_par + oR_par p_local
+        for r in range(3):
+            pl = pl_p[j, r] + pl_R[j, r, 0] * pq[0] + pl_R[j, r, 1] * pq[1] + pl_R[j, r, 2] * pq[2]
+            tmp[0, r] = pl
+        for r in range(3):
+            op[j, r] = (op[par, r] + oR[par, r, 0] * tmp[0, 0] + oR[par, r, 1] * tmp[0, 1]
+                        + oR[par, r, 2] * tmp[0, 2])
+        _matmul3(pl_R[j], Rq, tmp)
+        _matmul3(oR[par], tmp, oR[j])
 
 
 @nb.njit(cache=True)
 def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
     """Jacobian (3 x nv) of the world velocity of the material point at world position p that
     is rigidly attached to joint frame j; forward_kinematics must have been run."""
-    out[:, :] = 0.0
+    nv = out.shape[1]
+    for r in range(3):
+        for c in range(nv):
+            out[r, c] = 0.0
     nj = jtype.shape[0]
     for k in range(1, nj):
         if not support[j, k]:
@@ -156,35 +177,43 @@ def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
                 out[1, iv + 3 + c] = a2 * d0 - a0 * d2
                 out[2, iv + 3 + c] = a0 * d1 - a1 * d0
         else:
-            a = oR[k] @ axis[k]
-            out[0, iv] = a[1] * d2 - a[2] * d1
-            out[1, iv] = a[2] * d0 - a[0] * d2
-            out[2, iv] = a[0] * d1 - a[1] * d0
+            a0 = oR[k, 0, 0] * axis[k, 0] + oR[k, 0, 1] * axis[k, 1] + oR[k, 0, 2] * axis[k, 2]
+            a1 = oR[k, 1, 0] * axis[k, 0] + oR[k, 1, 1] * axis[k, 1] + oR[k, 1, 2] * axis[k, 2]
+            a2 = oR[k, 2, 0] * axis[k, 0] + oR[k, 2, 1] * axis[k, 1] + oR[k, 2, 2] * axis[k, 2]
+            out[0, iv] = a1 * d2 - a2 * d1
+            out[1, iv] = a2 * d0 - a0 * d2
+            out[2, iv] = a0 * d1 - a1 * d0
 
 
 @nb.njit(cache=True)
 def contact_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                        c_joint, c_local, c_radius, normal, tangent1, tangent2, ground_offset,
-                       gap, position, Wt):
+                       jacobian_gap, gap, position, Wt):
     """Gaps g_N, contact-point positions and contact-frame Jacobians of all contact points.
 
     Contact point i is a sphere of radius c_radius[i] centred at c_local[i] in the frame of
     joint c_joint[i] (radius 0: a point). Against the plane {x | n·x = ground_offset}:
         g_N,i = n·c_i − ground_offset − r_i,    P_i = c_i − r_i n  (the closest point),
         Wt[i] = [n, t1, t2]^T J_P,i  (3 x nv), so that γ_i = Wt[i] u = [γ_N, γ_T1, γ_T2].
-    Wt[i] is W_{U,i}^T of Eqn. (1).
+    Wt[i] is W_{U,i}^T of Eqn. (1). It is only computed for contacts with
+    g_N,i ≤ jacobian_gap (the others' rows are left as they were).
     """
     forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
     nc = c_joint.shape[0]
     nv = Wt.shape[2]
     J = np.empty((3, nv))
+    c = np.empty(3)
     for i in range(nc):
         j = c_joint[i]
-        c = oR[j] @ c_local[i] + op[j]
+        for k in range(3):
+            c[k] = (oR[j, k, 0] * c_local[i, 0] + oR[j, k, 1] * c_local[i, 1]
+                    + oR[j, k, 2] * c_local[i, 2] + op[j, k])
         r = c_radius[i]
         gap[i] = normal[0] * c[0] + normal[1] * c[1] + normal[2] * c[2] - ground_offset - r
         for k in range(3):
             position[i, k] = c[k] - r * normal[k]
+        if gap[i] > jacobian_gap:
+            continue
         point_jacobian(j, position[i], jtype, axis, idx_v, support, oR, op, J)
         for col in range(nv):
             Wt[i, 0, col] = normal[0] * J[0, col] + normal[1] * J[1, col] + normal[2] * J[2, col]

@@ -66,17 +66,164 @@ def minv_w(L, Wt, MinvW):
 
 
 @nb.njit(cache=True)
-def restitution_and_rhs(Wt, uS, u_free, eps, bvec, c):
-    """b = ε W^T u^S and c = W^T u_free + b (= W^T M^{-1} h Δt + (I + ε) W^T u^S, Eqn. 15)."""
-    m, nv = Wt.shape
+def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps_n, eps_t, L, u_free):
+    """Fig. 7 phase "M^-1": Cholesky of M, u_free = u^S + M^{-1} h Δt, the active set
+    {i | g_N,i ≤ activation_gap}, W_U^T of the active contacts, M^{-1} W_U and
+    b = ε W_U^T u^S. Returns (ok, active, Wt, MinvW, b)."""
+    nv = uS.shape[0]
+    ok = free_velocity(M, h, dt, uS, L, u_free)
+    na = 0
+    for i in range(gap.shape[0]):
+        if gap[i] <= activation_gap:
+            na += 1
+    active = np.empty(na, dtype=np.int64)
+    k = 0
+    for i in range(gap.shape[0]):
+        if gap[i] <= activation_gap:
+            active[k] = i
+            k += 1
+    m = 3 * na
+    Wt = np.empty((m, nv))
+    MinvW = np.empty((nv, m))
+    bvec = np.empty(m)
+    if not ok or na == 0:
+        return ok, active, Wt, MinvW, bvec
+    gather_rows(Wt_all, active, Wt)
+    minv_w(L, Wt, MinvW)
     for a in range(m):
-        s0 = 0.0
-        s1 = 0.0
-        for k in range(nv):
-            s0 += Wt[a, k] * uS[k]
-            s1 += Wt[a, k] * u_free[k]
-        bvec[a] = eps[a] * s0
-        c[a] = s1 + bvec[a]
+        s = 0.0
+        for j in range(nv):
+            s += Wt[a, j] * uS[j]
+        bvec[a] = (eps_n if a % 3 == 0 else eps_t) * s
+    return ok, active, Wt, MinvW, bvec
+
+
+@nb.njit(cache=True)
+def phase_delassus(form, Wt, MinvW, u_free, bvec):
+    """Fig. 7 phase "G": c = W^T u_free + b (Eqn. 15) and G = W^T M^{-1} W (Delassus form),
+    or only diag(G) (velocity form, for the r parameters). Returns (G, c, diag(G))."""
+    m, nv = Wt.shape
+    c = np.empty(m)
+    for a in range(m):
+        s = bvec[a]
+        for j in range(nv):
+            s += Wt[a, j] * u_free[j]
+        c[a] = s
+    Gdiag = np.empty(m)
+    if form == prox.FORM_DELASSUS:
+        G = np.empty((m, m))
+        prox.delassus(Wt, MinvW, G)
+        for a in range(m):
+            Gdiag[a] = G[a, a]
+    else:
+        G = np.empty((0, 0))
+        prox.delassus_diagonal(Wt, MinvW, Gdiag)
+    return G, c, Gdiag
+
+
+@nb.njit(cache=True)
+def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, active, last_impulse,
+               last_active, mu, alpha, tol_rel, tol_abs, max_iter, criterion, M, warm_start,
+               fallback_factor):
+    """Fig. 7 phase "u^E": warm start from the last step's impulses of contacts that stay
+    active, the prox iteration, and one retry with α·fallback_factor if it did not converge.
+    Returns (u^E, Λ, iterations, status, residual, retried)."""
+    na = active.shape[0]
+    m = 3 * na
+    nv = u_free.shape[0]
+    lam0 = np.zeros(m)
+    if warm_start:
+        for a in range(na):
+            i = active[a]
+            if last_active[i]:
+                for k in range(3):
+                    lam0[3 * a + k] = last_impulse[i, k]
+    mu_vec = np.full(na, mu)
+    attempts = 2 if fallback_factor > 0.0 else 1
+    r = np.empty(m)
+    u = np.empty(nv)
+    lam = lam0.copy()
+    iters = 0
+    status = prox.STATUS_CONVERGED
+    resid = 0.0
+    retried = False
+    LB = np.zeros((0, 0))
+    for attempt in range(attempts):
+        prox.prox_parameters(Gdiag, na, alpha, r)
+        lam[:] = lam0
+        it, status, resid = prox.prox_solve(form, scheme, Wt, MinvW, u_free, bvec, G, c, na,
+                                            mu_vec, r, lam, tol_rel, tol_abs, max_iter, False,
+                                            LB, criterion, M, u)
+        iters += it
+        if status == prox.STATUS_CONVERGED:
+            break
+        if attempt + 1 < attempts:
+            retried = True
+            alpha *= fallback_factor
+    return u, lam, iters, status, resid, retried
+
+
+# packed parameters of the fused kernel (fewer arguments to unbox per call)
+FP_ACTIVATION, FP_EPS_N, FP_EPS_T, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK = range(8)
+IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM = range(5)
+
+
+@nb.njit(cache=True)
+def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, L, u_free, fp, ip, last_impulse,
+                        last_active, impulse, is_active, u):
+    """The three phases in one jitted call (the unprofiled hot path). Writes Λ of every
+    contact point into impulse (nc x 3), the active flags and u^E; on success (status not
+    non-finite) the warm-start memory (last_impulse, last_active) is updated.
+    Returns (ok, iterations, status, residual, retried)."""
+    ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, fp[FP_ACTIVATION],
+                                             fp[FP_EPS_N], fp[FP_EPS_T], L, u_free)
+    nc = gap.shape[0]
+    for i in range(nc):
+        is_active[i] = False
+        impulse[i, 0] = 0.0
+        impulse[i, 1] = 0.0
+        impulse[i, 2] = 0.0
+    if not ok:
+        return ok, 0, prox.STATUS_NONFINITE, 0.0, False
+    na = active.shape[0]
+    it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
+    if na == 0:
+        u[:] = u_free
+    else:
+        G, c, Gdiag = phase_delassus(ip[IP_FORM], Wt, MinvW, u_free, bvec)
+        uE, lam, it, status, resid, retried = phase_prox(
+            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, active,
+            last_impulse, last_active, fp[FP_MU], fp[FP_ALPHA], fp[FP_TOL_REL], fp[FP_TOL_ABS],
+            ip[IP_MAX_ITER], ip[IP_CRITERION], M, ip[IP_WARM] != 0, fp[FP_FALLBACK])
+        u[:] = uE
+        for a in range(na):
+            i = active[a]
+            is_active[i] = True
+            for k in range(3):
+                impulse[i, k] = lam[3 * a + k]
+    finite = True
+    for k in range(u.shape[0]):
+        if not np.isfinite(u[k]):
+            finite = False
+    if not finite:
+        status = prox.STATUS_NONFINITE
+    if status != prox.STATUS_NONFINITE:
+        for i in range(nc):
+            last_active[i] = is_active[i]
+            for k in range(3):
+                last_impulse[i, k] = impulse[i, k]
+    return ok, it, status, resid, retried
+
+
+@nb.njit(cache=True)
+def all_finite(a, b):
+    for k in range(a.shape[0]):
+        if not np.isfinite(a[k]):
+            return False
+    for k in range(b.shape[0]):
+        if not np.isfinite(b[k]):
+            return False
+    return True
 
 
 @dataclass
@@ -119,16 +266,16 @@ class MoreauStepper:
         self.Wt_all = np.zeros((nc, 3, nv))
         self.L = np.zeros((nv, nv))
         self.u_free = np.zeros(nv)
-        self.mu_all = np.full(nc, config.ground.mu)
-        self.eps_all = np.tile([config.contact.restitution_normal,
-                                config.contact.restitution_tangential,
-                                config.contact.restitution_tangential], nc)
         s = config.solver
         self.form = prox.FORMS[s.form]
         self.scheme = prox.SCHEMES[s.scheme]
         self.criterion = prox.CRITERIA[s.criterion]
-        self.empty_LB = np.zeros((0, 0))
-        self.empty_M = np.zeros((0, 0))
+        c = config.contact
+        self.fparams = np.array([self.activation_gap, c.restitution_normal,
+                                 c.restitution_tangential, config.ground.mu, s.alpha, s.tol_rel,
+                                 s.tol_abs, s.fallback_alpha_factor])
+        self.iparams = np.array([self.form, self.scheme, s.max_iterations, self.criterion,
+                                 int(s.warm_start)], dtype=np.int64)
         self.stats = StepperStats()
         self.reset_contact_state()
 
@@ -158,7 +305,8 @@ class MoreauStepper:
         if prof:
             t1 = time.perf_counter()
             self.stats.timings[0] += t1 - t0
-        coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all)
+        coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
+                                  self.activation_gap)
         if self.hard:
             uE, res = self._solve_hard(M, h, u, dt, prof)
         else:
@@ -166,7 +314,7 @@ class MoreauStepper:
         if prof:
             t4 = time.perf_counter()
         qE = coords.integrate(qM, uE, 0.5 * dt)
-        if not (np.all(np.isfinite(qE)) and np.all(np.isfinite(uE))):
+        if not all_finite(qE, uE):
             raise SimulationError("non-finite state after the step; state left unchanged")
         self.stats.steps += 1
         if prof:
@@ -194,79 +342,52 @@ class MoreauStepper:
         return self.u_free.copy(), res
 
     def _solve_hard(self, M, h, uS, dt, prof):
-        s = self.cfg.solver
-        if prof:
+        nc = self.nc
+        impulse = np.empty((nc, 3))
+        is_active = np.empty(nc, dtype=np.bool_)
+        u = np.empty(self.nv)
+        if not prof:
+            ok, it, status, resid, retried = solve_hard_contacts(
+                M, h, dt, uS, self.gap, self.Wt_all, self.L, self.u_free, self.fparams,
+                self.iparams, self.last_impulse, self.last_active, impulse, is_active, u)
+        else:  # the same phases, called one by one between timers (Fig. 7)
+            s = self.cfg.solver
+            c = self.cfg.contact
             t1 = time.perf_counter()
-        if not free_velocity(M, h, dt, uS, self.L, self.u_free):
-            raise SimulationError("mass matrix not positive definite (non-finite state?)")
-        is_active = self.gap <= self.activation_gap
-        active = np.flatnonzero(is_active)
-        na = active.shape[0]
-        impulse = np.zeros((self.nc, 3))
-        res = StepResult(active=is_active, gap=self.gap.copy(), impulse=impulse)
-        if na == 0:
-            if prof:
-                self.stats.timings[1] += time.perf_counter() - t1
-            self.last_active[:] = False
-            return self.u_free.copy(), res
-        m = 3 * na
-        Wt = np.empty((m, self.nv))
-        gather_rows(self.Wt_all, active, Wt)
-        MinvW = np.empty((self.nv, m))
-        minv_w(self.L, Wt, MinvW)
-        if prof:
+            ok, active, Wt, MinvW, bvec = phase_minv(
+                M, h, dt, uS, self.gap, self.Wt_all, self.activation_gap,
+                c.restitution_normal, c.restitution_tangential, self.L, self.u_free)
             t2 = time.perf_counter()
             self.stats.timings[1] += t2 - t1
-        eps = self.eps_all[:m]
-        bvec = np.empty(m)
-        c = np.empty(m)
-        restitution_and_rhs(Wt, uS, self.u_free, eps, bvec, c)
-        if self.form == prox.FORM_DELASSUS:
-            G = np.empty((m, m))
-            prox.delassus(Wt, MinvW, G)
-            Gdiag = np.diag(G).copy()
-        else:
-            G = self.empty_M
-            Gdiag = np.empty(m)
-            prox.delassus_diagonal(Wt, MinvW, Gdiag)
-        mu = self.mu_all[:na]
-        Msym = M if self.criterion == prox.CRITERION_ENERGY else self.empty_M
-        if prof:
-            t3 = time.perf_counter()
-            self.stats.timings[2] += t3 - t2
-        lam0 = np.zeros(m)
-        if s.warm_start:
-            warm = self.last_active[active]
-            if warm.any():
-                lam0.reshape(na, 3)[warm] = self.last_impulse[active[warm]]
-        alpha = s.alpha
-        r = np.empty(m)
-        u = np.empty(self.nv)
-        attempts = 2 if s.fallback_alpha_factor > 0 else 1
-        for attempt in range(attempts):
-            prox.prox_parameters(Gdiag, na, alpha, r)
-            lam = lam0.copy()
-            it, status, resid = prox.prox_solve(
-                self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, c, na, mu, r, lam,
-                s.tol_rel, s.tol_abs, s.max_iterations, False, self.empty_LB, self.criterion,
-                Msym, u)
-            res.iterations += it
-            if status == prox.STATUS_CONVERGED:
-                break
-            if attempt + 1 < attempts:
-                res.retried = True
-                self.stats.retried += 1
-                alpha *= s.fallback_alpha_factor
-        res.status = status
-        res.residual = resid
+            impulse[:] = 0.0
+            is_active[:] = False
+            if ok and active.shape[0]:
+                G, cvec, Gdiag = phase_delassus(self.form, Wt, MinvW, self.u_free, bvec)
+                t3 = time.perf_counter()
+                self.stats.timings[2] += t3 - t2
+                u, lam, it, status, resid, retried = phase_prox(
+                    self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
+                    active, self.last_impulse, self.last_active, self.ground.mu, s.alpha,
+                    s.tol_rel, s.tol_abs, s.max_iterations, self.criterion, M, s.warm_start,
+                    s.fallback_alpha_factor)
+                self.stats.timings[3] += time.perf_counter() - t3
+                impulse[active] = lam.reshape(-1, 3)
+                is_active[active] = True
+            else:
+                u, it, status, resid, retried = (self.u_free.copy(), 0, prox.STATUS_CONVERGED,
+                                                 0.0, False)
+            if not np.all(np.isfinite(u)):
+                status = prox.STATUS_NONFINITE
+            if ok and status != prox.STATUS_NONFINITE:
+                self.last_impulse[:] = impulse
+                self.last_active[:] = is_active
+        if not ok:
+            raise SimulationError("mass matrix not positive definite (non-finite state?)")
+        if retried:
+            self.stats.retried += 1
         if status != prox.STATUS_CONVERGED:
             self.stats.nonconverged += 1
-        if status == prox.STATUS_NONFINITE or not np.all(np.isfinite(u)):
+        if status == prox.STATUS_NONFINITE:
             raise SimulationError("prox iteration produced non-finite impulses; "
                                   "state left unchanged")
-        impulse[active] = lam.reshape(na, 3)
-        self.last_impulse[:] = impulse
-        self.last_active[:] = res.active
-        if prof:
-            self.stats.timings[3] += time.perf_counter() - t3
-        return u, res
+        return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried)

@@ -5,7 +5,7 @@ import pytest
 
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator, prox
-from starleth_sim.stepper import free_velocity, gather_rows, minv_w, restitution_and_rhs
+from starleth_sim.stepper import phase_delassus, phase_minv
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -22,19 +22,14 @@ def robot_problem(u_scale, seed, mu=0.8):
     tau = 5.0 * rng.standard_normal(12)
     M, h = sim.coords.dynamics(qM, u, tau)
     sim.coords.contact_kinematics(qM, st.ground, st.gap, st.position, st.Wt_all)
-    active = np.flatnonzero(st.gap <= 0.0)
-    assert len(active) == 4
-    na, nv = len(active), sim.coords.nv
+    nv = sim.coords.nv
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
-    assert free_velocity(M, h, st.dt, u, L, u_free)
-    Wt = np.empty((3 * na, nv))
-    gather_rows(st.Wt_all, active, Wt)
-    MinvW = np.empty((nv, 3 * na))
-    minv_w(L, Wt, MinvW)
-    bvec, c = np.empty(3 * na), np.empty(3 * na)
-    restitution_and_rhs(Wt, u, u_free, np.zeros(3 * na), bvec, c)
-    G = np.empty((3 * na, 3 * na))
-    prox.delassus(Wt, MinvW, G)
+    ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all, 0.0, 0.0, 0.0,
+                                             L, u_free)
+    assert ok and len(active) == 4
+    na = len(active)
+    G, c, Gdiag = phase_delassus(prox.FORM_DELASSUS, Wt, MinvW, u_free, bvec)
+    np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
                 mu=np.full(na, mu))
 

@@ -168,12 +168,14 @@ class MinimalCoordinates:
         from_pin_dynamics(M_pin, h_pin, self._R, self._u_pin, M, h)
         return M, h
 
-    def contact_kinematics(self, q, ground, gap, position, Wt):
-        """Fill gap (nc), position (nc x 3) and Wt (nc x 3 x nv) for all contact points."""
+    def contact_kinematics(self, q, ground, gap, position, Wt, jacobian_gap=np.inf):
+        """Fill gap (nc) and position (nc x 3) of all contact points, and Wt (nc x 3 x nv)
+        of those with g_N ≤ jacobian_gap."""
         t = self.tree
         contact_kinematics(q, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
                            t.support, t.oR, t.op, self.c_joint, self.c_local, self.c_radius,
-                           ground.n, ground.t1, ground.t2, ground.offset, gap, position, Wt)
+                           ground.n, ground.t1, ground.t2, ground.offset, jacobian_gap, gap,
+                           position, Wt)
 
     def wrench_generalized_force(self, q, frame: str, force, torque):
         """Jᵀ [f; τ] for a wrench (world axes) applied at the origin of `frame` (a link)."""

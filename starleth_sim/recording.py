@@ -1,0 +1,408 @@
+"""MCAP recording in the rosbag2 layout, without a running ROS graph.
+
+``McapRecorder`` writes what ``ros2 bag record -s mcap`` writes, so that rosbag2, rosbags,
+Foxglove and the ``mcap`` tools read the file as a ROS 2 bag:
+
+* profile ``ros2``; one schema per message type, named ``pkg/msg/Type``, encoding ``ros2msg``,
+  whose text is the type's ``.msg`` file followed by every type it depends on, each after a
+  line of 80 ``=`` and a ``MSG: pkg/Type`` line (rosbag2's ``LocalMessageDefinitionSource``
+  format);
+* channels with message encoding ``cdr`` and the metadata ``offered_qos_profiles`` (YAML, the
+  rosbag2 metadata version 9 spelling) and ``topic_type_hash`` when known;
+* a metadata record ``rosbag2`` holding ``serialized_metadata`` (the ``BagMetadata`` YAML that
+  ``ros2 bag info`` shows) and ``ROS_DISTRO``, written when the file is closed.
+
+Messages are given either as rclpy message objects (serialised to CDR with
+``rclpy.serialization.serialize_message``) or as CDR bytes already serialised, e.g. the bytes a
+node has just published with ``Publisher.publish(bytes)``, so each message is serialised once.
+The ``.msg`` texts come from the ``share/<pkg>/msg`` directories of the message packages (found
+with ``AMENT_PREFIX_PATH`` or next to the Python packages of pip-installed ROS wheels); a type
+without a ``.msg`` file gets a definition generated from its Python class.
+
+The writer buffers at most one chunk (``chunk_size`` bytes); :meth:`McapRecorder.close`
+writes the summary. A process that handles SIGINT/SIGTERM by calling ``close`` leaves a file
+that is complete up to its last message.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import re
+import sys
+import threading
+import time
+from collections import OrderedDict
+
+import yaml
+
+SEPARATOR = "=" * 80
+RMW_DURATION_INFINITE = {"sec": 9223372036854775807, "nsec": 999999999}
+ROSBAG2_METADATA_VERSION = 9
+_PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
+               "int32", "uint32", "int64", "uint64", "string", "wstring"}
+# field types of a .msg file: "pkg/Type", "Type", "Type[]", "Type[3]", "string<=8" ...
+_MSG_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:<=\d+)?(?:\[[^\]]*\])?\s+")
+
+
+# -- message types ---------------------------------------------------------------------------
+def type_name(msg_type) -> str:
+    """'pkg/msg/Type' of an rclpy message class (or a 'pkg/msg/Type' / 'pkg/Type' string)."""
+    if isinstance(msg_type, str):
+        parts = msg_type.split("/")
+        if len(parts) == 2:
+            return f"{parts[0]}/msg/{parts[1]}"
+        if len(parts) == 3:
+            return msg_type
+        raise ValueError(f"not a ROS type name: {msg_type!r}")
+    module = msg_type.__module__.split(".")
+    return f"{module[0]}/{module[1]}/{msg_type.__name__}"
+
+
+def message_class(name: str):
+    """The rclpy message class of 'pkg/msg/Type' or 'pkg/Type'."""
+    pkg, sub, typ = type_name(name).split("/")
+    return getattr(importlib.import_module(f"{pkg}.{sub}"), typ)
+
+
+def _share_dirs(pkg: str):
+    """Candidate share/<pkg> directories: AMENT_PREFIX_PATH, this interpreter's prefixes and
+    the prefix of the installed Python package (pip wheels put share/ beside lib/)."""
+    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    prefixes += [sys.prefix, sys.base_prefix]
+    try:
+        spec = importlib.util.find_spec(pkg)
+        if spec is not None and spec.origin:
+            d = os.path.dirname(os.path.abspath(spec.origin))   # .../lib/pythonX/site-packages/pkg
+            prefixes.append(os.path.abspath(os.path.join(d, "..", "..", "..", "..")))
+    except (ImportError, ValueError):
+        pass
+    seen = set()
+    for p in prefixes:
+        d = os.path.join(p, "share", pkg)
+        if d not in seen:
+            seen.add(d)
+            yield d
+
+
+_IDL_TO_MSG = {"double": "float64", "float": "float32", "boolean": "bool", "octet": "byte",
+               "long double": "float64"}
+
+
+def _idl_field_to_msg(t: str) -> str:
+    m = re.fullmatch(r"sequence<(.+?)(?:, (\d+))?>", t)
+    if m:
+        inner = _idl_field_to_msg(m.group(1))
+        return f"{inner}[<={m.group(2)}]" if m.group(2) else f"{inner}[]"
+    m = re.fullmatch(r"(.+)\[(\d+)\]", t)
+    if m:
+        return f"{_idl_field_to_msg(m.group(1))}[{m.group(2)}]"
+    m = re.fullmatch(r"(w?string)<(\d+)>", t)
+    if m:
+        return f"{m.group(1)}<={m.group(2)}"
+    return _IDL_TO_MSG.get(t, t)
+
+
+def generated_msg_text(name: str) -> str:
+    """A .msg text generated from the rclpy class: constants and fields, no comments.
+    Used only when the package's .msg file cannot be found."""
+    cls = message_class(name)
+    meta = type(cls)
+    consts = getattr(meta, f"_{meta.__name__}__constants", {}) or {}
+    lines = []
+    for cname, value in consts.items():
+        if isinstance(value, bytes):
+            lines.append(f"byte {cname}={value[0]}")
+        elif isinstance(value, bool):
+            lines.append(f"bool {cname}={str(value).lower()}")
+        elif isinstance(value, int):
+            lines.append(f"int64 {cname}={value}")
+        elif isinstance(value, float):
+            lines.append(f"float64 {cname}={value!r}")
+        elif isinstance(value, str):
+            lines.append(f"string {cname}={value}")
+    for fname, ftype in cls.get_fields_and_field_types().items():
+        lines.append(f"{_idl_field_to_msg(ftype)} {fname}")
+    return "\n".join(lines) + "\n"
+
+
+_MSG_TEXT_CACHE: dict = {}
+
+
+def msg_text(name: str) -> str:
+    """The .msg file text of 'pkg/msg/Type' (generated from the class if no file is found)."""
+    full = type_name(name)
+    if full in _MSG_TEXT_CACHE:
+        return _MSG_TEXT_CACHE[full]
+    pkg, sub, typ = full.split("/")
+    text = None
+    for d in _share_dirs(pkg):
+        path = os.path.join(d, sub, typ + ".msg")
+        if os.path.isfile(path):
+            with open(path, encoding="utf-8") as f:
+                text = f.read()
+            break
+    if text is None:
+        text = generated_msg_text(full)
+    _MSG_TEXT_CACHE[full] = text
+    return text
+
+
+def _dependencies(text: str, pkg: str):
+    """Sorted 'pkg/Type' names of the non-primitive field types of a .msg text."""
+    deps = set()
+    for line in text.splitlines():
+        m = _MSG_FIELD_TYPE.match(line.split("#", 1)[0] + " ")
+        if not m or m.group(1) in _PRIMITIVES:
+            continue
+        t = m.group(1)
+        deps.add(t if "/" in t else f"{pkg}/{t}")
+    return sorted(deps)
+
+
+def message_definition(msg_type) -> str:
+    """Full ``ros2msg`` schema text of a message type: its .msg text followed by every
+    dependency (depth first, each once), as rosbag2 writes it."""
+    root = type_name(msg_type)
+    seen = set()
+
+    def append(name):
+        pkg, _, typ = type_name(name).split("/")
+        text = msg_text(name)
+        out = text
+        for dep in _dependencies(text, pkg):
+            dep_pkg, dep_typ = dep.split("/")[0], dep.split("/")[-1]
+            key = f"{dep_pkg}/{dep_typ}"
+            if key in seen:
+                continue
+            seen.add(key)
+            out += f"\n{SEPARATOR}\nMSG: {key}\n" + append(f"{dep_pkg}/msg/{dep_typ}")
+        return out
+
+    return append(root)
+
+
+# -- QoS ----------------------------------------------------------------------------------
+def _duration(d):
+    """rclpy Duration / nanoseconds / {'sec','nsec'} -> {'sec', 'nsec'}; 0 = infinite."""
+    if isinstance(d, dict):
+        return {"sec": int(d["sec"]), "nsec": int(d["nsec"])}
+    ns = getattr(d, "nanoseconds", d)
+    ns = int(ns or 0)
+    if ns <= 0 or ns >= RMW_DURATION_INFINITE["sec"]:
+        return dict(RMW_DURATION_INFINITE)
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+def _policy(value, default):
+    name = getattr(value, "name", value)
+    if name is None:
+        return default
+    name = str(name).lower()
+    return default if name in ("system_default", "unknown") else name
+
+
+def qos_to_dict(qos) -> dict:
+    """An rclpy QoSProfile (or a dict with the same keys) in rosbag2's metadata-v9 spelling."""
+    if isinstance(qos, dict):
+        g = qos.get
+    else:
+        def g(k, default=None):
+            return getattr(qos, k, default)
+    return {
+        "history": _policy(g("history"), "keep_last"),
+        "depth": int(g("depth", 0) or 0),
+        "reliability": _policy(g("reliability"), "reliable"),
+        "durability": _policy(g("durability"), "volatile"),
+        "deadline": _duration(g("deadline", 0)),
+        "lifespan": _duration(g("lifespan", 0)),
+        "liveliness": _policy(g("liveliness"), "automatic"),
+        "liveliness_lease_duration": _duration(g("liveliness_lease_duration", 0)),
+        "avoid_ros_namespace_conventions": bool(g("avoid_ros_namespace_conventions", False)),
+    }
+
+
+def qos_profiles_yaml(profiles) -> str:
+    """The ``offered_qos_profiles`` channel metadata string: a YAML list."""
+    if profiles is None:
+        profiles = [{}]
+    elif not isinstance(profiles, (list, tuple)):
+        profiles = [profiles]
+    return yaml.safe_dump([qos_to_dict(p) for p in profiles], sort_keys=False).strip()
+
+
+# -- recorder -----------------------------------------------------------------------------
+class _Topic:
+    __slots__ = ("name", "type", "channel_id", "qos_yaml", "type_hash", "count")
+
+    def __init__(self, name, type_, channel_id, qos_yaml, type_hash):
+        self.name, self.type, self.channel_id = name, type_, channel_id
+        self.qos_yaml, self.type_hash, self.count = qos_yaml, type_hash, 0
+
+
+class McapRecorder:
+    """Write ROS 2 messages to an MCAP file that rosbag2 and rosbags read as a bag.
+
+        rec = McapRecorder("run.mcap")
+        rec.add_topic("/joint_states", JointState, qos=QoSProfile(depth=10))
+        rec.write("/joint_states", msg, log_time_ns)          # or CDR bytes
+        rec.add_metadata("starleth_sim", {"physics_config": "..."})
+        rec.add_attachment("starleth.urdf", "application/xml", urdf_bytes)
+        rec.close()
+
+    Thread-safe; ``close`` is idempotent and also called by ``__exit__``. Writing after
+    ``close`` is ignored (returns False), so a signal handler may close the file while the
+    owner still holds it."""
+
+    def __init__(self, path: str, *, chunk_size: int = 256 * 1024, compression: str = "none",
+                 library: str = "starleth_sim", ros_distro: str | None = None,
+                 custom_data: dict | None = None):
+        from mcap.writer import Writer, CompressionType
+        comp = {"none": CompressionType.NONE, "": CompressionType.NONE,
+                "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
+        if compression not in comp:
+            raise ValueError(f"compression must be one of {sorted(comp)}, got {compression!r}")
+        self.path = str(path)
+        d = os.path.dirname(os.path.abspath(self.path))
+        os.makedirs(d, exist_ok=True)
+        self._file = open(self.path, "wb")
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp[compression])
+        self._writer.start(profile="ros2", library=library)
+        self._compression = "" if compression == "none" else compression
+        self._lock = threading.Lock()
+        self._schemas: dict[str, int] = {}
+        self._topics: "OrderedDict[str, _Topic]" = OrderedDict()
+        self._closed = False
+        self._start_ns = None
+        self._end_ns = None
+        self.message_count = 0
+        self.ros_distro = ros_distro or os.environ.get("ROS_DISTRO", "jazzy")
+        self.custom_data = dict(custom_data or {})
+
+    # -- setup ------------------------------------------------------------------------------
+    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+        """Register a topic (idempotent); qos: an rclpy QoSProfile, a dict or a list of
+        them (the offered QoS profiles). Returns the channel id."""
+        with self._lock:
+            if topic in self._topics:
+                return self._topics[topic].channel_id
+            name = type_name(msg_type)
+            if name not in self._schemas:
+                data = message_definition(name).encode("utf-8")
+                self._schemas[name] = self._writer.register_schema(
+                    name=name, encoding="ros2msg", data=data)
+            qos_yaml = qos_profiles_yaml(qos)
+            meta = {"offered_qos_profiles": qos_yaml}
+            if type_hash:
+                meta["topic_type_hash"] = type_hash
+            cid = self._writer.register_channel(topic=topic, message_encoding="cdr",
+                                                schema_id=self._schemas[name], metadata=meta)
+            self._topics[topic] = _Topic(topic, name, cid, qos_yaml, type_hash or "")
+            return cid
+
+    @property
+    def topics(self) -> dict:
+        """{topic: 'pkg/msg/Type'}"""
+        return {t.name: t.type for t in self._topics.values()}
+
+    def counts(self) -> dict:
+        return {t.name: t.count for t in self._topics.values()}
+
+    def add_metadata(self, name: str, data: dict) -> None:
+        """A metadata record (string keys and values; other values are JSON-encoded)."""
+        md = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
+        with self._lock:
+            if not self._closed:
+                self._writer.add_metadata(name, md)
+
+    def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
+        if isinstance(data, str):
+            data = data.encode("utf-8")
+        with self._lock:
+            if not self._closed:
+                self._writer.add_attachment(create_time=time.time_ns(), log_time=int(log_time_ns),
+                                            name=name, media_type=media_type, data=bytes(data))
+
+    # -- messages ---------------------------------------------------------------------------
+    def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
+        """Record one message (an rclpy message or its CDR bytes) on a registered topic."""
+        if not isinstance(msg, (bytes, bytearray, memoryview)):
+            from rclpy.serialization import serialize_message
+            msg = serialize_message(msg)
+        log_time_ns = int(log_time_ns)
+        with self._lock:
+            if self._closed:
+                return False
+            t = self._topics[topic]
+            t.count += 1
+            self._writer.add_message(t.channel_id, log_time_ns, bytes(msg),
+                                     log_time_ns if publish_time_ns is None else int(publish_time_ns),
+                                     t.count)
+            self.message_count += 1
+            if self._start_ns is None or log_time_ns < self._start_ns:
+                self._start_ns = log_time_ns
+            if self._end_ns is None or log_time_ns > self._end_ns:
+                self._end_ns = log_time_ns
+        return True
+
+    # -- closing ------------------------------------------------------------------------------
+    def bag_metadata(self) -> dict:
+        """The rosbag2 BagMetadata (version 9) of what has been written so far."""
+        start = self._start_ns or 0
+        duration = (self._end_ns - start) if self._end_ns is not None else 0
+        fname = os.path.basename(self.path)
+        return {
+            "version": ROSBAG2_METADATA_VERSION,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": self.message_count,
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": "cdr",
+                                    "offered_qos_profiles": yaml.safe_load(t.qos_yaml),
+                                    "type_description_hash": t.type_hash},
+                 "message_count": t.count}
+                for t in self._topics.values()],
+            "compression_format": self._compression,
+            "compression_mode": "",
+            "relative_file_paths": [fname],
+            "files": [{"path": fname, "starting_time": {"nanoseconds_since_epoch": start},
+                       "duration": {"nanoseconds": duration}, "message_count": self.message_count}],
+            "custom_data": self.custom_data,
+            "ros_distro": self.ros_distro,
+        }
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                serialized = yaml.safe_dump(self.bag_metadata(), sort_keys=False)
+                self._writer.add_metadata("rosbag2", {"serialized_metadata": serialized,
+                                                      "ROS_DISTRO": self.ros_distro})
+                self._writer.finish()
+            finally:
+                self._file.flush()
+                try:
+                    os.fsync(self._file.fileno())
+                except OSError:
+                    pass
+                self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def __del__(self):  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:
+            pass
