@@ -77,6 +77,8 @@ class ContactConfig:
     #: Newton-type impact law ε_N, ε_T (hard contacts; the paper uses 0)
     restitution_normal: float = 0.0
     restitution_tangential: float = 0.0
+    #: per-contact impact law: {contact name: [ε_N, ε_T]} (names checked by the Simulator)
+    restitution_overrides: dict = field(default_factory=dict)
     #: compliant model (Alg. 1): c_N, d_N, c_T, d_T
     stiffness_normal: float = 30000.0
     damping_normal: float = 50.0
@@ -95,6 +97,18 @@ class ContactConfig:
         self.restitution_normal = _num(f"{p}.restitution_normal", self.restitution_normal, 0, 1)
         self.restitution_tangential = _num(f"{p}.restitution_tangential",
                                            self.restitution_tangential, 0, 1)
+        ro = self.restitution_overrides
+        if not isinstance(ro, dict):
+            raise ConfigError(f"{p}.restitution_overrides: expected a mapping "
+                              f"{{contact: [eps_N, eps_T]}}, got {ro!r}")
+        clean = {}
+        for name, v in ro.items():
+            if not isinstance(v, (list, tuple)) or len(v) != 2:
+                raise ConfigError(f"{p}.restitution_overrides.{name}: expected [eps_N, eps_T], "
+                                  f"got {v!r}")
+            clean[str(name)] = tuple(_num(f"{p}.restitution_overrides.{name}[{k}]", x, 0, 1)
+                                     for k, x in enumerate(v))
+        self.restitution_overrides = clean
         for n in ("stiffness_normal", "stiffness_tangential"):
             setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0, lo_open=True))
         for n in ("damping_normal", "damping_tangential", "slip_velocity", "activation_gap"):
@@ -260,6 +274,8 @@ class PhysicsConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["ground"]["normal"] = list(d["ground"]["normal"])
+        d["contact"]["restitution_overrides"] = {k: list(v) for k, v in
+                                                 d["contact"]["restitution_overrides"].items()}
         return d
 
 

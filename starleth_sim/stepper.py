@@ -19,6 +19,7 @@ import numpy as np
 import numba as nb
 
 from . import prox
+from .config import ConfigError
 from .contact import GroundPlane, compliant_contact_forces, generalized_contact_force
 from .linalg import cholesky_upper_input, cholesky_solve_cols, cholesky_solve_vec
 
@@ -66,10 +67,11 @@ def minv_w(L, Wt, MinvW):
 
 
 @nb.njit(cache=True)
-def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps_n, eps_t, L, u_free):
+def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps, L, u_free):
     """Fig. 7 phase "M^-1": Cholesky of M, u_free = u^S + M^{-1} h Δt, the active set
     {i | g_N,i ≤ activation_gap}, W_U^T of the active contacts, M^{-1} W_U and
-    b = ε W_U^T u^S. Returns (ok, active, Wt, MinvW, b)."""
+    b = ε W_U^T u^S with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2).
+    Returns (ok, active, Wt, MinvW, b)."""
     nv = uS.shape[0]
     ok = free_velocity(M, h, dt, uS, L, u_free)
     na = 0
@@ -94,7 +96,7 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps_n, eps_t, L, u_fre
         s = 0.0
         for j in range(nv):
             s += Wt[a, j] * uS[j]
-        bvec[a] = (eps_n if a % 3 == 0 else eps_t) * s
+        bvec[a] = eps[active[a // 3], 0 if a % 3 == 0 else 1] * s
     return ok, active, Wt, MinvW, bvec
 
 
@@ -164,19 +166,19 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, active, last_
 
 
 # packed parameters of the fused kernel (fewer arguments to unbox per call)
-FP_ACTIVATION, FP_EPS_N, FP_EPS_T, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK = range(8)
+FP_ACTIVATION, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK = range(6)
 IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM = range(5)
 
 
 @nb.njit(cache=True)
-def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, L, u_free, fp, ip, last_impulse,
+def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, L, u_free, fp, ip, eps, last_impulse,
                         last_active, impulse, is_active, u):
     """The three phases in one jitted call (the unprofiled hot path). Writes Λ of every
     contact point into impulse (nc x 3), the active flags and u^E; on success (status not
     non-finite) the warm-start memory (last_impulse, last_active) is updated.
     Returns (ok, iterations, status, residual, retried)."""
     ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, fp[FP_ACTIVATION],
-                                             fp[FP_EPS_N], fp[FP_EPS_T], L, u_free)
+                                             eps, L, u_free)
     nc = gap.shape[0]
     for i in range(nc):
         is_active[i] = False
@@ -271,9 +273,16 @@ class MoreauStepper:
         self.scheme = prox.SCHEMES[s.scheme]
         self.criterion = prox.CRITERIA[s.criterion]
         c = config.contact
-        self.fparams = np.array([self.activation_gap, c.restitution_normal,
-                                 c.restitution_tangential, config.ground.mu, s.alpha, s.tol_rel,
+        self.fparams = np.array([self.activation_gap, config.ground.mu, s.alpha, s.tol_rel,
                                  s.tol_abs, s.fallback_alpha_factor])
+        #: Newton-type impact law per contact: (ε_N, ε_T), defaults overridden by name
+        self.eps = np.tile([c.restitution_normal, c.restitution_tangential], (nc, 1))
+        names = list(getattr(coords, "contact_names", []))
+        for name, (en, et) in c.restitution_overrides.items():
+            if name not in names:
+                raise ConfigError(f"contact.restitution_overrides: unknown contact '{name}' "
+                                  f"(contacts: {', '.join(names)})")
+            self.eps[names.index(name)] = (en, et)
         self.iparams = np.array([self.form, self.scheme, s.max_iterations, self.criterion,
                                  int(s.warm_start)], dtype=np.int64)
         self.stats = StepperStats()
@@ -349,14 +358,14 @@ class MoreauStepper:
         if not prof:
             ok, it, status, resid, retried = solve_hard_contacts(
                 M, h, dt, uS, self.gap, self.Wt_all, self.L, self.u_free, self.fparams,
-                self.iparams, self.last_impulse, self.last_active, impulse, is_active, u)
+                self.iparams, self.eps, self.last_impulse, self.last_active, impulse,
+                is_active, u)
         else:  # the same phases, called one by one between timers (Fig. 7)
             s = self.cfg.solver
-            c = self.cfg.contact
             t1 = time.perf_counter()
             ok, active, Wt, MinvW, bvec = phase_minv(
-                M, h, dt, uS, self.gap, self.Wt_all, self.activation_gap,
-                c.restitution_normal, c.restitution_tangential, self.L, self.u_free)
+                M, h, dt, uS, self.gap, self.Wt_all, self.activation_gap, self.eps, self.L,
+                self.u_free)
             t2 = time.perf_counter()
             self.stats.timings[1] += t2 - t1
             impulse[:] = 0.0

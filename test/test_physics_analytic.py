@@ -123,3 +123,73 @@ def test_sphere_starts_rolling_at_five_sevenths():
     v, w = st["linear_velocity"][0], st["angular_velocity"][1]
     assert v == pytest.approx(5.0 / 7.0 * v0, rel=0.01)
     assert w * r == pytest.approx(v, rel=1e-6)  # rolling without slipping
+
+
+def test_per_contact_restitution_overrides_the_default():
+    """Two balls, identical but for the per-contact ε: rebound at ε_i v⁻ each."""
+    for eps in (0.2, 0.8):
+        sim = body_sim(sphere_urdf(0.1, 1.0), restitution_normal=0.5, tol_rel=1e-10,
+                       tol_abs=1e-12, restitution_overrides={"ball": [eps, 0.0]})
+        q = sim.q
+        q[2] += 0.5
+        sim.reset(q)
+        vz = []
+        for _ in range(400):
+            sim.step()
+            vz.append(sim.base_state()["linear_velocity"][2])
+        k = int(np.argmax(np.diff(vz) > 0.5))
+        assert vz[k + 1] == pytest.approx(-eps * vz[k], rel=1e-6)
+
+
+def test_restitution_override_of_unknown_contact_is_rejected():
+    from starleth_sim import ConfigError
+    with pytest.raises(ConfigError, match="unknown contact 'nose'"):
+        body_sim(sphere_urdf(), restitution_overrides={"nose": [0.5, 0.0]})
+
+
+def compliant_box(**overrides):
+    cfg = load_preset("Cm").with_overrides(control_rate=1000.0, steps_per_control=1, **overrides)
+    return Simulator(cfg, description=RobotDescription.from_urdf_xml(box_urdf((0.2, 0.2, 0.2), 1.0)))
+
+
+def test_compliant_box_slides_and_stops_near_the_coulomb_distance():
+    """Alg. 1 on a sliding box: slip with λ_T = μ λ_N, then stick (anchor reset)."""
+    v0, mu = 1.0, 0.3
+    sim = compliant_box(mu=mu)
+    for _ in range(500):  # settle on the springs (sink m g / (4 c_N) per corner)
+        sim.step()
+    u = sim.u
+    u[0] = v0
+    sim.reset(sim.q, u)
+    x0 = sim.q[0]
+    slipping = []
+    for _ in range(1000):
+        sim.step()
+        slipping.append(sim.stepper.slip[[n.endswith("n") for n in sim.contact_names]].any())
+    d = sim.q[0] - x0
+    assert d == pytest.approx(v0 ** 2 / (2 * mu * G), rel=0.05)
+    assert slipping[0] and not slipping[-1]   # it slipped, then stuck
+    assert abs(sim.u[0]) < 1e-3
+
+
+def test_compliant_box_on_incline_sticks_on_its_springs():
+    """μ = 0.8: the tangential springs hold it. (With μ = 0.6, barely above tan 30°, the
+    compliant model creeps: its springs share the load equally, so the lightly loaded uphill
+    corners slip first; the hard contact model finds the sticking solution, see above.)"""
+    theta, mu = np.deg2rad(30.0), 0.8
+    normal = (-np.sin(theta), 0.0, np.cos(theta))
+    sim = compliant_box(mu=mu, normal=normal)
+    R = pin.utils.rotate("y", -theta)
+    quat = pin.Quaternion(R)
+    q = sim.q
+    q[3:7] = [quat.x, quat.y, quat.z, quat.w]
+    q[0:3] = np.array(normal) * 0.1
+    sim.reset(q)
+    for _ in range(1000):
+        sim.step()
+    p1 = sim.q[:3]
+    for _ in range(2000):
+        sim.step()
+    # the tangential springs hold it: no creep after settling
+    assert np.linalg.norm(sim.q[:3] - p1) < 1e-6
+    assert not sim.stepper.slip.any()

@@ -24,8 +24,9 @@ def robot_problem(u_scale, seed, mu=0.8):
     sim.coords.contact_kinematics(qM, st.ground, st.gap, st.position, st.Wt_all)
     nv = sim.coords.nv
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
-    ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all, 0.0, 0.0, 0.0,
-                                             L, u_free)
+    eps = np.zeros((sim.coords.n_contacts, 2))
+    ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all, 0.0, eps, L,
+                                             u_free)
     assert ok and len(active) == 4
     na = len(active)
     G, c, Gdiag = phase_delassus(prox.FORM_DELASSUS, Wt, MinvW, u_free, bvec)

@@ -135,6 +135,7 @@ class MinimalCoordinates:
         self.c_local = np.array([c.local for c in cs], dtype=float).reshape(-1, 3)
         self.c_radius = np.array([c.radius for c in cs], dtype=float)
         self.n_contacts = len(cs)
+        self.contact_names = [c.name for c in cs]
         if self.model.joints[1].shortname() != "JointModelFreeFlyer" or \
                 any(self.model.joints[j].nq != 1 for j in range(2, self.model.njoints)):
             raise ValueError("minimal coordinates need a free-flyer root and 1-DOF joints")
