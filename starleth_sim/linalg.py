@@ -68,3 +68,77 @@ def cholesky_solve_cols(L, B):
             for k in range(i + 1, n):
                 s -= L[k, i] * B[k, c]
             B[i, c] = s / L[i, i]
+
+
+@nb.njit(cache=True)
+def cholesky_blocks(A, blocks, L):
+    """Cholesky factor of a block-diagonal SPD matrix, block by block (blocks: rows of
+    (start, size)); only the upper triangle of each diagonal block is read, the rest of L is
+    zero. Returns False if a block is not positive definite."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(n):
+            L[i, j] = 0.0
+    for b in range(blocks.shape[0]):
+        o = blocks[b, 0]
+        nb_ = blocks[b, 1]
+        for j in range(o, o + nb_):
+            s = A[j, j]
+            for k in range(o, j):
+                s -= L[j, k] * L[j, k]
+            if not (s > 0.0):
+                return False
+            d = np.sqrt(s)
+            L[j, j] = d
+            for i in range(j + 1, o + nb_):
+                s = A[j, i]
+                for k in range(o, j):
+                    s -= L[i, k] * L[j, k]
+                L[i, j] = s / d
+    return True
+
+
+@nb.njit(cache=True)
+def cholesky_blocks_solve_vec(L, blocks, b):
+    """Solve (L L^T) x = b in place for a block-diagonal factor."""
+    for bb in range(blocks.shape[0]):
+        o = blocks[bb, 0]
+        e = o + blocks[bb, 1]
+        for i in range(o, e):
+            s = b[i]
+            for k in range(o, i):
+                s -= L[i, k] * b[k]
+            b[i] = s / L[i, i]
+        for i in range(e - 1, o - 1, -1):
+            s = b[i]
+            for k in range(i + 1, e):
+                s -= L[k, i] * b[k]
+            b[i] = s / L[i, i]
+
+
+@nb.njit(cache=True)
+def cholesky_blocks_solve_cols(L, blocks, B):
+    """Solve (L L^T) X = B in place for every column of B, block-diagonal factor; rows of a
+    column that are zero over a whole block stay zero (sparse W columns are cheap)."""
+    m = B.shape[1]
+    for c in range(m):
+        for bb in range(blocks.shape[0]):
+            o = blocks[bb, 0]
+            e = o + blocks[bb, 1]
+            nz = False
+            for i in range(o, e):
+                if B[i, c] != 0.0:
+                    nz = True
+                    break
+            if not nz:
+                continue
+            for i in range(o, e):
+                s = B[i, c]
+                for k in range(o, i):
+                    s -= L[i, k] * B[k, c]
+                B[i, c] = s / L[i, i]
+            for i in range(e - 1, o - 1, -1):
+                s = B[i, c]
+                for k in range(i + 1, e):
+                    s -= L[k, i] * B[k, c]
+                B[i, c] = s / L[i, i]

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PhysicsConfig, load_preset, ConfigError
-from .coordinates import MinimalCoordinates
+from .coordinates import make_coordinates
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
 from .stepper import MoreauStepper, SimulationError, PHASES
@@ -71,11 +71,7 @@ class Simulator:
             path = config.robot if config.robot.startswith("/") else urdf_path(config.robot)
             description = starleth_description(path)
         self.description = description
-        if config.coordinates == "minimal":
-            self.coords = MinimalCoordinates(description)
-        else:
-            raise ConfigError(f"coordinates '{config.coordinates}' are not available in this "
-                              "version (minimal only)")
+        self.coords = make_coordinates(config.coordinates, description)
         self.stepper = MoreauStepper(self.coords, config, profile=profile)
         self.joint_names = tuple(description.joint_names)
         self.n_joints = len(self.joint_names)
@@ -114,10 +110,23 @@ class Simulator:
             Wt = np.zeros((c.n_contacts, 3, c.nv))
             g = self.stepper.ground
             c.contact_kinematics(q, g, gap, pos, Wt)
-            q[0:3] -= g.n * (gap.min() + self.REST_OVERLAP)
+            for iq in c.root_q:  # every floating body of the coordinate set
+                q[iq:iq + 3] -= g.n * (gap.min() + self.REST_OVERLAP)
         return q
 
-    def reset(self, q=None, u=None, t: float = 0.0):
+    def reset(self, q=None, u=None, t: float = 0.0, minimal: bool = False):
+        """Set the state (default: `default_state()` at rest). With minimal=True, q and u are
+        given in minimal coordinates (19/18 for StarlETH) and converted to this simulator's
+        coordinate set."""
+        if minimal:
+            if q is None:
+                raise ValueError("reset(minimal=True) needs q")
+            q_min = np.array(q, dtype=float)
+            u_min = np.zeros(self.description.model.nv) if u is None else np.array(u, float)
+            if q_min.shape != (self.description.model.nq,) or \
+                    u_min.shape != (self.description.model.nv,):
+                raise ValueError("reset(minimal=True): q and u must be minimal coordinates")
+            q, u = self.coords.from_minimal(q_min, u_min)
         q = self.default_state() if q is None else np.array(q, dtype=float)
         u = np.zeros(self.coords.nv) if u is None else np.array(u, dtype=float)
         if q.shape != (self.coords.nq,) or u.shape != (self.coords.nv,):
@@ -125,7 +134,8 @@ class Simulator:
                              f"entries, got {q.shape} and {u.shape}")
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(u))):
             raise ValueError("reset: q and u must be finite")
-        q[3:7] /= np.linalg.norm(q[3:7])
+        for iq in self.coords.root_q:
+            q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
         self._q, self._u, self._t = q, u, float(t)
         self.stepper.reset_contact_state()
         self._tau = np.zeros(self.n_joints)
@@ -161,7 +171,14 @@ class Simulator:
         return self.coords.joint_positions(self._q)
 
     def joint_velocities(self):
-        return self.coords.joint_velocities(self._u)
+        return self.coords.joint_velocities(self._q, self._u)
+
+    def bilateral_violation(self):
+        """g_B at the current state: the position-level violation of the bilateral
+        constraints (empty for the minimal coordinates) [m, and rad for the 2 angle rows]."""
+        if not self.coords.n_bilateral:
+            return np.zeros(0)
+        return self.coords.bilateral(self._q)[1].copy()
 
     def base_state(self):
         """dict: position, orientation (x, y, z, w), linear_velocity (world),
@@ -271,9 +288,7 @@ class Simulator:
         d = Diagnostics(physics_steps=self.diagnostics.physics_steps,
                         nonconverged_steps=self.diagnostics.nonconverged_steps)
         pending_backup = [list(w) for w in self._pending_wrenches]
-        stepper_state = (self.stepper.last_impulse.copy(), self.stepper.last_active.copy(),
-                         self.stepper.closed.copy(), self.stepper.slip.copy(),
-                         self.stepper.anchor.copy())
+        memory = self.stepper.memory()
         try:
             for _ in range(n):
                 f_ext = self._external_force(q, dt)
@@ -290,8 +305,7 @@ class Simulator:
                 d.physics_steps += 1
         except SimulationError:
             self._pending_wrenches[:] = pending_backup
-            (self.stepper.last_impulse[:], self.stepper.last_active[:], self.stepper.closed[:],
-             self.stepper.slip[:], self.stepper.anchor[:]) = stepper_state
+            self.stepper.restore(memory)
             raise
         self._q, self._u = q, u
         self._t += self.control_period

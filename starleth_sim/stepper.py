@@ -21,7 +21,8 @@ import numba as nb
 from . import prox
 from .config import ConfigError
 from .contact import GroundPlane, compliant_contact_forces, generalized_contact_force
-from .linalg import cholesky_upper_input, cholesky_solve_cols, cholesky_solve_vec
+from .linalg import (cholesky_blocks, cholesky_blocks_solve_cols, cholesky_blocks_solve_vec,
+                     cholesky_upper_input)
 
 #: Fig. 7 phases
 PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")
@@ -33,47 +34,27 @@ class SimulationError(RuntimeError):
 
 
 @nb.njit(cache=True)
-def free_velocity(M, h, dt, uS, L, u_free):
-    """u_free = u^S + M^{-1} h Δt (Cholesky of M into L). False if M is not SPD."""
-    if not cholesky_upper_input(M, L):
+def free_velocity(M, h, dt, uS, blocks, factor, L, u_free):
+    """u_free = u^S + M^{-1} h Δt, with M block-diagonal (one block per tree). With factor
+    False, L already holds the factor of a constant M. False if M is not SPD."""
+    if factor and not cholesky_blocks(M, blocks, L):
         return False
     for k in range(uS.shape[0]):
         u_free[k] = h[k] * dt
-    cholesky_solve_vec(L, u_free)
+    cholesky_blocks_solve_vec(L, blocks, u_free)
     for k in range(uS.shape[0]):
         u_free[k] += uS[k]
     return True
 
 
 @nb.njit(cache=True)
-def gather_rows(Wt_all, active, Wt):
-    """Stack the 3 rows of each active contact: Wt (3 n_active x nv) = W_U^T."""
-    nv = Wt_all.shape[2]
-    for a in range(active.shape[0]):
-        i = active[a]
-        for r in range(3):
-            for k in range(nv):
-                Wt[3 * a + r, k] = Wt_all[i, r, k]
-
-
-@nb.njit(cache=True)
-def minv_w(L, Wt, MinvW):
-    """M^{-1} W from the Cholesky factor (MinvW is nv x m)."""
-    m, nv = Wt.shape
-    for a in range(m):
-        for k in range(nv):
-            MinvW[k, a] = Wt[a, k]
-    cholesky_solve_cols(L, MinvW)
-
-
-@nb.njit(cache=True)
-def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps, L, u_free):
-    """Fig. 7 phase "M^-1": Cholesky of M, u_free = u^S + M^{-1} h Δt, the active set
-    {i | g_N,i ≤ activation_gap}, W_U^T of the active contacts, M^{-1} W_U and
-    b = ε W_U^T u^S with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2).
+def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, activation_gap, eps, blocks, factor, L, u_free):
+    """Fig. 7 phase "M^-1": factor M, u_free = u^S + M^{-1} h Δt, the active set
+    {i | g_N,i ≤ activation_gap}, W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
+    b = [ε W_U^T u^S; 0] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2).
     Returns (ok, active, Wt, MinvW, b)."""
     nv = uS.shape[0]
-    ok = free_velocity(M, h, dt, uS, L, u_free)
+    ok = free_velocity(M, h, dt, uS, blocks, factor, L, u_free)
     na = 0
     for i in range(gap.shape[0]):
         if gap[i] <= activation_gap:
@@ -84,15 +65,27 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps, L, u_free):
         if gap[i] <= activation_gap:
             active[k] = i
             k += 1
-    m = 3 * na
+    nb_ = WtB.shape[0]
+    o = 3 * na
+    m = o + nb_
     Wt = np.empty((m, nv))
     MinvW = np.empty((nv, m))
-    bvec = np.empty(m)
-    if not ok or na == 0:
+    bvec = np.zeros(m)
+    if not ok or m == 0:
         return ok, active, Wt, MinvW, bvec
-    gather_rows(Wt_all, active, Wt)
-    minv_w(L, Wt, MinvW)
+    for a in range(na):
+        i = active[a]
+        for r in range(3):
+            for j in range(nv):
+                Wt[3 * a + r, j] = Wt_all[i, r, j]
+    for a in range(nb_):
+        for j in range(nv):
+            Wt[o + a, j] = WtB[a, j]
     for a in range(m):
+        for j in range(nv):
+            MinvW[j, a] = Wt[a, j]
+    cholesky_blocks_solve_cols(L, blocks, MinvW)
+    for a in range(o):
         s = 0.0
         for j in range(nv):
             s += Wt[a, j] * uS[j]
@@ -101,10 +94,13 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, activation_gap, eps, L, u_free):
 
 
 @nb.njit(cache=True)
-def phase_delassus(form, Wt, MinvW, u_free, bvec):
-    """Fig. 7 phase "G": c = W^T u_free + b (Eqn. 15) and G = W^T M^{-1} W (Delassus form),
-    or only diag(G) (velocity form, for the r parameters). Returns (G, c, diag(G))."""
+def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, u_free, bvec):
+    """Fig. 7 phase "G (and G_B^-1)": c = W^T u_free + b (Eqn. 15), G = W^T M^{-1} W
+    (Delassus form) or only diag(G) (velocity form), and for the direct bilateral solution
+    (Eqn. 20) the Cholesky factor of G_B = W_B^T M^{-1} W_B. Returns (ok, G, c, diag G, L_B)."""
     m, nv = Wt.shape
+    o = 3 * nc
+    nb_ = m - o
     c = np.empty(m)
     for a in range(m):
         s = bvec[a]
@@ -120,18 +116,38 @@ def phase_delassus(form, Wt, MinvW, u_free, bvec):
     else:
         G = np.empty((0, 0))
         prox.delassus_diagonal(Wt, MinvW, Gdiag)
-    return G, c, Gdiag
+    LB = np.zeros((0, 0))
+    ok = True
+    if bilateral_direct and nb_ > 0:
+        GB = np.empty((nb_, nb_))
+        if form == prox.FORM_DELASSUS:
+            for a in range(nb_):
+                for b in range(nb_):
+                    GB[a, b] = G[o + a, o + b]
+        else:
+            for a in range(nb_):
+                for b in range(a, nb_):
+                    s = 0.0
+                    for j in range(nv):
+                        s += Wt[o + a, j] * MinvW[j, o + b]
+                    GB[a, b] = s
+                    GB[b, a] = s
+        LB = np.zeros((nb_, nb_))
+        ok = cholesky_upper_input(GB, LB)
+    return ok, G, c, Gdiag, LB
 
 
 @nb.njit(cache=True)
-def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, active, last_impulse,
-               last_active, mu, alpha, tol_rel, tol_abs, max_iter, criterion, M, warm_start,
-               fallback_factor):
-    """Fig. 7 phase "u^E": warm start from the last step's impulses of contacts that stay
-    active, the prox iteration, and one retry with α·fallback_factor if it did not converge.
-    Returns (u^E, Λ, iterations, status, residual, retried)."""
+def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral_direct,
+               active, last_impulse, last_active, last_bilateral, mu, alpha, tol_rel, tol_abs,
+               max_iter, criterion, M, warm_start, fallback_factor):
+    """Fig. 7 phase "u^E": warm start (the last step's impulses of contacts that stay
+    active, and of the bilateral constraints), the prox iteration, and one retry with
+    α·fallback_factor if it did not converge. Returns (u^E, Λ, iterations, status,
+    residual, retried)."""
     na = active.shape[0]
-    m = 3 * na
+    o = 3 * na
+    m = c.shape[0]
     nv = u_free.shape[0]
     lam0 = np.zeros(m)
     if warm_start:
@@ -140,6 +156,8 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, active, last_
             if last_active[i]:
                 for k in range(3):
                     lam0[3 * a + k] = last_impulse[i, k]
+        for a in range(m - o):
+            lam0[o + a] = last_bilateral[a]
     mu_vec = np.full(na, mu)
     attempts = 2 if fallback_factor > 0.0 else 1
     r = np.empty(m)
@@ -149,13 +167,12 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, active, last_
     status = prox.STATUS_CONVERGED
     resid = 0.0
     retried = False
-    LB = np.zeros((0, 0))
     for attempt in range(attempts):
         prox.prox_parameters(Gdiag, na, alpha, r)
         lam[:] = lam0
         it, status, resid = prox.prox_solve(form, scheme, Wt, MinvW, u_free, bvec, G, c, na,
-                                            mu_vec, r, lam, tol_rel, tol_abs, max_iter, False,
-                                            LB, criterion, M, u)
+                                            mu_vec, r, lam, tol_rel, tol_abs, max_iter,
+                                            bilateral_direct, LB, criterion, M, u)
         iters += it
         if status == prox.STATUS_CONVERGED:
             break
@@ -167,18 +184,18 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, active, last_
 
 # packed parameters of the fused kernel (fewer arguments to unbox per call)
 FP_ACTIVATION, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK = range(6)
-IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM = range(5)
+IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM, IP_DIRECT = range(6)
 
 
 @nb.njit(cache=True)
-def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, L, u_free, fp, ip, eps, last_impulse,
-                        last_active, impulse, is_active, u):
-    """The three phases in one jitted call (the unprofiled hot path). Writes Λ of every
-    contact point into impulse (nc x 3), the active flags and u^E; on success (status not
-    non-finite) the warm-start memory (last_impulse, last_active) is updated.
-    Returns (ok, iterations, status, residual, retried)."""
-    ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, fp[FP_ACTIVATION],
-                                             eps, L, u_free)
+def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, blocks, factor, L, u_free, fp, ip, eps,
+                        last_impulse, last_active, last_bilateral, impulse, is_active, u):
+    """The three phases in one jitted call (the unprofiled hot path). Writes Λ_U of every
+    contact point into impulse (nc x 3), the active flags, Λ_B into last_bilateral and u^E;
+    on success the warm-start memory is updated. Returns (ok, iterations, status, residual,
+    retried)."""
+    ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, WtB,
+                                             fp[FP_ACTIVATION], eps, blocks, factor, L, u_free)
     nc = gap.shape[0]
     for i in range(nc):
         is_active[i] = False
@@ -188,27 +205,35 @@ def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, L, u_free, fp, ip, eps, last_
     if not ok:
         return ok, 0, prox.STATUS_NONFINITE, 0.0, False
     na = active.shape[0]
+    o = 3 * na
+    direct = ip[IP_DIRECT] != 0
     it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
-    if na == 0:
+    if Wt.shape[0] == 0:
         u[:] = u_free
     else:
-        G, c, Gdiag = phase_delassus(ip[IP_FORM], Wt, MinvW, u_free, bvec)
+        ok, G, c, Gdiag, LB = phase_delassus(ip[IP_FORM], na, direct, Wt, MinvW, u_free, bvec)
+        if not ok:
+            return ok, 0, prox.STATUS_NONFINITE, 0.0, False
         uE, lam, it, status, resid, retried = phase_prox(
-            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, active,
-            last_impulse, last_active, fp[FP_MU], fp[FP_ALPHA], fp[FP_TOL_REL], fp[FP_TOL_ABS],
-            ip[IP_MAX_ITER], ip[IP_CRITERION], M, ip[IP_WARM] != 0, fp[FP_FALLBACK])
+            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, direct,
+            active, last_impulse, last_active, last_bilateral, fp[FP_MU], fp[FP_ALPHA],
+            fp[FP_TOL_REL], fp[FP_TOL_ABS], ip[IP_MAX_ITER], ip[IP_CRITERION], M,
+            ip[IP_WARM] != 0, fp[FP_FALLBACK])
         u[:] = uE
         for a in range(na):
             i = active[a]
             is_active[i] = True
             for k in range(3):
                 impulse[i, k] = lam[3 * a + k]
-    finite = True
-    for k in range(u.shape[0]):
-        if not np.isfinite(u[k]):
-            finite = False
-    if not finite:
-        status = prox.STATUS_NONFINITE
+        finite = True
+        for k in range(u.shape[0]):
+            if not np.isfinite(u[k]):
+                finite = False
+        if not finite:
+            status = prox.STATUS_NONFINITE
+        if status != prox.STATUS_NONFINITE:
+            for a in range(lam.shape[0] - o):
+                last_bilateral[a] = lam[o + a]
     if status != prox.STATUS_NONFINITE:
         for i in range(nc):
             last_active[i] = is_active[i]
@@ -263,28 +288,35 @@ class MoreauStepper:
         self.activation_gap = config.contact.activation_gap if self.hard else 0.0
         nc, nv = coords.n_contacts, coords.nv
         self.nc, self.nv = nc, nv
+        self.nb = coords.n_bilateral
         self.gap = np.zeros(nc)
         self.position = np.zeros((nc, 3))
         self.Wt_all = np.zeros((nc, 3, nv))
         self.L = np.zeros((nv, nv))
         self.u_free = np.zeros(nv)
+        self.blocks = coords.blocks
+        self.constant_M = coords.constant_mass_matrix
+        self._factored = False
+        self.no_bilateral = np.zeros((0, nv))
         s = config.solver
         self.form = prox.FORMS[s.form]
         self.scheme = prox.SCHEMES[s.scheme]
         self.criterion = prox.CRITERIA[s.criterion]
+        self.bilateral_direct = config.bilateral.method == "direct"
         c = config.contact
         self.fparams = np.array([self.activation_gap, config.ground.mu, s.alpha, s.tol_rel,
                                  s.tol_abs, s.fallback_alpha_factor])
         #: Newton-type impact law per contact: (ε_N, ε_T), defaults overridden by name
         self.eps = np.tile([c.restitution_normal, c.restitution_tangential], (nc, 1))
-        names = list(getattr(coords, "contact_names", []))
+        names = list(coords.contact_names)
         for name, (en, et) in c.restitution_overrides.items():
             if name not in names:
                 raise ConfigError(f"contact.restitution_overrides: unknown contact '{name}' "
                                   f"(contacts: {', '.join(names)})")
             self.eps[names.index(name)] = (en, et)
         self.iparams = np.array([self.form, self.scheme, s.max_iterations, self.criterion,
-                                 int(s.warm_start)], dtype=np.int64)
+                                 int(s.warm_start), int(self.bilateral_direct)], dtype=np.int64)
+        self._never_active = np.full(nc, np.inf)
         self.stats = StepperStats()
         self.reset_contact_state()
 
@@ -293,10 +325,20 @@ class MoreauStepper:
         nc = self.nc
         self.last_impulse = np.zeros((nc, 3))
         self.last_active = np.zeros(nc, dtype=bool)
+        self.last_bilateral = np.zeros(self.nb)
         self.closed = np.zeros(nc, dtype=np.bool_)
         self.slip = np.zeros(nc, dtype=np.bool_)
         self.anchor = np.zeros((nc, 3))
         self.lam_compliant = np.zeros((nc, 3))
+
+    def memory(self):
+        """A copy of the contact memory, to restore it if a control step fails."""
+        return (self.last_impulse.copy(), self.last_active.copy(), self.last_bilateral.copy(),
+                self.closed.copy(), self.slip.copy(), self.anchor.copy())
+
+    def restore(self, mem):
+        (self.last_impulse[:], self.last_active[:], self.last_bilateral[:], self.closed[:],
+         self.slip[:], self.anchor[:]) = mem
 
     # -- one step -------------------------------------------------------------------------
     def step(self, q, u, tau, f_ext=None):
@@ -316,10 +358,13 @@ class MoreauStepper:
             self.stats.timings[0] += t1 - t0
         coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
                                   self.activation_gap)
+        WtB = coords.bilateral(qM)[0] if self.nb else self.no_bilateral
+        if prof:
+            self.stats.timings[4] += time.perf_counter() - t1
         if self.hard:
-            uE, res = self._solve_hard(M, h, u, dt, prof)
+            uE, res = self._solve(M, h, u, dt, prof, self.gap, WtB)
         else:
-            uE, res = self._solve_compliant(M, h, u, dt, prof)
+            uE, res = self._solve_compliant(M, h, u, dt, prof, WtB)
         if prof:
             t4 = time.perf_counter()
         qE = coords.integrate(qM, uE, 0.5 * dt)
@@ -330,7 +375,7 @@ class MoreauStepper:
             self.stats.timings[4] += time.perf_counter() - t4
         return qE, uE, res
 
-    def _solve_compliant(self, M, h, uS, dt, prof):
+    def _solve_compliant(self, M, h, uS, dt, prof, WtB):
         t = time.perf_counter() if prof else 0.0
         c = self.cfg.contact
         compliant_contact_forces(self.gap, self.position, self.Wt_all, uS, self.closed, self.slip,
@@ -340,58 +385,75 @@ class MoreauStepper:
                                  self.lam_compliant)
         generalized_contact_force(self.Wt_all, self.lam_compliant, h)
         if prof:
-            t2 = time.perf_counter()
-            self.stats.timings[4] += t2 - t
-        if not free_velocity(M, h, dt, uS, self.L, self.u_free):
-            raise SimulationError("mass matrix not positive definite (non-finite state?)")
-        if prof:
-            self.stats.timings[1] += time.perf_counter() - t2
-        res = StepResult(active=self.gap <= 0.0, gap=self.gap.copy(),
-                         impulse=self.lam_compliant * dt)
-        return self.u_free.copy(), res
+            self.stats.timings[4] += time.perf_counter() - t
+        active = self.gap <= 0.0
+        if self.nb:  # bilateral constraints still need the prox solve (no contact rows)
+            uE, res = self._solve(M, h, uS, dt, prof, self._never_active, WtB)
+        else:
+            t2 = time.perf_counter() if prof else 0.0
+            factor = not (self.constant_M and self._factored)
+            if not free_velocity(M, h, dt, uS, self.blocks, factor, self.L, self.u_free):
+                raise SimulationError("mass matrix not positive definite (non-finite state?)")
+            self._factored = True
+            if prof:
+                self.stats.timings[1] += time.perf_counter() - t2
+            uE, res = self.u_free.copy(), StepResult(active, None, None)
+        res.active = active
+        res.gap = self.gap.copy()
+        res.impulse = self.lam_compliant * dt
+        return uE, res
 
-    def _solve_hard(self, M, h, uS, dt, prof):
+    def _solve(self, M, h, uS, dt, prof, gap, WtB):
         nc = self.nc
         impulse = np.empty((nc, 3))
         is_active = np.empty(nc, dtype=np.bool_)
         u = np.empty(self.nv)
+        factor = not (self.constant_M and self._factored)
         if not prof:
             ok, it, status, resid, retried = solve_hard_contacts(
-                M, h, dt, uS, self.gap, self.Wt_all, self.L, self.u_free, self.fparams,
-                self.iparams, self.eps, self.last_impulse, self.last_active, impulse,
-                is_active, u)
+                M, h, dt, uS, gap, self.Wt_all, WtB, self.blocks, factor, self.L, self.u_free,
+                self.fparams, self.iparams, self.eps, self.last_impulse, self.last_active,
+                self.last_bilateral, impulse, is_active, u)
         else:  # the same phases, called one by one between timers (Fig. 7)
             s = self.cfg.solver
             t1 = time.perf_counter()
             ok, active, Wt, MinvW, bvec = phase_minv(
-                M, h, dt, uS, self.gap, self.Wt_all, self.activation_gap, self.eps, self.L,
-                self.u_free)
+                M, h, dt, uS, gap, self.Wt_all, WtB, self.activation_gap, self.eps,
+                self.blocks, factor, self.L, self.u_free)
             t2 = time.perf_counter()
             self.stats.timings[1] += t2 - t1
             impulse[:] = 0.0
             is_active[:] = False
-            if ok and active.shape[0]:
-                G, cvec, Gdiag = phase_delassus(self.form, Wt, MinvW, self.u_free, bvec)
+            it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
+            u = self.u_free.copy()
+            if ok and Wt.shape[0]:
+                ok, G, cvec, Gdiag, LB = phase_delassus(self.form, active.shape[0],
+                                                        self.bilateral_direct, Wt, MinvW,
+                                                        self.u_free, bvec)
                 t3 = time.perf_counter()
                 self.stats.timings[2] += t3 - t2
-                u, lam, it, status, resid, retried = phase_prox(
-                    self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
-                    active, self.last_impulse, self.last_active, self.ground.mu, s.alpha,
-                    s.tol_rel, s.tol_abs, s.max_iterations, self.criterion, M, s.warm_start,
-                    s.fallback_alpha_factor)
+                if ok:
+                    u, lam, it, status, resid, retried = phase_prox(
+                        self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
+                        LB, self.bilateral_direct, active, self.last_impulse, self.last_active,
+                        self.last_bilateral, self.ground.mu, s.alpha, s.tol_rel, s.tol_abs,
+                        s.max_iterations, self.criterion, M, s.warm_start,
+                        s.fallback_alpha_factor)
+                    o = 3 * active.shape[0]
+                    impulse[active] = lam[:o].reshape(-1, 3)
+                    is_active[active] = True
+                    if not np.all(np.isfinite(u)):
+                        status = prox.STATUS_NONFINITE
+                    if status != prox.STATUS_NONFINITE:
+                        self.last_bilateral[:] = lam[o:]
                 self.stats.timings[3] += time.perf_counter() - t3
-                impulse[active] = lam.reshape(-1, 3)
-                is_active[active] = True
-            else:
-                u, it, status, resid, retried = (self.u_free.copy(), 0, prox.STATUS_CONVERGED,
-                                                 0.0, False)
-            if not np.all(np.isfinite(u)):
-                status = prox.STATUS_NONFINITE
             if ok and status != prox.STATUS_NONFINITE:
                 self.last_impulse[:] = impulse
                 self.last_active[:] = is_active
         if not ok:
-            raise SimulationError("mass matrix not positive definite (non-finite state?)")
+            raise SimulationError("mass matrix (or G_B) not positive definite "
+                                  "(non-finite state?)")
+        self._factored = True
         if retried:
             self.stats.retried += 1
         if status != prox.STATUS_CONVERGED:

@@ -25,11 +25,12 @@ def robot_problem(u_scale, seed, mu=0.8):
     nv = sim.coords.nv
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
     eps = np.zeros((sim.coords.n_contacts, 2))
-    ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all, 0.0, eps, L,
-                                             u_free)
+    ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all,
+                                             np.zeros((0, nv)), 0.0, eps, sim.coords.blocks,
+                                             True, L, u_free)
     assert ok and len(active) == 4
     na = len(active)
-    G, c, Gdiag = phase_delassus(prox.FORM_DELASSUS, Wt, MinvW, u_free, bvec)
+    ok, G, c, Gdiag, LB = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, u_free, bvec)
     np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
                 mu=np.full(na, mu))

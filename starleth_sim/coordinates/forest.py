@@ -1,0 +1,570 @@
+"""Generalized coordinates of a robot described as a *forest* of floating trees, cut from
+one kinematic tree at a chosen set of revolute joints (paper Eqn. 19-22, Table 1):
+
+* minimal  - no cut: one tree on a free-flyer root (19 coordinates, 18 DOF);
+* extended - the legs cut free at the HAA joints: trunk + 4 floating legs (hip body + HFE +
+             KFE), 38 DOF, 20 bilateral constraints;
+* maximal  - every joint cut: 13 free bodies, each with its frame at its centre of mass so
+             that its mass matrix diag(m I, Θ) is constant, 78 DOF, 60 bilateral constraints.
+
+Every tree root is a free body with the paper's coordinates (Eqn. 21):
+    q_root = [I_r (3), quaternion (x, y, z, w)],   u_root = [I_v (3), B_ω (3)]
+(inertial velocity of the root frame's origin, body-frame angular velocity; Pinocchio's
+quaternion storage order), followed by the angles/rates of the tree's revolute joints.
+M and h come from Pinocchio (CRBA, RNEA) on the forest model, whose roots use body-frame
+linear velocities; they are transformed once per step:
+    M = Tᵀ M_pin T,   h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k,body)),   T = diag(R_kᵀ, I)
+For the maximal set M is constant and h = [m g; −ω × Θ ω] per body, computed without pin.
+
+A cut revolute joint between bodies P (parent side) and C (child side) becomes a 5-row
+bilateral constraint (3 translational, 2 rotational; Eqn. 4, ε_B = 0):
+    g_B = [x_P − x_C ; (R_C a_C)·b1 ; (R_C a_C)·b2],   b1, b2 ⟂ the axis in P
+    γ_B = W_Bᵀ u = [v_P − v_C ; b1·(ω_C − ω_P) ; b2·(ω_C − ω_P)]
+Its actuator torque τ enters as equal and opposite generalized forces on the two bodies,
+and its angle φ is recovered from the relative rotation of P and C.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+import pinocchio as pin
+
+from ..description import RobotDescription
+from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, forward_kinematics,
+                          point_jacobian)
+
+_JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
+                "JointModelRZ": pin.JointModelRZ}
+
+
+# --------------------------------------------------------------------------------------------
+# jitted kernels over the forest arrays
+# --------------------------------------------------------------------------------------------
+@nb.njit(cache=True)
+def integrate_forest(q, u, dt, jtype, idx_q, idx_v, out):
+    """out = q ⊕ Δt F(q) u: r ← r + Δt v, P ← P ⊗ exp(Δt ω/2) per root, φ ← φ + Δt φ̇."""
+    for j in range(1, jtype.shape[0]):
+        iq = idx_q[j]
+        iv = idx_v[j]
+        if jtype[j] != JT_FREEFLYER:
+            out[iq] = q[iq] + dt * u[iv]
+            continue
+        for k in range(3):
+            out[iq + k] = q[iq + k] + dt * u[iv + k]
+        wx, wy, wz = u[iv + 3] * dt, u[iv + 4] * dt, u[iv + 5] * dt
+        ang = np.sqrt(wx * wx + wy * wy + wz * wz)
+        if ang > 1e-12:
+            s = np.sin(0.5 * ang) / ang
+        else:
+            s = 0.5 - ang * ang / 48.0
+        dx, dy, dz, dw = wx * s, wy * s, wz * s, np.cos(0.5 * ang)
+        x, y, z, w = q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6]
+        nx = w * dx + x * dw + y * dz - z * dy
+        ny = w * dy - x * dz + y * dw + z * dx
+        nz = w * dz + x * dy - y * dx + z * dw
+        nw = w * dw - x * dx - y * dy - z * dz
+        n = np.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+        out[iq + 3] = nx / n
+        out[iq + 4] = ny / n
+        out[iq + 5] = nz / n
+        out[iq + 6] = nw / n
+
+
+@nb.njit(cache=True, inline="always")
+def _quat_rot(q, iq, R):
+    x, y, z, w = q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6]
+    R[0, 0] = 1 - 2 * (y * y + z * z)
+    R[0, 1] = 2 * (x * y - z * w)
+    R[0, 2] = 2 * (x * z + y * w)
+    R[1, 0] = 2 * (x * y + z * w)
+    R[1, 1] = 1 - 2 * (x * x + z * z)
+    R[1, 2] = 2 * (y * z - x * w)
+    R[2, 0] = 2 * (x * z - y * w)
+    R[2, 1] = 2 * (y * z + x * w)
+    R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@nb.njit(cache=True)
+def to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin):
+    """u_pin = T u: each root's linear velocity rotated into its body frame (Rs: n_roots x 3 x 3
+    receives the roots' rotations)."""
+    for k in range(u.shape[0]):
+        u_pin[k] = u[k]
+    for r in range(roots.shape[0]):
+        _quat_rot(q, root_q[r], Rs[r])
+        iv = root_v[r]
+        for a in range(3):
+            u_pin[iv + a] = Rs[r, 0, a] * u[iv] + Rs[r, 1, a] * u[iv + 1] + Rs[r, 2, a] * u[iv + 2]
+
+
+@nb.njit(cache=True)
+def from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h):
+    """M = Tᵀ M_pin T, h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k)) (M_pin: upper triangle)."""
+    n = M_pin.shape[0]
+    for i in range(n):
+        for j in range(i, n):
+            M[i, j] = M_pin[i, j]
+            M[j, i] = M_pin[i, j]
+    for i in range(n):
+        h[i] = h_pin[i]
+    nr = root_v.shape[0]
+    for r in range(nr):
+        iv = root_v[r]
+        vx, vy, vz = u_pin[iv], u_pin[iv + 1], u_pin[iv + 2]
+        wx, wy, wz = u_pin[iv + 3], u_pin[iv + 4], u_pin[iv + 5]
+        cx = wy * vz - wz * vy
+        cy = wz * vx - wx * vz
+        cz = wx * vy - wy * vx
+        for i in range(n):
+            h[i] += M[i, iv] * cx + M[i, iv + 1] * cy + M[i, iv + 2] * cz
+    tmp = np.empty(3)
+    for r in range(nr):
+        iv = root_v[r]
+        R = Rs[r]
+        for j in range(n):
+            for a in range(3):
+                tmp[a] = R[a, 0] * M[iv, j] + R[a, 1] * M[iv + 1, j] + R[a, 2] * M[iv + 2, j]
+            for a in range(3):
+                M[iv + a, j] = tmp[a]
+        for i in range(n):
+            for a in range(3):
+                tmp[a] = M[i, iv] * R[a, 0] + M[i, iv + 1] * R[a, 1] + M[i, iv + 2] * R[a, 2]
+            for a in range(3):
+                M[i, iv + a] = tmp[a]
+        for a in range(3):
+            tmp[a] = R[a, 0] * h[iv] + R[a, 1] * h[iv + 1] + R[a, 2] * h[iv + 2]
+        for a in range(3):
+            h[iv + a] = tmp[a]
+
+
+@nb.njit(cache=True)
+def rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h):
+    """h = [m g ; −ω × Θ ω] per free body (frames at the CoM, inertial linear velocity)."""
+    for r in range(root_v.shape[0]):
+        iv = root_v[r]
+        for a in range(3):
+            h[iv + a] = mass[r] * gravity[a]
+        w0, w1, w2 = u[iv + 3], u[iv + 4], u[iv + 5]
+        I = inertia[r]
+        l0 = I[0, 0] * w0 + I[0, 1] * w1 + I[0, 2] * w2
+        l1 = I[1, 0] * w0 + I[1, 1] * w1 + I[1, 2] * w2
+        l2 = I[2, 0] * w0 + I[2, 1] * w1 + I[2, 2] * w2
+        h[iv + 3] = -(w1 * l2 - w2 * l1)
+        h[iv + 4] = -(w2 * l0 - w0 * l2)
+        h[iv + 5] = -(w0 * l1 - w1 * l0)
+
+
+@nb.njit(cache=True)
+def angular_jacobian(j, jtype, axis, idx_v, support, oR, out):
+    """Jacobian (3 x nv) of the world angular velocity of joint frame j."""
+    nv = out.shape[1]
+    for r in range(3):
+        for c in range(nv):
+            out[r, c] = 0.0
+    for k in range(1, jtype.shape[0]):
+        if not support[j, k]:
+            continue
+        iv = idx_v[k]
+        if jtype[k] == JT_FREEFLYER:
+            for r in range(3):
+                for c in range(3):
+                    out[r, iv + 3 + c] = oR[k, r, c]
+        else:
+            for r in range(3):
+                out[r, iv] = oR[k, r, 0] * axis[k, 0] + oR[k, r, 1] * axis[k, 1] + oR[k, r, 2] * axis[k, 2]
+
+
+@nb.njit(cache=True, inline="always")
+def _rotate(R, v, out):
+    for r in range(3):
+        out[r] = R[r, 0] * v[0] + R[r, 1] * v[1] + R[r, 2] * v[2]
+
+
+@nb.njit(cache=True)
+def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
+               cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B, angle, rate,
+               axis_world, do_fk):
+    """For every cut joint k (bodies cut_P[k], cut_C[k]; joint origin p_*, axis a_* and the
+    perpendicular b1_* in each body frame, b2_P = a_P x b1_P): the 5 rows of W_Bᵀ, the
+    position-level violation g_B, the joint angle φ and rate φ̇, and the hinge axis in the
+    world frame."""
+    if do_fk:
+        forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
+    nv = u.shape[0]
+    JP = np.empty((3, nv))
+    JC = np.empty((3, nv))
+    xP = np.empty(3)
+    xC = np.empty(3)
+    aw = np.empty(3)
+    acw = np.empty(3)
+    b1 = np.empty(3)
+    b2 = np.empty(3)
+    t = np.empty(3)
+    for k in range(cut_P.shape[0]):
+        P = cut_P[k]
+        C = cut_C[k]
+        _rotate(oR[P], p_P[k], t)
+        for r in range(3):
+            xP[r] = op[P, r] + t[r]
+        _rotate(oR[C], p_C[k], t)
+        for r in range(3):
+            xC[r] = op[C, r] + t[r]
+        _rotate(oR[P], a_P[k], aw)
+        _rotate(oR[C], a_C[k], acw)
+        _rotate(oR[P], b1_P[k], b1)
+        _rotate(oR[P], b2_P[k], b2)
+        row = 5 * k
+        point_jacobian(P, xP, jtype, axis, idx_v, support, oR, op, JP)
+        point_jacobian(C, xC, jtype, axis, idx_v, support, oR, op, JC)
+        for r in range(3):
+            for c in range(nv):
+                Wt_B[row + r, c] = JP[r, c] - JC[r, c]
+            g_B[row + r] = xP[r] - xC[r]
+        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP)
+        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC)
+        for c in range(nv):
+            d0 = JC[0, c] - JP[0, c]
+            d1 = JC[1, c] - JP[1, c]
+            d2 = JC[2, c] - JP[2, c]
+            Wt_B[row + 3, c] = b1[0] * d0 + b1[1] * d1 + b1[2] * d2
+            Wt_B[row + 4, c] = b2[0] * d0 + b2[1] * d1 + b2[2] * d2
+        g_B[row + 3] = acw[0] * b1[0] + acw[1] * b1[1] + acw[2] * b1[2]
+        g_B[row + 4] = acw[0] * b2[0] + acw[1] * b2[1] + acw[2] * b2[2]
+        # φ: rotation of C's b1 about the axis, seen in P's (b1, b2) basis
+        _rotate(oR[C], b1_C[k], t)  # b1 carried by C (the joint frames coincide at φ = 0)
+        angle[k] = np.arctan2(t[0] * b2[0] + t[1] * b2[1] + t[2] * b2[2],
+                              t[0] * b1[0] + t[1] * b1[1] + t[2] * b1[2])
+        s = 0.0
+        for c in range(nv):
+            s += (aw[0] * (JC[0, c] - JP[0, c]) + aw[1] * (JC[1, c] - JP[1, c])
+                  + aw[2] * (JC[2, c] - JP[2, c])) * u[c]
+        rate[k] = s
+        for r in range(3):
+            axis_world[k, r] = aw[r]
+
+
+@nb.njit(cache=True)
+def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h):
+    """h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the actuators of the cut joints."""
+    nv = h.shape[0]
+    J = np.empty((3, nv))
+    for k in range(cut_P.shape[0]):
+        tq = tau_cut[k]
+        if tq == 0.0:
+            continue
+        f0, f1, f2 = tq * axis_world[k, 0], tq * axis_world[k, 1], tq * axis_world[k, 2]
+        angular_jacobian(cut_C[k], jtype, axis, idx_v, support, oR, J)
+        for c in range(nv):
+            h[c] += J[0, c] * f0 + J[1, c] * f1 + J[2, c] * f2
+        angular_jacobian(cut_P[k], jtype, axis, idx_v, support, oR, J)
+        for c in range(nv):
+            h[c] -= J[0, c] * f0 + J[1, c] * f1 + J[2, c] * f2
+
+
+# --------------------------------------------------------------------------------------------
+class ForestCoordinates:
+    """q, u, F(q), M, h, contact and bilateral force directions of a cut kinematic tree."""
+
+    def __init__(self, desc: RobotDescription, cut=(), com_frames=False, name="minimal"):
+        self.name = name
+        self.desc = desc
+        src = desc.model
+        cut_ids = sorted(src.getJointId(n) if isinstance(n, str) else int(n) for n in cut)
+        for j in cut_ids:
+            if src.joints[j].shortname() not in _JOINT_TYPES:
+                raise ValueError(f"only axis-aligned revolute joints can be cut, not "
+                                 f"'{src.names[j]}' ({src.joints[j].shortname()})")
+        if src.joints[1].shortname() != "JointModelFreeFlyer":
+            raise ValueError("the robot model needs a free-flyer root")
+        self.src = src
+        roots = [1] + cut_ids
+        forest = pin.Model()
+        forest.gravity = src.gravity
+        #: source joint -> (forest joint, placement of the source joint frame in it)
+        self.joint_map = {}
+        children = {j: [] for j in range(src.njoints)}
+        for j in range(2, src.njoints):
+            children[src.parents[j]].append(j)
+
+        def subtree(j):
+            out = [j]
+            for c in children[j]:
+                if c not in cut_ids:
+                    out += subtree(c)
+            return out
+
+        single_body_trees = True
+        for root in roots:
+            members = subtree(root)
+            single_body_trees &= len(members) == 1
+            inertia = src.inertias[root]
+            offset = pin.SE3.Identity()
+            if com_frames:
+                if len(members) != 1:
+                    raise ValueError("com_frames needs every tree to be a single body")
+                offset = pin.SE3(np.eye(3), inertia.lever.copy())
+                inertia = pin.Inertia(inertia.mass, np.zeros(3), inertia.inertia.copy())
+            fj = forest.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(),
+                                 f"{src.names[root]}_root" if root != 1 else src.names[1])
+            forest.appendBodyToJoint(fj, inertia, pin.SE3.Identity())
+            self.joint_map[root] = (fj, offset)
+            for j in members[1:]:
+                pf, poff = self.joint_map[src.parents[j]]
+                jm = _JOINT_TYPES[src.joints[j].shortname()]()
+                fjj = forest.addJoint(pf, jm, poff.inverse() * src.jointPlacements[j],
+                                      src.names[j])
+                forest.appendBodyToJoint(fjj, src.inertias[j], pin.SE3.Identity())
+                self.joint_map[j] = (fjj, pin.SE3.Identity())
+        self.model = forest
+        self.data = forest.createData()
+        self.nq, self.nv = forest.nq, forest.nv
+        self.tree = KinematicTree(forest)
+        t = self.tree
+        self.roots = np.array([self.joint_map[r][0] for r in roots], dtype=np.int64)
+        self.root_q = t.idx_q[self.roots].copy()
+        self.root_v = t.idx_v[self.roots].copy()
+        #: diagonal blocks of M (one per tree), for the block Cholesky
+        sizes = [forest.joints[self.roots[i]].idx_v for i in range(1, len(roots))] + [self.nv]
+        self.blocks = np.array([[self.root_v[i], sizes[i] - self.root_v[i]]
+                                for i in range(len(roots))], dtype=np.int64)
+        self.constant_mass_matrix = bool(com_frames and single_body_trees)
+        self._Rs = np.zeros((len(roots), 3, 3))
+        self._u_pin = np.zeros(self.nv)
+
+        # cut joints -> bilateral constraints
+        ncut = len(cut_ids)
+        self.n_cut = ncut
+        self.n_bilateral = 5 * ncut
+        self.cut_P = np.zeros(ncut, dtype=np.int64)
+        self.cut_C = np.zeros(ncut, dtype=np.int64)
+        self.p_P, self.p_C = np.zeros((ncut, 3)), np.zeros((ncut, 3))
+        self.a_P, self.a_C = np.zeros((ncut, 3)), np.zeros((ncut, 3))
+        self.b1_P, self.b2_P = np.zeros((ncut, 3)), np.zeros((ncut, 3))
+        self.b1_C = np.zeros((ncut, 3))
+        for k, c in enumerate(cut_ids):
+            a = {"JointModelRX": np.array([1.0, 0, 0]), "JointModelRY": np.array([0, 1.0, 0]),
+                 "JointModelRZ": np.array([0, 0, 1.0])}[src.joints[c].shortname()]
+            b1 = np.array([0, 1.0, 0]) if abs(a[1]) < 0.9 else np.array([0, 0, 1.0])
+            b1 = b1 - a * (a @ b1)
+            b1 /= np.linalg.norm(b1)
+            b2 = np.cross(a, b1)
+            pf, poff = self.joint_map[src.parents[c]]
+            X = poff * src.jointPlacements[c]   # joint frame at φ = 0, in the P body frame
+            cf, coff = self.joint_map[c]        # source child frame, in the C body frame
+            self.cut_P[k], self.cut_C[k] = pf, cf
+            self.p_P[k], self.p_C[k] = X.translation, coff.translation
+            self.a_P[k] = X.rotation @ a
+            self.b1_P[k], self.b2_P[k] = X.rotation @ b1, X.rotation @ b2
+            self.a_C[k] = coff.rotation @ a
+            self.b1_C[k] = coff.rotation @ b1
+        self._angle = np.zeros(ncut)
+        self._rate = np.zeros(ncut)
+        self._axis_world = np.zeros((ncut, 3))
+        self._WtB = np.zeros((self.n_bilateral, self.nv))
+        self._gB = np.zeros(self.n_bilateral)
+
+        # actuated joints: forest joints, or cut joints (by index into the cut list)
+        self.joint_q, self.joint_v, self.joint_cut = [], [], []
+        for n in desc.joint_names:
+            sj = src.getJointId(n)
+            if sj in cut_ids:
+                self.joint_q.append(-1)
+                self.joint_v.append(-1)
+                self.joint_cut.append(cut_ids.index(sj))
+            else:
+                fj = self.joint_map[sj][0]
+                self.joint_q.append(forest.joints[fj].idx_q)
+                self.joint_v.append(forest.joints[fj].idx_v)
+                self.joint_cut.append(-1)
+        self.joint_q = np.array(self.joint_q, dtype=np.int64)
+        self.joint_v = np.array(self.joint_v, dtype=np.int64)
+        self.joint_cut = np.array(self.joint_cut, dtype=np.int64)
+        self._act_tree = self.joint_cut < 0
+        self._act_cut = ~self._act_tree
+        self._tau_cut = np.zeros(ncut)
+
+        # contact points in forest frames
+        cs = desc.contacts
+        self.n_contacts = len(cs)
+        self.contact_names = [c.name for c in cs]
+        self.c_joint = np.array([self.joint_map[c.joint][0] for c in cs], dtype=np.int64)
+        self.c_local = np.array([self.joint_map[c.joint][1].act(c.local) for c in cs],
+                                dtype=float).reshape(-1, 3)
+        self.c_radius = np.array([c.radius for c in cs], dtype=float)
+
+        if self.constant_mass_matrix:
+            self._mass = np.array([forest.inertias[r].mass for r in self.roots])
+            self._inertia = np.array([forest.inertias[r].inertia for r in self.roots])
+            self._gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
+            M = np.zeros((self.nv, self.nv))
+            for i, r in enumerate(self.roots):
+                v = self.root_v[i]
+                M[v:v + 3, v:v + 3] = self._mass[i] * np.eye(3)
+                M[v + 3:v + 6, v + 3:v + 6] = self._inertia[i]
+            self._M_const = M
+
+    # -- configuration space ------------------------------------------------------------------
+    def neutral(self):
+        return pin.neutral(self.model)
+
+    def integrate(self, q, u, dt):
+        """q ⊕ Δt F(q) u (Eqn. 22) for every root and joint, quaternions re-normalised."""
+        out = np.empty_like(q)
+        t = self.tree
+        integrate_forest(q, u, dt, t.jtype, t.idx_q, t.idx_v, out)
+        return out
+
+    # -- dynamics -----------------------------------------------------------------------------
+    def _kinematics_for_cuts(self, q, u):
+        t = self.tree
+        cut_joints(q, u, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
+                   t.support, t.oR, t.op, self.cut_P, self.cut_C, self.p_P, self.p_C,
+                   self.a_P, self.b1_P, self.b2_P, self.a_C, self.b1_C, self._WtB, self._gB,
+                   self._angle,
+                   self._rate, self._axis_world, True)
+
+    def dynamics(self, q, u, tau):
+        """(M, h) at (q, u); h includes the joint torques τ (public order): Sᵀτ for joints
+        inside a tree, equal and opposite body torques for cut joints."""
+        if self.constant_mass_matrix:
+            M = self._M_const
+            h = np.empty(self.nv)
+            rigid_body_forces(q, u, self.root_q, self.root_v, self._mass, self._inertia,
+                              self._gravity, h)
+        else:
+            to_pin_velocity(q, u, self.roots, self.root_q, self.root_v, self._Rs, self._u_pin)
+            M_pin = pin.crba(self.model, self.data, q)
+            h_pin = -pin.nonLinearEffects(self.model, self.data, q, self._u_pin)
+            M = np.empty((self.nv, self.nv))
+            h = np.empty(self.nv)
+            from_pin_dynamics(M_pin, h_pin, self._Rs, self.root_v, self._u_pin, M, h)
+        if tau is not None and tau.shape[0]:
+            if self.n_cut == 0:
+                h[self.joint_v] += tau
+            else:
+                h[self.joint_v[self._act_tree]] += tau[self._act_tree]
+                self._tau_cut[self.joint_cut[self._act_cut]] = tau[self._act_cut]
+                self._kinematics_for_cuts(q, u)
+                t = self.tree
+                cut_joint_torques(self._tau_cut, self.cut_P, self.cut_C, self._axis_world,
+                                  t.jtype, t.axis, t.idx_v, t.support, t.oR, h)
+        return M, h
+
+    def bilateral(self, q, u=None):
+        """(W_Bᵀ (n_B x nv), g_B (n_B)) at q; arrays are reused between calls."""
+        self._kinematics_for_cuts(q, np.zeros(self.nv) if u is None else u)
+        return self._WtB, self._gB
+
+    def contact_kinematics(self, q, ground, gap, position, Wt, jacobian_gap=np.inf):
+        """Fill gap (nc) and position (nc x 3) of all contact points, and Wt (nc x 3 x nv)
+        of those with g_N ≤ jacobian_gap."""
+        t = self.tree
+        contact_kinematics(q, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
+                           t.support, t.oR, t.op, self.c_joint, self.c_local, self.c_radius,
+                           ground.n, ground.t1, ground.t2, ground.offset, jacobian_gap, gap,
+                           position, Wt)
+
+    def _link_point(self, frame):
+        src = self.src
+        if not src.existFrame(frame):
+            raise ValueError(f"unknown link '{frame}'")
+        f = src.frames[src.getFrameId(frame)]
+        fj, off = self.joint_map[f.parentJoint] if f.parentJoint in self.joint_map else (None, None)
+        if fj is None:  # frame on the universe
+            raise ValueError(f"link '{frame}' is not part of the robot")
+        return fj, off * f.placement
+
+    def wrench_generalized_force(self, q, frame: str, force, torque):
+        """Jᵀ [f; τ] for a wrench (world axes) applied at the origin of link `frame`."""
+        fj, X = self._link_point(frame)
+        t = self.tree
+        forward_kinematics(q, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.oR, t.op)
+        p = t.oR[fj] @ X.translation + t.op[fj]
+        Jv = np.empty((3, self.nv))
+        Jw = np.empty((3, self.nv))
+        point_jacobian(fj, p, t.jtype, t.axis, t.idx_v, t.support, t.oR, t.op, Jv)
+        angular_jacobian(fj, t.jtype, t.axis, t.idx_v, t.support, t.oR, Jw)
+        return Jv.T @ np.asarray(force, float) + Jw.T @ np.asarray(torque, float)
+
+    # -- public state mapping -----------------------------------------------------------------
+    def _cut_state(self, q, u):
+        if self.n_cut:
+            self._kinematics_for_cuts(q, u)
+
+    def joint_positions(self, q):
+        out = np.empty(self.joint_q.shape[0])
+        out[self._act_tree] = q[self.joint_q[self._act_tree]]
+        if self.n_cut:
+            self._cut_state(q, np.zeros(self.nv))
+            out[self._act_cut] = self._angle[self.joint_cut[self._act_cut]]
+        return out
+
+    def joint_velocities(self, q, u):
+        out = np.empty(self.joint_v.shape[0])
+        out[self._act_tree] = u[self.joint_v[self._act_tree]]
+        if self.n_cut:
+            self._cut_state(q, u)
+            out[self._act_cut] = self._rate[self.joint_cut[self._act_cut]]
+        return out
+
+    def base_state(self, q, u):
+        """(position, quaternion_xyzw, linear velocity (world), angular velocity (base frame))
+        of the trunk (the first root); for com_frames the trunk frame is offset from its CoM."""
+        iq, iv = self.root_q[0], self.root_v[0]
+        off = self.joint_map[1][1]
+        R = np.zeros((3, 3))
+        _quat_rot(q, iq, R)
+        pos = q[iq:iq + 3] - R @ off.translation
+        w_body = u[iv + 3:iv + 6]
+        v = u[iv:iv + 3] + np.cross(R @ w_body, -R @ off.translation)
+        return pos, q[iq + 3:iq + 7].copy(), v, w_body.copy()
+
+    def make_state(self, position, quat_xyzw, joints=None):
+        """A state from the trunk pose and the joint angles (public order), at rest."""
+        src = self.src
+        q_min = pin.neutral(src)
+        q_min[0:3] = position
+        quat = np.asarray(quat_xyzw, dtype=float)
+        q_min[3:7] = quat / np.linalg.norm(quat)
+        if joints is not None:
+            for n, v in zip(self.desc.joint_names, joints):
+                q_min[src.joints[src.getJointId(n)].idx_q] = v
+        return self.from_minimal(q_min, np.zeros(src.nv))[0]
+
+    def from_minimal(self, q_min, u_min):
+        """The state of this forest equal to a state of the uncut model (minimal coordinates):
+        each root gets the pose and velocity of its body, the joints inside trees their
+        angles and rates."""
+        src = self.src
+        data = src.createData()
+        R0 = pin.Quaternion(q_min[6], q_min[3], q_min[4], q_min[5]).toRotationMatrix()
+        v_pin = u_min.copy()
+        v_pin[0:3] = R0.T @ u_min[0:3]
+        pin.forwardKinematics(src, data, q_min, v_pin)
+        q = self.neutral()
+        u = np.zeros(self.nv)
+        for sj, (fj, off) in self.joint_map.items():
+            jm = self.model.joints[fj]
+            if jm.shortname() == "JointModelFreeFlyer":
+                oM = data.oMi[sj] * off
+                quat = pin.Quaternion(oM.rotation)
+                q[jm.idx_q:jm.idx_q + 3] = oM.translation
+                q[jm.idx_q + 3:jm.idx_q + 7] = [quat.x, quat.y, quat.z, quat.w]
+                vel = off.actInv(data.v[sj])           # body-frame twist at the new origin
+                u[jm.idx_v:jm.idx_v + 3] = oM.rotation @ vel.linear
+                u[jm.idx_v + 3:jm.idx_v + 6] = vel.angular
+            else:
+                sjm = src.joints[sj]
+                q[jm.idx_q] = q_min[sjm.idx_q]
+                u[jm.idx_v] = u_min[sjm.idx_v]
+        return q, u
+
+    def kinetic_energy(self, q, u):
+        M, _ = self.dynamics(q, u, None)
+        return 0.5 * float(u @ M @ u)
+
+    def potential_energy(self, q):
+        return float(pin.computePotentialEnergy(self.model, self.data, q))
+
+    def link_names(self):
+        return [f.name for f in self.src.frames if f.type == pin.FrameType.BODY]
