@@ -146,9 +146,14 @@ class SolverConfig:
 @dataclass
 class BilateralConfig:
     method: str = "none"  # none (minimal coordinates) | prox (Eqn. 19) | direct (Eqn. 20)
+    #: drift stabilisation β ∈ [0, 1]: the bilateral law becomes γ_B^E + (β/Δt) g_B(q^M) = 0,
+    #: which removes a position-level violation g_B over a few steps. β = 0 is the paper's law
+    #: (ξ_B = γ_B^E), whose violation drifts at first order in Δt.
+    stabilization: float = 0.0
 
     def validate(self, p):
         self.method = _choice(f"{p}.method", self.method, {"none", "prox", "direct"})
+        self.stabilization = _num(f"{p}.stabilization", self.stabilization, 0.0, 1.0)
 
 
 @dataclass

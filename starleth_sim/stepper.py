@@ -48,10 +48,12 @@ def free_velocity(M, h, dt, uS, blocks, factor, L, u_free):
 
 
 @nb.njit(cache=True)
-def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, activation_gap, eps, blocks, factor, L, u_free):
+def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor, L,
+               u_free):
     """Fig. 7 phase "M^-1": factor M, u_free = u^S + M^{-1} h Δt, the active set
     {i | g_N,i ≤ activation_gap}, W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
-    b = [ε W_U^T u^S; 0] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2).
+    b = [ε W_U^T u^S; b_B] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2) and b_B the
+    bilateral drift stabilisation (β/Δt) g_B (zero in the paper's law).
     Returns (ok, active, Wt, MinvW, b)."""
     nv = uS.shape[0]
     ok = free_velocity(M, h, dt, uS, blocks, factor, L, u_free)
@@ -90,6 +92,8 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, activation_gap, eps, blocks, fact
         for j in range(nv):
             s += Wt[a, j] * uS[j]
         bvec[a] = eps[active[a // 3], 0 if a % 3 == 0 else 1] * s
+    for a in range(nb_):
+        bvec[o + a] = bB[a]
     return ok, active, Wt, MinvW, bvec
 
 
@@ -188,13 +192,13 @@ IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM, IP_DIRECT = range(6)
 
 
 @nb.njit(cache=True)
-def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, blocks, factor, L, u_free, fp, ip, eps,
-                        last_impulse, last_active, last_bilateral, impulse, is_active, u):
+def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, bB, blocks, factor, L, u_free, fp, ip,
+                        eps, last_impulse, last_active, last_bilateral, impulse, is_active, u):
     """The three phases in one jitted call (the unprofiled hot path). Writes Λ_U of every
     contact point into impulse (nc x 3), the active flags, Λ_B into last_bilateral and u^E;
     on success the warm-start memory is updated. Returns (ok, iterations, status, residual,
     retried)."""
-    ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, WtB,
+    ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB,
                                              fp[FP_ACTIVATION], eps, blocks, factor, L, u_free)
     nc = gap.shape[0]
     for i in range(nc):
@@ -298,6 +302,8 @@ class MoreauStepper:
         self.constant_M = coords.constant_mass_matrix
         self._factored = False
         self.no_bilateral = np.zeros((0, nv))
+        self.bB = np.zeros(self.nb)
+        self.beta = config.bilateral.stabilization
         s = config.solver
         self.form = prox.FORMS[s.form]
         self.scheme = prox.SCHEMES[s.scheme]
@@ -358,7 +364,11 @@ class MoreauStepper:
             self.stats.timings[0] += t1 - t0
         coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
                                   self.activation_gap)
-        WtB = coords.bilateral(qM)[0] if self.nb else self.no_bilateral
+        if self.nb:
+            WtB, gB = coords.bilateral(qM)
+            np.multiply(gB, self.beta / dt, out=self.bB)
+        else:
+            WtB = self.no_bilateral
         if prof:
             self.stats.timings[4] += time.perf_counter() - t1
         if self.hard:
@@ -411,14 +421,15 @@ class MoreauStepper:
         factor = not (self.constant_M and self._factored)
         if not prof:
             ok, it, status, resid, retried = solve_hard_contacts(
-                M, h, dt, uS, gap, self.Wt_all, WtB, self.blocks, factor, self.L, self.u_free,
+                M, h, dt, uS, gap, self.Wt_all, WtB, self.bB, self.blocks, factor, self.L,
+                self.u_free,
                 self.fparams, self.iparams, self.eps, self.last_impulse, self.last_active,
                 self.last_bilateral, impulse, is_active, u)
         else:  # the same phases, called one by one between timers (Fig. 7)
             s = self.cfg.solver
             t1 = time.perf_counter()
             ok, active, Wt, MinvW, bvec = phase_minv(
-                M, h, dt, uS, gap, self.Wt_all, WtB, self.activation_gap, self.eps,
+                M, h, dt, uS, gap, self.Wt_all, WtB, self.bB, self.activation_gap, self.eps,
                 self.blocks, factor, self.L, self.u_free)
             t2 = time.perf_counter()
             self.stats.timings[1] += t2 - t1

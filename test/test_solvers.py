@@ -26,8 +26,8 @@ def robot_problem(u_scale, seed, mu=0.8):
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
     eps = np.zeros((sim.coords.n_contacts, 2))
     ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all,
-                                             np.zeros((0, nv)), 0.0, eps, sim.coords.blocks,
-                                             True, L, u_free)
+                                             np.zeros((0, nv)), np.zeros(0), 0.0, eps,
+                                             sim.coords.blocks, True, L, u_free)
     assert ok and len(active) == 4
     na = len(active)
     ok, G, c, Gdiag, LB = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, u_free, bvec)

@@ -280,7 +280,8 @@ class ForestCoordinates:
         roots = [1] + cut_ids
         forest = pin.Model()
         forest.gravity = src.gravity
-        #: source joint -> (forest joint, placement of the source joint frame in it)
+        #: source joint j -> (forest joint, off) with F = J_j · off: `off` places the forest
+        #: body frame F in the source joint frame (identity except CoM frames)
         self.joint_map = {}
         children = {j: [] for j in range(src.njoints)}
         for j in range(2, src.njoints):
@@ -324,7 +325,7 @@ class ForestCoordinates:
         self.root_q = t.idx_q[self.roots].copy()
         self.root_v = t.idx_v[self.roots].copy()
         #: diagonal blocks of M (one per tree), for the block Cholesky
-        sizes = [forest.joints[self.roots[i]].idx_v for i in range(1, len(roots))] + [self.nv]
+        sizes = [int(v) for v in self.root_v[1:]] + [self.nv]
         self.blocks = np.array([[self.root_v[i], sizes[i] - self.root_v[i]]
                                 for i in range(len(roots))], dtype=np.int64)
         self.constant_mass_matrix = bool(com_frames and single_body_trees)
@@ -349,14 +350,15 @@ class ForestCoordinates:
             b1 /= np.linalg.norm(b1)
             b2 = np.cross(a, b1)
             pf, poff = self.joint_map[src.parents[c]]
-            X = poff * src.jointPlacements[c]   # joint frame at φ = 0, in the P body frame
-            cf, coff = self.joint_map[c]        # source child frame, in the C body frame
+            X = poff.inverse() * src.jointPlacements[c]  # joint frame (φ = 0) in P's frame
+            cf, coff = self.joint_map[c]
+            Y = coff.inverse()                           # joint frame in C's frame
             self.cut_P[k], self.cut_C[k] = pf, cf
-            self.p_P[k], self.p_C[k] = X.translation, coff.translation
+            self.p_P[k], self.p_C[k] = X.translation, Y.translation
             self.a_P[k] = X.rotation @ a
             self.b1_P[k], self.b2_P[k] = X.rotation @ b1, X.rotation @ b2
-            self.a_C[k] = coff.rotation @ a
-            self.b1_C[k] = coff.rotation @ b1
+            self.a_C[k] = Y.rotation @ a
+            self.b1_C[k] = Y.rotation @ b1
         self._angle = np.zeros(ncut)
         self._rate = np.zeros(ncut)
         self._axis_world = np.zeros((ncut, 3))
@@ -388,13 +390,13 @@ class ForestCoordinates:
         self.n_contacts = len(cs)
         self.contact_names = [c.name for c in cs]
         self.c_joint = np.array([self.joint_map[c.joint][0] for c in cs], dtype=np.int64)
-        self.c_local = np.array([self.joint_map[c.joint][1].act(c.local) for c in cs],
+        self.c_local = np.array([self.joint_map[c.joint][1].actInv(c.local) for c in cs],
                                 dtype=float).reshape(-1, 3)
         self.c_radius = np.array([c.radius for c in cs], dtype=float)
 
         if self.constant_mass_matrix:
-            self._mass = np.array([forest.inertias[r].mass for r in self.roots])
-            self._inertia = np.array([forest.inertias[r].inertia for r in self.roots])
+            self._mass = np.array([forest.inertias[int(r)].mass for r in self.roots])
+            self._inertia = np.array([forest.inertias[int(r)].inertia for r in self.roots])
             self._gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
             M = np.zeros((self.nv, self.nv))
             for i, r in enumerate(self.roots):
@@ -472,7 +474,7 @@ class ForestCoordinates:
         fj, off = self.joint_map[f.parentJoint] if f.parentJoint in self.joint_map else (None, None)
         if fj is None:  # frame on the universe
             raise ValueError(f"link '{frame}' is not part of the robot")
-        return fj, off * f.placement
+        return fj, off.inverse() * f.placement
 
     def wrench_generalized_force(self, q, frame: str, force, torque):
         """Jᵀ [f; τ] for a wrench (world axes) applied at the origin of link `frame`."""
@@ -511,13 +513,18 @@ class ForestCoordinates:
         """(position, quaternion_xyzw, linear velocity (world), angular velocity (base frame))
         of the trunk (the first root); for com_frames the trunk frame is offset from its CoM."""
         iq, iv = self.root_q[0], self.root_v[0]
-        off = self.joint_map[1][1]
+        Y = self.joint_map[1][1].inverse()  # trunk frame in the root body frame
         R = np.zeros((3, 3))
         _quat_rot(q, iq, R)
-        pos = q[iq:iq + 3] - R @ off.translation
+        d = R @ Y.translation
+        pos = q[iq:iq + 3] + d
         w_body = u[iv + 3:iv + 6]
-        v = u[iv:iv + 3] + np.cross(R @ w_body, -R @ off.translation)
-        return pos, q[iq + 3:iq + 7].copy(), v, w_body.copy()
+        v = u[iv:iv + 3] + np.cross(R @ w_body, d)
+        RY = R @ Y.rotation
+        quat = pin.Quaternion(RY) if not np.allclose(Y.rotation, np.eye(3)) else None
+        qxyzw = q[iq + 3:iq + 7].copy() if quat is None else np.array([quat.x, quat.y, quat.z,
+                                                                      quat.w])
+        return pos, qxyzw, v, (Y.rotation.T @ w_body)
 
     def make_state(self, position, quat_xyzw, joints=None):
         """A state from the trunk pose and the joint angles (public order), at rest."""

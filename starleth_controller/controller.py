@@ -1,0 +1,585 @@
+"""Model-based stand / trot controller for StarlETH, after Gehring et al., ICRA 2013
+("Control of dynamic gaits for a quadrupedal robot") and its open-source descendant loco.
+
+Pure Python, no ROS: ``StarlethController.update(state, command) -> 12 joint torques``.
+
+Structure (one call = one control period):
+
+1. Kinematics: analytic leg kinematics (feet, contact-point Jacobians; geometry read from the
+   URDF and checked against Pinocchio in the tests) and, from the controller's own Pinocchio
+   model, the legs' gravity torques and the centre of mass.
+2. Gait pattern (trot): a clock with period T; diagonal pairs LF+RH and RF+LH half a cycle
+   apart, duty factor 0.5. Each leg's plan (swing/stance, phase) is combined with its contact
+   flag as in loco's LimbCoordinatorDynamicGait: planned stance + ground contact = support leg;
+   planned stance without contact = lost contact (leg lowered to find the ground); planned
+   swing with contact after 60 % of the swing = early touch-down (support leg); planned swing
+   with contact before that = late lift-off / bump (the swing goes on).
+3. Support legs (torque mode): virtual model control of the trunk (PD on position, velocity
+   and orientation in the heading frame, velocity feed-forward, gravity feed-forward of the
+   whole robot) gives a desired wrench about the centre of mass, which a QP distributes onto
+   the support feet (force_distribution.py); τ = −J_iᵀ f_i + g_leg, J_i the contact point's
+   translational Jacobian w.r.t. the leg joints (world axes, trunk fixed) and f_i the force of
+   the ground on the robot.
+4. Swing legs (position mode): the foothold from the inverted-pendulum rule
+   Δ = ½ v* T_stance + k_fb (v − v*) √(h/g) (clipped, plus a default offset), a foot
+   trajectory from the lift-off point to the foothold with an apex height, analytic leg IK,
+   joint PD with gravity feed-forward.
+5. Torques saturated at the joints' effort limits.
+
+Additions of ours to loco's scheme (each a parameter, documented in ControllerParams):
+joint-torque rows in the force QP, a velocity integral in the trotting VMC, a yaw P gain,
+default footholds shifted towards the knees, and a "fallen" mode (beyond 0.8 rad of tilt the
+controller stops balancing and holds a compact posture; it stands again once upright).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from . import kernels as K
+from .force_distribution import ContactForceDistribution
+from .model import RobotModel
+
+# leg states (per control period)
+SUPPORT = 0          # stance, on the ground: torque mode from VMC + QP
+SWING = 1            # swing (also late lift-off / bumped): joint PD on the swing trajectory
+LOST_CONTACT = 2     # planned stance (or standing) without ground contact: lowered to search
+STATE_NAMES = ("support", "swing", "lost_contact")
+
+MODES = ("stand", "trot")          # commanded modes; the controller may also be "fallen"
+
+
+@dataclass
+class Command:
+    """Desired motion. Velocities are in the heading (yaw) frame of the trunk."""
+    mode: str = "stand"       # "stand" | "trot"
+    forward: float = 0.0      # [m/s]
+    lateral: float = 0.0      # [m/s]
+    yaw_rate: float = 0.0     # [rad/s]
+
+
+@dataclass
+class RobotState:
+    """What the controller reads. Joint arrays in the public order LF/RF/LH/RH x
+    HAA/HFE/KFE; legs in the order LF, RF, LH, RH."""
+    t: float
+    joint_positions: np.ndarray
+    joint_velocities: np.ndarray
+    base_position: np.ndarray
+    base_orientation_xyzw: np.ndarray
+    base_linear_velocity: np.ndarray      # world frame
+    base_angular_velocity: np.ndarray     # base frame
+    foot_contact: np.ndarray | None = None   # 4 bools; if None, taken from foot_force
+    foot_force: np.ndarray | None = None     # (4, 3) force of the ground on the feet [N]
+
+    @classmethod
+    def from_simulator(cls, sim, feet=("LF_foot", "RF_foot", "LH_foot", "RH_foot")):
+        """From any object with the starleth_sim public API (t, joint_positions(),
+        joint_velocities(), base_state(), contacts)."""
+        b = sim.base_state()
+        contacts = {c.name: c for c in sim.contacts}
+        flags = np.array([contacts[f].active for f in feet], dtype=bool)
+        forces = np.array([contacts[f].force for f in feet], dtype=float)
+        return cls(sim.t, sim.joint_positions(), sim.joint_velocities(), b["position"],
+                   b["orientation_xyzw"], b["linear_velocity"], b["angular_velocity"],
+                   flags, forces)
+
+
+@dataclass
+class VMCGains:
+    """Virtual model gains, heading frame. Translation: (heading, lateral, vertical);
+    rotation: (roll, pitch, yaw)."""
+    kp: tuple = (0.0, 640.0, 600.0)
+    kd: tuple = (150.0, 100.0, 120.0)
+    kff: tuple = (60.0, 0.0, 0.0)
+    kp_rot: tuple = (400.0, 200.0, 100.0)   # yaw kp: ours, holds the commanded heading
+    kd_rot: tuple = (6.0, 9.0, 100.0)
+    kff_rot: tuple = (0.0, 0.0, 0.0)
+
+
+def _stand_gains():
+    return VMCGains(kp=(640.0, 640.0, 600.0), kd=(100.0, 100.0, 120.0), kff=(0.0, 0.0, 0.0),
+                    kp_rot=(400.0, 200.0, 100.0), kd_rot=(6.0, 9.0, 20.0))
+
+
+@dataclass
+class ControllerParams:
+    height: float = 0.41                 # desired trunk height above the ground [m]
+    # gait
+    gait_period: float = 0.8             # T [s] (1.25 Hz)
+    duty_factor: float = 0.5
+    phase_offsets: tuple = (0.0, 0.5, 0.5, 0.0)   # LF, RF, LH, RH (diagonal pairs)
+    swing_height: float = 0.09           # apex [m]
+    touchdown_depth: float = 0.01        # the swing ends this far below the ground [m]
+    early_touchdown_phase: float = 0.6   # contact after this swing phase = touch-down
+    step_feedback: float = 1.1           # k_fb of the inverted-pendulum rule
+    step_max: float = 0.25               # clip of the foothold offset [m]
+    step_interp_end: float = 0.75        # swing phase at which the foot is above its foothold
+    #: default foothold relative to the hip (heading frame, x) per leg LF, RF, LH, RH:
+    #: fore feet a little behind, hind feet a little ahead of their hips (towards the knees),
+    #: which shares the support torque between HFE and KFE (loco: Offset Fore/Hind heading)
+    foothold_offset_x: tuple = (-0.04, -0.04, 0.04, 0.04)
+    trot_height: float | None = None     # trunk height while trotting (None: `height`)
+    max_acceleration: float = 1.0        # ramp of the velocity command [m/s^2]
+    max_yaw_acceleration: float = 2.0    # [rad/s^2]
+    # virtual model control
+    trot_gains: VMCGains = field(default_factory=VMCGains)
+    stand_gains: VMCGains = field(default_factory=_stand_gains)
+    #: velocity integral of the trotting VMC (ours; heading and lateral): on a diagonal
+    #: support the force QP trades horizontal force for pitch/roll moments, which leaves a
+    #: steady speed deficit; F_xy += ki ∫(v* − v) dt, clipped to ±velocity_integral_max
+    velocity_ki: float = 250.0           # [N/m]
+    velocity_integral_max: float = 40.0  # [N]
+    max_position_error: float = 0.1      # clip of the VMC position error [m]
+    max_orientation_error: float = 0.4   # clip of the VMC orientation error [rad]
+    # contact force distribution
+    mu: float = 0.7
+    min_normal_force: float = 2.0
+    wrench_weights: tuple = (1.0, 1.0, 1.0, 20.0, 20.0, 5.0)
+    force_regularization: float = 1e-4
+    qp_torque_margin: float | None = 0.95   # joint torque rows at this share of the limit
+    # swing / position-controlled legs: HAA, HFE, KFE
+    joint_kp: tuple = (70.0, 70.0, 26.0)
+    joint_kd: tuple = (3.1, 3.2, 0.2)
+    lost_contact_speed: float = 0.2      # lowering rate of a leg searching the ground [m/s]
+    lost_contact_depth: float = 0.06     # at most this far below the ground [m]
+    contact_force_threshold: float = 5.0  # grounded from forces when no flags are given [N]
+    # falls: beyond this tilt the controller gives up balancing and holds a compact posture
+    fall_tilt: float = 0.8               # [rad]
+    recover_tilt: float = 0.3            # upright again below this tilt ...
+    recover_time: float = 1.0            # ... for this long, with >= 3 feet on the ground [s]
+
+
+def _smooth(x):
+    """Smoothstep on [0, 1] and its derivative."""
+    if x <= 0.0:
+        return 0.0, 0.0
+    if x >= 1.0:
+        return 1.0, 0.0
+    return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
+
+
+class StarlethController:
+    """Stand and trot controller. ``update(state, command)`` returns 12 joint torques in the
+    public order; ``info`` holds the figures of the last call (leg states, desired contact
+    forces, QP status, ...)."""
+
+    def __init__(self, urdf: str | None = None, params: ControllerParams | None = None):
+        self.params = params or ControllerParams()
+        self.model = RobotModel(urdf)
+        p = self.params
+        self.cfd = ContactForceDistribution(mu=p.mu, min_normal_force=p.min_normal_force,
+                                            weights=p.wrench_weights,
+                                            regularization=p.force_regularization,
+                                            torque_limit=(None if p.qp_torque_margin is None
+                                                          else self.model.effort_limit[:3]
+                                                          * p.qp_torque_margin))
+        self.command = Command()
+        m = self.model
+        self._kp3 = np.asarray(p.joint_kp, dtype=float)
+        self._kd3 = np.asarray(p.joint_kd, dtype=float)
+        self._lim = m.effort_limit.copy()
+        self._geo = np.column_stack((m.l0, m.l1, m.l2, m.foot_radius, m.knee_sign))
+        self._gains_trot = self._gain_arrays(p.trot_gains)
+        self._gains_stand = self._gain_arrays(p.stand_gains)
+        # work arrays (no per-call allocation where it is easy)
+        self._tau = np.zeros(12)
+        self._R = np.eye(3)
+        self._Rd = np.eye(3)
+        self._q = pin.neutral(m.model)
+        self._centre = np.zeros((4, 3))
+        self._contact = np.zeros((4, 3))
+        self._Jf = np.zeros((4, 3, 3))
+        self._Jc = np.zeros((4, 3, 3))
+        self._e, self._vh, self._vd = np.zeros(3), np.zeros(3), np.zeros(3)
+        self._eh, self._wh, self._wd = np.zeros(3), np.zeros(3), np.zeros(3)
+        self._b = np.zeros(6)
+        self._rh = {n: np.zeros((n, 3)) for n in range(1, 5)}
+        self._Jh = {n: np.zeros((n, 3, 3)) for n in range(1, 5)}
+        self._gh = {n: np.zeros((n, 3)) for n in range(1, 5)}
+        self._target, self._vtarget = np.zeros(3), np.zeros(3)
+        self._swing_phase = np.zeros(4)
+        self._q_nominal = m.nominal_joint_positions(p.height)
+        self.reset()
+
+    @staticmethod
+    def _gain_arrays(g: VMCGains):
+        return [np.asarray(x, dtype=float).copy() for x in
+                (g.kp, g.kd, g.kff, g.kp_rot, g.kd_rot, g.kff_rot)]
+
+    # ------------------------------------------------------------------------------------
+    def reset(self):
+        self.mode = "stand"
+        self._require_stand_cmd = False
+        self._upright_since = math.nan
+        self._initialized = False
+        self._t0 = 0.0
+        self._stop_requested = False
+        self._half_cycle = 0
+        self._ground = 0.0
+        self._yaw_des = 0.0
+        self._v_cmd = np.zeros(2)        # ramped velocity command (heading frame)
+        self._w_cmd = 0.0
+        self._f_int = np.zeros(2)
+        self._t_prev = None
+        self._swing_cycle = [-1] * 4
+        self._r_liftoff = np.zeros((4, 2))   # hip→foot at lift-off, heading frame
+        self._foothold = np.zeros((4, 2))    # last swing target (world xy)
+        self._lost_since = np.full(4, np.nan)
+        self.leg_state = [SUPPORT] * 4
+        self.desired_forces = np.zeros((4, 3))   # ground on robot, world [N]
+        self.info = {}
+        self.call_time = 0.0
+
+    def set_command(self, mode=None, forward=None, lateral=None, yaw_rate=None):
+        c = self.command
+        if mode is not None:
+            if mode not in MODES:
+                raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+            c.mode = mode
+        if forward is not None:
+            c.forward = float(forward)
+        if lateral is not None:
+            c.lateral = float(lateral)
+        if yaw_rate is not None:
+            c.yaw_rate = float(yaw_rate)
+
+    def _fallen_torques(self, qj, dqj, pb, quat, t_wall):
+        """Fallen: joint PD to the nominal posture (compact legs) with gravity feed-forward,
+        no balancing."""
+        m = self.model
+        q = self._q
+        q[0:3] = pb
+        q[3:7] = quat
+        q[m.iq] = qj
+        gleg = pin.computeGeneralizedGravity(m.model, m.data, q)[m.iv]
+        tau = self._tau
+        tau[:] = (np.tile(self._kp3, 4) * (self._q_nominal - qj) - np.tile(self._kd3, 4) * dqj
+                  + gleg)
+        np.clip(tau, -self._lim, self._lim, out=tau)
+        self.desired_forces[:] = 0.0
+        self.call_time = time.perf_counter() - t_wall
+        self.info = {"mode": "fallen", "leg_state": ["fallen"] * 4, "support": [],
+                     "qp_status": "idle", "qp_iterations": 0, "qp_failures": self.cfd.failures}
+        return tau.copy()
+
+    # ------------------------------------------------------------------------------------
+    def update(self, s: RobotState, command: Command | None = None) -> np.ndarray:
+        """One control period: the 12 joint torques (public order, saturated)."""
+        t_wall = time.perf_counter()
+        if command is not None:
+            if command.mode not in MODES:
+                raise ValueError(f"mode must be one of {MODES}, got {command.mode!r}")
+            self.command = command
+        p = self.params
+        m = self.model
+        t = float(s.t)
+        if self._t_prev is not None and t < self._t_prev - 1e-9:
+            self.reset()      # time went backwards: the robot / simulator was reset
+        dt = 0.0 if self._t_prev is None else t - self._t_prev
+        self._t_prev = t
+
+        # -- state ------------------------------------------------------------------------
+        qj = np.asarray(s.joint_positions, dtype=float)
+        dqj = np.asarray(s.joint_velocities, dtype=float)
+        pb = np.asarray(s.base_position, dtype=float)
+        quat = np.asarray(s.base_orientation_xyzw, dtype=float)
+        vb = np.asarray(s.base_linear_velocity, dtype=float)
+        wb = np.asarray(s.base_angular_velocity, dtype=float)
+        if not math.isfinite(float(qj.sum() + dqj.sum() + pb.sum() + quat.sum() + vb.sum()
+                                   + wb.sum())) or float(quat @ quat) < 1e-12:
+            # never pass NaN on: zero torque, reported in info
+            self.info = {"error": "non-finite state", "mode": self.mode}
+            self._tau[:] = 0.0
+            return self._tau.copy()
+        quat = quat / math.sqrt(float(quat @ quat))
+        R = self._R
+        K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
+        yaw = math.atan2(R[1, 0], R[0, 0])
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        ww = R @ wb                                  # angular velocity, world frame
+
+        if s.foot_contact is not None:
+            grounded = np.asarray(s.foot_contact, dtype=bool)
+        elif s.foot_force is not None:
+            grounded = np.asarray(s.foot_force, dtype=float)[:, 2] > p.contact_force_threshold
+        else:
+            raise ValueError("RobotState needs foot_contact or foot_force")
+
+        # -- falls -----------------------------------------------------------------------------
+        tilt_cos = R[2, 2]
+        if self.mode != "fallen" and tilt_cos < math.cos(p.fall_tilt):
+            self.mode = "fallen"
+            self._upright_since = math.nan
+        if self.mode == "fallen":
+            if tilt_cos > math.cos(p.recover_tilt) and int(grounded.sum()) >= 3:
+                if self._upright_since != self._upright_since:
+                    self._upright_since = t
+                elif t - self._upright_since >= p.recover_time:
+                    # back on its feet: stand (trot again only after a fresh stand command)
+                    self.mode = "stand"
+                    self._require_stand_cmd = True
+                    self._initialized = False
+            else:
+                self._upright_since = math.nan
+        if self.mode == "fallen":
+            return self._fallen_torques(qj, dqj, pb, quat, t_wall)
+
+        # kinematics: analytic legs (feet, Jacobians); pin: leg gravity, centre of mass
+        centre, contact_pt, Jf, Jc = self._centre, self._contact, self._Jf, self._Jc
+        K.leg_kinematics(qj, R, pb, m.hip, self._geo, centre, contact_pt, Jf, Jc)
+        q = self._q
+        q[0:3] = pb
+        q[3:7] = quat
+        q[m.iq] = qj
+        gvec = pin.computeGeneralizedGravity(m.model, m.data, q)
+        gleg = gvec[m.iv]                            # public order
+        com = pin.centerOfMass(m.model, m.data, q, False)
+
+        if not self._initialized:
+            self._ground = float(contact_pt[:, 2].min())
+            self._yaw_des = yaw
+            self._initialized = True
+
+        # -- mode and command ---------------------------------------------------------------
+        cmd = self.command
+        T = p.gait_period
+        if cmd.mode == "stand":
+            self._require_stand_cmd = False
+        if self.mode == "stand" and cmd.mode == "trot" and not self._require_stand_cmd:
+            self.mode = "trot"
+            self._t0 = t
+            self._half_cycle = 0
+            self._stop_requested = False
+            self._swing_cycle = [-1] * 4
+        elif self.mode == "trot":
+            self._stop_requested = cmd.mode == "stand"
+        trotting = self.mode == "trot"
+        if trotting:
+            half = int(math.floor(2.0 * (t - self._t0) / T + 1e-9))
+            if self._stop_requested and half != self._half_cycle:
+                # stop at the end of a half cycle, when the swing pair touches down
+                trotting = False
+                self.mode = "stand"
+                self._stop_requested = False
+            self._half_cycle = half
+        vx_t, vy_t = (cmd.forward, cmd.lateral) if trotting else (0.0, 0.0)
+        w_t = cmd.yaw_rate if trotting else 0.0
+        if dt > 0:
+            dvx, dvy = vx_t - self._v_cmd[0], vy_t - self._v_cmd[1]
+            n = math.hypot(dvx, dvy)
+            lim = p.max_acceleration * dt
+            if n <= lim:
+                self._v_cmd[0], self._v_cmd[1] = vx_t, vy_t
+            else:
+                self._v_cmd[0] += dvx * lim / n
+                self._v_cmd[1] += dvy * lim / n
+            dw = w_t - self._w_cmd
+            lim = p.max_yaw_acceleration * dt
+            self._w_cmd = w_t if abs(dw) <= lim else self._w_cmd + math.copysign(lim, dw)
+        vcx, vcy, wc = self._v_cmd[0], self._v_cmd[1], self._w_cmd
+        self._yaw_des += wc * dt
+        e_yaw = (self._yaw_des - yaw + math.pi) % (2 * math.pi) - math.pi
+        if abs(e_yaw) > p.max_orientation_error:   # no wind-up while held off the heading
+            self._yaw_des = yaw + math.copysign(p.max_orientation_error, e_yaw)
+
+        # -- leg states -----------------------------------------------------------------------
+        states = self.leg_state
+        swing_phase = self._swing_phase
+        Tsw = (1.0 - p.duty_factor) * T
+        Tst = p.duty_factor * T
+        for k in range(4):
+            swing_phase[k] = 1.0
+            if trotting:
+                c = (t - self._t0) / T - p.phase_offsets[k]
+                cycle = math.floor(c)
+                phi = c - cycle
+                if phi < 1.0 - p.duty_factor:
+                    sp = phi / (1.0 - p.duty_factor)
+                    swing_phase[k] = sp
+                    if cycle != self._swing_cycle[k]:
+                        # lift-off of a new swing: remember where the foot starts (heading
+                        # frame, relative to the hip)
+                        self._swing_cycle[k] = cycle
+                        hx, hy = (pb + R @ m.hip[k])[:2]
+                        dx, dy = contact_pt[k, 0] - hx, contact_pt[k, 1] - hy
+                        self._r_liftoff[k, 0] = cy * dx + sy * dy
+                        self._r_liftoff[k, 1] = -sy * dx + cy * dy
+                    # early touch-down late in the swing: support; else swing (normal, late
+                    # lift-off or bumped)
+                    states[k] = SUPPORT if (grounded[k] and sp > p.early_touchdown_phase) \
+                        else SWING
+                    continue
+            states[k] = SUPPORT if grounded[k] else LOST_CONTACT
+        for k in range(4):
+            if states[k] == LOST_CONTACT:
+                if self._lost_since[k] != self._lost_since[k]:   # NaN: just lost
+                    self._lost_since[k] = t
+            else:
+                self._lost_since[k] = math.nan
+        support = [k for k in range(4) if states[k] == SUPPORT]
+        ns = len(support)
+
+        # ground height from the support feet (flat ground assumed)
+        if ns:
+            g_meas = sum(contact_pt[k, 2] for k in support) / ns
+            self._ground += 0.05 * (g_meas - self._ground)
+
+        tau = self._tau
+        tau[:] = 0.0
+        fdes = self.desired_forces
+        fdes[:] = 0.0
+
+        # -- virtual model control + contact force distribution --------------------------------
+        gains = self._gains_trot if trotting else self._gains_stand
+        b = None
+        if ns:
+            ref = support if ns >= (2 if trotting else 3) else range(4)
+            nr = len(ref)
+            rx = sum(contact_pt[k, 0] for k in ref) / nr - pb[0]
+            ry = sum(contact_pt[k, 1] for k in ref) / nr - pb[1]
+            e = self._e
+            e[0] = cy * rx + sy * ry
+            e[1] = -sy * rx + cy * ry
+            e[2] = self._ground + (p.trot_height if trotting and p.trot_height else p.height) \
+                - pb[2]
+            np.clip(e, -p.max_position_error, p.max_position_error, out=e)
+            vh = self._vh
+            vh[0] = cy * vb[0] + sy * vb[1]
+            vh[1] = -sy * vb[0] + cy * vb[1]
+            vh[2] = vb[2]
+            vd = self._vd
+            vd[0], vd[1] = vcx, vcy
+            kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = gains
+            b = self._b
+            b[0:3] = kp_t * e + kd_t * (vd - vh) + kff_t * vd
+            if trotting and p.velocity_ki:
+                lim = p.velocity_integral_max
+                fi = self._f_int
+                for a in range(2):
+                    fi[a] = min(lim, max(-lim, fi[a] + p.velocity_ki * (vd[a] - vh[a]) * dt))
+                b[0] += fi[0]
+                b[1] += fi[1]
+            else:
+                self._f_int[:] = 0.0
+            b[2] += m.mass * m.gravity
+            # orientation error (rotation vector of R_des Rᵀ, world) in the heading frame
+            Rd = self._Rd
+            Rd[0, 0], Rd[0, 1], Rd[1, 0], Rd[1, 1] = (math.cos(self._yaw_des),
+                                                      -math.sin(self._yaw_des),
+                                                      math.sin(self._yaw_des),
+                                                      math.cos(self._yaw_des))
+            er = pin.log3(Rd @ R.T)
+            eh = self._eh
+            eh[0] = cy * er[0] + sy * er[1]
+            eh[1] = -sy * er[0] + cy * er[1]
+            eh[2] = er[2]
+            np.clip(eh, -p.max_orientation_error, p.max_orientation_error, out=eh)
+            wh = self._wh
+            wh[0] = cy * ww[0] + sy * ww[1]
+            wh[1] = -sy * ww[0] + cy * ww[1]
+            wh[2] = ww[2]
+            wd = self._wd
+            wd[2] = wc
+            b[3:6] = kp_r * eh + kd_r * (wd - wh) + kff_r * wd
+            rh = self._rh[ns]
+            for j, k in enumerate(support):
+                dx, dy = contact_pt[k, 0] - com[0], contact_pt[k, 1] - com[1]
+                rh[j, 0] = cy * dx + sy * dy
+                rh[j, 1] = -sy * dx + cy * dy
+                rh[j, 2] = contact_pt[k, 2] - com[2]
+            Jh, gh = self._Jh[ns], self._gh[ns]
+            for j, k in enumerate(support):
+                for a in range(3):     # heading-frame rows of J_c: Rzᵀ J_c
+                    Jh[j, 0, a] = cy * Jc[k, 0, a] + sy * Jc[k, 1, a]
+                    Jh[j, 1, a] = -sy * Jc[k, 0, a] + cy * Jc[k, 1, a]
+                    Jh[j, 2, a] = Jc[k, 2, a]
+                    gh[j, a] = gleg[3 * k + a]
+            fh = self.cfd.solve(rh, b, Jh, gh)
+            for j, k in enumerate(support):
+                fdes[k, 0] = cy * fh[j, 0] - sy * fh[j, 1]
+                fdes[k, 1] = sy * fh[j, 0] + cy * fh[j, 1]
+                fdes[k, 2] = fh[j, 2]
+                K.stance_torques(k, fdes[k], Jc, gleg, tau)
+
+        # -- position-controlled legs (swing, lost contact, legs in the air while standing) ---
+        target, vt = self._target, self._vtarget
+        for k in range(4):
+            st = states[k]
+            if st == SUPPORT:
+                continue
+            hx0, hy0, hz0 = m.hip[k]
+            rhx_w = R[0, 0] * hx0 + R[0, 1] * hy0 + R[0, 2] * hz0     # trunk→hip, world
+            rhy_w = R[1, 0] * hx0 + R[1, 1] * hy0 + R[1, 2] * hz0
+            rhz_w = R[2, 0] * hx0 + R[2, 1] * hy0 + R[2, 2] * hz0
+            hx, hy, hz = pb[0] + rhx_w, pb[1] + rhy_w, pb[2] + rhz_w
+            if st == SWING:
+                sp = swing_phase[k]
+                # inverted-pendulum foothold relative to the hip, heading frame
+                vhx_w = vb[0] + ww[1] * rhz_w - ww[2] * rhy_w
+                vhy_w = vb[1] + ww[2] * rhx_w - ww[0] * rhz_w
+                vx = cy * vhx_w + sy * vhy_w
+                vy = -sy * vhx_w + cy * vhy_w
+                rx = cy * rhx_w + sy * rhy_w
+                ry = -sy * rhx_w + cy * rhy_w
+                vdx = vcx - wc * ry
+                vdy = vcy + wc * rx
+                sq = math.sqrt(max(hz - self._ground, 0.05) / m.gravity)
+                dx = 0.5 * vdx * Tst + p.step_feedback * (vx - vdx) * sq
+                dy = 0.5 * vdy * Tst + p.step_feedback * (vy - vdy) * sq
+                dx = min(max(dx, -p.step_max), p.step_max) + p.foothold_offset_x[k]
+                dy = min(max(dy, -p.step_max), p.step_max)
+                sig, dsig = _smooth(sp / p.step_interp_end)
+                r0x, r0y = self._r_liftoff[k]
+                ox = r0x + sig * (dx - r0x)
+                oy = r0y + sig * (dy - r0y)
+                rate = dsig / (p.step_interp_end * Tsw)
+                dox, doy = rate * (dx - r0x), rate * (dy - r0y)
+                target[0] = hx + cy * ox - sy * oy
+                target[1] = hy + sy * ox + cy * oy
+                vt[0] = vhx_w + cy * dox - sy * doy
+                vt[1] = vhy_w + sy * dox + cy * doy
+                # height: up to the apex at mid-swing, then down to below the ground
+                if sp < 0.5:
+                    a, da = _smooth(2.0 * sp)
+                    z, dz = p.swing_height * a, p.swing_height * da * 2.0 / Tsw
+                else:
+                    a, da = _smooth(2.0 * sp - 1.0)
+                    span = -p.touchdown_depth - p.swing_height
+                    z, dz = p.swing_height + span * a, span * da * 2.0 / Tsw
+                target[2] = self._ground + m.foot_radius[k] + z
+                vt[2] = dz
+                self._foothold[k, 0] = hx + cy * dx - sy * dy
+                self._foothold[k, 1] = hy + sy * dx + cy * dy
+            else:  # LOST_CONTACT: lower the foot to find the ground
+                if trotting:
+                    target[0], target[1] = self._foothold[k]
+                else:
+                    target[0], target[1] = hx, hy
+                depth = min(p.touchdown_depth + p.lost_contact_speed * (t - self._lost_since[k]),
+                            p.lost_contact_depth)
+                target[2] = self._ground + m.foot_radius[k] - depth
+                vt[:] = 0.0
+            K.foot_position_control(k, target, vt, pb, R, vb, ww, Jf, qj, dqj, gleg,
+                                    self._kp3, self._kd3, m.hip, self._geo, tau)
+
+        np.clip(tau, -self._lim, self._lim, out=tau)
+        self.call_time = time.perf_counter() - t_wall
+        self.info = {
+            "mode": self.mode,
+            "leg_state": [STATE_NAMES[x] for x in states],
+            "support": support,
+            "grounded": grounded.tolist(),
+            "wrench": None if b is None else b.copy(),
+            "qp_status": self.cfd.status if ns else "idle",
+            "qp_iterations": self.cfd.iterations if ns else 0,
+            "qp_failures": self.cfd.failures,
+            "ground": self._ground,
+            "yaw_des": self._yaw_des,
+            "com": com.copy(),
+        }
+        return tau.copy()
