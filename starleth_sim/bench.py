@@ -19,7 +19,9 @@ from .posture import PostureHold
 from .simulator import Simulator
 from .stepper import PHASES
 
-DEFAULT_PRESETS = ("Cm", "HmJ", "HmS")
+#: the paper's Table 1, in its order
+DEFAULT_PRESETS = ("Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD",
+                   "HMSP")
 
 
 def measure(preset: str, seconds: float, repeats: int = 3):
@@ -61,7 +63,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog="starleth-bench", description=__doc__.split("\n")[0])
     ap.add_argument("presets", nargs="*", default=list(DEFAULT_PRESETS),
                     help="configurations (default: %(default)s)")
-    ap.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run")
+    ap.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
 

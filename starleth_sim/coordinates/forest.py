@@ -18,7 +18,7 @@ For the maximal set M is constant and h = [m g; −ω × Θ ω] per body, comput
 
 A cut revolute joint between bodies P (parent side) and C (child side) becomes a 5-row
 bilateral constraint (3 translational, 2 rotational; Eqn. 4, ε_B = 0):
-    g_B = [x_P − x_C ; (R_C a_C)·b1 ; (R_C a_C)·b2],   b1, b2 ⟂ the axis in P
+    g_B = [x_P − x_C ; −(R_C a_C)·b2 ; (R_C a_C)·b1],  b1, b2 = a x b1 ⟂ the axis in P
     γ_B = W_Bᵀ u = [v_P − v_C ; b1·(ω_C − ω_P) ; b2·(ω_C − ω_P)]
 Its actuator torque τ enters as equal and opposite generalized forces on the two bodies,
 and its angle φ is recovered from the relative rotation of P and C.
@@ -228,8 +228,10 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
             d2 = JC[2, c] - JP[2, c]
             Wt_B[row + 3, c] = b1[0] * d0 + b1[1] * d1 + b1[2] * d2
             Wt_B[row + 4, c] = b2[0] * d0 + b2[1] * d1 + b2[2] * d2
-        g_B[row + 3] = acw[0] * b1[0] + acw[1] * b1[1] + acw[2] * b1[2]
-        g_B[row + 4] = acw[0] * b2[0] + acw[1] * b2[1] + acw[2] * b2[2]
+        # d/dt (a_C·b2) = −b1·(ω_C − ω_P) and d/dt (a_C·b1) = b2·(ω_C − ω_P), so that
+        # γ_B = dg_B/dt row by row:
+        g_B[row + 3] = -(acw[0] * b2[0] + acw[1] * b2[1] + acw[2] * b2[2])
+        g_B[row + 4] = acw[0] * b1[0] + acw[1] * b1[1] + acw[2] * b1[2]
         # φ: rotation of C's b1 about the axis, seen in P's (b1, b2) basis
         _rotate(oR[C], b1_C[k], t)  # b1 carried by C (the joint frames coincide at φ = 0)
         angle[k] = np.arctan2(t[0] * b2[0] + t[1] * b2[1] + t[2] * b2[2],
