@@ -22,6 +22,12 @@ Termination (paper): |Λ_(l)^{k+1} − Λ_(l)^k| ≤ |Λ_(l)^k| T_rel + T_abs fo
 optionally the kinetic-energy criterion |T^{k+1} − T^k| ≤ |T^k| T_rel + T_abs with
 T = ½ u^T M u.
 
+Sparsity: W^T rows touch only the bodies a contact or hinge acts on (few columns in the
+extended and maximal coordinates), so the kernels take the nonzero patterns of the rows of
+W^T (`wp`), of the columns of M^{-1}W (`mp`) and of the rows of G (`gp`), each as a CSR pair
+(ptr, idx) made by :func:`row_pattern` / :func:`col_pattern`. Dense problems just have full
+patterns.
+
 Every kernel returns (iterations, status, residual) with status 0 = converged,
 1 = iteration cap reached, 2 = non-finite values (the caller must not accept the result),
 and residual = max_l |Λ_(l)^{k+1} − Λ_(l)^k| of the last iteration.
@@ -67,25 +73,72 @@ def prox_disc(x1, x2, radius):
 
 
 @nb.njit(cache=True)
-def delassus(Wt, MinvW, G):
-    """G = W^T M^{-1} W (symmetric; both triangles written). Wt: m x nv, MinvW: nv x m."""
-    m, nv = Wt.shape
+def row_pattern(A):
+    """Nonzero pattern of the rows of A as CSR (ptr, idx)."""
+    m, n = A.shape
+    ptr = np.empty(m + 1, dtype=np.int64)
+    cnt = 0
+    for a in range(m):
+        for k in range(n):
+            if A[a, k] != 0.0:
+                cnt += 1
+    idx = np.empty(cnt, dtype=np.int64)
+    cnt = 0
+    for a in range(m):
+        ptr[a] = cnt
+        for k in range(n):
+            if A[a, k] != 0.0:
+                idx[cnt] = k
+                cnt += 1
+    ptr[m] = cnt
+    return ptr, idx
+
+
+@nb.njit(cache=True)
+def col_pattern(A):
+    """Nonzero pattern of the columns of A as CSR (ptr, idx)."""
+    n, m = A.shape
+    ptr = np.empty(m + 1, dtype=np.int64)
+    cnt = 0
+    for b in range(m):
+        for k in range(n):
+            if A[k, b] != 0.0:
+                cnt += 1
+    idx = np.empty(cnt, dtype=np.int64)
+    cnt = 0
+    for b in range(m):
+        ptr[b] = cnt
+        for k in range(n):
+            if A[k, b] != 0.0:
+                idx[cnt] = k
+                cnt += 1
+    ptr[m] = cnt
+    return ptr, idx
+
+
+@nb.njit(cache=True)
+def delassus(Wt, MinvW, G, wp_ptr, wp_idx):
+    """G = W^T M^{-1} W (symmetric; both triangles written). Wt: m x nv, MinvW: nv x m,
+    (wp_ptr, wp_idx): nonzero pattern of the rows of Wt."""
+    m = Wt.shape[0]
     for a in range(m):
         for b in range(a, m):
             s = 0.0
-            for k in range(nv):
+            for p in range(wp_ptr[a], wp_ptr[a + 1]):
+                k = wp_idx[p]
                 s += Wt[a, k] * MinvW[k, b]
             G[a, b] = s
             G[b, a] = s
 
 
 @nb.njit(cache=True)
-def delassus_diagonal(Wt, MinvW, d):
+def delassus_diagonal(Wt, MinvW, d, wp_ptr, wp_idx):
     """diag(G) without forming G (velocity form)."""
-    m, nv = Wt.shape
+    m = Wt.shape[0]
     for a in range(m):
         s = 0.0
-        for k in range(nv):
+        for p in range(wp_ptr[a], wp_ptr[a + 1]):
+            k = wp_idx[p]
             s += Wt[a, k] * MinvW[k, a]
         d[a] = s
 
@@ -127,18 +180,20 @@ def _kinetic_energy(M, u):
 
 
 @nb.njit(cache=True)
-def _velocity_from_impulses(u_free, MinvW, lam, u):
+def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
     """u = u_free + M^{-1} W Λ (Eqn. 17)."""
-    nv, m = MinvW.shape
-    for k in range(nv):
-        s = u_free[k]
-        for l in range(m):
-            s += MinvW[k, l] * lam[l]
-        u[k] = s
+    m = MinvW.shape[1]
+    u[:] = u_free
+    for l in range(m):
+        x = lam[l]
+        if x != 0.0:
+            for p in range(mp_ptr[l], mp_ptr[l + 1]):
+                k = mp_idx[p]
+                u[k] += MinvW[k, l] * x
 
 
 @nb.njit(cache=True)
-def _bilateral_direct_delassus(G, c, nc, LB, lam):
+def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx):
     """Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) for the current Λ_U (Eqn. 20, Delassus form)."""
     m = c.shape[0]
     o = 3 * nc
@@ -146,8 +201,10 @@ def _bilateral_direct_delassus(G, c, nc, LB, lam):
     rhs = np.empty(nb_)
     for a in range(nb_):
         s = c[o + a]
-        for l in range(o):
-            s += G[o + a, l] * lam[l]
+        for p in range(gp_ptr[o + a], gp_ptr[o + a + 1]):
+            l = gp_idx[p]
+            if l < o:
+                s += G[o + a, l] * lam[l]
         rhs[a] = -s
     cholesky_solve_vec(LB, rhs)
     for a in range(nb_):
@@ -155,21 +212,23 @@ def _bilateral_direct_delassus(G, c, nc, LB, lam):
 
 
 @nb.njit(cache=True)
-def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam):
+def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, mp_ptr, mp_idx):
     """Λ_B = −G_BB^{-1} W_B^T (u^S + M^{-1}(h Δt + W_U Λ_U)) (Eqn. 20, velocity form)."""
-    m, nv = Wt.shape
+    m = Wt.shape[0]
     o = 3 * nc
     nb_ = m - o
     uu = u_free.copy()
-    for k in range(nv):
-        s = 0.0
-        for l in range(o):
-            s += MinvW[k, l] * lam[l]
-        uu[k] += s
+    for l in range(o):
+        x = lam[l]
+        if x != 0.0:
+            for p in range(mp_ptr[l], mp_ptr[l + 1]):
+                k = mp_idx[p]
+                uu[k] += MinvW[k, l] * x
     rhs = np.empty(nb_)
     for a in range(nb_):
         s = 0.0
-        for k in range(nv):
+        for p in range(wp_ptr[o + a], wp_ptr[o + a + 1]):
+            k = wp_idx[p]
             s += Wt[o + a, k] * uu[k]
         rhs[a] = -s
     cholesky_solve_vec(LB, rhs)
@@ -195,8 +254,8 @@ def _check(lam_old, lam, tol_rel, tol_abs):
 
 
 @nb.njit(cache=True)
-def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                      bilateral_direct, LB, criterion, M, u_free, MinvW, u):
+def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter, bilateral_direct, LB,
+                      criterion, M, u_free, MinvW, u, gp_ptr, gp_idx, mp_ptr, mp_idx):
     """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out."""
     m = c.shape[0]
     o = 3 * nc
@@ -204,13 +263,14 @@ def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
     new = np.empty(m)
     T_old = 0.0
     if criterion == CRITERION_ENERGY:
-        _velocity_from_impulses(u_free, MinvW, lam, u)
+        _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
         T_old = _kinetic_energy(M, u)
     res = 0.0
     for k in range(max_iter):
         for a in range(m):
             s = c[a]
-            for l in range(m):
+            for p in range(gp_ptr[a], gp_ptr[a + 1]):
+                l = gp_idx[p]
                 s += G[a, l] * lam[l]
             xi[a] = s
         for i in range(nc):
@@ -219,7 +279,7 @@ def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
         if bilateral_direct:
             for l in range(o, m):
                 new[l] = lam[l]
-            _bilateral_direct_delassus(G, c, nc, LB, new)
+            _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx)
         else:
             for l in range(o, m):
                 new[l] = lam[l] - r[l] * xi[l]
@@ -228,27 +288,27 @@ def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
         if not finite:
             return k + 1, STATUS_NONFINITE, res
         if criterion == CRITERION_ENERGY:
-            _velocity_from_impulses(u_free, MinvW, lam, u)
+            _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
             T = _kinetic_energy(M, u)
             ok = abs(T - T_old) <= abs(T_old) * tol_rel + tol_abs
             T_old = T
         if ok:
-            _velocity_from_impulses(u_free, MinvW, lam, u)
+            _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
             return k + 1, STATUS_CONVERGED, res
-    _velocity_from_impulses(u_free, MinvW, lam, u)
+    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     return max_iter, STATUS_MAX_ITER, res
 
 
 @nb.njit(cache=True)
-def sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                      bilateral_direct, LB, criterion, M, u_free, MinvW, u):
+def sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter, bilateral_direct, LB,
+                      criterion, M, u_free, MinvW, u, gp_ptr, gp_idx, mp_ptr, mp_idx):
     """SOR prox on ξ = GΛ + c: contact after contact, reusing the updated impulses."""
     m = c.shape[0]
     o = 3 * nc
     old = np.empty(m)
     T_old = 0.0
     if criterion == CRITERION_ENERGY:
-        _velocity_from_impulses(u_free, MinvW, lam, u)
+        _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
         T_old = _kinetic_energy(M, u)
     res = 0.0
     for k in range(max_iter):
@@ -258,49 +318,56 @@ def sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
             x0 = c[b]
             x1 = c[b + 1]
             x2 = c[b + 2]
-            for l in range(m):
+            for p in range(gp_ptr[b], gp_ptr[b + 1]):
+                l = gp_idx[p]
                 x0 += G[b, l] * lam[l]
+            for p in range(gp_ptr[b + 1], gp_ptr[b + 2]):
+                l = gp_idx[p]
                 x1 += G[b + 1, l] * lam[l]
+            for p in range(gp_ptr[b + 2], gp_ptr[b + 3]):
+                l = gp_idx[p]
                 x2 += G[b + 2, l] * lam[l]
             _project_contact(lam, b, x0, x1, x2, r, mu[i], lam)
         if bilateral_direct:
-            _bilateral_direct_delassus(G, c, nc, LB, lam)
+            _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx)
         else:
             for a in range(o, m):
                 s = c[a]
-                for l in range(m):
+                for p in range(gp_ptr[a], gp_ptr[a + 1]):
+                    l = gp_idx[p]
                     s += G[a, l] * lam[l]
                 lam[a] -= r[a] * s
         ok, res, finite = _check(old, lam, tol_rel, tol_abs)
         if not finite:
             return k + 1, STATUS_NONFINITE, res
         if criterion == CRITERION_ENERGY:
-            _velocity_from_impulses(u_free, MinvW, lam, u)
+            _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
             T = _kinetic_energy(M, u)
             ok = abs(T - T_old) <= abs(T_old) * tol_rel + tol_abs
             T_old = T
         if ok:
-            _velocity_from_impulses(u_free, MinvW, lam, u)
+            _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
             return k + 1, STATUS_CONVERGED, res
-    _velocity_from_impulses(u_free, MinvW, lam, u)
+    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     return max_iter, STATUS_MAX_ITER, res
 
 
 @nb.njit(cache=True)
 def jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                      bilateral_direct, LB, criterion, M, u):
+                      bilateral_direct, LB, criterion, M, u, wp_ptr, wp_idx, mp_ptr, mp_idx):
     """JOR prox iterating in the end velocity u^k (Eqn. 17-19); G is never formed."""
-    m, nv = Wt.shape
+    m = Wt.shape[0]
     o = 3 * nc
     xi = np.empty(m)
     new = np.empty(m)
-    _velocity_from_impulses(u_free, MinvW, lam, u)
+    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     T_old = _kinetic_energy(M, u) if criterion == CRITERION_ENERGY else 0.0
     res = 0.0
     for k in range(max_iter):
         for a in range(m):
             s = bvec[a]
-            for j in range(nv):
+            for p in range(wp_ptr[a], wp_ptr[a + 1]):
+                j = wp_idx[p]
                 s += Wt[a, j] * u[j]
             xi[a] = s
         for i in range(nc):
@@ -309,7 +376,8 @@ def jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
         if bilateral_direct:
             for l in range(o, m):
                 new[l] = lam[l]
-            _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, new)
+            _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, new, wp_ptr, wp_idx, mp_ptr,
+                                       mp_idx)
         else:
             for l in range(o, m):
                 new[l] = lam[l] - r[l] * xi[l]
@@ -317,7 +385,8 @@ def jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
         for l in range(m):
             d = new[l] - lam[l]
             if d != 0.0:
-                for j in range(nv):
+                for p in range(mp_ptr[l], mp_ptr[l + 1]):
+                    j = mp_idx[p]
                     u[j] += MinvW[j, l] * d
         lam[:] = new
         if not finite:
@@ -333,14 +402,13 @@ def jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
 
 @nb.njit(cache=True)
 def sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                      bilateral_direct, LB, criterion, M, u):
+                      bilateral_direct, LB, criterion, M, u, wp_ptr, wp_idx, mp_ptr, mp_idx):
     """SOR prox in the end velocity: after each contact's projection u is updated (Eqn. 18),
     then the bilateral rows (Eqn. 19, or Eqn. 20 when direct)."""
-    m, nv = Wt.shape
+    m = Wt.shape[0]
     o = 3 * nc
     old = np.empty(m)
-    tmp = np.empty(3)
-    _velocity_from_impulses(u_free, MinvW, lam, u)
+    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     T_old = _kinetic_energy(M, u) if criterion == CRITERION_ENERGY else 0.0
     res = 0.0
     for k in range(max_iter):
@@ -348,34 +416,38 @@ def sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
         for i in range(nc):
             b = 3 * i
             x0 = bvec[b]
+            for p in range(wp_ptr[b], wp_ptr[b + 1]):
+                x0 += Wt[b, wp_idx[p]] * u[wp_idx[p]]
             x1 = bvec[b + 1]
+            for p in range(wp_ptr[b + 1], wp_ptr[b + 2]):
+                x1 += Wt[b + 1, wp_idx[p]] * u[wp_idx[p]]
             x2 = bvec[b + 2]
-            for j in range(nv):
-                x0 += Wt[b, j] * u[j]
-                x1 += Wt[b + 1, j] * u[j]
-                x2 += Wt[b + 2, j] * u[j]
-            tmp[0] = lam[b]
-            tmp[1] = lam[b + 1]
-            tmp[2] = lam[b + 2]
+            for p in range(wp_ptr[b + 2], wp_ptr[b + 3]):
+                x2 += Wt[b + 2, wp_idx[p]] * u[wp_idx[p]]
+            l0, l1, l2 = lam[b], lam[b + 1], lam[b + 2]
             _project_contact(lam, b, x0, x1, x2, r, mu[i], lam)
-            d0 = lam[b] - tmp[0]
-            d1 = lam[b + 1] - tmp[1]
-            d2 = lam[b + 2] - tmp[2]
-            for j in range(nv):
-                u[j] += MinvW[j, b] * d0 + MinvW[j, b + 1] * d1 + MinvW[j, b + 2] * d2
+            for rr in range(3):
+                d_ = lam[b + rr] - (l0 if rr == 0 else (l1 if rr == 1 else l2))
+                if d_ != 0.0:
+                    for p in range(mp_ptr[b + rr], mp_ptr[b + rr + 1]):
+                        j = mp_idx[p]
+                        u[j] += MinvW[j, b + rr] * d_
         if bilateral_direct:
             if m > o:
-                _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam)
-                _velocity_from_impulses(u_free, MinvW, lam, u)
+                _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx,
+                                           mp_ptr, mp_idx)
+                _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
         else:
             for a in range(o, m):
                 s = bvec[a]
-                for j in range(nv):
+                for p in range(wp_ptr[a], wp_ptr[a + 1]):
+                    j = wp_idx[p]
                     s += Wt[a, j] * u[j]
-                d = -r[a] * s
-                lam[a] += d
-                for j in range(nv):
-                    u[j] += MinvW[j, a] * d
+                d_ = -r[a] * s
+                lam[a] += d_
+                for p in range(mp_ptr[a], mp_ptr[a + 1]):
+                    j = mp_idx[p]
+                    u[j] += MinvW[j, a] * d_
         ok, res, finite = _check(old, lam, tol_rel, tol_abs)
         if not finite:
             return k + 1, STATUS_NONFINITE, res
@@ -390,16 +462,31 @@ def sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
 
 @nb.njit(cache=True)
 def prox_solve(form, scheme, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam,
-               tol_rel, tol_abs, max_iter, bilateral_direct, LB, criterion, M, u):
-    """Dispatch to one of the four schemes (one jitted call from the stepper)."""
+               tol_rel, tol_abs, max_iter, bilateral_direct, LB, criterion, M, u,
+               wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx):
+    """Dispatch to one of the four schemes (one jitted call from the stepper). The patterns:
+    rows of Wt (wp), columns of MinvW (mp), rows of G (gp; unused in the velocity form)."""
     if form == FORM_DELASSUS:
         if scheme == SCHEME_JOR:
             return jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                                     bilateral_direct, LB, criterion, M, u_free, MinvW, u)
+                                     bilateral_direct, LB, criterion, M, u_free, MinvW, u,
+                                     gp_ptr, gp_idx, mp_ptr, mp_idx)
         return sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                                 bilateral_direct, LB, criterion, M, u_free, MinvW, u)
+                                 bilateral_direct, LB, criterion, M, u_free, MinvW, u,
+                                 gp_ptr, gp_idx, mp_ptr, mp_idx)
     if scheme == SCHEME_JOR:
         return jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
-                                 max_iter, bilateral_direct, LB, criterion, M, u)
+                                 max_iter, bilateral_direct, LB, criterion, M, u,
+                                 wp_ptr, wp_idx, mp_ptr, mp_idx)
     return sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
-                             max_iter, bilateral_direct, LB, criterion, M, u)
+                             max_iter, bilateral_direct, LB, criterion, M, u,
+                             wp_ptr, wp_idx, mp_ptr, mp_idx)
+
+
+def dense_problem_patterns(Wt, MinvW, G):
+    """All the patterns prox_solve takes, for a problem given densely (tests, tools)."""
+    wp = row_pattern(Wt)
+    mp = col_pattern(MinvW)
+    gp = row_pattern(G) if G.size else (np.zeros(Wt.shape[0] + 1, dtype=np.int64),
+                                        np.zeros(0, dtype=np.int64))
+    return (*wp, *mp, *gp)

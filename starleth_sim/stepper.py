@@ -53,8 +53,9 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, 
     """Fig. 7 phase "M^-1": factor M, u_free = u^S + M^{-1} h Δt, the active set
     {i | g_N,i ≤ activation_gap}, W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
     b = [ε W_U^T u^S; b_B] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2) and b_B the
-    bilateral drift stabilisation (β/Δt) g_B (zero in the paper's law).
-    Returns (ok, active, Wt, MinvW, b)."""
+    bilateral drift stabilisation (β/Δt) g_B (zero in the paper's law), and the nonzero
+    patterns of the rows of W^T and the columns of M^{-1} W.
+    Returns (ok, active, Wt, MinvW, b, (wp_ptr, wp_idx, mp_ptr, mp_idx))."""
     nv = uS.shape[0]
     ok = free_velocity(M, h, dt, uS, blocks, factor, L, u_free)
     na = 0
@@ -74,7 +75,8 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, 
     MinvW = np.empty((nv, m))
     bvec = np.zeros(m)
     if not ok or m == 0:
-        return ok, active, Wt, MinvW, bvec
+        e = np.zeros(1, dtype=np.int64)
+        return ok, active, Wt, MinvW, bvec, (e, e[:0], e, e[:0])
     for a in range(na):
         i = active[a]
         for r in range(3):
@@ -94,32 +96,40 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, 
         bvec[a] = eps[active[a // 3], 0 if a % 3 == 0 else 1] * s
     for a in range(nb_):
         bvec[o + a] = bB[a]
-    return ok, active, Wt, MinvW, bvec
+    wp_ptr, wp_idx = prox.row_pattern(Wt)
+    mp_ptr, mp_idx = prox.col_pattern(MinvW)
+    return ok, active, Wt, MinvW, bvec, (wp_ptr, wp_idx, mp_ptr, mp_idx)
 
 
 @nb.njit(cache=True)
-def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, u_free, bvec):
+def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, u_free, bvec, pat):
     """Fig. 7 phase "G (and G_B^-1)": c = W^T u_free + b (Eqn. 15), G = W^T M^{-1} W
     (Delassus form) or only diag(G) (velocity form), and for the direct bilateral solution
-    (Eqn. 20) the Cholesky factor of G_B = W_B^T M^{-1} W_B. Returns (ok, G, c, diag G, L_B)."""
+    (Eqn. 20) the Cholesky factor of G_B = W_B^T M^{-1} W_B. Returns (ok, G, c, diag G, L_B,
+    patterns) with the pattern of the rows of G appended to `pat`."""
+    wp_ptr, wp_idx, mp_ptr, mp_idx = pat
     m, nv = Wt.shape
     o = 3 * nc
     nb_ = m - o
     c = np.empty(m)
     for a in range(m):
         s = bvec[a]
-        for j in range(nv):
-            s += Wt[a, j] * u_free[j]
+        for p in range(wp_ptr[a], wp_ptr[a + 1]):
+            s += Wt[a, wp_idx[p]] * u_free[wp_idx[p]]
         c[a] = s
     Gdiag = np.empty(m)
     if form == prox.FORM_DELASSUS:
         G = np.empty((m, m))
-        prox.delassus(Wt, MinvW, G)
+        prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx)
         for a in range(m):
             Gdiag[a] = G[a, a]
+        gp_ptr, gp_idx = prox.row_pattern(G)
     else:
         G = np.empty((0, 0))
-        prox.delassus_diagonal(Wt, MinvW, Gdiag)
+        prox.delassus_diagonal(Wt, MinvW, Gdiag, wp_ptr, wp_idx)
+        gp_ptr = np.zeros(m + 1, dtype=np.int64)
+        gp_idx = np.zeros(0, dtype=np.int64)
+    full = (wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx)
     LB = np.zeros((0, 0))
     ok = True
     if bilateral_direct and nb_ > 0:
@@ -132,17 +142,17 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, u_free, bvec):
             for a in range(nb_):
                 for b in range(a, nb_):
                     s = 0.0
-                    for j in range(nv):
-                        s += Wt[o + a, j] * MinvW[j, o + b]
+                    for p in range(wp_ptr[o + a], wp_ptr[o + a + 1]):
+                        s += Wt[o + a, wp_idx[p]] * MinvW[wp_idx[p], o + b]
                     GB[a, b] = s
                     GB[b, a] = s
         LB = np.zeros((nb_, nb_))
         ok = cholesky_upper_input(GB, LB)
-    return ok, G, c, Gdiag, LB
+    return ok, G, c, Gdiag, LB, full
 
 
 @nb.njit(cache=True)
-def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral_direct,
+def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral_direct, pat,
                active, last_impulse, last_active, last_bilateral, mu, alpha, tol_rel, tol_abs,
                max_iter, criterion, M, warm_start, fallback_factor):
     """Fig. 7 phase "u^E": warm start (the last step's impulses of contacts that stay
@@ -176,7 +186,8 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral
         lam[:] = lam0
         it, status, resid = prox.prox_solve(form, scheme, Wt, MinvW, u_free, bvec, G, c, na,
                                             mu_vec, r, lam, tol_rel, tol_abs, max_iter,
-                                            bilateral_direct, LB, criterion, M, u)
+                                            bilateral_direct, LB, criterion, M, u,
+                                            pat[0], pat[1], pat[2], pat[3], pat[4], pat[5])
         iters += it
         if status == prox.STATUS_CONVERGED:
             break
@@ -198,8 +209,9 @@ def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, bB, blocks, factor, L, u
     contact point into impulse (nc x 3), the active flags, Λ_B into last_bilateral and u^E;
     on success the warm-start memory is updated. Returns (ok, iterations, status, residual,
     retried)."""
-    ok, active, Wt, MinvW, bvec = phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB,
-                                             fp[FP_ACTIVATION], eps, blocks, factor, L, u_free)
+    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB,
+                                                  fp[FP_ACTIVATION], eps, blocks, factor, L,
+                                                  u_free)
     nc = gap.shape[0]
     for i in range(nc):
         is_active[i] = False
@@ -215,11 +227,12 @@ def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, bB, blocks, factor, L, u
     if Wt.shape[0] == 0:
         u[:] = u_free
     else:
-        ok, G, c, Gdiag, LB = phase_delassus(ip[IP_FORM], na, direct, Wt, MinvW, u_free, bvec)
+        ok, G, c, Gdiag, LB, full = phase_delassus(ip[IP_FORM], na, direct, Wt, MinvW, u_free,
+                                                   bvec, pat)
         if not ok:
             return ok, 0, prox.STATUS_NONFINITE, 0.0, False
         uE, lam, it, status, resid, retried = phase_prox(
-            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, direct,
+            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, direct, full,
             active, last_impulse, last_active, last_bilateral, fp[FP_MU], fp[FP_ALPHA],
             fp[FP_TOL_REL], fp[FP_TOL_ABS], ip[IP_MAX_ITER], ip[IP_CRITERION], M,
             ip[IP_WARM] != 0, fp[FP_FALLBACK])
@@ -428,7 +441,7 @@ class MoreauStepper:
         else:  # the same phases, called one by one between timers (Fig. 7)
             s = self.cfg.solver
             t1 = time.perf_counter()
-            ok, active, Wt, MinvW, bvec = phase_minv(
+            ok, active, Wt, MinvW, bvec, pat = phase_minv(
                 M, h, dt, uS, gap, self.Wt_all, WtB, self.bB, self.activation_gap, self.eps,
                 self.blocks, factor, self.L, self.u_free)
             t2 = time.perf_counter()
@@ -438,15 +451,16 @@ class MoreauStepper:
             it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
             u = self.u_free.copy()
             if ok and Wt.shape[0]:
-                ok, G, cvec, Gdiag, LB = phase_delassus(self.form, active.shape[0],
-                                                        self.bilateral_direct, Wt, MinvW,
-                                                        self.u_free, bvec)
+                ok, G, cvec, Gdiag, LB, full = phase_delassus(self.form, active.shape[0],
+                                                              self.bilateral_direct, Wt, MinvW,
+                                                              self.u_free, bvec, pat)
                 t3 = time.perf_counter()
                 self.stats.timings[2] += t3 - t2
                 if ok:
                     u, lam, it, status, resid, retried = phase_prox(
                         self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
-                        LB, self.bilateral_direct, active, self.last_impulse, self.last_active,
+                        LB, self.bilateral_direct, full, active, self.last_impulse,
+                        self.last_active,
                         self.last_bilateral, self.ground.mu, s.alpha, s.tol_rel, s.tol_abs,
                         s.max_iterations, self.criterion, M, s.warm_start,
                         s.fallback_alpha_factor)

@@ -25,12 +25,13 @@ def robot_problem(u_scale, seed, mu=0.8):
     nv = sim.coords.nv
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
     eps = np.zeros((sim.coords.n_contacts, 2))
-    ok, active, Wt, MinvW, bvec = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all,
+    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all,
                                              np.zeros((0, nv)), np.zeros(0), 0.0, eps,
                                              sim.coords.blocks, True, L, u_free)
     assert ok and len(active) == 4
     na = len(active)
-    ok, G, c, Gdiag, LB = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, u_free, bvec)
+    ok, G, c, Gdiag, LB, _ = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, u_free,
+                                            bvec, pat)
     np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
                 mu=np.full(na, mu))
@@ -45,7 +46,7 @@ def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
     it, status, res = prox.prox_solve(
         prox.FORMS[form], prox.SCHEMES[scheme], p["Wt"], p["MinvW"], p["u_free"], p["bvec"],
         p["G"], p["c"], p["na"], p["mu"], r, lam, 0.0, tol, max_iter, False, np.zeros((0, 0)),
-        criterion, p["M"], u)
+        criterion, p["M"], u, *prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]))
     return lam, u, it, status
 
 
