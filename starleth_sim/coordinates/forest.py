@@ -365,6 +365,7 @@ class ForestCoordinates:
         self._rate = np.zeros(ncut)
         self._axis_world = np.zeros((ncut, 3))
         self._WtB = np.zeros((self.n_bilateral, self.nv))
+        self._cut_q = None
         self._gB = np.zeros(self.n_bilateral)
 
         # actuated joints: forest joints, or cut joints (by index into the cut list)
@@ -420,6 +421,7 @@ class ForestCoordinates:
 
     # -- dynamics -----------------------------------------------------------------------------
     def _kinematics_for_cuts(self, q, u):
+        self._cut_q = q  # W_B and g_B below belong to this configuration (see bilateral)
         t = self.tree
         cut_joints(q, u, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
                    t.support, t.oR, t.op, self.cut_P, self.cut_C, self.p_P, self.p_C,
@@ -455,8 +457,12 @@ class ForestCoordinates:
         return M, h
 
     def bilateral(self, q, u=None):
-        """(W_Bᵀ (n_B x nv), g_B (n_B)) at q; arrays are reused between calls."""
-        self._kinematics_for_cuts(q, np.zeros(self.nv) if u is None else u)
+        """(W_Bᵀ (n_B x nv), g_B (n_B)) at q; arrays are reused between calls. The stepper
+        asks for them at the midpoint right after `dynamics` evaluated the cut joints there
+        (for their torques), so the same configuration object is not evaluated twice
+        (configurations are never modified in place)."""
+        if q is not self._cut_q or u is not None:
+            self._kinematics_for_cuts(q, np.zeros(self.nv) if u is None else u)
         return self._WtB, self._gB
 
     def contact_kinematics(self, q, ground, gap, position, Wt, jacobian_gap=np.inf):
