@@ -1,0 +1,49 @@
+"""`starleth-eval --quick`: the paper's evaluation runs end to end and writes its report."""
+import json
+import os
+
+import pytest
+
+from starleth_sim import evaluation
+
+
+@pytest.fixture(scope="module")
+def quick_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    rc = evaluation.main(["--quick", "--out", str(out)])
+    return rc, out
+
+
+def test_quick_evaluation_writes_report_and_figures(quick_report):
+    rc, out = quick_report
+    assert rc == 0
+    report = (out / "report.md").read_text()
+    for name in evaluation.TABLE1:
+        assert f"| {name} |" in report
+    # the paper's figures stand beside ours
+    for paper in ("8,900", "5,400", "4,700", "2,700", "1,600", "4.4 mm", "750 µm/min",
+                  "0.59 µm/min"):
+        assert paper in report
+    for fig in ("fig5_contact_force.png", "fig6_iterations_vs_alpha.png",
+                "fig7_time_breakdown.png"):
+        path = out / fig
+        assert path.exists() and path.stat().st_size > 20_000, fig  # a real plot, not empty
+        assert f"]({fig})" in report
+
+
+def test_quick_evaluation_results_are_measurements(quick_report):
+    _, out = quick_report
+    results = json.loads((out / "results.json").read_text())
+    t1 = {r["preset"]: r for r in results if r["kind"] == "table1"}
+    assert set(t1) == set(evaluation.TABLE1)
+    for r in t1.values():
+        assert r["error"] is None and r["steps_per_second"] > 100 and r["min_height"] > 0.3
+    assert 2.0 < t1["Cm"]["foot_sink_mean_mm"] < 8.0   # m g / (2 c_N) per stance foot ~ 4.4 mm
+    push = {r["preset"]: r for r in results if r["kind"] == "pushover"}
+    for r in push.values():
+        assert r["completed"] and not r["nonfinite"] and r["fell"]
+        assert any("knee" in c for c in r["knee_trunk_contacts"])
+        assert any("trunk" in c for c in r["knee_trunk_contacts"])
+    drift = [r for r in results if r["kind"] == "bilateral_drift"]
+    assert len(drift) == 8
+    assert os.path.getsize(out / "results.json") > 1000
