@@ -97,23 +97,7 @@ def row_pattern(A):
 @nb.njit(cache=True)
 def col_pattern(A):
     """Nonzero pattern of the columns of A as CSR (ptr, idx)."""
-    n, m = A.shape
-    ptr = np.empty(m + 1, dtype=np.int64)
-    cnt = 0
-    for b in range(m):
-        for k in range(n):
-            if A[k, b] != 0.0:
-                cnt += 1
-    idx = np.empty(cnt, dtype=np.int64)
-    cnt = 0
-    for b in range(m):
-        ptr[b] = cnt
-        for k in range(n):
-            if A[k, b] != 0.0:
-                idx[cnt] = k
-                cnt += 1
-    ptr[m] = cnt
-    return ptr, idx
+    return row_pattern(A.T)
 
 
 @nb.njit(cache=True)

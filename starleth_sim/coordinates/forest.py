@@ -31,7 +31,7 @@ import pinocchio as pin
 
 from ..description import RobotDescription
 from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, forward_kinematics,
-                          point_jacobian)
+                          point_jacobian, quat_xyzw_to_rot)
 
 _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
                 "JointModelRZ": pin.JointModelRZ}
@@ -72,16 +72,8 @@ def integrate_forest(q, u, dt, jtype, idx_q, idx_v, out):
 
 @nb.njit(cache=True, inline="always")
 def _quat_rot(q, iq, R):
-    x, y, z, w = q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6]
-    R[0, 0] = 1 - 2 * (y * y + z * z)
-    R[0, 1] = 2 * (x * y - z * w)
-    R[0, 2] = 2 * (x * z + y * w)
-    R[1, 0] = 2 * (x * y + z * w)
-    R[1, 1] = 1 - 2 * (x * x + z * z)
-    R[1, 2] = 2 * (y * z - x * w)
-    R[2, 0] = 2 * (x * z - y * w)
-    R[2, 1] = 2 * (y * z + x * w)
-    R[2, 2] = 1 - 2 * (x * x + y * y)
+    """Rotation of the root whose coordinates start at q[iq] (quaternion at iq+3..iq+6)."""
+    quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], R)
 
 
 @nb.njit(cache=True)
