@@ -1,21 +1,53 @@
-"""``starleth-demo`` (``make demo``): the main job, headless.
+"""``starleth-demo`` (``make demo``): the main job.
 
-Until the locomotion controller and the ROS service land, this is the drop test: StarlETH
-falls from 0.1 m onto flat ground under a joint PD posture hold, settles, and a summary is
-printed (speed, final trunk height, per-foot normal force, solver iterations).
+Default: the trotting demo over ROS 2. Two processes on an isolated ROS_DOMAIN_ID (the
+environment's ROS_DOMAIN_ID if set, else one chosen from the pid):
+
+* ``controller_node`` (starleth_controller), started first, and
+* ``sim_node`` (lockstep, as fast as the controller answers, physics HmJ, recording to
+  ``runs/demo.mcap``).
+
+This process drives the run over ROS: it publishes /cmd_vel (0.3 m/s forward; ignored while
+standing), watches /clock, calls ``/controller_node/trot`` (true) at t = 2 s of sim time,
+and after 18 s of trotting pauses the simulation (``/sim_node/pause``) and stops both nodes
+with SIGINT, so that the recording is finalised. It then reads the bag (rosbags) and prints
+a summary: distance travelled, mean speed while trotting, falls (base height > 0.3 m
+throughout), real-time factor (sim time / wall time), solver iterations, messages, file.
+Exit status 0 when the run is complete and the robot trotted without falling (at least 4 m
+in 18 s at 0.3 m/s), non-zero with a message otherwise.
+
+``starleth-demo --drop``: the headless drop test (no ROS): StarlETH falls from 0.1 m onto
+flat ground under a joint PD posture hold, settles, and a summary is printed (speed, final
+trunk height, per-foot normal force, solver iterations).
 """
 from __future__ import annotations
 
 import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .posture import PostureHold
-from .simulator import Simulator
+PERIOD_NS = 2_500_000            # sim_node's stamp period (400 Hz)
+FALL_HEIGHT = 0.3                # a base height below this is a fall [m]
+STEPPING = 0.01                  # sim time [s] on /clock that shows the sim is stepping
+FIRST_STATE_WAIT = 1.5           # [s] wall, see drive()
+#: the issue's acceptance: >= 4 m in 18 s of trot at 0.3 m/s (scaled for other settings)
+ACCEPT_DISTANCE, ACCEPT_TROT, ACCEPT_SPEED = 4.0, 18.0, 0.3
+MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not checked [s]
 
 
+# =========================================================================================
+# drop test (headless, no ROS)
+# =========================================================================================
 def drop_test(preset="HmJ", height=0.1, seconds=5.0):
+    from .posture import PostureHold
+    from .simulator import Simulator
     sim = Simulator.from_preset(preset)
     q = sim.q
     q[2] += height
@@ -33,12 +65,7 @@ def drop_test(preset="HmJ", height=0.1, seconds=5.0):
     return sim, np.array(iters), wall, n, peak
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog="starleth-demo", description=__doc__.split("\n")[0])
-    ap.add_argument("--preset", default="HmJ", help="physics configuration (default HmJ)")
-    ap.add_argument("--height", type=float, default=0.1, help="drop height [m]")
-    ap.add_argument("--seconds", type=float, default=5.0, help="simulated time [s]")
-    args = ap.parse_args(argv)
+def drop_main(args) -> int:
     sim, iters, wall, n, peak = drop_test(args.preset, args.height, args.seconds)
     steps = n * sim.config.steps_per_control
     weight = sim.description.total_mass * 9.81
@@ -63,6 +90,425 @@ def main(argv=None):
     print("  result: settled, weight carried by the feet" if ok else
           "  result: NOT settled")
     return 0 if ok else 1
+
+
+# =========================================================================================
+# trotting demo over ROS 2
+# =========================================================================================
+class DemoError(RuntimeError):
+    """The demo could not run to the end (a node died, a timeout, no bag, ...)."""
+
+
+def default_domain_id() -> int:
+    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if env:
+        try:
+            return int(env)
+        except ValueError:
+            raise DemoError(f"ROS_DOMAIN_ID={env!r} is not an integer") from None
+    return os.getpid() % 90 + 10
+
+
+class NodeProcess:
+    """A ROS node in a child process (no stdin, output to a log file); stop() always ends
+    it: SIGINT, then SIGTERM, then SIGKILL."""
+
+    def __init__(self, name, module, params, domain_id, log_path):
+        cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={name}"]
+        for k, v in params.items():
+            val = f'"{v}"' if isinstance(v, str) else repr(v)
+            cmd += ["-p", f"{k}:={val}"]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
+                   RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
+        self.name, self.log_path = name, log_path
+        self._log = open(log_path, "w")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
+                                     stderr=subprocess.STDOUT, env=env)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout=30.0):
+        """Returns the exit status (None if it had to be killed)."""
+        p = self.proc
+        killed = False
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0),
+                          (signal.SIGKILL, 5.0)):
+            if p.poll() is not None:
+                break
+            p.send_signal(sig)
+            killed = sig != signal.SIGINT
+            try:
+                p.wait(wait)
+            except subprocess.TimeoutExpired:
+                pass
+        self._log.close()
+        return None if killed else p.returncode
+
+    def log_tail(self, n=15) -> str:
+        try:
+            with open(self.log_path) as f:
+                lines = f.read().splitlines()
+        except OSError:
+            return "(no log)"
+        return "\n".join("    | " + line for line in lines[-n:])
+
+
+@dataclass
+class DemoResult:
+    bag: str
+    domain_id: int
+    physics: str
+    stand: float
+    trot: float
+    speed: float
+    t_trot: float = math.nan             # sim time when the trot was requested [s]
+    t_end: float = math.nan              # last recorded stamp [s]
+    wall: float = math.nan               # wall time of the stepping [s]
+    sim_elapsed: float = math.nan        # sim time over the same interval [s]
+    distance: float = math.nan           # start -> end, horizontal [m]
+    trot_distance: float = math.nan      # over the trot phase, horizontal [m]
+    trot_speed: float = math.nan         # mean speed while trotting [m/s]
+    displacement: tuple = (math.nan, math.nan)
+    min_height: float = math.nan
+    max_height: float = math.nan
+    solver_iterations_mean: float = math.nan
+    solver_iterations_max: int = 0
+    messages: int = 0
+    topic_counts: dict = field(default_factory=dict)
+    joint_states: int = 0
+    steps_expected: int = 0
+    missing_steps: int = 0
+    joint_commands: int = 0
+    bag_bytes: int = 0
+    exit_codes: dict = field(default_factory=dict)
+    logs: dict = field(default_factory=dict)
+
+    @property
+    def rtf(self) -> float:
+        return self.sim_elapsed / self.wall if self.wall > 0 else math.nan
+
+    @property
+    def fell(self) -> bool:
+        return not self.min_height > FALL_HEIGHT
+
+    @property
+    def complete(self) -> bool:
+        return self.joint_states > 0 and self.missing_steps == 0
+
+    @property
+    def required_distance(self) -> float:
+        return ACCEPT_DISTANCE * (self.trot / ACCEPT_TROT) * (self.speed / ACCEPT_SPEED)
+
+    def problems(self) -> list:
+        p = []
+        for name, rc in self.exit_codes.items():
+            if rc != 0:
+                p.append(f"{name} exited with status {rc}" if rc is not None else
+                         f"{name} did not stop on SIGINT and was killed")
+        if not self.complete:
+            p.append(f"the bag misses {self.missing_steps} of {self.steps_expected} control "
+                     "steps")
+        if self.fell:
+            p.append(f"the robot fell (base height down to {self.min_height:.3f} m)")
+        if self.trot >= MIN_TROT_CHECKED and not self.trot_distance >= self.required_distance:
+            p.append(f"trotted {self.trot_distance:.2f} m, expected >= "
+                     f"{self.required_distance:.2f} m")
+        return p
+
+
+def _wait_future(ex, fut, timeout, procs, what):
+    t_end = time.monotonic() + timeout
+    while not fut.done():
+        _check_alive(procs)
+        if time.monotonic() > t_end:
+            raise DemoError(f"timeout ({timeout:g} s) waiting for {what}")
+        ex.spin_once(timeout_sec=0.02)
+    return fut.result()
+
+
+def _check_alive(procs):
+    for p in procs:
+        if not p.alive():
+            raise DemoError(f"{p.name} died (exit status {p.proc.returncode}); its log "
+                            f"{p.log_path} ends with:\n{p.log_tail()}")
+
+
+def drive(domain_id, stand, trot, speed, procs, start_sim, echo, startup_timeout=90.0,
+          run_timeout=300.0):
+    """The ROS side of the demo: wait for the controller, start the sim (`start_sim()`),
+    wait for it, send /cmd_vel, switch to trot at t = stand, pause the sim at
+    t_trot + trot. Returns (t_trot, t_pause, wall, sim)."""
+    import rclpy
+    import rclpy.executors
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from geometry_msgs.msg import Twist
+    from std_srvs.srv import SetBool, Trigger
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = None
+    try:
+        node = Node("starleth_demo", context=ctx)
+        ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        clock = {"t": None, "first": None}
+
+        def on_clock(msg):
+            t = msg.clock.sec + msg.clock.nanosec * 1e-9
+            clock["t"] = t
+            if clock["first"] is None and t >= STEPPING:
+                clock["first"] = (t, time.perf_counter())
+
+        node.create_subscription(Clock, "/clock", on_clock,
+                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        cmd_pub = node.create_publisher(Twist, "/cmd_vel", QoSProfile(depth=10))
+        trot_cli = node.create_client(SetBool, "/controller_node/trot")
+        pause_cli = node.create_client(SetBool, "/sim_node/pause")
+        reset_cli = node.create_client(Trigger, "/sim_node/reset")
+
+        # the controller up and subscribed to /cmd_vel; then the sim: sim_node publishes
+        # its first state once, when it starts, and waits for the answer
+        t_end = time.monotonic() + startup_timeout
+        while not (trot_cli.service_is_ready() and cmd_pub.get_subscription_count() > 0):
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"controller_node did not come up within {startup_timeout:g} s")
+            ex.spin_once(timeout_sec=0.05)
+        start_sim()
+        while not pause_cli.service_is_ready():
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"sim_node did not come up within {startup_timeout:g} s")
+            ex.spin_once(timeout_sec=0.05)
+        twist = Twist()
+        twist.linear.x = float(speed)
+        cmd_pub.publish(twist)
+        last_cmd = time.monotonic()
+        echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting)")
+        # sim_node publishes its first full state once, as it starts; if it went out before
+        # the controller's subscriptions matched, nothing steps (sim_node then re-sends only
+        # /joint_states): re-publish the initial state through ~/reset
+        t_kick = time.monotonic() + FIRST_STATE_WAIT
+        while clock["first"] is None:
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"the simulation did not start stepping within "
+                                f"{startup_timeout:g} s (no /clock beyond t = {STEPPING} s); "
+                                f"see the logs {', '.join(p.log_path for p in procs)}")
+            if time.monotonic() > t_kick:
+                res = _wait_future(ex, reset_cli.call_async(Trigger.Request()), 10.0, procs,
+                                   "/sim_node/reset")
+                echo(f"  no answer to the first state within {FIRST_STATE_WAIT:g} s (sim_node "
+                     "sent it before the controller's subscriptions matched): re-published "
+                     f"it with /sim_node/reset ({res.message})")
+                t_kick = time.monotonic() + FIRST_STATE_WAIT
+            ex.spin_once(timeout_sec=0.05)
+
+        t_trot = None
+        t_end = time.monotonic() + run_timeout
+        while True:
+            # poll /clock (depth 1: only the latest is kept) at ~200 Hz rather than taking
+            # every message: this process competes for the CPU with the lockstep pair
+            time.sleep(0.005)
+            ex.spin_once(timeout_sec=0.0)
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"the run did not finish within {run_timeout:g} s (sim time "
+                                f"{clock['t']:.3f} s)")
+            if time.monotonic() - last_cmd > 0.5:    # keep /cmd_vel fresh
+                cmd_pub.publish(twist)
+                last_cmd = time.monotonic()
+            t = clock["t"]
+            if t_trot is None and t >= stand:
+                res = _wait_future(ex, trot_cli.call_async(SetBool.Request(data=True)), 10.0,
+                                   procs, "/controller_node/trot")
+                if not res.success:
+                    raise DemoError(f"/controller_node/trot refused: {res.message}")
+                t_trot = clock["t"]
+                echo(f"  t = {t_trot:.3f} s: trot ({res.message})")
+            elif t_trot is not None and t >= t_trot + trot:
+                res = _wait_future(ex, pause_cli.call_async(SetBool.Request(data=True)), 10.0,
+                                   procs, "/sim_node/pause")
+                wall_end = time.perf_counter()
+                t_pause = clock["t"]
+                echo(f"  t = {t_pause:.3f} s: {res.message}")
+                t0, w0 = clock["first"]
+                return t_trot, t_pause, wall_end - w0, t_pause - t0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def read_bag(path, result: DemoResult):
+    """Fill `result` from the recording: base trajectory, solver iterations, counts."""
+    from pathlib import Path
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+    if not os.path.exists(path):
+        raise DemoError(f"the recording {path} does not exist")
+    result.bag_bytes = os.path.getsize(path)
+    try:
+        reader = AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader.open()
+    except Exception as e:
+        raise DemoError(f"cannot read the recording {path}: {type(e).__name__}: {e}") from None
+    try:
+        conns = {c.topic: c for c in reader.connections}
+        result.topic_counts = {t: c.msgcount for t, c in conns.items()}
+        result.messages = sum(result.topic_counts.values())
+        for topic in ("/joint_states", "/starleth/base_state", "/starleth/solver"):
+            if topic not in conns:
+                raise DemoError(f"the recording {path} has no {topic}")
+        stamps = np.array([ts for _, ts, _ in
+                           reader.messages(connections=[conns["/joint_states"]])], dtype=np.int64)
+        result.joint_states = len(stamps)
+        result.joint_commands = result.topic_counts.get("/joint_commands", 0)
+        last = int(stamps.max()) if len(stamps) else 0
+        result.steps_expected = last // PERIOD_NS + 1
+        result.missing_steps = result.steps_expected - len(np.unique(stamps))
+        result.t_end = last * 1e-9
+        t, pos = [], []
+        c = conns["/starleth/base_state"]
+        for _, ts, raw in reader.messages(connections=[c]):
+            m = reader.deserialize(raw, c.msgtype)
+            p = m.pose.pose.position
+            t.append(ts * 1e-9)
+            pos.append((p.x, p.y, p.z))
+        t, pos = np.array(t), np.array(pos)
+        if len(t) == 0:
+            raise DemoError(f"the recording {path} holds no base state")
+        result.min_height, result.max_height = float(pos[:, 2].min()), float(pos[:, 2].max())
+        d = pos[-1, :2] - pos[0, :2]
+        result.displacement = (float(d[0]), float(d[1]))
+        result.distance = float(np.hypot(*d))
+        if math.isfinite(result.t_trot):
+            i0 = int(np.searchsorted(t, result.t_trot))
+            i0 = min(i0, len(t) - 1)
+            dt = t[-1] - t[i0]
+            result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
+            result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
+        its = []
+        c = conns["/starleth/solver"]
+        for _, ts, raw in reader.messages(connections=[c]):
+            if ts == 0:
+                continue          # the initial state: no step yet
+            m = reader.deserialize(raw, c.msgtype)
+            for st in m.status:
+                if st.name.endswith("solver"):
+                    for kv in st.values:
+                        if kv.key == "iterations":
+                            its.append(int(kv.value))
+        if its:
+            result.solver_iterations_mean = float(np.mean(its))
+            result.solver_iterations_max = int(np.max(its))
+    finally:
+        reader.close()
+    return result
+
+
+def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.mcap",
+             domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0) -> DemoResult:
+    """Run the trotting demo (see the module docstring) and return its figures. Raises
+    DemoError if it could not run to the end; both nodes are always stopped."""
+    if domain_id is None:
+        domain_id = default_domain_id()
+    if not 0 <= domain_id <= 232:
+        raise DemoError(f"ROS domain id {domain_id} out of range (0..232)")
+    bag = os.path.abspath(record)
+    os.makedirs(os.path.dirname(bag), exist_ok=True)
+    if os.path.exists(bag):
+        os.remove(bag)
+    stem = os.path.splitext(bag)[0]
+    result = DemoResult(bag=bag, domain_id=domain_id, physics=physics, stand=stand, trot=trot,
+                        speed=speed)
+    echo(f"StarlETH demo: sim_node ({physics}, lockstep) + controller_node over ROS 2 "
+         f"(ROS_DOMAIN_ID={domain_id})")
+    procs = []
+
+    def start_sim():
+        procs.append(NodeProcess("sim_node", "starleth_sim.nodes.sim_node",
+                                 {"mode": "lockstep", "real_time_factor": 0.0,
+                                  "physics": physics, "record": bag},
+                                 domain_id, stem + ".sim_node.log"))
+        result.logs["sim_node"] = procs[-1].log_path
+
+    try:
+        # the controller first (see drive)
+        procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
+                                 {"mode": "stand"}, domain_id, stem + ".controller_node.log"))
+        result.logs["controller_node"] = procs[-1].log_path
+        t_trot, t_pause, wall, sim_elapsed = drive(domain_id, stand, trot, speed, procs,
+                                                   start_sim, echo, startup_timeout,
+                                                   run_timeout)
+        result.t_trot, result.wall, result.sim_elapsed = t_trot, wall, sim_elapsed
+    finally:
+        # the controller first (the sim is paused), then the sim: SIGINT finalises the MCAP
+        for p in procs:
+            result.exit_codes[p.name] = p.stop()
+    read_bag(bag, result)
+    return result
+
+
+def print_summary(r: DemoResult, echo=print):
+    echo(f"  stand {r.stand:g} s, then trot {r.trot:g} s at {r.speed:g} m/s "
+         f"(trot requested at t = {r.t_trot:.3f} s; last step t = {r.t_end:.3f} s)")
+    echo(f"  distance travelled   {r.distance:6.2f} m   (x {r.displacement[0]:+.2f}, "
+         f"y {r.displacement[1]:+.2f}); while trotting {r.trot_distance:.2f} m")
+    echo(f"  mean speed (trot)    {r.trot_speed:6.3f} m/s (commanded {r.speed:g})")
+    echo(f"  falls                " + ("none" if not r.fell else "FELL") +
+         f" (base height {r.min_height:.3f} .. {r.max_height:.3f} m; a fall is < "
+         f"{FALL_HEIGHT:g} m)")
+    echo(f"  real-time factor     {r.rtf:6.2f}   (lockstep, from /clock: {r.sim_elapsed:.2f} s "
+         f"sim in {r.wall:.2f} s wall)")
+    echo(f"  solver iterations    {r.solver_iterations_mean:6.1f} per control step on average "
+         f"(max {r.solver_iterations_max})")
+    echo(f"  messages             {r.messages} in the bag; /joint_states {r.joint_states} of "
+         f"{r.steps_expected} steps, /joint_commands {r.joint_commands}")
+    echo(f"  recording            {r.bag} ({r.bag_bytes / 1e6:.1f} MB); logs "
+         + ", ".join(r.logs.values()))
+    problems = r.problems()
+    if problems:
+        echo("  result: FAILED: " + "; ".join(problems))
+    else:
+        echo("  result: OK (" + (f">= {r.required_distance:.1f} m, " if r.trot >= MIN_TROT_CHECKED
+                                 else "") + "no fall, whole run recorded)")
+    return not problems
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="starleth-demo",
+                                 description="StarlETH trotting demo over ROS 2 (default) or "
+                                             "the headless drop test (--drop).")
+    ap.add_argument("--drop", action="store_true",
+                    help="run the headless drop test instead of the ROS demo")
+    ap.add_argument("--preset", default="HmJ", help="physics configuration (default HmJ)")
+    ap.add_argument("--height", type=float, default=0.1, help="drop test: drop height [m]")
+    ap.add_argument("--seconds", type=float, default=5.0,
+                    help="drop test: simulated time [s]")
+    ap.add_argument("--stand", type=float, default=2.0, help="demo: seconds standing first")
+    ap.add_argument("--trot", type=float, default=18.0, help="demo: seconds of trot")
+    ap.add_argument("--speed", type=float, default=0.3, help="demo: forward speed [m/s]")
+    ap.add_argument("--record", default=os.path.join("runs", "demo.mcap"),
+                    help="demo: MCAP file (default runs/demo.mcap)")
+    ap.add_argument("--domain-id", type=int, default=None,
+                    help="demo: ROS domain id (default: $ROS_DOMAIN_ID, else from the pid)")
+    args = ap.parse_args(argv)
+    if args.drop:
+        return drop_main(args)
+    try:
+        result = run_demo(args.stand, args.trot, args.speed, args.preset, args.record,
+                          args.domain_id)
+    except DemoError as e:
+        print(f"starleth-demo: FAILED: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("starleth-demo: interrupted", file=sys.stderr)
+        return 130
+    return 0 if print_summary(result) else 1
 
 
 if __name__ == "__main__":

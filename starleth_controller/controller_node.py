@@ -1,0 +1,586 @@
+"""``controller_node``: the StarlETH stand / trot controller (``StarlethController``) behind
+ROS 2 topics. A thin adapter: no control law in here.
+
+    ros2 run starleth_sim controller_node
+    python -m starleth_controller.controller_node --ros-args -p mode:=trot
+
+Subscribed (topic names are the defaults; remap them for another robot):
+
+    /joint_states                        sensor_msgs/JointState       by name: position, velocity
+    /starleth/base_state                 nav_msgs/Odometry            ground-truth base state
+    /starleth/{LF,RF,LH,RH}_foot/wrench  geometry_msgs/WrenchStamped  contact: |force| > threshold
+    /cmd_vel                             geometry_msgs/Twist          linear.x, linear.y, angular.z
+    /robot_description                   std_msgs/String              with robot_description:=true
+
+Published:
+
+    /joint_commands                      sensor_msgs/JointState       names + effort; header.stamp
+                                                                      = the state's stamp
+    (effort_array_topic, off by default) std_msgs/Float64MultiArray   12 torques, joint order
+
+Service ``~/trot`` (std_srvs/SetBool): true = trot, false = stand (sets the ``mode`` parameter).
+
+The base state is taken from ``/starleth/base_state`` as *ground truth* (the simulator's
+Odometry: pose in the world frame, twist in the child (base) frame as REP 105 says; set
+``twist_frame:=parent`` for a source that gives the linear velocity in the world frame). A
+state estimator is out of scope.
+
+Synchronisation: a simulator (or robot driver) publishes the state of one control step on
+all state topics with the same header stamp. The node keeps the messages of the last few
+stamps; as soon as the joint state, the base state and the four foot wrenches of one stamp
+have all arrived (in any order), it runs one controller update with t = that stamp and
+publishes the torques stamped with it, so a lockstep simulator steps on the answer. A
+/joint_states repeating the stamp last answered, more than 0.1 s after the answer, gets the
+same answer again (a simulator re-sending its first state because the first answer went out
+before the topics matched).
+
+Robustness: a message with NaN/inf values, missing joints or wrong array sizes is logged
+(throttled) and ignored; no command is published for its stamp. Exceptions in the controller
+are logged and answered with nothing; the node never exits on bad input.
+
+Nothing here is specific to the StarlETH simulator beyond the default topic names and the
+URDF; the node does not import ``starleth_sim``.
+"""
+from __future__ import annotations
+
+import array
+import math
+import signal
+import sys
+import time
+
+import numpy as np
+
+import rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from sensor_msgs.msg import JointState
+from nav_msgs.msg import Odometry
+from geometry_msgs.msg import WrenchStamped, Twist
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import SetBool
+
+from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
+from .model import JOINT_NAMES, LEGS, default_urdf_path
+
+DEFAULT_WRENCH_TOPICS = tuple(f"/starleth/{leg}_foot/wrench" for leg in LEGS)
+
+#: parameters: name -> (default, description, read_only)
+PARAMETERS = {
+    "mode": ("stand", "stand | trot; settable at runtime (also through the ~/trot service)",
+             False),
+    "urdf": ("", "URDF path or XML text for the controller's model; empty = the package's "
+             "starleth.urdf", True),
+    "robot_description": (False, "true: build the model from the /robot_description topic "
+                          "(transient local) instead of `urdf`", True),
+    "joint_commands_topic": ("/joint_commands", "sensor_msgs/JointState command topic (names "
+                             "+ effort, stamped with the state answered); empty = off", True),
+    "effort_array_topic": ("", "also publish a std_msgs/Float64MultiArray of the 12 torques on "
+                           "this topic (e.g. /joint_group_effort_controller/commands); empty "
+                           "= off. Do not send both to a lockstep simulator.", True),
+    "joint_states_topic": ("/joint_states", "sensor_msgs/JointState input", True),
+    "base_state_topic": ("/starleth/base_state", "nav_msgs/Odometry input (ground truth)",
+                         True),
+    "foot_wrench_topics": (list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped inputs, "
+                           "feet in the order LF, RF, LH, RH", True),
+    "cmd_vel_topic": ("/cmd_vel", "geometry_msgs/Twist velocity command", True),
+    "twist_frame": ("child", "frame of the Odometry twist's linear velocity: child (base, "
+                    "REP 105) | parent (world)", True),
+    "contact_force_threshold": (5.0, "a foot is in contact when |force| exceeds this [N]",
+                                False),
+    "max_linear_speed": (0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]", False),
+    "max_yaw_rate": (1.0, "clip of |angular.z| of /cmd_vel [rad/s]", False),
+    "cmd_vel_timeout": (0.0, "seconds (wall clock) after the last /cmd_vel when the velocity "
+                        "command falls back to zero; 0 = never", False),
+    "state_reliability": ("reliable", "QoS reliability of the state subscriptions: reliable | "
+                          "best_effort", True),
+    "warn_throttle_period": (2.0, "minimum seconds between two warnings of the same kind",
+                             False),
+    "executor": ("events", "events (rclpy's C++ EventsExecutor) | single_threaded", True),
+}
+
+
+class ThrottledLog:
+    """At most one message per `period` seconds per kind; the next says how many were
+    suppressed. Counts every occurrence."""
+
+    def __init__(self, log, period=2.0, clock=time.monotonic):
+        self._log, self.period, self._clock = log, period, clock
+        self._last, self._suppressed, self.counts = {}, {}, {}
+
+    def __call__(self, key, message):
+        self.counts[key] = self.counts.get(key, 0) + 1
+        now = self._clock()
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return False
+        n = self._suppressed.pop(key, 0)
+        self._last[key] = now
+        if n:
+            message += f" ({n} more like this in the last {now - last:.1f} s)"
+        self._log(message)
+        return True
+
+
+class _Slot:
+    """The messages of one stamp: joint state, base state, 4 wrenches."""
+    __slots__ = ("js", "odom", "wrench", "n")
+
+    def __init__(self):
+        self.js = None
+        self.odom = None
+        self.wrench = [None, None, None, None]
+        self.n = 0
+
+
+def _stamp_ns(header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def _finite(*values) -> bool:
+    try:
+        return math.isfinite(math.fsum(values))
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+class ControllerNode(Node):
+    """The rclpy node. ``ControllerNode()`` inside an initialised rclpy context; spin it with
+    any executor (``main`` uses the EventsExecutor)."""
+
+    MAX_PENDING = 16   # stamps kept while waiting for the rest of a state
+    REPEAT_AFTER = 0.1  # s: a repeated state this long after its answer is answered again
+
+    def __init__(self, node_name="controller_node", context=None, parameter_overrides=None,
+                 **kwargs):
+        super().__init__(node_name, context=context,
+                         parameter_overrides=[Parameter(k, value=v) for k, v in
+                                              (parameter_overrides or {}).items()], **kwargs)
+        self.log = self.get_logger()
+        p = {}
+        for name, (default, desc, ro) in PARAMETERS.items():
+            # dynamic typing: `-p contact_force_threshold:=5` (an integer) is fine; the
+            # values are checked here instead
+            d = ParameterDescriptor(description=desc, read_only=ro, dynamic_typing=True)
+            p[name] = self.declare_parameter(name, default, d).value
+        self._check_static(p)
+        self._warn = ThrottledLog(self.log.warning, float(p["warn_throttle_period"]))
+        self._mode = p["mode"]
+        self._threshold = float(p["contact_force_threshold"])
+        self._max_v = float(p["max_linear_speed"])
+        self._max_w = float(p["max_yaw_rate"])
+        self._cmd_vel_timeout = float(p["cmd_vel_timeout"])
+        self._twist_in_child = p["twist_frame"] == "child"
+        self.executor_kind = p["executor"]
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._vel = (0.0, 0.0, 0.0)
+        self._vel_time = None
+        self.command = Command(self._mode)
+        self.counters = {"states": 0, "commands": 0, "rejected": 0, "repeated": 0,
+                         "dropped_incomplete": 0, "controller_errors": 0}
+        self._pending: dict[int, _Slot] = {}
+        self._last_answer = None          # (stamp_ns, stamp msg, effort, monotonic time)
+        self._perm_cache = {}             # tuple(names) -> index array (public order)
+        self._ctrl_mode = None
+        self.controller = None
+        self._waiting_state = None        # the last state that came before the model
+
+        # publishers
+        cmd_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE,
+                             history=HistoryPolicy.KEEP_LAST)
+        self.pub_cmd = (self.create_publisher(JointState, p["joint_commands_topic"], cmd_qos)
+                        if p["joint_commands_topic"] else None)
+        self.pub_array = (self.create_publisher(Float64MultiArray, p["effort_array_topic"],
+                                                cmd_qos) if p["effort_array_topic"] else None)
+        self._cmd_msg = JointState()
+        self._cmd_msg.name = list(JOINT_NAMES)
+        self._array_msg = Float64MultiArray()
+
+        # the model
+        if p["robot_description"]:
+            latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                 history=HistoryPolicy.KEEP_LAST)
+            self.sub_description = self.create_subscription(String, "/robot_description",
+                                                            self._on_description, latched)
+            self.log.info("waiting for /robot_description")
+        else:
+            try:
+                urdf = p["urdf"] or default_urdf_path()
+            except FileNotFoundError as e:
+                raise ValueError(str(e)) from None
+            if not self._make_controller(urdf, urdf if not urdf.lstrip().startswith("<")
+                                         else "the urdf parameter (XML)"):
+                raise ValueError(f"urdf: cannot build the controller model from {urdf[:200]!r}")
+
+        # subscriptions
+        rel = (ReliabilityPolicy.BEST_EFFORT if p["state_reliability"] == "best_effort"
+               else ReliabilityPolicy.RELIABLE)
+        state_qos = QoSProfile(depth=10, reliability=rel, durability=DurabilityPolicy.VOLATILE,
+                               history=HistoryPolicy.KEEP_LAST)
+        self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
+                                               self._on_joint_states, state_qos)
+        self.sub_odom = self.create_subscription(Odometry, p["base_state_topic"],
+                                                 self._on_base_state, state_qos)
+        self.sub_wrench = [
+            self.create_subscription(WrenchStamped, topic,
+                                     (lambda msg, k=k: self._on_wrench(k, msg)), state_qos)
+            for k, topic in enumerate(p["foot_wrench_topics"])]
+        self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
+                                                    QoSProfile(depth=10))
+        self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot)
+        self.log.info(f"mode {self._mode}; joint commands on "
+                      f"{p['joint_commands_topic'] or '(off)'}"
+                      + (f", effort arrays on {p['effort_array_topic']}"
+                         if p["effort_array_topic"] else ""))
+
+    # -- parameters ------------------------------------------------------------------------
+    def _check_static(self, p):
+        errors = []
+        for name, (default, _, _) in PARAMETERS.items():
+            if isinstance(default, (str, bool)) and not isinstance(p[name], type(default)):
+                errors.append(f"{name} must be a {type(default).__name__}, got {p[name]!r}")
+        if errors:
+            raise ValueError("; ".join(errors))
+        if p["mode"] not in MODES:
+            errors.append(f"mode must be one of {MODES}, got {p['mode']!r}")
+        if p["twist_frame"] not in ("child", "parent"):
+            errors.append(f"twist_frame must be child or parent, got {p['twist_frame']!r}")
+        if p["state_reliability"] not in ("reliable", "best_effort"):
+            errors.append("state_reliability must be reliable or best_effort, got "
+                          f"{p['state_reliability']!r}")
+        if p["executor"] not in ("events", "single_threaded"):
+            errors.append(f"executor must be events or single_threaded, got {p['executor']!r}")
+        topics = p["foot_wrench_topics"]
+        if not isinstance(topics, (list, tuple)) or len(topics) != 4 or \
+                not all(isinstance(t, str) and t for t in topics):
+            errors.append(f"foot_wrench_topics must be 4 topic names (LF, RF, LH, RH), got "
+                          f"{topics!r}")
+        for name in ("contact_force_threshold", "max_linear_speed", "max_yaw_rate",
+                     "cmd_vel_timeout", "warn_throttle_period"):
+            err = self._number_error(name, p[name])
+            if err:
+                errors.append(err)
+        if errors:
+            raise ValueError("; ".join(errors))
+
+    @staticmethod
+    def _number_error(name, v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or v < 0:
+            return f"{name} must be a finite number >= 0, got {v!r}"
+        return None
+
+    def _on_set_parameters(self, params):
+        for prm in params:
+            if prm.name == "mode" and (not isinstance(prm.value, str) or prm.value not in MODES):
+                return SetParametersResult(successful=False,
+                                           reason=f"mode must be one of {MODES}")
+            if prm.name in ("contact_force_threshold", "max_linear_speed", "max_yaw_rate",
+                            "cmd_vel_timeout", "warn_throttle_period"):
+                err = self._number_error(prm.name, prm.value)
+                if err:
+                    return SetParametersResult(successful=False, reason=err)
+        for prm in params:
+            if prm.name == "mode" and prm.value != self._mode:
+                self._mode = prm.value
+                self.log.info(f"mode -> {prm.value}")
+            elif prm.name == "contact_force_threshold":
+                self._threshold = float(prm.value)
+            elif prm.name == "max_linear_speed":
+                self._max_v = float(prm.value)
+            elif prm.name == "max_yaw_rate":
+                self._max_w = float(prm.value)
+            elif prm.name == "cmd_vel_timeout":
+                self._cmd_vel_timeout = float(prm.value)
+            elif prm.name == "warn_throttle_period":
+                self._warn.period = float(prm.value)
+        return SetParametersResult(successful=True)
+
+    def _srv_trot(self, request, response):
+        mode = "trot" if request.data else "stand"
+        result = self.set_parameters([Parameter("mode", value=mode)])[0]
+        response.success = bool(result.successful)
+        response.message = (f"mode {mode}" if result.successful else result.reason)
+        if self._last_answer is not None:
+            response.message += f" (last state answered: t={self._last_answer[0] * 1e-9:.4f} s)"
+        return response
+
+    # -- model -----------------------------------------------------------------------------
+    def _make_controller(self, urdf, what):
+        try:
+            ctrl = StarlethController(urdf, ControllerParams(
+                contact_force_threshold=self._threshold))
+        except Exception as e:  # a bad URDF: keep running, answer nothing
+            self.log.error(f"cannot build the controller model from {what}: {e}")
+            return False
+        self.controller = ctrl
+        self.log.info(f"controller model from {what}: {ctrl.model.mass:.2f} kg")
+        return True
+
+    def _on_description(self, msg):
+        if self.controller is None and msg.data:
+            if self._make_controller(msg.data, "/robot_description") and \
+                    self._waiting_state is not None:
+                stamp, s = self._waiting_state
+                self._waiting_state = None
+                self.counters["states"] -= 1
+                self._complete(stamp, s)
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _slot(self, stamp):
+        s = self._pending.get(stamp)
+        if s is None:
+            if len(self._pending) >= self.MAX_PENDING:
+                oldest = min(self._pending)
+                self._drop_incomplete(oldest, self._pending.pop(oldest))
+            s = self._pending[stamp] = _Slot()
+        return s
+
+    def _drop_incomplete(self, stamp, slot):
+        self.counters["dropped_incomplete"] += 1
+        missing = [name for name, m in (("joint state", slot.js), ("base state", slot.odom),
+                                        *zip((f"{leg} wrench" for leg in LEGS), slot.wrench))
+                   if m is None]
+        self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
+                   f"(missing: {', '.join(missing)})")
+
+    def _on_joint_states(self, msg):
+        stamp = _stamp_ns(msg.header)
+        last = self._last_answer
+        if last is not None and last[0] == stamp:
+            # the same state again: a simulator re-sending a state it got no answer for (its
+            # first one, sent before the topics matched) gets the same answer again; a copy
+            # that crossed the answer in flight (within REPEAT_AFTER) is ignored
+            if time.monotonic() - last[3] > self.REPEAT_AFTER:
+                self.counters["repeated"] += 1
+                self._publish(last[1], last[2])
+            return
+        s = self._slot(stamp)
+        if s.js is None:
+            s.n += 1
+        s.js = msg
+        if s.n == 6:
+            self._complete(stamp, s)
+
+    def _on_base_state(self, msg):
+        stamp = _stamp_ns(msg.header)
+        s = self._slot(stamp)
+        if s.odom is None:
+            s.n += 1
+        s.odom = msg
+        if s.n == 6:
+            self._complete(stamp, s)
+
+    def _on_wrench(self, k, msg):
+        stamp = _stamp_ns(msg.header)
+        s = self._slot(stamp)
+        if s.wrench[k] is None:
+            s.n += 1
+        s.wrench[k] = msg
+        if s.n == 6:
+            self._complete(stamp, s)
+
+    def _on_cmd_vel(self, msg):
+        vx, vy, wz = msg.linear.x, msg.linear.y, msg.angular.z
+        if not _finite(vx, vy, wz):
+            self.counters["rejected"] += 1
+            self._warn("cmd_vel", "ignored a /cmd_vel with non-finite values")
+            return
+        n = math.hypot(vx, vy)
+        if n > self._max_v:
+            vx, vy = vx * self._max_v / n, vy * self._max_v / n
+        wz = min(max(wz, -self._max_w), self._max_w)
+        self._vel = (vx, vy, wz)
+        self._vel_time = time.monotonic()
+
+    # -- one control period ----------------------------------------------------------------
+    def _permutation(self, names):
+        key = tuple(names)
+        perm = self._perm_cache.get(key)
+        if perm is None:
+            if key == JOINT_NAMES:
+                perm = slice(None)
+            else:
+                index = {n: i for i, n in enumerate(key)}
+                if len(index) != len(key):
+                    return None, "duplicate joint names"
+                missing = [n for n in JOINT_NAMES if n not in index]
+                if missing:
+                    return None, f"missing joints {', '.join(missing)}"
+                perm = np.array([index[n] for n in JOINT_NAMES])
+            if len(self._perm_cache) < 8:
+                self._perm_cache[key] = perm
+        return perm, None
+
+    def _state(self, stamp, s: _Slot):
+        """RobotState from the messages of one stamp, or (None, reason)."""
+        js = s.js
+        n = len(js.name)
+        if len(js.position) != n or len(js.velocity) != n:
+            return None, "joint_states", (f"/joint_states: {n} names, {len(js.position)} "
+                                          f"positions, {len(js.velocity)} velocities")
+        perm, err = self._permutation(js.name)
+        if err:
+            return None, "joint_states", f"/joint_states: {err}"
+        q = np.asarray(js.position, dtype=float)[perm]
+        dq = np.asarray(js.velocity, dtype=float)[perm]
+        if not (np.isfinite(q).all() and np.isfinite(dq).all()):
+            return None, "joint_states_nan", "/joint_states: non-finite position or velocity"
+        o = s.odom
+        pp, po = o.pose.pose.position, o.pose.pose.orientation
+        tl, ta = o.twist.twist.linear, o.twist.twist.angular
+        vals = (pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w, tl.x, tl.y, tl.z, ta.x, ta.y, ta.z)
+        if not _finite(*vals):
+            return None, "base_state_nan", "base state: non-finite values"
+        quat = np.array((po.x, po.y, po.z, po.w))
+        nq = float(quat @ quat)
+        if not 0.5 < nq < 2.0:
+            return None, "base_state_quat", f"base state: orientation norm {math.sqrt(nq):.3g}"
+        quat /= math.sqrt(nq)
+        v = np.array((tl.x, tl.y, tl.z))
+        if self._twist_in_child:   # base frame -> world frame
+            x, y, z, w = quat
+            R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+            v = R @ v
+        forces = np.empty((4, 3))
+        for k, m in enumerate(s.wrench):
+            f = m.wrench.force
+            forces[k] = (f.x, f.y, f.z)
+        if not np.isfinite(forces).all():
+            return None, "wrench_nan", "foot wrench: non-finite force"
+        contact = np.sqrt((forces * forces).sum(axis=1)) > self._threshold
+        state = RobotState(stamp * 1e-9, q, dq, np.array((pp.x, pp.y, pp.z)), quat, v,
+                           np.array((ta.x, ta.y, ta.z)), contact, forces)
+        return state, None, None
+
+    def _complete(self, stamp, s):
+        # drop this stamp and every older one still waiting
+        for st in [st for st in self._pending if st <= stamp]:
+            slot = self._pending.pop(st)
+            if st != stamp:
+                self._drop_incomplete(st, slot)
+        self.counters["states"] += 1
+        if self.controller is None:
+            # kept: answered as soon as the model is there (a lockstep simulator waits)
+            self._waiting_state = (stamp, s)
+            self._warn("no_model", "state received but no controller model yet (waiting for "
+                       "/robot_description)")
+            return
+        state, key, reason = self._state(stamp, s)
+        if state is None:
+            self.counters["rejected"] += 1
+            self._warn(key, f"ignored the state of t={stamp * 1e-9:.4f} s: {reason}")
+            return
+        vx, vy, wz = self._vel
+        if self._cmd_vel_timeout > 0 and self._vel_time is not None and \
+                time.monotonic() - self._vel_time > self._cmd_vel_timeout:
+            vx = vy = wz = 0.0
+        c = self.command
+        c.mode, c.forward, c.lateral, c.yaw_rate = self._mode, vx, vy, wz
+        try:
+            tau = self.controller.update(state, c)
+        except Exception as e:
+            self.counters["controller_errors"] += 1
+            self._warn("controller", f"controller update failed at t={stamp * 1e-9:.4f} s: "
+                       f"{type(e).__name__}: {e}")
+            return
+        if not np.isfinite(tau).all():
+            self.counters["controller_errors"] += 1
+            self._warn("controller_nan", "controller returned non-finite torques; not sent")
+            return
+        mode = self.controller.mode
+        if mode != self._ctrl_mode:
+            self.log.info(f"t={stamp * 1e-9:.4f} s: controller mode {mode}")
+            self._ctrl_mode = mode
+        if "error" in self.controller.info:
+            self._warn("controller_info", f"controller: {self.controller.info['error']}")
+        effort = array.array("d", np.ascontiguousarray(tau).tobytes())
+        self._last_answer = (stamp, s.js.header.stamp, effort, time.monotonic())
+        self._publish(s.js.header.stamp, effort)
+
+    def _publish(self, stamp_msg, effort):
+        self.counters["commands"] += 1
+        if self.pub_cmd is not None:
+            m = self._cmd_msg
+            m.header.stamp = stamp_msg
+            m.effort = effort
+            self.pub_cmd.publish(m)
+        if self.pub_array is not None:
+            self._array_msg.data = effort
+            self.pub_array.publish(self._array_msg)
+
+    def summary(self) -> dict:
+        d = dict(self.counters)
+        d["warnings_by_kind"] = dict(self._warn.counts)
+        return d
+
+
+def make_executor(kind, context):
+    import rclpy.executors
+    if kind == "events":
+        try:
+            from rclpy.experimental import EventsExecutor
+            return EventsExecutor(context=context), "events"
+        except Exception:  # pragma: no cover - rclpy without the EventsExecutor
+            pass
+    return rclpy.executors.SingleThreadedExecutor(context=context), "single_threaded"
+
+
+def main(args=None):
+    """Console script ``controller_node``. Stops on SIGINT / SIGTERM."""
+    from rclpy.signals import SignalHandlerOptions
+    argv = sys.argv if args is None else args
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as e:   # e.g. a malformed --ros-args rule
+        print(f"controller_node: cannot initialise ROS: {e}", file=sys.stderr)
+        return 2
+    node = None
+    stop = {"flag": False}
+
+    def on_signal(signum, frame):
+        stop["flag"] = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        try:
+            node = ControllerNode()
+        except ValueError as e:
+            print(f"controller_node: configuration error: {e}", file=sys.stderr)
+            return 2
+        executor, kind = make_executor(node.executor_kind, node.context)
+        executor.add_node(node)
+        node.log.info(f"executor: {kind}; ready")
+        while not stop["flag"] and node.context.ok():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception as e:  # context shut down, ExternalShutdownException
+                if not node.context.ok():
+                    break
+                node.log.error(f"executor: {type(e).__name__}: {e}")
+        node.log.info(f"stopped; {node.summary()}")
+        try:
+            executor.shutdown(timeout_sec=0.1)
+        except Exception:
+            pass
+        return 0
+    finally:
+        if node is not None:
+            try:
+                node.destroy_node()
+            except Exception:
+                pass
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
