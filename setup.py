@@ -23,6 +23,8 @@ setup(
         'numba',
         'mcap',
         'mcap-ros2-support',
+        'matplotlib',
+        'proxsuite',
     ],
     zip_safe=False,
     maintainer='StarlETH sim developers',
