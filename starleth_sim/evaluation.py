@@ -45,7 +45,7 @@ def _controller():
 
 
 def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
-             stand_time=STAND_BEFORE_TROT, **overrides):
+             stand_time=STAND_BEFORE_TROT, stop_on_nonconvergence=False, **overrides):
     """Stand (and trot after `stand_time` s if gait == 'trot') for `seconds`; returns
     per-step wall times of sim.step, iterations, and the measurements of the report."""
     from starleth_controller import Command, RobotState
@@ -80,6 +80,8 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
         wall[k] = time.perf_counter() - t0
         iters[k] = d.iterations
         k_done = k + 1
+        if stop_on_nonconvergence and not d.converged:
+            break
         b = sim.base_state()
         min_height = min(min_height, float(b["position"][2]))
         x, y, z, w = b["orientation_xyzw"]
@@ -175,7 +177,7 @@ def task_fig7(preset, seconds):
 
 def task_fig6(preset, gait, alpha, seconds):
     r = run_gait(preset, gait, seconds, alpha=alpha, fallback_alpha_factor=0.0,
-                 max_iterations=1000, stand_time=0.2)
+                 max_iterations=1000, stand_time=0.2, stop_on_nonconvergence=True)
     it = np.asarray(r["iterations"], dtype=float)
     ok = r["error"] is None and r["nonconverged"] == 0 and r["min_height"] > 0.3
     return dict(kind="fig6", preset=preset, gait=gait, alpha=alpha,
