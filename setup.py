@@ -37,6 +37,7 @@ setup(
             'sim_node = starleth_sim.nodes.sim_node:main',
             'controller_node = starleth_controller.controller_node:main',
             'starleth-bench = starleth_sim.bench:main',
+            'starleth-bench-ros = starleth_sim.bench_ros:main',
             'starleth-demo = starleth_sim.demo:main',
             'starleth-eval = starleth_sim.evaluation:main',
             'starleth-analyze = starleth_sim.analysis:main',

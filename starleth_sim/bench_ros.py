@@ -16,12 +16,17 @@ rclpy ping-pongs and then, in the same process, runs ``SimNode``:
    ``--realtime-seconds`` with the same controller: the node's own tick-period error
    (p50/p99/max; goal p99 < 0.25 ms) and the inter-arrival jitter of /joint_states here.
 
+Options: ``--executor`` / ``--sim-executor`` (events | single_threaded) for the two sides
+(the bare phase uses the same ones), ``--record PATH`` to record the lockstep phase,
+``--realtime-priority N`` for sim_node's SCHED_FIFO option in the realtime phase.
 The two processes use an isolated ROS_DOMAIN_ID (``--domain-id``, default from the pid).
-Prints a table and, with ``--json PATH``, writes the figures.
+Prints the figures and, with ``--json PATH``, writes them with the node's own summaries.
+The figures depend on what else runs on the machine: run it on an idle one.
 """
 from __future__ import annotations
 
 import argparse
+import array
 import json
 import os
 import re
@@ -52,30 +57,40 @@ class EchoController:
         self.reply = reply
         self.stamps = []
         self.recv_times = []
-        self.positions = []
         self._JointState = JointState
         self.pub = node.create_publisher(JointState, topic, QoSProfile(depth=10))
         self.sub = node.create_subscription(JointState, "/joint_states", self._on_state,
                                             QoSProfile(depth=10))
-        self.keep_positions = False
+        self._cmd = None
+        self.closed = False
+
+    def close(self):
+        """Stop answering and destroy the subscription and publisher (events already queued
+        for them are ignored)."""
+        self.closed = True
+        self.reply = False
+        self.node.destroy_subscription(self.sub)
+        self.node.destroy_publisher(self.pub)
 
     def _on_state(self, msg):
+        if self.closed:
+            return
         t = time.perf_counter()
         st = msg.header.stamp
         self.stamps.append(st.sec * 1_000_000_000 + st.nanosec)
         self.recv_times.append(t)
         q = np.asarray(msg.position)
-        if self.keep_positions:
-            self.positions.append(q.copy())
         if self.q_ref is None:
             self.q_ref = q.copy()
         if not self.reply:
             return
         tau = self.kp * (self.q_ref - q) - self.kd * np.asarray(msg.velocity)
-        cmd = self._JointState()
+        cmd = self._cmd
+        if cmd is None:
+            cmd = self._cmd = self._JointState()
+            cmd.name = msg.name
         cmd.header.stamp = msg.header.stamp
-        cmd.name = msg.name
-        cmd.effort = tau.tolist()
+        cmd.effort = array.array("d", tau.tobytes())
         self.pub.publish(cmd)
 
 
@@ -123,7 +138,8 @@ def child_main(args):
             ex.shutdown(timeout_sec=0.1)
         except Exception:
             pass
-    overrides = {"mode": args.mode, "real_time_factor": args.rtf, "executor": args.sim_executor}
+    overrides = {"mode": args.mode, "real_time_factor": args.rtf, "executor": args.sim_executor,
+                 "realtime_priority": args.realtime_priority}
     if args.record:
         overrides["record"] = args.record
     sim = SimNode(parameter_overrides=overrides)
@@ -145,12 +161,16 @@ def child_main(args):
 # -----------------------------------------------------------------------------------------
 # parent
 # -----------------------------------------------------------------------------------------
-def _spawn(args, mode, rtf, pong, log):
+def _spawn(args, mode, rtf, pong, log, record=""):
     cmd = [sys.executable, "-m", "starleth_sim.bench_ros", "--child", "--domain-id",
            str(args.domain_id), "--mode", mode, "--rtf", str(rtf), "--sim-executor",
            args.sim_executor]
     if pong:
         cmd.append("--pong")
+    if record:
+        cmd += ["--record", record]
+    if mode == "realtime" and args.realtime_priority:
+        cmd += ["--realtime-priority", str(args.realtime_priority)]
     env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
 
@@ -239,12 +259,12 @@ def controller_phase(node, ex, seconds, warmup=1.0):
     rt = np.array(ctl.recv_times)
     sel = (rt >= t_start) & (rt <= t_end)
     n = int(sel.sum())
-    node.destroy_subscription(ctl.sub)
-    node.destroy_publisher(ctl.pub)
+    ctl.close()
     iv = np.diff(rt[sel])
     ds = np.diff(st[sel])
     return {"states": n, "wall_s": seconds, "states_per_s": n / seconds,
-            "sim_time_per_wall": float((st[sel][-1] - st[sel][0]) * 1e-9 / seconds) if n > 1 else 0.0,
+            "sim_time_per_wall":
+                float((st[sel][-1] - st[sel][0]) * 1e-9 / seconds) if n > 1 else 0.0,
             "stamp_steps_not_one_period": int(np.sum(ds != 2_500_000)) if n > 1 else 0,
             "interarrival_median_ms": float(np.median(iv) * 1e3) if n > 1 else None,
             "interarrival_p99_ms": float(np.percentile(iv, 99) * 1e3) if n > 1 else None,
@@ -267,12 +287,15 @@ def parent_main(args):
         if args.lockstep_seconds > 0:
             log_path = os.path.join(tmp, "lockstep.log")
             with open(log_path, "w") as log:
-                proc = _spawn(args, "lockstep", 0.0, True, log)
+                proc = _spawn(args, "lockstep", 0.0, True, log, args.record)
                 try:
                     results["bare"] = bare_round_trips(node, ex, args.bare_seconds)
                     print(f"bare rclpy round trips: {results['bare']['round_trips_per_s']:.0f}/s, "
                           f"median {results['bare']['rtt_median_ms']:.3f} ms", flush=True)
                     results["lockstep"] = controller_phase(node, ex, args.lockstep_seconds)
+                except Exception:
+                    print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
+                    raise
                 finally:
                     summary, text = _stop(proc, log_path)
             results["lockstep"]["node_summary"] = summary
@@ -287,6 +310,9 @@ def parent_main(args):
                 proc = _spawn(args, "realtime", 1.0, False, log)
                 try:
                     results["realtime"] = controller_phase(node, ex, args.realtime_seconds)
+                except Exception:
+                    print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
+                    raise
                 finally:
                     summary, text = _stop(proc, log_path)
             results["realtime"]["node_summary"] = summary
@@ -296,9 +322,9 @@ def parent_main(args):
                       f"{summary.get('period_error_p99_ms', float('nan')):.4f} ms (goal < 0.25), "
                       f"max {summary.get('period_error_max_ms', float('nan')):.3f} ms, overruns "
                       f"{summary.get('overruns')}", flush=True)
-            print(f"realtime: /joint_states received {results['realtime']['states_per_s']:.1f}/s, "
-                  f"inter-arrival error p99 {results['realtime']['interarrival_error_p99_ms']:.3f} ms",
-                  flush=True)
+            rr = results["realtime"]
+            print(f"realtime: /joint_states received {rr['states_per_s']:.1f}/s, "
+                  f"inter-arrival error p99 {rr['interarrival_error_p99_ms']:.3f} ms", flush=True)
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
@@ -319,12 +345,14 @@ def main(argv=None):
                    help="executor of the sim process (pong and sim_node)")
     p.add_argument("--domain-id", type=int, default=os.getpid() % 50 + 30)
     p.add_argument("--json", default="")
+    p.add_argument("--record", default="", help="lockstep phase: record to this MCAP file")
+    p.add_argument("--realtime-priority", type=int, default=0,
+                   help="realtime phase: sim_node's realtime_priority (SCHED_FIFO)")
     # child options
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--pong", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--mode", default="lockstep", help=argparse.SUPPRESS)
     p.add_argument("--rtf", type=float, default=0.0, help=argparse.SUPPRESS)
-    p.add_argument("--record", default="", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
         child_main(args)

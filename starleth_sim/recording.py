@@ -335,9 +335,8 @@ class McapRecorder:
                 return False
             t = self._topics[topic]
             t.count += 1
-            self._writer.add_message(t.channel_id, log_time_ns, bytes(msg),
-                                     log_time_ns if publish_time_ns is None else int(publish_time_ns),
-                                     t.count)
+            publish = log_time_ns if publish_time_ns is None else int(publish_time_ns)
+            self._writer.add_message(t.channel_id, log_time_ns, bytes(msg), publish, t.count)
             self.message_count += 1
             if self._start_ns is None or log_time_ns < self._start_ns:
                 self._start_ns = log_time_ns

@@ -4,22 +4,34 @@ mujoco_ros2_control / gz_ros2_control. A thin adapter: no physics in here.
     ros2 run starleth_sim sim_node --ros-args -p mode:=lockstep -p record:=run.mcap
     python -m starleth_sim.nodes.sim_node --ros-args --params-file my_sim.yaml
 
-Published (stamps are sim time t_k = k / 400 s; one message per control step):
+Parameters and their defaults: msg_configs/sim_node.yaml (physics, physics_overrides, mode,
+real_time_factor, lockstep_timeout, timeout_policy, record, record_compression,
+initial_state, start_paused, realtime_priority, executor, warn_throttle_period, frames).
 
-    /clock                                   rosgraph_msgs/Clock            ClockQoS (best effort, depth 1)
-    /joint_states                            sensor_msgs/JointState         effort = applied (saturated) torque
-    /starleth/{LF,RF,LH,RH}_foot/wrench      geometry_msgs/WrenchStamped    F = Λ/Δt, world axes, frame 'world'
-    /starleth/base_state                     nav_msgs/Odometry              pose in 'world', twist in 'base'
-    /starleth/imu                            sensor_msgs/Imu                proper acceleration, body rates
-    /starleth/solver                         diagnostic_msgs/DiagnosticArray solver + interface counters
-    /robot_description                       std_msgs/String                URDF, transient local, once
+Published; stamps are sim time t_k = k * 2.5 ms; one message per control step (a topic
+nobody subscribes to is skipped unless recording):
 
-Subscribed:
+  /joint_states                           sensor_msgs/JointState       effort = the torque
+                                                                       applied (saturated) over
+                                                                       the step into t_k
+  /clock                                  rosgraph_msgs/Clock          ClockQoS (best effort)
+  /starleth/{LF,RF,LH,RH}_foot/wrench     geometry_msgs/WrenchStamped  F = impulse/dt, 'world'
+  /starleth/base_state                    nav_msgs/Odometry            pose in 'world', twist in
+                                                                       'base' (child frame)
+  /starleth/imu                           sensor_msgs/Imu              proper acceleration and
+                                                                       body rates at the base
+  /starleth/solver                        diagnostic_msgs/DiagnosticArray  solver status every
+                                                                       step, interface counters
+                                                                       every 40 steps
+  /robot_description                      std_msgs/String              URDF, transient local
 
-    /joint_group_effort_controller/commands  std_msgs/Float64MultiArray     12 torques, joint order
-    /joint_commands                          sensor_msgs/JointState         effort by joint name
-    ~/wrench, ~/wrench/persistent            geometry_msgs/WrenchStamped    frame_id = link name
+Subscribed (reliable, depth 10):
 
+  /joint_group_effort_controller/commands std_msgs/Float64MultiArray   12 torques, joint order
+  /joint_commands                         sensor_msgs/JointState       efforts by joint name
+  ~/wrench, ~/wrench/persistent           geometry_msgs/WrenchStamped  frame_id = link name,
+                                                                       world axes, at the link
+                                                                       origin; zero clears
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger, while paused).
 
 Lockstep protocol: the state of step k (stamp t_k) is published, then the node waits for a
@@ -28,9 +40,17 @@ Float64MultiArray (it has no stamp, so in lockstep it is taken as the answer to 
 state). A JointState command with another stamp is dropped and counted as *late* (it answers
 a state that was already stepped on the timeout policy) or *stale* (any other stamp). Without
 an answer within ``lockstep_timeout`` the node steps with ``timeout_policy`` (hold the last
-command or zero torques), logs it and counts it. The node waits for the first command
-before the first step, without timeout, so that two runs with the same controller are
+command or zero torques), logs it and counts it. Before the first step the node waits for
+the first command without timeout, re-sending state 0 (not recorded) every 0.5 s and when a
+/joint_states subscriber appears, so that two runs with the same controller are
 bit-identical; a controller that dies later leaves the sim stepping on its timeout policy.
+
+Realtime mode: a wall-clock loop (sleep in the executor until 0.6 ms before the tick, then
+spin on the clock); the latest valid command is held. Behind by more than 0.1 s, the loop
+drops the missed ticks (counted as overruns).
+
+Bad input (wrong length, NaN/inf, unknown or duplicate joint names, unknown link, malformed
+CDR) is rejected with a throttled warning naming the problem; the last valid command stays.
 
 ``~/reset`` restores the initial state; sim time keeps running (the reset takes one control
 period, so stamps stay strictly increasing and answers to the old state are stale).
@@ -41,6 +61,7 @@ The ROS-free part (command validation, lockstep bookkeeping, counters, stepping)
 from __future__ import annotations
 
 import array
+import gc
 import json
 import math
 import os
@@ -55,7 +76,6 @@ import yaml
 
 from .. import Simulator, ConfigError, SimulationError
 
-PERIOD_NS_ROUND = 1  # stamps are integer nanoseconds: t_k = k * period_ns
 FEET = ("LF_foot", "RF_foot", "LH_foot", "RH_foot")
 
 TOPIC_CLOCK = "/clock"
@@ -88,6 +108,8 @@ class Settings:
     record: str = ""
     record_compression: str = "none"
     initial_state: str = "standing"
+    start_paused: bool = False
+    realtime_priority: int = 0
     executor: str = "events"
     warn_throttle_period: float = 2.0
     world_frame: str = "world"
@@ -110,13 +132,21 @@ class Settings:
                 raise ConfigError(f"parameter {name}: expected a string, got "
                                   f"{getattr(self, name)!r}")
         if self.mode not in ("realtime", "lockstep"):
-            raise ConfigError(f"parameter mode: must be 'realtime' or 'lockstep', got {self.mode!r}")
+            raise ConfigError(f"parameter mode: must be 'realtime' or 'lockstep', got "
+                              f"{self.mode!r}")
         num("real_time_factor", 0.0, False)
         if self.mode == "realtime" and self.real_time_factor == 0.0:
             raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
                               "in lockstep mode; realtime mode needs a factor > 0")
         num("lockstep_timeout", 0.0, True)
         num("warn_throttle_period", 0.0, False)
+        prio = self.realtime_priority
+        if isinstance(prio, bool) or not isinstance(prio, int) or not 0 <= prio <= 99:
+            raise ConfigError(f"parameter realtime_priority: expected an integer in 0..99, got "
+                              f"{self.realtime_priority!r}")
+        if not isinstance(self.start_paused, bool):
+            raise ConfigError(f"parameter start_paused: expected true or false, got "
+                              f"{self.start_paused!r}")
         if self.timeout_policy not in ("hold", "zero"):
             raise ConfigError(f"parameter timeout_policy: must be 'hold' or 'zero', got "
                               f"{self.timeout_policy!r}")
@@ -169,37 +199,84 @@ def load_default_parameters(path: str | None = None) -> dict:
 # =========================================================================================
 # initial state
 # =========================================================================================
-_STATE_KEYS = ("base_position", "base_orientation", "joint_positions", "base_linear_velocity",
-               "base_angular_velocity", "joint_velocities")
+_PUBLIC_KEYS = ("base_position", "base_orientation", "joint_positions", "base_linear_velocity",
+                "base_angular_velocity", "joint_velocities")
+_STATE_KEYS = _PUBLIC_KEYS + ("q_minimal", "u_minimal", "q", "u", "coordinates")
+# keys of a recorded initial_state.json that carry no state of their own
+_STATE_INFO_KEYS = ("t", "note", "joint_names", "parameter")
+
+
+def _read_state_spec(spec):
+    if not isinstance(spec, str):
+        return spec or {}
+    s = spec.strip()
+    if s in ("", "standing", "default"):
+        return {}
+    if s.endswith((".yaml", ".yml", ".json")) and not s.startswith("{"):
+        try:
+            with open(s) as f:
+                return yaml.safe_load(f) or {}
+        except OSError as e:
+            raise ConfigError(f"parameter initial_state: cannot read {s}: {e}") from None
+        except yaml.YAMLError as e:
+            raise ConfigError(f"parameter initial_state: {s} is not valid YAML: {e}") from None
+    try:
+        return yaml.safe_load(s)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"parameter initial_state: not valid YAML: {e}") from None
+
+
+def public_state(sim: Simulator) -> dict:
+    """The simulator's current state in convention-free public quantities."""
+    b = sim.base_state()
+    return {"base_position": np.array(b["position"], dtype=float),
+            "base_orientation": np.array(b["orientation_xyzw"], dtype=float),
+            "base_linear_velocity": np.array(b["linear_velocity"], dtype=float),
+            "base_angular_velocity": np.array(b["angular_velocity"], dtype=float),
+            "joint_positions": np.array(sim.joint_positions(), dtype=float),
+            "joint_velocities": np.array(sim.joint_velocities(), dtype=float)}
+
+
+def minimal_state(sim: Simulator, pub: dict):
+    """(q, u) in minimal coordinates (the URDF's pin model on a free flyer: position,
+    quaternion x y z w, joint angles; world linear velocity, body angular velocity, joint
+    rates), as taken by ``Simulator.reset(q, u, minimal=True)``."""
+    model = sim.description.model
+    q = np.zeros(model.nq)
+    u = np.zeros(model.nv)
+    q[0:3] = pub["base_position"]
+    q[3:7] = pub["base_orientation"]
+    u[0:3] = pub["base_linear_velocity"]
+    u[3:6] = pub["base_angular_velocity"]
+    for i, name in enumerate(sim.joint_names):
+        j = model.joints[model.getJointId(name)]
+        q[j.idx_q] = pub["joint_positions"][i]
+        u[j.idx_v] = pub["joint_velocities"][i]
+    return q, u
 
 
 def parse_initial_state(spec, sim: Simulator):
-    """(q, u, description dict) from the `initial_state` parameter: 'standing' / '' (the
-    simulator's default state), a YAML mapping (string or dict), or a YAML file path."""
-    if isinstance(spec, str):
-        s = spec.strip()
-        if s in ("", "standing", "default"):
-            data = {}
-        elif s.endswith((".yaml", ".yml")) and not s.startswith("{"):
-            try:
-                with open(s) as f:
-                    data = yaml.safe_load(f) or {}
-            except OSError as e:
-                raise ConfigError(f"parameter initial_state: cannot read {s}: {e}") from None
-        else:
-            try:
-                data = yaml.safe_load(s)
-            except yaml.YAMLError as e:
-                raise ConfigError(f"parameter initial_state: not valid YAML: {e}") from None
-    else:
-        data = spec or {}
+    """(q, u, description) from the `initial_state` parameter, q and u in the simulator's
+    own coordinates (for ``sim.reset(q, u)``).
+
+    spec: 'standing' / '' (``sim.default_state()`` at rest), a YAML mapping (string or
+    dict) or the path of a YAML/JSON file with any of base_position, base_orientation
+    (x y z w), joint_positions (list in joint order, or {name: angle}),
+    base_linear_velocity (world), base_angular_velocity (base frame), joint_velocities;
+    missing ones are those of the standing state. A recorded ``initial_state.json`` is
+    accepted as is: its q/u are used when its coordinates match, else q_minimal/u_minimal.
+    Uses the simulator (resets it)."""
+    data = _read_state_spec(spec)
     if not isinstance(data, dict):
         raise ConfigError(f"parameter initial_state: expected 'standing', a mapping or a YAML "
                           f"file, got {spec!r}")
+    if "joint_names" in data and list(data["joint_names"]) != list(sim.joint_names):
+        raise ConfigError("parameter initial_state: joint_names differ from the simulator's")
+    data = {k: v for k, v in data.items() if k not in _STATE_INFO_KEYS}
     unknown = set(data) - set(_STATE_KEYS)
     if unknown:
         raise ConfigError(f"parameter initial_state: unknown keys {sorted(unknown)} (known: "
-                          f"{', '.join(_STATE_KEYS)})")
+                          f"{', '.join(_PUBLIC_KEYS)})")
     nj = sim.n_joints
 
     def vec(key, n):
@@ -220,33 +297,76 @@ def parse_initial_state(spec, sim: Simulator):
                               f"got {v!r}")
         return a
 
-    coords = sim.coords
-    q = sim.default_state()
-    u = np.zeros(coords.nv)
-    if "base_position" in data:
-        q[0:3] = vec("base_position", 3)
-    if "base_orientation" in data:
+    def reset_checked(q, u, minimal=False):
+        try:
+            sim.reset(q=q, u=u, minimal=minimal)
+        except ValueError as e:
+            raise ConfigError(f"parameter initial_state: {e}") from None
+        return sim.q, sim.u
+
+    if "q" in data and data.get("coordinates", sim.config.coordinates) == sim.config.coordinates:
+        q, u = reset_checked(vec("q", sim.q.shape[0]),
+                             vec("u", sim.u.shape[0]) if "u" in data else None)
+        return q, u, {"spec": {"q": q.tolist(), "u": u.tolist(),
+                               "coordinates": sim.config.coordinates}}
+    if "q_minimal" in data:
+        model = sim.description.model
+        q, u = reset_checked(vec("q_minimal", model.nq),
+                             vec("u_minimal", model.nv) if "u_minimal" in data else None,
+                             minimal=True)
+        return q, u, {"spec": {"q_minimal": data["q_minimal"],
+                               "u_minimal": data.get("u_minimal")}}
+    public = {k: v for k, v in data.items() if k in _PUBLIC_KEYS}
+    sim.reset()
+    if not public:
+        return sim.q, sim.u, {"spec": "standing"}
+    pub = public_state(sim)
+    for key in ("base_position", "base_linear_velocity", "base_angular_velocity"):
+        if key in public:
+            pub[key] = vec(key, 3)
+    if "base_orientation" in public:
         quat = vec("base_orientation", 4)
         if np.linalg.norm(quat) < 1e-9:
             raise ConfigError("parameter initial_state: base_orientation must not be zero")
-        q[3:7] = quat / np.linalg.norm(quat)
-    for key, idx, target in (("joint_positions", coords.joint_q, q),
-                             ("joint_velocities", coords.joint_v, u)):
-        if key in data:
+        pub["base_orientation"] = quat / np.linalg.norm(quat)
+    for key in ("joint_positions", "joint_velocities"):
+        if key in public:
             v = vec(key, nj)
             if isinstance(v, dict):
                 for name, val in v.items():
-                    x = float(val)
+                    try:
+                        x = float(val)
+                    except (TypeError, ValueError):
+                        x = float("nan")
                     if not math.isfinite(x):
-                        raise ConfigError(f"parameter initial_state: {key}.{name} not finite")
-                    target[idx[sim.joint_names.index(name)]] = x
+                        raise ConfigError(f"parameter initial_state: {key}.{name}: expected a "
+                                          f"finite number, got {val!r}")
+                    pub[key][sim.joint_names.index(name)] = x
             else:
-                target[idx] = v
-    if "base_linear_velocity" in data or "base_angular_velocity" in data:
-        v = vec("base_linear_velocity", 3) if "base_linear_velocity" in data else np.zeros(3)
-        w = vec("base_angular_velocity", 3) if "base_angular_velocity" in data else np.zeros(3)
-        coords.set_base_velocity_world(q, u, v, w)
-    return q, u, {"spec": data if data else "standing"}
+                pub[key] = v
+    q, u = reset_checked(*minimal_state(sim, pub), minimal=True)
+    return q, u, {"spec": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                           for k, v in public.items()}}
+
+
+def initial_state_record(sim: Simulator, q0, u0, spec=None) -> dict:
+    """The initial state as stored in recordings (and accepted back by the initial_state
+    parameter): the simulator's q/u, the minimal-coordinate q/u and the public quantities.
+    Uses the simulator (resets it to q0, u0)."""
+    sim.reset(q=q0, u=u0)
+    pub = public_state(sim)
+    qm, um = minimal_state(sim, pub)
+    rec = {"coordinates": sim.config.coordinates,
+           "q": [float(x) for x in q0], "u": [float(x) for x in u0], "t": 0.0,
+           "q_minimal": qm.tolist(), "u_minimal": um.tolist(),
+           "note": "q, u: Simulator.reset(q, u) in these coordinates; q_minimal, u_minimal: "
+                   "Simulator.reset(q, u, minimal=True) (pin free-flyer order: position, "
+                   "quaternion x y z w, joint angles; world linear velocity, body angular "
+                   "velocity, joint rates)",
+           "joint_names": list(sim.joint_names),
+           "parameter": spec if spec is not None else "standing"}
+    rec.update({k: v.tolist() for k, v in pub.items()})
+    return rec
 
 
 # =========================================================================================
@@ -299,17 +419,19 @@ class SimService:
         self.period_ns = int(round(sim.control_period * 1e9))
         self.joint_names = tuple(sim.joint_names)
         self.joint_index = {n: i for i, n in enumerate(self.joint_names)}
+        self._joint_name_list = list(self.joint_names)
         self.links = frozenset(sim.coords.link_names())
         self.n = len(self.joint_names)
         self.warnings = ThrottledWarnings(warn, self.settings.warn_throttle_period)
-        self._error = error or warn
+        self.errors = ThrottledWarnings(error or warn, self.settings.warn_throttle_period)
         self.counters = dict.fromkeys(self.COUNTERS, 0)
         self.command = np.zeros(self.n)
         self.k = 0
-        self.paused = False
+        self.paused = self.settings.start_paused
         self.started = not self.lockstep     # lockstep: set by the first answer
         self.answered = False                # lockstep: the current state has its command
         self.last_step_timed_out = False
+        self.failed = False                  # paused after the physics failed twice
         self.state_version = 0               # bumped whenever a new state exists
         self._timed_out_stamps = deque(maxlen=256)
         # warm up (numba dispatch, first solve) so that the first real step is not slow;
@@ -385,6 +507,9 @@ class SimService:
         a, err = self._check_values(efforts, "joint command")
         if err:
             return self._reject("joint_type", f"rejected joint command: {err}")
+        if names == self._joint_name_list and a.shape[0] == self.n and np.isfinite(a).all() \
+                and (not self.lockstep or self._stamp_ok(stamp_ns)):
+            return self._accept(a)   # fast path: every joint in joint order, valid
         if not names:
             if a.shape[0] != self.n:
                 return self._reject("joint_length",
@@ -414,26 +539,33 @@ class SimService:
                                 f"rejected joint command on {TOPIC_JOINT_COMMANDS}: non-finite "
                                 f"effort for {', '.join(names[i] for i in np.flatnonzero(bad))}; "
                                 "keeping the last valid command")
-        if self.lockstep:
-            stamp = self.stamp_ns if stamp_ns is None else int(stamp_ns)
-            if stamp != self.stamp_ns or self.answered:
-                if stamp in self._timed_out_stamps:
-                    self.counters["late_commands"] += 1
-                    self.warnings.warn("late", f"late command for t={stamp * 1e-9:.4f} s: that "
-                                       "state was already stepped on the timeout policy "
-                                       f"(now waiting for t={self.stamp_ns * 1e-9:.4f} s)")
-                    return False, "late"
-                self.counters["stale_commands"] += 1
-                what = "already answered" if stamp == self.stamp_ns else \
-                    f"stamp t={stamp * 1e-9:.4f} s does not match"
-                self.warnings.warn("stale", f"dropped a stale command on {TOPIC_JOINT_COMMANDS}: "
-                                   f"{what}; lockstep expects header.stamp = the stamp of the "
-                                   f"/joint_states it answers (t={self.stamp_ns * 1e-9:.4f} s)")
-                return False, "stale"
+        if self.lockstep and not self._stamp_ok(stamp_ns):
+            return self._stale(stamp_ns)
         tau = self.command.copy()
         for n, v in zip(names, a):
             tau[self.joint_index[n]] = v
         return self._accept(tau)
+
+    def _stamp_ok(self, stamp_ns):
+        return not self.answered and (stamp_ns is None or int(stamp_ns) == self.stamp_ns)
+
+    def _stale(self, stamp_ns):
+        """Lockstep: count and drop a JointState command that does not answer the current
+        state: 'late' if it answers a state stepped on the timeout policy, else 'stale'."""
+        stamp = self.stamp_ns if stamp_ns is None else int(stamp_ns)
+        if stamp in self._timed_out_stamps:
+            self.counters["late_commands"] += 1
+            self.warnings.warn("late", f"late command for t={stamp * 1e-9:.4f} s: that state "
+                               "was already stepped on the timeout policy (now waiting for "
+                               f"t={self.stamp_ns * 1e-9:.4f} s)")
+            return False, "late"
+        self.counters["stale_commands"] += 1
+        what = "the state was already answered" if stamp == self.stamp_ns else \
+            f"stamp t={stamp * 1e-9:.4f} s does not match"
+        self.warnings.warn("stale", f"dropped a stale command on {TOPIC_JOINT_COMMANDS}: {what}; "
+                           "lockstep expects header.stamp = the stamp of the /joint_states it "
+                           f"answers (t={self.stamp_ns * 1e-9:.4f} s)")
+        return False, "stale"
 
     def submit_wrench(self, link, force, torque, persistent=False):
         """A push on `link` (world axes, at the link origin): one control period, or until
@@ -494,10 +626,9 @@ class SimService:
             try:
                 d = self.sim.step(np.zeros(self.n))
             except (SimulationError, ValueError) as e2:
-                self.paused = True
-                if self._error:
-                    self._error(f"physics step failed twice at t={self.sim.t:.4f} s ({e2}); "
-                                "simulation paused, call ~/reset")
+                self.paused = self.failed = True
+                self.errors.warn("simulation_paused", f"physics step failed twice at t="
+                                 f"{self.sim.t:.4f} s ({e2}); simulation paused, call ~/reset")
                 return None
         self.k += 1
         self.counters["steps"] += 1
@@ -507,7 +638,10 @@ class SimService:
 
     def reset(self):
         """Back to the initial state, wrenches cleared, zero command; sim time advances by one
-        control period (stamps stay strictly increasing)."""
+        control period (stamps stay strictly increasing). A pause caused by a physics
+        failure ends; a pause asked for with ~/pause stays."""
+        if self.failed:
+            self.failed = self.paused = False
         self.k += 1
         self.sim.clear_wrenches()
         self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)
@@ -519,39 +653,56 @@ class SimService:
     def summary(self) -> dict:
         d = dict(self.counters)
         d["sim_time"] = self.stamp_ns * 1e-9
-        d["rejections_by_kind"] = dict(self.warnings.counts)
+        d["warnings_by_kind"] = dict(self.warnings.counts)
         return d
 
 
 class PeriodStats:
-    """Wall-clock tick intervals of the realtime loop (ring buffer)."""
+    """Wall-clock tick intervals of the realtime loop: |interval - nominal| in a histogram
+    of 1 us bins (O(1) per tick, percentiles in microseconds, cheap enough to run in the
+    loop), plus count, mean and maximum."""
 
-    def __init__(self, nominal: float, size: int = 1 << 16):
+    BIN = 1e-6
+    NBINS = 20000          # up to 20 ms; larger errors go to the last bin (max is exact)
+
+    def __init__(self, nominal: float):
         self.nominal = nominal
-        self.buf = np.zeros(size)
+        self.hist = np.zeros(self.NBINS, dtype=np.int64)
         self.n = 0
+        self.total = 0.0
+        self.max_err = 0.0
         self.last = None
         self.overruns = 0
 
     def tick(self, t: float):
-        if self.last is not None:
-            self.buf[self.n % self.buf.shape[0]] = t - self.last
-            self.n += 1
+        last = self.last
         self.last = t
+        if last is None:
+            return
+        iv = t - last
+        err = abs(iv - self.nominal)
+        i = int(err / self.BIN)
+        self.hist[i if i < self.NBINS else self.NBINS - 1] += 1
+        self.n += 1
+        self.total += iv
+        if err > self.max_err:
+            self.max_err = err
 
     def restart(self):
         self.last = None
 
+    def percentile_ms(self, p: float) -> float:
+        c = np.cumsum(self.hist)
+        i = int(np.searchsorted(c, p / 100.0 * c[-1]))
+        return (i + 1) * self.BIN * 1e3          # upper edge of the bin
+
     def summary(self) -> dict:
-        m = min(self.n, self.buf.shape[0])
-        if m == 0:
+        if self.n == 0:
             return {"ticks": 0}
-        err = np.abs(self.buf[:m] - self.nominal)
-        iv = self.buf[:m]
-        return {"ticks": self.n, "period_mean_ms": float(iv.mean() * 1e3),
-                "period_error_p50_ms": float(np.percentile(err, 50) * 1e3),
-                "period_error_p99_ms": float(np.percentile(err, 99) * 1e3),
-                "period_error_max_ms": float(err.max() * 1e3), "overruns": self.overruns}
+        return {"ticks": self.n, "period_mean_ms": self.total / self.n * 1e3,
+                "period_error_p50_ms": self.percentile_ms(50),
+                "period_error_p99_ms": self.percentile_ms(99),
+                "period_error_max_ms": self.max_err * 1e3, "overruns": self.overruns}
 
 
 # =========================================================================================
@@ -573,14 +724,14 @@ def _dbl(a) -> array.array:
 # =========================================================================================
 def _import_ros():
     global rclpy, Node, QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
-    global ParameterDescriptor, serialize_message
+    global ParameterDescriptor, serialize_message, deserialize_message
     global Clock, JointState, Imu, WrenchStamped, Odometry, DiagnosticArray, DiagnosticStatus
     global KeyValue, Float64MultiArray, String, Trigger, SetBool
     import rclpy  # noqa: F401
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
     from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.serialization import serialize_message
+    from rclpy.serialization import serialize_message, deserialize_message
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState, Imu
     from geometry_msgs.msg import WrenchStamped
@@ -589,6 +740,62 @@ def _import_ros():
     from std_msgs.msg import Float64MultiArray, String
     from std_srvs.srv import Trigger, SetBool
     return Node
+
+
+class JointStateCdr:
+    """CDR bytes of a sensor_msgs/JointState with fixed names and frame_id, built by
+    patching the stamp and the three arrays into a template serialised once by rclpy
+    (a few microseconds instead of a Python-to-C conversion of every field per step).
+    ``create`` checks the template byte by byte and returns None if the layout is not the
+    expected one, so the caller falls back to publishing the message object."""
+
+    def __init__(self, template: bytes, stamp_offset: int, offsets, n: int):
+        self.template = template
+        self.stamp_offset = stamp_offset
+        self.offsets = offsets
+        self.n = n
+
+    @classmethod
+    def create(cls, names):
+        import struct
+        n = len(names)
+        try:
+            msg = JointState()
+            msg.name = list(names)
+            marks = [np.array([1.0e300 - 1.0e285 * (100 * a + i) for i in range(n)])
+                     for a in range(3)]
+            msg.position, msg.velocity, msg.effort = (m.tolist() for m in marks)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = 0x12345678, 0x0ABCDEF1
+            raw = serialize_message(msg)
+            if raw[:4] != b"\x00\x01\x00\x00":          # CDR little endian
+                return None
+            stamp_offset = raw.find(struct.pack("<iI", 0x12345678, 0x0ABCDEF1))
+            offsets = [raw.find(m.tobytes()) for m in marks]
+            if stamp_offset != 4 or min(offsets) < 0 or not offsets[0] < offsets[1] < offsets[2]:
+                return None
+            # rmw's serialised length can exceed the CDR (estimated size): cut at the end
+            template = raw[:offsets[2] + 8 * n]
+            self = cls(template, stamp_offset, offsets, n)
+            # round trip check with other values
+            probe = [np.linspace(-1.0, 1.0, n) * (a + 1) for a in range(3)]
+            back = deserialize_message(self.build(7, 2_500_000, *probe), JointState)
+            if (list(back.name) != list(names) or back.header.stamp.sec != 7
+                    or back.header.stamp.nanosec != 2_500_000
+                    or not all(np.array_equal(np.asarray(getattr(back, f)), p) for f, p in
+                               zip(("position", "velocity", "effort"), probe))):
+                return None
+            return self
+        except Exception:  # pragma: no cover - unexpected rmw behaviour: use the slow path
+            return None
+
+    def build(self, sec, nsec, position, velocity, effort) -> bytes:
+        import struct
+        buf = bytearray(self.template)
+        struct.pack_into("<iI", buf, self.stamp_offset, sec, nsec)
+        k = 8 * self.n
+        for off, a in zip(self.offsets, (position, velocity, effort)):
+            buf[off:off + k] = np.ascontiguousarray(a, dtype="<f8").tobytes()
+        return bytes(buf)
 
 
 def make_executor(kind: str, context):
@@ -609,6 +816,7 @@ class SimNode:
     lockstep / realtime loops. Created by :func:`main`; usable in-process (tests, bench)."""
 
     SPIN_MARGIN = 0.0006  # realtime: stop waiting in the executor this long before a tick
+    MAX_CATCH_UP = 0.1    # realtime: at most this far behind the wall clock, then skip ahead
 
     def __init__(self, context=None, parameter_overrides=None, node_name="sim_node",
                  settings_file=None):
@@ -640,9 +848,14 @@ class SimNode:
         self.service = SimService(self.sim, s, q0, u0, warn=self.log.warning, error=self.log.error)
         self.context = node.context
         self._stop = False
+        self._step_on_answer = False   # set by run() in lockstep mode without pacing
+        self._n_js_subs = 0
+        self._counts_k = -10 ** 9
+        self._counts = {}
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
         self._gravity = self._model_gravity()
-        self._v_prev = None
+        self._v_prev = None    # (step, world linear velocity) for the IMU
+        self._acc = None       # (step, acceleration) of the last IMU message
         self._setup_messages()
         self._setup_interfaces()
         self.recorder = None
@@ -671,6 +884,7 @@ class SimNode:
         self.clock_msg = Clock()
         self.js_msg = JointState()
         self.js_msg.name = list(sim.joint_names)
+        self._js_cdr = JointStateCdr.create(list(sim.joint_names))
         self.wrench_msgs = {}
         for foot in FEET:
             m = WrenchStamped()
@@ -695,7 +909,9 @@ class SimNode:
         self.iface_status = DiagnosticStatus(name="starleth_sim: interface",
                                              hardware_id="starleth_sim")
         self.iface_status.values = [KeyValue(key=k, value="") for k in self.iface_keys]
-        self.diag_msg.status = [self.solver_status, self.iface_status]
+        self._diag_solver_only = [self.solver_status]
+        self._diag_both = [self.solver_status, self.iface_status]
+        self.diag_msg.status = self._diag_both
         self._period_summary = {}
 
     def _setup_interfaces(self):
@@ -729,9 +945,24 @@ class SimNode:
         pub("solver", DiagnosticArray, TOPIC_SOLVER, state_qos)
         pub("robot_description", String, TOPIC_ROBOT_DESCRIPTION, latched)
         self.subs = {}
+        # when recording, inputs are taken as CDR bytes: the recording holds exactly what
+        # arrived (as rosbag2 does), and the callback deserialises them
+        raw = bool(self.settings.record)
 
         def sub(key, typ, topic, cb):
-            sobj = node.create_subscription(typ, topic, cb, cmd_qos)
+            if raw:
+                handler = cb
+
+                def cb(data, key=key, typ=typ):
+                    self._record_input(key, data)
+                    try:
+                        msg = deserialize_message(data, typ)
+                    except Exception as e:   # malformed CDR: reject, never die
+                        self.service.warnings.warn("bad_cdr", f"dropped an undecodable "
+                                                   f"message on {self.subs[key][1]}: {e}")
+                        return
+                    handler(msg)
+            sobj = node.create_subscription(typ, topic, cb, cmd_qos, raw=raw)
             self.subs[key] = (sobj, sobj.topic_name, typ, cmd_qos)
 
         sub("effort", Float64MultiArray, TOPIC_EFFORT_COMMANDS, self._on_effort)
@@ -754,19 +985,13 @@ class SimNode:
             rec.add_topic(topic, typ, qos)
         cfg_yaml = yaml.safe_dump(sim.config.to_dict(), sort_keys=False)
         q0, u0 = self.service.q0, self.service.u0
-        init = {"q": q0.tolist(), "u": u0.tolist(), "t": 0.0,
-                "q_layout": "base position (3), base quaternion x y z w (4), joint angles "
-                            "(pinocchio order)",
-                "u_layout": "base linear velocity in the base frame (3), base angular velocity "
-                            "in the base frame (3), joint velocities (pinocchio order)",
-                "joint_positions": {n: float(v) for n, v in
-                                    zip(sim.joint_names, sim.coords.joint_positions(q0))},
-                "parameter": self.initial_state_desc["spec"]}
+        init = initial_state_record(sim, q0, u0, self.initial_state_desc["spec"])
         params = asdict(s)
         rec.add_metadata("starleth_sim", {
             "physics_config": cfg_yaml, "initial_state": json.dumps(init),
             "parameters": json.dumps(params), "joint_names": json.dumps(list(sim.joint_names)),
-            "control_period": repr(sim.control_period), "stamp_period_ns": str(self.service.period_ns),
+            "control_period": repr(sim.control_period),
+            "stamp_period_ns": str(self.service.period_ns),
             "urdf_attachment": "starleth.urdf"})
         rec.add_attachment("starleth.urdf", "application/xml", sim.description.urdf_xml)
         rec.add_attachment("physics_config.yaml", "application/yaml", cfg_yaml)
@@ -789,61 +1014,107 @@ class SimNode:
         else:
             p.publish(msg)
 
-    def publish_state(self, record=True, only_joint_states=False):
-        """Publish the state of the current step (stamp t_k) on every state topic."""
+    SUBSCRIBER_REFRESH = 10   # steps between two looks at the subscriber counts
+
+    def _wanted(self, key, record):
+        """Build and publish a topic only if it is recorded or someone subscribes (an
+        unmatched publish is invisible; skipping it keeps the lockstep cycle short). The
+        counts are refreshed every SUBSCRIBER_REFRESH steps: a new subscriber gets its first
+        message at most that many steps late."""
+        if record and self.recorder is not None:
+            return True
+        k = self.service.k
+        if not (0 <= k - self._counts_k < self.SUBSCRIBER_REFRESH):
+            self._counts_k = k
+            self._counts = {key_: p[0].get_subscription_count() for key_, p in self.pubs.items()}
+        return self._counts.get(key, 0) > 0
+
+    def publish_state(self, record=True):
+        """Publish the state of the current step (stamp t_k) on every state topic;
+        record=False: a re-send of a state already published (not recorded again)."""
         svc, sim = self.service, self.sim
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
-        if not only_joint_states:
+        wanted = self._wanted
+        # /joint_states first: it is what a lockstep controller waits for
+        n_subs = self.pubs["joint_states"][0].get_subscription_count()
+        self._n_js_subs = n_subs        # baseline of _republish_for_new_subscribers
+        if n_subs or (record and self.recorder is not None):
+            cdr = self._js_cdr
+            if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
+                data = cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
+                                 sim.applied_torque)
+                self.pubs["joint_states"][0].publish(data)
+                rec = self.recorder
+                if record and rec is not None and not rec.closed:
+                    rec.write(self.pubs["joint_states"][1], data, svc.stamp_ns)
+            else:
+                js = self.js_msg
+                js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
+                js.position = _dbl(sim.joint_positions())
+                js.velocity = _dbl(sim.joint_velocities())
+                js.effort = _dbl(sim.applied_torque)
+                self._emit("joint_states", js, record)
+        if wanted("clock", record):
             c = self.clock_msg.clock
             c.sec, c.nanosec = sec, nsec
             self._emit("clock", self.clock_msg, record)
-        js = self.js_msg
-        js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
-        js.position = _dbl(sim.joint_positions())
-        js.velocity = _dbl(sim.joint_velocities())
-        js.effort = _dbl(sim.applied_torque)
-        self._emit("joint_states", js, record)
-        if only_joint_states:
-            return
-        for c in sim.contacts[:len(FEET)]:
-            m = self.wrench_msgs.get(c.name)
-            if m is None:
-                continue
-            m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
-            f = m.wrench.force
-            f.x, f.y, f.z = (float(x) for x in c.force)
-            self._emit(c.name, m, record)
-        b = sim.base_state()
-        p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
-                         b["angular_velocity"])
-        R = quat_to_matrix(*quat)
-        v_body = R.T @ v
-        o = self.odom_msg
-        o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
-        pp, po = o.pose.pose.position, o.pose.pose.orientation
-        pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
-        po.x, po.y, po.z, po.w = (float(x) for x in quat)
-        tl, ta = o.twist.twist.linear, o.twist.twist.angular
-        tl.x, tl.y, tl.z = (float(x) for x in v_body)
-        ta.x, ta.y, ta.z = (float(x) for x in w)
-        self._emit("base_state", o, record)
-        # IMU at the base origin: proper acceleration R^T (dv/dt - g), body rates
-        if self._v_prev is None:
-            acc = np.zeros(3)
-        else:
-            acc = (v - self._v_prev) / sim.control_period
-        self._v_prev = v.copy()
-        a_proper = R.T @ (acc - self._gravity)
-        imu = self.imu_msg
-        imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
-        io_ = imu.orientation
-        io_.x, io_.y, io_.z, io_.w = (float(x) for x in quat)
-        iw, ia = imu.angular_velocity, imu.linear_acceleration
-        iw.x, iw.y, iw.z = (float(x) for x in w)
-        ia.x, ia.y, ia.z = (float(x) for x in a_proper)
-        self._emit("imu", imu, record)
-        self._fill_diagnostics(sec, nsec)
-        self._emit("solver", self.diag_msg, record)
+        feet = [f for f in FEET if wanted(f, record)]
+        if feet:
+            for c in sim.contacts[:len(FEET)]:
+                if c.name not in feet:
+                    continue
+                m = self.wrench_msgs[c.name]
+                m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+                f = m.wrench.force
+                f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
+                self._emit(c.name, m, record)
+        want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
+        if want_odom or want_imu:
+            b = sim.base_state()
+            p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
+                             b["angular_velocity"])
+            R = quat_to_matrix(*quat)
+            quat = [float(x) for x in quat]
+            w = [float(x) for x in w]
+        if want_odom:
+            v_body = R.T @ v
+            o = self.odom_msg
+            o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
+            pp, po = o.pose.pose.position, o.pose.pose.orientation
+            pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
+            po.x, po.y, po.z, po.w = quat
+            tl, ta = o.twist.twist.linear, o.twist.twist.angular
+            tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
+            ta.x, ta.y, ta.z = w
+            self._emit("base_state", o, record)
+        if want_imu:
+            # IMU at the base origin: proper acceleration R^T (dv/dt - g), body rates; dv/dt
+            # by the difference with the previous step's velocity (zero on the first state
+            # and the first message after a reset or after nobody listened)
+            k = svc.k
+            if self._v_prev is not None and self._v_prev[0] == k - 1:
+                acc = (v - self._v_prev[1]) / sim.control_period
+                self._acc = (k, acc)
+            elif self._acc is not None and self._acc[0] == k:    # re-sent state
+                acc = self._acc[1]
+            else:
+                acc = np.zeros(3)
+            if self._v_prev is None or self._v_prev[0] != k:
+                self._v_prev = (k, np.array(v, dtype=float))
+            a_proper = R.T @ (acc - self._gravity)
+            imu = self.imu_msg
+            imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
+            io_ = imu.orientation
+            io_.x, io_.y, io_.z, io_.w = quat
+            iw, ia = imu.angular_velocity, imu.linear_acceleration
+            iw.x, iw.y, iw.z = w
+            ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
+            self._emit("imu", imu, record)
+        if wanted("solver", record):
+            self._fill_diagnostics(sec, nsec)
+            self._emit("solver", self.diag_msg, record)
+
+    INTERFACE_STATUS_EVERY = 40   # steps (10 Hz at 400 Hz); also on every lockstep timeout
 
     def _fill_diagnostics(self, sec, nsec):
         svc = self.service
@@ -857,6 +1128,11 @@ class SimNode:
                 d.nonconverged_steps)
         for kv, v in zip(st.values, vals):
             kv.value = str(v)
+        if not (svc.k % self.INTERFACE_STATUS_EVERY == 0 or svc.last_step_timed_out
+                or svc.paused):
+            self.diag_msg.status = self._diag_solver_only
+            return
+        self.diag_msg.status = self._diag_both
         it = self.iface_status
         it.level = DiagnosticStatus.WARN if svc.last_step_timed_out else DiagnosticStatus.OK
         it.message = ("lockstep timeout" if svc.last_step_timed_out else
@@ -872,23 +1148,31 @@ class SimNode:
             kv.value = str(v)
 
     # -- callbacks -------------------------------------------------------------------------
-    def _record_input(self, key, msg):
+    def _record_input(self, key, data):
         rec = self.recorder
         if rec is not None and not rec.closed:
-            rec.write(self.subs[key][1], serialize_message(msg), self.service.stamp_ns)
+            rec.write(self.subs[key][1], data, self.service.stamp_ns)
 
     def _on_effort(self, msg):
-        self._record_input("effort", msg)
-        self.service.submit_effort_array(msg.data)
+        if self.service.submit_effort_array(msg.data)[0] and self._step_on_answer:
+            self._advance()
 
     def _on_joint_command(self, msg):
-        self._record_input("joint_commands", msg)
         st = msg.header.stamp
-        self.service.submit_joint_command(msg.name, msg.effort,
-                                          st.sec * 1_000_000_000 + st.nanosec)
+        if self.service.submit_joint_command(msg.name, msg.effort,
+                                             st.sec * 1_000_000_000 + st.nanosec)[0] \
+                and self._step_on_answer:
+            self._advance()
+
+    def _advance(self):
+        """Lockstep without pacing: step as soon as the answer is in, right in the
+        subscription callback (saves a trip through the executor on the critical path)."""
+        svc = self.service
+        if svc.answered and not svc.paused and not self._stop:
+            if svc.step() is not None:
+                self.publish_state()
 
     def _wrench(self, key, msg, persistent):
-        self._record_input(key, msg)
         f, m = msg.wrench.force, msg.wrench.torque
         self.service.submit_wrench(msg.header.frame_id, (f.x, f.y, f.z), (m.x, m.y, m.z),
                                    persistent)
@@ -901,7 +1185,7 @@ class SimNode:
 
     def _srv_reset(self, request, response):
         self.service.reset()
-        self._v_prev = None
+        self._v_prev = self._acc = None
         self.publish_state()
         self.log.info(f"reset to the initial state at t={self.service.stamp_ns * 1e-9:.4f} s")
         response.success = True
@@ -952,17 +1236,56 @@ class SimNode:
 
     def run(self, executor):
         """Run until request_stop() or the context is shut down."""
+        # everything built so far lives for the whole run: move it out of the garbage
+        # collector's generations, so that a full collection in the loop stays short
+        gc.collect()
+        gc.freeze()
         self.publish_state()
         if self.settings.mode == "lockstep":
+            self._step_on_answer = self.settings.real_time_factor == 0.0
             self._run_lockstep(executor)
         else:
             self._run_realtime(executor)
+
+    def _republish_state(self):
+        """Send the current state again on every topic with subscribers (not recorded)."""
+        self._counts_k = -10 ** 9       # fresh subscriber counts
+        self.publish_state(record=False)
+
+    def _republish_for_new_subscribers(self) -> bool:
+        """Before the first step (started paused, or lockstep waiting for its first
+        command), send state 0 again (all topics, not recorded) when a /joint_states
+        subscriber appears, so that a controller that connects late sees it. Never after
+        the first step: from then on every stamp is published once."""
+        svc = self.service
+        if svc.counters["steps"] or svc.counters["resets"]:
+            return False
+        n = self.pubs["joint_states"][0].get_subscription_count()
+        new = n > self._n_js_subs
+        self._n_js_subs = n
+        if new:
+            self._republish_state()
+        return new
 
     def _update_period_summary(self):
         self._period_summary = {k: round(v, 4) if isinstance(v, float) else v
                                 for k, v in self.period_stats.summary().items()}
 
+    def _set_realtime_priority(self):
+        """realtime_priority > 0: SCHED_FIFO for the stepping thread (needs CAP_SYS_NICE or
+        an rtprio limit); on failure the loop runs at normal priority, with a warning."""
+        prio = self.settings.realtime_priority
+        if prio <= 0:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            self.log.info(f"stepping thread runs with SCHED_FIFO priority {prio}")
+        except (OSError, AttributeError) as e:
+            self.log.warning(f"realtime_priority {prio}: cannot switch to SCHED_FIFO ({e}); "
+                             "running at normal priority")
+
     def _run_realtime(self, executor):
+        self._set_realtime_priority()
         svc, ps = self.service, self.period_stats
         period = self.sim.control_period / self.settings.real_time_factor
         clock = time.perf_counter
@@ -970,6 +1293,7 @@ class SimNode:
         margin = self.SPIN_MARGIN
         while self._running():
             if svc.paused:
+                self._republish_for_new_subscribers()
                 self._spin(executor, 0.05)
                 next_tick = clock() + period
                 ps.restart()
@@ -995,12 +1319,15 @@ class SimNode:
                 self._update_period_summary()
             next_tick += period
             lag = clock() - next_tick
-            if lag > 2 * period:   # too far behind: drop the missed ticks, count an overrun
-                ps.overruns += 1
-                svc.warnings.warn("overrun", f"realtime loop overrun: {lag * 1e3:.1f} ms behind "
-                                  "the wall clock; skipping ahead "
-                                  f"({ps.overruns} overruns so far)")
-                next_tick = clock() + period
+            if lag > 0.0:
+                # behind the wall clock: the next ticks follow at once until caught up; too
+                # far behind (the host cannot keep up), drop the missed ticks and say so
+                if lag > self.MAX_CATCH_UP:
+                    ps.overruns += 1
+                    svc.warnings.warn("overrun", f"realtime loop overrun: {lag * 1e3:.1f} ms "
+                                      "behind the wall clock; skipping ahead "
+                                      f"({ps.overruns} overruns so far)")
+                    next_tick = clock() + period
 
     def _run_lockstep(self, executor):
         svc, s = self.service, self.settings
@@ -1010,9 +1337,9 @@ class SimNode:
         version = svc.state_version
         deadline = clock() + s.lockstep_timeout
         last_republish = clock()
-        n_subs = self.pubs["joint_states"][0].get_subscription_count()
         while self._running():
             if svc.paused:
+                self._republish_for_new_subscribers()
                 self._spin(executor, 0.05)
                 pace_origin = None
                 version = -1
@@ -1038,11 +1365,11 @@ class SimNode:
                 # before the first command: no timeout; re-send the state when a new
                 # subscriber appears or every 0.5 s so a late controller sees it
                 now = clock()
-                n = self.pubs["joint_states"][0].get_subscription_count()
-                if n != n_subs or now - last_republish > 0.5:
-                    n_subs = n
+                if self._republish_for_new_subscribers():
                     last_republish = now
-                    self.publish_state(record=False, only_joint_states=True)
+                elif now - last_republish > 0.5:
+                    last_republish = now
+                    self._republish_state()
                 self._spin(executor, 0.05)
                 continue
             self._spin(executor, min(deadline - clock(), 0.05))
@@ -1073,28 +1400,31 @@ class SimNode:
 
 
 def main(args=None):
-    """Console script ``sim_node``."""
+    """Console script ``sim_node``. SIGINT/SIGTERM stop the loop and finalise the recording
+    (exit 0); a bad parameter exits with 2 before any physics is set up."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     argv = sys.argv if args is None else args
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    sim_node = None
+    state = {"signals": 0, "node": None}
+
+    def on_signal(signum, frame):
+        state["signals"] += 1
+        if state["node"] is not None:
+            state["node"].request_stop()
+        if state["signals"] > 2:   # third signal: give up on a clean exit
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     try:
         try:
-            sim_node = SimNode()
-        except (ConfigError, ValueError) as e:
+            sim_node = state["node"] = SimNode()
+        except (ConfigError, ValueError, OSError) as e:
             print(f"sim_node: configuration error: {e}", file=sys.stderr)
             return 2
-        stops = {"n": 0}
-
-        def on_signal(signum, frame):
-            stops["n"] += 1
+        if state["signals"]:
             sim_node.request_stop()
-            if stops["n"] > 2:   # third signal: give up on a clean exit
-                raise KeyboardInterrupt
-
-        signal.signal(signal.SIGINT, on_signal)
-        signal.signal(signal.SIGTERM, on_signal)
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)
         executor.add_node(sim_node.node)
         sim_node.log.info(f"executor: {kind}; ready")
@@ -1111,9 +1441,9 @@ def main(args=None):
                 pass
         return 0
     finally:
-        if sim_node is not None:
+        if state["node"] is not None:
             try:
-                sim_node.node.destroy_node()
+                state["node"].node.destroy_node()
             except Exception:
                 pass
         rclpy.try_shutdown()

@@ -1,0 +1,196 @@
+"""SimService: the ROS-free core of sim_node (command validation, lockstep bookkeeping,
+timeout policy, pushes, reset) and the node's settings / initial-state parsing. No ROS graph."""
+import numpy as np
+import pytest
+
+from starleth_sim import ConfigError
+from starleth_sim.nodes.sim_node import (SimService, Settings, ThrottledWarnings,
+                                         parse_initial_state, load_default_parameters,
+                                         initial_state_record)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    from starleth_sim import Simulator
+    return Simulator.from_preset("HmJ")
+
+
+def make(sim, **kw):
+    warnings = []
+    svc = SimService(sim, Settings(**kw), warn=warnings.append, error=warnings.append)
+    return svc, warnings
+
+
+def test_settings_validation():
+    Settings(mode="lockstep", real_time_factor=0.0).validate()
+    with pytest.raises(ConfigError, match="only legal in lockstep"):
+        Settings(mode="realtime", real_time_factor=0.0).validate()
+    with pytest.raises(ConfigError, match="mode"):
+        Settings(mode="fast").validate()
+    with pytest.raises(ConfigError, match="timeout_policy"):
+        Settings(timeout_policy="panic").validate()
+    with pytest.raises(ConfigError, match="lockstep_timeout"):
+        Settings(lockstep_timeout=0).validate()
+    with pytest.raises(ConfigError, match="realtime_priority"):
+        Settings(realtime_priority=120).validate()
+    with pytest.raises(ConfigError, match="start_paused"):
+        Settings(start_paused="yes").validate()
+    with pytest.raises(ConfigError, match="physics_overrides"):
+        Settings(physics_overrides="[1, 2]").physics_override_dict()
+    assert Settings(physics_overrides="{mu: 0.0}").physics_override_dict() == {"mu": 0.0}
+
+
+def test_default_parameter_file():
+    d = load_default_parameters()
+    assert d["physics"] == "HmJ" and d["mode"] in ("realtime", "lockstep")
+    Settings(**d).validate()
+    # the node YAML must not look like a physics preset
+    from starleth_sim import available_presets
+    assert "sim_node" not in available_presets()
+
+
+def test_effort_array_validation(sim):
+    svc, warns = make(sim)
+    ok, _ = svc.submit_effort_array([1.0] * 12)
+    assert ok and np.all(svc.command == 1.0)
+    for bad, word in (([1.0] * 11, "11 values"), ([float("nan")] + [0.0] * 11, "non-finite"),
+                      ([float("inf")] * 12, "non-finite"), (["a"] * 12, "not numbers")):
+        ok, why = svc.submit_effort_array(bad)
+        assert not ok and word in why
+    assert np.all(svc.command == 1.0)            # the last valid command stays
+    assert svc.counters["commands_rejected"] == 4
+    assert any("LF_HAA" in w for w in warns)     # names the joint with the NaN
+
+
+def test_joint_command_validation(sim):
+    svc, warns = make(sim)
+    names = list(sim.joint_names)
+    assert svc.submit_joint_command(names, np.arange(12.0))[0]
+    assert svc.submit_joint_command(["RH_KFE", "LF_HAA"], [5.0, -5.0])[0]   # subset by name
+    assert svc.command[0] == -5.0 and svc.command[11] == 5.0 and svc.command[1] == 1.0
+    assert svc.submit_joint_command([], [0.5] * 12)[0]                       # joint order
+    before = svc.command.copy()
+    for n, e, word in ((["LF_HAA", "FOO"], [1, 2], "'FOO'"), (["LF_HAA", "LF_HAA"], [1, 2], "duplicate"),
+                       (["LF_HAA"], [1, 2], "1 names but 2 efforts"), ([], [1.0] * 3, "no joint names"),
+                       (["LF_HFE"], [float("nan")], "non-finite effort for LF_HFE")):
+        ok, why = svc.submit_joint_command(n, e)
+        assert not ok and word in why, why
+    assert np.array_equal(svc.command, before)
+
+
+def test_throttled_warnings():
+    t = [0.0]
+    out = []
+    w = ThrottledWarnings(out.append, period=1.0, clock=lambda: t[0])
+    for _ in range(10):
+        w.warn("a", "bad a")
+    w.warn("b", "bad b")
+    t[0] = 1.5
+    w.warn("a", "bad a")
+    assert out == ["bad a", "bad b", "bad a (9 more like this suppressed in the last 1.5 s)"]
+    assert w.counts == {"a": 11, "b": 1}
+
+
+def test_lockstep_bookkeeping(sim):
+    svc, warns = make(sim, mode="lockstep", real_time_factor=0.0, timeout_policy="hold")
+    names = list(sim.joint_names)
+    assert not svc.started and not svc.answered
+    assert not svc.submit_joint_command(names, [1.0] * 12, stamp_ns=12345)[0]   # wrong stamp
+    assert svc.counters["stale_commands"] == 1 and not svc.started
+    assert svc.submit_joint_command(names, [1.0] * 12, stamp_ns=0)[0]
+    assert svc.started and svc.answered
+    assert not svc.submit_joint_command(names, [2.0] * 12, stamp_ns=0)[0]       # duplicate
+    assert svc.counters["stale_commands"] == 2 and np.all(svc.command == 1.0)
+    assert not svc.submit_effort_array([3.0] * 12)[0]                         # already answered
+    svc.step()
+    assert svc.k == 1 and svc.stamp_ns == 2_500_000 and not svc.answered
+    # Float64MultiArray has no stamp: it answers the latest state
+    assert svc.submit_effort_array([2.0] * 12)[0] and svc.answered
+    svc.step()
+    # no answer for state 2: timeout, hold the last command
+    svc.step(timed_out=True)
+    assert svc.counters["lockstep_timeouts"] == 1 and np.all(sim.applied_torque == 2.0)
+    # the answer for state 2 arrives late
+    ok, why = svc.submit_joint_command(names, [9.0] * 12, stamp_ns=2 * 2_500_000)
+    assert not ok and why == "late" and svc.counters["late_commands"] == 1
+    assert any("lockstep: no command" in w for w in warns)
+
+
+def test_timeout_policy_zero(sim):
+    svc, _ = make(sim, mode="lockstep", real_time_factor=0.0, timeout_policy="zero")
+    svc.submit_effort_array([1.0] * 12)
+    svc.step()
+    svc.step(timed_out=True)
+    assert np.all(sim.applied_torque == 0.0)
+
+
+def test_wrench_validation(sim):
+    svc, warns = make(sim)
+    assert svc.submit_wrench("base", (0, 0, 10), (0, 0, 0))[0]
+    ok, why = svc.submit_wrench("nope", (0, 0, 10), (0, 0, 0))
+    assert not ok and "unknown link 'nope'" in why
+    ok, why = svc.submit_wrench("base", (0, float("nan"), 1), (0, 0, 0))
+    assert not ok and "finite" in why
+    assert svc.submit_wrench("LF_THIGH", (1, 0, 0), (0, 0, 0), persistent=True)[0]
+    assert svc.submit_wrench("LF_THIGH", (0, 0, 0), (0, 0, 0), persistent=True)[0]   # clears
+    assert svc.counters["wrenches_accepted"] == 3 and svc.counters["wrenches_rejected"] == 2
+
+
+def test_reset_advances_time_and_restores_state(sim):
+    svc, _ = make(sim)
+    q0 = sim.q
+    svc.submit_effort_array([5.0] * 12)
+    for _ in range(10):
+        svc.step()
+    assert not np.allclose(sim.q, q0)
+    svc.reset()
+    assert svc.k == 11 and sim.t == pytest.approx(11 * sim.control_period)
+    assert np.array_equal(sim.q, q0) and np.all(svc.command == 0.0)
+
+
+def test_initial_state_parsing(sim):
+    from starleth_sim.nodes.sim_node import public_state
+    q, u, _ = parse_initial_state("standing", sim)
+    assert np.array_equal(q, sim.default_state()) and not u.any()
+    q, u, _ = parse_initial_state("{base_position: [0.1, 0, 1.5], base_linear_velocity: "
+                                  "[1, 0, 0], base_angular_velocity: [0, 0, 0.5], "
+                                  "joint_positions: {LF_KFE: -1.0}}", sim)
+    sim.reset(q=q, u=u)
+    pub = public_state(sim)
+    assert np.allclose(pub["base_position"], [0.1, 0, 1.5])
+    assert np.allclose(pub["base_linear_velocity"], [1, 0, 0])
+    assert np.allclose(pub["base_angular_velocity"], [0, 0, 0.5])
+    assert pub["joint_positions"][sim.joint_names.index("LF_KFE")] == pytest.approx(-1.0)
+    # a recorded initial state round-trips exactly
+    rec = initial_state_record(sim, q, u)
+    q2, u2, _ = parse_initial_state(rec, sim)
+    assert np.array_equal(q, q2) and np.array_equal(u, u2)
+    # and through the minimal coordinates when the coordinate sets differ
+    rec["coordinates"] = "other"
+    q3, u3, _ = parse_initial_state(rec, sim)
+    assert np.allclose(q, q3, atol=1e-12) and np.allclose(u, u3, atol=1e-12)
+    for bad, word in (("{foo: 1}", "unknown keys"), ("{base_position: [0, 0]}", "3 finite"),
+                      ("{joint_positions: {XX: 1}}", "unknown joints"), ("[1, 2]", "mapping"),
+                      ("{base_orientation: [0, 0, 0, 0]}", "zero"),
+                      ("{joint_positions: {LF_HAA: .nan}}", "finite")):
+        with pytest.raises(ConfigError, match=word):
+            parse_initial_state(bad, sim)
+
+
+def test_physics_failure_pauses_and_reset_recovers(sim, monkeypatch):
+    from starleth_sim import SimulationError
+    svc, warns = make(sim)
+    real_step = sim.step
+
+    def failing(tau=None):
+        raise SimulationError("non-finite state after the step")
+
+    monkeypatch.setattr(sim, "step", failing)
+    assert svc.step() is None                     # retried with zero torque, then paused
+    assert svc.paused and svc.failed and svc.k == 0
+    assert svc.counters["simulation_errors"] == 1
+    assert any("simulation paused" in w for w in warns)
+    monkeypatch.setattr(sim, "step", real_step)
+    svc.reset()
+    assert not svc.paused and svc.k == 1
+    assert svc.step() is not None and svc.k == 2
