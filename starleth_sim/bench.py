@@ -50,8 +50,13 @@ def measure(preset: str, seconds: float, repeats: int = 3):
 
 def breakdown(preset: str, seconds: float):
     """Mean time per physics step and phase [µs] (profiled run, includes timer overhead)."""
+    from .stepper import StepperStats
     sim = Simulator.from_preset(preset, profile=True)
     hold = PostureHold(sim.joint_positions())
+    for _ in range(20):  # warm-up: first calls of the profiled path load compiled code
+        sim.step(hold.torque(sim))
+    sim.reset()
+    sim.stepper.stats = StepperStats()
     n = int(round(seconds / sim.control_period))
     for _ in range(n):
         sim.step(hold.torque(sim))
@@ -63,7 +68,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog="starleth-bench", description=__doc__.split("\n")[0])
     ap.add_argument("presets", nargs="*", default=list(DEFAULT_PRESETS),
                     help="configurations (default: %(default)s)")
-    ap.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per run")
+    ap.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
 
