@@ -123,6 +123,7 @@ class BagWriter:
 def run_sim(path, preset="HmJ", steps=400, controller="posture", drop=0.0, skip=(),
             wall_rtf=None, forward=0.3, stand_steps=200):
     """Simulate and record; returns a dict of reference figures from the simulator itself."""
+    Simulator.from_preset(preset).step()  # warm-up: compiled code loaded before timing
     sim = Simulator.from_preset(preset)
     sim.reset()
     if drop:
