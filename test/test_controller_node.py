@@ -170,6 +170,18 @@ def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     assert set(js[1:-1].tolist()) <= set(cmd.tolist()) and len(cmd) <= len(js) + 1
     assert list(first.name) == JOINTS and last.header.stamp.sec == 20
 
+    # starleth-analyze on the demo bag (issue 7): all plots, and a summary that agrees
+    import json
+    from starleth_sim import analysis
+    out = tmp_path / "analysis"
+    assert analysis.main([str(bag), "--out", str(out), "--json", str(tmp_path / "a.json")]) == 0
+    for name in ("contact_forces", "gait", "base_trajectory", "joint_torques",
+                 "solver_iterations"):
+        assert (out / f"{name}.png").stat().st_size > 10_000, name
+    run = json.loads((tmp_path / "a.json").read_text())["runs"][0]
+    assert run["base"]["distance"] == pytest.approx(r.trot_distance, abs=0.05)
+    assert 18 <= run["feet"]["LF"]["touchdowns"] <= 26  # 1.25 Hz over 18 s
+
 
 # -----------------------------------------------------------------------------------------
 # swap-in: any controller that speaks the topics drives sim_node
