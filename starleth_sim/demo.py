@@ -459,7 +459,7 @@ def print_summary(r: DemoResult, echo=print):
     echo(f"  distance travelled   {r.distance:6.2f} m   (x {r.displacement[0]:+.2f}, "
          f"y {r.displacement[1]:+.2f}); while trotting {r.trot_distance:.2f} m")
     echo(f"  mean speed (trot)    {r.trot_speed:6.3f} m/s (commanded {r.speed:g})")
-    echo(f"  falls                " + ("none" if not r.fell else "FELL") +
+    echo("  falls                " + ("none" if not r.fell else "FELL") +
          f" (base height {r.min_height:.3f} .. {r.max_height:.3f} m; a fall is < "
          f"{FALL_HEIGHT:g} m)")
     echo(f"  real-time factor     {r.rtf:6.2f}   (lockstep, from /clock: {r.sim_elapsed:.2f} s "

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import PhysicsConfig, load_preset, ConfigError
+from .config import PhysicsConfig, load_preset
 from .coordinates import make_coordinates
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)

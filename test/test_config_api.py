@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import yaml
 
-from starleth_sim import ConfigError, PhysicsConfig, Simulator, available_presets, load_preset
+from starleth_sim import ConfigError, Simulator, available_presets, load_preset
 
 
 def test_paper_presets_load_with_table1_parameters():
