@@ -58,21 +58,20 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from .description import STARLETH_JOINT_NAMES
+from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
+                     TOPIC_SOLVER, foot_wrench_topic)
+
 PROG = "starleth-analyze"
 FEET = ("LF", "RF", "LH", "RH")
-JOINT_KINDS = ("HAA", "HFE", "KFE")
-JOINTS = tuple(f"{leg}_{j}" for leg in FEET for j in JOINT_KINDS)
+JOINTS = STARLETH_JOINT_NAMES
 G = 9.81
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
-TOPIC_JOINT_STATES = "/joint_states"
-TOPIC_BASE_STATE = "/starleth/base_state"
-TOPIC_SOLVER = "/starleth/solver"
-TOPIC_ROBOT_DESCRIPTION = "/robot_description"
-
 
 def wrench_topic(foot: str) -> str:
-    return f"/starleth/{foot}_foot/wrench"
+    """The wrench topic of foot 'LF', 'RF', 'LH' or 'RH'."""
+    return foot_wrench_topic(f"{foot}_foot")
 
 
 # topic -> (kind, expected type, what is lost without it)

@@ -75,23 +75,10 @@ import numpy as np
 import yaml
 
 from .. import Simulator, ConfigError, SimulationError
-
-FEET = ("LF_foot", "RF_foot", "LH_foot", "RH_foot")
-
-TOPIC_CLOCK = "/clock"
-TOPIC_JOINT_STATES = "/joint_states"
-TOPIC_BASE_STATE = "/starleth/base_state"
-TOPIC_IMU = "/starleth/imu"
-TOPIC_SOLVER = "/starleth/solver"
-TOPIC_ROBOT_DESCRIPTION = "/robot_description"
-TOPIC_EFFORT_COMMANDS = "/joint_group_effort_controller/commands"
-TOPIC_JOINT_COMMANDS = "/joint_commands"
-TOPIC_WRENCH = "~/wrench"
-TOPIC_WRENCH_PERSISTENT = "~/wrench/persistent"
-
-
-def foot_wrench_topic(foot: str) -> str:
-    return f"/starleth/{foot}/wrench"
+from ..description import STARLETH_FEET as FEET
+from ..topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS, TOPIC_IMU,
+                      TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
+                      TOPIC_SOLVER, TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT, foot_wrench_topic)
 
 
 # =========================================================================================
