@@ -44,10 +44,6 @@ class GroundPlane:
         """3x3 matrix whose rows are n, t1, t2 (contact frame -> world: frame.T)."""
         return np.vstack([self.n, self.t1, self.t2])
 
-    def gap_normal(self, point, radius=0.0):
-        """g_N of a sphere (centre `point`, `radius`) against the plane."""
-        return float(self.n @ np.asarray(point) - self.offset - radius)
-
 
 @nb.njit(cache=True)
 def compliant_contact_forces(gap, position, Wt, u, closed, slip, anchor, mu, c_n, d_n, c_t,

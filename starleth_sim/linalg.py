@@ -53,24 +53,6 @@ def cholesky_solve_vec(L, b):
 
 
 @nb.njit(cache=True)
-def cholesky_solve_cols(L, B):
-    """Solve (L L^T) X = B in place for every column of B (n x m)."""
-    n = L.shape[0]
-    m = B.shape[1]
-    for c in range(m):
-        for i in range(n):
-            s = B[i, c]
-            for k in range(i):
-                s -= L[i, k] * B[k, c]
-            B[i, c] = s / L[i, i]
-        for i in range(n - 1, -1, -1):
-            s = B[i, c]
-            for k in range(i + 1, n):
-                s -= L[k, i] * B[k, c]
-            B[i, c] = s / L[i, i]
-
-
-@nb.njit(cache=True)
 def cholesky_blocks(A, blocks, L):
     """Cholesky factor of a block-diagonal SPD matrix, block by block (blocks: rows of
     (start, size)); only the upper triangle of each diagonal block is read, the rest of L is
