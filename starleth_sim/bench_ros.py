@@ -3,21 +3,24 @@
     python -m starleth_sim.bench_ros                     # all phases (~90 s)
     python -m starleth_sim.bench_ros --realtime-seconds 0 --lockstep-seconds 10
 
-Two processes: this one (the controller side) and a child process that first answers bare
-rclpy ping-pongs and then, in the same process, runs ``SimNode``:
+Two processes: this one (the controller side) and a child process that runs ``SimNode``
+and, on the same executor, a bare rclpy "pong" node:
 
-1. bare round trips: JointState ping -> pong between the two processes, one in flight,
-   for ``--bare-seconds``: round trips per second and median round-trip time;
-2. lockstep: the child runs sim_node in lockstep mode with real_time_factor 0; this
-   process is a trivial echo controller (joint PD hold of the first posture, answering every
-   /joint_states with a /joint_commands stamped with the state's stamp): control cycles per
-   second, and the ratio to the bare rate (goal >= 0.75);
-3. realtime: a fresh child runs sim_node in realtime mode (400 Hz) for
+1. lockstep beside bare round trips, interleaved: sim_node runs in lockstep mode with
+   real_time_factor 0, starting paused. In each of ``--rounds`` rounds this process first
+   measures bare rclpy round trips (JointState ping -> pong, one in flight) for
+   ``--bare-seconds / rounds``, then unpauses sim_node (``~/pause``) and acts as a trivial
+   echo controller (joint PD hold of the first posture, answering every /joint_states
+   with a /joint_commands stamped with the state's stamp) for
+   ``--lockstep-seconds / rounds``, then pauses it again. Reported: control cycles per
+   second beside the bare round-trip rate, and their ratio (goal >= 0.75) per round and
+   over all rounds. Interleaving keeps a drift of the machine's load out of the ratio;
+2. realtime: a fresh child runs sim_node in realtime mode (400 Hz) for
    ``--realtime-seconds`` with the same controller: the node's own tick-period error
    (p50/p99/max; goal p99 < 0.25 ms) and the inter-arrival jitter of /joint_states here.
 
 Options: ``--executor`` / ``--sim-executor`` (events | single_threaded) for the two sides
-(the bare phase uses the same ones), ``--record PATH`` to record the lockstep phase,
+(the bare round trips use the same ones), ``--record PATH`` to record the lockstep phase,
 ``--realtime-priority N`` for sim_node's SCHED_FIFO option in the realtime phase.
 The two processes use an isolated ROS_DOMAIN_ID (``--domain-id``, default from the pid).
 Prints the figures and, with ``--json PATH``, writes them with the node's own summaries.
@@ -100,7 +103,7 @@ def _make_executor(kind, context):
 
 
 # -----------------------------------------------------------------------------------------
-# child process: pong, then sim_node
+# child process: sim_node (and the pong node on the same executor)
 # -----------------------------------------------------------------------------------------
 def child_main(args):
     import rclpy
@@ -115,36 +118,20 @@ def child_main(args):
     stop = {"flag": False}
     signal.signal(signal.SIGINT, lambda *a: stop.__setitem__("flag", True))
     signal.signal(signal.SIGTERM, lambda *a: stop.__setitem__("flag", True))
-    if args.pong:
-        node = Node("bench_pong")
-        ex = _make_executor(args.sim_executor, node.context)
-        ex.add_node(node)
-        pub = node.create_publisher(JointState, PONG, QoSProfile(depth=10))
-        done = {"flag": False}
-
-        def on_ping(msg):
-            if msg.name and msg.name[0] == "__done__":
-                done["flag"] = True
-                return
-            pub.publish(msg)
-
-        node.create_subscription(JointState, PING, on_ping, QoSProfile(depth=10))
-        t_end = time.monotonic() + 120
-        while not done["flag"] and not stop["flag"] and time.monotonic() < t_end:
-            ex.spin_once(timeout_sec=0.05)
-        ex.remove_node(node)
-        node.destroy_node()
-        try:
-            ex.shutdown(timeout_sec=0.1)
-        except Exception:
-            pass
     overrides = {"mode": args.mode, "real_time_factor": args.rtf, "executor": args.sim_executor,
                  "realtime_priority": args.realtime_priority}
     if args.record:
         overrides["record"] = args.record
+    if args.pong:
+        overrides["start_paused"] = True    # the parent unpauses it for each lockstep round
     sim = SimNode(parameter_overrides=overrides)
     ex = _make_executor(args.sim_executor, sim.context)
     ex.add_node(sim.node)
+    if args.pong:   # bare round trips, served by the same executor as sim_node
+        pong = Node("bench_pong", context=sim.context)
+        pong_pub = pong.create_publisher(JointState, PONG, QoSProfile(depth=10))
+        pong.create_subscription(JointState, PING, pong_pub.publish, QoSProfile(depth=10))
+        ex.add_node(pong)
     signal.signal(signal.SIGINT, sim.request_stop)
     signal.signal(signal.SIGTERM, sim.request_stop)
     if stop["flag"]:
@@ -198,53 +185,107 @@ def _wait(ex, cond, timeout):
     return True
 
 
-def bare_round_trips(node, ex, seconds):
-    from sensor_msgs.msg import JointState
-    from rclpy.qos import QoSProfile
-    got = {"n": 0}
-    pub = node.create_publisher(JointState, PING, QoSProfile(depth=10))
+class PingPong:
+    """Bare rclpy round trips with the child's pong node: a JointState (12 names, 3 x 12
+    values, like /joint_states) goes out, the next is sent when its echo is back."""
 
-    def on_pong(msg):
-        got["n"] += 1
+    def __init__(self, node, ex):
+        from sensor_msgs.msg import JointState
+        from rclpy.qos import QoSProfile
+        self.node, self.ex = node, ex
+        self.got = 0
+        self.pub = node.create_publisher(JointState, PING, QoSProfile(depth=10))
+        self.sub = node.create_subscription(JointState, PONG, self._on_pong, QoSProfile(depth=10))
+        msg = self.msg = JointState()
+        msg.name = [f"j{i}" for i in range(12)]
+        msg.position = [0.1] * 12
+        msg.velocity = [0.0] * 12
+        msg.effort = [0.0] * 12
+        if not _wait(ex, lambda: self.pub.get_subscription_count() > 0 and
+                     self.sub.get_publisher_count() > 0, 60):
+            raise RuntimeError("bench: the pong node did not appear")
+        for _ in range(50):     # warm-up: the first messages after matching can be slow
+            want = self.got + 1
+            self.pub.publish(msg)
+            _wait(ex, lambda: self.got >= want, 2.0)
 
-    sub = node.create_subscription(JointState, PONG, on_pong, QoSProfile(depth=10))
-    if not _wait(ex, lambda: pub.get_subscription_count() > 0 and
-                 sub.get_publisher_count() > 0, 60):
-        raise RuntimeError("bench: the pong process did not appear")
-    msg = JointState()
-    msg.name = [f"j{i}" for i in range(12)]
-    msg.position = [0.1] * 12
-    msg.velocity = [0.0] * 12
-    msg.effort = [0.0] * 12
-    # warm-up: the first messages after matching can be slow
-    for _ in range(50):
-        want = got["n"] + 1
-        pub.publish(msg)
-        _wait(ex, lambda: got["n"] >= want, 2.0)
-    rtts = []
-    t_end = time.perf_counter() + seconds
-    t0 = time.perf_counter()
-    while time.perf_counter() < t_end:
-        want = got["n"] + 1
-        t = time.perf_counter()
-        msg.header.stamp.nanosec = len(rtts) % 1_000_000_000
-        pub.publish(msg)
-        while got["n"] < want:
-            ex.spin_once(timeout_sec=1.0)
-            if time.perf_counter() - t > 2.0:
-                break
-        rtts.append(time.perf_counter() - t)
-    wall = time.perf_counter() - t0
-    done = JointState()
-    done.name = ["__done__"]
-    pub.publish(done)
-    for _ in range(5):
-        ex.spin_once(timeout_sec=0.01)
-    node.destroy_publisher(pub)
-    node.destroy_subscription(sub)
-    rtts = np.array(rtts)
-    return {"round_trips_per_s": len(rtts) / wall, "rtt_median_ms": float(np.median(rtts) * 1e3),
+    def _on_pong(self, msg):
+        self.got += 1
+
+    def measure(self, seconds):
+        rtts = []
+        t0 = time.perf_counter()
+        t_end = t0 + seconds
+        while time.perf_counter() < t_end:
+            want = self.got + 1
+            t = time.perf_counter()
+            self.msg.header.stamp.nanosec = len(rtts) % 1_000_000_000
+            self.pub.publish(self.msg)
+            while self.got < want:
+                self.ex.spin_once(timeout_sec=1.0)
+                if time.perf_counter() - t > 2.0:
+                    break
+            rtts.append(time.perf_counter() - t)
+        return len(rtts) / (time.perf_counter() - t0), rtts
+
+    def close(self):
+        self.node.destroy_publisher(self.pub)
+        self.node.destroy_subscription(self.sub)
+
+
+def _set_paused(node, ex, client, paused):
+    from std_srvs.srv import SetBool
+    fut = client.call_async(SetBool.Request(data=paused))
+    if not _wait(ex, fut.done, 10.0) or not fut.result().success:
+        raise RuntimeError(f"bench: ~/pause({paused}) failed")
+
+
+def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmup=0.2):
+    """The interleaved rounds of phase 1 (sim_node starts paused): per round, bare round
+    trips, then lockstep cycles with the echo controller."""
+    from std_srvs.srv import SetBool
+    ctl = EchoController(node)
+    pause = node.create_client(SetBool, "/sim_node/pause")
+    if not _wait(ex, pause.service_is_ready, 120):
+        raise RuntimeError("bench: sim_node's ~/pause service did not appear")
+    pp = PingPong(node, ex)
+    per = []
+    all_rtts = []
+    n_total, t_total, stamps_bad = 0, 0.0, 0
+    for r in range(rounds):
+        bare_rate, rtts = pp.measure(bare_seconds / rounds)
+        all_rtts += rtts
+        _set_paused(node, ex, pause, False)
+        t_start = time.perf_counter() + warmup
+        t_end = t_start + lockstep_seconds / rounds
+        while time.perf_counter() < t_end:
+            ex.spin_once(timeout_sec=0.05)
+        _set_paused(node, ex, pause, True)
+        rt, st = np.array(ctl.recv_times), np.array(ctl.stamps)
+        sel = (rt >= t_start) & (rt <= t_end)
+        n = int(sel.sum())
+        stamps_bad += int(np.sum(np.diff(st[sel]) != 2_500_000))
+        rate = n / (t_end - t_start)
+        per.append({"bare_round_trips_per_s": bare_rate, "lockstep_cycles_per_s": rate,
+                    "ratio": rate / bare_rate})
+        n_total += n
+        t_total += t_end - t_start
+        print(f"  round {r + 1}/{rounds}: bare {bare_rate:.0f}/s, lockstep {rate:.0f}/s, "
+              f"ratio {rate / bare_rate:.2f}", flush=True)
+    pp.close()
+    ctl.close()
+    rtts = np.array(all_rtts)
+    bare = {"round_trips_per_s": len(rtts) / float(rtts.sum()),
+            "rtt_median_ms": float(np.median(rtts) * 1e3),
             "rtt_p99_ms": float(np.percentile(rtts, 99) * 1e3), "n": int(len(rtts))}
+    ratios = [p["ratio"] for p in per]
+    lock = {"states": n_total, "wall_s": t_total, "states_per_s": n_total / t_total,
+            "sim_time_per_wall": n_total * 0.0025 / t_total,
+            "stamp_steps_not_one_period": stamps_bad, "rounds": per,
+            "ratio_to_bare": (n_total / t_total) / bare["round_trips_per_s"],
+            "ratio_median_of_rounds": float(np.median(ratios)),
+            "ratio_min_of_rounds": float(np.min(ratios))}
+    return bare, lock
 
 
 def controller_phase(node, ex, seconds, warmup=1.0):
@@ -289,21 +330,21 @@ def parent_main(args):
             with open(log_path, "w") as log:
                 proc = _spawn(args, "lockstep", 0.0, True, log, args.record)
                 try:
-                    results["bare"] = bare_round_trips(node, ex, args.bare_seconds)
-                    print(f"bare rclpy round trips: {results['bare']['round_trips_per_s']:.0f}/s, "
-                          f"median {results['bare']['rtt_median_ms']:.3f} ms", flush=True)
-                    results["lockstep"] = controller_phase(node, ex, args.lockstep_seconds)
+                    bare, lock = lockstep_beside_bare(node, ex, args.lockstep_seconds,
+                                                      args.bare_seconds, args.rounds)
                 except Exception:
                     print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
                     raise
                 finally:
                     summary, text = _stop(proc, log_path)
-            results["lockstep"]["node_summary"] = summary
-            r = results["lockstep"]["states_per_s"] / results["bare"]["round_trips_per_s"]
-            results["lockstep"]["ratio_to_bare"] = r
-            print(f"lockstep control cycles: {results['lockstep']['states_per_s']:.0f}/s "
-                  f"({r:.2f}x bare; goal >= 0.75), sim/wall "
-                  f"{results['lockstep']['sim_time_per_wall']:.2f}", flush=True)
+            results["bare"], results["lockstep"] = bare, lock
+            lock["node_summary"] = summary
+            print(f"bare rclpy round trips: {bare['round_trips_per_s']:.0f}/s, median "
+                  f"{bare['rtt_median_ms']:.3f} ms", flush=True)
+            print(f"lockstep control cycles: {lock['states_per_s']:.0f}/s "
+                  f"({lock['ratio_to_bare']:.2f}x bare; rounds: median "
+                  f"{lock['ratio_median_of_rounds']:.2f}x, min {lock['ratio_min_of_rounds']:.2f}x;"
+                  f" goal >= 0.75), sim/wall {lock['sim_time_per_wall']:.2f}", flush=True)
         if args.realtime_seconds > 0:
             log_path = os.path.join(tmp, "realtime.log")
             with open(log_path, "w") as log:
@@ -336,8 +377,12 @@ def parent_main(args):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--bare-seconds", type=float, default=5.0)
-    p.add_argument("--lockstep-seconds", type=float, default=10.0)
+    p.add_argument("--bare-seconds", type=float, default=10.0,
+                   help="bare round trips, in all rounds together")
+    p.add_argument("--lockstep-seconds", type=float, default=10.0,
+                   help="lockstep cycles, in all rounds together")
+    p.add_argument("--rounds", type=int, default=10,
+                   help="interleaved bare/lockstep rounds")
     p.add_argument("--realtime-seconds", type=float, default=60.0)
     p.add_argument("--executor", default="single_threaded", choices=["events", "single_threaded"],
                    help="executor of this (controller) process")

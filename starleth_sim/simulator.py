@@ -17,6 +17,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 
 from .config import PhysicsConfig, load_preset
@@ -27,6 +28,18 @@ from .stepper import MoreauStepper, SimulationError, PHASES
 from . import prox
 
 log = logging.getLogger("starleth_sim")
+
+
+@nb.njit(cache=True)
+def saturate_torque(tau, limit, out):
+    """out = tau clipped to [-limit, limit] (the motors' effort limits); False if tau has a
+    non-finite entry (out is then not to be used)."""
+    for k in range(tau.shape[0]):
+        t = tau[k]
+        if not np.isfinite(t):
+            return False
+        out[k] = min(max(t, -limit[k]), limit[k])
+    return True
 
 _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
            prox.STATUS_NONFINITE: "non_finite"}
@@ -75,6 +88,9 @@ class Simulator:
         self.stepper = MoreauStepper(self.coords, config, profile=profile)
         self.joint_names = tuple(description.joint_names)
         self.n_joints = len(self.joint_names)
+        lim = np.array(description.effort_limit, dtype=float).reshape(-1)
+        self._effort_limit = lim if lim.shape == (self.n_joints,) else \
+            np.full(self.n_joints, np.inf)     # the description gives no limits
         self.contact_names = tuple(description.contact_names())
         self.control_period = config.control_period
         self._persistent_wrenches = {}
@@ -143,6 +159,7 @@ class Simulator:
         self._impulse = np.zeros((nc, 3))
         self._active = np.zeros(nc, dtype=bool)
         self._gap = np.zeros(nc)
+        self._position = np.zeros((nc, 3))
         self._pending_wrenches.clear()
         self.diagnostics = Diagnostics()
 
@@ -200,7 +217,7 @@ class Simulator:
         g = self.stepper.ground
         frame = g.frame  # rows n, t1, t2
         world = self._impulse @ frame
-        pos = self.stepper.position
+        pos = self._position
         return [ContactInfo(n, bool(self._active[i]), float(self._gap[i]), world[i].copy(),
                             world[i] / self.control_period, pos[i].copy())
                 for i, n in enumerate(self.contact_names)]
@@ -264,17 +281,25 @@ class Simulator:
     # -- stepping -------------------------------------------------------------------------
     def _validated_torque(self, tau):
         if tau is None:
-            tau = np.zeros(self.n_joints)
-        a = np.asarray(tau, dtype=float).reshape(-1) if not isinstance(tau, np.ndarray) \
-            else tau.astype(float).reshape(-1)
+            return np.zeros(self.n_joints)
+        a = tau if isinstance(tau, np.ndarray) and tau.dtype == np.float64 and tau.ndim == 1 \
+            else np.asarray(tau, dtype=float).reshape(-1)
         if a.shape != (self.n_joints,):
             raise ValueError(f"tau must have {self.n_joints} entries (joint order "
                              f"{', '.join(self.joint_names)}), got {a.shape[0]}")
-        if not np.all(np.isfinite(a)):
+        out = np.empty(self.n_joints)
+        if not saturate_torque(a, self._effort_limit, out):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
             raise ValueError(f"tau has non-finite entries for {', '.join(bad)}")
-        lim = self.description.effort_limit
-        return np.clip(a, -lim, lim)
+        return out
+
+    def prepare(self):
+        """Do now the part of the next step that does not depend on the torques (q^M, M, h,
+        the contact and bilateral kinematics, the factor of M, M^{-1}W and G; see
+        MoreauStepper.prepare), e.g. while a controller computes its answer to the current
+        state: the next `step` then only does the rest. Optional, and the next step gives
+        the same result with or without it."""
+        self.stepper.prepare(self._q, self._u)
 
     def step(self, tau=None):
         """Advance one control period with joint torques `tau` (zero-order hold). On a bad
@@ -284,7 +309,7 @@ class Simulator:
         q, u = self._q, self._u
         n = self.config.steps_per_control
         dt = self.stepper.dt
-        impulse = np.zeros_like(self._impulse)
+        impulse = None
         d = Diagnostics(physics_steps=self.diagnostics.physics_steps,
                         nonconverged_steps=self.diagnostics.nonconverged_steps)
         pending_backup = [list(w) for w in self._pending_wrenches]
@@ -293,7 +318,7 @@ class Simulator:
             for _ in range(n):
                 f_ext = self._external_force(q, dt)
                 q, u, res = self.stepper.step(q, u, tau, f_ext)
-                impulse += res.impulse
+                impulse = res.impulse if impulse is None else impulse + res.impulse
                 d.iterations += res.iterations
                 d.max_iterations_step = max(d.max_iterations_step, res.iterations)
                 d.residual = max(d.residual, res.residual)
@@ -313,7 +338,8 @@ class Simulator:
         self._impulse = impulse
         self._active = res.active
         self._gap = res.gap
-        d.active_contacts = int(res.active.sum())
+        self._position = res.position
+        d.active_contacts = res.n_active
         d.step_time = time.perf_counter() - t_wall
         if self.stepper.profile:
             d.timings = dict(zip(PHASES, self.stepper.stats.timings.tolist()))

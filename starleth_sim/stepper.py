@@ -34,30 +34,30 @@ class SimulationError(RuntimeError):
 
 
 @nb.njit(cache=True)
-def free_velocity(M, h, dt, uS, blocks, factor, L, u_free):
-    """u_free = u^S + M^{-1} h Δt, with M block-diagonal (one block per tree). With factor
-    False, L already holds the factor of a constant M. False if M is not SPD."""
-    if factor and not cholesky_blocks(M, blocks, L):
-        return False
+def free_velocity(h, dt, uS, blocks, L, u_free):
+    """u_free = u^S + M^{-1} h Δt with the block Cholesky factor L of M (one block per
+    tree)."""
     for k in range(uS.shape[0]):
         u_free[k] = h[k] * dt
     cholesky_blocks_solve_vec(L, blocks, u_free)
     for k in range(uS.shape[0]):
         u_free[k] += uS[k]
-    return True
 
 
 @nb.njit(cache=True)
-def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor, L,
-               u_free):
-    """Fig. 7 phase "M^-1": factor M, u_free = u^S + M^{-1} h Δt, the active set
+def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor, L):
+    """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
+    L (unless factor is False: L already holds the factor of a constant M), the active set
     {i | g_N,i ≤ activation_gap}, W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
     b = [ε W_U^T u^S; b_B] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2) and b_B the
     bilateral drift stabilisation (β/Δt) g_B (zero in the paper's law), and the nonzero
     patterns of the rows of W^T and the columns of M^{-1} W.
-    Returns (ok, active, Wt, MinvW, b, (wp_ptr, wp_idx, mp_ptr, mp_idx))."""
+    Returns (ok, active, Wt, MinvW, b, (wp_ptr, wp_idx, mp_ptr, mp_idx)); ok is False if
+    M is not positive definite."""
     nv = uS.shape[0]
-    ok = free_velocity(M, h, dt, uS, blocks, factor, L, u_free)
+    ok = True
+    if factor:
+        ok = cholesky_blocks(M, blocks, L)
     na = 0
     for i in range(gap.shape[0]):
         if gap[i] <= activation_gap:
@@ -102,21 +102,15 @@ def phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, 
 
 
 @nb.njit(cache=True)
-def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, u_free, bvec, pat):
-    """Fig. 7 phase "G (and G_B^-1)": c = W^T u_free + b (Eqn. 15), G = W^T M^{-1} W
-    (Delassus form) or only diag(G) (velocity form), and for the direct bilateral solution
-    (Eqn. 20) the Cholesky factor of G_B = W_B^T M^{-1} W_B. Returns (ok, G, c, diag G, L_B,
-    patterns) with the pattern of the rows of G appended to `pat`."""
+def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
+    """Fig. 7 phase "G (and G_B^-1)": G = W^T M^{-1} W (Delassus form) or only diag(G)
+    (velocity form), and for the direct bilateral solution (Eqn. 20) the Cholesky factor
+    of G_B = W_B^T M^{-1} W_B. Returns (ok, G, diag G, L_B, patterns) with the pattern of
+    the rows of G appended to `pat`."""
     wp_ptr, wp_idx, mp_ptr, mp_idx = pat
     m, nv = Wt.shape
     o = 3 * nc
     nb_ = m - o
-    c = np.empty(m)
-    for a in range(m):
-        s = bvec[a]
-        for p in range(wp_ptr[a], wp_ptr[a + 1]):
-            s += Wt[a, wp_idx[p]] * u_free[wp_idx[p]]
-        c[a] = s
     Gdiag = np.empty(m)
     if form == prox.FORM_DELASSUS:
         G = np.empty((m, m))
@@ -148,7 +142,20 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, u_free, bvec, pat):
                     GB[b, a] = s
         LB = np.zeros((nb_, nb_))
         ok = cholesky_upper_input(GB, LB)
-    return ok, G, c, Gdiag, LB, full
+    return ok, G, Gdiag, LB, full
+
+
+@nb.njit(cache=True)
+def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
+    """c = W^T u_free + b (Eqn. 15), with the row pattern of W^T."""
+    m = Wt.shape[0]
+    c = np.empty(m)
+    for a in range(m):
+        s = bvec[a]
+        for p in range(wp_ptr[a], wp_ptr[a + 1]):
+            s += Wt[a, wp_idx[p]] * u_free[wp_idx[p]]
+        c[a] = s
+    return c
 
 
 @nb.njit(cache=True)
@@ -203,39 +210,49 @@ IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM, IP_DIRECT = range(6)
 
 
 @nb.njit(cache=True)
-def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, bB, blocks, factor, L, u_free, fp, ip,
-                        eps, last_impulse, last_active, last_bilateral, impulse, is_active, u):
-    """The three phases in one jitted call (the unprofiled hot path). Writes Λ_U of every
-    contact point into impulse (nc x 3), the active flags, Λ_B into last_bilateral and u^E;
-    on success the warm-start memory is updated. Returns (ok, iterations, status, residual,
-    retried)."""
-    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, h, dt, uS, gap, Wt_all, WtB, bB,
-                                                  fp[FP_ACTIVATION], eps, blocks, factor, L,
-                                                  u_free)
-    nc = gap.shape[0]
+def prepare_hard_contacts(M, uS, gap, Wt_all, WtB, bB, blocks, factor, L, fp, ip, eps):
+    """The torque-independent part of the hard-contact solve in one jitted call: the
+    phases "M^-1" and "G" (phase_minv, phase_delassus). Returns (ok, active, Wt, MinvW, b,
+    G, diag G, L_B, patterns), the input of complete_hard_contacts."""
+    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, uS, gap, Wt_all, WtB, bB,
+                                                  fp[FP_ACTIVATION], eps, blocks, factor, L)
+    if not ok or Wt.shape[0] == 0:
+        e = np.zeros(1, dtype=np.int64)
+        return (ok, active, Wt, MinvW, bvec, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)),
+                (pat[0], pat[1], pat[2], pat[3], e, e[:0]))
+    ok, G, Gdiag, LB, full = phase_delassus(ip[IP_FORM], active.shape[0], ip[IP_DIRECT] != 0,
+                                            Wt, MinvW, pat)
+    return ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full
+
+
+@nb.njit(cache=True)
+def complete_hard_contacts(h, dt, uS, blocks, L, M, active, Wt, MinvW, bvec, G, Gdiag, LB,
+                           full, fp, ip, last_impulse, last_active, last_bilateral, impulse,
+                           is_active, u_free, u):
+    """The torque-dependent rest of the hard-contact solve (the unprofiled hot path after
+    prepare_hard_contacts): u_free = u^S + M^{-1} h Δt, c = W^T u_free + b and the prox
+    iteration (phase_prox). Writes Λ_U of every contact point into impulse (nc x 3), the
+    active flags, Λ_B into last_bilateral and u^E into u; unless the result is non-finite,
+    the warm-start memory is updated. Returns (iterations, status, residual, retried)."""
+    free_velocity(h, dt, uS, blocks, L, u_free)
+    nc = impulse.shape[0]
     for i in range(nc):
         is_active[i] = False
         impulse[i, 0] = 0.0
         impulse[i, 1] = 0.0
         impulse[i, 2] = 0.0
-    if not ok:
-        return ok, 0, prox.STATUS_NONFINITE, 0.0, False
     na = active.shape[0]
     o = 3 * na
-    direct = ip[IP_DIRECT] != 0
     it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
     if Wt.shape[0] == 0:
         u[:] = u_free
     else:
-        ok, G, c, Gdiag, LB, full = phase_delassus(ip[IP_FORM], na, direct, Wt, MinvW, u_free,
-                                                   bvec, pat)
-        if not ok:
-            return ok, 0, prox.STATUS_NONFINITE, 0.0, False
+        c = constraint_velocity(Wt, u_free, bvec, full[0], full[1])
         uE, lam, it, status, resid, retried = phase_prox(
-            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, direct, full,
-            active, last_impulse, last_active, last_bilateral, fp[FP_MU], fp[FP_ALPHA],
-            fp[FP_TOL_REL], fp[FP_TOL_ABS], ip[IP_MAX_ITER], ip[IP_CRITERION], M,
-            ip[IP_WARM] != 0, fp[FP_FALLBACK])
+            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, LB,
+            ip[IP_DIRECT] != 0, full, active, last_impulse, last_active, last_bilateral,
+            fp[FP_MU], fp[FP_ALPHA], fp[FP_TOL_REL], fp[FP_TOL_ABS], ip[IP_MAX_ITER],
+            ip[IP_CRITERION], M, ip[IP_WARM] != 0, fp[FP_FALLBACK])
         u[:] = uE
         for a in range(na):
             i = active[a]
@@ -256,7 +273,7 @@ def solve_hard_contacts(M, h, dt, uS, gap, Wt_all, WtB, bB, blocks, factor, L, u
             last_active[i] = is_active[i]
             for k in range(3):
                 last_impulse[i, k] = impulse[i, k]
-    return ok, it, status, resid, retried
+    return it, status, resid, retried
 
 
 @nb.njit(cache=True)
@@ -281,6 +298,8 @@ class StepResult:
     status: int = prox.STATUS_CONVERGED
     residual: float = 0.0
     retried: bool = False
+    position: np.ndarray | None = None   # contact points at q^M (nc x 3) [m]
+    n_active: int = 0                    # contacts in the active set
 
 
 @dataclass
@@ -336,6 +355,7 @@ class MoreauStepper:
         self.iparams = np.array([self.form, self.scheme, s.max_iterations, self.criterion,
                                  int(s.warm_start), int(self.bilateral_direct)], dtype=np.int64)
         self._never_active = np.full(nc, np.inf)
+        self._prepared = None
         self.stats = StepperStats()
         self.reset_contact_state()
 
@@ -351,27 +371,37 @@ class MoreauStepper:
         self.lam_compliant = np.zeros((nc, 3))
 
     def memory(self):
-        """A copy of the contact memory, to restore it if a control step fails."""
-        return (self.last_impulse.copy(), self.last_active.copy(), self.last_bilateral.copy(),
-                self.closed.copy(), self.slip.copy(), self.anchor.copy())
+        """A copy of the contact memory that a step changes (warm start of the hard
+        contacts, or the compliant contacts' state), to restore it if a control step
+        fails."""
+        if self.hard:
+            return (self.last_impulse.copy(), self.last_active.copy(),
+                    self.last_bilateral.copy())
+        return (self.last_bilateral.copy(), self.closed.copy(), self.slip.copy(),
+                self.anchor.copy())
 
     def restore(self, mem):
-        (self.last_impulse[:], self.last_active[:], self.last_bilateral[:], self.closed[:],
-         self.slip[:], self.anchor[:]) = mem
+        if self.hard:
+            self.last_impulse[:], self.last_active[:], self.last_bilateral[:] = mem
+        else:
+            self.last_bilateral[:], self.closed[:], self.slip[:], self.anchor[:] = mem
 
     # -- one step -------------------------------------------------------------------------
-    def step(self, q, u, tau, f_ext=None):
-        """Advance (q, u) by Δt with joint torques tau (public joint order) and an optional
-        generalized external force f_ext. Returns (q^E, u^E, StepResult)."""
+    def prepare(self, q, u):
+        """The part of the step from (q^S, u^S) that does not depend on the joint torques
+        or external forces: q^M (Eqn. 6), M and h without τ, the contact and bilateral
+        kinematics at q^M, the factor of M and, with hard contacts, M^{-1}W and G. `step`
+        uses it when called with the same q and u objects (which must not be modified in
+        place in between), else it prepares itself, so the result is the same either way.
+        A lockstep node calls this after publishing a state, while the controller works
+        on its answer. Never raises: a failure is reported by the step that uses it."""
         dt = self.dt
         coords = self.coords
         prof = self.profile
         if prof:
             t0 = time.perf_counter()
         qM = coords.integrate(q, u, 0.5 * dt)
-        M, h = coords.dynamics(qM, u, tau)
-        if f_ext is not None:
-            h += f_ext
+        M, h0 = coords.dynamics(qM, u, None)
         if prof:
             t1 = time.perf_counter()
             self.stats.timings[0] += t1 - t0
@@ -383,11 +413,67 @@ class MoreauStepper:
         else:
             WtB = self.no_bilateral
         if prof:
-            self.stats.timings[4] += time.perf_counter() - t1
-        if self.hard:
-            uE, res = self._solve(M, h, u, dt, prof, self.gap, WtB)
+            t2 = time.perf_counter()
+            self.stats.timings[4] += t2 - t1
+        factor = not (self.constant_M and self._factored)
+        hard = None
+        if self.hard or self.nb:    # compliant contacts: the prox solve of the bilaterals
+            gap = self.gap if self.hard else self._never_active
+            if not prof:
+                hard = prepare_hard_contacts(M, u, gap, self.Wt_all, WtB, self.bB,
+                                             self.blocks, factor, self.L, self.fparams,
+                                             self.iparams, self.eps)
+            else:  # the same phases between timers (Fig. 7)
+                ok, active, Wt, MinvW, bvec, pat = phase_minv(
+                    M, u, gap, self.Wt_all, WtB, self.bB, self.fparams[FP_ACTIVATION],
+                    self.eps, self.blocks, factor, self.L)
+                t3 = time.perf_counter()
+                self.stats.timings[1] += t3 - t2
+                e = np.zeros(1, dtype=np.int64)
+                G, Gdiag, LB, full = (np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)),
+                                      (*pat, e, e[:0]))
+                if ok and Wt.shape[0]:
+                    ok, G, Gdiag, LB, full = phase_delassus(self.form, active.shape[0],
+                                                            self.bilateral_direct, Wt, MinvW,
+                                                            pat)
+                self.stats.timings[2] += time.perf_counter() - t3
+                hard = (ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full)
+            ok = hard[0]
         else:
-            uE, res = self._solve_compliant(M, h, u, dt, prof, WtB)
+            ok = cholesky_blocks(M, self.blocks, self.L) if factor else True
+            if prof:
+                self.stats.timings[1] += time.perf_counter() - t2
+        if ok:
+            self._factored = True
+        self._prepared = (q, u, qM, M, h0, ok, hard)
+
+    def step(self, q, u, tau, f_ext=None):
+        """Advance (q, u) by Δt with joint torques tau (public joint order) and an optional
+        generalized external force f_ext. Returns (q^E, u^E, StepResult)."""
+        p = self._prepared
+        if p is None or p[0] is not q or p[1] is not u:
+            self.prepare(q, u)
+            p = self._prepared
+        self._prepared = None
+        _, _, qM, M, h, ok, hard = p
+        if not ok:
+            raise SimulationError("mass matrix (or G_B) not positive definite "
+                                  "(non-finite state?)")
+        dt = self.dt
+        coords = self.coords
+        prof = self.profile
+        if prof:
+            t0 = time.perf_counter()
+        if tau is not None and tau.shape[0]:
+            coords.add_joint_torques(qM, u, tau, h)
+        if f_ext is not None:
+            h += f_ext
+        if prof:
+            self.stats.timings[0] += time.perf_counter() - t0
+        if self.hard:
+            uE, res = self._solve(M, h, u, dt, prof, hard)
+        else:
+            uE, res = self._solve_compliant(M, h, u, dt, prof, hard)
         if prof:
             t4 = time.perf_counter()
         qE = coords.integrate(qM, uE, 0.5 * dt)
@@ -398,7 +484,7 @@ class MoreauStepper:
             self.stats.timings[4] += time.perf_counter() - t4
         return qE, uE, res
 
-    def _solve_compliant(self, M, h, uS, dt, prof, WtB):
+    def _solve_compliant(self, M, h, uS, dt, prof, hard):
         t = time.perf_counter() if prof else 0.0
         c = self.cfg.contact
         compliant_contact_forces(self.gap, self.position, self.Wt_all, uS, self.closed, self.slip,
@@ -411,74 +497,63 @@ class MoreauStepper:
             self.stats.timings[4] += time.perf_counter() - t
         active = self.gap <= 0.0
         if self.nb:  # bilateral constraints still need the prox solve (no contact rows)
-            uE, res = self._solve(M, h, uS, dt, prof, self._never_active, WtB)
+            uE, res = self._solve(M, h, uS, dt, prof, hard)
         else:
             t2 = time.perf_counter() if prof else 0.0
-            factor = not (self.constant_M and self._factored)
-            if not free_velocity(M, h, dt, uS, self.blocks, factor, self.L, self.u_free):
-                raise SimulationError("mass matrix not positive definite (non-finite state?)")
-            self._factored = True
+            free_velocity(h, dt, uS, self.blocks, self.L, self.u_free)
             if prof:
                 self.stats.timings[1] += time.perf_counter() - t2
             uE, res = self.u_free.copy(), StepResult(active, None, None)
         res.active = active
+        res.n_active = int(np.count_nonzero(active))
         res.gap = self.gap.copy()
+        res.position = self.position.copy()
         res.impulse = self.lam_compliant * dt
         return uE, res
 
-    def _solve(self, M, h, uS, dt, prof, gap, WtB):
+    def _solve(self, M, h, uS, dt, prof, hard):
         nc = self.nc
         impulse = np.empty((nc, 3))
         is_active = np.empty(nc, dtype=np.bool_)
         u = np.empty(self.nv)
-        factor = not (self.constant_M and self._factored)
+        _, active, Wt, MinvW, bvec, G, Gdiag, LB, full = hard
         if not prof:
-            ok, it, status, resid, retried = solve_hard_contacts(
-                M, h, dt, uS, gap, self.Wt_all, WtB, self.bB, self.blocks, factor, self.L,
-                self.u_free,
-                self.fparams, self.iparams, self.eps, self.last_impulse, self.last_active,
-                self.last_bilateral, impulse, is_active, u)
+            it, status, resid, retried = complete_hard_contacts(
+                h, dt, uS, self.blocks, self.L, M, active, Wt, MinvW, bvec, G, Gdiag, LB,
+                full, self.fparams, self.iparams, self.last_impulse, self.last_active,
+                self.last_bilateral, impulse, is_active, self.u_free, u)
         else:  # the same phases, called one by one between timers (Fig. 7)
             s = self.cfg.solver
             t1 = time.perf_counter()
-            ok, active, Wt, MinvW, bvec, pat = phase_minv(
-                M, h, dt, uS, gap, self.Wt_all, WtB, self.bB, self.activation_gap, self.eps,
-                self.blocks, factor, self.L, self.u_free)
+            free_velocity(h, dt, uS, self.blocks, self.L, self.u_free)
             t2 = time.perf_counter()
             self.stats.timings[1] += t2 - t1
             impulse[:] = 0.0
             is_active[:] = False
             it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
             u = self.u_free.copy()
-            if ok and Wt.shape[0]:
-                ok, G, cvec, Gdiag, LB, full = phase_delassus(self.form, active.shape[0],
-                                                              self.bilateral_direct, Wt, MinvW,
-                                                              self.u_free, bvec, pat)
+            if Wt.shape[0]:
+                cvec = constraint_velocity(Wt, self.u_free, bvec, full[0], full[1])
                 t3 = time.perf_counter()
                 self.stats.timings[2] += t3 - t2
-                if ok:
-                    u, lam, it, status, resid, retried = phase_prox(
-                        self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
-                        LB, self.bilateral_direct, full, active, self.last_impulse,
-                        self.last_active,
-                        self.last_bilateral, self.ground.mu, s.alpha, s.tol_rel, s.tol_abs,
-                        s.max_iterations, self.criterion, M, s.warm_start,
-                        s.fallback_alpha_factor)
-                    o = 3 * active.shape[0]
-                    impulse[active] = lam[:o].reshape(-1, 3)
-                    is_active[active] = True
-                    if not np.all(np.isfinite(u)):
-                        status = prox.STATUS_NONFINITE
-                    if status != prox.STATUS_NONFINITE:
-                        self.last_bilateral[:] = lam[o:]
+                u, lam, it, status, resid, retried = phase_prox(
+                    self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
+                    LB, self.bilateral_direct, full, active, self.last_impulse,
+                    self.last_active,
+                    self.last_bilateral, self.ground.mu, s.alpha, s.tol_rel, s.tol_abs,
+                    s.max_iterations, self.criterion, M, s.warm_start,
+                    s.fallback_alpha_factor)
+                o = 3 * active.shape[0]
+                impulse[active] = lam[:o].reshape(-1, 3)
+                is_active[active] = True
+                if not np.all(np.isfinite(u)):
+                    status = prox.STATUS_NONFINITE
+                if status != prox.STATUS_NONFINITE:
+                    self.last_bilateral[:] = lam[o:]
                 self.stats.timings[3] += time.perf_counter() - t3
-            if ok and status != prox.STATUS_NONFINITE:
+            if status != prox.STATUS_NONFINITE:
                 self.last_impulse[:] = impulse
                 self.last_active[:] = is_active
-        if not ok:
-            raise SimulationError("mass matrix (or G_B) not positive definite "
-                                  "(non-finite state?)")
-        self._factored = True
         if retried:
             self.stats.retried += 1
         if status != prox.STATUS_CONVERGED:
@@ -486,4 +561,5 @@ class MoreauStepper:
         if status == prox.STATUS_NONFINITE:
             raise SimulationError("prox iteration produced non-finite impulses; "
                                   "state left unchanged")
-        return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried)
+        return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried,
+                             self.position.copy(), active.shape[0] if self.hard else 0)

@@ -5,7 +5,7 @@ import pytest
 
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator, prox
-from starleth_sim.stepper import phase_delassus, phase_minv
+from starleth_sim.stepper import constraint_velocity, free_velocity, phase_delassus, phase_minv
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -25,13 +25,17 @@ def robot_problem(u_scale, seed, mu=0.8):
     nv = sim.coords.nv
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
     eps = np.zeros((sim.coords.n_contacts, 2))
-    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, h, st.dt, u, st.gap, st.Wt_all,
-                                             np.zeros((0, nv)), np.zeros(0), 0.0, eps,
-                                             sim.coords.blocks, True, L, u_free)
+    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, u, st.gap, st.Wt_all, np.zeros((0, nv)),
+                                                  np.zeros(0), 0.0, eps, sim.coords.blocks,
+                                                  True, L)
     assert ok and len(active) == 4
+    free_velocity(h, st.dt, u, sim.coords.blocks, L, u_free)
+    np.testing.assert_allclose(u_free, u + np.linalg.solve(M, h) * st.dt, rtol=1e-10,
+                               atol=1e-12)
     na = len(active)
-    ok, G, c, Gdiag, LB, _ = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, u_free,
-                                            bvec, pat)
+    ok, G, Gdiag, LB, _ = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, pat)
+    c = constraint_velocity(Wt, u_free, bvec, pat[0], pat[1])
+    np.testing.assert_allclose(c, Wt @ u_free + bvec, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
                 mu=np.full(na, mu))

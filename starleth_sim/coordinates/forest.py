@@ -358,6 +358,7 @@ class ForestCoordinates:
         self._axis_world = np.zeros((ncut, 3))
         self._WtB = np.zeros((self.n_bilateral, self.nv))
         self._cut_q = None
+        self._torque_map = None
         self._gB = np.zeros(self.n_bilateral)
 
         # actuated joints: forest joints, or cut joints (by index into the cut list)
@@ -375,6 +376,11 @@ class ForestCoordinates:
                 self.joint_cut.append(-1)
         self.joint_q = np.array(self.joint_q, dtype=np.int64)
         self.joint_v = np.array(self.joint_v, dtype=np.int64)
+        # the joints' velocity indices as a slice when they are one contiguous block (the
+        # minimal coordinates): h[slice] += τ is much cheaper than fancy indexing
+        jv = self.joint_v
+        self._joint_v_block = (slice(int(jv[0]), int(jv[-1]) + 1)
+                               if jv.shape[0] and np.all(np.diff(jv) == 1) else None)
         self.joint_cut = np.array(self.joint_cut, dtype=np.int64)
         self._act_tree = self.joint_cut < 0
         self._act_cut = ~self._act_tree
@@ -420,10 +426,13 @@ class ForestCoordinates:
                    self.a_P, self.b1_P, self.b2_P, self.a_C, self.b1_C, self._WtB, self._gB,
                    self._angle,
                    self._rate, self._axis_world, True)
+        # what add_joint_torques needs of these kinematics, as copies: the tree buffers
+        # (t.oR) are shared with every other kinematics call (contacts, pushes, ...)
+        self._torque_map = (q, self._axis_world.copy(), t.oR.copy())
 
-    def dynamics(self, q, u, tau):
-        """(M, h) at (q, u); h includes the joint torques τ (public order): Sᵀτ for joints
-        inside a tree, equal and opposite body torques for cut joints."""
+    def dynamics(self, q, u, tau=None):
+        """(M, h) at (q, u); h includes the joint torques τ (public order) unless tau is None
+        (see add_joint_torques)."""
         if self.constant_mass_matrix:
             M = self._M_const
             h = np.empty(self.nv)
@@ -437,16 +446,28 @@ class ForestCoordinates:
             h = np.empty(self.nv)
             from_pin_dynamics(M_pin, h_pin, self._Rs, self.root_v, self._u_pin, M, h)
         if tau is not None and tau.shape[0]:
-            if self.n_cut == 0:
-                h[self.joint_v] += tau
-            else:
-                h[self.joint_v[self._act_tree]] += tau[self._act_tree]
-                self._tau_cut[self.joint_cut[self._act_cut]] = tau[self._act_cut]
-                self._kinematics_for_cuts(q, u)
-                t = self.tree
-                cut_joint_torques(self._tau_cut, self.cut_P, self.cut_C, self._axis_world,
-                                  t.jtype, t.axis, t.idx_v, t.support, t.oR, h)
+            self.add_joint_torques(q, u, tau, h)
         return M, h
+
+    def add_joint_torques(self, q, u, tau, h):
+        """h += the generalized force of the joint torques τ (public order) at q: Sᵀτ for
+        joints inside a tree, equal and opposite body torques about the hinge axis for cut
+        joints (the hinge axes and body orientations at q are reused when the last
+        evaluation of the cut joints, e.g. `bilateral(q)`, was at this q object)."""
+        if self.n_cut == 0:
+            if self._joint_v_block is not None:
+                h[self._joint_v_block] += tau
+            else:
+                h[self.joint_v] += tau
+            return
+        h[self.joint_v[self._act_tree]] += tau[self._act_tree]
+        self._tau_cut[self.joint_cut[self._act_cut]] = tau[self._act_cut]
+        if self._torque_map is None or self._torque_map[0] is not q:
+            self._kinematics_for_cuts(q, u)
+        _, axis_world, oR = self._torque_map
+        t = self.tree
+        cut_joint_torques(self._tau_cut, self.cut_P, self.cut_C, axis_world,
+                          t.jtype, t.axis, t.idx_v, t.support, oR, h)
 
     def bilateral(self, q, u=None):
         """(W_Bᵀ (n_B x nv), g_B (n_B)) at q; arrays are reused between calls. The stepper

@@ -76,6 +76,7 @@ import yaml
 
 from .. import Simulator, ConfigError, SimulationError
 from ..description import STARLETH_FEET as FEET
+from .cdr import CommandDecoder, JointStateCdr
 from ..topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS, TOPIC_IMU,
                       TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
                       TOPIC_SOLVER, TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT, foot_wrench_topic)
@@ -533,6 +534,15 @@ class SimService:
             tau[self.joint_index[n]] = v
         return self._accept(tau)
 
+    def submit_ordered_joint_command(self, efforts, stamp_ns):
+        """submit_joint_command for a command already known to name every joint in joint
+        order with n finite efforts (decoded by cdr.CommandDecoder): only the lockstep
+        stamp is left to check."""
+        self.counters["commands_received"] += 1
+        if self.lockstep and not self._stamp_ok(stamp_ns):
+            return self._stale(stamp_ns)
+        return self._accept(efforts)
+
     def _stamp_ok(self, stamp_ns):
         return not self.answered and (stamp_ns is None or int(stamp_ns) == self.stamp_ns)
 
@@ -729,62 +739,6 @@ def _import_ros():
     return Node
 
 
-class JointStateCdr:
-    """CDR bytes of a sensor_msgs/JointState with fixed names and frame_id, built by
-    patching the stamp and the three arrays into a template serialised once by rclpy
-    (a few microseconds instead of a Python-to-C conversion of every field per step).
-    ``create`` checks the template byte by byte and returns None if the layout is not the
-    expected one, so the caller falls back to publishing the message object."""
-
-    def __init__(self, template: bytes, stamp_offset: int, offsets, n: int):
-        self.template = template
-        self.stamp_offset = stamp_offset
-        self.offsets = offsets
-        self.n = n
-
-    @classmethod
-    def create(cls, names):
-        import struct
-        n = len(names)
-        try:
-            msg = JointState()
-            msg.name = list(names)
-            marks = [np.array([1.0e300 - 1.0e285 * (100 * a + i) for i in range(n)])
-                     for a in range(3)]
-            msg.position, msg.velocity, msg.effort = (m.tolist() for m in marks)
-            msg.header.stamp.sec, msg.header.stamp.nanosec = 0x12345678, 0x0ABCDEF1
-            raw = serialize_message(msg)
-            if raw[:4] != b"\x00\x01\x00\x00":          # CDR little endian
-                return None
-            stamp_offset = raw.find(struct.pack("<iI", 0x12345678, 0x0ABCDEF1))
-            offsets = [raw.find(m.tobytes()) for m in marks]
-            if stamp_offset != 4 or min(offsets) < 0 or not offsets[0] < offsets[1] < offsets[2]:
-                return None
-            # rmw's serialised length can exceed the CDR (estimated size): cut at the end
-            template = raw[:offsets[2] + 8 * n]
-            self = cls(template, stamp_offset, offsets, n)
-            # round trip check with other values
-            probe = [np.linspace(-1.0, 1.0, n) * (a + 1) for a in range(3)]
-            back = deserialize_message(self.build(7, 2_500_000, *probe), JointState)
-            if (list(back.name) != list(names) or back.header.stamp.sec != 7
-                    or back.header.stamp.nanosec != 2_500_000
-                    or not all(np.array_equal(np.asarray(getattr(back, f)), p) for f, p in
-                               zip(("position", "velocity", "effort"), probe))):
-                return None
-            return self
-        except Exception:  # pragma: no cover - unexpected rmw behaviour: use the slow path
-            return None
-
-    def build(self, sec, nsec, position, velocity, effort) -> bytes:
-        import struct
-        buf = bytearray(self.template)
-        struct.pack_into("<iI", buf, self.stamp_offset, sec, nsec)
-        k = 8 * self.n
-        for off, a in zip(self.offsets, (position, velocity, effort)):
-            buf[off:off + k] = np.ascontiguousarray(a, dtype="<f8").tobytes()
-        return bytes(buf)
-
-
 def make_executor(kind: str, context):
     """rclpy's EventsExecutor (C++, much cheaper spin_once) when asked for and available,
     else the SingleThreadedExecutor."""
@@ -872,6 +826,7 @@ class SimNode:
         self.js_msg = JointState()
         self.js_msg.name = list(sim.joint_names)
         self._js_cdr = JointStateCdr.create(list(sim.joint_names))
+        self.decoder = CommandDecoder(sim.joint_names)
         self.wrench_msgs = {}
         for foot in FEET:
             m = WrenchStamped()
@@ -933,15 +888,19 @@ class SimNode:
         pub("robot_description", String, TOPIC_ROBOT_DESCRIPTION, latched)
         self.subs = {}
         # when recording, inputs are taken as CDR bytes: the recording holds exactly what
-        # arrived (as rosbag2 does), and the callback deserialises them
+        # arrived (as rosbag2 does), and the callback deserialises them. Joint commands are
+        # always taken as bytes: the common valid case is decoded straight from the CDR
+        # (cdr.CommandDecoder), anything else is deserialised and validated in full.
         raw = bool(self.settings.record)
 
-        def sub(key, typ, topic, cb):
-            if raw:
+        def sub(key, typ, topic, cb, fast=None):
+            if raw or fast is not None:
                 handler = cb
 
-                def cb(data, key=key, typ=typ):
+                def cb(data, key=key, typ=typ, fast=fast):
                     self._record_input(key, data)
+                    if fast is not None and fast(data):
+                        return
                     try:
                         msg = deserialize_message(data, typ)
                     except Exception as e:   # malformed CDR: reject, never die
@@ -949,11 +908,14 @@ class SimNode:
                                                    f"message on {self.subs[key][1]}: {e}")
                         return
                     handler(msg)
-            sobj = node.create_subscription(typ, topic, cb, cmd_qos, raw=raw)
+            sobj = node.create_subscription(typ, topic, cb, cmd_qos,
+                                            raw=raw or fast is not None)
             self.subs[key] = (sobj, sobj.topic_name, typ, cmd_qos)
 
-        sub("effort", Float64MultiArray, TOPIC_EFFORT_COMMANDS, self._on_effort)
-        sub("joint_commands", JointState, TOPIC_JOINT_COMMANDS, self._on_joint_command)
+        sub("effort", Float64MultiArray, TOPIC_EFFORT_COMMANDS, self._on_effort,
+            self._on_effort_cdr)
+        sub("joint_commands", JointState, TOPIC_JOINT_COMMANDS, self._on_joint_command,
+            self._on_joint_command_cdr)
         sub("wrench", WrenchStamped, TOPIC_WRENCH, self._on_wrench)
         sub("wrench_persistent", WrenchStamped, TOPIC_WRENCH_PERSISTENT,
             self._on_wrench_persistent)
@@ -1006,15 +968,18 @@ class SimNode:
     def _wanted(self, key, record):
         """Build and publish a topic only if it is recorded or someone subscribes (an
         unmatched publish is invisible; skipping it keeps the lockstep cycle short). The
-        counts are refreshed every SUBSCRIBER_REFRESH steps: a new subscriber gets its first
-        message at most that many steps late."""
+        counts are refreshed every SUBSCRIBER_REFRESH steps, after the state is out (see
+        _refresh_counts): a new subscriber gets its first message at most that many steps
+        late."""
         if record and self.recorder is not None:
             return True
-        k = self.service.k
-        if not (0 <= k - self._counts_k < self.SUBSCRIBER_REFRESH):
-            self._counts_k = k
-            self._counts = {key_: p[0].get_subscription_count() for key_, p in self.pubs.items()}
+        if self._counts_k < 0:      # no counts yet, or asked for fresh ones
+            self._refresh_counts()
         return self._counts.get(key, 0) > 0
+
+    def _refresh_counts(self):
+        self._counts_k = self.service.k
+        self._counts = {key: p[0].get_subscription_count() for key, p in self.pubs.items()}
 
     def publish_state(self, record=True):
         """Publish the state of the current step (stamp t_k) on every state topic;
@@ -1023,9 +988,12 @@ class SimNode:
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         wanted = self._wanted
         # /joint_states first: it is what a lockstep controller waits for
-        n_subs = self.pubs["joint_states"][0].get_subscription_count()
-        self._n_js_subs = n_subs        # baseline of _republish_for_new_subscribers
-        if n_subs or (record and self.recorder is not None):
+        if svc.counters["steps"] or svc.counters["resets"]:
+            send = wanted("joint_states", record)
+        else:   # state 0: the exact count, the baseline of _republish_for_new_subscribers
+            self._n_js_subs = self.pubs["joint_states"][0].get_subscription_count()
+            send = self._n_js_subs > 0 or (record and self.recorder is not None)
+        if send:
             cdr = self._js_cdr
             if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
                 data = cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
@@ -1100,6 +1068,20 @@ class SimNode:
         if wanted("solver", record):
             self._fill_diagnostics(sec, nsec)
             self._emit("solver", self.diag_msg, record)
+        if record:
+            self._prepare_next_step()
+        if not (0 <= svc.k - self._counts_k < self.SUBSCRIBER_REFRESH):
+            self._refresh_counts()
+
+    def _prepare_next_step(self):
+        """The controller now works on its answer to the state just published: do the
+        torque-independent part of the next step meanwhile (Simulator.prepare), which takes
+        it off the lockstep critical path (command in -> step -> state out). The result of
+        the step is the same with or without it."""
+        try:
+            self.sim.prepare()
+        except Exception as e:   # pragma: no cover - the step redoes it and reports
+            self.service.warnings.warn("prepare", f"preparing the next step failed: {e}")
 
     INTERFACE_STATUS_EVERY = 40   # steps (10 Hz at 400 Hz); also on every lockstep timeout
 
@@ -1143,6 +1125,22 @@ class SimNode:
     def _on_effort(self, msg):
         if self.service.submit_effort_array(msg.data)[0] and self._step_on_answer:
             self._advance()
+
+    def _on_effort_cdr(self, data) -> bool:
+        ok, tau = self.decoder.effort_array(data)
+        if not ok:
+            return False
+        if self.service.submit_effort_array(tau)[0] and self._step_on_answer:
+            self._advance()
+        return True
+
+    def _on_joint_command_cdr(self, data) -> bool:
+        ok, stamp_ns, tau = self.decoder.joint_command(data)
+        if not ok:
+            return False
+        if self.service.submit_ordered_joint_command(tau, stamp_ns)[0] and self._step_on_answer:
+            self._advance()
+        return True
 
     def _on_joint_command(self, msg):
         st = msg.header.stamp
