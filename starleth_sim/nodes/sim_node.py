@@ -55,6 +55,12 @@ CDR) is rejected with a throttled warning naming the problem; the last valid com
 ``~/reset`` restores the initial state; sim time keeps running (the reset takes one control
 period, so stamps stay strictly increasing and answers to the old state are stale).
 
+Lockstep critical path (command in -> step -> state out): commands are taken as CDR bytes
+and the common valid case is decoded without an rclpy message object (:mod:`.cdr`; the
+rest is deserialised and validated in full), /joint_states goes out from a CDR template
+before any other topic, and right after publishing the node prepares the torque-independent
+part of the next step (``Simulator.prepare``) while the controller computes its answer.
+
 The ROS-free part (command validation, lockstep bookkeeping, counters, stepping) is
 :class:`SimService`; :class:`SimNode` is the rclpy plumbing.
 """
