@@ -371,6 +371,7 @@ class TestRealtime:
     def test_pause_step_reset(self, ros, rt):
         col = Collector(ros, JointState, "/joint_states")
         try:
+            assert ros.spin_until(lambda: len(col.msgs) > 0, 5)   # subscribed and matched
             r = ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True))
             assert r.success
             ros.spin_for(0.2)

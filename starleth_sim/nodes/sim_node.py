@@ -974,9 +974,9 @@ class SimNode:
     def _wanted(self, key, record):
         """Build and publish a topic only if it is recorded or someone subscribes (an
         unmatched publish is invisible; skipping it keeps the lockstep cycle short). The
-        counts are refreshed every SUBSCRIBER_REFRESH steps, after the state is out (see
-        _refresh_counts): a new subscriber gets its first message at most that many steps
-        late."""
+        counts are taken after the previous state went out (publish_state): /joint_states
+        every step, the other topics every SUBSCRIBER_REFRESH steps, so a new subscriber
+        gets its first message at most one step (/joint_states) or that many steps late."""
         if record and self.recorder is not None:
             return True
         if self._counts_k < 0:      # no counts yet, or asked for fresh ones
@@ -1076,8 +1076,14 @@ class SimNode:
             self._emit("solver", self.diag_msg, record)
         if record:
             self._prepare_next_step()
+        # subscriber counts for the next state, taken now that this one is out (off the
+        # lockstep critical path): /joint_states every step, the others every
+        # SUBSCRIBER_REFRESH steps
         if not (0 <= svc.k - self._counts_k < self.SUBSCRIBER_REFRESH):
             self._refresh_counts()
+        else:
+            self._counts["joint_states"] = \
+                self.pubs["joint_states"][0].get_subscription_count()
 
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the
