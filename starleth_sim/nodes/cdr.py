@@ -155,6 +155,10 @@ class CommandDecoder:
         self.names_ptr = np.concatenate([[0], np.cumsum([len(e) for e in encoded])]).astype(
             np.int64)
         self.n = len(encoded)
+        # compile (or load from numba's cache) now, not on the first command: a first
+        # compile inside a running 400 Hz loop stalls it for up to a second
+        self.joint_command(bytes(16))
+        self.effort_array(bytes(16))
 
     def joint_command(self, data):
         effort = np.empty(self.n)
