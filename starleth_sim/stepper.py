@@ -9,6 +9,12 @@ One step over Δt = t^E − t^S:
 Hard contacts solve (7) with the JOR/SOR prox iterations of :mod:`starleth_sim.prox`;
 compliant contacts (Alg. 1) add their forces, evaluated at (q^M, u^S), to h and Λ_U
 vanishes. The stepper works for any coordinate set (see :mod:`starleth_sim.coordinates`).
+
+A step runs in two parts: `MoreauStepper.prepare` does everything that depends only on
+(q^S, u^S) (q^M, M, h without τ, the kinematics, the factor of M, M^{-1}W, G), and
+`MoreauStepper.step` adds the joint torques and external forces to h and solves (7) and (8).
+A caller may prepare ahead (sim_node does, while its controller computes); the result is
+the same bit for bit.
 """
 from __future__ import annotations
 
