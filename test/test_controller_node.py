@@ -12,10 +12,6 @@ finally; every wait is bounded.
 import array
 import math
 import os
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -23,9 +19,8 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
-from rclpy.node import Node  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from geometry_msgs.msg import WrenchStamped  # noqa: E402
@@ -44,76 +39,9 @@ WRENCH_TOPICS = [f"/starleth/{leg}_foot/wrench" for leg in ("LF", "RF", "LH", "R
 # -----------------------------------------------------------------------------------------
 # helpers
 # -----------------------------------------------------------------------------------------
-class Proc:
-    """A node as a child process; log in a file; stop() always ends it."""
-
-    def __init__(self, module, log_path, name=None, **params):
-        cmd = [sys.executable, "-m", module, "--ros-args"]
-        if name:
-            cmd += ["-r", f"__node:={name}"]
-        for k, v in params.items():
-            val = f'"{v}"' if isinstance(v, str) else repr(v)
-            cmd += ["-p", f"{k}:={val}"]
-        env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1",
-                   RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
-        self.log_path = log_path
-        self._log = open(log_path, "w")
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
-                                     stderr=subprocess.STDOUT, env=env)
-
-    def alive(self):
-        return self.proc.poll() is None
-
-    def stop(self, timeout=20.0):
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        self._log.close()
-        return self.proc.returncode
-
-    def log(self):
-        with open(self.log_path) as f:
-            return f.read()
-
-
-class RosTestNode:
-    """A test node in its own context on DOMAIN_ID."""
-
-    def __init__(self, name="test_controller_node"):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
-        self.node = Node(name, context=self.context)
-        self.ex = SingleThreadedExecutor(context=self.context)
-        self.ex.add_node(self.node)
-
-    def wait(self, cond, timeout, procs=()):
-        t_end = time.monotonic() + timeout
-        while not cond():
-            for p in procs:
-                assert p.alive(), f"process died:\n{p.log()[-3000:]}"
-            if time.monotonic() > t_end:
-                return False
-            self.ex.spin_once(timeout_sec=0.01)
-        return True
-
-    def spin_for(self, seconds):
-        t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end:
-            self.ex.spin_once(timeout_sec=0.01)
-
-    def call(self, client, request, timeout=10.0):
-        assert self.wait(client.service_is_ready, timeout), f"{client.srv_name} not available"
-        fut = client.call_async(request)
-        assert self.wait(fut.done, timeout), f"{client.srv_name}: no response"
-        return fut.result()
-
-    def close(self):
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+def Proc(module, log_path, name=None, **params):
+    """A node as a child process on DOMAIN_ID; log in a file; stop() always ends it."""
+    return NodeProcess(module, log_path, DOMAIN_ID, name=name, **params)
 
 
 def _stamp(ns):
@@ -221,12 +149,12 @@ class PDPosture:
 def test_swap_in_pd_posture_controller_keeps_standing(tmp_path):
     sim = Proc("starleth_sim.nodes.sim_node", str(tmp_path / "sim.log"), mode="lockstep",
                real_time_factor=0.0, physics="HmJ", lockstep_timeout=5.0)
-    ros = RosTestNode("pd_posture")
+    ros = RosTestNode(DOMAIN_ID, "pd_posture")
     try:
         pd = PDPosture(ros.node)
         seconds = 3.0
         n = int(seconds * 400)
-        ok = ros.wait(lambda: pd.states > n, START_TIMEOUT, [sim])
+        ok = ros.spin_until(lambda: pd.states > n, START_TIMEOUT, [sim])
         assert ok, f"only {pd.states} states in time:\n{sim.log()[-3000:]}"
         ros.spin_for(0.05)
     finally:
@@ -297,15 +225,15 @@ class FakeRobot:
 def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
     ctrl = Proc("starleth_controller.controller_node", str(tmp_path / "ctrl.log"),
                 warn_throttle_period=0.0)
-    ros = RosTestNode("fake_robot")
+    ros = RosTestNode(DOMAIN_ID, "fake_robot")
     try:
         robot = FakeRobot(ros.node)
-        assert ros.wait(robot.matched, START_TIMEOUT, [ctrl]), ctrl.log()
+        assert ros.spin_until(robot.matched, START_TIMEOUT, [ctrl]), ctrl.log()
         ros.spin_for(0.2)
 
         def step(k, **kw):
             robot.publish(k * PERIOD_NS, **kw)
-            return ros.wait(lambda: k * PERIOD_NS in robot.answers, 3.0, [ctrl])
+            return ros.spin_until(lambda: k * PERIOD_NS in robot.answers, 3.0, [ctrl])
 
         # a good state is answered, stamped like the state, names + 12 finite efforts
         assert step(1), ctrl.log()
@@ -340,16 +268,16 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
         getp = ros.node.create_client(GetParameters, "/controller_node/get_parameters")
 
         def mode():
-            return ros.call(getp, GetParameters.Request(names=["mode"])).values[0].string_value
+            return ros.call_client(getp, GetParameters.Request(names=["mode"])).values[0].string_value
 
-        res = ros.call(trot, SetBool.Request(data=True))
+        res = ros.call_client(trot, SetBool.Request(data=True))
         assert res.success and mode() == "trot", res.message
-        res = ros.call(trot, SetBool.Request(data=False))
+        res = ros.call_client(trot, SetBool.Request(data=False))
         assert res.success and mode() == "stand", res.message
         def set_mode(value):
             req = SetParameters.Request(
                 parameters=[Parameter("mode", value=value).to_parameter_msg()])
-            return ros.call(setp, req).results[0].successful
+            return ros.call_client(setp, req).results[0].successful
 
         assert not set_mode("gallop") and mode() == "stand"
         assert set_mode("trot") and mode() == "trot"

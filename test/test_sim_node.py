@@ -4,10 +4,7 @@ is driven from a test node in this process. Every child process is stopped in a 
 teardown or a finally; every wait is bounded."""
 import json
 import os
-import re
 import signal
-import subprocess
-import sys
 import gc
 import time
 
@@ -17,8 +14,6 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
-from rclpy.node import Node  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState, Imu  # noqa: E402
 from geometry_msgs.msg import WrenchStamped  # noqa: E402
@@ -28,6 +23,7 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import Trigger, SetBool  # noqa: E402
 
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from starleth_sim.bench_ros import EchoController  # noqa: E402
 
 # one ROS domain per test module and process (other modules use other ranges)
@@ -55,85 +51,9 @@ ALL_TOPICS = {**STATE_TOPICS, "/robot_description": "std_msgs/msg/String", **INP
 # -----------------------------------------------------------------------------------------
 # helpers
 # -----------------------------------------------------------------------------------------
-class SimProcess:
-    """sim_node as a child process; log in a file; always stopped by stop()."""
-
-    def __init__(self, log_path, **params):
-        cmd = [sys.executable, "-m", "starleth_sim.nodes.sim_node", "--ros-args"]
-        for k, v in params.items():
-            val = f'"{v}"' if isinstance(v, str) else repr(v)
-            cmd += ["-p", f"{k}:={val}"]
-        env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1",
-                   RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
-        self.log_path = log_path
-        self._log = open(log_path, "w")
-        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=env)
-
-    def alive(self):
-        return self.proc.poll() is None
-
-    def stop(self, sig=signal.SIGINT, timeout=30.0):
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        self._log.close()
-        return self.proc.returncode
-
-    def log(self):
-        with open(self.log_path) as f:
-            return f.read()
-
-    def summary(self):
-        m = re.findall(r"summary: (\{.*\})", self.log())
-        return json.loads(m[-1]) if m else None
-
-
-class Ros:
-    """A test node in its own context on DOMAIN_ID."""
-
-    def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
-        self.node = Node("sim_node_test", context=self.context)
-        try:    # the C++ events executor: much less overhead per callback
-            from rclpy.experimental import EventsExecutor
-            self.executor = EventsExecutor(context=self.context)
-        except ImportError:
-            self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_until(self, cond, timeout, step=0.01):
-        t_end = time.monotonic() + timeout
-        while True:
-            if cond():
-                return True
-            if time.monotonic() > t_end:
-                return False
-            self.executor.spin_once(timeout_sec=step)
-
-    def spin_for(self, seconds):
-        t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end:
-            self.executor.spin_once(timeout_sec=0.01)
-
-    def call(self, srv_type, name, request, timeout=10.0):
-        client = self.node.create_client(srv_type, name)
-        try:
-            assert self.spin_until(lambda: client.service_is_ready(), timeout), f"no service {name}"
-            fut = client.call_async(request)
-            assert self.spin_until(fut.done, timeout), f"no answer from {name}"
-            return fut.result()
-        finally:
-            self.node.destroy_client(client)
-
-    def close(self):
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+def SimProcess(log_path, **params):
+    """sim_node as a child process on DOMAIN_ID; log in a file; always stopped by stop()."""
+    return NodeProcess("starleth_sim.nodes.sim_node", log_path, DOMAIN_ID, **params)
 
 
 class Collector:
@@ -178,7 +98,7 @@ class DiagWatcher:
 
 @pytest.fixture(scope="module")
 def ros():
-    r = Ros()
+    r = RosTestNode(DOMAIN_ID, "sim_node_test", events=True)
     yield r
     r.close()
 

@@ -1,0 +1,113 @@
+"""ROS 2 helpers of the node integration tests (test_sim_node, test_controller_node): a node
+run as a child process on a ROS domain, and a test node in its own rclpy context. Every
+wait is bounded; stop() always ends the process."""
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+
+class NodeProcess:
+    """`python -m module --ros-args -p k:=v ...` as a child process on domain_id (optionally
+    renamed to `name`); its output in log_path."""
+
+    def __init__(self, module, log_path, domain_id, name=None, **params):
+        cmd = [sys.executable, "-m", module, "--ros-args"]
+        if name:
+            cmd += ["-r", f"__node:={name}"]
+        for k, v in params.items():
+            val = f'"{v}"' if isinstance(v, str) else repr(v)
+            cmd += ["-p", f"{k}:={val}"]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
+                   RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
+        self.log_path = log_path
+        self._log = open(log_path, "w")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
+                                     stderr=subprocess.STDOUT, env=env)
+
+    def alive(self):
+        return self.proc.poll() is None
+
+    def stop(self, sig=signal.SIGINT, timeout=30.0):
+        """Send sig, wait up to timeout, then kill; returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        self._log.close()
+        return self.proc.returncode
+
+    def log(self):
+        with open(self.log_path) as f:
+            return f.read()
+
+    def summary(self):
+        """The last `summary: {...}` JSON line a node logged (sim_node does on exit)."""
+        m = re.findall(r"summary: (\{.*\})", self.log())
+        return json.loads(m[-1]) if m else None
+
+
+class RosTestNode:
+    """A test node `name` in its own context on domain_id; events=True spins it with
+    rclpy's C++ EventsExecutor (much less overhead per callback) where available."""
+
+    def __init__(self, domain_id, name, events=False):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = Node(name, context=self.context)
+        self.executor = None
+        if events:
+            try:
+                from rclpy.experimental import EventsExecutor
+                self.executor = EventsExecutor(context=self.context)
+            except ImportError:
+                pass
+        if self.executor is None:
+            self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, cond, timeout, procs=(), step=0.01):
+        """Spin until cond() (True) or timeout (False); a dead process of procs fails."""
+        t_end = time.monotonic() + timeout
+        while True:
+            if cond():
+                return True
+            for p in procs:
+                assert p.alive(), f"process died:\n{p.log()[-3000:]}"
+            if time.monotonic() > t_end:
+                return False
+            self.executor.spin_once(timeout_sec=step)
+
+    def spin_for(self, seconds):
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def call_client(self, client, request, timeout=10.0):
+        assert self.spin_until(client.service_is_ready, timeout), \
+            f"{client.srv_name} not available"
+        fut = client.call_async(request)
+        assert self.spin_until(fut.done, timeout), f"{client.srv_name}: no response"
+        return fut.result()
+
+    def call(self, srv_type, name, request, timeout=10.0):
+        client = self.node.create_client(srv_type, name)
+        try:
+            return self.call_client(client, request, timeout)
+        finally:
+            self.node.destroy_client(client)
+
+    def close(self):
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
