@@ -164,16 +164,21 @@ def _kinetic_energy(M, u):
 
 
 @nb.njit(cache=True)
-def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
-    """u = u_free + M^{-1} W Λ (Eqn. 17)."""
-    m = MinvW.shape[1]
-    u[:] = u_free
-    for l in range(m):
+def _add_impulse_columns(MinvW, lam, u, mp_ptr, mp_idx, ncols):
+    """u += M^{-1} W[:, :ncols] Λ[:ncols], with the column pattern of M^{-1} W."""
+    for l in range(ncols):
         x = lam[l]
         if x != 0.0:
             for p in range(mp_ptr[l], mp_ptr[l + 1]):
                 k = mp_idx[p]
                 u[k] += MinvW[k, l] * x
+
+
+@nb.njit(cache=True)
+def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
+    """u = u_free + M^{-1} W Λ (Eqn. 17)."""
+    u[:] = u_free
+    _add_impulse_columns(MinvW, lam, u, mp_ptr, mp_idx, MinvW.shape[1])
 
 
 @nb.njit(cache=True)
@@ -202,12 +207,7 @@ def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, m
     o = 3 * nc
     nb_ = m - o
     uu = u_free.copy()
-    for l in range(o):
-        x = lam[l]
-        if x != 0.0:
-            for p in range(mp_ptr[l], mp_ptr[l + 1]):
-                k = mp_idx[p]
-                uu[k] += MinvW[k, l] * x
+    _add_impulse_columns(MinvW, lam, uu, mp_ptr, mp_idx, o)      # W_U Λ_U only
     rhs = np.empty(nb_)
     for a in range(nb_):
         s = 0.0
