@@ -82,6 +82,7 @@ import yaml
 
 from .. import Simulator, ConfigError, SimulationError
 from ..description import STARLETH_FEET as FEET
+from ..kinematics import quat_xyzw_to_rot
 from .cdr import CommandDecoder, JointStateCdr
 from ..topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS, TOPIC_IMU,
                       TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
@@ -712,10 +713,10 @@ class PeriodStats:
 # math helpers
 # =========================================================================================
 def quat_to_matrix(qx, qy, qz, qw):
-    return np.array([
-        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
-        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
-        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)]])
+    """Rotation matrix of the unit quaternion (x, y, z, w) (kinematics.quat_xyzw_to_rot)."""
+    R = np.empty((3, 3))
+    quat_xyzw_to_rot(float(qx), float(qy), float(qz), float(qw), R)
+    return R
 
 
 def _dbl(a) -> array.array:
