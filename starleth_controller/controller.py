@@ -154,6 +154,14 @@ class ControllerParams:
     recover_time: float = 1.0            # ... for this long, with >= 3 feet on the ground [s]
 
 
+def _to_heading(v, cy, sy, out):
+    """out = R_z(ψ)ᵀ v: a world 3-vector in the heading frame (yaw ψ, cy = cos ψ, sy = sin ψ)."""
+    out[0] = cy * v[0] + sy * v[1]
+    out[1] = -sy * v[0] + cy * v[1]
+    out[2] = v[2]
+    return out
+
+
 def _smooth(x):
     """Smoothstep on [0, 1] and its derivative."""
     if x <= 0.0:
@@ -448,10 +456,7 @@ class StarlethController:
             e[2] = self._ground + (p.trot_height if trotting and p.trot_height else p.height) \
                 - pb[2]
             np.clip(e, -p.max_position_error, p.max_position_error, out=e)
-            vh = self._vh
-            vh[0] = cy * vb[0] + sy * vb[1]
-            vh[1] = -sy * vb[0] + cy * vb[1]
-            vh[2] = vb[2]
+            vh = _to_heading(vb, cy, sy, self._vh)
             vd = self._vd
             vd[0], vd[1] = vcx, vcy
             kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = gains
@@ -474,15 +479,9 @@ class StarlethController:
                                                       math.sin(self._yaw_des),
                                                       math.cos(self._yaw_des))
             er = pin.log3(Rd @ R.T)
-            eh = self._eh
-            eh[0] = cy * er[0] + sy * er[1]
-            eh[1] = -sy * er[0] + cy * er[1]
-            eh[2] = er[2]
+            eh = _to_heading(er, cy, sy, self._eh)
             np.clip(eh, -p.max_orientation_error, p.max_orientation_error, out=eh)
-            wh = self._wh
-            wh[0] = cy * ww[0] + sy * ww[1]
-            wh[1] = -sy * ww[0] + cy * ww[1]
-            wh[2] = ww[2]
+            wh = _to_heading(ww, cy, sy, self._wh)
             wd = self._wd
             wd[2] = wc
             b[3:6] = kp_r * eh + kd_r * (wd - wh) + kff_r * wd

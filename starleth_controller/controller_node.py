@@ -362,27 +362,29 @@ class ControllerNode(Node):
                 self._publish(last[1], last[2])
             return
         s = self._slot(stamp)
-        if s.js is None:
-            s.n += 1
+        new = s.js is None
         s.js = msg
-        if s.n == 6:
-            self._complete(stamp, s)
+        self._received(stamp, s, new)
 
     def _on_base_state(self, msg):
         stamp = _stamp_ns(msg.header)
         s = self._slot(stamp)
-        if s.odom is None:
-            s.n += 1
+        new = s.odom is None
         s.odom = msg
-        if s.n == 6:
-            self._complete(stamp, s)
+        self._received(stamp, s, new)
 
     def _on_wrench(self, k, msg):
         stamp = _stamp_ns(msg.header)
         s = self._slot(stamp)
-        if s.wrench[k] is None:
-            s.n += 1
+        new = s.wrench[k] is None
         s.wrench[k] = msg
+        self._received(stamp, s, new)
+
+    def _received(self, stamp, s, new):
+        """One of the 6 messages of the state `stamp` arrived (new: not a repeat of one
+        already in the slot); the controller runs once all 6 are in."""
+        if new:
+            s.n += 1
         if s.n == 6:
             self._complete(stamp, s)
 
