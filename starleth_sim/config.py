@@ -86,12 +86,31 @@ class ContactConfig:
     damping_tangential: float = 50.0
     #: |γ_T| below which a slipping compliant contact counts as stopped (‖γ_T‖ ≈ 0)
     slip_velocity: float = 1e-4
-    #: hard contacts: a contact is in the active set when g_N(q^M) ≤ activation_gap. The
-    #: paper uses 0; a tiny positive margin keeps a loaded foot whose gap round-off or the
-    #: solver tolerance made 1e-8 m positive from being dropped for a whole step (it then
-    #: sinks by ~0.4 mm in one 2.5 ms step). Contacts in the margin can still separate
-    #: (Λ_N ≥ 0); an approaching body is stopped at most this far above the ground [m].
-    activation_gap: float = 1e-5
+    #: hard contacts, the active set I at the midpoint q^M (Eqn. 7):
+    #:   "paper":      I = {i | g_N,i(q^M) ≤ activation_gap}
+    #:   "hysteresis": the same, plus every contact that carried a normal impulse Λ_N > 0 in
+    #:                 the last step while g_N,i(q^M) ≤ opening_gap. A loaded contact is then
+    #:                 never dropped by the gap test alone (the velocity-level law lets a
+    #:                 loaded sphere foot drift up by O(Δt²) per step); the contact law
+    #:                 decides whether it opens (Λ_N = 0, γ_N > 0).
+    activation: str = "hysteresis"
+    #: g_act [m]; the paper's 0. A contact in the active set above the ground (0 < g_N) may
+    #: approach it within the step: the normal law acts on γ_N^E + ε_N γ_N^S + g_N⁺/Δt, so
+    #: nothing is stopped above the ground and a loaded contact that drifted up is let down
+    #: again by its load (Λ_N ≥ 0 still: the term never pulls).
+    activation_gap: float = 0.0
+    #: "hysteresis" only: a loaded contact stays active while g_N(q^M) ≤ this [m]
+    opening_gap: float = 5e-3
+    #: penetration correction of the unilateral contacts, β_N ∈ [0, 1] (0: the paper's law):
+    #:   "projection": after the velocity step, the end positions are projected so that the
+    #:                 active contacts' predicted end gaps g_N(q^E) lose the fraction β_N of
+    #:                 their penetration (Acary 2013's post-step projection): q^E = q^M ⊕
+    #:                 ½Δt (u^E + Δu_p), Δu_p = M^{-1}(W_N P_N + W_B P_B), P_N ≥ 0 pushes only,
+    #:                 W_B^T Δu_p = 0; the velocities u^E, hence the impact law, are untouched.
+    #:   "velocity":   Baumgarte-like, in the normal law: ξ_N += (β_N/Δt) min(g_N(q^M), 0)
+    #:                 (adds kinetic energy and changes the rebound of an impact).
+    penetration_correction: str = "projection"
+    penetration_stabilization: float = 1.0
 
     def validate(self, p):
         self.restitution_normal = _num(f"{p}.restitution_normal", self.restitution_normal, 0, 1)
@@ -111,8 +130,18 @@ class ContactConfig:
         self.restitution_overrides = clean
         for n in ("stiffness_normal", "stiffness_tangential"):
             setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0, lo_open=True))
-        for n in ("damping_normal", "damping_tangential", "slip_velocity", "activation_gap"):
+        for n in ("damping_normal", "damping_tangential", "slip_velocity", "activation_gap",
+                  "opening_gap"):
             setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0))
+        self.activation = _choice(f"{p}.activation", self.activation, {"hysteresis", "paper"})
+        if self.activation == "hysteresis" and self.opening_gap < self.activation_gap:
+            raise ConfigError(f"{p}.opening_gap: must be >= activation_gap "
+                              f"({self.activation_gap:g}), got {self.opening_gap:g}")
+        self.penetration_correction = _choice(f"{p}.penetration_correction",
+                                              self.penetration_correction,
+                                              {"projection", "velocity"})
+        self.penetration_stabilization = _num(f"{p}.penetration_stabilization",
+                                              self.penetration_stabilization, 0.0, 1.0)
 
 
 @dataclass

@@ -62,6 +62,7 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
     iters = np.zeros(n, dtype=np.int64)
     lf_force, lf_t = [], []
     foot_gap, drift_t, drift_g = [], [], []
+    foot_penetration = np.zeros(n)   # deepest foot below the ground after each step [m]
     min_height, max_tilt = 1.0, 0.0
     knee_trunk = set()
     error = None
@@ -85,6 +86,8 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
         k_done = k + 1
         if stop_on_nonconvergence and not d.converged:
             break
+        gaps = sim.gaps()[feet]
+        foot_penetration[k] = max(0.0, -float(gaps.min()))
         b = sim.base_state()
         min_height = min(min_height, float(b["position"][2]))
         x, y, z, w = b["orientation_xyzw"]
@@ -98,7 +101,6 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
                 if c.active and not c.name.endswith("_foot"):
                     knee_trunk.add(c.name)
         if k % 10 == 0:
-            gaps = sim.gaps()[feet]
             act = np.array([sim.contacts[i].active for i in feet])
             if act.any():
                 foot_gap.append((sim.t, float(gaps[act].mean()), float(gaps[act].min())))
@@ -114,7 +116,10 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
                distance=float(sim.base_state()["position"][0]),
                control_period=sim.control_period,
                steps_per_control=sim.config.steps_per_control,
-               foot_gap=foot_gap, drift_t=drift_t, drift_g=drift_g)
+               foot_gap=foot_gap, drift_t=drift_t, drift_g=drift_g,
+               foot_penetration=foot_penetration[:k_done].tolist(),
+               loaded_contacts_opened=int(sim.diagnostics.loaded_contacts_opened_total),
+               projections=int(sim.stepper.stats.projections))
     if record_lf:
         out["lf_t"], out["lf_force"] = lf_t, lf_force
     if profile:
@@ -149,6 +154,12 @@ def task_table1(preset, seconds):
                nonconverged=r["nonconverged"], min_height=r["min_height"],
                distance=r["distance"], error=r["error"])
     gaps = np.array([g for g in r["foot_gap"] if g[0] > STAND_BEFORE_TROT + 1.0])
+    pen = np.asarray(r["foot_penetration"][int(round(STAND_BEFORE_TROT / r["control_period"])):])
+    if r["preset"] != "Cm" and len(pen):
+        res["foot_penetration_mean_mm"] = float(1e3 * pen.mean())
+        res["foot_penetration_max_mm"] = float(1e3 * pen.max())
+        res["loaded_contacts_opened"] = r["loaded_contacts_opened"]
+        res["projections"] = r["projections"]
     if len(gaps):
         res["foot_sink_mean_mm"] = float(-1e3 * gaps[:, 1].mean())
         res["foot_sink_max_mm"] = float(-1e3 * gaps[:, 2].min())
@@ -221,10 +232,108 @@ def task_pushover(preset, seconds):
 
 
 # ----------------------------------------------------------------------------------------------
+# hard-contact rule: the sagging-posture scenario and the comparison of the contact-law variants
+# ----------------------------------------------------------------------------------------------
+#: the soft joint PD hold under which StarlETH sags onto its feet: τ = K_p (φ₀ − φ) − K_d φ̇,
+#: clipped at ±SAG_TORQUE_LIMIT
+SAG_KP, SAG_KD, SAG_TORQUE_LIMIT = 80.0, 2.0, 20.0
+
+
+def pd_sag(preset, seconds=2.0, **overrides):
+    """StarlETH from `reset()` under the soft joint PD hold (it sags by ~15 mm onto its
+    feet). Returns the simulator and per control step: the deepest foot penetration
+    max(0, −min g_N) after the step [m], the largest gap of a foot that carried a normal
+    impulse in the step (a "hovering" loaded foot) [m], prox iterations, loaded contacts
+    opened, and the kinetic energy [J]."""
+    from .simulator import Simulator
+    sim = Simulator.from_preset(preset, **overrides)
+    sim.reset()
+    q0 = sim.joint_positions()
+    feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
+    n = int(round(seconds / sim.control_period))
+    out = np.zeros((n, 5))
+    for k in range(n):
+        tau = np.clip(SAG_KP * (q0 - sim.joint_positions()) - SAG_KD * sim.joint_velocities(),
+                      -SAG_TORQUE_LIMIT, SAG_TORQUE_LIMIT)
+        d = sim.step(tau)
+        g = sim.gaps()[feet]
+        cs = sim.contacts
+        loaded = [g[j] for j, i in enumerate(feet) if cs[i].impulse @ sim.stepper.ground.n > 0]
+        out[k] = (max(0.0, -g.min()), max(loaded) if loaded else np.nan, d.iterations,
+                  d.loaded_contacts_opened, sim.coords.kinetic_energy(sim._q, sim._u))
+    return sim, out
+
+
+def ball_drop(restitution, height, overrides, seconds=1.0):
+    """A 1 kg ball of radius 0.1 m dropped from `height` onto the ground at Δt = 1 ms with
+    the HmJ contact law (and `overrides`). Returns (v⁻, v⁺ of the impact step, highest
+    rebound above the rest height [m])."""
+    from .config import load_preset
+    from .description import RobotDescription, sphere_urdf
+    from .simulator import Simulator
+    cfg = load_preset("HmJ").with_overrides(control_rate=1000.0, restitution_normal=restitution,
+                                            tol_rel=1e-10, tol_abs=1e-12, **overrides)
+    sim = Simulator(cfg, description=RobotDescription.from_urdf_xml(sphere_urdf(0.1, 1.0)))
+    z_rest = sim.q[2]
+    q = sim.q
+    q[2] += height
+    sim.reset(q)
+    vz, z = [], []
+    for _ in range(int(round(seconds / sim.control_period))):
+        sim.step()
+        vz.append(sim.u[2])
+        z.append(sim.q[2] - z_rest)
+    vz, z = np.array(vz), np.array(z)
+    k = int(np.argmax(np.diff(vz) > 0.5))
+    return float(vz[k]), float(vz[k + 1]), float(z[k + 1:].max())
+
+
+#: the rules compared in the report: (label, overrides of the HmJ preset)
+CONTACT_VARIANTS = (
+    ("paper: g_N ≤ 0, no correction", dict(activation="paper", activation_gap=0.0,
+                                           penetration_stabilization=0.0)),
+    ("paper with g_act = 10 µm (before #11)", dict(activation="paper", activation_gap=1e-5,
+                                                   penetration_stabilization=0.0)),
+    ("hysteresis, no correction", dict(penetration_stabilization=0.0)),
+    ("hysteresis + velocity β_N = 0.2", dict(penetration_correction="velocity",
+                                             penetration_stabilization=0.2)),
+    ("hysteresis + velocity β_N = 1", dict(penetration_correction="velocity",
+                                           penetration_stabilization=1.0)),
+    ("hysteresis + projection β_N = 1 (presets)", dict()),
+)
+
+
+def task_contact_variant(label, overrides, seconds):
+    """One contact-law variant on HmJ: the sagging posture (2 s), trotting (stand 1 s, trot
+    `seconds`), and the energy of impacts (plastic and ε_N = 0.5 ball drops)."""
+    _, sag = pd_sag("HmJ", 2.0, **overrides)
+    r = run_gait("HmJ", "trot", STAND_BEFORE_TROT + seconds, **overrides)
+    k0 = int(round(STAND_BEFORE_TROT / r["control_period"]))
+    pen = np.asarray(r["foot_penetration"][k0:])
+    wall = np.asarray(r["wall"])
+    _, v_plastic, h_plastic = ball_drop(0.0, 0.2, overrides)
+    v_minus, v_plus, apex = ball_drop(0.5, 1.0, overrides)
+    return dict(kind="contact_variant", label=label, overrides=overrides,
+                sag_penetration_max_mm=float(1e3 * sag[:, 0].max()),
+                sag_hover_max_um=float(1e6 * np.nanmax(sag[:, 1])),
+                sag_opened=int(sag[:, 3].sum()), sag_iterations=float(sag[:, 2].mean()),
+                sag_final_kinetic_energy=float(sag[-1, 4]),
+                trot_penetration_mean_mm=float(1e3 * pen.mean()) if len(pen) else float("nan"),
+                trot_penetration_max_mm=float(1e3 * pen.max()) if len(pen) else float("nan"),
+                trot_iterations=float(np.mean(r["iterations"])),
+                trot_opened=r["loaded_contacts_opened"], trot_projections=r["projections"],
+                trot_steps_per_second=float(len(wall) / wall.sum()) if wall.sum() else 0.0,
+                trot_distance=r["distance"], error=r["error"],
+                plastic_rebound_velocity=v_plastic, plastic_rebound_height_mm=1e3 * h_plastic,
+                restitution_ratio=-v_plus / v_minus, restitution_apex_ratio=apex / 1.0)
+
+
+# ----------------------------------------------------------------------------------------------
 def plan(quick: bool, configs):
     s = dict(table1=4.0 if quick else 21.0, fig5=3.0 if quick else 4.0,
              fig7=2.0 if quick else 5.0, fig6=1.2 if quick else 4.0,
-             drift=6.0 if quick else 60.0, push=2.0 if quick else 4.0)
+             drift=6.0 if quick else 60.0, push=2.0 if quick else 4.0,
+             variants=2.0 if quick else 5.0)
     alphas = (0.2, 0.6, 1.0, 1.4, 1.8) if quick else tuple(np.round(np.arange(0.1, 2.0, 0.1), 2))
     fig6_configs = [c for c in (("HmJ", "HmS", "HMJP", "HMSP") if quick else FIG6_CONFIGS)
                     if c in configs]
@@ -239,6 +348,9 @@ def plan(quick: bool, configs):
     tasks += [(task_bilateral_drift, dict(preset=c, seconds=s["drift"]))
               for c in configs if c[:2] in ("HE", "HM")]
     tasks += [(task_pushover, dict(preset=c, seconds=s["push"])) for c in configs]
+    if "HmJ" in configs:
+        tasks += [(task_contact_variant, dict(label=lab, overrides=ov, seconds=s["variants"]))
+                  for lab, ov in CONTACT_VARIANTS]
     return tasks
 
 
@@ -385,6 +497,36 @@ def _fmt(x, nd=0):
     return f"{x:,.{nd}f}"
 
 
+def _contact_variant_section(results):
+    rows = {r["label"]: r for r in _by(results, "contact_variant")}
+    if not rows:
+        return []
+    lines = ["", "## Hard contacts: activation rule and penetration correction (HmJ)", "",
+             "Why the presets use `activation: hysteresis` and `penetration_correction: "
+             "projection` with β_N = 1 (see `contact` in `config.py`). Sagging posture: "
+             "`reset()` under a soft joint PD hold (80 N m/rad, 2 N m s/rad, ±20 N m), 2 s. "
+             "Trot: the controller, 0.3 m/s, after 1 s of standing. Penetration: the deepest "
+             "foot below the ground after a step. Ball: 1 kg, r = 0.1 m, Δt = 1 ms, dropped "
+             "from 0.2 m with ε_N = 0 (any rebound is energy the correction added) and from "
+             "1 m with ε_N = 0.5 (exact: v⁺/v⁻ = 0.5, apex ε² h = 0.25 m).", "",
+             "| rule | sag: max penetration | sag: loaded contacts dropped | trot: penetration "
+             "mean / max | trot: dropped | trot: iterations / step (projections) | trot: "
+             "steps/s | plastic drop: rebound | ε = 0.5: v⁺/v⁻, apex [m] |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for label, _ in CONTACT_VARIANTS:
+        r = rows.get(label)
+        if r is None:
+            continue
+        lines.append(
+            f"| {label} | {r['sag_penetration_max_mm']:.4f} mm | {r['sag_opened']} | "
+            f"{r['trot_penetration_mean_mm']:.4f} / {r['trot_penetration_max_mm']:.4f} mm | "
+            f"{r['trot_opened']} | {r['trot_iterations']:.1f} ({r['trot_projections']}) | "
+            f"{_fmt(r['trot_steps_per_second'])} | {r['plastic_rebound_velocity']:.3f} m/s, "
+            f"{r['plastic_rebound_height_mm']:.3f} mm | {r['restitution_ratio']:.4f}, "
+            f"{r['restitution_apex_ratio']:.4f} |")
+    return lines
+
+
 def write_report(results, figs, out_dir, quick, elapsed, jobs):
     from .config import load_preset
     import platform
@@ -419,6 +561,13 @@ def write_report(results, figs, out_dir, quick, elapsed, jobs):
         if "foot_sink_mean_mm" in r and r["preset"] == "Cm":
             lines.append(f"| foot sink while trotting (mean / max over stance) | Cm | "
                          f"{r['foot_sink_mean_mm']:.2f} / {r['foot_sink_max_mm']:.2f} mm | 4.4 mm |")
+    for r in t1:
+        if "foot_penetration_mean_mm" in r:
+            lines.append(f"| foot penetration while trotting (mean / max over the steps; "
+                         f"loaded contacts dropped) | {r['preset']} | "
+                         f"{1e3 * r['foot_penetration_mean_mm']:.3f} / "
+                         f"{1e3 * r['foot_penetration_max_mm']:.3f} µm "
+                         f"({r['loaded_contacts_opened']}) | - |")
     for r in sorted(_by(results, "unilateral_drift"), key=lambda r: TABLE1.index(r["preset"])):
         lines.append(f"| unilateral (foot) drift while standing | {r['preset']} | "
                      f"{r['drift_um_per_min']:.3f} µm/min (lowest foot gap "
@@ -427,6 +576,7 @@ def write_report(results, figs, out_dir, quick, elapsed, jobs):
         lines.append(f"| bilateral drift while trotting ({r['seconds']:.0f} s) | {r['preset']} | "
                      f"{r['drift_um_per_min']:.3f} µm/min (max violation "
                      f"{r['violation_max_um']:.2f} µm) | 0.59 µm/min |")
+    lines += _contact_variant_section(results)
     lims = alpha_limits(_by(results, "fig6"))
     if lims:
         lines += ["", "## Fig. 6: upper limit of α", "",

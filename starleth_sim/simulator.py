@@ -48,7 +48,8 @@ _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterat
 @dataclass
 class ContactInfo:
     name: str
-    active: bool            # in the active set (g_N ≤ activation gap at the midpoint)
+    active: bool            # in the active set at the last step's midpoint (see
+                            # contact.activation: g_N ≤ activation gap, or still loaded)
     gap: float              # g_N at the last step's midpoint [m] (negative: penetration)
     impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
     force: np.ndarray       # impulse / control period [N]
@@ -66,9 +67,16 @@ class Diagnostics:
     residual: float = 0.0          # max |Λ^{k+1} − Λ^k| of the final iterations [N s]
     active_contacts: int = 0
     retried: bool = False          # a step needed the fallback α
+    #: contacts that carried Λ_N > 0 in the previous physics step and left the active set by
+    #: the activation test alone (with contact.activation "hysteresis" only beyond
+    #: opening_gap), summed over the physics steps
+    loaded_contacts_opened: int = 0
+    projection_iterations: int = 0  # post-step projection, summed over the physics steps
+    projections: int = 0           # physics steps that needed the post-step projection
     step_time: float = 0.0         # wall time of the control step [s]
     physics_steps: int = 0         # cumulative
     nonconverged_steps: int = 0    # cumulative
+    loaded_contacts_opened_total: int = 0  # cumulative
     timings: dict = field(default_factory=dict)  # cumulative per phase (profile=True) [s]
 
 
@@ -96,6 +104,7 @@ class Simulator:
         self._persistent_wrenches = {}
         self._pending_wrenches = []
         self._nonconv_logged = 0
+        self._opened_logged = 0
         self.reset()
 
     # -- construction ---------------------------------------------------------------------
@@ -112,7 +121,7 @@ class Simulator:
         """StarlETH: standing posture at its nominal height, feet on the ground. Any other
         body: neutral configuration resting with its lowest contact point on the ground.
         Resting means a 1 nm overlap, so that round-off cannot leave a touching contact open
-        (the active set is g_N ≤ 0)."""
+        (a contact enters the active set at g_N ≤ contact.activation_gap, 0 by default)."""
         c = self.coords
         q = c.neutral()
         d = self.description
@@ -311,7 +320,9 @@ class Simulator:
         dt = self.stepper.dt
         impulse = None
         d = Diagnostics(physics_steps=self.diagnostics.physics_steps,
-                        nonconverged_steps=self.diagnostics.nonconverged_steps)
+                        nonconverged_steps=self.diagnostics.nonconverged_steps,
+                        loaded_contacts_opened_total=(
+                            self.diagnostics.loaded_contacts_opened_total))
         pending_backup = [list(w) for w in self._pending_wrenches]
         memory = self.stepper.memory()
         try:
@@ -323,6 +334,9 @@ class Simulator:
                 d.max_iterations_step = max(d.max_iterations_step, res.iterations)
                 d.residual = max(d.residual, res.residual)
                 d.retried |= res.retried
+                d.loaded_contacts_opened += res.opened_loaded
+                d.projection_iterations += res.projection_iterations
+                d.projections += res.projected
                 if res.status != prox.STATUS_CONVERGED:
                     d.converged = False
                     d.status = _STATUS[res.status]
@@ -340,6 +354,7 @@ class Simulator:
         self._gap = res.gap
         self._position = res.position
         d.active_contacts = res.n_active
+        d.loaded_contacts_opened_total += d.loaded_contacts_opened
         d.step_time = time.perf_counter() - t_wall
         if self.stepper.profile:
             d.timings = dict(zip(PHASES, self.stepper.stats.timings.tolist()))
@@ -350,4 +365,11 @@ class Simulator:
                 log.warning("t=%.4f s: prox iteration did not converge (%s, %d iterations, "
                             "residual %.3g N s); %d such steps so far", self._t, d.status,
                             d.max_iterations_step, d.residual, d.nonconverged_steps)
+        if d.loaded_contacts_opened:
+            self._opened_logged += 1
+            if self._opened_logged == 1 or self._opened_logged % 1000 == 0:
+                log.warning("t=%.4f s: %d loaded contact(s) left the active set by the gap "
+                            "test alone (contact.activation '%s'); %d so far", self._t,
+                            d.loaded_contacts_opened, self.config.contact.activation,
+                            d.loaded_contacts_opened_total)
         return d

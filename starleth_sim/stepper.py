@@ -51,29 +51,61 @@ def free_velocity(h, dt, uS, blocks, L, u_free):
 
 
 @nb.njit(cache=True)
-def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor, L):
+def active_set(gap, activation_gap, hysteresis, opening_gap, last_impulse, last_active):
+    """The active set I at q^M: g_N,i ≤ activation_gap, and with `hysteresis` also every
+    contact that carried Λ_N > 0 in the last step while g_N,i ≤ opening_gap. Returns
+    (indices of I, number of contacts loaded in the last step that are not in I)."""
+    nc = gap.shape[0]
+    flags = np.zeros(nc, dtype=np.bool_)
+    na = 0
+    opened = 0
+    for i in range(nc):
+        loaded = last_active[i] and last_impulse[i, 0] > 0.0
+        if gap[i] <= activation_gap or (hysteresis and loaded and gap[i] <= opening_gap):
+            flags[i] = True
+            na += 1
+        elif loaded:
+            opened += 1
+    active = np.empty(na, dtype=np.int64)
+    k = 0
+    for i in range(nc):
+        if flags[i]:
+            active[k] = i
+            k += 1
+    return active, opened
+
+
+@nb.njit(cache=True)
+def normal_law_offset(gap, dt, beta_velocity):
+    """The gap terms of the normal law's b_N (ξ_N = γ_N^E + ε_N γ_N^S + b_gap):
+    g_N⁺/Δt lets a contact above the ground approach it within the step (never pulls, as
+    Λ_N ≥ 0), and (β_N/Δt) min(g_N, 0) is the velocity-level penetration correction (0 unless
+    contact.penetration_correction is "velocity")."""
+    if gap > 0.0:
+        return gap / dt
+    return beta_velocity * gap / dt
+
+
+@nb.njit(cache=True)
+def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor, L,
+               hysteresis, opening_gap, last_impulse, last_active, dt, beta_velocity):
     """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
     L (unless factor is False: L already holds the factor of a constant M), the active set
-    {i | g_N,i ≤ activation_gap}, W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
-    b = [ε W_U^T u^S; b_B] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2) and b_B the
-    bilateral drift stabilisation (β/Δt) g_B (zero in the paper's law), and the nonzero
-    patterns of the rows of W^T and the columns of M^{-1} W.
-    Returns (ok, active, Wt, MinvW, b, (wp_ptr, wp_idx, mp_ptr, mp_idx)); ok is False if
-    M is not positive definite."""
+    (see active_set), W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
+    b = [ε W_U^T u^S + gap terms; b_B] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i) (eps: nc x 2), the
+    normal rows' gap terms of normal_law_offset and b_B the bilateral drift stabilisation
+    (β/Δt) g_B (zero in the paper's law), and the nonzero patterns of the rows of W^T and
+    the columns of M^{-1} W.
+    Returns (ok, active, Wt, MinvW, b, (wp_ptr, wp_idx, mp_ptr, mp_idx), opened); ok is
+    False if M is not positive definite; opened counts the loaded contacts that left the
+    active set."""
     nv = uS.shape[0]
     ok = True
     if factor:
         ok = cholesky_blocks(M, blocks, L)
-    na = 0
-    for i in range(gap.shape[0]):
-        if gap[i] <= activation_gap:
-            na += 1
-    active = np.empty(na, dtype=np.int64)
-    k = 0
-    for i in range(gap.shape[0]):
-        if gap[i] <= activation_gap:
-            active[k] = i
-            k += 1
+    active, opened = active_set(gap, activation_gap, hysteresis, opening_gap, last_impulse,
+                                last_active)
+    na = active.shape[0]
     nb_ = WtB.shape[0]
     o = 3 * na
     m = o + nb_
@@ -82,7 +114,7 @@ def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor,
     bvec = np.zeros(m)
     if not ok or m == 0:
         e = np.zeros(1, dtype=np.int64)
-        return ok, active, Wt, MinvW, bvec, (e, e[:0], e, e[:0])
+        return ok, active, Wt, MinvW, bvec, (e, e[:0], e, e[:0]), opened
     for a in range(na):
         i = active[a]
         for r in range(3):
@@ -100,11 +132,13 @@ def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor,
         for j in range(nv):
             s += Wt[a, j] * uS[j]
         bvec[a] = eps[active[a // 3], 0 if a % 3 == 0 else 1] * s
+    for a in range(na):
+        bvec[3 * a] += normal_law_offset(gap[active[a]], dt, beta_velocity)
     for a in range(nb_):
         bvec[o + a] = bB[a]
     wp_ptr, wp_idx = prox.row_pattern(Wt)
     mp_ptr, mp_idx = prox.col_pattern(MinvW)
-    return ok, active, Wt, MinvW, bvec, (wp_ptr, wp_idx, mp_ptr, mp_idx)
+    return ok, active, Wt, MinvW, bvec, (wp_ptr, wp_idx, mp_ptr, mp_idx), opened
 
 
 @nb.njit(cache=True)
@@ -210,36 +244,173 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral
     return u, lam, iters, status, resid, retried
 
 
-# packed parameters of the fused kernel (fewer arguments to unbox per call)
-FP_ACTIVATION, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK = range(6)
-IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM, IP_DIRECT = range(6)
+#: the post-step projection runs when a contact's predicted end gap is below
+#: −PROJECTION_TOLERANCE [m] (round-off and the solver's tolerance stay below it at rest)
+PROJECTION_TOLERANCE = 1e-8
+#: contacts up to this far above the ground at q^M are checked for penetration at the end of
+#: the step [m] (a foot approaching at 4 m/s moves 5 mm in ½Δt = 1.25 ms)
+PROJECTION_LOOKAHEAD = 5e-3
 
 
 @nb.njit(cache=True)
-def prepare_hard_contacts(M, uS, gap, Wt_all, WtB, bB, blocks, factor, L, fp, ip, eps):
+def predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, out):
+    """g_N^E ≈ g_N(q^M) + ½Δt W_N^T u^E of every contact whose Jacobian is known (in the
+    active set or g_N(q^M) ≤ jacobian_gap); +inf for the others. Returns the smallest."""
+    nv = uE.shape[0]
+    worst = np.inf
+    for i in range(gap.shape[0]):
+        if not (is_active[i] or gap[i] <= jacobian_gap):
+            out[i] = np.inf
+            continue
+        s = 0.0
+        for j in range(nv):
+            s += Wt_all[i, 0, j] * uE[j]
+        out[i] = gap[i] + 0.5 * dt * s
+        if out[i] < worst:
+            worst = out[i]
+    return worst
+
+
+@nb.njit(cache=True)
+def projection_problem(Wt, MinvW, active, extra, Wt_all, blocks, L):
+    """W^T and M^{-1}W of the projection when contacts outside the active set (`extra`) are
+    predicted to penetrate: the rows of the active contacts and of `extra` (3 each, as the
+    prox kernels expect), then the bilateral rows of the velocity problem (their M^{-1}W
+    columns are reused). Returns (contacts, Wt, MinvW, patterns of the rows of Wt and the
+    columns of MinvW)."""
+    na = active.shape[0]
+    ne = extra.shape[0]
+    m0, nv = Wt.shape
+    o0 = 3 * na
+    nb_ = m0 - o0
+    nc = na + ne
+    o = 3 * nc
+    contacts = np.empty(nc, dtype=np.int64)
+    contacts[:na] = active
+    contacts[na:] = extra
+    Wp = np.empty((o + nb_, nv))
+    Mp = np.zeros((nv, o + nb_))
+    for a in range(o0):
+        for j in range(nv):
+            Wp[a, j] = Wt[a, j]
+            Mp[j, a] = MinvW[j, a]
+    for e in range(ne):
+        for r in range(3):
+            for j in range(nv):
+                Wp[o0 + 3 * e + r, j] = Wt_all[extra[e], r, j]
+    cols = np.empty((nv, 3 * ne))
+    for c in range(3 * ne):
+        for j in range(nv):
+            cols[j, c] = Wp[o0 + c, j]
+    cholesky_blocks_solve_cols(L, blocks, cols)
+    for c in range(3 * ne):
+        for j in range(nv):
+            Mp[j, o0 + c] = cols[j, c]
+    for a in range(nb_):
+        for j in range(nv):
+            Wp[o + a, j] = Wt[o0 + a, j]
+            Mp[j, o + a] = MinvW[j, o0 + a]
+    wp_ptr, wp_idx = prox.row_pattern(Wp)
+    mp_ptr, mp_idx = prox.col_pattern(Mp)
+    return contacts, Wp, Mp, (wp_ptr, wp_idx, mp_ptr, mp_idx)
+
+
+@nb.njit(cache=True)
+def phase_projection(form, scheme, Wt, MinvW, G, Gdiag, LB, bilateral_direct, pat, active,
+                     is_active, gap, Wt_all, jacobian_gap, blocks, L, uE, dt, beta, alpha,
+                     tol_rel, tol_abs, max_iter, criterion, M, u_corr):
+    """Post-step projection (contact.penetration_correction "projection"). With the
+    predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of the
+    contacts outside the active set that would end the step below the ground (a foot that
+    was above it at q^M), it finds the pseudo-velocity Δu_p = M^{-1}(W_N P_N + W_B P_B) of
+        P_N ≥ 0 ⊥ W_N^T Δu_p + (2/Δt)(max(g_N^E, 0) + β_N min(g_N^E, 0)) ≥ 0,
+        W_B^T Δu_p = 0  (the bilateral constraints are not disturbed),
+    frictionless (μ = 0), with the prox scheme of the velocity solve, so that
+    q^E = q^M ⊕ ½Δt (u^E + Δu_p) loses the fraction β_N of every penetration and no contact
+    is pushed into the ground. u_corr receives Δu_p (zero when no predicted end gap is
+    below −PROJECTION_TOLERANCE). Returns (iterations, status); status −1: not needed."""
+    nv = uE.shape[0]
+    nc = gap.shape[0]
+    for k in range(nv):
+        u_corr[k] = 0.0
+    gE = np.empty(nc)
+    worst = predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, gE)
+    if worst >= -PROJECTION_TOLERANCE or beta == 0.0:
+        return 0, -1
+    n_extra = 0
+    for i in range(nc):
+        if not is_active[i] and gE[i] < -PROJECTION_TOLERANCE:
+            n_extra += 1
+    if n_extra == 0:
+        contacts = active
+        Wp, Mp, Gp, Gdp, full = Wt, MinvW, G, Gdiag, pat
+    else:
+        extra = np.empty(n_extra, dtype=np.int64)
+        k = 0
+        for i in range(nc):
+            if not is_active[i] and gE[i] < -PROJECTION_TOLERANCE:
+                extra[k] = i
+                k += 1
+        contacts, Wp, Mp, part = projection_problem(Wt, MinvW, active, extra, Wt_all,
+                                                    blocks, L)
+        ok, Gp, Gdp, _, full = phase_delassus(form, contacts.shape[0], False, Wp, Mp, part)
+    m = Wp.shape[0]
+    ncp = contacts.shape[0]
+    bp = np.zeros(m)
+    for a in range(ncp):
+        g = gE[contacts[a]]
+        bp[3 * a] = (max(g, 0.0) + beta * min(g, 0.0)) / (0.5 * dt)
+    r = np.empty(m)
+    prox.prox_parameters(Gdp, ncp, alpha, r)
+    lam = np.zeros(m)
+    mu = np.zeros(ncp)
+    zero = np.zeros(nv)
+    it, status, _ = prox.prox_solve(form, scheme, Wp, Mp, zero, bp, Gp, bp, ncp, mu, r, lam,
+                                    tol_rel, tol_abs, max_iter, bilateral_direct, LB,
+                                    criterion, M, u_corr, full[0], full[1], full[2], full[3],
+                                    full[4], full[5])
+    if status == prox.STATUS_NONFINITE:
+        for k in range(nv):
+            u_corr[k] = 0.0
+    return it, status
+
+
+# packed parameters of the fused kernel (fewer arguments to unbox per call)
+(FP_ACTIVATION, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK, FP_OPENING, FP_DT,
+ FP_BETA_VELOCITY, FP_BETA_PROJECTION, FP_JACOBIAN_GAP) = range(11)
+IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM, IP_DIRECT, IP_HYSTERESIS = range(7)
+
+
+@nb.njit(cache=True)
+def prepare_hard_contacts(M, uS, gap, Wt_all, WtB, bB, blocks, factor, L, fp, ip, eps,
+                          last_impulse, last_active):
     """The torque-independent part of the hard-contact solve in one jitted call: the
     phases "M^-1" and "G" (phase_minv, phase_delassus). Returns (ok, active, Wt, MinvW, b,
-    G, diag G, L_B, patterns), the input of complete_hard_contacts."""
-    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, uS, gap, Wt_all, WtB, bB,
-                                                  fp[FP_ACTIVATION], eps, blocks, factor, L)
+    G, diag G, L_B, patterns, opened), the input of complete_hard_contacts."""
+    ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
+        M, uS, gap, Wt_all, WtB, bB, fp[FP_ACTIVATION], eps, blocks, factor, L,
+        ip[IP_HYSTERESIS] != 0, fp[FP_OPENING], last_impulse, last_active, fp[FP_DT],
+        fp[FP_BETA_VELOCITY])
     if not ok or Wt.shape[0] == 0:
         e = np.zeros(1, dtype=np.int64)
         return (ok, active, Wt, MinvW, bvec, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)),
-                (pat[0], pat[1], pat[2], pat[3], e, e[:0]))
+                (pat[0], pat[1], pat[2], pat[3], e, e[:0]), opened)
     ok, G, Gdiag, LB, full = phase_delassus(ip[IP_FORM], active.shape[0], ip[IP_DIRECT] != 0,
                                             Wt, MinvW, pat)
-    return ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full
+    return ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full, opened
 
 
 @nb.njit(cache=True)
 def complete_hard_contacts(h, dt, uS, blocks, L, M, active, Wt, MinvW, bvec, G, Gdiag, LB,
                            full, fp, ip, last_impulse, last_active, last_bilateral, impulse,
-                           is_active, u_free, u):
+                           is_active, u_free, u, gap, Wt_all, u_corr):
     """The torque-dependent rest of the hard-contact solve (the unprofiled hot path after
-    prepare_hard_contacts): u_free = u^S + M^{-1} h Δt, c = W^T u_free + b and the prox
-    iteration (phase_prox). Writes Λ_U of every contact point into impulse (nc x 3), the
-    active flags, Λ_B into last_bilateral and u^E into u; unless the result is non-finite,
-    the warm-start memory is updated. Returns (iterations, status, residual, retried)."""
+    prepare_hard_contacts): u_free = u^S + M^{-1} h Δt, c = W^T u_free + b, the prox
+    iteration (phase_prox) and the post-step projection (phase_projection). Writes Λ_U of
+    every contact point into impulse (nc x 3), the active flags, Λ_B into last_bilateral,
+    u^E into u and the projection's Δu_p into u_corr; unless the result is non-finite, the
+    warm-start memory is updated. Returns (iterations, status, residual, retried,
+    projection iterations, projection status)."""
     free_velocity(h, dt, uS, blocks, L, u_free)
     nc = impulse.shape[0]
     for i in range(nc):
@@ -250,6 +421,8 @@ def complete_hard_contacts(h, dt, uS, blocks, L, M, active, Wt, MinvW, bvec, G, 
     na = active.shape[0]
     o = 3 * na
     it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
+    pit, pstatus = 0, -1
+    u_corr[:] = 0.0
     if Wt.shape[0] == 0:
         u[:] = u_free
     else:
@@ -274,12 +447,18 @@ def complete_hard_contacts(h, dt, uS, blocks, L, M, active, Wt, MinvW, bvec, G, 
         if status != prox.STATUS_NONFINITE:
             for a in range(lam.shape[0] - o):
                 last_bilateral[a] = lam[o + a]
+    if status != prox.STATUS_NONFINITE and fp[FP_BETA_PROJECTION] > 0.0:
+        pit, pstatus = phase_projection(
+            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, G, Gdiag, LB, ip[IP_DIRECT] != 0, full,
+            active, is_active, gap, Wt_all, fp[FP_JACOBIAN_GAP], blocks, L, u, dt,
+            fp[FP_BETA_PROJECTION], fp[FP_ALPHA], fp[FP_TOL_REL], fp[FP_TOL_ABS],
+            ip[IP_MAX_ITER], ip[IP_CRITERION], M, u_corr)
     if status != prox.STATUS_NONFINITE:
         for i in range(nc):
             last_active[i] = is_active[i]
             for k in range(3):
                 last_impulse[i, k] = impulse[i, k]
-    return it, status, resid, retried
+    return it, status, resid, retried, pit, pstatus
 
 
 @nb.njit(cache=True)
@@ -297,7 +476,7 @@ def all_finite(a, b):
 class StepResult:
     """What one physics step did (all arrays over every contact point of the model)."""
 
-    active: np.ndarray          # bool, g_N(q^M) ≤ 0
+    active: np.ndarray          # bool, in the active set at q^M (contact.activation)
     gap: np.ndarray             # g_N at q^M [m]
     impulse: np.ndarray         # Λ (nc x 3) in the contact frame (N, T1, T2) [N s]
     iterations: int = 0
@@ -306,6 +485,9 @@ class StepResult:
     retried: bool = False
     position: np.ndarray | None = None   # contact points at q^M (nc x 3) [m]
     n_active: int = 0                    # contacts in the active set
+    opened_loaded: int = 0               # contacts loaded in the last step, not in the set
+    projection_iterations: int = 0       # post-step projection (0: it did not run)
+    projected: bool = False              # the post-step projection ran
 
 
 @dataclass
@@ -313,6 +495,7 @@ class StepperStats:
     steps: int = 0
     nonconverged: int = 0
     retried: int = 0
+    projections: int = 0        # steps with a post-step projection
     timings: np.ndarray = field(default_factory=lambda: np.zeros(len(PHASES)))
 
 
@@ -327,7 +510,17 @@ class MoreauStepper:
                                   config.ground.mu)
         self.dt = config.dt
         self.hard = config.contact_model == "hard"
-        self.activation_gap = config.contact.activation_gap if self.hard else 0.0
+        c = config.contact
+        self.activation_gap = c.activation_gap if self.hard else 0.0
+        self.hysteresis = self.hard and c.activation == "hysteresis"
+        beta_n = c.penetration_stabilization if self.hard else 0.0
+        self.beta_velocity = beta_n if c.penetration_correction == "velocity" else 0.0
+        self.beta_projection = beta_n if c.penetration_correction == "projection" else 0.0
+        #: contact Jacobians are needed up to the largest gap at which a contact can be
+        #: active, or be predicted to end the step below the ground (projection)
+        self.jacobian_gap = max(self.activation_gap,
+                                c.opening_gap if self.hysteresis else 0.0,
+                                PROJECTION_LOOKAHEAD if self.beta_projection > 0 else 0.0)
         nc, nv = coords.n_contacts, coords.nv
         self.nc, self.nv = nc, nv
         self.nb = coords.n_bilateral
@@ -336,6 +529,7 @@ class MoreauStepper:
         self.Wt_all = np.zeros((nc, 3, nv))
         self.L = np.zeros((nv, nv))
         self.u_free = np.zeros(nv)
+        self.u_corr = np.zeros(nv)
         self.blocks = coords.blocks
         self.constant_M = coords.constant_mass_matrix
         self._factored = False
@@ -347,9 +541,10 @@ class MoreauStepper:
         self.scheme = prox.SCHEMES[s.scheme]
         self.criterion = prox.CRITERIA[s.criterion]
         self.bilateral_direct = config.bilateral.method == "direct"
-        c = config.contact
         self.fparams = np.array([self.activation_gap, config.ground.mu, s.alpha, s.tol_rel,
-                                 s.tol_abs, s.fallback_alpha_factor])
+                                 s.tol_abs, s.fallback_alpha_factor, c.opening_gap, self.dt,
+                                 self.beta_velocity, self.beta_projection,
+                                 self.jacobian_gap])
         #: Newton-type impact law per contact: (ε_N, ε_T), defaults overridden by name
         self.eps = np.tile([c.restitution_normal, c.restitution_tangential], (nc, 1))
         names = list(coords.contact_names)
@@ -359,7 +554,8 @@ class MoreauStepper:
                                   f"(contacts: {', '.join(names)})")
             self.eps[names.index(name)] = (en, et)
         self.iparams = np.array([self.form, self.scheme, s.max_iterations, self.criterion,
-                                 int(s.warm_start), int(self.bilateral_direct)], dtype=np.int64)
+                                 int(s.warm_start), int(self.bilateral_direct),
+                                 int(self.hysteresis)], dtype=np.int64)
         self._never_active = np.full(nc, np.inf)
         self._prepared = None
         self.stats = StepperStats()
@@ -412,7 +608,7 @@ class MoreauStepper:
             t1 = time.perf_counter()
             self.stats.timings[0] += t1 - t0
         coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
-                                  self.activation_gap)
+                                  self.jacobian_gap)
         if self.nb:
             WtB, gB = coords.bilateral(qM)
             np.multiply(gB, self.beta / dt, out=self.bB)
@@ -428,11 +624,14 @@ class MoreauStepper:
             if not prof:
                 hard = prepare_hard_contacts(M, u, gap, self.Wt_all, WtB, self.bB,
                                              self.blocks, factor, self.L, self.fparams,
-                                             self.iparams, self.eps)
+                                             self.iparams, self.eps, self.last_impulse,
+                                             self.last_active)
             else:  # the same phases between timers (Fig. 7)
-                ok, active, Wt, MinvW, bvec, pat = phase_minv(
+                ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
                     M, u, gap, self.Wt_all, WtB, self.bB, self.fparams[FP_ACTIVATION],
-                    self.eps, self.blocks, factor, self.L)
+                    self.eps, self.blocks, factor, self.L, self.hysteresis,
+                    self.fparams[FP_OPENING], self.last_impulse, self.last_active, self.dt,
+                    self.beta_velocity)
                 t3 = time.perf_counter()
                 self.stats.timings[1] += t3 - t2
                 e = np.zeros(1, dtype=np.int64)
@@ -443,7 +642,7 @@ class MoreauStepper:
                                                             self.bilateral_direct, Wt, MinvW,
                                                             pat)
                 self.stats.timings[2] += time.perf_counter() - t3
-                hard = (ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full)
+                hard = (ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full, opened)
             ok = hard[0]
         else:
             ok = cholesky_blocks(M, self.blocks, self.L) if factor else True
@@ -482,7 +681,8 @@ class MoreauStepper:
             uE, res = self._solve_compliant(M, h, u, dt, prof, hard)
         if prof:
             t4 = time.perf_counter()
-        qE = coords.integrate(qM, uE, 0.5 * dt)
+        # Eqn. (8); with a post-step projection, the positions move by ½Δt Δu_p more
+        qE = coords.integrate(qM, uE + self.u_corr if res.projected else uE, 0.5 * dt)
         if not all_finite(qE, uE):
             raise SimulationError("non-finite state after the step; state left unchanged")
         self.stats.steps += 1
@@ -522,12 +722,14 @@ class MoreauStepper:
         impulse = np.empty((nc, 3))
         is_active = np.empty(nc, dtype=np.bool_)
         u = np.empty(self.nv)
-        _, active, Wt, MinvW, bvec, G, Gdiag, LB, full = hard
+        _, active, Wt, MinvW, bvec, G, Gdiag, LB, full, opened = hard
+        gap = self.gap if self.hard else self._never_active
         if not prof:
-            it, status, resid, retried = complete_hard_contacts(
+            it, status, resid, retried, pit, pstatus = complete_hard_contacts(
                 h, dt, uS, self.blocks, self.L, M, active, Wt, MinvW, bvec, G, Gdiag, LB,
                 full, self.fparams, self.iparams, self.last_impulse, self.last_active,
-                self.last_bilateral, impulse, is_active, self.u_free, u)
+                self.last_bilateral, impulse, is_active, self.u_free, u, gap, self.Wt_all,
+                self.u_corr)
         else:  # the same phases, called one by one between timers (Fig. 7)
             s = self.cfg.solver
             t1 = time.perf_counter()
@@ -537,6 +739,8 @@ class MoreauStepper:
             impulse[:] = 0.0
             is_active[:] = False
             it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
+            pit, pstatus = 0, -1
+            self.u_corr[:] = 0.0
             u = self.u_free.copy()
             if Wt.shape[0]:
                 cvec = constraint_velocity(Wt, self.u_free, bvec, full[0], full[1])
@@ -557,6 +761,14 @@ class MoreauStepper:
                 if status != prox.STATUS_NONFINITE:
                     self.last_bilateral[:] = lam[o:]
                 self.stats.timings[3] += time.perf_counter() - t3
+            if status != prox.STATUS_NONFINITE and self.beta_projection > 0.0:
+                t5 = time.perf_counter()
+                pit, pstatus = phase_projection(
+                    self.form, self.scheme, Wt, MinvW, G, Gdiag, LB, self.bilateral_direct,
+                    full, active, is_active, gap, self.Wt_all, self.jacobian_gap, self.blocks,
+                    self.L, u, dt, self.beta_projection, s.alpha, s.tol_rel, s.tol_abs,
+                    s.max_iterations, self.criterion, M, self.u_corr)
+                self.stats.timings[3] += time.perf_counter() - t5
             if status != prox.STATUS_NONFINITE:
                 self.last_impulse[:] = impulse
                 self.last_active[:] = is_active
@@ -567,5 +779,8 @@ class MoreauStepper:
         if status == prox.STATUS_NONFINITE:
             raise SimulationError("prox iteration produced non-finite impulses; "
                                   "state left unchanged")
+        if pstatus >= 0:
+            self.stats.projections += 1
         return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried,
-                             self.position.copy(), active.shape[0] if self.hard else 0)
+                             self.position.copy(), active.shape[0] if self.hard else 0,
+                             opened, pit, pstatus >= 0)

@@ -25,9 +25,11 @@ def robot_problem(u_scale, seed, mu=0.8):
     nv = sim.coords.nv
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
     eps = np.zeros((sim.coords.n_contacts, 2))
-    ok, active, Wt, MinvW, bvec, pat = phase_minv(M, u, st.gap, st.Wt_all, np.zeros((0, nv)),
-                                                  np.zeros(0), 0.0, eps, sim.coords.blocks,
-                                                  True, L)
+    nc = sim.coords.n_contacts
+    # the paper's active set and law (no hysteresis; no gap terms as every active g_N < 0)
+    ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
+        M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), 0.0, eps, sim.coords.blocks,
+        True, L, False, 0.0, np.zeros((nc, 3)), np.zeros(nc, dtype=bool), st.dt, 0.0)
     assert ok and len(active) == 4
     free_velocity(h, st.dt, u, sim.coords.blocks, L, u_free)
     np.testing.assert_allclose(u_free, u + np.linalg.solve(M, h) * st.dt, rtol=1e-10,

@@ -846,7 +846,9 @@ class SimNode:
         self.imu_msg.header.frame_id = s.base_frame
         self.solver_keys = ("iterations", "max_iterations_step", "converged", "status",
                             "residual", "active_contacts", "retried", "step_time",
-                            "physics_steps", "nonconverged_steps")
+                            "physics_steps", "nonconverged_steps", "loaded_contacts_opened",
+                            "loaded_contacts_opened_total", "projections",
+                            "projection_iterations")
         self.iface_keys = ("mode", "real_time_factor", "sim_time", "step", "paused",
                            "waiting_for_first_command", *SimService.COUNTERS,
                            "period_error_p50_ms", "period_error_p99_ms", "period_error_max_ms",
@@ -1107,7 +1109,8 @@ class SimNode:
         st.message = d.status
         vals = (d.iterations, d.max_iterations_step, d.converged, d.status, repr(d.residual),
                 d.active_contacts, d.retried, repr(d.step_time), d.physics_steps,
-                d.nonconverged_steps)
+                d.nonconverged_steps, d.loaded_contacts_opened, d.loaded_contacts_opened_total,
+                d.projections, d.projection_iterations)
         for kv, v in zip(st.values, vals):
             kv.value = str(v)
         if not (svc.k % self.INTERFACE_STATUS_EVERY == 0 or svc.last_step_timed_out

@@ -1,0 +1,135 @@
+"""Hard contacts do not sink (issue #11): no loaded contact is dropped by the activation test
+alone (contact.activation "hysteresis"), penetrations are projected out after the step
+(contact.penetration_correction "projection", β_N = 1), and the impact law is untouched."""
+import numpy as np
+import pytest
+
+from starleth_controller import Command, RobotState, StarlethController
+from starleth_sim import ConfigError, Simulator, load_preset
+from starleth_sim.description import RobotDescription, sphere_urdf, urdf_path
+from starleth_sim.evaluation import ball_drop, pd_sag
+
+HARD = ["HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP"]
+#: the paper's rule: the gap test alone (g_N(q^M) ≤ 0), no penetration correction
+PAPER_RULE = dict(activation="paper", activation_gap=0.0, penetration_stabilization=0.0)
+
+
+@pytest.mark.parametrize("preset", HARD)
+def test_sagging_posture_keeps_every_foot_out_of_the_ground(preset):
+    """reset() under a soft joint PD hold: the robot sags by ~13 mm onto its feet, whose
+    sphere contacts the velocity-level law lets drift up by O(Δt²) per step. No foot goes
+    below the ground by 0.1 mm (measured: 10-25 nm), no loaded foot hovers above it by
+    1 µm, no loaded contact leaves the active set."""
+    sim, out = pd_sag(preset, 2.0)
+    penetration, hover, _, opened, kinetic = out.T
+    assert penetration.max() < 1e-4
+    assert np.nanmax(hover) < 1e-6
+    assert opened.sum() == 0 and sim.diagnostics.loaded_contacts_opened_total == 0
+    assert sim.diagnostics.nonconverged_steps == 0
+    z = sim.base_state()["position"][2]
+    assert 0.395 < z < 0.41                  # it sagged from 0.415 m and stands
+    assert kinetic[-1] < 1e-6                 # and came to rest
+
+
+def test_papers_gap_rule_drops_the_loaded_feet_and_they_sink():
+    """The scenario is a real test: with the paper's gap test alone and no correction, the
+    four loaded feet drift up, all leave the active set at once (step 4), are thrown into the
+    ground by the joint torques and stay there (0.45 mm; 3.2 mm with the former 10 µm
+    margin); Diagnostics counts the drop."""
+    sim, out = pd_sag("HmJ", 0.5, **PAPER_RULE)
+    penetration, _, _, opened, _ = out.T
+    assert opened.sum() == 4 and sim.diagnostics.loaded_contacts_opened_total == 4
+    assert penetration.max() > 2e-4
+    assert penetration[-1] > 2e-4             # nothing corrects it
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "HEJD", "HMSD"])
+def test_trotting_feet_stay_out_of_the_ground(preset):
+    """Stand 1 s, trot at 0.3 m/s for 5 s with the controller: every foot's penetration
+    after every step < 0.5 mm (measured: < 10 nm; 6.4 mm with the plain rule), no loaded
+    contact dropped, and the robot trots."""
+    sim = Simulator.from_preset(preset)
+    ctrl = StarlethController(urdf_path())
+    feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
+    deepest = 0.0
+    projections = 0
+    for k in range(int(round(6.0 / sim.control_period))):
+        trot = k * sim.control_period >= 1.0
+        cmd = Command(mode="trot" if trot else "stand", forward=0.3 if trot else 0.0)
+        d = sim.step(ctrl.update(RobotState.from_simulator(sim), cmd))
+        deepest = max(deepest, -sim.gaps()[feet].min())
+        projections += d.projections
+    assert deepest < 5e-4
+    assert sim.diagnostics.loaded_contacts_opened_total == 0
+    assert sim.diagnostics.nonconverged_steps == 0
+    assert projections > 10                    # touchdowns needed the projection
+    assert sim.base_state()["position"][0] > 1.2 and sim.base_state()["position"][2] > 0.38
+
+
+def test_projection_leaves_the_impact_law_alone():
+    """The projection moves positions only: a ball dropped from 1 m with ε_N = 0.5 leaves
+    the ground with exactly ε_N v⁻ and reaches ε_N² h; a plastic drop (ε_N = 0) does not
+    rebound. The velocity-level correction (β_N/Δt) min(g_N, 0) instead adds to the
+    rebound velocity: the reason it is not the presets' choice."""
+    v_minus, v_plus, apex = ball_drop(0.5, 1.0, {})
+    assert v_minus == pytest.approx(-np.sqrt(2 * 9.81 * 1.0), rel=0.01)
+    assert -v_plus / v_minus == pytest.approx(0.5, abs=1e-8)
+    assert apex == pytest.approx(0.25, abs=0.005)
+    _, v_plastic, h_plastic = ball_drop(0.0, 0.2, {})
+    assert abs(v_plastic) < 1e-8 and h_plastic < 1e-8
+    # with the velocity-level correction the plastic ball pops up
+    _, v_pop, h_pop = ball_drop(0.0, 0.2, dict(penetration_correction="velocity",
+                                               penetration_stabilization=1.0))
+    assert v_pop > 0.1 and h_pop > 1e-4
+
+
+def test_ball_never_ends_a_step_below_the_ground():
+    """A ball falling from 1 m meets the ground between two midpoints; the projection also
+    takes in a contact outside the active set that would end the step below the ground, so
+    no step ends with a penetration (at most the 10 nm projection tolerance plus the
+    linearisation error)."""
+    cfg = load_preset("HmJ").with_overrides(control_rate=1000.0, tol_rel=1e-10, tol_abs=1e-12)
+    sim = Simulator(cfg, description=RobotDescription.from_urdf_xml(sphere_urdf(0.1, 1.0)))
+    q = sim.q
+    q[2] += 1.0
+    sim.reset(q)
+    gaps = []
+    for _ in range(1000):
+        sim.step()
+        gaps.append(sim.gaps()[0])
+    assert min(gaps) > -2e-8
+    assert abs(gaps[-1]) < 2e-8 and np.linalg.norm(sim.u) < 1e-9   # resting on the ground
+
+
+def test_paper_rule_is_still_available():
+    """activation "paper", activation_gap 0, β_N = 0 is the paper's law: the active set is
+    g_N(q^M) ≤ 0 and nothing corrects a penetration (a ball dropped from 1 m ends its impact
+    step below the ground)."""
+    cfg = load_preset("HmJ").with_overrides(control_rate=1000.0, activation="paper",
+                                            penetration_stabilization=0.0)
+    assert cfg.contact.activation_gap == 0.0
+    sim = Simulator(cfg, description=RobotDescription.from_urdf_xml(sphere_urdf(0.1, 1.0)))
+    q = sim.q
+    q[2] += 1.0
+    sim.reset(q)
+    gaps = []
+    for _ in range(600):
+        sim.step()
+        gaps.append(sim.gaps()[0])
+    assert min(gaps) < -1e-4
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("activation", "sticky", "contact.activation: must be one of"),
+    ("penetration_correction", "baumgarte", "contact.penetration_correction: must be one of"),
+    ("penetration_stabilization", 1.5, "contact.penetration_stabilization: must be <= 1"),
+    ("opening_gap", -1.0, "contact.opening_gap: must be >= 0"),
+])
+def test_contact_rule_settings_are_validated(field, value, message):
+    with pytest.raises(ConfigError, match=message):
+        load_preset("HmJ").with_overrides(**{field: value})
+
+
+def test_opening_gap_below_activation_gap_is_rejected():
+    with pytest.raises(ConfigError, match="opening_gap: must be >= activation_gap"):
+        load_preset("HmJ").with_overrides(activation_gap=1e-3, opening_gap=1e-4)
