@@ -49,13 +49,19 @@ PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
 # -----------------------------------------------------------------------------------------
 class EchoController:
     """Answers every /joint_states with a /joint_commands JointState stamped with the state's
-    stamp: PD hold of the first posture it sees (or of `q_ref`). Counts states and stamps."""
+    stamp: PD hold of the first posture it sees (or of `q_ref`). Counts states and stamps.
+    The default gains are the posture hold's (`posture.DEFAULT_KP/KD` per joint type), which
+    stay stable with a leg in the air (a stiffer knee damping makes a lifted shank flail under
+    the 400 Hz zero-order hold)."""
 
-    def __init__(self, node, kp=200.0, kd=5.0, q_ref=None, reply=True, topic="/joint_commands"):
+    def __init__(self, node, kp=None, kd=None, q_ref=None, reply=True,
+                 topic="/joint_commands"):
         from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
+        from .posture import DEFAULT_KD, DEFAULT_KP
         self.node = node
-        self.kp, self.kd = kp, kd
+        self.kp = np.tile(DEFAULT_KP, 4) if kp is None else kp
+        self.kd = np.tile(DEFAULT_KD, 4) if kd is None else kd
         self.q_ref = None if q_ref is None else np.asarray(q_ref, dtype=float)
         self.reply = reply
         self.stamps = []

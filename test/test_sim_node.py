@@ -129,7 +129,7 @@ class RealtimeRun:
     def __init__(self, ros, tmp):
         self.mcap = str(tmp / "realtime.mcap")
         self.ros = ros
-        self.ctl = EchoController(ros.node, kp=200.0, kd=5.0)    # keeps the robot standing
+        self.ctl = EchoController(ros.node)    # keeps the robot standing
         # started paused: the controller connects and sees state 0 (its PD reference, the
         # standing posture) before the robot moves
         self.sim = SimProcess(tmp / "realtime.log", mode="realtime", real_time_factor=1.0,
@@ -386,7 +386,7 @@ def run_lockstep(ros, tmp, name, n_states, **params):
     """A lockstep run with the PD echo controller until it has answered n_states states;
     returns (SimProcess after SIGINT, mcap path, controller)."""
     mcap = str(tmp / f"{name}.mcap")
-    ctl = EchoController(ros.node, kp=200.0, kd=5.0)
+    ctl = EchoController(ros.node)
     sim = SimProcess(tmp / f"{name}.log", mode="lockstep", real_time_factor=0.0, record=mcap,
                      **params)
     try:
@@ -429,12 +429,16 @@ def test_lockstep_runs_are_bit_identical(ros, tmp_path):
     assert abs(fz / (total_mass() * 9.81) - 1.0) < 0.02         # the feet carry the robot
     diag = msgs["/starleth/solver"][n - 1][1].status[0]
     assert diag.name == "starleth_sim: solver"
-    assert {kv.key for kv in diag.values} >= {"iterations", "converged", "residual", "step_time"}
+    values = {kv.key: kv.value for kv in diag.values}
+    assert set(values) >= {"iterations", "converged", "residual", "step_time",
+                           "loaded_contacts_opened", "loaded_contacts_opened_total",
+                           "projections", "projection_iterations"}
+    assert values["loaded_contacts_opened_total"] == "0"       # no loaded foot was dropped
 
 
 def test_lockstep_stale_late_and_dead_controller(ros, tmp_path):
     node = ros.node
-    ctl = EchoController(node, kp=200.0, kd=5.0)
+    ctl = EchoController(node)
     diag = DiagWatcher(ros)
     mcap = str(tmp_path / "policy.mcap")
     sim = SimProcess(tmp_path / "policy.log", mode="lockstep", real_time_factor=0.0,

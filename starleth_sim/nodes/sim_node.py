@@ -793,7 +793,9 @@ class SimNode:
         self.sim = Simulator.from_preset(s.physics, **overrides)
         q0, u0, init_desc = parse_initial_state(s.initial_state, self.sim)
         self.initial_state_desc = init_desc
-        self.service = SimService(self.sim, s, q0, u0, warn=self.log.warning, error=self.log.error)
+        # two call sites: rclpy refuses one call site that logs at two severities
+        self.service = SimService(self.sim, s, q0, u0, warn=self._log_warning,
+                                  error=self._log_error)
         self.context = node.context
         self._stop = False
         self._step_on_answer = False   # set by run() in lockstep mode without pacing
@@ -962,6 +964,12 @@ class SimNode:
         self._emit("robot_description", msg, True)
 
     # -- publishing ------------------------------------------------------------------------
+    def _log_warning(self, message):
+        self.log.warning(message)
+
+    def _log_error(self, message):
+        self.log.error(message)
+
     def _emit(self, key, msg, record):
         p, topic, _, _ = self.pubs[key]
         rec = self.recorder
