@@ -6,7 +6,7 @@ PIP    := $(VPY) -m pip -q --disable-pip-version-check --no-input
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: venv test demo bench eval clean distclean
+.PHONY: venv test demo bench eval browser-test clean distclean
 
 venv: $(STAMP)
 
@@ -52,6 +52,19 @@ bench: venv
 
 eval: venv
 	$(VENV)/bin/starleth-eval
+
+# starleth-view's HTML in a real browser (test/test_view.py -k browser): installs Debian's
+# chromium with apt when it is missing (sudo when not root, non-interactive), then runs only
+# the browser tests; they render the replay with SwiftShader (no GPU, no display needed).
+browser-test: venv
+	@set -e; \
+	if ! command -v chromium >/dev/null 2>&1; then \
+	  SUDO=; [ "$$(id -u)" -eq 0 ] || SUDO=sudo; \
+	  echo "browser-test: installing chromium with apt-get"; \
+	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q; \
+	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
+	fi
+	$(VPY) -m pytest -q test/test_view.py -k browser -rs $(PYTEST_ARGS)
 
 clean:
 	rm -rf build install log *.egg-info .pytest_cache

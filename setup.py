@@ -25,6 +25,7 @@ setup(
         'mcap-ros2-support',
         'matplotlib',
         'proxsuite',
+        'meshcat',
     ],
     zip_safe=False,
     maintainer='StarlETH sim developers',
@@ -41,6 +42,7 @@ setup(
             'starleth-demo = starleth_sim.demo:main',
             'starleth-eval = starleth_sim.evaluation:main',
             'starleth-analyze = starleth_sim.analysis:main',
+            'starleth-view = starleth_sim.view:main',
         ],
     },
 )

@@ -228,12 +228,30 @@ def _bag_files(path: str):
     return [path]
 
 
-def _read_file(path: str, col: _Collector, salvage: bool) -> dict:
-    """Stream one MCAP file into col. Returns {'truncated': bool, ...}."""
-    from mcap.records import Attachment, Channel, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap_ros2.decoder import DecoderFactory
+# -----------------------------------------------------------------------------------------
+# MCAP files: checks and records (also used by _read_file), and a generic reader that
+# keeps the messages of the topics a caller selects (starleth-view)
+# -----------------------------------------------------------------------------------------
+class BagMessages:
+    """What :func:`read_messages` read from one bag (an .mcap file or a rosbag2 directory)."""
 
+    def __init__(self, path: str):
+        self.path = path
+        self.files = []
+        self.messages = {}      # selected topic -> [(log_time ns, message)]: decoded, or
+                                # its CDR bytes when read with decode=False
+        self.decoders = {}      # selected topic -> function(CDR bytes) -> message
+        self.types = {}         # every topic of the bag -> 'pkg/msg/Type' ('' without schema)
+        self.counts = {}        # every topic of the bag -> number of messages
+        self.attachments = {}   # attachment name -> bytes (the first of each name)
+        self.metadata = {}      # metadata record name -> dict (the first of each name)
+        self.truncated = False  # salvage: reading stopped at damage
+
+
+def check_mcap_file(path: str, salvage: bool = False) -> tuple:
+    """(size in bytes, complete) of an MCAP file, after checking that it starts with the MCAP
+    magic bytes. Raises AnalysisError for a file that cannot be read or is not MCAP, and for
+    a truncated one (no footer magic) unless salvage."""
     try:
         size = os.path.getsize(path)
         with open(path, "rb") as f:
@@ -255,32 +273,124 @@ def _read_file(path: str, col: _Collector, salvage: bool) -> dict:
         raise AnalysisError(
             f"{path}: truncated MCAP file: it ends without the MCAP footer ({size} bytes). The "
             "recording was not closed (recorder killed, disk full) or the copy is incomplete; "
-            "--salvage analyses the messages before the damage")
+            "--salvage reads the messages before the damage")
+    return size, complete
+
+
+def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: dict,
+                 on_warning=None):
+    """The records of the open MCAP file f (CRCs checked). At damage: raises AnalysisError,
+    or with salvage warns (on_warning, default warn), sets state['truncated'] and stops.
+    state['messages'] counts the Message records read."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    records = iter(StreamReader(f, validate_crcs=True, record_size_limit=size + 64).records)
+    state.setdefault("messages", 0)
+    while True:
+        try:
+            rec = next(records)
+        except StopIteration:
+            return
+        except Exception as e:   # anything the reader raises: a damaged file
+            pos, n = f.tell(), state["messages"]
+            reason = f"{type(e).__name__}: {e}".rstrip(": ")
+            if not salvage:
+                raise AnalysisError(
+                    f"{path}: corrupt MCAP file ({reason}, after {n} messages, near byte {pos} "
+                    f"of {size}); --salvage reads the messages before the damage") from None
+            (on_warning or warn)(
+                f"{path}: {'truncated' if not complete else 'damaged'} file: reading stopped "
+                f"near byte {pos} of {size} ({reason}); using the {n} messages before it")
+            state["truncated"] = True
+            return
+        if isinstance(rec, Message):
+            state["messages"] += 1
+        yield rec
+
+
+def _read_selected(path: str, bag: BagMessages, select, salvage: bool, decode_all: bool,
+                   warn):
+    """Stream one MCAP file into bag: the messages of the topics select accepts (decoded if
+    decode_all, else as CDR bytes); warnings go to warn(message)."""
+    from mcap.records import Attachment, Channel, Message, Metadata, Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    size, complete = check_mcap_file(path, salvage)
+    factory = DecoderFactory()
+    schemas, decoders, errors, state = {}, {}, {}, {}
+    with open(path, "rb") as f:
+        for rec in mcap_records(f, path, size, complete, salvage, state, warn):
+            if isinstance(rec, Message):
+                topic, decode = decoders.get(rec.channel_id, (None, None))
+                if topic is None:
+                    continue
+                bag.counts[topic] = bag.counts.get(topic, 0) + 1
+                if decode is None:
+                    continue
+                if not decode_all:
+                    bag.messages[topic].append((rec.log_time, rec.data))
+                    continue
+                try:
+                    bag.messages[topic].append((rec.log_time, decode(rec.data)))
+                except Exception as e:   # a message the schema does not describe
+                    errors.setdefault(topic, [0, str(e)])[0] += 1
+            elif isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel) and rec.id not in decoders:
+                schema = schemas.get(rec.schema_id)
+                type_name = _norm_type(schema.name) if schema is not None else ""
+                bag.types[rec.topic] = type_name
+                bag.counts.setdefault(rec.topic, 0)
+                decode = None
+                if select(rec.topic, type_name):
+                    try:
+                        decode = factory.decoder_for(rec.message_encoding, schema)
+                    except Exception as e:
+                        warn(f"{path}: cannot decode {rec.topic}: {e}")
+                    if decode is None:
+                        warn(f"{path}: cannot decode {rec.topic} (message encoding "
+                             f"{rec.message_encoding!r}); ignored")
+                    else:
+                        bag.messages.setdefault(rec.topic, [])
+                        bag.decoders.setdefault(rec.topic, decode)
+                decoders[rec.id] = (rec.topic, decode)
+            elif isinstance(rec, Metadata):
+                bag.metadata.setdefault(rec.name, dict(rec.metadata))
+            elif isinstance(rec, Attachment):
+                bag.attachments.setdefault(rec.name, bytes(rec.data))
+    bag.truncated |= bool(state.get("truncated"))
+    for topic, (n, err) in errors.items():
+        warn(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
+
+
+def read_messages(path: str, select, salvage: bool = False, decode: bool = True,
+                  on_warning=None):
+    """Read a bag (an .mcap file, or a rosbag2 directory of .mcap files read in order) in one
+    pass: the messages of every topic for which select(topic, 'pkg/msg/Type') is true, plus
+    the bag's topics, message counts, attachments and metadata, as a BagMessages. With
+    decode=False the messages are kept as CDR bytes, to be decoded (bag.decoders[topic]) only
+    where needed. A file that is not MCAP, truncated or corrupt raises AnalysisError (salvage:
+    read up to the damage, with a warning). Warnings go to on_warning(message) (default:
+    printed on stderr as starleth-analyze's)."""
+    bag = BagMessages(path)
+    bag.files = _bag_files(path)
+    for fpath in bag.files:
+        _read_selected(fpath, bag, select, salvage, decode, on_warning or warn)
+    return bag
+
+
+def _read_file(path: str, col: _Collector, salvage: bool) -> dict:
+    """Stream one MCAP file into col. Returns {'truncated': bool, ...}."""
+    from mcap.records import Attachment, Channel, Message, Metadata, Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    size, complete = check_mcap_file(path, salvage)
     factory = DecoderFactory()
     schemas, handlers, seen_channels = {}, {}, set()
-    n_before = col.messages
     info = {"truncated": False}
     with open(path, "rb") as f:
-        records = iter(StreamReader(f, validate_crcs=True, record_size_limit=size + 64).records)
-        while True:
-            try:
-                rec = next(records)
-            except StopIteration:
-                break
-            except Exception as e:   # anything the reader raises: a damaged file
-                pos = f.tell()
-                reason = f"{type(e).__name__}: {e}".rstrip(": ")
-                n = col.messages - n_before
-                if not salvage:
-                    raise AnalysisError(
-                        f"{path}: corrupt MCAP file ({reason}, after {n} messages, near byte "
-                        f"{pos} of {size}); --salvage analyses the messages before the "
-                        "damage") from None
-                warn(f"{path}: {'truncated' if not complete else 'damaged'} file: reading "
-                     f"stopped near byte {pos} of {size} ({reason}); analysing the {n} "
-                     "messages before it")
-                info["truncated"] = True
-                break
+        for rec in mcap_records(f, path, size, complete, salvage, info):
             if isinstance(rec, Message):
                 col.messages += 1
                 h = handlers.get(rec.channel_id)
