@@ -4,21 +4,27 @@ ROS 2 topics. A thin adapter: no control law in here.
     ros2 run starleth_sim controller_node
     python -m starleth_controller.controller_node --ros-args -p mode:=trot
 
-Subscribed (topic names are the defaults; remap them for another robot):
+Subscribed (topic names are the defaults, relative: ``--ros-args -r __ns:=/robot1`` puts
+them under /robot1, beside that robot's sim_node; remap them for another robot):
 
-    /joint_states                        sensor_msgs/JointState       by name: position, velocity
-    /starleth/base_state                 nav_msgs/Odometry            ground-truth base state
-    /starleth/{LF,RF,LH,RH}_foot/wrench  geometry_msgs/WrenchStamped  contact: |force| > threshold
-    /cmd_vel                             geometry_msgs/Twist          linear.x, linear.y, angular.z
-    /robot_description                   std_msgs/String              with robot_description:=true
+    joint_states                         sensor_msgs/JointState       by name: position, velocity
+    starleth/base_state                  nav_msgs/Odometry            ground-truth base state
+    starleth/{LF,RF,LH,RH}_foot/wrench   geometry_msgs/WrenchStamped  contact: |force| > threshold
+    cmd_vel                              geometry_msgs/Twist          linear.x, linear.y, angular.z
+    robot_description                    std_msgs/String              with robot_description:=true
 
 Published:
 
-    /joint_commands                      sensor_msgs/JointState       names + effort; header.stamp
+    joint_commands                       sensor_msgs/JointState       names + effort; header.stamp
                                                                       = the state's stamp
     (effort_array_topic, off by default) std_msgs/Float64MultiArray   12 torques, joint order
 
 Service ``~/trot`` (std_srvs/SetBool): true = trot, false = stand (sets the ``mode`` parameter).
+
+Time: with ``use_sim_time:=true`` the node's clock follows /clock, and ``cmd_vel_timeout``
+counts sim time; the controller's own time is always the state's stamp. The 0.1 s after
+which a repeated state is answered again is wall time (it is about messages in flight, and
+a lockstep simulator's clock stands still while it waits for the answer).
 
 The base state is taken from ``/starleth/base_state`` as *ground truth* (the simulator's
 Odometry: pose in the world frame, twist in the child (base) frame as REP 105 says; set
@@ -65,7 +71,7 @@ from std_srvs.srv import SetBool
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
 from .model import JOINT_NAMES, LEGS, default_urdf_path
 
-DEFAULT_WRENCH_TOPICS = tuple(f"/starleth/{leg}_foot/wrench" for leg in LEGS)
+DEFAULT_WRENCH_TOPICS = tuple(f"starleth/{leg}_foot/wrench" for leg in LEGS)
 
 #: parameters: name -> (default, description, read_only)
 PARAMETERS = {
@@ -73,26 +79,27 @@ PARAMETERS = {
              False),
     "urdf": ("", "URDF path or XML text for the controller's model; empty = the package's "
              "starleth.urdf", True),
-    "robot_description": (False, "true: build the model from the /robot_description topic "
+    "robot_description": (False, "true: build the model from the robot_description topic "
                           "(transient local) instead of `urdf`", True),
-    "joint_commands_topic": ("/joint_commands", "sensor_msgs/JointState command topic (names "
+    "joint_commands_topic": ("joint_commands", "sensor_msgs/JointState command topic (names "
                              "+ effort, stamped with the state answered); empty = off", True),
     "effort_array_topic": ("", "also publish a std_msgs/Float64MultiArray of the 12 torques on "
                            "this topic (e.g. /joint_group_effort_controller/commands); empty "
                            "= off. Do not send both to a lockstep simulator.", True),
-    "joint_states_topic": ("/joint_states", "sensor_msgs/JointState input", True),
-    "base_state_topic": ("/starleth/base_state", "nav_msgs/Odometry input (ground truth)",
+    "joint_states_topic": ("joint_states", "sensor_msgs/JointState input", True),
+    "base_state_topic": ("starleth/base_state", "nav_msgs/Odometry input (ground truth)",
                          True),
     "foot_wrench_topics": (list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped inputs, "
                            "feet in the order LF, RF, LH, RH", True),
-    "cmd_vel_topic": ("/cmd_vel", "geometry_msgs/Twist velocity command", True),
+    "cmd_vel_topic": ("cmd_vel", "geometry_msgs/Twist velocity command", True),
     "twist_frame": ("child", "frame of the Odometry twist's linear velocity: child (base, "
                     "REP 105) | parent (world)", True),
     "contact_force_threshold": (5.0, "a foot is in contact when |force| exceeds this [N]",
                                 False),
     "max_linear_speed": (0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]", False),
     "max_yaw_rate": (1.0, "clip of |angular.z| of /cmd_vel [rad/s]", False),
-    "cmd_vel_timeout": (0.0, "seconds (wall clock) after the last /cmd_vel when the velocity "
+    "cmd_vel_timeout": (0.0, "seconds (the node's clock: sim time with use_sim_time) after the "
+                        "last cmd_vel when the velocity "
                         "command falls back to zero; 0 = never", False),
     "state_reliability": ("reliable", "QoS reliability of the state subscriptions: reliable | "
                           "best_effort", True),
@@ -206,9 +213,9 @@ class ControllerNode(Node):
             latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                  history=HistoryPolicy.KEEP_LAST)
-            self.sub_description = self.create_subscription(String, "/robot_description",
+            self.sub_description = self.create_subscription(String, "robot_description",
                                                             self._on_description, latched)
-            self.log.info("waiting for /robot_description")
+            self.log.info(f"waiting for {self.sub_description.topic_name}")
         else:
             try:
                 urdf = p["urdf"] or default_urdf_path()
@@ -238,6 +245,10 @@ class ControllerNode(Node):
                       f"{p['joint_commands_topic'] or '(off)'}"
                       + (f", effort arrays on {p['effort_array_topic']}"
                          if p["effort_array_topic"] else ""))
+
+    def _clock_seconds(self) -> float:
+        """The node's clock [s]: /clock with use_sim_time, else the system clock."""
+        return self.get_clock().now().nanoseconds * 1e-9
 
     # -- parameters ------------------------------------------------------------------------
     def _check_static(self, p):
@@ -325,7 +336,7 @@ class ControllerNode(Node):
 
     def _on_description(self, msg):
         if self.controller is None and msg.data:
-            if self._make_controller(msg.data, "/robot_description") and \
+            if self._make_controller(msg.data, self.sub_description.topic_name) and \
                     self._waiting_state is not None:
                 stamp, s = self._waiting_state
                 self._waiting_state = None
@@ -399,7 +410,7 @@ class ControllerNode(Node):
             vx, vy = vx * self._max_v / n, vy * self._max_v / n
         wz = min(max(wz, -self._max_w), self._max_w)
         self._vel = (vx, vy, wz)
-        self._vel_time = time.monotonic()
+        self._vel_time = self._clock_seconds()
 
     # -- one control period ----------------------------------------------------------------
     def _permutation(self, names):
@@ -483,7 +494,7 @@ class ControllerNode(Node):
             return
         vx, vy, wz = self._vel
         if self._cmd_vel_timeout > 0 and self._vel_time is not None and \
-                time.monotonic() - self._vel_time > self._cmd_vel_timeout:
+                self._clock_seconds() - self._vel_time > self._cmd_vel_timeout:
             vx = vy = wz = 0.0
         c = self.command
         c.mode, c.forward, c.lateral, c.yaw_rate = self._mode, vx, vy, wz

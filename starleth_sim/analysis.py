@@ -60,7 +60,7 @@ import numpy as np
 
 from .description import STARLETH_JOINT_NAMES
 from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
-                     TOPIC_SOLVER, foot_wrench_topic)
+                     TOPIC_SOLVER, foot_wrench_topic, namespace_of, resolve)
 
 PROG = "starleth-analyze"
 FEET = ("LF", "RF", "LH", "RH")
@@ -123,6 +123,21 @@ class _Collector:
         self.types = {}                              # topic -> type name
         self.decode_errors = {}
         self.messages = 0
+        self.namespace = None                        # of the first StarlETH topic seen
+
+    def relative_topic(self, topic: str):
+        """The relative StarlETH name (a key of TOPICS or OPTIONAL_TOPICS) of a topic of the
+        bag, in the run's namespace (that of the first such topic: a bag of one robot under
+        /robot1 reads like one at the root), or None."""
+        for rel in (*TOPICS, *OPTIONAL_TOPICS):
+            ns = namespace_of(topic, rel)
+            if ns is None:
+                continue
+            if self.namespace is None and rel in TOPICS:
+                self.namespace = ns
+            if ns == self.namespace or (self.namespace is None and rel in OPTIONAL_TOPICS):
+                return rel
+        return None
 
 
 def _stamp(msg):
@@ -412,10 +427,11 @@ def _read_file(path: str, col: _Collector, salvage: bool) -> dict:
                 type_name = _norm_type(schema.name) if schema is not None else ""
                 col.types[rec.topic] = type_name
                 counter = col.counts.setdefault(rec.topic, [0])
-                if rec.topic in TOPICS:
-                    kind, expected, _ = TOPICS[rec.topic]
-                elif rec.topic in OPTIONAL_TOPICS:
-                    kind, expected = ("description", None), OPTIONAL_TOPICS[rec.topic]
+                rel = col.relative_topic(rec.topic)
+                if rel in TOPICS:
+                    kind, expected, _ = TOPICS[rel]
+                elif rel in OPTIONAL_TOPICS:
+                    kind, expected = ("description", None), OPTIONAL_TOPICS[rel]
                 else:
                     handlers[rec.id] = (lambda m: None, counter, rec.topic)
                     continue
@@ -468,7 +484,11 @@ class Run:
         self.urdf = col.urdf
         for topic, (n, err) in col.decode_errors.items():
             warn(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
-        self.missing = [t for t in TOPICS if not self.counts.get(t)]
+        #: the namespace of the StarlETH topics ('' at the root, '/robot1') and their names
+        self.namespace = col.namespace or ""
+        self.topic_names = {rel: resolve(rel, self.namespace) for rel in TOPICS}
+        self.missing = [self.topic_names[t] for t in TOPICS
+                        if not self.counts.get(self.topic_names[t])]
 
         def arr(rows, width):
             a = np.array(rows, dtype=float) if rows else np.zeros((0, width))
@@ -707,7 +727,8 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
     S = {"label": run.label, "path": run.path, "file_size": run.file_size,
          "messages": run.messages, "read_seconds": round(run.read_seconds, 3),
          "truncated": run.truncated, "missing_topics": list(run.missing),
-         "topics": {t: run.counts.get(t, 0) for t in TOPICS}, "window": list(run.window)}
+         "topics": {n: run.counts.get(n, 0) for n in run.topic_names.values()},
+         "window": list(run.window)}
     ts = [run._series[k]["t"] for k in run._series if run._series[k]["t"].size]
     if ts:
         t_start, t_end = min(float(t[0]) for t in ts), max(float(t[-1]) for t in ts)
@@ -1248,9 +1269,11 @@ def run(argv=None) -> int:
         if len(r.missing) == len(TOPICS):
             topics = ", ".join(sorted(r.counts)) or "none"
             raise AnalysisError(f"{path}: none of the StarlETH topics ("
-                                f"{', '.join(TOPICS)}) has messages; the bag's topics: {topics}")
+                                f"{', '.join(r.topic_names.values())}) has messages; the bag's "
+                                f"topics: {topics}")
+        relative = {name: rel for rel, name in r.topic_names.items()}
         for t in r.missing:
-            kind, typ, lost = TOPICS[t]
+            kind, typ, lost = TOPICS[relative[t]]
             have = "no messages on" if t in r.counts else "no topic"
             warn(f"{path}: {have} {t} ({typ}); skipping {lost}")
         r.apply_window(a.tmin, a.tmax)

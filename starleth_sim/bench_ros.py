@@ -41,6 +41,8 @@ import time
 
 import numpy as np
 
+from .nodes.discovery import keep_discovery_local, local_discovery_env
+
 PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
 
 
@@ -55,7 +57,7 @@ class EchoController:
     the 400 Hz zero-order hold)."""
 
     def __init__(self, node, kp=None, kd=None, q_ref=None, reply=True,
-                 topic="/joint_commands"):
+                 topic="joint_commands"):
         from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
         from .posture import DEFAULT_KD, DEFAULT_KP
@@ -68,7 +70,7 @@ class EchoController:
         self.recv_times = []
         self._JointState = JointState
         self.pub = node.create_publisher(JointState, topic, QoSProfile(depth=10))
-        self.sub = node.create_subscription(JointState, "/joint_states", self._on_state,
+        self.sub = node.create_subscription(JointState, "joint_states", self._on_state,
                                             QoSProfile(depth=10))
         self._cmd = None
         self.closed = False
@@ -164,7 +166,7 @@ def _spawn(args, mode, rtf, pong, log, record=""):
         cmd += ["--record", record]
     if mode == "realtime" and args.realtime_priority:
         cmd += ["--realtime-priority", str(args.realtime_priority)]
-    env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
 
 
@@ -382,6 +384,7 @@ def parent_main(args):
 
 
 def main(argv=None):
+    keep_discovery_local()      # this process and the sim child: this host only
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--bare-seconds", type=float, default=10.0,
                    help="bare round trips, in all rounds together")

@@ -1,11 +1,13 @@
 """``starleth-demo`` (``make demo``): the main job.
 
 Default: the trotting demo over ROS 2. Two processes on an isolated ROS_DOMAIN_ID (the
-environment's ROS_DOMAIN_ID if set, else one chosen from the pid):
+environment's ROS_DOMAIN_ID if set, else one chosen from the pid), discovering peers on this
+host only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the environment sets it):
 
-* ``controller_node`` (starleth_controller), started first, and
 * ``sim_node`` (lockstep, as fast as the controller answers, physics HmJ, recording to
-  ``runs/demo.mcap``).
+  ``runs/demo.mcap``), and
+* ``controller_node`` (starleth_controller), started right after it: sim_node re-sends its
+  first state until the controller answers, so the start order does not matter.
 
 This process drives the run over ROS: it publishes /cmd_vel (0.3 m/s forward; ignored while
 standing), watches /clock, calls ``/controller_node/trot`` (true) at t = 2 s of sim time,
@@ -33,10 +35,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .nodes.discovery import keep_discovery_local, local_discovery_env
+
 PERIOD_NS = 2_500_000            # sim_node's stamp period (400 Hz)
 FALL_HEIGHT = 0.3                # a base height below this is a fall [m]
 STEPPING = 0.01                  # sim time [s] on /clock that shows the sim is stepping
-FIRST_STATE_WAIT = 1.5           # [s] wall, see drive()
 #: the issue's acceptance: >= 4 m in 18 s of trot at 0.3 m/s (scaled for other settings)
 ACCEPT_DISTANCE, ACCEPT_TROT, ACCEPT_SPEED = 4.0, 18.0, 0.3
 MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not checked [s]
@@ -118,7 +121,7 @@ class NodeProcess:
         for k, v in params.items():
             val = f'"{v}"' if isinstance(v, str) else repr(v)
             cmd += ["-p", f"{k}:={val}"]
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
+        env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
                    RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
         self.name, self.log_path = name, log_path
         self._log = open(log_path, "w")
@@ -234,18 +237,17 @@ def _check_alive(procs):
                             f"{p.log_path} ends with:\n{p.log_tail()}")
 
 
-def drive(domain_id, stand, trot, speed, procs, start_sim, echo, startup_timeout=90.0,
+def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
           run_timeout=300.0):
-    """The ROS side of the demo: wait for the controller, start the sim (`start_sim()`),
-    wait for it, send /cmd_vel, switch to trot at t = stand, pause the sim at
-    t_trot + trot. Returns (t_trot, t_pause, wall, sim)."""
+    """The ROS side of the demo: wait for both nodes, send /cmd_vel, switch to trot at
+    t = stand, pause the sim at t_trot + trot. Returns (t_trot, t_pause, wall, sim)."""
     import rclpy
     import rclpy.executors
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
     from geometry_msgs.msg import Twist
-    from std_srvs.srv import SetBool, Trigger
+    from std_srvs.srv import SetBool
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
@@ -267,44 +269,27 @@ def drive(domain_id, stand, trot, speed, procs, start_sim, echo, startup_timeout
         cmd_pub = node.create_publisher(Twist, "/cmd_vel", QoSProfile(depth=10))
         trot_cli = node.create_client(SetBool, "/controller_node/trot")
         pause_cli = node.create_client(SetBool, "/sim_node/pause")
-        reset_cli = node.create_client(Trigger, "/sim_node/reset")
 
-        # the controller up and subscribed to /cmd_vel; then the sim: sim_node publishes
-        # its first state once, when it starts, and waits for the answer
+        # both nodes up (in any order: sim_node re-sends its first state until the
+        # controller answers it), then the first steps on /clock
         t_end = time.monotonic() + startup_timeout
-        while not (trot_cli.service_is_ready() and cmd_pub.get_subscription_count() > 0):
+        while not (trot_cli.service_is_ready() and cmd_pub.get_subscription_count() > 0
+                   and pause_cli.service_is_ready()):
             _check_alive(procs)
             if time.monotonic() > t_end:
-                raise DemoError(f"controller_node did not come up within {startup_timeout:g} s")
-            ex.spin_once(timeout_sec=0.05)
-        start_sim()
-        while not pause_cli.service_is_ready():
-            _check_alive(procs)
-            if time.monotonic() > t_end:
-                raise DemoError(f"sim_node did not come up within {startup_timeout:g} s")
+                raise DemoError(f"the nodes did not come up within {startup_timeout:g} s")
             ex.spin_once(timeout_sec=0.05)
         twist = Twist()
         twist.linear.x = float(speed)
         cmd_pub.publish(twist)
         last_cmd = time.monotonic()
         echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting)")
-        # sim_node publishes its first full state once, as it starts; if it went out before
-        # the controller's subscriptions matched, nothing steps (sim_node then re-sends only
-        # /joint_states): re-publish the initial state through ~/reset
-        t_kick = time.monotonic() + FIRST_STATE_WAIT
         while clock["first"] is None:
             _check_alive(procs)
             if time.monotonic() > t_end:
                 raise DemoError(f"the simulation did not start stepping within "
                                 f"{startup_timeout:g} s (no /clock beyond t = {STEPPING} s); "
                                 f"see the logs {', '.join(p.log_path for p in procs)}")
-            if time.monotonic() > t_kick:
-                res = _wait_future(ex, reset_cli.call_async(Trigger.Request()), 10.0, procs,
-                                   "/sim_node/reset")
-                echo(f"  no answer to the first state within {FIRST_STATE_WAIT:g} s (sim_node "
-                     "sent it before the controller's subscriptions matched): re-published "
-                     f"it with /sim_node/reset ({res.message})")
-                t_kick = time.monotonic() + FIRST_STATE_WAIT
             ex.spin_once(timeout_sec=0.05)
 
         t_trot = None
@@ -345,6 +330,8 @@ def drive(domain_id, stand, trot, speed, procs, start_sim, echo, startup_timeout
 
 def read_bag(path, result: DemoResult):
     """Fill `result` from the recording: base trajectory, solver iterations, counts."""
+    from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
+                         TOPIC_SOLVER, resolve)
     from pathlib import Path
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -360,19 +347,21 @@ def read_bag(path, result: DemoResult):
         conns = {c.topic: c for c in reader.connections}
         result.topic_counts = {t: c.msgcount for t, c in conns.items()}
         result.messages = sum(result.topic_counts.values())
-        for topic in ("/joint_states", "/starleth/base_state", "/starleth/solver"):
+        js, base, solver = (resolve(t) for t in (TOPIC_JOINT_STATES, TOPIC_BASE_STATE,
+                                                  TOPIC_SOLVER))
+        for topic in (js, base, solver):
             if topic not in conns:
                 raise DemoError(f"the recording {path} has no {topic}")
         stamps = np.array([ts for _, ts, _ in
-                           reader.messages(connections=[conns["/joint_states"]])], dtype=np.int64)
+                           reader.messages(connections=[conns[js]])], dtype=np.int64)
         result.joint_states = len(stamps)
-        result.joint_commands = result.topic_counts.get("/joint_commands", 0)
+        result.joint_commands = result.topic_counts.get(resolve(TOPIC_JOINT_COMMANDS), 0)
         last = int(stamps.max()) if len(stamps) else 0
         result.steps_expected = last // PERIOD_NS + 1
         result.missing_steps = result.steps_expected - len(np.unique(stamps))
         result.t_end = last * 1e-9
         t, pos = [], []
-        c = conns["/starleth/base_state"]
+        c = conns[base]
         for _, ts, raw in reader.messages(connections=[c]):
             m = reader.deserialize(raw, c.msgtype)
             p = m.pose.pose.position
@@ -392,7 +381,7 @@ def read_bag(path, result: DemoResult):
             result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
             result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
         its = []
-        c = conns["/starleth/solver"]
+        c = conns[solver]
         for _, ts, raw in reader.messages(connections=[c]):
             if ts == 0:
                 continue          # the initial state: no step yet
@@ -427,27 +416,22 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
                         speed=speed)
     echo(f"StarlETH demo: sim_node ({physics}, lockstep) + controller_node over ROS 2 "
          f"(ROS_DOMAIN_ID={domain_id})")
+    keep_discovery_local()      # this process's own ROS context too
     procs = []
-
-    def start_sim():
+    try:
         procs.append(NodeProcess("sim_node", "starleth_sim.nodes.sim_node",
                                  {"mode": "lockstep", "real_time_factor": 0.0,
                                   "physics": physics, "record": bag},
                                  domain_id, stem + ".sim_node.log"))
-        result.logs["sim_node"] = procs[-1].log_path
-
-    try:
-        # the controller first (see drive)
         procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
                                  {"mode": "stand"}, domain_id, stem + ".controller_node.log"))
-        result.logs["controller_node"] = procs[-1].log_path
+        result.logs = {p.name: p.log_path for p in procs}
         t_trot, t_pause, wall, sim_elapsed = drive(domain_id, stand, trot, speed, procs,
-                                                   start_sim, echo, startup_timeout,
-                                                   run_timeout)
+                                                   echo, startup_timeout, run_timeout)
         result.t_trot, result.wall, result.sim_elapsed = t_trot, wall, sim_elapsed
     finally:
         # the controller first (the sim is paused), then the sim: SIGINT finalises the MCAP
-        for p in procs:
+        for p in sorted(procs, key=lambda p: p.name != "controller_node"):
             result.exit_codes[p.name] = p.stop()
     read_bag(bag, result)
     return result

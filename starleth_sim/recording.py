@@ -278,6 +278,8 @@ class McapRecorder:
         self.message_count = 0
         self.ros_distro = ros_distro or os.environ.get("ROS_DISTRO", "jazzy")
         self.custom_data = dict(custom_data or {})
+        self._bytes_since_flush = 0
+        self._flushed_at = 0
 
     # -- setup ------------------------------------------------------------------------------
     def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
@@ -338,11 +340,28 @@ class McapRecorder:
             publish = log_time_ns if publish_time_ns is None else int(publish_time_ns)
             self._writer.add_message(t.channel_id, log_time_ns, bytes(msg), publish, t.count)
             self.message_count += 1
+            pos = self._file.tell()
+            if pos != self._flushed_at:          # a chunk went to the file
+                self._flushed_at, self._bytes_since_flush = pos, 0
+            self._bytes_since_flush += len(msg)
             if self._start_ns is None or log_time_ns < self._start_ns:
                 self._start_ns = log_time_ns
             if self._end_ns is None or log_time_ns > self._end_ns:
                 self._end_ns = log_time_ns
         return True
+
+    @property
+    def size(self) -> int:
+        """Bytes of the file so far: what is on disk plus the messages of the open chunk."""
+        return self._flushed_at + self._bytes_since_flush
+
+    @property
+    def start_ns(self):
+        return self._start_ns
+
+    @property
+    def end_ns(self):
+        return self._end_ns
 
     # -- closing ------------------------------------------------------------------------------
     def bag_metadata(self) -> dict:
@@ -405,3 +424,169 @@ class McapRecorder:
             self.close()
         except Exception:
             pass
+
+
+class SplitRecorder:
+    """rosbag2's split recording (``ros2 bag record --max-bag-duration/--max-bag-size``): a
+    bag directory holding ``<name>_0.mcap``, ``<name>_1.mcap``, ... and ``metadata.yaml``. A
+    new file is started when the current one spans `max_duration_ns` of message time or
+    holds `max_size` bytes (0: no limit); every file is a complete bag on its own (all
+    topics, metadata records and attachments), and ``metadata.yaml`` (rosbag2 BagMetadata)
+    lists the files; it is rewritten at every split and at close. The memory of an all-day
+    recording stays flat: each closed file's indexes leave memory with it.
+
+    Same interface as :class:`McapRecorder`; `path` is the directory (a trailing ``.mcap``
+    is dropped from the name)."""
+
+    def __init__(self, path: str, *, max_duration_ns: int = 0, max_size: int = 0, **kwargs):
+        path = str(path)
+        if path.endswith(".mcap"):
+            path = path[:-len(".mcap")]
+        if os.path.exists(path) and (not os.path.isdir(path) or os.listdir(path)):
+            raise FileExistsError(f"{path}: the bag directory exists and is not empty")
+        os.makedirs(path, exist_ok=True)
+        self.path = path
+        self.name = os.path.basename(os.path.normpath(path))
+        self.max_duration_ns = int(max_duration_ns)
+        self.max_size = int(max_size)
+        self._kwargs = kwargs
+        self._lock = threading.RLock()
+        self._topics = []          # (topic, type, qos, type_hash)
+        self._metadata = []        # (name, data)
+        self._attachments = []     # (name, media_type, data, log_time_ns)
+        self._done = []            # bag_metadata() of the closed files
+        self._closed = False
+        self.message_count = 0
+        self._current = None
+        self._open_next()
+
+    # -- files ------------------------------------------------------------------------------
+    @property
+    def files(self) -> list:
+        """Paths of the files written so far (the current one last)."""
+        names = [f["files"][0]["path"] for f in self._done]
+        if self._current is not None and not self._current.closed:
+            names.append(os.path.basename(self._current.path))
+        return [os.path.join(self.path, n) for n in names]
+
+    def _open_next(self):
+        index = len(self._done)
+        rec = McapRecorder(os.path.join(self.path, f"{self.name}_{index}.mcap"), **self._kwargs)
+        for topic, typ, qos, type_hash in self._topics:
+            rec.add_topic(topic, typ, qos, type_hash)
+        for name, data in self._metadata:
+            rec.add_metadata(name, data)
+        for name, media_type, data, log_time in self._attachments:
+            rec.add_attachment(name, media_type, data, log_time)
+        self._current = rec
+
+    def _split(self):
+        cur = self._current
+        cur.close()
+        self._done.append(cur.bag_metadata())
+        self._open_next()
+        self._write_metadata_yaml()
+
+    def _full(self, log_time_ns) -> bool:
+        cur = self._current
+        if not cur.message_count:
+            return False
+        if self.max_duration_ns and log_time_ns - cur.start_ns >= self.max_duration_ns:
+            return True
+        return bool(self.max_size) and cur.size >= self.max_size
+
+    # -- the McapRecorder interface -----------------------------------------------------------
+    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+        with self._lock:
+            if topic not in (t[0] for t in self._topics):
+                self._topics.append((topic, msg_type, qos, type_hash))
+            return self._current.add_topic(topic, msg_type, qos, type_hash)
+
+    @property
+    def topics(self) -> dict:
+        return self._current.topics
+
+    def counts(self) -> dict:
+        total = {}
+        for meta in self._done:
+            for t in meta["topics_with_message_count"]:
+                name = t["topic_metadata"]["name"]
+                total[name] = total.get(name, 0) + t["message_count"]
+        for name, n in self._current.counts().items():
+            total[name] = total.get(name, 0) + n
+        return total
+
+    def add_metadata(self, name: str, data: dict) -> None:
+        with self._lock:
+            self._metadata.append((name, dict(data)))
+            self._current.add_metadata(name, data)
+
+    def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
+        with self._lock:
+            self._attachments.append((name, media_type, data, log_time_ns))
+            self._current.add_attachment(name, media_type, data, log_time_ns)
+
+    def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
+        with self._lock:
+            if self._closed:
+                return False
+            if self._full(int(log_time_ns)):
+                self._split()
+            ok = self._current.write(topic, msg, log_time_ns, publish_time_ns)
+            self.message_count += ok
+            return ok
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def bag_metadata(self) -> dict:
+        """The rosbag2 BagMetadata of the whole bag (all files)."""
+        metas = list(self._done)
+        if not self._current.closed:
+            metas.append(self._current.bag_metadata())
+        timed = [m for m in metas if m["message_count"]] or metas[:1]
+        starts = [m["starting_time"]["nanoseconds_since_epoch"] for m in timed]
+        ends = [m["starting_time"]["nanoseconds_since_epoch"] + m["duration"]["nanoseconds"]
+                for m in timed]
+        topics = OrderedDict()
+        for m in metas:
+            for t in m["topics_with_message_count"]:
+                name = t["topic_metadata"]["name"]
+                if name in topics:
+                    topics[name]["message_count"] += t["message_count"]
+                else:
+                    topics[name] = {"topic_metadata": dict(t["topic_metadata"]),
+                                    "message_count": t["message_count"]}
+        out = dict(metas[0])
+        out.update({
+            "duration": {"nanoseconds": max(ends) - min(starts)},
+            "starting_time": {"nanoseconds_since_epoch": min(starts)},
+            "message_count": sum(m["message_count"] for m in metas),
+            "topics_with_message_count": list(topics.values()),
+            "relative_file_paths": [m["files"][0]["path"] for m in metas],
+            "files": [m["files"][0] for m in metas]})
+        return out
+
+    def _write_metadata_yaml(self):
+        data = {"rosbag2_bagfile_information": self.bag_metadata()}
+        tmp = os.path.join(self.path, "metadata.yaml.tmp")
+        with open(tmp, "w") as f:
+            yaml.safe_dump(data, f, sort_keys=False)
+        os.replace(tmp, os.path.join(self.path, "metadata.yaml"))
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._current.close()
+            self._done.append(self._current.bag_metadata())
+            self._write_metadata_yaml()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False

@@ -7,7 +7,8 @@
     sim.q, sim.u, sim.t, sim.contacts, sim.diagnostics
 
 Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
-URDF effort limits. Contact impulses are reported in the world frame, summed over the
+URDF effort limits; at the URDF velocity limit a motor gives no torque that would drive its
+joint faster (the torque actually applied is ``applied_torque``). Contact impulses are reported in the world frame, summed over the
 physics steps of the control period; forces are impulse / control period (F = Λ/Δt with one
 step per control update, as in the paper's Fig. 5).
 """
@@ -31,14 +32,20 @@ log = logging.getLogger("starleth_sim")
 
 
 @nb.njit(cache=True)
-def saturate_torque(tau, limit, out):
-    """out = tau clipped to [-limit, limit] (the motors' effort limits); False if tau has a
+def saturate_torque(tau, limit, qd, qd_limit, out):
+    """The torques the motors apply: out = tau clipped to [-limit, limit] (effort limits),
+    and zero for a joint already at or beyond its velocity limit (|φ̇| ≥ qd_limit) when the
+    torque would drive it faster (τ φ̇ > 0): a motor adds no power beyond its speed limit,
+    so a misbehaving controller cannot spin a leg up without bound. False if tau has a
     non-finite entry (out is then not to be used)."""
     for k in range(tau.shape[0]):
         t = tau[k]
         if not np.isfinite(t):
             return False
-        out[k] = min(max(t, -limit[k]), limit[k])
+        t = min(max(t, -limit[k]), limit[k])
+        if abs(qd[k]) >= qd_limit[k] and t * qd[k] > 0.0:
+            t = 0.0
+        out[k] = t
     return True
 
 _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
@@ -99,6 +106,13 @@ class Simulator:
         lim = np.array(description.effort_limit, dtype=float).reshape(-1)
         self._effort_limit = lim if lim.shape == (self.n_joints,) else \
             np.full(self.n_joints, np.inf)     # the description gives no limits
+        vlim = np.array(description.velocity_limit, dtype=float).reshape(-1)
+        if vlim.shape != (self.n_joints,):
+            vlim = np.full(self.n_joints, np.inf)
+        #: joint velocity limits (URDF <limit velocity>; none where not positive and finite)
+        self._velocity_limit = np.where(np.isfinite(vlim) & (vlim > 0), vlim, np.inf)
+        self._state_version = 0
+        self._joint_velocity_cache = (-1, None)
         self.contact_names = tuple(description.contact_names())
         self.control_period = config.control_period
         self._persistent_wrenches = {}
@@ -162,6 +176,7 @@ class Simulator:
         for iq in self.coords.root_q:
             q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
         self._q, self._u, self._t = q, u, float(t)
+        self._state_version += 1
         self.stepper.reset_contact_state()
         self._tau = np.zeros(self.n_joints)
         nc = self.coords.n_contacts
@@ -197,7 +212,17 @@ class Simulator:
         return self.coords.joint_positions(self._q)
 
     def joint_velocities(self):
-        return self.coords.joint_velocities(self._q, self._u)
+        return self._joint_velocities().copy()
+
+    def _joint_velocities(self):
+        """φ̇ of the current state (computed once per state: the maximal coordinates recover
+        it from the bodies' velocities, and both a controller and the torque saturation of
+        the next step ask for it)."""
+        version, qd = self._joint_velocity_cache
+        if version != self._state_version:
+            qd = self.coords.joint_velocities(self._q, self._u)
+            self._joint_velocity_cache = (self._state_version, qd)
+        return qd
 
     def bilateral_violation(self):
         """g_B at the current state: the position-level violation of the bilateral
@@ -297,7 +322,8 @@ class Simulator:
             raise ValueError(f"tau must have {self.n_joints} entries (joint order "
                              f"{', '.join(self.joint_names)}), got {a.shape[0]}")
         out = np.empty(self.n_joints)
-        if not saturate_torque(a, self._effort_limit, out):
+        if not saturate_torque(a, self._effort_limit, self._joint_velocities(),
+                               self._velocity_limit, out):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
             raise ValueError(f"tau has non-finite entries for {', '.join(bad)}")
         return out
@@ -347,6 +373,7 @@ class Simulator:
             self.stepper.restore(memory)
             raise
         self._q, self._u = q, u
+        self._state_version += 1
         self._t += self.control_period
         self._tau = tau
         self._impulse = impulse

@@ -1,18 +1,52 @@
 """The ROS 2 interface names of ``sim_node`` (ROS-free, so that bag analysis and other tools
-can use them without importing rclpy)."""
+can use them without importing rclpy).
+
+Names are relative (REP 135 style): a node started with ``--ros-args -r __ns:=/robot1``
+publishes ``/robot1/joint_states`` and so on, so that several robots share one ROS domain.
+``/clock`` is global, as ROS defines it (a second simulator in the same domain sets
+``publish_clock:=false``). ``~/...`` names are private to the node
+(``/robot1/sim_node/wrench``).
+"""
 
 TOPIC_CLOCK = "/clock"
-TOPIC_JOINT_STATES = "/joint_states"
-TOPIC_BASE_STATE = "/starleth/base_state"
-TOPIC_IMU = "/starleth/imu"
-TOPIC_SOLVER = "/starleth/solver"
-TOPIC_ROBOT_DESCRIPTION = "/robot_description"
-TOPIC_EFFORT_COMMANDS = "/joint_group_effort_controller/commands"
-TOPIC_JOINT_COMMANDS = "/joint_commands"
+TOPIC_JOINT_STATES = "joint_states"
+TOPIC_BASE_STATE = "starleth/base_state"
+TOPIC_IMU = "starleth/imu"
+TOPIC_SOLVER = "starleth/solver"
+TOPIC_ROBOT_DESCRIPTION = "robot_description"
+TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
+TOPIC_JOINT_COMMANDS = "joint_commands"
 TOPIC_WRENCH = "~/wrench"
 TOPIC_WRENCH_PERSISTENT = "~/wrench/persistent"
 
 
 def foot_wrench_topic(foot: str) -> str:
-    """/starleth/<foot>/wrench for a foot contact name such as 'LF_foot'."""
-    return f"/starleth/{foot}/wrench"
+    """starleth/<foot>/wrench for a foot contact name such as 'LF_foot'."""
+    return f"starleth/{foot}/wrench"
+
+
+def normalize_namespace(namespace: str | None) -> str:
+    """'' (the root) or '/a/b' for any of None, '', '/', 'a/b', '/a/b/'."""
+    ns = (namespace or "").strip().strip("/")
+    return "/" + ns if ns else ""
+
+
+def resolve(name: str, namespace: str | None = "") -> str:
+    """The fully qualified topic name of a relative `name` in `namespace` ('/joint_states',
+    '/robot1/joint_states'); absolute names are returned as they are. Private (~) names are
+    not resolved here (they need the node name)."""
+    if name.startswith("/"):
+        return name
+    return f"{normalize_namespace(namespace)}/{name}"
+
+
+def namespace_of(topic: str, name: str) -> str | None:
+    """The namespace under which the fully qualified `topic` is the relative `name`
+    ('/robot1/joint_states', 'joint_states' -> '/robot1'; '/joint_states' -> ''), or None
+    if it is not."""
+    suffix = "/" + name
+    if topic == suffix:
+        return ""
+    if topic.endswith(suffix) and topic.startswith("/"):
+        return topic[:-len(suffix)]
+    return None

@@ -13,6 +13,10 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from starleth_sim.nodes.discovery import keep_discovery_local, local_discovery_env
+
+keep_discovery_local()     # the test nodes (this process) and every child: this host only
+
 
 class NodeProcess:
     """`python -m module --ros-args -p k:=v ...` as a child process on domain_id (optionally
@@ -25,7 +29,7 @@ class NodeProcess:
         for k, v in params.items():
             val = f'"{v}"' if isinstance(v, str) else repr(v)
             cmd += ["-p", f"{k}:={val}"]
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
+        env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
                    RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
         self.log_path = log_path
         self._log = open(log_path, "w")

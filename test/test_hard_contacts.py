@@ -133,3 +133,26 @@ def test_contact_rule_settings_are_validated(field, value, message):
 def test_opening_gap_below_activation_gap_is_rejected():
     with pytest.raises(ConfigError, match="opening_gap: must be >= activation_gap"):
         load_preset("HmJ").with_overrides(activation_gap=1e-3, opening_gap=1e-4)
+
+
+def test_motors_give_no_power_beyond_the_velocity_limit():
+    """A controller that holds a saturated torque on a lifted leg cannot spin it up without
+    bound: at the URDF velocity limit (10 rad/s) the motor's torque in the direction of
+    motion is cut (the applied torque is what joint_states publishes), braking is kept."""
+    sim = Simulator.from_preset("HmJ")
+    q = sim.q
+    q[2] += 1.0                                  # in the air: the legs swing freely
+    sim.reset(q)
+    tau = np.zeros(12)
+    tau[2] = 20.0                                # LF knee, full torque, held
+    top = 0.0
+    for _ in range(100):
+        sim.step(tau)
+        top = max(top, sim.joint_velocities()[2])
+    vmax = sim.description.velocity_limit[2]
+    assert vmax == 10.0
+    # one control period of 20 N m past the limit at most (I ≈ 3.5e-3 kg m²: +14 rad/s)
+    assert vmax <= top < vmax + 20.0
+    assert sim.applied_torque[2] == 0.0 or sim.joint_velocities()[2] < vmax
+    sim.step(-tau)                               # braking torque is always applied
+    assert sim.applied_torque[2] == -20.0

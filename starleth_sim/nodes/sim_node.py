@@ -6,29 +6,37 @@ mujoco_ros2_control / gz_ros2_control. A thin adapter: no physics in here.
 
 Parameters and their defaults: msg_configs/sim_node.yaml (physics, physics_overrides, mode,
 real_time_factor, lockstep_timeout, timeout_policy, record, record_compression,
-initial_state, start_paused, realtime_priority, executor, warn_throttle_period, frames).
+record_max_duration, record_max_size, initial_state, start_paused, realtime_priority,
+executor, warn_throttle_period, frames, publish_clock).
+
+Names are relative (REP 135 style): ``--ros-args -r __ns:=/robot1`` (or the launch file's
+``namespace``) moves every topic and service below, so several robots share a ROS domain;
+/clock is global (``publish_clock:=false`` on all but one simulator of a domain). The node
+is the source of /clock: its loops run on the wall clock whatever ``use_sim_time`` says,
+and its stamps are always sim time.
 
 Published; stamps are sim time t_k = k * 2.5 ms; one message per control step (a topic
 nobody subscribes to is skipped unless recording):
 
-  /joint_states                           sensor_msgs/JointState       effort = the torque
+  joint_states                            sensor_msgs/JointState       effort = the torque
                                                                        applied (saturated) over
                                                                        the step into t_k
-  /clock                                  rosgraph_msgs/Clock          ClockQoS (best effort)
-  /starleth/{LF,RF,LH,RH}_foot/wrench     geometry_msgs/WrenchStamped  F = impulse/dt, 'world'
-  /starleth/base_state                    nav_msgs/Odometry            pose in 'world', twist in
+  /clock                                  rosgraph_msgs/Clock          ClockQoS (best effort);
+                                                                       with publish_clock
+  starleth/{LF,RF,LH,RH}_foot/wrench      geometry_msgs/WrenchStamped  F = impulse/dt, 'world'
+  starleth/base_state                     nav_msgs/Odometry            pose in 'world', twist in
                                                                        'base' (child frame)
-  /starleth/imu                           sensor_msgs/Imu              proper acceleration and
+  starleth/imu                            sensor_msgs/Imu              proper acceleration and
                                                                        body rates at the base
-  /starleth/solver                        diagnostic_msgs/DiagnosticArray  solver status every
+  starleth/solver                         diagnostic_msgs/DiagnosticArray  solver status every
                                                                        step, interface counters
                                                                        every 40 steps
-  /robot_description                      std_msgs/String              URDF, transient local
+  robot_description                       std_msgs/String              URDF, transient local
 
 Subscribed (reliable, depth 10):
 
-  /joint_group_effort_controller/commands std_msgs/Float64MultiArray   12 torques, joint order
-  /joint_commands                         sensor_msgs/JointState       efforts by joint name
+  joint_group_effort_controller/commands  std_msgs/Float64MultiArray   12 torques, joint order
+  joint_commands                          sensor_msgs/JointState       efforts by joint name
   ~/wrench, ~/wrench/persistent           geometry_msgs/WrenchStamped  frame_id = link name,
                                                                        world axes, at the link
                                                                        origin; zero clears
@@ -41,9 +49,16 @@ state). A JointState command with another stamp is dropped and counted as *late*
 a state that was already stepped on the timeout policy) or *stale* (any other stamp). Without
 an answer within ``lockstep_timeout`` the node steps with ``timeout_policy`` (hold the last
 command or zero torques), logs it and counts it. Before the first step the node waits for
-the first command without timeout, re-sending state 0 (not recorded) every 0.5 s and when a
-/joint_states subscriber appears, so that two runs with the same controller are
-bit-identical; a controller that dies later leaves the sim stepping on its timeout policy.
+the first command without timeout, re-sending the whole state 0 (every state topic, same stamp, not
+recorded) every 0.5 s and whenever a new subscriber to a state topic appears, so that the
+start order of sim and controller does not matter and two runs with the same controller
+are bit-identical. A controller that dies later leaves the sim stepping on its timeout
+policy; while it waits for an answer, a new subscriber (a restarted controller) gets the
+current state again at once.
+
+Recording: ``record`` names an MCAP file (rosbag2 layout, read by ros2 bag, rosbags,
+Foxglove); with ``record_max_duration`` / ``record_max_size`` a rosbag2 bag directory of
+numbered files with a metadata.yaml, each file complete on its own.
 
 Realtime mode: a wall-clock loop (sleep in the executor until 0.6 ms before the tick, then
 spin on the clock); the latest valid command is held. Behind by more than 0.1 s, the loop
@@ -102,6 +117,8 @@ class Settings:
     timeout_policy: str = "hold"
     record: str = ""
     record_compression: str = "none"
+    record_max_duration: float = 0.0
+    record_max_size: int = 0
     initial_state: str = "standing"
     start_paused: bool = False
     realtime_priority: int = 0
@@ -109,6 +126,7 @@ class Settings:
     warn_throttle_period: float = 2.0
     world_frame: str = "world"
     base_frame: str = "base"
+    publish_clock: bool = True
 
     def validate(self) -> "Settings":
         def num(name, lo, lo_open):
@@ -139,9 +157,15 @@ class Settings:
         if isinstance(prio, bool) or not isinstance(prio, int) or not 0 <= prio <= 99:
             raise ConfigError(f"parameter realtime_priority: expected an integer in 0..99, got "
                               f"{self.realtime_priority!r}")
-        if not isinstance(self.start_paused, bool):
-            raise ConfigError(f"parameter start_paused: expected true or false, got "
-                              f"{self.start_paused!r}")
+        for name in ("start_paused", "publish_clock"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"parameter {name}: expected true or false, got "
+                                  f"{getattr(self, name)!r}")
+        num("record_max_duration", 0.0, False)
+        size = self.record_max_size
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise ConfigError(f"parameter record_max_size: expected an integer >= 0 (bytes), "
+                              f"got {size!r}")
         if self.timeout_policy not in ("hold", "zero"):
             raise ConfigError(f"parameter timeout_policy: must be 'hold' or 'zero', got "
                               f"{self.timeout_policy!r}")
@@ -799,7 +823,7 @@ class SimNode:
         self.context = node.context
         self._stop = False
         self._step_on_answer = False   # set by run() in lockstep mode without pacing
-        self._n_js_subs = 0
+        self._n_state_subs = 0          # subscribers of the state topics at the last look
         self._counts_k = -10 ** 9
         self._counts = {}
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
@@ -889,7 +913,8 @@ class SimNode:
             p = node.create_publisher(typ, topic, qos)
             self.pubs[key] = (p, p.topic_name, typ, qos)
 
-        pub("clock", Clock, TOPIC_CLOCK, clock_qos)
+        if self.settings.publish_clock:
+            pub("clock", Clock, TOPIC_CLOCK, clock_qos)
         pub("joint_states", JointState, TOPIC_JOINT_STATES, state_qos)
         for foot in FEET:
             pub(foot, WrenchStamped, foot_wrench_topic(foot), state_qos)
@@ -935,10 +960,17 @@ class SimNode:
         self.srv_step = node.create_service(Trigger, "~/step", self._srv_step)
 
     def _open_recorder(self, path):
-        from ..recording import McapRecorder
+        from ..recording import McapRecorder, SplitRecorder
         s, sim = self.settings, self.sim
-        self.recorder = rec = McapRecorder(path, compression=s.record_compression,
-                                           custom_data={"generator": "starleth_sim sim_node"})
+        common = dict(compression=s.record_compression,
+                      custom_data={"generator": "starleth_sim sim_node"})
+        if s.record_max_duration > 0 or s.record_max_size > 0:
+            # a rosbag2 bag directory of numbered files, each complete on its own
+            self.recorder = rec = SplitRecorder(
+                path, max_duration_ns=int(round(s.record_max_duration * 1e9)),
+                max_size=s.record_max_size, **common)
+        else:
+            self.recorder = rec = McapRecorder(path, **common)
         for key, (p, topic, typ, qos) in self.pubs.items():
             rec.add_topic(topic, typ, qos)
         for key, (sobj, topic, typ, qos) in self.subs.items():
@@ -952,6 +984,7 @@ class SimNode:
             "parameters": json.dumps(params), "joint_names": json.dumps(list(sim.joint_names)),
             "control_period": repr(sim.control_period),
             "stamp_period_ns": str(self.service.period_ns),
+            "namespace": self.node.get_namespace(),
             "urdf_attachment": "starleth.urdf"})
         rec.add_attachment("starleth.urdf", "application/xml", sim.description.urdf_xml)
         rec.add_attachment("physics_config.yaml", "application/yaml", cfg_yaml)
@@ -1007,9 +1040,9 @@ class SimNode:
         # /joint_states first: it is what a lockstep controller waits for
         if svc.counters["steps"] or svc.counters["resets"]:
             send = wanted("joint_states", record)
-        else:   # state 0: the exact count, the baseline of _republish_for_new_subscribers
-            self._n_js_subs = self.pubs["joint_states"][0].get_subscription_count()
-            send = self._n_js_subs > 0 or (record and self.recorder is not None)
+        else:   # state 0: the exact count
+            send = (self.pubs["joint_states"][0].get_subscription_count() > 0
+                    or (record and self.recorder is not None))
         if send:
             cdr = self._js_cdr
             if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
@@ -1026,7 +1059,7 @@ class SimNode:
                 js.velocity = _dbl(sim.joint_velocities())
                 js.effort = _dbl(sim.applied_torque)
                 self._emit("joint_states", js, record)
-        if wanted("clock", record):
+        if "clock" in self.pubs and wanted("clock", record):
             c = self.clock_msg.clock
             c.sec, c.nanosec = sec, nsec
             self._emit("clock", self.clock_msg, record)
@@ -1249,6 +1282,7 @@ class SimNode:
         # collector's generations, so that a full collection in the loop stays short
         gc.collect()
         gc.freeze()
+        self._n_state_subs = self._state_subscriber_count()
         self.publish_state()
         if self.settings.mode == "lockstep":
             self._step_on_answer = self.settings.real_time_factor == 0.0
@@ -1261,20 +1295,27 @@ class SimNode:
         self._counts_k = -10 ** 9       # fresh subscriber counts
         self.publish_state(record=False)
 
-    def _republish_for_new_subscribers(self) -> bool:
-        """Before the first step (started paused, or lockstep waiting for its first
-        command), send state 0 again (all topics, not recorded) when a /joint_states
-        subscriber appears, so that a controller that connects late sees it. Never after
-        the first step: from then on every stamp is published once."""
-        svc = self.service
-        if svc.counters["steps"] or svc.counters["resets"]:
-            return False
-        n = self.pubs["joint_states"][0].get_subscription_count()
-        new = n > self._n_js_subs
-        self._n_js_subs = n
-        if new:
+    #: the topics a controller waits for before it answers a state
+    STATE_TOPICS = ("joint_states", "base_state", *FEET)
+
+    def _state_subscriber_count(self) -> int:
+        return sum(self.pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS)
+
+    def _republish_for_new_subscribers(self, resend=True) -> bool:
+        """While the node waits for a command: when a new subscriber to any state topic
+        appeared since the last look, send the current state again on every topic (same
+        stamp, not recorded; resend=False only takes the count), so that a controller that
+        connects late, or a restarted one, sees a whole state it can answer."""
+        n = self._state_subscriber_count()
+        new = n > self._n_state_subs
+        self._n_state_subs = n
+        if new and resend:
             self._republish_state()
-        return new
+        return new and resend
+
+    def _before_first_step(self) -> bool:
+        svc = self.service
+        return not (svc.counters["steps"] or svc.counters["resets"])
 
     def _update_period_summary(self):
         self._period_summary = {k: round(v, 4) if isinstance(v, float) else v
@@ -1302,7 +1343,9 @@ class SimNode:
         margin = self.SPIN_MARGIN
         while self._running():
             if svc.paused:
-                self._republish_for_new_subscribers()
+                # started paused: a late subscriber gets state 0 (after the first step,
+                # every stamp goes out once)
+                self._republish_for_new_subscribers(resend=self._before_first_step())
                 self._spin(executor, 0.05)
                 next_tick = clock() + period
                 ps.restart()
@@ -1338,6 +1381,9 @@ class SimNode:
                                       f"({ps.overruns} overruns so far)")
                     next_tick = clock() + period
 
+    REPUBLISH_PERIOD = 0.5        # s: re-send state 0 this often until the first command
+    NEW_SUBSCRIBER_CHECK = 0.05   # s: look for new subscribers this often while waiting
+
     def _run_lockstep(self, executor):
         svc, s = self.service, self.settings
         clock = time.monotonic
@@ -1348,7 +1394,7 @@ class SimNode:
         last_republish = clock()
         while self._running():
             if svc.paused:
-                self._republish_for_new_subscribers()
+                self._republish_for_new_subscribers(resend=self._before_first_step())
                 self._spin(executor, 0.05)
                 pace_origin = None
                 version = -1
@@ -1371,16 +1417,24 @@ class SimNode:
                     self.publish_state()
                 continue
             if not svc.started:
-                # before the first command: no timeout; re-send the state when a new
-                # subscriber appears or every 0.5 s so a late controller sees it
+                # before the first command: no timeout; re-send the whole state when a new
+                # subscriber appears and every 0.5 s, so a late controller sees it
                 now = clock()
                 if self._republish_for_new_subscribers():
                     last_republish = now
-                elif now - last_republish > 0.5:
+                elif now - last_republish > self.REPUBLISH_PERIOD:
                     last_republish = now
                     self._republish_state()
                 self._spin(executor, 0.05)
                 continue
+            # waiting for the answer to a state: a controller that is slow to answer may be
+            # a new one (restarted); re-send the state when new subscribers appear (looked
+            # at only after NEW_SUBSCRIBER_CHECK s, off the fast lockstep cycle)
+            now = clock()
+            if now - (deadline - s.lockstep_timeout) > self.NEW_SUBSCRIBER_CHECK and \
+                    now - last_republish > self.NEW_SUBSCRIBER_CHECK:
+                last_republish = now
+                self._republish_for_new_subscribers()
             self._spin(executor, min(deadline - clock(), 0.05))
 
     # -- shutdown --------------------------------------------------------------------------
