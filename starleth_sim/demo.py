@@ -184,6 +184,10 @@ class DemoResult:
     missing_steps: int = 0
     joint_commands: int = 0
     bag_bytes: int = 0
+    html: str = ""                       # the 3D replay (starleth-view) of the recording
+    html_frames: int = 0
+    html_bytes: int = 0
+    html_error: str = ""
     exit_codes: dict = field(default_factory=dict)
     logs: dict = field(default_factory=dict)
 
@@ -214,6 +218,8 @@ class DemoResult:
                      "steps")
         if self.fell:
             p.append(f"the robot fell (base height down to {self.min_height:.3f} m)")
+        if self.html_error:
+            p.append(f"the 3D replay could not be written: {self.html_error}")
         if self.trot >= MIN_TROT_CHECKED and not self.trot_distance >= self.required_distance:
             p.append(f"trotted {self.trot_distance:.2f} m, expected >= "
                      f"{self.required_distance:.2f} m")
@@ -434,7 +440,21 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
         for p in sorted(procs, key=lambda p: p.name != "controller_node"):
             result.exit_codes[p.name] = p.stop()
     read_bag(bag, result)
+    write_replay(result, stem + ".html")
     return result
+
+
+def write_replay(result: DemoResult, path: str):
+    """The recording as a self-contained 3D replay page (starleth-view)."""
+    from .analysis import AnalysisError
+    from .view import ViewError, write_html
+    try:
+        info = write_html(result.bag, path)
+    except (AnalysisError, ViewError, OSError) as e:
+        result.html_error = str(e)
+        return
+    result.html, result.html_frames, result.html_bytes = (info["path"], info["frames"],
+                                                          info["bytes"])
 
 
 def print_summary(r: DemoResult, echo=print):
@@ -454,6 +474,9 @@ def print_summary(r: DemoResult, echo=print):
          f"{r.steps_expected} steps, /joint_commands {r.joint_commands}")
     echo(f"  recording            {r.bag} ({r.bag_bytes / 1e6:.1f} MB); logs "
          + ", ".join(r.logs.values()))
+    if r.html:
+        echo(f"  3D replay            {r.html} ({r.html_frames} frames, "
+             f"{r.html_bytes / 1e6:.1f} MB): open it in a browser")
     problems = r.problems()
     if problems:
         echo("  result: FAILED: " + "; ".join(problems))

@@ -97,6 +97,10 @@ def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     # command at most: a repeated answer to a re-sent first state.
     assert set(js[:-1].tolist()) <= set(cmd.tolist()) and len(cmd) <= len(js) + 1
     assert "reset" not in report
+    # make demo's 3D replay (starleth-view) beside the bag
+    html = tmp_path / "demo.html"
+    assert r.html == str(html) and html.stat().st_size < 15e6, report
+    assert r.html_frames >= 20 * 50 and f"3D replay            {html}" in report
     assert list(first.name) == JOINTS and last.header.stamp.sec == 20
 
     # starleth-analyze on the demo bag (issue 7): all plots, and a summary that agrees
