@@ -129,8 +129,18 @@ def generated_msg_text(name: str) -> str:
 _MSG_TEXT_CACHE: dict = {}
 
 
+def register_msg_text(name: str, text: str) -> None:
+    """The .msg text of a type whose package is not installed (e.g. tf2_msgs outside a full
+    ROS install), used when no .msg file is found; its dependencies must be findable."""
+    _FALLBACK_MSG_TEXTS[type_name(name)] = text
+
+
+_FALLBACK_MSG_TEXTS: dict = {}
+
+
 def msg_text(name: str) -> str:
-    """The .msg file text of 'pkg/msg/Type' (generated from the class if no file is found)."""
+    """The .msg file text of 'pkg/msg/Type' (generated from the class if no file is found,
+    or taken from register_msg_text when there is no class either)."""
     full = type_name(name)
     if full in _MSG_TEXT_CACHE:
         return _MSG_TEXT_CACHE[full]
@@ -143,7 +153,12 @@ def msg_text(name: str) -> str:
                 text = f.read()
             break
     if text is None:
-        text = generated_msg_text(full)
+        try:
+            text = generated_msg_text(full)
+        except ImportError:
+            if full not in _FALLBACK_MSG_TEXTS:
+                raise
+            text = _FALLBACK_MSG_TEXTS[full]
     _MSG_TEXT_CACHE[full] = text
     return text
 

@@ -48,6 +48,11 @@ def saturate_torque(tau, limit, qd, qd_limit, out):
         out[k] = t
     return True
 
+#: contact states: no normal force, inside the friction cone, on its boundary
+CONTACT_STATES = ("open", "stick", "slip")
+#: a hard contact slips when |Λ_T| ≥ (1 − this) μ Λ_N (the prox projects onto the cone)
+SLIP_TOLERANCE = 1e-6
+
 _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
            prox.STATUS_NONFINITE: "non_finite"}
 
@@ -61,6 +66,7 @@ class ContactInfo:
     impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
     force: np.ndarray       # impulse / control period [N]
     position: np.ndarray    # contact point in the world frame [m]
+    state: str = "open"     # open | stick | slip (CONTACT_STATES), see Simulator.contact_states
 
 
 @dataclass
@@ -252,9 +258,25 @@ class Simulator:
         frame = g.frame  # rows n, t1, t2
         world = self._impulse @ frame
         pos = self._position
+        states = self.contact_states()
         return [ContactInfo(n, bool(self._active[i]), float(self._gap[i]), world[i].copy(),
-                            world[i] / self.control_period, pos[i].copy())
+                            world[i] / self.control_period, pos[i].copy(),
+                            CONTACT_STATES[states[i]])
                 for i, n in enumerate(self.contact_names)]
+
+    def contact_states(self) -> np.ndarray:
+        """Per contact point after the last control step, an index into CONTACT_STATES:
+        0 open (no normal impulse), 1 stick, 2 slip. Hard contacts: slip when the tangential
+        impulse is on the boundary of the friction cone, |Λ_T| ≥ (1 − 1e-6) μ Λ_N; compliant
+        contacts: the slip flag of Alg. 1."""
+        lam = self._impulse
+        normal = lam[:, 0] > 0.0
+        if self.stepper.hard:
+            tangential = np.hypot(lam[:, 1], lam[:, 2])
+            slip = tangential >= (1.0 - SLIP_TOLERANCE) * self.stepper.ground.mu * lam[:, 0]
+        else:
+            slip = self.stepper.slip
+        return np.where(normal, np.where(slip, 2, 1), 0)
 
     def contact(self, name: str) -> ContactInfo:
         try:

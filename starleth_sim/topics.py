@@ -3,7 +3,7 @@ can use them without importing rclpy).
 
 Names are relative (REP 135 style): a node started with ``--ros-args -r __ns:=/robot1``
 publishes ``/robot1/joint_states`` and so on, so that several robots share one ROS domain.
-``/clock`` is global, as ROS defines it (a second simulator in the same domain sets
+``/clock``, ``/tf`` and ``/tf_static`` are global, as ROS defines them (a second simulator in the same domain sets
 ``publish_clock:=false``). ``~/...`` names are private to the node
 (``/robot1/sim_node/wrench``).
 """
@@ -16,6 +16,9 @@ TOPIC_SOLVER = "starleth/solver"
 TOPIC_ROBOT_DESCRIPTION = "robot_description"
 TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
 TOPIC_JOINT_COMMANDS = "joint_commands"
+TOPIC_CONTACT_MARKERS = "starleth/contact_markers"
+TOPIC_TF = "/tf"
+TOPIC_TF_STATIC = "/tf_static"
 TOPIC_WRENCH = "~/wrench"
 TOPIC_WRENCH_PERSISTENT = "~/wrench/persistent"
 

@@ -39,6 +39,8 @@ def test_executables_and_share(prefix):
     share = prefix / "share" / "starleth_sim"
     assert (share / "package.xml").is_file()
     assert (share / "urdf" / "starleth.urdf").is_file()
+    assert (share / "launch" / "starleth.launch.xml").is_file()
+    assert (share / "foxglove" / "starleth_layout.json").is_file()
     for f in ("sim_node.yaml", "HmJ.yaml", "Cm.yaml", "HmS.yaml"):
         assert (share / "msg_configs" / f).is_file(), f
 

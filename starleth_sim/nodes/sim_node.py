@@ -99,9 +99,13 @@ from .. import Simulator, ConfigError, SimulationError
 from ..description import STARLETH_FEET as FEET
 from ..kinematics import quat_xyzw_to_rot
 from .cdr import CommandDecoder, JointStateCdr
-from ..topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS, TOPIC_IMU,
-                      TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
-                      TOPIC_SOLVER, TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT, foot_wrench_topic)
+from ..recording import register_msg_text
+from ..topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
+                      TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
+                      TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, TOPIC_TF,
+                      TOPIC_TF_STATIC, TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT,
+                      foot_wrench_topic)
+from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 
 # =========================================================================================
@@ -127,6 +131,10 @@ class Settings:
     world_frame: str = "world"
     base_frame: str = "base"
     publish_clock: bool = True
+    tf_rate: float = 50.0
+    tf_frame_prefix: str = ""
+    contact_markers_rate: float = 50.0
+    contact_marker_scale: float = 0.002
 
     def validate(self) -> "Settings":
         def num(name, lo, lo_open):
@@ -140,7 +148,7 @@ class Settings:
 
         for name in ("physics", "physics_overrides", "mode", "timeout_policy", "record",
                      "record_compression", "initial_state", "executor", "world_frame",
-                     "base_frame"):
+                     "base_frame", "tf_frame_prefix"):
             if not isinstance(getattr(self, name), str):
                 raise ConfigError(f"parameter {name}: expected a string, got "
                                   f"{getattr(self, name)!r}")
@@ -162,6 +170,9 @@ class Settings:
                 raise ConfigError(f"parameter {name}: expected true or false, got "
                                   f"{getattr(self, name)!r}")
         num("record_max_duration", 0.0, False)
+        num("tf_rate", 0.0, False)
+        num("contact_markers_rate", 0.0, False)
+        num("contact_marker_scale", 0.0, True)
         size = self.record_max_size
         if isinstance(size, bool) or not isinstance(size, int) or size < 0:
             raise ConfigError(f"parameter record_max_size: expected an integer >= 0 (bytes), "
@@ -804,10 +815,13 @@ class SimNode:
         for name, default in defaults.items():
             desc = ParameterDescriptor(dynamic_typing=True, read_only=True)
             values[name] = node.declare_parameter(name, default, desc).value
-        for name in ("real_time_factor", "lockstep_timeout", "warn_throttle_period"):
+        for name in ("real_time_factor", "lockstep_timeout", "warn_throttle_period",
+                     "record_max_duration", "tf_rate", "contact_markers_rate",
+                     "contact_marker_scale"):
             if isinstance(values[name], int) and not isinstance(values[name], bool):
                 values[name] = float(values[name])
-        for name in ("physics", "physics_overrides", "record", "initial_state"):
+        for name in ("physics", "physics_overrides", "record", "initial_state",
+                     "tf_frame_prefix"):
             if values[name] is None:
                 values[name] = ""
         self.settings = Settings(**{k: v for k, v in values.items()
@@ -832,10 +846,12 @@ class SimNode:
         self._acc = None       # (step, acceleration) of the last IMU message
         self._setup_messages()
         self._setup_interfaces()
+        self._setup_visualisation()
         self.recorder = None
         if s.record:
             self._open_recorder(s.record)
         self._publish_robot_description()
+        self._publish_static_transforms()
         self.log.info(f"{s.physics} physics, {s.mode} mode"
                       + (f", real-time factor {s.real_time_factor:g}" if s.real_time_factor else
                          ", as fast as the controller") +
@@ -959,6 +975,141 @@ class SimNode:
         self.srv_pause = node.create_service(SetBool, "~/pause", self._srv_pause)
         self.srv_step = node.create_service(Trigger, "~/step", self._srv_step)
 
+    def _every(self, rate):
+        """Steps between two messages at `rate` Hz (0: never)."""
+        if rate <= 0:
+            return 0
+        return max(1, int(round(1.0 / (rate * self.sim.control_period))))
+
+    def _setup_visualisation(self):
+        """/tf and /tf_static (global, as tf2 defines them; written as CDR bytes: see
+        nodes/tf.py) and the contact markers (starleth/contact_markers), each at its rate."""
+        s, sim = self.settings, self.sim
+        desc = sim.description
+        self.frames = FrameTree(desc.model, desc.urdf_xml, s.world_frame, s.tf_frame_prefix)
+        self._tf_every = self._every(s.tf_rate)
+        self._markers_every = self._every(s.contact_markers_rate)
+        self._tf_cdr = TfMessageCdr(self.frames.names(self.frames.dynamic))
+        self._tf_static_cdr = TfMessageCdr(self.frames.names(self.frames.static))
+        register_msg_text(TF_TYPE, TF_MSG_TEXT)
+        tf_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.VOLATILE,
+                            history=HistoryPolicy.KEEP_LAST)
+        self.tf_topics = {"tf": (TOPIC_TF, tf_qos), "tf_static": (TOPIC_TF_STATIC,
+                                                                  self.qos["latched"])}
+        self.tf_pubs = {}
+        if self._tf_every:
+            try:
+                from tf2_msgs.msg import TFMessage
+            except ImportError:
+                self.log.info("tf2_msgs is not installed (no full ROS install): /tf and "
+                              "/tf_static are recorded but not published")
+            else:
+                for key, (topic, qos) in self.tf_topics.items():
+                    self.tf_pubs[key] = self.node.create_publisher(TFMessage, topic, qos)
+        self.marker_msg = None
+        if self._markers_every:
+            try:
+                from visualization_msgs.msg import Marker, MarkerArray
+            except ImportError:
+                self._markers_every = 0
+                self.log.warning("visualization_msgs is not installed: no contact markers")
+            else:
+                self._Marker = Marker
+                p = self.node.create_publisher(MarkerArray, TOPIC_CONTACT_MARKERS,
+                                               self.qos["state"])
+                self.pubs["contact_markers"] = (p, p.topic_name, MarkerArray,
+                                                self.qos["state"])
+                self.marker_msg = self._contact_marker_template(MarkerArray)
+
+    #: colours (r, g, b, a) of the contact states open, stick, slip
+    MARKER_COLOURS = ((0.6, 0.6, 0.6, 0.5), (0.1, 0.75, 0.2, 1.0), (0.9, 0.15, 0.1, 1.0))
+    MARKER_SPHERE = 0.02         # sphere diameter [m]
+    MARKER_SHAFT = 0.008         # arrow shaft diameter [m]
+
+    def _contact_marker_template(self, MarkerArray):
+        """One sphere per contact point (namespace 'contacts') and one arrow per contact
+        point (namespace 'contact_forces', deleted while the contact is open), ids by
+        contact index."""
+        Marker = self._Marker
+        msg = MarkerArray()
+        frame = self.settings.world_frame
+        for ns, typ in (("contacts", Marker.SPHERE), ("contact_forces", Marker.ARROW)):
+            for i, name in enumerate(self.sim.contact_names):
+                m = Marker()
+                m.header.frame_id = frame
+                m.ns, m.id, m.type, m.action = ns, i, typ, Marker.ADD
+                m.pose.orientation.w = 1.0
+                if typ == Marker.SPHERE:
+                    m.scale.x = m.scale.y = m.scale.z = self.MARKER_SPHERE
+                else:
+                    m.scale.x, m.scale.y, m.scale.z = (self.MARKER_SHAFT,
+                                                       2 * self.MARKER_SHAFT,
+                                                       3 * self.MARKER_SHAFT)
+                    m.color.r, m.color.g, m.color.b, m.color.a = 0.1, 0.35, 0.95, 1.0
+                    m.points = [type(m.pose.position)(), type(m.pose.position)()]
+                msg.markers.append(m)
+        return msg
+
+    def _fill_contact_markers(self, sec, nsec):
+        """Spheres at the contact points coloured by state; arrows from each closed contact
+        point along its force, contact_marker_scale [m/N] long."""
+        sim, Marker = self.sim, self._Marker
+        n = len(sim.contact_names)
+        states = sim.contact_states()
+        scale = self.settings.contact_marker_scale
+        for c, state, sphere, arrow in zip(sim.contacts, states, self.marker_msg.markers[:n],
+                                           self.marker_msg.markers[n:]):
+            p = c.position
+            for m in (sphere, arrow):
+                m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+            sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = (
+                float(p[0]), float(p[1]), float(p[2]))
+            col = sphere.color
+            col.r, col.g, col.b, col.a = self.MARKER_COLOURS[state]
+            if state == 0:
+                arrow.action = Marker.DELETE
+                continue
+            arrow.action = Marker.ADD
+            a, b = arrow.points
+            a.x, a.y, a.z = float(p[0]), float(p[1]), float(p[2])
+            f = c.force
+            b.x, b.y, b.z = (float(p[0] + scale * f[0]), float(p[1] + scale * f[1]),
+                             float(p[2] + scale * f[2]))
+
+    def _emit_tf(self, key, data, stamp_ns):
+        pub = self.tf_pubs.get(key)
+        if pub is not None:
+            pub.publish(data)
+        rec = self.recorder
+        if rec is not None and not rec.closed:
+            rec.write(self.tf_topics[key][0], data, stamp_ns)
+
+    def _publish_visualisation(self):
+        """/tf (every tf_rate-th step) and the contact markers, after the state (off the
+        lockstep critical path: the controller is computing its answer meanwhile)."""
+        svc = self.service
+        k = svc.k
+        sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
+        if self._tf_every and k % self._tf_every == 0 and \
+                (self.recorder is not None or self.tf_pubs):
+            q, _ = minimal_state(self.sim, public_state(self.sim))
+            poses = self.frames.transforms(q, self.frames.dynamic)
+            self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
+        if self._markers_every and k % self._markers_every == 0 and \
+                self._wanted("contact_markers", True):
+            self._fill_contact_markers(sec, nsec)
+            self._emit("contact_markers", self.marker_msg, True)
+
+    def _publish_static_transforms(self):
+        """/tf_static once (transient local): the fixed joints."""
+        if not self._tf_every or not self.frames.static:
+            return
+        q, _ = minimal_state(self.sim, public_state(self.sim))
+        poses = self.frames.transforms(q, self.frames.static)   # do not depend on q
+        self._emit_tf("tf_static", self._tf_static_cdr.build(0, 0, poses),
+                      self.service.stamp_ns)
+
     def _open_recorder(self, path):
         from ..recording import McapRecorder, SplitRecorder
         s, sim = self.settings, self.sim
@@ -975,6 +1126,9 @@ class SimNode:
             rec.add_topic(topic, typ, qos)
         for key, (sobj, topic, typ, qos) in self.subs.items():
             rec.add_topic(topic, typ, qos)
+        if self._tf_every:
+            for topic, qos in self.tf_topics.values():
+                rec.add_topic(topic, TF_TYPE, qos)
         cfg_yaml = yaml.safe_dump(sim.config.to_dict(), sort_keys=False)
         q0, u0 = self.service.q0, self.service.u0
         init = initial_state_record(sim, q0, u0, self.initial_state_desc["spec"])
@@ -1120,6 +1274,7 @@ class SimNode:
             self._emit("solver", self.diag_msg, record)
         if record:
             self._prepare_next_step()
+            self._publish_visualisation()
         # subscriber counts for the next state, taken now that this one is out (off the
         # lockstep critical path): /joint_states every step, the others every
         # SUBSCRIBER_REFRESH steps

@@ -1,0 +1,226 @@
+"""TF and contact markers in sim_node's recordings (issue #12): the CDR of TFMessage against
+rosbags' serialiser, the frame tree of a recorded bag, its transforms against Pinocchio's
+forward kinematics, the markers against the recorded wrenches."""
+import os
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from mcap_ros2.reader import read_ros2_messages  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from starleth_sim.nodes.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
+from starleth_sim.description import starleth_description  # noqa: E402
+
+DOMAIN_ID = 199 + os.getpid() % 30
+
+
+def test_tf_message_cdr_is_what_rosbags_serialises():
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    T = ts.types
+    frames = [("world", "base"), ("base", "LF_HIP"), ("", "x"), ("a_long_parent_name", "c")]
+    rng = np.random.default_rng(0)
+    poses = rng.standard_normal((len(frames), 7))
+    data = TfMessageCdr(frames).build(12, 345_000_000, poses)
+    msg = T["tf2_msgs/msg/TFMessage"](transforms=[
+        T["geometry_msgs/msg/TransformStamped"](
+            header=T["std_msgs/msg/Header"](
+                stamp=T["builtin_interfaces/msg/Time"](sec=12, nanosec=345_000_000),
+                frame_id=p),
+            child_frame_id=c,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=x[0], y=x[1], z=x[2]),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=x[3], y=x[4], z=x[5], w=x[6])))
+        for (p, c), x in zip(frames, poses)])
+    ref = bytes(ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
+    assert data == ref
+    back = ts.deserialize_cdr(data, "tf2_msgs/msg/TFMessage")
+    assert back.transforms[3].header.frame_id == "a_long_parent_name"
+    assert back.transforms[1].transform.rotation.w == poses[1, 6]
+
+
+def test_frame_tree_is_the_urdf_joint_tree():
+    desc = starleth_description()
+    edges = urdf_joint_edges(desc.urdf_xml)
+    tree = FrameTree(desc.model, desc.urdf_xml)
+    assert tree.root == "base"
+    assert len(tree.dynamic) == 1 + 12 and len(tree.static) == 4
+    assert {c for _, c in tree.static} == {f"{leg}_FOOT" for leg in ("LF", "RF", "LH", "RH")}
+    assert {e.child for e in edges} | {"base"} == {c for _, c in tree.dynamic + tree.static}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A headless sim_node (in this process, its own ROS context) that records 200 steps:
+    the robot collapses under zero torques (every joint moves), then a push."""
+    from starleth_sim.nodes.sim_node import SimNode
+    path = str(tmp_path_factory.mktemp("tf") / "tf.mcap")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep", "record": path,
+                                                     "tf_rate": 100.0,
+                                                     "contact_markers_rate": 400.0})
+    try:
+        svc = node.service
+        node.publish_state()
+        for k in range(200):
+            if k == 150:
+                svc.submit_wrench("base", (0.0, 400.0, 0.0), (0.0, 0.0, 0.0), False)
+            svc.step()
+            node.publish_state()
+    finally:
+        node.destroy()
+        rclpy.try_shutdown(context=ctx)
+    msgs = {}
+    for m in read_ros2_messages(path):
+        msgs.setdefault(m.channel.topic, []).append(m)
+    return node, msgs
+
+
+def _stamp(msg):
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def test_recorded_frame_tree_connects_world_to_every_link(recorded):
+    node, msgs = recorded
+    assert len(msgs["/tf"]) == 200 // 4 + 1 and len(msgs["/tf_static"]) == 1   # k = 0, 4, ...
+    assert msgs["/tf"][0].schema.name == "tf2_msgs/msg/TFMessage"
+    parent = {}
+    for m in (msgs["/tf_static"][0], msgs["/tf"][0]):
+        for t in m.ros_msg.transforms:
+            assert t.child_frame_id not in parent
+            parent[t.child_frame_id] = t.header.frame_id
+    links = {lnk.get("name") for lnk in
+             __import__("xml.etree.ElementTree", fromlist=["x"]).fromstring(
+                 node.sim.description.urdf_xml).findall("link")}
+    assert set(parent) == links
+    for link in links:
+        seen, f = set(), link
+        while f != "world":
+            assert f not in seen and f in parent, f"{link} is not connected to world"
+            seen.add(f)
+            f = parent[f]
+    qos = msgs["/tf_static"][0].channel.metadata["offered_qos_profiles"]
+    assert "durability: transient_local" in qos
+
+
+def test_recorded_transforms_agree_with_pinocchio_forward_kinematics(recorded):
+    node, msgs = recorded
+    desc = node.sim.description
+    model, data = desc.model, desc.model.createData()
+    joints = {_stamp(m.ros_msg): m.ros_msg for m in msgs["/joint_states"]}
+    bases = {_stamp(m.ros_msg): m.ros_msg for m in msgs["/starleth/base_state"]}
+    checked = 0
+    for m in msgs["/tf"][::5]:
+        tfs = m.ros_msg.transforms
+        stamp = _stamp(tfs[0])
+        js, base = joints[stamp], bases[stamp]
+        q = np.zeros(model.nq)
+        p, o = base.pose.pose.position, base.pose.pose.orientation
+        q[:7] = [p.x, p.y, p.z, o.x, o.y, o.z, o.w]
+        for name, angle in zip(js.name, js.position):
+            q[model.joints[model.getJointId(name)].idx_q] = angle
+        pin.framesForwardKinematics(model, data, q)
+        world = {"world": pin.SE3.Identity()}
+        pending = list(tfs) + list(msgs["/tf_static"][0].ros_msg.transforms)
+        while pending:
+            t = pending.pop(0)
+            if t.header.frame_id not in world:
+                pending.append(t)
+                continue
+            tr, r = t.transform.translation, t.transform.rotation
+            M = pin.SE3(pin.Quaternion(r.w, r.x, r.y, r.z).matrix(), np.array([tr.x, tr.y, tr.z]))
+            world[t.child_frame_id] = world[t.header.frame_id] * M
+        assert len(world) == 1 + len(tfs) + len(msgs["/tf_static"][0].ros_msg.transforms)
+        for link, M in world.items():
+            if link == "world":
+                continue
+            ref = data.oMf[model.getFrameId(link)]
+            assert np.abs(M.translation - ref.translation).max() < 1e-9, link
+            assert np.abs(M.rotation - ref.rotation).max() < 1e-9, link
+        checked += 1
+    assert checked >= 10
+    # the robot moved: the LF shank frame is not where it started
+    first = {t.child_frame_id: t for t in msgs["/tf"][0].ros_msg.transforms}
+    last = {t.child_frame_id: t for t in msgs["/tf"][-1].ros_msg.transforms}
+    assert abs(first["LF_SHANK"].transform.rotation.x - last["LF_SHANK"].transform.rotation.x) \
+        + abs(first["base"].transform.translation.z - last["base"].transform.translation.z) > 1e-3
+
+
+def test_contact_markers_show_the_recorded_wrenches(recorded):
+    node, msgs = recorded
+    scale = node.settings.contact_marker_scale
+    names = node.sim.contact_names
+    wrenches = {f: {_stamp(m.ros_msg): m.ros_msg.wrench.force
+                    for m in msgs[f"/starleth/{f}/wrench"]} for f in node.sim.description.foot_names}
+    states_seen = set()
+    n_arrows = 0
+    assert len(msgs["/starleth/contact_markers"]) == 201
+    for m in msgs["/starleth/contact_markers"]:
+        markers = m.ros_msg.markers
+        assert len(markers) == 2 * len(names)
+        spheres = {mk.id: mk for mk in markers if mk.ns == "contacts"}
+        arrows = {mk.id: mk for mk in markers if mk.ns == "contact_forces"}
+        for foot in node.sim.description.foot_names:
+            i = names.index(foot)
+            f = wrenches[foot][_stamp(arrows[i])]
+            sphere, arrow = spheres[i], arrows[i]
+            colour = (round(sphere.color.r, 2), round(sphere.color.g, 2), round(sphere.color.b, 2))
+            states_seen.add(colour)
+            if f.z > 0:
+                assert arrow.action == 0 and arrow.type == 0          # ADD, ARROW
+                a, b = arrow.points
+                np.testing.assert_allclose([b.x - a.x, b.y - a.y, b.z - a.z],
+                                           [scale * f.x, scale * f.y, scale * f.z], atol=1e-12)
+                assert (a.x, a.y, a.z) == (sphere.pose.position.x, sphere.pose.position.y,
+                                           sphere.pose.position.z)
+                n_arrows += 1
+            else:
+                assert arrow.action == 2                              # DELETE
+                assert colour == (0.6, 0.6, 0.6)                      # open: grey
+    assert n_arrows > 100
+    assert (0.1, 0.75, 0.2) in states_seen                            # stick: green
+
+
+def test_foxglove_layout_shows_what_sim_node_records(recorded):
+    """The shipped layout: a 3D panel following `base` with the URDF and the contact markers,
+    plots of the four foot normal forces and of the solver iterations; every topic it names
+    is in a recording and every field path exists on the recorded messages."""
+    import json
+    import re
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    layout = json.load(open(os.path.join(root, "foxglove", "starleth_layout.json")))
+    node, msgs = recorded
+    cfg = layout["configById"]
+
+    def leaves(tree):
+        if isinstance(tree, str):
+            return [tree]
+        return leaves(tree["first"]) + leaves(tree["second"])
+    assert sorted(leaves(layout["layout"])) == sorted(cfg)
+    three_d = cfg["3D!starleth"]
+    assert three_d["followTf"] == "base"
+    tf_children = {t.child_frame_id for t in msgs["/tf"][0].ros_msg.transforms}
+    assert "base" in tf_children
+    for topic, opts in three_d["topics"].items():
+        assert opts["visible"] and topic in msgs, topic
+    n_paths = 0
+    for key, panel in cfg.items():
+        if not key.startswith("Plot!"):
+            continue
+        for path in panel["paths"]:
+            topic, _, fields = path["value"].partition(".")
+            assert topic in msgs, topic
+            obj = msgs[topic][-1].ros_msg
+            for part in fields.split("."):
+                name = re.match(r"\w+", part).group(0)
+                obj = getattr(obj, name)               # the field exists
+                if "[:]" in part:                       # {key==...} filters: check one element
+                    m = re.search(r'\{(\w+)=="([^"]+)"\}', part)
+                    obj = next(o for o in obj if getattr(o, m.group(1)) == m.group(2))
+            float(obj)                                  # a number (or a numeric string)
+            n_paths += 1
+    assert n_paths == 5
