@@ -186,6 +186,19 @@ class BilateralConfig:
 
 
 @dataclass
+class ActuatorConfig:
+    #: the motors at the URDF velocity limit v: "derate" (a torque that drives its joint
+    #: faster is derated linearly from full at |φ̇| = v to zero at 2v, like a motor's
+    #: torque-speed line, so a misbehaving controller cannot spin a leg up without bound) |
+    #: "ignore" (ideal torque sources at any speed, as in the paper)
+    velocity_limit: str = "derate"
+
+    def validate(self, p):
+        self.velocity_limit = _choice(f"{p}.velocity_limit", self.velocity_limit,
+                                      {"derate", "ignore"})
+
+
+@dataclass
 class PhysicsConfig:
     name: str = "custom"
     description: str = ""
@@ -198,10 +211,11 @@ class PhysicsConfig:
     contact: ContactConfig = field(default_factory=ContactConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     bilateral: BilateralConfig = field(default_factory=BilateralConfig)
+    actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     #: paper's figures for this configuration (Table 1), for benchmarks and reports
     paper: dict = field(default_factory=dict)
 
-    _SECTIONS = ("ground", "contact", "solver", "bilateral")
+    _SECTIONS = ("ground", "contact", "solver", "bilateral", "actuator")
 
     @property
     def dt(self) -> float:

@@ -7,8 +7,8 @@
     sim.q, sim.u, sim.t, sim.contacts, sim.diagnostics
 
 Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
-URDF effort limits; at the URDF velocity limit a motor gives no torque that would drive its
-joint faster (the torque actually applied is ``applied_torque``). Contact impulses are reported in the world frame, summed over the
+URDF effort limits; beyond the URDF velocity limit v a torque that drives its joint faster
+is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``). Contact impulses are reported in the world frame, summed over the
 physics steps of the control period; forces are impulse / control period (F = Λ/Δt with one
 step per control update, as in the paper's Fig. 5).
 """
@@ -33,18 +33,21 @@ log = logging.getLogger("starleth_sim")
 
 @nb.njit(cache=True)
 def saturate_torque(tau, limit, qd, qd_limit, out):
-    """The torques the motors apply: out = tau clipped to [-limit, limit] (effort limits),
-    and zero for a joint already at or beyond its velocity limit (|φ̇| ≥ qd_limit) when the
-    torque would drive it faster (τ φ̇ > 0): a motor adds no power beyond its speed limit,
-    so a misbehaving controller cannot spin a leg up without bound. False if tau has a
-    non-finite entry (out is then not to be used)."""
+    """The torques the motors apply: out = tau clipped to [-limit, limit] (effort limits);
+    a torque that drives its joint faster (τ φ̇ > 0) beyond the velocity limit v is derated
+    like a motor's torque-speed line, linearly from full at |φ̇| = v to zero at 2v (its
+    no-load speed): no motor adds power beyond that, so a misbehaving controller cannot spin
+    a leg up without bound, and the torque stays a continuous function of the state.
+    Braking torques are never derated. False if tau has a non-finite entry (out is then not
+    to be used)."""
     for k in range(tau.shape[0]):
         t = tau[k]
         if not np.isfinite(t):
             return False
         t = min(max(t, -limit[k]), limit[k])
-        if abs(qd[k]) >= qd_limit[k] and t * qd[k] > 0.0:
-            t = 0.0
+        w = abs(qd[k])
+        if w > qd_limit[k] and t * qd[k] > 0.0:
+            t *= max(0.0, 2.0 - w / qd_limit[k])
         out[k] = t
     return True
 
@@ -117,6 +120,8 @@ class Simulator:
             vlim = np.full(self.n_joints, np.inf)
         #: joint velocity limits (URDF <limit velocity>; none where not positive and finite)
         self._velocity_limit = np.where(np.isfinite(vlim) & (vlim > 0), vlim, np.inf)
+        if config.actuator.velocity_limit == "ignore":
+            self._velocity_limit[:] = np.inf
         self._state_version = 0
         self._joint_velocity_cache = (-1, None)
         self.contact_names = tuple(description.contact_names())

@@ -54,6 +54,10 @@ def test_maximal_mass_matrix_is_constant_and_block_diagonal():
 
 
 def replay(preset, q_min, u_min, torques, **overrides):
+    """Open loop: the torques as given (ideal torque sources, velocity_limit "ignore": the
+    open-loop robot falls and flails its legs beyond the motors' speed limit, where the
+    derating would feed each set's own O(Δt) velocities back into the torques)."""
+    overrides.setdefault("velocity_limit", "ignore")
     sim = Simulator.from_preset(preset, **TIGHT, **overrides)
     sim.reset(q_min, u_min, minimal=True)
     for tau in torques:

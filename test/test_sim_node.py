@@ -251,16 +251,31 @@ class TestRealtime:
             assert ros.spin_until(lambda: "commands_rejected" in diag.values, 5)
             rejected0 = diag.get("commands_rejected")
             n_bad = 0
-            for data in ([1.0] * 11, [float("nan")] + [0.0] * 11, [float("inf")] * 12):
-                eff.publish(Float64MultiArray(data=data))
-                n_bad += 1
-                ros.spin_for(0.02)
-            for names, efforts in ((["LF_HAA", "FOO"], [1.0, 2.0]), (["LF_HAA"], [1.0, 2.0]),
-                                   (["LF_HFE"], [float("nan")]), (["LF_HFE", "LF_HFE"], [1.0, 1.0])):
-                m = JointState(name=names, effort=efforts)
-                cmd.publish(m)
-                n_bad += 1
-                ros.spin_for(0.02)
+
+            def send_until_logged(pub, msg, text):
+                """Publish until the node has logged `text` (a message lost on a loaded
+                machine is sent again: this test is about the rejection, not the DDS);
+                text None: send once (its warning is throttled behind an earlier one)."""
+                nonlocal n_bad
+                n_bad += 1                   # (a retry only replaces a lost message)
+                for _ in range(10):
+                    pub.publish(msg)
+                    if text is None:
+                        ros.spin_for(0.02)
+                        return
+                    if ros.spin_until(lambda: text in rt.sim.log(), 0.5):
+                        return
+                raise AssertionError(f"the node never logged {text!r}")
+            for data, text in (([1.0] * 11, "11 values, expected 12"),
+                               ([float("nan")] + [0.0] * 11, "non-finite torque for LF_HAA"),
+                               ([float("inf")] * 12, None)):
+                send_until_logged(eff, Float64MultiArray(data=data), text)
+            for names, efforts, text in (
+                    (["LF_HAA", "FOO"], [1.0, 2.0], "unknown joint name(s) 'FOO'"),
+                    (["LF_HAA"], [1.0, 2.0], "1 names but 2 efforts"),
+                    (["LF_HFE"], [float("nan")], "non-finite effort for LF_HFE"),
+                    (["LF_HFE", "LF_HFE"], [1.0, 1.0], "duplicate joint name(s) LF_HFE")):
+                send_until_logged(cmd, JointState(name=names, effort=efforts), text)
             for _ in range(30):                                     # a flood: warnings throttled
                 eff.publish(Float64MultiArray(data=[1.0] * 13))
                 n_bad += 1
@@ -276,11 +291,13 @@ class TestRealtime:
             ros.spin_for(1.0)
             assert rt.sim.alive()
             assert len(col.msgs) - n_before > 300                   # still publishing at 400 Hz
-            # the last valid command is kept: applied as 1.5 N m, except (0) on a joint that
-            # started the step at its velocity limit moving in the torque's direction
+            # the last valid command is kept: applied as 1.5 N m, derated on a joint that
+            # started the step beyond its velocity limit (10 rad/s) moving in the torque's
+            # direction (to zero at 20 rad/s)
             for prev, m in zip(col.msgs[n_before - 1:], col.msgs[n_before:]):
-                cut = (np.abs(prev.velocity) >= 10.0) & (np.array(prev.velocity) > 0)
-                assert np.allclose(np.where(cut, 0.0, 1.5), m.effort), (m.effort, prev.velocity)
+                v = np.array(prev.velocity)
+                expect = np.where(v > 10.0, 1.5 * np.clip(2.0 - v / 10.0, 0.0, 1.0), 1.5)
+                assert np.allclose(expect, m.effort), (m.effort, prev.velocity)
             assert all(np.all(np.isfinite(m.position)) for m in col.msgs[n_before:])
             # (the flood may overflow the depth-10 queues: at least one of it arrives)
             assert ros.spin_until(lambda: diag.get("commands_rejected") - rejected0 >= n_bad - 29
