@@ -435,17 +435,6 @@ def test_bad_input_never_gives_nan_torque():
     assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= 20.0)
 
 
-def test_controller_is_fast():
-    r = Recorder("HmJ")
-    r.run(Command("stand"), 0.5)
-    r.call_times.clear()
-    r.run(Command("trot", forward=0.3), 2.0)
-    ct = np.array(r.call_times)
-    print(f"\ncontroller: mean {ct.mean() * 1e6:.0f} µs, median {np.median(ct) * 1e6:.0f} µs "
-          f"per call")
-    assert np.median(ct) < 400e-6     # target < 150 µs; loose bound for loaded CI machines
-
-
 def test_controller_does_not_import_the_simulator():
     code = ("import sys, starleth_controller; "
             "assert not any(m.startswith('starleth_sim') for m in sys.modules), "
