@@ -226,3 +226,48 @@ def test_compressed_chunks_are_readable(tmp_path, compression):
         assert sum(1 for _ in reader.messages()) == 100
     with pytest.raises(ValueError, match="compression"):
         McapRecorder(str(tmp_path / "x.mcap"), compression="gzip")
+
+
+def test_split_recorder_by_size_gives_complete_files_and_a_rosbag2_directory(tmp_path):
+    """SplitRecorder (record_max_size): a new file when the current one holds max_size bytes;
+    each file is a complete bag (rosbags reads it alone, with the metadata record and the
+    attachment), the directory is a rosbag2 bag (metadata.yaml listing the files) that
+    rosbags reads as one bag with every message once and in order."""
+    from starleth_sim.recording import SplitRecorder
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+    path = tmp_path / "run.mcap"            # the .mcap suffix names the directory "run"
+    rec = SplitRecorder(str(path), max_size=200_000, chunk_size=32 * 1024)
+    rec.add_topic("/joint_states", JointState, QoSProfile(depth=10))
+    rec.add_metadata("starleth_sim", {"physics_config": "name: x"})
+    rec.add_attachment("starleth.urdf", "application/xml", "<robot name='x'/>")
+    js = JointState(name=[f"j{i}" for i in range(12)], position=[0.5] * 12)
+    n = 5000
+    for k in range(n):
+        js.header.stamp.sec, js.header.stamp.nanosec = divmod(k * 2_500_000, 1_000_000_000)
+        rec.write("/joint_states", js, k * 2_500_000)
+    rec.close()
+    bag = tmp_path / "run"
+    files = sorted(bag.glob("*.mcap"), key=lambda p: int(p.stem.split("_")[-1]))
+    assert len(files) >= 3 and rec.message_count == n
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["relative_file_paths"] == [p.name for p in files]
+    assert meta["message_count"] == n
+    assert meta["topics_with_message_count"][0]["message_count"] == n
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for f in files[:-1]:
+        assert f.stat().st_size < 200_000 + 64 * 1024      # one chunk past the limit at most
+    seen = []
+    for f in files:
+        with AnyReader([f], default_typestore=store) as r:   # each file on its own
+            seen += [ts for _, ts, _ in r.messages()]
+        from mcap.reader import make_reader
+        with open(f, "rb") as fh:
+            reader = make_reader(fh)
+            assert {m.name for m in reader.iter_metadata()} >= {"starleth_sim", "rosbag2"}
+            assert [a.name for a in reader.iter_attachments()] == ["starleth.urdf"]
+    assert seen == [k * 2_500_000 for k in range(n)]
+    with AnyReader([bag], default_typestore=store) as r:     # the directory as one bag
+        assert [ts for _, ts, _ in r.messages()] == seen
+    with pytest.raises(FileExistsError):
+        SplitRecorder(str(bag))                              # never into a non-empty directory
