@@ -1311,20 +1311,24 @@ def run(argv=None) -> int:
     return 0
 
 
+def run_console_script(prog, run, argv, errors=(AnalysisError,)) -> int:
+    """Run a bag tool's `run(argv)`: exit status as returned, or 1 with one line
+    'prog: error: ...' (no traceback) for `errors` and for OSError (writing the output),
+    130 on Ctrl-C; argparse exits with 2 on bad arguments."""
+    try:
+        return run(argv)
+    except (*errors, OSError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+
+
 def main(argv=None) -> int:
     """Console script: exit status 0, or 1 with a one-line message for a bag that cannot be
     analysed (no traceback), 2 for bad arguments."""
-    try:
-        return run(argv)
-    except AnalysisError as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 1
-    except OSError as e:   # writing the plots / JSON
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+    return run_console_script(PROG, run, argv)
 
 
 if __name__ == "__main__":

@@ -56,7 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import analysis
-from .analysis import AnalysisError
+from .analysis import AnalysisError, run_console_script
 from .description import RobotDescription, _origin, urdf_path
 from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
                      foot_wrench_topic)
@@ -1032,17 +1032,7 @@ def run(argv=None) -> int:
 def main(argv=None) -> int:
     """Console script: exit status 0, or 1 with a one-line message (no traceback) for a bag
     that cannot be replayed, 2 for bad arguments."""
-    try:
-        return run(argv)
-    except (AnalysisError, ViewError) as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 1
-    except OSError as e:   # writing the page
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+    return run_console_script(PROG, run, argv, (AnalysisError, ViewError))
 
 
 if __name__ == "__main__":

@@ -2,7 +2,6 @@
 run as a child process on a ROS domain, and a test node in its own rclpy context. Every
 wait is bounded; stop() always ends the process."""
 import json
-import os
 import re
 import signal
 import subprocess
@@ -20,12 +19,14 @@ keep_discovery_local()     # the test nodes (this process) and every child: this
 
 class NodeProcess:
     """`python -m module --ros-args -p k:=v ...` as a child process on domain_id (optionally
-    renamed to `name`); its output in log_path."""
+    renamed to `name`, under `namespace`); its output in log_path."""
 
-    def __init__(self, module, log_path, domain_id, name=None, **params):
+    def __init__(self, module, log_path, domain_id, name=None, namespace=None, **params):
         cmd = [sys.executable, "-m", module, "--ros-args"]
         if name:
             cmd += ["-r", f"__node:={name}"]
+        if namespace:
+            cmd += ["-r", f"__ns:={namespace}"]
         for k, v in params.items():
             val = f'"{v}"' if isinstance(v, str) else repr(v)
             cmd += ["-p", f"{k}:={val}"]

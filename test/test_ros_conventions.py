@@ -44,19 +44,7 @@ def controller_process(tmp_path, tag, **params):
 
 def ns_process(module, log_path, ns, **params):
     """A node as a child process under namespace `ns`."""
-    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={ns}"]
-    for k, v in params.items():
-        val = f'"{v}"' if isinstance(v, str) else repr(v)
-        cmd += ["-p", f"{k}:={val}"]
-    p = NodeProcess.__new__(NodeProcess)
-    from starleth_sim.nodes.discovery import local_discovery_env
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1",
-               RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
-    p.log_path = log_path
-    p._log = open(log_path, "w")
-    p.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=p._log,
-                              stderr=subprocess.STDOUT, env=env)
-    return p
+    return NodeProcess(module, log_path, DOMAIN_ID, namespace=ns, **params)
 
 
 @pytest.fixture(scope="module")
