@@ -469,7 +469,9 @@ class SplitRecorder:
         self._topics = []          # (topic, type, qos, type_hash)
         self._metadata = []        # (name, data)
         self._attachments = []     # (name, media_type, data, log_time_ns)
-        self._done = []            # bag_metadata() of the closed files
+        self._done = []            # per closed file: its "files" entry of the metadata
+        self._done_counts = {}     # topic -> messages in the closed files
+        self._topic_meta = {}      # topic -> topic_metadata (name, type, QoS, hash)
         self._closed = False
         self.message_count = 0
         self._current = None
@@ -479,7 +481,7 @@ class SplitRecorder:
     @property
     def files(self) -> list:
         """Paths of the files written so far (the current one last)."""
-        names = [f["files"][0]["path"] for f in self._done]
+        names = [f["path"] for f in self._done]
         if self._current is not None and not self._current.closed:
             names.append(os.path.basename(self._current.path))
         return [os.path.join(self.path, n) for n in names]
@@ -495,10 +497,19 @@ class SplitRecorder:
             rec.add_attachment(name, media_type, data, log_time)
         self._current = rec
 
+    def _retire(self, cur):
+        """Keep only the summary of a closed file (its indexes leave memory with it)."""
+        meta = cur.bag_metadata()
+        self._done.append(meta["files"][0])
+        for t in meta["topics_with_message_count"]:
+            name = t["topic_metadata"]["name"]
+            self._topic_meta.setdefault(name, t["topic_metadata"])
+            self._done_counts[name] = self._done_counts.get(name, 0) + t["message_count"]
+
     def _split(self):
         cur = self._current
         cur.close()
-        self._done.append(cur.bag_metadata())
+        self._retire(cur)
         self._open_next()
         self._write_metadata_yaml()
 
@@ -522,13 +533,10 @@ class SplitRecorder:
         return self._current.topics
 
     def counts(self) -> dict:
-        total = {}
-        for meta in self._done:
-            for t in meta["topics_with_message_count"]:
-                name = t["topic_metadata"]["name"]
-                total[name] = total.get(name, 0) + t["message_count"]
-        for name, n in self._current.counts().items():
-            total[name] = total.get(name, 0) + n
+        total = dict(self._done_counts)
+        if not self._current.closed:
+            for name, n in self._current.counts().items():
+                total[name] = total.get(name, 0) + n
         return total
 
     def add_metadata(self, name: str, data: dict) -> None:
@@ -557,31 +565,37 @@ class SplitRecorder:
 
     def bag_metadata(self) -> dict:
         """The rosbag2 BagMetadata of the whole bag (all files)."""
-        metas = list(self._done)
+        files = list(self._done)
+        topic_meta = dict(self._topic_meta)
+        counts = dict(self._done_counts)
+        base = None
         if not self._current.closed:
-            metas.append(self._current.bag_metadata())
-        timed = [m for m in metas if m["message_count"]] or metas[:1]
-        starts = [m["starting_time"]["nanoseconds_since_epoch"] for m in timed]
-        ends = [m["starting_time"]["nanoseconds_since_epoch"] + m["duration"]["nanoseconds"]
-                for m in timed]
-        topics = OrderedDict()
-        for m in metas:
-            for t in m["topics_with_message_count"]:
+            base = self._current.bag_metadata()
+            files.append(base["files"][0])
+            for t in base["topics_with_message_count"]:
                 name = t["topic_metadata"]["name"]
-                if name in topics:
-                    topics[name]["message_count"] += t["message_count"]
-                else:
-                    topics[name] = {"topic_metadata": dict(t["topic_metadata"]),
-                                    "message_count": t["message_count"]}
-        out = dict(metas[0])
-        out.update({
-            "duration": {"nanoseconds": max(ends) - min(starts)},
-            "starting_time": {"nanoseconds_since_epoch": min(starts)},
-            "message_count": sum(m["message_count"] for m in metas),
-            "topics_with_message_count": list(topics.values()),
-            "relative_file_paths": [m["files"][0]["path"] for m in metas],
-            "files": [m["files"][0] for m in metas]})
-        return out
+                topic_meta.setdefault(name, t["topic_metadata"])
+                counts[name] = counts.get(name, 0) + t["message_count"]
+        timed = [f for f in files if f["message_count"]] or files[:1]
+        start = min(f["starting_time"]["nanoseconds_since_epoch"] for f in timed)
+        end = max(f["starting_time"]["nanoseconds_since_epoch"] + f["duration"]["nanoseconds"]
+                  for f in timed)
+        rec = self._current
+        return {
+            "version": ROSBAG2_METADATA_VERSION,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": end - start},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": sum(f["message_count"] for f in files),
+            "topics_with_message_count": [{"topic_metadata": m, "message_count": counts.get(n, 0)}
+                                          for n, m in topic_meta.items()],
+            "compression_format": rec._compression,
+            "compression_mode": "",
+            "relative_file_paths": [f["path"] for f in files],
+            "files": files,
+            "custom_data": rec.custom_data,
+            "ros_distro": rec.ros_distro,
+        }
 
     def _write_metadata_yaml(self):
         data = {"rosbag2_bagfile_information": self.bag_metadata()}
@@ -596,7 +610,7 @@ class SplitRecorder:
                 return
             self._closed = True
             self._current.close()
-            self._done.append(self._current.bag_metadata())
+            self._retire(self._current)
             self._write_metadata_yaml()
 
     def __enter__(self):
