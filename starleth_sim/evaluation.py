@@ -260,7 +260,7 @@ def pd_sag(preset, seconds=2.0, **overrides):
         cs = sim.contacts
         loaded = [g[j] for j, i in enumerate(feet) if cs[i].impulse @ sim.stepper.ground.n > 0]
         out[k] = (max(0.0, -g.min()), max(loaded) if loaded else np.nan, d.iterations,
-                  d.loaded_contacts_opened, sim.coords.kinetic_energy(sim._q, sim._u))
+                  d.loaded_contacts_opened, sim.coords.kinetic_energy(sim.q, sim.u))
     return sim, out
 
 

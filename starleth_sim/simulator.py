@@ -8,8 +8,9 @@
 
 Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
 URDF effort limits; beyond the URDF velocity limit v a torque that drives its joint faster
-is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``). Contact impulses are reported in the world frame, summed over the
-physics steps of the control period; forces are impulse / control period (F = Λ/Δt with one
+is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``).
+Contact impulses are reported in the world frame, summed over the physics steps of the
+control period; forces are impulse / control period (F = Λ/Δt with one
 step per control update, as in the paper's Fig. 5).
 """
 from __future__ import annotations

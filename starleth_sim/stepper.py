@@ -339,23 +339,14 @@ def phase_projection(form, scheme, Wt, MinvW, G, Gdiag, LB, bilateral_direct, pa
     worst = predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, gE)
     if worst >= -tolerance or beta == 0.0:
         return 0, -1
-    n_extra = 0
-    for i in range(nc):
-        if not is_active[i] and gE[i] < -tolerance:
-            n_extra += 1
-    if n_extra == 0:
+    extra = np.nonzero(~is_active & (gE < -tolerance))[0]
+    if extra.shape[0] == 0:
         contacts = active
         Wp, Mp, Gp, Gdp, full = Wt, MinvW, G, Gdiag, pat
     else:
-        extra = np.empty(n_extra, dtype=np.int64)
-        k = 0
-        for i in range(nc):
-            if not is_active[i] and gE[i] < -tolerance:
-                extra[k] = i
-                k += 1
         contacts, Wp, Mp, part = projection_problem(Wt, MinvW, active, extra, Wt_all,
                                                     blocks, L)
-        ok, Gp, Gdp, _, full = phase_delassus(form, contacts.shape[0], False, Wp, Mp, part)
+        _, Gp, Gdp, _, full = phase_delassus(form, contacts.shape[0], False, Wp, Mp, part)
     m = Wp.shape[0]
     ncp = contacts.shape[0]
     bp = np.zeros(m)

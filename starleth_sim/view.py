@@ -57,12 +57,12 @@ import numpy as np
 
 from . import analysis
 from .analysis import AnalysisError, run_console_script
-from .description import RobotDescription, _origin, urdf_path
+from .description import LEGS, RobotDescription, _origin, urdf_path
 from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
-                     foot_wrench_topic)
+                     foot_wrench_topic, namespace_of)
 
 PROG = "starleth-view"
-FEET = ("LF", "RF", "LH", "RH")
+FEET = LEGS
 DEFAULT_FPS = 50.0
 #: arrow length per newton of contact force [m/N]: 1 m = 500 N
 DEFAULT_FORCE_SCALE = 0.002
@@ -88,15 +88,11 @@ CAMERA_HEIGHT_WINDOW = 0.5
 ARROW_HEAD = 0.05           # length of an arrow's cone [m]
 ARROW_RADIUS = 0.011        # of its shaft [m] (the cone: 2.5 times that)
 
-# relative topic names (topics.py: '/joint_states' in older versions, 'joint_states' now)
-_JOINTS = TOPIC_JOINT_STATES.lstrip("/")
-_BASE = TOPIC_BASE_STATE.lstrip("/")
-_DESCRIPTION = TOPIC_ROBOT_DESCRIPTION.lstrip("/")
 #: kind -> (relative topic name, message type)
-TOPICS = {"joints": (_JOINTS, "sensor_msgs/msg/JointState"),
-          "base": (_BASE, "nav_msgs/msg/Odometry"),
-          "description": (_DESCRIPTION, "std_msgs/msg/String"),
-          **{foot: (foot_wrench_topic(f"{foot}_foot").lstrip("/"),
+TOPICS = {"joints": (TOPIC_JOINT_STATES, "sensor_msgs/msg/JointState"),
+          "base": (TOPIC_BASE_STATE, "nav_msgs/msg/Odometry"),
+          "description": (TOPIC_ROBOT_DESCRIPTION, "std_msgs/msg/String"),
+          **{foot: (foot_wrench_topic(f"{foot}_foot"),
                     "geometry_msgs/msg/WrenchStamped") for foot in FEET}}
 
 
@@ -116,11 +112,9 @@ def match_topic(topic: str):
     ('/joint_states' -> ('joints', ''), '/robot1/starleth/base_state' -> ('base', '/robot1')),
     or None."""
     for kind, (rel, _) in TOPICS.items():
-        suffix = "/" + rel
-        if topic == suffix:
-            return kind, ""
-        if topic.endswith(suffix) and topic.startswith("/"):
-            return kind, topic[:-len(suffix)]
+        ns = namespace_of(topic, rel)
+        if ns is not None:
+            return kind, ns
     return None
 
 
@@ -204,7 +198,7 @@ def _choose_namespace(found: dict, requested, path: str, bag) -> str:
         if ns in complete:
             return ns
         have = ", ".join(repr(n or "/") for n in complete) or "none"
-        raise ViewError(f"{path}: no {_JOINTS} and {_BASE} messages under the namespace "
+        raise ViewError(f"{path}: no {TOPIC_JOINT_STATES} and {TOPIC_BASE_STATE} messages under the namespace "
                         f"{ns or '/'!r} (namespaces with both: {have})")
     if not complete:
         missing = []
@@ -214,7 +208,7 @@ def _choose_namespace(found: dict, requested, path: str, bag) -> str:
                 missing.append(f"{rel} ({typ})")
         topics = ", ".join(f"{t} ({ty or 'no schema'})" for t, ty in sorted(bag.types.items()))
         if not missing:
-            raise ViewError(f"{path}: {_JOINTS} and {_BASE} are in different namespaces; "
+            raise ViewError(f"{path}: {TOPIC_JOINT_STATES} and {TOPIC_BASE_STATE} are in different namespaces; "
                             f"the bag's topics: {topics or 'none'}")
         raise ViewError(f"{path}: no messages on {' nor '.join(missing)}, so there is no robot "
                         f"motion to replay; the bag's topics: {topics or 'none'}")
@@ -701,7 +695,9 @@ def render_html(data: dict, scene: list) -> str:
         "SCENE": _script_json(scene),
     }
     # one pass over the template, so that nothing inside the fills is taken for a marker
-    pieces = re.split(r"__(TITLE|INFO|LAST|MESHCAT|DATA|SCENE)__", _PAGE)
+    with open(PAGE_TEMPLATE, encoding="utf-8") as f:
+        page = f.read()
+    pieces = re.split(r"__(TITLE|INFO|LAST|MESHCAT|DATA|SCENE)__", page)
     return "".join(p if i % 2 == 0 else fills[p] for i, p in enumerate(pieces))
 
 
@@ -713,233 +709,9 @@ def _meshcat_version() -> str:
         return "?"
 
 
-_PAGE = r"""<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="generator" content="starleth-view">
-<title>__TITLE__</title>
-<style>
-  html, body { margin: 0; height: 100%; overflow: hidden; background: #9eb0c7;
-               font: 13px/1.35 system-ui, sans-serif; }
-  #meshcat-pane { width: 100vw; height: 100vh; overflow: hidden; }
-  #hud { position: absolute; left: 8px; top: 8px; max-width: min(560px, 66vw); padding: 5px 8px;
-         background: rgba(255,255,255,0.75); border-radius: 5px; color: #222; font-size: 11px; }
-  #hud b { font-size: 12px; }
-  #hud summary { cursor: pointer; color: #446; }
-  #bar { position: absolute; left: 8px; right: 8px; bottom: 8px; display: flex; gap: 10px;
-         align-items: center; padding: 6px 10px; background: rgba(255,255,255,0.85);
-         border-radius: 5px; }
-  #bar button { width: 38px; font-size: 15px; }
-  #scrub { flex: 1; }
-  #time { font-variant-numeric: tabular-nums; min-width: 170px; }
-  #error { display: none; position: absolute; left: 8px; right: 8px; top: 40%; padding: 10px;
-           background: #fdd; color: #700; border: 1px solid #c88; }
-</style>
-</head>
-<body>
-<div id="meshcat-pane"></div>
-<div id="hud"><b>__TITLE__</b><br>__INFO__</div>
-<div id="bar">
-  <button id="play" title="play / pause (space)">&#9654;</button>
-  <input id="scrub" type="range" min="0" max="__LAST__" step="1" value="0"
-         title="frame (arrow keys: step)">
-  <span id="time">t = 0.000 s</span>
-  <label>speed <select id="speed">
-    <option value="0.1">0.1&times;</option><option value="0.25">0.25&times;</option>
-    <option value="0.5">0.5&times;</option><option value="1" selected>1&times;</option>
-    <option value="2">2&times;</option><option value="5">5&times;</option>
-  </select></label>
-  <label><input id="follow" type="checkbox" checked> follow trunk</label>
-</div>
-<div id="error"></div>
-<script>
-window.addEventListener("error", function (e) {
-  document.body.dataset.error = String(e.message);
-  var el = document.getElementById("error");
-  el.textContent = "starleth-view page error: " + e.message;
-  el.style.display = "block";
-});
-</script>
-<script>
-__MESHCAT__
-</script>
-<script type="application/json" id="replay-data">__DATA__</script>
-<script type="application/json" id="replay-scene">__SCENE__</script>
-<script>
-(function () {
-  "use strict";
-  var body = document.body;
-  var data = JSON.parse(document.getElementById("replay-data").textContent);
-  var scene = JSON.parse(document.getElementById("replay-scene").textContent);
-  var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
-  scene.forEach(function (cmd) { viewer.handle_command(cmd); });
-
-  var N = data.frames, T = data.t, NB = data.bodies.length, NF = data.feet.length;
-  var P = data.poses, A = data.arrows, duration = T[N - 1];
-  var el = {
-    play: document.getElementById("play"), scrub: document.getElementById("scrub"),
-    time: document.getElementById("time"), speed: document.getElementById("speed"),
-    follow: document.getElementById("follow")
-  };
-
-  // 4x4 column-major matrix from a position, a quaternion (x y z w) and a scale
-  function matrix(px, py, pz, qx, qy, qz, qw, sx, sy, sz) {
-    var n = Math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) || 1;
-    qx /= n; qy /= n; qz /= n; qw /= n;
-    var xx = qx * qx, yy = qy * qy, zz = qz * qz, xy = qx * qy, xz = qx * qz, yz = qy * qz,
-        wx = qw * qx, wy = qw * qy, wz = qw * qz;
-    return new Float32Array([
-      (1 - 2 * (yy + zz)) * sx, 2 * (xy + wz) * sx, 2 * (xz - wy) * sx, 0,
-      2 * (xy - wz) * sy, (1 - 2 * (xx + zz)) * sy, 2 * (yz + wx) * sy, 0,
-      2 * (xz + wy) * sz, 2 * (yz - wx) * sz, (1 - 2 * (xx + yy)) * sz, 0,
-      px, py, pz, 1]);
-  }
-  function setTransform(path, m) {
-    viewer.handle_command({type: "set_transform", path: path, matrix: m});
-  }
-
-  // camera target: trunk x, y and its height averaged over +-height_window s
-  var trunkZ = new Float64Array(N + 1);
-  for (var k = 0; k < N; k++) trunkZ[k + 1] = trunkZ[k] + P[(k * NB + data.trunk) * 7 + 2];
-  function cameraHeight(k) {
-    var w = data.camera.height_window, lo = k, hi = k;
-    while (lo > 0 && T[k] - T[lo - 1] <= w) lo--;
-    while (hi < N - 1 && T[hi + 1] - T[k] <= w) hi++;
-    return (trunkZ[hi + 1] - trunkZ[lo]) / (hi - lo + 1);
-  }
-
-  // following the trunk: the world moves so that the followed point is at the origin, which
-  // the camera orbits (meshcat's lights stay with the camera)
-  function follow(x, y, z) {
-    setTransform("/world", matrix(-x, -y, -z, 0, 0, 0, 1, 1, 1, 1));
-  }
-
-  function showArrow(f, k) {
-    var o = ((k * NF) + f) * 6, path = "/world/forces/" + data.feet[f];
-    if (!data.has_force[f]) return;
-    var vx = A[o + 3], vy = A[o + 4], vz = A[o + 5];
-    var len = Math.sqrt(vx * vx + vy * vy + vz * vz);
-    var visible = len > 1e-3;
-    viewer.handle_command({type: "set_property", path: path, property: "visible",
-                           value: visible});
-    if (!visible) return;
-    var dx = vx / len, dy = vy / len, dz = vz / len;
-    // rotation taking +y to d: quaternion (y x d, 1 + y.d), or half a turn about x
-    var q = dy > -0.9999 ? [dz, 0, -dx, 1 + dy] : [1, 0, 0, 0];
-    setTransform(path, matrix(A[o], A[o + 1], A[o + 2], q[0], q[1], q[2], q[3], 1, 1, 1));
-    var head = Math.min(data.arrow_head, len);
-    setTransform(path + "/shaft", matrix(0, 0, 0, 0, 0, 0, 1, 1, Math.max(len - head, 1e-6), 1));
-    setTransform(path + "/head", matrix(0, len - head, 0, 0, 0, 0, 1, head / data.arrow_head,
-                                        head / data.arrow_head, head / data.arrow_head));
-  }
-
-  var state = {k: -1, time: 0, playing: true, speed: 1, last: null};
-
-  function show(k) {
-    for (var b = 0; b < NB; b++) {
-      var o = (k * NB + b) * 7;
-      setTransform("/world/starleth/" + data.bodies[b],
-                   matrix(P[o], P[o + 1], P[o + 2], P[o + 3], P[o + 4], P[o + 5], P[o + 6],
-                          1, 1, 1));
-    }
-    for (var f = 0; f < NF; f++) showArrow(f, k);
-    if (el.follow.checked) {
-      var t = (k * NB + data.trunk) * 7;
-      follow(P[t], P[t + 1], cameraHeight(k));
-    }
-    state.k = k;
-    el.scrub.value = k;
-    body.dataset.frame = k;
-    body.dataset.frameTime = T[k].toFixed(4);
-    body.dataset.ready = "1";
-  }
-  function frameAt(t) {   // the last frame at or before t
-    var lo = 0, hi = N - 1;
-    while (lo < hi) {
-      var mid = (lo + hi + 1) >> 1;
-      if (T[mid] <= t + 1e-9) lo = mid; else hi = mid - 1;
-    }
-    return lo;
-  }
-  function updateTime() {
-    el.time.textContent = "t = " + state.time.toFixed(3) + " s / " + duration.toFixed(3) +
-      " s  (frame " + (state.k + 1) + "/" + N + ")";
-  }
-  function seek(t) {
-    state.time = Math.max(0, Math.min(duration, t));
-    var k = frameAt(state.time);
-    if (k !== state.k) show(k);
-    updateTime();
-  }
-  function setPlaying(on) {
-    if (on && state.time >= duration) seek(0);
-    state.playing = on;
-    state.last = null;
-    el.play.innerHTML = on ? "&#10074;&#10074;" : "&#9654;";
-    body.dataset.playing = on ? "1" : "0";
-  }
-  function tick(now) {
-    if (state.playing) {
-      if (state.last !== null) {
-        var t = state.time + (now - state.last) / 1000 * state.speed;
-        if (t >= duration) { t = duration; setPlaying(false); }
-        seek(t);
-      }
-      state.last = now;
-    }
-    requestAnimationFrame(tick);
-  }
-
-  el.play.addEventListener("click", function () { setPlaying(!state.playing); });
-  el.scrub.addEventListener("input", function () {
-    setPlaying(false);
-    var k = parseInt(el.scrub.value, 10);
-    state.time = T[k];
-    show(k);
-    updateTime();
-  });
-  el.speed.addEventListener("change", function () { state.speed = parseFloat(el.speed.value); });
-  el.follow.addEventListener("change", function () { show(state.k); });
-  window.addEventListener("keydown", function (e) {
-    if (e.target && e.target.tagName === "SELECT") return;
-    if (e.key === " ") { setPlaying(!state.playing); e.preventDefault(); }
-    else if (e.key === "ArrowRight" || e.key === "ArrowLeft") {
-      setPlaying(false);
-      var k = Math.max(0, Math.min(N - 1, state.k + (e.key === "ArrowRight" ? 1 : -1)));
-      state.time = T[k];
-      show(k);
-      updateTime();
-      e.preventDefault();
-    }
-  });
-
-  // URL options: ?t=<s>&paused=1&speed=<x>&follow=0
-  var params = new URLSearchParams(window.location.search);
-  var speed = parseFloat(params.get("speed"));
-  if (speed > 0) {
-    state.speed = speed;
-    var opt = Array.prototype.find.call(el.speed.options,
-                                        function (o) { return parseFloat(o.value) === speed; });
-    if (!opt) {
-      opt = document.createElement("option");
-      opt.value = String(speed);
-      opt.textContent = speed + "\u00d7";
-      el.speed.appendChild(opt);
-    }
-    el.speed.value = opt.value;
-  }
-  if (params.get("follow") === "0") el.follow.checked = false;
-  var t0 = parseFloat(params.get("t"));
-  var paused = ["1", "true", "yes"].indexOf(String(params.get("paused")).toLowerCase()) >= 0;
-  seek(isFinite(t0) ? t0 : 0);
-  setPlaying(!paused);
-  requestAnimationFrame(tick);
-})();
-</script>
-</body>
-</html>
-"""
+#: the page template (HTML + the player's JavaScript), beside this module; __NAME__ markers
+#: are filled by render_html
+PAGE_TEMPLATE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "view_page.html")
 
 
 # =========================================================================================

@@ -57,6 +57,8 @@ def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     assert r.returncode == 0, r.stderr
     mod, share, yaml_path, physics = r.stdout.split()
     assert mod.startswith(str(prefix))
+    # starleth-view's page template is package data
+    assert os.path.isfile(os.path.join(os.path.dirname(mod), "view_page.html"))
     assert os.path.realpath(share) == os.path.realpath(prefix / "share" / "starleth_sim")
     assert yaml_path.startswith(share) and physics == "HmJ"
 

@@ -1022,8 +1022,9 @@ class SimNode:
                                                 self.qos["state"])
                 self.marker_msg = self._contact_marker_template(MarkerArray)
 
-    #: colours (r, g, b, a) of the contact states open, stick, slip
-    MARKER_COLOURS = ((0.6, 0.6, 0.6, 0.5), (0.1, 0.75, 0.2, 1.0), (0.9, 0.15, 0.1, 1.0))
+    #: colours (r, g, b, a) of the contact states (ContactInfo.state)
+    MARKER_COLOURS = {"open": (0.6, 0.6, 0.6, 0.5), "stick": (0.1, 0.75, 0.2, 1.0),
+                      "slip": (0.9, 0.15, 0.1, 1.0)}
     MARKER_SPHERE = 0.02         # sphere diameter [m]
     MARKER_SHAFT = 0.008         # arrow shaft diameter [m]
 
@@ -1056,18 +1057,17 @@ class SimNode:
         point along its force, contact_marker_scale [m/N] long."""
         sim, Marker = self.sim, self._Marker
         n = len(sim.contact_names)
-        states = sim.contact_states()
         scale = self.settings.contact_marker_scale
-        for c, state, sphere, arrow in zip(sim.contacts, states, self.marker_msg.markers[:n],
-                                           self.marker_msg.markers[n:]):
+        for c, sphere, arrow in zip(sim.contacts, self.marker_msg.markers[:n],
+                                    self.marker_msg.markers[n:]):
             p = c.position
             for m in (sphere, arrow):
                 m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
             sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = (
                 float(p[0]), float(p[1]), float(p[2]))
             col = sphere.color
-            col.r, col.g, col.b, col.a = self.MARKER_COLOURS[state]
-            if state == 0:
+            col.r, col.g, col.b, col.a = self.MARKER_COLOURS[c.state]
+            if c.state == "open":
                 arrow.action = Marker.DELETE
                 continue
             arrow.action = Marker.ADD
