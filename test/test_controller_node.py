@@ -10,6 +10,7 @@ finally; every wait is bounded.
   stamped with the state's stamp, and switches modes by service and parameter.
 """
 import array
+import itertools
 import math
 import os
 
@@ -21,6 +22,7 @@ pytest.importorskip("rosbags")
 
 from rclpy.parameter import Parameter  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from test_bitexact import DEMO_STEPS, demo_states, load_reference  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from geometry_msgs.msg import WrenchStamped  # noqa: E402
