@@ -16,7 +16,7 @@ venv: $(STAMP)
 # The top-level package __init__ files are prerequisites because the editable
 # install only maps top-level packages that existed when it ran.
 $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt setup.py setup.cfg package.xml \
-          $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py)
+          $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py starleth_interface/__init__.py)
 	@set -e; \
 	if [ ! -x $(VPY) ]; then \
 	  if $(PYTHON) -c 'import rclpy' >/dev/null 2>&1; then \

@@ -8,7 +8,7 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={package_name: ['view_page.html']},   # starleth-view's page template
+    package_data={package_name: ['tools/view_page.html']},   # starleth-view's page template
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -37,14 +37,14 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            'sim_node = starleth_sim.nodes.sim_node:main',
+            'sim_node = starleth_sim.ros.sim_node:main',
             'controller_node = starleth_controller.controller_node:main',
-            'starleth-bench = starleth_sim.bench:main',
-            'starleth-bench-ros = starleth_sim.bench_ros:main',
-            'starleth-demo = starleth_sim.demo:main',
-            'starleth-eval = starleth_sim.evaluation:main',
-            'starleth-analyze = starleth_sim.analysis:main',
-            'starleth-view = starleth_sim.view:main',
+            'starleth-bench = starleth_sim.tools.bench:main',
+            'starleth-bench-ros = starleth_sim.tools.bench_ros:main',
+            'starleth-demo = starleth_sim.tools.demo:main',
+            'starleth-eval = starleth_sim.tools.evaluation:main',
+            'starleth-analyze = starleth_sim.tools.analysis:main',
+            'starleth-view = starleth_sim.tools.view:main',
         ],
     },
 )

@@ -12,7 +12,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from starleth_sim.nodes.discovery import keep_discovery_local, local_discovery_env
+from starleth_sim.ros.discovery import keep_discovery_local, local_discovery_env
 
 keep_discovery_local()     # the test nodes (this process) and every child: this host only
 

@@ -1,4 +1,4 @@
-"""starleth-analyze (starleth_sim.analysis) on bags written with McapRecorder from real
+"""starleth-analyze (starleth_sim.tools.analysis) on bags written with McapRecorder from real
 simulator runs (no ROS graph): plots, summary numbers, overlays, missing topics and damaged
 files. A few seconds in all."""
 from __future__ import annotations
@@ -26,8 +26,8 @@ from std_msgs.msg import String  # noqa: E402
 
 from starleth_sim import Simulator  # noqa: E402
 from starleth_sim import analysis  # noqa: E402
-from starleth_sim.posture import PostureHold  # noqa: E402
-from starleth_sim.recording import McapRecorder  # noqa: E402
+from starleth_sim.physics.posture import PostureHold  # noqa: E402
+from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 
 PERIOD_NS = 2_500_000
 FEET = ("LF", "RF", "LH", "RH")
@@ -136,7 +136,7 @@ def run_sim(path, preset="HmJ", steps=400, controller="posture", drop=0.0, skip=
         def torque(k):
             return ph.torque(sim)
     else:
-        from starleth_sim.description import urdf_path
+        from starleth_sim.physics.description import urdf_path
         from starleth_controller import Command, RobotState, StarlethController
         ctrl = StarlethController(urdf_path())
 
@@ -446,12 +446,12 @@ def test_console_script_exit_status(tmp_path):
     """The command line: a clear one-line error, exit status 1, no traceback."""
     noise = tmp_path / "noise.mcap"
     noise.write_bytes(os.urandom(20_000))
-    p = subprocess.run([sys.executable, "-m", "starleth_sim.analysis", str(noise)],
+    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.analysis", str(noise)],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 1
     assert "Traceback" not in p.stderr and "not an MCAP file" in p.stderr
     assert p.stderr.strip().count("\n") == 0
-    p = subprocess.run([sys.executable, "-m", "starleth_sim.analysis", str(noise), str(noise),
+    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.analysis", str(noise), str(noise),
                         "--label", "one"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "--label" in p.stderr
 

@@ -1,12 +1,12 @@
-"""The CDR fast path of sim_node (starleth_sim.nodes.cdr): commands decoded straight from
+"""The CDR fast path of sim_node (starleth_sim.ros.cdr): commands decoded straight from
 the bytes rclpy/Fast DDS put on the wire must equal what rclpy's own deserialisation gives,
 and everything outside the decoded common case must be handed to the full path (FALLBACK),
 never decoded wrongly and never read out of bounds."""
 import numpy as np
 import pytest
 
-from starleth_sim.description import STARLETH_JOINT_NAMES as JOINTS
-from starleth_sim.nodes.cdr import CommandDecoder
+from starleth_sim.physics.description import STARLETH_JOINT_NAMES as JOINTS
+from starleth_sim.ros.cdr import CommandDecoder
 
 rclpy_serialization = pytest.importorskip("rclpy.serialization")
 from sensor_msgs.msg import JointState  # noqa: E402

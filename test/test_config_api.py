@@ -123,7 +123,7 @@ def test_push_in_the_air_changes_momentum_by_the_impulse():
         sim.step(np.zeros(12))
     # whole-body horizontal momentum = m v_com; with the joints free, use the CoM velocity
     import pinocchio as pin
-    from starleth_sim.coordinates.forest import _quat_rot
+    from starleth_sim.physics.coordinates.forest import _quat_rot
     R = np.zeros((3, 3))
     _quat_rot(sim.q, 0, R)
     up = sim.u
@@ -149,7 +149,7 @@ def test_contacts_report_world_impulse_and_force(sim):
 def test_physics_core_does_not_import_ros():
     import subprocess
     import sys
-    code = ("import sys, starleth_sim, starleth_sim.simulator, starleth_sim.stepper;"
+    code = ("import sys, starleth_sim, starleth_sim.physics.simulator, starleth_sim.physics.stepper;"
             "from starleth_sim import Simulator; Simulator.from_preset('HmJ').step();"
             "bad=[m for m in sys.modules if m.split('.')[0] in ('rclpy','rosidl_runtime_py')];"
             "assert not bad, bad")

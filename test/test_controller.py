@@ -20,7 +20,7 @@ import pinocchio as pin
 import pytest
 
 from starleth_sim import Simulator
-from starleth_sim.description import urdf_path
+from starleth_sim.physics.description import urdf_path
 
 from starleth_controller import (Command, ContactForceDistribution,
                                  RobotModel, RobotState, StarlethController, LEGS)

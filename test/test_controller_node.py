@@ -2,7 +2,7 @@
 ROS_DOMAIN_ID (one per test module and process). Every child process is stopped in a
 finally; every wait is bounded.
 
-* the demo (starleth_sim.demo.run_demo: sim_node in lockstep + controller_node, 2 s stand,
+* the demo (starleth_sim.tools.demo.run_demo: sim_node in lockstep + controller_node, 2 s stand,
   18 s trot at 0.3 m/s, recorded): >= 4 m, no fall, the bag holds every control step;
 * swap-in: a trivial PD posture controller written here against the topics alone (no
   starleth_controller) keeps StarlETH standing through sim_node;
@@ -57,7 +57,7 @@ def _stamp(ns):
 def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
-    from starleth_sim.demo import run_demo, print_summary
+    from starleth_sim.tools.demo import run_demo, print_summary
 
     bag = tmp_path / "demo.mcap"
     lines = []
@@ -154,7 +154,7 @@ class PDPosture:
 
 
 def test_swap_in_pd_posture_controller_keeps_standing(tmp_path):
-    sim = Proc("starleth_sim.nodes.sim_node", str(tmp_path / "sim.log"), mode="lockstep",
+    sim = Proc("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), mode="lockstep",
                real_time_factor=0.0, physics="HmJ", lockstep_timeout=5.0)
     ros = RosTestNode(DOMAIN_ID, "pd_posture")
     try:

@@ -5,8 +5,8 @@ import pytest
 
 from starleth_controller import Command, RobotState, StarlethController
 from starleth_sim import Simulator, available_presets, load_preset
-from starleth_sim.description import urdf_path
-from starleth_sim.posture import PostureHold
+from starleth_sim.physics.description import urdf_path
+from starleth_sim.physics.posture import PostureHold
 
 TABLE1 = ["Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP"]
 TIGHT = dict(tol_rel=1e-12, tol_abs=1e-12, max_iterations=20000)

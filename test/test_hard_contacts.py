@@ -6,9 +6,9 @@ import pytest
 
 from starleth_controller import Command, RobotState, StarlethController
 from starleth_sim import ConfigError, Simulator, load_preset
-from starleth_sim.description import RobotDescription, sphere_urdf, urdf_path
-from starleth_sim.evaluation import ball_drop, pd_sag
-from starleth_sim.stepper import PROJECTION_TOLERANCE
+from starleth_sim.physics.description import RobotDescription, sphere_urdf, urdf_path
+from starleth_sim.tools.evaluation import ball_drop, pd_sag
+from starleth_sim.physics.stepper import PROJECTION_TOLERANCE
 
 HARD = ["HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP"]
 #: the paper's rule: the gap test alone (g_N(q^M) ≤ 0), no penetration correction

@@ -47,8 +47,8 @@ def test_executables_and_share(prefix):
 
 def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     """Run from outside the source tree: data comes from share/ via the ament index."""
-    code = ("import starleth_sim, starleth_sim.description as d;"
-            "from starleth_sim.nodes.sim_node import load_default_parameters, default_settings_file;"
+    code = ("import starleth_sim, starleth_sim.physics.description as d;"
+            "from starleth_sim.ros.sim_node import load_default_parameters, default_settings_file;"
             "print(starleth_sim.__file__); print(d.package_share_dir());"
             "print(default_settings_file()); print(load_default_parameters()['physics'])")
     env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix))

@@ -4,7 +4,7 @@ import pinocchio as pin
 import pytest
 
 from starleth_sim import Simulator
-from starleth_sim.coordinates.forest import _quat_rot
+from starleth_sim.physics.coordinates.forest import _quat_rot
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ import pinocchio as pin
 import pytest
 
 from starleth_sim import Simulator, load_preset
-from starleth_sim.description import RobotDescription, box_urdf, sphere_urdf
+from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_urdf
 
 G = 9.81  # pin's default gravity
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from starleth_sim import Simulator
-from starleth_sim.posture import PostureHold
+from starleth_sim.physics.posture import PostureHold
 
 G = 9.81
 

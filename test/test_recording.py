@@ -1,4 +1,4 @@
-"""McapRecorder (starleth_sim.recording): the rosbag2 MCAP layout, read back with independent
+"""McapRecorder (starleth_sim.ros.recording): the rosbag2 MCAP layout, read back with independent
 readers (rosbags, mcap_ros2). No ROS graph, no processes: fast."""
 import json
 
@@ -11,7 +11,7 @@ rosbags_reader = pytest.importorskip("rosbags.rosbag2")
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 
-from starleth_sim.recording import (McapRecorder, message_definition, generated_msg_text,  # noqa: E402
+from starleth_sim.ros.recording import (McapRecorder, message_definition, generated_msg_text,  # noqa: E402
                                     msg_text, qos_profiles_yaml, type_name, SEPARATOR)
 
 from sensor_msgs.msg import JointState, Imu  # noqa: E402
@@ -233,7 +233,7 @@ def test_split_recorder_by_size_gives_complete_files_and_a_rosbag2_directory(tmp
     each file is a complete bag (rosbags reads it alone, with the metadata record and the
     attachment), the directory is a rosbag2 bag (metadata.yaml listing the files) that
     rosbags reads as one bag with every message once and in order."""
-    from starleth_sim.recording import SplitRecorder
+    from starleth_sim.ros.recording import SplitRecorder
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
     path = tmp_path / "run.mcap"            # the .mcap suffix names the directory "run"

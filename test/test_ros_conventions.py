@@ -33,7 +33,7 @@ PERIOD_NS = 2_500_000
 def sim_process(tmp_path, tag, **params):
     params.setdefault("mode", "lockstep")
     params.setdefault("real_time_factor", 0.0)
-    return NodeProcess("starleth_sim.nodes.sim_node", str(tmp_path / f"{tag}.sim.log"),
+    return NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / f"{tag}.sim.log"),
                        DOMAIN_ID, **params)
 
 
@@ -94,7 +94,7 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
         for i, ns in enumerate(("/robot1", "/robot2")):
             tag = ns.strip("/")
             procs[tag + "_sim"] = ns_process(
-                "starleth_sim.nodes.sim_node", str(tmp_path / f"{tag}.sim.log"), ns,
+                "starleth_sim.ros.sim_node", str(tmp_path / f"{tag}.sim.log"), ns,
                 mode="lockstep", real_time_factor=0.0, record=str(tmp_path / f"{tag}.mcap"),
                 publish_clock=(i == 0))
             procs[tag + "_ctl"] = ns_process(
@@ -232,7 +232,7 @@ def _declared_parameters(executable):
     """{name: default} of the parameters a node declares (rclpy adds use_sim_time)."""
     if executable == "sim_node":
         from dataclasses import asdict
-        from starleth_sim.nodes.sim_node import Settings
+        from starleth_sim.ros.sim_node import Settings
         params = asdict(Settings())
     else:
         from starleth_controller.controller_node import PARAMETERS
@@ -305,7 +305,7 @@ def test_colcon_build_installs_the_launch_file(tmp_path):
 def test_sim_node_splits_long_recordings_into_a_bag_directory(ros, tmp_path):
     """record_max_duration: a rosbag2 bag directory of numbered files, each complete on its
     own, a metadata.yaml listing them, and starleth-analyze reads it as one run."""
-    from starleth_sim.bench_ros import EchoController
+    from starleth_sim.tools.bench_ros import EchoController
     bag = tmp_path / "split"
     sim = None
     ctl = EchoController(ros.node)
@@ -349,15 +349,15 @@ def _environ(pid):
 def test_children_discover_on_this_host_only_unless_the_user_chose(tmp_path, monkeypatch):
     """The demo's, the benchmark's and the tests' child processes run with
     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the user set a range."""
-    from starleth_sim.demo import NodeProcess as DemoNodeProcess
-    from starleth_sim.nodes.discovery import local_discovery_env
+    from starleth_sim.tools.demo import NodeProcess as DemoNodeProcess
+    from starleth_sim.ros.discovery import local_discovery_env
     assert local_discovery_env({})["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     assert local_discovery_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})[
         "ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
     assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"   # this test process
     for value, expect in (("", "LOCALHOST"), ("SUBNET", "SUBNET")):
         monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", value)
-        procs = [DemoNodeProcess("sim_node", "starleth_sim.nodes.sim_node",
+        procs = [DemoNodeProcess("sim_node", "starleth_sim.ros.sim_node",
                                  {"mode": "lockstep"}, DOMAIN_ID,
                                  str(tmp_path / f"demo_child{expect}.log")),
                  sim_process(tmp_path, f"test_child{expect}")]

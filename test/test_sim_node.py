@@ -1,5 +1,5 @@
 """Integration tests of sim_node: the node runs as a separate process
-(`python -m starleth_sim.nodes.sim_node --ros-args -p ...`) on an isolated ROS_DOMAIN_ID and
+(`python -m starleth_sim.ros.sim_node --ros-args -p ...`) on an isolated ROS_DOMAIN_ID and
 is driven from a test node in this process. Every child process is stopped in a fixture
 teardown or a finally; every wait is bounded."""
 import json
@@ -24,7 +24,7 @@ from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import Trigger, SetBool  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.bench_ros import EchoController  # noqa: E402
+from starleth_sim.tools.bench_ros import EchoController  # noqa: E402
 
 # one ROS domain per test module and process (other modules use other ranges)
 DOMAIN_ID = 50 + os.getpid() % 40
@@ -53,7 +53,7 @@ ALL_TOPICS = {**STATE_TOPICS, "/robot_description": "std_msgs/msg/String", **INP
 # -----------------------------------------------------------------------------------------
 def SimProcess(log_path, **params):
     """sim_node as a child process on DOMAIN_ID; log in a file; always stopped by stop()."""
-    return NodeProcess("starleth_sim.nodes.sim_node", log_path, DOMAIN_ID, **params)
+    return NodeProcess("starleth_sim.ros.sim_node", log_path, DOMAIN_ID, **params)
 
 
 class Collector:
@@ -118,7 +118,7 @@ def read_mcap(path):
 
 
 def total_mass():
-    from starleth_sim.description import starleth_description
+    from starleth_sim.physics.description import starleth_description
     return starleth_description().total_mass
 
 
@@ -393,7 +393,7 @@ class TestRealtime:
         assert "contact_model" in md["starleth_sim"]["physics_config"]
         init = json.loads(md["starleth_sim"]["initial_state"])
         assert len(init["joint_positions"]) == 12 and "q" in init and "q_minimal" in init
-        from starleth_sim.description import urdf_path
+        from starleth_sim.physics.description import urdf_path
         with open(urdf_path(), "rb") as f:
             assert att["starleth.urdf"] == f.read()
         assert {"physics_config.yaml", "initial_state.json", "sim_node_parameters.yaml"} <= set(att)
@@ -549,7 +549,7 @@ def test_push_on_trunk_changes_velocity_by_impulse_over_mass(ros, tmp_path):
         by_stamp.setdefault(stamp_ns(m), m)
     stamps = sorted(by_stamp)
     t = np.array(stamps) * 1e-9
-    from starleth_sim.nodes.sim_node import quat_to_matrix
+    from starleth_sim.ros.sim_node import quat_to_matrix
     vz = []
     for s in stamps:
         m = by_stamp[s]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from starleth_sim import ConfigError
-from starleth_sim.nodes.sim_node import (SimService, Settings, ThrottledWarnings,
+from starleth_sim.ros.sim_node import (SimService, Settings, ThrottledWarnings,
                                          parse_initial_state, load_default_parameters,
                                          initial_state_record)
 
@@ -149,7 +149,7 @@ def test_reset_advances_time_and_restores_state(sim):
 
 
 def test_initial_state_parsing(sim):
-    from starleth_sim.nodes.sim_node import public_state
+    from starleth_sim.ros.sim_node import public_state
     q, u, _ = parse_initial_state("standing", sim)
     assert np.array_equal(q, sim.default_state()) and not u.any()
     q, u, _ = parse_initial_state("{base_position: [0.1, 0, 1.5], base_linear_velocity: "

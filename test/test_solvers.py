@@ -5,7 +5,7 @@ import pytest
 
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator, prox
-from starleth_sim.stepper import constraint_velocity, free_velocity, phase_delassus, phase_minv
+from starleth_sim.physics.stepper import constraint_velocity, free_velocity, phase_delassus, phase_minv
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -98,7 +98,7 @@ def test_energy_criterion_terminates_at_the_same_solution(form, scheme):
 def test_too_aggressive_alpha_is_reported_not_accepted():
     """JOR on a box resting on 4 corners (rank-deficient G) needs α < ~0.5: α = 1.9 cycles."""
     from starleth_sim import load_preset
-    from starleth_sim.description import RobotDescription, box_urdf
+    from starleth_sim.physics.description import RobotDescription, box_urdf
     cfg = load_preset("HmJ").with_overrides(alpha=1.9, max_iterations=200,
                                             fallback_alpha_factor=0.0, tol_abs=1e-12)
     sim = Simulator(cfg, description=RobotDescription.from_urdf_xml(box_urdf()))

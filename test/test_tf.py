@@ -12,8 +12,8 @@ rclpy = pytest.importorskip("rclpy")
 from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from starleth_sim.nodes.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
-from starleth_sim.description import starleth_description  # noqa: E402
+from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
+from starleth_sim.physics.description import starleth_description  # noqa: E402
 
 DOMAIN_ID = 199 + os.getpid() % 30
 
@@ -56,7 +56,7 @@ def test_frame_tree_is_the_urdf_joint_tree():
 def recorded(tmp_path_factory):
     """A headless sim_node (in this process, its own ROS context) that records 200 steps:
     the robot collapses under zero torques (every joint moves), then a push."""
-    from starleth_sim.nodes.sim_node import SimNode
+    from starleth_sim.ros.sim_node import SimNode
     path = str(tmp_path_factory.mktemp("tf") / "tf.mcap")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)

@@ -2,7 +2,7 @@
 mujoco_ros2_control / gz_ros2_control. A thin adapter: no physics in here.
 
     ros2 run starleth_sim sim_node --ros-args -p mode:=lockstep -p record:=run.mcap
-    python -m starleth_sim.nodes.sim_node --ros-args --params-file my_sim.yaml
+    python -m starleth_sim.ros.sim_node --ros-args --params-file my_sim.yaml
 
 Parameters and their defaults: msg_configs/sim_node.yaml (physics, physics_overrides, mode,
 real_time_factor, lockstep_timeout, timeout_policy, record, record_compression,
@@ -96,11 +96,11 @@ import numpy as np
 import yaml
 
 from .. import Simulator, ConfigError, SimulationError
-from ..description import STARLETH_FEET as FEET
-from ..kinematics import quat_xyzw_to_rot
+from ..physics.description import STARLETH_FEET as FEET
+from ..physics.kinematics import quat_xyzw_to_rot
 from .cdr import CommandDecoder, JointStateCdr
-from ..recording import register_msg_text
-from ..topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
+from .recording import register_msg_text
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
                       TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
                       TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, TOPIC_TF,
                       TOPIC_TF_STATIC, TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT,
@@ -202,7 +202,7 @@ class Settings:
 
 
 def default_settings_file() -> str:
-    from ..description import package_share_dir
+    from ..physics.description import package_share_dir
     return os.path.join(package_share_dir(), "msg_configs", "sim_node.yaml")
 
 
@@ -1111,7 +1111,7 @@ class SimNode:
                       self.service.stamp_ns)
 
     def _open_recorder(self, path):
-        from ..recording import McapRecorder, SplitRecorder
+        from .recording import McapRecorder, SplitRecorder
         s, sim = self.settings, self.sim
         common = dict(compression=s.record_compression,
                       custom_data={"generator": "starleth_sim sim_node"})

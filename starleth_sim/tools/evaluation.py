@@ -43,7 +43,7 @@ PAPER_ACCURACY = {"foot_sink_mm": 4.4, "unilateral_drift_um_per_min": 750.0,
 # ----------------------------------------------------------------------------------------------
 def _controller():
     from starleth_controller import StarlethController
-    from .description import urdf_path
+    from ..physics.description import urdf_path
     return StarlethController(urdf_path())
 
 
@@ -52,8 +52,8 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
     """Stand (and trot after `stand_time` s if gait == 'trot') for `seconds`; returns
     per-step wall times of sim.step, iterations, and the measurements of the report."""
     from starleth_controller import Command, RobotState
-    from .simulator import Simulator
-    from .stepper import SimulationError
+    from ..physics.simulator import Simulator
+    from ..physics.stepper import SimulationError
     sim = Simulator.from_preset(preset, profile=profile, **overrides)
     ctrl = _controller()
     n = int(round(seconds / sim.control_period))
@@ -245,7 +245,7 @@ def pd_sag(preset, seconds=2.0, **overrides):
     max(0, −min g_N) after the step [m], the largest gap of a foot that carried a normal
     impulse in the step (a "hovering" loaded foot) [m], prox iterations, loaded contacts
     opened, and the kinetic energy [J]."""
-    from .simulator import Simulator
+    from ..physics.simulator import Simulator
     sim = Simulator.from_preset(preset, **overrides)
     sim.reset()
     q0 = sim.joint_positions()
@@ -268,9 +268,9 @@ def ball_drop(restitution, height, overrides, seconds=1.0):
     """A 1 kg ball of radius 0.1 m dropped from `height` onto the ground at Δt = 1 ms with
     the HmJ contact law (and `overrides`). Returns (v⁻, v⁺ of the impact step, highest
     rebound above the rest height [m])."""
-    from .config import load_preset
-    from .description import RobotDescription, sphere_urdf
-    from .simulator import Simulator
+    from ..physics.config import load_preset
+    from ..physics.description import RobotDescription, sphere_urdf
+    from ..physics.simulator import Simulator
     cfg = load_preset("HmJ").with_overrides(control_rate=1000.0, restitution_normal=restitution,
                                             tol_rel=1e-10, tol_abs=1e-12, **overrides)
     sim = Simulator(cfg, description=RobotDescription.from_urdf_xml(sphere_urdf(0.1, 1.0)))
@@ -414,7 +414,7 @@ def make_figures(results, out_dir):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from .config import load_preset
+    from ..physics.config import load_preset
     figs = {}
     # Fig. 5
     t1 = {r["preset"]: r for r in _by(results, "table1")}
@@ -470,7 +470,7 @@ def make_figures(results, out_dir):
     # Fig. 7
     f7 = sorted(_by(results, "fig7"), key=lambda r: TABLE1.index(r["preset"]))
     if f7:
-        from .stepper import PHASES
+        from ..physics.stepper import PHASES
         labels = ["M and h", "M⁻¹ (and M⁻¹W)", "G (and G_B⁻¹)", "u^E (prox)", "rest"]
         fig, ax = plt.subplots(figsize=(9, 4))
         bottom = np.zeros(len(f7))
@@ -533,7 +533,7 @@ def _contact_variant_section(results):
 
 
 def write_report(results, figs, out_dir, quick, elapsed, jobs):
-    from .config import load_preset
+    from ..physics.config import load_preset
     import platform
     t1 = sorted(_by(results, "table1"), key=lambda r: TABLE1.index(r["preset"]))
     lines = ["# StarlETH simulator: evaluation against Gehring et al. 2014", ""]

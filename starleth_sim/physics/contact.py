@@ -1,7 +1,7 @@
 """Contact geometry (ground plane, gaps) and the compliant contact law of Alg. 1.
 
 The hard contact laws (unilateral contact, spatial Coulomb friction, Newton-type impacts)
-are solved by the prox iterations in :mod:`starleth_sim.prox`; this module holds what both
+are solved by the prox iterations in :mod:`starleth_sim.physics.prox`; this module holds what both
 models share: the plane, its tangent basis, and per-contact bookkeeping.
 """
 from __future__ import annotations

@@ -57,8 +57,8 @@ import numpy as np
 
 from . import analysis
 from .analysis import AnalysisError, run_console_script
-from .description import LEGS, RobotDescription, _origin, urdf_path
-from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
+from ..physics.description import LEGS, RobotDescription, _origin, urdf_path
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
                      foot_wrench_topic, namespace_of)
 
 PROG = "starleth-view"

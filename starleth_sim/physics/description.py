@@ -27,8 +27,8 @@ STARLETH_STANDING_HEIGHT = 0.415
 def package_share_dir() -> str:
     """Directory holding `urdf/` and `msg_configs/`: the source tree, or the colcon install's
     share/starleth_sim when running from an install."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    src = os.path.dirname(here)
+    here = os.path.dirname(os.path.abspath(__file__))          # starleth_sim/physics
+    src = os.path.dirname(os.path.dirname(here))
     if os.path.isdir(os.path.join(src, "urdf")) and os.path.isdir(os.path.join(src, "msg_configs")):
         return src
     try:  # installed by colcon

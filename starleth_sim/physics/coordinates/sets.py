@@ -1,5 +1,5 @@
 """The three sets of generalized coordinates of the paper (Eqn. 19-22, Table 1), all
-instances of :class:`~starleth_sim.coordinates.forest.ForestCoordinates`:
+instances of :class:`~starleth_sim.physics.coordinates.forest.ForestCoordinates`:
 
 * minimal:  the kinematic tree on a free-flyer root, no bilateral constraints;
 * extended: the subtrees hanging from the root (StarlETH: the legs, at the HAA joints) cut
@@ -12,25 +12,27 @@ from __future__ import annotations
 from ..description import RobotDescription
 from .forest import ForestCoordinates
 
+# Each builder returns the ForestCoordinates of one set; the stepper sees no difference.
 
-def MinimalCoordinates(desc: RobotDescription) -> ForestCoordinates:
+
+def minimal_coordinates(desc: RobotDescription) -> ForestCoordinates:
     return ForestCoordinates(desc, cut=(), name="minimal")
 
 
-def ExtendedCoordinates(desc: RobotDescription) -> ForestCoordinates:
+def extended_coordinates(desc: RobotDescription) -> ForestCoordinates:
     m = desc.model
     cut = [j for j in range(2, m.njoints) if m.parents[j] == 1]
     return ForestCoordinates(desc, cut=cut, name="extended")
 
 
-def MaximalCoordinates(desc: RobotDescription) -> ForestCoordinates:
+def maximal_coordinates(desc: RobotDescription) -> ForestCoordinates:
     m = desc.model
     return ForestCoordinates(desc, cut=list(range(2, m.njoints)), com_frames=True,
                              name="maximal")
 
 
-COORDINATE_SETS = {"minimal": MinimalCoordinates, "extended": ExtendedCoordinates,
-                   "maximal": MaximalCoordinates}
+COORDINATE_SETS = {"minimal": minimal_coordinates, "extended": extended_coordinates,
+                   "maximal": maximal_coordinates}
 
 
 def make_coordinates(name: str, desc: RobotDescription) -> ForestCoordinates:

@@ -14,10 +14,10 @@ import time
 
 import numpy as np
 
-from .config import load_preset
-from .posture import PostureHold
-from .simulator import Simulator
-from .stepper import PHASES
+from ..physics.config import load_preset
+from ..physics.posture import PostureHold
+from ..physics.simulator import Simulator
+from ..physics.stepper import PHASES
 
 #: the paper's Table 1, in its order
 DEFAULT_PRESETS = ("Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD",
@@ -50,7 +50,7 @@ def measure(preset: str, seconds: float, repeats: int = 3):
 
 def breakdown(preset: str, seconds: float):
     """Mean time per physics step and phase [µs] (profiled run, includes timer overhead)."""
-    from .stepper import StepperStats
+    from ..physics.stepper import StepperStats
     sim = Simulator.from_preset(preset, profile=True)
     hold = PostureHold(sim.joint_positions())
     for _ in range(20):  # warm-up: first calls of the profiled path load compiled code

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .nodes.discovery import keep_discovery_local, local_discovery_env
+from ..ros.discovery import keep_discovery_local, local_discovery_env
 
 PERIOD_NS = 2_500_000            # sim_node's stamp period (400 Hz)
 FALL_HEIGHT = 0.3                # a base height below this is a fall [m]
@@ -49,8 +49,8 @@ MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not ch
 # drop test (headless, no ROS)
 # =========================================================================================
 def drop_test(preset="HmJ", height=0.1, seconds=5.0):
-    from .posture import PostureHold
-    from .simulator import Simulator
+    from ..physics.posture import PostureHold
+    from ..physics.simulator import Simulator
     sim = Simulator.from_preset(preset)
     q = sim.q
     q[2] += height
@@ -336,7 +336,7 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
 
 def read_bag(path, result: DemoResult):
     """Fill `result` from the recording: base trajectory, solver iterations, counts."""
-    from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
+    from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
                          TOPIC_SOLVER, resolve)
     from pathlib import Path
     from rosbags.highlevel import AnyReader
@@ -425,7 +425,7 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
     keep_discovery_local()      # this process's own ROS context too
     procs = []
     try:
-        procs.append(NodeProcess("sim_node", "starleth_sim.nodes.sim_node",
+        procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node",
                                  {"mode": "lockstep", "real_time_factor": 0.0,
                                   "physics": physics, "record": bag},
                                  domain_id, stem + ".sim_node.log"))

@@ -1,7 +1,7 @@
 """Benchmark of the ROS 2 interface of ``sim_node`` (a script, not a test).
 
-    python -m starleth_sim.bench_ros                     # all phases (~90 s)
-    python -m starleth_sim.bench_ros --realtime-seconds 0 --lockstep-seconds 10
+    python -m starleth_sim.tools.bench_ros                     # all phases (~90 s)
+    python -m starleth_sim.tools.bench_ros --realtime-seconds 0 --lockstep-seconds 10
 
 Two processes: this one (the controller side) and a child process that runs ``SimNode``
 and, on the same executor, a bare rclpy "pong" node:
@@ -41,7 +41,7 @@ import time
 
 import numpy as np
 
-from .nodes.discovery import keep_discovery_local, local_discovery_env
+from ..ros.discovery import keep_discovery_local, local_discovery_env
 
 PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
 
@@ -60,7 +60,7 @@ class EchoController:
                  topic="joint_commands"):
         from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
-        from .posture import DEFAULT_KD, DEFAULT_KP
+        from ..physics.posture import DEFAULT_KD, DEFAULT_KP
         self.node = node
         self.kp = np.tile(DEFAULT_KP, 4) if kp is None else kp
         self.kd = np.tile(DEFAULT_KD, 4) if kd is None else kd
@@ -106,7 +106,7 @@ class EchoController:
 
 
 def _make_executor(kind, context):
-    from starleth_sim.nodes.sim_node import make_executor
+    from starleth_sim.ros.sim_node import make_executor
     return make_executor(kind, context)[0]
 
 
@@ -119,7 +119,7 @@ def child_main(args):
     from rclpy.qos import QoSProfile
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
-    from starleth_sim.nodes.sim_node import SimNode
+    from starleth_sim.ros.sim_node import SimNode
 
     rclpy.init(args=[], domain_id=args.domain_id,
                signal_handler_options=SignalHandlerOptions.NO)
@@ -157,7 +157,7 @@ def child_main(args):
 # parent
 # -----------------------------------------------------------------------------------------
 def _spawn(args, mode, rtf, pong, log, record=""):
-    cmd = [sys.executable, "-m", "starleth_sim.bench_ros", "--child", "--domain-id",
+    cmd = [sys.executable, "-m", "starleth_sim.tools.bench_ros", "--child", "--domain-id",
            str(args.domain_id), "--mode", mode, "--rtf", str(rtf), "--sim-executor",
            args.sim_executor]
     if pong:

@@ -6,9 +6,9 @@ One step over Δt = t^E − t^S:
     (g_act = contact.activation_gap, 10 µm by default; the paper's 0 is allowed)
     M (u^E − u^S) − h Δt − W_U Λ_U − W_B Λ_B = 0, (ξ, Λ) ∈ U × B   (7)
     q^E = q^M ⊕ ½Δt F(q^M) u^E                                   (8)
-Hard contacts solve (7) with the JOR/SOR prox iterations of :mod:`starleth_sim.prox`;
+Hard contacts solve (7) with the JOR/SOR prox iterations of :mod:`starleth_sim.physics.prox`;
 compliant contacts (Alg. 1) add their forces, evaluated at (q^M, u^S), to h and Λ_U
-vanishes. The stepper works for any coordinate set (see :mod:`starleth_sim.coordinates`).
+vanishes. The stepper works for any coordinate set (see :mod:`starleth_sim.physics.coordinates`).
 
 A step runs in two parts: `MoreauStepper.prepare` does everything that depends only on
 (q^S, u^S) (q^M, M, h without τ, the kinematics, the factor of M, M^{-1}W, G), and

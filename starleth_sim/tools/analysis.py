@@ -58,8 +58,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from .description import STARLETH_JOINT_NAMES
-from .topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
+from ..physics.description import STARLETH_JOINT_NAMES
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
                      TOPIC_SOLVER, foot_wrench_topic, namespace_of, resolve)
 
 PROG = "starleth-analyze"
@@ -660,7 +660,7 @@ def urdf_info(urdf: str | None):
 
 def _package_urdf():
     try:
-        from .description import urdf_path
+        from ..physics.description import urdf_path
         with open(urdf_path()) as f:
             return f.read()
     except Exception:

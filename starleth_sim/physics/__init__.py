@@ -1,0 +1,3 @@
+"""The physics core: the robot description, the coordinate sets, kinematics and dynamics,
+the contact laws, the prox solvers, Moreau's time-stepping and the public `Simulator`.
+Imports numpy, numba and pinocchio only, never ROS."""
