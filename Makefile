@@ -6,7 +6,7 @@ PIP    := $(VPY) -m pip -q --disable-pip-version-check --no-input
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: venv test demo bench eval browser-test clean distclean
+.PHONY: venv test demo bench eval browser-test constraints clean distclean
 
 venv: $(STAMP)
 
@@ -15,7 +15,7 @@ venv: $(STAMP)
 # otherwise the ROS 2 Jazzy PyPI wheels from requirements-ros.txt are installed.
 # The top-level package __init__ files are prerequisites because the editable
 # install only maps top-level packages that existed when it ran.
-$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt setup.py setup.cfg package.xml \
+$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraints.txt setup.py setup.cfg package.xml \
           $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py starleth_interface/__init__.py)
 	@set -e; \
 	if [ ! -x $(VPY) ]; then \
@@ -31,10 +31,10 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt setup.py s
 	  echo "venv: rclpy importable, skipping requirements-ros.txt"; \
 	else \
 	  echo "venv: installing ROS 2 Jazzy wheels (requirements-ros.txt)"; \
-	  $(PIP) install -r requirements-ros.txt; \
+	  $(PIP) install -c constraints.txt -r requirements-ros.txt; \
 	fi; \
 	echo "venv: installing requirements.txt requirements-test.txt"; \
-	$(PIP) install -r requirements.txt -r requirements-test.txt; \
+	$(PIP) install -c constraints.txt -r requirements.txt -r requirements-test.txt; \
 	echo "venv: installing starleth_sim (editable)"; \
 	$(PIP) install -e . --no-deps; \
 	touch $@
@@ -65,6 +65,19 @@ browser-test: venv
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
 	fi
 	$(VPY) -m pytest -q test/test_view.py -k browser -rs $(PYTEST_ARGS)
+
+# Refresh constraints.txt on purpose: the newest versions the requirements resolve to, in a
+# throw-away venv (then run `make test` with them and commit constraints.txt).
+constraints:
+	@set -e; tmp=$$(mktemp -d); \
+	$(PYTHON) -m venv $$tmp/venv; \
+	$$tmp/venv/bin/python -m pip -q --disable-pip-version-check --no-input install \
+	  -r requirements-ros.txt -r requirements.txt -r requirements-test.txt; \
+	{ echo "# Exact versions the test suite passed with (Python $$($$tmp/venv/bin/python -c 'import sys; print("%d.%d" % sys.version_info[:2])'), $$(date +%Y-%m-%d)); make installs with"; \
+	  echo "# -c constraints.txt. Refresh on purpose with \`make constraints\` (a fresh venv from the"; \
+	  echo "# requirements files without constraints), then run \`make test\` and commit both."; \
+	  $$tmp/venv/bin/python -m pip freeze --disable-pip-version-check; } > constraints.txt; \
+	rm -rf $$tmp; echo "constraints.txt refreshed: run make test, then commit it"
 
 clean:
 	rm -rf build install log *.egg-info .pytest_cache

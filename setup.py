@@ -14,7 +14,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/urdf', glob('urdf/*.urdf')),
         ('share/' + package_name + '/msg_configs', glob('msg_configs/*.yaml')),
-        ('share/' + package_name + '/launch', glob('launch/*.launch.xml') + glob('launch/*.py')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
         ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
     ],
     install_requires=[

@@ -61,75 +61,61 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from nav_msgs.msg import Odometry
 from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
+from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, ThrottledLog,
+                                            declare_parameters, make_executor)
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
+                                       TOPIC_JOINT_STATES, foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
 from .model import JOINT_NAMES, LEGS, default_urdf_path
 
-DEFAULT_WRENCH_TOPICS = tuple(f"starleth/{leg}_foot/wrench" for leg in LEGS)
+DEFAULT_WRENCH_TOPICS = tuple(foot_wrench_topic(f"{leg}_foot") for leg in LEGS)
 
-#: parameters: name -> (default, description, read_only)
-PARAMETERS = {
-    "mode": ("stand", "stand | trot; settable at runtime (also through the ~/trot service)",
-             False),
-    "urdf": ("", "URDF path or XML text for the controller's model; empty = the package's "
-             "starleth.urdf", True),
-    "robot_description": (False, "true: build the model from the robot_description topic "
-                          "(transient local) instead of `urdf`", True),
-    "joint_commands_topic": ("joint_commands", "sensor_msgs/JointState command topic (names "
-                             "+ effort, stamped with the state answered); empty = off", True),
-    "effort_array_topic": ("", "also publish a std_msgs/Float64MultiArray of the 12 torques on "
-                           "this topic (e.g. /joint_group_effort_controller/commands); empty "
-                           "= off. Do not send both to a lockstep simulator.", True),
-    "joint_states_topic": ("joint_states", "sensor_msgs/JointState input", True),
-    "base_state_topic": ("starleth/base_state", "nav_msgs/Odometry input (ground truth)",
-                         True),
-    "foot_wrench_topics": (list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped inputs, "
-                           "feet in the order LF, RF, LH, RH", True),
-    "cmd_vel_topic": ("cmd_vel", "geometry_msgs/Twist velocity command", True),
-    "twist_frame": ("child", "frame of the Odometry twist's linear velocity: child (base, "
-                    "REP 105) | parent (world)", True),
-    "contact_force_threshold": (5.0, "a foot is in contact when |force| exceeds this [N]",
-                                False),
-    "max_linear_speed": (0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]", False),
-    "max_yaw_rate": (1.0, "clip of |angular.z| of /cmd_vel [rad/s]", False),
-    "cmd_vel_timeout": (0.0, "seconds (the node's clock: sim time with use_sim_time) after the "
-                        "last cmd_vel when the velocity "
-                        "command falls back to zero; 0 = never", False),
-    "state_reliability": ("reliable", "QoS reliability of the state subscriptions: reliable | "
-                          "best_effort", True),
-    "warn_throttle_period": (2.0, "minimum seconds between two warnings of the same kind",
-                             False),
-    "executor": ("events", "events (rclpy's C++ EventsExecutor) | single_threaded", True),
-}
-
-
-class ThrottledLog:
-    """At most one message per `period` seconds per kind; the next says how many were
-    suppressed. Counts every occurrence."""
-
-    def __init__(self, log, period=2.0, clock=time.monotonic):
-        self._log, self.period, self._clock = log, period, clock
-        self._last, self._suppressed, self.counts = {}, {}, {}
-
-    def __call__(self, key, message):
-        self.counts[key] = self.counts.get(key, 0) + 1
-        now = self._clock()
-        last = self._last.get(key)
-        if last is not None and now - last < self.period:
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
-            return False
-        n = self._suppressed.pop(key, 0)
-        self._last[key] = now
-        if n:
-            message += f" ({n} more like this in the last {now - last:.1f} s)"
-        self._log(message)
-        return True
+P = ParameterSpec
+#: the node's parameters: type, default, description, bounds (one schema: it gives the
+#: declare_parameter descriptors and the checks)
+PARAMETERS = (
+    P("mode", str, "stand", "stand | trot; settable at runtime (also through the ~/trot "
+      "service)", read_only=False, choices=MODES),
+    P("urdf", str, "", "URDF path or XML text for the controller's model; empty = the "
+      "package's starleth.urdf"),
+    P("robot_description", bool, False, "true: build the model from the robot_description "
+      "topic (transient local) instead of `urdf`"),
+    P("joint_commands_topic", str, TOPIC_JOINT_COMMANDS, "sensor_msgs/JointState command "
+      "topic (names + effort, stamped with the state answered); empty = off"),
+    P("effort_array_topic", str, "", "also publish a std_msgs/Float64MultiArray of the 12 "
+      "torques on this topic (e.g. /joint_group_effort_controller/commands); empty = off. Do "
+      "not send both to a lockstep simulator."),
+    P("joint_states_topic", str, TOPIC_JOINT_STATES, "sensor_msgs/JointState input"),
+    P("base_state_topic", str, TOPIC_BASE_STATE, "nav_msgs/Odometry input (ground truth)"),
+    P("foot_wrench_topics", list, list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped "
+      "inputs, feet in the order LF, RF, LH, RH"),
+    P("cmd_vel_topic", str, "cmd_vel", "geometry_msgs/Twist velocity command"),
+    P("twist_frame", str, "child", "frame of the Odometry twist's linear velocity: child "
+      "(base, REP 105) | parent (world)", choices=("child", "parent")),
+    P("contact_force_threshold", float, 5.0, "a foot is in contact when |force| exceeds this "
+      "[N]", read_only=False, minimum=0.0),
+    P("max_linear_speed", float, 0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]",
+      read_only=False, minimum=0.0),
+    P("max_yaw_rate", float, 1.0, "clip of |angular.z| of /cmd_vel [rad/s]", read_only=False,
+      minimum=0.0),
+    P("cmd_vel_timeout", float, 0.0, "seconds (the node's clock: sim time with use_sim_time) "
+      "after the last cmd_vel when the velocity command falls back to zero; 0 = never",
+      read_only=False, minimum=0.0),
+    P("state_reliability", str, "reliable", "QoS reliability of the state subscriptions: "
+      "reliable | best_effort", choices=("reliable", "best_effort")),
+    P("warn_throttle_period", float, 2.0, "minimum seconds between two warnings of the same "
+      "kind", read_only=False, minimum=0.0),
+    P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
+      choices=EXECUTORS),
+)
+PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
 
 
 class _Slot:
@@ -167,12 +153,7 @@ class ControllerNode(Node):
                          parameter_overrides=[Parameter(k, value=v) for k, v in
                                               (parameter_overrides or {}).items()], **kwargs)
         self.log = self.get_logger()
-        p = {}
-        for name, (default, desc, ro) in PARAMETERS.items():
-            # dynamic typing: `-p contact_force_threshold:=5` (an integer) is fine; the
-            # values are checked here instead
-            d = ParameterDescriptor(description=desc, read_only=ro, dynamic_typing=True)
-            p[name] = self.declare_parameter(name, default, d).value
+        p = declare_parameters(self, PARAMETERS)
         self._check_static(p)
         self._warn = ThrottledLog(self.log.warning, float(p["warn_throttle_period"]))
         self._mode = p["mode"]
@@ -252,51 +233,29 @@ class ControllerNode(Node):
 
     # -- parameters ------------------------------------------------------------------------
     def _check_static(self, p):
+        """ValueError listing every parameter that breaks its schema."""
         errors = []
-        for name, (default, _, _) in PARAMETERS.items():
-            if isinstance(default, (str, bool)) and not isinstance(p[name], type(default)):
-                errors.append(f"{name} must be a {type(default).__name__}, got {p[name]!r}")
-        if errors:
-            raise ValueError("; ".join(errors))
-        if p["mode"] not in MODES:
-            errors.append(f"mode must be one of {MODES}, got {p['mode']!r}")
-        if p["twist_frame"] not in ("child", "parent"):
-            errors.append(f"twist_frame must be child or parent, got {p['twist_frame']!r}")
-        if p["state_reliability"] not in ("reliable", "best_effort"):
-            errors.append("state_reliability must be reliable or best_effort, got "
-                          f"{p['state_reliability']!r}")
-        if p["executor"] not in ("events", "single_threaded"):
-            errors.append(f"executor must be events or single_threaded, got {p['executor']!r}")
+        for spec in PARAMETERS:
+            try:
+                spec.check(p[spec.name])
+            except ValueError as e:
+                errors.append(str(e))
         topics = p["foot_wrench_topics"]
-        if not isinstance(topics, (list, tuple)) or len(topics) != 4 or \
-                not all(isinstance(t, str) and t for t in topics):
-            errors.append(f"foot_wrench_topics must be 4 topic names (LF, RF, LH, RH), got "
-                          f"{topics!r}")
-        for name in ("contact_force_threshold", "max_linear_speed", "max_yaw_rate",
-                     "cmd_vel_timeout", "warn_throttle_period"):
-            err = self._number_error(name, p[name])
-            if err:
-                errors.append(err)
+        if not errors and (len(topics) != 4 or not all(isinstance(t, str) and t for t in topics)):
+            errors.append(f"parameter foot_wrench_topics: expected 4 topic names (LF, RF, LH, "
+                          f"RH), got {topics!r}")
         if errors:
             raise ValueError("; ".join(errors))
-
-    @staticmethod
-    def _number_error(name, v):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                or v < 0:
-            return f"{name} must be a finite number >= 0, got {v!r}"
-        return None
 
     def _on_set_parameters(self, params):
         for prm in params:
-            if prm.name == "mode" and (not isinstance(prm.value, str) or prm.value not in MODES):
-                return SetParametersResult(successful=False,
-                                           reason=f"mode must be one of {MODES}")
-            if prm.name in ("contact_force_threshold", "max_linear_speed", "max_yaw_rate",
-                            "cmd_vel_timeout", "warn_throttle_period"):
-                err = self._number_error(prm.name, prm.value)
-                if err:
-                    return SetParametersResult(successful=False, reason=err)
+            spec = PARAMETERS_BY_NAME.get(prm.name)
+            if spec is None:
+                continue
+            try:
+                spec.check(spec.coerce(prm.value))
+            except ValueError as e:
+                return SetParametersResult(successful=False, reason=str(e))
         for prm in params:
             if prm.name == "mode" and prm.value != self._mode:
                 self._mode = prm.value
@@ -534,17 +493,6 @@ class ControllerNode(Node):
         d = dict(self.counters)
         d["warnings_by_kind"] = dict(self._warn.counts)
         return d
-
-
-def make_executor(kind, context):
-    import rclpy.executors
-    if kind == "events":
-        try:
-            from rclpy.experimental import EventsExecutor
-            return EventsExecutor(context=context), "events"
-        except Exception:  # pragma: no cover - rclpy without the EventsExecutor
-            pass
-    return rclpy.executors.SingleThreadedExecutor(context=context), "single_threaded"
 
 
 def main(args=None):

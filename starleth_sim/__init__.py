@@ -1,9 +1,9 @@
 """StarlETH simulator: Moreau time-stepping with hard (JOR/SOR prox) and compliant contacts
 (Gehring et al. 2014). The physics core imports numpy, numba and pin only; the ROS 2 nodes
 live in ``starleth_sim.ros``."""
-from .physics.config import PhysicsConfig, ConfigError, load_preset, available_presets
+from .physics.config import PRESETS, PhysicsConfig, ConfigError, load_preset, available_presets
 from .physics.simulator import Simulator, ContactInfo, Diagnostics
 from .physics.stepper import SimulationError
 
 __all__ = ["Simulator", "ContactInfo", "Diagnostics", "PhysicsConfig", "ConfigError",
-           "SimulationError", "load_preset", "available_presets"]
+           "SimulationError", "load_preset", "available_presets", "PRESETS"]

@@ -25,7 +25,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from starleth_sim import Simulator  # noqa: E402
-from starleth_sim import analysis  # noqa: E402
+from starleth_sim.tools import analysis, bag  # noqa: E402
 from starleth_sim.physics.posture import PostureHold  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 
@@ -437,7 +437,7 @@ def test_corrupt_files(stand_bag, tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
     # magic bytes, then garbage
     fake = tmp_path / "fake.mcap"
-    fake.write_bytes(analysis.MCAP_MAGIC + rng.bytes(5000) + analysis.MCAP_MAGIC)
+    fake.write_bytes(bag.MCAP_MAGIC + rng.bytes(5000) + bag.MCAP_MAGIC)
     assert analysis.main([str(fake), "--no-plots"]) == 1
     assert "corrupt MCAP file" in capsys.readouterr().err
 

@@ -107,7 +107,7 @@ def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
 
     # starleth-analyze on the demo bag (issue 7): all plots, and a summary that agrees
     import json
-    from starleth_sim import analysis
+    from starleth_sim.tools import analysis
     out = tmp_path / "analysis"
     assert analysis.main([str(bag), "--out", str(out), "--json", str(tmp_path / "a.json")]) == 0
     for name in ("contact_forces", "gait", "base_trajectory", "joint_torques",

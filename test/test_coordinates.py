@@ -4,16 +4,16 @@ import numpy as np
 import pytest
 
 from starleth_controller import Command, RobotState, StarlethController
+from starleth_sim import PRESETS as TABLE1
 from starleth_sim import Simulator, available_presets, load_preset
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.posture import PostureHold
 
-TABLE1 = ["Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP"]
 TIGHT = dict(tol_rel=1e-12, tol_abs=1e-12, max_iterations=20000)
 
 
 def test_all_table1_presets_exist_with_the_papers_parameters():
-    assert set(TABLE1) <= set(available_presets())
+    assert sorted(TABLE1) == sorted(available_presets())     # one list, and its files
     expect = {"HEJD": ("extended", "jor", "direct", 0.6), "HEJP": ("extended", "jor", "prox", 0.5),
               "HESD": ("extended", "sor", "direct", 0.6), "HESP": ("extended", "sor", "prox", 0.6),
               "HMJD": ("maximal", "jor", "direct", 1.0), "HMJP": ("maximal", "jor", "prox", 0.4),

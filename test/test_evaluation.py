@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from starleth_sim import evaluation
+from starleth_sim.tools import evaluation
 
 
 @pytest.fixture(scope="module")

@@ -48,7 +48,7 @@ def test_executables_and_share(prefix):
 def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     """Run from outside the source tree: data comes from share/ via the ament index."""
     code = ("import starleth_sim, starleth_sim.physics.description as d;"
-            "from starleth_sim.ros.sim_node import load_default_parameters, default_settings_file;"
+            "from starleth_sim.ros.parameters import load_default_parameters, default_settings_file;"
             "print(starleth_sim.__file__); print(d.package_share_dir());"
             "print(default_settings_file()); print(load_default_parameters()['physics'])")
     env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix))
@@ -58,7 +58,7 @@ def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     mod, share, yaml_path, physics = r.stdout.split()
     assert mod.startswith(str(prefix))
     # starleth-view's page template is package data
-    assert os.path.isfile(os.path.join(os.path.dirname(mod), "view_page.html"))
+    assert os.path.isfile(os.path.join(os.path.dirname(mod), "tools", "view_page.html"))
     assert os.path.realpath(share) == os.path.realpath(prefix / "share" / "starleth_sim")
     assert yaml_path.startswith(share) and physics == "HmJ"
 
@@ -73,3 +73,19 @@ def test_installed_sim_node_runs(prefix, tmp_path):
                        text=True, timeout=120)
     assert r.returncode == 2, r.stdout + r.stderr
     assert "parameter mode" in r.stderr
+
+
+def test_readme_layout_lists_every_module():
+    """The README's Layout table names every module of the packages (a newcomer's map)."""
+    with open(os.path.join(ROOT, "README.md")) as f:
+        text = f.read()
+    layout = text[text.index("## Layout"):]
+    layout = layout[:layout.index("\n## ", 3)]
+    missing = []
+    for pkg in ("starleth_sim", "starleth_controller", "starleth_interface"):
+        for dirpath, _, files in os.walk(os.path.join(ROOT, pkg)):
+            for name in files:
+                if name.endswith((".py", ".html")) and name != "__init__.py" \
+                        and f"{name}`" not in layout:
+                    missing.append(os.path.relpath(os.path.join(dirpath, name), ROOT))
+    assert not missing, f"README Layout does not list {missing}"

@@ -165,7 +165,7 @@ def test_compliant_box_slides_and_stops_near_the_coulomb_distance():
     slipping = []
     for _ in range(1000):
         sim.step()
-        slipping.append(sim.stepper.slip[[n.endswith("n") for n in sim.contact_names]].any())
+        slipping.append(sim.state.slip[[n.endswith("n") for n in sim.contact_names]].any())
     d = sim.q[0] - x0
     assert d == pytest.approx(v0 ** 2 / (2 * mu * G), rel=0.05)
     assert slipping[0] and not slipping[-1]   # it slipped, then stuck
@@ -192,4 +192,4 @@ def test_compliant_box_on_incline_sticks_on_its_springs():
         sim.step()
     # the tangential springs hold it: no creep after settling
     assert np.linalg.norm(sim.q[:3] - p1) < 1e-6
-    assert not sim.stepper.slip.any()
+    assert not sim.state.slip.any()

@@ -22,7 +22,7 @@ from geometry_msgs.msg import Twist  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
-from starleth_sim import analysis  # noqa: E402
+from starleth_sim.tools import analysis  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_ID = 90 + os.getpid() % 9          # test_sim_node: 50..89, controller tests 10..49
@@ -232,11 +232,11 @@ def _declared_parameters(executable):
     """{name: default} of the parameters a node declares (rclpy adds use_sim_time)."""
     if executable == "sim_node":
         from dataclasses import asdict
-        from starleth_sim.ros.sim_node import Settings
+        from starleth_sim.ros.parameters import Settings
         params = asdict(Settings())
     else:
         from starleth_controller.controller_node import PARAMETERS
-        params = {k: v[0] for k, v in PARAMETERS.items()}
+        params = {p.name: p.default for p in PARAMETERS}
     params["use_sim_time"] = False
     return params
 

@@ -549,7 +549,7 @@ def test_push_on_trunk_changes_velocity_by_impulse_over_mass(ros, tmp_path):
         by_stamp.setdefault(stamp_ns(m), m)
     stamps = sorted(by_stamp)
     t = np.array(stamps) * 1e-9
-    from starleth_sim.ros.sim_node import quat_to_matrix
+    from starleth_sim.ros.state_io import quat_to_matrix
     vz = []
     for s in stamps:
         m = by_stamp[s]

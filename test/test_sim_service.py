@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from starleth_sim import ConfigError
-from starleth_sim.ros.sim_node import (SimService, Settings, ThrottledWarnings,
-                                         parse_initial_state, load_default_parameters,
-                                         initial_state_record)
+from starleth_interface.ros_helpers import ThrottledLog
+from starleth_sim.ros.parameters import Settings, load_default_parameters, render_yaml
+from starleth_sim.ros.service import SimService
+from starleth_sim.ros.state_io import initial_state_record, parse_initial_state
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +50,19 @@ def test_default_parameter_file():
     assert "sim_node" not in available_presets()
 
 
+def test_parameter_file_is_generated_from_the_schema():
+    """msg_configs/sim_node.yaml is the schema's rendering (regenerate it with
+    `python -m starleth_sim.ros.parameters > msg_configs/sim_node.yaml`)."""
+    import yaml
+    from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, default_settings_file
+    with open(default_settings_file()) as f:
+        text = f.read()
+    assert text == render_yaml()
+    params = yaml.safe_load(text)["/**"]["ros__parameters"]
+    assert params == {p.name: p.default for p in SIM_NODE_PARAMETERS}
+    assert all(p.description for p in SIM_NODE_PARAMETERS)
+
+
 def test_effort_array_validation(sim):
     svc, warns = make(sim)
     ok, _ = svc.submit_effort_array([1.0] * 12)
@@ -81,7 +95,7 @@ def test_joint_command_validation(sim):
 def test_throttled_warnings():
     t = [0.0]
     out = []
-    w = ThrottledWarnings(out.append, period=1.0, clock=lambda: t[0])
+    w = ThrottledLog(out.append, period=1.0, clock=lambda: t[0])
     for _ in range(10):
         w.warn("a", "bad a")
     w.warn("b", "bad b")
@@ -149,7 +163,7 @@ def test_reset_advances_time_and_restores_state(sim):
 
 
 def test_initial_state_parsing(sim):
-    from starleth_sim.ros.sim_node import public_state
+    from starleth_sim.ros.state_io import public_state
     q, u, _ = parse_initial_state("standing", sim)
     assert np.array_equal(q, sim.default_state()) and not u.any()
     q, u, _ = parse_initial_state("{base_position: [0.1, 0, 1.5], base_linear_velocity: "

@@ -5,7 +5,8 @@ import pytest
 
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator, prox
-from starleth_sim.physics.stepper import constraint_velocity, free_velocity, phase_delassus, phase_minv
+from starleth_sim.physics.stepper import (constraint_velocity, free_velocity, phase_delassus,
+                                          phase_minv)
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -27,16 +28,18 @@ def robot_problem(u_scale, seed, mu=0.8):
     eps = np.zeros((sim.coords.n_contacts, 2))
     nc = sim.coords.n_contacts
     # the paper's active set and law (no hysteresis; no gap terms as every active g_N < 0)
+    paper = st.settings._replace(activation_gap=0.0, hysteresis=False, opening_gap=0.0,
+                                 beta_velocity=0.0)
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-        M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), 0.0, eps, sim.coords.blocks,
-        True, L, False, 0.0, np.zeros((nc, 3)), np.zeros(nc, dtype=bool), st.dt, 0.0)
+        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps, sim.coords.blocks,
+        True, L, np.zeros((nc, 3)), np.zeros(nc, dtype=bool))
     assert ok and len(active) == 4
     free_velocity(h, st.dt, u, sim.coords.blocks, L, u_free)
     np.testing.assert_allclose(u_free, u + np.linalg.solve(M, h) * st.dt, rtol=1e-10,
                                atol=1e-12)
     na = len(active)
     ok, G, Gdiag, LB, _ = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, pat)
-    c = constraint_velocity(Wt, u_free, bvec, pat[0], pat[1])
+    c = constraint_velocity(Wt, u_free, bvec, pat.wp_ptr, pat.wp_idx)
     np.testing.assert_allclose(c, Wt @ u_free + bvec, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
@@ -49,10 +52,13 @@ def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
     prox.prox_parameters(np.diag(p["G"]).copy(), p["na"], alpha, r)
     lam = np.zeros(m)
     u = np.empty(p["M"].shape[0])
+    settings = prox.ProxSettings(form=prox.FORMS[form], scheme=prox.SCHEMES[scheme],
+                                 tol_rel=0.0, tol_abs=tol, max_iterations=max_iter,
+                                 criterion=criterion, bilateral_direct=False)
     it, status, res = prox.prox_solve(
-        prox.FORMS[form], prox.SCHEMES[scheme], p["Wt"], p["MinvW"], p["u_free"], p["bvec"],
-        p["G"], p["c"], p["na"], p["mu"], r, lam, 0.0, tol, max_iter, False, np.zeros((0, 0)),
-        criterion, p["M"], u, *prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]))
+        settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]), p["Wt"],
+        p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"], p["na"], p["mu"], r, lam,
+        np.zeros((0, 0)), p["M"], u)
     return lam, u, it, status
 
 

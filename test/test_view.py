@@ -28,7 +28,7 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from starleth_sim import view  # noqa: E402
+from starleth_sim.tools import view  # noqa: E402
 from starleth_sim.physics.description import (STARLETH_JOINT_NAMES, RobotDescription,  # noqa: E402
                                       urdf_path)
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402

@@ -332,7 +332,14 @@ def config_dir() -> str:
     return os.path.join(package_share_dir(), "msg_configs")
 
 
+#: The 11 configurations of the paper's Table 1, in its order: the presets in msg_configs/
+#: (C compliant, H hard; m/E/M minimal, extended, maximal coordinates; J/S JOR or SOR prox;
+#: D/P bilateral constraints direct or by prox).
+PRESETS = ("Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP")
+
+
 def available_presets() -> list[str]:
+    """The names of the preset files in msg_configs/ (PRESETS, and any a user added)."""
     d = config_dir()
     return sorted(os.path.splitext(f)[0] for f in os.listdir(d)
                   if f.endswith(".yaml") and not f.startswith("sim_node")

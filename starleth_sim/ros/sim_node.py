@@ -84,714 +84,47 @@ from __future__ import annotations
 import array
 import gc
 import json
-import math
 import os
 import signal
 import sys
 import time
-from collections import deque
-from dataclasses import dataclass, asdict, fields
+from dataclasses import asdict, replace
 
 import numpy as np
+import rclpy
 import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import SetBool, Trigger
 
-from .. import Simulator, ConfigError, SimulationError
-from ..physics.description import STARLETH_FEET as FEET
-from ..physics.kinematics import quat_xyzw_to_rot
-from .cdr import CommandDecoder, JointStateCdr
-from .recording import register_msg_text
+from starleth_interface.ros_helpers import declare_parameters, make_executor
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
-                      TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
-                      TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, TOPIC_TF,
-                      TOPIC_TF_STATIC, TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT,
-                      foot_wrench_topic)
+                                       TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
+                                       TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
+                                       TOPIC_SOLVER, TOPIC_TF, TOPIC_TF_STATIC, TOPIC_WRENCH,
+                                       TOPIC_WRENCH_PERSISTENT, foot_wrench_topic)
+from ..physics.config import ConfigError
+from ..physics.description import STARLETH_FEET as FEET
+from ..physics.simulator import Simulator
+from .cdr import CommandDecoder, JointStateCdr
+from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
+from .recording import register_msg_text
+from .service import PeriodStats, SimService
+from .state_io import (ImuEstimate, initial_state_record, minimal_state, parse_initial_state,
+                       public_state, quat_to_matrix)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
-
-
-# =========================================================================================
-# settings
-# =========================================================================================
-@dataclass
-class Settings:
-    physics: str = "HmJ"
-    physics_overrides: str = ""
-    mode: str = "realtime"
-    real_time_factor: float = 1.0
-    lockstep_timeout: float = 1.0
-    timeout_policy: str = "hold"
-    record: str = ""
-    record_compression: str = "none"
-    record_max_duration: float = 0.0
-    record_max_size: int = 0
-    initial_state: str = "standing"
-    start_paused: bool = False
-    realtime_priority: int = 0
-    executor: str = "events"
-    warn_throttle_period: float = 2.0
-    world_frame: str = "world"
-    base_frame: str = "base"
-    publish_clock: bool = True
-    tf_rate: float = 50.0
-    tf_frame_prefix: str = ""
-    contact_markers_rate: float = 50.0
-    contact_marker_scale: float = 0.002
-
-    def validate(self) -> "Settings":
-        def num(name, lo, lo_open):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(f"parameter {name}: expected a finite number, got {v!r}")
-            if v < lo or (lo_open and v == lo):
-                raise ConfigError(f"parameter {name}: must be {'>' if lo_open else '>='} {lo}, "
-                                  f"got {v}")
-            setattr(self, name, float(v))
-
-        for name in ("physics", "physics_overrides", "mode", "timeout_policy", "record",
-                     "record_compression", "initial_state", "executor", "world_frame",
-                     "base_frame", "tf_frame_prefix"):
-            if not isinstance(getattr(self, name), str):
-                raise ConfigError(f"parameter {name}: expected a string, got "
-                                  f"{getattr(self, name)!r}")
-        if self.mode not in ("realtime", "lockstep"):
-            raise ConfigError(f"parameter mode: must be 'realtime' or 'lockstep', got "
-                              f"{self.mode!r}")
-        num("real_time_factor", 0.0, False)
-        if self.mode == "realtime" and self.real_time_factor == 0.0:
-            raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
-                              "in lockstep mode; realtime mode needs a factor > 0")
-        num("lockstep_timeout", 0.0, True)
-        num("warn_throttle_period", 0.0, False)
-        prio = self.realtime_priority
-        if isinstance(prio, bool) or not isinstance(prio, int) or not 0 <= prio <= 99:
-            raise ConfigError(f"parameter realtime_priority: expected an integer in 0..99, got "
-                              f"{self.realtime_priority!r}")
-        for name in ("start_paused", "publish_clock"):
-            if not isinstance(getattr(self, name), bool):
-                raise ConfigError(f"parameter {name}: expected true or false, got "
-                                  f"{getattr(self, name)!r}")
-        num("record_max_duration", 0.0, False)
-        num("tf_rate", 0.0, False)
-        num("contact_markers_rate", 0.0, False)
-        num("contact_marker_scale", 0.0, True)
-        size = self.record_max_size
-        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
-            raise ConfigError(f"parameter record_max_size: expected an integer >= 0 (bytes), "
-                              f"got {size!r}")
-        if self.timeout_policy not in ("hold", "zero"):
-            raise ConfigError(f"parameter timeout_policy: must be 'hold' or 'zero', got "
-                              f"{self.timeout_policy!r}")
-        if self.record_compression not in ("none", "lz4", "zstd"):
-            raise ConfigError(f"parameter record_compression: must be none, lz4 or zstd, got "
-                              f"{self.record_compression!r}")
-        if self.executor not in ("events", "single_threaded"):
-            raise ConfigError(f"parameter executor: must be 'events' or 'single_threaded', got "
-                              f"{self.executor!r}")
-        return self
-
-    def physics_override_dict(self) -> dict:
-        if not self.physics_overrides.strip():
-            return {}
-        try:
-            d = yaml.safe_load(self.physics_overrides)
-        except yaml.YAMLError as e:
-            raise ConfigError(f"parameter physics_overrides: not valid YAML: {e}") from None
-        if not isinstance(d, dict):
-            raise ConfigError("parameter physics_overrides: expected a mapping such as "
-                              f"'{{mu: 0.0}}', got {self.physics_overrides!r}")
-        return d
-
-
-def default_settings_file() -> str:
-    from ..physics.description import package_share_dir
-    return os.path.join(package_share_dir(), "msg_configs", "sim_node.yaml")
-
-
-def load_default_parameters(path: str | None = None) -> dict:
-    """The ros__parameters of msg_configs/sim_node.yaml (node key 'sim_node' or '/**'),
-    falling back to the Settings defaults for anything missing."""
-    defaults = asdict(Settings())
-    try:
-        path = path or default_settings_file()
-        with open(path) as f:
-            data = yaml.safe_load(f) or {}
-    except (OSError, FileNotFoundError):
-        return defaults
-    for key in ("sim_node", "/sim_node", "/**"):
-        params = (data.get(key) or {}).get("ros__parameters") if isinstance(data, dict) else None
-        if isinstance(params, dict):
-            for k, v in params.items():
-                if k in defaults:
-                    defaults[k] = v
-            break
-    return defaults
-
-
-# =========================================================================================
-# initial state
-# =========================================================================================
-_PUBLIC_KEYS = ("base_position", "base_orientation", "joint_positions", "base_linear_velocity",
-                "base_angular_velocity", "joint_velocities")
-_STATE_KEYS = _PUBLIC_KEYS + ("q_minimal", "u_minimal", "q", "u", "coordinates")
-# keys of a recorded initial_state.json that carry no state of their own
-_STATE_INFO_KEYS = ("t", "note", "joint_names", "parameter")
-
-
-def _read_state_spec(spec):
-    if not isinstance(spec, str):
-        return spec or {}
-    s = spec.strip()
-    if s in ("", "standing", "default"):
-        return {}
-    if s.endswith((".yaml", ".yml", ".json")) and not s.startswith("{"):
-        try:
-            with open(s) as f:
-                return yaml.safe_load(f) or {}
-        except OSError as e:
-            raise ConfigError(f"parameter initial_state: cannot read {s}: {e}") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"parameter initial_state: {s} is not valid YAML: {e}") from None
-    try:
-        return yaml.safe_load(s)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"parameter initial_state: not valid YAML: {e}") from None
-
-
-def public_state(sim: Simulator) -> dict:
-    """The simulator's current state in convention-free public quantities."""
-    b = sim.base_state()
-    return {"base_position": np.array(b["position"], dtype=float),
-            "base_orientation": np.array(b["orientation_xyzw"], dtype=float),
-            "base_linear_velocity": np.array(b["linear_velocity"], dtype=float),
-            "base_angular_velocity": np.array(b["angular_velocity"], dtype=float),
-            "joint_positions": np.array(sim.joint_positions(), dtype=float),
-            "joint_velocities": np.array(sim.joint_velocities(), dtype=float)}
-
-
-def minimal_state(sim: Simulator, pub: dict):
-    """(q, u) in minimal coordinates (the URDF's pin model on a free flyer: position,
-    quaternion x y z w, joint angles; world linear velocity, body angular velocity, joint
-    rates), as taken by ``Simulator.reset(q, u, minimal=True)``."""
-    model = sim.description.model
-    q = np.zeros(model.nq)
-    u = np.zeros(model.nv)
-    q[0:3] = pub["base_position"]
-    q[3:7] = pub["base_orientation"]
-    u[0:3] = pub["base_linear_velocity"]
-    u[3:6] = pub["base_angular_velocity"]
-    for i, name in enumerate(sim.joint_names):
-        j = model.joints[model.getJointId(name)]
-        q[j.idx_q] = pub["joint_positions"][i]
-        u[j.idx_v] = pub["joint_velocities"][i]
-    return q, u
-
-
-def parse_initial_state(spec, sim: Simulator):
-    """(q, u, description) from the `initial_state` parameter, q and u in the simulator's
-    own coordinates (for ``sim.reset(q, u)``).
-
-    spec: 'standing' / '' (``sim.default_state()`` at rest), a YAML mapping (string or
-    dict) or the path of a YAML/JSON file with any of base_position, base_orientation
-    (x y z w), joint_positions (list in joint order, or {name: angle}),
-    base_linear_velocity (world), base_angular_velocity (base frame), joint_velocities;
-    missing ones are those of the standing state. A recorded ``initial_state.json`` is
-    accepted as is: its q/u are used when its coordinates match, else q_minimal/u_minimal.
-    Uses the simulator (resets it)."""
-    data = _read_state_spec(spec)
-    if not isinstance(data, dict):
-        raise ConfigError(f"parameter initial_state: expected 'standing', a mapping or a YAML "
-                          f"file, got {spec!r}")
-    if "joint_names" in data and list(data["joint_names"]) != list(sim.joint_names):
-        raise ConfigError("parameter initial_state: joint_names differ from the simulator's")
-    data = {k: v for k, v in data.items() if k not in _STATE_INFO_KEYS}
-    unknown = set(data) - set(_STATE_KEYS)
-    if unknown:
-        raise ConfigError(f"parameter initial_state: unknown keys {sorted(unknown)} (known: "
-                          f"{', '.join(_PUBLIC_KEYS)})")
-    nj = sim.n_joints
-
-    def vec(key, n):
-        v = data[key]
-        if isinstance(v, dict) and key.startswith("joint_"):
-            unknown_j = set(v) - set(sim.joint_names)
-            if unknown_j:
-                raise ConfigError(f"parameter initial_state: {key}: unknown joints "
-                                  f"{sorted(unknown_j)}")
-            return v
-        try:
-            a = np.asarray(v, dtype=float).reshape(-1)
-        except (TypeError, ValueError):
-            raise ConfigError(f"parameter initial_state: {key}: expected {n} numbers, got {v!r}") \
-                from None
-        if a.shape != (n,) or not np.all(np.isfinite(a)):
-            raise ConfigError(f"parameter initial_state: {key}: expected {n} finite numbers, "
-                              f"got {v!r}")
-        return a
-
-    def reset_checked(q, u, minimal=False):
-        try:
-            sim.reset(q=q, u=u, minimal=minimal)
-        except ValueError as e:
-            raise ConfigError(f"parameter initial_state: {e}") from None
-        return sim.q, sim.u
-
-    if "q" in data and data.get("coordinates", sim.config.coordinates) == sim.config.coordinates:
-        q, u = reset_checked(vec("q", sim.q.shape[0]),
-                             vec("u", sim.u.shape[0]) if "u" in data else None)
-        return q, u, {"spec": {"q": q.tolist(), "u": u.tolist(),
-                               "coordinates": sim.config.coordinates}}
-    if "q_minimal" in data:
-        model = sim.description.model
-        q, u = reset_checked(vec("q_minimal", model.nq),
-                             vec("u_minimal", model.nv) if "u_minimal" in data else None,
-                             minimal=True)
-        return q, u, {"spec": {"q_minimal": data["q_minimal"],
-                               "u_minimal": data.get("u_minimal")}}
-    public = {k: v for k, v in data.items() if k in _PUBLIC_KEYS}
-    sim.reset()
-    if not public:
-        return sim.q, sim.u, {"spec": "standing"}
-    pub = public_state(sim)
-    for key in ("base_position", "base_linear_velocity", "base_angular_velocity"):
-        if key in public:
-            pub[key] = vec(key, 3)
-    if "base_orientation" in public:
-        quat = vec("base_orientation", 4)
-        if np.linalg.norm(quat) < 1e-9:
-            raise ConfigError("parameter initial_state: base_orientation must not be zero")
-        pub["base_orientation"] = quat / np.linalg.norm(quat)
-    for key in ("joint_positions", "joint_velocities"):
-        if key in public:
-            v = vec(key, nj)
-            if isinstance(v, dict):
-                for name, val in v.items():
-                    try:
-                        x = float(val)
-                    except (TypeError, ValueError):
-                        x = float("nan")
-                    if not math.isfinite(x):
-                        raise ConfigError(f"parameter initial_state: {key}.{name}: expected a "
-                                          f"finite number, got {val!r}")
-                    pub[key][sim.joint_names.index(name)] = x
-            else:
-                pub[key] = v
-    q, u = reset_checked(*minimal_state(sim, pub), minimal=True)
-    return q, u, {"spec": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                           for k, v in public.items()}}
-
-
-def initial_state_record(sim: Simulator, q0, u0, spec=None) -> dict:
-    """The initial state as stored in recordings (and accepted back by the initial_state
-    parameter): the simulator's q/u, the minimal-coordinate q/u and the public quantities.
-    Uses the simulator (resets it to q0, u0)."""
-    sim.reset(q=q0, u=u0)
-    pub = public_state(sim)
-    qm, um = minimal_state(sim, pub)
-    rec = {"coordinates": sim.config.coordinates,
-           "q": [float(x) for x in q0], "u": [float(x) for x in u0], "t": 0.0,
-           "q_minimal": qm.tolist(), "u_minimal": um.tolist(),
-           "note": "q, u: Simulator.reset(q, u) in these coordinates; q_minimal, u_minimal: "
-                   "Simulator.reset(q, u, minimal=True) (pin free-flyer order: position, "
-                   "quaternion x y z w, joint angles; world linear velocity, body angular "
-                   "velocity, joint rates)",
-           "joint_names": list(sim.joint_names),
-           "parameter": spec if spec is not None else "standing"}
-    rec.update({k: v.tolist() for k, v in pub.items()})
-    return rec
-
-
-# =========================================================================================
-# ROS-free core
-# =========================================================================================
-class ThrottledWarnings:
-    """At most one warning per `period` seconds per kind of problem; the next one says how
-    many were suppressed."""
-
-    def __init__(self, log, period: float = 2.0, clock=time.monotonic):
-        self._log, self.period, self._clock = log, period, clock
-        self._last: dict = {}
-        self._suppressed: dict = {}
-        self.counts: dict = {}
-
-    def warn(self, key: str, message: str) -> bool:
-        self.counts[key] = self.counts.get(key, 0) + 1
-        now = self._clock()
-        last = self._last.get(key)
-        if last is not None and now - last < self.period:
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
-            return False
-        n = self._suppressed.pop(key, 0)
-        self._last[key] = now
-        if n:
-            message += f" ({n} more like this suppressed in the last {now - last:.1f} s)"
-        if self._log is not None:
-            self._log(message)
-        return True
-
-
-class SimService:
-    """Command validation, lockstep bookkeeping and stepping, without any ROS.
-
-    Time: step k has stamp ``k * period_ns`` [ns] (integer, so equal stamps compare exact).
-    ``command`` is the last valid torque command (joint order), applied with zero-order hold.
-    Every ``submit_*`` returns ``(accepted, reason)`` and never raises on bad input."""
-
-    COUNTERS = ("commands_received", "commands_accepted", "commands_rejected", "late_commands",
-                "stale_commands", "lockstep_timeouts", "wrenches_accepted", "wrenches_rejected",
-                "simulation_errors", "resets", "steps")
-
-    def __init__(self, sim: Simulator, settings: Settings | None = None, q0=None, u0=None,
-                 warn=None, error=None):
-        self.sim = sim
-        self.settings = (settings or Settings()).validate()
-        self.lockstep = self.settings.mode == "lockstep"
-        self.q0 = sim.q if q0 is None else np.array(q0, dtype=float)
-        self.u0 = sim.u if u0 is None else np.array(u0, dtype=float)
-        self.period_ns = int(round(sim.control_period * 1e9))
-        self.joint_names = tuple(sim.joint_names)
-        self.joint_index = {n: i for i, n in enumerate(self.joint_names)}
-        self._joint_name_list = list(self.joint_names)
-        self.links = frozenset(sim.coords.link_names())
-        self.n = len(self.joint_names)
-        self.warnings = ThrottledWarnings(warn, self.settings.warn_throttle_period)
-        self.errors = ThrottledWarnings(error or warn, self.settings.warn_throttle_period)
-        self.counters = dict.fromkeys(self.COUNTERS, 0)
-        self.command = np.zeros(self.n)
-        self.k = 0
-        self.paused = self.settings.start_paused
-        self.started = not self.lockstep     # lockstep: set by the first answer
-        self.answered = False                # lockstep: the current state has its command
-        self.last_step_timed_out = False
-        self.failed = False                  # paused after the physics failed twice
-        self.state_version = 0               # bumped whenever a new state exists
-        self._timed_out_stamps = deque(maxlen=256)
-        # warm up (numba dispatch, first solve) so that the first real step is not slow;
-        # reset() then restores the initial state and clears the solver's contact memory
-        sim.reset(q=self.q0, u=self.u0, t=0.0)
-        try:
-            sim.step(np.zeros(self.n))
-        except (SimulationError, ValueError):
-            pass
-        sim.reset(q=self.q0, u=self.u0, t=0.0)
-
-    # -- time ------------------------------------------------------------------------------
-    @property
-    def stamp_ns(self) -> int:
-        return self.k * self.period_ns
-
-    @property
-    def control_period(self) -> float:
-        return self.sim.control_period
-
-    # -- commands --------------------------------------------------------------------------
-    def _reject(self, key, message):
-        self.counters["commands_rejected"] += 1
-        self.warnings.warn(key, message)
-        return False, message
-
-    def _accept(self, tau):
-        self.command = tau
-        self.counters["commands_accepted"] += 1
-        if self.lockstep:
-            self.answered = True
-            self.started = True
-        return True, "ok"
-
-    def _check_values(self, values, what):
-        try:
-            a = np.array(values, dtype=float).reshape(-1)
-        except (TypeError, ValueError):
-            return None, f"{what}: values are not numbers"
-        return a, None
-
-    def submit_effort_array(self, data):
-        """A Float64MultiArray's data: n torques in joint order. In lockstep it answers the
-        latest published state (the message has no stamp)."""
-        self.counters["commands_received"] += 1
-        a, err = self._check_values(data, "effort command")
-        if err:
-            return self._reject("effort_type", f"rejected effort command: {err}")
-        if a.shape[0] != self.n:
-            return self._reject("effort_length",
-                                f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: "
-                                f"{a.shape[0]} values, expected {self.n} (joint order "
-                                f"{', '.join(self.joint_names)}); keeping the last valid command")
-        bad = ~np.isfinite(a)
-        if bad.any():
-            names = [self.joint_names[i] for i in np.flatnonzero(bad)]
-            return self._reject("effort_nonfinite",
-                                f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: non-finite "
-                                f"torque for {', '.join(names)}; keeping the last valid command")
-        if self.lockstep and self.answered:
-            self.counters["stale_commands"] += 1
-            self.warnings.warn("stale", "dropped an extra effort command: the current state "
-                               "was already answered")
-            return False, "state already answered"
-        return self._accept(a)
-
-    def submit_joint_command(self, names, efforts, stamp_ns=None):
-        """A JointState command: efforts by joint name. All names must be known and unique;
-        joints not named keep their last command. Empty names with n efforts = joint order.
-        In lockstep the stamp must equal the stamp of the state being answered."""
-        self.counters["commands_received"] += 1
-        names = list(names)
-        a, err = self._check_values(efforts, "joint command")
-        if err:
-            return self._reject("joint_type", f"rejected joint command: {err}")
-        if names == self._joint_name_list and a.shape[0] == self.n and np.isfinite(a).all() \
-                and (not self.lockstep or self._stamp_ok(stamp_ns)):
-            return self._accept(a)   # fast path: every joint in joint order, valid
-        if not names:
-            if a.shape[0] != self.n:
-                return self._reject("joint_length",
-                                    f"rejected joint command on {TOPIC_JOINT_COMMANDS}: no joint "
-                                    f"names and {a.shape[0]} efforts (give names, or {self.n} "
-                                    "efforts in joint order)")
-            names = list(self.joint_names)
-        if a.shape[0] != len(names):
-            return self._reject("joint_length",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: {len(names)} "
-                                f"names but {a.shape[0]} efforts (this simulator takes effort "
-                                "commands only)")
-        unknown = [n for n in names if n not in self.joint_index]
-        if unknown:
-            return self._reject("unknown_joint",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: unknown joint "
-                                f"name(s) {', '.join(map(repr, unknown))} (joints: "
-                                f"{', '.join(self.joint_names)})")
-        if len(set(names)) != len(names):
-            dup = sorted({n for n in names if names.count(n) > 1})
-            return self._reject("duplicate_joint",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: duplicate "
-                                f"joint name(s) {', '.join(dup)}")
-        bad = ~np.isfinite(a)
-        if bad.any():
-            return self._reject("joint_nonfinite",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: non-finite "
-                                f"effort for {', '.join(names[i] for i in np.flatnonzero(bad))}; "
-                                "keeping the last valid command")
-        if self.lockstep and not self._stamp_ok(stamp_ns):
-            return self._stale(stamp_ns)
-        tau = self.command.copy()
-        for n, v in zip(names, a):
-            tau[self.joint_index[n]] = v
-        return self._accept(tau)
-
-    def submit_ordered_joint_command(self, efforts, stamp_ns):
-        """submit_joint_command for a command already known to name every joint in joint
-        order with n finite efforts (decoded by cdr.CommandDecoder): only the lockstep
-        stamp is left to check."""
-        self.counters["commands_received"] += 1
-        if self.lockstep and not self._stamp_ok(stamp_ns):
-            return self._stale(stamp_ns)
-        return self._accept(efforts)
-
-    def _stamp_ok(self, stamp_ns):
-        return not self.answered and (stamp_ns is None or int(stamp_ns) == self.stamp_ns)
-
-    def _stale(self, stamp_ns):
-        """Lockstep: count and drop a JointState command that does not answer the current
-        state: 'late' if it answers a state stepped on the timeout policy, else 'stale'."""
-        stamp = self.stamp_ns if stamp_ns is None else int(stamp_ns)
-        if stamp in self._timed_out_stamps:
-            self.counters["late_commands"] += 1
-            self.warnings.warn("late", f"late command for t={stamp * 1e-9:.4f} s: that state "
-                               "was already stepped on the timeout policy (now waiting for "
-                               f"t={self.stamp_ns * 1e-9:.4f} s)")
-            return False, "late"
-        self.counters["stale_commands"] += 1
-        what = "the state was already answered" if stamp == self.stamp_ns else \
-            f"stamp t={stamp * 1e-9:.4f} s does not match"
-        self.warnings.warn("stale", f"dropped a stale command on {TOPIC_JOINT_COMMANDS}: {what}; "
-                           "lockstep expects header.stamp = the stamp of the /joint_states it "
-                           f"answers (t={self.stamp_ns * 1e-9:.4f} s)")
-        return False, "stale"
-
-    def submit_wrench(self, link, force, torque, persistent=False):
-        """A push on `link` (world axes, at the link origin): one control period, or until
-        replaced/cleared (zero wrench) when persistent."""
-        topic = TOPIC_WRENCH_PERSISTENT if persistent else TOPIC_WRENCH
-        if link not in self.links:
-            self.counters["wrenches_rejected"] += 1
-            msg = (f"rejected wrench on {topic}: unknown link {link!r} in header.frame_id "
-                   f"(links: {', '.join(sorted(self.links))})")
-            self.warnings.warn("unknown_link", msg)
-            return False, msg
-        f = np.array(force, dtype=float).reshape(-1)
-        m = np.array(torque, dtype=float).reshape(-1)
-        if f.shape != (3,) or m.shape != (3,) or not (np.all(np.isfinite(f)) and
-                                                       np.all(np.isfinite(m))):
-            self.counters["wrenches_rejected"] += 1
-            msg = f"rejected wrench on {topic} for {link!r}: force and torque must be finite"
-            self.warnings.warn("bad_wrench", msg)
-            return False, msg
-        try:
-            if persistent:
-                self.sim.set_persistent_wrench(link, f, m)
-            else:
-                self.sim.apply_wrench(link, f, m)
-        except ValueError as e:
-            self.counters["wrenches_rejected"] += 1
-            self.warnings.warn("bad_wrench", f"rejected wrench on {topic}: {e}")
-            return False, str(e)
-        self.counters["wrenches_accepted"] += 1
-        return True, "ok"
-
-    # -- stepping --------------------------------------------------------------------------
-    def on_timeout(self):
-        """Lockstep: no answer for the current state within lockstep_timeout."""
-        self.counters["lockstep_timeouts"] += 1
-        self._timed_out_stamps.append(self.stamp_ns)
-        pol = self.settings.timeout_policy
-        self.warnings.warn("timeout", f"lockstep: no command for t={self.stamp_ns * 1e-9:.4f} s "
-                           f"within {self.settings.lockstep_timeout:g} s; stepping with "
-                           f"{'the last command held' if pol == 'hold' else 'zero torques'} "
-                           f"({self.counters['lockstep_timeouts']} timeouts so far)")
-        if pol == "zero":
-            self.command = np.zeros(self.n)
-
-    def step(self, timed_out: bool = False):
-        """One control period with the current command; returns the Diagnostics (or None
-        when the physics failed twice and the simulation was paused)."""
-        if timed_out:
-            self.on_timeout()
-        self.last_step_timed_out = timed_out
-        tau = self.command
-        try:
-            d = self.sim.step(tau)
-        except (SimulationError, ValueError) as e:
-            self.counters["simulation_errors"] += 1
-            self.warnings.warn("simulation_error", f"physics step failed at t="
-                               f"{self.sim.t:.4f} s ({e}); retrying with zero torques")
-            try:
-                d = self.sim.step(np.zeros(self.n))
-            except (SimulationError, ValueError) as e2:
-                self.paused = self.failed = True
-                self.errors.warn("simulation_paused", f"physics step failed twice at t="
-                                 f"{self.sim.t:.4f} s ({e2}); simulation paused, call ~/reset")
-                return None
-        self.k += 1
-        self.counters["steps"] += 1
-        self.answered = False
-        self.state_version += 1
-        return d
-
-    def reset(self):
-        """Back to the initial state, wrenches cleared, zero command; sim time advances by one
-        control period (stamps stay strictly increasing). A pause caused by a physics
-        failure ends; a pause asked for with ~/pause stays."""
-        if self.failed:
-            self.failed = self.paused = False
-        self.k += 1
-        self.sim.clear_wrenches()
-        self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)
-        self.command = np.zeros(self.n)
-        self.answered = False
-        self.counters["resets"] += 1
-        self.state_version += 1
-
-    def summary(self) -> dict:
-        d = dict(self.counters)
-        d["sim_time"] = self.stamp_ns * 1e-9
-        d["warnings_by_kind"] = dict(self.warnings.counts)
-        return d
-
-
-class PeriodStats:
-    """Wall-clock tick intervals of the realtime loop: |interval - nominal| in a histogram
-    of 1 us bins (O(1) per tick, percentiles in microseconds, cheap enough to run in the
-    loop), plus count, mean and maximum."""
-
-    BIN = 1e-6
-    NBINS = 20000          # up to 20 ms; larger errors go to the last bin (max is exact)
-
-    def __init__(self, nominal: float):
-        self.nominal = nominal
-        self.hist = np.zeros(self.NBINS, dtype=np.int64)
-        self.n = 0
-        self.total = 0.0
-        self.max_err = 0.0
-        self.last = None
-        self.overruns = 0
-
-    def tick(self, t: float):
-        last = self.last
-        self.last = t
-        if last is None:
-            return
-        iv = t - last
-        err = abs(iv - self.nominal)
-        i = int(err / self.BIN)
-        self.hist[i if i < self.NBINS else self.NBINS - 1] += 1
-        self.n += 1
-        self.total += iv
-        if err > self.max_err:
-            self.max_err = err
-
-    def restart(self):
-        self.last = None
-
-    def percentile_ms(self, p: float) -> float:
-        c = np.cumsum(self.hist)
-        i = int(np.searchsorted(c, p / 100.0 * c[-1]))
-        return (i + 1) * self.BIN * 1e3          # upper edge of the bin
-
-    def summary(self) -> dict:
-        if self.n == 0:
-            return {"ticks": 0}
-        return {"ticks": self.n, "period_mean_ms": self.total / self.n * 1e3,
-                "period_error_p50_ms": self.percentile_ms(50),
-                "period_error_p99_ms": self.percentile_ms(99),
-                "period_error_max_ms": self.max_err * 1e3, "overruns": self.overruns}
-
-
-# =========================================================================================
-# math helpers
-# =========================================================================================
-def quat_to_matrix(qx, qy, qz, qw):
-    """Rotation matrix of the unit quaternion (x, y, z, w) (kinematics.quat_xyzw_to_rot)."""
-    R = np.empty((3, 3))
-    quat_xyzw_to_rot(float(qx), float(qy), float(qz), float(qw), R)
-    return R
 
 
 def _dbl(a) -> array.array:
     return array.array("d", np.ascontiguousarray(a, dtype=float).tobytes())
-
-
-# =========================================================================================
-# rclpy node
-# =========================================================================================
-def _import_ros():
-    global rclpy, Node, QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
-    global ParameterDescriptor, serialize_message, deserialize_message
-    global Clock, JointState, Imu, WrenchStamped, Odometry, DiagnosticArray, DiagnosticStatus
-    global KeyValue, Float64MultiArray, String, Trigger, SetBool
-    import rclpy  # noqa: F401
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
-    from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.serialization import serialize_message, deserialize_message
-    from rosgraph_msgs.msg import Clock
-    from sensor_msgs.msg import JointState, Imu
-    from geometry_msgs.msg import WrenchStamped
-    from nav_msgs.msg import Odometry
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from std_msgs.msg import Float64MultiArray, String
-    from std_srvs.srv import Trigger, SetBool
-    return Node
-
-
-def make_executor(kind: str, context):
-    """rclpy's EventsExecutor (C++, much cheaper spin_once) when asked for and available,
-    else the SingleThreadedExecutor."""
-    import rclpy.executors
-    if kind == "events":
-        try:
-            from rclpy.experimental import EventsExecutor
-            return EventsExecutor(context=context), "events"
-        except Exception:  # pragma: no cover - rclpy without the EventsExecutor
-            pass
-    return rclpy.executors.SingleThreadedExecutor(context=context), "single_threaded"
 
 
 class SimNode:
@@ -803,29 +136,14 @@ class SimNode:
 
     def __init__(self, context=None, parameter_overrides=None, node_name="sim_node",
                  settings_file=None):
-        _import_ros()
-        from rclpy.parameter import Parameter
         defaults = load_default_parameters(settings_file)
         self.node = Node(node_name, context=context,
                          parameter_overrides=[Parameter(k, value=v) for k, v in
                                               (parameter_overrides or {}).items()])
         node = self.node
         self.log = node.get_logger()
-        values = {}
-        for name, default in defaults.items():
-            desc = ParameterDescriptor(dynamic_typing=True, read_only=True)
-            values[name] = node.declare_parameter(name, default, desc).value
-        for name in ("real_time_factor", "lockstep_timeout", "warn_throttle_period",
-                     "record_max_duration", "tf_rate", "contact_markers_rate",
-                     "contact_marker_scale"):
-            if isinstance(values[name], int) and not isinstance(values[name], bool):
-                values[name] = float(values[name])
-        for name in ("physics", "physics_overrides", "record", "initial_state",
-                     "tf_frame_prefix"):
-            if values[name] is None:
-                values[name] = ""
-        self.settings = Settings(**{k: v for k, v in values.items()
-                                    if k in {f.name for f in fields(Settings)}}).validate()
+        specs = [replace(p, default=defaults[p.name]) for p in SIM_NODE_PARAMETERS]
+        self.settings = Settings(**declare_parameters(node, specs)).validate()
         s = self.settings
         overrides = s.physics_override_dict()
         self.sim = Simulator.from_preset(s.physics, **overrides)
@@ -841,9 +159,7 @@ class SimNode:
         self._counts_k = -10 ** 9
         self._counts = {}
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
-        self._gravity = self._model_gravity()
-        self._v_prev = None    # (step, world linear velocity) for the IMU
-        self._acc = None       # (step, acceleration) of the last IMU message
+        self.imu = ImuEstimate(self._model_gravity(), self.sim.control_period)
         self._setup_messages()
         self._setup_interfaces()
         self._setup_visualisation()
@@ -1247,20 +563,7 @@ class SimNode:
             ta.x, ta.y, ta.z = w
             self._emit("base_state", o, record)
         if want_imu:
-            # IMU at the base origin: proper acceleration R^T (dv/dt - g), body rates; dv/dt
-            # by the difference with the previous step's velocity (zero on the first state
-            # and the first message after a reset or after nobody listened)
-            k = svc.k
-            if self._v_prev is not None and self._v_prev[0] == k - 1:
-                acc = (v - self._v_prev[1]) / sim.control_period
-                self._acc = (k, acc)
-            elif self._acc is not None and self._acc[0] == k:    # re-sent state
-                acc = self._acc[1]
-            else:
-                acc = np.zeros(3)
-            if self._v_prev is None or self._v_prev[0] != k:
-                self._v_prev = (k, np.array(v, dtype=float))
-            a_proper = R.T @ (acc - self._gravity)
+            a_proper = self.imu.proper_acceleration(svc.k, v, R)
             imu = self.imu_msg
             imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
             io_ = imu.orientation
@@ -1382,7 +685,7 @@ class SimNode:
 
     def _srv_reset(self, request, response):
         self.service.reset()
-        self._v_prev = self._acc = None
+        self.imu.restart()
         self.publish_state()
         self.log.info(f"reset to the initial state at t={self.service.stamp_ns * 1e-9:.4f} s")
         response.success = True
@@ -1620,7 +923,6 @@ class SimNode:
 def main(args=None):
     """Console script ``sim_node``. SIGINT/SIGTERM stop the loop and finalise the recording
     (exit 0); a bad parameter exits with 2 before any physics is set up."""
-    import rclpy
     from rclpy.signals import SignalHandlerOptions
     argv = sys.argv if args is None else args
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)

@@ -47,11 +47,9 @@ truncated file up to the damage instead).
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import math
 import os
-import re
 import sys
 import time
 import xml.etree.ElementTree as ET
@@ -59,6 +57,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..physics.description import STARLETH_JOINT_NAMES
+from .bag import BagError, stream_bag
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
                      TOPIC_SOLVER, foot_wrench_topic, namespace_of, resolve)
 
@@ -66,7 +65,6 @@ PROG = "starleth-analyze"
 FEET = ("LF", "RF", "LH", "RH")
 JOINTS = STARLETH_JOINT_NAMES
 G = 9.81
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def wrench_topic(foot: str) -> str:
@@ -90,17 +88,13 @@ PLOTS = ("contact_forces", "gait", "base_trajectory", "joint_torques", "solver_i
          "real_time_factor")
 
 
-class AnalysisError(Exception):
-    """A bag that cannot be analysed: main() prints the message and exits with 1."""
+class AnalysisError(BagError):
+    """A bag that cannot be analysed: main() prints the message and exits with 1 (as for
+    any BagError, a bag that cannot be read)."""
 
 
 def warn(message: str) -> None:
     print(f"{PROG}: warning: {message}", file=sys.stderr)
-
-
-def _norm_type(name: str) -> str:
-    parts = name.split("/")
-    return f"{parts[0]}/msg/{parts[-1]}" if len(parts) == 2 else name
 
 
 # =========================================================================================
@@ -109,7 +103,8 @@ def _norm_type(name: str) -> str:
 class _Collector:
     """Per-topic lists filled while streaming, turned into arrays by Run."""
 
-    def __init__(self):
+    def __init__(self, path: str):
+        self.path = path
         self.wrench = {f: [] for f in FEET}          # (stamp, log, pub, fx, fy, fz)
         self.base = []                               # (stamp, log, pub, p3, q4, v3, w3)
         self.base_frames = None                      # (frame_id, child_frame_id)
@@ -117,13 +112,25 @@ class _Collector:
         self.joint_effort = []                       # rows in JOINT order (NaN if absent)
         self.joint_names = None                      # names as first seen
         self.solver = []                             # (stamp, log, pub, it, conv, res, st, mx, ac)
-        self.urdf = None
-        self.metadata = {}
-        self.counts = {}                             # topic -> messages (all topics)
-        self.types = {}                              # topic -> type name
-        self.decode_errors = {}
-        self.messages = 0
+        self.urdf = None                             # from robot_description
         self.namespace = None                        # of the first StarlETH topic seen
+
+    def on_channel(self, topic, type_name, make_decoder):
+        """stream_bag's channel callback: a handler for the StarlETH topics of the run's
+        namespace with the expected type, None for the rest."""
+        rel = self.relative_topic(topic)
+        if rel in TOPICS:
+            kind, expected, _ = TOPICS[rel]
+        elif rel in OPTIONAL_TOPICS:
+            kind, expected = ("description", None), OPTIONAL_TOPICS[rel]
+        else:
+            return None
+        if type_name != expected:
+            warn(f"{self.path}: topic {topic} has type {type_name or '(no schema)'}, expected {expected}; "
+                 "ignored")
+            return None
+        decode = make_decoder()
+        return None if decode is None else _make_handler(kind, self, decode)
 
     def relative_topic(self, topic: str):
         """The relative StarlETH name (a key of TOPICS or OPTIONAL_TOPICS) of a topic of the
@@ -225,264 +232,32 @@ def _make_handler(kind, col: _Collector, decode):
     return handle
 
 
-def _bag_files(path: str):
-    """The .mcap files of a bag: the file itself, or those of a rosbag2 bag directory."""
-    if os.path.isdir(path):
-        files = glob.glob(os.path.join(path, "*.mcap"))
-        if not files:
-            other = glob.glob(os.path.join(path, "*.db3"))
-            raise AnalysisError(f"{path}: a directory without .mcap files"
-                                + (" (sqlite3 bag: convert it with `ros2 bag convert` to mcap)"
-                                   if other else ""))
-
-        def natural(p):
-            return [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", p)]
-        return sorted(files, key=natural)
-    if not os.path.exists(path):
-        raise AnalysisError(f"{path}: no such file")
-    return [path]
-
-
-# -----------------------------------------------------------------------------------------
-# MCAP files: checks and records (also used by _read_file), and a generic reader that
-# keeps the messages of the topics a caller selects (starleth-view)
-# -----------------------------------------------------------------------------------------
-class BagMessages:
-    """What :func:`read_messages` read from one bag (an .mcap file or a rosbag2 directory)."""
-
-    def __init__(self, path: str):
-        self.path = path
-        self.files = []
-        self.messages = {}      # selected topic -> [(log_time ns, message)]: decoded, or
-                                # its CDR bytes when read with decode=False
-        self.decoders = {}      # selected topic -> function(CDR bytes) -> message
-        self.types = {}         # every topic of the bag -> 'pkg/msg/Type' ('' without schema)
-        self.counts = {}        # every topic of the bag -> number of messages
-        self.attachments = {}   # attachment name -> bytes (the first of each name)
-        self.metadata = {}      # metadata record name -> dict (the first of each name)
-        self.truncated = False  # salvage: reading stopped at damage
-
-
-def check_mcap_file(path: str, salvage: bool = False) -> tuple:
-    """(size in bytes, complete) of an MCAP file, after checking that it starts with the MCAP
-    magic bytes. Raises AnalysisError for a file that cannot be read or is not MCAP, and for
-    a truncated one (no footer magic) unless salvage."""
-    try:
-        size = os.path.getsize(path)
-        with open(path, "rb") as f:
-            head = f.read(len(MCAP_MAGIC))
-            f.seek(max(0, size - len(MCAP_MAGIC)))
-            tail = f.read(len(MCAP_MAGIC))
-    except OSError as e:
-        raise AnalysisError(f"{path}: cannot read: {e.strerror or e}") from None
-    if head != MCAP_MAGIC:
-        hint = ""
-        if path.endswith(".db3"):
-            hint = " (a sqlite3 rosbag2 file: convert it with `ros2 bag convert` to mcap)"
-        elif size == 0:
-            hint = " (the file is empty)"
-        raise AnalysisError(f"{path}: not an MCAP file: it does not start with the MCAP "
-                            f"magic bytes{hint}")
-    complete = tail == MCAP_MAGIC and size >= 2 * len(MCAP_MAGIC)
-    if not complete and not salvage:
-        raise AnalysisError(
-            f"{path}: truncated MCAP file: it ends without the MCAP footer ({size} bytes). The "
-            "recording was not closed (recorder killed, disk full) or the copy is incomplete; "
-            "--salvage reads the messages before the damage")
-    return size, complete
-
-
-def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: dict,
-                 on_warning=None):
-    """The records of the open MCAP file f (CRCs checked). At damage: raises AnalysisError,
-    or with salvage warns (on_warning, default warn), sets state['truncated'] and stops.
-    state['messages'] counts the Message records read."""
-    from mcap.records import Message
-    from mcap.stream_reader import StreamReader
-
-    records = iter(StreamReader(f, validate_crcs=True, record_size_limit=size + 64).records)
-    state.setdefault("messages", 0)
-    while True:
-        try:
-            rec = next(records)
-        except StopIteration:
-            return
-        except Exception as e:   # anything the reader raises: a damaged file
-            pos, n = f.tell(), state["messages"]
-            reason = f"{type(e).__name__}: {e}".rstrip(": ")
-            if not salvage:
-                raise AnalysisError(
-                    f"{path}: corrupt MCAP file ({reason}, after {n} messages, near byte {pos} "
-                    f"of {size}); --salvage reads the messages before the damage") from None
-            (on_warning or warn)(
-                f"{path}: {'truncated' if not complete else 'damaged'} file: reading stopped "
-                f"near byte {pos} of {size} ({reason}); using the {n} messages before it")
-            state["truncated"] = True
-            return
-        if isinstance(rec, Message):
-            state["messages"] += 1
-        yield rec
-
-
-def _read_selected(path: str, bag: BagMessages, select, salvage: bool, decode_all: bool,
-                   warn):
-    """Stream one MCAP file into bag: the messages of the topics select accepts (decoded if
-    decode_all, else as CDR bytes); warnings go to warn(message)."""
-    from mcap.records import Attachment, Channel, Message, Metadata, Schema
-    from mcap_ros2.decoder import DecoderFactory
-
-    size, complete = check_mcap_file(path, salvage)
-    factory = DecoderFactory()
-    schemas, decoders, errors, state = {}, {}, {}, {}
-    with open(path, "rb") as f:
-        for rec in mcap_records(f, path, size, complete, salvage, state, warn):
-            if isinstance(rec, Message):
-                topic, decode = decoders.get(rec.channel_id, (None, None))
-                if topic is None:
-                    continue
-                bag.counts[topic] = bag.counts.get(topic, 0) + 1
-                if decode is None:
-                    continue
-                if not decode_all:
-                    bag.messages[topic].append((rec.log_time, rec.data))
-                    continue
-                try:
-                    bag.messages[topic].append((rec.log_time, decode(rec.data)))
-                except Exception as e:   # a message the schema does not describe
-                    errors.setdefault(topic, [0, str(e)])[0] += 1
-            elif isinstance(rec, Schema):
-                schemas[rec.id] = rec
-            elif isinstance(rec, Channel) and rec.id not in decoders:
-                schema = schemas.get(rec.schema_id)
-                type_name = _norm_type(schema.name) if schema is not None else ""
-                bag.types[rec.topic] = type_name
-                bag.counts.setdefault(rec.topic, 0)
-                decode = None
-                if select(rec.topic, type_name):
-                    try:
-                        decode = factory.decoder_for(rec.message_encoding, schema)
-                    except Exception as e:
-                        warn(f"{path}: cannot decode {rec.topic}: {e}")
-                    if decode is None:
-                        warn(f"{path}: cannot decode {rec.topic} (message encoding "
-                             f"{rec.message_encoding!r}); ignored")
-                    else:
-                        bag.messages.setdefault(rec.topic, [])
-                        bag.decoders.setdefault(rec.topic, decode)
-                decoders[rec.id] = (rec.topic, decode)
-            elif isinstance(rec, Metadata):
-                bag.metadata.setdefault(rec.name, dict(rec.metadata))
-            elif isinstance(rec, Attachment):
-                bag.attachments.setdefault(rec.name, bytes(rec.data))
-    bag.truncated |= bool(state.get("truncated"))
-    for topic, (n, err) in errors.items():
-        warn(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
-
-
-def read_messages(path: str, select, salvage: bool = False, decode: bool = True,
-                  on_warning=None):
-    """Read a bag (an .mcap file, or a rosbag2 directory of .mcap files read in order) in one
-    pass: the messages of every topic for which select(topic, 'pkg/msg/Type') is true, plus
-    the bag's topics, message counts, attachments and metadata, as a BagMessages. With
-    decode=False the messages are kept as CDR bytes, to be decoded (bag.decoders[topic]) only
-    where needed. A file that is not MCAP, truncated or corrupt raises AnalysisError (salvage:
-    read up to the damage, with a warning). Warnings go to on_warning(message) (default:
-    printed on stderr as starleth-analyze's)."""
-    bag = BagMessages(path)
-    bag.files = _bag_files(path)
-    for fpath in bag.files:
-        _read_selected(fpath, bag, select, salvage, decode, on_warning or warn)
-    return bag
-
-
-def _read_file(path: str, col: _Collector, salvage: bool) -> dict:
-    """Stream one MCAP file into col. Returns {'truncated': bool, ...}."""
-    from mcap.records import Attachment, Channel, Message, Metadata, Schema
-    from mcap_ros2.decoder import DecoderFactory
-
-    size, complete = check_mcap_file(path, salvage)
-    factory = DecoderFactory()
-    schemas, handlers, seen_channels = {}, {}, set()
-    info = {"truncated": False}
-    with open(path, "rb") as f:
-        for rec in mcap_records(f, path, size, complete, salvage, info):
-            if isinstance(rec, Message):
-                col.messages += 1
-                h = handlers.get(rec.channel_id)
-                if h is None:
-                    continue
-                h[1][0] += 1
-                try:
-                    h[0](rec)
-                except Exception as e:   # a message the schema does not describe
-                    errs = col.decode_errors.setdefault(h[2], [0, str(e)])
-                    errs[0] += 1
-            elif isinstance(rec, Schema):
-                schemas[rec.id] = rec
-            elif isinstance(rec, Channel):
-                if rec.id in seen_channels:
-                    continue
-                seen_channels.add(rec.id)
-                schema = schemas.get(rec.schema_id)
-                type_name = _norm_type(schema.name) if schema is not None else ""
-                col.types[rec.topic] = type_name
-                counter = col.counts.setdefault(rec.topic, [0])
-                rel = col.relative_topic(rec.topic)
-                if rel in TOPICS:
-                    kind, expected, _ = TOPICS[rel]
-                elif rel in OPTIONAL_TOPICS:
-                    kind, expected = ("description", None), OPTIONAL_TOPICS[rel]
-                else:
-                    handlers[rec.id] = (lambda m: None, counter, rec.topic)
-                    continue
-                if type_name != expected:
-                    warn(f"{path}: topic {rec.topic} has type {type_name or '(no schema)'}, "
-                         f"expected {expected}; ignored")
-                    handlers[rec.id] = (lambda m: None, counter, rec.topic)
-                    continue
-                try:
-                    decode = factory.decoder_for(rec.message_encoding, schema)
-                except Exception as e:
-                    decode = None
-                    warn(f"{path}: cannot decode {rec.topic}: {e}")
-                if decode is None:
-                    warn(f"{path}: cannot decode {rec.topic} (message encoding "
-                         f"{rec.message_encoding!r}, schema encoding "
-                         f"{getattr(schema, 'encoding', None)!r}); ignored")
-                    handlers[rec.id] = (lambda m: None, counter, rec.topic)
-                    continue
-                handlers[rec.id] = (_make_handler(kind, col, decode), counter, rec.topic)
-            elif isinstance(rec, Metadata):
-                col.metadata.setdefault(rec.name, dict(rec.metadata))
-            elif isinstance(rec, Attachment):
-                if col.urdf is None and rec.name.endswith(".urdf"):
-                    try:
-                        col.urdf = bytes(rec.data).decode("utf-8")
-                    except UnicodeDecodeError:
-                        pass
-    return info
-
-
 class Run:
     """One bag, decoded: arrays with time in seconds relative to the first message."""
 
     def __init__(self, path: str, label: str, salvage: bool = False):
         self.path, self.label = path, label
-        col = _Collector()
+        col = _Collector(path)
         t_read = time.perf_counter()
-        files = _bag_files(path)
-        self.truncated = False
-        for fpath in files:
-            self.truncated |= _read_file(fpath, col, salvage)["truncated"]
+        bag = stream_bag(path, col.on_channel, salvage, warn)
         self.read_seconds = time.perf_counter() - t_read
-        self.files = files
-        self.file_size = sum(os.path.getsize(p) for p in files)
-        self.messages = col.messages
-        self.counts = {t: c[0] for t, c in col.counts.items()}
-        self.types = dict(col.types)
-        self.metadata = col.metadata
+        self.truncated = bag.truncated
+        self.files = bag.files
+        self.file_size = sum(os.path.getsize(p) for p in bag.files)
+        self.messages = bag.total
+        self.counts = dict(bag.counts)
+        self.types = dict(bag.types)
+        self.metadata = bag.metadata
         self.urdf = col.urdf
-        for topic, (n, err) in col.decode_errors.items():
+        if self.urdf is None:        # sim_node's recordings carry it as an attachment
+            for name, data in bag.attachments.items():
+                if name.endswith(".urdf"):
+                    try:
+                        self.urdf = data.decode("utf-8")
+                        break
+                    except UnicodeDecodeError:
+                        pass
+        for topic, (n, err) in bag.decode_errors.items():
             warn(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
         #: the namespace of the StarlETH topics ('' at the root, '/robot1') and their names
         self.namespace = col.namespace or ""
@@ -1311,7 +1086,7 @@ def run(argv=None) -> int:
     return 0
 
 
-def run_console_script(prog, run, argv, errors=(AnalysisError,)) -> int:
+def run_console_script(prog, run, argv, errors=(BagError,)) -> int:
     """Run a bag tool's `run(argv)`: exit status as returned, or 1 with one line
     'prog: error: ...' (no traceback) for `errors` and for OSError (writing the output),
     130 on Ctrl-C; argparse exits with 2 on bad arguments."""

@@ -14,14 +14,12 @@ import time
 
 import numpy as np
 
-from ..physics.config import load_preset
+from ..physics.config import ConfigError, load_preset
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..physics.stepper import PHASES
 
-#: the paper's Table 1, in its order
-DEFAULT_PRESETS = ("Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD",
-                   "HMSP")
+from ..physics.config import PRESETS as DEFAULT_PRESETS   # the paper's Table 1
 
 
 def measure(preset: str, seconds: float, repeats: int = 3):
@@ -71,29 +69,31 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
+    try:
+        configs = {p: load_preset(p) for p in args.presets}
+    except ConfigError as e:
+        ap.error(str(e))
 
     print(f"StarlETH standing under a joint PD hold, {args.seconds:g} s simulated x "
           f"{args.repeats} runs per configuration; Python {sys.version.split()[0]}")
     print(f"{'config':7s} {'steps/s':>16s} {'paper':>7s} {'ratio':>6s} {'RTF':>7s} "
           f"{'paper':>6s} {'iter/step':>9s}")
-    rows = []
     for p in args.presets:
-        cfg = load_preset(p)
+        cfg = configs[p]
         rates, rtfs, it = measure(p, args.seconds, args.repeats)
         paper = cfg.paper.get("steps_per_second")
         prtf = cfg.paper.get("realtime_factor")
         ratio = rates.mean() / paper if paper else float("nan")
         print(f"{p:7s} {rates.mean():9.0f} ± {rates.std():4.0f} {paper or '-':>7} "
               f"{ratio:6.2f} {rtfs.mean():7.1f} {prtf or '-':>6} {it:9.2f}", flush=True)
-        rows.append((p, rates.mean(), paper))
     print("\nPer-step time by phase (Fig. 7), µs, profiled run:")
     print(f"{'config':7s} " + " ".join(f"{k:>9s}" for k in PHASES) + f" {'total':>9s}")
     for p in args.presets:
         b = breakdown(p, min(args.seconds, 2.0))
         print(f"{p:7s} " + " ".join(f"{b[k]:9.2f}" for k in PHASES) +
               f" {sum(b.values()):9.2f}")
-    return rows
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -106,7 +106,7 @@ class EchoController:
 
 
 def _make_executor(kind, context):
-    from starleth_sim.ros.sim_node import make_executor
+    from starleth_interface.ros_helpers import make_executor
     return make_executor(kind, context)[0]
 
 

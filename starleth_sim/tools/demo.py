@@ -12,7 +12,7 @@ host only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the environment sets i
 This process drives the run over ROS: it publishes /cmd_vel (0.3 m/s forward; ignored while
 standing), watches /clock, calls ``/controller_node/trot`` (true) at t = 2 s of sim time,
 and after 18 s of trotting pauses the simulation (``/sim_node/pause``) and stops both nodes
-with SIGINT, so that the recording is finalised. It then reads the bag (rosbags) and prints
+with SIGINT, so that the recording is finalised. It then reads the bag (tools/bag.py) and prints
 a summary: distance travelled, mean speed while trotting, falls (base height > 0.3 m
 throughout), real-time factor (sim time / wall time), solver iterations, messages, file.
 Exit status 0 when the run is complete and the robot trotted without falling (at least 4 m
@@ -336,72 +336,66 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
 
 def read_bag(path, result: DemoResult):
     """Fill `result` from the recording: base trajectory, solver iterations, counts."""
-    from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
-                         TOPIC_SOLVER, resolve)
-    from pathlib import Path
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
+                                           TOPIC_JOINT_STATES, TOPIC_SOLVER, resolve)
+    from .bag import BagError, stream_bag
     if not os.path.exists(path):
         raise DemoError(f"the recording {path} does not exist")
     result.bag_bytes = os.path.getsize(path)
+    js, base, solver = (resolve(t) for t in (TOPIC_JOINT_STATES, TOPIC_BASE_STATE,
+                                              TOPIC_SOLVER))
+    stamps, t, pos, its = [], [], [], []
+
+    def on_base(rec, decode):
+        p = decode(rec.data).pose.pose.position
+        t.append(rec.log_time * 1e-9)
+        pos.append((p.x, p.y, p.z))
+
+    def on_solver(rec, decode):
+        if rec.log_time == 0:
+            return                # the initial state: no step yet
+        for st in decode(rec.data).status:
+            if st.name.endswith("solver"):
+                its.extend(int(kv.value) for kv in st.values if kv.key == "iterations")
+
+    def on_channel(topic, type_name, make_decoder):
+        if topic == js:
+            return lambda rec: stamps.append(rec.log_time)
+        handler = {base: on_base, solver: on_solver}.get(topic)
+        decode = make_decoder() if handler else None
+        return None if decode is None else (lambda rec: handler(rec, decode))
+
     try:
-        reader = AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY))
-        reader.open()
-    except Exception as e:
-        raise DemoError(f"cannot read the recording {path}: {type(e).__name__}: {e}") from None
-    try:
-        conns = {c.topic: c for c in reader.connections}
-        result.topic_counts = {t: c.msgcount for t, c in conns.items()}
-        result.messages = sum(result.topic_counts.values())
-        js, base, solver = (resolve(t) for t in (TOPIC_JOINT_STATES, TOPIC_BASE_STATE,
-                                                  TOPIC_SOLVER))
-        for topic in (js, base, solver):
-            if topic not in conns:
-                raise DemoError(f"the recording {path} has no {topic}")
-        stamps = np.array([ts for _, ts, _ in
-                           reader.messages(connections=[conns[js]])], dtype=np.int64)
-        result.joint_states = len(stamps)
-        result.joint_commands = result.topic_counts.get(resolve(TOPIC_JOINT_COMMANDS), 0)
-        last = int(stamps.max()) if len(stamps) else 0
-        result.steps_expected = last // PERIOD_NS + 1
-        result.missing_steps = result.steps_expected - len(np.unique(stamps))
-        result.t_end = last * 1e-9
-        t, pos = [], []
-        c = conns[base]
-        for _, ts, raw in reader.messages(connections=[c]):
-            m = reader.deserialize(raw, c.msgtype)
-            p = m.pose.pose.position
-            t.append(ts * 1e-9)
-            pos.append((p.x, p.y, p.z))
-        t, pos = np.array(t), np.array(pos)
-        if len(t) == 0:
-            raise DemoError(f"the recording {path} holds no base state")
-        result.min_height, result.max_height = float(pos[:, 2].min()), float(pos[:, 2].max())
-        d = pos[-1, :2] - pos[0, :2]
-        result.displacement = (float(d[0]), float(d[1]))
-        result.distance = float(np.hypot(*d))
-        if math.isfinite(result.t_trot):
-            i0 = int(np.searchsorted(t, result.t_trot))
-            i0 = min(i0, len(t) - 1)
-            dt = t[-1] - t[i0]
-            result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
-            result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
-        its = []
-        c = conns[solver]
-        for _, ts, raw in reader.messages(connections=[c]):
-            if ts == 0:
-                continue          # the initial state: no step yet
-            m = reader.deserialize(raw, c.msgtype)
-            for st in m.status:
-                if st.name.endswith("solver"):
-                    for kv in st.values:
-                        if kv.key == "iterations":
-                            its.append(int(kv.value))
-        if its:
-            result.solver_iterations_mean = float(np.mean(its))
-            result.solver_iterations_max = int(np.max(its))
-    finally:
-        reader.close()
+        bag = stream_bag(path, on_channel)
+    except BagError as e:
+        raise DemoError(f"cannot read the recording: {e}") from None
+    result.topic_counts = dict(bag.counts)
+    result.messages = bag.total
+    for topic in (js, base, solver):
+        if topic not in bag.counts:
+            raise DemoError(f"the recording {path} has no {topic}")
+    stamps = np.array(stamps, dtype=np.int64)
+    result.joint_states = len(stamps)
+    result.joint_commands = result.topic_counts.get(resolve(TOPIC_JOINT_COMMANDS), 0)
+    last = int(stamps.max()) if len(stamps) else 0
+    result.steps_expected = last // PERIOD_NS + 1
+    result.missing_steps = result.steps_expected - len(np.unique(stamps))
+    result.t_end = last * 1e-9
+    t, pos = np.array(t), np.array(pos)
+    if len(t) == 0:
+        raise DemoError(f"the recording {path} holds no base state")
+    result.min_height, result.max_height = float(pos[:, 2].min()), float(pos[:, 2].max())
+    d = pos[-1, :2] - pos[0, :2]
+    result.displacement = (float(d[0]), float(d[1]))
+    result.distance = float(np.hypot(*d))
+    if math.isfinite(result.t_trot):
+        i0 = min(int(np.searchsorted(t, result.t_trot)), len(t) - 1)
+        dt = t[-1] - t[i0]
+        result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
+        result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
+    if its:
+        result.solver_iterations_mean = float(np.mean(its))
+        result.solver_iterations_max = int(np.max(its))
     return result
 
 
@@ -446,11 +440,11 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
 
 def write_replay(result: DemoResult, path: str):
     """The recording as a self-contained 3D replay page (starleth-view)."""
-    from .analysis import AnalysisError
+    from .bag import BagError
     from .view import ViewError, write_html
     try:
         info = write_html(result.bag, path)
-    except (AnalysisError, ViewError, OSError) as e:
+    except (BagError, ViewError, OSError) as e:
         result.html_error = str(e)
         return
     result.html, result.html_frames, result.html_bytes = (info["path"], info["frames"],

@@ -26,8 +26,9 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
-TABLE1 = ("Cm", "HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP")
-FIG6_CONFIGS = ("HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP")
+from ..physics.config import PRESETS as TABLE1   # the paper's Table 1, in its order
+
+FIG6_CONFIGS = TABLE1[1:]      # the hard-contact ones
 TROT_SPEED = 0.3       # m/s
 STAND_BEFORE_TROT = 1.0  # s
 GAIT_PERIOD = 0.8      # s (1.25 Hz)
@@ -470,7 +471,6 @@ def make_figures(results, out_dir):
     # Fig. 7
     f7 = sorted(_by(results, "fig7"), key=lambda r: TABLE1.index(r["preset"]))
     if f7:
-        from ..physics.stepper import PHASES
         labels = ["M and h", "M⁻¹ (and M⁻¹W)", "G (and G_B⁻¹)", "u^E (prox)", "rest"]
         fig, ax = plt.subplots(figsize=(9, 4))
         bottom = np.zeros(len(f7))

@@ -55,8 +55,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import analysis
-from .analysis import AnalysisError, run_console_script
+from .analysis import run_console_script
+from .bag import BagError, read_messages
 from ..physics.description import LEGS, RobotDescription, _origin, urdf_path
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
                      foot_wrench_topic, namespace_of)
@@ -257,9 +257,9 @@ def _ground_from_metadata(bag):
 
 
 def read_recording(path: str, namespace: str | None = None, salvage: bool = False):
-    """The Recording of one robot of a bag. Raises AnalysisError for a bag that cannot be
+    """The Recording of one robot of a bag. Raises BagError for a bag that cannot be
     read, ViewError for one without joint states or base state."""
-    bag = analysis.read_messages(path, _select, salvage=salvage, decode=False,
+    bag = read_messages(path, _select, salvage=salvage, decode=False,
                                  on_warning=warn)
     found = {}                                   # namespace -> {kind: topic}
     for topic in bag.types:
@@ -728,7 +728,7 @@ def write_html(bag_path: str, out_path: str | None = None, fps: float = DEFAULT_
                force_scale: float = DEFAULT_FORCE_SCALE, namespace: str | None = None,
                salvage: bool = False) -> dict:
     """Write the replay page of a bag. Returns {'path', 'frames', 'bytes', 'duration',
-    'fps', 'samples', 'namespace', 'urdf_source', 'seconds'}. Raises AnalysisError (a bag
+    'fps', 'samples', 'namespace', 'urdf_source', 'seconds'}. Raises BagError (a bag
     that cannot be read) or ViewError (nothing to replay, bad options, unusable URDF)."""
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise ViewError(f"fps must be a positive number, got {fps!r}")
@@ -804,7 +804,7 @@ def run(argv=None) -> int:
 def main(argv=None) -> int:
     """Console script: exit status 0, or 1 with a one-line message (no traceback) for a bag
     that cannot be replayed, 2 for bad arguments."""
-    return run_console_script(PROG, run, argv, (AnalysisError, ViewError))
+    return run_console_script(PROG, run, argv, (BagError, ViewError))
 
 
 if __name__ == "__main__":

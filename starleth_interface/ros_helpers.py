@@ -1,0 +1,157 @@
+"""Helpers both nodes use: one parameter schema type (name, type, default, description,
+bounds) that feeds ``declare_parameter`` descriptors, validation and the YAML parameter
+files; the executor choice; throttled logging of bad input.
+
+Importing this module does not import rclpy (only the functions that need it do), so the
+ROS-free service logic and the tools can use the schemas and ThrottledLog.
+"""
+from __future__ import annotations
+
+import math
+import textwrap
+import time
+from dataclasses import dataclass, field
+
+
+# =========================================================================================
+# parameter schema
+# =========================================================================================
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One ROS parameter: `kind` is bool, int, float, str or list; `choices` the legal
+    values of a string; `minimum` a lower bound of a number (exclusive with
+    `minimum_exclusive`). `read_only` parameters are fixed once the node runs."""
+
+    name: str
+    kind: type
+    default: object
+    description: str
+    read_only: bool = True
+    choices: tuple = ()
+    minimum: float | None = None
+    minimum_exclusive: bool = False
+    maximum: float | None = None
+
+    def coerce(self, value):
+        """The value as given on the command line or in YAML, brought to `kind` where that
+        loses nothing (an integer for a float, null for an empty string)."""
+        if self.kind is float and isinstance(value, int) and not isinstance(value, bool):
+            return float(value)
+        if self.kind is str and value is None:
+            return ""
+        if self.kind is list and isinstance(value, tuple):
+            return list(value)
+        return value
+
+    def check(self, value):
+        """Raise ValueError naming the parameter if `value` is not legal."""
+        what = f"parameter {self.name}"
+        if self.kind is bool:
+            if not isinstance(value, bool):
+                raise ValueError(f"{what}: expected true or false, got {value!r}")
+            return
+        if self.kind in (int, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                    (self.kind is int and not isinstance(value, int)):
+                raise ValueError(f"{what}: expected {'an integer' if self.kind is int else 'a finite number'}, "
+                                 f"got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"{what}: expected a finite number, got {value!r}")
+            lo, hi = self.minimum, self.maximum
+            if lo is not None and (value < lo or (self.minimum_exclusive and value == lo)):
+                raise ValueError(f"{what}: must be {'>' if self.minimum_exclusive else '>='} "
+                                 f"{lo:g}, got {value}")
+            if hi is not None and value > hi:
+                raise ValueError(f"{what}: must be <= {hi:g}, got {value}")
+            return
+        if not isinstance(value, self.kind):
+            raise ValueError(f"{what}: expected a {self.kind.__name__}, got {value!r}")
+        if self.choices and value not in self.choices:
+            raise ValueError(f"{what}: must be one of {', '.join(map(str, self.choices))}, "
+                             f"got {value!r}")
+
+
+def parameter_defaults(specs) -> dict:
+    return {p.name: p.default for p in specs}
+
+
+def declare_parameters(node, specs) -> dict:
+    """Declare every parameter of `specs` on the rclpy `node` with its description and
+    read-only flag (dynamic typing: `-p threshold:=5`, an integer, is accepted for a float
+    and coerced) and return {name: value}. Values are not checked here: call each
+    spec's ``check`` (or the settings record's ``validate``)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+    values = {}
+    for p in specs:
+        desc = ParameterDescriptor(description=p.description, read_only=p.read_only,
+                                   dynamic_typing=True)
+        values[p.name] = p.coerce(node.declare_parameter(p.name, p.default, desc).value)
+    return values
+
+
+def _yaml_scalar(value) -> str:
+    import yaml
+    return yaml.safe_dump(value, default_flow_style=True, width=10 ** 6).strip() \
+        .removesuffix("...").strip()
+
+
+def render_parameters_yaml(specs, header: str, node_key: str = "/**") -> str:
+    """A ROS 2 parameter file (``--params-file``) with every parameter at its default and
+    its description as a comment above it."""
+    out = [f"# {line}".rstrip() for line in header.strip().splitlines()]
+    out += [f"{node_key}:", "  ros__parameters:"]
+    for p in specs:
+        for line in textwrap.wrap(p.description, 88):
+            out.append(f"    # {line}")
+        out.append(f"    {p.name}: {_yaml_scalar(p.default)}")
+    return "\n".join(out) + "\n"
+
+
+# =========================================================================================
+# executor, logging
+# =========================================================================================
+EXECUTORS = ("events", "single_threaded")
+
+
+def make_executor(kind: str, context):
+    """(executor, kind): rclpy's C++ EventsExecutor (much cheaper spin_once) when `kind` is
+    'events' and it is available, else the SingleThreadedExecutor."""
+    import rclpy.executors
+    if kind == "events":
+        try:
+            from rclpy.experimental import EventsExecutor
+            return EventsExecutor(context=context), "events"
+        except Exception:  # pragma: no cover - rclpy without the EventsExecutor
+            pass
+    return rclpy.executors.SingleThreadedExecutor(context=context), "single_threaded"
+
+
+@dataclass
+class ThrottledLog:
+    """At most one message per `period` seconds per kind of problem; the next one says how
+    many were suppressed. `counts` has every occurrence by kind. Call it (or ``warn``) with
+    (kind, message); returns whether the message was logged."""
+
+    log: object = None
+    period: float = 2.0
+    clock: object = time.monotonic
+    counts: dict = field(default_factory=dict)
+    _last: dict = field(default_factory=dict, repr=False)
+    _suppressed: dict = field(default_factory=dict, repr=False)
+
+    def __call__(self, key: str, message: str) -> bool:
+        self.counts[key] = self.counts.get(key, 0) + 1
+        now = self.clock()
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return False
+        n = self._suppressed.pop(key, 0)
+        self._last[key] = now
+        if n:
+            message += f" ({n} more like this suppressed in the last {now - last:.1f} s)"
+        if self.log is not None:
+            self.log(message)
+        return True
+
+    warn = __call__

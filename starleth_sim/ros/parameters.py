@@ -1,0 +1,176 @@
+"""The parameters of ``sim_node``: one schema (:data:`SIM_NODE_PARAMETERS`) gives each
+parameter's type, default, bounds and description. It feeds the node's
+``declare_parameter`` descriptors (``ros2 param describe /sim_node mode``), the validation of
+:class:`Settings`, and ``msg_configs/sim_node.yaml``, which is generated from it:
+
+    python -m starleth_sim.ros.parameters > msg_configs/sim_node.yaml
+
+(test/test_sim_service.py checks that the file is up to date).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import asdict, make_dataclass
+
+import yaml
+
+from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, parameter_defaults,
+                                            render_parameters_yaml)
+from ..physics.config import ConfigError
+
+P = ParameterSpec
+SIM_NODE_PARAMETERS = (
+    P("physics", str, "HmJ",
+      "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
+      "HmS, HEJD, HEJP, HESD, HESP, HMJD, HMJP, HMSD, HMSP) or the path of a preset YAML "
+      "file."),
+    P("physics_overrides", str, "",
+      'Overrides of physics fields, a YAML mapping, e.g. "{mu: 0.0, alpha: 0.4}".'),
+    P("mode", str, "realtime",
+      "realtime: a wall-clock loop at 400 Hz x real_time_factor, zero-order hold of the "
+      "latest valid command. lockstep: publish the state of step k, wait for the command "
+      "stamped t_k, then step.", choices=("realtime", "lockstep")),
+    P("real_time_factor", float, 1.0,
+      "Realtime: wall-clock speed (> 0). Lockstep: upper bound on the speed; 0 = as fast as "
+      "the controller answers (0 is only legal in lockstep).", minimum=0.0),
+    P("lockstep_timeout", float, 1.0,
+      "Lockstep: seconds to wait for the command of a state before applying timeout_policy.",
+      minimum=0.0, minimum_exclusive=True),
+    P("timeout_policy", str, "hold",
+      "hold: keep the last valid command; zero: zero torques. Every timeout is logged and "
+      "counted.", choices=("hold", "zero")),
+    P("record", str, "", "MCAP file to record to (empty = no recording)."),
+    P("record_compression", str, "none", "Chunk compression of the recording.",
+      choices=("none", "lz4", "zstd")),
+    P("record_max_duration", float, 0.0,
+      "Split the recording like `ros2 bag record --max-bag-duration`: with this or "
+      "record_max_size > 0, `record` names a bag directory of numbered .mcap files (each "
+      "complete on its own) with a rosbag2 metadata.yaml, so the memory of an all-day "
+      "recording stays flat. Seconds of sim time per file; 0 = no limit.", minimum=0.0),
+    P("record_max_size", int, 0,
+      "Split the recording like `ros2 bag record --max-bag-size`: bytes per file; 0 = no "
+      "limit.", minimum=0),
+    P("initial_state", str, "standing",
+      '"standing" (feet on the ground), a YAML mapping or the path of a YAML file with any of '
+      "base_position, base_orientation (x y z w), joint_positions, base_linear_velocity "
+      "(world), base_angular_velocity (base frame), joint_velocities; e.g. "
+      '"{base_position: [0, 0, 1.5]}" for the standing posture 1.5 m above the ground. A '
+      "recording's initial_state.json is accepted as is."),
+    P("start_paused", bool, False,
+      "Start paused (call ~/pause with data=false, or ~/step): lets a controller connect "
+      "first."),
+    P("realtime_priority", int, 0,
+      "Realtime mode: > 0 runs the stepping thread with SCHED_FIFO at this priority (needs "
+      "CAP_SYS_NICE or an rtprio limit; falls back to normal priority with a warning). Makes "
+      "the 400 Hz period robust against other load on the machine.", minimum=0, maximum=99),
+    P("executor", str, "events",
+      "events (rclpy's C++ EventsExecutor, lower latency) | single_threaded.",
+      choices=EXECUTORS),
+    P("warn_throttle_period", float, 2.0,
+      "Minimum seconds between two warnings about the same kind of bad input.", minimum=0.0),
+    P("world_frame", str, "world", "Frame id of the world (the parent of the base pose)."),
+    P("base_frame", str, "base", "Frame id of the base (the child frame of the odometry)."),
+    P("publish_clock", bool, True,
+      "Publish /clock (global). With several simulators in one ROS domain (one per "
+      "namespace), let only one publish it."),
+    P("tf_rate", float, 50.0,
+      "/tf (world -> base, and parent -> child link of every movable joint) and /tf_static "
+      "(the fixed joints), recorded, and published where tf2_msgs is installed; Hz, 0 = off. "
+      "Foxglove and Lichtblick move the URDF's links only through TF (they keep 10,000 "
+      "transforms per frame: 50 Hz x 13 transforms fits).", minimum=0.0),
+    P("tf_frame_prefix", str, "",
+      'Put before every link frame of /tf (e.g. "robot1/" for several robots on one /tf).'),
+    P("contact_markers_rate", float, 50.0,
+      "visualization_msgs/MarkerArray on starleth/contact_markers: a sphere per contact "
+      "point coloured by state (grey open, green stick, red slip) and an arrow along the "
+      "force of each closed contact; Hz, 0 = off.", minimum=0.0),
+    P("contact_marker_scale", float, 0.002,
+      "Length of the contact force arrows, metres per newton.", minimum=0.0,
+      minimum_exclusive=True),
+)
+PARAMETERS_BY_NAME = {p.name: p for p in SIM_NODE_PARAMETERS}
+
+YAML_HEADER = """\
+Default parameters of sim_node (a ROS 2 parameter file: pass it, or a copy, with
+  ros2 run starleth_sim sim_node --ros-args --params-file sim_node.yaml
+and override single values with `-p name:=value`). Not a physics preset: the presets are the
+YAML files of this directory that have a `contact_model` key.
+Generated from starleth_sim/ros/parameters.py (python -m starleth_sim.ros.parameters)."""
+
+
+def _validate(self) -> "Settings":
+    """Check every field against the schema (ConfigError naming the parameter), bring
+    numbers to their type, and the rules between fields; returns self."""
+    for p in SIM_NODE_PARAMETERS:
+        value = p.coerce(getattr(self, p.name))
+        try:
+            p.check(value)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        setattr(self, p.name, value)
+    if self.mode == "realtime" and self.real_time_factor == 0.0:
+        raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
+                          "in lockstep mode; realtime mode needs a factor > 0")
+    return self
+
+
+def _physics_override_dict(self) -> dict:
+    """The physics_overrides parameter as a mapping (ConfigError if it is not one)."""
+    if not self.physics_overrides.strip():
+        return {}
+    try:
+        d = yaml.safe_load(self.physics_overrides)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"parameter physics_overrides: not valid YAML: {e}") from None
+    if not isinstance(d, dict):
+        raise ConfigError("parameter physics_overrides: expected a mapping such as "
+                          f"'{{mu: 0.0}}', got {self.physics_overrides!r}")
+    return d
+
+
+#: The node's settings as a typed record, one field per parameter of the schema, with its
+#: default; ``validate()`` checks them, ``physics_override_dict()`` parses the overrides.
+Settings = make_dataclass(
+    "Settings", [(p.name, p.kind, p.default) for p in SIM_NODE_PARAMETERS],
+    namespace={"validate": _validate, "physics_override_dict": _physics_override_dict,
+               "__module__": __name__, "__doc__": "sim_node's settings (see "
+               "SIM_NODE_PARAMETERS for each field's meaning)."})
+
+
+def default_settings_file() -> str:
+    from ..physics.description import package_share_dir
+    return os.path.join(package_share_dir(), "msg_configs", "sim_node.yaml")
+
+
+def load_default_parameters(path: str | None = None) -> dict:
+    """The ros__parameters of msg_configs/sim_node.yaml (node key 'sim_node', '/sim_node' or
+    '/**'), falling back to the schema's defaults for anything missing."""
+    defaults = parameter_defaults(SIM_NODE_PARAMETERS)
+    try:
+        path = path or default_settings_file()
+        with open(path) as f:
+            data = yaml.safe_load(f) or {}
+    except (OSError, FileNotFoundError):
+        return defaults
+    for key in ("sim_node", "/sim_node", "/**"):
+        params = (data.get(key) or {}).get("ros__parameters") if isinstance(data, dict) else None
+        if isinstance(params, dict):
+            for k, v in params.items():
+                if k in defaults:
+                    defaults[k] = v
+            break
+    return defaults
+
+
+def settings_dict(settings) -> dict:
+    return asdict(settings)
+
+
+def render_yaml() -> str:
+    """msg_configs/sim_node.yaml as generated from the schema."""
+    return render_parameters_yaml(SIM_NODE_PARAMETERS, YAML_HEADER)
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render_yaml())

@@ -1,0 +1,330 @@
+"""The ROS-free half of sim_node: command validation, lockstep bookkeeping, counters and
+stepping (:class:`SimService`), and the statistics of the realtime loop's period
+(:class:`PeriodStats`). :mod:`.sim_node` is the rclpy plumbing around them."""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from starleth_interface.ros_helpers import ThrottledLog
+from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS, TOPIC_WRENCH,
+                                       TOPIC_WRENCH_PERSISTENT)
+from ..physics.simulator import Simulator
+from ..physics.stepper import SimulationError
+from .parameters import Settings
+
+class SimService:
+    """Command validation, lockstep bookkeeping and stepping, without any ROS.
+
+    Time: step k has stamp ``k * period_ns`` [ns] (integer, so equal stamps compare exact).
+    ``command`` is the last valid torque command (joint order), applied with zero-order hold.
+    Every ``submit_*`` returns ``(accepted, reason)`` and never raises on bad input."""
+
+    COUNTERS = ("commands_received", "commands_accepted", "commands_rejected", "late_commands",
+                "stale_commands", "lockstep_timeouts", "wrenches_accepted", "wrenches_rejected",
+                "simulation_errors", "resets", "steps")
+
+    def __init__(self, sim: Simulator, settings: Settings | None = None, q0=None, u0=None,
+                 warn=None, error=None):
+        self.sim = sim
+        self.settings = (settings or Settings()).validate()
+        self.lockstep = self.settings.mode == "lockstep"
+        self.q0 = sim.q if q0 is None else np.array(q0, dtype=float)
+        self.u0 = sim.u if u0 is None else np.array(u0, dtype=float)
+        self.period_ns = int(round(sim.control_period * 1e9))
+        self.joint_names = tuple(sim.joint_names)
+        self.joint_index = {n: i for i, n in enumerate(self.joint_names)}
+        self._joint_name_list = list(self.joint_names)
+        self.links = frozenset(sim.coords.link_names())
+        self.n = len(self.joint_names)
+        self.warnings = ThrottledLog(warn, self.settings.warn_throttle_period)
+        self.errors = ThrottledLog(error or warn, self.settings.warn_throttle_period)
+        self.counters = dict.fromkeys(self.COUNTERS, 0)
+        self.command = np.zeros(self.n)
+        self.k = 0
+        self.paused = self.settings.start_paused
+        self.started = not self.lockstep     # lockstep: set by the first answer
+        self.answered = False                # lockstep: the current state has its command
+        self.last_step_timed_out = False
+        self.failed = False                  # paused after the physics failed twice
+        self.state_version = 0               # bumped whenever a new state exists
+        self._timed_out_stamps = deque(maxlen=256)
+        # warm up (numba dispatch, first solve) so that the first real step is not slow;
+        # reset() then restores the initial state and clears the solver's contact memory
+        sim.reset(q=self.q0, u=self.u0, t=0.0)
+        try:
+            sim.step(np.zeros(self.n))
+        except (SimulationError, ValueError):
+            pass
+        sim.reset(q=self.q0, u=self.u0, t=0.0)
+
+    # -- time ------------------------------------------------------------------------------
+    @property
+    def stamp_ns(self) -> int:
+        return self.k * self.period_ns
+
+    @property
+    def control_period(self) -> float:
+        return self.sim.control_period
+
+    # -- commands --------------------------------------------------------------------------
+    def _reject(self, key, message):
+        self.counters["commands_rejected"] += 1
+        self.warnings.warn(key, message)
+        return False, message
+
+    def _accept(self, tau):
+        self.command = tau
+        self.counters["commands_accepted"] += 1
+        if self.lockstep:
+            self.answered = True
+            self.started = True
+        return True, "ok"
+
+    def _check_values(self, values, what):
+        try:
+            a = np.array(values, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            return None, f"{what}: values are not numbers"
+        return a, None
+
+    def submit_effort_array(self, data):
+        """A Float64MultiArray's data: n torques in joint order. In lockstep it answers the
+        latest published state (the message has no stamp)."""
+        self.counters["commands_received"] += 1
+        a, err = self._check_values(data, "effort command")
+        if err:
+            return self._reject("effort_type", f"rejected effort command: {err}")
+        if a.shape[0] != self.n:
+            return self._reject("effort_length",
+                                f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: "
+                                f"{a.shape[0]} values, expected {self.n} (joint order "
+                                f"{', '.join(self.joint_names)}); keeping the last valid command")
+        bad = ~np.isfinite(a)
+        if bad.any():
+            names = [self.joint_names[i] for i in np.flatnonzero(bad)]
+            return self._reject("effort_nonfinite",
+                                f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: non-finite "
+                                f"torque for {', '.join(names)}; keeping the last valid command")
+        if self.lockstep and self.answered:
+            self.counters["stale_commands"] += 1
+            self.warnings.warn("stale", "dropped an extra effort command: the current state "
+                               "was already answered")
+            return False, "state already answered"
+        return self._accept(a)
+
+    def submit_joint_command(self, names, efforts, stamp_ns=None):
+        """A JointState command: efforts by joint name. All names must be known and unique;
+        joints not named keep their last command. Empty names with n efforts = joint order.
+        In lockstep the stamp must equal the stamp of the state being answered."""
+        self.counters["commands_received"] += 1
+        names = list(names)
+        a, err = self._check_values(efforts, "joint command")
+        if err:
+            return self._reject("joint_type", f"rejected joint command: {err}")
+        if names == self._joint_name_list and a.shape[0] == self.n and np.isfinite(a).all() \
+                and (not self.lockstep or self._stamp_ok(stamp_ns)):
+            return self._accept(a)   # fast path: every joint in joint order, valid
+        if not names:
+            if a.shape[0] != self.n:
+                return self._reject("joint_length",
+                                    f"rejected joint command on {TOPIC_JOINT_COMMANDS}: no joint "
+                                    f"names and {a.shape[0]} efforts (give names, or {self.n} "
+                                    "efforts in joint order)")
+            names = list(self.joint_names)
+        if a.shape[0] != len(names):
+            return self._reject("joint_length",
+                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: {len(names)} "
+                                f"names but {a.shape[0]} efforts (this simulator takes effort "
+                                "commands only)")
+        unknown = [n for n in names if n not in self.joint_index]
+        if unknown:
+            return self._reject("unknown_joint",
+                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: unknown joint "
+                                f"name(s) {', '.join(map(repr, unknown))} (joints: "
+                                f"{', '.join(self.joint_names)})")
+        if len(set(names)) != len(names):
+            dup = sorted({n for n in names if names.count(n) > 1})
+            return self._reject("duplicate_joint",
+                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: duplicate "
+                                f"joint name(s) {', '.join(dup)}")
+        bad = ~np.isfinite(a)
+        if bad.any():
+            return self._reject("joint_nonfinite",
+                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: non-finite "
+                                f"effort for {', '.join(names[i] for i in np.flatnonzero(bad))}; "
+                                "keeping the last valid command")
+        if self.lockstep and not self._stamp_ok(stamp_ns):
+            return self._stale(stamp_ns)
+        tau = self.command.copy()
+        for n, v in zip(names, a):
+            tau[self.joint_index[n]] = v
+        return self._accept(tau)
+
+    def submit_ordered_joint_command(self, efforts, stamp_ns):
+        """submit_joint_command for a command already known to name every joint in joint
+        order with n finite efforts (decoded by cdr.CommandDecoder): only the lockstep
+        stamp is left to check."""
+        self.counters["commands_received"] += 1
+        if self.lockstep and not self._stamp_ok(stamp_ns):
+            return self._stale(stamp_ns)
+        return self._accept(efforts)
+
+    def _stamp_ok(self, stamp_ns):
+        return not self.answered and (stamp_ns is None or int(stamp_ns) == self.stamp_ns)
+
+    def _stale(self, stamp_ns):
+        """Lockstep: count and drop a JointState command that does not answer the current
+        state: 'late' if it answers a state stepped on the timeout policy, else 'stale'."""
+        stamp = self.stamp_ns if stamp_ns is None else int(stamp_ns)
+        if stamp in self._timed_out_stamps:
+            self.counters["late_commands"] += 1
+            self.warnings.warn("late", f"late command for t={stamp * 1e-9:.4f} s: that state "
+                               "was already stepped on the timeout policy (now waiting for "
+                               f"t={self.stamp_ns * 1e-9:.4f} s)")
+            return False, "late"
+        self.counters["stale_commands"] += 1
+        what = "the state was already answered" if stamp == self.stamp_ns else \
+            f"stamp t={stamp * 1e-9:.4f} s does not match"
+        self.warnings.warn("stale", f"dropped a stale command on {TOPIC_JOINT_COMMANDS}: {what}; "
+                           "lockstep expects header.stamp = the stamp of the /joint_states it "
+                           f"answers (t={self.stamp_ns * 1e-9:.4f} s)")
+        return False, "stale"
+
+    def submit_wrench(self, link, force, torque, persistent=False):
+        """A push on `link` (world axes, at the link origin): one control period, or until
+        replaced/cleared (zero wrench) when persistent."""
+        topic = TOPIC_WRENCH_PERSISTENT if persistent else TOPIC_WRENCH
+        if link not in self.links:
+            self.counters["wrenches_rejected"] += 1
+            msg = (f"rejected wrench on {topic}: unknown link {link!r} in header.frame_id "
+                   f"(links: {', '.join(sorted(self.links))})")
+            self.warnings.warn("unknown_link", msg)
+            return False, msg
+        f = np.array(force, dtype=float).reshape(-1)
+        m = np.array(torque, dtype=float).reshape(-1)
+        if f.shape != (3,) or m.shape != (3,) or not (np.all(np.isfinite(f)) and
+                                                       np.all(np.isfinite(m))):
+            self.counters["wrenches_rejected"] += 1
+            msg = f"rejected wrench on {topic} for {link!r}: force and torque must be finite"
+            self.warnings.warn("bad_wrench", msg)
+            return False, msg
+        try:
+            if persistent:
+                self.sim.set_persistent_wrench(link, f, m)
+            else:
+                self.sim.apply_wrench(link, f, m)
+        except ValueError as e:
+            self.counters["wrenches_rejected"] += 1
+            self.warnings.warn("bad_wrench", f"rejected wrench on {topic}: {e}")
+            return False, str(e)
+        self.counters["wrenches_accepted"] += 1
+        return True, "ok"
+
+    # -- stepping --------------------------------------------------------------------------
+    def on_timeout(self):
+        """Lockstep: no answer for the current state within lockstep_timeout."""
+        self.counters["lockstep_timeouts"] += 1
+        self._timed_out_stamps.append(self.stamp_ns)
+        pol = self.settings.timeout_policy
+        self.warnings.warn("timeout", f"lockstep: no command for t={self.stamp_ns * 1e-9:.4f} s "
+                           f"within {self.settings.lockstep_timeout:g} s; stepping with "
+                           f"{'the last command held' if pol == 'hold' else 'zero torques'} "
+                           f"({self.counters['lockstep_timeouts']} timeouts so far)")
+        if pol == "zero":
+            self.command = np.zeros(self.n)
+
+    def step(self, timed_out: bool = False):
+        """One control period with the current command; returns the Diagnostics (or None
+        when the physics failed twice and the simulation was paused)."""
+        if timed_out:
+            self.on_timeout()
+        self.last_step_timed_out = timed_out
+        tau = self.command
+        try:
+            d = self.sim.step(tau)
+        except (SimulationError, ValueError) as e:
+            self.counters["simulation_errors"] += 1
+            self.warnings.warn("simulation_error", f"physics step failed at t="
+                               f"{self.sim.t:.4f} s ({e}); retrying with zero torques")
+            try:
+                d = self.sim.step(np.zeros(self.n))
+            except (SimulationError, ValueError) as e2:
+                self.paused = self.failed = True
+                self.errors.warn("simulation_paused", f"physics step failed twice at t="
+                                 f"{self.sim.t:.4f} s ({e2}); simulation paused, call ~/reset")
+                return None
+        self.k += 1
+        self.counters["steps"] += 1
+        self.answered = False
+        self.state_version += 1
+        return d
+
+    def reset(self):
+        """Back to the initial state, wrenches cleared, zero command; sim time advances by one
+        control period (stamps stay strictly increasing). A pause caused by a physics
+        failure ends; a pause asked for with ~/pause stays."""
+        if self.failed:
+            self.failed = self.paused = False
+        self.k += 1
+        self.sim.clear_wrenches()
+        self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)
+        self.command = np.zeros(self.n)
+        self.answered = False
+        self.counters["resets"] += 1
+        self.state_version += 1
+
+    def summary(self) -> dict:
+        d = dict(self.counters)
+        d["sim_time"] = self.stamp_ns * 1e-9
+        d["warnings_by_kind"] = dict(self.warnings.counts)
+        return d
+
+
+class PeriodStats:
+    """Wall-clock tick intervals of the realtime loop: |interval - nominal| in a histogram
+    of 1 us bins (O(1) per tick, percentiles in microseconds, cheap enough to run in the
+    loop), plus count, mean and maximum."""
+
+    BIN = 1e-6
+    NBINS = 20000          # up to 20 ms; larger errors go to the last bin (max is exact)
+
+    def __init__(self, nominal: float):
+        self.nominal = nominal
+        self.hist = np.zeros(self.NBINS, dtype=np.int64)
+        self.n = 0
+        self.total = 0.0
+        self.max_err = 0.0
+        self.last = None
+        self.overruns = 0
+
+    def tick(self, t: float):
+        last = self.last
+        self.last = t
+        if last is None:
+            return
+        iv = t - last
+        err = abs(iv - self.nominal)
+        i = int(err / self.BIN)
+        self.hist[i if i < self.NBINS else self.NBINS - 1] += 1
+        self.n += 1
+        self.total += iv
+        if err > self.max_err:
+            self.max_err = err
+
+    def restart(self):
+        self.last = None
+
+    def percentile_ms(self, p: float) -> float:
+        c = np.cumsum(self.hist)
+        i = int(np.searchsorted(c, p / 100.0 * c[-1]))
+        return (i + 1) * self.BIN * 1e3          # upper edge of the bin
+
+    def summary(self) -> dict:
+        if self.n == 0:
+            return {"ticks": 0}
+        return {"ticks": self.n, "period_mean_ms": self.total / self.n * 1e3,
+                "period_error_p50_ms": self.percentile_ms(50),
+                "period_error_p99_ms": self.percentile_ms(99),
+                "period_error_max_ms": self.max_err * 1e3, "overruns": self.overruns}

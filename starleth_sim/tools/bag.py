@@ -1,0 +1,221 @@
+"""The one bag reader: a ROS 2 bag (an .mcap file, or a rosbag2 directory of .mcap files read
+in order) streamed in one pass with CRC checks, topic types, message counts, attachments and
+metadata; damaged or truncated files raise :class:`BagError` with one clear line, or with
+``salvage`` are read up to the damage. ``starleth-analyze`` (its ``Run``), ``starleth-view``
+and ``starleth-demo`` read bags through :func:`stream_bag` / :func:`read_messages`."""
+from __future__ import annotations
+
+import glob
+import os
+import re
+import sys
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+class BagError(Exception):
+    """A bag that cannot be read (missing, not MCAP, truncated, corrupt)."""
+
+
+def warn(message: str) -> None:
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def _norm_type(name: str) -> str:
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[-1]}" if len(parts) == 2 else name
+
+
+def bag_files(path: str):
+    """The .mcap files of a bag: the file itself, or those of a rosbag2 bag directory."""
+    if os.path.isdir(path):
+        files = glob.glob(os.path.join(path, "*.mcap"))
+        if not files:
+            other = glob.glob(os.path.join(path, "*.db3"))
+            raise BagError(f"{path}: a directory without .mcap files"
+                                + (" (sqlite3 bag: convert it with `ros2 bag convert` to mcap)"
+                                   if other else ""))
+
+        def natural(p):
+            return [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", p)]
+        return sorted(files, key=natural)
+    if not os.path.exists(path):
+        raise BagError(f"{path}: no such file")
+    return [path]
+
+
+class BagMessages:
+    """What :func:`read_messages` read from one bag (an .mcap file or a rosbag2 directory)."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.files = []
+        self.messages = {}      # selected topic -> [(log_time ns, message)]: decoded, or
+                                # its CDR bytes when read with decode=False
+        self.decoders = {}      # selected topic -> function(CDR bytes) -> message
+        self.types = {}         # every topic of the bag -> 'pkg/msg/Type' ('' without schema)
+        self.counts = {}        # every topic of the bag -> number of messages
+        self.attachments = {}   # attachment name -> bytes (the first of each name)
+        self.metadata = {}      # metadata record name -> dict (the first of each name)
+        self.truncated = False  # salvage: reading stopped at damage
+        self.total = 0          # messages of every topic
+        self.decode_errors = {}  # topic -> [count, first error]
+
+
+def check_mcap_file(path: str, salvage: bool = False) -> tuple:
+    """(size in bytes, complete) of an MCAP file, after checking that it starts with the MCAP
+    magic bytes. Raises BagError for a file that cannot be read or is not MCAP, and for
+    a truncated one (no footer magic) unless salvage."""
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+            f.seek(max(0, size - len(MCAP_MAGIC)))
+            tail = f.read(len(MCAP_MAGIC))
+    except OSError as e:
+        raise BagError(f"{path}: cannot read: {e.strerror or e}") from None
+    if head != MCAP_MAGIC:
+        hint = ""
+        if path.endswith(".db3"):
+            hint = " (a sqlite3 rosbag2 file: convert it with `ros2 bag convert` to mcap)"
+        elif size == 0:
+            hint = " (the file is empty)"
+        raise BagError(f"{path}: not an MCAP file: it does not start with the MCAP "
+                            f"magic bytes{hint}")
+    complete = tail == MCAP_MAGIC and size >= 2 * len(MCAP_MAGIC)
+    if not complete and not salvage:
+        raise BagError(
+            f"{path}: truncated MCAP file: it ends without the MCAP footer ({size} bytes). The "
+            "recording was not closed (recorder killed, disk full) or the copy is incomplete; "
+            "--salvage reads the messages before the damage")
+    return size, complete
+
+
+def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: dict,
+                 on_warning=None):
+    """The records of the open MCAP file f (CRCs checked). At damage: raises BagError,
+    or with salvage warns (on_warning, default warn), sets state['truncated'] and stops.
+    state['messages'] counts the Message records read."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    records = iter(StreamReader(f, validate_crcs=True, record_size_limit=size + 64).records)
+    state.setdefault("messages", 0)
+    while True:
+        try:
+            rec = next(records)
+        except StopIteration:
+            return
+        except Exception as e:   # anything the reader raises: a damaged file
+            pos, n = f.tell(), state["messages"]
+            reason = f"{type(e).__name__}: {e}".rstrip(": ")
+            if not salvage:
+                raise BagError(
+                    f"{path}: corrupt MCAP file ({reason}, after {n} messages, near byte {pos} "
+                    f"of {size}); --salvage reads the messages before the damage") from None
+            (on_warning or warn)(
+                f"{path}: {'truncated' if not complete else 'damaged'} file: reading stopped "
+                f"near byte {pos} of {size} ({reason}); using the {n} messages before it")
+            state["truncated"] = True
+            return
+        if isinstance(rec, Message):
+            state["messages"] += 1
+        yield rec
+
+
+def _decoder(factory, rec, schema, path, on_warning):
+    """The CDR decoder of channel rec, or None (with a warning) where there is none."""
+    try:
+        decode = factory.decoder_for(rec.message_encoding, schema)
+    except Exception as e:
+        on_warning(f"{path}: cannot decode {rec.topic}: {e}")
+        return None
+    if decode is None:
+        on_warning(f"{path}: cannot decode {rec.topic} (message encoding "
+                   f"{rec.message_encoding!r}, schema encoding "
+                   f"{getattr(schema, 'encoding', None)!r}); ignored")
+    return decode
+
+
+def _stream_file(path: str, bag: BagMessages, on_channel, salvage: bool, on_warning):
+    """One MCAP file into bag; see stream_bag."""
+    from mcap.records import Attachment, Channel, Message, Metadata, Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    size, complete = check_mcap_file(path, salvage)
+    factory = DecoderFactory()
+    schemas, handlers, state = {}, {}, {}
+    errors = bag.decode_errors
+    with open(path, "rb") as f:
+        for rec in mcap_records(f, path, size, complete, salvage, state, on_warning):
+            if isinstance(rec, Message):
+                bag.total += 1
+                topic, handle = handlers.get(rec.channel_id, (None, None))
+                if topic is None:
+                    continue
+                bag.counts[topic] += 1
+                if handle is None:
+                    continue
+                try:
+                    handle(rec)
+                except Exception as e:   # a message the schema does not describe
+                    errors.setdefault(topic, [0, str(e)])[0] += 1
+            elif isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel) and rec.id not in handlers:
+                schema = schemas.get(rec.schema_id)
+                type_name = _norm_type(schema.name) if schema is not None else ""
+                bag.types[rec.topic] = type_name
+                bag.counts.setdefault(rec.topic, 0)
+                handle = on_channel(rec.topic, type_name,
+                                    lambda: _decoder(factory, rec, schema, path, on_warning))
+                handlers[rec.id] = (rec.topic, handle)
+            elif isinstance(rec, Metadata):
+                bag.metadata.setdefault(rec.name, dict(rec.metadata))
+            elif isinstance(rec, Attachment):
+                bag.attachments.setdefault(rec.name, bytes(rec.data))
+    bag.truncated |= bool(state.get("truncated"))
+
+
+def stream_bag(path: str, on_channel, salvage: bool = False, on_warning=None) -> BagMessages:
+    """Stream a bag once. For each channel, on_channel(topic, 'pkg/msg/Type', make_decoder)
+    returns a handler called with every Message record of that channel (``.data`` CDR bytes,
+    ``.log_time``, ``.publish_time``), or None to skip it; make_decoder() gives the
+    channel's CDR decoder (or None, with a warning). The returned BagMessages has the
+    counts, types, attachments, metadata and decode errors of every topic; `messages` stays
+    as the handlers leave it. Warnings go to on_warning(message) (default: stderr)."""
+    on_warning = on_warning or warn
+    bag = BagMessages(path)
+    bag.files = bag_files(path)
+    for fpath in bag.files:
+        _stream_file(fpath, bag, on_channel, salvage, on_warning)
+    return bag
+
+
+def read_messages(path: str, select, salvage: bool = False, decode: bool = True,
+                  on_warning=None) -> BagMessages:
+    """The messages of every topic for which select(topic, 'pkg/msg/Type') is true, as
+    bag.messages[topic] = [(log_time ns, message)]. With decode=False the messages are kept
+    as CDR bytes, to be decoded (bag.decoders[topic]) only where needed. A file that is not
+    MCAP, truncated or corrupt raises BagError (salvage: read up to the damage, with a
+    warning). Messages that cannot be decoded are counted and warned about."""
+    on_warning = on_warning or warn
+    messages, decoders = {}, {}
+
+    def on_channel(topic, type_name, make_decoder):
+        if not select(topic, type_name):
+            return None
+        dec = make_decoder()
+        if dec is None:
+            return None
+        rows = messages.setdefault(topic, [])
+        decoders.setdefault(topic, dec)
+        if decode:
+            return lambda rec: rows.append((rec.log_time, dec(rec.data)))
+        return lambda rec: rows.append((rec.log_time, rec.data))
+
+    bag = stream_bag(path, on_channel, salvage, on_warning)
+    bag.messages, bag.decoders = messages, decoders
+    for topic, (n, err) in bag.decode_errors.items():
+        on_warning(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
+    return bag
