@@ -504,7 +504,7 @@ class SimNode:
     def publish_state(self, record=True):
         """Publish the state of the current step (stamp t_k) on every state topic;
         record=False: a re-send of a state already published (not recorded again)."""
-        svc, sim = self.service, self.sim
+        svc = self.service
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         wanted = self._wanted
         # /joint_states first: it is what a lockstep controller waits for
@@ -514,64 +514,17 @@ class SimNode:
             send = (self.pubs["joint_states"][0].get_subscription_count() > 0
                     or (record and self.recorder is not None))
         if send:
-            cdr = self._js_cdr
-            if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
-                data = cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
-                                 sim.applied_torque)
-                self.pubs["joint_states"][0].publish(data)
-                rec = self.recorder
-                if record and rec is not None and not rec.closed:
-                    rec.write(self.pubs["joint_states"][1], data, svc.stamp_ns)
-            else:
-                js = self.js_msg
-                js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
-                js.position = _dbl(sim.joint_positions())
-                js.velocity = _dbl(sim.joint_velocities())
-                js.effort = _dbl(sim.applied_torque)
-                self._emit("joint_states", js, record)
+            self._publish_joint_states(sec, nsec, record)
         if "clock" in self.pubs and wanted("clock", record):
             c = self.clock_msg.clock
             c.sec, c.nanosec = sec, nsec
             self._emit("clock", self.clock_msg, record)
         feet = [f for f in FEET if wanted(f, record)]
         if feet:
-            for c in sim.contacts[:len(FEET)]:
-                if c.name not in feet:
-                    continue
-                m = self.wrench_msgs[c.name]
-                m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
-                f = m.wrench.force
-                f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
-                self._emit(c.name, m, record)
+            self._publish_foot_wrenches(sec, nsec, feet, record)
         want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
         if want_odom or want_imu:
-            b = sim.base_state()
-            p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
-                             b["angular_velocity"])
-            R = quat_to_matrix(*quat)
-            quat = [float(x) for x in quat]
-            w = [float(x) for x in w]
-        if want_odom:
-            v_body = R.T @ v
-            o = self.odom_msg
-            o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
-            pp, po = o.pose.pose.position, o.pose.pose.orientation
-            pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
-            po.x, po.y, po.z, po.w = quat
-            tl, ta = o.twist.twist.linear, o.twist.twist.angular
-            tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
-            ta.x, ta.y, ta.z = w
-            self._emit("base_state", o, record)
-        if want_imu:
-            a_proper = self.imu.proper_acceleration(svc.k, v, R)
-            imu = self.imu_msg
-            imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
-            io_ = imu.orientation
-            io_.x, io_.y, io_.z, io_.w = quat
-            iw, ia = imu.angular_velocity, imu.linear_acceleration
-            iw.x, iw.y, iw.z = w
-            ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
-            self._emit("imu", imu, record)
+            self._publish_base(sec, nsec, want_odom, want_imu, record)
         if wanted("solver", record):
             self._fill_diagnostics(sec, nsec)
             self._emit("solver", self.diag_msg, record)
@@ -586,6 +539,67 @@ class SimNode:
         else:
             self._counts["joint_states"] = \
                 self.pubs["joint_states"][0].get_subscription_count()
+
+    def _publish_joint_states(self, sec, nsec, record):
+        """joint_states: position, velocity and the applied torque as effort."""
+        sim = self.sim
+        cdr = self._js_cdr
+        if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
+            data = cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
+                             sim.applied_torque)
+            self.pubs["joint_states"][0].publish(data)
+            rec = self.recorder
+            if record and rec is not None and not rec.closed:
+                rec.write(self.pubs["joint_states"][1], data, self.service.stamp_ns)
+            return
+        js = self.js_msg
+        js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
+        js.position = _dbl(sim.joint_positions())
+        js.velocity = _dbl(sim.joint_velocities())
+        js.effort = _dbl(sim.applied_torque)
+        self._emit("joint_states", js, record)
+
+    def _publish_foot_wrenches(self, sec, nsec, feet, record):
+        """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
+        for c in self.sim.contacts[:len(FEET)]:
+            if c.name not in feet:
+                continue
+            m = self.wrench_msgs[c.name]
+            m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+            f = m.wrench.force
+            f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
+            self._emit(c.name, m, record)
+
+    def _publish_base(self, sec, nsec, want_odom, want_imu, record):
+        """starleth/base_state (pose in the world, twist in the base frame) and
+        starleth/imu (orientation, body rates, proper acceleration)."""
+        b = self.sim.base_state()
+        p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
+                         b["angular_velocity"])
+        R = quat_to_matrix(*quat)
+        quat = [float(x) for x in quat]
+        w = [float(x) for x in w]
+        if want_odom:
+            v_body = R.T @ v
+            o = self.odom_msg
+            o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
+            pp, po = o.pose.pose.position, o.pose.pose.orientation
+            pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
+            po.x, po.y, po.z, po.w = quat
+            tl, ta = o.twist.twist.linear, o.twist.twist.angular
+            tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
+            ta.x, ta.y, ta.z = w
+            self._emit("base_state", o, record)
+        if want_imu:
+            a_proper = self.imu.proper_acceleration(self.service.k, v, R)
+            imu = self.imu_msg
+            imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
+            io_ = imu.orientation
+            io_.x, io_.y, io_.z, io_.w = quat
+            iw, ia = imu.angular_velocity, imu.linear_acceleration
+            iw.x, iw.y, iw.z = w
+            ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
+            self._emit("imu", imu, record)
 
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the

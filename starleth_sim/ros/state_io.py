@@ -91,45 +91,61 @@ def parse_initial_state(spec, sim: Simulator):
     if unknown:
         raise ConfigError(f"parameter initial_state: unknown keys {sorted(unknown)} (known: "
                           f"{', '.join(_PUBLIC_KEYS)})")
-    nj = sim.n_joints
-
-    def vec(key, n):
-        v = data[key]
-        if isinstance(v, dict) and key.startswith("joint_"):
-            unknown_j = set(v) - set(sim.joint_names)
-            if unknown_j:
-                raise ConfigError(f"parameter initial_state: {key}: unknown joints "
-                                  f"{sorted(unknown_j)}")
-            return v
-        try:
-            a = np.asarray(v, dtype=float).reshape(-1)
-        except (TypeError, ValueError):
-            raise ConfigError(f"parameter initial_state: {key}: expected {n} numbers, got {v!r}") \
-                from None
-        if a.shape != (n,) or not np.all(np.isfinite(a)):
-            raise ConfigError(f"parameter initial_state: {key}: expected {n} finite numbers, "
-                              f"got {v!r}")
-        return a
-
-    def reset_checked(q, u, minimal=False):
-        try:
-            sim.reset(q=q, u=u, minimal=minimal)
-        except ValueError as e:
-            raise ConfigError(f"parameter initial_state: {e}") from None
-        return sim.q, sim.u
-
     if "q" in data and data.get("coordinates", sim.config.coordinates) == sim.config.coordinates:
-        q, u = reset_checked(vec("q", sim.q.shape[0]),
-                             vec("u", sim.u.shape[0]) if "u" in data else None)
-        return q, u, {"spec": {"q": q.tolist(), "u": u.tolist(),
-                               "coordinates": sim.config.coordinates}}
+        return _state_from_own_coordinates(data, sim)
     if "q_minimal" in data:
-        model = sim.description.model
-        q, u = reset_checked(vec("q_minimal", model.nq),
-                             vec("u_minimal", model.nv) if "u_minimal" in data else None,
-                             minimal=True)
-        return q, u, {"spec": {"q_minimal": data["q_minimal"],
-                               "u_minimal": data.get("u_minimal")}}
+        return _state_from_minimal_coordinates(data, sim)
+    return _state_from_public_quantities(data, sim)
+
+
+def _vector(data, key, n, sim):
+    """data[key] as n finite numbers, or (joint_*) a {joint name: value} mapping."""
+    v = data[key]
+    if isinstance(v, dict) and key.startswith("joint_"):
+        unknown_j = set(v) - set(sim.joint_names)
+        if unknown_j:
+            raise ConfigError(f"parameter initial_state: {key}: unknown joints "
+                              f"{sorted(unknown_j)}")
+        return v
+    try:
+        a = np.asarray(v, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ConfigError(f"parameter initial_state: {key}: expected {n} numbers, got {v!r}") \
+            from None
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"parameter initial_state: {key}: expected {n} finite numbers, "
+                          f"got {v!r}")
+    return a
+
+
+def _reset_checked(sim, q, u, minimal=False):
+    try:
+        sim.reset(q=q, u=u, minimal=minimal)
+    except ValueError as e:
+        raise ConfigError(f"parameter initial_state: {e}") from None
+    return sim.q, sim.u
+
+
+def _state_from_own_coordinates(data, sim):
+    """q (and u) given in the simulator's own coordinate set."""
+    q, u = _reset_checked(sim, _vector(data, "q", sim.q.shape[0], sim),
+                          _vector(data, "u", sim.u.shape[0], sim) if "u" in data else None)
+    return q, u, {"spec": {"q": q.tolist(), "u": u.tolist(),
+                           "coordinates": sim.config.coordinates}}
+
+
+def _state_from_minimal_coordinates(data, sim):
+    """q_minimal (and u_minimal): pin's free-flyer model of the URDF."""
+    model = sim.description.model
+    q, u = _reset_checked(sim, _vector(data, "q_minimal", model.nq, sim),
+                          _vector(data, "u_minimal", model.nv, sim)
+                          if "u_minimal" in data else None, minimal=True)
+    return q, u, {"spec": {"q_minimal": data["q_minimal"],
+                           "u_minimal": data.get("u_minimal")}}
+
+
+def _state_from_public_quantities(data, sim):
+    """Base pose and velocities, joint angles and rates; the rest from the standing state."""
     public = {k: v for k, v in data.items() if k in _PUBLIC_KEYS}
     sim.reset()
     if not public:
@@ -137,15 +153,15 @@ def parse_initial_state(spec, sim: Simulator):
     pub = public_state(sim)
     for key in ("base_position", "base_linear_velocity", "base_angular_velocity"):
         if key in public:
-            pub[key] = vec(key, 3)
+            pub[key] = _vector(data, key, 3, sim)
     if "base_orientation" in public:
-        quat = vec("base_orientation", 4)
+        quat = _vector(data, "base_orientation", 4, sim)
         if np.linalg.norm(quat) < 1e-9:
             raise ConfigError("parameter initial_state: base_orientation must not be zero")
         pub["base_orientation"] = quat / np.linalg.norm(quat)
     for key in ("joint_positions", "joint_velocities"):
         if key in public:
-            v = vec(key, nj)
+            v = _vector(data, key, sim.n_joints, sim)
             if isinstance(v, dict):
                 for name, val in v.items():
                     try:
@@ -158,7 +174,7 @@ def parse_initial_state(spec, sim: Simulator):
                     pub[key][sim.joint_names.index(name)] = x
             else:
                 pub[key] = v
-    q, u = reset_checked(*minimal_state(sim, pub), minimal=True)
+    q, u = _reset_checked(sim, *minimal_state(sim, pub), minimal=True)
     return q, u, {"spec": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                            for k, v in public.items()}}
 
