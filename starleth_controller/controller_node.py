@@ -51,13 +51,11 @@ from __future__ import annotations
 
 import array
 import math
-import signal
 import sys
 import time
 
 import numpy as np
 
-import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
@@ -68,8 +66,9 @@ from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
-from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, ThrottledLog,
-                                            declare_parameters, make_executor)
+from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, StopSignals, ThrottledLog,
+                                            declare_parameters, init_ros, make_executor,
+                                            shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
@@ -497,21 +496,10 @@ class ControllerNode(Node):
 
 def main(args=None):
     """Console script ``controller_node``. Stops on SIGINT / SIGTERM."""
-    from rclpy.signals import SignalHandlerOptions
-    argv = sys.argv if args is None else args
-    try:
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as e:   # e.g. a malformed --ros-args rule
-        print(f"controller_node: cannot initialise ROS: {e}", file=sys.stderr)
+    if not init_ros("controller_node", sys.argv if args is None else args):
         return 2
-    node = None
-    stop = {"flag": False}
-
-    def on_signal(signum, frame):
-        stop["flag"] = True
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    signals = StopSignals()
+    node = executor = None
     try:
         try:
             node = ControllerNode()
@@ -521,7 +509,7 @@ def main(args=None):
         executor, kind = make_executor(node.executor_kind, node.context)
         executor.add_node(node)
         node.log.info(f"executor: {kind}; ready")
-        while not stop["flag"] and node.context.ok():
+        while not signals.requested and node.context.ok():
             try:
                 executor.spin_once(timeout_sec=0.1)
             except Exception as e:  # context shut down, ExternalShutdownException
@@ -529,18 +517,9 @@ def main(args=None):
                     break
                 node.log.error(f"executor: {type(e).__name__}: {e}")
         node.log.info(f"stopped; {node.summary()}")
-        try:
-            executor.shutdown(timeout_sec=0.1)
-        except Exception:
-            pass
         return 0
     finally:
-        if node is not None:
-            try:
-                node.destroy_node()
-            except Exception:
-                pass
-        rclpy.try_shutdown()
+        shutdown_ros(node, executor)
 
 
 if __name__ == "__main__":

@@ -155,3 +155,66 @@ class ThrottledLog:
         return True
 
     warn = __call__
+
+
+# =========================================================================================
+# process life cycle of a node's console script
+# =========================================================================================
+def init_ros(prog: str, argv) -> bool:
+    """rclpy.init with the given argv and without rclpy's own signal handlers (the
+    node's StopSignals decide what a signal does). False, with one line on stderr, when
+    ROS cannot start (e.g. a malformed --ros-args rule)."""
+    import sys
+
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as e:
+        print(f"{prog}: cannot initialise ROS: {e}", file=sys.stderr)
+        return False
+    return True
+
+
+class StopSignals:
+    """SIGINT and SIGTERM set `requested` and call on_stop(); the third one raises
+    KeyboardInterrupt (give up on a clean exit). ``ignore()`` while finalising."""
+
+    def __init__(self, on_stop=None):
+        import signal
+        self.count = 0
+        self.on_stop = on_stop
+        signal.signal(signal.SIGINT, self._handle)
+        signal.signal(signal.SIGTERM, self._handle)
+
+    @property
+    def requested(self) -> bool:
+        return self.count > 0
+
+    def _handle(self, signum, frame):
+        self.count += 1
+        if self.on_stop is not None:
+            self.on_stop()
+        if self.count > 2:
+            raise KeyboardInterrupt
+
+    @staticmethod
+    def ignore():
+        import signal
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def shutdown_ros(node=None, executor=None):
+    """Shut the executor down, destroy the rclpy node and shut ROS down, ignoring errors
+    of a context that is already gone."""
+    import rclpy
+    for close in ((lambda: executor.shutdown(timeout_sec=0.1)) if executor else None,
+                  node.destroy_node if node is not None else None):
+        if close is None:
+            continue
+        try:
+            close()
+        except Exception:
+            pass
+    rclpy.try_shutdown()

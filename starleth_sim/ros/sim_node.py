@@ -85,13 +85,11 @@ import array
 import gc
 import json
 import os
-import signal
 import sys
 import time
 from dataclasses import asdict, replace
 
 import numpy as np
-import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import WrenchStamped
@@ -105,7 +103,8 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.ros_helpers import declare_parameters, make_executor
+from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
+                                            make_executor, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
                                        TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
@@ -937,27 +936,18 @@ class SimNode:
 def main(args=None):
     """Console script ``sim_node``. SIGINT/SIGTERM stop the loop and finalise the recording
     (exit 0); a bad parameter exits with 2 before any physics is set up."""
-    from rclpy.signals import SignalHandlerOptions
-    argv = sys.argv if args is None else args
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    state = {"signals": 0, "node": None}
-
-    def on_signal(signum, frame):
-        state["signals"] += 1
-        if state["node"] is not None:
-            state["node"].request_stop()
-        if state["signals"] > 2:   # third signal: give up on a clean exit
-            raise KeyboardInterrupt
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    if not init_ros("sim_node", sys.argv if args is None else args):
+        return 2
+    holder = {}
+    signals = StopSignals(lambda: holder["node"].request_stop() if "node" in holder else None)
+    executor = None
     try:
         try:
-            sim_node = state["node"] = SimNode()
+            sim_node = holder["node"] = SimNode()
         except (ConfigError, ValueError, OSError) as e:
             print(f"sim_node: configuration error: {e}", file=sys.stderr)
             return 2
-        if state["signals"]:
+        if signals.requested:
             sim_node.request_stop()
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)
         executor.add_node(sim_node.node)
@@ -965,22 +955,11 @@ def main(args=None):
         try:
             sim_node.run(executor)
         finally:
-            # ignore further signals while the file is finalised
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            signals.ignore()          # no further signals while the file is finalised
             sim_node.close()
-            try:
-                executor.shutdown(timeout_sec=0.1)
-            except Exception:
-                pass
         return 0
     finally:
-        if state["node"] is not None:
-            try:
-                state["node"].node.destroy_node()
-            except Exception:
-                pass
-        rclpy.try_shutdown()
+        shutdown_ros(holder["node"].node if "node" in holder else None, executor)
 
 
 if __name__ == "__main__":
