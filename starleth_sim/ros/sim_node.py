@@ -4,10 +4,8 @@ mujoco_ros2_control / gz_ros2_control. A thin adapter: no physics in here.
     ros2 run starleth_sim sim_node --ros-args -p mode:=lockstep -p record:=run.mcap
     python -m starleth_sim.ros.sim_node --ros-args --params-file my_sim.yaml
 
-Parameters and their defaults: msg_configs/sim_node.yaml (physics, physics_overrides, mode,
-real_time_factor, lockstep_timeout, timeout_policy, record, record_compression,
-record_max_duration, record_max_size, initial_state, start_paused, realtime_priority,
-executor, warn_throttle_period, frames, publish_clock).
+Parameters: one schema, ``SIM_NODE_PARAMETERS`` in :mod:`.parameters` (type, default, bounds,
+description: ``ros2 param describe /sim_node mode``), rendered into msg_configs/sim_node.yaml.
 
 Names are relative (REP 135 style): ``--ros-args -r __ns:=/robot1`` (or the launch file's
 ``namespace``) moves every topic and service below, so several robots share a ROS domain;
@@ -76,8 +74,9 @@ rest is deserialised and validated in full), /joint_states goes out from a CDR t
 before any other topic, and right after publishing the node prepares the torque-independent
 part of the next step (``Simulator.prepare``) while the controller computes its answer.
 
-The ROS-free part (command validation, lockstep bookkeeping, counters, stepping) is
-:class:`SimService`; :class:`SimNode` is the rclpy plumbing.
+The ROS-free parts: :class:`~.service.SimService` (command validation, lockstep bookkeeping,
+counters, stepping), :mod:`.state_io` (initial state, public state, IMU) and
+:mod:`.parameters`; :class:`SimNode` here is the rclpy plumbing.
 """
 from __future__ import annotations
 
