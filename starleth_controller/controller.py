@@ -171,6 +171,22 @@ def _smooth(x):
     return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
 
 
+class _Sample:
+    """The measured state of one control period as the steps of ``StarlethController.update``
+    read it: time t and step dt [s]; joints qj, dqj (public order); trunk position pb and
+    velocity vb (world), quaternion quat (x, y, z, w, normalised), angular velocity wb (base
+    frame) and ww = R wb (world); R (base→world); heading ψ = `yaw`, cy = cos ψ, sy = sin ψ;
+    grounded: the 4 feet's contact flags."""
+    __slots__ = ("t", "dt", "qj", "dqj", "pb", "quat", "vb", "wb", "R", "yaw", "cy", "sy",
+                 "ww", "grounded")
+
+    def __init__(self, t, dt, qj, dqj, pb, quat, vb, wb, R, yaw, cy, sy, ww, grounded):
+        self.t, self.dt, self.qj, self.dqj = t, dt, qj, dqj
+        self.pb, self.quat, self.vb, self.wb = pb, quat, vb, wb
+        self.R, self.yaw, self.cy, self.sy = R, yaw, cy, sy
+        self.ww, self.grounded = ww, grounded
+
+
 class StarlethController:
     """Stand and trot controller. ``update(state, command)`` returns 12 joint torques in the
     public order; ``info`` holds the figures of the last call (leg states, desired contact
@@ -191,6 +207,7 @@ class StarlethController:
         self._kp3 = np.asarray(p.joint_kp, dtype=float)
         self._kd3 = np.asarray(p.joint_kd, dtype=float)
         self._lim = m.effort_limit.copy()
+        self._neg_lim = -self._lim            # lower saturation bound (not negated per call)
         self._geo = np.column_stack((m.l0, m.l1, m.l2, m.foot_radius, m.knee_sign))
         self._gains_trot = self._gain_arrays(p.trot_gains)
         self._gains_stand = self._gain_arrays(p.stand_gains)
@@ -268,7 +285,7 @@ class StarlethController:
         tau = self._tau
         tau[:] = (np.tile(self._kp3, 4) * (self._q_nominal - qj) - np.tile(self._kd3, 4) * dqj
                   + gleg)
-        np.clip(tau, -self._lim, self._lim, out=tau)
+        tau.clip(self._neg_lim, self._lim, out=tau)   # = np.clip, without its wrapper
         self.desired_forces[:] = 0.0
         self.call_time = time.perf_counter() - t_wall
         self.info = {"mode": "fallen", "leg_state": ["fallen"] * 4, "support": [],
@@ -277,33 +294,62 @@ class StarlethController:
 
     # ------------------------------------------------------------------------------------
     def update(self, s: RobotState, command: Command | None = None) -> np.ndarray:
-        """One control period: the 12 joint torques (public order, saturated)."""
+        """One control period: the 12 joint torques (public order, saturated).
+
+        After taking the command, advancing the clock and reading the state (zero torque for
+        a non-finite state, the fallen posture after a fall: _fallen_torques), the five steps
+        of the module docstring, one method each."""
         t_wall = time.perf_counter()
+        self._take_command(command)
+        t, dt = self._advance_clock(s.t)
+        x = self._read_state(s, t, dt)
+        if x is None:
+            # never pass NaN on: zero torque, reported in info
+            self.info = {"error": "non-finite state", "mode": self.mode}
+            self._tau[:] = 0.0
+            return self._tau.copy()
+        if self._check_fall(x):
+            return self._fallen_torques(x.qj, x.dqj, x.pb, x.quat, t_wall)
+        gleg, com = self._kinematics(x)                                        # 1.
+        trotting, support = self._gait_pattern(x)                              # 2.
+        b = self._support_leg_torques(x, trotting, support, gleg, com)         # 3.
+        self._position_controlled_leg_torques(x, trotting, gleg)               # 4.
+        return self._saturate_and_report(x, support, b, com, t_wall)           # 5.
+
+    # -- reading the inputs ----------------------------------------------------------------
+    def _take_command(self, command):
+        """Keeps `command` (if given) as the current command, after checking its mode."""
         if command is not None:
             if command.mode not in MODES:
                 raise ValueError(f"mode must be one of {MODES}, got {command.mode!r}")
             self.command = command
-        p = self.params
-        m = self.model
-        t = float(s.t)
+
+    def _advance_clock(self, t):
+        """(t, dt): the state's time t and the time dt since the last call (0 on the first).
+        A time going backwards means the robot / simulator was reset: so is the controller."""
+        t = float(t)
         if self._t_prev is not None and t < self._t_prev - 1e-9:
             self.reset()      # time went backwards: the robot / simulator was reset
         dt = 0.0 if self._t_prev is None else t - self._t_prev
         self._t_prev = t
+        return t, dt
 
-        # -- state ------------------------------------------------------------------------
+    def _read_state(self, s: RobotState, t, dt):
+        """The measured state as a _Sample, or None when it is not finite (or the quaternion
+        is zero): joints qj, dqj; trunk pb, quat (normalised), vb (world), wb (base frame);
+        R = R(quat) (base→world), heading ψ = atan2(R₁₀, R₀₀) with cy = cos ψ, sy = sin ψ;
+        ww = R wb; the contact flags (given, or foot_force_z > contact_force_threshold)."""
+        p = self.params
         qj = np.asarray(s.joint_positions, dtype=float)
         dqj = np.asarray(s.joint_velocities, dtype=float)
         pb = np.asarray(s.base_position, dtype=float)
         quat = np.asarray(s.base_orientation_xyzw, dtype=float)
         vb = np.asarray(s.base_linear_velocity, dtype=float)
         wb = np.asarray(s.base_angular_velocity, dtype=float)
-        if not math.isfinite(float(qj.sum() + dqj.sum() + pb.sum() + quat.sum() + vb.sum()
-                                   + wb.sum())) or float(quat @ quat) < 1e-12:
-            # never pass NaN on: zero torque, reported in info
-            self.info = {"error": "non-finite state", "mode": self.mode}
-            self._tau[:] = 0.0
-            return self._tau.copy()
+        add = np.add.reduce                          # = ndarray.sum, without its wrapper
+        if not math.isfinite(float(add(qj) + add(dqj) + add(pb) + add(quat) + add(vb)
+                                   + add(wb))) or float(quat @ quat) < 1e-12:
+            return None
         quat = quat / math.sqrt(float(quat @ quat))
         R = self._R
         K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
@@ -317,14 +363,20 @@ class StarlethController:
             grounded = np.asarray(s.foot_force, dtype=float)[:, 2] > p.contact_force_threshold
         else:
             raise ValueError("RobotState needs foot_contact or foot_force")
+        return _Sample(t, dt, qj, dqj, pb, quat, vb, wb, R, yaw, cy, sy, ww, grounded)
 
-        # -- falls -----------------------------------------------------------------------------
-        tilt_cos = R[2, 2]
+    def _check_fall(self, x: _Sample) -> bool:
+        """Falls: "fallen" once the tilt (cos = R₂₂) exceeds fall_tilt; back to "stand" (trot
+        only after a fresh stand command) when below recover_tilt with >= 3 feet on the ground
+        for recover_time. True while fallen."""
+        p = self.params
+        t = x.t
+        tilt_cos = x.R[2, 2]
         if self.mode != "fallen" and tilt_cos < math.cos(p.fall_tilt):
             self.mode = "fallen"
             self._upright_since = math.nan
         if self.mode == "fallen":
-            if tilt_cos > math.cos(p.recover_tilt) and int(grounded.sum()) >= 3:
+            if tilt_cos > math.cos(p.recover_tilt) and int(x.grounded.sum()) >= 3:
                 if self._upright_since != self._upright_since:
                     self._upright_since = t
                 elif t - self._upright_since >= p.recover_time:
@@ -334,12 +386,20 @@ class StarlethController:
                     self._initialized = False
             else:
                 self._upright_since = math.nan
-        if self.mode == "fallen":
-            return self._fallen_torques(qj, dqj, pb, quat, t_wall)
+        return self.mode == "fallen"
 
-        # kinematics: analytic legs (feet, Jacobians); pin: leg gravity, centre of mass
-        centre, contact_pt, Jf, Jc = self._centre, self._contact, self._Jf, self._Jc
-        K.leg_kinematics(qj, R, pb, m.hip, self._geo, centre, contact_pt, Jf, Jc)
+    # -- 1. kinematics ---------------------------------------------------------------------
+    def _kinematics(self, x: _Sample):
+        """Step 1: analytic leg kinematics into the work arrays (hip-frame leg centres
+        `_centre`, contact points `_contact` (4 x 3, world), foot and contact-point
+        Jacobians `_Jf`, `_Jc` (4 x 3 x 3, world axes)); from Pinocchio the legs' gravity
+        torques g_leg (12, public order) and the centre of mass. On the first call (and
+        after a reset or a recovery) the ground height and the desired heading ψ* start
+        from the lowest contact point and the trunk's heading. Returns (g_leg, com)."""
+        m = self.model
+        qj, pb, quat = x.qj, x.pb, x.quat
+        K.leg_kinematics(qj, x.R, pb, m.hip, self._geo, self._centre, self._contact, self._Jf,
+                         self._Jc)
         q = self._q
         q[0:3] = pb
         q[3:7] = quat
@@ -349,11 +409,28 @@ class StarlethController:
         com = pin.centerOfMass(m.model, m.data, q, False)
 
         if not self._initialized:
-            self._ground = float(contact_pt[:, 2].min())
-            self._yaw_des = yaw
+            self._ground = float(self._contact[:, 2].min())
+            self._yaw_des = x.yaw
             self._initialized = True
+        return gleg, com
 
-        # -- mode and command ---------------------------------------------------------------
+    # -- 2. gait pattern -------------------------------------------------------------------
+    def _gait_pattern(self, x: _Sample):
+        """Step 2: the mode and the trot clock, the ramped velocity command and desired
+        heading, each leg's state (self.leg_state) and swing phase, and the ground height
+        under the support feet. Returns (trotting, support legs)."""
+        trotting = self._switch_mode(x.t)
+        self._ramp_command(x.dt, x.yaw, trotting)
+        support = self._leg_states(x, trotting)
+        self._estimate_ground(support)
+        return trotting, support
+
+    def _switch_mode(self, t):
+        """Stand → trot on a trot command (not before a stand command after a recovery): the
+        clock starts at t₀ = t. Trot → stand on a stand command, at the end of the current
+        half cycle ⌊2 (t − t₀) / T⌋ (when the swing pair touches down). True while
+        trotting."""
+        p = self.params
         cmd = self.command
         T = p.gait_period
         if cmd.mode == "stand":
@@ -375,6 +452,15 @@ class StarlethController:
                 self.mode = "stand"
                 self._stop_requested = False
             self._half_cycle = half
+        return trotting
+
+    def _ramp_command(self, dt, yaw, trotting):
+        """The velocity command (v*_x, v*_y: self._v_cmd, heading frame; ω*: self._w_cmd)
+        ramped towards the command (zero unless trotting) at max_acceleration and
+        max_yaw_acceleration; the desired heading ψ* += ω* dt, held within
+        max_orientation_error of the heading ψ = `yaw` (no wind-up)."""
+        p = self.params
+        cmd = self.command
         vx_t, vy_t = (cmd.forward, cmd.lateral) if trotting else (0.0, 0.0)
         w_t = cmd.yaw_rate if trotting else 0.0
         if dt > 0:
@@ -389,17 +475,24 @@ class StarlethController:
             dw = w_t - self._w_cmd
             lim = p.max_yaw_acceleration * dt
             self._w_cmd = w_t if abs(dw) <= lim else self._w_cmd + math.copysign(lim, dw)
-        vcx, vcy, wc = self._v_cmd[0], self._v_cmd[1], self._w_cmd
+        wc = self._w_cmd
         self._yaw_des += wc * dt
         e_yaw = (self._yaw_des - yaw + math.pi) % (2 * math.pi) - math.pi
         if abs(e_yaw) > p.max_orientation_error:   # no wind-up while held off the heading
             self._yaw_des = yaw + math.copysign(p.max_orientation_error, e_yaw)
 
-        # -- leg states -----------------------------------------------------------------------
+    def _leg_states(self, x: _Sample, trotting):
+        """Each leg's state (self.leg_state) from its plan and its contact flag (module
+        docstring, step 2), its swing phase s ∈ [0, 1) (1 outside the swing), at a new
+        lift-off the hip→foot offset in the heading frame, and the time since contact was
+        lost. Returns the support legs."""
+        p = self.params
+        m = self.model
+        t, pb, R, cy, sy, grounded = x.t, x.pb, x.R, x.cy, x.sy, x.grounded
+        contact_pt = self._contact
         states = self.leg_state
         swing_phase = self._swing_phase
-        Tsw = (1.0 - p.duty_factor) * T
-        Tst = p.duty_factor * T
+        T = p.gait_period
         for k in range(4):
             swing_phase[k] = 1.0
             if trotting:
@@ -429,83 +522,123 @@ class StarlethController:
                     self._lost_since[k] = t
             else:
                 self._lost_since[k] = math.nan
-        support = [k for k in range(4) if states[k] == SUPPORT]
-        ns = len(support)
+        return [k for k in range(4) if states[k] == SUPPORT]
 
-        # ground height from the support feet (flat ground assumed)
+    def _estimate_ground(self, support):
+        """Ground height (flat ground assumed): low-pass (0.05 per call) of the mean height of
+        the support feet's contact points."""
+        ns = len(support)
         if ns:
+            contact_pt = self._contact
             g_meas = sum(contact_pt[k, 2] for k in support) / ns
             self._ground += 0.05 * (g_meas - self._ground)
 
+    # -- 3. support legs -------------------------------------------------------------------
+    def _support_leg_torques(self, x: _Sample, trotting, support, gleg, com):
+        """Step 3: clears the torques τ and desired forces, then for the support legs the
+        VMC wrench b distributed by the QP: τ_k = −J_kᵀ f_k + g_leg,k. Returns b (None
+        without support legs)."""
         tau = self._tau
         tau[:] = 0.0
         fdes = self.desired_forces
         fdes[:] = 0.0
+        if not support:
+            return None
+        b = self._vmc_wrench(x, trotting, support)
+        self._distribute_wrench(x, support, b, gleg, com)
+        return b
 
-        # -- virtual model control + contact force distribution --------------------------------
+    def _vmc_wrench(self, x: _Sample, trotting, support):
+        """The virtual model's desired wrench b = [F; M] (heading frame) about the centre of
+        mass:
+            F = k_p e + k_d (v* − v) + k_ff v* (+ velocity integral when trotting) + m g e_z,
+            M = k_p,rot e_R + k_d,rot (ω* − ω) + k_ff,rot ω*,
+        e: horizontal offset of the trunk from the centre of the support feet (all feet when
+        fewer than 2 (trot) / 3 (stand) support) and height error, clipped; e_R: rotation
+        vector of R_z(ψ*) Rᵀ, clipped."""
+        p = self.params
+        m = self.model
+        pb, R, cy, sy = x.pb, x.R, x.cy, x.sy
+        contact_pt = self._contact
         gains = self._gains_trot if trotting else self._gains_stand
-        b = None
-        if ns:
-            ref = support if ns >= (2 if trotting else 3) else range(4)
-            nr = len(ref)
-            rx = sum(contact_pt[k, 0] for k in ref) / nr - pb[0]
-            ry = sum(contact_pt[k, 1] for k in ref) / nr - pb[1]
-            e = self._e
-            e[0] = cy * rx + sy * ry
-            e[1] = -sy * rx + cy * ry
-            e[2] = self._ground + (p.trot_height if trotting and p.trot_height else p.height) \
-                - pb[2]
-            np.clip(e, -p.max_position_error, p.max_position_error, out=e)
-            vh = _to_heading(vb, cy, sy, self._vh)
-            vd = self._vd
-            vd[0], vd[1] = vcx, vcy
-            kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = gains
-            b = self._b
-            b[0:3] = kp_t * e + kd_t * (vd - vh) + kff_t * vd
-            if trotting and p.velocity_ki:
-                lim = p.velocity_integral_max
-                fi = self._f_int
-                for a in range(2):
-                    fi[a] = min(lim, max(-lim, fi[a] + p.velocity_ki * (vd[a] - vh[a]) * dt))
-                b[0] += fi[0]
-                b[1] += fi[1]
-            else:
-                self._f_int[:] = 0.0
-            b[2] += m.mass * m.gravity
-            # orientation error (rotation vector of R_des Rᵀ, world) in the heading frame
-            Rd = self._Rd
-            Rd[0, 0], Rd[0, 1], Rd[1, 0], Rd[1, 1] = (math.cos(self._yaw_des),
-                                                      -math.sin(self._yaw_des),
-                                                      math.sin(self._yaw_des),
-                                                      math.cos(self._yaw_des))
-            er = pin.log3(Rd @ R.T)
-            eh = _to_heading(er, cy, sy, self._eh)
-            np.clip(eh, -p.max_orientation_error, p.max_orientation_error, out=eh)
-            wh = _to_heading(ww, cy, sy, self._wh)
-            wd = self._wd
-            wd[2] = wc
-            b[3:6] = kp_r * eh + kd_r * (wd - wh) + kff_r * wd
-            rh = self._rh[ns]
-            for j, k in enumerate(support):
-                dx, dy = contact_pt[k, 0] - com[0], contact_pt[k, 1] - com[1]
-                rh[j, 0] = cy * dx + sy * dy
-                rh[j, 1] = -sy * dx + cy * dy
-                rh[j, 2] = contact_pt[k, 2] - com[2]
-            Jh, gh = self._Jh[ns], self._gh[ns]
-            for j, k in enumerate(support):
-                for a in range(3):     # heading-frame rows of J_c: Rzᵀ J_c
-                    Jh[j, 0, a] = cy * Jc[k, 0, a] + sy * Jc[k, 1, a]
-                    Jh[j, 1, a] = -sy * Jc[k, 0, a] + cy * Jc[k, 1, a]
-                    Jh[j, 2, a] = Jc[k, 2, a]
-                    gh[j, a] = gleg[3 * k + a]
-            fh = self.cfd.solve(rh, b, Jh, gh)
-            for j, k in enumerate(support):
-                fdes[k, 0] = cy * fh[j, 0] - sy * fh[j, 1]
-                fdes[k, 1] = sy * fh[j, 0] + cy * fh[j, 1]
-                fdes[k, 2] = fh[j, 2]
-                K.stance_torques(k, fdes[k], Jc, gleg, tau)
+        ns = len(support)
+        ref = support if ns >= (2 if trotting else 3) else range(4)
+        nr = len(ref)
+        rx = sum(contact_pt[k, 0] for k in ref) / nr - pb[0]
+        ry = sum(contact_pt[k, 1] for k in ref) / nr - pb[1]
+        e = self._e
+        e[0] = cy * rx + sy * ry
+        e[1] = -sy * rx + cy * ry
+        e[2] = self._ground + (p.trot_height if trotting and p.trot_height else p.height) \
+            - pb[2]
+        e.clip(-p.max_position_error, p.max_position_error, out=e)
+        vh = _to_heading(x.vb, cy, sy, self._vh)
+        vd = self._vd
+        vd[0], vd[1] = self._v_cmd[0], self._v_cmd[1]
+        kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = gains
+        b = self._b
+        b[0:3] = kp_t * e + kd_t * (vd - vh) + kff_t * vd
+        if trotting and p.velocity_ki:
+            lim = p.velocity_integral_max
+            fi = self._f_int
+            for a in range(2):
+                fi[a] = min(lim, max(-lim, fi[a] + p.velocity_ki * (vd[a] - vh[a]) * x.dt))
+            b[0] += fi[0]
+            b[1] += fi[1]
+        else:
+            self._f_int[:] = 0.0
+        b[2] += m.mass * m.gravity
+        # orientation error (rotation vector of R_des Rᵀ, world) in the heading frame
+        Rd = self._Rd
+        cd, sd = math.cos(self._yaw_des), math.sin(self._yaw_des)   # R_des = R_z(ψ*)
+        Rd[0, 0], Rd[0, 1], Rd[1, 0], Rd[1, 1] = cd, -sd, sd, cd
+        er = pin.log3(Rd @ R.T)
+        eh = _to_heading(er, cy, sy, self._eh)
+        eh.clip(-p.max_orientation_error, p.max_orientation_error, out=eh)
+        wh = _to_heading(x.ww, cy, sy, self._wh)
+        wd = self._wd
+        wd[2] = self._w_cmd
+        b[3:6] = kp_r * eh + kd_r * (wd - wh) + kff_r * wd
+        return b
 
-        # -- position-controlled legs (swing, lost contact, legs in the air while standing) ---
+    def _distribute_wrench(self, x: _Sample, support, b, gleg, com):
+        """The QP (force_distribution.py) in the heading frame: lever arms r_j = p_c,k − com,
+        Jacobian rows R_zᵀ J_c,k and gravity torques g_leg,k of the support legs give the
+        forces f_j of the ground on the feet; the desired forces (world, self.desired_forces)
+        and the stance torques τ_k = −J_c,kᵀ f_k + g_leg,k."""
+        cy, sy = x.cy, x.sy
+        contact_pt, Jc = self._contact, self._Jc
+        fdes = self.desired_forces
+        ns = len(support)
+        rh = self._rh[ns]
+        for j, k in enumerate(support):
+            dx, dy = contact_pt[k, 0] - com[0], contact_pt[k, 1] - com[1]
+            rh[j, 0] = cy * dx + sy * dy
+            rh[j, 1] = -sy * dx + cy * dy
+            rh[j, 2] = contact_pt[k, 2] - com[2]
+        Jh, gh = self._Jh[ns], self._gh[ns]
+        for j, k in enumerate(support):
+            for a in range(3):     # heading-frame rows of J_c: Rzᵀ J_c
+                Jh[j, 0, a] = cy * Jc[k, 0, a] + sy * Jc[k, 1, a]
+                Jh[j, 1, a] = -sy * Jc[k, 0, a] + cy * Jc[k, 1, a]
+                Jh[j, 2, a] = Jc[k, 2, a]
+                gh[j, a] = gleg[3 * k + a]
+        fh = self.cfd.solve(rh, b, Jh, gh)
+        tau = self._tau
+        for j, k in enumerate(support):
+            fdes[k, 0] = cy * fh[j, 0] - sy * fh[j, 1]
+            fdes[k, 1] = sy * fh[j, 0] + cy * fh[j, 1]
+            fdes[k, 2] = fh[j, 2]
+            K.stance_torques(k, fdes[k], Jc, gleg, tau)
+
+    # -- 4. swing legs ---------------------------------------------------------------------
+    def _position_controlled_leg_torques(self, x: _Sample, trotting, gleg):
+        """Step 4: the legs not in support (swing, lost contact, in the air while standing)
+        follow a foot target (position `_target`, velocity `_vtarget`, world) by analytic IK
+        and joint PD with gravity feed-forward (kernels.foot_position_control) into τ."""
+        m = self.model
+        pb, R = x.pb, x.R
+        states = self.leg_state
         target, vt = self._target, self._vtarget
         for k in range(4):
             st = states[k]
@@ -517,62 +650,94 @@ class StarlethController:
             rhz_w = R[2, 0] * hx0 + R[2, 1] * hy0 + R[2, 2] * hz0
             hx, hy, hz = pb[0] + rhx_w, pb[1] + rhy_w, pb[2] + rhz_w
             if st == SWING:
-                sp = swing_phase[k]
-                # inverted-pendulum foothold relative to the hip, heading frame
-                vhx_w = vb[0] + ww[1] * rhz_w - ww[2] * rhy_w
-                vhy_w = vb[1] + ww[2] * rhx_w - ww[0] * rhz_w
-                vx = cy * vhx_w + sy * vhy_w
-                vy = -sy * vhx_w + cy * vhy_w
-                rx = cy * rhx_w + sy * rhy_w
-                ry = -sy * rhx_w + cy * rhy_w
-                vdx = vcx - wc * ry
-                vdy = vcy + wc * rx
-                sq = math.sqrt(max(hz - self._ground, 0.05) / m.gravity)
-                dx = 0.5 * vdx * Tst + p.step_feedback * (vx - vdx) * sq
-                dy = 0.5 * vdy * Tst + p.step_feedback * (vy - vdy) * sq
-                dx = min(max(dx, -p.step_max), p.step_max) + p.foothold_offset_x[k]
-                dy = min(max(dy, -p.step_max), p.step_max)
-                sig, dsig = _smooth(sp / p.step_interp_end)
-                r0x, r0y = self._r_liftoff[k]
-                ox = r0x + sig * (dx - r0x)
-                oy = r0y + sig * (dy - r0y)
-                rate = dsig / (p.step_interp_end * Tsw)
-                dox, doy = rate * (dx - r0x), rate * (dy - r0y)
-                target[0] = hx + cy * ox - sy * oy
-                target[1] = hy + sy * ox + cy * oy
-                vt[0] = vhx_w + cy * dox - sy * doy
-                vt[1] = vhy_w + sy * dox + cy * doy
-                # height: up to the apex at mid-swing, then down to below the ground
-                if sp < 0.5:
-                    a, da = _smooth(2.0 * sp)
-                    z, dz = p.swing_height * a, p.swing_height * da * 2.0 / Tsw
-                else:
-                    a, da = _smooth(2.0 * sp - 1.0)
-                    span = -p.touchdown_depth - p.swing_height
-                    z, dz = p.swing_height + span * a, span * da * 2.0 / Tsw
-                target[2] = self._ground + m.foot_radius[k] + z
-                vt[2] = dz
-                self._foothold[k, 0] = hx + cy * dx - sy * dy
-                self._foothold[k, 1] = hy + sy * dx + cy * dy
+                self._swing_target(k, x, rhx_w, rhy_w, rhz_w, hx, hy, hz)
             else:  # LOST_CONTACT: lower the foot to find the ground
-                if trotting:
-                    target[0], target[1] = self._foothold[k]
-                else:
-                    target[0], target[1] = hx, hy
-                depth = min(p.touchdown_depth + p.lost_contact_speed * (t - self._lost_since[k]),
-                            p.lost_contact_depth)
-                target[2] = self._ground + m.foot_radius[k] - depth
-                vt[:] = 0.0
-            K.foot_position_control(k, target, vt, pb, R, vb, ww, Jf, qj, dqj, gleg,
-                                    self._kp3, self._kd3, m.hip, self._geo, tau)
+                self._lowering_target(k, x.t, trotting, hx, hy)
+            K.foot_position_control(k, target, vt, pb, R, x.vb, x.ww, self._Jf, x.qj, x.dqj,
+                                    gleg, self._kp3, self._kd3, m.hip, self._geo, self._tau)
 
-        np.clip(tau, -self._lim, self._lim, out=tau)
+    def _swing_target(self, k, x: _Sample, rhx_w, rhy_w, rhz_w, hx, hy, hz):
+        """Swing leg k: foot target from the lift-off offset r₀ (heading frame, relative to
+        the hip) to the inverted-pendulum foothold
+            Δ = ½ v*_hip T_stance + k_fb (v_hip − v*_hip) √(h/g)
+        (clipped to step_max, plus foothold_offset_x), blended with a smoothstep until
+        step_interp_end; height up to swing_height at mid-swing, then down to touchdown_depth
+        below the ground. r_w: trunk→hip (world), h = (hx, hy, hz): the hip. Writes `_target`,
+        `_vtarget` and the foothold (world xy)."""
+        p = self.params
+        m = self.model
+        vb, ww, cy, sy = x.vb, x.ww, x.cy, x.sy
+        vcx, vcy, wc = self._v_cmd[0], self._v_cmd[1], self._w_cmd
+        target, vt = self._target, self._vtarget
+        T = p.gait_period
+        Tsw = (1.0 - p.duty_factor) * T
+        Tst = p.duty_factor * T
+        sp = self._swing_phase[k]
+        # inverted-pendulum foothold relative to the hip, heading frame
+        vhx_w = vb[0] + ww[1] * rhz_w - ww[2] * rhy_w
+        vhy_w = vb[1] + ww[2] * rhx_w - ww[0] * rhz_w
+        vx = cy * vhx_w + sy * vhy_w
+        vy = -sy * vhx_w + cy * vhy_w
+        rx = cy * rhx_w + sy * rhy_w
+        ry = -sy * rhx_w + cy * rhy_w
+        vdx = vcx - wc * ry
+        vdy = vcy + wc * rx
+        sq = math.sqrt(max(hz - self._ground, 0.05) / m.gravity)
+        dx = 0.5 * vdx * Tst + p.step_feedback * (vx - vdx) * sq
+        dy = 0.5 * vdy * Tst + p.step_feedback * (vy - vdy) * sq
+        dx = min(max(dx, -p.step_max), p.step_max) + p.foothold_offset_x[k]
+        dy = min(max(dy, -p.step_max), p.step_max)
+        sig, dsig = _smooth(sp / p.step_interp_end)
+        r0x, r0y = self._r_liftoff[k]
+        ox = r0x + sig * (dx - r0x)
+        oy = r0y + sig * (dy - r0y)
+        rate = dsig / (p.step_interp_end * Tsw)
+        dox, doy = rate * (dx - r0x), rate * (dy - r0y)
+        target[0] = hx + cy * ox - sy * oy
+        target[1] = hy + sy * ox + cy * oy
+        vt[0] = vhx_w + cy * dox - sy * doy
+        vt[1] = vhy_w + sy * dox + cy * doy
+        # height: up to the apex at mid-swing, then down to below the ground
+        if sp < 0.5:
+            a, da = _smooth(2.0 * sp)
+            z, dz = p.swing_height * a, p.swing_height * da * 2.0 / Tsw
+        else:
+            a, da = _smooth(2.0 * sp - 1.0)
+            span = -p.touchdown_depth - p.swing_height
+            z, dz = p.swing_height + span * a, span * da * 2.0 / Tsw
+        target[2] = self._ground + m.foot_radius[k] + z
+        vt[2] = dz
+        self._foothold[k, 0] = hx + cy * dx - sy * dy
+        self._foothold[k, 1] = hy + sy * dx + cy * dy
+
+    def _lowering_target(self, k, t, trotting, hx, hy):
+        """Leg k without the contact it should have: the foot at the last foothold (trotting)
+        or under the hip (hx, hy), lowered at lost_contact_speed from touchdown_depth to at
+        most lost_contact_depth below the ground since contact was lost; zero velocity."""
+        p = self.params
+        target, vt = self._target, self._vtarget
+        if trotting:
+            target[0], target[1] = self._foothold[k]
+        else:
+            target[0], target[1] = hx, hy
+        depth = min(p.touchdown_depth + p.lost_contact_speed * (t - self._lost_since[k]),
+                    p.lost_contact_depth)
+        target[2] = self._ground + self.model.foot_radius[k] - depth
+        vt[:] = 0.0
+
+    # -- 5. saturation ---------------------------------------------------------------------
+    def _saturate_and_report(self, x: _Sample, support, b, com, t_wall):
+        """Step 5: τ clipped to ±effort limit; call_time and info (mode, leg states, support
+        legs, contact flags, wrench b, QP status, ground, ψ*, com). Returns a copy of τ."""
+        tau = self._tau
+        tau.clip(self._neg_lim, self._lim, out=tau)   # = np.clip, without its wrapper
+        ns = len(support)
         self.call_time = time.perf_counter() - t_wall
         self.info = {
             "mode": self.mode,
-            "leg_state": [STATE_NAMES[x] for x in states],
+            "leg_state": [STATE_NAMES[st] for st in self.leg_state],
             "support": support,
-            "grounded": grounded.tolist(),
+            "grounded": x.grounded.tolist(),
             "wrench": None if b is None else b.copy(),
             "qp_status": self.cfd.status if ns else "idle",
             "qp_iterations": self.cfd.iterations if ns else 0,

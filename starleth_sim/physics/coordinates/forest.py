@@ -256,6 +256,20 @@ def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, sup
 
 
 # --------------------------------------------------------------------------------------------
+def _checked_cut(src, cut):
+    """The source joint ids of the joints to cut (names or ids), sorted, after checking that
+    each is an axis-aligned revolute joint and that the model has a free-flyer root."""
+    cut_ids = sorted(src.getJointId(n) if isinstance(n, str) else int(n) for n in cut)
+    for j in cut_ids:
+        if src.joints[j].shortname() not in _JOINT_TYPES:
+            raise ValueError(f"only axis-aligned revolute joints can be cut, not "
+                             f"'{src.names[j]}' ({src.joints[j].shortname()})")
+    if src.joints[1].shortname() != "JointModelFreeFlyer":
+        raise ValueError("the robot model needs a free-flyer root")
+    return cut_ids
+
+
+# --------------------------------------------------------------------------------------------
 class ForestCoordinates:
     """q, u, F(q), M, h, contact and bilateral force directions of a cut kinematic tree."""
 
@@ -263,15 +277,24 @@ class ForestCoordinates:
         self.name = name
         self.desc = desc
         src = desc.model
-        cut_ids = sorted(src.getJointId(n) if isinstance(n, str) else int(n) for n in cut)
-        for j in cut_ids:
-            if src.joints[j].shortname() not in _JOINT_TYPES:
-                raise ValueError(f"only axis-aligned revolute joints can be cut, not "
-                                 f"'{src.names[j]}' ({src.joints[j].shortname()})")
-        if src.joints[1].shortname() != "JointModelFreeFlyer":
-            raise ValueError("the robot model needs a free-flyer root")
+        cut_ids = _checked_cut(src, cut)
         self.src = src
         roots = [1] + cut_ids
+        single_body_trees = self._build_forest(roots, cut_ids, com_frames)
+        self._index_trees(roots, bool(com_frames and single_body_trees))
+        self._init_cut_constraints(cut_ids)
+        self._map_actuated_joints(cut_ids)
+        self._init_contacts()
+        if self.constant_mass_matrix:
+            self._init_constant_mass_matrix()
+
+    def _build_forest(self, roots, cut_ids, com_frames):
+        """The forest model (self.model, self.data): one free-flyer tree per root (source
+        joint 1 and every cut joint), holding the root's body and the bodies below it down to
+        the next cut; with `com_frames` each root body's frame at its centre of mass.
+        Fills self.joint_map (source joint j -> (forest joint, off), F = J_j · off). True
+        when every tree is a single body."""
+        src = self.src
         forest = pin.Model()
         forest.gravity = src.gravity
         #: source joint j -> (forest joint, off) with F = J_j · off: `off` places the forest
@@ -312,6 +335,14 @@ class ForestCoordinates:
                 self.joint_map[j] = (fjj, pin.SE3.Identity())
         self.model = forest
         self.data = forest.createData()
+        return single_body_trees
+
+    def _index_trees(self, roots, constant_mass_matrix):
+        """Sizes and index arrays of the forest: nq, nv, the kinematic tree arrays (self.tree),
+        each tree's root joint and its q / v offsets, the diagonal blocks of M (one per tree,
+        for the block Cholesky: [first v, size]) and the work arrays of the velocity
+        transform."""
+        forest = self.model
         self.nq, self.nv = forest.nq, forest.nv
         self.tree = KinematicTree(forest)
         t = self.tree
@@ -322,11 +353,16 @@ class ForestCoordinates:
         sizes = [int(v) for v in self.root_v[1:]] + [self.nv]
         self.blocks = np.array([[self.root_v[i], sizes[i] - self.root_v[i]]
                                 for i in range(len(roots))], dtype=np.int64)
-        self.constant_mass_matrix = bool(com_frames and single_body_trees)
+        self.constant_mass_matrix = constant_mass_matrix
         self._Rs = np.zeros((len(roots), 3, 3))
         self._u_pin = np.zeros(self.nv)
 
-        # cut joints -> bilateral constraints
+    def _init_cut_constraints(self, cut_ids):
+        """Cut joints -> 5-row bilateral constraints (module docstring): for cut k the parent
+        and child bodies (cut_P, cut_C), the joint's origin in each (p_P, p_C), its axis a in
+        each (a_P, a_C) and the directions b1, b2 = a x b1 ⟂ a in P (b1_P, b2_P) and b1 in C
+        (b1_C); plus the work arrays of the cut-joint kinematics."""
+        src = self.src
         ncut = len(cut_ids)
         self.n_cut = ncut
         self.n_bilateral = 5 * ncut
@@ -361,10 +397,15 @@ class ForestCoordinates:
         self._torque_map = None
         self._gB = np.zeros(self.n_bilateral)
 
-        # actuated joints: forest joints, or cut joints (by index into the cut list)
+    def _map_actuated_joints(self, cut_ids):
+        """The actuated joints (desc.joint_names, public order): forest joints (joint_q,
+        joint_v: their q / v indices, -1 for cut joints) or cut joints (joint_cut: index into
+        the cut list, -1 for forest joints), and the masks / work arrays of
+        add_joint_torques."""
+        forest = self.model
         self.joint_q, self.joint_v, self.joint_cut = [], [], []
-        for n in desc.joint_names:
-            sj = src.getJointId(n)
+        for n in self.desc.joint_names:
+            sj = self.src.getJointId(n)
             if sj in cut_ids:
                 self.joint_q.append(-1)
                 self.joint_v.append(-1)
@@ -384,10 +425,12 @@ class ForestCoordinates:
         self.joint_cut = np.array(self.joint_cut, dtype=np.int64)
         self._act_tree = self.joint_cut < 0
         self._act_cut = ~self._act_tree
-        self._tau_cut = np.zeros(ncut)
+        self._tau_cut = np.zeros(len(cut_ids))
 
-        # contact points in forest frames
-        cs = desc.contacts
+    def _init_contacts(self):
+        """The contact points (desc.contacts) in forest frames: their forest joint
+        (c_joint), position in that joint's body frame (c_local) and radius (c_radius)."""
+        cs = self.desc.contacts
         self.n_contacts = len(cs)
         self.contact_names = [c.name for c in cs]
         self.c_joint = np.array([self.joint_map[c.joint][0] for c in cs], dtype=np.int64)
@@ -395,16 +438,19 @@ class ForestCoordinates:
                                 dtype=float).reshape(-1, 3)
         self.c_radius = np.array([c.radius for c in cs], dtype=float)
 
-        if self.constant_mass_matrix:
-            self._mass = np.array([forest.inertias[int(r)].mass for r in self.roots])
-            self._inertia = np.array([forest.inertias[int(r)].inertia for r in self.roots])
-            self._gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
-            M = np.zeros((self.nv, self.nv))
-            for i, r in enumerate(self.roots):
-                v = self.root_v[i]
-                M[v:v + 3, v:v + 3] = self._mass[i] * np.eye(3)
-                M[v + 3:v + 6, v + 3:v + 6] = self._inertia[i]
-            self._M_const = M
+    def _init_constant_mass_matrix(self):
+        """Single free bodies with frames at their centres of mass: the constant mass matrix
+        M = diag(m_k I, Θ_k) and the masses, inertias and gravity of rigid_body_forces."""
+        forest = self.model
+        self._mass = np.array([forest.inertias[int(r)].mass for r in self.roots])
+        self._inertia = np.array([forest.inertias[int(r)].inertia for r in self.roots])
+        self._gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
+        M = np.zeros((self.nv, self.nv))
+        for i, r in enumerate(self.roots):
+            v = self.root_v[i]
+            M[v:v + 3, v:v + 3] = self._mass[i] * np.eye(3)
+            M[v + 3:v + 6, v + 3:v + 6] = self._inertia[i]
+        self._M_const = M
 
     # -- configuration space ------------------------------------------------------------------
     def neutral(self):
