@@ -509,13 +509,27 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
         t_start, t_end = min(float(t[0]) for t in ts), max(float(t[-1]) for t in ts)
         S["sim_time"] = {"start": t_start, "end": t_end, "duration": t_end - t_start,
                          "t0_stamp": run.t0_ns * 1e-9, "control_period": run.control_period}
-    js = run.series("joints")
-    S["control_steps"] = int(js["t"].size)
+    S["control_steps"] = int(run.series("joints")["t"].size)
     urdf, mass_source = run.urdf, "the bag's URDF"
     if urdf is None:
         urdf, mass_source = _package_urdf(), "the package URDF (none in the bag)"
     mass, limits = urdf_info(urdf)
-    # contact
+    S.update(_contact_summary(run, threshold, min_phase))
+    if mass:
+        S["mass"], S["weight"], S["mass_source"] = mass, mass * G, mass_source
+    if run.has("base"):
+        S["base"] = _base_summary(run, twist_frame)
+    if run.series("joints")["t"].size:
+        S["joints"] = _joint_summary(run, limits)
+    if run.has("solver"):
+        S["solver"] = _solver_summary(run)
+    S["real_time_factor"] = _rtf_summary(run)
+    S.update(_sim_node_summary(run))
+    return S
+
+
+def _contact_summary(run: Run, threshold, min_phase) -> dict:
+    """Per foot: normal force, stance fraction, touchdowns; the total mean normal force."""
     feet, total = {}, 0.0
     for foot in FEET:
         if not run.has("wrench", foot):
@@ -528,67 +542,71 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
                       "stance_fraction": float(stance / dur) if dur > 0 else math.nan,
                       "touchdowns": int(td), "stance_phases": len(iv)}
         total += float(fz.mean())
-    if feet:
-        S["feet"] = feet
-        S["contact_threshold"] = threshold
-        S["total_mean_normal_force"] = total if len(feet) == 4 else None
-    if mass:
-        S["mass"], S["weight"], S["mass_source"] = mass, mass * G, mass_source
-    # base
-    if run.has("base"):
-        b = run.series("base")
-        d = b["data"]
-        p = d[:, 0:3]
-        t, vx, vy, frame = horizontal_velocity(run, twist_frame)
-        sp = np.hypot(vx, vy)
-        seg = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
-        dur = float(t[-1] - t[0]) if t.size > 1 else 0.0
-        net = float(np.hypot(*(p[-1, :2] - p[0, :2])))
-        S["base"] = {"start": p[0].tolist(), "end": p[-1].tolist(), "distance": net,
-                     "path_length": float(seg.sum()),
-                     "mean_speed_displacement": net / dur if dur > 0 else math.nan,
-                     "mean_speed": float(sp.mean()), "max_speed": float(sp.max()),
-                     "height_min": float(p[:, 2].min()), "height_max": float(p[:, 2].max()),
-                     "height_mean": float(p[:, 2].mean()), "twist_frame": frame,
-                     "frames": list(run.base_frames)}
-    # joints
-    if js["t"].size:
-        e = js["data"]
+    if not feet:
+        return {}
+    return {"feet": feet, "contact_threshold": threshold,
+            "total_mean_normal_force": total if len(feet) == 4 else None}
+
+
+def _base_summary(run: Run, twist_frame) -> dict:
+    """Base path: distance, path length, speeds, heights, frames."""
+    p = run.series("base")["data"][:, 0:3]
+    t, vx, vy, frame = horizontal_velocity(run, twist_frame)
+    sp = np.hypot(vx, vy)
+    seg = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
+    dur = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    net = float(np.hypot(*(p[-1, :2] - p[0, :2])))
+    return {"start": p[0].tolist(), "end": p[-1].tolist(), "distance": net,
+            "path_length": float(seg.sum()),
+            "mean_speed_displacement": net / dur if dur > 0 else math.nan,
+            "mean_speed": float(sp.mean()), "max_speed": float(sp.max()),
+            "height_min": float(p[:, 2].min()), "height_max": float(p[:, 2].max()),
+            "height_mean": float(p[:, 2].mean()), "twist_frame": frame,
+            "frames": list(run.base_frames)}
+
+
+def _joint_summary(run: Run, limits) -> dict:
+    """Joint torques: max |τ| and RMS per joint and overall, time at the effort limit."""
+    e = run.series("joints")["data"]
+    with np.errstate(invalid="ignore"):
+        absmax = np.nanmax(np.abs(e), axis=0) if np.isfinite(e).any() else \
+            np.full(len(JOINTS), np.nan)
+        rms = np.sqrt(np.nanmean(e * e, axis=0)) if np.isfinite(e).any() else absmax
+    J = {"max_abs": {n: float(x) for n, x in zip(JOINTS, absmax)},
+         "rms": {n: float(x) for n, x in zip(JOINTS, rms)}}
+    if np.isfinite(absmax).any():
+        i = int(np.nanargmax(absmax))
+        J["max_abs_overall"], J["max_abs_joint"] = float(absmax[i]), JOINTS[i]
+        J["rms_overall"] = float(np.sqrt(np.nanmean(e * e)))
+    if limits and all(n in limits for n in JOINTS):
+        lim = np.array([limits[n] for n in JOINTS])
+        fin = np.isfinite(e)
         with np.errstate(invalid="ignore"):
-            absmax = np.nanmax(np.abs(e), axis=0) if np.isfinite(e).any() else \
-                np.full(len(JOINTS), np.nan)
-            rms = np.sqrt(np.nanmean(e * e, axis=0)) if np.isfinite(e).any() else absmax
-        J = {"max_abs": {n: float(x) for n, x in zip(JOINTS, absmax)},
-             "rms": {n: float(x) for n, x in zip(JOINTS, rms)}}
-        if np.isfinite(absmax).any():
-            i = int(np.nanargmax(absmax))
-            J["max_abs_overall"], J["max_abs_joint"] = float(absmax[i]), JOINTS[i]
-            J["rms_overall"] = float(np.sqrt(np.nanmean(e * e)))
-        if limits and all(n in limits for n in JOINTS):
-            lim = np.array([limits[n] for n in JOINTS])
-            fin = np.isfinite(e)
-            with np.errstate(invalid="ignore"):
-                sat = (np.abs(e) >= lim * (1 - 1e-6)) & fin
-            J["at_effort_limit_fraction"] = float(sat.sum() / max(fin.sum(), 1))
-            J["effort_limit"] = float(lim.max())
-        if run.joint_names is not None:
-            unknown = [n for n in run.joint_names if n not in JOINTS]
-            if unknown:
-                J["ignored_joints"] = unknown
-        S["joints"] = J
-    # solver
-    if run.has("solver"):
-        d = run.series("solver")["data"]
-        it = d[:, 0]
-        fin = it[np.isfinite(it)]
-        conv = d[:, 1]
-        S["solver"] = {
-            "steps": int(it.size), "iterations_mean": float(fin.mean()) if fin.size else None,
+            sat = (np.abs(e) >= lim * (1 - 1e-6)) & fin
+        J["at_effort_limit_fraction"] = float(sat.sum() / max(fin.sum(), 1))
+        J["effort_limit"] = float(lim.max())
+    if run.joint_names is not None:
+        unknown = [n for n in run.joint_names if n not in JOINTS]
+        if unknown:
+            J["ignored_joints"] = unknown
+    return J
+
+
+def _solver_summary(run: Run) -> dict:
+    """Prox iterations per step (mean, median, p95, max), non-converged steps, residual."""
+    d = run.series("solver")["data"]
+    it = d[:, 0]
+    fin = it[np.isfinite(it)]
+    conv = d[:, 1]
+    return {"steps": int(it.size), "iterations_mean": float(fin.mean()) if fin.size else None,
             "iterations_median": float(np.median(fin)) if fin.size else None,
             "iterations_p95": float(np.percentile(fin, 95)) if fin.size else None,
             "iterations_max": float(fin.max()) if fin.size else None,
             "nonconverged": int(np.sum(conv[np.isfinite(conv)] == 0)),
             "residual_max": float(np.nanmax(d[:, 2])) if np.isfinite(d[:, 2]).any() else None}
+
+
+def _rtf_summary(run: Run) -> dict:
     rtf = real_time_factor(run)
     R = {"source": rtf["source"], "value": rtf["value"]}
     if "compute" in rtf:
@@ -599,17 +617,22 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
     if "loop" in rtf:
         R["loop"] = rtf["loop"]["value"]
         R["loop_period_mean_ms"] = rtf["loop"]["period_mean_ms"]
-    S["real_time_factor"] = R
+    return R
+
+
+def _sim_node_summary(run: Run) -> dict:
+    """sim_node's parameters and final counters as recorded in the bag's metadata."""
+    out = {}
     params = run.sim_node_parameters()
     if params:
-        S["sim_node"] = {k: params.get(k) for k in ("physics", "mode", "real_time_factor")
-                         if k in params}
+        out["sim_node"] = {k: params.get(k) for k in ("physics", "mode", "real_time_factor")
+                           if k in params}
     summ = run.sim_node_summary()
     if summ:
-        S.setdefault("sim_node", {}).update(
+        out.setdefault("sim_node", {}).update(
             {k: summ[k] for k in ("steps", "lockstep_timeouts", "commands_rejected",
                                   "simulation_errors", "overruns") if k in summ})
-    return S
+    return out
 
 
 # =========================================================================================
