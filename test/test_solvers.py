@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
-from starleth_sim import Simulator, prox
+from starleth_sim import Simulator
+from starleth_sim.physics import prox
 from starleth_sim.physics.stepper import (constraint_velocity, free_velocity, phase_delassus,
                                           phase_minv)
 

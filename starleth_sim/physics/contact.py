@@ -7,6 +7,7 @@ models share: the plane, its tangent basis, and per-contact bookkeeping.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numba as nb
@@ -45,10 +46,23 @@ class GroundPlane:
         return np.vstack([self.n, self.t1, self.t2])
 
 
+class CompliantLaw(NamedTuple):
+    """The parameters of the compliant contact law (Alg. 1)."""
+
+    mu: float              # μ, Coulomb friction coefficient
+    c_N: float             # normal stiffness [N/m]
+    d_N: float             # normal damping [N s/m]
+    c_T: float             # tangential stiffness [N/m]
+    d_T: float             # tangential damping [N s/m]
+    slip_velocity: float   # ‖γ_T‖ below which a slipping contact counts as stopped [m/s]
+
+
 @nb.njit(cache=True)
-def compliant_contact_forces(gap, position, Wt, u, closed, slip, anchor, mu, c_n, d_n, c_t,
-                             d_t, slip_velocity, normal, tangent1, tangent2, lam):
-    """Compliant contact law of Alg. 1 for all contact points, at (q^M, u^S).
+def compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, tangent1,
+                             tangent2, lam):
+    """Compliant contact law of Alg. 1 for all contact points, at (q^M, u^S), with the
+    parameters `law` (the fields of a CompliantLaw; a plain tuple will do, as it crosses
+    from Python cheaper than a namedtuple) and the plane's tangents t1, t2.
 
     Each closed contact (g_N ≤ 0) is a spring-damper between its current point P and the
     point P0 (`anchor`) where it was first detected or last re-anchored:
@@ -60,6 +74,9 @@ def compliant_contact_forces(gap, position, Wt, u, closed, slip, anchor, mu, c_n
     Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
     in the contact frame (n, t1, t2); the state arrays are updated in place.
     """
+    p = CompliantLaw(*law)
+    mu, c_n, d_n, c_t, d_t = p.mu, p.c_N, p.d_N, p.c_T, p.d_T
+    slip_velocity = p.slip_velocity
     nc = gap.shape[0]
     nv = u.shape[0]
     for i in range(nc):

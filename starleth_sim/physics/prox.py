@@ -25,14 +25,20 @@ T = ½ u^T M u.
 Sparsity: W^T rows touch only the bodies a contact or hinge acts on (few columns in the
 extended and maximal coordinates), so the kernels take the nonzero patterns of the rows of
 W^T (`wp`), of the columns of M^{-1}W (`mp`) and of the rows of G (`gp`), each as a CSR pair
-(ptr, idx) made by :func:`row_pattern` / :func:`col_pattern`. Dense problems just have full
-patterns.
+(ptr, idx) made by :func:`row_pattern` / :func:`col_pattern`, bundled in a `Patterns`
+record. Dense problems just have full patterns (:func:`dense_problem_patterns`).
+
+Settings: the kernels read form, scheme, T_rel, T_abs, the iteration cap, the termination
+criterion and the bilateral method from one typed record `s` with the fields of
+`ProxSettings` (the stepper passes its `StepSettings`, which has them all).
 
 Every kernel returns (iterations, status, residual) with status 0 = converged,
 1 = iteration cap reached, 2 = non-finite values (the caller must not accept the result),
 and residual = max_l |Λ_(l)^{k+1} − Λ_(l)^k| of the last iteration.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 import numba as nb
@@ -52,6 +58,30 @@ STATUS_NONFINITE = 2
 SCHEMES = {"jor": SCHEME_JOR, "sor": SCHEME_SOR}
 FORMS = {"delassus": FORM_DELASSUS, "velocity": FORM_VELOCITY}
 CRITERIA = {"impulse": CRITERION_IMPULSE, "energy": CRITERION_ENERGY}
+
+
+class Patterns(NamedTuple):
+    """Nonzero patterns of a problem, each a CSR pair (ptr, idx): the rows of W^T (wp), the
+    columns of M^{-1}W (mp) and the rows of G (gp; empty rows in the velocity form)."""
+
+    wp_ptr: np.ndarray
+    wp_idx: np.ndarray
+    mp_ptr: np.ndarray
+    mp_idx: np.ndarray
+    gp_ptr: np.ndarray
+    gp_idx: np.ndarray
+
+
+class ProxSettings(NamedTuple):
+    """The settings the prox kernels read (any record with these fields will do)."""
+
+    form: int                  # FORM_DELASSUS (Eqn. 12-16) | FORM_VELOCITY (Eqn. 17-19)
+    scheme: int                # SCHEME_JOR | SCHEME_SOR
+    tol_rel: float             # T_rel
+    tol_abs: float             # T_abs [N s]
+    max_iterations: int
+    criterion: int             # CRITERION_IMPULSE | CRITERION_ENERGY (½ uᵀMu)
+    bilateral_direct: bool     # Λ_B by Eqn. 20 after each sweep (else prox rows, Eqn. 19)
 
 
 @nb.njit(cache=True, inline="always")
@@ -238,9 +268,11 @@ def _check(lam_old, lam, tol_rel, tol_abs):
 
 
 @nb.njit(cache=True)
-def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter, bilateral_direct, LB,
-                      criterion, M, u_free, MinvW, u, gp_ptr, gp_idx, mp_ptr, mp_idx):
+def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out."""
+    tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
+    bilateral_direct, criterion = s.bilateral_direct, s.criterion
+    gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
     m = c.shape[0]
     o = 3 * nc
     xi = np.empty(m)
@@ -284,9 +316,11 @@ def jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter, bilatera
 
 
 @nb.njit(cache=True)
-def sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter, bilateral_direct, LB,
-                      criterion, M, u_free, MinvW, u, gp_ptr, gp_idx, mp_ptr, mp_idx):
+def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     """SOR prox on ξ = GΛ + c: contact after contact, reusing the updated impulses."""
+    tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
+    bilateral_direct, criterion = s.bilateral_direct, s.criterion
+    gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
     m = c.shape[0]
     o = 3 * nc
     old = np.empty(m)
@@ -337,9 +371,11 @@ def sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter, bilatera
 
 
 @nb.njit(cache=True)
-def jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                      bilateral_direct, LB, criterion, M, u, wp_ptr, wp_idx, mp_ptr, mp_idx):
+def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u):
     """JOR prox iterating in the end velocity u^k (Eqn. 17-19); G is never formed."""
+    tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
+    bilateral_direct, criterion = s.bilateral_direct, s.criterion
+    wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m = Wt.shape[0]
     o = 3 * nc
     xi = np.empty(m)
@@ -385,10 +421,12 @@ def jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
 
 
 @nb.njit(cache=True)
-def sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                      bilateral_direct, LB, criterion, M, u, wp_ptr, wp_idx, mp_ptr, mp_idx):
+def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u):
     """SOR prox in the end velocity: after each contact's projection u is updated (Eqn. 18),
     then the bilateral rows (Eqn. 19, or Eqn. 20 when direct)."""
+    tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
+    bilateral_direct, criterion = s.bilateral_direct, s.criterion
+    wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m = Wt.shape[0]
     o = 3 * nc
     old = np.empty(m)
@@ -445,32 +483,26 @@ def sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
 
 
 @nb.njit(cache=True)
-def prox_solve(form, scheme, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam,
-               tol_rel, tol_abs, max_iter, bilateral_direct, LB, criterion, M, u,
-               wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx):
-    """Dispatch to one of the four schemes (one jitted call from the stepper). The patterns:
-    rows of Wt (wp), columns of MinvW (mp), rows of G (gp; unused in the velocity form)."""
-    if form == FORM_DELASSUS:
-        if scheme == SCHEME_JOR:
-            return jor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                                     bilateral_direct, LB, criterion, M, u_free, MinvW, u,
-                                     gp_ptr, gp_idx, mp_ptr, mp_idx)
-        return sor_prox_delassus(G, c, nc, mu, r, lam, tol_rel, tol_abs, max_iter,
-                                 bilateral_direct, LB, criterion, M, u_free, MinvW, u,
-                                 gp_ptr, gp_idx, mp_ptr, mp_idx)
-    if scheme == SCHEME_JOR:
-        return jor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
-                                 max_iter, bilateral_direct, LB, criterion, M, u,
-                                 wp_ptr, wp_idx, mp_ptr, mp_idx)
-    return sor_prox_velocity(Wt, MinvW, u_free, bvec, nc, mu, r, lam, tol_rel, tol_abs,
-                             max_iter, bilateral_direct, LB, criterion, M, u,
-                             wp_ptr, wp_idx, mp_ptr, mp_idx)
+def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u):
+    """One prox solve with the scheme and form of the settings `s` (a `ProxSettings`-like
+    record; one jitted call from the stepper). Problem: W^T (Wt), M^{-1}W (MinvW),
+    u_free = u^S + M^{-1} h Δt, b, G = W^T M^{-1} W and c = W^T u_free + b (Delassus form
+    only), nc contacts with friction coefficients μ (mu), the prox parameters r, the
+    Cholesky factor L_B of G_BB (direct bilateral method), M (energy criterion). lam: Λ,
+    warm start in, solution out; u: u^E out. `pat`: the problem's `Patterns`."""
+    if s.form == FORM_DELASSUS:
+        if s.scheme == SCHEME_JOR:
+            return jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u)
+        return sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u)
+    if s.scheme == SCHEME_JOR:
+        return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
+    return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
 
 
 def dense_problem_patterns(Wt, MinvW, G):
-    """All the patterns prox_solve takes, for a problem given densely (tests, tools)."""
+    """The `Patterns` of a problem given densely (tests, tools)."""
     wp = row_pattern(Wt)
     mp = col_pattern(MinvW)
     gp = row_pattern(G) if G.size else (np.zeros(Wt.shape[0] + 1, dtype=np.int64),
                                         np.zeros(0, dtype=np.int64))
-    return (*wp, *mp, *gp)
+    return Patterns(*wp, *mp, *gp)

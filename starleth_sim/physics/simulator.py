@@ -5,6 +5,12 @@
     sim.reset()                                   # standing on the ground
     sim.step(tau)                                 # one control period (1/400 s), 12 torques
     sim.q, sim.u, sim.t, sim.contacts, sim.diagnostics
+    snap = sim.snapshot(); ...; sim.restore(snap) # back to a saved state
+
+The evolving state is one `SimState` (``sim.state``: q, u, t, the contact memory, the timed
+wrenches); the model and settings (description, config, persistent wrenches) and the
+workspace (the stepper's arrays, the reports of the last step) are not part of it, see
+:mod:`starleth_sim.physics.state`.
 
 Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
 URDF effort limits; beyond the URDF velocity limit v a torque that drives its joint faster
@@ -26,6 +32,7 @@ from .config import PhysicsConfig, load_preset
 from .coordinates import make_coordinates
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
+from .state import SimState
 from .stepper import MoreauStepper, SimulationError, PHASES
 from . import prox
 
@@ -64,8 +71,10 @@ _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterat
 @dataclass
 class ContactInfo:
     name: str
-    active: bool            # in the active set at the last step's midpoint (see
-                            # contact.activation: g_N ≤ activation gap, or still loaded)
+    active: bool            # at the last step's midpoint: hard contacts in the active set
+                            # (g_N ≤ activation_gap, or loaded and g_N ≤ opening_gap with
+                            # contact.activation "hysteresis"); compliant ones closed
+                            # (g_N ≤ 0)
     gap: float              # g_N at the last step's midpoint [m] (negative: penetration)
     impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
     force: np.ndarray       # impulse / control period [N]
@@ -123,12 +132,14 @@ class Simulator:
         self._velocity_limit = np.where(np.isfinite(vlim) & (vlim > 0), vlim, np.inf)
         if config.actuator.velocity_limit == "ignore":
             self._velocity_limit[:] = np.inf
+        #: bumped whenever the state changes (reset, step, restore): keys the cache of φ̇
         self._state_version = 0
         self._joint_velocity_cache = (-1, None)
         self.contact_names = tuple(description.contact_names())
         self.control_period = config.control_period
+        #: an input like the torques (not evolving state): {link: (force, torque)}
         self._persistent_wrenches = {}
-        self._pending_wrenches = []
+        self.state: SimState | None = None
         self._nonconv_logged = 0
         self._opened_logged = 0
         self.reset()
@@ -146,8 +157,12 @@ class Simulator:
     def default_state(self):
         """StarlETH: standing posture at its nominal height, feet on the ground. Any other
         body: neutral configuration resting with its lowest contact point on the ground.
-        Resting means a 1 nm overlap, so that round-off cannot leave a touching contact open
-        (a contact enters the active set at g_N ≤ contact.activation_gap, 0 by default)."""
+        Resting means a 1 nm overlap (g_N = −1e-9 m at q), so that round-off cannot leave a
+        touching contact open: a hard contact enters the active set when g_N(q^M) ≤
+        contact.activation_gap (0 in the presets; with contact.activation "hysteresis" a
+        contact loaded in the last step stays in it while g_N(q^M) ≤ contact.opening_gap,
+        but a new one must reach activation_gap), and a compliant contact closes when
+        g_N(q^M) ≤ 0."""
         c = self.coords
         q = c.neutral()
         d = self.description
@@ -187,29 +202,43 @@ class Simulator:
             raise ValueError("reset: q and u must be finite")
         for iq in self.coords.root_q:
             q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
-        self._q, self._u, self._t = q, u, float(t)
+        self.state = self.stepper.initial_state(q, u, float(t))
         self._state_version += 1
-        self.stepper.reset_contact_state()
         self._tau = np.zeros(self.n_joints)
         nc = self.coords.n_contacts
         self._impulse = np.zeros((nc, 3))
         self._active = np.zeros(nc, dtype=bool)
         self._gap = np.zeros(nc)
         self._position = np.zeros((nc, 3))
-        self._pending_wrenches.clear()
         self.diagnostics = Diagnostics()
+
+    def snapshot(self) -> SimState:
+        """A copy of the current state (q, u, t, contact memory, timed wrenches), for
+        `restore`. The persistent wrenches are settings, not state: a snapshot keeps none."""
+        return self.state.copy()
+
+    def restore(self, snapshot: SimState):
+        """Continue from a state taken by `snapshot` (which stays usable: the simulator
+        takes a copy). The reports of the last step (contacts, diagnostics,
+        applied_torque) stay those of the last step taken."""
+        memory = snapshot.last_impulse if self.stepper.hard else snapshot.anchor
+        if snapshot.q.shape != (self.coords.nq,) or snapshot.u.shape != (self.coords.nv,) \
+                or memory is None or memory.shape != (self.coords.n_contacts, 3):
+            raise ValueError("restore: the snapshot is not a state of this simulator")
+        self.state = snapshot.copy()
+        self._state_version += 1
 
     @property
     def q(self):
-        return self._q.copy()
+        return self.state.q.copy()
 
     @property
     def u(self):
-        return self._u.copy()
+        return self.state.u.copy()
 
     @property
     def t(self) -> float:
-        return self._t
+        return self.state.t
 
     @property
     def dt(self) -> float:
@@ -221,7 +250,7 @@ class Simulator:
         return self._tau.copy()
 
     def joint_positions(self):
-        return self.coords.joint_positions(self._q)
+        return self.coords.joint_positions(self.state.q)
 
     def joint_velocities(self):
         return self._joint_velocities().copy()
@@ -232,7 +261,7 @@ class Simulator:
         the next step ask for it)."""
         version, qd = self._joint_velocity_cache
         if version != self._state_version:
-            qd = self.coords.joint_velocities(self._q, self._u)
+            qd = self.coords.joint_velocities(self.state.q, self.state.u)
             self._joint_velocity_cache = (self._state_version, qd)
         return qd
 
@@ -241,12 +270,12 @@ class Simulator:
         constraints (empty for the minimal coordinates) [m, and rad for the 2 angle rows]."""
         if not self.coords.n_bilateral:
             return np.zeros(0)
-        return self.coords.bilateral(self._q)[1].copy()
+        return self.coords.bilateral(self.state.q)[1].copy()
 
     def base_state(self):
         """dict: position, orientation (x, y, z, w), linear_velocity (world),
         angular_velocity (base frame)."""
-        p, quat, v, w = self.coords.base_state(self._q, self._u)
+        p, quat, v, w = self.coords.base_state(self.state.q, self.state.u)
         return {"position": p, "orientation_xyzw": quat, "linear_velocity": v,
                 "angular_velocity": w}
 
@@ -254,7 +283,7 @@ class Simulator:
         """g_N of every contact point at the current configuration q."""
         c = self.coords
         gap = np.zeros(c.n_contacts)
-        c.contact_kinematics(self._q, self.stepper.ground, gap, np.zeros((c.n_contacts, 3)),
+        c.contact_kinematics(self.state.q, self.stepper.ground, gap, np.zeros((c.n_contacts, 3)),
                              np.zeros((c.n_contacts, 3, c.nv)))
         return gap
 
@@ -281,7 +310,7 @@ class Simulator:
             tangential = np.hypot(lam[:, 1], lam[:, 2])
             slip = tangential >= (1.0 - SLIP_TOLERANCE) * self.stepper.ground.mu * lam[:, 0]
         else:
-            slip = self.stepper.slip
+            slip = self.state.slip
         return np.where(normal, np.where(slip, 2, 1), 0)
 
     def contact(self, name: str) -> ContactInfo:
@@ -311,7 +340,7 @@ class Simulator:
         duration = self.control_period if duration is None else float(duration)
         if not (duration > 0 and np.isfinite(duration)):
             raise ValueError("duration must be positive")
-        self._pending_wrenches.append([link, f, m, duration])
+        self.state.pending_wrenches.append([link, f, m, duration])
 
     def set_persistent_wrench(self, link: str, force, torque=(0.0, 0.0, 0.0)):
         """Apply a wrench on `link` at every step until cleared (a zero wrench clears it)."""
@@ -324,20 +353,24 @@ class Simulator:
 
     def clear_wrenches(self):
         self._persistent_wrenches.clear()
-        self._pending_wrenches.clear()
+        self.state.pending_wrenches.clear()
 
-    def _external_force(self, q, dt):
-        if not self._persistent_wrenches and not self._pending_wrenches:
+    def _external_force(self, state, dt):
+        """The generalized force of the wrenches over the next physics step at state.q;
+        counts the timed wrenches of `state` down (None: no wrench)."""
+        pending = state.pending_wrenches
+        if not self._persistent_wrenches and not pending:
             return None
+        q = state.q
         f_ext = np.zeros(self.coords.nv)
         for link, (f, m) in self._persistent_wrenches.items():
             f_ext += self.coords.wrench_generalized_force(q, link, f, m)
-        for w in self._pending_wrenches:
+        for w in pending:
             link, f, m, remaining = w
             frac = min(remaining, dt) / dt
             f_ext += frac * self.coords.wrench_generalized_force(q, link, f, m)
             w[3] = remaining - dt
-        self._pending_wrenches[:] = [w for w in self._pending_wrenches if w[3] > 1e-12]
+        pending[:] = [w for w in pending if w[3] > 1e-12]
         return f_ext
 
     # -- stepping -------------------------------------------------------------------------
@@ -362,14 +395,15 @@ class Simulator:
         MoreauStepper.prepare), e.g. while a controller computes its answer to the current
         state: the next `step` then only does the rest. Optional, and the next step gives
         the same result with or without it."""
-        self.stepper.prepare(self._q, self._u)
+        self.stepper.prepare(self.state)
 
     def step(self, tau=None):
         """Advance one control period with joint torques `tau` (zero-order hold). On a bad
-        `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged."""
+        `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged; on
+        a SimulationError the state is restored to what it was before the step."""
         tau = self._validated_torque(tau)
         t_wall = time.perf_counter()
-        q, u = self._q, self._u
+        state = self.state
         n = self.config.steps_per_control
         dt = self.stepper.dt
         impulse = None
@@ -377,12 +411,11 @@ class Simulator:
                         nonconverged_steps=self.diagnostics.nonconverged_steps,
                         loaded_contacts_opened_total=(
                             self.diagnostics.loaded_contacts_opened_total))
-        pending_backup = [list(w) for w in self._pending_wrenches]
-        memory = self.stepper.memory()
+        before = self.snapshot()
         try:
             for _ in range(n):
-                f_ext = self._external_force(q, dt)
-                q, u, res = self.stepper.step(q, u, tau, f_ext)
+                f_ext = self._external_force(state, dt)
+                res = self.stepper.step(state, tau, f_ext)
                 impulse = res.impulse if impulse is None else impulse + res.impulse
                 d.iterations += res.iterations
                 d.max_iterations_step = max(d.max_iterations_step, res.iterations)
@@ -397,12 +430,10 @@ class Simulator:
                     d.nonconverged_steps += 1
                 d.physics_steps += 1
         except SimulationError:
-            self._pending_wrenches[:] = pending_backup
-            self.stepper.restore(memory)
+            self.restore(before)
             raise
-        self._q, self._u = q, u
         self._state_version += 1
-        self._t += self.control_period
+        state.t += self.control_period
         self._tau = tau
         self._impulse = impulse
         self._active = res.active
@@ -418,13 +449,13 @@ class Simulator:
             self._nonconv_logged += 1
             if self._nonconv_logged == 1 or self._nonconv_logged % 1000 == 0:
                 log.warning("t=%.4f s: prox iteration did not converge (%s, %d iterations, "
-                            "residual %.3g N s); %d such steps so far", self._t, d.status,
+                            "residual %.3g N s); %d such steps so far", self.state.t, d.status,
                             d.max_iterations_step, d.residual, d.nonconverged_steps)
         if d.loaded_contacts_opened:
             self._opened_logged += 1
             if self._opened_logged == 1 or self._opened_logged % 1000 == 0:
                 log.warning("t=%.4f s: %d loaded contact(s) left the active set by the gap "
-                            "test alone (contact.activation '%s'); %d so far", self._t,
+                            "test alone (contact.activation '%s'); %d so far", self.state.t,
                             d.loaded_contacts_opened, self.config.contact.activation,
                             d.loaded_contacts_opened_total)
         return d

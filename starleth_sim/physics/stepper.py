@@ -3,7 +3,9 @@
 One step over Δt = t^E − t^S:
     q^M = q^S ⊕ ½Δt F(q^S) u^S                                  (6)
     M, h, W evaluated at (q^M, u^S); active set I = {i | g_N,i(q^M) ≤ g_act}
-    (g_act = contact.activation_gap, 10 µm by default; the paper's 0 is allowed)
+    (g_act = contact.activation_gap, 0 in the presets as in the paper; with
+    contact.activation "hysteresis" a contact loaded in the last step stays in I while
+    g_N,i(q^M) ≤ contact.opening_gap, see `active_set`)
     M (u^E − u^S) − h Δt − W_U Λ_U − W_B Λ_B = 0, (ξ, Λ) ∈ U × B   (7)
     q^E = q^M ⊕ ½Δt F(q^M) u^E                                   (8)
 Hard contacts solve (7) with the JOR/SOR prox iterations of :mod:`starleth_sim.physics.prox`;
@@ -15,23 +17,153 @@ A step runs in two parts: `MoreauStepper.prepare` does everything that depends o
 `MoreauStepper.step` adds the joint torques and external forces to h and solves (7) and (8).
 A caller may prepare ahead (sim_node does, while its controller computes); the result is
 the same bit for bit.
+
+Model, state and workspace (see :mod:`starleth_sim.physics.state`): the stepper holds the
+model side (coordinate set, ground, `StepSettings`, ε per contact) and a workspace (the
+arrays at q^M, the factor of M, the prepared step, `StepperStats`); the evolving state,
+including the contact memory the kernels read and update (warm start, hysteresis, the
+compliant contacts' anchors), lives in the `SimState` passed to `prepare` and `step`.
+
+Kernels (names as the paper's symbols: M, h, W, G = W^T M^{-1} W, Λ, ξ, r, α): the
+settings reach the numba kernels as one typed record, `StepSettings`; a prepared
+hard-contact problem is a `ContactProblem` with the nonzero `prox.Patterns` of its
+matrices; the contact memory they update is the state's arrays. Numba types a plain
+tuple in C but a namedtuple through Python (≈2 µs per argument and call, measured), so the
+two kernels that Python calls per step, `prepare_hard_contacts` and
+`complete_hard_contacts`, take and return these records as plain tuples of their fields
+(`StepSettings(*fields)` inside rebuilds the record; `problem_fields` /
+`problem_from_fields` convert a ContactProblem).
+
+Profiling (Fig. 7 phases, `PHASES`): there is one sequence of phase calls, profiled or not.
+The Python orchestration and the kernels add the time of each phase to a `timings` array
+(StepperStats.timings) with `t = lap(timings, phase, t)`; when not profiling, timings is
+None and every lap is a no-op: in the kernels `clock` and `lap` are chosen by the type of
+`timings`, so the unprofiled kernels are compiled without any clock, and the Python side
+skips its laps behind `if prof:`. The call overheads between the phases are no phase's.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import numba as nb
+from numba.core import types
+from numba.extending import overload
 
 from . import prox
 from .config import ConfigError
-from .contact import GroundPlane, compliant_contact_forces, generalized_contact_force
+from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
+                      generalized_contact_force)
 from .linalg import (cholesky_blocks, cholesky_blocks_solve_cols, cholesky_blocks_solve_vec,
                      cholesky_upper_input)
+from .state import SimState
 
-#: Fig. 7 phases
+#: Fig. 7 phases, and their indices in StepperStats.timings
 PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")
+PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_G, PHASE_PROX, PHASE_REST = range(len(PHASES))
+
+
+class StepSettings(NamedTuple):
+    """The settings of one step as the kernels read them (built once per stepper from the
+    PhysicsConfig, see `MoreauStepper.__init__`)."""
+
+    activation_gap: float       # g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]
+    mu: float                   # μ, Coulomb friction coefficient of the ground
+    alpha: float                # α, prox relaxation: r = α / diag(G)
+    tol_rel: float              # T_rel
+    tol_abs: float              # T_abs [N s]
+    fallback_alpha_factor: float  # a non-converged solve is retried once with α·this (0: no)
+    opening_gap: float          # hysteresis: a loaded contact stays in I while g_N ≤ this [m]
+    dt: float                   # Δt [s]
+    beta_velocity: float        # β_N of the velocity-level penetration correction (or 0)
+    beta_projection: float      # β_N of the post-step projection (or 0: no projection)
+    jacobian_gap: float         # W of a contact is computed while g_N(q^M) ≤ this [m]
+    projection_tolerance: float  # the projection runs below g_N^E = −this [m]
+    form: int                   # prox.FORM_DELASSUS | prox.FORM_VELOCITY
+    scheme: int                 # prox.SCHEME_JOR | prox.SCHEME_SOR
+    max_iterations: int         # prox iteration cap
+    criterion: int              # prox.CRITERION_IMPULSE | prox.CRITERION_ENERGY
+    warm_start: bool            # Λ^0 = the last step's Λ of the contacts that stay in I
+    bilateral_direct: bool      # Λ_B by Eqn. 20 (else prox rows, Eqn. 19)
+    hysteresis: bool            # contact.activation "hysteresis" (else the gap test alone)
+
+
+class ContactProblem(NamedTuple):
+    """The torque-independent part of a step's hard-contact problem (prepare_hard_contacts):
+    the rows of the active contacts (3 each, normal first) then the bilateral rows."""
+
+    ok: bool                    # M (and G_B) positive definite
+    active: np.ndarray          # I: indices of the active contacts, in row order
+    Wt: np.ndarray              # W^T (m x nv)
+    MinvW: np.ndarray           # M^{-1} W (nv x m)
+    b: np.ndarray               # b = [ε W_U^T u^S + gap terms; (β/Δt) g_B]: ξ = W^T u^E + b
+    G: np.ndarray               # G = W^T M^{-1} W (Delassus form; 0 x 0 in the velocity form)
+    Gdiag: np.ndarray           # diag(G)
+    LB: np.ndarray              # Cholesky factor of G_BB (direct bilateral method, else 0 x 0)
+    pat: prox.Patterns          # nonzero patterns of W^T, M^{-1}W and G
+    opened: int                 # contacts loaded in the last step that left I
+
+
+@nb.njit(cache=True, inline="always")
+def problem_fields(p):
+    """A ContactProblem as the plain tuple that crosses into Python cheaply."""
+    pat = p.pat
+    return (p.ok, p.active, p.Wt, p.MinvW, p.b, p.G, p.Gdiag, p.LB,
+            (pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx, pat.gp_ptr, pat.gp_idx), p.opened)
+
+
+@nb.njit(cache=True, inline="always")
+def problem_from_fields(f):
+    """The ContactProblem of problem_fields' tuple."""
+    return ContactProblem(f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7],
+                          prox.Patterns(*f[8]), f[9])
+
+
+@nb.njit(cache=True)
+def _perf_counter():
+    with nb.objmode(t="float64"):
+        t = time.perf_counter()
+    return t
+
+
+def clock(timings):
+    """The profiling clock: time.perf_counter() when profiling (timings is the array the
+    phases' times go to), else 0 (timings is None)."""
+    return 0.0 if timings is None else time.perf_counter()
+
+
+def lap(timings, phase, since):
+    """Profiling: add the time since `since` to timings[phase] and return the clock; a
+    no-op returning 0 when timings is None (not profiling)."""
+    if timings is None:
+        return 0.0
+    t = time.perf_counter()
+    timings[phase] += t - since
+    return t
+
+
+@overload(clock, jit_options={"cache": True})
+def _clock_jit(timings):
+    """In the kernels, clock and lap are chosen by the type of `timings`: with None (not
+    profiling) the compiled kernel holds no clock at all (an object-mode block, even one
+    never run, costs about 1 µs per kernel call, measured)."""
+    if isinstance(timings, types.NoneType):
+        return lambda timings: 0.0
+    return lambda timings: _perf_counter()
+
+
+@overload(lap, jit_options={"cache": True})
+def _lap_jit(timings, phase, since):
+    if isinstance(timings, types.NoneType):
+        return lambda timings, phase, since: 0.0
+
+    def impl(timings, phase, since):
+        t = _perf_counter()
+        timings[phase] += t - since
+        return t
+    return impl
 
 
 class SimulationError(RuntimeError):
@@ -51,10 +183,11 @@ def free_velocity(h, dt, uS, blocks, L, u_free):
 
 
 @nb.njit(cache=True)
-def active_set(gap, activation_gap, hysteresis, opening_gap, last_impulse, last_active):
-    """The active set I at q^M: g_N,i ≤ activation_gap, and with `hysteresis` also every
-    contact that carried Λ_N > 0 in the last step while g_N,i ≤ opening_gap. Returns
+def active_set(gap, s, last_impulse, last_active):
+    """The active set I at q^M: g_N,i ≤ s.activation_gap, and with s.hysteresis also every
+    contact that carried Λ_N > 0 in the last step while g_N,i ≤ s.opening_gap. Returns
     (indices of I, number of contacts loaded in the last step that are not in I)."""
+    activation_gap, hysteresis, opening_gap = s.activation_gap, s.hysteresis, s.opening_gap
     nc = gap.shape[0]
     flags = np.zeros(nc, dtype=np.bool_)
     na = 0
@@ -87,8 +220,8 @@ def normal_law_offset(gap, dt, beta_velocity):
 
 
 @nb.njit(cache=True)
-def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor, L,
-               hysteresis, opening_gap, last_impulse, last_active, dt, beta_velocity):
+def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse,
+               last_active):
     """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
     L (unless factor is False: L already holds the factor of a constant M), the active set
     (see active_set), W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
@@ -96,15 +229,15 @@ def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor,
     normal rows' gap terms of normal_law_offset and b_B the bilateral drift stabilisation
     (β/Δt) g_B (zero in the paper's law), and the nonzero patterns of the rows of W^T and
     the columns of M^{-1} W.
-    Returns (ok, active, Wt, MinvW, b, (wp_ptr, wp_idx, mp_ptr, mp_idx), opened); ok is
-    False if M is not positive definite; opened counts the loaded contacts that left the
+    Returns (ok, active, Wt, MinvW, b, patterns, opened), the patterns of G still empty; ok
+    is False if M is not positive definite; opened counts the loaded contacts that left the
     active set."""
+    dt, beta_velocity = s.dt, s.beta_velocity
     nv = uS.shape[0]
     ok = True
     if factor:
         ok = cholesky_blocks(M, blocks, L)
-    active, opened = active_set(gap, activation_gap, hysteresis, opening_gap, last_impulse,
-                                last_active)
+    active, opened = active_set(gap, s, last_impulse, last_active)
     na = active.shape[0]
     nb_ = WtB.shape[0]
     o = 3 * na
@@ -112,9 +245,9 @@ def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor,
     Wt = np.empty((m, nv))
     MinvW = np.empty((nv, m))
     bvec = np.zeros(m)
+    e = np.zeros(1, dtype=np.int64)
     if not ok or m == 0:
-        e = np.zeros(1, dtype=np.int64)
-        return ok, active, Wt, MinvW, bvec, (e, e[:0], e, e[:0]), opened
+        return ok, active, Wt, MinvW, bvec, prox.Patterns(e, e[:0], e, e[:0], e, e[:0]), opened
     for a in range(na):
         i = active[a]
         for r in range(3):
@@ -138,16 +271,17 @@ def phase_minv(M, uS, gap, Wt_all, WtB, bB, activation_gap, eps, blocks, factor,
         bvec[o + a] = bB[a]
     wp_ptr, wp_idx = prox.row_pattern(Wt)
     mp_ptr, mp_idx = prox.col_pattern(MinvW)
-    return ok, active, Wt, MinvW, bvec, (wp_ptr, wp_idx, mp_ptr, mp_idx), opened
+    return (ok, active, Wt, MinvW, bvec, prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0]),
+            opened)
 
 
 @nb.njit(cache=True)
 def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     """Fig. 7 phase "G (and G_B^-1)": G = W^T M^{-1} W (Delassus form) or only diag(G)
     (velocity form), and for the direct bilateral solution (Eqn. 20) the Cholesky factor
-    of G_B = W_B^T M^{-1} W_B. Returns (ok, G, diag G, L_B, patterns) with the pattern of
-    the rows of G appended to `pat`."""
-    wp_ptr, wp_idx, mp_ptr, mp_idx = pat
+    of G_B = W_B^T M^{-1} W_B. Returns (ok, G, diag G, L_B, patterns): `pat` (the
+    prox.Patterns of W^T and M^{-1}W) with the pattern of the rows of G."""
+    wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m, nv = Wt.shape
     o = 3 * nc
     nb_ = m - o
@@ -163,7 +297,7 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
         prox.delassus_diagonal(Wt, MinvW, Gdiag, wp_ptr, wp_idx)
         gp_ptr = np.zeros(m + 1, dtype=np.int64)
         gp_idx = np.zeros(0, dtype=np.int64)
-    full = (wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx)
+    full = prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx)
     LB = np.zeros((0, 0))
     ok = True
     if bilateral_direct and nb_ > 0:
@@ -199,19 +333,20 @@ def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
 
 
 @nb.njit(cache=True)
-def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral_direct, pat,
-               active, last_impulse, last_active, last_bilateral, mu, alpha, tol_rel, tol_abs,
-               max_iter, criterion, M, warm_start, fallback_factor):
-    """Fig. 7 phase "u^E": warm start (the last step's impulses of contacts that stay
-    active, and of the bilateral constraints), the prox iteration, and one retry with
-    α·fallback_factor if it did not converge. Returns (u^E, Λ, iterations, status,
-    residual, retried)."""
+def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
+    """Fig. 7 phase "u^E" of the problem p (a ContactProblem) with c = W^T u_free + b: warm
+    start (the last step's impulses of contacts that stay active, and of the bilateral
+    constraints), the prox iteration, and one retry with α·s.fallback_alpha_factor if it
+    did not converge. Returns (u^E, Λ, iterations, status, residual, retried)."""
+    active = p.active
+    alpha = s.alpha
+    fallback_factor = s.fallback_alpha_factor
     na = active.shape[0]
     o = 3 * na
     m = c.shape[0]
     nv = u_free.shape[0]
     lam0 = np.zeros(m)
-    if warm_start:
+    if s.warm_start:
         for a in range(na):
             i = active[a]
             if last_active[i]:
@@ -219,7 +354,7 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral
                     lam0[3 * a + k] = last_impulse[i, k]
         for a in range(m - o):
             lam0[o + a] = last_bilateral[a]
-    mu_vec = np.full(na, mu)
+    mu_vec = np.full(na, s.mu)
     attempts = 2 if fallback_factor > 0.0 else 1
     r = np.empty(m)
     u = np.empty(nv)
@@ -229,12 +364,10 @@ def phase_prox(form, scheme, Wt, MinvW, u_free, bvec, G, c, Gdiag, LB, bilateral
     resid = 0.0
     retried = False
     for attempt in range(attempts):
-        prox.prox_parameters(Gdiag, na, alpha, r)
+        prox.prox_parameters(p.Gdiag, na, alpha, r)
         lam[:] = lam0
-        it, status, resid = prox.prox_solve(form, scheme, Wt, MinvW, u_free, bvec, G, c, na,
-                                            mu_vec, r, lam, tol_rel, tol_abs, max_iter,
-                                            bilateral_direct, LB, criterion, M, u,
-                                            pat[0], pat[1], pat[2], pat[3], pat[4], pat[5])
+        it, status, resid = prox.prox_solve(s, p.pat, p.Wt, p.MinvW, u_free, p.b, p.G, c, na,
+                                            mu_vec, r, lam, p.LB, M, u)
         iters += it
         if status == prox.STATUS_CONVERGED:
             break
@@ -278,8 +411,8 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, blocks, L):
     """W^T and M^{-1}W of the projection when contacts outside the active set (`extra`) are
     predicted to penetrate: the rows of the active contacts and of `extra` (3 each, as the
     prox kernels expect), then the bilateral rows of the velocity problem (their M^{-1}W
-    columns are reused). Returns (contacts, Wt, MinvW, patterns of the rows of Wt and the
-    columns of MinvW)."""
+    columns are reused). Returns (contacts, Wt, MinvW, prox.Patterns of the rows of Wt and
+    the columns of MinvW, that of G still empty)."""
     na = active.shape[0]
     ne = extra.shape[0]
     m0, nv = Wt.shape
@@ -314,39 +447,41 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, blocks, L):
             Mp[j, o + a] = MinvW[j, o0 + a]
     wp_ptr, wp_idx = prox.row_pattern(Wp)
     mp_ptr, mp_idx = prox.col_pattern(Mp)
-    return contacts, Wp, Mp, (wp_ptr, wp_idx, mp_ptr, mp_idx)
+    e = np.zeros(1, dtype=np.int64)
+    return contacts, Wp, Mp, prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0])
 
 
 @nb.njit(cache=True)
-def phase_projection(form, scheme, Wt, MinvW, G, Gdiag, LB, bilateral_direct, pat, active,
-                     is_active, gap, Wt_all, jacobian_gap, blocks, L, uE, dt, beta, alpha,
-                     tol_rel, tol_abs, max_iter, criterion, M, u_corr, tolerance):
+def phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, uE, u_corr):
     """Post-step projection (contact.penetration_correction "projection"). With the
     predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of the
     contacts outside the active set that would end the step below the ground (a foot that
     was above it at q^M), it finds the pseudo-velocity Δu_p = M^{-1}(W_N P_N + W_B P_B) of
         P_N ≥ 0 ⊥ W_N^T Δu_p + (2/Δt)(max(g_N^E, 0) + β_N min(g_N^E, 0)) ≥ 0,
         W_B^T Δu_p = 0  (the bilateral constraints are not disturbed),
-    frictionless (μ = 0), with the prox scheme of the velocity solve, so that
-    q^E = q^M ⊕ ½Δt (u^E + Δu_p) loses the fraction β_N of every penetration and no contact
-    is pushed into the ground. u_corr receives Δu_p (zero when no predicted end gap is
-    below −tolerance). Returns (iterations, status); status −1: not needed."""
+    frictionless (μ = 0), with the prox scheme of the velocity solve (problem p, a
+    ContactProblem), so that q^E = q^M ⊕ ½Δt (u^E + Δu_p) loses the fraction
+    β_N = s.beta_projection of every penetration and no contact is pushed into the ground.
+    u_corr receives Δu_p (zero when no predicted end gap is below −s.projection_tolerance).
+    Returns (iterations, status); status −1: not needed."""
+    dt, beta, tolerance = s.dt, s.beta_projection, s.projection_tolerance
+    active = p.active
     nv = uE.shape[0]
     nc = gap.shape[0]
     for k in range(nv):
         u_corr[k] = 0.0
     gE = np.empty(nc)
-    worst = predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, gE)
+    worst = predicted_end_gaps(gap, Wt_all, s.jacobian_gap, is_active, uE, dt, gE)
     if worst >= -tolerance or beta == 0.0:
         return 0, -1
     extra = np.nonzero(~is_active & (gE < -tolerance))[0]
     if extra.shape[0] == 0:
         contacts = active
-        Wp, Mp, Gp, Gdp, full = Wt, MinvW, G, Gdiag, pat
+        Wp, Mp, Gp, Gdp, full = p.Wt, p.MinvW, p.G, p.Gdiag, p.pat
     else:
-        contacts, Wp, Mp, part = projection_problem(Wt, MinvW, active, extra, Wt_all,
+        contacts, Wp, Mp, part = projection_problem(p.Wt, p.MinvW, active, extra, Wt_all,
                                                     blocks, L)
-        _, Gp, Gdp, _, full = phase_delassus(form, contacts.shape[0], False, Wp, Mp, part)
+        _, Gp, Gdp, _, full = phase_delassus(s.form, contacts.shape[0], False, Wp, Mp, part)
     m = Wp.shape[0]
     ncp = contacts.shape[0]
     bp = np.zeros(m)
@@ -354,77 +489,76 @@ def phase_projection(form, scheme, Wt, MinvW, G, Gdiag, LB, bilateral_direct, pa
         g = gE[contacts[a]]
         bp[3 * a] = (max(g, 0.0) + beta * min(g, 0.0)) / (0.5 * dt)
     r = np.empty(m)
-    prox.prox_parameters(Gdp, ncp, alpha, r)
+    prox.prox_parameters(Gdp, ncp, s.alpha, r)
     lam = np.zeros(m)
     mu = np.zeros(ncp)
     zero = np.zeros(nv)
-    it, status, _ = prox.prox_solve(form, scheme, Wp, Mp, zero, bp, Gp, bp, ncp, mu, r, lam,
-                                    tol_rel, tol_abs, max_iter, bilateral_direct, LB,
-                                    criterion, M, u_corr, full[0], full[1], full[2], full[3],
-                                    full[4], full[5])
+    it, status, _ = prox.prox_solve(s, full, Wp, Mp, zero, bp, Gp, bp, ncp, mu, r, lam, p.LB,
+                                    M, u_corr)
     if status == prox.STATUS_NONFINITE:
         for k in range(nv):
             u_corr[k] = 0.0
     return it, status
 
 
-# packed parameters of the fused kernel (fewer arguments to unbox per call)
-(FP_ACTIVATION, FP_MU, FP_ALPHA, FP_TOL_REL, FP_TOL_ABS, FP_FALLBACK, FP_OPENING, FP_DT,
- FP_BETA_VELOCITY, FP_BETA_PROJECTION, FP_JACOBIAN_GAP, FP_PROJECTION_TOLERANCE) = range(12)
-IP_FORM, IP_SCHEME, IP_MAX_ITER, IP_CRITERION, IP_WARM, IP_DIRECT, IP_HYSTERESIS = range(7)
-
-
 @nb.njit(cache=True)
-def prepare_hard_contacts(M, uS, gap, Wt_all, WtB, bB, blocks, factor, L, fp, ip, eps,
-                          last_impulse, last_active):
-    """The torque-independent part of the hard-contact solve in one jitted call: the
-    phases "M^-1" and "G" (phase_minv, phase_delassus). Returns (ok, active, Wt, MinvW, b,
-    G, diag G, L_B, patterns, opened), the input of complete_hard_contacts."""
+def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L,
+                          last_impulse, last_active, timings):
+    """The torque-independent part of the hard-contact solve: the phases "M^-1" and "G"
+    (phase_minv, phase_delassus), timed into `timings` when profiling. `settings`: the
+    fields of a StepSettings (a plain tuple will do). Returns the ContactProblem as
+    problem_fields' tuple, the input of complete_hard_contacts."""
+    s = StepSettings(*settings)
+    t = clock(timings)
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-        M, uS, gap, Wt_all, WtB, bB, fp[FP_ACTIVATION], eps, blocks, factor, L,
-        ip[IP_HYSTERESIS] != 0, fp[FP_OPENING], last_impulse, last_active, fp[FP_DT],
-        fp[FP_BETA_VELOCITY])
-    if not ok or Wt.shape[0] == 0:
-        e = np.zeros(1, dtype=np.int64)
-        return (ok, active, Wt, MinvW, bvec, np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)),
-                (pat[0], pat[1], pat[2], pat[3], e, e[:0]), opened)
-    ok, G, Gdiag, LB, full = phase_delassus(ip[IP_FORM], active.shape[0], ip[IP_DIRECT] != 0,
-                                            Wt, MinvW, pat)
-    return ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full, opened
+        s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse, last_active)
+    t = lap(timings, PHASE_M_INVERSE, t)
+    G, Gdiag, LB = np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0))
+    if ok and Wt.shape[0] != 0:
+        ok, G, Gdiag, LB, pat = phase_delassus(s.form, active.shape[0], s.bilateral_direct,
+                                               Wt, MinvW, pat)
+    lap(timings, PHASE_G, t)
+    return problem_fields(ContactProblem(ok, active, Wt, MinvW, bvec, G, Gdiag, LB, pat,
+                                         opened))
 
 
 @nb.njit(cache=True)
-def complete_hard_contacts(h, dt, uS, blocks, L, M, active, Wt, MinvW, bvec, G, Gdiag, LB,
-                           full, fp, ip, last_impulse, last_active, last_bilateral, impulse,
-                           is_active, u_free, u, gap, Wt_all, u_corr):
-    """The torque-dependent rest of the hard-contact solve (the unprofiled hot path after
-    prepare_hard_contacts): u_free = u^S + M^{-1} h Δt, c = W^T u_free + b, the prox
-    iteration (phase_prox) and the post-step projection (phase_projection). Writes Λ_U of
-    every contact point into impulse (nc x 3), the active flags, Λ_B into last_bilateral,
-    u^E into u and the projection's Δu_p into u_corr; unless the result is non-finite, the
-    warm-start memory is updated. Returns (iterations, status, residual, retried,
-    projection iterations, projection status)."""
-    free_velocity(h, dt, uS, blocks, L, u_free)
+def complete_hard_contacts(settings, problem, h, uS, M, blocks, L, gap, Wt_all, last_impulse,
+                           last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
+                           timings):
+    """The torque-dependent rest of the hard-contact solve of `problem` (problem_fields'
+    tuple from prepare_hard_contacts): u_free = u^S + M^{-1} h Δt (phase "M^-1"),
+    c = W^T u_free + b (phase "G"), the prox iteration (phase_prox) and the post-step
+    projection (phase_projection; both phase "prox"), timed into `timings` when
+    profiling. Writes Λ_U of every contact point into impulse (nc x 3), the active flags,
+    Λ_B into last_bilateral, u^E into u and the projection's Δu_p into u_corr; unless the
+    result is non-finite, the warm-start memory (last_impulse, last_active) is updated.
+    Returns (iterations, status, residual, retried, projection iterations, projection
+    status)."""
+    s = StepSettings(*settings)
+    p = problem_from_fields(problem)
+    t = clock(timings)
+    free_velocity(h, s.dt, uS, blocks, L, u_free)
+    t = lap(timings, PHASE_M_INVERSE, t)
     nc = impulse.shape[0]
     for i in range(nc):
         is_active[i] = False
         impulse[i, 0] = 0.0
         impulse[i, 1] = 0.0
         impulse[i, 2] = 0.0
+    active = p.active
     na = active.shape[0]
     o = 3 * na
     it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
     pit, pstatus = 0, -1
     u_corr[:] = 0.0
-    if Wt.shape[0] == 0:
+    if p.Wt.shape[0] == 0:
         u[:] = u_free
     else:
-        c = constraint_velocity(Wt, u_free, bvec, full[0], full[1])
-        uE, lam, it, status, resid, retried = phase_prox(
-            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, u_free, bvec, G, c, Gdiag, LB,
-            ip[IP_DIRECT] != 0, full, active, last_impulse, last_active, last_bilateral,
-            fp[FP_MU], fp[FP_ALPHA], fp[FP_TOL_REL], fp[FP_TOL_ABS], ip[IP_MAX_ITER],
-            ip[IP_CRITERION], M, ip[IP_WARM] != 0, fp[FP_FALLBACK])
+        c = constraint_velocity(p.Wt, u_free, p.b, p.pat.wp_ptr, p.pat.wp_idx)
+        t = lap(timings, PHASE_G, t)
+        uE, lam, it, status, resid, retried = phase_prox(s, p, u_free, c, M, last_impulse,
+                                                         last_active, last_bilateral)
         u[:] = uE
         for a in range(na):
             i = active[a]
@@ -440,12 +574,11 @@ def complete_hard_contacts(h, dt, uS, blocks, L, M, active, Wt, MinvW, bvec, G, 
         if status != prox.STATUS_NONFINITE:
             for a in range(lam.shape[0] - o):
                 last_bilateral[a] = lam[o + a]
-    if status != prox.STATUS_NONFINITE and fp[FP_BETA_PROJECTION] > 0.0:
-        pit, pstatus = phase_projection(
-            ip[IP_FORM], ip[IP_SCHEME], Wt, MinvW, G, Gdiag, LB, ip[IP_DIRECT] != 0, full,
-            active, is_active, gap, Wt_all, fp[FP_JACOBIAN_GAP], blocks, L, u, dt,
-            fp[FP_BETA_PROJECTION], fp[FP_ALPHA], fp[FP_TOL_REL], fp[FP_TOL_ABS],
-            ip[IP_MAX_ITER], ip[IP_CRITERION], M, u_corr, fp[FP_PROJECTION_TOLERANCE])
+        t = lap(timings, PHASE_PROX, t)
+    if status != prox.STATUS_NONFINITE and s.beta_projection > 0.0:
+        t = clock(timings)
+        pit, pstatus = phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, u, u_corr)
+        lap(timings, PHASE_PROX, t)
     if status != prox.STATUS_NONFINITE:
         for i in range(nc):
             last_active[i] = is_active[i]
@@ -469,7 +602,11 @@ def all_finite(a, b):
 class StepResult:
     """What one physics step did (all arrays over every contact point of the model)."""
 
-    active: np.ndarray          # bool, in the active set at q^M (contact.activation)
+    #: bool per contact: hard contacts, in the active set I at q^M (active_set:
+    #: g_N ≤ contact.activation_gap, 0 in the presets; with contact.activation
+    #: "hysteresis" also loaded in the last step and g_N ≤ contact.opening_gap);
+    #: compliant contacts, closed (g_N(q^M) ≤ 0)
+    active: np.ndarray
     gap: np.ndarray             # g_N at q^M [m]
     impulse: np.ndarray         # Λ (nc x 3) in the contact frame (N, T1, T2) [N s]
     iterations: int = 0
@@ -493,7 +630,8 @@ class StepperStats:
 
 
 class MoreauStepper:
-    """Midpoint time-stepper shared by all coordinate sets and both contact models."""
+    """Midpoint time-stepper shared by all coordinate sets and both contact models. It
+    holds the model side and a workspace; the state it advances is a `SimState`."""
 
     def __init__(self, coords, config, profile: bool = False):
         self.coords = coords
@@ -517,27 +655,46 @@ class MoreauStepper:
         nc, nv = coords.n_contacts, coords.nv
         self.nc, self.nv = nc, nv
         self.nb = coords.n_bilateral
-        self.gap = np.zeros(nc)
-        self.position = np.zeros((nc, 3))
-        self.Wt_all = np.zeros((nc, 3, nv))
-        self.L = np.zeros((nv, nv))
-        self.u_free = np.zeros(nv)
-        self.u_corr = np.zeros(nv)
+        # -- workspace: recomputed by every step (see starleth_sim.physics.state)
+        self.gap = np.zeros(nc)               # g_N at q^M [m]
+        self.position = np.zeros((nc, 3))     # contact points at q^M [m]
+        self.Wt_all = np.zeros((nc, 3, nv))   # W^T of every contact (rows n, t1, t2)
+        self.L = np.zeros((nv, nv))           # Cholesky factor of M
+        self.u_free = np.zeros(nv)            # u^S + M^{-1} h Δt
+        self.u_corr = np.zeros(nv)            # Δu_p of the post-step projection
+        self.bB = np.zeros(self.nb)           # (β/Δt) g_B
+        self._factored = False                # L holds the factor of a constant M
+        self._prepared = None                 # see prepare
+        # -- model
         self.blocks = coords.blocks
         self.constant_M = coords.constant_mass_matrix
-        self._factored = False
         self.no_bilateral = np.zeros((0, nv))
-        self.bB = np.zeros(self.nb)
         self.beta = config.bilateral.stabilization
         s = config.solver
         self.form = prox.FORMS[s.form]
         self.scheme = prox.SCHEMES[s.scheme]
         self.criterion = prox.CRITERIA[s.criterion]
         self.bilateral_direct = config.bilateral.method == "direct"
-        self.fparams = np.array([self.activation_gap, config.ground.mu, s.alpha, s.tol_rel,
-                                 s.tol_abs, s.fallback_alpha_factor, c.opening_gap, self.dt,
-                                 self.beta_velocity, self.beta_projection,
-                                 self.jacobian_gap, PROJECTION_TOLERANCE])
+        #: the kernels' settings (and, for the two kernels Python calls, their fields as a
+        #: plain tuple: see the module docstring)
+        self.settings = StepSettings(
+            activation_gap=float(self.activation_gap), mu=float(config.ground.mu),
+            alpha=float(s.alpha), tol_rel=float(s.tol_rel), tol_abs=float(s.tol_abs),
+            fallback_alpha_factor=float(s.fallback_alpha_factor),
+            opening_gap=float(c.opening_gap), dt=float(self.dt),
+            beta_velocity=float(self.beta_velocity),
+            beta_projection=float(self.beta_projection),
+            jacobian_gap=float(self.jacobian_gap),
+            projection_tolerance=float(PROJECTION_TOLERANCE), form=int(self.form),
+            scheme=int(self.scheme), max_iterations=int(s.max_iterations),
+            criterion=int(self.criterion), warm_start=bool(s.warm_start),
+            bilateral_direct=bool(self.bilateral_direct), hysteresis=bool(self.hysteresis))
+        self._settings_fields = tuple(self.settings)
+        self.compliant_law = CompliantLaw(
+            mu=float(config.ground.mu), c_N=float(c.stiffness_normal),
+            d_N=float(c.damping_normal), c_T=float(c.stiffness_tangential),
+            d_T=float(c.damping_tangential), slip_velocity=float(c.slip_velocity))
+        self._compliant_law_fields = tuple(self.compliant_law)
         #: Newton-type impact law per contact: (ε_N, ε_T), defaults overridden by name
         self.eps = np.tile([c.restitution_normal, c.restitution_tangential], (nc, 1))
         names = list(coords.contact_names)
@@ -546,60 +703,34 @@ class MoreauStepper:
                 raise ConfigError(f"contact.restitution_overrides: unknown contact '{name}' "
                                   f"(contacts: {', '.join(names)})")
             self.eps[names.index(name)] = (en, et)
-        self.iparams = np.array([self.form, self.scheme, s.max_iterations, self.criterion,
-                                 int(s.warm_start), int(self.bilateral_direct),
-                                 int(self.hysteresis)], dtype=np.int64)
         self._never_active = np.full(nc, np.inf)
-        self._prepared = None
         self.stats = StepperStats()
-        self.reset_contact_state()
 
-    # -- contact memory (warm start, compliant anchors) -----------------------------------
-    def reset_contact_state(self):
-        nc = self.nc
-        self.last_impulse = np.zeros((nc, 3))
-        self.last_active = np.zeros(nc, dtype=bool)
-        self.last_bilateral = np.zeros(self.nb)
-        self.closed = np.zeros(nc, dtype=np.bool_)
-        self.slip = np.zeros(nc, dtype=np.bool_)
-        self.anchor = np.zeros((nc, 3))
-        self.lam_compliant = np.zeros((nc, 3))
+    def initial_state(self, q, u, t: float = 0.0) -> SimState:
+        """The state (q, u, t) without contact memory or pending wrenches."""
+        return SimState.initial(q, u, t, self.nc, self.nb, self.hard)
 
-    def memory(self):
-        """A copy of the contact memory that a step changes (warm start of the hard
-        contacts, or the compliant contacts' state), to restore it if a control step
-        fails."""
-        if self.hard:
-            return (self.last_impulse.copy(), self.last_active.copy(),
-                    self.last_bilateral.copy())
-        return (self.last_bilateral.copy(), self.closed.copy(), self.slip.copy(),
-                self.anchor.copy())
-
-    def restore(self, mem):
-        if self.hard:
-            self.last_impulse[:], self.last_active[:], self.last_bilateral[:] = mem
-        else:
-            self.last_bilateral[:], self.closed[:], self.slip[:], self.anchor[:] = mem
 
     # -- one step -------------------------------------------------------------------------
-    def prepare(self, q, u):
-        """The part of the step from (q^S, u^S) that does not depend on the joint torques
-        or external forces: q^M (Eqn. 6), M and h without τ, the contact and bilateral
-        kinematics at q^M, the factor of M and, with hard contacts, M^{-1}W and G. `step`
-        uses it when called with the same q and u objects (which must not be modified in
-        place in between), else it prepares itself, so the result is the same either way.
-        A lockstep node calls this after publishing a state, while the controller works
-        on its answer. Never raises: a failure is reported by the step that uses it."""
+    def prepare(self, state: SimState):
+        """The part of the step from (q^S, u^S) = (state.q, state.u) that does not depend on
+        the joint torques or external forces: q^M (Eqn. 6), M and h without τ, the contact
+        and bilateral kinematics at q^M, the factor of M and, with hard contacts, M^{-1}W and
+        G (the active set reads the state's contact memory). `step` uses it when called with
+        a state holding the same q and u objects (which must not be modified in place in
+        between), else it prepares itself, so the result is the same either way. A lockstep
+        node calls this after publishing a state, while the controller works on its answer.
+        Never raises: a failure is reported by the step that uses it."""
+        q, u = state.q, state.u
         dt = self.dt
         coords = self.coords
         prof = self.profile
-        if prof:
-            t0 = time.perf_counter()
+        timings = self.stats.timings if prof else None
+        t = clock(timings) if prof else 0.0
         qM = coords.integrate(q, u, 0.5 * dt)
         M, h0 = coords.dynamics(qM, u, None)
         if prof:
-            t1 = time.perf_counter()
-            self.stats.timings[0] += t1 - t0
+            t = lap(timings, PHASE_M_AND_H, t)
         coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
                                   self.jacobian_gap)
         if self.nb:
@@ -608,164 +739,103 @@ class MoreauStepper:
         else:
             WtB = self.no_bilateral
         if prof:
-            t2 = time.perf_counter()
-            self.stats.timings[4] += t2 - t1
+            t = lap(timings, PHASE_REST, t)
         factor = not (self.constant_M and self._factored)
-        hard = None
+        problem = None
         if self.hard or self.nb:    # compliant contacts: the prox solve of the bilaterals
             gap = self.gap if self.hard else self._never_active
-            if not prof:
-                hard = prepare_hard_contacts(M, u, gap, self.Wt_all, WtB, self.bB,
-                                             self.blocks, factor, self.L, self.fparams,
-                                             self.iparams, self.eps, self.last_impulse,
-                                             self.last_active)
-            else:  # the same phases between timers (Fig. 7)
-                ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-                    M, u, gap, self.Wt_all, WtB, self.bB, self.fparams[FP_ACTIVATION],
-                    self.eps, self.blocks, factor, self.L, self.hysteresis,
-                    self.fparams[FP_OPENING], self.last_impulse, self.last_active, self.dt,
-                    self.beta_velocity)
-                t3 = time.perf_counter()
-                self.stats.timings[1] += t3 - t2
-                e = np.zeros(1, dtype=np.int64)
-                G, Gdiag, LB, full = (np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)),
-                                      (*pat, e, e[:0]))
-                if ok and Wt.shape[0]:
-                    ok, G, Gdiag, LB, full = phase_delassus(self.form, active.shape[0],
-                                                            self.bilateral_direct, Wt, MinvW,
-                                                            pat)
-                self.stats.timings[2] += time.perf_counter() - t3
-                hard = (ok, active, Wt, MinvW, bvec, G, Gdiag, LB, full, opened)
-            ok = hard[0]
+            problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
+                                            WtB, self.bB, self.eps, self.blocks, factor,
+                                            self.L, state.last_impulse, state.last_active,
+                                            timings)
+            ok = problem[0]
         else:
             ok = cholesky_blocks(M, self.blocks, self.L) if factor else True
             if prof:
-                self.stats.timings[1] += time.perf_counter() - t2
+                lap(timings, PHASE_M_INVERSE, t)
         if ok:
             self._factored = True
-        self._prepared = (q, u, qM, M, h0, ok, hard)
+        self._prepared = (q, u, qM, M, h0, ok, problem)
 
-    def step(self, q, u, tau, f_ext=None):
-        """Advance (q, u) by Δt with joint torques tau (public joint order) and an optional
-        generalized external force f_ext. Returns (q^E, u^E, StepResult)."""
+    def step(self, state: SimState, tau, f_ext=None) -> "StepResult":
+        """Advance state by Δt with joint torques tau (public joint order) and an optional
+        generalized external force f_ext: state.q and state.u become q^E and u^E, and the
+        contact memory is updated (state.t is the caller's). Returns the StepResult. On a
+        SimulationError, q and u are unchanged but the contact memory may not be (the
+        Simulator restores its snapshot)."""
         p = self._prepared
-        if p is None or p[0] is not q or p[1] is not u:
-            self.prepare(q, u)
+        if p is None or p[0] is not state.q or p[1] is not state.u:
+            self.prepare(state)
             p = self._prepared
         self._prepared = None
-        _, _, qM, M, h, ok, hard = p
+        _, u, qM, M, h, ok, problem = p
         if not ok:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
         dt = self.dt
         coords = self.coords
         prof = self.profile
-        if prof:
-            t0 = time.perf_counter()
+        timings = self.stats.timings if prof else None
+        t = clock(timings) if prof else 0.0
         if tau is not None and tau.shape[0]:
             coords.add_joint_torques(qM, u, tau, h)
         if f_ext is not None:
             h += f_ext
         if prof:
-            self.stats.timings[0] += time.perf_counter() - t0
+            lap(timings, PHASE_M_AND_H, t)
         if self.hard:
-            uE, res = self._solve(M, h, u, dt, prof, hard)
+            uE, res = self._solve(state, M, h, u, problem, prof, timings)
         else:
-            uE, res = self._solve_compliant(M, h, u, dt, prof, hard)
-        if prof:
-            t4 = time.perf_counter()
+            uE, res = self._solve_compliant(state, M, h, u, problem, prof, timings)
+        t = clock(timings) if prof else 0.0
         # Eqn. (8); with a post-step projection, the positions move by ½Δt Δu_p more
         qE = coords.integrate(qM, uE + self.u_corr if res.projected else uE, 0.5 * dt)
         if not all_finite(qE, uE):
             raise SimulationError("non-finite state after the step; state left unchanged")
+        state.q, state.u = qE, uE
         self.stats.steps += 1
         if prof:
-            self.stats.timings[4] += time.perf_counter() - t4
-        return qE, uE, res
+            lap(timings, PHASE_REST, t)
+        return res
 
-    def _solve_compliant(self, M, h, uS, dt, prof, hard):
-        t = time.perf_counter() if prof else 0.0
-        c = self.cfg.contact
-        compliant_contact_forces(self.gap, self.position, self.Wt_all, uS, self.closed, self.slip,
-                                 self.anchor, self.ground.mu, c.stiffness_normal,
-                                 c.damping_normal, c.stiffness_tangential, c.damping_tangential,
-                                 c.slip_velocity, self.ground.n, self.ground.t1, self.ground.t2,
-                                 self.lam_compliant)
-        generalized_contact_force(self.Wt_all, self.lam_compliant, h)
+    def _solve_compliant(self, state, M, h, uS, problem, prof, timings):
+        """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of
+        the bilateral constraints, or u^E = u_free without them."""
+        dt = self.dt
+        t = clock(timings) if prof else 0.0
+        compliant_contact_forces(self._compliant_law_fields, self.gap, self.position,
+                                 self.Wt_all, uS, state.closed, state.slip, state.anchor,
+                                 self.ground.t1, self.ground.t2, state.lam_compliant)
+        generalized_contact_force(self.Wt_all, state.lam_compliant, h)
         if prof:
-            self.stats.timings[4] += time.perf_counter() - t
+            t = lap(timings, PHASE_REST, t)
         active = self.gap <= 0.0
         if self.nb:  # bilateral constraints still need the prox solve (no contact rows)
-            uE, res = self._solve(M, h, uS, dt, prof, hard)
+            uE, res = self._solve(state, M, h, uS, problem, prof, timings)
         else:
-            t2 = time.perf_counter() if prof else 0.0
             free_velocity(h, dt, uS, self.blocks, self.L, self.u_free)
             if prof:
-                self.stats.timings[1] += time.perf_counter() - t2
+                lap(timings, PHASE_M_INVERSE, t)
             uE, res = self.u_free.copy(), StepResult(active, None, None)
         res.active = active
         res.n_active = int(np.count_nonzero(active))
         res.gap = self.gap.copy()
         res.position = self.position.copy()
-        res.impulse = self.lam_compliant * dt
+        res.impulse = state.lam_compliant * dt
         return uE, res
 
-    def _solve(self, M, h, uS, dt, prof, hard):
+    def _solve(self, state, M, h, uS, problem, prof, timings):
+        """u^E of the prepared hard-contact (or bilateral) problem, the warm-start memory of
+        `state` updated."""
         nc = self.nc
         impulse = np.empty((nc, 3))
         is_active = np.empty(nc, dtype=np.bool_)
         u = np.empty(self.nv)
-        _, active, Wt, MinvW, bvec, G, Gdiag, LB, full, opened = hard
         gap = self.gap if self.hard else self._never_active
-        if not prof:
-            it, status, resid, retried, pit, pstatus = complete_hard_contacts(
-                h, dt, uS, self.blocks, self.L, M, active, Wt, MinvW, bvec, G, Gdiag, LB,
-                full, self.fparams, self.iparams, self.last_impulse, self.last_active,
-                self.last_bilateral, impulse, is_active, self.u_free, u, gap, self.Wt_all,
-                self.u_corr)
-        else:  # the same phases, called one by one between timers (Fig. 7)
-            s = self.cfg.solver
-            t1 = time.perf_counter()
-            free_velocity(h, dt, uS, self.blocks, self.L, self.u_free)
-            t2 = time.perf_counter()
-            self.stats.timings[1] += t2 - t1
-            impulse[:] = 0.0
-            is_active[:] = False
-            it, status, resid, retried = 0, prox.STATUS_CONVERGED, 0.0, False
-            pit, pstatus = 0, -1
-            self.u_corr[:] = 0.0
-            u = self.u_free.copy()
-            if Wt.shape[0]:
-                cvec = constraint_velocity(Wt, self.u_free, bvec, full[0], full[1])
-                t3 = time.perf_counter()
-                self.stats.timings[2] += t3 - t2
-                u, lam, it, status, resid, retried = phase_prox(
-                    self.form, self.scheme, Wt, MinvW, self.u_free, bvec, G, cvec, Gdiag,
-                    LB, self.bilateral_direct, full, active, self.last_impulse,
-                    self.last_active,
-                    self.last_bilateral, self.ground.mu, s.alpha, s.tol_rel, s.tol_abs,
-                    s.max_iterations, self.criterion, M, s.warm_start,
-                    s.fallback_alpha_factor)
-                o = 3 * active.shape[0]
-                impulse[active] = lam[:o].reshape(-1, 3)
-                is_active[active] = True
-                if not np.all(np.isfinite(u)):
-                    status = prox.STATUS_NONFINITE
-                if status != prox.STATUS_NONFINITE:
-                    self.last_bilateral[:] = lam[o:]
-                self.stats.timings[3] += time.perf_counter() - t3
-            if status != prox.STATUS_NONFINITE and self.beta_projection > 0.0:
-                t5 = time.perf_counter()
-                pit, pstatus = phase_projection(
-                    self.form, self.scheme, Wt, MinvW, G, Gdiag, LB, self.bilateral_direct,
-                    full, active, is_active, gap, self.Wt_all, self.jacobian_gap, self.blocks,
-                    self.L, u, dt, self.beta_projection, s.alpha, s.tol_rel, s.tol_abs,
-                    s.max_iterations, self.criterion, M, self.u_corr,
-                    self.fparams[FP_PROJECTION_TOLERANCE])
-                self.stats.timings[3] += time.perf_counter() - t5
-            if status != prox.STATUS_NONFINITE:
-                self.last_impulse[:] = impulse
-                self.last_active[:] = is_active
+        it, status, resid, retried, pit, pstatus = complete_hard_contacts(
+            self._settings_fields, problem, h, uS, M, self.blocks, self.L, gap, self.Wt_all,
+            state.last_impulse, state.last_active, state.last_bilateral, impulse, is_active,
+            self.u_free, u, self.u_corr, timings)
         if retried:
             self.stats.retried += 1
         if status != prox.STATUS_CONVERGED:
@@ -775,6 +845,7 @@ class MoreauStepper:
                                   "state left unchanged")
         if pstatus >= 0:
             self.stats.projections += 1
+        active = problem[1]
         return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried,
                              self.position.copy(), active.shape[0] if self.hard else 0,
-                             opened, pit, pstatus >= 0)
+                             problem[9], pit, pstatus >= 0)

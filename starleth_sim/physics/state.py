@@ -1,0 +1,95 @@
+"""The evolving state of a simulation, apart from the model (as MuJoCo's mjModel/mjData or
+Pinocchio's Model/Data split them).
+
+What is what:
+
+* **Model / settings** (fixed while stepping, never rolled back): the robot description and
+  its coordinate set, the `PhysicsConfig`, the kernels' typed settings
+  (`stepper.StepSettings`, `contact.CompliantLaw`), the ground plane, the joint limits, and
+  the *persistent* external wrenches (`Simulator.set_persistent_wrench`): they are an input
+  the user sets, like the torques, not something a step evolves.
+* **State** (`SimState`, this module): everything a step reads *and* writes, so that the
+  next step depends on it — q, u, t, the hard contacts' memory (the last step's impulses Λ
+  and active flags, which warm-start the prox iteration and decide the activation
+  hysteresis, and Λ_B of the bilateral constraints), the compliant contacts' state of Alg. 1
+  (closed, slip, anchor P0, and the last forces λ) and the *timed* external wrenches
+  (`Simulator.apply_wrench`), whose remaining durations a step counts down. A copy of it is
+  a snapshot; restoring one is an assignment (`Simulator.snapshot` / `Simulator.restore`).
+* **Workspace** (Data-like scratch, recomputed by every step, never part of a snapshot):
+  the stepper's arrays at q^M (g_N, contact points, W^T of every contact, the factor L of
+  M, u_free, Δu_p, b_B), its "prepared step" cache (`MoreauStepper.prepare`, valid only
+  for the very q and u objects it was made from), its counters (`StepperStats`), and the
+  Simulator's reports of the last control step (contacts, applied torques, diagnostics)
+  and its cache of the joint velocities of the current state.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class SimState:
+    """One simulation state (see the module docstring for what is not in it).
+
+    Arrays run over every contact point of the model (nc) and every bilateral constraint row
+    (nb); the contact frame is (n, t1, t2) of the ground plane."""
+
+    q: np.ndarray                  # generalized coordinates (coordinate set's layout)
+    u: np.ndarray                  # generalized velocities [m/s, rad/s]
+    t: float = 0.0                 # simulated time [s]
+    #: hard contacts (None with compliant ones): Λ = (Λ_N, Λ_T1, Λ_T2) of the last physics
+    #: step (nc x 3) [N s] and whether each contact was in the active set I (warm start;
+    #: hysteresis of I)
+    last_impulse: np.ndarray | None = None
+    last_active: np.ndarray | None = None
+    #: Λ_B of the bilateral constraints in the last physics step (nb) [N s] (warm start)
+    last_bilateral: np.ndarray | None = None
+    #: compliant contacts (Alg. 1; None with hard ones): closed (g_N ≤ 0), slipping,
+    #: anchor P0 (nc x 3) [m] and the last forces λ = (λ_N, λ_T1, λ_T2) (nc x 3) [N]
+    closed: np.ndarray | None = None
+    slip: np.ndarray | None = None
+    anchor: np.ndarray | None = None
+    lam_compliant: np.ndarray | None = None
+    #: timed external wrenches still to apply: [link, force, torque, remaining time [s]]
+    pending_wrenches: list = field(default_factory=list)
+
+    @classmethod
+    def initial(cls, q, u, t: float, n_contacts: int, n_bilateral: int,
+                hard: bool) -> "SimState":
+        """The state (q, u, t) with no contact memory and no pending wrench; the memory of
+        the other contact model (hard: the compliant one, and vice versa) is None."""
+        nc = n_contacts
+        if hard:
+            return cls(q, u, float(t), last_impulse=np.zeros((nc, 3)),
+                       last_active=np.zeros(nc, dtype=np.bool_),
+                       last_bilateral=np.zeros(n_bilateral))
+        return cls(q, u, float(t), last_bilateral=np.zeros(n_bilateral),
+                   closed=np.zeros(nc, dtype=np.bool_), slip=np.zeros(nc, dtype=np.bool_),
+                   anchor=np.zeros((nc, 3)), lam_compliant=np.zeros((nc, 3)))
+
+    def copy(self) -> "SimState":
+        """A deep copy (a snapshot): nothing is shared with this state. (Simulator.step
+        takes one per control step, so this is written for speed.)"""
+        new = object.__new__(SimState)
+        new.q = self.q.copy()
+        new.u = self.u.copy()
+        new.t = self.t
+        a = self.last_impulse
+        new.last_impulse = None if a is None else a.copy()
+        a = self.last_active
+        new.last_active = None if a is None else a.copy()
+        new.last_bilateral = self.last_bilateral.copy()
+        a = self.closed
+        if a is None:
+            new.closed = new.slip = new.anchor = new.lam_compliant = None
+        else:
+            new.closed = a.copy()
+            new.slip = self.slip.copy()
+            new.anchor = self.anchor.copy()
+            new.lam_compliant = self.lam_compliant.copy()
+        pending = self.pending_wrenches
+        new.pending_wrenches = [[link, f.copy(), m.copy(), remaining]
+                                for link, f, m, remaining in pending] if pending else []
+        return new
