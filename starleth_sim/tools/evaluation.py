@@ -27,6 +27,10 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 
 from ..physics.config import PRESETS as TABLE1   # the paper's Table 1, in its order
+from ..physics.stepper import PHASES
+
+PHASE_LABELS = {"M_and_h": "M and h", "M_inverse": "M⁻¹ (and M⁻¹W)", "G": "G (and G_B⁻¹)",
+                "prox": "u^E (prox)", "rest": "rest"}
 
 FIG6_CONFIGS = TABLE1[1:]      # the hard-contact ones
 TROT_SPEED = 0.3       # m/s
@@ -415,7 +419,6 @@ def make_figures(results, out_dir):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from ..physics.config import load_preset
     figs = {}
     # Fig. 5
     t1 = {r["preset"]: r for r in _by(results, "table1")}
@@ -471,7 +474,7 @@ def make_figures(results, out_dir):
     # Fig. 7
     f7 = sorted(_by(results, "fig7"), key=lambda r: TABLE1.index(r["preset"]))
     if f7:
-        labels = ["M and h", "M⁻¹ (and M⁻¹W)", "G (and G_B⁻¹)", "u^E (prox)", "rest"]
+        labels = [PHASE_LABELS[p] for p in PHASES]
         fig, ax = plt.subplots(figsize=(9, 4))
         bottom = np.zeros(len(f7))
         for i, lab in enumerate(labels):
@@ -486,8 +489,6 @@ def make_figures(results, out_dir):
         figs["fig7"] = "fig7_time_breakdown.png"
         fig.savefig(os.path.join(out_dir, figs["fig7"]), dpi=120)
         plt.close(fig)
-        del PHASES
-    del load_preset
     return figs
 
 
