@@ -436,7 +436,7 @@ def test_bad_input_never_gives_nan_torque():
 
 
 def test_controller_does_not_import_the_simulator():
-    code = ("import sys, starleth_controller; "
+    code = ("import sys, starleth_controller, starleth_controller.controller_node; "
             "assert not any(m.startswith('starleth_sim') for m in sys.modules), "
             "[m for m in sys.modules if m.startswith('starleth_sim')]")
     subprocess.run([sys.executable, "-c", code], check=True)
