@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import asdict, make_dataclass
+from dataclasses import make_dataclass
 
 import yaml
 
@@ -89,7 +89,6 @@ SIM_NODE_PARAMETERS = (
       "Length of the contact force arrows, metres per newton.", minimum=0.0,
       minimum_exclusive=True),
 )
-PARAMETERS_BY_NAME = {p.name: p for p in SIM_NODE_PARAMETERS}
 
 YAML_HEADER = """\
 Default parameters of sim_node (a ROS 2 parameter file: pass it, or a copy, with
@@ -161,10 +160,6 @@ def load_default_parameters(path: str | None = None) -> dict:
                     defaults[k] = v
             break
     return defaults
-
-
-def settings_dict(settings) -> dict:
-    return asdict(settings)
 
 
 def render_yaml() -> str:
