@@ -121,6 +121,15 @@ from .state_io import (ImuEstimate, initial_state_record, minimal_state, parse_i
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 
+def _package_version() -> str:
+    """The installed starleth_sim version (recorded with every bag), or 'unknown'."""
+    try:
+        from importlib.metadata import version
+        return version("starleth_sim")
+    except Exception:   # not installed (run from a source tree)
+        return "unknown"
+
+
 def _dbl(a) -> array.array:
     return array.array("d", np.ascontiguousarray(a, dtype=float).tobytes())
 
@@ -453,7 +462,17 @@ class SimNode:
             "control_period": repr(sim.control_period),
             "stamp_period_ns": str(self.service.period_ns),
             "namespace": self.node.get_namespace(),
-            "urdf_attachment": "starleth.urdf"})
+            "urdf_attachment": "starleth.urdf",
+            # for starleth-replay: what re-runs this recording open loop, bit for bit
+            "package_version": _package_version(),
+            "joint_states_topic": self.pubs["joint_states"][1],
+            "base_state_topic": self.pubs["base_state"][1],
+            "wrench_topic": self.subs["wrench"][1],
+            "wrench_persistent_topic": self.subs["wrench_persistent"][1],
+            "replay": "torques: /joint_states effort at stamp t_(k+1) = the torque applied "
+                      "over step k -> k+1 (saturated, derated; joint order joint_names); "
+                      "inputs (commands, wrenches): log time t_k = the stamp of the state "
+                      "after which they were taken: a wrench acts from step k -> k+1"})
         rec.add_attachment("starleth.urdf", "application/xml", sim.description.urdf_xml)
         rec.add_attachment("physics_config.yaml", "application/yaml", cfg_yaml)
         rec.add_attachment("initial_state.json", "application/json", json.dumps(init, indent=1))

@@ -298,6 +298,36 @@ class Run:
         self.joint_names = col.joint_names
         self.window = (None, None)
 
+    @classmethod
+    def from_arrays(cls, label, t, base=None, wrench=None, effort=None,
+                    base_frames=("world", "base")):
+        """A run made from arrays instead of a bag (e.g. a re-simulation, starleth-replay),
+        for the plots: t [s] per row; base rows (position 3, quaternion x y z w, linear
+        twist 3, angular twist 3), wrench {foot: rows (f_x, f_y, f_z)}, effort rows in
+        JOINTS order; missing ones are empty series."""
+        run = cls.__new__(cls)
+        run.path, run.label = "", label
+        run.truncated, run.files, run.file_size, run.messages = False, [], 0, 0
+        run.counts, run.types, run.metadata, run.urdf = {}, {}, {}, None
+        run.namespace, run.topic_names, run.missing = "", {}, []
+        run.base_frames, run.joint_names, run.window = base_frames, list(JOINTS), (None, None)
+        run.t0_ns, run.read_seconds = 0, 0.0
+        t = np.asarray(t, dtype=float)
+        stamp = np.round(t * 1e9).astype(np.int64)
+
+        def entry(data, width):
+            if data is None:
+                z = np.zeros(0, dtype=np.int64)
+                return {"stamp": z, "log": z, "pub": z, "data": np.zeros((0, width)),
+                        "t": np.zeros(0)}
+            return {"stamp": stamp, "log": stamp, "pub": stamp,
+                    "data": np.asarray(data, dtype=float).reshape(len(t), width), "t": t}
+        run._series = {("wrench", f): entry((wrench or {}).get(f), 3) for f in FEET}
+        run._series[("base", None)] = entry(base, 13)
+        run._series[("joints", None)] = entry(effort, len(JOINTS))
+        run._series[("solver", None)] = entry(None, 6)
+        return run
+
     # -- access ------------------------------------------------------------------------------
     def series(self, what, foot=None):
         """dict with t [s], stamp/log/pub [ns] and data rows (time window applied)."""
