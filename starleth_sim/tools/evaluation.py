@@ -53,13 +53,18 @@ def _controller():
 
 
 def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
-             stand_time=STAND_BEFORE_TROT, stop_on_nonconvergence=False, **overrides):
-    """Stand (and trot after `stand_time` s if gait == 'trot') for `seconds`; returns
-    per-step wall times of sim.step, iterations, and the measurements of the report."""
+             stand_time=STAND_BEFORE_TROT, stop_on_nonconvergence=False, speed=TROT_SPEED,
+             perturb=None, **overrides):
+    """Stand (and trot at `speed` after `stand_time` s if gait == 'trot') for `seconds`;
+    push = (time [s], force (world) [N], duration [s]) on the base; perturb(sim) may change
+    the initial state. Returns per-step wall times of sim.step, iterations, and the
+    measurements of the report. The one headless run of starleth-eval and starleth-sweep."""
     from starleth_controller import Command, RobotState
     from ..physics.simulator import Simulator
     from ..physics.stepper import SimulationError
     sim = Simulator.from_preset(preset, profile=profile, **overrides)
+    if perturb is not None:
+        perturb(sim)
     ctrl = _controller()
     n = int(round(seconds / sim.control_period))
     feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
@@ -75,7 +80,7 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
     k_done = 0
     for k in range(n):
         trot = gait == "trot" and k * sim.control_period >= stand_time
-        cmd = Command(mode="trot" if trot else "stand", forward=TROT_SPEED if trot else 0.0)
+        cmd = Command(mode="trot" if trot else "stand", forward=speed if trot else 0.0)
         tau = ctrl.update(RobotState.from_simulator(sim), cmd)
         if push is not None and k == int(round(push[0] / sim.control_period)):
             sim.apply_wrench("base", push[1], duration=push[2])

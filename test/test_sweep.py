@@ -1,0 +1,114 @@
+"""starleth-sweep: a spec expands into its grid, a bad spec gives one line naming the file and
+field, a tiny sweep writes its table and plots, and the same sweep on a local Ray instance
+(ray.init(num_cpus=2)) gives the same table as the process pool."""
+import csv
+import math
+
+import pytest
+
+from starleth_sim.tools import sweep
+
+TINY = """\
+name: tiny
+presets: [HmJ]
+overrides:
+  alpha: [0.6, 1.0]
+scenarios:
+  - kind: push
+    seconds: 0.1
+    at: 0.02
+    duration: 0.05
+    direction: [0, 2, 0]
+    magnitude: [600]
+seeds: [1]
+perturbation:
+  joint_angles: 0.01
+"""
+
+
+def _spec(tmp_path, text, name="spec.yaml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return str(p)
+
+
+def test_spec_expands_into_the_grid(tmp_path):
+    s = sweep.load_spec(_spec(tmp_path, """\
+presets: [HmJ, Cm]
+overrides: {alpha: [0.4, 0.6, 0.8]}
+scenarios:
+  - {kind: stand, seconds: 1}
+  - {kind: push, magnitude: [100, 200], direction: [0, 0, -3]}
+  - {kind: trot, speed: [0.2, 0.4]}
+seeds: [0, 1]
+"""))
+    assert s.name == "spec" and s.override_keys == ["alpha"]
+    assert len(s.runs) == 2 * 3 * (1 + 2 + 2) * 2
+    assert [r.index for r in s.runs] == list(range(len(s.runs)))
+    push = [r.scenario for r in s.runs if r.scenario.kind == "push"]
+    assert {p.magnitude for p in push} == {100.0, 200.0}
+    assert push[0].direction == (0.0, 0.0, -1.0)        # normalised
+    assert {r.seed for r in s.runs} == {0, 1}
+
+
+@pytest.mark.parametrize("text, words", [
+    ("presets: [HmJ]\nscenarios: [{kind: jump}]\n", ("spec.yaml", "scenarios[0].kind")),
+    ("presets: [HmJ]\nscenarios: [{kind: stand, seconds: -1}]\n", ("scenarios[0].seconds",)),
+    ("presets: [HmJ]\noverrides: {alpha: [2.5]}\nscenarios: [{kind: stand}]\n",
+     ("spec.yaml", "alpha")),
+    ("presets: [Nope]\nscenarios: [{kind: stand}]\n", ("unknown physics preset",)),
+    ("presets: [HmJ]\nscenario: []\n", ("unknown field", "scenario")),
+])
+def test_bad_spec_gives_one_line(tmp_path, capsys, text, words):
+    assert sweep.main([_spec(tmp_path, text)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("starleth-sweep: error:")
+    for w in words:
+        assert w in err[0], err[0]
+
+
+def _same_table(a, b):
+    """Equal rows of two results.csv; numbers to 1e-9 relative: the simulator is
+    bit-reproducible across processes, StarlethController's QP (ProxQP) is not (its round-off
+    differs from process to process, as with SIMD code whose path depends on memory
+    alignment)."""
+    assert len(a) == len(b) and a and a[0].keys() == b[0].keys()
+    for ra, rb in zip(a, b):
+        for k in ra:
+            if k in sweep.TIMING_COLUMNS:
+                continue
+            try:
+                x, y = float(ra[k]), float(rb[k])
+            except ValueError:
+                assert ra[k] == rb[k], (k, ra[k], rb[k])
+                continue
+            assert math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12), (k, x, y)
+
+
+def _read(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_tiny_sweep_on_the_pool_and_on_ray_give_the_same_table(tmp_path):
+    spec = _spec(tmp_path, TINY)
+    out = tmp_path / "pool"
+    assert sweep.main([spec, "--jobs", "2", "--out", str(out)]) == 0
+    pool = _read(out / "results.csv")
+    assert [r["alpha"] for r in pool] == ["0.6", "1.0"]
+    assert (out / "iterations_vs_alpha.png").stat().st_size > 10_000
+    for r in pool:
+        assert r["steps"] == "40" and r["completed"] == "True" and r["push_direction"] == "0 1 0"
+    # the push (30 N s lateral) tilts the robot (the initial perturbation alone: < 0.05°);
+    # α changes the solver's work, not the physics (the same answer to the tolerance)
+    tilt = [float(r["max_tilt_deg"]) for r in pool]
+    assert tilt[0] > 0.3 and tilt[0] == pytest.approx(tilt[1], rel=1e-3)
+    assert pool[0]["mean_iterations"] != pool[1]["mean_iterations"]
+    ray = pytest.importorskip("ray", reason="Ray is an optional extra: pip install '.[ray]'")
+    try:
+        rows = sweep.run_sweep(sweep.load_spec(spec), ray="local",
+                               ray_init=dict(num_cpus=2), show_progress=False)
+    finally:
+        ray.shutdown()
+    sweep.write_table(rows, str(tmp_path / "ray"))
+    _same_table(pool, _read(tmp_path / "ray" / "results.csv"))
