@@ -6,7 +6,7 @@ PIP    := $(VPY) -m pip -q --disable-pip-version-check --no-input
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: venv test demo bench eval browser-test constraints clean distclean
+.PHONY: venv test demo bench eval ray browser-test constraints clean distclean
 
 venv: $(STAMP)
 
@@ -52,6 +52,10 @@ bench: venv
 
 eval: venv
 	$(VENV)/bin/starleth-eval
+
+# the optional Ray extra (starleth-sweep / starleth-eval --ray auto|local|ADDRESS)
+ray: venv
+	$(PIP) install -c constraints.txt -e '.[ray]'
 
 # starleth-view's HTML in a real browser (test/test_view.py -k browser): installs Debian's
 # chromium with apt when it is missing (sudo when not root, non-interactive), then runs only

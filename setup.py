@@ -16,6 +16,7 @@ setup(
         ('share/' + package_name + '/msg_configs', glob('msg_configs/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
         ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
+        ('share/' + package_name + '/sweeps', glob('sweeps/*.yaml')),   # starleth-sweep specs
     ],
     install_requires=[
         'setuptools',
@@ -34,7 +35,9 @@ setup(
     maintainer_email='dev@example.com',
     description='Python simulator of the StarlETH quadruped with a ROS 2 interface.',
     license='BSD-3-Clause',
-    extras_require={'test': ['pytest']},
+    extras_require={'test': ['pytest'],
+                    'ray': ['ray>=2.9'],       # starleth-sweep / starleth-eval --ray
+                    'parquet': ['pyarrow']},   # starleth-sweep's results.parquet
     entry_points={
         'console_scripts': [
             'sim_node = starleth_sim.ros.sim_node:main',
@@ -45,6 +48,8 @@ setup(
             'starleth-eval = starleth_sim.tools.evaluation:main',
             'starleth-analyze = starleth_sim.tools.analysis:main',
             'starleth-view = starleth_sim.tools.view:main',
+            'starleth-replay = starleth_sim.tools.replay:main',
+            'starleth-sweep = starleth_sim.tools.sweep:main',
         ],
     },
 )

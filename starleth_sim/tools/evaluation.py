@@ -22,7 +22,6 @@ import math
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
@@ -364,33 +363,12 @@ def plan(quick: bool, configs):
     return tasks
 
 
-def _progress(done, total, t0, stream=sys.stderr):
-    width = 30
-    fill = int(width * done / total)
-    el = time.time() - t0
-    eta = el / done * (total - done) if done else 0.0
-    stream.write(f"\r[{'#' * fill}{'.' * (width - fill)}] {done}/{total} tasks, "
-                 f"{el:5.0f} s elapsed, ~{eta:4.0f} s left")
-    stream.flush()
-
-
-def run_all(quick=False, jobs=None, configs=TABLE1):
-    tasks = plan(quick, configs)
-    jobs = jobs or os.cpu_count() or 1
-    results = []
+def run_all(quick=False, jobs=None, configs=TABLE1, ray=None):
+    """Every task of the plan on starleth-sweep's machinery (a process pool of `jobs`, or
+    Ray), with its progress bar; returns (results, elapsed seconds)."""
+    from .sweep import execute
     t0 = time.time()
-    _progress(0, len(tasks), t0)
-    if jobs == 1:
-        for i, (f, kw) in enumerate(tasks):
-            results.append(f(**kw))
-            _progress(i + 1, len(tasks), t0)
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as ex:
-            futs = [ex.submit(f, **kw) for f, kw in tasks]
-            for i, fut in enumerate(as_completed(futs)):
-                results.append(fut.result())
-                _progress(i + 1, len(tasks), t0)
-    sys.stderr.write("\n")
+    results = execute(plan(quick, configs), jobs or os.cpu_count() or 1, ray)
     return results, time.time() - t0
 
 
@@ -637,13 +615,20 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores)")
     ap.add_argument("--out", default="eval", help="output directory (default: eval/)")
     ap.add_argument("--configs", nargs="*", default=list(TABLE1), help="configurations")
+    ap.add_argument("--ray", default=None, metavar="auto|local|ADDRESS",
+                    help="run the tasks on Ray instead of local processes (see starleth-sweep)")
     args = ap.parse_args(argv)
     unknown = [c for c in args.configs if c not in TABLE1]
     if unknown:
         ap.error(f"unknown configurations {unknown}; known: {list(TABLE1)}")
     os.makedirs(args.out, exist_ok=True)
     jobs = args.jobs or os.cpu_count() or 1
-    results, elapsed = run_all(args.quick, jobs, tuple(args.configs))
+    from .sweep import SweepError
+    try:
+        results, elapsed = run_all(args.quick, jobs, tuple(args.configs), args.ray)
+    except SweepError as e:      # --ray without Ray, or no cluster to join
+        print(f"starleth-eval: error: {e}", file=sys.stderr)
+        return 1
     figs = make_figures(results, args.out)
     with open(os.path.join(args.out, "results.json"), "w") as f:
         json.dump([{k: v for k, v in r.items() if k not in ("lf_t", "lf_force")}
