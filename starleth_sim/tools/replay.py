@@ -13,16 +13,18 @@ took is recorded on its input topic with the log time t_k of the state after whi
 applied: it acts from step k -> k+1.
 
 The replay makes the same calls on a ``Simulator`` as sim_node did (``SimService``: warm-up,
-reset to the initial state, ``submit_wrench``, ``step``), feeding the recorded applied
-torques with the actuator model off (``actuator.velocity_limit: ignore``: the torques are
-already those the motors applied; clipping them again at the effort limit changes nothing,
-derating them twice would). With the recorded configuration it must reproduce the recording
+reset to the initial state, ``submit_wrench``, ``step``). With the recorded configuration it
+feeds the recorded applied torques with the actuator model off (``actuator.velocity_limit:
+ignore``: the torques are already those the motors applied; clipping them again at the
+effort limit changes nothing, derating them twice would), and it must reproduce the recording
 bit for bit: every step's joint positions and velocities, base pose and twist (as
 /starleth/base_state holds them) and the foot forces are compared exactly; the output says
 "bit-identical" or gives the first step that differs and by how much (exit status 0 or 3).
 
 ``--preset NAME`` (repeatable, or a YAML path) runs the same torque stream through other
-configurations (the initial state converted through minimal coordinates) and writes overlay
+configurations (the initial state converted through minimal coordinates; their motors
+derate a torque beyond the velocity limit, so a leg in the air does not spin up without
+bound once the run has left the recorded one) and writes overlay
 plots (foot normal forces and base path by ``starleth-analyze``'s plotting, joint angles)
 and a table of differences against the recording. The recorded run was closed loop: its
 controller reacted to the recorded physics. Replayed open loop through other physics, the
@@ -264,7 +266,12 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     from ..ros.service import SimService
     own = config is None
     cfg = rec.config() if own else config
-    cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
+    if abs(cfg.control_period - rec.control_period) > 1e-12:
+        raise ReplayError(f"{cfg.name}: control period {cfg.control_period * 1e3:g} ms, the "
+                          f"recording's is {rec.control_period * 1e3:g} ms: the torque stream "
+                          "does not fit (override control_rate)")
+    if own:   # the recorded torques are the applied ones: derating them again would differ
+        cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
     sim = Simulator(cfg)
     init = rec.initial
     if init.get("coordinates") == cfg.coordinates and "q" in init:
