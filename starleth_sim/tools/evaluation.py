@@ -11,8 +11,11 @@ Writes ``eval/report.md``, ``eval/results.json`` and PNG figures:
   * accuracy - foot sink while trotting (Cm), unilateral drift while standing, bilateral drift
     while trotting, for every configuration where they apply;
   * robustness - the push-over stress test per configuration.
-Runs are independent tasks spread over processes (``--jobs``, default all cores). ``--quick``
-shortens every run (for CI); the figures are then noisier but complete.
+Runs are independent tasks, a predefined sweep executed by starleth-sweep's machinery
+(:func:`starleth_sim.tools.sweep.execute`: a process pool, ``--jobs``, default all cores, or
+Ray with ``--ray auto|local|ADDRESS``; progress with ETA); starleth-sweep's runs are
+:func:`run_gait`, the one headless run of both. ``--quick`` shortens every run (for CI); the
+figures are then noisier but complete.
 """
 from __future__ import annotations
 
