@@ -237,7 +237,8 @@ class Replay:
     label: str
     config_name: str
     states: dict
-    steps: int                       # steps taken (fewer than recorded if the physics failed)
+    steps: int                       # steps taken (fewer than asked for if the physics failed)
+    requested: int = 0               # steps asked for (all recorded ones, or --steps)
     error: str | None = None
     wall: float = 0.0
     iterations: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -308,7 +309,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     done = k
     return Replay(label=label or (cfg.name + (" (replay)" if own else "")),
                   config_name=cfg.name, states={q: a[:done + 1] for q, a in out.items()},
-                  steps=done, error=error, wall=time.perf_counter() - t0,
+                  steps=done, requested=n, error=error, wall=time.perf_counter() - t0,
                   iterations=its[:done])
 
 
@@ -342,7 +343,7 @@ def compare_exact(rec: Recording, rep: Replay) -> Comparison:
             d = np.abs(rec.states[q][first] - rep.states[q][first])
             if np.any(d > 0) or np.any(np.isnan(d)):
                 at[q] = float(np.nanmax(d))
-    identical = first is None and rep.steps == rec.steps and rep.error is None
+    identical = first is None and rep.steps == rep.requested and rep.error is None
     return Comparison(identical=identical, steps=n, first_step=first, first_quantities=at,
                       max_abs=maxabs, forces_identical=forces_same)
 
@@ -436,15 +437,15 @@ def _fmt_t(x):
 def format_comparison(rec: Recording, rep: Replay, c: Comparison) -> list:
     cp = rec.control_period
     if c.identical:
-        lines = [f"  bit-identical: all {c.steps} steps (joint positions and velocities, base "
-                 "pose and twist" + (", foot forces" if c.forces_identical else "") + ")"]
+        some = f" (the first {c.steps} of {rec.steps})" if c.steps < rec.steps else ""
+        lines = [f"  bit-identical: all {c.steps} steps{some} (joint positions and velocities, "
+                 "base pose and twist" + (", foot forces" if c.forces_identical else "") + ")"]
         if not c.forces_identical:
             lines.append(f"  (foot forces differ by up to {c.max_abs['foot_forces']:.3g} N)")
         return lines
     if c.first_step is None:
-        what = rep.error or f"{rep.steps} of {rec.steps} steps"
-        return [f"  NOT complete: the replay stopped after {rep.steps} of {rec.steps} steps "
-                f"({what}); identical up to there"]
+        return [f"  NOT complete: the replay stopped after {rep.steps} of {rep.requested} "
+                f"steps ({rep.error}); identical up to there"]
     diffs = ", ".join(f"{q} {v:.3g}" for q, v in c.first_quantities.items())
     return [f"  NOT bit-identical: first difference at step {c.first_step} "
             f"(t = {c.first_step * cp:.4f} s): max |Δ| {diffs}",
