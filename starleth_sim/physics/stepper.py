@@ -758,11 +758,10 @@ class MoreauStepper:
         dt = self.dt
         coords = self.coords
         t = clock(timings)
-        qM = coords.integrate(q, u, 0.5 * dt)
-        M, h0 = coords.dynamics(qM, u, None)
+        # (the contact kinematics share the forward kinematics of M and h: phase "M and h")
+        qM, M, h0 = coords.midpoint(q, u, dt, self.ground, self.gap, self.position,
+                                    self.Wt_all, self.jacobian_gap)
         t = lap(timings, PHASE_M_AND_H, t)
-        coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
-                                  self.jacobian_gap)
         if self.nb:
             WtB, gB = coords.bilateral(qM)
             np.multiply(gB, self.beta / dt, out=self.bB)
