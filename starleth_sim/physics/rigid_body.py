@@ -83,10 +83,10 @@ def spatial_inertias(oR, op, mass, lever, inertia, out):
     rotational inertia about c, both in the world frame."""
     RI = np.empty((3, 3))
     Iw = np.empty((3, 3))
+    c = np.empty(3)
     for j in range(1, mass.shape[0]):
         m = mass[j]
         R = oR[j]
-        c = np.empty(3)
         for r in range(3):
             c[r] = op[j, r] + R[r, 0] * lever[j, 0] + R[r, 1] * lever[j, 1] + R[r, 2] * lever[j, 2]
         for r in range(3):
@@ -134,6 +134,7 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     A = np.zeros((nj, 6))
     F = np.zeros((nj, 6))
     vj = np.empty(6)
+    hv = np.empty(6)
     for r in range(3):
         A[0, 3 + r] = -gravity[r]
     for j in range(1, nj):
@@ -169,7 +170,6 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
             A[j, 5] = A[par, 5] + b2 + d2
         # F_j = I_j A_j + V_j ×* (I_j V_j),  [ω; v] ×* [n; f] = [ω × n + v × f; ω × f]
         Ij = I6[j]
-        hv = np.empty(6)
         for r in range(6):
             s = 0.0
             t = 0.0

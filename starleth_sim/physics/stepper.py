@@ -58,6 +58,7 @@ from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
 from .linalg import (cholesky_blocks, cholesky_blocks_solve_cols, cholesky_blocks_solve_vec,
                      cholesky_upper_input)
+from .coordinates.forest import integrate_forest
 from .state import SimState
 
 #: Fig. 7 phases, and their indices in StepperStats.timings
@@ -180,6 +181,29 @@ def free_velocity(h, dt, uS, blocks, L, u_free):
     cholesky_blocks_solve_vec(L, blocks, u_free)
     for k in range(uS.shape[0]):
         u_free[k] += uS[k]
+
+
+@nb.njit(cache=True)
+def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2,
+                    lam, blocks, factor, L, u_free, timings):
+    """Alg. 1 without bilateral constraints, in one call: the factor of M into L (unless
+    factor is False: L holds it), the compliant forces at (q^M, u^S)
+    (contact.compliant_contact_forces, `law`: the fields of a CompliantLaw) added to h, and
+    u_free = u^S + M^{-1} h Δt, which is u^E. False if M is not positive definite (then
+    nothing else was done)."""
+    t = clock(timings)
+    if factor:
+        ok = cholesky_blocks(M, blocks, L)
+        t = lap(timings, PHASE_M_INVERSE, t)
+        if not ok:
+            return False
+    compliant_contact_forces(law, gap, position, Wt_all, uS, closed, slip, anchor, t1, t2,
+                             lam)
+    generalized_contact_force(Wt_all, lam, h)
+    t = lap(timings, PHASE_REST, t)
+    free_velocity(h, dt, uS, blocks, L, u_free)
+    lap(timings, PHASE_M_INVERSE, t)
+    return True
 
 
 @nb.njit(cache=True)
@@ -627,6 +651,18 @@ def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, fact
 
 
 @nb.njit(cache=True)
+def end_of_step(qM, uE, u_corr, projected, half_dt, jtype, idx_q, idx_v, qE):
+    """Eqn. (8): q^E = q^M ⊕ ½Δt F(q^M) (u^E + Δu_p) (Δu_p = u_corr of the post-step
+    projection when it ran, else 0) into qE. False if q^E or u^E is not finite."""
+    if projected:
+        v = uE + u_corr
+    else:
+        v = uE
+    integrate_forest(qM, v, half_dt, jtype, idx_q, idx_v, qE)
+    return all_finite(qE, uE)
+
+
+@nb.njit(cache=True)
 def all_finite(a, b):
     for k in range(a.shape[0]):
         if not np.isfinite(a[k]):
@@ -819,13 +855,14 @@ class MoreauStepper:
         timings = self.stats.timings if prof else None
         p = self._prepared
         self._prepared = None
-        if p is not None and p[0] is state.q and p[1] is state.u:
+        prepared = p is not None and p[0] is state.q and p[1] is state.u
+        if prepared:
             _, u, qM, M, h, ok, problem, WtB = p
-        else:   # not prepared ahead: the hard-contact problem is solved in one kernel
+        else:   # not prepared ahead: the rest of the step runs in one kernel
             u = state.u
             qM, M, h, WtB = self._midpoint(state.q, u, timings)
             problem = None
-            ok = True if (self.hard or self.nb) else self._factor(M, timings)
+            ok = True
         if not ok:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
@@ -841,11 +878,13 @@ class MoreauStepper:
         if self.hard:
             uE, res = self._solve(state, M, h, u, problem, WtB, timings)
         else:
-            uE, res = self._solve_compliant(state, M, h, u, problem, WtB, timings)
+            uE, res = self._solve_compliant(state, M, h, u, problem, WtB, prepared, timings)
         t = clock(timings) if prof else 0.0
         # Eqn. (8); with a post-step projection, the positions move by ½Δt Δu_p more
-        qE = coords.integrate(qM, uE + self.u_corr if res.projected else uE, 0.5 * dt)
-        if not all_finite(qE, uE):
+        qE = np.empty_like(qM)
+        tree = coords.tree
+        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * dt, tree.jtype,
+                           tree.idx_q, tree.idx_v, qE):
             raise SimulationError("non-finite state after the step; state left unchanged")
         state.q, state.u = qE, uE
         self.stats.steps += 1
@@ -853,26 +892,34 @@ class MoreauStepper:
             lap(timings, PHASE_REST, t)
         return res
 
-    def _solve_compliant(self, state, M, h, uS, problem, WtB, timings):
+    def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of
-        the bilateral constraints, or u^E = u_free without them."""
+        the bilateral constraints, or u^E = u_free without them (solve_compliant, which
+        also factors M unless the step was prepared)."""
         dt = self.dt
-        prof = timings is not None
-        t = clock(timings) if prof else 0.0
-        compliant_contact_forces(self._compliant_law_fields, self.gap, self.position,
-                                 self.Wt_all, uS, state.closed, state.slip, state.anchor,
-                                 self.ground.t1, self.ground.t2, state.lam_compliant)
-        generalized_contact_force(self.Wt_all, state.lam_compliant, h)
-        if prof:
-            t = lap(timings, PHASE_REST, t)
-        active = self.gap <= 0.0
+        law = self._compliant_law_fields
+        t1, t2 = self.ground.t1, self.ground.t2
         if self.nb:  # bilateral constraints still need the prox solve (no contact rows)
+            prof = timings is not None
+            t = clock(timings) if prof else 0.0
+            compliant_contact_forces(law, self.gap, self.position, self.Wt_all, uS,
+                                     state.closed, state.slip, state.anchor, t1, t2,
+                                     state.lam_compliant)
+            generalized_contact_force(self.Wt_all, state.lam_compliant, h)
+            if prof:
+                lap(timings, PHASE_REST, t)
             uE, res = self._solve(state, M, h, uS, problem, WtB, timings)
         else:
-            free_velocity(h, dt, uS, self.blocks, self.L, self.u_free)
-            if prof:
-                lap(timings, PHASE_M_INVERSE, t)
-            uE, res = self.u_free.copy(), StepResult(active, None, None)
+            factor = not prepared and not (self.constant_M and self._factored)
+            if not solve_compliant(law, M, h, uS, dt, self.gap, self.position, self.Wt_all,
+                                   state.closed, state.slip, state.anchor, t1, t2,
+                                   state.lam_compliant, self.blocks, factor, self.L,
+                                   self.u_free, timings):
+                raise SimulationError("mass matrix not positive definite (non-finite state?)")
+            if factor:
+                self._factored = True
+            uE, res = self.u_free.copy(), StepResult(None, None, None)
+        active = self.gap <= 0.0
         res.active = active
         res.n_active = int(np.count_nonzero(active))
         res.gap = self.gap.copy()

@@ -607,6 +607,8 @@ class ForestCoordinates:
             self._kinematics_for_cuts(q, u)
 
     def joint_positions(self, q):
+        if self.n_cut == 0:     # one gather (a new array), no masks
+            return q[self.joint_q]
         out = np.empty(self.joint_q.shape[0])
         out[self._act_tree] = q[self.joint_q[self._act_tree]]
         if self.n_cut:
@@ -615,6 +617,8 @@ class ForestCoordinates:
         return out
 
     def joint_velocities(self, q, u):
+        if self.n_cut == 0:
+            return u[self.joint_v]
         out = np.empty(self.joint_v.shape[0])
         out[self._act_tree] = u[self.joint_v[self._act_tree]]
         if self.n_cut:
