@@ -384,6 +384,7 @@ class ForestCoordinates:
         self._u_pin = np.zeros(self.nv)
         #: the bodies' inertias for the jitted CRBA / RNEA (rigid_body)
         self.inertias = BodyInertias(forest)
+        self._midpoint_model = None     # see midpoint
 
     def _init_cut_constraints(self, cut_ids):
         """Cut joints -> 5-row bilateral constraints (module docstring): for cut k the parent
@@ -534,10 +535,13 @@ class ForestCoordinates:
         qM = np.empty_like(q)
         M = np.empty((self.nv, self.nv))
         h = np.empty(self.nv)
-        t = self.tree
-        midpoint_dynamics(q, u, 0.5 * dt, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q,
-                          t.idx_v, t.support, t.oR, t.op, *self.inertias.args(), self.c_joint,
-                          self.c_local, self.c_radius, ground.n, ground.t1, ground.t2,
+        model = self._midpoint_model
+        if model is None:   # the model's arrays, gathered once (attribute look-ups cost)
+            t = self.tree
+            model = self._midpoint_model = (
+                t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v, t.support, t.oR,
+                t.op, *self.inertias.args(), self.c_joint, self.c_local, self.c_radius)
+        midpoint_dynamics(q, u, 0.5 * dt, *model, ground.n, ground.t1, ground.t2,
                           ground.offset, jacobian_gap, qM, M, h, gap, position, Wt)
         return qM, M, h
 
