@@ -156,6 +156,13 @@ def midpoint_dynamics(q, u, half_dt, parent, jtype, axis, pl_R, pl_p, idx_q, idx
 
 
 @nb.njit(cache=True)
+def add_at(h, idx, values):
+    """h[idx[k]] += values[k] (a fancy-indexed += costs several µs from Python)."""
+    for k in range(idx.shape[0]):
+        h[idx[k]] += values[k]
+
+
+@nb.njit(cache=True)
 def rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h):
     """h = [m g ; −ω × Θ ω] per free body (frames at the CoM, inertial linear velocity)."""
     for r in range(root_v.shape[0]):
@@ -554,7 +561,7 @@ class ForestCoordinates:
             if self._joint_v_block is not None:
                 h[self._joint_v_block] += tau
             else:
-                h[self.joint_v] += tau
+                add_at(h, self.joint_v, tau)
             return
         h[self.joint_v[self._act_tree]] += tau[self._act_tree]
         self._tau_cut[self.joint_cut[self._act_cut]] = tau[self._act_cut]
