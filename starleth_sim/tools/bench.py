@@ -77,16 +77,20 @@ FORCE_TOLERANCE = 0.02      # |Σ F_N − m g| / (m g) of each simulator, standi
 
 
 def mujoco_model(robot: str, dt: float, mu: float):
-    """MuJoCo's model of the robot's URDF (a preset's `robot`): the URDF compiled by MuJoCo (fixed joints
-    fused), a free joint on the base, a ground plane at z = 0, Δt, Newton solver, elliptic
-    friction cones, μ on every geom; the robot's geoms collide with the ground only (as the
-    simulator's contact points). Returns (mujoco, model); mujoco is None if not installed."""
+    """MuJoCo's model of the robot's URDF (a preset's `robot`): the URDF compiled by
+    MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials only), a free
+    joint on the base, a ground plane at z = 0, Δt, Newton solver, elliptic friction cones,
+    μ on every geom; the robot's geoms collide with the ground only (as the simulator's
+    contact points). Returns (mujoco, model); mujoco is None if not installed."""
     try:
         import mujoco
     except ImportError:
         return None, None
     from ..physics.description import urdf_path
     spec = mujoco.MjSpec.from_file(robot if robot.startswith("/") else urdf_path(robot))
+    # the URDF's inertials only: by default MuJoCo gives a link without one (the feet) the
+    # mass of its collision geoms at 1000 kg/m³ (+65 g per foot sphere)
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
     spec.body("base").add_freejoint()
     ground = spec.worldbody.add_geom()
     ground.type = mujoco.mjtGeom.mjGEOM_PLANE
