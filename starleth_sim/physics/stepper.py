@@ -16,7 +16,11 @@ A step runs in two parts: `MoreauStepper.prepare` does everything that depends o
 (q^S, u^S) (q^M, M, h without τ, the kinematics, the factor of M, M^{-1}W, G), and
 `MoreauStepper.step` adds the joint torques and external forces to h and solves (7) and (8).
 A caller may prepare ahead (sim_node does, while its controller computes); the result is
-the same bit for bit.
+the same bit for bit. A step that was not prepared ahead runs with few calls from Python:
+the midpoint in one kernel (`ForestCoordinates.midpoint`: q^M, M and h by the jitted CRBA /
+RNEA of :mod:`starleth_sim.physics.rigid_body`, the contact kinematics), the contact problem
+set up and solved in one (`solve_hard_contacts`, or `solve_compliant`), Eqn. (8) in one
+(`end_of_step`).
 
 Model, state and workspace (see :mod:`starleth_sim.physics.state`): the stepper holds the
 model side (coordinate set, ground, `StepSettings`, ε per contact) and a workspace (the
@@ -29,10 +33,11 @@ settings reach the numba kernels as one typed record, `StepSettings`; a prepared
 hard-contact problem is a `ContactProblem` with the nonzero `prox.Patterns` of its
 matrices; the contact memory they update is the state's arrays. Numba types a plain
 tuple in C but a namedtuple through Python (≈2 µs per argument and call, measured), so the
-two kernels that Python calls per step, `prepare_hard_contacts` and
-`complete_hard_contacts`, take and return these records as plain tuples of their fields
-(`StepSettings(*fields)` inside rebuilds the record; `problem_fields` /
-`problem_from_fields` convert a ContactProblem).
+kernels that Python calls per step (`solve_hard_contacts`; `prepare_hard_contacts` and
+`complete_hard_contacts` for a prepared step) take and return these records as plain
+tuples of their fields (`StepSettings(*fields)` inside rebuilds the record;
+`problem_fields` / `problem_from_fields` convert a ContactProblem). Inside, they share
+`contact_problem` and `complete_problem`, which take the records.
 
 Profiling (Fig. 7 phases, `PHASES`): there is one sequence of phase calls, profiled or not.
 The Python orchestration and the kernels add the time of each phase to a `timings` array
