@@ -78,6 +78,8 @@ def _quat_rot(q, iq, R):
     quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], R)
 
 
+# Pinocchio's free-flyer convention and the transform of its M and h into ours: the
+# cross-check of rigid_body in test/test_kinematics_dynamics.py
 @nb.njit(cache=True)
 def to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin):
     """u_pin = T u: each root's linear velocity rotated into its body frame (Rs: n_roots x 3 x 3
@@ -373,8 +375,8 @@ class ForestCoordinates:
     def _index_trees(self, roots, constant_mass_matrix):
         """Sizes and index arrays of the forest: nq, nv, the kinematic tree arrays (self.tree),
         each tree's root joint and its q / v offsets, the diagonal blocks of M (one per tree,
-        for the block Cholesky: [first v, size]) and the work arrays of the velocity
-        transform."""
+        for the block Cholesky: [first v, size]) and the bodies' inertias of the jitted
+        CRBA / RNEA."""
         forest = self.model
         self.nq, self.nv = forest.nq, forest.nv
         self.tree = KinematicTree(forest)
@@ -387,8 +389,6 @@ class ForestCoordinates:
         self.blocks = np.array([[self.root_v[i], sizes[i] - self.root_v[i]]
                                 for i in range(len(roots))], dtype=np.int64)
         self.constant_mass_matrix = constant_mass_matrix
-        self._Rs = np.zeros((len(roots), 3, 3))
-        self._u_pin = np.zeros(self.nv)
         #: the bodies' inertias for the jitted CRBA / RNEA (rigid_body)
         self.inertias = BodyInertias(forest)
         self._midpoint_model = None     # see midpoint
