@@ -45,4 +45,5 @@ def test_vs_mujoco_without_mujoco_says_so(monkeypatch, capsys):
     monkeypatch.setattr(builtins, "__import__", no_mujoco)
     assert bench.main(["--vs-mujoco", "--rounds", "1", "--steps", "10", "HmJ"]) == 2
     out = capsys.readouterr().out.strip().splitlines()
-    assert len(out) == 1 and "mujoco is not installed" in out[0] and "requirements-bench.txt" in out[0]
+    assert len(out) == 1
+    assert "mujoco is not installed" in out[0] and "requirements-bench.txt" in out[0]

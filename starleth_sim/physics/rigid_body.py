@@ -7,8 +7,9 @@ Python arguments and return numpy copies (≈1.5 µs each, measured), and their 
 convention (linear velocity in the body frame) needs a transform of M and h afterwards
 (`coordinates.forest.from_pin_dynamics`); here the step's midpoint quantities come from one
 jitted call that shares the forward kinematics with the contact kinematics
-(`coordinates.forest.midpoint_dynamics`). ``test/test_kinematics_dynamics.py`` checks M and h against
-Pinocchio (CRBA, ABA) on every coordinate set.
+(`coordinates.forest.midpoint_dynamics`). ``test/test_kinematics_dynamics.py`` checks M
+and h against Pinocchio (CRBA, RNEA, ABA) on the minimal tree and the extended forest (the
+maximal set has a constant M and needs neither).
 
 Conventions: spatial vectors are Plücker coordinates in the world frame at the world origin,
 motion [ω; v_O], force [n_O; f]. A tree root is a free body with the paper's velocities
