@@ -47,8 +47,12 @@ test: venv
 demo: venv
 	$(VENV)/bin/starleth-demo
 
+# starleth-bench, then the side-by-side comparison with MuJoCo (requirements-bench.txt, an
+# optional dependency installed here only)
 bench: venv
+	$(PIP) install -r requirements-bench.txt
 	$(VENV)/bin/starleth-bench
+	$(VENV)/bin/starleth-bench --vs-mujoco
 
 eval: venv
 	$(VENV)/bin/starleth-eval

@@ -189,7 +189,18 @@ def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
 def contact_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                        c_joint, c_local, c_radius, normal, tangent1, tangent2, ground_offset,
                        jacobian_gap, gap, position, Wt):
-    """Gaps g_N, contact-point positions and contact-frame Jacobians of all contact points.
+    """Gaps g_N, contact-point positions and contact-frame Jacobians of all contact points
+    at q: forward_kinematics, then contact_points."""
+    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
+    contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
+                   normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)
+
+
+@nb.njit(cache=True)
+def contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
+                   normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt):
+    """Gaps g_N, contact-point positions and contact-frame Jacobians of all contact points
+    from the joint placements (oR, op) of forward_kinematics.
 
     Contact point i is a sphere of radius c_radius[i] centred at c_local[i] in the frame of
     joint c_joint[i] (radius 0: a point). Against the plane {x | n·x = ground_offset}:
@@ -198,7 +209,6 @@ def contact_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support
     Wt[i] is W_{U,i}^T of Eqn. (1). It is only computed for contacts with
     g_N,i ≤ jacobian_gap (the others' rows are left as they were).
     """
-    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
     nc = c_joint.shape[0]
     nv = Wt.shape[2]
     J = np.empty((3, nv))

@@ -101,26 +101,57 @@ def cholesky_blocks_solve_vec(L, blocks, b):
 @nb.njit(cache=True)
 def cholesky_blocks_solve_cols(L, blocks, B):
     """Solve (L L^T) X = B in place for every column of B, block-diagonal factor; rows of a
-    column that are zero over a whole block stay zero (sparse W columns are cheap)."""
+    column that are zero over a whole block stay zero (sparse W columns are cheap).
+
+    Row-oriented: each substitution step updates the columns of one block together, along
+    the contiguous rows of B (the column-by-column loops strode through B), with every
+    column's operations in the same order as a column-by-column substitution (so the same
+    result bit for bit)."""
     m = B.shape[1]
-    for c in range(m):
-        for bb in range(blocks.shape[0]):
-            o = blocks[bb, 0]
-            e = o + blocks[bb, 1]
-            nz = False
+    cols = np.empty(m, dtype=np.int64)
+    for bb in range(blocks.shape[0]):
+        o = blocks[bb, 0]
+        e = o + blocks[bb, 1]
+        nc = 0
+        for c in range(m):
             for i in range(o, e):
                 if B[i, c] != 0.0:
-                    nz = True
+                    cols[nc] = c
+                    nc += 1
                     break
-            if not nz:
-                continue
+        if nc == 0:
+            continue
+        if nc == m:     # every column: contiguous inner loops
             for i in range(o, e):
-                s = B[i, c]
                 for k in range(o, i):
-                    s -= L[i, k] * B[k, c]
-                B[i, c] = s / L[i, i]
+                    lik = L[i, k]
+                    for c in range(m):
+                        B[i, c] -= lik * B[k, c]
+                d = L[i, i]
+                for c in range(m):
+                    B[i, c] /= d
             for i in range(e - 1, o - 1, -1):
-                s = B[i, c]
                 for k in range(i + 1, e):
-                    s -= L[k, i] * B[k, c]
-                B[i, c] = s / L[i, i]
+                    lki = L[k, i]
+                    for c in range(m):
+                        B[i, c] -= lki * B[k, c]
+                d = L[i, i]
+                for c in range(m):
+                    B[i, c] /= d
+        else:
+            for i in range(o, e):
+                for k in range(o, i):
+                    lik = L[i, k]
+                    for j in range(nc):
+                        B[i, cols[j]] -= lik * B[k, cols[j]]
+                d = L[i, i]
+                for j in range(nc):
+                    B[i, cols[j]] /= d
+            for i in range(e - 1, o - 1, -1):
+                for k in range(i + 1, e):
+                    lki = L[k, i]
+                    for j in range(nc):
+                        B[i, cols[j]] -= lki * B[k, cols[j]]
+                d = L[i, i]
+                for j in range(nc):
+                    B[i, cols[j]] /= d

@@ -411,7 +411,7 @@ class Simulator:
                         nonconverged_steps=self.diagnostics.nonconverged_steps,
                         loaded_contacts_opened_total=(
                             self.diagnostics.loaded_contacts_opened_total))
-        before = self.snapshot()
+        before = state.copy(share_qu=True)  # the stepper never writes into q and u
         try:
             for _ in range(n):
                 f_ext = self._external_force(state, dt)

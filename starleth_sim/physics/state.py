@@ -69,12 +69,14 @@ class SimState:
                    closed=np.zeros(nc, dtype=np.bool_), slip=np.zeros(nc, dtype=np.bool_),
                    anchor=np.zeros((nc, 3)), lam_compliant=np.zeros((nc, 3)))
 
-    def copy(self) -> "SimState":
-        """A deep copy (a snapshot): nothing is shared with this state. (Simulator.step
-        takes one per control step, so this is written for speed.)"""
+    def copy(self, share_qu: bool = False) -> "SimState":
+        """A deep copy (a snapshot): nothing is shared with this state. With share_qu the
+        copy holds the same q and u arrays (Simulator.step's rollback point: a step replaces
+        q and u by new arrays and never writes into them). (Simulator.step takes one per
+        control step, so this is written for speed.)"""
         new = object.__new__(SimState)
-        new.q = self.q.copy()
-        new.u = self.u.copy()
+        new.q = self.q if share_qu else self.q.copy()
+        new.u = self.u if share_qu else self.u.copy()
         new.t = self.t
         a = self.last_impulse
         new.last_impulse = None if a is None else a.copy()

@@ -16,7 +16,11 @@ A step runs in two parts: `MoreauStepper.prepare` does everything that depends o
 (q^S, u^S) (q^M, M, h without τ, the kinematics, the factor of M, M^{-1}W, G), and
 `MoreauStepper.step` adds the joint torques and external forces to h and solves (7) and (8).
 A caller may prepare ahead (sim_node does, while its controller computes); the result is
-the same bit for bit.
+the same bit for bit. A step that was not prepared ahead runs with few calls from Python:
+the midpoint in one kernel (`ForestCoordinates.midpoint`: q^M, M and h by the jitted CRBA /
+RNEA of :mod:`starleth_sim.physics.rigid_body`, the contact kinematics), the contact problem
+set up and solved in one (`solve_hard_contacts`, or `solve_compliant`), Eqn. (8) in one
+(`end_of_step`).
 
 Model, state and workspace (see :mod:`starleth_sim.physics.state`): the stepper holds the
 model side (coordinate set, ground, `StepSettings`, ε per contact) and a workspace (the
@@ -29,10 +33,11 @@ settings reach the numba kernels as one typed record, `StepSettings`; a prepared
 hard-contact problem is a `ContactProblem` with the nonzero `prox.Patterns` of its
 matrices; the contact memory they update is the state's arrays. Numba types a plain
 tuple in C but a namedtuple through Python (≈2 µs per argument and call, measured), so the
-two kernels that Python calls per step, `prepare_hard_contacts` and
-`complete_hard_contacts`, take and return these records as plain tuples of their fields
-(`StepSettings(*fields)` inside rebuilds the record; `problem_fields` /
-`problem_from_fields` convert a ContactProblem).
+kernels that Python calls per step (`solve_hard_contacts`; `prepare_hard_contacts` and
+`complete_hard_contacts` for a prepared step) take and return these records as plain
+tuples of their fields (`StepSettings(*fields)` inside rebuilds the record;
+`problem_fields` / `problem_from_fields` convert a ContactProblem). Inside, they share
+`contact_problem` and `complete_problem`, which take the records.
 
 Profiling (Fig. 7 phases, `PHASES`): there is one sequence of phase calls, profiled or not.
 The Python orchestration and the kernels add the time of each phase to a `timings` array
@@ -58,6 +63,7 @@ from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
 from .linalg import (cholesky_blocks, cholesky_blocks_solve_cols, cholesky_blocks_solve_vec,
                      cholesky_upper_input)
+from .coordinates.forest import integrate_forest
 from .state import SimState
 
 #: Fig. 7 phases, and their indices in StepperStats.timings
@@ -180,6 +186,29 @@ def free_velocity(h, dt, uS, blocks, L, u_free):
     cholesky_blocks_solve_vec(L, blocks, u_free)
     for k in range(uS.shape[0]):
         u_free[k] += uS[k]
+
+
+@nb.njit(cache=True)
+def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2,
+                    lam, blocks, factor, L, u_free, timings):
+    """Alg. 1 without bilateral constraints, in one call: the factor of M into L (unless
+    factor is False: L holds it), the compliant forces at (q^M, u^S)
+    (contact.compliant_contact_forces, `law`: the fields of a CompliantLaw) added to h, and
+    u_free = u^S + M^{-1} h Δt, which is u^E. False if M is not positive definite (then
+    nothing else was done)."""
+    t = clock(timings)
+    if factor:
+        ok = cholesky_blocks(M, blocks, L)
+        t = lap(timings, PHASE_M_INVERSE, t)
+        if not ok:
+            return False
+    compliant_contact_forces(law, gap, position, Wt_all, uS, closed, slip, anchor, t1, t2,
+                             lam)
+    generalized_contact_force(Wt_all, lam, h)
+    t = lap(timings, PHASE_REST, t)
+    free_velocity(h, dt, uS, blocks, L, u_free)
+    lap(timings, PHASE_M_INVERSE, t)
+    return True
 
 
 @nb.njit(cache=True)
@@ -502,13 +531,11 @@ def phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, uE, u_corr):
 
 
 @nb.njit(cache=True)
-def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L,
-                          last_impulse, last_active, timings):
-    """The torque-independent part of the hard-contact solve: the phases "M^-1" and "G"
-    (phase_minv, phase_delassus), timed into `timings` when profiling. `settings`: the
-    fields of a StepSettings (a plain tuple will do). Returns the ContactProblem as
-    problem_fields' tuple, the input of complete_hard_contacts."""
-    s = StepSettings(*settings)
+def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse,
+                    last_active, timings):
+    """The torque-independent part of the hard-contact solve for the StepSettings s: the
+    phases "M^-1" and "G" (phase_minv, phase_delassus), timed into `timings` when
+    profiling. Returns the ContactProblem."""
     t = clock(timings)
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
         s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse, last_active)
@@ -518,16 +545,25 @@ def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, fa
         ok, G, Gdiag, LB, pat = phase_delassus(s.form, active.shape[0], s.bilateral_direct,
                                                Wt, MinvW, pat)
     lap(timings, PHASE_G, t)
-    return problem_fields(ContactProblem(ok, active, Wt, MinvW, bvec, G, Gdiag, LB, pat,
-                                         opened))
+    return ContactProblem(ok, active, Wt, MinvW, bvec, G, Gdiag, LB, pat, opened)
 
 
 @nb.njit(cache=True)
-def complete_hard_contacts(settings, problem, h, uS, M, blocks, L, gap, Wt_all, last_impulse,
-                           last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
-                           timings):
-    """The torque-dependent rest of the hard-contact solve of `problem` (problem_fields'
-    tuple from prepare_hard_contacts): u_free = u^S + M^{-1} h Δt (phase "M^-1"),
+def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L,
+                          last_impulse, last_active, timings):
+    """contact_problem for a caller that prepares ahead (MoreauStepper.prepare).
+    `settings`: the fields of a StepSettings (a plain tuple will do). Returns the
+    ContactProblem as problem_fields' tuple, the input of complete_hard_contacts."""
+    return problem_fields(contact_problem(StepSettings(*settings), M, uS, gap, Wt_all, WtB,
+                                          bB, eps, blocks, factor, L, last_impulse,
+                                          last_active, timings))
+
+
+@nb.njit(cache=True)
+def complete_problem(s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_active,
+                     last_bilateral, impulse, is_active, u_free, u, u_corr, timings):
+    """The torque-dependent rest of the hard-contact solve of the ContactProblem p for the
+    StepSettings s: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
     c = W^T u_free + b (phase "G"), the prox iteration (phase_prox) and the post-step
     projection (phase_projection; both phase "prox"), timed into `timings` when
     profiling. Writes Λ_U of every contact point into impulse (nc x 3), the active flags,
@@ -535,8 +571,6 @@ def complete_hard_contacts(settings, problem, h, uS, M, blocks, L, gap, Wt_all, 
     result is non-finite, the warm-start memory (last_impulse, last_active) is updated.
     Returns (iterations, status, residual, retried, projection iterations, projection
     status)."""
-    s = StepSettings(*settings)
-    p = problem_from_fields(problem)
     t = clock(timings)
     free_velocity(h, s.dt, uS, blocks, L, u_free)
     t = lap(timings, PHASE_M_INVERSE, t)
@@ -585,6 +619,52 @@ def complete_hard_contacts(settings, problem, h, uS, M, blocks, L, gap, Wt_all, 
             for k in range(3):
                 last_impulse[i, k] = impulse[i, k]
     return it, status, resid, retried, pit, pstatus
+
+
+
+
+@nb.njit(cache=True)
+def complete_hard_contacts(settings, problem, h, uS, M, blocks, L, gap, Wt_all, last_impulse,
+                           last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
+                           timings):
+    """complete_problem of a prepared problem (problem_fields' tuple from
+    prepare_hard_contacts; `settings`: the fields of a StepSettings)."""
+    return complete_problem(StepSettings(*settings), problem_from_fields(problem), h, uS, M,
+                            blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+                            impulse, is_active, u_free, u, u_corr, timings)
+
+
+@nb.njit(cache=True)
+def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, h,
+                        last_impulse, last_active, last_bilateral, impulse, is_active, u_free,
+                        u, u_corr, timings):
+    """contact_problem and complete_problem in one call, for a step that was not prepared
+    ahead: the same arithmetic as prepare_hard_contacts then complete_hard_contacts (so the
+    same result bit for bit), without the problem's arrays crossing into Python and back
+    (≈1 µs per array, measured). Returns (ok, |I|, opened, iterations, status, residual,
+    retried, projection iterations, projection status); with ok False (M or G_B not
+    positive definite) nothing else was done."""
+    s = StepSettings(*settings)
+    p = contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse,
+                        last_active, timings)
+    if not p.ok:
+        return False, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
+    it, status, resid, retried, pit, pstatus = complete_problem(
+        s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+        impulse, is_active, u_free, u, u_corr, timings)
+    return True, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus
+
+
+@nb.njit(cache=True)
+def end_of_step(qM, uE, u_corr, projected, half_dt, jtype, idx_q, idx_v, qE):
+    """Eqn. (8): q^E = q^M ⊕ ½Δt F(q^M) (u^E + Δu_p) (Δu_p = u_corr of the post-step
+    projection when it ran, else 0) into qE. False if q^E or u^E is not finite."""
+    if projected:
+        v = uE + u_corr
+    else:
+        v = uE
+    integrate_forest(qM, v, half_dt, jtype, idx_q, idx_v, qE)
+    return all_finite(qE, uE)
 
 
 @nb.njit(cache=True)
@@ -712,50 +792,63 @@ class MoreauStepper:
 
 
     # -- one step -------------------------------------------------------------------------
+    def _midpoint(self, q, u, timings):
+        """q^M (Eqn. 6), M and h without τ at (q^M, u^S), the contact kinematics (gap,
+        position, W^T of the contacts within jacobian_gap) and the bilateral W_B^T, b_B at
+        q^M. Returns (q^M, M, h, W_B^T)."""
+        dt = self.dt
+        coords = self.coords
+        t = clock(timings)
+        # (the contact kinematics share the forward kinematics of M and h: phase "M and h")
+        qM, M, h0 = coords.midpoint(q, u, dt, self.ground, self.gap, self.position,
+                                    self.Wt_all, self.jacobian_gap)
+        t = lap(timings, PHASE_M_AND_H, t)
+        if self.nb:
+            WtB, gB = coords.bilateral(qM)
+            np.multiply(gB, self.beta / dt, out=self.bB)
+        else:
+            WtB = self.no_bilateral
+        lap(timings, PHASE_REST, t)
+        return qM, M, h0, WtB
+
+    def _factor(self, M, timings):
+        """The block Cholesky factor of M into L (kept while M is constant). False if M is
+        not positive definite."""
+        if self.constant_M and self._factored:
+            return True
+        t = clock(timings)
+        ok = cholesky_blocks(M, self.blocks, self.L)
+        lap(timings, PHASE_M_INVERSE, t)
+        self._factored = ok
+        return ok
+
     def prepare(self, state: SimState):
         """The part of the step from (q^S, u^S) = (state.q, state.u) that does not depend on
         the joint torques or external forces: q^M (Eqn. 6), M and h without τ, the contact
         and bilateral kinematics at q^M, the factor of M and, with hard contacts, M^{-1}W and
         G (the active set reads the state's contact memory). `step` uses it when called with
         a state holding the same q and u objects (which must not be modified in place in
-        between), else it prepares itself, so the result is the same either way. A lockstep
-        node calls this after publishing a state, while the controller works on its answer.
-        Never raises: a failure is reported by the step that uses it."""
+        between), else it does the same arithmetic itself (in one kernel with the rest of
+        the step, solve_hard_contacts), so the result is the same bit for bit either way. A
+        lockstep node calls this after publishing a state, while the controller works on
+        its answer. Never raises: a failure is reported by the step that uses it."""
         q, u = state.q, state.u
-        dt = self.dt
-        coords = self.coords
-        prof = self.profile
-        timings = self.stats.timings if prof else None
-        t = clock(timings) if prof else 0.0
-        qM = coords.integrate(q, u, 0.5 * dt)
-        M, h0 = coords.dynamics(qM, u, None)
-        if prof:
-            t = lap(timings, PHASE_M_AND_H, t)
-        coords.contact_kinematics(qM, self.ground, self.gap, self.position, self.Wt_all,
-                                  self.jacobian_gap)
-        if self.nb:
-            WtB, gB = coords.bilateral(qM)
-            np.multiply(gB, self.beta / dt, out=self.bB)
-        else:
-            WtB = self.no_bilateral
-        if prof:
-            t = lap(timings, PHASE_REST, t)
-        factor = not (self.constant_M and self._factored)
+        timings = self.stats.timings if self.profile else None
+        qM, M, h0, WtB = self._midpoint(q, u, timings)
         problem = None
         if self.hard or self.nb:    # compliant contacts: the prox solve of the bilaterals
+            factor = not (self.constant_M and self._factored)
             gap = self.gap if self.hard else self._never_active
             problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
                                             WtB, self.bB, self.eps, self.blocks, factor,
                                             self.L, state.last_impulse, state.last_active,
                                             timings)
             ok = problem[0]
+            if ok:
+                self._factored = True
         else:
-            ok = cholesky_blocks(M, self.blocks, self.L) if factor else True
-            if prof:
-                lap(timings, PHASE_M_INVERSE, t)
-        if ok:
-            self._factored = True
-        self._prepared = (q, u, qM, M, h0, ok, problem)
+            ok = self._factor(M, timings)
+        self._prepared = (q, u, qM, M, h0, ok, problem, WtB)
 
     def step(self, state: SimState, tau, f_ext=None) -> "StepResult":
         """Advance state by Δt with joint torques tau (public joint order) and an optional
@@ -763,19 +856,23 @@ class MoreauStepper:
         contact memory is updated (state.t is the caller's). Returns the StepResult. On a
         SimulationError, q and u are unchanged but the contact memory may not be (the
         Simulator restores its snapshot)."""
+        prof = self.profile
+        timings = self.stats.timings if prof else None
         p = self._prepared
-        if p is None or p[0] is not state.q or p[1] is not state.u:
-            self.prepare(state)
-            p = self._prepared
         self._prepared = None
-        _, u, qM, M, h, ok, problem = p
+        prepared = p is not None and p[0] is state.q and p[1] is state.u
+        if prepared:
+            _, u, qM, M, h, ok, problem, WtB = p
+        else:   # not prepared ahead: the rest of the step runs in one kernel
+            u = state.u
+            qM, M, h, WtB = self._midpoint(state.q, u, timings)
+            problem = None
+            ok = True
         if not ok:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
         dt = self.dt
         coords = self.coords
-        prof = self.profile
-        timings = self.stats.timings if prof else None
         t = clock(timings) if prof else 0.0
         if tau is not None and tau.shape[0]:
             coords.add_joint_torques(qM, u, tau, h)
@@ -784,13 +881,15 @@ class MoreauStepper:
         if prof:
             lap(timings, PHASE_M_AND_H, t)
         if self.hard:
-            uE, res = self._solve(state, M, h, u, problem, prof, timings)
+            uE, res = self._solve(state, M, h, u, problem, WtB, timings)
         else:
-            uE, res = self._solve_compliant(state, M, h, u, problem, prof, timings)
+            uE, res = self._solve_compliant(state, M, h, u, problem, WtB, prepared, timings)
         t = clock(timings) if prof else 0.0
         # Eqn. (8); with a post-step projection, the positions move by ½Δt Δu_p more
-        qE = coords.integrate(qM, uE + self.u_corr if res.projected else uE, 0.5 * dt)
-        if not all_finite(qE, uE):
+        qE = np.empty_like(qM)
+        tree = coords.tree
+        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * dt, tree.jtype,
+                           tree.idx_q, tree.idx_v, qE):
             raise SimulationError("non-finite state after the step; state left unchanged")
         state.q, state.u = qE, uE
         self.stats.steps += 1
@@ -798,25 +897,34 @@ class MoreauStepper:
             lap(timings, PHASE_REST, t)
         return res
 
-    def _solve_compliant(self, state, M, h, uS, problem, prof, timings):
+    def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of
-        the bilateral constraints, or u^E = u_free without them."""
+        the bilateral constraints, or u^E = u_free without them (solve_compliant, which
+        also factors M unless the step was prepared)."""
         dt = self.dt
-        t = clock(timings) if prof else 0.0
-        compliant_contact_forces(self._compliant_law_fields, self.gap, self.position,
-                                 self.Wt_all, uS, state.closed, state.slip, state.anchor,
-                                 self.ground.t1, self.ground.t2, state.lam_compliant)
-        generalized_contact_force(self.Wt_all, state.lam_compliant, h)
-        if prof:
-            t = lap(timings, PHASE_REST, t)
-        active = self.gap <= 0.0
+        law = self._compliant_law_fields
+        t1, t2 = self.ground.t1, self.ground.t2
         if self.nb:  # bilateral constraints still need the prox solve (no contact rows)
-            uE, res = self._solve(state, M, h, uS, problem, prof, timings)
-        else:
-            free_velocity(h, dt, uS, self.blocks, self.L, self.u_free)
+            prof = timings is not None
+            t = clock(timings) if prof else 0.0
+            compliant_contact_forces(law, self.gap, self.position, self.Wt_all, uS,
+                                     state.closed, state.slip, state.anchor, t1, t2,
+                                     state.lam_compliant)
+            generalized_contact_force(self.Wt_all, state.lam_compliant, h)
             if prof:
-                lap(timings, PHASE_M_INVERSE, t)
-            uE, res = self.u_free.copy(), StepResult(active, None, None)
+                lap(timings, PHASE_REST, t)
+            uE, res = self._solve(state, M, h, uS, problem, WtB, timings)
+        else:
+            factor = not prepared and not (self.constant_M and self._factored)
+            if not solve_compliant(law, M, h, uS, dt, self.gap, self.position, self.Wt_all,
+                                   state.closed, state.slip, state.anchor, t1, t2,
+                                   state.lam_compliant, self.blocks, factor, self.L,
+                                   self.u_free, timings):
+                raise SimulationError("mass matrix not positive definite (non-finite state?)")
+            if factor:
+                self._factored = True
+            uE, res = self.u_free.copy(), StepResult(None, None, None)
+        active = self.gap <= 0.0
         res.active = active
         res.n_active = int(np.count_nonzero(active))
         res.gap = self.gap.copy()
@@ -824,18 +932,34 @@ class MoreauStepper:
         res.impulse = state.lam_compliant * dt
         return uE, res
 
-    def _solve(self, state, M, h, uS, problem, prof, timings):
-        """u^E of the prepared hard-contact (or bilateral) problem, the warm-start memory of
-        `state` updated."""
+    def _solve(self, state, M, h, uS, problem, WtB, timings):
+        """u^E of the hard-contact (or bilateral) problem, prepared (`problem`: the tuple of
+        prepare_hard_contacts) or, with problem None, set up and solved in one kernel
+        (solve_hard_contacts, with W_B^T of the midpoint); the warm-start memory of `state`
+        updated."""
         nc = self.nc
         impulse = np.empty((nc, 3))
         is_active = np.empty(nc, dtype=np.bool_)
         u = np.empty(self.nv)
         gap = self.gap if self.hard else self._never_active
-        it, status, resid, retried, pit, pstatus = complete_hard_contacts(
-            self._settings_fields, problem, h, uS, M, self.blocks, self.L, gap, self.Wt_all,
-            state.last_impulse, state.last_active, state.last_bilateral, impulse, is_active,
-            self.u_free, u, self.u_corr, timings)
+        if problem is None:
+            factor = not (self.constant_M and self._factored)
+            ok, n_active, opened, it, status, resid, retried, pit, pstatus = \
+                solve_hard_contacts(self._settings_fields, M, uS, gap, self.Wt_all, WtB,
+                                    self.bB, self.eps, self.blocks, factor, self.L, h,
+                                    state.last_impulse, state.last_active,
+                                    state.last_bilateral, impulse, is_active, self.u_free, u,
+                                    self.u_corr, timings)
+            if not ok:
+                raise SimulationError("mass matrix (or G_B) not positive definite "
+                                      "(non-finite state?)")
+            self._factored = True
+        else:
+            it, status, resid, retried, pit, pstatus = complete_hard_contacts(
+                self._settings_fields, problem, h, uS, M, self.blocks, self.L, gap,
+                self.Wt_all, state.last_impulse, state.last_active, state.last_bilateral,
+                impulse, is_active, self.u_free, u, self.u_corr, timings)
+            n_active, opened = problem[1].shape[0], problem[9]
         if retried:
             self.stats.retried += 1
         if status != prox.STATUS_CONVERGED:
@@ -845,7 +969,6 @@ class MoreauStepper:
                                   "state left unchanged")
         if pstatus >= 0:
             self.stats.projections += 1
-        active = problem[1]
         return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried,
-                             self.position.copy(), active.shape[0] if self.hard else 0,
-                             problem[9], pit, pstatus >= 0)
+                             self.position.copy(), n_active if self.hard else 0, opened, pit,
+                             pstatus >= 0)

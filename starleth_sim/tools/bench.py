@@ -5,6 +5,14 @@ are physics steps per second (the paper's "evaluations per second") and the real
 (simulated time / wall time). A second, profiled run breaks one step down like Fig. 7.
 All configurations run in the same process, one after the other, so their ratios are
 comparable on a shared machine.
+
+``--vs-mujoco``: the same robot (``urdf/starleth.urdf`` compiled by MuJoCo, free base joint,
+ground plane, Δt = 2.5 ms, Newton solver, elliptic cones, μ as in the preset) standing under
+the same joint PD hold from the same standing state, beside `Simulator` on the given presets
+(default HmJ HmS Cm), in interleaved rounds of physics steps in one process: steps/s per
+preset (median of the rounds) and the ratio to MuJoCo, plus a check that both simulate the
+same thing (total normal force ≈ weight, base heights within a few mm). mujoco is an
+optional benchmark dependency (``requirements-bench.txt``, installed by ``make bench``).
 """
 from __future__ import annotations
 
@@ -62,17 +70,192 @@ def breakdown(preset: str, seconds: float):
     return {k: 1e6 * v / steps for k, v in zip(PHASES, sim.stepper.stats.timings)}
 
 
+#: --vs-mujoco: the presets compared by default, and the like-with-like tolerances
+VS_MUJOCO_PRESETS = ("HmJ", "HmS", "Cm")
+HEIGHT_TOLERANCE = 5e-3     # base heights of the two simulators after the rounds [m]
+FORCE_TOLERANCE = 0.02      # |Σ F_N − m g| / (m g) of each simulator, standing still
+
+
+def mujoco_model(robot: str, dt: float, mu: float):
+    """MuJoCo's model of the robot's URDF (a preset's `robot`): the URDF compiled by
+    MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials only), a free
+    joint on the base, a ground plane at z = 0, Δt, Newton solver, elliptic friction cones,
+    μ on every geom; the robot's geoms collide with the ground only (as the simulator's
+    contact points). Returns (mujoco, model); mujoco is None if not installed."""
+    try:
+        import mujoco
+    except ImportError:
+        return None, None
+    from ..physics.description import urdf_path
+    spec = mujoco.MjSpec.from_file(robot if robot.startswith("/") else urdf_path(robot))
+    # the URDF's inertials only: by default MuJoCo gives a link without one (the feet) the
+    # mass of its collision geoms at 1000 kg/m³ (+65 g per foot sphere)
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
+    spec.body("base").add_freejoint()
+    ground = spec.worldbody.add_geom()
+    ground.type = mujoco.mjtGeom.mjGEOM_PLANE
+    ground.size = [0.0, 0.0, 1.0]
+    for g in spec.geoms:
+        g.friction = [mu, 0.005, 0.0001]
+        g.contype, g.conaffinity = (0, 1) if g is ground or g.type == \
+            mujoco.mjtGeom.mjGEOM_PLANE else (1, 0)
+    spec.option.timestep = dt
+    spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    return mujoco, spec.compile()
+
+
+class MujocoStanding:
+    """MuJoCo's robot under the PD hold from the simulator's standing state (joints mapped
+    by name, quaternion reordered to MuJoCo's (w, x, y, z))."""
+
+    def __init__(self, mujoco, model, sim):
+        self.mj = mujoco
+        self.model = model
+        self.data = mujoco.MjData(model)
+        names = sim.joint_names
+        self.qadr = np.array([model.joint(n).qposadr[0] for n in names])
+        self.vadr = np.array([model.joint(n).dofadr[0] for n in names])
+        b = sim.base_state()
+        x, y, z, w = b["orientation_xyzw"]
+        self.data.qpos[0:3] = b["position"]
+        self.data.qpos[3:7] = (w, x, y, z)
+        self.data.qpos[self.qadr] = sim.joint_positions()
+        mujoco.mj_forward(model, self.data)
+        self.hold = PostureHold(sim.joint_positions())
+        self.limit = np.asarray(sim.description.effort_limit, dtype=float).reshape(-1)
+        self.weight = float(np.sum(model.body_mass)) * float(-model.opt.gravity[2])
+
+    def run(self, steps: int) -> float:
+        """`steps` physics steps with the PD law (effort-limited) each step; wall time [s]."""
+        mj, m, d, hold = self.mj, self.model, self.data, self.hold
+        qadr, vadr, limit = self.qadr, self.vadr, self.limit
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            tau = hold(d.qpos[qadr], d.qvel[vadr])
+            d.qfrc_applied[vadr] = np.clip(tau, -limit, limit)
+            mj.mj_step(m, d)
+        return time.perf_counter() - t0
+
+    def normal_force(self) -> float:
+        """Σ F_N over the contacts (mj_contactForce, contact frame: normal first) [N]."""
+        f = np.zeros(6)
+        total = 0.0
+        for i in range(self.data.ncon):
+            self.mj.mj_contactForce(self.model, self.data, i, f)
+            total += f[0]
+        return total
+
+    def height(self) -> float:
+        return float(self.data.qpos[2])
+
+
+class SimulatorStanding:
+    """A preset's Simulator under the PD hold from its standing state."""
+
+    def __init__(self, preset: str):
+        self.sim = Simulator.from_preset(preset)
+        self.hold = PostureHold(self.sim.joint_positions())
+        self.per_control = self.sim.config.steps_per_control
+        d = self.sim.description
+        self.weight = float(sum(i.mass for i in d.model.inertias)) * \
+            float(np.linalg.norm(d.model.gravity.linear))
+
+    def run(self, steps: int) -> float:
+        """At least `steps` physics steps (whole control periods, the PD law once per control
+        period); wall time [s]."""
+        sim, hold = self.sim, self.hold
+        n = -(-steps // self.per_control)
+        t0 = time.perf_counter()
+        for _ in range(n):
+            sim.step(hold.torque(sim))
+        return time.perf_counter() - t0
+
+    def physics_steps(self, steps: int) -> int:
+        return -(-steps // self.per_control) * self.per_control
+
+    def normal_force(self) -> float:
+        """Σ F_N over the contacts in the last control period [N] (world z: the ground is
+        horizontal)."""
+        return float(sum(c.force[2] for c in self.sim.contacts))
+
+    def height(self) -> float:
+        return float(self.sim.base_state()["position"][2])
+
+
+def vs_mujoco(presets, rounds: int, steps: int) -> int:
+    """The side-by-side comparison (module docstring); exit status 0, 1 if the two do not
+    simulate the same thing, 2 if mujoco is missing."""
+    runners = {p: SimulatorStanding(p) for p in presets}
+    first = next(iter(runners.values())).sim
+    mujoco, model = mujoco_model(first.config.robot, 2.5e-3, first.config.ground.mu)
+    if mujoco is None:
+        print("starleth-bench --vs-mujoco: mujoco is not installed (it is an optional "
+              "benchmark dependency: pip install -r requirements-bench.txt, or make bench)")
+        return 2
+    mj = MujocoStanding(mujoco, model, first)
+    names = ["MuJoCo"] + list(presets)
+    runners = {"MuJoCo": mj, **runners}
+    print(f"StarlETH standing under the joint PD hold: MuJoCo {mujoco.__version__} (URDF "
+          f"compiled by MuJoCo, free base, Δt = {model.opt.timestep * 1e3:g} ms, Newton, "
+          f"elliptic cones, μ = {model.geom_friction[0, 0]:g}) beside Simulator; {rounds} "
+          f"interleaved rounds of {steps} physics steps; Python {sys.version.split()[0]}")
+    for r in runners.values():   # warm-up (numba dispatch, caches)
+        r.run(50)
+    rates = {n: [] for n in names}
+    for _ in range(rounds):
+        for n in names:
+            r = runners[n]
+            wall = r.run(steps)
+            done = steps if r is mj else r.physics_steps(steps)
+            rates[n].append(done / wall)
+    ref = float(np.median(rates["MuJoCo"]))
+    print(f"{'':8s} {'Δt [ms]':>7s} {'steps/s (median)':>17s} {'min':>8s} {'max':>8s} "
+          f"{'ratio':>6s} {'Σ F_N / mg':>10s} {'base z [mm]':>11s}")
+    ok = True
+    for n in names:
+        r = runners[n]
+        med = float(np.median(rates[n]))
+        dt = model.opt.timestep if r is mj else r.sim.dt
+        fr = r.normal_force() / r.weight
+        z = r.height()
+        print(f"{n:8s} {dt * 1e3:7.3g} {med:17.0f} {min(rates[n]):8.0f} {max(rates[n]):8.0f} "
+              f"{med / ref:6.2f} {fr:10.4f} {z * 1e3:11.2f}")
+        if abs(fr - 1.0) > FORCE_TOLERANCE:
+            ok = False
+            print(f"  {n}: total normal force {fr:.4f} mg, not the weight (±{FORCE_TOLERANCE:g})")
+        if r is not mj and abs(z - mj.height()) > HEIGHT_TOLERANCE:
+            ok = False
+            print(f"  {n}: base height {z * 1e3:.2f} mm differs from MuJoCo's by more than "
+                  f"{HEIGHT_TOLERANCE * 1e3:g} mm")
+    print("like with like: " + ("yes (total normal force = weight, base heights within "
+                                f"{HEIGHT_TOLERANCE * 1e3:g} mm)" if ok else "NO (see above)"))
+    return 0 if ok else 1
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="starleth-bench", description=__doc__.split("\n")[0])
-    ap.add_argument("presets", nargs="*", default=list(DEFAULT_PRESETS),
-                    help="configurations (default: %(default)s)")
+    ap.add_argument("presets", nargs="*", default=None,
+                    help=f"configurations (default: all of Table 1; with --vs-mujoco "
+                         f"{' '.join(VS_MUJOCO_PRESETS)})")
     ap.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--vs-mujoco", action="store_true",
+                    help="side by side with MuJoCo on the same robot (needs mujoco)")
+    ap.add_argument("--rounds", type=int, default=5, help="--vs-mujoco: interleaved rounds")
+    ap.add_argument("--steps", type=int, default=2000,
+                    help="--vs-mujoco: physics steps per round")
     args = ap.parse_args(argv)
+    if not args.presets:
+        args.presets = list(VS_MUJOCO_PRESETS if args.vs_mujoco else DEFAULT_PRESETS)
     try:
         configs = {p: load_preset(p) for p in args.presets}
     except ConfigError as e:
         ap.error(str(e))
+    if args.vs_mujoco:
+        if args.rounds < 1 or args.steps < 1:
+            ap.error("--rounds and --steps must be positive")
+        return vs_mujoco(args.presets, args.rounds, args.steps)
 
     print(f"StarlETH standing under a joint PD hold, {args.seconds:g} s simulated x "
           f"{args.repeats} runs per configuration; Python {sys.version.split()[0]}")

@@ -11,10 +11,11 @@ Every tree root is a free body with the paper's coordinates (Eqn. 21):
     q_root = [I_r (3), quaternion (x, y, z, w)],   u_root = [I_v (3), B_ω (3)]
 (inertial velocity of the root frame's origin, body-frame angular velocity; Pinocchio's
 quaternion storage order), followed by the angles/rates of the tree's revolute joints.
-M and h come from Pinocchio (CRBA, RNEA) on the forest model, whose roots use body-frame
-linear velocities; they are transformed once per step:
-    M = Tᵀ M_pin T,   h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k,body)),   T = diag(R_kᵀ, I)
-For the maximal set M is constant and h = [m g; −ω × Θ ω] per body, computed without pin.
+M and h come from the jitted CRBA and RNEA of :mod:`starleth_sim.physics.rigid_body`, which
+work in these coordinates directly (checked against Pinocchio's, whose roots use body-frame
+linear velocities: M = Tᵀ M_pin T, h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k,body)),
+T = diag(R_kᵀ, I), see from_pin_dynamics). For the maximal set M is constant and
+h = [m g; −ω × Θ ω] per body.
 
 A cut revolute joint between bodies P (parent side) and C (child side) becomes a 5-row
 bilateral constraint (3 translational, 2 rotational; Eqn. 4, ε_B = 0):
@@ -30,8 +31,9 @@ import numpy as np
 import pinocchio as pin
 
 from ..description import RobotDescription
-from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, forward_kinematics,
-                          point_jacobian, quat_xyzw_to_rot)
+from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, contact_points,
+                          forward_kinematics, point_jacobian, quat_xyzw_to_rot)
+from ..rigid_body import BodyInertias, mass_matrix_and_forces
 
 _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
                 "JointModelRZ": pin.JointModelRZ}
@@ -76,6 +78,8 @@ def _quat_rot(q, iq, R):
     quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], R)
 
 
+# Pinocchio's free-flyer convention and the transform of its M and h into ours: the
+# cross-check of rigid_body in test/test_kinematics_dynamics.py
 @nb.njit(cache=True)
 def to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin):
     """u_pin = T u: each root's linear velocity rotated into its body frame (Rs: n_roots x 3 x 3
@@ -127,6 +131,37 @@ def from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h):
             tmp[a] = R[a, 0] * h[iv] + R[a, 1] * h[iv + 1] + R[a, 2] * h[iv + 2]
         for a in range(3):
             h[iv + a] = tmp[a]
+
+
+@nb.njit(cache=True)
+def tree_dynamics(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, mass, lever,
+                  inertia, gravity, M, h):
+    """M and h at (q, u) (rigid_body.mass_matrix_and_forces after the forward kinematics)."""
+    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
+    mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, inertia,
+                           gravity, M, h)
+
+
+@nb.njit(cache=True)
+def midpoint_dynamics(q, u, half_dt, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support,
+                      oR, op, mass, lever, inertia, gravity, c_joint, c_local, c_radius,
+                      normal, tangent1, tangent2, ground_offset, jacobian_gap, qM, M, h, gap,
+                      position, Wt):
+    """What a step needs at its midpoint, in one call over one forward kinematics:
+    q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S) (tree_dynamics) and the contacts'
+    g_N, positions and W^T at q^M (kinematics.contact_points)."""
+    integrate_forest(q, u, half_dt, jtype, idx_q, idx_v, qM)
+    tree_dynamics(qM, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, mass, lever,
+                  inertia, gravity, M, h)
+    contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
+                   normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)
+
+
+@nb.njit(cache=True)
+def add_at(h, idx, values):
+    """h[idx[k]] += values[k] (a fancy-indexed += costs several µs from Python)."""
+    for k in range(idx.shape[0]):
+        h[idx[k]] += values[k]
 
 
 @nb.njit(cache=True)
@@ -340,8 +375,8 @@ class ForestCoordinates:
     def _index_trees(self, roots, constant_mass_matrix):
         """Sizes and index arrays of the forest: nq, nv, the kinematic tree arrays (self.tree),
         each tree's root joint and its q / v offsets, the diagonal blocks of M (one per tree,
-        for the block Cholesky: [first v, size]) and the work arrays of the velocity
-        transform."""
+        for the block Cholesky: [first v, size]) and the bodies' inertias of the jitted
+        CRBA / RNEA."""
         forest = self.model
         self.nq, self.nv = forest.nq, forest.nv
         self.tree = KinematicTree(forest)
@@ -354,8 +389,9 @@ class ForestCoordinates:
         self.blocks = np.array([[self.root_v[i], sizes[i] - self.root_v[i]]
                                 for i in range(len(roots))], dtype=np.int64)
         self.constant_mass_matrix = constant_mass_matrix
-        self._Rs = np.zeros((len(roots), 3, 3))
-        self._u_pin = np.zeros(self.nv)
+        #: the bodies' inertias for the jitted CRBA / RNEA (rigid_body)
+        self.inertias = BodyInertias(forest)
+        self._midpoint_model = None     # see midpoint
 
     def _init_cut_constraints(self, cut_ids):
         """Cut joints -> 5-row bilateral constraints (module docstring): for cut k the parent
@@ -485,15 +521,36 @@ class ForestCoordinates:
             rigid_body_forces(q, u, self.root_q, self.root_v, self._mass, self._inertia,
                               self._gravity, h)
         else:
-            to_pin_velocity(q, u, self.roots, self.root_q, self.root_v, self._Rs, self._u_pin)
-            M_pin = pin.crba(self.model, self.data, q)
-            h_pin = -pin.nonLinearEffects(self.model, self.data, q, self._u_pin)
             M = np.empty((self.nv, self.nv))
             h = np.empty(self.nv)
-            from_pin_dynamics(M_pin, h_pin, self._Rs, self.root_v, self._u_pin, M, h)
+            t = self.tree
+            tree_dynamics(q, u, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
+                          t.oR, t.op, *self.inertias.args(), M, h)
         if tau is not None and tau.shape[0]:
             self.add_joint_torques(q, u, tau, h)
         return M, h
+
+    def midpoint(self, q, u, dt, ground, gap, position, Wt, jacobian_gap=np.inf):
+        """(q^M, M, h) of a step of Δt from (q, u), h without the joint torques: q^M = q ⊕
+        ½Δt F(q) u (Eqn. 6), M and h at (q^M, u); and gap, position and Wt filled at q^M as
+        by contact_kinematics. One jitted call unless M is constant."""
+        if self.constant_mass_matrix:
+            qM = self.integrate(q, u, 0.5 * dt)
+            M, h = self.dynamics(qM, u, None)
+            self.contact_kinematics(qM, ground, gap, position, Wt, jacobian_gap)
+            return qM, M, h
+        qM = np.empty_like(q)
+        M = np.empty((self.nv, self.nv))
+        h = np.empty(self.nv)
+        model = self._midpoint_model
+        if model is None:   # the model's arrays, gathered once (attribute look-ups cost)
+            t = self.tree
+            model = self._midpoint_model = (
+                t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v, t.support, t.oR,
+                t.op, *self.inertias.args(), self.c_joint, self.c_local, self.c_radius)
+        midpoint_dynamics(q, u, 0.5 * dt, *model, ground.n, ground.t1, ground.t2,
+                          ground.offset, jacobian_gap, qM, M, h, gap, position, Wt)
+        return qM, M, h
 
     def add_joint_torques(self, q, u, tau, h):
         """h += the generalized force of the joint torques τ (public order) at q: Sᵀτ for
@@ -504,7 +561,7 @@ class ForestCoordinates:
             if self._joint_v_block is not None:
                 h[self._joint_v_block] += tau
             else:
-                h[self.joint_v] += tau
+                add_at(h, self.joint_v, tau)
             return
         h[self.joint_v[self._act_tree]] += tau[self._act_tree]
         self._tau_cut[self.joint_cut[self._act_cut]] = tau[self._act_cut]
@@ -561,6 +618,8 @@ class ForestCoordinates:
             self._kinematics_for_cuts(q, u)
 
     def joint_positions(self, q):
+        if self.n_cut == 0:     # one gather (a new array), no masks
+            return q[self.joint_q]
         out = np.empty(self.joint_q.shape[0])
         out[self._act_tree] = q[self.joint_q[self._act_tree]]
         if self.n_cut:
@@ -569,6 +628,8 @@ class ForestCoordinates:
         return out
 
     def joint_velocities(self, q, u):
+        if self.n_cut == 0:
+            return u[self.joint_v]
         out = np.empty(self.joint_v.shape[0])
         out[self._act_tree] = u[self.joint_v[self._act_tree]]
         if self.n_cut:

@@ -1,0 +1,49 @@
+"""starleth-bench --vs-mujoco: MuJoCo on the same URDF is the same robot doing the same
+thing (a cross-check of mass, geometry and contact against an independent simulator), and
+a missing mujoco is said plainly. Speed is the bench's business, not a test's."""
+import builtins
+
+import numpy as np
+import pytest
+
+from starleth_sim.tools import bench
+
+
+def test_mujoco_model_is_our_robot_and_stands_like_ours():
+    mujoco = pytest.importorskip("mujoco")
+    ours = bench.SimulatorStanding("HmJ")
+    _, model = bench.mujoco_model(ours.sim.config.robot, 2.5e-3, 0.8)
+    assert model.nv == ours.sim.coords.nv == 18
+    assert model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+    assert model.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
+    # the same mass, from the same URDF read by two parsers
+    assert np.sum(model.body_mass) == pytest.approx(ours.sim.description.total_mass, rel=1e-9)
+    mj = bench.MujocoStanding(mujoco, model, ours.sim)
+    assert mj.weight == pytest.approx(ours.weight, rel=1e-3)
+    mj.run(400)
+    ours.run(400)
+    for r in (mj, ours):
+        assert r.normal_force() / r.weight == pytest.approx(1.0, abs=bench.FORCE_TOLERANCE)
+    # MuJoCo's soft contacts sink a few mm more than our hard ones
+    assert 0.0 < ours.height() - mj.height() < bench.HEIGHT_TOLERANCE
+
+
+def test_vs_mujoco_prints_the_table_and_the_check(capsys):
+    pytest.importorskip("mujoco")
+    assert bench.main(["--vs-mujoco", "--rounds", "1", "--steps", "100", "HmJ"]) == 0
+    out = capsys.readouterr().out
+    assert "MuJoCo" in out and "HmJ" in out and "like with like: yes" in out
+
+
+def test_vs_mujoco_without_mujoco_says_so(monkeypatch, capsys):
+    real_import = builtins.__import__
+
+    def no_mujoco(name, *args, **kwargs):
+        if name == "mujoco":
+            raise ImportError("No module named 'mujoco'")
+        return real_import(name, *args, **kwargs)
+    monkeypatch.setattr(builtins, "__import__", no_mujoco)
+    assert bench.main(["--vs-mujoco", "--rounds", "1", "--steps", "10", "HmJ"]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1
+    assert "mujoco is not installed" in out[0] and "requirements-bench.txt" in out[0]
