@@ -619,3 +619,134 @@ class SplitRecorder:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+class QueuedRecorder:
+    """A recorder (:class:`McapRecorder` or :class:`SplitRecorder`) written by a thread of
+    its own, off the caller's critical path: ``write`` hands the CDR bytes over (a queue
+    append; message objects are serialised first, in the caller, as they may change
+    afterwards) and returns; the writer thread adds them to the file in the same order.
+    ``add_topic``, ``add_metadata`` and ``add_attachment`` wait until the queue is empty
+    and act at once, so every record keeps its place. ``close`` writes everything still
+    queued, then finalises the file: a process that calls it on SIGINT / SIGTERM leaves a
+    complete file holding every message written before. The writer releases the GIL after
+    every BATCH messages (``time.sleep(0)``), so a caller waiting for it runs within a few
+    messages' time."""
+
+    POLL = 0.002   # s: the writer looks at the queue this often when it ran empty
+    BATCH = 4      # messages written between two releases of the GIL
+
+    def __init__(self, inner):
+        import collections
+        self.inner = inner
+        self._queue = collections.deque()
+        self._wake = threading.Event()
+        self._idle = threading.Event()
+        self._idle.set()
+        self._closing = False
+        self._closed = False
+        self.message_count = 0         # messages handed over (written or queued)
+        self.error = None              # the writer's exception, if it failed
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._thread.start()
+
+    # -- the writer thread --------------------------------------------------------------------
+    def _run(self):
+        q, inner = self._queue, self.inner
+        while True:
+            if not q:
+                self._idle.set()
+                if self._closing:
+                    return
+                self._wake.wait(self.POLL)
+                self._wake.clear()
+                continue
+            self._idle.clear()
+            for _ in range(self.BATCH):
+                if not q:
+                    break
+                item = q.popleft()
+                try:
+                    inner.write(*item)
+                except Exception as e:  # pragma: no cover - disk full, ...: keep the error
+                    self.error = e
+            time.sleep(0)              # let a waiting thread take the GIL
+
+    def flush(self, timeout=None) -> bool:
+        """Wait until every message handed over is in the writer's file buffers."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        while self._queue or not self._idle.is_set():
+            if not self._thread.is_alive():
+                return not self._queue
+            self._wake.set()
+            if t_end is not None and time.monotonic() > t_end:
+                return False
+            time.sleep(0.0005)
+        return True
+
+    # -- the recorder interface -----------------------------------------------------------------
+    def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
+        if self._closing:
+            return False
+        if not isinstance(msg, (bytes, bytearray, memoryview)):
+            from rclpy.serialization import serialize_message
+            msg = serialize_message(msg)
+        elif not isinstance(msg, bytes):
+            msg = bytes(msg)
+        if topic not in self.inner.topics:
+            raise KeyError(topic)
+        self._queue.append((topic, msg, log_time_ns, publish_time_ns))
+        self.message_count += 1
+        return True
+
+    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+        self.flush()
+        return self.inner.add_topic(topic, msg_type, qos, type_hash)
+
+    def add_metadata(self, name: str, data: dict) -> None:
+        self.flush()
+        self.inner.add_metadata(name, data)
+
+    def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
+        self.flush()
+        self.inner.add_attachment(name, media_type, data, log_time_ns)
+
+    def counts(self) -> dict:
+        self.flush()
+        return self.inner.counts()
+
+    @property
+    def topics(self) -> dict:
+        return self.inner.topics
+
+    @property
+    def path(self):
+        return self.inner.path
+
+    def __getattr__(self, name):      # files, size, start_ns, bag_metadata, ...
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    @property
+    def closed(self) -> bool:
+        return self._closing
+
+    def close(self) -> None:
+        """Write what is queued, stop the writer, finalise the file (idempotent)."""
+        if self._closed:
+            return
+        self._closing = True
+        self._wake.set()
+        self._thread.join()
+        while self._queue:             # the writer died: write the rest here
+            self.inner.write(*self._queue.popleft())
+        self._closed = True
+        self.inner.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False

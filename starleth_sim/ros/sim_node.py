@@ -102,6 +102,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
+from starleth_interface.msg_cdr import FixedCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
                                             make_executor, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
@@ -123,6 +124,38 @@ from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 def _dbl(a) -> array.array:
     return array.array("d", np.ascontiguousarray(a, dtype=float).tobytes())
+
+
+WRENCH_FIELDS = ("wrench.force.x", "wrench.force.y", "wrench.force.z")
+ODOM_FIELDS = ("pose.pose.position.x", "pose.pose.position.y", "pose.pose.position.z",
+               "pose.pose.orientation.x", "pose.pose.orientation.y", "pose.pose.orientation.z",
+               "pose.pose.orientation.w", "twist.twist.linear.x", "twist.twist.linear.y",
+               "twist.twist.linear.z", "twist.twist.angular.x", "twist.twist.angular.y",
+               "twist.twist.angular.z")
+IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w",
+              "angular_velocity.x", "angular_velocity.y", "angular_velocity.z",
+              "linear_acceleration.x", "linear_acceleration.y", "linear_acceleration.z")
+
+
+class CycleTimes:
+    """Per-cycle timestamps of the lockstep critical path (time.perf_counter, i.e.
+    CLOCK_MONOTONIC: comparable across processes on one host), for benchmarks: command in,
+    stepped, /joint_states out, state topics out, recording handed over, post-publish work
+    done (prepare, visualisation). Off unless a benchmark sets ``SimNode.timing``."""
+
+    FIELDS = ("command_in", "stepped", "joint_states_out", "state_out", "recorded", "done")
+
+    def __init__(self, capacity=200_000):
+        self.stamp = np.zeros(capacity, np.int64)
+        self.t = np.zeros((capacity, len(self.FIELDS)))
+        self.n = 0
+        self.row = np.zeros(len(self.FIELDS))
+
+    def commit(self, stamp):
+        if self.n < len(self.stamp):
+            self.stamp[self.n] = stamp
+            self.t[self.n] = self.row
+            self.n += 1
 
 
 class SimNode:
@@ -200,6 +233,19 @@ class SimNode:
         self.odom_msg.child_frame_id = s.base_frame
         self.imu_msg = Imu()
         self.imu_msg.header.frame_id = s.base_frame
+        # the state topics of every step go out as CDR bytes patched into templates
+        # (starleth_interface.msg_cdr; None: as message objects)
+        w = WrenchStamped()
+        w.header.frame_id = s.world_frame
+        self._wrench_cdr = FixedCdr.create(w, WRENCH_FIELDS)
+        o = Odometry()
+        o.header.frame_id, o.child_frame_id = s.world_frame, s.base_frame
+        self._odom_cdr = FixedCdr.create(o, ODOM_FIELDS)
+        i = Imu()
+        i.header.frame_id = s.base_frame
+        self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
+        self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
+        self.timing = None           # a CycleTimes, set by benchmarks
         self.solver_keys = ("iterations", "max_iterations_step", "converged", "status",
                             "residual", "active_contacts", "retried", "step_time",
                             "physics_steps", "nonconverged_steps", "loaded_contacts_opened",
@@ -425,17 +471,19 @@ class SimNode:
                       self.service.stamp_ns)
 
     def _open_recorder(self, path):
-        from .recording import McapRecorder, SplitRecorder
+        from .recording import McapRecorder, QueuedRecorder, SplitRecorder
         s, sim = self.settings, self.sim
         common = dict(compression=s.record_compression,
                       custom_data={"generator": "starleth_sim sim_node"})
         if s.record_max_duration > 0 or s.record_max_size > 0:
             # a rosbag2 bag directory of numbered files, each complete on its own
-            self.recorder = rec = SplitRecorder(
+            file_rec = SplitRecorder(
                 path, max_duration_ns=int(round(s.record_max_duration * 1e9)),
                 max_size=s.record_max_size, **common)
         else:
-            self.recorder = rec = McapRecorder(path, **common)
+            file_rec = McapRecorder(path, **common)
+        # written by a thread of its own, mostly while the node waits for the controller
+        self.recorder = rec = QueuedRecorder(file_rec)
         for key, (p, topic, typ, qos) in self.pubs.items():
             rec.add_topic(topic, typ, qos)
         for key, (sobj, topic, typ, qos) in self.subs.items():
@@ -472,14 +520,28 @@ class SimNode:
         self.log.error(message)
 
     def _emit(self, key, msg, record):
+        """Publish (and record) a message object; while recording, a topic nobody
+        subscribes to is only recorded."""
         p, topic, _, _ = self.pubs[key]
         rec = self.recorder
         if record and rec is not None and not rec.closed:
             data = serialize_message(msg)
-            p.publish(data)
+            if self._counts.get(key, 1) > 0:
+                p.publish(data)
             rec.write(topic, data, self.service.stamp_ns)
         else:
             p.publish(msg)
+
+    def _emit_cdr(self, key, data, record):
+        """The same for CDR bytes."""
+        p, topic, _, _ = self.pubs[key]
+        rec = self.recorder
+        if record and rec is not None and not rec.closed:
+            if self._counts.get(key, 1) > 0:
+                p.publish(data)
+            rec.write(topic, data, self.service.stamp_ns)
+        else:
+            p.publish(data)
 
     SUBSCRIBER_REFRESH = 10   # steps between two looks at the subscriber counts
 
@@ -511,24 +573,43 @@ class SimNode:
         else:   # state 0: the exact count
             send = (self.pubs["joint_states"][0].get_subscription_count() > 0
                     or (record and self.recorder is not None))
+        timing = self.timing
         if send:
             self._publish_joint_states(sec, nsec, record)
-        if "clock" in self.pubs and wanted("clock", record):
-            c = self.clock_msg.clock
-            c.sec, c.nanosec = sec, nsec
-            self._emit("clock", self.clock_msg, record)
+        if timing is not None:
+            timing.row[2] = time.perf_counter()
+        # then the rest of what a controller waits for (foot wrenches, base state), then
+        # the others
         feet = [f for f in FEET if wanted(f, record)]
         if feet:
             self._publish_foot_wrenches(sec, nsec, feet, record)
         want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
         if want_odom or want_imu:
-            self._publish_base(sec, nsec, want_odom, want_imu, record)
+            base = self._base_values()
+            if want_odom:
+                self._publish_odometry(sec, nsec, base, record)
+        if timing is not None:
+            timing.row[3] = time.perf_counter()
+        if "clock" in self.pubs and wanted("clock", record):
+            if self._clock_cdr is not None:
+                self._emit_cdr("clock", self._clock_cdr.build(sec, nsec, ()), record)
+            else:
+                c = self.clock_msg.clock
+                c.sec, c.nanosec = sec, nsec
+                self._emit("clock", self.clock_msg, record)
+        if want_imu:
+            self._publish_imu(sec, nsec, base, record)
         if wanted("solver", record):
             self._fill_diagnostics(sec, nsec)
             self._emit("solver", self.diag_msg, record)
+        if timing is not None:
+            timing.row[4] = time.perf_counter()
         if record:
             self._prepare_next_step()
             self._publish_visualisation()
+        if timing is not None and record:
+            timing.row[5] = time.perf_counter()
+            timing.commit(svc.stamp_ns)
         # subscriber counts for the next state, taken now that this one is out (off the
         # lockstep critical path): /joint_states every step, the others every
         # SUBSCRIBER_REFRESH steps
@@ -559,8 +640,14 @@ class SimNode:
 
     def _publish_foot_wrenches(self, sec, nsec, feet, record):
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
+        cdr = self._wrench_cdr
         for c in self.sim.contacts[:len(FEET)]:
             if c.name not in feet:
+                continue
+            if cdr is not None:
+                f = c.force
+                self._emit_cdr(c.name, cdr.build(sec, nsec, (float(f[0]), float(f[1]),
+                                                             float(f[2]))), record)
                 continue
             m = self.wrench_msgs[c.name]
             m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
@@ -568,36 +655,51 @@ class SimNode:
             f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
             self._emit(c.name, m, record)
 
-    def _publish_base(self, sec, nsec, want_odom, want_imu, record):
-        """starleth/base_state (pose in the world, twist in the base frame) and
-        starleth/imu (orientation, body rates, proper acceleration)."""
+    def _base_values(self):
+        """(position, orientation xyzw, world linear velocity, body rates, R) of the base."""
         b = self.sim.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
         R = quat_to_matrix(*quat)
-        quat = [float(x) for x in quat]
-        w = [float(x) for x in w]
-        if want_odom:
-            v_body = R.T @ v
-            o = self.odom_msg
-            o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
-            pp, po = o.pose.pose.position, o.pose.pose.orientation
-            pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
-            po.x, po.y, po.z, po.w = quat
-            tl, ta = o.twist.twist.linear, o.twist.twist.angular
-            tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
-            ta.x, ta.y, ta.z = w
-            self._emit("base_state", o, record)
-        if want_imu:
-            a_proper = self.imu.proper_acceleration(self.service.k, v, R)
-            imu = self.imu_msg
-            imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
-            io_ = imu.orientation
-            io_.x, io_.y, io_.z, io_.w = quat
-            iw, ia = imu.angular_velocity, imu.linear_acceleration
-            iw.x, iw.y, iw.z = w
-            ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
-            self._emit("imu", imu, record)
+        return ([float(x) for x in p], [float(x) for x in quat], v,
+                [float(x) for x in w], R)
+
+    def _publish_odometry(self, sec, nsec, base, record):
+        """starleth/base_state: pose in the world, twist in the base frame."""
+        p, quat, v, w, R = base
+        v_body = R.T @ v
+        if self._odom_cdr is not None:
+            self._emit_cdr("base_state", self._odom_cdr.build(
+                sec, nsec, (*p, *quat, float(v_body[0]), float(v_body[1]), float(v_body[2]),
+                            *w)), record)
+            return
+        o = self.odom_msg
+        o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
+        pp, po = o.pose.pose.position, o.pose.pose.orientation
+        pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
+        po.x, po.y, po.z, po.w = quat
+        tl, ta = o.twist.twist.linear, o.twist.twist.angular
+        tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
+        ta.x, ta.y, ta.z = w
+        self._emit("base_state", o, record)
+
+    def _publish_imu(self, sec, nsec, base, record):
+        """starleth/imu: orientation, body rates, proper acceleration."""
+        p, quat, v, w, R = base
+        a_proper = self.imu.proper_acceleration(self.service.k, v, R)
+        if self._imu_cdr is not None:
+            self._emit_cdr("imu", self._imu_cdr.build(
+                sec, nsec, (*quat, *w, float(a_proper[0]), float(a_proper[1]),
+                            float(a_proper[2]))), record)
+            return
+        imu = self.imu_msg
+        imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
+        io_ = imu.orientation
+        io_.x, io_.y, io_.z, io_.w = quat
+        iw, ia = imu.angular_velocity, imu.linear_acceleration
+        iw.x, iw.y, iw.z = w
+        ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
+        self._emit("imu", imu, record)
 
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the
@@ -662,6 +764,8 @@ class SimNode:
         return True
 
     def _on_joint_command_cdr(self, data) -> bool:
+        if self.timing is not None:
+            self.timing.row[0] = time.perf_counter()
         ok, stamp_ns, tau = self.decoder.joint_command(data)
         if not ok:
             return False
@@ -682,6 +786,8 @@ class SimNode:
         svc = self.service
         if svc.answered and not svc.paused and not self._stop:
             if svc.step() is not None:
+                if self.timing is not None:
+                    self.timing.row[1] = time.perf_counter()
                 self.publish_state()
 
     def _wrench(self, key, msg, persistent):
@@ -932,9 +1038,53 @@ class SimNode:
         self.node.destroy_node()
 
 
-def main(args=None):
+def _split_controller_params(argv):
+    """(argv without them, {name: value}) of the ``--controller-param NAME:=VALUE`` options
+    before ``--ros-args`` (values read as YAML, as ROS reads -p values); ``--composed``
+    is dropped."""
+    out, params = [], {}
+    it = iter(argv)
+    for a in it:
+        if a == "--ros-args":
+            out.append(a)
+            out.extend(it)
+            break
+        if a == "--composed":        # python -m starleth_sim.ros.sim_node --composed
+            continue
+        if a == "--controller-param" or a.startswith("--controller-param="):
+            kv = a.split("=", 1)[1] if "=" in a else next(it, "")
+            if ":=" not in kv:
+                raise ValueError(f"--controller-param {kv!r}: expected NAME:=VALUE")
+            k, v = kv.split(":=", 1)
+            params[k] = yaml.safe_load(v) if v else ""
+            continue
+        out.append(a)
+    return out, params
+
+
+def main_composed(args=None):
+    """Console script ``sim_node_composed``: sim_node and controller_node
+    (starleth_controller) in one process on one executor, with the same topics, services
+    and parameters as the two processes (speed over process isolation: no trip between
+    processes through the operating system). ``--ros-args`` go to sim_node (its node name,
+    namespace, parameters); the controller, named ``controller_node`` in the same
+    namespace, takes its parameters from ``--controller-param NAME:=VALUE`` options given
+    before them, e.g. ``sim_node_composed --controller-param mode:=trot --ros-args -p
+    record:=run.mcap``. Exit status as ``sim_node``'s."""
+    argv = list(sys.argv if args is None else args)
+    try:
+        argv, ctl_params = _split_controller_params(argv)
+    except ValueError as e:
+        print(f"sim_node_composed: {e}", file=sys.stderr)
+        return 2
+    return main(argv, controller_params=ctl_params)
+
+
+def main(args=None, controller_params=None):
     """Console script ``sim_node``. SIGINT/SIGTERM stop the loop and finalise the recording
-    (exit 0); a bad parameter exits with 2 before any physics is set up."""
+    (exit 0); a bad parameter exits with 2 before any physics is set up.
+    `controller_params` (a dict): also run starleth_controller's ControllerNode with these
+    parameters on the same executor (:func:`main_composed`)."""
     if not init_ros("sim_node", sys.argv if args is None else args):
         return 2
     holder = {}
@@ -950,16 +1100,35 @@ def main(args=None):
             sim_node.request_stop()
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)
         executor.add_node(sim_node.node)
+        if controller_params is not None:
+            from starleth_controller.controller_node import ControllerNode
+            try:
+                ctl = holder["controller"] = ControllerNode(
+                    context=sim_node.context, parameter_overrides=controller_params,
+                    namespace=sim_node.node.get_namespace(), use_global_arguments=False)
+            except ValueError as e:
+                print(f"controller_node: configuration error: {e}", file=sys.stderr)
+                return 2
+            executor.add_node(ctl)
+            kind += ", with controller_node in this process"
         sim_node.log.info(f"executor: {kind}; ready")
         try:
             sim_node.run(executor)
         finally:
             signals.ignore()          # no further signals while the file is finalised
             sim_node.close()
+        if "controller" in holder:
+            holder["controller"].log.info(f"stopped; {holder['controller'].summary()}")
         return 0
     finally:
+        if "controller" in holder:
+            try:
+                holder["controller"].destroy_node()
+            except Exception:
+                pass
         shutdown_ros(holder["node"].node if "node" in holder else None, executor)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_composed() if "--controller-param" in sys.argv[1:2] or
+             "--composed" in sys.argv[1:2] else main())
