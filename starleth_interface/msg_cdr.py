@@ -330,3 +330,52 @@ class JointStateReader:
         self._prefix = bytes(data[12:end])
         self._layout = (names, n, (c1, c2), (a1, a2))
         return True
+
+
+class DiagnosticArrayCdr:
+    """CDR bytes of a diagnostic_msgs/DiagnosticArray whose statuses have fixed names,
+    hardware ids and keys (`layouts`: [(name, hardware_id, keys)]), written field by field
+    (strings change every message, so there is no template): ``build(sec, nsec,
+    statuses)`` with statuses a list of (layout index, level, message, values as str).
+    ~10x cheaper than filling the message objects and serialising them."""
+
+    def __init__(self, frame_id: str, layouts):
+        self.frame_id = frame_id.encode("utf-8")
+        self.layouts = [(name.encode("utf-8"), hw.encode("utf-8"),
+                         [k.encode("utf-8") for k in keys]) for name, hw, keys in layouts]
+
+    @staticmethod
+    def _string(parts, o, s: bytes) -> int:
+        pad = (4 - (o - _ORIGIN) % 4) % 4
+        if pad:
+            parts.append(b"\0" * pad)
+        n = len(s) + 1
+        parts.append(_U32.pack(n))
+        parts.append(s)
+        parts.append(b"\0")
+        return o + pad + 4 + n
+
+    def build(self, sec, nsec, statuses) -> bytes:
+        string = self._string
+        parts = [b"\x00\x01\x00\x00", _STAMP.pack(sec, nsec)]
+        o = string(parts, 12, self.frame_id)
+        pad = (4 - (o - _ORIGIN) % 4) % 4
+        parts.append(b"\0" * pad + _U32.pack(len(statuses)))
+        o += pad + 4
+        for index, level, message, values in statuses:
+            name, hw, keys = self.layouts[index]
+            if len(values) != len(keys):
+                raise ValueError(f"status {index}: {len(values)} values for {len(keys)} keys")
+            parts.append(bytes(level) if isinstance(level, (bytes, bytearray))
+                         else struct.pack("<B", level))    # rclpy's byte constants: bytes
+            o += 1
+            o = string(parts, o, name)
+            o = string(parts, o, message.encode("utf-8"))
+            o = string(parts, o, hw)
+            pad = (4 - (o - _ORIGIN) % 4) % 4
+            parts.append(b"\0" * pad + _U32.pack(len(values)))
+            o += pad + 4
+            for k, v in zip(keys, values):
+                o = string(parts, o, k)
+                o = string(parts, o, v.encode("utf-8"))
+        return b"".join(parts)

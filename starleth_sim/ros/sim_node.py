@@ -102,7 +102,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.msg_cdr import FixedCdr
+from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
                                             make_executor, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
@@ -264,6 +264,10 @@ class SimNode:
         self.iface_status.values = [KeyValue(key=k, value="") for k in self.iface_keys]
         self._diag_solver_only = [self.solver_status]
         self._diag_both = [self.solver_status, self.iface_status]
+        # /starleth/solver written as CDR bytes field by field (None: message objects)
+        self._diag_cdr = DiagnosticArrayCdr("", [
+            (st.name, st.hardware_id, [kv.key for kv in st.values])
+            for st in self._diag_both])
         self.diag_msg.status = self._diag_both
         self._period_summary = {}
 
@@ -600,8 +604,12 @@ class SimNode:
         if want_imu:
             self._publish_imu(sec, nsec, base, record)
         if wanted("solver", record):
-            self._fill_diagnostics(sec, nsec)
-            self._emit("solver", self.diag_msg, record)
+            statuses = self._diagnostics()
+            if self._diag_cdr is not None:
+                self._emit_cdr("solver", self._diag_cdr.build(sec, nsec, statuses), record)
+            else:
+                self._fill_diagnostics(sec, nsec, statuses)
+                self._emit("solver", self.diag_msg, record)
         if timing is not None:
             timing.row[4] = time.perf_counter()
         if record:
@@ -713,28 +721,21 @@ class SimNode:
 
     INTERFACE_STATUS_EVERY = 40   # steps (10 Hz at 400 Hz); also on every lockstep timeout
 
-    def _fill_diagnostics(self, sec, nsec):
+    def _diagnostics(self):
+        """The statuses of /starleth/solver: [(0 = solver | 1 = interface, level, message,
+        values as str)]; the interface status every INTERFACE_STATUS_EVERY steps, on a
+        lockstep timeout and while paused."""
         svc = self.service
         d = self.sim.diagnostics
-        self.diag_msg.header.stamp.sec, self.diag_msg.header.stamp.nanosec = sec, nsec
-        st = self.solver_status
-        st.level = DiagnosticStatus.OK if d.converged else DiagnosticStatus.WARN
-        st.message = d.status
         vals = (d.iterations, d.max_iterations_step, d.converged, d.status, repr(d.residual),
                 d.active_contacts, d.retried, repr(d.step_time), d.physics_steps,
                 d.nonconverged_steps, d.loaded_contacts_opened, d.loaded_contacts_opened_total,
                 d.projections, d.projection_iterations)
-        for kv, v in zip(st.values, vals):
-            kv.value = str(v)
+        out = [(0, DiagnosticStatus.OK if d.converged else DiagnosticStatus.WARN, d.status,
+                [str(v) for v in vals])]
         if not (svc.k % self.INTERFACE_STATUS_EVERY == 0 or svc.last_step_timed_out
                 or svc.paused):
-            self.diag_msg.status = self._diag_solver_only
-            return
-        self.diag_msg.status = self._diag_both
-        it = self.iface_status
-        it.level = DiagnosticStatus.WARN if svc.last_step_timed_out else DiagnosticStatus.OK
-        it.message = ("lockstep timeout" if svc.last_step_timed_out else
-                      "paused" if svc.paused else "running")
+            return out
         ps = self._period_summary
         c = svc.counters
         vals = (self.settings.mode, self.settings.real_time_factor, svc.stamp_ns * 1e-9, svc.k,
@@ -742,8 +743,22 @@ class SimNode:
                 ps.get("period_error_p50_ms", ""), ps.get("period_error_p99_ms", ""),
                 ps.get("period_error_max_ms", ""), self.period_stats.overruns,
                 self.recorder.message_count if self.recorder is not None else 0)
-        for kv, v in zip(it.values, vals):
-            kv.value = str(v)
+        out.append((1, DiagnosticStatus.WARN if svc.last_step_timed_out else DiagnosticStatus.OK,
+                    "lockstep timeout" if svc.last_step_timed_out else
+                    "paused" if svc.paused else "running", [str(v) for v in vals]))
+        return out
+
+    def _fill_diagnostics(self, sec, nsec, statuses):
+        """The DiagnosticArray message object from _diagnostics() (when the CDR writer is
+        not available)."""
+        self.diag_msg.header.stamp.sec, self.diag_msg.header.stamp.nanosec = sec, nsec
+        objs = (self.solver_status, self.iface_status)
+        for index, level, message, values in statuses:
+            st = objs[index]
+            st.level, st.message = level, message
+            for kv, v in zip(st.values, values):
+                kv.value = v
+        self.diag_msg.status = self._diag_both if len(statuses) > 1 else self._diag_solver_only
 
     # -- callbacks -------------------------------------------------------------------------
     def _record_input(self, key, data):

@@ -138,6 +138,17 @@ def child_main(args):
     stop = {"flag": False}
     signal.signal(signal.SIGINT, lambda *a: stop.__setitem__("flag", True))
     signal.signal(signal.SIGTERM, lambda *a: stop.__setitem__("flag", True))
+    if args.pong_only:     # measure_bare_round_trips: only the pong node
+        pong = Node("bench_pong", context=None)
+        pong_pub = pong.create_publisher(JointState, PONG, QoSProfile(depth=10))
+        pong.create_subscription(JointState, PING, pong_pub.publish, QoSProfile(depth=10))
+        ex = _make_executor(args.sim_executor, pong.context)
+        ex.add_node(pong)
+        while not stop["flag"]:
+            ex.spin_once(timeout_sec=0.1)
+        pong.destroy_node()
+        rclpy.try_shutdown()
+        return
     overrides = {"mode": args.mode, "real_time_factor": args.rtf, "executor": args.sim_executor,
                  "realtime_priority": args.realtime_priority}
     if args.record:
@@ -251,7 +262,7 @@ class PingPong:
     """Bare rclpy round trips with the child's pong node: a JointState (12 names, 3 x 12
     values, like /joint_states) goes out, the next is sent when its echo is back."""
 
-    def __init__(self, node, ex):
+    def __init__(self, node, ex, startup=60.0):
         from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
         self.node, self.ex = node, ex
@@ -264,7 +275,7 @@ class PingPong:
         msg.velocity = [0.0] * 12
         msg.effort = [0.0] * 12
         if not _wait(ex, lambda: self.pub.get_subscription_count() > 0 and
-                     self.sub.get_publisher_count() > 0, 60):
+                     self.sub.get_publisher_count() > 0, startup):
             raise RuntimeError("bench: the pong node did not appear")
         for _ in range(50):     # warm-up: the first messages after matching can be slow
             want = self.got + 1
@@ -293,6 +304,39 @@ class PingPong:
     def close(self):
         self.node.destroy_publisher(self.pub)
         self.node.destroy_subscription(self.sub)
+
+
+def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=60.0):
+    """Bare rclpy JointState round trips per second between this process and a child
+    running only the pong node (the reference the real loop is compared with); also
+    returns the median round trip [s]. Used by starleth-demo right before its run."""
+    import rclpy
+    from rclpy.node import Node
+    keep_discovery_local()
+    cmd = [sys.executable, "-m", "starleth_sim.tools.bench_ros", "--child", "--pong-only",
+           "--domain-id", str(domain_id), "--sim-executor", executor]
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env=env)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = Node("bench_ping", context=ctx)
+    try:
+        ex = _make_executor(executor, ctx)
+        ex.add_node(node)
+        pp = PingPong(node, ex, startup)
+        rate, rtts = pp.measure(seconds)
+        pp.close()
+        return rate, float(np.median(rtts))
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def _set_paused(node, ex, client, paused):
@@ -423,7 +467,8 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         in_round |= (out_t >= t0) & (out_t <= t1)
     sim_row = {int(s): i for i, s in enumerate(sim_stamp)}
     ctl_row = {int(s): i for i, s in enumerate(ctl_stamp)}
-    seg = {k: [] for k in ("step", "sim_publish", "controller_receive", "controller_compute",
+    seg = {k: [] for k in ("step", "sim_publish", "of_which_joint_states",
+                           "controller_first_in", "controller_receive", "controller_compute",
                            "command_back", "cycle", "record_handover_parallel",
                            "prepare_and_visualisation_parallel")}
     for i, st in enumerate(sim_stamp):
@@ -433,6 +478,8 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         a, b, cr = sim_t[i], sim_t[j], ctl_t[c]     # cr: first in, complete, computed, sent
         seg["step"].append(a[F["stepped"]] - a[F["command_in"]])
         seg["sim_publish"].append(a[F["state_out"]] - a[F["stepped"]])
+        seg["of_which_joint_states"].append(a[F["joint_states_out"]] - a[F["stepped"]])
+        seg["controller_first_in"].append(cr[0] - a[F["stepped"]])
         seg["controller_receive"].append(cr[1] - a[F["state_out"]])
         seg["controller_compute"].append(cr[2] - cr[1])
         seg["command_back"].append(b[F["command_in"]] - cr[2])
@@ -596,6 +643,7 @@ def main(argv=None):
     p.add_argument("--mode", default="lockstep", help=argparse.SUPPRESS)
     p.add_argument("--rtf", type=float, default=0.0, help=argparse.SUPPRESS)
     p.add_argument("--timing", default="", help=argparse.SUPPRESS)
+    p.add_argument("--pong-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.executor is None:
         args.executor = "events" if args.controller == "real" else "single_threaded"
