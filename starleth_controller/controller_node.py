@@ -40,6 +40,11 @@ publishes the torques stamped with it, so a lockstep simulator steps on the answ
 same answer again (a simulator re-sending its first state because the first answer went out
 before the topics matched).
 
+The state topics are taken as CDR bytes and the floats of the common case are read
+straight from them (``starleth_interface.msg_cdr``; anything else is deserialised by rclpy
+and validated as before); the command goes out as CDR bytes patched into a template.
+``ControllerNode.timing`` (a :class:`CycleTimes`, benchmarks only) times each cycle.
+
 Robustness: a message with NaN/inf values, missing joints or wrong array sizes is logged
 (throttled) and ignored; no command is published for its stamp. Exceptions in the controller
 are logged and answered with nothing; the node never exits on bad input.

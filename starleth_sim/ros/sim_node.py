@@ -14,7 +14,7 @@ is the source of /clock: its loops run on the wall clock whatever ``use_sim_time
 and its stamps are always sim time.
 
 Published; stamps are sim time t_k = k * 2.5 ms; one message per control step (a topic
-nobody subscribes to is skipped unless recording):
+nobody subscribes to is not published; while recording it is only recorded):
 
   joint_states                            sensor_msgs/JointState       effort = the torque
                                                                        applied (saturated) over
@@ -70,9 +70,15 @@ period, so stamps stay strictly increasing and answers to the old state are stal
 
 Lockstep critical path (command in -> step -> state out): commands are taken as CDR bytes
 and the common valid case is decoded without an rclpy message object (:mod:`.cdr`; the
-rest is deserialised and validated in full), /joint_states goes out from a CDR template
-before any other topic, and right after publishing the node prepares the torque-independent
-part of the next step (``Simulator.prepare``) while the controller computes its answer.
+rest is deserialised and validated in full); the state goes out as CDR bytes patched into
+templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, for
+publishing and recording alike), what a controller waits for first (/joint_states, the foot
+wrenches, the base state), then /clock, /starleth/imu, /starleth/solver; the recorder only
+takes the bytes over (:class:`~.recording.QueuedRecorder`: a writer thread adds them to the
+file, mostly while the node waits for the answer; SIGINT still leaves a complete file), and
+the node prepares the torque-independent part of the next step (``Simulator.prepare``)
+while the controller computes its answer. ``SimNode.timing`` (a :class:`CycleTimes`,
+benchmarks only) times each part.
 
 The ROS-free parts: :class:`~.service.SimService` (command validation, lockstep bookkeeping,
 counters, stepping), :mod:`.state_io` (initial state, public state, IMU) and

@@ -232,7 +232,14 @@ def _spawn(args, mode, rtf, pong, log, record="", timing=""):
     if mode == "realtime" and args.realtime_priority:
         cmd += ["--realtime-priority", str(args.realtime_priority)]
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
-    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+    pre = None
+    if getattr(args, "pin", False):
+        cpu = min(os.sched_getaffinity(0) | set(range(os.cpu_count() or 1)))
+
+        def pre():       # the child and every thread it starts on one CPU
+            os.sched_setaffinity(0, {cpu})
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                            preexec_fn=pre)
 
 
 def _stop(proc, log_path, timeout=20):
@@ -521,7 +528,9 @@ def parent_main(args):
     import rclpy
     from rclpy.node import Node
     results = {"domain_id": args.domain_id, "controller_executor": args.executor,
-               "sim_executor": args.sim_executor, "cpus": os.cpu_count()}
+               "sim_executor": args.sim_executor, "cpus": os.cpu_count(), "pin": args.pin}
+    if args.pin:     # this (controller) process on the last CPU, the sim on the first
+        os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=args.domain_id)
     node = Node("bench_controller", context=ctx)
@@ -627,6 +636,9 @@ def main(argv=None):
     p.add_argument("--controller", default="echo", choices=["echo", "real"],
                    help="lockstep phase: the PD echo controller, or starleth_controller's "
                         "controller_node (trotting)")
+    p.add_argument("--pin", action="store_true",
+                   help="pin the sim process to the first CPU and this one to the last (a "
+                        "woken subscriber then cannot preempt its publisher)")
     p.add_argument("--composed", action="store_true",
                    help="with --controller real: controller_node in sim_node's process, on "
                         "its executor")
