@@ -276,15 +276,20 @@ def test_split_recorder_by_size_gives_complete_files_and_a_rosbag2_directory(tmp
 # -----------------------------------------------------------------------------------------
 # QueuedRecorder (sim_node's recorder: written by a thread of its own)
 # -----------------------------------------------------------------------------------------
-def test_queued_recorder_keeps_every_message_in_order(tmp_path):
+@pytest.mark.parametrize("kind", ["thread", "process"])
+def test_queued_and_process_recorders_keep_every_message_in_order(tmp_path, kind):
+    """sim_node's recorders (a writer process; a writer thread where no process can be
+    started): every message handed over is in the file(s), in order, after close."""
     from mcap.reader import make_reader
-    from starleth_sim.ros.recording import QueuedRecorder, SplitRecorder
+    from starleth_sim.ros.recording import ProcessRecorder, QueuedRecorder, SplitRecorder
     n = 3000
     for split in (False, True):
         path = tmp_path / ("split" if split else "one.mcap")
-        inner = (SplitRecorder(str(path), max_size=60_000) if split
-                 else McapRecorder(str(path)))
-        rec = QueuedRecorder(inner)
+        if kind == "process":
+            rec = ProcessRecorder(str(path), max_size=60_000 if split else 0)
+        else:
+            rec = QueuedRecorder(SplitRecorder(str(path), max_size=60_000) if split
+                                 else McapRecorder(str(path)))
         rec.add_topic("/a", WrenchStamped, QoSProfile(depth=10))
         rec.add_topic("/b", Clock)
         m = WrenchStamped()
@@ -436,3 +441,28 @@ def test_diagnostic_array_writer_gives_rclpys_message():
         # the same message (bytes differ only in padding, which rclpy does not zero)
         assert deserialize_message(data, DiagnosticArray) == msg
         assert len(data) == len(serialize_message(msg))
+
+
+def test_process_recorder_finalises_the_file_when_its_parent_is_gone(tmp_path):
+    """The writer process finalises the file when its input ends (the parent killed
+    outright, SIGKILL): every message handed over is in a complete file."""
+    from rclpy.serialization import deserialize_message
+    from starleth_sim.ros.recording import ProcessRecorder
+    path = tmp_path / "orphan.mcap"
+    rec = ProcessRecorder(str(path))
+    rec.add_topic("/clock", Clock)
+    for k in range(500):
+        m = Clock()
+        m.clock.sec = k
+        rec.write("/clock", serialize_message(m), k)
+    rec.hand_over()
+    rec._out.close()                 # what the parent's death does to the pipe
+    assert rec._proc.wait(30) == 0
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        secs = [deserialize_message(m.data, Clock).clock.sec
+                for _, _, m in reader.iter_messages(log_time_order=False)]
+        assert reader.get_summary() is not None              # finished: summary written
+        md = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert secs == list(range(500)) and "rosbag2" in md

@@ -481,19 +481,26 @@ class SimNode:
                       self.service.stamp_ns)
 
     def _open_recorder(self, path):
-        from .recording import McapRecorder, QueuedRecorder, SplitRecorder
+        from .recording import McapRecorder, ProcessRecorder, QueuedRecorder, SplitRecorder
         s, sim = self.settings, self.sim
         common = dict(compression=s.record_compression,
                       custom_data={"generator": "starleth_sim sim_node"})
-        if s.record_max_duration > 0 or s.record_max_size > 0:
-            # a rosbag2 bag directory of numbered files, each complete on its own
-            file_rec = SplitRecorder(
-                path, max_duration_ns=int(round(s.record_max_duration * 1e9)),
-                max_size=s.record_max_size, **common)
-        else:
-            file_rec = McapRecorder(path, **common)
-        # written by a thread of its own, mostly while the node waits for the controller
-        self.recorder = rec = QueuedRecorder(file_rec)
+        # with record_max_duration / record_max_size: a rosbag2 bag directory of numbered
+        # files, each complete on its own
+        split = dict(max_duration_ns=int(round(s.record_max_duration * 1e9)),
+                     max_size=s.record_max_size)
+        try:
+            # written by a process of its own: nothing of the writing on this interpreter
+            self.recorder = rec = ProcessRecorder(path, **split, **common)
+        except FileExistsError:
+            raise
+        except OSError as e:
+            # no child process: a thread of this one, mostly while the controller computes
+            self.log.warning(f"recording in this process ({e})")
+            file_rec = (SplitRecorder(path, **split, **common)
+                        if s.record_max_duration > 0 or s.record_max_size > 0
+                        else McapRecorder(path, **common))
+            self.recorder = rec = QueuedRecorder(file_rec)
         for key, (p, topic, typ, qos) in self.pubs.items():
             rec.add_topic(topic, typ, qos)
         for key, (sobj, topic, typ, qos) in self.subs.items():
@@ -621,6 +628,9 @@ class SimNode:
         if record:
             self._prepare_next_step()
             self._publish_visualisation()
+            rec = self.recorder
+            if rec is not None and not rec.closed and hasattr(rec, "hand_over"):
+                rec.hand_over()       # this step's messages to the writer process
         if timing is not None and record:
             timing.row[5] = time.perf_counter()
             timing.commit(svc.stamp_ns)
@@ -1048,9 +1058,14 @@ class SimNode:
         summary = self.summary()
         rec = self.recorder
         if rec is not None and not rec.closed:
-            rec.add_metadata("starleth_sim_summary", {k: json.dumps(v) for k, v in summary.items()})
-            rec.close()
-            self.log.info(f"recording finalised: {rec.path} ({rec.message_count} messages)")
+            try:
+                rec.add_metadata("starleth_sim_summary",
+                                 {k: json.dumps(v) for k, v in summary.items()})
+                rec.close()
+            except OSError as e:     # the writer process died: what it wrote is there
+                self.log.error(f"recording {rec.path}: {e}")
+            else:
+                self.log.info(f"recording finalised: {rec.path} ({rec.message_count} messages)")
         self.log.info("summary: " + json.dumps(summary))
         return summary
 
