@@ -74,8 +74,9 @@ rest is deserialised and validated in full); the state goes out as CDR bytes pat
 templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, for
 publishing and recording alike), what a controller waits for first (/joint_states, the foot
 wrenches, the base state), then /clock, /starleth/imu, /starleth/solver; the recorder only
-takes the bytes over (:class:`~.recording.QueuedRecorder`: a writer thread adds them to the
-file, mostly while the node waits for the answer; SIGINT still leaves a complete file), and
+takes the bytes over (:class:`~.recording.ProcessRecorder`: a writer process adds them to
+the file, outside this interpreter; :class:`~.recording.QueuedRecorder`, a writer thread,
+where no process can be started; SIGINT still leaves a complete file), and
 the node prepares the torque-independent part of the next step (``Simulator.prepare``)
 while the controller computes its answer. ``SimNode.timing`` (a :class:`CycleTimes`,
 benchmarks only) times each part.
