@@ -63,12 +63,15 @@ def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     lines = []
     r = run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record=str(bag),
                  domain_id=DOMAIN_ID, echo=lines.append, startup_timeout=START_TIMEOUT,
-                 run_timeout=240.0)
+                 run_timeout=240.0, bare_seconds=0.5)
     ok = print_summary(r, echo=lines.append)
     report = "\n".join(lines)
     print("\n" + report)
     assert ok, report
     assert r.exit_codes == {"controller_node": 0, "sim_node": 0}, report
+    # the cycle rate beside the bare round-trip rate measured just before (issue 13)
+    assert r.bare_round_trips > 0 and r.cycles_per_s > 0, report
+    assert f"x the bare rclpy round-trip rate {r.bare_round_trips:.0f}/s" in report
     # the issue's acceptance: >= 4 m in 18 s of trot, no fall
     assert r.trot_distance >= 4.0, report
     assert r.t_end - r.t_trot >= 18.0 - 1e-6, report
