@@ -42,6 +42,7 @@ setup(
         'console_scripts': [
             'sim_node = starleth_sim.ros.sim_node:main',
             'controller_node = starleth_controller.controller_node:main',
+            'sim_node_composed = starleth_sim.ros.sim_node:main_composed',
             'starleth-bench = starleth_sim.tools.bench:main',
             'starleth-bench-ros = starleth_sim.tools.bench_ros:main',
             'starleth-demo = starleth_sim.tools.demo:main',

@@ -40,6 +40,11 @@ publishes the torques stamped with it, so a lockstep simulator steps on the answ
 same answer again (a simulator re-sending its first state because the first answer went out
 before the topics matched).
 
+The state topics are taken as CDR bytes and the floats of the common case are read
+straight from them (``starleth_interface.msg_cdr``; anything else is deserialised by rclpy
+and validated as before); the command goes out as CDR bytes patched into a template.
+``ControllerNode.timing`` (a :class:`CycleTimes`, benchmarks only) times each cycle.
+
 Robustness: a message with NaN/inf values, missing joints or wrong array sizes is logged
 (throttled) and ignored; no command is published for its stamp. Exceptions in the controller
 are logged and answered with nothing; the node never exits on bad input.
@@ -59,6 +64,7 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
+from rclpy.serialization import deserialize_message
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from nav_msgs.msg import Odometry
@@ -69,6 +75,7 @@ from std_srvs.srv import SetBool
 from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, StopSignals, ThrottledLog,
                                             declare_parameters, init_ros, make_executor,
                                             shutdown_ros)
+from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
@@ -117,11 +124,40 @@ PARAMETERS = (
 PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
 
 
+#: the float fields read from the state messages (fast path: straight from the CDR bytes)
+ODOM_FIELDS = ("pose.pose.position.x", "pose.pose.position.y", "pose.pose.position.z",
+               "pose.pose.orientation.x", "pose.pose.orientation.y", "pose.pose.orientation.z",
+               "pose.pose.orientation.w", "twist.twist.linear.x", "twist.twist.linear.y",
+               "twist.twist.linear.z", "twist.twist.angular.x", "twist.twist.angular.y",
+               "twist.twist.angular.z")
+WRENCH_FIELDS = ("wrench.force.x", "wrench.force.y", "wrench.force.z")
+
+
+class CycleTimes:
+    """Per-cycle timestamps (time.perf_counter, CLOCK_MONOTONIC: comparable across
+    processes on one host) for benchmarks: first and last message of a stamp in, torques
+    computed, command published. Off unless a benchmark sets ``ControllerNode.timing``."""
+
+    def __init__(self, capacity=200_000):
+        self.stamp = np.zeros(capacity, np.int64)
+        self.t = np.zeros((capacity, 4))
+        self.n = 0
+
+    def add(self, stamp, t_first, t_complete, t_computed, t_sent):
+        if self.n < len(self.stamp):
+            self.stamp[self.n] = stamp
+            self.t[self.n] = (t_first, t_complete, t_computed, t_sent)
+            self.n += 1
+
+
 class _Slot:
-    """The messages of one stamp: joint state, base state, 4 wrenches."""
-    __slots__ = ("js", "odom", "wrench", "n")
+    """The state of one stamp as read from its messages: joint state (sec, nanosec, names,
+    position, velocity), base state (13 floats: position, orientation xyzw, linear and
+    angular velocity), 4 wrench forces (3 floats each)."""
+    __slots__ = ("js", "odom", "wrench", "n", "t_first")
 
     def __init__(self):
+        self.t_first = time.perf_counter()
         self.js = None
         self.odom = None
         self.wrench = [None, None, None, None]
@@ -170,7 +206,7 @@ class ControllerNode(Node):
         self.counters = {"states": 0, "commands": 0, "rejected": 0, "repeated": 0,
                          "dropped_incomplete": 0, "controller_errors": 0}
         self._pending: dict[int, _Slot] = {}
-        self._last_answer = None          # (stamp_ns, stamp msg, effort, monotonic time)
+        self._last_answer = None          # (stamp_ns, (sec, nanosec), effort, monotonic time)
         self._perm_cache = {}             # tuple(names) -> index array (public order)
         self._ctrl_mode = None
         self.controller = None
@@ -186,6 +222,12 @@ class ControllerNode(Node):
                                                 cmd_qos) if p["effort_array_topic"] else None)
         self._cmd_msg = JointState()
         self._cmd_msg.name = list(JOINT_NAMES)
+        # commands go out as CDR bytes patched into a template (None: as message objects)
+        self._cmd_cdr = JointStateCdr.create(JOINT_NAMES, ("effort",))
+        self._js_reader = JointStateReader()
+        self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
+        self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
+        self.timing = None                # a CycleTimes, set by benchmarks
         self._array_msg = Float64MultiArray()
 
         # the model
@@ -210,13 +252,16 @@ class ControllerNode(Node):
                else ReliabilityPolicy.RELIABLE)
         state_qos = QoSProfile(depth=10, reliability=rel, durability=DurabilityPolicy.VOLATILE,
                                history=HistoryPolicy.KEEP_LAST)
+        # the state topics are taken as CDR bytes: the common case is read straight from
+        # them (starleth_interface.msg_cdr), anything else deserialised by rclpy
         self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
-                                               self._on_joint_states, state_qos)
+                                               self._on_joint_states_cdr, state_qos, raw=True)
         self.sub_odom = self.create_subscription(Odometry, p["base_state_topic"],
-                                                 self._on_base_state, state_qos)
+                                                 self._on_base_state_cdr, state_qos, raw=True)
         self.sub_wrench = [
             self.create_subscription(WrenchStamped, topic,
-                                     (lambda msg, k=k: self._on_wrench(k, msg)), state_qos)
+                                     (lambda data, k=k: self._on_wrench_cdr(k, data)),
+                                     state_qos, raw=True)
             for k, topic in enumerate(p["foot_wrench_topics"])]
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
@@ -319,8 +364,50 @@ class ControllerNode(Node):
         self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
                    f"(missing: {', '.join(missing)})")
 
+    def _deserialise(self, data, typ, what):
+        try:
+            return deserialize_message(data, typ)
+        except Exception as e:   # malformed CDR: ignore it, never die
+            self.counters["rejected"] += 1
+            self._warn("bad_cdr", f"ignored an undecodable {what}: {e}")
+            return None
+
+    def _on_joint_states_cdr(self, data):
+        r = self._js_reader.decode(data)
+        if r is None:
+            msg = self._deserialise(data, JointState, "joint state")
+            if msg is not None:
+                self._on_joint_states(msg)
+            return
+        sec, nsec, names, pos, vel = r
+        self._joint_state(sec * 1_000_000_000 + nsec, (sec, nsec, names, pos, vel))
+
+    def _on_base_state_cdr(self, data):
+        r = self._odom_reader.decode(data)
+        if r is None:
+            msg = self._deserialise(data, Odometry, "base state")
+            if msg is not None:
+                self._on_base_state(msg)
+            return
+        sec, nsec, vals = r
+        self._base_state(sec * 1_000_000_000 + nsec, vals)
+
+    def _on_wrench_cdr(self, k, data):
+        r = self._wrench_reader.decode(data)
+        if r is None:
+            msg = self._deserialise(data, WrenchStamped, "foot wrench")
+            if msg is not None:
+                self._on_wrench(k, msg)
+            return
+        sec, nsec, vals = r
+        self._foot_wrench(k, sec * 1_000_000_000 + nsec, vals)
+
     def _on_joint_states(self, msg):
-        stamp = _stamp_ns(msg.header)
+        st = msg.header.stamp
+        self._joint_state(_stamp_ns(msg.header), (st.sec, st.nanosec, tuple(msg.name),
+                                                  msg.position, msg.velocity))
+
+    def _joint_state(self, stamp, js):
         last = self._last_answer
         if last is not None and last[0] == stamp:
             # the same state again: a simulator re-sending a state it got no answer for (its
@@ -332,21 +419,30 @@ class ControllerNode(Node):
             return
         s = self._slot(stamp)
         new = s.js is None
-        s.js = msg
+        s.js = js
         self._received(stamp, s, new)
 
     def _on_base_state(self, msg):
-        stamp = _stamp_ns(msg.header)
+        o = msg.pose.pose
+        pp, po = o.position, o.orientation
+        tl, ta = msg.twist.twist.linear, msg.twist.twist.angular
+        self._base_state(_stamp_ns(msg.header), (pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w,
+                                                 tl.x, tl.y, tl.z, ta.x, ta.y, ta.z))
+
+    def _base_state(self, stamp, vals):
         s = self._slot(stamp)
         new = s.odom is None
-        s.odom = msg
+        s.odom = vals
         self._received(stamp, s, new)
 
     def _on_wrench(self, k, msg):
-        stamp = _stamp_ns(msg.header)
+        f = msg.wrench.force
+        self._foot_wrench(k, _stamp_ns(msg.header), (f.x, f.y, f.z))
+
+    def _foot_wrench(self, k, stamp, force):
         s = self._slot(stamp)
         new = s.wrench[k] is None
-        s.wrench[k] = msg
+        s.wrench[k] = force
         self._received(stamp, s, new)
 
     def _received(self, stamp, s, new):
@@ -391,45 +487,39 @@ class ControllerNode(Node):
 
     def _state(self, stamp, s: _Slot):
         """RobotState from the messages of one stamp, or (None, reason)."""
-        js = s.js
-        n = len(js.name)
-        if len(js.position) != n or len(js.velocity) != n:
-            return None, "joint_states", (f"/joint_states: {n} names, {len(js.position)} "
-                                          f"positions, {len(js.velocity)} velocities")
-        perm, err = self._permutation(js.name)
+        _, _, names, position, velocity = s.js
+        n = len(names)
+        if len(position) != n or len(velocity) != n:
+            return None, "joint_states", (f"/joint_states: {n} names, {len(position)} "
+                                          f"positions, {len(velocity)} velocities")
+        perm, err = self._permutation(names)
         if err:
             return None, "joint_states", f"/joint_states: {err}"
-        q = np.asarray(js.position, dtype=float)[perm]
-        dq = np.asarray(js.velocity, dtype=float)[perm]
+        q = np.asarray(position, dtype=float)[perm]
+        dq = np.asarray(velocity, dtype=float)[perm]
         if not (np.isfinite(q).all() and np.isfinite(dq).all()):
             return None, "joint_states_nan", "/joint_states: non-finite position or velocity"
-        o = s.odom
-        pp, po = o.pose.pose.position, o.pose.pose.orientation
-        tl, ta = o.twist.twist.linear, o.twist.twist.angular
-        vals = (pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w, tl.x, tl.y, tl.z, ta.x, ta.y, ta.z)
+        vals = s.odom
         if not _finite(*vals):
             return None, "base_state_nan", "base state: non-finite values"
-        quat = np.array((po.x, po.y, po.z, po.w))
+        quat = np.array(vals[3:7])
         nq = float(quat @ quat)
         if not 0.5 < nq < 2.0:
             return None, "base_state_quat", f"base state: orientation norm {math.sqrt(nq):.3g}"
         quat /= math.sqrt(nq)
-        v = np.array((tl.x, tl.y, tl.z))
+        v = np.array(vals[7:10])
         if self._twist_in_child:   # base frame -> world frame
             x, y, z, w = quat
             R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                           [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                           [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
             v = R @ v
-        forces = np.empty((4, 3))
-        for k, m in enumerate(s.wrench):
-            f = m.wrench.force
-            forces[k] = (f.x, f.y, f.z)
+        forces = np.array(s.wrench, dtype=float)
         if not np.isfinite(forces).all():
             return None, "wrench_nan", "foot wrench: non-finite force"
         contact = np.sqrt((forces * forces).sum(axis=1)) > self._threshold
-        state = RobotState(stamp * 1e-9, q, dq, np.array((pp.x, pp.y, pp.z)), quat, v,
-                           np.array((ta.x, ta.y, ta.z)), contact, forces)
+        state = RobotState(stamp * 1e-9, q, dq, np.array(vals[0:3]), quat, v,
+                           np.array(vals[10:13]), contact, forces)
         return state, None, None
 
     def _complete(self, stamp, s):
@@ -439,6 +529,7 @@ class ControllerNode(Node):
             if st != stamp:
                 self._drop_incomplete(st, slot)
         self.counters["states"] += 1
+        t_complete = time.perf_counter()
         if self.controller is None:
             # kept: answered as soon as the model is there (a lockstep simulator waits)
             self._waiting_state = (stamp, s)
@@ -473,17 +564,24 @@ class ControllerNode(Node):
             self._ctrl_mode = mode
         if "error" in self.controller.info:
             self._warn("controller_info", f"controller: {self.controller.info['error']}")
+        t_computed = time.perf_counter()
         effort = array.array("d", np.ascontiguousarray(tau).tobytes())
-        self._last_answer = (stamp, s.js.header.stamp, effort, time.monotonic())
-        self._publish(s.js.header.stamp, effort)
+        sec_nsec = s.js[:2]
+        self._last_answer = (stamp, sec_nsec, effort, time.monotonic())
+        self._publish(sec_nsec, effort)
+        if self.timing is not None:
+            self.timing.add(stamp, s.t_first, t_complete, t_computed, time.perf_counter())
 
-    def _publish(self, stamp_msg, effort):
+    def _publish(self, sec_nsec, effort):
         self.counters["commands"] += 1
         if self.pub_cmd is not None:
-            m = self._cmd_msg
-            m.header.stamp = stamp_msg
-            m.effort = effort
-            self.pub_cmd.publish(m)
+            if self._cmd_cdr is not None:
+                self.pub_cmd.publish(self._cmd_cdr.build(*sec_nsec, effort))
+            else:
+                m = self._cmd_msg
+                m.header.stamp.sec, m.header.stamp.nanosec = sec_nsec
+                m.effort = effort
+                self.pub_cmd.publish(m)
         if self.pub_array is not None:
             self._array_msg.data = effort
             self.pub_array.publish(self._array_msg)

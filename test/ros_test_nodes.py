@@ -18,11 +18,12 @@ keep_discovery_local()     # the test nodes (this process) and every child: this
 
 
 class NodeProcess:
-    """`python -m module --ros-args -p k:=v ...` as a child process on domain_id (optionally
-    renamed to `name`, under `namespace`); its output in log_path."""
+    """`python -m module [pre_args] --ros-args -p k:=v ...` as a child process on domain_id
+    (optionally renamed to `name`, under `namespace`); its output in log_path."""
 
-    def __init__(self, module, log_path, domain_id, name=None, namespace=None, **params):
-        cmd = [sys.executable, "-m", module, "--ros-args"]
+    def __init__(self, module, log_path, domain_id, name=None, namespace=None, pre_args=(),
+                 **params):
+        cmd = [sys.executable, "-m", module, *pre_args, "--ros-args"]
         if name:
             cmd += ["-r", f"__node:={name}"]
         if namespace:

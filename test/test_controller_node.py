@@ -63,12 +63,15 @@ def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     lines = []
     r = run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record=str(bag),
                  domain_id=DOMAIN_ID, echo=lines.append, startup_timeout=START_TIMEOUT,
-                 run_timeout=240.0)
+                 run_timeout=240.0, bare_seconds=0.5)
     ok = print_summary(r, echo=lines.append)
     report = "\n".join(lines)
     print("\n" + report)
     assert ok, report
     assert r.exit_codes == {"controller_node": 0, "sim_node": 0}, report
+    # the cycle rate beside the bare round-trip rate measured just before (issue 13)
+    assert r.bare_round_trips > 0 and r.cycles_per_s > 0, report
+    assert f"x the bare rclpy round-trip rate {r.bare_round_trips:.0f}/s" in report
     # the issue's acceptance: >= 4 m in 18 s of trot, no fall
     assert r.trot_distance >= 4.0, report
     assert r.t_end - r.t_trot >= 18.0 - 1e-6, report
@@ -315,3 +318,72 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
     assert "missing joints RH_KFE" in log and "base state: non-finite" in log
     assert "orientation norm" in log and "foot wrench: non-finite" in log
     assert "'rejected': 7" in log, log[-2000:]
+
+
+# -----------------------------------------------------------------------------------------
+# the composed mode: both nodes in one process on one executor (issue 13)
+# -----------------------------------------------------------------------------------------
+def test_composed_mode_records_every_step_and_matches_the_headless_simulator(tmp_path):
+    """``sim_node --composed``: sim_node and controller_node in one process, the same
+    topics; the bag (written by the recorder's thread) holds every state topic at every
+    step, every state's answer, and the joint states are those of the headless Simulator
+    driven by the recorded commands, bit for bit: the node's CDR paths (templates, raw
+    decoding, queued recording) change nothing of the lockstep results."""
+    from mcap.reader import make_reader
+    from rclpy.serialization import deserialize_message
+    from rosgraph_msgs.msg import Clock
+    from rclpy.qos import ReliabilityPolicy
+    from starleth_sim.physics.simulator import Simulator
+    from starleth_sim.ros.state_io import parse_initial_state
+
+    bag = tmp_path / "composed.mcap"
+    sim = Proc("starleth_sim.ros.sim_node", str(tmp_path / "composed.log"), mode="lockstep",
+               real_time_factor=0.0, record=str(bag),
+               pre_args=("--composed", "--controller-param", "mode:=stand"))
+    ros = RosTestNode(DOMAIN_ID, "composed_watch")
+    t = {"now": 0.0}
+    ros.node.create_subscription(
+        Clock, "/clock", lambda m: t.__setitem__("now", m.clock.sec + m.clock.nanosec * 1e-9),
+        QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    try:
+        assert ros.spin_until(lambda: t["now"] >= 1.0, START_TIMEOUT, [sim]), sim.log()[-3000:]
+    finally:
+        rc = sim.stop()
+        ros.close()
+    log = sim.log()
+    assert rc == 0, log[-3000:]
+    assert "with controller_node in this process" in log and "recording finalised" in log
+    summary = sim.summary()
+    assert summary["lockstep_timeouts"] == 0 and summary["commands_rejected"] == 0, summary
+
+    msgs = {}
+    with open(bag, "rb") as f:
+        for _, channel, m in make_reader(f).iter_messages(log_time_order=False):
+            msgs.setdefault(channel.topic, []).append(m)
+    n = len(msgs["/joint_states"])
+    assert n >= 400 and n == summary["steps"] + 1
+    for topic in ("/joint_states", "/clock", "/starleth/base_state", "/starleth/imu",
+                  "/starleth/solver", *WRENCH_TOPICS):
+        times = [m.log_time for m in msgs[topic]]
+        assert times == [k * PERIOD_NS for k in range(n)], topic    # every step, in order
+    cmds = {m.log_time: deserialize_message(m.data, JointState) for m in msgs["/joint_commands"]}
+    assert set(range(0, (n - 1) * PERIOD_NS, PERIOD_NS)) <= set(cmds)
+
+    # the headless simulator with the same commands (sim_node's SimService start-up: reset,
+    # a trial step, reset)
+    ref = Simulator.from_preset("HmJ")
+    q0, u0, _ = parse_initial_state("standing", ref)
+    ref.reset(q=q0, u=u0, t=0.0)
+    ref.step(np.zeros(12))
+    ref.reset(q=q0, u=u0, t=0.0)
+    for k, m in enumerate(msgs["/joint_states"]):
+        js = deserialize_message(m.data, JointState)
+        if k:
+            c = cmds[(k - 1) * PERIOD_NS]
+            assert list(c.name) == JOINTS and _stamp((k - 1) * PERIOD_NS) == c.header.stamp
+            ref.step(np.asarray(c.effort))
+        got = np.concatenate([js.position, js.velocity])
+        want = np.concatenate([ref.joint_positions(), ref.joint_velocities()])
+        assert got.tobytes() == want.tobytes(), f"step {k}"
+        if k:
+            assert np.asarray(js.effort).tobytes() == np.asarray(ref.applied_torque).tobytes()

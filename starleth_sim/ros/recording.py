@@ -619,3 +619,338 @@ class SplitRecorder:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+class QueuedRecorder:
+    """A recorder (:class:`McapRecorder` or :class:`SplitRecorder`) written by a thread of
+    its own, off the caller's critical path: ``write`` hands the CDR bytes over (a queue
+    append; message objects are serialised first, in the caller, as they may change
+    afterwards) and returns; the writer thread adds them to the file in the same order.
+    ``add_topic``, ``add_metadata`` and ``add_attachment`` wait until the queue is empty
+    and act at once, so every record keeps its place. ``close`` writes everything still
+    queued, then finalises the file: a process that calls it on SIGINT / SIGTERM leaves a
+    complete file holding every message written before. The writer releases the GIL after
+    every BATCH messages (``time.sleep(0)``), so a caller waiting for it runs within a few
+    messages' time."""
+
+    POLL = 0.002   # s: the writer looks at the queue this often when it ran empty
+    BATCH = 4      # messages written between two releases of the GIL
+
+    def __init__(self, inner):
+        import collections
+        self.inner = inner
+        self._queue = collections.deque()
+        self._wake = threading.Event()
+        self._idle = threading.Event()
+        self._idle.set()
+        self._closing = False
+        self._closed = False
+        self.message_count = 0         # messages handed over (written or queued)
+        self.error = None              # the writer's exception, if it failed
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._thread.start()
+
+    # -- the writer thread --------------------------------------------------------------------
+    def _run(self):
+        q, inner = self._queue, self.inner
+        while True:
+            if not q:
+                self._idle.set()
+                if self._closing:
+                    return
+                self._wake.wait(self.POLL)
+                self._wake.clear()
+                continue
+            self._idle.clear()
+            for _ in range(self.BATCH):
+                if not q:
+                    break
+                item = q.popleft()
+                try:
+                    inner.write(*item)
+                except Exception as e:  # pragma: no cover - disk full, ...: keep the error
+                    self.error = e
+            time.sleep(0)              # let a waiting thread take the GIL
+
+    def flush(self, timeout=None) -> bool:
+        """Wait until every message handed over is in the writer's file buffers."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        while self._queue or not self._idle.is_set():
+            if not self._thread.is_alive():
+                return not self._queue
+            self._wake.set()
+            if t_end is not None and time.monotonic() > t_end:
+                return False
+            time.sleep(0.0005)
+        return True
+
+    # -- the recorder interface -----------------------------------------------------------------
+    def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
+        if self._closing:
+            return False
+        if not isinstance(msg, (bytes, bytearray, memoryview)):
+            from rclpy.serialization import serialize_message
+            msg = serialize_message(msg)
+        elif not isinstance(msg, bytes):
+            msg = bytes(msg)
+        if topic not in self.inner.topics:
+            raise KeyError(topic)
+        self._queue.append((topic, msg, log_time_ns, publish_time_ns))
+        self.message_count += 1
+        return True
+
+    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+        self.flush()
+        return self.inner.add_topic(topic, msg_type, qos, type_hash)
+
+    def add_metadata(self, name: str, data: dict) -> None:
+        self.flush()
+        self.inner.add_metadata(name, data)
+
+    def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
+        self.flush()
+        self.inner.add_attachment(name, media_type, data, log_time_ns)
+
+    def counts(self) -> dict:
+        self.flush()
+        return self.inner.counts()
+
+    @property
+    def topics(self) -> dict:
+        return self.inner.topics
+
+    @property
+    def path(self):
+        return self.inner.path
+
+    def __getattr__(self, name):      # files, size, start_ns, bag_metadata, ...
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    @property
+    def closed(self) -> bool:
+        return self._closing
+
+    def close(self) -> None:
+        """Write what is queued, stop the writer, finalise the file (idempotent)."""
+        if self._closed:
+            return
+        self._closing = True
+        self._wake.set()
+        self._thread.join()
+        while self._queue:             # the writer died: write the rest here
+            self.inner.write(*self._queue.popleft())
+        self._closed = True
+        self.inner.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+class ProcessRecorder:
+    """A recorder (:class:`McapRecorder`, or :class:`SplitRecorder` when `max_duration_ns`
+    or `max_size` is given) in a child process of its own (``python -m
+    starleth_sim.ros.recording --writer``): the caller hands CDR bytes over through a pipe
+    and the writing (~12 µs of Python per message) runs outside its interpreter, so it
+    takes nothing from the caller's GIL. Messages are buffered and sent when the log time
+    changes, when 64 kB are buffered, and on ``hand_over()`` (sim_node calls it once per
+    step, after the state is out); ``add_topic``, ``add_metadata``, ``add_attachment`` and
+    ``close`` are sent at once and wait for the child's answer (an error there is raised
+    here). ``close`` sends what is buffered and waits until the child has finalised the
+    file. The child ignores SIGINT / SIGTERM (its parent closes it) and finalises the file
+    when its input ends, so even a parent killed outright leaves a complete file.
+    Same interface as :class:`McapRecorder` (``write`` returns False after ``close``)."""
+
+    FLUSH_BYTES = 64 * 1024
+
+    def __init__(self, path: str, *, max_duration_ns: int = 0, max_size: int = 0,
+                 **kwargs):
+        import pickle
+        import struct
+        import subprocess
+        self._pickle = pickle
+        self._head = struct.Struct("<HqI")          # topic index, log time, size
+        self.path = str(path)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "starleth_sim.ros.recording", "--writer"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
+            env=dict(os.environ, PYTHONPATH=os.pathsep.join(
+                p for p in (os.path.dirname(os.path.dirname(os.path.dirname(
+                    os.path.abspath(__file__)))), os.environ.get("PYTHONPATH", "")) if p)))
+        self._out = self._proc.stdin
+        self._topics = {}
+        self._buf = bytearray()
+        self._buf_time = None
+        self._closed = False
+        self.message_count = 0
+        self._call("open", self.path, int(max_duration_ns), int(max_size), kwargs)
+
+    # -- the pipe -------------------------------------------------------------------------------
+    def _send(self, kind: bytes, payload: bytes):
+        self._out.write(kind + len(payload).to_bytes(4, "little") + payload)
+
+    def _call(self, *request):
+        """Send a request and wait for the child's answer (raises its error)."""
+        self.hand_over()
+        try:
+            self._send(b"R", self._pickle.dumps(request))
+            self._out.flush()
+            size = int.from_bytes(self._read(4), "little")
+            ok, value = self._pickle.loads(self._read(size))
+        except (OSError, EOFError, ValueError) as e:
+            raise OSError(f"the recording process ({self.path}) failed: {e}") from None
+        if not ok:
+            raise value
+        return value
+
+    def _read(self, n):
+        data = self._proc.stdout.read(n)
+        if data is None or len(data) != n:
+            raise EOFError("the recording process ended")
+        return data
+
+    def hand_over(self):
+        """Send the buffered messages to the writer process."""
+        if self._buf:
+            self._send(b"M", bytes(self._buf))
+            self._out.flush()
+            self._buf.clear()
+
+    # -- the recorder interface ---------------------------------------------------------------
+    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+        if topic not in self._topics:
+            qos_dict = None if qos is None else (
+                [qos_to_dict(q) for q in qos] if isinstance(qos, (list, tuple))
+                else qos_to_dict(qos))
+            name = type_name(msg_type)
+            cid = self._call("add_topic", topic, name, qos_dict, type_hash,
+                             _FALLBACK_MSG_TEXTS.get(name))     # register_msg_text's
+            self._topics[topic] = (len(self._topics), cid)
+        return self._topics[topic][1]
+
+    @property
+    def topics(self) -> dict:
+        return {t: i for t, (i, _) in self._topics.items()}
+
+    def add_metadata(self, name: str, data: dict) -> None:
+        self._call("add_metadata", name, dict(data))
+
+    def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
+        self._call("add_attachment", name, media_type, data, int(log_time_ns))
+
+    def counts(self) -> dict:
+        return self._call("counts")
+
+    def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
+        if self._closed:
+            return False
+        if not isinstance(msg, (bytes, bytearray, memoryview)):
+            from rclpy.serialization import serialize_message
+            msg = serialize_message(msg)
+        log_time_ns = int(log_time_ns)
+        if self._buf and (log_time_ns != self._buf_time or len(self._buf) > self.FLUSH_BYTES):
+            self.hand_over()
+        self._buf_time = log_time_ns
+        self._buf += self._head.pack(self._topics[topic][0], log_time_ns, len(msg))
+        self._buf += msg
+        self.message_count += 1
+        return True
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Send what is buffered, let the child finalise the file, wait for it."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._call("close")
+        finally:
+            try:
+                self._out.close()
+            except OSError:
+                pass
+            try:
+                self._proc.wait(60)
+            except Exception:   # pragma: no cover
+                self._proc.kill()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def _writer_main():
+    """The child of :class:`ProcessRecorder`: requests and message batches on stdin,
+    answers on stdout; finalises the file on 'close' or when stdin ends."""
+    import pickle
+    import signal
+    import struct
+    signal.signal(signal.SIGINT, signal.SIG_IGN)      # the parent closes the recording
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+    head = struct.Struct("<HqI")
+    rec, names = None, []
+
+    def answer(ok, value):
+        data = pickle.dumps((ok, value))
+        out.write(len(data).to_bytes(4, "little") + data)
+        out.flush()
+
+    while True:
+        h = inp.read(5)
+        if len(h) < 5:
+            break
+        kind, size = h[:1], int.from_bytes(h[1:], "little")
+        payload = inp.read(size)
+        if len(payload) < size:
+            break
+        if kind == b"M":
+            o = 0
+            while o < size:
+                i, t, n = head.unpack_from(payload, o)
+                o += head.size
+                rec.write(names[i], payload[o:o + n], t)
+                o += n
+            continue
+        request = pickle.loads(payload)
+        op, args = request[0], request[1:]
+        try:
+            if op == "open":
+                path, max_duration_ns, max_size, kwargs = args
+                rec = (SplitRecorder(path, max_duration_ns=max_duration_ns, max_size=max_size,
+                                     **kwargs) if max_duration_ns > 0 or max_size > 0
+                       else McapRecorder(path, **kwargs))
+                value = None
+            elif op == "add_topic":
+                topic, typ, qos, type_hash, fallback_text = args
+                if fallback_text is not None:
+                    register_msg_text(typ, fallback_text)
+                value = rec.add_topic(topic, typ, qos, type_hash)
+                if topic not in names:
+                    names.append(topic)
+            elif op == "close":
+                rec.close()
+                answer(True, rec.message_count)
+                return
+            else:
+                value = getattr(rec, op)(*args)
+            answer(True, value)
+        except Exception as e:
+            answer(False, e)
+    if rec is not None:
+        rec.close()
+
+
+if __name__ == "__main__" and sys.argv[1:] == ["--writer"]:
+    _writer_main()

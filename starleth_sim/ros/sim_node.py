@@ -14,7 +14,7 @@ is the source of /clock: its loops run on the wall clock whatever ``use_sim_time
 and its stamps are always sim time.
 
 Published; stamps are sim time t_k = k * 2.5 ms; one message per control step (a topic
-nobody subscribes to is skipped unless recording):
+nobody subscribes to is not published; while recording it is only recorded):
 
   joint_states                            sensor_msgs/JointState       effort = the torque
                                                                        applied (saturated) over
@@ -70,9 +70,16 @@ period, so stamps stay strictly increasing and answers to the old state are stal
 
 Lockstep critical path (command in -> step -> state out): commands are taken as CDR bytes
 and the common valid case is decoded without an rclpy message object (:mod:`.cdr`; the
-rest is deserialised and validated in full), /joint_states goes out from a CDR template
-before any other topic, and right after publishing the node prepares the torque-independent
-part of the next step (``Simulator.prepare``) while the controller computes its answer.
+rest is deserialised and validated in full); the state goes out as CDR bytes patched into
+templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, for
+publishing and recording alike), what a controller waits for first (/joint_states, the foot
+wrenches, the base state), then /clock, /starleth/imu, /starleth/solver; the recorder only
+takes the bytes over (:class:`~.recording.ProcessRecorder`: a writer process adds them to
+the file, outside this interpreter; :class:`~.recording.QueuedRecorder`, a writer thread,
+where no process can be started; SIGINT still leaves a complete file), and
+the node prepares the torque-independent part of the next step (``Simulator.prepare``)
+while the controller computes its answer. ``SimNode.timing`` (a :class:`CycleTimes`,
+benchmarks only) times each part.
 
 The ROS-free parts: :class:`~.service.SimService` (command validation, lockstep bookkeeping,
 counters, stepping), :mod:`.state_io` (initial state, public state, IMU) and
@@ -102,6 +109,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
+from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
                                             make_executor, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
@@ -132,6 +140,38 @@ def _package_version() -> str:
 
 def _dbl(a) -> array.array:
     return array.array("d", np.ascontiguousarray(a, dtype=float).tobytes())
+
+
+WRENCH_FIELDS = ("wrench.force.x", "wrench.force.y", "wrench.force.z")
+ODOM_FIELDS = ("pose.pose.position.x", "pose.pose.position.y", "pose.pose.position.z",
+               "pose.pose.orientation.x", "pose.pose.orientation.y", "pose.pose.orientation.z",
+               "pose.pose.orientation.w", "twist.twist.linear.x", "twist.twist.linear.y",
+               "twist.twist.linear.z", "twist.twist.angular.x", "twist.twist.angular.y",
+               "twist.twist.angular.z")
+IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w",
+              "angular_velocity.x", "angular_velocity.y", "angular_velocity.z",
+              "linear_acceleration.x", "linear_acceleration.y", "linear_acceleration.z")
+
+
+class CycleTimes:
+    """Per-cycle timestamps of the lockstep critical path (time.perf_counter, i.e.
+    CLOCK_MONOTONIC: comparable across processes on one host), for benchmarks: command in,
+    stepped, /joint_states out, state topics out, recording handed over, post-publish work
+    done (prepare, visualisation). Off unless a benchmark sets ``SimNode.timing``."""
+
+    FIELDS = ("command_in", "stepped", "joint_states_out", "state_out", "recorded", "done")
+
+    def __init__(self, capacity=200_000):
+        self.stamp = np.zeros(capacity, np.int64)
+        self.t = np.zeros((capacity, len(self.FIELDS)))
+        self.n = 0
+        self.row = np.zeros(len(self.FIELDS))
+
+    def commit(self, stamp):
+        if self.n < len(self.stamp):
+            self.stamp[self.n] = stamp
+            self.t[self.n] = self.row
+            self.n += 1
 
 
 class SimNode:
@@ -209,6 +249,19 @@ class SimNode:
         self.odom_msg.child_frame_id = s.base_frame
         self.imu_msg = Imu()
         self.imu_msg.header.frame_id = s.base_frame
+        # the state topics of every step go out as CDR bytes patched into templates
+        # (starleth_interface.msg_cdr; None: as message objects)
+        w = WrenchStamped()
+        w.header.frame_id = s.world_frame
+        self._wrench_cdr = FixedCdr.create(w, WRENCH_FIELDS)
+        o = Odometry()
+        o.header.frame_id, o.child_frame_id = s.world_frame, s.base_frame
+        self._odom_cdr = FixedCdr.create(o, ODOM_FIELDS)
+        i = Imu()
+        i.header.frame_id = s.base_frame
+        self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
+        self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
+        self.timing = None           # a CycleTimes, set by benchmarks
         self.solver_keys = ("iterations", "max_iterations_step", "converged", "status",
                             "residual", "active_contacts", "retried", "step_time",
                             "physics_steps", "nonconverged_steps", "loaded_contacts_opened",
@@ -227,6 +280,10 @@ class SimNode:
         self.iface_status.values = [KeyValue(key=k, value="") for k in self.iface_keys]
         self._diag_solver_only = [self.solver_status]
         self._diag_both = [self.solver_status, self.iface_status]
+        # /starleth/solver written as CDR bytes field by field (None: message objects)
+        self._diag_cdr = DiagnosticArrayCdr("", [
+            (st.name, st.hardware_id, [kv.key for kv in st.values])
+            for st in self._diag_both])
         self.diag_msg.status = self._diag_both
         self._period_summary = {}
 
@@ -434,17 +491,26 @@ class SimNode:
                       self.service.stamp_ns)
 
     def _open_recorder(self, path):
-        from .recording import McapRecorder, SplitRecorder
+        from .recording import McapRecorder, ProcessRecorder, QueuedRecorder, SplitRecorder
         s, sim = self.settings, self.sim
         common = dict(compression=s.record_compression,
                       custom_data={"generator": "starleth_sim sim_node"})
-        if s.record_max_duration > 0 or s.record_max_size > 0:
-            # a rosbag2 bag directory of numbered files, each complete on its own
-            self.recorder = rec = SplitRecorder(
-                path, max_duration_ns=int(round(s.record_max_duration * 1e9)),
-                max_size=s.record_max_size, **common)
-        else:
-            self.recorder = rec = McapRecorder(path, **common)
+        # with record_max_duration / record_max_size: a rosbag2 bag directory of numbered
+        # files, each complete on its own
+        split = dict(max_duration_ns=int(round(s.record_max_duration * 1e9)),
+                     max_size=s.record_max_size)
+        try:
+            # written by a process of its own: nothing of the writing on this interpreter
+            self.recorder = rec = ProcessRecorder(path, **split, **common)
+        except FileExistsError:
+            raise
+        except OSError as e:
+            # no child process: a thread of this one, mostly while the controller computes
+            self.log.warning(f"recording in this process ({e})")
+            file_rec = (SplitRecorder(path, **split, **common)
+                        if s.record_max_duration > 0 or s.record_max_size > 0
+                        else McapRecorder(path, **common))
+            self.recorder = rec = QueuedRecorder(file_rec)
         for key, (p, topic, typ, qos) in self.pubs.items():
             rec.add_topic(topic, typ, qos)
         for key, (sobj, topic, typ, qos) in self.subs.items():
@@ -491,14 +557,28 @@ class SimNode:
         self.log.error(message)
 
     def _emit(self, key, msg, record):
+        """Publish (and record) a message object; while recording, a topic nobody
+        subscribes to is only recorded."""
         p, topic, _, _ = self.pubs[key]
         rec = self.recorder
         if record and rec is not None and not rec.closed:
             data = serialize_message(msg)
-            p.publish(data)
+            if self._counts.get(key, 1) > 0:
+                p.publish(data)
             rec.write(topic, data, self.service.stamp_ns)
         else:
             p.publish(msg)
+
+    def _emit_cdr(self, key, data, record):
+        """The same for CDR bytes."""
+        p, topic, _, _ = self.pubs[key]
+        rec = self.recorder
+        if record and rec is not None and not rec.closed:
+            if self._counts.get(key, 1) > 0:
+                p.publish(data)
+            rec.write(topic, data, self.service.stamp_ns)
+        else:
+            p.publish(data)
 
     SUBSCRIBER_REFRESH = 10   # steps between two looks at the subscriber counts
 
@@ -530,24 +610,50 @@ class SimNode:
         else:   # state 0: the exact count
             send = (self.pubs["joint_states"][0].get_subscription_count() > 0
                     or (record and self.recorder is not None))
+        timing = self.timing
         if send:
             self._publish_joint_states(sec, nsec, record)
-        if "clock" in self.pubs and wanted("clock", record):
-            c = self.clock_msg.clock
-            c.sec, c.nanosec = sec, nsec
-            self._emit("clock", self.clock_msg, record)
+        if timing is not None:
+            timing.row[2] = time.perf_counter()
+        # then the rest of what a controller waits for (foot wrenches, base state), then
+        # the others
         feet = [f for f in FEET if wanted(f, record)]
         if feet:
             self._publish_foot_wrenches(sec, nsec, feet, record)
         want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
         if want_odom or want_imu:
-            self._publish_base(sec, nsec, want_odom, want_imu, record)
+            base = self._base_values()
+            if want_odom:
+                self._publish_odometry(sec, nsec, base, record)
+        if timing is not None:
+            timing.row[3] = time.perf_counter()
+        if "clock" in self.pubs and wanted("clock", record):
+            if self._clock_cdr is not None:
+                self._emit_cdr("clock", self._clock_cdr.build(sec, nsec, ()), record)
+            else:
+                c = self.clock_msg.clock
+                c.sec, c.nanosec = sec, nsec
+                self._emit("clock", self.clock_msg, record)
+        if want_imu:
+            self._publish_imu(sec, nsec, base, record)
         if wanted("solver", record):
-            self._fill_diagnostics(sec, nsec)
-            self._emit("solver", self.diag_msg, record)
+            statuses = self._diagnostics()
+            if self._diag_cdr is not None:
+                self._emit_cdr("solver", self._diag_cdr.build(sec, nsec, statuses), record)
+            else:
+                self._fill_diagnostics(sec, nsec, statuses)
+                self._emit("solver", self.diag_msg, record)
+        if timing is not None:
+            timing.row[4] = time.perf_counter()
         if record:
             self._prepare_next_step()
             self._publish_visualisation()
+            rec = self.recorder
+            if rec is not None and not rec.closed and hasattr(rec, "hand_over"):
+                rec.hand_over()       # this step's messages to the writer process
+        if timing is not None and record:
+            timing.row[5] = time.perf_counter()
+            timing.commit(svc.stamp_ns)
         # subscriber counts for the next state, taken now that this one is out (off the
         # lockstep critical path): /joint_states every step, the others every
         # SUBSCRIBER_REFRESH steps
@@ -578,8 +684,14 @@ class SimNode:
 
     def _publish_foot_wrenches(self, sec, nsec, feet, record):
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
+        cdr = self._wrench_cdr
         for c in self.sim.contacts[:len(FEET)]:
             if c.name not in feet:
+                continue
+            if cdr is not None:
+                f = c.force
+                self._emit_cdr(c.name, cdr.build(sec, nsec, (float(f[0]), float(f[1]),
+                                                             float(f[2]))), record)
                 continue
             m = self.wrench_msgs[c.name]
             m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
@@ -587,36 +699,51 @@ class SimNode:
             f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
             self._emit(c.name, m, record)
 
-    def _publish_base(self, sec, nsec, want_odom, want_imu, record):
-        """starleth/base_state (pose in the world, twist in the base frame) and
-        starleth/imu (orientation, body rates, proper acceleration)."""
+    def _base_values(self):
+        """(position, orientation xyzw, world linear velocity, body rates, R) of the base."""
         b = self.sim.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
         R = quat_to_matrix(*quat)
-        quat = [float(x) for x in quat]
-        w = [float(x) for x in w]
-        if want_odom:
-            v_body = R.T @ v
-            o = self.odom_msg
-            o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
-            pp, po = o.pose.pose.position, o.pose.pose.orientation
-            pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
-            po.x, po.y, po.z, po.w = quat
-            tl, ta = o.twist.twist.linear, o.twist.twist.angular
-            tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
-            ta.x, ta.y, ta.z = w
-            self._emit("base_state", o, record)
-        if want_imu:
-            a_proper = self.imu.proper_acceleration(self.service.k, v, R)
-            imu = self.imu_msg
-            imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
-            io_ = imu.orientation
-            io_.x, io_.y, io_.z, io_.w = quat
-            iw, ia = imu.angular_velocity, imu.linear_acceleration
-            iw.x, iw.y, iw.z = w
-            ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
-            self._emit("imu", imu, record)
+        return ([float(x) for x in p], [float(x) for x in quat], v,
+                [float(x) for x in w], R)
+
+    def _publish_odometry(self, sec, nsec, base, record):
+        """starleth/base_state: pose in the world, twist in the base frame."""
+        p, quat, v, w, R = base
+        v_body = R.T @ v
+        if self._odom_cdr is not None:
+            self._emit_cdr("base_state", self._odom_cdr.build(
+                sec, nsec, (*p, *quat, float(v_body[0]), float(v_body[1]), float(v_body[2]),
+                            *w)), record)
+            return
+        o = self.odom_msg
+        o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
+        pp, po = o.pose.pose.position, o.pose.pose.orientation
+        pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
+        po.x, po.y, po.z, po.w = quat
+        tl, ta = o.twist.twist.linear, o.twist.twist.angular
+        tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
+        ta.x, ta.y, ta.z = w
+        self._emit("base_state", o, record)
+
+    def _publish_imu(self, sec, nsec, base, record):
+        """starleth/imu: orientation, body rates, proper acceleration."""
+        p, quat, v, w, R = base
+        a_proper = self.imu.proper_acceleration(self.service.k, v, R)
+        if self._imu_cdr is not None:
+            self._emit_cdr("imu", self._imu_cdr.build(
+                sec, nsec, (*quat, *w, float(a_proper[0]), float(a_proper[1]),
+                            float(a_proper[2]))), record)
+            return
+        imu = self.imu_msg
+        imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
+        io_ = imu.orientation
+        io_.x, io_.y, io_.z, io_.w = quat
+        iw, ia = imu.angular_velocity, imu.linear_acceleration
+        iw.x, iw.y, iw.z = w
+        ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
+        self._emit("imu", imu, record)
 
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the
@@ -630,28 +757,21 @@ class SimNode:
 
     INTERFACE_STATUS_EVERY = 40   # steps (10 Hz at 400 Hz); also on every lockstep timeout
 
-    def _fill_diagnostics(self, sec, nsec):
+    def _diagnostics(self):
+        """The statuses of /starleth/solver: [(0 = solver | 1 = interface, level, message,
+        values as str)]; the interface status every INTERFACE_STATUS_EVERY steps, on a
+        lockstep timeout and while paused."""
         svc = self.service
         d = self.sim.diagnostics
-        self.diag_msg.header.stamp.sec, self.diag_msg.header.stamp.nanosec = sec, nsec
-        st = self.solver_status
-        st.level = DiagnosticStatus.OK if d.converged else DiagnosticStatus.WARN
-        st.message = d.status
         vals = (d.iterations, d.max_iterations_step, d.converged, d.status, repr(d.residual),
                 d.active_contacts, d.retried, repr(d.step_time), d.physics_steps,
                 d.nonconverged_steps, d.loaded_contacts_opened, d.loaded_contacts_opened_total,
                 d.projections, d.projection_iterations)
-        for kv, v in zip(st.values, vals):
-            kv.value = str(v)
+        out = [(0, DiagnosticStatus.OK if d.converged else DiagnosticStatus.WARN, d.status,
+                [str(v) for v in vals])]
         if not (svc.k % self.INTERFACE_STATUS_EVERY == 0 or svc.last_step_timed_out
                 or svc.paused):
-            self.diag_msg.status = self._diag_solver_only
-            return
-        self.diag_msg.status = self._diag_both
-        it = self.iface_status
-        it.level = DiagnosticStatus.WARN if svc.last_step_timed_out else DiagnosticStatus.OK
-        it.message = ("lockstep timeout" if svc.last_step_timed_out else
-                      "paused" if svc.paused else "running")
+            return out
         ps = self._period_summary
         c = svc.counters
         vals = (self.settings.mode, self.settings.real_time_factor, svc.stamp_ns * 1e-9, svc.k,
@@ -659,8 +779,22 @@ class SimNode:
                 ps.get("period_error_p50_ms", ""), ps.get("period_error_p99_ms", ""),
                 ps.get("period_error_max_ms", ""), self.period_stats.overruns,
                 self.recorder.message_count if self.recorder is not None else 0)
-        for kv, v in zip(it.values, vals):
-            kv.value = str(v)
+        out.append((1, DiagnosticStatus.WARN if svc.last_step_timed_out else DiagnosticStatus.OK,
+                    "lockstep timeout" if svc.last_step_timed_out else
+                    "paused" if svc.paused else "running", [str(v) for v in vals]))
+        return out
+
+    def _fill_diagnostics(self, sec, nsec, statuses):
+        """The DiagnosticArray message object from _diagnostics() (when the CDR writer is
+        not available)."""
+        self.diag_msg.header.stamp.sec, self.diag_msg.header.stamp.nanosec = sec, nsec
+        objs = (self.solver_status, self.iface_status)
+        for index, level, message, values in statuses:
+            st = objs[index]
+            st.level, st.message = level, message
+            for kv, v in zip(st.values, values):
+                kv.value = v
+        self.diag_msg.status = self._diag_both if len(statuses) > 1 else self._diag_solver_only
 
     # -- callbacks -------------------------------------------------------------------------
     def _record_input(self, key, data):
@@ -681,6 +815,8 @@ class SimNode:
         return True
 
     def _on_joint_command_cdr(self, data) -> bool:
+        if self.timing is not None:
+            self.timing.row[0] = time.perf_counter()
         ok, stamp_ns, tau = self.decoder.joint_command(data)
         if not ok:
             return False
@@ -701,6 +837,8 @@ class SimNode:
         svc = self.service
         if svc.answered and not svc.paused and not self._stop:
             if svc.step() is not None:
+                if self.timing is not None:
+                    self.timing.row[1] = time.perf_counter()
                 self.publish_state()
 
     def _wrench(self, key, msg, persistent):
@@ -940,9 +1078,14 @@ class SimNode:
         summary = self.summary()
         rec = self.recorder
         if rec is not None and not rec.closed:
-            rec.add_metadata("starleth_sim_summary", {k: json.dumps(v) for k, v in summary.items()})
-            rec.close()
-            self.log.info(f"recording finalised: {rec.path} ({rec.message_count} messages)")
+            try:
+                rec.add_metadata("starleth_sim_summary",
+                                 {k: json.dumps(v) for k, v in summary.items()})
+                rec.close()
+            except OSError as e:     # the writer process died: what it wrote is there
+                self.log.error(f"recording {rec.path}: {e}")
+            else:
+                self.log.info(f"recording finalised: {rec.path} ({rec.message_count} messages)")
         self.log.info("summary: " + json.dumps(summary))
         return summary
 
@@ -951,9 +1094,53 @@ class SimNode:
         self.node.destroy_node()
 
 
-def main(args=None):
+def _split_controller_params(argv):
+    """(argv without them, {name: value}) of the ``--controller-param NAME:=VALUE`` options
+    before ``--ros-args`` (values read as YAML, as ROS reads -p values); ``--composed``
+    is dropped."""
+    out, params = [], {}
+    it = iter(argv)
+    for a in it:
+        if a == "--ros-args":
+            out.append(a)
+            out.extend(it)
+            break
+        if a == "--composed":        # python -m starleth_sim.ros.sim_node --composed
+            continue
+        if a == "--controller-param" or a.startswith("--controller-param="):
+            kv = a.split("=", 1)[1] if "=" in a else next(it, "")
+            if ":=" not in kv:
+                raise ValueError(f"--controller-param {kv!r}: expected NAME:=VALUE")
+            k, v = kv.split(":=", 1)
+            params[k] = yaml.safe_load(v) if v else ""
+            continue
+        out.append(a)
+    return out, params
+
+
+def main_composed(args=None):
+    """Console script ``sim_node_composed``: sim_node and controller_node
+    (starleth_controller) in one process on one executor, with the same topics, services
+    and parameters as the two processes (speed over process isolation: no trip between
+    processes through the operating system). ``--ros-args`` go to sim_node (its node name,
+    namespace, parameters); the controller, named ``controller_node`` in the same
+    namespace, takes its parameters from ``--controller-param NAME:=VALUE`` options given
+    before them, e.g. ``sim_node_composed --controller-param mode:=trot --ros-args -p
+    record:=run.mcap``. Exit status as ``sim_node``'s."""
+    argv = list(sys.argv if args is None else args)
+    try:
+        argv, ctl_params = _split_controller_params(argv)
+    except ValueError as e:
+        print(f"sim_node_composed: {e}", file=sys.stderr)
+        return 2
+    return main(argv, controller_params=ctl_params)
+
+
+def main(args=None, controller_params=None):
     """Console script ``sim_node``. SIGINT/SIGTERM stop the loop and finalise the recording
-    (exit 0); a bad parameter exits with 2 before any physics is set up."""
+    (exit 0); a bad parameter exits with 2 before any physics is set up.
+    `controller_params` (a dict): also run starleth_controller's ControllerNode with these
+    parameters on the same executor (:func:`main_composed`)."""
     if not init_ros("sim_node", sys.argv if args is None else args):
         return 2
     holder = {}
@@ -969,16 +1156,35 @@ def main(args=None):
             sim_node.request_stop()
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)
         executor.add_node(sim_node.node)
+        if controller_params is not None:
+            from starleth_controller.controller_node import ControllerNode
+            try:
+                ctl = holder["controller"] = ControllerNode(
+                    context=sim_node.context, parameter_overrides=controller_params,
+                    namespace=sim_node.node.get_namespace(), use_global_arguments=False)
+            except ValueError as e:
+                print(f"controller_node: configuration error: {e}", file=sys.stderr)
+                return 2
+            executor.add_node(ctl)
+            kind += ", with controller_node in this process"
         sim_node.log.info(f"executor: {kind}; ready")
         try:
             sim_node.run(executor)
         finally:
             signals.ignore()          # no further signals while the file is finalised
             sim_node.close()
+        if "controller" in holder:
+            holder["controller"].log.info(f"stopped; {holder['controller'].summary()}")
         return 0
     finally:
+        if "controller" in holder:
+            try:
+                holder["controller"].destroy_node()
+            except Exception:
+                pass
         shutdown_ros(holder["node"].node if "node" in holder else None, executor)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main_composed() if "--controller-param" in sys.argv[1:2] or
+             "--composed" in sys.argv[1:2] else main())

@@ -19,6 +19,18 @@ and, on the same executor, a bare rclpy "pong" node:
    ``--realtime-seconds`` with the same controller: the node's own tick-period error
    (p50/p99/max; goal p99 < 0.25 ms) and the inter-arrival jitter of /joint_states here.
 
+The real loop (``--controller real``): the same interleaved rounds with
+``starleth_controller``'s ``ControllerNode`` (stand 0.5 s of sim time, then trot at
+0.3 m/s) in this process instead of the echo controller, so it receives the joint state,
+base state and four foot wrenches of every stamp; ``--composed`` runs it in the sim's
+process instead, on sim_node's executor (the composed mode), and this process only pings
+and pauses. Both nodes time their part of every cycle (``SimNode.timing``,
+``ControllerNode.timing``: CLOCK_MONOTONIC, one clock for both processes) and the cycle is
+broken down into step, sim publish (the state topics a controller waits for), controller
+receive (until its sixth message is in), controller compute, command back (publish to the
+sim's callback), beside what runs in parallel (recording hand-over, prepare, /tf). The
+cycle rate of a round is counted from sim_node's timestamps.
+
 Options: ``--executor`` / ``--sim-executor`` (events | single_threaded) for the two sides
 (the bare round trips use the same ones), ``--record PATH`` to record the lockstep phase,
 ``--realtime-priority N`` for sim_node's SCHED_FIFO option in the realtime phase.
@@ -126,6 +138,17 @@ def child_main(args):
     stop = {"flag": False}
     signal.signal(signal.SIGINT, lambda *a: stop.__setitem__("flag", True))
     signal.signal(signal.SIGTERM, lambda *a: stop.__setitem__("flag", True))
+    if args.pong_only:     # measure_bare_round_trips: only the pong node
+        pong = Node("bench_pong", context=None)
+        pong_pub = pong.create_publisher(JointState, PONG, QoSProfile(depth=10))
+        pong.create_subscription(JointState, PING, pong_pub.publish, QoSProfile(depth=10))
+        ex = _make_executor(args.sim_executor, pong.context)
+        ex.add_node(pong)
+        while not stop["flag"]:
+            ex.spin_once(timeout_sec=0.1)
+        pong.destroy_node()
+        rclpy.try_shutdown()
+        return
     overrides = {"mode": args.mode, "real_time_factor": args.rtf, "executor": args.sim_executor,
                  "realtime_priority": args.realtime_priority}
     if args.record:
@@ -135,6 +158,14 @@ def child_main(args):
     sim = SimNode(parameter_overrides=overrides)
     ex = _make_executor(args.sim_executor, sim.context)
     ex.add_node(sim.node)
+    ctl = None
+    if args.timing:
+        from starleth_sim.ros import sim_node
+        if hasattr(sim_node, "CycleTimes"):
+            sim.timing = sim_node.CycleTimes()
+    if args.composed:   # the controller on sim_node's executor, in this process
+        ctl = make_bench_controller(sim.context, timing=bool(args.timing))
+        ex.add_node(ctl)
     if args.pong:   # bare round trips, served by the same executor as sim_node
         pong = Node("bench_pong", context=sim.context)
         pong_pub = pong.create_publisher(JointState, PONG, QoSProfile(depth=10))
@@ -148,6 +179,16 @@ def child_main(args):
         sim.run(ex)
     finally:
         summary = sim.close()
+        if args.timing and getattr(sim, "timing", None) is not None:
+            arrays = {"sim_stamp": sim.timing.stamp[:sim.timing.n],
+                      "sim_t": sim.timing.t[:sim.timing.n]}
+            if ctl is not None:
+                arrays.update(ctl_stamp=ctl.timing.stamp[:ctl.timing.n],
+                              ctl_t=ctl.timing.t[:ctl.timing.n])
+            np.savez(args.timing, **arrays)
+        if ctl is not None:
+            summary["controller"] = ctl.summary()
+            ctl.destroy_node()
         print("BENCH_SUMMARY " + json.dumps(summary), flush=True)
         sim.node.destroy_node()
         rclpy.try_shutdown()
@@ -156,10 +197,34 @@ def child_main(args):
 # -----------------------------------------------------------------------------------------
 # parent
 # -----------------------------------------------------------------------------------------
-def _spawn(args, mode, rtf, pong, log, record=""):
+def make_bench_controller(context, timing=False, trot_at=0.5, speed=0.3):
+    """starleth_controller's ControllerNode as the benchmark's real controller: stands, and
+    trots at `speed` from sim time `trot_at` on (checked on every command it sends)."""
+    from rclpy.parameter import Parameter
+    from starleth_controller import controller_node
+    ctl = controller_node.ControllerNode(context=context, parameter_overrides={"mode": "stand"})
+    ctl._vel = (speed, 0.0, 0.0)
+    if timing and hasattr(controller_node, "CycleTimes"):
+        ctl.timing = controller_node.CycleTimes()
+    publish = ctl._publish
+
+    def publish_and_switch(stamp, effort):
+        publish(stamp, effort)
+        sec, nsec = (stamp.sec, stamp.nanosec) if hasattr(stamp, "sec") else stamp
+        if ctl._mode == "stand" and sec + nsec * 1e-9 >= trot_at:
+            ctl.set_parameters([Parameter("mode", value="trot")])
+    ctl._publish = publish_and_switch
+    return ctl
+
+
+def _spawn(args, mode, rtf, pong, log, record="", timing=""):
     cmd = [sys.executable, "-m", "starleth_sim.tools.bench_ros", "--child", "--domain-id",
            str(args.domain_id), "--mode", mode, "--rtf", str(rtf), "--sim-executor",
            args.sim_executor]
+    if timing:
+        cmd += ["--timing", timing]
+    if getattr(args, "composed", False) and mode == "lockstep":
+        cmd.append("--composed")
     if pong:
         cmd.append("--pong")
     if record:
@@ -167,7 +232,14 @@ def _spawn(args, mode, rtf, pong, log, record=""):
     if mode == "realtime" and args.realtime_priority:
         cmd += ["--realtime-priority", str(args.realtime_priority)]
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
-    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+    pre = None
+    if getattr(args, "pin", False):
+        cpu = min(os.sched_getaffinity(0) | set(range(os.cpu_count() or 1)))
+
+        def pre():       # the child and every thread it starts on one CPU
+            os.sched_setaffinity(0, {cpu})
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                            preexec_fn=pre)
 
 
 def _stop(proc, log_path, timeout=20):
@@ -197,7 +269,7 @@ class PingPong:
     """Bare rclpy round trips with the child's pong node: a JointState (12 names, 3 x 12
     values, like /joint_states) goes out, the next is sent when its echo is back."""
 
-    def __init__(self, node, ex):
+    def __init__(self, node, ex, startup=60.0):
         from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
         self.node, self.ex = node, ex
@@ -210,7 +282,7 @@ class PingPong:
         msg.velocity = [0.0] * 12
         msg.effort = [0.0] * 12
         if not _wait(ex, lambda: self.pub.get_subscription_count() > 0 and
-                     self.sub.get_publisher_count() > 0, 60):
+                     self.sub.get_publisher_count() > 0, startup):
             raise RuntimeError("bench: the pong node did not appear")
         for _ in range(50):     # warm-up: the first messages after matching can be slow
             want = self.got + 1
@@ -241,6 +313,39 @@ class PingPong:
         self.node.destroy_subscription(self.sub)
 
 
+def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=60.0):
+    """Bare rclpy JointState round trips per second between this process and a child
+    running only the pong node (the reference the real loop is compared with); also
+    returns the median round trip [s]. Used by starleth-demo right before its run."""
+    import rclpy
+    from rclpy.node import Node
+    keep_discovery_local()
+    cmd = [sys.executable, "-m", "starleth_sim.tools.bench_ros", "--child", "--pong-only",
+           "--domain-id", str(domain_id), "--sim-executor", executor]
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env=env)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = Node("bench_ping", context=ctx)
+    try:
+        ex = _make_executor(executor, ctx)
+        ex.add_node(node)
+        pp = PingPong(node, ex, startup)
+        rate, rtts = pp.measure(seconds)
+        pp.close()
+        return rate, float(np.median(rtts))
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 def _set_paused(node, ex, client, paused):
     from std_srvs.srv import SetBool
     fut = client.call_async(SetBool.Request(data=paused))
@@ -248,10 +353,18 @@ def _set_paused(node, ex, client, paused):
         raise RuntimeError(f"bench: ~/pause({paused}) failed")
 
 
-def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmup=0.2):
+def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmup=0.2,
+                         controller="echo", windows=None, ctl=None):
     """The interleaved rounds of phase 1 (sim_node starts paused): per round, bare round
-    trips, then lockstep cycles with the echo controller."""
+    trips, then lockstep cycles with the echo controller (controller="echo"), the real
+    ControllerNode `ctl` in this process ("real", a node added to `ex`) or in the sim's
+    process ("composed"): `windows` gets (t_start, t_end, bare rate, commands sent by
+    `ctl` or None) per round; in the composed mode the cycles are counted afterwards from
+    the sim's timestamps."""
     from std_srvs.srv import SetBool
+    if controller != "echo":
+        return _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
+                            ctl)
     ctl = EchoController(node)
     pause = node.create_client(SetBool, "/sim_node/pause")
     if not _wait(ex, pause.service_is_ready, 120):
@@ -296,6 +409,96 @@ def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmu
     return bare, lock
 
 
+def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
+                 ctl=None):
+    from std_srvs.srv import SetBool
+    pause = node.create_client(SetBool, "/sim_node/pause")
+    if not _wait(ex, pause.service_is_ready, 120):
+        raise RuntimeError("bench: sim_node's ~/pause service did not appear")
+    pp = PingPong(node, ex)
+    all_rtts = []
+    for r in range(rounds):
+        bare_rate, rtts = pp.measure(bare_seconds / rounds)
+        all_rtts += rtts
+        _set_paused(node, ex, pause, False)
+        t_start = time.perf_counter() + warmup
+        t_end = t_start + lockstep_seconds / rounds
+        n0 = None
+        while time.perf_counter() < t_end:
+            ex.spin_once(timeout_sec=0.05)
+            if n0 is None and ctl is not None and time.perf_counter() >= t_start:
+                n0, t_start = ctl.counters["commands"], time.perf_counter()
+        n = ctl.counters["commands"] - n0 if ctl is not None else None
+        t_end = time.perf_counter()
+        _set_paused(node, ex, pause, True)
+        windows.append((t_start, t_end, bare_rate, n))
+        print(f"  round {r + 1}/{rounds}: bare {bare_rate:.0f}/s", flush=True)
+    pp.close()
+    rtts = np.array(all_rtts)
+    return {"round_trips_per_s": len(rtts) / float(rtts.sum()),
+            "rtt_median_ms": float(np.median(rtts) * 1e3),
+            "rtt_p99_ms": float(np.percentile(rtts, 99) * 1e3), "n": int(len(rtts))}, None
+
+
+def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
+    """Rates per round (commands the controller sent in the round's window, or states
+    whose topics went out in it) and the per-cycle breakdown (medians over all rounds, ms)
+    from the two nodes' timestamps (none if the nodes have no timers)."""
+    from starleth_sim.ros import sim_node
+    fields = getattr(sim_node, "CycleTimes", None)
+    F = {f: i for i, f in enumerate(fields.FIELDS)} if fields else {"state_out": 0}
+    if sim_t is None or not len(sim_t):
+        sim_t, sim_stamp = np.zeros((0, max(F.values()) + 1)), np.zeros(0, np.int64)
+    out_t = sim_t[:, F["state_out"]]
+    per, n_total, t_total, bad = [], 0, 0.0, 0
+    for t0, t1, bare_rate, n_cmd in windows:
+        sel = (out_t >= t0) & (out_t <= t1)
+        n = int(sel.sum()) if n_cmd is None else n_cmd
+        bad += int(np.sum(np.diff(sim_stamp[sel]) != 2_500_000))
+        rate = n / (t1 - t0)
+        per.append({"bare_round_trips_per_s": bare_rate, "lockstep_cycles_per_s": rate,
+                    "ratio": rate / bare_rate})
+        n_total += n
+        t_total += t1 - t0
+    ratios = [p["ratio"] for p in per]
+    lock = {"states": n_total, "wall_s": t_total, "states_per_s": n_total / t_total,
+            "sim_time_per_wall": n_total * 0.0025 / t_total,
+            "stamp_steps_not_one_period": bad, "rounds": per,
+            "ratio_to_bare": (n_total / t_total) / bare["round_trips_per_s"],
+            "ratio_median_of_rounds": float(np.median(ratios)),
+            "ratio_min_of_rounds": float(np.min(ratios))}
+    # breakdown: state k (sim row k), the controller's answer to k (ctl row), the command
+    # that arrives for k (sim row k+1: command_in), all inside a round
+    in_round = np.zeros(len(sim_stamp), bool)
+    for t0, t1, _, _ in windows:
+        in_round |= (out_t >= t0) & (out_t <= t1)
+    sim_row = {int(s): i for i, s in enumerate(sim_stamp)}
+    ctl_row = {int(s): i for i, s in enumerate(ctl_stamp)}
+    seg = {k: [] for k in ("step", "sim_publish", "of_which_joint_states",
+                           "controller_first_in", "controller_receive", "controller_compute",
+                           "command_back", "cycle", "record_handover_parallel",
+                           "prepare_and_visualisation_parallel")}
+    for i, st in enumerate(sim_stamp):
+        j, c = sim_row.get(int(st) + 2_500_000), ctl_row.get(int(st))
+        if not in_round[i] or j is None or c is None or not in_round[j]:
+            continue
+        a, b, cr = sim_t[i], sim_t[j], ctl_t[c]     # cr: first in, complete, computed, sent
+        seg["step"].append(a[F["stepped"]] - a[F["command_in"]])
+        seg["sim_publish"].append(a[F["state_out"]] - a[F["stepped"]])
+        seg["of_which_joint_states"].append(a[F["joint_states_out"]] - a[F["stepped"]])
+        seg["controller_first_in"].append(cr[0] - a[F["stepped"]])
+        seg["controller_receive"].append(cr[1] - a[F["state_out"]])
+        seg["controller_compute"].append(cr[2] - cr[1])
+        seg["command_back"].append(b[F["command_in"]] - cr[2])
+        seg["cycle"].append(b[F["command_in"]] - a[F["command_in"]])
+        seg["record_handover_parallel"].append(a[F["recorded"]] - a[F["state_out"]])
+        seg["prepare_and_visualisation_parallel"].append(a[F["done"]] - a[F["recorded"]])
+    lock["breakdown_median_ms"] = {k: float(np.median(v) * 1e3) if v else None
+                                   for k, v in seg.items()}
+    lock["breakdown_cycles"] = len(seg["cycle"])
+    return lock
+
+
 def controller_phase(node, ex, seconds, warmup=1.0):
     ctl = EchoController(node)
     if not _wait(ex, lambda: len(ctl.stamps) > 0, 120):
@@ -325,7 +528,9 @@ def parent_main(args):
     import rclpy
     from rclpy.node import Node
     results = {"domain_id": args.domain_id, "controller_executor": args.executor,
-               "sim_executor": args.sim_executor, "cpus": os.cpu_count()}
+               "sim_executor": args.sim_executor, "cpus": os.cpu_count(), "pin": args.pin}
+    if args.pin:     # this (controller) process on the last CPU, the sim on the first
+        os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=args.domain_id)
     node = Node("bench_controller", context=ctx)
@@ -335,16 +540,42 @@ def parent_main(args):
     try:
         if args.lockstep_seconds > 0:
             log_path = os.path.join(tmp, "lockstep.log")
+            real = args.controller == "real"
+            kind = ("composed" if args.composed else "real") if real else "echo"
+            timing = os.path.join(tmp, "timing.npz") if real else ""
+            ctl, windows = None, []
+            if kind == "real":
+                ctl = make_bench_controller(ctx, timing=True)
+                ex.add_node(ctl)
             with open(log_path, "w") as log:
-                proc = _spawn(args, "lockstep", 0.0, True, log, args.record)
+                proc = _spawn(args, "lockstep", 0.0, True, log, args.record, timing)
                 try:
                     bare, lock = lockstep_beside_bare(node, ex, args.lockstep_seconds,
-                                                      args.bare_seconds, args.rounds)
+                                                      args.bare_seconds, args.rounds,
+                                                      controller=kind, windows=windows,
+                                                      ctl=ctl)
                 except Exception:
                     print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
                     raise
                 finally:
                     summary, text = _stop(proc, log_path)
+            if real:
+                tm = np.load(timing) if os.path.exists(timing) else \
+                    {"sim_stamp": None, "sim_t": None}
+                if ctl is not None:
+                    tmg = getattr(ctl, "timing", None)
+                    ct, cs = ((tmg.t[:tmg.n], tmg.stamp[:tmg.n]) if tmg is not None
+                              else (np.zeros((0, 4)), np.zeros(0, np.int64)))
+                    results["controller_summary"] = ctl.summary()
+                    ex.remove_node(ctl)
+                    ctl.destroy_node()
+                else:
+                    ct, cs = tm["ctl_t"], tm["ctl_stamp"]
+                lock = real_loop_figures(windows, tm["sim_stamp"], tm["sim_t"], cs, ct, bare)
+                for r, p in enumerate(lock["rounds"]):
+                    print(f"  round {r + 1}: lockstep {p['lockstep_cycles_per_s']:.0f}/s, "
+                          f"ratio {p['ratio']:.2f}", flush=True)
+            results["controller"] = kind
             results["bare"], results["lockstep"] = bare, lock
             lock["node_summary"] = summary
             print(f"bare rclpy round trips: {bare['round_trips_per_s']:.0f}/s, median "
@@ -352,7 +583,13 @@ def parent_main(args):
             print(f"lockstep control cycles: {lock['states_per_s']:.0f}/s "
                   f"({lock['ratio_to_bare']:.2f}x bare; rounds: median "
                   f"{lock['ratio_median_of_rounds']:.2f}x, min {lock['ratio_min_of_rounds']:.2f}x;"
-                  f" goal >= 0.75), sim/wall {lock['sim_time_per_wall']:.2f}", flush=True)
+                  f" goal >= {0.4 if real else 0.75}), sim/wall {lock['sim_time_per_wall']:.2f}"
+                  f" [{kind} controller{', recording' if args.record else ''}]", flush=True)
+            if real:
+                b = lock["breakdown_median_ms"]
+                print("per cycle (medians, ms; " + str(lock["breakdown_cycles"]) + " cycles): "
+                      + ", ".join(f"{k} {v:.3f}" for k, v in b.items() if v is not None),
+                      flush=True)
         if args.realtime_seconds > 0:
             log_path = os.path.join(tmp, "realtime.log")
             with open(log_path, "w") as log:
@@ -393,8 +630,18 @@ def main(argv=None):
     p.add_argument("--rounds", type=int, default=10,
                    help="interleaved bare/lockstep rounds")
     p.add_argument("--realtime-seconds", type=float, default=60.0)
-    p.add_argument("--executor", default="single_threaded", choices=["events", "single_threaded"],
-                   help="executor of this (controller) process")
+    p.add_argument("--executor", default=None, choices=["events", "single_threaded"],
+                   help="executor of this (controller) process (default: single_threaded with "
+                        "the echo controller, events with the real one, as controller_node)")
+    p.add_argument("--controller", default="echo", choices=["echo", "real"],
+                   help="lockstep phase: the PD echo controller, or starleth_controller's "
+                        "controller_node (trotting)")
+    p.add_argument("--pin", action="store_true",
+                   help="pin the sim process to the first CPU and this one to the last (a "
+                        "woken subscriber then cannot preempt its publisher)")
+    p.add_argument("--composed", action="store_true",
+                   help="with --controller real: controller_node in sim_node's process, on "
+                        "its executor")
     p.add_argument("--sim-executor", default="events", choices=["events", "single_threaded"],
                    help="executor of the sim process (pong and sim_node)")
     p.add_argument("--domain-id", type=int, default=os.getpid() % 50 + 30)
@@ -407,7 +654,13 @@ def main(argv=None):
     p.add_argument("--pong", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--mode", default="lockstep", help=argparse.SUPPRESS)
     p.add_argument("--rtf", type=float, default=0.0, help=argparse.SUPPRESS)
+    p.add_argument("--timing", default="", help=argparse.SUPPRESS)
+    p.add_argument("--pong-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.executor is None:
+        args.executor = "events" if args.controller == "real" else "single_threaded"
+    if args.composed and args.controller != "real" and not args.child:
+        p.error("--composed needs --controller real")
     if args.child:
         child_main(args)
         return 0

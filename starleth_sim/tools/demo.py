@@ -116,8 +116,8 @@ class NodeProcess:
     """A ROS node in a child process (no stdin, output to a log file); stop() always ends
     it: SIGINT, then SIGTERM, then SIGKILL."""
 
-    def __init__(self, name, module, params, domain_id, log_path):
-        cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={name}"]
+    def __init__(self, name, module, params, domain_id, log_path, pre_args=()):
+        cmd = [sys.executable, "-m", module, *pre_args, "--ros-args", "-r", f"__node:={name}"]
         for k, v in params.items():
             val = f'"{v}"' if isinstance(v, str) else repr(v)
             cmd += ["-p", f"{k}:={val}"]
@@ -190,6 +190,14 @@ class DemoResult:
     html_error: str = ""
     exit_codes: dict = field(default_factory=dict)
     logs: dict = field(default_factory=dict)
+    in_process: bool = False             # both nodes in one process (sim_node --composed)
+    bare_round_trips: float = math.nan   # bare rclpy round trips / s, measured just before
+    bare_error: str = ""
+
+    @property
+    def cycles_per_s(self) -> float:
+        """Lockstep control cycles per wall second (one cycle = one control period)."""
+        return self.sim_elapsed / (PERIOD_NS * 1e-9) / self.wall if self.wall > 0 else math.nan
 
     @property
     def rtf(self) -> float:
@@ -400,9 +408,13 @@ def read_bag(path, result: DemoResult):
 
 
 def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.mcap",
-             domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0) -> DemoResult:
+             domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0,
+             in_process=False, bare_seconds=2.0) -> DemoResult:
     """Run the trotting demo (see the module docstring) and return its figures. Raises
-    DemoError if it could not run to the end; both nodes are always stopped."""
+    DemoError if it could not run to the end; both nodes are always stopped.
+    in_process: sim_node and controller_node in one process on one executor (the composed
+    mode, ``sim_node --composed``) instead of two. bare_seconds > 0: first measure bare
+    rclpy round trips for that long, the reference of the lockstep cycle rate."""
     if domain_id is None:
         domain_id = default_domain_id()
     if not 0 <= domain_id <= 232:
@@ -413,18 +425,34 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
         os.remove(bag)
     stem = os.path.splitext(bag)[0]
     result = DemoResult(bag=bag, domain_id=domain_id, physics=physics, stand=stand, trot=trot,
-                        speed=speed)
+                        speed=speed, in_process=in_process)
     echo(f"StarlETH demo: sim_node ({physics}, lockstep) + controller_node over ROS 2 "
-         f"(ROS_DOMAIN_ID={domain_id})")
+         + ("in one process " if in_process else "") + f"(ROS_DOMAIN_ID={domain_id})")
     keep_discovery_local()      # this process's own ROS context too
+    if bare_seconds > 0:
+        from .bench_ros import measure_bare_round_trips
+        try:
+            result.bare_round_trips, rtt = measure_bare_round_trips(domain_id, bare_seconds)
+            echo(f"  bare rclpy round trips {result.bare_round_trips:.0f}/s (median "
+                 f"{rtt * 1e3:.3f} ms; the reference for the cycle rate)")
+        except Exception as e:   # the demo runs without its reference
+            result.bare_error = f"{type(e).__name__}: {e}"
+            echo(f"  bare rclpy round trips: not measured ({result.bare_error})")
     procs = []
     try:
-        procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node",
-                                 {"mode": "lockstep", "real_time_factor": 0.0,
-                                  "physics": physics, "record": bag},
-                                 domain_id, stem + ".sim_node.log"))
-        procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
-                                 {"mode": "stand"}, domain_id, stem + ".controller_node.log"))
+        sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
+                      "record": bag}
+        if in_process:
+            procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
+                                     domain_id, stem + ".sim_node.log",
+                                     pre_args=("--composed", "--controller-param",
+                                               "mode:=stand")))
+        else:
+            procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
+                                     domain_id, stem + ".sim_node.log"))
+            procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
+                                     {"mode": "stand"}, domain_id,
+                                     stem + ".controller_node.log"))
         result.logs = {p.name: p.log_path for p in procs}
         t_trot, t_pause, wall, sim_elapsed = drive(domain_id, stand, trot, speed, procs,
                                                    echo, startup_timeout, run_timeout)
@@ -462,6 +490,11 @@ def print_summary(r: DemoResult, echo=print):
          f"{FALL_HEIGHT:g} m)")
     echo(f"  real-time factor     {r.rtf:6.2f}   (lockstep, from /clock: {r.sim_elapsed:.2f} s "
          f"sim in {r.wall:.2f} s wall)")
+    echo(f"  control cycles       {r.cycles_per_s:6.0f} /s " +
+         (f"({r.cycles_per_s / r.bare_round_trips:.2f}x the bare rclpy round-trip rate "
+          f"{r.bare_round_trips:.0f}/s measured before; "
+          if r.bare_round_trips > 0 else "(") +
+         ("both nodes in one process)" if r.in_process else "two processes)"))
     echo(f"  solver iterations    {r.solver_iterations_mean:6.1f} per control step on average "
          f"(max {r.solver_iterations_max})")
     echo(f"  messages             {r.messages} in the bag; /joint_states {r.joint_states} of "
@@ -497,12 +530,19 @@ def main(argv=None):
                     help="demo: MCAP file (default runs/demo.mcap)")
     ap.add_argument("--domain-id", type=int, default=None,
                     help="demo: ROS domain id (default: $ROS_DOMAIN_ID, else from the pid)")
+    ap.add_argument("--in-process", action="store_true",
+                    help="demo: sim_node and controller_node in one process on one executor "
+                         "(sim_node --composed) instead of two processes")
+    ap.add_argument("--bare-seconds", type=float, default=2.0,
+                    help="demo: seconds of bare rclpy round trips measured first, the "
+                         "reference of the cycle rate (0: skip)")
     args = ap.parse_args(argv)
     if args.drop:
         return drop_main(args)
     try:
         result = run_demo(args.stand, args.trot, args.speed, args.preset, args.record,
-                          args.domain_id)
+                          args.domain_id, in_process=args.in_process,
+                          bare_seconds=args.bare_seconds)
     except DemoError as e:
         print(f"starleth-demo: FAILED: {e}", file=sys.stderr)
         return 1
