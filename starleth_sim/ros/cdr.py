@@ -1,7 +1,8 @@
 """CDR (XCDR1, little endian, as rmw_fastrtps writes it) for the hot lockstep path of
 ``sim_node``: incoming commands are read straight from the serialised bytes of a raw
 subscription, without building an rclpy message object (~15-25 µs per JointState with 12
-names in Python), and /joint_states is written by patching a template.
+names in Python). The outgoing templates (/joint_states and the other per-cycle topics)
+are in :mod:`starleth_interface.msg_cdr`, shared with controller_node.
 
 Only the common, valid case is decoded here: a ``sensor_msgs/JointState`` whose names are
 exactly the simulator's joints in joint order, or a ``std_msgs/Float64MultiArray`` with n
@@ -16,11 +17,10 @@ byte 4; strings are uint32 length (with the terminating NUL) + bytes; sequences 
 uint32 count, then elements aligned to their size (no alignment when the count is 0);
 padding bytes are not zeroed.
 
-ROS-free: numpy + numba only (rclpy is imported by ``JointStateCdr.create``).
+ROS-free: numpy + numba only.
 """
 from __future__ import annotations
 
-import struct
 
 import numba as nb
 import numpy as np
@@ -171,59 +171,3 @@ class CommandDecoder:
     def effort_array(self, data):
         effort = np.empty(self.n)
         return parse_effort_array(np.frombuffer(data, np.uint8), effort) == OK, effort
-
-
-class JointStateCdr:
-    """CDR bytes of a sensor_msgs/JointState with fixed names and frame_id, built by
-    patching the stamp and the three arrays into a template serialised once by rclpy
-    (a few microseconds instead of a Python-to-C conversion of every field per step).
-    ``create`` checks the template byte by byte and returns None if the layout is not the
-    expected one, so the caller falls back to publishing the message object."""
-
-    def __init__(self, template: bytes, stamp_offset: int, offsets, n: int):
-        self.template = template
-        self.stamp_offset = stamp_offset
-        self.offsets = offsets
-        self.n = n
-
-    @classmethod
-    def create(cls, names):
-        from rclpy.serialization import deserialize_message, serialize_message
-        from sensor_msgs.msg import JointState
-        n = len(names)
-        try:
-            msg = JointState()
-            msg.name = list(names)
-            marks = [np.array([1.0e300 - 1.0e285 * (100 * a + i) for i in range(n)])
-                     for a in range(3)]
-            msg.position, msg.velocity, msg.effort = (m.tolist() for m in marks)
-            msg.header.stamp.sec, msg.header.stamp.nanosec = 0x12345678, 0x0ABCDEF1
-            raw = serialize_message(msg)
-            if raw[:4] != b"\x00\x01\x00\x00":          # CDR little endian
-                return None
-            stamp_offset = raw.find(struct.pack("<iI", 0x12345678, 0x0ABCDEF1))
-            offsets = [raw.find(m.tobytes()) for m in marks]
-            if stamp_offset != 4 or min(offsets) < 0 or not offsets[0] < offsets[1] < offsets[2]:
-                return None
-            # rmw's serialised length can exceed the CDR (estimated size): cut at the end
-            template = raw[:offsets[2] + 8 * n]
-            self = cls(template, stamp_offset, offsets, n)
-            # round trip check with other values
-            probe = [np.linspace(-1.0, 1.0, n) * (a + 1) for a in range(3)]
-            back = deserialize_message(self.build(7, 2_500_000, *probe), JointState)
-            if (list(back.name) != list(names) or back.header.stamp.sec != 7
-                    or back.header.stamp.nanosec != 2_500_000
-                    or not all(np.array_equal(np.asarray(getattr(back, f)), p) for f, p in
-                               zip(("position", "velocity", "effort"), probe))):
-                return None
-            return self
-        except Exception:  # pragma: no cover - unexpected rmw behaviour: use the slow path
-            return None
-
-    def build(self, sec, nsec, position, velocity, effort) -> bytes:
-        buf = bytearray(self.template)
-        struct.pack_into("<iI", buf, self.stamp_offset, sec, nsec)
-        k = 8 * self.n
-        for off, a in zip(self.offsets, (position, velocity, effort)):
-            buf[off:off + k] = np.ascontiguousarray(a, dtype="<f8").tobytes()
-        return bytes(buf)

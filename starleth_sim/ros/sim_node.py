@@ -109,7 +109,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr
+from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
                                             make_executor, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
@@ -120,7 +120,7 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONT
 from ..physics.config import ConfigError
 from ..physics.description import STARLETH_FEET as FEET
 from ..physics.simulator import Simulator
-from .cdr import CommandDecoder, JointStateCdr
+from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
