@@ -21,7 +21,6 @@ ROS-free: numpy + numba only.
 """
 from __future__ import annotations
 
-
 import numba as nb
 import numpy as np
 
