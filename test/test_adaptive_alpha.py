@@ -32,10 +32,11 @@ def test_alpha_auto_is_accepted_and_bad_values_name_file_and_field(tmp_path):
     assert prox.alpha_setting("auto") == prox.ALPHA_AUTO < 0 and prox.alpha_setting(0.6) == 0.6
 
 
-@pytest.mark.parametrize("u_scale,seed", [(0.05, 1), (0.5, 2), (1.0, 3)])
+@pytest.mark.parametrize("u_scale,seed", [(0.0, 0), (0.05, 1), (0.5, 2)])
 def test_auto_solves_the_robot_problems_like_pinocchio_in_fewer_iterations(u_scale, seed):
-    """Every scheme and form with α = auto reaches Pinocchio's PGS solution (stick, slip and
-    open contacts, see test_solvers), in fewer iterations than the fixed α = 0.5."""
+    """Every scheme and form with α = auto reaches Pinocchio's PGS solution (stick and slip
+    contacts, see test_solvers) from a cold start, in fewer iterations than the fixed α of
+    the presets (0.6) and than the best fixed α of the trot (0.9)."""
     p = robot_problem(u_scale, seed)
     ref = pin_pgs_solve(p["G"], p["c"], p["mu"], tol=1e-14)
     for form, scheme in SCHEMES:
@@ -43,13 +44,15 @@ def test_auto_solves_the_robot_problems_like_pinocchio_in_fewer_iterations(u_sca
         assert status == prox.STATUS_CONVERGED, (form, scheme, it)
         np.testing.assert_allclose(lam, ref, atol=1e-8, rtol=0, err_msg=f"{form}/{scheme}")
         np.testing.assert_allclose(u, p["u_free"] + p["MinvW"] @ lam, atol=1e-10)
-        _, _, it_fixed, _ = solve(p, form, scheme, alpha=0.5)
-        assert it < it_fixed, (form, scheme, it, it_fixed)
+        for alpha in (0.6, 0.9):
+            _, _, it_fixed, _ = solve(p, form, scheme, alpha=alpha)
+            assert it < it_fixed, (form, scheme, alpha, it, it_fixed)
 
 
 def test_auto_spectral_step_is_one_over_the_largest_scaled_eigenvalue():
     """The spectral step r_s = r / λ_max: the power iteration's λ_max is that of the
-    diagonally scaled G (JOR), of its 3x3 contact blocks (SOR)."""
+    diagonally scaled G (JOR; within 1 %: four feet give four eigenvalues within 1 % of
+    each other), of its 3x3 contact blocks (SOR)."""
     p = robot_problem(0.5, 2)
     G, na = p["G"], p["na"]
     r = np.empty(3 * na)
@@ -61,7 +64,8 @@ def test_auto_spectral_step_is_one_over_the_largest_scaled_eigenvalue():
         sor = jor._replace(scheme=prox.SCHEME_SOR)
         lam_jor = prox.auto_spectral_scale(jor, G, p["Wt"], p["MinvW"], pat, na, r)
         lam_sor = prox.auto_spectral_scale(sor, G, p["Wt"], p["MinvW"], pat, na, r)
-        assert lam_jor == pytest.approx(np.linalg.eigvalsh(S)[-1], rel=1e-3)
+        top = np.linalg.eigvalsh(S)[-1]     # a Rayleigh quotient: at most λ_max, and close
+        assert 0.99 * top <= lam_jor <= top * (1 + 1e-12)
         blocks = max(np.linalg.eigvalsh(S[3 * i:3 * i + 3, 3 * i:3 * i + 3])[-1]
                      for i in range(na))
         assert lam_sor == pytest.approx(blocks, rel=1e-6)
