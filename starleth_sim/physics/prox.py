@@ -45,7 +45,8 @@ themselves, per step and per iteration:
     Rayleigh quotient of d: a long step along the slow, low-eigenvalue modes that the
     spectral step leaves; with the direct method dᵀGd is the Schur complement's form, as
     Λ_B follows Λ_U), clamped to [1, AUTO_MAX_STEP]; the sweeps in between take the spectral
-    step, which damps the high modes a long step excites. SOR with bilateral prox rows
+    step, which damps the high modes a long step excites. JOR gets Gd for free as
+    ξ^{k+1} − ξ^k, which the next sweep computes anyway (so its long step is set there). SOR with bilateral prox rows
     takes the long steps on its contact rows only (its Gauss-Seidel sweep over the
     bilateral rows is not a gradient step: long steps there slowed HMSP 7x); its bilateral
     rows are over-relaxed instead, r_B = |α| ω / G_BB with ω = AUTO_SOR_BILATERAL_OMEGA;
@@ -473,7 +474,13 @@ def auto_step_factor(s, G, Wt, MinvW, pat, nc, old, new, rs, tmp1, tmp2, n):
                     tmp2[k] += MinvW[k, l] * d
         for k in range(tmp1.shape[0]):
             q += tmp1[k] * tmp2[k]
-    if not q > 0.0:
+    return _clamp_step(p_, q)
+
+
+@nb.njit(cache=True)
+def _clamp_step(p_, q):
+    """θ = p/q clamped to [1, AUTO_MAX_STEP]; 1 when p is 0 or q is not positive."""
+    if p_ == 0.0 or not q > 0.0:
         return 1.0
     theta = p_ / q
     if not np.isfinite(theta):
@@ -482,18 +489,56 @@ def auto_step_factor(s, G, Wt, MinvW, pat, nc, old, new, rs, tmp1, tmp2, n):
 
 
 @nb.njit(cache=True)
-def _auto_next(s, G, Wt, MinvW, pat, nc, k, old, new, res, rs, rk, hist, tmp1, tmp2):
-    """The parameters rk of the sweep after sweep k (increment new − old, max |ΔΛ| = res) of
-    the adaptive α: the Barzilai-Borwein step after even sweeps, the spectral step rs after
-    odd ones, and for good once the guard tripped. hist: [smallest increment, mode (0: long
-    steps, 1: spectral steps only, 2: long steps on the contact rows only), rs / r]."""
+def _auto_guard(res, hist):
+    """Tracks the smallest increment of the solve; an increment AUTO_GUARD times larger
+    ends the long steps (hist[1] = 1). Returns whether long steps may follow."""
     if hist[1] != 1.0:
         if res < hist[0]:
             hist[0] = res
         elif res > AUTO_GUARD * hist[0]:
             hist[1] = 1.0
+    return hist[1] != 1.0
+
+
+@nb.njit(cache=True)
+def _auto_jor_save(k, old, new, xi, res, rs, rk, hist, dsave, xsave):
+    """JOR's adaptive α after sweep k: the spectral step rs for the next sweep; after even
+    sweeps also d = new − old and ξ^k saved, for the long step that the next sweep takes once
+    it has ξ^{k+1} (Gd = ξ^{k+1} − ξ^k: no extra product with G). Returns whether it will."""
     rk[:] = rs
-    if hist[1] == 1.0 or k % 2 == 1:
+    if not _auto_guard(res, hist) or k % 2 == 1:
+        return False
+    for l in range(old.shape[0]):
+        dsave[l] = new[l] - old[l]
+        xsave[l] = xi[l]
+    return True
+
+
+@nb.njit(cache=True)
+def _auto_jor_long_step(s, nc, xi, rs, rk, dsave, xsave):
+    """The long step of JOR from the saved increment d and Gd = ξ − ξ_saved (see
+    auto_step_factor): rk = rs θ on the contact rows (and the bilateral prox rows)."""
+    m = xi.shape[0]
+    n = 3 * nc if s.bilateral_direct else m
+    p_ = 0.0
+    for l in range(n):
+        p_ += dsave[l] * dsave[l] / rs[l]
+    q = 0.0
+    for l in range(m):
+        q += dsave[l] * (xi[l] - xsave[l])
+    theta = _clamp_step(p_, q)
+    for l in range(n):
+        rk[l] = rs[l] * theta
+
+
+@nb.njit(cache=True)
+def _auto_next(s, G, Wt, MinvW, pat, nc, k, old, new, res, rs, rk, hist, tmp1, tmp2):
+    """The parameters rk of the sweep after sweep k (increment new − old, max |ΔΛ| = res) of
+    the adaptive α: the Barzilai-Borwein step after even sweeps, the spectral step rs after
+    odd ones, and for good once the guard tripped. hist: [smallest increment, mode (0: long
+    steps, 1: spectral steps only, 2: long steps on the contact rows only), rs / r]."""
+    rk[:] = rs
+    if not _auto_guard(res, hist) or k % 2 == 1:
         return
     # long steps on the contact rows (and the bilateral prox rows of JOR)
     n = 3 * nc if s.bilateral_direct or hist[1] == 2.0 else rk.shape[0]
@@ -504,21 +549,22 @@ def _auto_next(s, G, Wt, MinvW, pat, nc, k, old, new, res, rs, rk, hist, tmp1, t
 
 @nb.njit(cache=True)
 def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
-    """Work arrays of a kernel: (rk, rs, Λ^0, hist, tmp1, tmp2) with rk the parameters of the
-    first sweep: r itself, or with the adaptive α (s.alpha < 0) its spectral step rs."""
-    rk = r.copy()
-    rs = r.copy()
+    """Work arrays of a kernel: (rk, rs, Λ^0, hist, tmp1, tmp2, dsave, xsave) with rk the parameters of the
+    first sweep: r itself (no copies with a fixed α), or with the adaptive α (s.alpha < 0)
+    its spectral step rs."""
     hist = np.array([np.inf, 0.0, 1.0])
+    if s.alpha >= 0.0:
+        none = np.empty(0)
+        return r, r, none, hist, none, none, none, none
+    rs = r.copy()
+    hist[2] = auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs)
+    m = r.shape[0]
+    if s.scheme == SCHEME_SOR and not s.bilateral_direct and m > 3 * nc:
+        hist[1] = 2.0      # SOR's sweep over bilateral prox rows: long steps on the
+        for l in range(3 * nc, m):     # contact rows only, over-relaxed bilateral rows
+            rs[l] *= AUTO_SOR_BILATERAL_OMEGA / hist[2]    # r_B = |α| ω / G_BB
     nv = MinvW.shape[0]
-    if s.alpha < 0.0:
-        hist[2] = auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs)
-        m = r.shape[0]
-        if s.scheme == SCHEME_SOR and not s.bilateral_direct and m > 3 * nc:
-            hist[1] = 2.0      # SOR's sweep over bilateral prox rows: long steps on the
-            for l in range(3 * nc, m):     # contact rows only, over-relaxed bilateral rows
-                rs[l] *= AUTO_SOR_BILATERAL_OMEGA / hist[2]    # r_B = |α| ω / G_BB
-        rk[:] = rs
-    return rk, rs, lam.copy(), hist, np.empty(nv), np.empty(nv)
+    return rs.copy(), rs, lam.copy(), hist, np.empty(nv), np.empty(nv), np.empty(m), np.empty(m)
 
 
 @nb.njit(cache=True)
@@ -533,7 +579,8 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     new = np.empty(m)
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
-    rk, rs, lam0, hist, tmp1, tmp2 = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
+    long_step = False
     T_old = 0.0
     if criterion == CRITERION_ENERGY:
         _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
@@ -546,6 +593,9 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
                 l = gp_idx[p]
                 s += G[a, l] * lam[l]
             xi[a] = s
+        if long_step:
+            _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
+            long_step = False
         for i in range(nc):
             b = 3 * i
             _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], rk, mu[i], new)
@@ -562,11 +612,12 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
                 hist[1] = 1.0
                 lam[:] = lam0
                 rk[:] = rs
+                long_step = False
                 if criterion == CRITERION_ENERGY:
                     _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
                     T_old = _kinetic_energy(M, u)
                 continue
-            _auto_next(ps, G, G, MinvW, pat, nc, k, lam, new, res, rs, rk, hist, tmp1, tmp2)
+            long_step = _auto_jor_save(k, lam, new, xi, res, rs, rk, hist, dsave, xsave)
         lam[:] = new
         if not finite:
             return k + 1, STATUS_NONFINITE, res
@@ -593,7 +644,7 @@ def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     old = np.empty(m)
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
-    rk, rs, lam0, hist, tmp1, tmp2 = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
     T_old = 0.0
     if criterion == CRITERION_ENERGY:
         _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
@@ -662,7 +713,8 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     new = np.empty(m)
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
-    rk, rs, lam0, hist, tmp1, tmp2 = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)
+    long_step = False
     _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     T_old = _kinetic_energy(M, u) if criterion == CRITERION_ENERGY else 0.0
     res = 0.0
@@ -673,6 +725,9 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
                 j = wp_idx[p]
                 s += Wt[a, j] * u[j]
             xi[a] = s
+        if long_step:
+            _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
+            long_step = False
         for i in range(nc):
             b = 3 * i
             _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], rk, mu[i], new)
@@ -690,11 +745,12 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
                 hist[1] = 1.0
                 lam[:] = lam0
                 rk[:] = rs
+                long_step = False
                 _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
                 if criterion == CRITERION_ENERGY:
                     T_old = _kinetic_energy(M, u)
                 continue
-            _auto_next(ps, Wt, Wt, MinvW, pat, nc, k, lam, new, res, rs, rk, hist, tmp1, tmp2)
+            long_step = _auto_jor_save(k, lam, new, xi, res, rs, rk, hist, dsave, xsave)
         for l in range(m):
             d = new[l] - lam[l]
             if d != 0.0:
@@ -725,7 +781,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     old = np.empty(m)
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
-    rk, rs, lam0, hist, tmp1, tmp2 = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)
     _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     T_old = _kinetic_energy(M, u) if criterion == CRITERION_ENERGY else 0.0
     res = 0.0
