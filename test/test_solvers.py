@@ -55,7 +55,7 @@ def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
     u = np.empty(p["M"].shape[0])
     settings = prox.ProxSettings(form=prox.FORMS[form], scheme=prox.SCHEMES[scheme],
                                  tol_rel=0.0, tol_abs=tol, max_iterations=max_iter,
-                                 criterion=criterion, bilateral_direct=False)
+                                 criterion=criterion, bilateral_direct=False, alpha=alpha)
     it, status, res = prox.prox_solve(
         settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]), p["Wt"],
         p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"], p["na"], p["mu"], r, lam,

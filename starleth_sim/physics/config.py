@@ -148,7 +148,9 @@ class ContactConfig:
 class SolverConfig:
     scheme: str = "jor"          # jor | sor
     form: str = "delassus"       # delassus (Eqn. 12-16) | velocity (Eqn. 17-19)
-    alpha: float = 0.6           # relaxation α ∈ (0, 2)
+    #: relaxation α ∈ (0, 2), or "auto": chosen per step and iteration from G and the
+    #: convergence history (prox.py, "Adaptive α")
+    alpha: float | str = 0.6
     tol_rel: float = 1e-6        # T_rel
     tol_abs: float = 1e-6        # T_abs [N s]
     max_iterations: int = 1000
@@ -160,7 +162,10 @@ class SolverConfig:
     def validate(self, p):
         self.scheme = _choice(f"{p}.scheme", self.scheme, {"jor", "sor"})
         self.form = _choice(f"{p}.form", self.form, {"delassus", "velocity"})
-        self.alpha = _num(f"{p}.alpha", self.alpha, 0.0, 2.0, lo_open=True, hi_open=True)
+        if isinstance(self.alpha, str) and self.alpha != "auto":
+            raise ConfigError(f"{p}.alpha: expected a number or auto, got {self.alpha!r}")
+        if self.alpha != "auto":
+            self.alpha = _num(f"{p}.alpha", self.alpha, 0.0, 2.0, lo_open=True, hi_open=True)
         self.tol_rel = _num(f"{p}.tol_rel", self.tol_rel, lo=0.0)
         self.tol_abs = _num(f"{p}.tol_abs", self.tol_abs, lo=0.0)
         if self.tol_rel == 0 and self.tol_abs == 0:

@@ -32,6 +32,29 @@ Settings: the kernels read form, scheme, T_rel, T_abs, the iteration cap, the te
 criterion and the bilateral method from one typed record `s` with the fields of
 `ProxSettings` (the stepper passes its `StepSettings`, which has them all).
 
+Adaptive α (``solver.alpha: auto``, the settings' α = ALPHA_AUTO < 0): the paper's α must
+be tuned per configuration (Fig. 6; too large diverges). With α < 0 the kernels choose it
+themselves, per step and per iteration:
+  * spectral step: r_s = r / λ_max, the parameters r = |α| / diag(G) scaled by the largest
+    eigenvalue of the scaled Delassus matrix R^{1/2} G R^{1/2} / |α| (a few power
+    iterations; JOR: the whole G (G_UU with the direct bilateral method, the contact rows
+    only), SOR: its per-contact 3x3 blocks and bilateral diagonal, the part that bounds SOR's
+    step). α = 1/λ_max is half the linear stability limit 2/λ_max of JOR, and ω = 1 of SOR;
+  * convergence history: every other sweep takes the Barzilai-Borwein step of the last
+    increment d = Λ^{k+1} − Λ^k, r = r_s θ with θ = (dᵀ R_s^{-1} d) / (dᵀ G d) (the inverse
+    Rayleigh quotient of d: a long step along the slow, low-eigenvalue modes that the
+    spectral step leaves; with the direct method dᵀGd is the Schur complement's form, as
+    Λ_B follows Λ_U), clamped to [1, AUTO_MAX_STEP]; the sweeps in between take the spectral
+    step, which damps the high modes a long step excites. JOR gets Gd for free as
+    ξ^{k+1} − ξ^k, which the next sweep computes anyway (so its long step is set there). SOR with bilateral prox rows
+    takes the long steps on its contact rows only (its Gauss-Seidel sweep over the
+    bilateral rows is not a gradient step: long steps there slowed HMSP 7x); its bilateral
+    rows are over-relaxed instead, r_B = |α| ω / G_BB with ω = AUTO_SOR_BILATERAL_OMEGA;
+  * divergence guard: when the increment grows to AUTO_GUARD times the smallest one of
+    the solve, or a value becomes non-finite (then from the warm start again), the rest of
+    the solve takes the spectral step only (monotone, convergent for linear problems).
+|α| scales r_s: the stepper's divergence fallback retries a failed solve with α·factor.
+
 Every kernel returns (iterations, status, residual) with status 0 = converged,
 1 = iteration cap reached, 2 = non-finite values (the caller must not accept the result),
 and residual = max_l |Λ_(l)^{k+1} − Λ_(l)^k| of the last iteration.
@@ -59,6 +82,24 @@ SCHEMES = {"jor": SCHEME_JOR, "sor": SCHEME_SOR}
 FORMS = {"delassus": FORM_DELASSUS, "velocity": FORM_VELOCITY}
 CRITERIA = {"impulse": CRITERION_IMPULSE, "energy": CRITERION_ENERGY}
 
+#: the settings' α of ``solver.alpha: auto`` (any α < 0 is adaptive, |α| scales the step)
+ALPHA_AUTO = -1.0
+#: adaptive α: largest Barzilai-Borwein step, as a multiple of the spectral step 1/λ_max
+AUTO_MAX_STEP = 1.0e3
+#: adaptive α: an increment this many times the smallest of the solve ends the long steps
+AUTO_GUARD = 1.0e3
+#: adaptive α: power iterations of the λ_max estimate
+AUTO_POWER_ITERATIONS = 16
+#: adaptive α, SOR with bilateral prox rows: their relaxation ω, r_B = |α| ω / G_BB (each row
+#: is a scalar Gauss-Seidel update, convergent for ω < 2)
+AUTO_SOR_BILATERAL_OMEGA = 1.5
+
+
+def alpha_setting(value) -> float:
+    """The settings' α of a validated ``solver.alpha``: the number, or ALPHA_AUTO for
+    ``auto``."""
+    return ALPHA_AUTO if value == "auto" else float(value)
+
 
 class Patterns(NamedTuple):
     """Nonzero patterns of a problem, each a CSR pair (ptr, idx): the rows of W^T (wp), the
@@ -82,6 +123,7 @@ class ProxSettings(NamedTuple):
     max_iterations: int
     criterion: int             # CRITERION_IMPULSE | CRITERION_ENERGY (½ uᵀMu)
     bilateral_direct: bool     # Λ_B by Eqn. 20 after each sweep (else prox rows, Eqn. 19)
+    alpha: float = 0.5         # α > 0: r as given; < 0 (ALPHA_AUTO): adaptive α, see above
 
 
 @nb.njit(cache=True, inline="always")
@@ -159,8 +201,10 @@ def delassus_diagonal(Wt, MinvW, d, wp_ptr, wp_idx):
 
 @nb.njit(cache=True)
 def prox_parameters(Gdiag, nc, alpha, r):
-    """r_N = α/G_NN, r_T = α/max(G_T1T1, G_T2T2) per contact, r_B = α/G_ll per bilateral row."""
+    """r_N = α/G_NN, r_T = α/max(G_T1T1, G_T2T2) per contact, r_B = α/G_ll per bilateral row.
+    α < 0 (adaptive α, ALPHA_AUTO) gives the same with |α|; the kernels then rescale r."""
     m = Gdiag.shape[0]
+    alpha = abs(alpha)
     for i in range(nc):
         b = 3 * i
         r[b] = alpha / Gdiag[b]
@@ -267,6 +311,262 @@ def _check(lam_old, lam, tol_rel, tol_abs):
     return ok, res, finite
 
 
+# -- adaptive α (solver.alpha: auto) ------------------------------------------------------------
+@nb.njit(cache=True)
+def _delassus_entry(form, G, Wt, MinvW, pat, a, l):
+    """G_al: from G (Delassus form) or W_a^T (M^{-1}W)_l (velocity form)."""
+    if form == FORM_DELASSUS:
+        return G[a, l]
+    s = 0.0
+    for p in range(pat.wp_ptr[a], pat.wp_ptr[a + 1]):
+        k = pat.wp_idx[p]
+        s += Wt[a, k] * MinvW[k, l]
+    return s
+
+
+@nb.njit(cache=True)
+def _scaled_apply(form, G, Wt, MinvW, pat, sq, x, y, n, tmp):
+    """y = S x with S = R^{1/2} G R^{1/2} restricted to the first n rows (sq = r^{1/2})."""
+    if form == FORM_DELASSUS:
+        for a in range(n):
+            acc = 0.0
+            for p in range(pat.gp_ptr[a], pat.gp_ptr[a + 1]):
+                l = pat.gp_idx[p]
+                if l < n:
+                    acc += G[a, l] * sq[l] * x[l]
+            y[a] = sq[a] * acc
+        return
+    tmp[:] = 0.0
+    for l in range(n):
+        v = sq[l] * x[l]
+        if v != 0.0:
+            for p in range(pat.mp_ptr[l], pat.mp_ptr[l + 1]):
+                k = pat.mp_idx[p]
+                tmp[k] += MinvW[k, l] * v
+    for a in range(n):
+        acc = 0.0
+        for p in range(pat.wp_ptr[a], pat.wp_ptr[a + 1]):
+            k = pat.wp_idx[p]
+            acc += Wt[a, k] * tmp[k]
+        y[a] = sq[a] * acc
+
+
+@nb.njit(cache=True)
+def _power_lambda_max(S3, n_power):
+    """λ_max of a symmetric positive semi-definite 3x3 matrix S3 by power iteration."""
+    x0, x1, x2 = 1.0, 0.9, 0.8
+    lam = 0.0
+    for _ in range(n_power):
+        y0 = S3[0, 0] * x0 + S3[0, 1] * x1 + S3[0, 2] * x2
+        y1 = S3[1, 0] * x0 + S3[1, 1] * x1 + S3[1, 2] * x2
+        y2 = S3[2, 0] * x0 + S3[2, 1] * x1 + S3[2, 2] * x2
+        nx = x0 * x0 + x1 * x1 + x2 * x2
+        lam = (x0 * y0 + x1 * y1 + x2 * y2) / nx
+        ny = np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+        if ny == 0.0:
+            return lam
+        x0, x1, x2 = y0 / ny, y1 / ny, y2 / ny
+    return lam
+
+
+@nb.njit(cache=True)
+def auto_spectral_scale(s, G, Wt, MinvW, pat, nc, r):
+    """λ_max of the scaled Delassus matrix S = R^{1/2} G R^{1/2} (r = |α|/diag(G)) that bounds
+    the step of the settings' scheme: JOR, S itself (its contact rows S_UU with the direct
+    bilateral method, where Λ_B follows Λ_U); SOR, the largest eigenvalue of its per-contact
+    3x3 blocks and bilateral diagonal entries. Returns 0 for an empty problem."""
+    m = r.shape[0]
+    o = 3 * nc
+    n = o if s.bilateral_direct else m
+    if n == 0:
+        return 0.0
+    sq = np.sqrt(r)
+    if s.scheme == SCHEME_SOR:
+        best = 0.0
+        S3 = np.empty((3, 3))
+        for i in range(nc):
+            b = 3 * i
+            for a in range(3):
+                for l in range(3):
+                    S3[a, l] = sq[b + a] * sq[b + l] * _delassus_entry(s.form, G, Wt, MinvW,
+                                                                       pat, b + a, b + l)
+            best = max(best, _power_lambda_max(S3, 3 * AUTO_POWER_ITERATIONS))
+        for l in range(o, n):
+            best = max(best, r[l] * _delassus_entry(s.form, G, Wt, MinvW, pat, l, l))
+        return best
+    x = np.empty(n)
+    for a in range(n):
+        x[a] = 1.0 + 0.1 * ((a * 7) % 5)      # generic start: not orthogonal to the top mode
+    y = np.empty(n)
+    tmp = np.empty(MinvW.shape[0])
+    lam = 0.0
+    for _ in range(AUTO_POWER_ITERATIONS):
+        _scaled_apply(s.form, G, Wt, MinvW, pat, sq, x, y, n, tmp)
+        nx = 0.0
+        xy = 0.0
+        ny = 0.0
+        for a in range(n):
+            nx += x[a] * x[a]
+            xy += x[a] * y[a]
+            ny += y[a] * y[a]
+        lam = xy / nx
+        if ny == 0.0:
+            break
+        ny = np.sqrt(ny)
+        for a in range(n):
+            x[a] = y[a] / ny
+    return lam
+
+
+@nb.njit(cache=True)
+def auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs):
+    """The spectral step of the adaptive α: rs = r / λ_max(R^{1/2} G R^{1/2} / |α|), i.e.
+    r_l = |α| / (λ_max G_ll) with λ_max of the diagonally scaled G (see
+    `auto_spectral_scale`), |α| = r_0 G_00. Returns the factor rs / r (1: no estimate)."""
+    m = r.shape[0]
+    rs[:] = r
+    if m == 0:
+        return 1.0
+    lam = auto_spectral_scale(s, G, Wt, MinvW, pat, nc, r)
+    a_abs = r[0] * _delassus_entry(s.form, G, Wt, MinvW, pat, 0, 0)
+    if not (lam > 0.0 and np.isfinite(lam) and a_abs > 0.0):
+        return 1.0
+    f = a_abs / lam
+    for l in range(m):
+        rs[l] = r[l] * f
+    return f
+
+
+@nb.njit(cache=True)
+def auto_step_factor(s, G, Wt, MinvW, pat, nc, old, new, rs, tmp1, tmp2, n):
+    """θ of the Barzilai-Borwein step of the increment d = new − old: (dᵀ R_s^{-1} d) over
+    the first n rows (those the long step applies to: the contact rows with the direct
+    bilateral method, where dᵀGd over all rows is the Schur complement's form) / (dᵀ G d),
+    clamped to [1, AUTO_MAX_STEP]; 1 when d is 0 or dᵀGd is not positive."""
+    m = old.shape[0]
+    p_ = 0.0
+    for l in range(n):
+        d = new[l] - old[l]
+        p_ += d * d / rs[l]
+    if p_ == 0.0:
+        return 1.0
+    q = 0.0
+    if s.form == FORM_DELASSUS:
+        for a in range(m):
+            da = new[a] - old[a]
+            if da != 0.0:
+                acc = 0.0
+                for p in range(pat.gp_ptr[a], pat.gp_ptr[a + 1]):
+                    l = pat.gp_idx[p]
+                    acc += G[a, l] * (new[l] - old[l])
+                q += da * acc
+    else:
+        tmp1[:] = 0.0      # W d
+        tmp2[:] = 0.0      # M^{-1} W d
+        for l in range(m):
+            d = new[l] - old[l]
+            if d != 0.0:
+                for p in range(pat.wp_ptr[l], pat.wp_ptr[l + 1]):
+                    k = pat.wp_idx[p]
+                    tmp1[k] += Wt[l, k] * d
+                for p in range(pat.mp_ptr[l], pat.mp_ptr[l + 1]):
+                    k = pat.mp_idx[p]
+                    tmp2[k] += MinvW[k, l] * d
+        for k in range(tmp1.shape[0]):
+            q += tmp1[k] * tmp2[k]
+    return _clamp_step(p_, q)
+
+
+@nb.njit(cache=True)
+def _clamp_step(p_, q):
+    """θ = p/q clamped to [1, AUTO_MAX_STEP]; 1 when p is 0 or q is not positive."""
+    if p_ == 0.0 or not q > 0.0:
+        return 1.0
+    theta = p_ / q
+    if not np.isfinite(theta):
+        return 1.0
+    return min(max(theta, 1.0), AUTO_MAX_STEP)
+
+
+@nb.njit(cache=True)
+def _auto_guard(res, hist):
+    """Tracks the smallest increment of the solve; an increment AUTO_GUARD times larger
+    ends the long steps (hist[1] = 1). Returns whether long steps may follow."""
+    if hist[1] != 1.0:
+        if res < hist[0]:
+            hist[0] = res
+        elif res > AUTO_GUARD * hist[0]:
+            hist[1] = 1.0
+    return hist[1] != 1.0
+
+
+@nb.njit(cache=True)
+def _auto_jor_save(k, old, new, xi, res, rs, rk, hist, dsave, xsave):
+    """JOR's adaptive α after sweep k: the spectral step rs for the next sweep; after even
+    sweeps also d = new − old and ξ^k saved, for the long step that the next sweep takes once
+    it has ξ^{k+1} (Gd = ξ^{k+1} − ξ^k: no extra product with G). Returns whether it will."""
+    rk[:] = rs
+    if not _auto_guard(res, hist) or k % 2 == 1:
+        return False
+    for l in range(old.shape[0]):
+        dsave[l] = new[l] - old[l]
+        xsave[l] = xi[l]
+    return True
+
+
+@nb.njit(cache=True)
+def _auto_jor_long_step(s, nc, xi, rs, rk, dsave, xsave):
+    """The long step of JOR from the saved increment d and Gd = ξ − ξ_saved (see
+    auto_step_factor): rk = rs θ on the contact rows (and the bilateral prox rows)."""
+    m = xi.shape[0]
+    n = 3 * nc if s.bilateral_direct else m
+    p_ = 0.0
+    for l in range(n):
+        p_ += dsave[l] * dsave[l] / rs[l]
+    q = 0.0
+    for l in range(m):
+        q += dsave[l] * (xi[l] - xsave[l])
+    theta = _clamp_step(p_, q)
+    for l in range(n):
+        rk[l] = rs[l] * theta
+
+
+@nb.njit(cache=True)
+def _auto_next(s, G, Wt, MinvW, pat, nc, k, old, new, res, rs, rk, hist, tmp1, tmp2):
+    """The parameters rk of the sweep after sweep k (increment new − old, max |ΔΛ| = res) of
+    the adaptive α: the Barzilai-Borwein step after even sweeps, the spectral step rs after
+    odd ones, and for good once the guard tripped. hist: [smallest increment, mode (0: long
+    steps, 1: spectral steps only, 2: long steps on the contact rows only), rs / r]."""
+    rk[:] = rs
+    if not _auto_guard(res, hist) or k % 2 == 1:
+        return
+    # long steps on the contact rows (and the bilateral prox rows of JOR)
+    n = 3 * nc if s.bilateral_direct or hist[1] == 2.0 else rk.shape[0]
+    theta = auto_step_factor(s, G, Wt, MinvW, pat, nc, old, new, rs, tmp1, tmp2, n)
+    for l in range(n):
+        rk[l] = rs[l] * theta
+
+
+@nb.njit(cache=True)
+def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
+    """Work arrays of a kernel: (rk, rs, Λ^0, hist, tmp1, tmp2, dsave, xsave) with rk the parameters of the
+    first sweep: r itself (no copies with a fixed α), or with the adaptive α (s.alpha < 0)
+    its spectral step rs."""
+    hist = np.array([np.inf, 0.0, 1.0])
+    if s.alpha >= 0.0:
+        none = np.empty(0)
+        return r, r, none, hist, none, none, none, none
+    rs = r.copy()
+    hist[2] = auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs)
+    m = r.shape[0]
+    if s.scheme == SCHEME_SOR and not s.bilateral_direct and m > 3 * nc:
+        hist[1] = 2.0      # SOR's sweep over bilateral prox rows: long steps on the
+        for l in range(3 * nc, m):     # contact rows only, over-relaxed bilateral rows
+            rs[l] *= AUTO_SOR_BILATERAL_OMEGA / hist[2]    # r_B = |α| ω / G_BB
+    nv = MinvW.shape[0]
+    return rs.copy(), rs, lam.copy(), hist, np.empty(nv), np.empty(nv), np.empty(m), np.empty(m)
+
+
 @nb.njit(cache=True)
 def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out."""
@@ -277,6 +577,10 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     o = 3 * nc
     xi = np.empty(m)
     new = np.empty(m)
+    auto = s.alpha < 0.0
+    ps = s      # (the loops below reuse the name s for sums)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
+    long_step = False
     T_old = 0.0
     if criterion == CRITERION_ENERGY:
         _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
@@ -289,17 +593,31 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
                 l = gp_idx[p]
                 s += G[a, l] * lam[l]
             xi[a] = s
+        if long_step:
+            _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
+            long_step = False
         for i in range(nc):
             b = 3 * i
-            _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new)
+            _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], rk, mu[i], new)
         if bilateral_direct:
             for l in range(o, m):
                 new[l] = lam[l]
             _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx)
         else:
             for l in range(o, m):
-                new[l] = lam[l] - r[l] * xi[l]
+                new[l] = lam[l] - rk[l] * xi[l]
         ok, res, finite = _check(lam, new, tol_rel, tol_abs)
+        if auto:
+            if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
+                hist[1] = 1.0
+                lam[:] = lam0
+                rk[:] = rs
+                long_step = False
+                if criterion == CRITERION_ENERGY:
+                    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
+                    T_old = _kinetic_energy(M, u)
+                continue
+            long_step = _auto_jor_save(k, lam, new, xi, res, rs, rk, hist, dsave, xsave)
         lam[:] = new
         if not finite:
             return k + 1, STATUS_NONFINITE, res
@@ -324,6 +642,9 @@ def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     m = c.shape[0]
     o = 3 * nc
     old = np.empty(m)
+    auto = s.alpha < 0.0
+    ps = s      # (the loops below reuse the name s for sums)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
     T_old = 0.0
     if criterion == CRITERION_ENERGY:
         _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
@@ -345,7 +666,7 @@ def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
             for p in range(gp_ptr[b + 2], gp_ptr[b + 3]):
                 l = gp_idx[p]
                 x2 += G[b + 2, l] * lam[l]
-            _project_contact(lam, b, x0, x1, x2, r, mu[i], lam)
+            _project_contact(lam, b, x0, x1, x2, rk, mu[i], lam)
         if bilateral_direct:
             _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx)
         else:
@@ -354,8 +675,18 @@ def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
                 for p in range(gp_ptr[a], gp_ptr[a + 1]):
                     l = gp_idx[p]
                     s += G[a, l] * lam[l]
-                lam[a] -= r[a] * s
+                lam[a] -= rk[a] * s
         ok, res, finite = _check(old, lam, tol_rel, tol_abs)
+        if auto:
+            if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
+                hist[1] = 1.0
+                lam[:] = lam0
+                rk[:] = rs
+                if criterion == CRITERION_ENERGY:
+                    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
+                    T_old = _kinetic_energy(M, u)
+                continue
+            _auto_next(ps, G, G, MinvW, pat, nc, k, old, lam, res, rs, rk, hist, tmp1, tmp2)
         if not finite:
             return k + 1, STATUS_NONFINITE, res
         if criterion == CRITERION_ENERGY:
@@ -380,6 +711,10 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     o = 3 * nc
     xi = np.empty(m)
     new = np.empty(m)
+    auto = s.alpha < 0.0
+    ps = s      # (the loops below reuse the name s for sums)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)
+    long_step = False
     _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     T_old = _kinetic_energy(M, u) if criterion == CRITERION_ENERGY else 0.0
     res = 0.0
@@ -390,9 +725,12 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
                 j = wp_idx[p]
                 s += Wt[a, j] * u[j]
             xi[a] = s
+        if long_step:
+            _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
+            long_step = False
         for i in range(nc):
             b = 3 * i
-            _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new)
+            _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], rk, mu[i], new)
         if bilateral_direct:
             for l in range(o, m):
                 new[l] = lam[l]
@@ -400,8 +738,19 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
                                        mp_idx)
         else:
             for l in range(o, m):
-                new[l] = lam[l] - r[l] * xi[l]
+                new[l] = lam[l] - rk[l] * xi[l]
         ok, res, finite = _check(lam, new, tol_rel, tol_abs)
+        if auto:
+            if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
+                hist[1] = 1.0
+                lam[:] = lam0
+                rk[:] = rs
+                long_step = False
+                _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
+                if criterion == CRITERION_ENERGY:
+                    T_old = _kinetic_energy(M, u)
+                continue
+            long_step = _auto_jor_save(k, lam, new, xi, res, rs, rk, hist, dsave, xsave)
         for l in range(m):
             d = new[l] - lam[l]
             if d != 0.0:
@@ -430,6 +779,9 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     m = Wt.shape[0]
     o = 3 * nc
     old = np.empty(m)
+    auto = s.alpha < 0.0
+    ps = s      # (the loops below reuse the name s for sums)
+    rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)
     _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
     T_old = _kinetic_energy(M, u) if criterion == CRITERION_ENERGY else 0.0
     res = 0.0
@@ -447,7 +799,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
             for p in range(wp_ptr[b + 2], wp_ptr[b + 3]):
                 x2 += Wt[b + 2, wp_idx[p]] * u[wp_idx[p]]
             l0, l1, l2 = lam[b], lam[b + 1], lam[b + 2]
-            _project_contact(lam, b, x0, x1, x2, r, mu[i], lam)
+            _project_contact(lam, b, x0, x1, x2, rk, mu[i], lam)
             for rr in range(3):
                 d_ = lam[b + rr] - (l0 if rr == 0 else (l1 if rr == 1 else l2))
                 if d_ != 0.0:
@@ -465,12 +817,22 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
                 for p in range(wp_ptr[a], wp_ptr[a + 1]):
                     j = wp_idx[p]
                     s += Wt[a, j] * u[j]
-                d_ = -r[a] * s
+                d_ = -rk[a] * s
                 lam[a] += d_
                 for p in range(mp_ptr[a], mp_ptr[a + 1]):
                     j = mp_idx[p]
                     u[j] += MinvW[j, a] * d_
         ok, res, finite = _check(old, lam, tol_rel, tol_abs)
+        if auto:
+            if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
+                hist[1] = 1.0
+                lam[:] = lam0
+                rk[:] = rs
+                _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
+                if criterion == CRITERION_ENERGY:
+                    T_old = _kinetic_energy(M, u)
+                continue
+            _auto_next(ps, Wt, Wt, MinvW, pat, nc, k, old, lam, res, rs, rk, hist, tmp1, tmp2)
         if not finite:
             return k + 1, STATUS_NONFINITE, res
         if criterion == CRITERION_ENERGY:

@@ -77,7 +77,7 @@ class StepSettings(NamedTuple):
 
     activation_gap: float       # g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]
     mu: float                   # μ, Coulomb friction coefficient of the ground
-    alpha: float                # α, prox relaxation: r = α / diag(G)
+    alpha: float                # α, prox relaxation: r = α / diag(G) (< 0: adaptive, prox.py)
     tol_rel: float              # T_rel
     tol_abs: float              # T_abs [N s]
     fallback_alpha_factor: float  # a non-converged solve is retried once with α·this (0: no)
@@ -759,7 +759,8 @@ class MoreauStepper:
         #: plain tuple: see the module docstring)
         self.settings = StepSettings(
             activation_gap=float(self.activation_gap), mu=float(config.ground.mu),
-            alpha=float(s.alpha), tol_rel=float(s.tol_rel), tol_abs=float(s.tol_abs),
+            alpha=prox.alpha_setting(s.alpha),      # solver.alpha: auto -> prox.ALPHA_AUTO
+            tol_rel=float(s.tol_rel), tol_abs=float(s.tol_abs),
             fallback_alpha_factor=float(s.fallback_alpha_factor),
             opening_gap=float(c.opening_gap), dt=float(self.dt),
             beta_velocity=float(self.beta_velocity),

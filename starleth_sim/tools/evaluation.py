@@ -355,6 +355,8 @@ def plan(quick: bool, configs):
     tasks += [(task_fig7, dict(preset=c, seconds=s["fig7"])) for c in configs]
     tasks += [(task_fig6, dict(preset=c, gait=g, alpha=float(a), seconds=s["fig6"]))
               for c in fig6_configs for g in ("stand", "trot") for a in alphas]
+    tasks += [(task_fig6, dict(preset=c, gait=g, alpha="auto", seconds=s["fig6"]))
+              for c in fig6_configs for g in (("trot",) if quick else ("stand", "trot"))]
     tasks += [(task_unilateral_drift, dict(preset=c, seconds=s["drift"]))
               for c in configs if c != "Cm"]
     tasks += [(task_bilateral_drift, dict(preset=c, seconds=s["drift"]))
@@ -387,11 +389,29 @@ def alpha_limits(fig6):
     may also fail, by needing more than the iteration cap: slow, not divergent), and whether
     it is the top of the grid. Returns {(config, gait): (limit or None, at_top)}."""
     out = {}
+    fig6 = [r for r in fig6 if r["alpha"] != "auto"]
     for key in sorted({(r["preset"], r["gait"]) for r in fig6}):
         rs = sorted((r for r in fig6 if (r["preset"], r["gait"]) == key), key=lambda r: r["alpha"])
         ok = [r["alpha"] for r in rs if r["converged"]]
         limit = max(ok) if ok else None
         out[key] = (limit, limit is not None and limit == rs[-1]["alpha"])
+    return out
+
+
+def alpha_auto_rows(fig6):
+    """Per (config, gait) with an α = auto run: (best fixed α of the grid, its mean
+    iterations, auto's mean iterations, auto converged on every step)."""
+    out = {}
+    for r in fig6:
+        if r["alpha"] != "auto":
+            continue
+        key = (r["preset"], r["gait"])
+        fixed = [f for f in fig6 if (f["preset"], f["gait"]) == key and f["alpha"] != "auto"
+                 and f["converged"]]
+        best = min(fixed, key=lambda f: f["mean_iterations"]) if fixed else None
+        out[key] = (best["alpha"] if best else None,
+                    best["mean_iterations"] if best else float("nan"),
+                    r["mean_iterations"], r["converged"])
     return out
 
 
@@ -439,6 +459,8 @@ def make_figures(results, out_dir):
     f6 = _by(results, "fig6")
     if f6:
         fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+        auto = {(r["preset"], r["gait"]): r for r in f6 if r["alpha"] == "auto"}
+        f6 = [r for r in f6 if r["alpha"] != "auto"]
         for ax, gait in zip(axes, ("stand", "trot")):
             for i, preset in enumerate(sorted({r["preset"] for r in f6})):
                 rs = sorted((r for r in f6 if r["preset"] == preset and r["gait"] == gait),
@@ -446,13 +468,20 @@ def make_figures(results, out_dir):
                 a = [r["alpha"] for r in rs if r["converged"]]
                 it = [r["mean_iterations"] for r in rs if r["converged"]]
                 ax.plot(a, it, marker="o", ms=3, label=preset, color=f"C{i}")
+                ra = auto.get((preset, gait))
+                if ra is not None and ra["converged"]:    # α = auto: a star right of the grid
+                    ax.plot([2.1], [ra["mean_iterations"]], marker="*", ms=9, color=f"C{i}",
+                            ls="none")
+            if auto:
+                ax.set_xticks([0.0, 0.5, 1.0, 1.5, 2.1], ["0", "0.5", "1", "1.5", "auto"])
             ax.set_xlabel("relaxation α")
             ax.set_title(f"{gait}")
             ax.set_yscale("log")
             ax.grid(alpha=0.3)
         axes[0].set_ylabel("prox iterations per step (mean)")
         axes[1].legend(fontsize=7, ncol=2)
-        fig.suptitle("Fig. 6: prox iterations against α (points only where every step converged)")
+        fig.suptitle("Fig. 6: prox iterations against α (points only where every step "
+                     "converged; ★ α = auto)")
         fig.tight_layout()
         figs["fig6"] = "fig6_iterations_vs_alpha.png"
         fig.savefig(os.path.join(out_dir, figs["fig6"]), dpi=120)
@@ -582,6 +611,17 @@ def write_report(results, figs, out_dir, quick, elapsed, jobs):
                 lim, top = lims.get((preset, gait), (None, None))
                 row.append("none" if lim is None else (f"≥ {lim}" if top else f"{lim}"))
             lines.append(f"| {preset} | {row[0]} | {row[1]} | {load_preset(preset).solver.alpha} |")
+    auto = alpha_auto_rows(_by(results, "fig6"))
+    if auto:
+        lines += ["", "## Fig. 6: α = auto against the best fixed α", "",
+                  "`solver.alpha: auto` (adaptive α, no fallback) beside the fixed α of the "
+                  "grid with the fewest mean iterations per step.", "",
+                  "| config | gait | best fixed α | its mean iterations | auto: mean "
+                  "iterations | auto: every step converged |", "|---|---|---|---|---|---|"]
+        for (preset, gait), (a, it_best, it_auto, ok) in sorted(
+                auto.items(), key=lambda kv: (TABLE1.index(kv[0][0]), kv[0][1])):
+            lines.append(f"| {preset} | {gait} | {a} | {it_best:.1f} | {it_auto:.1f} | "
+                         f"{'yes' if ok else 'no'} |")
     lines += ["", "## Robustness: push-over stress test", "",
               "Standing robot, lateral push of 70 N s (700 N for 0.1 s) on the trunk, 0.5 s "
               "into the run; the controller keeps standing.", "",
