@@ -137,15 +137,15 @@ def scenario(request):
         r = Recorder(preset)
         t0 = time.perf_counter()
         phases = {
-            "stand": r.run(Command("stand"), 20.0),
-            "trot": r.run(Command("trot"), 20.0),
-            "forward": r.run(Command("trot", forward=0.3), 20.0),
+            "stand": r.run(Command("stand"), 8.0),
+            "trot": r.run(Command("trot"), 10.0),
+            "forward": r.run(Command("trot", forward=0.3), 10.0),
             # lateral impulse 15 N s (150 N for 0.1 s) while trotting at 0.3 m/s
             "push": r.run(Command("trot", forward=0.3), 4.0, push=((0.0, 150.0, 0.0), 0.1)),
         }
         wall = time.perf_counter() - t0
         ct = np.array(r.call_times[100:])
-        print(f"\n[{preset}] 64 s simulated in {wall:.1f} s; controller {1e6 * ct.mean():.0f} µs "
+        print(f"\n[{preset}] 32 s simulated in {wall:.1f} s; controller {1e6 * ct.mean():.0f} µs "
               f"per call (p99 {1e6 * np.percentile(ct, 99):.0f} µs)")
         _RUNS[preset] = (preset, phases)
     return _RUNS[preset]

@@ -342,9 +342,9 @@ def task_contact_variant(label, overrides, seconds):
 
 # ----------------------------------------------------------------------------------------------
 def plan(quick: bool, configs):
-    s = dict(table1=4.0 if quick else 21.0, fig5=3.0 if quick else 4.0,
+    s = dict(table1=3.0 if quick else 21.0, fig5=3.0 if quick else 4.0,
              fig7=2.0 if quick else 5.0, fig6=1.2 if quick else 4.0,
-             drift=6.0 if quick else 60.0, push=2.0 if quick else 4.0,
+             drift=3.0 if quick else 60.0, push=2.0 if quick else 4.0,
              variants=2.0 if quick else 5.0)
     alphas = (0.2, 0.6, 1.0, 1.4, 1.8) if quick else tuple(np.round(np.arange(0.1, 2.0, 0.1), 2))
     fig6_configs = [c for c in (("HmJ", "HmS", "HMJP", "HMSP") if quick else FIG6_CONFIGS)
