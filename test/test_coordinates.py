@@ -232,15 +232,15 @@ def test_every_table1_preset_stands_10_s(preset):
 
 
 @pytest.mark.parametrize("preset", ["HEJD", "HMJD"])
-def test_bilateral_drift_while_trotting_60_s_is_below_the_papers(preset):
+def test_bilateral_drift_while_trotting_30_s_is_below_the_papers(preset):
     """Position-level violation of the bilateral constraints while trotting at 0.3 m/s for
-    60 s: its growth (least-squares slope after the first 2 s) must not exceed the paper's
+    30 s (the full 60 s run is starleth-eval's): its growth (least-squares slope after the first 2 s) must not exceed the paper's
     0.59 µm/min. (The drift stabilisation β = 1 of the presets bounds the violation; with
     β = 0, the paper's plain law, HMJD drifts by millimetres per minute here.)"""
     sim = Simulator.from_preset(preset)
     ctrl = StarlethController(urdf_path())
     t, g = [], []
-    for k in range(int(62 / sim.control_period)):
+    for k in range(int(32 / sim.control_period)):
         cmd = Command(mode="stand" if k < 800 else "trot", forward=0.3 if k >= 800 else 0.0)
         sim.step(ctrl.update(RobotState.from_simulator(sim), cmd))
         if k >= 800 and k % 20 == 0:
@@ -249,4 +249,4 @@ def test_bilateral_drift_while_trotting_60_s_is_below_the_papers(preset):
     slope_um_per_min = np.polyfit(t, g, 1)[0] * 60e6
     assert abs(slope_um_per_min) <= 0.59, slope_um_per_min
     assert max(g) < 2e-5                       # bounded: 20 µm
-    assert sim.base_state()["position"][0] > 15.0  # it did trot (0.3 m/s x 60 s)
+    assert sim.base_state()["position"][0] > 7.5  # it did trot (0.3 m/s x 30 s)

@@ -6,8 +6,8 @@ import pytest
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator
 from starleth_sim.physics import prox
-from starleth_sim.physics.stepper import (constraint_velocity, free_velocity, phase_delassus,
-                                          phase_minv)
+from starleth_sim.physics.stepper import (StepSettings, constraint_velocity, free_velocity,
+                                          phase_delassus, phase_minv)
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -53,9 +53,14 @@ def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
     prox.prox_parameters(np.diag(p["G"]).copy(), p["na"], alpha, r)
     lam = np.zeros(m)
     u = np.empty(p["M"].shape[0])
-    settings = prox.ProxSettings(form=prox.FORMS[form], scheme=prox.SCHEMES[scheme],
-                                 tol_rel=0.0, tol_abs=tol, max_iterations=max_iter,
-                                 criterion=criterion, bilateral_direct=False, alpha=alpha)
+    # the stepper's record (prox_solve reads its ProxSettings fields): the same numba type
+    # as in a step, so the prox kernels are compiled once for the suite, not twice
+    settings = StepSettings(
+        activation_gap=0.0, mu=0.0, alpha=float(alpha), tol_rel=0.0, tol_abs=float(tol),
+        fallback_alpha_factor=0.0, opening_gap=0.0, dt=0.0, beta_velocity=0.0,
+        beta_projection=0.0, jacobian_gap=0.0, projection_tolerance=0.0,
+        form=prox.FORMS[form], scheme=prox.SCHEMES[scheme], max_iterations=int(max_iter),
+        criterion=int(criterion), warm_start=False, bilateral_direct=False, hysteresis=False)
     it, status, res = prox.prox_solve(
         settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]), p["Wt"],
         p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"], p["na"], p["mu"], r, lam,

@@ -232,14 +232,14 @@ def _spawn(args, mode, rtf, pong, log, record="", timing=""):
     if mode == "realtime" and args.realtime_priority:
         cmd += ["--realtime-priority", str(args.realtime_priority)]
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
-    pre = None
-    if getattr(args, "pin", False):
-        cpu = min(os.sched_getaffinity(0) | set(range(os.cpu_count() or 1)))
-
-        def pre():       # the child and every thread it starts on one CPU
-            os.sched_setaffinity(0, {cpu})
+    pre = _pin_to_one_cpu if getattr(args, "pin", False) else None
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                             preexec_fn=pre)
+
+
+def _pin_to_one_cpu():
+    """(in the child before exec) the child and every thread it starts on one CPU"""
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 
 def _stop(proc, log_path, timeout=20):
@@ -395,18 +395,27 @@ def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmu
               f"ratio {rate / bare_rate:.2f}", flush=True)
     pp.close()
     ctl.close()
-    rtts = np.array(all_rtts)
-    bare = {"round_trips_per_s": len(rtts) / float(rtts.sum()),
+    bare = bare_figures(all_rtts)
+    return bare, lockstep_figures(per, n_total, t_total, stamps_bad, bare)
+
+
+def bare_figures(rtts):
+    """Rate, median and p99 of the bare round trips (seconds each)."""
+    rtts = np.asarray(rtts)
+    return {"round_trips_per_s": len(rtts) / float(rtts.sum()),
             "rtt_median_ms": float(np.median(rtts) * 1e3),
             "rtt_p99_ms": float(np.percentile(rtts, 99) * 1e3), "n": int(len(rtts))}
+
+
+def lockstep_figures(per, n_total, t_total, stamps_bad, bare):
+    """The lockstep figures of all rounds: rate, its ratio to the bare round trips."""
     ratios = [p["ratio"] for p in per]
-    lock = {"states": n_total, "wall_s": t_total, "states_per_s": n_total / t_total,
+    return {"states": n_total, "wall_s": t_total, "states_per_s": n_total / t_total,
             "sim_time_per_wall": n_total * 0.0025 / t_total,
             "stamp_steps_not_one_period": stamps_bad, "rounds": per,
             "ratio_to_bare": (n_total / t_total) / bare["round_trips_per_s"],
             "ratio_median_of_rounds": float(np.median(ratios)),
             "ratio_min_of_rounds": float(np.min(ratios))}
-    return bare, lock
 
 
 def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
@@ -434,10 +443,7 @@ def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windo
         windows.append((t_start, t_end, bare_rate, n))
         print(f"  round {r + 1}/{rounds}: bare {bare_rate:.0f}/s", flush=True)
     pp.close()
-    rtts = np.array(all_rtts)
-    return {"round_trips_per_s": len(rtts) / float(rtts.sum()),
-            "rtt_median_ms": float(np.median(rtts) * 1e3),
-            "rtt_p99_ms": float(np.percentile(rtts, 99) * 1e3), "n": int(len(rtts))}, None
+    return bare_figures(all_rtts), None
 
 
 def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
@@ -460,13 +466,7 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
                     "ratio": rate / bare_rate})
         n_total += n
         t_total += t1 - t0
-    ratios = [p["ratio"] for p in per]
-    lock = {"states": n_total, "wall_s": t_total, "states_per_s": n_total / t_total,
-            "sim_time_per_wall": n_total * 0.0025 / t_total,
-            "stamp_steps_not_one_period": bad, "rounds": per,
-            "ratio_to_bare": (n_total / t_total) / bare["round_trips_per_s"],
-            "ratio_median_of_rounds": float(np.median(ratios)),
-            "ratio_min_of_rounds": float(np.min(ratios))}
+    lock = lockstep_figures(per, n_total, t_total, bad, bare)
     # breakdown: state k (sim row k), the controller's answer to k (ctl row), the command
     # that arrives for k (sim row k+1: command_in), all inside a round
     in_round = np.zeros(len(sim_stamp), bool)
