@@ -26,8 +26,35 @@ import numpy as np
 
 from .kernels import qp_matrices, torque_rows
 
+
+def _import_proxqp_portable():
+    """proxsuite's ``proxqp`` from its portable build, not the AVX2 / AVX-512 one.
+
+    proxsuite's ``__init__`` loads the most vectorised of its three builds. The AVX2 build
+    rounds differently with the alignment of its internal buffers, so the same QPs solved in
+    two processes differ by ~1e-10 N (measured: 3 different torque digests in 4 processes
+    over 1,600 trotting updates; the portable build gave one digest in 4, at the same speed
+    on these 18-variable QPs). Closed-loop runs, sweeps on a pool or on Ray and replays of
+    them are then reproducible bit for bit. The choice is made by answering proxsuite's
+    instruction-set probe with "none" while it loads; if proxsuite was already imported by
+    someone else, its loaded build is used as it is."""
+    import importlib
+    import sys
+    import types
+    if "proxsuite" not in sys.modules:
+        probe = types.ModuleType("proxsuite.instructionset")
+        probe.has_AVX2 = probe.has_AVX512F = lambda: False
+        sys.modules["proxsuite.instructionset"] = probe
+        try:
+            importlib.import_module("proxsuite")
+        finally:
+            if sys.modules.get("proxsuite.instructionset") is probe:
+                del sys.modules["proxsuite.instructionset"]
+    return importlib.import_module("proxsuite").proxqp
+
+
 try:
-    from proxsuite import proxqp
+    proxqp = _import_proxqp_portable()
 except ImportError as e:  # pragma: no cover
     raise ImportError("starleth_controller needs proxsuite (pip install proxsuite)") from e
 

@@ -3,10 +3,11 @@ under a trotting joint PD law (diagonal leg pairs swing at 1.25 Hz, a push on th
 0.2 s) are pinned bit for bit against digests recorded before the redesign of issue #15
 (test/data/bitexact_reference.json).
 
-The torque law is deterministic on purpose. StarlethController is not bit-reproducible across
-processes: ProxQP's AVX2 build rounds differently with the memory alignment of its internal
-buffers (measured: two variants, 2.5e-10 N apart from the first warm-started solve on), so a
-closed loop through it is pinned with a tolerance instead (the demo, below).
+The torque law is a plain joint PD law on purpose: the physics alone is pinned here. The demo's
+closed loop (sim_node + controller_node, below) is pinned with a tolerance, because its
+stored states were recorded while the controller used ProxQP's AVX2 build, whose round-off
+depends on the alignment of its buffers (~1e-10 N between processes); the controller now
+uses proxsuite's portable build, which is reproducible (force_distribution).
 
 Each step's (q, u, Λ of every contact) is hashed (SHA-256 of the float64 bytes, chained), and
 the full state is stored every 50 steps so a failure says when and by how much it differs.
