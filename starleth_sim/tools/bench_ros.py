@@ -361,14 +361,11 @@ def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmu
     process ("composed"): `windows` gets (t_start, t_end, bare rate, commands sent by
     `ctl` or None) per round; in the composed mode the cycles are counted afterwards from
     the sim's timestamps."""
-    from std_srvs.srv import SetBool
     if controller != "echo":
         return _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
                             ctl)
     ctl = EchoController(node)
-    pause = node.create_client(SetBool, "/sim_node/pause")
-    if not _wait(ex, pause.service_is_ready, 120):
-        raise RuntimeError("bench: sim_node's ~/pause service did not appear")
+    pause = _pause_client(node, ex)
     pp = PingPong(node, ex)
     per = []
     all_rtts = []
@@ -418,12 +415,18 @@ def lockstep_figures(per, n_total, t_total, stamps_bad, bare):
             "ratio_min_of_rounds": float(np.min(ratios))}
 
 
-def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
-                 ctl=None):
+def _pause_client(node, ex):
+    """sim_node's ~/pause service (std_srvs/SetBool), once it is up (2 min at most)."""
     from std_srvs.srv import SetBool
     pause = node.create_client(SetBool, "/sim_node/pause")
     if not _wait(ex, pause.service_is_ready, 120):
         raise RuntimeError("bench: sim_node's ~/pause service did not appear")
+    return pause
+
+
+def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
+                 ctl=None):
+    pause = _pause_client(node, ex)
     pp = PingPong(node, ex)
     all_rtts = []
     for r in range(rounds):
