@@ -82,7 +82,7 @@ class ContactInfo:
     state: str = "open"     # open | stick | slip (CONTACT_STATES), see Simulator.contact_states
 
 
-@dataclass
+@dataclass(slots=True)
 class Diagnostics:
     """Solver figures of the last control step (summed / worst over its physics steps)."""
 
@@ -389,6 +389,43 @@ class Simulator:
             raise ValueError(f"tau has non-finite entries for {', '.join(bad)}")
         return out
 
+    def _control_step_diagnostics(self, results, step_time):
+        """The Diagnostics of a control step from its physics steps' StepResults (sums and
+        worst cases), continuing the cumulative counts of the last one."""
+        prev = self.diagnostics
+        if len(results) == 1 and not self.stepper.profile:     # (the common case, per step)
+            r = results[0]
+            bad = r.status != prox.STATUS_CONVERGED
+            return Diagnostics(
+                r.iterations, r.iterations, not bad, _STATUS[r.status], max(0.0, r.residual),
+                r.n_active, r.retried, r.opened_loaded, r.projection_iterations,
+                int(r.projected), step_time, prev.physics_steps + 1,
+                prev.nonconverged_steps + bad,
+                prev.loaded_contacts_opened_total + r.opened_loaded, {})
+        iterations = worst = projection_iterations = projections = opened = nonconverged = 0
+        residual = 0.0
+        retried = False
+        status = prox.STATUS_CONVERGED
+        for r in results:
+            iterations += r.iterations
+            worst = max(worst, r.iterations)
+            residual = max(residual, r.residual)
+            retried |= r.retried
+            opened += r.opened_loaded
+            projection_iterations += r.projection_iterations
+            projections += r.projected
+            if r.status != prox.STATUS_CONVERGED:
+                status = r.status
+                nonconverged += 1
+        timings = (dict(zip(PHASES, self.stepper.stats.timings.tolist()))
+                   if self.stepper.profile else {})
+        return Diagnostics(
+            iterations, worst, nonconverged == 0, _STATUS[status], residual,
+            results[-1].n_active, retried, opened, projection_iterations, projections,
+            step_time, prev.physics_steps + len(results),
+            prev.nonconverged_steps + nonconverged,
+            prev.loaded_contacts_opened_total + opened, timings)
+
     def prepare(self):
         """Do now the part of the next step that does not depend on the torques (q^M, M, h,
         the contact and bilateral kinematics, the factor of M, M^{-1}W and G; see
@@ -404,46 +441,35 @@ class Simulator:
         tau = self._validated_torque(tau)
         t_wall = time.perf_counter()
         state = self.state
+        stepper = self.stepper
+        dt = stepper.dt
         n = self.config.steps_per_control
-        dt = self.stepper.dt
-        impulse = None
-        d = Diagnostics(physics_steps=self.diagnostics.physics_steps,
-                        nonconverged_steps=self.diagnostics.nonconverged_steps,
-                        loaded_contacts_opened_total=(
-                            self.diagnostics.loaded_contacts_opened_total))
-        before = state.copy(share_qu=True)  # the stepper never writes into q and u
+        # the rollback point (the stepper never writes into q and u); not needed where one
+        # physics step that fails leaves the state as it was and no timed wrench counts down
+        before = None if n == 1 and not state.pending_wrenches and \
+            stepper.step_is_transactional(state) else state.copy(share_qu=True)
         try:
-            for _ in range(n):
-                f_ext = self._external_force(state, dt)
-                res = self.stepper.step(state, tau, f_ext)
-                impulse = res.impulse if impulse is None else impulse + res.impulse
-                d.iterations += res.iterations
-                d.max_iterations_step = max(d.max_iterations_step, res.iterations)
-                d.residual = max(d.residual, res.residual)
-                d.retried |= res.retried
-                d.loaded_contacts_opened += res.opened_loaded
-                d.projection_iterations += res.projection_iterations
-                d.projections += res.projected
-                if res.status != prox.STATUS_CONVERGED:
-                    d.converged = False
-                    d.status = _STATUS[res.status]
-                    d.nonconverged_steps += 1
-                d.physics_steps += 1
+            if n == 1:
+                results = (stepper.step(state, tau, self._external_force(state, dt)),)
+            else:
+                results = [stepper.step(state, tau, self._external_force(state, dt))
+                           for _ in range(n)]
         except SimulationError:
-            self.restore(before)
+            if before is not None:
+                self.restore(before)
             raise
         self._state_version += 1
         state.t += self.control_period
+        res = results[-1]
         self._tau = tau
+        impulse = results[0].impulse
+        for r in results[1:]:      # in step order (the sum's round-off depends on it)
+            impulse = impulse + r.impulse
         self._impulse = impulse
         self._active = res.active
         self._gap = res.gap
         self._position = res.position
-        d.active_contacts = res.n_active
-        d.loaded_contacts_opened_total += d.loaded_contacts_opened
-        d.step_time = time.perf_counter() - t_wall
-        if self.stepper.profile:
-            d.timings = dict(zip(PHASES, self.stepper.stats.timings.tolist()))
+        d = self._control_step_diagnostics(results, time.perf_counter() - t_wall)
         self.diagnostics = d
         if not d.converged:
             self._nonconv_logged += 1

@@ -542,15 +542,21 @@ class ForestCoordinates:
         qM = np.empty_like(q)
         M = np.empty((self.nv, self.nv))
         h = np.empty(self.nv)
+        midpoint_dynamics(q, u, 0.5 * dt, *self.midpoint_model(), ground.n, ground.t1,
+                          ground.t2, ground.offset, jacobian_gap, qM, M, h, gap, position, Wt)
+        return qM, M, h
+
+    def midpoint_model(self):
+        """The model's arrays in midpoint_dynamics' order (parent … c_radius), gathered once
+        (attribute look-ups cost per step). Its second, sixth and seventh entries are the
+        tree's jtype, idx_q and idx_v."""
         model = self._midpoint_model
-        if model is None:   # the model's arrays, gathered once (attribute look-ups cost)
+        if model is None:
             t = self.tree
             model = self._midpoint_model = (
                 t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v, t.support, t.oR,
                 t.op, *self.inertias.args(), self.c_joint, self.c_local, self.c_radius)
-        midpoint_dynamics(q, u, 0.5 * dt, *model, ground.n, ground.t1, ground.t2,
-                          ground.offset, jacobian_gap, qM, M, h, gap, position, Wt)
-        return qM, M, h
+        return model
 
     def add_joint_torques(self, q, u, tau, h):
         """h += the generalized force of the joint torques τ (public order) at q: Sᵀτ for
