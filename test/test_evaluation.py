@@ -46,4 +46,13 @@ def test_quick_evaluation_results_are_measurements(quick_report):
         assert any("trunk" in c for c in r["knee_trunk_contacts"])
     drift = [r for r in results if r["kind"] == "bilateral_drift"]
     assert len(drift) == 8
+    # the side-by-side speed run (mujoco is a test requirement): the same thing simulated
+    speed = [r for r in results if r["kind"] == "vs_mujoco"]
+    assert len(speed) == 1 and not speed[0]["missing"]
+    assert [row["name"] for row in speed[0]["rows"]] == ["MuJoCo", "HmJ", "HmS", "Cm"]
+    assert speed[0]["problems"] == []
+    for row in speed[0]["rows"]:
+        assert row["median"] > 100 and abs(row["normal_force_ratio"] - 1.0) < 0.02
+    report = (out / "report.md").read_text()
+    assert "## Speed beside MuJoCo" in report and "| HmJ | 2.5 |" in report
     assert os.path.getsize(out / "results.json") > 1000

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -183,54 +184,98 @@ class SimulatorStanding:
         return float(self.sim.base_state()["position"][2])
 
 
-def vs_mujoco(presets, rounds: int, steps: int) -> int:
-    """The side-by-side comparison (module docstring); exit status 0, 1 if the two do not
-    simulate the same thing, 2 if mujoco is missing."""
+@dataclass
+class VsMujocoRow:
+    """One simulator of the side-by-side run."""
+
+    name: str                  # "MuJoCo" or a preset
+    dt: float                  # physics step [s]
+    rates: list                # steps/s per round
+    normal_force_ratio: float  # Σ F_N / mg at the end
+    height: float              # base height at the end [m]
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.rates))
+
+
+@dataclass
+class VsMujoco:
+    """The side-by-side run (`measure_vs_mujoco`)."""
+
+    mujoco_version: str
+    timestep: float
+    mu: float
+    rounds: int
+    steps: int
+    rows: list                 # VsMujocoRow, MuJoCo first
+    problems: list             # what is not like with like (empty: the same thing simulated)
+
+    def ratio(self, row: VsMujocoRow) -> float:
+        return row.median / self.rows[0].median
+
+    def header(self) -> str:
+        return (f"StarlETH standing under the joint PD hold: MuJoCo {self.mujoco_version} "
+                f"(URDF compiled by MuJoCo, free base, Δt = {self.timestep * 1e3:g} ms, Newton, "
+                f"elliptic cones, μ = {self.mu:g}) beside Simulator; {self.rounds} interleaved "
+                f"rounds of {self.steps} physics steps; Python {sys.version.split()[0]}")
+
+    def like_with_like(self) -> str:
+        return ("yes (total normal force = weight, base heights within "
+                f"{HEIGHT_TOLERANCE * 1e3:g} mm)" if not self.problems else "NO (see above)")
+
+
+def measure_vs_mujoco(presets, rounds: int, steps: int) -> VsMujoco | None:
+    """The side-by-side comparison (module docstring); None if mujoco is missing."""
     runners = {p: SimulatorStanding(p) for p in presets}
     first = next(iter(runners.values())).sim
     mujoco, model = mujoco_model(first.config.robot, 2.5e-3, first.config.ground.mu)
     if mujoco is None:
-        print("starleth-bench --vs-mujoco: mujoco is not installed (it is an optional "
-              "benchmark dependency: pip install -r requirements-bench.txt, or make bench)")
-        return 2
+        return None
     mj = MujocoStanding(mujoco, model, first)
-    names = ["MuJoCo"] + list(presets)
     runners = {"MuJoCo": mj, **runners}
-    print(f"StarlETH standing under the joint PD hold: MuJoCo {mujoco.__version__} (URDF "
-          f"compiled by MuJoCo, free base, Δt = {model.opt.timestep * 1e3:g} ms, Newton, "
-          f"elliptic cones, μ = {model.geom_friction[0, 0]:g}) beside Simulator; {rounds} "
-          f"interleaved rounds of {steps} physics steps; Python {sys.version.split()[0]}")
     for r in runners.values():   # warm-up (numba dispatch, caches)
         r.run(50)
-    rates = {n: [] for n in names}
+    rates = {n: [] for n in runners}
     for _ in range(rounds):
-        for n in names:
-            r = runners[n]
+        for n, r in runners.items():
             wall = r.run(steps)
             done = steps if r is mj else r.physics_steps(steps)
             rates[n].append(done / wall)
-    ref = float(np.median(rates["MuJoCo"]))
+    rows, problems = [], []
+    for n, r in runners.items():
+        row = VsMujocoRow(n, model.opt.timestep if r is mj else r.sim.dt, rates[n],
+                          r.normal_force() / r.weight, r.height())
+        rows.append(row)
+        if abs(row.normal_force_ratio - 1.0) > FORCE_TOLERANCE:
+            problems.append(f"{n}: total normal force {row.normal_force_ratio:.4f} mg, not the "
+                            f"weight (±{FORCE_TOLERANCE:g})")
+        if r is not mj and abs(row.height - mj.height()) > HEIGHT_TOLERANCE:
+            problems.append(f"{n}: base height {row.height * 1e3:.2f} mm differs from MuJoCo's "
+                            f"by more than {HEIGHT_TOLERANCE * 1e3:g} mm")
+    return VsMujoco(mujoco.__version__, float(model.opt.timestep),
+                    float(model.geom_friction[0, 0]), rounds, steps, rows, problems)
+
+
+def vs_mujoco(presets, rounds: int, steps: int) -> int:
+    """Prints the side-by-side comparison; exit status 0, 1 if the two do not simulate the
+    same thing, 2 if mujoco is missing."""
+    result = measure_vs_mujoco(presets, rounds, steps)
+    if result is None:
+        print("starleth-bench --vs-mujoco: mujoco is not installed (it is an optional "
+              "benchmark dependency: pip install -r requirements-bench.txt, or make bench)")
+        return 2
+    print(result.header())
     print(f"{'':8s} {'Δt [ms]':>7s} {'steps/s (median)':>17s} {'min':>8s} {'max':>8s} "
           f"{'ratio':>6s} {'Σ F_N / mg':>10s} {'base z [mm]':>11s}")
-    ok = True
-    for n in names:
-        r = runners[n]
-        med = float(np.median(rates[n]))
-        dt = model.opt.timestep if r is mj else r.sim.dt
-        fr = r.normal_force() / r.weight
-        z = r.height()
-        print(f"{n:8s} {dt * 1e3:7.3g} {med:17.0f} {min(rates[n]):8.0f} {max(rates[n]):8.0f} "
-              f"{med / ref:6.2f} {fr:10.4f} {z * 1e3:11.2f}")
-        if abs(fr - 1.0) > FORCE_TOLERANCE:
-            ok = False
-            print(f"  {n}: total normal force {fr:.4f} mg, not the weight (±{FORCE_TOLERANCE:g})")
-        if r is not mj and abs(z - mj.height()) > HEIGHT_TOLERANCE:
-            ok = False
-            print(f"  {n}: base height {z * 1e3:.2f} mm differs from MuJoCo's by more than "
-                  f"{HEIGHT_TOLERANCE * 1e3:g} mm")
-    print("like with like: " + ("yes (total normal force = weight, base heights within "
-                                f"{HEIGHT_TOLERANCE * 1e3:g} mm)" if ok else "NO (see above)"))
-    return 0 if ok else 1
+    for row in result.rows:
+        print(f"{row.name:8s} {row.dt * 1e3:7.3g} {row.median:17.0f} {min(row.rates):8.0f} "
+              f"{max(row.rates):8.0f} {result.ratio(row):6.2f} {row.normal_force_ratio:10.4f} "
+              f"{row.height * 1e3:11.2f}")
+    for problem in result.problems:
+        print("  " + problem)
+    print("like with like: " + result.like_with_like())
+    return 0 if not result.problems else 1
 
 
 def main(argv=None):

@@ -10,7 +10,9 @@ Writes ``eval/report.md``, ``eval/results.json`` and PNG figures:
   * Fig. 7  - time per step by phase (M and h, M^-1, G (and G_B^-1), u^E (prox), rest);
   * accuracy - foot sink while trotting (Cm), unilateral drift while standing, bilateral drift
     while trotting, for every configuration where they apply;
-  * robustness - the push-over stress test per configuration.
+  * robustness - the push-over stress test per configuration;
+  * speed beside MuJoCo - ``starleth-bench --vs-mujoco`` (HmJ, HmS, Cm; run alone after the
+    other tasks; skipped with a note where mujoco is not installed).
 Runs are independent tasks, a predefined sweep executed by starleth-sweep's machinery
 (:func:`starleth_sim.tools.sweep.execute`: a process pool, ``--jobs``, default all cores, or
 Ray with ``--ray auto|local|ADDRESS``; progress with ETA); starleth-sweep's runs are
@@ -377,6 +379,27 @@ def run_all(quick=False, jobs=None, configs=TABLE1, ray=None):
     return results, time.time() - t0
 
 
+def vs_mujoco(quick=False, configs=TABLE1):
+    """`starleth-bench --vs-mujoco` on the presets of its default set that are in `configs`,
+    alone in this process after the other tasks (a speed comparison must not share the
+    machine with them): a result record {"kind": "vs_mujoco", ...}, None when no such
+    preset is selected. mujoco is optional: without it the record says so."""
+    from . import bench
+    presets = [p for p in bench.VS_MUJOCO_PRESETS if p in configs]
+    if not presets:
+        return None
+    rounds, steps = (2, 500) if quick else (5, 2000)
+    r = bench.measure_vs_mujoco(presets, rounds, steps)
+    if r is None:
+        return {"kind": "vs_mujoco", "missing": True}
+    return {"kind": "vs_mujoco", "missing": False, "header": r.header(),
+            "rows": [{"name": row.name, "dt_ms": row.dt * 1e3, "median": row.median,
+                      "min": min(row.rates), "max": max(row.rates), "ratio": r.ratio(row),
+                      "normal_force_ratio": row.normal_force_ratio,
+                      "height_mm": row.height * 1e3} for row in r.rows],
+            "problems": r.problems, "like_with_like": r.like_with_like()}
+
+
 # ----------------------------------------------------------------------------------------------
 # report
 # ----------------------------------------------------------------------------------------------
@@ -548,6 +571,30 @@ def _contact_variant_section(results):
     return lines
 
 
+def _vs_mujoco_section(results):
+    """The report's "Speed beside MuJoCo" section from the vs_mujoco record (none: none)."""
+    rec = next(iter(_by(results, "vs_mujoco")), None)
+    if rec is None:
+        return []
+    lines = ["", "## Speed beside MuJoCo (`starleth-bench --vs-mujoco`)", ""]
+    if rec["missing"]:
+        return lines + ["Not measured: mujoco is not installed (an optional benchmark "
+                        "dependency: `make bench` or `pip install -r requirements-bench.txt`)."]
+    lines += [rec["header"] + ". Run alone after the other tasks; both loops include the same "
+              "Python PD law per step (per control period for the presets); see the README's "
+              "[Speed beside MuJoCo](../README.md#speed-beside-mujoco-starleth-bench---vs-mujoco) "
+              "for the setup and the history before and after issue #16.", "",
+              "| simulator | Δt [ms] | steps/s (median) | min | max | ratio to MuJoCo | "
+              "Σ F_N / mg | base z [mm] |", "|---|---|---|---|---|---|---|---|"]
+    for row in rec["rows"]:
+        lines.append(f"| {row['name']} | {row['dt_ms']:.3g} | {_fmt(row['median'])} | "
+                     f"{_fmt(row['min'])} | {_fmt(row['max'])} | {row['ratio']:.2f} | "
+                     f"{row['normal_force_ratio']:.4f} | {row['height_mm']:.2f} |")
+    lines += ["", f"Like with like: {rec['like_with_like']}."]
+    lines += [f"- {p}" for p in rec["problems"]]
+    return lines
+
+
 def write_report(results, figs, out_dir, quick, elapsed, jobs):
     from ..physics.config import load_preset
     import platform
@@ -635,6 +682,7 @@ def write_report(results, figs, out_dir, quick, elapsed, jobs):
                      f"{'yes' if r['nonfinite'] else 'no'} | {r['max_iterations']} | "
                      f"{'yes' if r['all_converged'] else 'no (' + str(r['nonconverged']) + ' steps)'} | "
                      f"{'yes' if r['completed'] else 'no: ' + str(r['error'])} |")
+    lines += _vs_mujoco_section(results)
     for key, title in (("fig5", "Fig. 5: LF normal contact force over one trot cycle"),
                        ("fig6", "Fig. 6: prox iterations against α"),
                        ("fig7", "Fig. 7: time per step by phase")):
@@ -672,6 +720,9 @@ def main(argv=None):
     except SweepError as e:      # --ray without Ray, or no cluster to join
         print(f"starleth-eval: error: {e}", file=sys.stderr)
         return 1
+    speed = vs_mujoco(args.quick, tuple(args.configs))
+    if speed is not None:
+        results.append(speed)
     figs = make_figures(results, args.out)
     with open(os.path.join(args.out, "results.json"), "w") as f:
         json.dump([{k: v for k, v in r.items() if k not in ("lf_t", "lf_force")}
