@@ -6,8 +6,8 @@ import pytest
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator
 from starleth_sim.physics import prox
-from starleth_sim.physics.stepper import (StepSettings, constraint_velocity, free_velocity,
-                                          phase_delassus, phase_minv)
+from starleth_sim.physics.step_kernels import (StepSettings, constraint_velocity, free_velocity,
+                                               phase_delassus, phase_minv)
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 

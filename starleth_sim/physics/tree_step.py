@@ -1,0 +1,217 @@
+"""One whole physics step in one kernel call, for coordinate sets without bilateral
+constraints whose M depends on q (the minimal coordinates; `MoreauStepper` uses it for a step
+that was not prepared ahead and is not profiled).
+
+It runs the same kernels, in the same order, as the phase-by-phase path of
+:mod:`starleth_sim.physics.step_kernels` (so the same result bit for bit) and saves what lies
+between them: the calls from Python (≈0.1 µs per array argument and call, measured) and the
+Python around them. The model, ground and workspace arrays travel packed in four buffers
+(`TreeStepModel`). A failing step leaves the state as it was.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import numba as nb
+
+from . import prox
+from .coordinates.forest import midpoint_dynamics
+from .step_kernels import (StepSettings, complete_problem, contact_problem, end_of_step,
+                           solve_compliant)
+
+
+#: tree_step_* outcomes (the first entry of their result)
+TREE_STEP_OK, TREE_STEP_NOT_PD, TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE = range(4)
+
+
+class TreeStepModel(NamedTuple):
+    """The model, ground and workspace arrays of the one-kernel step (tree_step_hard /
+    tree_step_compliant) packed into four buffers, so that a call from Python unboxes four
+    arrays instead of some thirty (≈0.1 µs each per call, measured). The packing is pure
+    layout: the kernels take views of the buffers (unpack_tree_model) and compute exactly
+    what the phase-by-phase path computes.
+
+    floats: axis, pl_R, pl_p, oR, op (the forward kinematics' scratch), mass, lever,
+    inertia, gravity, c_local, c_radius (the forest's arrays, midpoint_model order), the
+    ground's n, t1, t2 and offset, ε per contact (nc x 2); ints: [nj, nc, number of
+    actuated joints, number of blocks], then parent, jtype, idx_q, idx_v, c_joint, joint_v
+    and the blocks of M (rows of (start, size)); support: the tree's support matrix;
+    workspace: g_N (nc), contact points (nc x 3), W^T of every contact (nc x 3 x nv), the
+    factor L of M (nv x nv), u_free and Δu_p (nv each)."""
+
+    floats: np.ndarray
+    ints: np.ndarray
+    support: np.ndarray
+    workspace: np.ndarray
+
+    @staticmethod
+    def pack(model, ground, eps, joint_v, blocks, nv):
+        """Packs midpoint_model()'s arrays, the GroundPlane and ε; returns the record and
+        the workspace's views (gap, position, Wt_all, L, u_free, u_corr), which the stepper
+        keeps as its own arrays."""
+        (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
+         inertia, gravity, c_joint, c_local, c_radius) = model
+        floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
+            axis, pl_R, pl_p, oR, op, mass, lever, inertia, gravity, c_local, c_radius,
+            ground.n, ground.t1, ground.t2, [ground.offset], eps)])
+        nj, nc = parent.shape[0], c_joint.shape[0]
+        ints = np.concatenate([np.ravel(a).astype(np.int64) for a in (
+            [nj, nc, joint_v.shape[0], blocks.shape[0]], parent, jtype, idx_q, idx_v,
+            c_joint, joint_v, blocks)])
+        sizes = (nc, 3 * nc, 3 * nc * nv, nv * nv, nv, nv)
+        workspace = np.zeros(sum(sizes))
+        views, o = [], 0
+        for n in sizes:
+            views.append(workspace[o:o + n])
+            o += n
+        gap, position, Wt_all, L, u_free, u_corr = views
+        return (TreeStepModel(floats, ints, np.ascontiguousarray(support), workspace),
+                (gap, position.reshape(nc, 3), Wt_all.reshape(nc, 3, nv), L.reshape(nv, nv),
+                 u_free, u_corr))
+
+
+@nb.njit(cache=True, inline="always")
+def _take(buf, o, n):
+    return buf[o:o + n], o + n
+
+
+@nb.njit(cache=True)
+def unpack_tree_model(floats, ints, support, workspace, nv):
+    """The views of TreeStepModel's buffers: (model (midpoint_model's order), normal,
+    tangent1, tangent2, ground_offset, eps, joint_v, blocks, gap, position, Wt_all, L,
+    u_free, u_corr)."""
+    nj, nc, na, nbk = ints[0], ints[1], ints[2], ints[3]
+    o = 0
+    axis, o = _take(floats, o, 3 * nj)
+    pl_R, o = _take(floats, o, 9 * nj)
+    pl_p, o = _take(floats, o, 3 * nj)
+    oR, o = _take(floats, o, 9 * nj)
+    op, o = _take(floats, o, 3 * nj)
+    mass, o = _take(floats, o, nj)
+    lever, o = _take(floats, o, 3 * nj)
+    inertia, o = _take(floats, o, 9 * nj)
+    gravity, o = _take(floats, o, 3)
+    c_local, o = _take(floats, o, 3 * nc)
+    c_radius, o = _take(floats, o, nc)
+    normal, o = _take(floats, o, 3)
+    tangent1, o = _take(floats, o, 3)
+    tangent2, o = _take(floats, o, 3)
+    offset, o = _take(floats, o, 1)
+    eps, o = _take(floats, o, 2 * nc)
+    k = 4
+    parent, k = _take(ints, k, nj)
+    jtype, k = _take(ints, k, nj)
+    idx_q, k = _take(ints, k, nj)
+    idx_v, k = _take(ints, k, nj)
+    c_joint, k = _take(ints, k, nc)
+    joint_v, k = _take(ints, k, na)
+    blocks, k = _take(ints, k, 2 * nbk)
+    w = 0
+    gap, w = _take(workspace, w, nc)
+    position, w = _take(workspace, w, 3 * nc)
+    Wt_all, w = _take(workspace, w, 3 * nc * nv)
+    L, w = _take(workspace, w, nv * nv)
+    u_free, w = _take(workspace, w, nv)
+    u_corr, w = _take(workspace, w, nv)
+    model = (parent, jtype, axis.reshape((nj, 3)), pl_R.reshape((nj, 3, 3)),
+             pl_p.reshape((nj, 3)), idx_q, idx_v, support, oR.reshape((nj, 3, 3)),
+             op.reshape((nj, 3)), mass, lever.reshape((nj, 3)), inertia.reshape((nj, 3, 3)),
+             gravity, c_joint, c_local.reshape((nc, 3)), c_radius)
+    return (model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), joint_v,
+            blocks.reshape((nbk, 2)), gap, position.reshape((nc, 3)),
+            Wt_all.reshape((nc, 3, nv)), L.reshape((nv, nv)), u_free, u_corr)
+
+
+@nb.njit(cache=True, inline="always")
+def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, tangent2,
+                          ground_offset, jacobian_gap, gap, position, Wt_all, model):
+    """q^M, M and h at (q^M, u^S) of a tree without cut joints (midpoint_dynamics), then
+    h += Sᵀτ (τ in the public order, joint_v its velocity indices) + f_ext (when given):
+    the same arithmetic, in the same order, as ForestCoordinates.midpoint followed by
+    add_joint_torques and h += f_ext."""
+    nv = u.shape[0]
+    qM = np.empty_like(q)
+    M = np.empty((nv, nv))
+    h = np.empty(nv)
+    midpoint_dynamics(q, u, half_dt, *model, normal, tangent1, tangent2, ground_offset,
+                      jacobian_gap, qM, M, h, gap, position, Wt_all)
+    for k in range(tau.shape[0]):
+        h[joint_v[k]] += tau[k]
+    for k in range(f_ext.shape[0]):
+        h[k] += f_ext[k]
+    return qM, M, h
+
+
+@nb.njit(cache=True)
+def tree_step_hard(settings, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
+                   impulse, is_active, qE, uE, floats, ints, support, workspace):
+    """One whole step with hard contacts of a coordinate set without bilateral constraints
+    and with a configuration-dependent M (the minimal coordinates), in one call from Python:
+    Eqn. (6) and M, h, W at the midpoint (_midpoint_with_forces), the contact problem
+    (contact_problem, complete_problem) and Eqn. (8) (end_of_step). The same arithmetic as
+    the phase-by-phase path of MoreauStepper.step, so the same result bit for bit; it saves
+    the calls between the phases and the Python around them. `settings`: the fields of a
+    StepSettings; (floats, ints, support, workspace): a TreeStepModel; f_ext: the
+    generalized external force or an empty array. Writes q^E, u^E, Λ (impulse), the active
+    flags and the workspace; the warm-start memory is updated as by complete_problem, but
+    only when the step succeeds (outcome TREE_STEP_OK; no bilateral memory here): a failed
+    step leaves the state as it was. Returns (outcome (TREE_STEP_*), |I|, opened, iterations, status, residual, retried,
+    projection iterations, projection status)."""
+    s = StepSettings(*settings)
+    nv = u.shape[0]
+    (model, normal, tangent1, tangent2, offset, eps, joint_v, blocks, gap, position, Wt_all,
+     L, u_free, u_corr) = unpack_tree_model(floats, ints, support, workspace, nv)
+    half_dt = 0.5 * s.dt
+    qM, M, h = _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1,
+                                     tangent2, offset, s.jacobian_gap, gap, position,
+                                     Wt_all, model)
+    p = contact_problem(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps, blocks,
+                        True, L, last_impulse, last_active, None)
+    if not p.ok:
+        return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
+    kept_impulse, kept_active = last_impulse.copy(), last_active.copy()
+    it, status, resid, retried, pit, pstatus = complete_problem(
+        s, p, h, u, M, blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+        impulse, is_active, u_free, uE, u_corr, None)
+    outcome = TREE_STEP_OK
+    if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
+        outcome = TREE_STEP_NONFINITE_IMPULSE
+    elif not end_of_step(qM, uE, u_corr, pstatus >= 0, half_dt, model[1], model[5],
+                         model[6], qE):
+        outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
+        last_impulse[:] = kept_impulse
+        last_active[:] = kept_active
+    return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
+
+
+@nb.njit(cache=True)
+def tree_step_compliant(law, dt, jacobian_gap, q, u, tau, f_ext, closed, slip, anchor, lam,
+                        qE, uE, floats, ints, support, workspace):
+    """tree_step_hard's counterpart for compliant contacts (Alg. 1; `law`: the fields of a
+    CompliantLaw): the midpoint, solve_compliant (u^E = u_free) and Eqn. (8), the same
+    arithmetic as the phase-by-phase path; a failed step leaves the contact state as it
+    was. Returns an outcome (TREE_STEP_*)."""
+    nv = u.shape[0]
+    (model, normal, tangent1, tangent2, offset, eps, joint_v, blocks, gap, position, Wt_all,
+     L, u_free, u_corr) = unpack_tree_model(floats, ints, support, workspace, nv)
+    half_dt = 0.5 * dt
+    qM, M, h = _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1,
+                                     tangent2, offset, jacobian_gap, gap, position, Wt_all,
+                                     model)
+    kept = (closed.copy(), slip.copy(), anchor.copy(), lam.copy())
+    if not solve_compliant(law, M, h, u, dt, gap, position, Wt_all, closed, slip, anchor,
+                           tangent1, tangent2, lam, blocks, True, L, u_free, None):
+        outcome = TREE_STEP_NOT_PD
+    else:
+        for k in range(nv):
+            uE[k] = u_free[k]
+        outcome = TREE_STEP_OK
+        if not end_of_step(qM, uE, u_corr, False, half_dt, model[1], model[5], model[6], qE):
+            outcome = TREE_STEP_NONFINITE_STATE
+    if outcome != TREE_STEP_OK:     # the contact state back to what it was
+        closed[:] = kept[0]
+        slip[:] = kept[1]
+        anchor[:] = kept[2]
+        lam[:] = kept[3]
+    return outcome
