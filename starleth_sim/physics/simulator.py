@@ -450,7 +450,9 @@ class Simulator:
             stepper.step_is_transactional(state) else state.copy(share_qu=True)
         try:
             if n == 1:
-                results = (stepper.step(state, tau, self._external_force(state, dt)),)
+                f_ext = self._external_force(state, dt) if \
+                    self._persistent_wrenches or state.pending_wrenches else None
+                results = (stepper.step(state, tau, f_ext),)
             else:
                 results = [stepper.step(state, tau, self._external_force(state, dt))
                            for _ in range(n)]
@@ -463,8 +465,9 @@ class Simulator:
         res = results[-1]
         self._tau = tau
         impulse = results[0].impulse
-        for r in results[1:]:      # in step order (the sum's round-off depends on it)
-            impulse = impulse + r.impulse
+        if n > 1:
+            for r in results[1:]:      # in step order (the sum's round-off depends on it)
+                impulse = impulse + r.impulse
         self._impulse = impulse
         self._active = res.active
         self._gap = res.gap
