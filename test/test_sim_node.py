@@ -567,3 +567,36 @@ def test_push_on_trunk_changes_velocity_by_impulse_over_mass(ros, tmp_path):
     assert jump > 5 and np.all(np.abs(resid[1:jump]) < 0.02 * dv)
     measured = resid[jump + 20:jump + 60].mean()
     assert abs(measured / dv - 1.0) < 0.05, (measured, dv)
+
+
+def test_contact_markers_cdr_equals_the_message_objects():
+    """The contact markers go out as CDR bytes patched into a template (SlotCdr): over a
+    collapse under zero torques (contacts close, stick, slip, open again), the bytes
+    deserialise to the message sim_node's object path fills (an open contact's arrow is
+    deleted and keeps its last points, as there)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from visualization_msgs.msg import MarkerArray
+    from starleth_sim.ros.sim_node import SimNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep",
+                                                     "contact_markers_rate": 400.0})
+    try:
+        assert node._marker_cdr is not None
+        svc = node.service
+        actions = set()
+        for k in range(150):
+            if k == 100:
+                svc.submit_wrench("base", (0.0, 0.0, 900.0), (0.0, 0.0, 0.0), False)
+            svc.step()
+            sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
+            back = deserialize_message(node._marker_cdr.build(
+                node._contact_marker_values(sec, nsec)), MarkerArray)
+            node._fill_contact_markers(sec, nsec)
+            assert back == deserialize_message(serialize_message(node.marker_msg),
+                                               MarkerArray), f"step {k}"
+            actions |= {m.action for m in back.markers if m.ns == "contact_forces"}
+        assert actions == {0, 2}                   # both ADD and DELETE arrows were compared
+    finally:
+        node.destroy()
+        rclpy.try_shutdown(context=ctx)

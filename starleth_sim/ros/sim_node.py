@@ -109,7 +109,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr
+from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr, SlotCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
                                             make_executor, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
@@ -387,7 +387,7 @@ class SimNode:
             else:
                 for key, (topic, qos) in self.tf_topics.items():
                     self.tf_pubs[key] = self.node.create_publisher(TFMessage, topic, qos)
-        self.marker_msg = None
+        self.marker_msg = self._marker_cdr = None
         if self._markers_every:
             try:
                 from visualization_msgs.msg import Marker, MarkerArray
@@ -401,6 +401,11 @@ class SimNode:
                 self.pubs["contact_markers"] = (p, p.topic_name, MarkerArray,
                                                 self.qos["state"])
                 self.marker_msg = self._contact_marker_template(MarkerArray)
+                # written as CDR bytes (SlotCdr: stamps, sphere positions and colours, arrow
+                # actions and points patched into a template; None: message objects)
+                self._marker_cdr = self._contact_marker_cdr(MarkerArray)
+                n = len(self.sim.contact_names)
+                self._marker_points = [[0.0] * 6 for _ in range(n)]
 
     #: colours (r, g, b, a) of the contact states (ContactInfo.state)
     MARKER_COLOURS = {"open": (0.6, 0.6, 0.6, 0.5), "stick": (0.1, 0.75, 0.2, 1.0),
@@ -431,6 +436,45 @@ class SimNode:
                     m.points = [type(m.pose.position)(), type(m.pose.position)()]
                 msg.markers.append(m)
         return msg
+
+    def _contact_marker_cdr(self, MarkerArray):
+        """SlotCdr of the contact markers: per sphere its stamp, position and colour, per
+        arrow its stamp, action and two points (the order of _contact_marker_values)."""
+        msg = self._contact_marker_template(MarkerArray)
+        n = len(self.sim.contact_names)
+        slots = []
+        for m in msg.markers[:n]:
+            p, c = m.pose.position, m.color
+            slots += [(m.header.stamp, "sec", "i"), (m.header.stamp, "nanosec", "I"),
+                      (p, "x", "d"), (p, "y", "d"), (p, "z", "d"),
+                      (c, "r", "f"), (c, "g", "f"), (c, "b", "f"), (c, "a", "f")]
+        for m in msg.markers[n:]:
+            a, b = m.points
+            slots += [(m.header.stamp, "sec", "i"), (m.header.stamp, "nanosec", "I"),
+                      (m, "action", "i"), (a, "x", "d"), (a, "y", "d"), (a, "z", "d"),
+                      (b, "x", "d"), (b, "y", "d"), (b, "z", "d")]
+        return SlotCdr.create(msg, slots)
+
+    def _contact_marker_values(self, sec, nsec):
+        """The values of _contact_marker_cdr's slots: the same as _fill_contact_markers puts
+        into the message objects (an open contact's arrow is deleted and keeps its
+        points)."""
+        sim, Marker = self.sim, self._Marker
+        scale = self.settings.contact_marker_scale
+        colours = self.MARKER_COLOURS
+        spheres, arrows = [], []
+        for c, pts in zip(sim.contacts, self._marker_points):
+            p = c.position
+            x, y, z = float(p[0]), float(p[1]), float(p[2])
+            spheres += (sec, nsec, x, y, z, *colours[c.state])
+            if c.state == "open":
+                arrows += (sec, nsec, Marker.DELETE, *pts)
+                continue
+            f = c.force
+            pts[:] = (x, y, z, float(p[0] + scale * f[0]), float(p[1] + scale * f[1]),
+                      float(p[2] + scale * f[2]))
+            arrows += (sec, nsec, Marker.ADD, *pts)
+        return spheres + arrows
 
     def _fill_contact_markers(self, sec, nsec):
         """Spheres at the contact points coloured by state; arrows from each closed contact
@@ -478,8 +522,12 @@ class SimNode:
             self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
         if self._markers_every and k % self._markers_every == 0 and \
                 self._wanted("contact_markers", True):
-            self._fill_contact_markers(sec, nsec)
-            self._emit("contact_markers", self.marker_msg, True)
+            if self._marker_cdr is not None:
+                self._emit_cdr("contact_markers", self._marker_cdr.build(
+                    self._contact_marker_values(sec, nsec)), True)
+            else:
+                self._fill_contact_markers(sec, nsec)
+                self._emit("contact_markers", self.marker_msg, True)
 
     def _publish_static_transforms(self):
         """/tf_static once (transient local): the fixed joints."""
@@ -581,6 +629,10 @@ class SimNode:
             p.publish(data)
 
     SUBSCRIBER_REFRESH = 10   # steps between two looks at the subscriber counts
+    #: steps between two hand-overs of the recorded messages to the writer process (a pipe
+    #: write and a wake-up of that process each; SIGINT / close send the rest, a sim
+    #: process killed outright loses at most these last steps, the file stays complete)
+    HAND_OVER_STEPS = 8
 
     def _wanted(self, key, record):
         """Build and publish a topic only if it is recorded or someone subscribes (an
@@ -649,8 +701,9 @@ class SimNode:
             self._prepare_next_step()
             self._publish_visualisation()
             rec = self.recorder
-            if rec is not None and not rec.closed and hasattr(rec, "hand_over"):
-                rec.hand_over()       # this step's messages to the writer process
+            if rec is not None and not rec.closed and hasattr(rec, "hand_over") and \
+                    svc.k % self.HAND_OVER_STEPS == 0:
+                rec.hand_over()       # the last steps' messages to the writer process
         if timing is not None and record:
             timing.row[5] = time.perf_counter()
             timing.commit(svc.stamp_ns)
