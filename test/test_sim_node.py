@@ -600,3 +600,29 @@ def test_contact_markers_cdr_equals_the_message_objects():
     finally:
         node.destroy()
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "Cm"])
+def test_fast_state_reader_is_the_simulators_accessors_bit_for_bit(preset):
+    """sim_node reads the base state and the foot forces every step through
+    state_io.FastStateReader (constant parts cached): over a collapse under zero torques
+    and a push, the same bits as Simulator.base_state() and Simulator.contacts."""
+    from starleth_sim.physics.simulator import Simulator
+    from starleth_sim.ros.state_io import FastStateReader
+    sim = Simulator.from_preset(preset)
+    reader = FastStateReader(sim)
+    assert reader._base is not None and reader._forces       # the fast paths are taken
+    loaded, spin = 0, 0.0
+    for k in range(120):
+        if k == 80:
+            sim.apply_wrench("base", (60.0, -40.0, 300.0), (5.0, 3.0, -2.0))
+        sim.step(np.zeros(sim.n_joints))
+        fast, ref = reader.base_state(), sim.base_state()
+        for key in ref:
+            assert np.asarray(fast[key]).tobytes() == np.asarray(ref[key]).tobytes(), (k, key)
+        forces = reader.foot_forces(4)
+        for f, c in zip(forces, sim.contacts[:4]):
+            assert f.tobytes() == c.force.tobytes(), (k, c.name)
+        loaded += sum(f[2] > 0 for f in forces)
+        spin = max(spin, float(np.abs(ref["angular_velocity"]).max()))
+    assert loaded > 100 and spin > 0.01

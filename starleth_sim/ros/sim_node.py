@@ -124,7 +124,7 @@ from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
-from .state_io import (ImuEstimate, initial_state_record, minimal_state, parse_initial_state,
+from .state_io import (FastStateReader, ImuEstimate, initial_state_record, minimal_state, parse_initial_state,
                        public_state, quat_to_matrix)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
@@ -207,6 +207,9 @@ class SimNode:
         self._counts = {}
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
         self.imu = ImuEstimate(self._model_gravity(), self.sim.control_period)
+        # the per-step reads of base state and foot forces, their constant parts cached
+        self.reader = FastStateReader(self.sim)
+        self._feet_first = tuple(self.sim.contact_names[:len(FEET)]) == tuple(FEET)
         self._setup_messages()
         self._setup_interfaces()
         self._setup_visualisation()
@@ -738,13 +741,14 @@ class SimNode:
     def _publish_foot_wrenches(self, sec, nsec, feet, record):
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
         cdr = self._wrench_cdr
+        if cdr is not None and self._feet_first:
+            for name, f in zip(FEET, self.reader.foot_forces(len(FEET))):
+                if name in feet:
+                    self._emit_cdr(name, cdr.build(sec, nsec, (float(f[0]), float(f[1]),
+                                                               float(f[2]))), record)
+            return
         for c in self.sim.contacts[:len(FEET)]:
             if c.name not in feet:
-                continue
-            if cdr is not None:
-                f = c.force
-                self._emit_cdr(c.name, cdr.build(sec, nsec, (float(f[0]), float(f[1]),
-                                                             float(f[2]))), record)
                 continue
             m = self.wrench_msgs[c.name]
             m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
@@ -754,7 +758,7 @@ class SimNode:
 
     def _base_values(self):
         """(position, orientation xyzw, world linear velocity, body rates, R) of the base."""
-        b = self.sim.base_state()
+        b = self.reader.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
         R = quat_to_matrix(*quat)

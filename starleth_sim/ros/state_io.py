@@ -233,3 +233,77 @@ class ImuEstimate:
         if self._v_prev is None or self._v_prev[0] != k:
             self._v_prev = (k, np.array(v, dtype=float))
         return R.T @ (acc - self.gravity)
+
+
+class FastStateReader:
+    """What sim_node reads from the simulator every step, with the step-invariant parts
+    computed once: ``base_state()`` gives the values of ``sim.base_state()`` (position,
+    quaternion xyzw, world linear velocity, base angular velocity) and ``foot_forces(n)``
+    the forces F = Λ/Δt of the first n contact points, as ``sim.contacts[i].force``.
+
+    Same operations on the same operands as the simulator's own accessors, bit for bit:
+    the base state of forest coordinates whose trunk frame has the root body's exact
+    orientation (the trunk's transform Y in the root body, its inverse and the check that
+    its rotation is the identity are taken once, instead of every step); the forces from
+    the same world impulse product, without building the ContactInfo records. Where the
+    simulator is of another kind (other coordinates, other internals), or the check at
+    construction finds a difference, the simulator's accessors are used."""
+
+    def __init__(self, sim: Simulator):
+        self.sim = sim
+        self._base = None
+        self._forces = None
+        try:
+            from ..physics.coordinates.forest import ForestCoordinates, _quat_rot
+            c = sim.coords
+            if type(c).base_state is ForestCoordinates.base_state:
+                Y = c.joint_map[1][1].inverse()
+                rot = Y.rotation
+                if np.array_equal(rot, np.eye(3)):
+                    self._base = (c.root_q[0], c.root_v[0], Y.translation, rot.T, _quat_rot)
+                    self._keep = (Y, rot)    # the arrays may view Y's memory
+        except Exception:   # other internals: the simulator's own accessor
+            self._base = None
+        try:
+            sim._impulse @ sim.stepper.ground.frame   # noqa: B018 - the internals exist
+            self._forces = True
+        except Exception:
+            self._forces = None
+        if self._base is not None and not _same_values(self._base_fast(), sim.base_state()):
+            self._base = None
+        if self._forces and not all(np.array_equal(f, c.force) for f, c in
+                                    zip(self._forces_fast(len(sim.contacts)), sim.contacts)):
+            self._forces = None
+
+    def _base_fast(self):
+        sim = self.sim
+        iq, iv, t, rot_t, quat_rot = self._base
+        q, u = sim.state.q, sim.state.u
+        R = np.zeros((3, 3))
+        quat_rot(q, iq, R)
+        d = R @ t
+        pos = q[iq:iq + 3] + d
+        w_body = u[iv + 3:iv + 6]
+        v = u[iv:iv + 3] + np.cross(R @ w_body, d)
+        return {"position": pos, "orientation_xyzw": q[iq + 3:iq + 7].copy(),
+                "linear_velocity": v, "angular_velocity": rot_t @ w_body}
+
+    def base_state(self) -> dict:
+        """sim.base_state()"""
+        return self._base_fast() if self._base is not None else self.sim.base_state()
+
+    def _forces_fast(self, n):
+        sim = self.sim
+        world = sim._impulse @ sim.stepper.ground.frame
+        return [world[i] / sim.control_period for i in range(n)]
+
+    def foot_forces(self, n) -> list:
+        """[sim.contacts[i].force for i < n]"""
+        if self._forces:
+            return self._forces_fast(n)
+        return [c.force for c in self.sim.contacts[:n]]
+
+
+def _same_values(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(
+        np.asarray(a[k]).tobytes() == np.asarray(b[k]).tobytes() for k in a)
