@@ -75,10 +75,14 @@ templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, f
 publishing and recording alike), what a controller waits for first (/joint_states, the foot
 wrenches, the base state), then /clock, /starleth/imu, /starleth/solver; the recorder only
 takes the bytes over (:class:`~.recording.ProcessRecorder`: a writer process adds them to
-the file, outside this interpreter; :class:`~.recording.QueuedRecorder`, a writer thread,
-where no process can be started; SIGINT still leaves a complete file), and
+the file, outside this interpreter, handed over every ``HAND_OVER_STEPS`` steps;
+:class:`~.recording.QueuedRecorder`, a writer thread, where no process can be started;
+SIGINT still leaves a complete file), and
 the node prepares the torque-independent part of the next step (``Simulator.prepare``)
-while the controller computes its answer. ``SimNode.timing`` (a :class:`CycleTimes`,
+while the controller computes its answer. The base state and the foot forces are read
+through :class:`~.state_io.FastStateReader` (their step-invariant parts computed once, bit
+for bit the simulator's accessors), the contact markers written as CDR bytes too
+(``msg_cdr.SlotCdr``). ``SimNode.timing`` (a :class:`CycleTimes`,
 benchmarks only) times each part.
 
 The ROS-free parts: :class:`~.service.SimService` (command validation, lockstep bookkeeping,
@@ -124,8 +128,8 @@ from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
-from .state_io import (FastStateReader, ImuEstimate, initial_state_record, minimal_state, parse_initial_state,
-                       public_state, quat_to_matrix)
+from .state_io import (FastStateReader, ImuEstimate, initial_state_record, minimal_state,
+                       parse_initial_state, public_state, quat_to_matrix)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 

@@ -540,7 +540,8 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
     ctl_row = {int(s): i for i, s in enumerate(ctl_stamp)}
     seg = {k: [] for k in ("step", "sim_publish", "of_which_joint_states",
                            "controller_first_in", "controller_receive", "controller_compute",
-                           "command_back", "of_which_command_publish", "cycle", "record_handover_parallel",
+                           "command_back", "of_which_command_publish", "cycle",
+                           "record_handover_parallel",
                            "prepare_and_visualisation_parallel")}
     for i, st in enumerate(sim_stamp):
         j, c = sim_row.get(int(st) + 2_500_000), ctl_row.get(int(st))
