@@ -205,6 +205,7 @@ class SimNode:
                                   error=self._log_error)
         self.context = node.context
         self._stop = False
+        self._context_ok_until = 0.0
         self._step_on_answer = False   # set by run() in lockstep mode without pacing
         self._n_state_subs = 0          # subscribers of the state topics at the last look
         self._counts_k = -10 ** 9
@@ -952,8 +953,20 @@ class SimNode:
     def request_stop(self, *_):
         self._stop = True
 
+    CONTEXT_CHECK_PERIOD = 0.01   # s: look at the ROS context at most this often
+
     def _running(self):
-        return not self._stop and self.context.ok()
+        """Not stopped and the context not shut down (the context, whose check takes a lock,
+        is looked at every CONTEXT_CHECK_PERIOD s; a shut-down context also ends _spin)."""
+        if self._stop:
+            return False
+        now = time.monotonic()
+        if now < self._context_ok_until:
+            return True
+        if not self.context.ok():
+            return False
+        self._context_ok_until = now + self.CONTEXT_CHECK_PERIOD
+        return True
 
     def _spin(self, executor, timeout):
         try:
