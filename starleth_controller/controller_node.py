@@ -497,7 +497,11 @@ class ControllerNode(Node):
             return None, "joint_states", f"/joint_states: {err}"
         q = np.asarray(position, dtype=float)[perm]
         dq = np.asarray(velocity, dtype=float)[perm]
-        if not (np.isfinite(q).all() and np.isfinite(dq).all()):
+        # a finite sum means every value is finite (NaN and inf propagate); only a sum that
+        # is not (non-finite values, or an overflow) is looked at value by value
+        add = np.add.reduce
+        if not math.isfinite(float(add(q) + add(dq))) and \
+                not (np.isfinite(q).all() and np.isfinite(dq).all()):
             return None, "joint_states_nan", "/joint_states: non-finite position or velocity"
         vals = s.odom
         if not _finite(*vals):
@@ -509,13 +513,13 @@ class ControllerNode(Node):
         quat /= math.sqrt(nq)
         v = np.array(vals[7:10])
         if self._twist_in_child:   # base frame -> world frame
-            x, y, z, w = quat
+            x, y, z, w = quat.tolist()     # Python floats: the same values, faster products
             R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                           [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                           [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
             v = R @ v
         forces = np.array(s.wrench, dtype=float)
-        if not np.isfinite(forces).all():
+        if not math.isfinite(float(add(forces, axis=None))) and not np.isfinite(forces).all():
             return None, "wrench_nan", "foot wrench: non-finite force"
         contact = np.sqrt((forces * forces).sum(axis=1)) > self._threshold
         state = RobotState(stamp * 1e-9, q, dq, np.array(vals[0:3]), quat, v,

@@ -284,7 +284,10 @@ class FastStateReader:
         d = R @ t
         pos = q[iq:iq + 3] + d
         w_body = u[iv + 3:iv + 6]
-        v = u[iv:iv + 3] + np.cross(R @ w_body, d)
+        a0, a1, a2 = (R @ w_body).tolist()
+        b0, b1, b2 = d.tolist()
+        # np.cross(R w, d) written out: the same products and differences, bit for bit
+        v = u[iv:iv + 3] + np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
         return {"position": pos, "orientation_xyzw": q[iq + 3:iq + 7].copy(),
                 "linear_velocity": v, "angular_velocity": rot_t @ w_body}
 
