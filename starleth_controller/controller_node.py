@@ -72,9 +72,10 @@ from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
-from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, StopSignals, ThrottledLog,
+from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
+                                            ParameterSpec, StopSignals, ThrottledLog,
                                             declare_parameters, init_ros, make_executor,
-                                            shutdown_ros)
+                                            set_cpu_scheduling, shutdown_ros)
 from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, foot_wrench_topic)
@@ -120,6 +121,7 @@ PARAMETERS = (
       "kind", read_only=False, minimum=0.0),
     P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
       choices=EXECUTORS),
+    P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
 )
 PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
 
@@ -198,6 +200,9 @@ class ControllerNode(Node):
         self._cmd_vel_timeout = float(p["cmd_vel_timeout"])
         self._twist_in_child = p["twist_frame"] == "child"
         self.executor_kind = p["executor"]
+        err = set_cpu_scheduling(p["cpu_scheduling"])
+        if err:
+            self.log.warning(f"cpu_scheduling {p['cpu_scheduling']}: {err}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._vel = (0.0, 0.0, 0.0)

@@ -115,7 +115,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr, SlotCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
-                                            make_executor, shutdown_ros)
+                                            make_executor, set_cpu_scheduling, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
                                        TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
@@ -218,6 +218,9 @@ class SimNode:
         self._setup_messages()
         self._setup_interfaces()
         self._setup_visualisation()
+        err = set_cpu_scheduling(s.cpu_scheduling)     # before the writer process starts
+        if err:
+            self.log.warning(f"cpu_scheduling {s.cpu_scheduling}: {err}")
         self.recorder = None
         if s.record:
             self._open_recorder(s.record)

@@ -153,6 +153,8 @@ def child_main(args):
                  "realtime_priority": args.realtime_priority}
     if args.record:
         overrides["record"] = args.record
+    if args.mode == "lockstep":
+        overrides.update(_controller_params(args.sim_param))
     if args.pong:
         overrides["start_paused"] = True    # the parent unpauses it for each lockstep round
     sim = SimNode(parameter_overrides=overrides)
@@ -199,14 +201,14 @@ def child_main(args):
 # parent
 # -----------------------------------------------------------------------------------------
 def _controller_params(items):
-    """{name: value} of the ``--controller-param NAME:=VALUE`` options (values read as YAML,
-    as ROS reads -p values)."""
+    """{name: value} of the ``--controller-param`` / ``--sim-param NAME:=VALUE`` options
+    (values read as YAML, as ROS reads -p values)."""
     import yaml
     out = {}
     for item in items or ():
         name, sep, value = item.partition(":=")
         if not sep or not name:
-            raise SystemExit(f"bench_ros: --controller-param {item!r}: expected NAME:=VALUE")
+            raise SystemExit(f"bench_ros: parameter {item!r}: expected NAME:=VALUE")
         out[name] = yaml.safe_load(value)
     return out
 
@@ -239,6 +241,9 @@ def _spawn(args, mode, rtf, pong, log, record="", timing=""):
            args.sim_executor]
     if timing:
         cmd += ["--timing", timing]
+    if mode == "lockstep":
+        for item in getattr(args, "sim_param", None) or ():
+            cmd += ["--sim-param", item]
     if getattr(args, "composed", False) and mode == "lockstep":
         cmd.append("--composed")
         for item in args.controller_param or ():
@@ -716,6 +721,9 @@ def main(argv=None):
     p.add_argument("--controller-param", action="append", default=[], metavar="NAME:=VALUE",
                    help="with --controller real: a parameter of controller_node (repeatable), "
                         "e.g. state_reliability:=best_effort")
+    p.add_argument("--sim-param", action="append", default=[], metavar="NAME:=VALUE",
+                   help="lockstep phase: a parameter of sim_node (repeatable), e.g. "
+                        "cpu_scheduling:=batch")
     p.add_argument("--sim-executor", default="events", choices=["events", "single_threaded"],
                    help="executor of the sim process (pong and sim_node)")
     p.add_argument("--domain-id", type=int, default=os.getpid() % 50 + 30)
