@@ -341,8 +341,15 @@ class DiagnosticArrayCdr:
 
     def __init__(self, frame_id: str, layouts):
         self.frame_id = frame_id.encode("utf-8")
-        self.layouts = [(name.encode("utf-8"), hw.encode("utf-8"),
-                         [k.encode("utf-8") for k in keys]) for name, hw, keys in layouts]
+        enc = self._encoded
+        # the constant strings once as CDR (length, bytes, NUL): only their padding is
+        # worked out per message
+        self.layouts = [(enc(name.encode("utf-8")), enc(hw.encode("utf-8")),
+                         [enc(k.encode("utf-8")) for k in keys]) for name, hw, keys in layouts]
+
+    @staticmethod
+    def _encoded(s: bytes) -> bytes:
+        return _U32.pack(len(s) + 1) + s + b"\0"
 
     @staticmethod
     def _string(parts, o, s: bytes) -> int:
@@ -358,26 +365,36 @@ class DiagnosticArrayCdr:
     def build(self, sec, nsec, statuses) -> bytes:
         string = self._string
         parts = [b"\x00\x01\x00\x00", _STAMP.pack(sec, nsec)]
+        append = parts.append
         o = string(parts, 12, self.frame_id)
         pad = (4 - (o - _ORIGIN) % 4) % 4
-        parts.append(b"\0" * pad + _U32.pack(len(statuses)))
+        append(b"\0" * pad + _U32.pack(len(statuses)))
         o += pad + 4
+        pads = (b"", b"\0\0\0", b"\0\0", b"\0")      # by (o - origin) % 4
         for index, level, message, values in statuses:
             name, hw, keys = self.layouts[index]
             if len(values) != len(keys):
                 raise ValueError(f"status {index}: {len(values)} values for {len(keys)} keys")
-            parts.append(bytes(level) if isinstance(level, (bytes, bytearray))
-                         else struct.pack("<B", level))    # rclpy's byte constants: bytes
+            append(bytes(level) if isinstance(level, (bytes, bytearray))
+                   else struct.pack("<B", level))    # rclpy's byte constants: bytes
             o += 1
-            o = string(parts, o, name)
+            p = pads[(o - _ORIGIN) % 4]
+            append(p + name)
+            o += len(p) + len(name)
             o = string(parts, o, message.encode("utf-8"))
-            o = string(parts, o, hw)
-            pad = (4 - (o - _ORIGIN) % 4) % 4
-            parts.append(b"\0" * pad + _U32.pack(len(values)))
-            o += pad + 4
+            p = pads[(o - _ORIGIN) % 4]
+            append(p + hw)
+            o += len(p) + len(hw)
+            p = pads[(o - _ORIGIN) % 4]
+            append(p + _U32.pack(len(values)))
+            o += len(p) + 4
             for k, v in zip(keys, values):
-                o = string(parts, o, k)
-                o = string(parts, o, v.encode("utf-8"))
+                p = pads[(o - _ORIGIN) % 4]
+                vb = v.encode("utf-8")
+                n = len(vb) + 1
+                vp = pads[(o + len(p) + len(k) - _ORIGIN) % 4]
+                append(b"".join((p, k, vp, _U32.pack(n), vb, b"\0")))
+                o += len(p) + len(k) + len(vp) + 4 + n
         return b"".join(parts)
 
 

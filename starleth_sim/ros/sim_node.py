@@ -528,7 +528,7 @@ class SimNode:
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         if self._tf_every and k % self._tf_every == 0 and \
                 (self.recorder is not None or self.tf_pubs):
-            q, _ = minimal_state(self.sim, public_state(self.sim))
+            q, _ = minimal_state(self.sim, public_state(self.sim, self.reader.base_state()))
             poses = self.frames.transforms(q, self.frames.dynamic)
             self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
         if self._markers_every and k % self._markers_every == 0 and \
@@ -750,10 +750,9 @@ class SimNode:
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
         cdr = self._wrench_cdr
         if cdr is not None and self._feet_first:
-            for name, f in zip(FEET, self.reader.foot_forces(len(FEET))):
+            for name, f in zip(FEET, self.reader.foot_forces(len(FEET)).tolist()):
                 if name in feet:
-                    self._emit_cdr(name, cdr.build(sec, nsec, (float(f[0]), float(f[1]),
-                                                               float(f[2]))), record)
+                    self._emit_cdr(name, cdr.build(sec, nsec, f), record)
             return
         for c in self.sim.contacts[:len(FEET)]:
             if c.name not in feet:

@@ -40,9 +40,10 @@ def read_state_spec(spec):
         raise ConfigError(f"parameter initial_state: not valid YAML: {e}") from None
 
 
-def public_state(sim: Simulator) -> dict:
-    """The simulator's current state in convention-free public quantities."""
-    b = sim.base_state()
+def public_state(sim: Simulator, base: dict | None = None) -> dict:
+    """The simulator's current state in convention-free public quantities (`base`: the
+    values of sim.base_state() if the caller has them)."""
+    b = sim.base_state() if base is None else base
     return {"base_position": np.array(b["position"], dtype=float),
             "base_orientation": np.array(b["orientation_xyzw"], dtype=float),
             "base_linear_velocity": np.array(b["linear_velocity"], dtype=float),
@@ -298,13 +299,13 @@ class FastStateReader:
     def _forces_fast(self, n):
         sim = self.sim
         world = sim._impulse @ sim.stepper.ground.frame
-        return [world[i] / sim.control_period for i in range(n)]
+        return world[:n] / sim.control_period        # row i: world[i] / Δt, as ContactInfo
 
-    def foot_forces(self, n) -> list:
-        """[sim.contacts[i].force for i < n]"""
+    def foot_forces(self, n) -> np.ndarray:
+        """n x 3: row i = sim.contacts[i].force"""
         if self._forces:
             return self._forces_fast(n)
-        return [c.force for c in self.sim.contacts[:n]]
+        return np.array([c.force for c in self.sim.contacts[:n]], dtype=float)
 
 
 def _same_values(a: dict, b: dict) -> bool:
