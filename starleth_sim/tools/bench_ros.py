@@ -48,6 +48,7 @@ import re
 import signal
 import subprocess
 import sys
+import shutil
 import tempfile
 import time
 
@@ -690,6 +691,7 @@ def parent_main(args):
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+        shutil.rmtree(tmp, ignore_errors=True)     # the child's logs and timing arrays
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
