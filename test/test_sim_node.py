@@ -612,6 +612,7 @@ def test_fast_state_reader_is_the_simulators_accessors_bit_for_bit(preset):
     sim = Simulator.from_preset(preset)
     reader = FastStateReader(sim)
     assert reader._base is not None and reader._forces       # the fast paths are taken
+    reader.CHECK_EVERY = 7            # the periodic cross-check runs too (and agrees)
     loaded, spin = 0, 0.0
     for k in range(120):
         if k == 80:
@@ -626,3 +627,13 @@ def test_fast_state_reader_is_the_simulators_accessors_bit_for_bit(preset):
         loaded += sum(f[2] > 0 for f in forces)
         spin = max(spin, float(np.abs(ref["angular_velocity"]).max()))
     assert loaded > 100 and spin > 0.01
+    assert reader._base is not None and reader._forces       # no mismatch found
+    # a fast path that went wrong is caught by the periodic check: the accessor from then on
+    told = []
+    reader.on_mismatch = told.append
+    reader._base = (*reader._base[:2], reader._base[2] + 1e-3, *reader._base[3:])
+    for _ in range(reader.CHECK_EVERY):
+        b = reader.base_state()
+    assert reader._base is None and len(told) == 1 and "base state" in told[0]
+    assert np.asarray(b["position"]).tobytes() == np.asarray(
+        sim.base_state()["position"]).tobytes()

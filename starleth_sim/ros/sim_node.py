@@ -213,7 +213,7 @@ class SimNode:
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
         self.imu = ImuEstimate(self._model_gravity(), self.sim.control_period)
         # the per-step reads of base state and foot forces, their constant parts cached
-        self.reader = FastStateReader(self.sim)
+        self.reader = FastStateReader(self.sim, on_mismatch=self._log_warning)
         self._feet_first = tuple(self.sim.contact_names[:len(FEET)]) == tuple(FEET)
         self._setup_messages()
         self._setup_interfaces()

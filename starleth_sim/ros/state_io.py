@@ -248,10 +248,16 @@ class FastStateReader:
     its rotation is the identity are taken once, instead of every step); the forces from
     the same world impulse product, without building the ContactInfo records. Where the
     simulator is of another kind (other coordinates, other internals), or the check at
-    construction finds a difference, the simulator's accessors are used."""
+    construction finds a difference, the simulator's accessors are used; every CHECK_EVERY
+    calls the fast values are compared with the accessors' again, and a difference switches
+    to the accessors for good (``on_mismatch(message)`` is told)."""
 
-    def __init__(self, sim: Simulator):
+    CHECK_EVERY = 400      # calls (1 s of sim time at 400 Hz)
+
+    def __init__(self, sim: Simulator, on_mismatch=None):
         self.sim = sim
+        self.on_mismatch = on_mismatch
+        self._calls = {"base": 0, "forces": 0}
         self._base = None
         self._forces = None
         try:
@@ -292,9 +298,28 @@ class FastStateReader:
         return {"position": pos, "orientation_xyzw": q[iq + 3:iq + 7].copy(),
                 "linear_velocity": v, "angular_velocity": rot_t @ w_body}
 
+    def _checked(self, kind) -> bool:
+        """True on every CHECK_EVERY-th call of `kind`."""
+        n = self._calls[kind] = self._calls[kind] + 1
+        return n % self.CHECK_EVERY == 0
+
+    def _mismatch(self, what):
+        if self.on_mismatch is not None:
+            self.on_mismatch(f"FastStateReader: the fast {what} differs from the simulator's "
+                             "accessor; using the accessor from now on")
+
     def base_state(self) -> dict:
         """sim.base_state()"""
-        return self._base_fast() if self._base is not None else self.sim.base_state()
+        if self._base is None:
+            return self.sim.base_state()
+        fast = self._base_fast()
+        if self._checked("base"):
+            ref = self.sim.base_state()
+            if not _same_values(fast, ref):
+                self._base = None
+                self._mismatch("base state")
+                return ref
+        return fast
 
     def _forces_fast(self, n):
         sim = self.sim
@@ -304,7 +329,14 @@ class FastStateReader:
     def foot_forces(self, n) -> np.ndarray:
         """n x 3: row i = sim.contacts[i].force"""
         if self._forces:
-            return self._forces_fast(n)
+            fast = self._forces_fast(n)
+            if not self._checked("forces"):
+                return fast
+            ref = np.array([c.force for c in self.sim.contacts[:n]], dtype=float)
+            if fast.tobytes() == ref.tobytes():
+                return fast
+            self._forces = None
+            self._mismatch("foot forces")
         return np.array([c.force for c in self.sim.contacts[:n]], dtype=float)
 
 
