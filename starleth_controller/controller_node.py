@@ -72,9 +72,10 @@ from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
-from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, StopSignals, ThrottledLog,
+from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
+                                            ParameterSpec, StopSignals, ThrottledLog,
                                             declare_parameters, init_ros, make_executor,
-                                            shutdown_ros)
+                                            set_cpu_scheduling, shutdown_ros)
 from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, foot_wrench_topic)
@@ -120,6 +121,7 @@ PARAMETERS = (
       "kind", read_only=False, minimum=0.0),
     P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
       choices=EXECUTORS),
+    P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
 )
 PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
 
@@ -198,6 +200,9 @@ class ControllerNode(Node):
         self._cmd_vel_timeout = float(p["cmd_vel_timeout"])
         self._twist_in_child = p["twist_frame"] == "child"
         self.executor_kind = p["executor"]
+        err = set_cpu_scheduling(p["cpu_scheduling"])
+        if err:
+            self.log.warning(f"cpu_scheduling {p['cpu_scheduling']}: {err}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._vel = (0.0, 0.0, 0.0)
@@ -497,7 +502,11 @@ class ControllerNode(Node):
             return None, "joint_states", f"/joint_states: {err}"
         q = np.asarray(position, dtype=float)[perm]
         dq = np.asarray(velocity, dtype=float)[perm]
-        if not (np.isfinite(q).all() and np.isfinite(dq).all()):
+        # a finite sum means every value is finite (NaN and inf propagate); only a sum that
+        # is not (non-finite values, or an overflow) is looked at value by value
+        add = np.add.reduce
+        if not math.isfinite(float(add(q) + add(dq))) and \
+                not (np.isfinite(q).all() and np.isfinite(dq).all()):
             return None, "joint_states_nan", "/joint_states: non-finite position or velocity"
         vals = s.odom
         if not _finite(*vals):
@@ -509,13 +518,13 @@ class ControllerNode(Node):
         quat /= math.sqrt(nq)
         v = np.array(vals[7:10])
         if self._twist_in_child:   # base frame -> world frame
-            x, y, z, w = quat
+            x, y, z, w = quat.tolist()     # Python floats: the same values, faster products
             R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                           [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                           [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
             v = R @ v
         forces = np.array(s.wrench, dtype=float)
-        if not np.isfinite(forces).all():
+        if not math.isfinite(float(add(forces, axis=None))) and not np.isfinite(forces).all():
             return None, "wrench_nan", "foot wrench: non-finite force"
         contact = np.sqrt((forces * forces).sum(axis=1)) > self._threshold
         state = RobotState(stamp * 1e-9, q, dq, np.array(vals[0:3]), quat, v,

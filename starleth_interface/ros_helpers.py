@@ -108,6 +108,38 @@ def render_parameters_yaml(specs, header: str, node_key: str = "/**") -> str:
 
 
 # =========================================================================================
+# CPU scheduling
+# =========================================================================================
+CPU_SCHEDULING = ("default", "batch")
+CPU_SCHEDULING_HELP = (
+    "default (as started) | batch: every thread of the process (the DDS threads included, "
+    "and those it starts later) under SCHED_BATCH, i.e. not preempting the thread that "
+    "wakes it: with the simulator and the controller sharing a CPU, a state message no "
+    "longer switches to the controller in the middle of the simulator's publishing, nor "
+    "the command back to the simulator inside the controller's publish (lockstep: fewer "
+    "context switches per cycle; not for the realtime mode, whose ticks want prompt "
+    "wake-ups). Needs no privileges.")
+
+
+def set_cpu_scheduling(policy: str):
+    """Apply `policy` (CPU_SCHEDULING) to every thread of this process: 'batch' =
+    SCHED_BATCH (threads started later inherit it from their creator), 'default' changes
+    nothing. Returns None, or the reason it could not be applied (one line)."""
+    import os
+    if policy == "default":
+        return None
+    if policy != "batch":
+        return f"unknown CPU scheduling {policy!r} (expected one of {', '.join(CPU_SCHEDULING)})"
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+        for tid in tids:
+            os.sched_setscheduler(tid, os.SCHED_BATCH, os.sched_param(0))
+    except (OSError, AttributeError, ValueError) as e:
+        return f"SCHED_BATCH not applied: {e}"
+    return None
+
+
+# =========================================================================================
 # executor, logging
 # =========================================================================================
 EXECUTORS = ("events", "single_threaded")

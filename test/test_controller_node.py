@@ -388,3 +388,32 @@ def test_composed_mode_records_every_step_and_matches_the_headless_simulator(tmp
         assert got.tobytes() == want.tobytes(), f"step {k}"
         if k:
             assert np.asarray(js.effort).tobytes() == np.asarray(ref.applied_torque).tobytes()
+
+
+def test_cpu_scheduling_batch_covers_every_thread_and_later_ones():
+    """cpu_scheduling:=batch (both nodes, ros_helpers.set_cpu_scheduling): every thread of
+    the process, and a thread started afterwards, run under SCHED_BATCH; 'default' changes
+    nothing; an unknown policy is a one-line reason, not an exception. In a child process
+    (this one keeps its policy)."""
+    import subprocess
+    import sys
+    code = r"""
+import os, threading
+from starleth_interface.ros_helpers import set_cpu_scheduling
+t0 = threading.Thread(target=threading.Event().wait, daemon=True); t0.start()
+before = {int(t): os.sched_getscheduler(int(t)) for t in os.listdir("/proc/self/task")}
+assert set_cpu_scheduling("default") is None
+assert {int(t): os.sched_getscheduler(int(t)) for t in os.listdir("/proc/self/task")} == before
+assert "unknown" in set_cpu_scheduling("fifo")
+assert set_cpu_scheduling("batch") is None
+t1 = threading.Thread(target=threading.Event().wait, daemon=True); t1.start()
+pol = {int(t): os.sched_getscheduler(int(t)) for t in os.listdir("/proc/self/task")}
+assert len(pol) >= 3 and set(pol.values()) == {os.SCHED_BATCH}, pol
+assert set(before.values()) == {os.SCHED_OTHER}, before
+print("ok")
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, PYTHONPATH=os.pathsep.join(
+                           [os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                            os.environ.get("PYTHONPATH", "")])))
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]

@@ -567,3 +567,73 @@ def test_push_on_trunk_changes_velocity_by_impulse_over_mass(ros, tmp_path):
     assert jump > 5 and np.all(np.abs(resid[1:jump]) < 0.02 * dv)
     measured = resid[jump + 20:jump + 60].mean()
     assert abs(measured / dv - 1.0) < 0.05, (measured, dv)
+
+
+def test_contact_markers_cdr_equals_the_message_objects():
+    """The contact markers go out as CDR bytes patched into a template (SlotCdr): over a
+    collapse under zero torques (contacts close, stick, slip, open again), the bytes
+    deserialise to the message sim_node's object path fills (an open contact's arrow is
+    deleted and keeps its last points, as there)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from visualization_msgs.msg import MarkerArray
+    from starleth_sim.ros.sim_node import SimNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep",
+                                                     "contact_markers_rate": 400.0})
+    try:
+        assert node._marker_cdr is not None
+        svc = node.service
+        actions = set()
+        for k in range(150):
+            if k == 100:
+                svc.submit_wrench("base", (0.0, 0.0, 900.0), (0.0, 0.0, 0.0), False)
+            svc.step()
+            sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
+            back = deserialize_message(node._marker_cdr.build(
+                node._contact_marker_values(sec, nsec)), MarkerArray)
+            node._fill_contact_markers(sec, nsec)
+            assert back == deserialize_message(serialize_message(node.marker_msg),
+                                               MarkerArray), f"step {k}"
+            actions |= {m.action for m in back.markers if m.ns == "contact_forces"}
+        assert actions == {0, 2}                   # both ADD and DELETE arrows were compared
+    finally:
+        node.destroy()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "Cm"])
+def test_fast_state_reader_is_the_simulators_accessors_bit_for_bit(preset):
+    """sim_node reads the base state and the foot forces every step through
+    state_io.FastStateReader (constant parts cached): over a collapse under zero torques
+    and a push, the same bits as Simulator.base_state() and Simulator.contacts."""
+    from starleth_sim.physics.simulator import Simulator
+    from starleth_sim.ros.state_io import FastStateReader
+    sim = Simulator.from_preset(preset)
+    reader = FastStateReader(sim)
+    assert reader._base is not None and reader._forces       # the fast paths are taken
+    reader.CHECK_EVERY = 7            # the periodic cross-check runs too (and agrees)
+    loaded, spin = 0, 0.0
+    for k in range(120):
+        if k == 80:
+            sim.apply_wrench("base", (60.0, -40.0, 300.0), (5.0, 3.0, -2.0))
+        sim.step(np.zeros(sim.n_joints))
+        fast, ref = reader.base_state(), sim.base_state()
+        for key in ref:
+            assert np.asarray(fast[key]).tobytes() == np.asarray(ref[key]).tobytes(), (k, key)
+        forces = reader.foot_forces(4)
+        for f, c in zip(forces, sim.contacts[:4]):
+            assert f.tobytes() == c.force.tobytes(), (k, c.name)
+        loaded += sum(f[2] > 0 for f in forces)
+        spin = max(spin, float(np.abs(ref["angular_velocity"]).max()))
+    assert loaded > 100 and spin > 0.01
+    assert reader._base is not None and reader._forces       # no mismatch found
+    # a fast path that went wrong is caught by the periodic check: the accessor from then on
+    told = []
+    reader.on_mismatch = told.append
+    reader._base = (*reader._base[:2], reader._base[2] + 1e-3, *reader._base[3:])
+    for _ in range(reader.CHECK_EVERY):
+        b = reader.base_state()
+    assert reader._base is None and len(told) == 1 and "base state" in told[0]
+    assert np.asarray(b["position"]).tobytes() == np.asarray(
+        sim.base_state()["position"]).tobytes()

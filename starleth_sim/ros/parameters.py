@@ -15,7 +15,8 @@ from dataclasses import make_dataclass
 
 import yaml
 
-from starleth_interface.ros_helpers import (EXECUTORS, ParameterSpec, parameter_defaults,
+from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
+                                            ParameterSpec, parameter_defaults,
                                             render_parameters_yaml)
 from ..physics.config import ConfigError
 
@@ -67,6 +68,7 @@ SIM_NODE_PARAMETERS = (
     P("executor", str, "events",
       "events (rclpy's C++ EventsExecutor, lower latency) | single_threaded.",
       choices=EXECUTORS),
+    P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
     P("warn_throttle_period", float, 2.0,
       "Minimum seconds between two warnings about the same kind of bad input.", minimum=0.0),
     P("world_frame", str, "world", "Frame id of the world (the parent of the base pose)."),

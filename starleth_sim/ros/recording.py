@@ -757,9 +757,10 @@ class ProcessRecorder:
     or `max_size` is given) in a child process of its own (``python -m
     starleth_sim.ros.recording --writer``): the caller hands CDR bytes over through a pipe
     and the writing (~12 µs of Python per message) runs outside its interpreter, so it
-    takes nothing from the caller's GIL. Messages are buffered and sent when the log time
-    changes, when 64 kB are buffered, and on ``hand_over()`` (sim_node calls it once per
-    step, after the state is out); ``add_topic``, ``add_metadata``, ``add_attachment`` and
+    takes nothing from the caller's GIL. Messages are buffered and sent when 64 kB are
+    buffered and on ``hand_over()`` (sim_node calls it every ``HAND_OVER_STEPS`` steps,
+    after the state is out: one pipe write and one wake-up of the writer per 20 ms of sim
+    time instead of one per step); ``add_topic``, ``add_metadata``, ``add_attachment`` and
     ``close`` are sent at once and wait for the child's answer (an error there is raised
     here). ``close`` sends what is buffered and waits until the child has finalised the
     file. The child ignores SIGINT / SIGTERM (its parent closes it) and finalises the file
@@ -853,7 +854,7 @@ class ProcessRecorder:
             from rclpy.serialization import serialize_message
             msg = serialize_message(msg)
         log_time_ns = int(log_time_ns)
-        if self._buf and (log_time_ns != self._buf_time or len(self._buf) > self.FLUSH_BYTES):
+        if len(self._buf) > self.FLUSH_BYTES:
             self.hand_over()
         self._buf_time = log_time_ns
         self._buf += self._head.pack(self._topics[topic][0], log_time_ns, len(msg))

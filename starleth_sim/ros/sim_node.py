@@ -75,10 +75,14 @@ templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, f
 publishing and recording alike), what a controller waits for first (/joint_states, the foot
 wrenches, the base state), then /clock, /starleth/imu, /starleth/solver; the recorder only
 takes the bytes over (:class:`~.recording.ProcessRecorder`: a writer process adds them to
-the file, outside this interpreter; :class:`~.recording.QueuedRecorder`, a writer thread,
-where no process can be started; SIGINT still leaves a complete file), and
+the file, outside this interpreter, handed over every ``HAND_OVER_STEPS`` steps;
+:class:`~.recording.QueuedRecorder`, a writer thread, where no process can be started;
+SIGINT still leaves a complete file), and
 the node prepares the torque-independent part of the next step (``Simulator.prepare``)
-while the controller computes its answer. ``SimNode.timing`` (a :class:`CycleTimes`,
+while the controller computes its answer. The base state and the foot forces are read
+through :class:`~.state_io.FastStateReader` (their step-invariant parts computed once, bit
+for bit the simulator's accessors), the contact markers written as CDR bytes too
+(``msg_cdr.SlotCdr``). ``SimNode.timing`` (a :class:`CycleTimes`,
 benchmarks only) times each part.
 
 The ROS-free parts: :class:`~.service.SimService` (command validation, lockstep bookkeeping,
@@ -109,9 +113,9 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr
+from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr, SlotCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
-                                            make_executor, shutdown_ros)
+                                            make_executor, set_cpu_scheduling, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
                                        TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
@@ -124,8 +128,8 @@ from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
-from .state_io import (ImuEstimate, initial_state_record, minimal_state, parse_initial_state,
-                       public_state, quat_to_matrix)
+from .state_io import (FastStateReader, ImuEstimate, initial_state_record, minimal_state,
+                       parse_initial_state, public_state, quat_to_matrix)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 
@@ -201,15 +205,22 @@ class SimNode:
                                   error=self._log_error)
         self.context = node.context
         self._stop = False
+        self._context_ok_until = 0.0
         self._step_on_answer = False   # set by run() in lockstep mode without pacing
         self._n_state_subs = 0          # subscribers of the state topics at the last look
         self._counts_k = -10 ** 9
         self._counts = {}
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
         self.imu = ImuEstimate(self._model_gravity(), self.sim.control_period)
+        # the per-step reads of base state and foot forces, their constant parts cached
+        self.reader = FastStateReader(self.sim, on_mismatch=self._log_warning)
+        self._feet_first = tuple(self.sim.contact_names[:len(FEET)]) == tuple(FEET)
         self._setup_messages()
         self._setup_interfaces()
         self._setup_visualisation()
+        err = set_cpu_scheduling(s.cpu_scheduling)     # before the writer process starts
+        if err:
+            self.log.warning(f"cpu_scheduling {s.cpu_scheduling}: {err}")
         self.recorder = None
         if s.record:
             self._open_recorder(s.record)
@@ -387,7 +398,7 @@ class SimNode:
             else:
                 for key, (topic, qos) in self.tf_topics.items():
                     self.tf_pubs[key] = self.node.create_publisher(TFMessage, topic, qos)
-        self.marker_msg = None
+        self.marker_msg = self._marker_cdr = None
         if self._markers_every:
             try:
                 from visualization_msgs.msg import Marker, MarkerArray
@@ -401,6 +412,11 @@ class SimNode:
                 self.pubs["contact_markers"] = (p, p.topic_name, MarkerArray,
                                                 self.qos["state"])
                 self.marker_msg = self._contact_marker_template(MarkerArray)
+                # written as CDR bytes (SlotCdr: stamps, sphere positions and colours, arrow
+                # actions and points patched into a template; None: message objects)
+                self._marker_cdr = self._contact_marker_cdr(MarkerArray)
+                n = len(self.sim.contact_names)
+                self._marker_points = [[0.0] * 6 for _ in range(n)]
 
     #: colours (r, g, b, a) of the contact states (ContactInfo.state)
     MARKER_COLOURS = {"open": (0.6, 0.6, 0.6, 0.5), "stick": (0.1, 0.75, 0.2, 1.0),
@@ -431,6 +447,45 @@ class SimNode:
                     m.points = [type(m.pose.position)(), type(m.pose.position)()]
                 msg.markers.append(m)
         return msg
+
+    def _contact_marker_cdr(self, MarkerArray):
+        """SlotCdr of the contact markers: per sphere its stamp, position and colour, per
+        arrow its stamp, action and two points (the order of _contact_marker_values)."""
+        msg = self._contact_marker_template(MarkerArray)
+        n = len(self.sim.contact_names)
+        slots = []
+        for m in msg.markers[:n]:
+            p, c = m.pose.position, m.color
+            slots += [(m.header.stamp, "sec", "i"), (m.header.stamp, "nanosec", "I"),
+                      (p, "x", "d"), (p, "y", "d"), (p, "z", "d"),
+                      (c, "r", "f"), (c, "g", "f"), (c, "b", "f"), (c, "a", "f")]
+        for m in msg.markers[n:]:
+            a, b = m.points
+            slots += [(m.header.stamp, "sec", "i"), (m.header.stamp, "nanosec", "I"),
+                      (m, "action", "i"), (a, "x", "d"), (a, "y", "d"), (a, "z", "d"),
+                      (b, "x", "d"), (b, "y", "d"), (b, "z", "d")]
+        return SlotCdr.create(msg, slots)
+
+    def _contact_marker_values(self, sec, nsec):
+        """The values of _contact_marker_cdr's slots: the same as _fill_contact_markers puts
+        into the message objects (an open contact's arrow is deleted and keeps its
+        points)."""
+        sim, Marker = self.sim, self._Marker
+        scale = self.settings.contact_marker_scale
+        colours = self.MARKER_COLOURS
+        spheres, arrows = [], []
+        for c, pts in zip(sim.contacts, self._marker_points):
+            p = c.position
+            x, y, z = float(p[0]), float(p[1]), float(p[2])
+            spheres += (sec, nsec, x, y, z, *colours[c.state])
+            if c.state == "open":
+                arrows += (sec, nsec, Marker.DELETE, *pts)
+                continue
+            f = c.force
+            pts[:] = (x, y, z, float(p[0] + scale * f[0]), float(p[1] + scale * f[1]),
+                      float(p[2] + scale * f[2]))
+            arrows += (sec, nsec, Marker.ADD, *pts)
+        return spheres + arrows
 
     def _fill_contact_markers(self, sec, nsec):
         """Spheres at the contact points coloured by state; arrows from each closed contact
@@ -473,13 +528,17 @@ class SimNode:
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         if self._tf_every and k % self._tf_every == 0 and \
                 (self.recorder is not None or self.tf_pubs):
-            q, _ = minimal_state(self.sim, public_state(self.sim))
+            q, _ = minimal_state(self.sim, public_state(self.sim, self.reader.base_state()))
             poses = self.frames.transforms(q, self.frames.dynamic)
             self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
         if self._markers_every and k % self._markers_every == 0 and \
                 self._wanted("contact_markers", True):
-            self._fill_contact_markers(sec, nsec)
-            self._emit("contact_markers", self.marker_msg, True)
+            if self._marker_cdr is not None:
+                self._emit_cdr("contact_markers", self._marker_cdr.build(
+                    self._contact_marker_values(sec, nsec)), True)
+            else:
+                self._fill_contact_markers(sec, nsec)
+                self._emit("contact_markers", self.marker_msg, True)
 
     def _publish_static_transforms(self):
         """/tf_static once (transient local): the fixed joints."""
@@ -581,6 +640,10 @@ class SimNode:
             p.publish(data)
 
     SUBSCRIBER_REFRESH = 10   # steps between two looks at the subscriber counts
+    #: steps between two hand-overs of the recorded messages to the writer process (a pipe
+    #: write and a wake-up of that process each; SIGINT / close send the rest, a sim
+    #: process killed outright loses at most these last steps, the file stays complete)
+    HAND_OVER_STEPS = 8
 
     def _wanted(self, key, record):
         """Build and publish a topic only if it is recorded or someone subscribes (an
@@ -649,8 +712,9 @@ class SimNode:
             self._prepare_next_step()
             self._publish_visualisation()
             rec = self.recorder
-            if rec is not None and not rec.closed and hasattr(rec, "hand_over"):
-                rec.hand_over()       # this step's messages to the writer process
+            if rec is not None and not rec.closed and hasattr(rec, "hand_over") and \
+                    svc.k % self.HAND_OVER_STEPS == 0:
+                rec.hand_over()       # the last steps' messages to the writer process
         if timing is not None and record:
             timing.row[5] = time.perf_counter()
             timing.commit(svc.stamp_ns)
@@ -685,13 +749,13 @@ class SimNode:
     def _publish_foot_wrenches(self, sec, nsec, feet, record):
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
         cdr = self._wrench_cdr
+        if cdr is not None and self._feet_first:
+            for name, f in zip(FEET, self.reader.foot_forces(len(FEET)).tolist()):
+                if name in feet:
+                    self._emit_cdr(name, cdr.build(sec, nsec, f), record)
+            return
         for c in self.sim.contacts[:len(FEET)]:
             if c.name not in feet:
-                continue
-            if cdr is not None:
-                f = c.force
-                self._emit_cdr(c.name, cdr.build(sec, nsec, (float(f[0]), float(f[1]),
-                                                             float(f[2]))), record)
                 continue
             m = self.wrench_msgs[c.name]
             m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
@@ -701,7 +765,7 @@ class SimNode:
 
     def _base_values(self):
         """(position, orientation xyzw, world linear velocity, body rates, R) of the base."""
-        b = self.sim.base_state()
+        b = self.reader.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
         R = quat_to_matrix(*quat)
@@ -891,8 +955,20 @@ class SimNode:
     def request_stop(self, *_):
         self._stop = True
 
+    CONTEXT_CHECK_PERIOD = 0.01   # s: look at the ROS context at most this often
+
     def _running(self):
-        return not self._stop and self.context.ok()
+        """Not stopped and the context not shut down (the context, whose check takes a lock,
+        is looked at every CONTEXT_CHECK_PERIOD s; a shut-down context also ends _spin)."""
+        if self._stop:
+            return False
+        now = time.monotonic()
+        if now < self._context_ok_until:
+            return True
+        if not self.context.ok():
+            return False
+        self._context_ok_until = now + self.CONTEXT_CHECK_PERIOD
+        return True
 
     def _spin(self, executor, timeout):
         try:

@@ -48,6 +48,7 @@ import re
 import signal
 import subprocess
 import sys
+import shutil
 import tempfile
 import time
 
@@ -153,6 +154,8 @@ def child_main(args):
                  "realtime_priority": args.realtime_priority}
     if args.record:
         overrides["record"] = args.record
+    if args.mode == "lockstep":
+        overrides.update(_controller_params(args.sim_param))
     if args.pong:
         overrides["start_paused"] = True    # the parent unpauses it for each lockstep round
     sim = SimNode(parameter_overrides=overrides)
@@ -164,7 +167,8 @@ def child_main(args):
         if hasattr(sim_node, "CycleTimes"):
             sim.timing = sim_node.CycleTimes()
     if args.composed:   # the controller on sim_node's executor, in this process
-        ctl = make_bench_controller(sim.context, timing=bool(args.timing))
+        ctl = make_bench_controller(sim.context, timing=bool(args.timing),
+                                    params=_controller_params(args.controller_param))
         ex.add_node(ctl)
     if args.pong:   # bare round trips, served by the same executor as sim_node
         pong = Node("bench_pong", context=sim.context)
@@ -197,12 +201,27 @@ def child_main(args):
 # -----------------------------------------------------------------------------------------
 # parent
 # -----------------------------------------------------------------------------------------
-def make_bench_controller(context, timing=False, trot_at=0.5, speed=0.3):
+def _controller_params(items):
+    """{name: value} of the ``--controller-param`` / ``--sim-param NAME:=VALUE`` options
+    (values read as YAML, as ROS reads -p values)."""
+    import yaml
+    out = {}
+    for item in items or ():
+        name, sep, value = item.partition(":=")
+        if not sep or not name:
+            raise SystemExit(f"bench_ros: parameter {item!r}: expected NAME:=VALUE")
+        out[name] = yaml.safe_load(value)
+    return out
+
+
+def make_bench_controller(context, timing=False, trot_at=0.5, speed=0.3, params=None):
     """starleth_controller's ControllerNode as the benchmark's real controller: stands, and
-    trots at `speed` from sim time `trot_at` on (checked on every command it sends)."""
+    trots at `speed` from sim time `trot_at` on (checked on every command it sends);
+    `params`: more parameter overrides of the node."""
     from rclpy.parameter import Parameter
     from starleth_controller import controller_node
-    ctl = controller_node.ControllerNode(context=context, parameter_overrides={"mode": "stand"})
+    ctl = controller_node.ControllerNode(context=context, parameter_overrides={
+        **(params or {}), "mode": "stand"})
     ctl._vel = (speed, 0.0, 0.0)
     if timing and hasattr(controller_node, "CycleTimes"):
         ctl.timing = controller_node.CycleTimes()
@@ -223,8 +242,13 @@ def _spawn(args, mode, rtf, pong, log, record="", timing=""):
            args.sim_executor]
     if timing:
         cmd += ["--timing", timing]
+    if mode == "lockstep":
+        for item in getattr(args, "sim_param", None) or ():
+            cmd += ["--sim-param", item]
     if getattr(args, "composed", False) and mode == "lockstep":
         cmd.append("--composed")
+        for item in args.controller_param or ():
+            cmd += ["--controller-param", item]
     if pong:
         cmd.append("--pong")
     if record:
@@ -354,7 +378,7 @@ def _set_paused(node, ex, client, paused):
 
 
 def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmup=0.2,
-                         controller="echo", windows=None, ctl=None):
+                         controller="echo", windows=None, ctl=None, sim_pid=None):
     """The interleaved rounds of phase 1 (sim_node starts paused): per round, bare round
     trips, then lockstep cycles with the echo controller (controller="echo"), the real
     ControllerNode `ctl` in this process ("real", a node added to `ex`) or in the sim's
@@ -363,7 +387,7 @@ def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmu
     the sim's timestamps."""
     if controller != "echo":
         return _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
-                            ctl)
+                            ctl, sim_pid)
     ctl = EchoController(node)
     pause = _pause_client(node, ex)
     pp = PingPong(node, ex)
@@ -424,8 +448,40 @@ def _pause_client(node, ex):
     return pause
 
 
+def _task_cpu_ns(pid) -> int:
+    """CPU time [ns] of every thread of process `pid` (/proc/PID/task/*/schedstat; 0 where
+    there is no /proc)."""
+    total = 0
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return 0
+    for t in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{t}/schedstat") as f:
+                total += int(f.read().split()[0])
+        except (OSError, ValueError, IndexError):
+            pass
+    return total
+
+
+def process_cpu_ns(sim_pid) -> dict:
+    """CPU time [ns] so far of this process ("controller side"), the sim process and its
+    child processes (the recording's writer process)."""
+    out = {"controller_side": _task_cpu_ns(os.getpid())}
+    if sim_pid:
+        out["sim"] = _task_cpu_ns(sim_pid)
+        try:
+            with open(f"/proc/{sim_pid}/task/{sim_pid}/children") as f:
+                kids = [int(x) for x in f.read().split()]
+        except (OSError, ValueError):
+            kids = []
+        out["sim_children"] = sum(_task_cpu_ns(k) for k in kids)
+    return out
+
+
 def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
-                 ctl=None):
+                 ctl=None, sim_pid=None):
     pause = _pause_client(node, ex)
     pp = PingPong(node, ex)
     all_rtts = []
@@ -435,15 +491,19 @@ def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windo
         _set_paused(node, ex, pause, False)
         t_start = time.perf_counter() + warmup
         t_end = t_start + lockstep_seconds / rounds
-        n0 = None
+        n0 = cpu0 = None
         while time.perf_counter() < t_end:
             ex.spin_once(timeout_sec=0.05)
-            if n0 is None and ctl is not None and time.perf_counter() >= t_start:
-                n0, t_start = ctl.counters["commands"], time.perf_counter()
+            if cpu0 is None and time.perf_counter() >= t_start:
+                cpu0, t_start = process_cpu_ns(sim_pid), time.perf_counter()
+                if ctl is not None:
+                    n0 = ctl.counters["commands"]
         n = ctl.counters["commands"] - n0 if ctl is not None else None
         t_end = time.perf_counter()
+        cpu1 = process_cpu_ns(sim_pid)
         _set_paused(node, ex, pause, True)
-        windows.append((t_start, t_end, bare_rate, n))
+        windows.append((t_start, t_end, bare_rate, n,
+                        {k: v - cpu0.get(k, 0) for k, v in cpu1.items()}))
         print(f"  round {r + 1}/{rounds}: bare {bare_rate:.0f}/s", flush=True)
     pp.close()
     return bare_figures(all_rtts), None
@@ -460,7 +520,8 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         sim_t, sim_stamp = np.zeros((0, max(F.values()) + 1)), np.zeros(0, np.int64)
     out_t = sim_t[:, F["state_out"]]
     per, n_total, t_total, bad = [], 0, 0.0, 0
-    for t0, t1, bare_rate, n_cmd in windows:
+    cpu = {}
+    for t0, t1, bare_rate, n_cmd, *rest in windows:
         sel = (out_t >= t0) & (out_t <= t1)
         n = int(sel.sum()) if n_cmd is None else n_cmd
         bad += int(np.sum(np.diff(sim_stamp[sel]) != 2_500_000))
@@ -469,17 +530,24 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
                     "ratio": rate / bare_rate})
         n_total += n
         t_total += t1 - t0
+        for k, v in (rest[0] if rest else {}).items():
+            cpu[k] = cpu.get(k, 0) + v
     lock = lockstep_figures(per, n_total, t_total, bad, bare)
+    # CPU time per cycle of each process (all its threads), and all together
+    if cpu and n_total:
+        lock["cpu_per_cycle_ms"] = {**{k: v * 1e-6 / n_total for k, v in cpu.items()},
+                                    "all": sum(cpu.values()) * 1e-6 / n_total}
     # breakdown: state k (sim row k), the controller's answer to k (ctl row), the command
     # that arrives for k (sim row k+1: command_in), all inside a round
     in_round = np.zeros(len(sim_stamp), bool)
-    for t0, t1, _, _ in windows:
+    for t0, t1, *_ in windows:
         in_round |= (out_t >= t0) & (out_t <= t1)
     sim_row = {int(s): i for i, s in enumerate(sim_stamp)}
     ctl_row = {int(s): i for i, s in enumerate(ctl_stamp)}
     seg = {k: [] for k in ("step", "sim_publish", "of_which_joint_states",
                            "controller_first_in", "controller_receive", "controller_compute",
-                           "command_back", "cycle", "record_handover_parallel",
+                           "command_back", "of_which_command_publish", "cycle",
+                           "record_handover_parallel",
                            "prepare_and_visualisation_parallel")}
     for i, st in enumerate(sim_stamp):
         j, c = sim_row.get(int(st) + 2_500_000), ctl_row.get(int(st))
@@ -493,6 +561,7 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         seg["controller_receive"].append(cr[1] - a[F["state_out"]])
         seg["controller_compute"].append(cr[2] - cr[1])
         seg["command_back"].append(b[F["command_in"]] - cr[2])
+        seg["of_which_command_publish"].append(cr[3] - cr[2])
         seg["cycle"].append(b[F["command_in"]] - a[F["command_in"]])
         seg["record_handover_parallel"].append(a[F["recorded"]] - a[F["state_out"]])
         seg["prepare_and_visualisation_parallel"].append(a[F["done"]] - a[F["recorded"]])
@@ -548,7 +617,8 @@ def parent_main(args):
             timing = os.path.join(tmp, "timing.npz") if real else ""
             ctl, windows = None, []
             if kind == "real":
-                ctl = make_bench_controller(ctx, timing=True)
+                ctl = make_bench_controller(ctx, timing=True,
+                                            params=_controller_params(args.controller_param))
                 ex.add_node(ctl)
             with open(log_path, "w") as log:
                 proc = _spawn(args, "lockstep", 0.0, True, log, args.record, timing)
@@ -556,7 +626,7 @@ def parent_main(args):
                     bare, lock = lockstep_beside_bare(node, ex, args.lockstep_seconds,
                                                       args.bare_seconds, args.rounds,
                                                       controller=kind, windows=windows,
-                                                      ctl=ctl)
+                                                      ctl=ctl, sim_pid=proc.pid)
                 except Exception:
                     print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
                     raise
@@ -593,6 +663,10 @@ def parent_main(args):
                 print("per cycle (medians, ms; " + str(lock["breakdown_cycles"]) + " cycles): "
                       + ", ".join(f"{k} {v:.3f}" for k, v in b.items() if v is not None),
                       flush=True)
+                if "cpu_per_cycle_ms" in lock:
+                    print("CPU time per cycle (ms, all threads): " + ", ".join(
+                        f"{k} {v:.3f}" for k, v in lock["cpu_per_cycle_ms"].items()),
+                        flush=True)
         if args.realtime_seconds > 0:
             log_path = os.path.join(tmp, "realtime.log")
             with open(log_path, "w") as log:
@@ -617,6 +691,7 @@ def parent_main(args):
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+        shutil.rmtree(tmp, ignore_errors=True)     # the child's logs and timing arrays
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
@@ -645,6 +720,12 @@ def main(argv=None):
     p.add_argument("--composed", action="store_true",
                    help="with --controller real: controller_node in sim_node's process, on "
                         "its executor")
+    p.add_argument("--controller-param", action="append", default=[], metavar="NAME:=VALUE",
+                   help="with --controller real: a parameter of controller_node (repeatable), "
+                        "e.g. state_reliability:=best_effort")
+    p.add_argument("--sim-param", action="append", default=[], metavar="NAME:=VALUE",
+                   help="lockstep phase: a parameter of sim_node (repeatable), e.g. "
+                        "cpu_scheduling:=batch")
     p.add_argument("--sim-executor", default="events", choices=["events", "single_threaded"],
                    help="executor of the sim process (pong and sim_node)")
     p.add_argument("--domain-id", type=int, default=os.getpid() % 50 + 30)
