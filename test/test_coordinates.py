@@ -250,3 +250,46 @@ def test_bilateral_drift_while_trotting_30_s_is_below_the_papers(preset):
     assert abs(slope_um_per_min) <= 0.59, slope_um_per_min
     assert max(g) < 2e-5                       # bounded: 20 µm
     assert sim.base_state()["position"][0] > 7.5  # it did trot (0.3 m/s x 30 s)
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "HEJD", "HMJD"])
+def test_base_state_is_the_minimal_state_it_was_set_to(preset):
+    """base_state() of every coordinate set gives back the trunk pose and twist of the
+    minimal state it was reset to (tilted, moving, spinning): position, quaternion, world
+    linear velocity and body rates (reset(minimal=True) takes the paper's velocities), through
+    each set's own root coordinates. (StarlETH's trunk has its CoM at its frame's origin, so
+    the maximal set's CoM frame offset d = R Y_p is zero here.)"""
+    import pinocchio as pin
+    sim = Simulator.from_preset(preset)
+    model = sim.description.model
+    q = pin.neutral(model)
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    quat = pin.Quaternion(pin.AngleAxis(0.7, axis))
+    q[0:3] = (0.2, -0.1, 0.9)
+    q[3:7] = (quat.x, quat.y, quat.z, quat.w)
+    u = np.zeros(model.nv)
+    u[0:6] = (0.4, -0.2, 0.3, 1.1, -0.7, 0.5)    # world linear, body angular
+    sim.reset(q, u, minimal=True)
+    b = sim.base_state()
+    np.testing.assert_allclose(b["position"], q[0:3], atol=1e-12)
+    assert abs(abs(np.dot(b["orientation_xyzw"], q[3:7])) - 1.0) < 1e-12
+    np.testing.assert_allclose(b["linear_velocity"], u[0:3], atol=1e-12)
+    np.testing.assert_allclose(b["angular_velocity"], u[3:6], atol=1e-12)
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "Cm"])
+def test_contact_forces_are_the_contacts_forces(preset):
+    """Simulator.contact_forces() (what a ROS node reads every step) is the `force` of the
+    ContactInfo records, bit for bit, through a collapse under zero torques and a push."""
+    sim = Simulator.from_preset(preset)
+    loaded = 0
+    for k in range(80):
+        if k == 50:
+            sim.apply_wrench("base", (60.0, -40.0, 300.0), (5.0, 3.0, -2.0))
+        sim.step(np.zeros(sim.n_joints))
+        forces = sim.contact_forces()
+        assert forces.shape == (len(sim.contact_names), 3)
+        for f, c in zip(forces, sim.contacts):
+            assert f.tobytes() == c.force.tobytes(), (k, c.name)
+        loaded += int(np.sum(forces[:, 2] > 0))
+    assert loaded > 100

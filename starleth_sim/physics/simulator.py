@@ -287,11 +287,20 @@ class Simulator:
                              np.zeros((c.n_contacts, 3, c.nv)))
         return gap
 
+    def contact_impulses(self) -> np.ndarray:
+        """Λ of every contact point (order of contact_names) in the world frame, summed over
+        the last control period (nc x 3) [N s]."""
+        return self._impulse @ self.stepper.ground.frame     # frame rows: n, t1, t2
+
+    def contact_forces(self) -> np.ndarray:
+        """F = Λ/Δt of every contact point in the world frame over the last control period
+        (nc x 3) [N]: the forces of `contacts` as one array, without building the records
+        (a ROS node reads them every step)."""
+        return self.contact_impulses() / self.control_period
+
     @property
     def contacts(self):
-        g = self.stepper.ground
-        frame = g.frame  # rows n, t1, t2
-        world = self._impulse @ frame
+        world = self.contact_impulses()
         pos = self._position
         states = self.contact_states()
         return [ContactInfo(n, bool(self._active[i]), float(self._gap[i]), world[i].copy(),

@@ -80,8 +80,8 @@ the file, outside this interpreter, handed over every ``HAND_OVER_STEPS`` steps;
 SIGINT still leaves a complete file), and
 the node prepares the torque-independent part of the next step (``Simulator.prepare``)
 while the controller computes its answer. The base state and the foot forces are read
-through :class:`~.state_io.FastStateReader` (their step-invariant parts computed once, bit
-for bit the simulator's accessors), the contact markers written as CDR bytes too
+through ``Simulator.base_state`` and ``Simulator.contact_forces`` (no per-contact records),
+the contact markers written as CDR bytes too
 (``msg_cdr.SlotCdr``). ``SimNode.timing`` (a :class:`CycleTimes`,
 benchmarks only) times each part.
 
@@ -128,7 +128,7 @@ from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
-from .state_io import (FastStateReader, ImuEstimate, initial_state_record, minimal_state,
+from .state_io import (ImuEstimate, initial_state_record, minimal_state,
                        parse_initial_state, public_state, quat_to_matrix)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
@@ -212,8 +212,6 @@ class SimNode:
         self._counts = {}
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
         self.imu = ImuEstimate(self._model_gravity(), self.sim.control_period)
-        # the per-step reads of base state and foot forces, their constant parts cached
-        self.reader = FastStateReader(self.sim, on_mismatch=self._log_warning)
         self._feet_first = tuple(self.sim.contact_names[:len(FEET)]) == tuple(FEET)
         self._setup_messages()
         self._setup_interfaces()
@@ -528,7 +526,7 @@ class SimNode:
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         if self._tf_every and k % self._tf_every == 0 and \
                 (self.recorder is not None or self.tf_pubs):
-            q, _ = minimal_state(self.sim, public_state(self.sim, self.reader.base_state()))
+            q, _ = minimal_state(self.sim, public_state(self.sim))
             poses = self.frames.transforms(q, self.frames.dynamic)
             self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
         if self._markers_every and k % self._markers_every == 0 and \
@@ -750,7 +748,7 @@ class SimNode:
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
         cdr = self._wrench_cdr
         if cdr is not None and self._feet_first:
-            for name, f in zip(FEET, self.reader.foot_forces(len(FEET)).tolist()):
+            for name, f in zip(FEET, self.sim.contact_forces()[:len(FEET)].tolist()):
                 if name in feet:
                     self._emit_cdr(name, cdr.build(sec, nsec, f), record)
             return
@@ -765,7 +763,7 @@ class SimNode:
 
     def _base_values(self):
         """(position, orientation xyzw, world linear velocity, body rates, R) of the base."""
-        b = self.reader.base_state()
+        b = self.sim.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
         R = quat_to_matrix(*quat)

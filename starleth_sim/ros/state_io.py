@@ -40,10 +40,9 @@ def read_state_spec(spec):
         raise ConfigError(f"parameter initial_state: not valid YAML: {e}") from None
 
 
-def public_state(sim: Simulator, base: dict | None = None) -> dict:
-    """The simulator's current state in convention-free public quantities (`base`: the
-    values of sim.base_state() if the caller has them)."""
-    b = sim.base_state() if base is None else base
+def public_state(sim: Simulator) -> dict:
+    """The simulator's current state in convention-free public quantities."""
+    b = sim.base_state()
     return {"base_position": np.array(b["position"], dtype=float),
             "base_orientation": np.array(b["orientation_xyzw"], dtype=float),
             "base_linear_velocity": np.array(b["linear_velocity"], dtype=float),
@@ -234,112 +233,3 @@ class ImuEstimate:
         if self._v_prev is None or self._v_prev[0] != k:
             self._v_prev = (k, np.array(v, dtype=float))
         return R.T @ (acc - self.gravity)
-
-
-class FastStateReader:
-    """What sim_node reads from the simulator every step, with the step-invariant parts
-    computed once: ``base_state()`` gives the values of ``sim.base_state()`` (position,
-    quaternion xyzw, world linear velocity, base angular velocity) and ``foot_forces(n)``
-    the forces F = Λ/Δt of the first n contact points, as ``sim.contacts[i].force``.
-
-    Same operations on the same operands as the simulator's own accessors, bit for bit:
-    the base state of forest coordinates whose trunk frame has the root body's exact
-    orientation (the trunk's transform Y in the root body, its inverse and the check that
-    its rotation is the identity are taken once, instead of every step); the forces from
-    the same world impulse product, without building the ContactInfo records. Where the
-    simulator is of another kind (other coordinates, other internals), or the check at
-    construction finds a difference, the simulator's accessors are used; every CHECK_EVERY
-    calls the fast values are compared with the accessors' again, and a difference switches
-    to the accessors for good (``on_mismatch(message)`` is told)."""
-
-    CHECK_EVERY = 400      # calls (1 s of sim time at 400 Hz)
-
-    def __init__(self, sim: Simulator, on_mismatch=None):
-        self.sim = sim
-        self.on_mismatch = on_mismatch
-        self._calls = {"base": 0, "forces": 0}
-        self._base = None
-        self._forces = None
-        try:
-            from ..physics.coordinates.forest import ForestCoordinates, _quat_rot
-            c = sim.coords
-            if type(c).base_state is ForestCoordinates.base_state:
-                Y = c.joint_map[1][1].inverse()
-                rot = Y.rotation
-                if np.array_equal(rot, np.eye(3)):
-                    self._base = (c.root_q[0], c.root_v[0], Y.translation, rot.T, _quat_rot)
-                    self._keep = (Y, rot)    # the arrays may view Y's memory
-        except Exception:   # other internals: the simulator's own accessor
-            self._base = None
-        try:
-            sim._impulse @ sim.stepper.ground.frame   # noqa: B018 - the internals exist
-            self._forces = True
-        except Exception:
-            self._forces = None
-        if self._base is not None and not _same_values(self._base_fast(), sim.base_state()):
-            self._base = None
-        if self._forces and not all(np.array_equal(f, c.force) for f, c in
-                                    zip(self._forces_fast(len(sim.contacts)), sim.contacts)):
-            self._forces = None
-
-    def _base_fast(self):
-        sim = self.sim
-        iq, iv, t, rot_t, quat_rot = self._base
-        q, u = sim.state.q, sim.state.u
-        R = np.zeros((3, 3))
-        quat_rot(q, iq, R)
-        d = R @ t
-        pos = q[iq:iq + 3] + d
-        w_body = u[iv + 3:iv + 6]
-        a0, a1, a2 = (R @ w_body).tolist()
-        b0, b1, b2 = d.tolist()
-        # np.cross(R w, d) written out: the same products and differences, bit for bit
-        v = u[iv:iv + 3] + np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
-        return {"position": pos, "orientation_xyzw": q[iq + 3:iq + 7].copy(),
-                "linear_velocity": v, "angular_velocity": rot_t @ w_body}
-
-    def _checked(self, kind) -> bool:
-        """True on every CHECK_EVERY-th call of `kind`."""
-        n = self._calls[kind] = self._calls[kind] + 1
-        return n % self.CHECK_EVERY == 0
-
-    def _mismatch(self, what):
-        if self.on_mismatch is not None:
-            self.on_mismatch(f"FastStateReader: the fast {what} differs from the simulator's "
-                             "accessor; using the accessor from now on")
-
-    def base_state(self) -> dict:
-        """sim.base_state()"""
-        if self._base is None:
-            return self.sim.base_state()
-        fast = self._base_fast()
-        if self._checked("base"):
-            ref = self.sim.base_state()
-            if not _same_values(fast, ref):
-                self._base = None
-                self._mismatch("base state")
-                return ref
-        return fast
-
-    def _forces_fast(self, n):
-        sim = self.sim
-        world = sim._impulse @ sim.stepper.ground.frame
-        return world[:n] / sim.control_period        # row i: world[i] / Δt, as ContactInfo
-
-    def foot_forces(self, n) -> np.ndarray:
-        """n x 3: row i = sim.contacts[i].force"""
-        if self._forces:
-            fast = self._forces_fast(n)
-            if not self._checked("forces"):
-                return fast
-            ref = np.array([c.force for c in self.sim.contacts[:n]], dtype=float)
-            if fast.tobytes() == ref.tobytes():
-                return fast
-            self._forces = None
-            self._mismatch("foot forces")
-        return np.array([c.force for c in self.sim.contacts[:n]], dtype=float)
-
-
-def _same_values(a: dict, b: dict) -> bool:
-    return a.keys() == b.keys() and all(
-        np.asarray(a[k]).tobytes() == np.asarray(b[k]).tobytes() for k in a)

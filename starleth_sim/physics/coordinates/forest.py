@@ -392,6 +392,7 @@ class ForestCoordinates:
         #: the bodies' inertias for the jitted CRBA / RNEA (rigid_body)
         self.inertias = BodyInertias(forest)
         self._midpoint_model = None     # see midpoint
+        self._trunk = None              # see _trunk_frame
 
     def _init_cut_constraints(self, cut_ids):
         """Cut joints -> 5-row bilateral constraints (module docstring): for cut k the parent
@@ -643,22 +644,39 @@ class ForestCoordinates:
             out[self._act_cut] = self._rate[self.joint_cut[self._act_cut]]
         return out
 
+    def _trunk_frame(self):
+        """(Y's translation, Y's rotation, its transpose, whether it is the identity) of the
+        trunk frame Y in the first root body's frame, taken once (base_state runs every
+        step of a ROS node)."""
+        trunk = self._trunk
+        if trunk is None:
+            Y = self.joint_map[1][1].inverse()
+            rot = np.array(Y.rotation)
+            trunk = self._trunk = (np.array(Y.translation), rot, np.ascontiguousarray(rot.T),
+                                   bool(np.allclose(rot, np.eye(3))))
+        return trunk
+
     def base_state(self, q, u):
         """(position, quaternion_xyzw, linear velocity (world), angular velocity (base frame))
-        of the trunk (the first root); for com_frames the trunk frame is offset from its CoM."""
+        of the trunk (the first root); for com_frames the trunk frame is offset from its CoM:
+        with the trunk frame Y in the root body and R the root's rotation, d = R Y_p,
+        position = x + d, v = v_root + (R ω) × d, orientation R Y_R, ω_trunk = Y_Rᵀ ω."""
         iq, iv = self.root_q[0], self.root_v[0]
-        Y = self.joint_map[1][1].inverse()  # trunk frame in the root body frame
+        t, rot, rot_t, identity = self._trunk_frame()
         R = np.zeros((3, 3))
         _quat_rot(q, iq, R)
-        d = R @ Y.translation
+        d = R @ t
         pos = q[iq:iq + 3] + d
         w_body = u[iv + 3:iv + 6]
-        v = u[iv:iv + 3] + np.cross(R @ w_body, d)
-        RY = R @ Y.rotation
-        quat = pin.Quaternion(RY) if not np.allclose(Y.rotation, np.eye(3)) else None
-        qxyzw = q[iq + 3:iq + 7].copy() if quat is None else np.array([quat.x, quat.y, quat.z,
-                                                                      quat.w])
-        return pos, qxyzw, v, (Y.rotation.T @ w_body)
+        a0, a1, a2 = (R @ w_body).tolist()
+        b0, b1, b2 = d.tolist()
+        v = u[iv:iv + 3] + np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+        if identity:
+            qxyzw = q[iq + 3:iq + 7].copy()
+        else:
+            quat = pin.Quaternion(R @ rot)
+            qxyzw = np.array([quat.x, quat.y, quat.z, quat.w])
+        return pos, qxyzw, v, rot_t @ w_body
 
     def make_state(self, position, quat_xyzw, joints=None):
         """A state from the trunk pose and the joint angles (public order), at rest."""
