@@ -398,19 +398,27 @@ class Simulator:
             raise ValueError(f"tau has non-finite entries for {', '.join(bad)}")
         return out
 
+    def _one_step_diagnostics(self, iterations, status, residual, n_active, retried, opened,
+                              projection_iterations, projected, step_time):
+        """The Diagnostics of a control period of one physics step (its StepResult's figures),
+        continuing the cumulative counts of the last one."""
+        prev = self.diagnostics
+        bad = status != prox.STATUS_CONVERGED
+        return Diagnostics(
+            iterations, iterations, not bad, _STATUS[status], max(0.0, residual), n_active,
+            retried, opened, projection_iterations, int(projected), step_time,
+            prev.physics_steps + 1, prev.nonconverged_steps + bad,
+            prev.loaded_contacts_opened_total + opened, {})
+
     def _control_step_diagnostics(self, results, step_time):
         """The Diagnostics of a control step from its physics steps' StepResults (sums and
         worst cases), continuing the cumulative counts of the last one."""
         prev = self.diagnostics
         if len(results) == 1 and not self.stepper.profile:     # (the common case, per step)
             r = results[0]
-            bad = r.status != prox.STATUS_CONVERGED
-            return Diagnostics(
-                r.iterations, r.iterations, not bad, _STATUS[r.status], max(0.0, r.residual),
-                r.n_active, r.retried, r.opened_loaded, r.projection_iterations,
-                int(r.projected), step_time, prev.physics_steps + 1,
-                prev.nonconverged_steps + bad,
-                prev.loaded_contacts_opened_total + r.opened_loaded, {})
+            return self._one_step_diagnostics(r.iterations, r.status, r.residual, r.n_active,
+                                              r.retried, r.opened_loaded,
+                                              r.projection_iterations, r.projected, step_time)
         iterations = worst = projection_iterations = projections = opened = nonconverged = 0
         residual = 0.0
         retried = False
@@ -453,6 +461,25 @@ class Simulator:
         stepper = self.stepper
         dt = stepper.dt
         n = self.config.steps_per_control
+        if n == 1 and not state.pending_wrenches and not self._persistent_wrenches and \
+                stepper.step_is_transactional(state):
+            # the common case in one kernel call, its results read at once (no StepResult);
+            # a SimulationError leaves the state as it was
+            (active, gap, impulse, iterations, status, residual, retried, position, n_active,
+             opened, projection_iterations, projected) = stepper.step_in_one_kernel(state, tau)
+            self._state_version += 1
+            state.t += self.control_period
+            self._tau = tau
+            self._impulse = impulse
+            self._active = active
+            self._gap = gap
+            self._position = position
+            d = self.diagnostics = self._one_step_diagnostics(
+                iterations, status, residual, n_active, retried, opened, projection_iterations,
+                projected, time.perf_counter() - t_wall)
+            if d.converged and not d.loaded_contacts_opened:
+                return d
+            return self._log_step(d)
         # the rollback point (the stepper never writes into q and u); not needed where one
         # physics step that fails leaves the state as it was and no timed wrench counts down
         before = None if n == 1 and not state.pending_wrenches and \
@@ -481,8 +508,13 @@ class Simulator:
         self._active = res.active
         self._gap = res.gap
         self._position = res.position
-        d = self._control_step_diagnostics(results, time.perf_counter() - t_wall)
-        self.diagnostics = d
+        d = self.diagnostics = self._control_step_diagnostics(results,
+                                                              time.perf_counter() - t_wall)
+        return self._log_step(d)
+
+    def _log_step(self, d: Diagnostics) -> Diagnostics:
+        """Warns (the first time, then every 1000th) of a control step that did not converge
+        or that opened loaded contacts by the gap test alone; returns d."""
         if not d.converged:
             self._nonconv_logged += 1
             if self._nonconv_logged == 1 or self._nonconv_logged % 1000 == 0:

@@ -305,9 +305,15 @@ class MoreauStepper:
             p is not None and p[0] is state.q and p[1] is state.u)
 
     def _step_one_kernel(self, state, tau, f_ext):
-        """`step` in one kernel call (tree_step_hard / tree_step_compliant): the same
-        result bit for bit as the phase-by-phase path, for the sets it serves (see
-        _one_kernel)."""
+        """`step` in one kernel call: the StepResult of step_in_one_kernel's fields."""
+        return StepResult(*self.step_in_one_kernel(state, tau, f_ext))
+
+    def step_in_one_kernel(self, state: SimState, tau, f_ext=None) -> tuple:
+        """`step` in one kernel call (tree_step_hard / tree_step_compliant), for a state that
+        `step_is_transactional` approves: the same result bit for bit as the phase-by-phase
+        path. Returns the fields of the StepResult as a plain tuple, in its order (a caller
+        that reads them at once skips building the record); a SimulationError leaves the
+        state as it was."""
         q, u = state.q, state.u
         qE = np.empty_like(q)
         uE = np.empty_like(u)
@@ -347,12 +353,12 @@ class MoreauStepper:
         state.q, state.u = qE, uE
         self.stats.steps += 1
         if self.hard:
-            return StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried,
-                              self.position.copy(), n_active, opened, pit, pstatus >= 0)
+            return (is_active, self.gap.copy(), impulse, it, status, resid, retried,
+                    self.position.copy(), n_active, opened, pit, pstatus >= 0)
         active = self.gap <= 0.0
-        return StepResult(active, self.gap.copy(), state.lam_compliant * self.dt,
-                          position=self.position.copy(),
-                          n_active=int(np.count_nonzero(active)))
+        return (active, self.gap.copy(), state.lam_compliant * self.dt, 0,
+                prox.STATUS_CONVERGED, 0.0, False, self.position.copy(),
+                int(np.count_nonzero(active)), 0, 0, False)
 
     def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of
