@@ -314,6 +314,7 @@ class MoreauStepper:
         path. Returns the fields of the StepResult as a plain tuple, in its order (a caller
         that reads them at once skips building the record); a SimulationError leaves the
         state as it was."""
+        self._prepared = None       # (a step prepared for another state is stale now)
         q, u = state.q, state.u
         qE = np.empty_like(q)
         uE = np.empty_like(u)
