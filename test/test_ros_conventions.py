@@ -19,6 +19,7 @@ rclpy = pytest.importorskip("rclpy")
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import Twist  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
@@ -113,18 +114,30 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
         # /clock comes from robot1's simulator only
         assert node.count_publishers("/clock") == 1
         assert "/joint_states" not in dict(node.get_topic_names_and_types())
-        # let both trot forward for a while (sim time of robot1 on /clock)
+        # let both trot forward for a while: each robot's sim time from its joint states'
+        # stamps (the two lockstep loops run at their own pace on a shared machine, so
+        # /clock, robot1's, says nothing of robot2's)
         cmd_vel = {i: node.create_publisher(Twist, f"/robot{i}/cmd_vel", 10) for i in (1, 2)}
         twist = Twist()
         twist.linear.x = 0.3
         clock = ClockWatch(ros)
+        sim_time = {1: 0.0, 2: 0.0}
+        best_effort = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        stamp_subs = [node.create_subscription(
+            JointState, f"/robot{i}/joint_states",
+            lambda m, i=i: sim_time.__setitem__(i, m.header.stamp.sec
+                                                + m.header.stamp.nanosec * 1e-9), best_effort)
+            for i in (1, 2)]
 
         def trotted():
             for pub in cmd_vel.values():
                 pub.publish(twist)
-            return clock.t is not None and clock.t > 2.5
+            return min(sim_time.values()) > 2.5
         assert ros.spin_until(trotted, 180, procs=procs.values(), step=0.05), \
-            "robot1 did not reach t = 2.5 s"
+            f"the robots did not both reach t = 2.5 s: {sim_time}"
+        assert clock.t is not None and clock.t > 2.0      # robot1's /clock went along
+        for sub in stamp_subs:
+            node.destroy_subscription(sub)
         for tag in ("robot1", "robot2"):
             r = ros.call(SetBool, f"/{tag}/sim_node/pause", SetBool.Request(data=True))
             assert r.success, r.message
