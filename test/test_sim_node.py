@@ -595,7 +595,26 @@ def test_contact_markers_cdr_equals_the_message_objects():
             node._fill_contact_markers(sec, nsec)
             assert back == deserialize_message(serialize_message(node.marker_msg),
                                                MarkerArray), f"step {k}"
-            actions |= {m.action for m in back.markers if m.ns == "contact_forces"}
+            # and both are the simulator's contacts: spheres at the contact points in the
+            # colour of their state, arrows along F (contact_marker_scale m/N) unless open
+            scale = node.settings.contact_marker_scale
+            contacts = node.sim.contacts
+            spheres = [m for m in back.markers if m.ns == "contacts"]
+            arrows = [m for m in back.markers if m.ns == "contact_forces"]
+            for c, sphere, arrow in zip(contacts, spheres, arrows):
+                pos = sphere.pose.position
+                assert (pos.x, pos.y, pos.z) == tuple(float(x) for x in c.position)
+                col = node.MARKER_COLOURS[c.state]
+                assert [sphere.color.r, sphere.color.g, sphere.color.b, sphere.color.a] == \
+                    pytest.approx(col, abs=1e-7)                       # float32 fields
+                assert (sphere.header.stamp.sec, sphere.header.stamp.nanosec) == (sec, nsec)
+                if c.state == "open":
+                    assert arrow.action == 2
+                    continue
+                tip = arrow.points[1]
+                assert arrow.action == 0 and (tip.x, tip.y, tip.z) == pytest.approx(
+                    tuple(c.position + scale * c.force), abs=1e-12)
+            actions |= {m.action for m in arrows}
         assert actions == {0, 2}                   # both ADD and DELETE arrows were compared
     finally:
         node.destroy()

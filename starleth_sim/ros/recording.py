@@ -786,7 +786,6 @@ class ProcessRecorder:
         self._out = self._proc.stdin
         self._topics = {}
         self._buf = bytearray()
-        self._buf_time = None
         self._closed = False
         self.message_count = 0
         self._call("open", self.path, int(max_duration_ns), int(max_size), kwargs)
@@ -856,7 +855,6 @@ class ProcessRecorder:
         log_time_ns = int(log_time_ns)
         if len(self._buf) > self.FLUSH_BYTES:
             self.hand_over()
-        self._buf_time = log_time_ns
         self._buf += self._head.pack(self._topics[topic][0], log_time_ns, len(msg))
         self._buf += msg
         self.message_count += 1

@@ -413,6 +413,7 @@ class SimNode:
                 # written as CDR bytes (SlotCdr: stamps, sphere positions and colours, arrow
                 # actions and points patched into a template; None: message objects)
                 self._marker_cdr = self._contact_marker_cdr(MarkerArray)
+                self._marker_slots = self._contact_marker_slots(self.marker_msg)
                 n = len(self.sim.contact_names)
                 self._marker_points = [[0.0] * 6 for _ in range(n)]
 
@@ -446,10 +447,10 @@ class SimNode:
                 msg.markers.append(m)
         return msg
 
-    def _contact_marker_cdr(self, MarkerArray):
-        """SlotCdr of the contact markers: per sphere its stamp, position and colour, per
-        arrow its stamp, action and two points (the order of _contact_marker_values)."""
-        msg = self._contact_marker_template(MarkerArray)
+    def _contact_marker_slots(self, msg):
+        """The fields of a contact-marker message that change per step, as (object,
+        attribute, format): per sphere its stamp, position and colour, per arrow its stamp,
+        action and two points (the order of _contact_marker_values)."""
         n = len(self.sim.contact_names)
         slots = []
         for m in msg.markers[:n]:
@@ -462,11 +463,18 @@ class SimNode:
             slots += [(m.header.stamp, "sec", "i"), (m.header.stamp, "nanosec", "I"),
                       (m, "action", "i"), (a, "x", "d"), (a, "y", "d"), (a, "z", "d"),
                       (b, "x", "d"), (b, "y", "d"), (b, "z", "d")]
-        return SlotCdr.create(msg, slots)
+        return slots
+
+    def _contact_marker_cdr(self, MarkerArray):
+        """SlotCdr of the contact markers' slots (on a template of its own, which
+        SlotCdr.create probes)."""
+        msg = self._contact_marker_template(MarkerArray)
+        return SlotCdr.create(msg, self._contact_marker_slots(msg))
 
     def _contact_marker_values(self, sec, nsec):
-        """The values of _contact_marker_cdr's slots: the same as _fill_contact_markers puts
-        into the message objects (an open contact's arrow is deleted and keeps its
+        """The values of the contact markers' slots: spheres at the contact points coloured
+        by state; arrows from each closed contact point along its force,
+        contact_marker_scale [m/N] long (an open contact's arrow is deleted and keeps its
         points)."""
         sim, Marker = self.sim, self._Marker
         scale = self.settings.contact_marker_scale
@@ -486,29 +494,10 @@ class SimNode:
         return spheres + arrows
 
     def _fill_contact_markers(self, sec, nsec):
-        """Spheres at the contact points coloured by state; arrows from each closed contact
-        point along its force, contact_marker_scale [m/N] long."""
-        sim, Marker = self.sim, self._Marker
-        n = len(sim.contact_names)
-        scale = self.settings.contact_marker_scale
-        for c, sphere, arrow in zip(sim.contacts, self.marker_msg.markers[:n],
-                                    self.marker_msg.markers[n:]):
-            p = c.position
-            for m in (sphere, arrow):
-                m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
-            sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = (
-                float(p[0]), float(p[1]), float(p[2]))
-            col = sphere.color
-            col.r, col.g, col.b, col.a = self.MARKER_COLOURS[c.state]
-            if c.state == "open":
-                arrow.action = Marker.DELETE
-                continue
-            arrow.action = Marker.ADD
-            a, b = arrow.points
-            a.x, a.y, a.z = float(p[0]), float(p[1]), float(p[2])
-            f = c.force
-            b.x, b.y, b.z = (float(p[0] + scale * f[0]), float(p[1] + scale * f[1]),
-                             float(p[2] + scale * f[2]))
+        """The message objects of the contact markers (where no SlotCdr could be made)
+        filled with _contact_marker_values."""
+        for (obj, attr, _), v in zip(self._marker_slots, self._contact_marker_values(sec, nsec)):
+            setattr(obj, attr, v)
 
     def _emit_tf(self, key, data, stamp_ns):
         pub = self.tf_pubs.get(key)
