@@ -414,11 +414,6 @@ class Simulator:
         """The Diagnostics of a control step from its physics steps' StepResults (sums and
         worst cases), continuing the cumulative counts of the last one."""
         prev = self.diagnostics
-        if len(results) == 1 and not self.stepper.profile:     # (the common case, per step)
-            r = results[0]
-            return self._one_step_diagnostics(r.iterations, r.status, r.residual, r.n_active,
-                                              r.retried, r.opened_loaded,
-                                              r.projection_iterations, r.projected, step_time)
         iterations = worst = projection_iterations = projections = opened = nonconverged = 0
         residual = 0.0
         retried = False
@@ -459,58 +454,50 @@ class Simulator:
         t_wall = time.perf_counter()
         state = self.state
         stepper = self.stepper
-        dt = stepper.dt
         n = self.config.steps_per_control
-        if n == 1 and not state.pending_wrenches and not self._persistent_wrenches and \
-                stepper.step_is_transactional(state):
-            # the common case in one kernel call, its results read at once (no StepResult);
-            # a SimulationError leaves the state as it was
+        # one physics step that, failing, leaves the state as it was (and no timed wrench
+        # to count down): no rollback copy
+        transactional = n == 1 and not state.pending_wrenches and \
+            stepper.step_is_transactional(state)
+        if transactional and not self._persistent_wrenches:
+            # the common case: one kernel call, its results read at once (no StepResult)
             (active, gap, impulse, iterations, status, residual, retried, position, n_active,
              opened, projection_iterations, projected) = stepper.step_in_one_kernel(state, tau)
-            self._state_version += 1
-            state.t += self.control_period
-            self._tau = tau
-            self._impulse = impulse
-            self._active = active
-            self._gap = gap
-            self._position = position
-            d = self.diagnostics = self._one_step_diagnostics(
-                iterations, status, residual, n_active, retried, opened, projection_iterations,
-                projected, time.perf_counter() - t_wall)
-            if d.converged and not d.loaded_contacts_opened:
-                return d
-            return self._log_step(d)
-        # the rollback point (the stepper never writes into q and u); not needed where one
-        # physics step that fails leaves the state as it was and no timed wrench counts down
-        before = None if n == 1 and not state.pending_wrenches and \
-            stepper.step_is_transactional(state) else state.copy(share_qu=True)
+            d = self._one_step_diagnostics(iterations, status, residual, n_active, retried,
+                                           opened, projection_iterations, projected,
+                                           time.perf_counter() - t_wall)
+        else:
+            results = self._physics_steps(state, tau, n, rollback=not transactional)
+            active, gap, position = results[-1].active, results[-1].gap, results[-1].position
+            impulse = results[0].impulse
+            for r in results[1:]:      # in step order (the sum's round-off depends on it)
+                impulse = impulse + r.impulse
+            d = self._control_step_diagnostics(results, time.perf_counter() - t_wall)
+        self._state_version += 1
+        state.t += self.control_period
+        self._tau = tau
+        self._impulse = impulse
+        self._active = active
+        self._gap = gap
+        self._position = position
+        self.diagnostics = d
+        return self._log_step(d)
+
+    def _physics_steps(self, state, tau, n, rollback):
+        """The n physics steps of a control period through MoreauStepper.step, with the
+        wrenches; their StepResults. On a SimulationError the state is restored from a copy
+        taken before (with rollback; the stepper never writes into q and u)."""
+        stepper = self.stepper
+        dt = stepper.dt
+        before = state.copy(share_qu=True) if rollback else None
+        wrenches = self._persistent_wrenches or state.pending_wrenches
         try:
-            if n == 1:
-                f_ext = self._external_force(state, dt) if \
-                    self._persistent_wrenches or state.pending_wrenches else None
-                results = (stepper.step(state, tau, f_ext),)
-            else:
-                results = [stepper.step(state, tau, self._external_force(state, dt))
-                           for _ in range(n)]
+            return [stepper.step(state, tau, self._external_force(state, dt) if wrenches
+                                 else None) for _ in range(n)]
         except SimulationError:
             if before is not None:
                 self.restore(before)
             raise
-        self._state_version += 1
-        state.t += self.control_period
-        res = results[-1]
-        self._tau = tau
-        impulse = results[0].impulse
-        if n > 1:
-            for r in results[1:]:      # in step order (the sum's round-off depends on it)
-                impulse = impulse + r.impulse
-        self._impulse = impulse
-        self._active = res.active
-        self._gap = res.gap
-        self._position = res.position
-        d = self.diagnostics = self._control_step_diagnostics(results,
-                                                              time.perf_counter() - t_wall)
-        return self._log_step(d)
 
     def _log_step(self, d: Diagnostics) -> Diagnostics:
         """Warns (the first time, then every 1000th) of a control step that did not converge
