@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import yaml
 
+from starleth_sim.physics.stepper import SimulationError
 from starleth_sim import ConfigError, Simulator, available_presets, load_preset
 
 
@@ -94,6 +95,37 @@ def test_bad_torque_raises_and_leaves_state_unchanged(sim, tau, message):
     np.testing.assert_array_equal(sim.u, u)
     sim.step(np.zeros(12))  # and it keeps working
     assert sim.t > t
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD"])
+def test_rejected_torque_keeps_the_last_steps_reports(preset):
+    """The one-kernel step (HmJ) writes its reports into a spare buffer; a rejected step must
+    not touch the reports of the last step taken, nor the next step's (same for the
+    general path: Cm takes two physics steps per control step, HEJD has cut joints)."""
+    sim = Simulator.from_preset(preset)
+    sim.step(np.full(12, 5.0))
+    sim.step(np.full(12, 30.0))     # saturated at 20 N m
+    before = (sim.applied_torque, sim.contact_forces(), sim.gaps(), sim.diagnostics,
+              [(c.active, c.gap, c.state, c.position.copy()) for c in sim.contacts])
+    with pytest.raises(ValueError, match="non-finite entries for LF_KFE"):
+        sim.step(np.r_[0.0, 0.0, np.nan, np.zeros(9)])
+    good = sim.snapshot()
+    broken = sim.snapshot()
+    broken.u[-1] = np.nan           # fails inside the step, after the contacts were computed
+    sim.restore(broken)
+    with pytest.raises(SimulationError):
+        sim.step(np.zeros(12))
+    sim.restore(good)
+    np.testing.assert_array_equal(sim.applied_torque, before[0])
+    np.testing.assert_array_equal(before[0], np.full(12, 20.0))
+    np.testing.assert_array_equal(sim.contact_forces(), before[1])
+    assert sim.diagnostics is before[3]
+    for c, (active, gap, state, position) in zip(sim.contacts, before[4]):
+        assert (c.active, c.gap, c.state) == (active, gap, state)
+        np.testing.assert_array_equal(c.position, position)
+    sim.step(np.full(12, -1.0))     # the next step reports its own torques and forces
+    np.testing.assert_array_equal(sim.applied_torque, np.full(12, -1.0))
+    assert not np.array_equal(sim.contact_forces(), before[1])
 
 
 def test_torque_is_saturated_at_the_effort_limit(sim):

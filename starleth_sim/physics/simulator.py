@@ -25,39 +25,20 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import numba as nb
 import numpy as np
 
+from .actuator import saturate_torque
 from .config import PhysicsConfig, load_preset
 from .coordinates import make_coordinates
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
 from .state import SimState
-from .stepper import MoreauStepper, SimulationError, PHASES
+from .stepper import MoreauStepper, NonFiniteTorque, SimulationError, PHASES
+from .tree_step import report_size, report_views
 from . import prox
 
 log = logging.getLogger("starleth_sim")
 
-
-@nb.njit(cache=True)
-def saturate_torque(tau, limit, qd, qd_limit, out):
-    """The torques the motors apply: out = tau clipped to [-limit, limit] (effort limits);
-    a torque that drives its joint faster (τ φ̇ > 0) beyond the velocity limit v is derated
-    like a motor's torque-speed line, linearly from full at |φ̇| = v to zero at 2v (its
-    no-load speed): no motor adds power beyond that, so a misbehaving controller cannot spin
-    a leg up without bound, and the torque stays a continuous function of the state.
-    Braking torques are never derated. False if tau has a non-finite entry (out is then not
-    to be used)."""
-    for k in range(tau.shape[0]):
-        t = tau[k]
-        if not np.isfinite(t):
-            return False
-        t = min(max(t, -limit[k]), limit[k])
-        w = abs(qd[k])
-        if w > qd_limit[k] and t * qd[k] > 0.0:
-            t *= max(0.0, 2.0 - w / qd_limit[k])
-        out[k] = t
-    return True
 
 #: contact states: no normal force, inside the friction cone, on its boundary
 CONTACT_STATES = ("open", "stick", "slip")
@@ -119,7 +100,6 @@ class Simulator:
             description = starleth_description(path)
         self.description = description
         self.coords = make_coordinates(config.coordinates, description)
-        self.stepper = MoreauStepper(self.coords, config, profile=profile)
         self.joint_names = tuple(description.joint_names)
         self.n_joints = len(self.joint_names)
         lim = np.array(description.effort_limit, dtype=float).reshape(-1)
@@ -132,6 +112,18 @@ class Simulator:
         self._velocity_limit = np.where(np.isfinite(vlim) & (vlim > 0), vlim, np.inf)
         if config.actuator.velocity_limit == "ignore":
             self._velocity_limit[:] = np.inf
+        self.stepper = MoreauStepper(self.coords, config, profile=profile,
+                                     torque_limits=(self._effort_limit, self._velocity_limit))
+        #: the reports of a one-kernel step are written into one of two report buffers
+        #: (tree_step.report_views), the other holding the last step's: nothing allocated
+        #: per step, and a failed step leaves the reports as they were
+        nc = self.coords.n_contacts
+        self._report_buffers = [(b, np.empty(nc, dtype=np.bool_),
+                                 report_views(b, nc, self.n_joints))
+                                for b in (np.zeros(report_size(nc, self.n_joints)) for _ in "ab")]
+        self._next_report = 0
+        #: joint rates are u's entries (no cut joints): nothing to cache
+        self._joint_rates_in_u = getattr(self.coords, "n_cut", 1) == 0
         #: bumped whenever the state changes (reset, step, restore): keys the cache of φ̇
         self._state_version = 0
         self._joint_velocity_cache = (-1, None)
@@ -253,6 +245,8 @@ class Simulator:
         return self.coords.joint_positions(self.state.q)
 
     def joint_velocities(self):
+        if self._joint_rates_in_u:
+            return self.coords.joint_velocities(self.state.q, self.state.u)
         return self._joint_velocities().copy()
 
     def _joint_velocities(self):
@@ -383,19 +377,31 @@ class Simulator:
         return f_ext
 
     # -- stepping -------------------------------------------------------------------------
-    def _validated_torque(self, tau):
+    def _torque_array(self, tau):
+        """tau as a float64 vector of n_joints entries (zeros for None); a ValueError names
+        the joint order if its length is wrong."""
         if tau is None:
             return np.zeros(self.n_joints)
-        a = tau if isinstance(tau, np.ndarray) and tau.dtype == np.float64 and tau.ndim == 1 \
+        a = tau if type(tau) is np.ndarray and tau.dtype == np.float64 and tau.ndim == 1 \
             else np.asarray(tau, dtype=float).reshape(-1)
-        if a.shape != (self.n_joints,):
+        if a.shape[0] != self.n_joints:
             raise ValueError(f"tau must have {self.n_joints} entries (joint order "
                              f"{', '.join(self.joint_names)}), got {a.shape[0]}")
+        return a
+
+    def _non_finite_torque(self, a) -> ValueError:
+        """The error of a torque vector with non-finite entries, naming their joints."""
+        bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
+        return ValueError(f"tau has non-finite entries for {', '.join(bad)}")
+
+    def _validated_torque(self, tau):
+        """The applied torques for tau (actuator.saturate_torque at the current joint
+        rates); ValueError on a wrong length or non-finite entries."""
+        a = self._torque_array(tau)
         out = np.empty(self.n_joints)
         if not saturate_torque(a, self._effort_limit, self._joint_velocities(),
                                self._velocity_limit, out):
-            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
-            raise ValueError(f"tau has non-finite entries for {', '.join(bad)}")
+            raise self._non_finite_torque(a)
         return out
 
     def _one_step_diagnostics(self, iterations, status, residual, n_active, retried, opened,
@@ -450,7 +456,6 @@ class Simulator:
         """Advance one control period with joint torques `tau` (zero-order hold). On a bad
         `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged; on
         a SimulationError the state is restored to what it was before the step."""
-        tau = self._validated_torque(tau)
         t_wall = time.perf_counter()
         state = self.state
         stepper = self.stepper
@@ -460,13 +465,23 @@ class Simulator:
         transactional = n == 1 and not state.pending_wrenches and \
             stepper.step_is_transactional(state)
         if transactional and not self._persistent_wrenches:
-            # the common case: one kernel call, its results read at once (no StepResult)
-            (active, gap, impulse, iterations, status, residual, retried, position, n_active,
-             opened, projection_iterations, projected) = stepper.step_in_one_kernel(state, tau)
+            # the common case: one kernel call that also saturates τ; it writes its reports
+            # into the spare report buffer, which then becomes the current one
+            a = self._torque_array(tau)
+            report, active, (impulse, gap, position, tau) = \
+                self._report_buffers[self._next_report]
+            try:
+                (n_active, opened, iterations, status, residual, retried,
+                 projection_iterations, projected) = stepper.step_in_one_kernel(
+                    state, a, report, active)
+            except NonFiniteTorque:
+                raise self._non_finite_torque(a) from None
+            self._next_report ^= 1
             d = self._one_step_diagnostics(iterations, status, residual, n_active, retried,
                                            opened, projection_iterations, projected,
                                            time.perf_counter() - t_wall)
         else:
+            tau = self._validated_torque(tau)
             results = self._physics_steps(state, tau, n, rollback=not transactional)
             active, gap, position = results[-1].active, results[-1].gap, results[-1].position
             impulse = results[0].impulse

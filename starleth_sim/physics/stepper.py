@@ -54,12 +54,17 @@ from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            complete_hard_contacts, end_of_step, lap, prepare_hard_contacts,
                            solve_compliant, solve_hard_contacts)
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
-                        TREE_STEP_NOT_PD, TreeStepModel, tree_step_compliant, tree_step_hard)
+                        TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TreeStepModel,
+                        report_size, report_views, tree_step_compliant, tree_step_hard)
 
 
 class SimulationError(RuntimeError):
     """The step could not be completed (non-finite solver output or state); the state was
     left unchanged."""
+
+
+class NonFiniteTorque(ValueError):
+    """The joint torques of a step have a non-finite entry; nothing was done."""
 
 
 @dataclass(slots=True)
@@ -97,7 +102,10 @@ class MoreauStepper:
     """Midpoint time-stepper shared by all coordinate sets and both contact models. It
     holds the model side and a workspace; the state it advances is a `SimState`."""
 
-    def __init__(self, coords, config, profile: bool = False):
+    def __init__(self, coords, config, profile: bool = False, torque_limits=None):
+        """torque_limits: (effort, velocity) limits per actuated joint, public order, for
+        the torque saturation of the one-kernel step (actuator.saturate_torque; default:
+        none)."""
         self.coords = coords
         self.cfg = config
         self.profile = profile
@@ -177,8 +185,12 @@ class MoreauStepper:
                             and getattr(coords, "n_cut", 1) == 0)
         self._no_force = np.zeros(0)
         if self._one_kernel:    # the workspace arrays become views of the packed buffer
+            na = coords.joint_v.shape[0]
+            effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
+                if torque_limits is None else torque_limits
             pack, views = TreeStepModel.pack(coords.midpoint_model(), self.ground, self.eps,
-                                             coords.joint_v, coords.blocks, nv)
+                                             coords.joint_v, coords.blocks, nv, effort,
+                                             velocity)
             self._tree_model = tuple(pack)
             self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
 
@@ -305,61 +317,62 @@ class MoreauStepper:
             p is not None and p[0] is state.q and p[1] is state.u)
 
     def _step_one_kernel(self, state, tau, f_ext):
-        """`step` in one kernel call: the StepResult of step_in_one_kernel's fields."""
-        return StepResult(*self.step_in_one_kernel(state, tau, f_ext))
+        """`step` in one kernel call (tau as given, not saturated again): its StepResult."""
+        report = np.empty(report_size(self.nc, tau.shape[0]))
+        is_active = np.empty(self.nc, dtype=np.bool_)
+        figures = self.step_in_one_kernel(state, tau, report, is_active, f_ext, saturate=False)
+        impulse, gap, position, _ = report_views(report, self.nc, tau.shape[0])
+        return StepResult(is_active, gap, impulse, figures[2], figures[3], figures[4],
+                          figures[5], position, figures[0], figures[1], figures[6],
+                          figures[7])
 
-    def step_in_one_kernel(self, state: SimState, tau, f_ext=None) -> tuple:
+    def step_in_one_kernel(self, state: SimState, tau, report, is_active, f_ext=None,
+                           saturate: bool = True) -> tuple:
         """`step` in one kernel call (tree_step_hard / tree_step_compliant), for a state that
         `step_is_transactional` approves: the same result bit for bit as the phase-by-phase
-        path. Returns the fields of the StepResult as a plain tuple, in its order (a caller
-        that reads them at once skips building the record); a SimulationError leaves the
-        state as it was."""
+        path. tau: the torques asked (float64, one per actuated joint), saturated in the
+        kernel by the torque_limits (actuator.saturate_torque) unless saturate is False.
+        Writes the report buffer (tree_step.report_views: Λ, g_N and contact points at q^M,
+        the applied torques) and the active flags; returns (|I|, opened, iterations,
+        status, residual, retried, projection iterations, projected). A NonFiniteTorque or
+        SimulationError leaves the state as it was."""
         self._prepared = None       # (a step prepared for another state is stale now)
         q, u = state.q, state.u
         qE = np.empty_like(q)
         uE = np.empty_like(u)
-        if tau is None:
-            tau = self._no_force
         if f_ext is None:
             f_ext = self._no_force
         if self.hard:
-            nc = self.nc
-            impulse = np.empty((nc, 3))
-            is_active = np.empty(nc, dtype=np.bool_)
             outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                tree_step_hard(self._settings_fields, q, u, tau, f_ext, state.last_impulse,
-                               state.last_active, state.last_bilateral, impulse, is_active,
-                               qE, uE, *self._tree_model)
+                tree_step_hard(self._settings_fields, saturate, q, u, tau, f_ext,
+                               state.last_impulse, state.last_active, state.last_bilateral,
+                               report, is_active, qE, uE, *self._tree_model)
         else:
-            outcome = tree_step_compliant(
-                self._compliant_law_fields, self.dt, self.jacobian_gap, q, u, tau, f_ext,
-                state.closed, state.slip, state.anchor, state.lam_compliant, qE, uE,
-                *self._tree_model)
+            outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
+                tree_step_compliant(self._compliant_law_fields, self.dt, self.jacobian_gap,
+                                    saturate, q, u, tau, f_ext, state.closed, state.slip,
+                                    state.anchor, state.lam_compliant, report, is_active, qE,
+                                    uE, *self._tree_model)
+        if outcome == TREE_STEP_NONFINITE_TORQUE:
+            raise NonFiniteTorque("tau has non-finite entries")
         if outcome == TREE_STEP_NOT_PD:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
         self._factored = True
-        if self.hard:
-            if retried:
-                self.stats.retried += 1
-            if status != prox.STATUS_CONVERGED:
-                self.stats.nonconverged += 1
-            if outcome == TREE_STEP_NONFINITE_IMPULSE:
-                raise SimulationError("prox iteration produced non-finite impulses; "
-                                      "state left unchanged")
-            if pstatus >= 0:
-                self.stats.projections += 1
+        if retried:
+            self.stats.retried += 1
+        if status != prox.STATUS_CONVERGED:
+            self.stats.nonconverged += 1
+        if pstatus >= 0:
+            self.stats.projections += 1
+        if outcome == TREE_STEP_NONFINITE_IMPULSE:
+            raise SimulationError("prox iteration produced non-finite impulses; "
+                                  "state left unchanged")
         if outcome == TREE_STEP_NONFINITE_STATE:
             raise SimulationError("non-finite state after the step; state left unchanged")
         state.q, state.u = qE, uE
         self.stats.steps += 1
-        if self.hard:
-            return (is_active, self.gap.copy(), impulse, it, status, resid, retried,
-                    self.position.copy(), n_active, opened, pit, pstatus >= 0)
-        active = self.gap <= 0.0
-        return (active, self.gap.copy(), state.lam_compliant * self.dt, 0,
-                prox.STATUS_CONVERGED, 0.0, False, self.position.copy(),
-                int(np.count_nonzero(active)), 0, 0, False)
+        return n_active, opened, it, status, resid, retried, pit, pstatus >= 0
 
     def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of

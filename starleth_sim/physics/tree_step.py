@@ -16,13 +16,15 @@ import numpy as np
 import numba as nb
 
 from . import prox
+from .actuator import saturate_torque
 from .coordinates.forest import midpoint_dynamics
 from .step_kernels import (StepSettings, complete_problem, contact_problem, end_of_step,
                            solve_compliant)
 
 
 #: tree_step_* outcomes (the first entry of their result)
-TREE_STEP_OK, TREE_STEP_NOT_PD, TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE = range(4)
+(TREE_STEP_OK, TREE_STEP_NOT_PD, TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
+ TREE_STEP_NONFINITE_TORQUE) = range(5)
 
 
 class TreeStepModel(NamedTuple):
@@ -34,7 +36,8 @@ class TreeStepModel(NamedTuple):
 
     floats: axis, pl_R, pl_p, oR, op (the forward kinematics' scratch), mass, lever,
     inertia, gravity, c_local, c_radius (the forest's arrays, midpoint_model order), the
-    ground's n, t1, t2 and offset, ε per contact (nc x 2); ints: [nj, nc, number of
+    ground's n, t1, t2 and offset, ε per contact (nc x 2), the actuators' effort and
+    velocity limits (one per actuated joint, public order); ints: [nj, nc, number of
     actuated joints, number of blocks], then parent, jtype, idx_q, idx_v, c_joint, joint_v
     and the blocks of M (rows of (start, size)); support: the tree's support matrix;
     workspace: g_N (nc), contact points (nc x 3), W^T of every contact (nc x 3 x nv), the
@@ -46,15 +49,16 @@ class TreeStepModel(NamedTuple):
     workspace: np.ndarray
 
     @staticmethod
-    def pack(model, ground, eps, joint_v, blocks, nv):
-        """Packs midpoint_model()'s arrays, the GroundPlane and ε; returns the record and
-        the workspace's views (gap, position, Wt_all, L, u_free, u_corr), which the stepper
-        keeps as its own arrays."""
+    def pack(model, ground, eps, joint_v, blocks, nv, effort_limit, velocity_limit):
+        """Packs midpoint_model()'s arrays, the GroundPlane, ε and the torque limits (see
+        actuator.saturate_torque); returns the record and the workspace's views (gap,
+        position, Wt_all, L, u_free, u_corr), which the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
             axis, pl_R, pl_p, oR, op, mass, lever, inertia, gravity, c_local, c_radius,
-            ground.n, ground.t1, ground.t2, [ground.offset], eps)])
+            ground.n, ground.t1, ground.t2, [ground.offset], eps, effort_limit,
+            velocity_limit)])
         nj, nc = parent.shape[0], c_joint.shape[0]
         ints = np.concatenate([np.ravel(a).astype(np.int64) for a in (
             [nj, nc, joint_v.shape[0], blocks.shape[0]], parent, jtype, idx_q, idx_v,
@@ -79,8 +83,8 @@ def _take(buf, o, n):
 @nb.njit(cache=True)
 def unpack_tree_model(floats, ints, support, workspace, nv):
     """The views of TreeStepModel's buffers: (model (midpoint_model's order), normal,
-    tangent1, tangent2, ground_offset, eps, joint_v, blocks, gap, position, Wt_all, L,
-    u_free, u_corr)."""
+    tangent1, tangent2, ground_offset, eps, effort_limit, velocity_limit, joint_v, blocks,
+    gap, position, Wt_all, L, u_free, u_corr)."""
     nj, nc, na, nbk = ints[0], ints[1], ints[2], ints[3]
     o = 0
     axis, o = _take(floats, o, 3 * nj)
@@ -99,6 +103,8 @@ def unpack_tree_model(floats, ints, support, workspace, nv):
     tangent2, o = _take(floats, o, 3)
     offset, o = _take(floats, o, 1)
     eps, o = _take(floats, o, 2 * nc)
+    effort_limit, o = _take(floats, o, na)
+    velocity_limit, o = _take(floats, o, na)
     k = 4
     parent, k = _take(ints, k, nj)
     jtype, k = _take(ints, k, nj)
@@ -118,9 +124,47 @@ def unpack_tree_model(floats, ints, support, workspace, nv):
              pl_p.reshape((nj, 3)), idx_q, idx_v, support, oR.reshape((nj, 3, 3)),
              op.reshape((nj, 3)), mass, lever.reshape((nj, 3)), inertia.reshape((nj, 3, 3)),
              gravity, c_joint, c_local.reshape((nc, 3)), c_radius)
-    return (model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), joint_v,
-            blocks.reshape((nbk, 2)), gap, position.reshape((nc, 3)),
+    return (model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), effort_limit,
+            velocity_limit, joint_v, blocks.reshape((nbk, 2)), gap, position.reshape((nc, 3)),
             Wt_all.reshape((nc, 3, nv)), L.reshape((nv, nv)), u_free, u_corr)
+
+
+def report_size(nc, na):
+    """The length of a one-kernel step's report buffer (see report_views)."""
+    return 7 * nc + na
+
+
+def report_views(report, nc, na):
+    """The views of a one-kernel step's report buffer (float64, report_size(nc, na)):
+    (Λ (nc x 3, contact frame), g_N at q^M (nc), contact points at q^M (nc x 3), the
+    applied torques (na)): what the step reports, written by the kernel in one buffer so
+    that a caller allocates nothing per step."""
+    return (report[:3 * nc].reshape(nc, 3), report[3 * nc:4 * nc],
+            report[4 * nc:7 * nc].reshape(nc, 3), report[7 * nc:7 * nc + na])
+
+
+@nb.njit(cache=True, inline="always")
+def _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
+    """applied = the torques the motors apply for tau (actuator.saturate_torque at the
+    joint rates of u; with saturate False, tau as given: the caller saturated it). False if
+    tau has a non-finite entry."""
+    if not saturate:
+        for k in range(tau.shape[0]):
+            applied[k] = tau[k]
+        return True
+    qd = np.empty(joint_v.shape[0])
+    for k in range(joint_v.shape[0]):
+        qd[k] = u[joint_v[k]]
+    return saturate_torque(tau, effort_limit, qd, velocity_limit, applied)
+
+
+@nb.njit(cache=True, inline="always")
+def _report_contacts(gap, position, report, nc):
+    """Copies g_N and the contact points at q^M into the report buffer (report_views)."""
+    for i in range(nc):
+        report[3 * nc + i] = gap[i]
+        for k in range(3):
+            report[4 * nc + 3 * i + k] = position[i, k]
 
 
 @nb.njit(cache=True, inline="always")
@@ -144,26 +188,35 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
 
 
 @nb.njit(cache=True)
-def tree_step_hard(settings, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
-                   impulse, is_active, qE, uE, floats, ints, support, workspace):
+def tree_step_hard(settings, saturate, q, u, tau, f_ext, last_impulse, last_active,
+                   last_bilateral, report, is_active, qE, uE, floats, ints, support,
+                   workspace):
     """One whole step with hard contacts of a coordinate set without bilateral constraints
     and with a configuration-dependent M (the minimal coordinates), in one call from Python:
-    Eqn. (6) and M, h, W at the midpoint (_midpoint_with_forces), the contact problem
+    the applied torques (_applied_torque: saturated unless `saturate` is False), Eqn. (6)
+    and M, h, W at the midpoint (_midpoint_with_forces), the contact problem
     (contact_problem, complete_problem) and Eqn. (8) (end_of_step). The same arithmetic as
     the phase-by-phase path of MoreauStepper.step, so the same result bit for bit; it saves
     the calls between the phases and the Python around them. `settings`: the fields of a
     StepSettings; (floats, ints, support, workspace): a TreeStepModel; f_ext: the
-    generalized external force or an empty array. Writes q^E, u^E, Λ (impulse), the active
-    flags and the workspace; the warm-start memory is updated as by complete_problem, but
-    only when the step succeeds (outcome TREE_STEP_OK; no bilateral memory here): a failed
-    step leaves the state as it was. Returns (outcome (TREE_STEP_*), |I|, opened, iterations, status, residual, retried,
-    projection iterations, projection status)."""
+    generalized external force or an empty array. Writes q^E, u^E, the report buffer (Λ,
+    g_N, contact points, applied torques: report_views), the active flags and the
+    workspace; the warm-start memory is updated as by complete_problem, but only when the
+    step succeeds (outcome TREE_STEP_OK; no bilateral memory here): a failed step leaves
+    the state as it was, and a non-finite τ (TREE_STEP_NONFINITE_TORQUE) is found before
+    anything is done. Returns (outcome (TREE_STEP_*), |I|, opened, iterations, status,
+    residual, retried, projection iterations, projection status)."""
     s = StepSettings(*settings)
     nv = u.shape[0]
-    (model, normal, tangent1, tangent2, offset, eps, joint_v, blocks, gap, position, Wt_all,
-     L, u_free, u_corr) = unpack_tree_model(floats, ints, support, workspace, nv)
+    (model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
+     blocks, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
+        floats, ints, support, workspace, nv)
+    nc = gap.shape[0]
+    applied = report[7 * nc:7 * nc + joint_v.shape[0]]
+    if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
+        return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * s.dt
-    qM, M, h = _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1,
+    qM, M, h = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                      tangent2, offset, s.jacobian_gap, gap, position,
                                      Wt_all, model)
     p = contact_problem(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps, blocks,
@@ -171,6 +224,7 @@ def tree_step_hard(settings, q, u, tau, f_ext, last_impulse, last_active, last_b
     if not p.ok:
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     kept_impulse, kept_active = last_impulse.copy(), last_active.copy()
+    impulse = report[:3 * nc].reshape((nc, 3))
     it, status, resid, retried, pit, pstatus = complete_problem(
         s, p, h, u, M, blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         impulse, is_active, u_free, uE, u_corr, None)
@@ -182,21 +236,30 @@ def tree_step_hard(settings, q, u, tau, f_ext, last_impulse, last_active, last_b
         outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
         last_impulse[:] = kept_impulse
         last_active[:] = kept_active
+    _report_contacts(gap, position, report, nc)
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
 
 
 @nb.njit(cache=True)
-def tree_step_compliant(law, dt, jacobian_gap, q, u, tau, f_ext, closed, slip, anchor, lam,
-                        qE, uE, floats, ints, support, workspace):
+def tree_step_compliant(law, dt, jacobian_gap, saturate, q, u, tau, f_ext, closed, slip,
+                        anchor, lam, report, is_active, qE, uE, floats, ints, support,
+                        workspace):
     """tree_step_hard's counterpart for compliant contacts (Alg. 1; `law`: the fields of a
-    CompliantLaw): the midpoint, solve_compliant (u^E = u_free) and Eqn. (8), the same
-    arithmetic as the phase-by-phase path; a failed step leaves the contact state as it
-    was. Returns an outcome (TREE_STEP_*)."""
+    CompliantLaw): the applied torques, the midpoint, solve_compliant (u^E = u_free) and
+    Eqn. (8), the same arithmetic as the phase-by-phase path; writes the report buffer (Λ =
+    the compliant force Δt) and the closed flags (g_N(q^M) ≤ 0) into is_active. A failed
+    step leaves the contact state as it was. Returns tree_step_hard's tuple (no prox
+    figures)."""
     nv = u.shape[0]
-    (model, normal, tangent1, tangent2, offset, eps, joint_v, blocks, gap, position, Wt_all,
-     L, u_free, u_corr) = unpack_tree_model(floats, ints, support, workspace, nv)
+    (model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
+     blocks, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
+        floats, ints, support, workspace, nv)
+    nc = gap.shape[0]
+    applied = report[7 * nc:7 * nc + joint_v.shape[0]]
+    if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
+        return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * dt
-    qM, M, h = _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1,
+    qM, M, h = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                      tangent2, offset, jacobian_gap, gap, position, Wt_all,
                                      model)
     kept = (closed.copy(), slip.copy(), anchor.copy(), lam.copy())
@@ -214,4 +277,11 @@ def tree_step_compliant(law, dt, jacobian_gap, q, u, tau, f_ext, closed, slip, a
         slip[:] = kept[1]
         anchor[:] = kept[2]
         lam[:] = kept[3]
-    return outcome
+    n_active = 0
+    for i in range(nc):
+        for k in range(3):
+            report[3 * i + k] = lam[i, k] * dt
+        is_active[i] = gap[i] <= 0.0
+        n_active += is_active[i]
+    _report_contacts(gap, position, report, nc)
+    return outcome, n_active, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
