@@ -146,15 +146,10 @@ def prox_disc(x1, x2, radius):
 
 @nb.njit(cache=True)
 def row_pattern(A):
-    """Nonzero pattern of the rows of A as CSR (ptr, idx)."""
+    """Nonzero pattern of the rows of A as CSR (ptr, idx), in one pass over A."""
     m, n = A.shape
     ptr = np.empty(m + 1, dtype=np.int64)
-    cnt = 0
-    for a in range(m):
-        for k in range(n):
-            if A[a, k] != 0.0:
-                cnt += 1
-    idx = np.empty(cnt, dtype=np.int64)
+    idx = np.empty(m * n, dtype=np.int64)
     cnt = 0
     for a in range(m):
         ptr[a] = cnt
@@ -163,7 +158,7 @@ def row_pattern(A):
                 idx[cnt] = k
                 cnt += 1
     ptr[m] = cnt
-    return ptr, idx
+    return ptr, idx[:cnt]
 
 
 @nb.njit(cache=True)
