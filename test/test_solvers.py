@@ -32,10 +32,10 @@ def robot_problem(u_scale, seed, mu=0.8):
     paper = st.settings._replace(activation_gap=0.0, hysteresis=False, opening_gap=0.0,
                                  beta_velocity=0.0)
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps, sim.coords.blocks,
+        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps, sim.coords.tree.dof_parent,
         True, L, np.zeros((nc, 3)), np.zeros(nc, dtype=bool))
     assert ok and len(active) == 4
-    free_velocity(h, st.dt, u, sim.coords.blocks, L, u_free)
+    free_velocity(h, st.dt, u, sim.coords.tree.dof_parent, L, u_free)
     np.testing.assert_allclose(u_free, u + np.linalg.solve(M, h) * st.dt, rtol=1e-10,
                                atol=1e-12)
     na = len(active)

@@ -68,6 +68,16 @@ class KinematicTree:
             for k in model.supports[j]:
                 self.support[j, k] = True
         self.support[:, 0] = False
+        #: the dof each velocity index hangs from (−1 at a root): the previous dof of its
+        #: joint, or the last dof of the parent joint; parents come first (idx_v order)
+        self.dof_parent = np.full(model.nv, -1, dtype=np.int64)
+        for j in range(1, nj):
+            p = int(self.parent[j])
+            first = int(self.idx_v[j])
+            if p > 0:
+                self.dof_parent[first] = model.joints[p].idx_v + model.joints[p].nv - 1
+            for k in range(1, model.joints[j].nv):
+                self.dof_parent[first + k] = first + k - 1
         self.oR = np.zeros((nj, 3, 3))
         self.op = np.zeros((nj, 3))
 

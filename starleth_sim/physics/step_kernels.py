@@ -31,8 +31,7 @@ from numba.extending import overload
 
 from . import prox
 from .contact import compliant_contact_forces, generalized_contact_force
-from .linalg import (cholesky_blocks, cholesky_blocks_solve_cols, cholesky_blocks_solve_vec,
-                     cholesky_upper_input)
+from .linalg import cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_vec
 from .coordinates.forest import integrate_forest
 
 #: Fig. 7 phases, and their indices in StepperStats.timings
@@ -142,19 +141,18 @@ def _lap_jit(timings, phase, since):
 
 
 @nb.njit(cache=True)
-def free_velocity(h, dt, uS, blocks, L, u_free):
-    """u_free = u^S + M^{-1} h Δt with the block Cholesky factor L of M (one block per
-    tree)."""
+def free_velocity(h, dt, uS, dof_parent, L, u_free):
+    """u_free = u^S + M^{-1} h Δt with the LTDL factor L of M (linalg.ltdl)."""
     for k in range(uS.shape[0]):
         u_free[k] = h[k] * dt
-    cholesky_blocks_solve_vec(L, blocks, u_free)
+    ltdl_solve_vec(L, dof_parent, u_free)
     for k in range(uS.shape[0]):
         u_free[k] += uS[k]
 
 
 @nb.njit(cache=True)
 def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2,
-                    lam, blocks, factor, L, u_free, timings):
+                    lam, dof_parent, factor, L, u_free, timings):
     """Alg. 1 without bilateral constraints, in one call: the factor of M into L (unless
     factor is False: L holds it), the compliant forces at (q^M, u^S)
     (contact.compliant_contact_forces, `law`: the fields of a CompliantLaw) added to h, and
@@ -162,7 +160,7 @@ def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anch
     nothing else was done)."""
     t = clock(timings)
     if factor:
-        ok = cholesky_blocks(M, blocks, L)
+        ok = ltdl(M, dof_parent, L)
         t = lap(timings, PHASE_M_INVERSE, t)
         if not ok:
             return False
@@ -170,7 +168,7 @@ def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anch
                              lam)
     generalized_contact_force(Wt_all, lam, h)
     t = lap(timings, PHASE_REST, t)
-    free_velocity(h, dt, uS, blocks, L, u_free)
+    free_velocity(h, dt, uS, dof_parent, L, u_free)
     lap(timings, PHASE_M_INVERSE, t)
     return True
 
@@ -213,7 +211,7 @@ def normal_law_offset(gap, dt, beta_velocity):
 
 
 @nb.njit(cache=True)
-def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse,
+def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
                last_active):
     """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
     L (unless factor is False: L already holds the factor of a constant M), the active set
@@ -229,7 +227,7 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impu
     nv = uS.shape[0]
     ok = True
     if factor:
-        ok = cholesky_blocks(M, blocks, L)
+        ok = ltdl(M, dof_parent, L)
     active, opened = active_set(gap, s, last_impulse, last_active)
     na = active.shape[0]
     nb_ = WtB.shape[0]
@@ -252,7 +250,7 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impu
     for a in range(m):
         for j in range(nv):
             MinvW[j, a] = Wt[a, j]
-    cholesky_blocks_solve_cols(L, blocks, MinvW)
+    ltdl_solve_cols(L, dof_parent, MinvW)
     for a in range(o):
         s = 0.0
         for j in range(nv):
@@ -400,7 +398,7 @@ def predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, out):
 
 
 @nb.njit(cache=True)
-def projection_problem(Wt, MinvW, active, extra, Wt_all, blocks, L):
+def projection_problem(Wt, MinvW, active, extra, Wt_all, dof_parent, L):
     """W^T and M^{-1}W of the projection when contacts outside the active set (`extra`) are
     predicted to penetrate: the rows of the active contacts and of `extra` (3 each, as the
     prox kernels expect), then the bilateral rows of the velocity problem (their M^{-1}W
@@ -430,7 +428,7 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, blocks, L):
     for c in range(3 * ne):
         for j in range(nv):
             cols[j, c] = Wp[o0 + c, j]
-    cholesky_blocks_solve_cols(L, blocks, cols)
+    ltdl_solve_cols(L, dof_parent, cols)
     for c in range(3 * ne):
         for j in range(nv):
             Mp[j, o0 + c] = cols[j, c]
@@ -445,7 +443,7 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, blocks, L):
 
 
 @nb.njit(cache=True)
-def phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, uE, u_corr):
+def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr):
     """Post-step projection (contact.penetration_correction "projection"). With the
     predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of the
     contacts outside the active set that would end the step below the ground (a foot that
@@ -473,7 +471,7 @@ def phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, uE, u_corr):
         Wp, Mp, Gp, Gdp, full = p.Wt, p.MinvW, p.G, p.Gdiag, p.pat
     else:
         contacts, Wp, Mp, part = projection_problem(p.Wt, p.MinvW, active, extra, Wt_all,
-                                                    blocks, L)
+                                                    dof_parent, L)
         _, Gp, Gdp, _, full = phase_delassus(s.form, contacts.shape[0], False, Wp, Mp, part)
     m = Wp.shape[0]
     ncp = contacts.shape[0]
@@ -495,14 +493,14 @@ def phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, uE, u_corr):
 
 
 @nb.njit(cache=True)
-def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse,
+def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
                     last_active, timings):
     """The torque-independent part of the hard-contact solve for the StepSettings s: the
     phases "M^-1" and "G" (phase_minv, phase_delassus), timed into `timings` when
     profiling. Returns the ContactProblem."""
     t = clock(timings)
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-        s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse, last_active)
+        s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active)
     t = lap(timings, PHASE_M_INVERSE, t)
     G, Gdiag, LB = np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0))
     if ok and Wt.shape[0] != 0:
@@ -513,18 +511,18 @@ def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last
 
 
 @nb.njit(cache=True)
-def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L,
+def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
                           last_impulse, last_active, timings):
     """contact_problem for a caller that prepares ahead (MoreauStepper.prepare).
     `settings`: the fields of a StepSettings (a plain tuple will do). Returns the
     ContactProblem as problem_fields' tuple, the input of complete_hard_contacts."""
     return problem_fields(contact_problem(StepSettings(*settings), M, uS, gap, Wt_all, WtB,
-                                          bB, eps, blocks, factor, L, last_impulse,
+                                          bB, eps, dof_parent, factor, L, last_impulse,
                                           last_active, timings))
 
 
 @nb.njit(cache=True)
-def complete_problem(s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_active,
+def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
                      last_bilateral, impulse, is_active, u_free, u, u_corr, timings):
     """The torque-dependent rest of the hard-contact solve of the ContactProblem p for the
     StepSettings s: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
@@ -536,7 +534,7 @@ def complete_problem(s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_
     Returns (iterations, status, residual, retried, projection iterations, projection
     status)."""
     t = clock(timings)
-    free_velocity(h, s.dt, uS, blocks, L, u_free)
+    free_velocity(h, s.dt, uS, dof_parent, L, u_free)
     t = lap(timings, PHASE_M_INVERSE, t)
     nc = impulse.shape[0]
     for i in range(nc):
@@ -575,7 +573,7 @@ def complete_problem(s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_
         t = lap(timings, PHASE_PROX, t)
     if status != prox.STATUS_NONFINITE and s.beta_projection > 0.0:
         t = clock(timings)
-        pit, pstatus = phase_projection(s, p, is_active, gap, Wt_all, blocks, L, M, u, u_corr)
+        pit, pstatus = phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, u, u_corr)
         lap(timings, PHASE_PROX, t)
     if status != prox.STATUS_NONFINITE:
         for i in range(nc):
@@ -588,18 +586,18 @@ def complete_problem(s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_
 
 
 @nb.njit(cache=True)
-def complete_hard_contacts(settings, problem, h, uS, M, blocks, L, gap, Wt_all, last_impulse,
+def complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse,
                            last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
                            timings):
     """complete_problem of a prepared problem (problem_fields' tuple from
     prepare_hard_contacts; `settings`: the fields of a StepSettings)."""
     return complete_problem(StepSettings(*settings), problem_from_fields(problem), h, uS, M,
-                            blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+                            dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
                             impulse, is_active, u_free, u, u_corr, timings)
 
 
 @nb.njit(cache=True)
-def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, h,
+def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, h,
                         last_impulse, last_active, last_bilateral, impulse, is_active, u_free,
                         u, u_corr, timings):
     """contact_problem and complete_problem in one call, for a step that was not prepared
@@ -609,12 +607,12 @@ def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, blocks, fact
     retried, projection iterations, projection status); with ok False (M or G_B not
     positive definite) nothing else was done."""
     s = StepSettings(*settings)
-    p = contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, blocks, factor, L, last_impulse,
+    p = contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
                         last_active, timings)
     if not p.ok:
         return False, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     it, status, resid, retried, pit, pstatus = complete_problem(
-        s, p, h, uS, M, blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+        s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         impulse, is_active, u_free, u, u_corr, timings)
     return True, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus
 

@@ -47,7 +47,7 @@ from . import prox
 from .config import ConfigError
 from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
-from .linalg import cholesky_blocks
+from .linalg import ltdl
 from .state import SimState
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings, clock,
@@ -131,14 +131,14 @@ class MoreauStepper:
         self.gap = np.zeros(nc)               # g_N at q^M [m]
         self.position = np.zeros((nc, 3))     # contact points at q^M [m]
         self.Wt_all = np.zeros((nc, 3, nv))   # W^T of every contact (rows n, t1, t2)
-        self.L = np.zeros((nv, nv))           # Cholesky factor of M
+        self.L = np.zeros((nv, nv))           # LTDL factor of M (linalg.ltdl)
         self.u_free = np.zeros(nv)            # u^S + M^{-1} h Δt
         self.u_corr = np.zeros(nv)            # Δu_p of the post-step projection
         self.bB = np.zeros(self.nb)           # (β/Δt) g_B
         self._factored = False                # L holds the factor of a constant M
         self._prepared = None                 # see prepare
         # -- model
-        self.blocks = coords.blocks
+        self.dof_parent = coords.tree.dof_parent
         self.constant_M = coords.constant_mass_matrix
         self.no_bilateral = np.zeros((0, nv))
         self.beta = config.bilateral.stabilization
@@ -189,7 +189,7 @@ class MoreauStepper:
             effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
                 if torque_limits is None else torque_limits
             pack, views = TreeStepModel.pack(coords.midpoint_model(), self.ground, self.eps,
-                                             coords.joint_v, coords.blocks, nv, effort,
+                                             coords.joint_v, coords.tree.dof_parent, nv, effort,
                                              velocity)
             self._tree_model = tuple(pack)
             self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
@@ -220,12 +220,12 @@ class MoreauStepper:
         return qM, M, h0, WtB
 
     def _factor(self, M, timings):
-        """The block Cholesky factor of M into L (kept while M is constant). False if M is
+        """The LTDL factor of M (linalg.ltdl) into L (kept while M is constant). False if M is
         not positive definite."""
         if self.constant_M and self._factored:
             return True
         t = clock(timings)
-        ok = cholesky_blocks(M, self.blocks, self.L)
+        ok = ltdl(M, self.dof_parent, self.L)
         lap(timings, PHASE_M_INVERSE, t)
         self._factored = ok
         return ok
@@ -248,7 +248,7 @@ class MoreauStepper:
             factor = not (self.constant_M and self._factored)
             gap = self.gap if self.hard else self._never_active
             problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
-                                            WtB, self.bB, self.eps, self.blocks, factor,
+                                            WtB, self.bB, self.eps, self.dof_parent, factor,
                                             self.L, state.last_impulse, state.last_active,
                                             timings)
             ok = problem[0]
@@ -395,7 +395,7 @@ class MoreauStepper:
             factor = not prepared and not (self.constant_M and self._factored)
             if not solve_compliant(law, M, h, uS, dt, self.gap, self.position, self.Wt_all,
                                    state.closed, state.slip, state.anchor, t1, t2,
-                                   state.lam_compliant, self.blocks, factor, self.L,
+                                   state.lam_compliant, self.dof_parent, factor, self.L,
                                    self.u_free, timings):
                 raise SimulationError("mass matrix not positive definite (non-finite state?)")
             if factor:
@@ -423,7 +423,7 @@ class MoreauStepper:
             factor = not (self.constant_M and self._factored)
             ok, n_active, opened, it, status, resid, retried, pit, pstatus = \
                 solve_hard_contacts(self._settings_fields, M, uS, gap, self.Wt_all, WtB,
-                                    self.bB, self.eps, self.blocks, factor, self.L, h,
+                                    self.bB, self.eps, self.dof_parent, factor, self.L, h,
                                     state.last_impulse, state.last_active,
                                     state.last_bilateral, impulse, is_active, self.u_free, u,
                                     self.u_corr, timings)
@@ -433,7 +433,7 @@ class MoreauStepper:
             self._factored = True
         else:
             it, status, resid, retried, pit, pstatus = complete_hard_contacts(
-                self._settings_fields, problem, h, uS, M, self.blocks, self.L, gap,
+                self._settings_fields, problem, h, uS, M, self.dof_parent, self.L, gap,
                 self.Wt_all, state.last_impulse, state.last_active, state.last_bilateral,
                 impulse, is_active, self.u_free, u, self.u_corr, timings)
             n_active, opened = problem[1].shape[0], problem[9]

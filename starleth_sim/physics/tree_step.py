@@ -38,8 +38,8 @@ class TreeStepModel(NamedTuple):
     inertia, gravity, c_local, c_radius (the forest's arrays, midpoint_model order), the
     ground's n, t1, t2 and offset, ε per contact (nc x 2), the actuators' effort and
     velocity limits (one per actuated joint, public order); ints: [nj, nc, number of
-    actuated joints, number of blocks], then parent, jtype, idx_q, idx_v, c_joint, joint_v
-    and the blocks of M (rows of (start, size)); support: the tree's support matrix;
+    actuated joints, nv], then parent, jtype, idx_q, idx_v, c_joint, joint_v and the dofs'
+    parents (KinematicTree.dof_parent, the structure of M's LTDL factor); support: the tree's support matrix;
     workspace: g_N (nc), contact points (nc x 3), W^T of every contact (nc x 3 x nv), the
     factor L of M (nv x nv), u_free and Δu_p (nv each)."""
 
@@ -49,7 +49,7 @@ class TreeStepModel(NamedTuple):
     workspace: np.ndarray
 
     @staticmethod
-    def pack(model, ground, eps, joint_v, blocks, nv, effort_limit, velocity_limit):
+    def pack(model, ground, eps, joint_v, dof_parent, nv, effort_limit, velocity_limit):
         """Packs midpoint_model()'s arrays, the GroundPlane, ε and the torque limits (see
         actuator.saturate_torque); returns the record and the workspace's views (gap,
         position, Wt_all, L, u_free, u_corr), which the stepper keeps as its own arrays."""
@@ -61,8 +61,8 @@ class TreeStepModel(NamedTuple):
             velocity_limit)])
         nj, nc = parent.shape[0], c_joint.shape[0]
         ints = np.concatenate([np.ravel(a).astype(np.int64) for a in (
-            [nj, nc, joint_v.shape[0], blocks.shape[0]], parent, jtype, idx_q, idx_v,
-            c_joint, joint_v, blocks)])
+            [nj, nc, joint_v.shape[0], nv], parent, jtype, idx_q, idx_v, c_joint, joint_v,
+            dof_parent)])
         sizes = (nc, 3 * nc, 3 * nc * nv, nv * nv, nv, nv)
         workspace = np.zeros(sum(sizes))
         views, o = [], 0
@@ -83,9 +83,9 @@ def _take(buf, o, n):
 @nb.njit(cache=True)
 def unpack_tree_model(floats, ints, support, workspace, nv):
     """The views of TreeStepModel's buffers: (model (midpoint_model's order), normal,
-    tangent1, tangent2, ground_offset, eps, effort_limit, velocity_limit, joint_v, blocks,
+    tangent1, tangent2, ground_offset, eps, effort_limit, velocity_limit, joint_v, dof_parent,
     gap, position, Wt_all, L, u_free, u_corr)."""
-    nj, nc, na, nbk = ints[0], ints[1], ints[2], ints[3]
+    nj, nc, na = ints[0], ints[1], ints[2]
     o = 0
     axis, o = _take(floats, o, 3 * nj)
     pl_R, o = _take(floats, o, 9 * nj)
@@ -112,7 +112,7 @@ def unpack_tree_model(floats, ints, support, workspace, nv):
     idx_v, k = _take(ints, k, nj)
     c_joint, k = _take(ints, k, nc)
     joint_v, k = _take(ints, k, na)
-    blocks, k = _take(ints, k, 2 * nbk)
+    dof_parent, k = _take(ints, k, nv)
     w = 0
     gap, w = _take(workspace, w, nc)
     position, w = _take(workspace, w, 3 * nc)
@@ -125,7 +125,7 @@ def unpack_tree_model(floats, ints, support, workspace, nv):
              op.reshape((nj, 3)), mass, lever.reshape((nj, 3)), inertia.reshape((nj, 3, 3)),
              gravity, c_joint, c_local.reshape((nc, 3)), c_radius)
     return (model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), effort_limit,
-            velocity_limit, joint_v, blocks.reshape((nbk, 2)), gap, position.reshape((nc, 3)),
+            velocity_limit, joint_v, dof_parent, gap, position.reshape((nc, 3)),
             Wt_all.reshape((nc, 3, nv)), L.reshape((nv, nv)), u_free, u_corr)
 
 
@@ -209,7 +209,7 @@ def tree_step_hard(settings, saturate, q, u, tau, f_ext, last_impulse, last_acti
     s = StepSettings(*settings)
     nv = u.shape[0]
     (model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
-     blocks, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
+     dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
         floats, ints, support, workspace, nv)
     nc = gap.shape[0]
     applied = report[7 * nc:7 * nc + joint_v.shape[0]]
@@ -219,14 +219,14 @@ def tree_step_hard(settings, saturate, q, u, tau, f_ext, last_impulse, last_acti
     qM, M, h = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                      tangent2, offset, s.jacobian_gap, gap, position,
                                      Wt_all, model)
-    p = contact_problem(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps, blocks,
+    p = contact_problem(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps, dof_parent,
                         True, L, last_impulse, last_active, None)
     if not p.ok:
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     kept_impulse, kept_active = last_impulse.copy(), last_active.copy()
     impulse = report[:3 * nc].reshape((nc, 3))
     it, status, resid, retried, pit, pstatus = complete_problem(
-        s, p, h, u, M, blocks, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+        s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         impulse, is_active, u_free, uE, u_corr, None)
     outcome = TREE_STEP_OK
     if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
@@ -252,7 +252,7 @@ def tree_step_compliant(law, dt, jacobian_gap, saturate, q, u, tau, f_ext, close
     figures)."""
     nv = u.shape[0]
     (model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
-     blocks, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
+     dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
         floats, ints, support, workspace, nv)
     nc = gap.shape[0]
     applied = report[7 * nc:7 * nc + joint_v.shape[0]]
@@ -264,7 +264,7 @@ def tree_step_compliant(law, dt, jacobian_gap, saturate, q, u, tau, f_ext, close
                                      model)
     kept = (closed.copy(), slip.copy(), anchor.copy(), lam.copy())
     if not solve_compliant(law, M, h, u, dt, gap, position, Wt_all, closed, slip, anchor,
-                           tangent1, tangent2, lam, blocks, True, L, u_free, None):
+                           tangent1, tangent2, lam, dof_parent, True, L, u_free, None):
         outcome = TREE_STEP_NOT_PD
     else:
         for k in range(nv):

@@ -374,8 +374,7 @@ class ForestCoordinates:
 
     def _index_trees(self, roots, constant_mass_matrix):
         """Sizes and index arrays of the forest: nq, nv, the kinematic tree arrays (self.tree),
-        each tree's root joint and its q / v offsets, the diagonal blocks of M (one per tree,
-        for the block Cholesky: [first v, size]) and the bodies' inertias of the jitted
+        each tree's root joint and its q / v offsets and the bodies' inertias of the jitted
         CRBA / RNEA."""
         forest = self.model
         self.nq, self.nv = forest.nq, forest.nv
@@ -384,10 +383,14 @@ class ForestCoordinates:
         self.roots = np.array([self.joint_map[r][0] for r in roots], dtype=np.int64)
         self.root_q = t.idx_q[self.roots].copy()
         self.root_v = t.idx_v[self.roots].copy()
-        #: diagonal blocks of M (one per tree), for the block Cholesky
-        sizes = [int(v) for v in self.root_v[1:]] + [self.nv]
-        self.blocks = np.array([[self.root_v[i], sizes[i] - self.root_v[i]]
-                                for i in range(len(roots))], dtype=np.int64)
+        # M's LTDL factor follows the trees (self.tree.dof_parent); linalg.ltdl_solve_cols
+        # solves tree by tree, so each tree's dofs must be contiguous, starting at its root
+        start = 0
+        for k, p in enumerate(t.dof_parent):
+            start = k if p == -1 else start
+            if not start <= p < k and p != -1:
+                raise ValueError("the forest's trees must have contiguous velocity indices, "
+                                 "parents first")
         self.constant_mass_matrix = constant_mass_matrix
         #: the bodies' inertias for the jitted CRBA / RNEA (rigid_body)
         self.inertias = BodyInertias(forest)
