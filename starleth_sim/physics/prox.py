@@ -144,7 +144,7 @@ def prox_disc(x1, x2, radius):
     return x1 * s, x2 * s
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def row_pattern(A):
     """Nonzero pattern of the rows of A as CSR (ptr, idx), in one pass over A."""
     m, n = A.shape
@@ -161,13 +161,13 @@ def row_pattern(A):
     return ptr, idx[:cnt]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def col_pattern(A):
     """Nonzero pattern of the columns of A as CSR (ptr, idx)."""
     return row_pattern(A.T)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def delassus(Wt, MinvW, G, wp_ptr, wp_idx):
     """G = W^T M^{-1} W (symmetric; both triangles written). Wt: m x nv, MinvW: nv x m,
     (wp_ptr, wp_idx): nonzero pattern of the rows of Wt."""

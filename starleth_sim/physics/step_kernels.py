@@ -173,7 +173,7 @@ def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anch
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def active_set(gap, s, last_impulse, last_active):
     """The active set I at q^M: g_N,i ≤ s.activation_gap, and with s.hysteresis also every
     contact that carried Λ_N > 0 in the last step while g_N,i ≤ s.opening_gap. Returns
@@ -210,7 +210,7 @@ def normal_law_offset(gap, dt, beta_velocity):
     return beta_velocity * gap / dt
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
                last_active):
     """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
@@ -266,7 +266,7 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
             opened)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     """Fig. 7 phase "G (and G_B^-1)": G = W^T M^{-1} W (Delassus form) or only diag(G)
     (velocity form), and for the direct bilateral solution (Eqn. 20) the Cholesky factor
