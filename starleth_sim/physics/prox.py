@@ -194,7 +194,7 @@ def delassus_diagonal(Wt, MinvW, d, wp_ptr, wp_idx):
         d[a] = s
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def prox_parameters(Gdiag, nc, alpha, r):
     """r_N = α/G_NN, r_T = α/max(G_T1T1, G_T2T2) per contact, r_B = α/G_ll per bilateral row.
     α < 0 (adaptive α, ALPHA_AUTO) gives the same with |α|; the kernels then rescale r."""
@@ -289,7 +289,7 @@ def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, m
         lam[o + a] = rhs[a]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _check(lam_old, lam, tol_rel, tol_abs):
     """(converged by the impulse criterion, max |ΔΛ|, all finite)."""
     ok = True
@@ -839,7 +839,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     return max_iter, STATUS_MAX_ITER, res
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u):
     """One prox solve with the scheme and form of the settings `s` (a `ProxSettings`-like
     record; one jitted call from the stepper). Problem: W^T (Wt), M^{-1}W (MinvW),

@@ -140,7 +140,7 @@ def _lap_jit(timings, phase, since):
     return impl
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def free_velocity(h, dt, uS, dof_parent, L, u_free):
     """u_free = u^S + M^{-1} h Δt with the LTDL factor L of M (linalg.ltdl)."""
     for k in range(uS.shape[0]):
@@ -310,7 +310,7 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     return ok, G, Gdiag, LB, full
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
     """c = W^T u_free + b (Eqn. 15), with the row pattern of W^T."""
     m = Wt.shape[0]
@@ -323,7 +323,7 @@ def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
     return c
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
     """Fig. 7 phase "u^E" of the problem p (a ContactProblem) with c = W^T u_free + b: warm
     start (the last step's impulses of contacts that stay active, and of the bilateral
@@ -378,7 +378,7 @@ PROJECTION_TOLERANCE = 1e-6
 PROJECTION_LOOKAHEAD = 5e-3
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, out):
     """g_N^E ≈ g_N(q^M) + ½Δt W_N^T u^E of every contact whose Jacobian is known (in the
     active set or g_N(q^M) ≤ jacobian_gap); +inf for the others. Returns the smallest."""
