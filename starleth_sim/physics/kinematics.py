@@ -125,7 +125,7 @@ def _matmul3(A, B, out):
             out[r, c] = A[r, 0] * B[0, c] + A[r, 1] * B[1, c] + A[r, 2] * B[2, c]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
     """World placements (oR[j], op[j]) of all joint frames: oM_j = oM_parent · placement_j · M_j(q)."""
     nj = parent.shape[0]
@@ -206,7 +206,7 @@ def contact_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support
                    normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
                    normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt):
     """Gaps g_N, contact-point positions and contact-frame Jacobians of all contact points

@@ -50,7 +50,7 @@ def _cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def motion_subspace(jtype, axis, idx_v, oR, op, S):
     """S (6 x nv): the world-frame Plücker motion subspace of every joint's velocity
     coordinates (module docstring); forward_kinematics must have been run."""
@@ -77,7 +77,7 @@ def motion_subspace(jtype, axis, idx_v, oR, op, S):
             S[3, iv], S[4, iv], S[5, iv] = _cross(p0, p1, p2, a0, a1, a2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def spatial_inertias(oR, op, mass, lever, inertia, out):
     """out[j] (6 x 6): body j's spatial inertia in the world frame at the world origin,
     [[I_c − m [c]x², m [c]x]; [m [c]x^T, m 1]] with c its centre of mass and I_c its

@@ -133,7 +133,7 @@ def from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h):
             h[iv + a] = tmp[a]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def tree_dynamics(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, mass, lever,
                   inertia, gravity, M, h):
     """M and h at (q, u) (rigid_body.mass_matrix_and_forces after the forward kinematics)."""
