@@ -188,7 +188,8 @@ class MoreauStepper:
             na = coords.joint_v.shape[0]
             effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
                 if torque_limits is None else torque_limits
-            pack, views = TreeStepModel.pack(coords.midpoint_model(), self.ground, self.eps,
+            pack, views = TreeStepModel.pack(self.settings, self.compliant_law,
+                                             coords.midpoint_model(), self.ground, self.eps,
                                              coords.joint_v, coords.tree.dof_parent, nv, effort,
                                              velocity)
             self._tree_model = tuple(pack)
@@ -344,13 +345,12 @@ class MoreauStepper:
             f_ext = self._no_force
         if self.hard:
             outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                tree_step_hard(self._settings_fields, saturate, q, u, tau, f_ext,
+                tree_step_hard(saturate, q, u, tau, f_ext,
                                state.last_impulse, state.last_active, state.last_bilateral,
                                report, is_active, qE, uE, *self._tree_model)
         else:
             outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                tree_step_compliant(self._compliant_law_fields, self.dt, self.jacobian_gap,
-                                    saturate, q, u, tau, f_ext, state.closed, state.slip,
+                tree_step_compliant(saturate, q, u, tau, f_ext, state.closed, state.slip,
                                     state.anchor, state.lam_compliant, report, is_active, qE,
                                     uE, *self._tree_model)
         if outcome == TREE_STEP_NONFINITE_TORQUE:

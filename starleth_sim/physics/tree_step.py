@@ -34,8 +34,9 @@ class TreeStepModel(NamedTuple):
     layout: the kernels take views of the buffers (unpack_tree_model) and compute exactly
     what the phase-by-phase path computes.
 
-    floats: axis, pl_R, pl_p, oR, op (the forward kinematics' scratch), mass, lever,
-    inertia, gravity, c_local, c_radius (the forest's arrays, midpoint_model order), the
+    floats: the StepSettings (its 19 fields as floats, see _step_settings) and the
+    CompliantLaw (6) of the step, axis, pl_R, pl_p, oR, op (the forward kinematics'
+    scratch), mass, lever, inertia, gravity, c_local, c_radius (the forest's arrays, midpoint_model order), the
     ground's n, t1, t2 and offset, ε per contact (nc x 2), the actuators' effort and
     velocity limits (one per actuated joint, public order); ints: [nj, nc, number of
     actuated joints, nv], then parent, jtype, idx_q, idx_v, c_joint, joint_v and the dofs'
@@ -49,14 +50,15 @@ class TreeStepModel(NamedTuple):
     workspace: np.ndarray
 
     @staticmethod
-    def pack(model, ground, eps, joint_v, dof_parent, nv, effort_limit, velocity_limit):
-        """Packs midpoint_model()'s arrays, the GroundPlane, ε and the torque limits (see
-        actuator.saturate_torque); returns the record and the workspace's views (gap,
+    def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
+             velocity_limit):
+        """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
+        GroundPlane, ε and the torque limits (see actuator.saturate_torque); returns the record and the workspace's views (gap,
         position, Wt_all, L, u_free, u_corr), which the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
-            axis, pl_R, pl_p, oR, op, mass, lever, inertia, gravity, c_local, c_radius,
+            [float(v) for v in settings], [float(v) for v in law], axis, pl_R, pl_p, oR, op, mass, lever, inertia, gravity, c_local, c_radius,
             ground.n, ground.t1, ground.t2, [ground.offset], eps, effort_limit,
             velocity_limit)])
         nj, nc = parent.shape[0], c_joint.shape[0]
@@ -75,6 +77,21 @@ class TreeStepModel(NamedTuple):
                  u_free, u_corr))
 
 
+#: StepSettings' fields: 12 floats, then 4 ints (form, scheme, max_iterations, criterion),
+#: then 3 flags (warm_start, bilateral_direct, hysteresis)
+N_SETTINGS = len(StepSettings._fields)
+
+
+@nb.njit(cache=True, inline="always")
+def _step_settings(a):
+    """The StepSettings of its fields packed as floats (TreeStepModel.pack): exact, the
+    ints and flags being small whole numbers. (A tuple of 19 fields costs ≈0.3 µs per call to
+    unbox; one array of them nothing more.)"""
+    return StepSettings(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10],
+                        a[11], int(a[12]), int(a[13]), int(a[14]), int(a[15]), a[16] != 0.0,
+                        a[17] != 0.0, a[18] != 0.0)
+
+
 @nb.njit(cache=True, inline="always")
 def _take(buf, o, n):
     return buf[o:o + n], o + n
@@ -82,11 +99,13 @@ def _take(buf, o, n):
 
 @nb.njit(cache=True)
 def unpack_tree_model(floats, ints, support, workspace, nv):
-    """The views of TreeStepModel's buffers: (model (midpoint_model's order), normal,
+    """The views of TreeStepModel's buffers: (StepSettings, CompliantLaw's fields, model
+    (midpoint_model's order), normal,
     tangent1, tangent2, ground_offset, eps, effort_limit, velocity_limit, joint_v, dof_parent,
     gap, position, Wt_all, L, u_free, u_corr)."""
     nj, nc, na = ints[0], ints[1], ints[2]
-    o = 0
+    settings, o = _take(floats, 0, N_SETTINGS)
+    law, o = _take(floats, o, 6)
     axis, o = _take(floats, o, 3 * nj)
     pl_R, o = _take(floats, o, 9 * nj)
     pl_p, o = _take(floats, o, 3 * nj)
@@ -124,7 +143,8 @@ def unpack_tree_model(floats, ints, support, workspace, nv):
              pl_p.reshape((nj, 3)), idx_q, idx_v, support, oR.reshape((nj, 3, 3)),
              op.reshape((nj, 3)), mass, lever.reshape((nj, 3)), inertia.reshape((nj, 3, 3)),
              gravity, c_joint, c_local.reshape((nc, 3)), c_radius)
-    return (model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), effort_limit,
+    return (_step_settings(settings), (law[0], law[1], law[2], law[3], law[4], law[5]),
+            model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), effort_limit,
             velocity_limit, joint_v, dof_parent, gap, position.reshape((nc, 3)),
             Wt_all.reshape((nc, 3, nv)), L.reshape((nv, nv)), u_free, u_corr)
 
@@ -188,17 +208,16 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
 
 
 @nb.njit(cache=True)
-def tree_step_hard(settings, saturate, q, u, tau, f_ext, last_impulse, last_active,
-                   last_bilateral, report, is_active, qE, uE, floats, ints, support,
-                   workspace):
+def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
+                   report, is_active, qE, uE, floats, ints, support, workspace):
     """One whole step with hard contacts of a coordinate set without bilateral constraints
     and with a configuration-dependent M (the minimal coordinates), in one call from Python:
     the applied torques (_applied_torque: saturated unless `saturate` is False), Eqn. (6)
     and M, h, W at the midpoint (_midpoint_with_forces), the contact problem
     (contact_problem, complete_problem) and Eqn. (8) (end_of_step). The same arithmetic as
     the phase-by-phase path of MoreauStepper.step, so the same result bit for bit; it saves
-    the calls between the phases and the Python around them. `settings`: the fields of a
-    StepSettings; (floats, ints, support, workspace): a TreeStepModel; f_ext: the
+    the calls between the phases and the Python around them. (floats, ints, support,
+    workspace): a TreeStepModel (with the StepSettings); f_ext: the
     generalized external force or an empty array. Writes q^E, u^E, the report buffer (Λ,
     g_N, contact points, applied torques: report_views), the active flags and the
     workspace; the warm-start memory is updated as by complete_problem, but only when the
@@ -206,9 +225,8 @@ def tree_step_hard(settings, saturate, q, u, tau, f_ext, last_impulse, last_acti
     the state as it was, and a non-finite τ (TREE_STEP_NONFINITE_TORQUE) is found before
     anything is done. Returns (outcome (TREE_STEP_*), |I|, opened, iterations, status,
     residual, retried, projection iterations, projection status)."""
-    s = StepSettings(*settings)
     nv = u.shape[0]
-    (model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
+    (s, _, model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
      dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
         floats, ints, support, workspace, nv)
     nc = gap.shape[0]
@@ -241,19 +259,19 @@ def tree_step_hard(settings, saturate, q, u, tau, f_ext, last_impulse, last_acti
 
 
 @nb.njit(cache=True)
-def tree_step_compliant(law, dt, jacobian_gap, saturate, q, u, tau, f_ext, closed, slip,
-                        anchor, lam, report, is_active, qE, uE, floats, ints, support,
-                        workspace):
-    """tree_step_hard's counterpart for compliant contacts (Alg. 1; `law`: the fields of a
-    CompliantLaw): the applied torques, the midpoint, solve_compliant (u^E = u_free) and
+def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, report,
+                        is_active, qE, uE, floats, ints, support, workspace):
+    """tree_step_hard's counterpart for compliant contacts (Alg. 1, the CompliantLaw and Δt
+    packed in the TreeStepModel): the applied torques, the midpoint, solve_compliant (u^E = u_free) and
     Eqn. (8), the same arithmetic as the phase-by-phase path; writes the report buffer (Λ =
     the compliant force Δt) and the closed flags (g_N(q^M) ≤ 0) into is_active. A failed
     step leaves the contact state as it was. Returns tree_step_hard's tuple (no prox
     figures)."""
     nv = u.shape[0]
-    (model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
-     dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
+    (s, law, model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit,
+     joint_v, dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
         floats, ints, support, workspace, nv)
+    dt, jacobian_gap = s.dt, s.jacobian_gap
     nc = gap.shape[0]
     applied = report[7 * nc:7 * nc + joint_v.shape[0]]
     if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
