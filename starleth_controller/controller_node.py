@@ -308,9 +308,10 @@ class ControllerNode(Node):
                                             clock=Clock(clock_type=ClockType.STEADY_TIME),
                                             autostart=False)
 
-    def _take_side_inputs(self):
-        """Every message waiting in the side inputs' queues, into the slots of their
-        stamps (which may complete a stamp and run the controller)."""
+    def _take_side_inputs(self, drain=True):
+        """The messages waiting in the side inputs' queues (drain=False: at most one of
+        each), into the slots of their stamps (which may complete a stamp and run the
+        controller)."""
         for sub, on_data in self._side_inputs:
             while True:
                 with sub.handle:
@@ -318,6 +319,8 @@ class ControllerNode(Node):
                 if taken is None:
                     break
                 on_data(taken[0])
+                if not drain:
+                    break
 
     def _poll_side_inputs(self):
         """The timer's callback: take the side inputs; stop polling once no joint state
@@ -432,15 +435,18 @@ class ControllerNode(Node):
             return None
 
     def _on_joint_states_cdr(self, data):
-        self._take_side_inputs()
+        # the rest of this state first (one message of each side input), then the joint
+        # state, which completes it and gets the answer out; then anything else waiting
+        self._take_side_inputs(drain=False)
         r = self._js_reader.decode(data)
         if r is None:
             msg = self._deserialise(data, JointState, "joint state")
             if msg is not None:
                 self._on_joint_states(msg)
-            return
-        sec, nsec, names, pos, vel = r
-        self._joint_state(sec * 1_000_000_000 + nsec, (sec, nsec, names, pos, vel))
+        else:
+            sec, nsec, names, pos, vel = r
+            self._joint_state(sec * 1_000_000_000 + nsec, (sec, nsec, names, pos, vel))
+        self._take_side_inputs()
 
     def _on_base_state_cdr(self, data):
         r = self._odom_reader.decode(data)
