@@ -162,10 +162,11 @@ IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w"
 class CycleTimes:
     """Per-cycle timestamps of the lockstep critical path (time.perf_counter, i.e.
     CLOCK_MONOTONIC: comparable across processes on one host), for benchmarks: command in,
-    stepped, /joint_states out, state topics out, recording handed over, post-publish work
+    stepped, the other state messages out (foot wrenches, base state), /joint_states out
+    (the state a controller waits for is out), recording handed over, post-publish work
     done (prepare, visualisation). Off unless a benchmark sets ``SimNode.timing``."""
 
-    FIELDS = ("command_in", "stepped", "joint_states_out", "state_out", "recorded", "done")
+    FIELDS = ("command_in", "stepped", "others_out", "state_out", "recorded", "done")
 
     def __init__(self, capacity=200_000):
         self.stamp = np.zeros(capacity, np.int64)
@@ -668,6 +669,8 @@ class SimNode:
             base = self._base_values()
             if want_odom:
                 self._publish_odometry(sec, nsec, base, record)
+        if timing is not None:
+            timing.row[2] = time.perf_counter()
         if svc.counters["steps"] or svc.counters["resets"]:
             send = wanted("joint_states", record)
         else:   # state 0: the exact count
@@ -676,7 +679,7 @@ class SimNode:
         if send:
             self._publish_joint_states(sec, nsec, record)
         if timing is not None:
-            timing.row[2] = timing.row[3] = time.perf_counter()
+            timing.row[3] = time.perf_counter()
         if "clock" in self.pubs and wanted("clock", record):
             if self._clock_cdr is not None:
                 self._emit_cdr("clock", self._clock_cdr.build(sec, nsec, ()), record)
