@@ -1,7 +1,9 @@
 """Model-based stand / trot controller for StarlETH, after Gehring et al., ICRA 2013
 ("Control of dynamic gaits for a quadrupedal robot") and its open-source descendant loco.
 
-Pure Python, no ROS: ``StarlethController.update(state, command) -> 12 joint torques``.
+No ROS: ``StarlethController.update(state, command) -> 12 joint torques``; the per-call
+arithmetic of the steps below runs in numba kernels (kernels.py) that keep the order of
+operations of the formulas written here (results bit for bit those of plain Python).
 
 Structure (one call = one control period):
 

@@ -1,5 +1,8 @@
 """Numba kernels of the controller's per-call arithmetic (small fixed-size linear algebra
-that numpy would spend most of its time dispatching).
+that numpy would spend most of its time dispatching, and the scalar formulas of the virtual
+model, the force QP's inputs and the swing legs, which Python would spend most of its time
+interpreting). fastmath stays off and each formula keeps the operation order (and Python's
+min / max semantics) of the code it replaced: the torques are bit-identical.
 
 Leg geometry arrays (one row per leg LF, RF, LH, RH): ``hip`` (4, 3) HAA position in the base
 frame, ``geo`` (4, 5) = l0 (HAA→HFE, vertical), l1 (thigh), l2 (shank to the foot centre),
