@@ -1,7 +1,9 @@
 """Model-based stand / trot controller for StarlETH, after Gehring et al., ICRA 2013
 ("Control of dynamic gaits for a quadrupedal robot") and its open-source descendant loco.
 
-Pure Python, no ROS: ``StarlethController.update(state, command) -> 12 joint torques``.
+No ROS: ``StarlethController.update(state, command) -> 12 joint torques``; the per-call
+arithmetic of the steps below runs in numba kernels (kernels.py) that keep the order of
+operations of the formulas written here (results bit for bit those of plain Python).
 
 Structure (one call = one control period):
 
@@ -154,23 +156,6 @@ class ControllerParams:
     recover_time: float = 1.0            # ... for this long, with >= 3 feet on the ground [s]
 
 
-def _to_heading(v, cy, sy, out):
-    """out = R_z(ψ)ᵀ v: a world 3-vector in the heading frame (yaw ψ, cy = cos ψ, sy = sin ψ)."""
-    out[0] = cy * v[0] + sy * v[1]
-    out[1] = -sy * v[0] + cy * v[1]
-    out[2] = v[2]
-    return out
-
-
-def _smooth(x):
-    """Smoothstep on [0, 1] and its derivative."""
-    if x <= 0.0:
-        return 0.0, 0.0
-    if x >= 1.0:
-        return 1.0, 0.0
-    return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
-
-
 class _Sample:
     """The measured state of one control period as the steps of ``StarlethController.update``
     read it: time t and step dt [s]; joints qj, dqj (public order); trunk position pb and
@@ -228,6 +213,11 @@ class StarlethController:
         self._gh = {n: np.zeros((n, 3)) for n in range(1, 5)}
         self._target, self._vtarget = np.zeros(3), np.zeros(3)
         self._swing_phase = np.zeros(4)
+        self._support_idx = np.zeros(4, dtype=np.int64)   # the support legs, first ns
+        self._all_legs = np.arange(4, dtype=np.int64)
+        self._leg_state_arr = np.zeros(4, dtype=np.int64)  # leg_state as an array
+        self._swing_p = np.zeros(K.SW_OFFSET_X + 4)
+        self._mass_g = m.mass * m.gravity
         self._q_nominal = m.nominal_joint_positions(p.height)
         self.reset()
 
@@ -522,7 +512,12 @@ class StarlethController:
                     self._lost_since[k] = t
             else:
                 self._lost_since[k] = math.nan
-        return [k for k in range(4) if states[k] == SUPPORT]
+        support = [k for k in range(4) if states[k] == SUPPORT]
+        for j, k in enumerate(support):      # the kernels' copies
+            self._support_idx[j] = k
+        for k in range(4):
+            self._leg_state_arr[k] = states[k]
+        return support
 
     def _estimate_ground(self, support):
         """Ground height (flat ground assumed): low-pass (0.05 per call) of the mean height of
@@ -557,48 +552,25 @@ class StarlethController:
         fewer than 2 (trot) / 3 (stand) support) and height error, clipped; e_R: rotation
         vector of R_z(ψ*) Rᵀ, clipped."""
         p = self.params
-        m = self.model
-        pb, R, cy, sy = x.pb, x.R, x.cy, x.sy
-        contact_pt = self._contact
-        gains = self._gains_trot if trotting else self._gains_stand
+        cy, sy = x.cy, x.sy
+        kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = \
+            self._gains_trot if trotting else self._gains_stand
         ns = len(support)
-        ref = support if ns >= (2 if trotting else 3) else range(4)
-        nr = len(ref)
-        rx = sum(contact_pt[k, 0] for k in ref) / nr - pb[0]
-        ry = sum(contact_pt[k, 1] for k in ref) / nr - pb[1]
-        e = self._e
-        e[0] = cy * rx + sy * ry
-        e[1] = -sy * rx + cy * ry
-        e[2] = self._ground + (p.trot_height if trotting and p.trot_height else p.height) \
-            - pb[2]
-        e.clip(-p.max_position_error, p.max_position_error, out=e)
-        vh = _to_heading(x.vb, cy, sy, self._vh)
-        vd = self._vd
-        vd[0], vd[1] = self._v_cmd[0], self._v_cmd[1]
-        kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = gains
+        ref = self._support_idx if ns >= (2 if trotting else 3) else self._all_legs
+        nr = ns if ns >= (2 if trotting else 3) else 4
         b = self._b
-        b[0:3] = kp_t * e + kd_t * (vd - vh) + kff_t * vd
-        if trotting and p.velocity_ki:
-            lim = p.velocity_integral_max
-            fi = self._f_int
-            for a in range(2):
-                fi[a] = min(lim, max(-lim, fi[a] + p.velocity_ki * (vd[a] - vh[a]) * x.dt))
-            b[0] += fi[0]
-            b[1] += fi[1]
-        else:
-            self._f_int[:] = 0.0
-        b[2] += m.mass * m.gravity
+        K.vmc_force(ref, nr, self._contact, x.pb, x.vb, cy, sy,
+                    self._ground + (p.trot_height if trotting and p.trot_height else p.height)
+                    - x.pb[2], p.max_position_error, self._v_cmd, kp_t, kd_t, kff_t,
+                    bool(trotting and p.velocity_ki), p.velocity_ki, p.velocity_integral_max,
+                    x.dt, self._f_int, self._mass_g, self._e, self._vh, self._vd, b)
         # orientation error (rotation vector of R_des Rᵀ, world) in the heading frame
         Rd = self._Rd
         cd, sd = math.cos(self._yaw_des), math.sin(self._yaw_des)   # R_des = R_z(ψ*)
         Rd[0, 0], Rd[0, 1], Rd[1, 0], Rd[1, 1] = cd, -sd, sd, cd
-        er = pin.log3(Rd @ R.T)
-        eh = _to_heading(er, cy, sy, self._eh)
-        eh.clip(-p.max_orientation_error, p.max_orientation_error, out=eh)
-        wh = _to_heading(x.ww, cy, sy, self._wh)
-        wd = self._wd
-        wd[2] = self._w_cmd
-        b[3:6] = kp_r * eh + kd_r * (wd - wh) + kff_r * wd
+        er = pin.log3(Rd @ x.R.T)
+        K.vmc_moment(er, x.ww, cy, sy, p.max_orientation_error, self._w_cmd, kp_r, kd_r, kff_r,
+                     self._eh, self._wh, self._wd, b)
         return b
 
     def _distribute_wrench(self, x: _Sample, support, b, gleg, com):
@@ -606,124 +578,39 @@ class StarlethController:
         Jacobian rows R_zᵀ J_c,k and gravity torques g_leg,k of the support legs give the
         forces f_j of the ground on the feet; the desired forces (world, self.desired_forces)
         and the stance torques τ_k = −J_c,kᵀ f_k + g_leg,k."""
-        cy, sy = x.cy, x.sy
-        contact_pt, Jc = self._contact, self._Jc
-        fdes = self.desired_forces
         ns = len(support)
-        rh = self._rh[ns]
-        for j, k in enumerate(support):
-            dx, dy = contact_pt[k, 0] - com[0], contact_pt[k, 1] - com[1]
-            rh[j, 0] = cy * dx + sy * dy
-            rh[j, 1] = -sy * dx + cy * dy
-            rh[j, 2] = contact_pt[k, 2] - com[2]
-        Jh, gh = self._Jh[ns], self._gh[ns]
-        for j, k in enumerate(support):
-            for a in range(3):     # heading-frame rows of J_c: Rzᵀ J_c
-                Jh[j, 0, a] = cy * Jc[k, 0, a] + sy * Jc[k, 1, a]
-                Jh[j, 1, a] = -sy * Jc[k, 0, a] + cy * Jc[k, 1, a]
-                Jh[j, 2, a] = Jc[k, 2, a]
-                gh[j, a] = gleg[3 * k + a]
+        idx = self._support_idx
+        rh, Jh, gh = self._rh[ns], self._Jh[ns], self._gh[ns]
+        K.heading_qp_inputs(idx, ns, self._contact, com, self._Jc, gleg, x.cy, x.sy, rh, Jh, gh)
         fh = self.cfd.solve(rh, b, Jh, gh)
-        tau = self._tau
-        for j, k in enumerate(support):
-            fdes[k, 0] = cy * fh[j, 0] - sy * fh[j, 1]
-            fdes[k, 1] = sy * fh[j, 0] + cy * fh[j, 1]
-            fdes[k, 2] = fh[j, 2]
-            K.stance_torques(k, fdes[k], Jc, gleg, tau)
+        K.support_torques(idx, ns, fh, x.cy, x.sy, self._Jc, gleg, self.desired_forces,
+                          self._tau)
 
     # -- 4. swing legs ---------------------------------------------------------------------
     def _position_controlled_leg_torques(self, x: _Sample, trotting, gleg):
         """Step 4: the legs not in support (swing, lost contact, in the air while standing)
-        follow a foot target (position `_target`, velocity `_vtarget`, world) by analytic IK
-        and joint PD with gravity feed-forward (kernels.foot_position_control) into τ."""
+        follow a foot target by analytic IK and joint PD with gravity feed-forward into τ
+        (kernels.position_controlled_torques): a swing leg from its lift-off offset to the
+        inverted-pendulum foothold (kernels.swing_target), a leg that lost its contact
+        lowered to find the ground (kernels.lowering_target)."""
         m = self.model
-        pb, R = x.pb, x.R
-        states = self.leg_state
-        target, vt = self._target, self._vtarget
-        for k in range(4):
-            st = states[k]
-            if st == SUPPORT:
-                continue
-            hx0, hy0, hz0 = m.hip[k]
-            rhx_w = R[0, 0] * hx0 + R[0, 1] * hy0 + R[0, 2] * hz0     # trunk→hip, world
-            rhy_w = R[1, 0] * hx0 + R[1, 1] * hy0 + R[1, 2] * hz0
-            rhz_w = R[2, 0] * hx0 + R[2, 1] * hy0 + R[2, 2] * hz0
-            hx, hy, hz = pb[0] + rhx_w, pb[1] + rhy_w, pb[2] + rhz_w
-            if st == SWING:
-                self._swing_target(k, x, rhx_w, rhy_w, rhz_w, hx, hy, hz)
-            else:  # LOST_CONTACT: lower the foot to find the ground
-                self._lowering_target(k, x.t, trotting, hx, hy)
-            K.foot_position_control(k, target, vt, pb, R, x.vb, x.ww, self._Jf, x.qj, x.dqj,
-                                    gleg, self._kp3, self._kd3, m.hip, self._geo, self._tau)
+        K.position_controlled_torques(
+            self._leg_state_arr, trotting, x.t, self._swing_phase, self._r_liftoff,
+            self._lost_since, self._foothold, self._swing_parameters(), m.foot_radius,
+            self._ground, self._v_cmd, self._w_cmd, x.pb, x.R, x.vb, x.ww, x.cy, x.sy,
+            self._Jf, x.qj, x.dqj, gleg, self._kp3, self._kd3, m.hip, self._geo, self._target,
+            self._vtarget, self._tau)
 
-    def _swing_target(self, k, x: _Sample, rhx_w, rhy_w, rhz_w, hx, hy, hz):
-        """Swing leg k: foot target from the lift-off offset r₀ (heading frame, relative to
-        the hip) to the inverted-pendulum foothold
-            Δ = ½ v*_hip T_stance + k_fb (v_hip − v*_hip) √(h/g)
-        (clipped to step_max, plus foothold_offset_x), blended with a smoothstep until
-        step_interp_end; height up to swing_height at mid-swing, then down to touchdown_depth
-        below the ground. r_w: trunk→hip (world), h = (hx, hy, hz): the hip. Writes `_target`,
-        `_vtarget` and the foothold (world xy)."""
+    def _swing_parameters(self):
+        """The parameters of kernels.swing_target / lowering_target as one array (layout
+        kernels.SW_*), read from self.params on every call (they may be changed)."""
         p = self.params
-        m = self.model
-        vb, ww, cy, sy = x.vb, x.ww, x.cy, x.sy
-        vcx, vcy, wc = self._v_cmd[0], self._v_cmd[1], self._w_cmd
-        target, vt = self._target, self._vtarget
-        T = p.gait_period
-        Tsw = (1.0 - p.duty_factor) * T
-        Tst = p.duty_factor * T
-        sp = self._swing_phase[k]
-        # inverted-pendulum foothold relative to the hip, heading frame
-        vhx_w = vb[0] + ww[1] * rhz_w - ww[2] * rhy_w
-        vhy_w = vb[1] + ww[2] * rhx_w - ww[0] * rhz_w
-        vx = cy * vhx_w + sy * vhy_w
-        vy = -sy * vhx_w + cy * vhy_w
-        rx = cy * rhx_w + sy * rhy_w
-        ry = -sy * rhx_w + cy * rhy_w
-        vdx = vcx - wc * ry
-        vdy = vcy + wc * rx
-        sq = math.sqrt(max(hz - self._ground, 0.05) / m.gravity)
-        dx = 0.5 * vdx * Tst + p.step_feedback * (vx - vdx) * sq
-        dy = 0.5 * vdy * Tst + p.step_feedback * (vy - vdy) * sq
-        dx = min(max(dx, -p.step_max), p.step_max) + p.foothold_offset_x[k]
-        dy = min(max(dy, -p.step_max), p.step_max)
-        sig, dsig = _smooth(sp / p.step_interp_end)
-        r0x, r0y = self._r_liftoff[k]
-        ox = r0x + sig * (dx - r0x)
-        oy = r0y + sig * (dy - r0y)
-        rate = dsig / (p.step_interp_end * Tsw)
-        dox, doy = rate * (dx - r0x), rate * (dy - r0y)
-        target[0] = hx + cy * ox - sy * oy
-        target[1] = hy + sy * ox + cy * oy
-        vt[0] = vhx_w + cy * dox - sy * doy
-        vt[1] = vhy_w + sy * dox + cy * doy
-        # height: up to the apex at mid-swing, then down to below the ground
-        if sp < 0.5:
-            a, da = _smooth(2.0 * sp)
-            z, dz = p.swing_height * a, p.swing_height * da * 2.0 / Tsw
-        else:
-            a, da = _smooth(2.0 * sp - 1.0)
-            span = -p.touchdown_depth - p.swing_height
-            z, dz = p.swing_height + span * a, span * da * 2.0 / Tsw
-        target[2] = self._ground + m.foot_radius[k] + z
-        vt[2] = dz
-        self._foothold[k, 0] = hx + cy * dx - sy * dy
-        self._foothold[k, 1] = hy + sy * dx + cy * dy
-
-    def _lowering_target(self, k, t, trotting, hx, hy):
-        """Leg k without the contact it should have: the foot at the last foothold (trotting)
-        or under the hip (hx, hy), lowered at lost_contact_speed from touchdown_depth to at
-        most lost_contact_depth below the ground since contact was lost; zero velocity."""
-        p = self.params
-        target, vt = self._target, self._vtarget
-        if trotting:
-            target[0], target[1] = self._foothold[k]
-        else:
-            target[0], target[1] = hx, hy
-        depth = min(p.touchdown_depth + p.lost_contact_speed * (t - self._lost_since[k]),
-                    p.lost_contact_depth)
-        target[2] = self._ground + self.model.foot_radius[k] - depth
-        vt[:] = 0.0
+        P = self._swing_p
+        P[:K.SW_OFFSET_X] = (p.gait_period, p.duty_factor, p.step_feedback, p.step_max,
+                             p.step_interp_end, p.swing_height, p.touchdown_depth,
+                             self.model.gravity, p.lost_contact_speed, p.lost_contact_depth)
+        P[K.SW_OFFSET_X:] = p.foothold_offset_x
+        return P
 
     # -- 5. saturation ---------------------------------------------------------------------
     def _saturate_and_report(self, x: _Sample, support, b, com, t_wall):

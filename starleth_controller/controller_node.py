@@ -40,6 +40,13 @@ publishes the torques stamped with it, so a lockstep simulator steps on the answ
 same answer again (a simulator re-sending its first state because the first answer went out
 before the topics matched).
 
+The base state and the foot wrenches are subscribed on a hidden helper node
+(``_controller_node_side_inputs``) that no executor spins; their messages are taken from the
+subscriptions' queues when a joint state arrives (and, while a joint state waits for the
+rest of its stamp, every 0.5 ms by a steady-clock timer): the executor wakes once per
+state, not six times. A simulator that sends /joint_states last (sim_node) is answered
+at once; any other order works too.
+
 The state topics are taken as CDR bytes and the floats of the common case are read
 straight from them (``starleth_interface.msg_cdr``; anything else is deserialised by rclpy
 and validated as before); the command goes out as CDR bytes patched into a template.
@@ -61,6 +68,7 @@ import time
 
 import numpy as np
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
@@ -261,13 +269,7 @@ class ControllerNode(Node):
         # them (starleth_interface.msg_cdr), anything else deserialised by rclpy
         self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
                                                self._on_joint_states_cdr, state_qos, raw=True)
-        self.sub_odom = self.create_subscription(Odometry, p["base_state_topic"],
-                                                 self._on_base_state_cdr, state_qos, raw=True)
-        self.sub_wrench = [
-            self.create_subscription(WrenchStamped, topic,
-                                     (lambda data, k=k: self._on_wrench_cdr(k, data)),
-                                     state_qos, raw=True)
-            for k, topic in enumerate(p["foot_wrench_topics"])]
+        self._setup_side_inputs(p, state_qos)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
         self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot)
@@ -275,6 +277,61 @@ class ControllerNode(Node):
                       f"{p['joint_commands_topic'] or '(off)'}"
                       + (f", effort arrays on {p['effort_array_topic']}"
                          if p["effort_array_topic"] else ""))
+
+    #: s: while a joint state waits for the other messages of its stamp, the side inputs
+    #: are looked at this often (steady clock)
+    SIDE_POLL_PERIOD = 0.0005
+
+    def _setup_side_inputs(self, p, state_qos):
+        """The base state and the four foot wrenches ("side inputs") are subscribed on a
+        hidden helper node (``_<name>_side_inputs``) that no executor spins: their messages
+        wait in the subscriptions' queues and are taken when the joint state of a stamp
+        arrives (_take_side_inputs), so the executor thread wakes once per state instead
+        of six times (a simulator that sends /joint_states last, as sim_node does, gets its
+        answer without any wait). Until a stamp is complete, a steady-clock timer takes
+        them every SIDE_POLL_PERIOD (any order of arrival still works). Topic names are
+        resolved by this node (its namespace and remappings)."""
+        self._side_node = Node(f"_{self.get_name()}_side_inputs", context=self.context,
+                               namespace=self.get_namespace(), use_global_arguments=False,
+                               enable_rosout=False, start_parameter_services=False)
+        side = self._side_node
+
+        def sub(typ, topic):
+            return side.create_subscription(typ, self.resolve_topic_name(topic),
+                                            lambda _: None, state_qos, raw=True)
+        self.sub_odom = sub(Odometry, p["base_state_topic"])
+        self.sub_wrench = [sub(WrenchStamped, topic) for topic in p["foot_wrench_topics"]]
+        self._side_inputs = [(self.sub_odom, self._on_base_state_cdr)] + [
+            (s, (lambda data, k=k: self._on_wrench_cdr(k, data)))
+            for k, s in enumerate(self.sub_wrench)]
+        self._side_poll = self.create_timer(self.SIDE_POLL_PERIOD, self._poll_side_inputs,
+                                            clock=Clock(clock_type=ClockType.STEADY_TIME),
+                                            autostart=False)
+
+    def _take_side_inputs(self, drain=True):
+        """The messages waiting in the side inputs' queues (drain=False: at most one of
+        each), into the slots of their stamps (which may complete a stamp and run the
+        controller)."""
+        for sub, on_data in self._side_inputs:
+            while True:
+                with sub.handle:
+                    taken = sub.handle.take_message(sub.msg_type, True)
+                if taken is None:
+                    break
+                on_data(taken[0])
+                if not drain:
+                    break
+
+    def _poll_side_inputs(self):
+        """The timer's callback: take the side inputs; stop polling once no joint state
+        waits for them."""
+        self._take_side_inputs()
+        if not any(s.js is not None for s in self._pending.values()):
+            self._side_poll.cancel()
+
+    def destroy_node(self):
+        self._side_node.destroy_node()
+        return super().destroy_node()
 
     def _clock_seconds(self) -> float:
         """The node's clock [s]: /clock with use_sim_time, else the system clock."""
@@ -378,14 +435,18 @@ class ControllerNode(Node):
             return None
 
     def _on_joint_states_cdr(self, data):
+        # the rest of this state first (one message of each side input), then the joint
+        # state, which completes it and gets the answer out; then anything else waiting
+        self._take_side_inputs(drain=False)
         r = self._js_reader.decode(data)
         if r is None:
             msg = self._deserialise(data, JointState, "joint state")
             if msg is not None:
                 self._on_joint_states(msg)
-            return
-        sec, nsec, names, pos, vel = r
-        self._joint_state(sec * 1_000_000_000 + nsec, (sec, nsec, names, pos, vel))
+        else:
+            sec, nsec, names, pos, vel = r
+            self._joint_state(sec * 1_000_000_000 + nsec, (sec, nsec, names, pos, vel))
+        self._take_side_inputs()
 
     def _on_base_state_cdr(self, data):
         r = self._odom_reader.decode(data)
@@ -426,6 +487,8 @@ class ControllerNode(Node):
         new = s.js is None
         s.js = js
         self._received(stamp, s, new)
+        if stamp in self._pending and self._side_poll.is_canceled():
+            self._side_poll.reset()       # the rest of this stamp is still to come
 
     def _on_base_state(self, msg):
         o = msg.pose.pose

@@ -1,5 +1,8 @@
 """Numba kernels of the controller's per-call arithmetic (small fixed-size linear algebra
-that numpy would spend most of its time dispatching).
+that numpy would spend most of its time dispatching, and the scalar formulas of the virtual
+model, the force QP's inputs and the swing legs, which Python would spend most of its time
+interpreting). fastmath stays off and each formula keeps the operation order (and Python's
+min / max semantics) of the code it replaced: the torques are bit-identical.
 
 Leg geometry arrays (one row per leg LF, RF, LH, RH): ``hip`` (4, 3) HAA position in the base
 frame, ``geo`` (4, 5) = l0 (HAA→HFE, vertical), l1 (thigh), l2 (shank to the foot centre),
@@ -183,3 +186,220 @@ def torque_rows(J, gleg, tmax, row0, C, lo, up):
                 C[r, 3 * i + a] = J[i, a, j]
             lo[r] = gleg[i, j] - tmax[j]
             up[r] = gleg[i, j] + tmax[j]
+
+
+# -- the controller's per-call steps (controller.py keeps their order of operations: the
+#    results are bit-identical to the Python arithmetic they replace) ----------------------
+@_jit
+def _clip(v, lo, hi):
+    """np.clip's value for one float (NaN stays NaN)."""
+    if v < lo:
+        return lo
+    if v > hi:
+        return hi
+    return v
+
+
+@_jit
+def vmc_force(ref, nr, contact, pb, vb, cy, sy, z_error, max_err, v_cmd, kp, kd, kff,
+              integrate, ki, lim, dt, f_int, mass_g, e, vh, vd, b):
+    """The force rows b[0:3] of the virtual model's wrench (heading frame): position error
+    e from the centre of the `nr` feet `ref` (horizontal) and `z_error` (vertical), clipped
+    to ±max_err; F = k_p e + k_d (v* − v) + k_ff v* (+ the velocity integral f_int, clipped
+    to ±lim, when `integrate`, else f_int = 0) + m g e_z."""
+    rx = 0.0
+    ry = 0.0
+    for j in range(nr):
+        rx += contact[ref[j], 0]
+    for j in range(nr):
+        ry += contact[ref[j], 1]
+    rx = rx / nr - pb[0]
+    ry = ry / nr - pb[1]
+    e[0] = cy * rx + sy * ry
+    e[1] = -sy * rx + cy * ry
+    e[2] = z_error
+    vh[0] = cy * vb[0] + sy * vb[1]
+    vh[1] = -sy * vb[0] + cy * vb[1]
+    vh[2] = vb[2]
+    vd[0] = v_cmd[0]
+    vd[1] = v_cmd[1]
+    for i in range(3):
+        e[i] = _clip(e[i], -max_err, max_err)
+        b[i] = kp[i] * e[i] + kd[i] * (vd[i] - vh[i]) + kff[i] * vd[i]
+    if integrate:
+        for a in range(2):
+            f = f_int[a] + ki * (vd[a] - vh[a]) * dt
+            f = f if f > -lim else -lim          # Python's max(-lim, f)
+            f_int[a] = f if f < lim else lim     # and min(lim, f)
+        b[0] += f_int[0]
+        b[1] += f_int[1]
+    else:
+        f_int[0] = 0.0
+        f_int[1] = 0.0
+    b[2] += mass_g
+
+
+@_jit
+def vmc_moment(er, ww, cy, sy, max_err, w_cmd, kp, kd, kff, eh, wh, wd, b):
+    """The moment rows b[3:6] of the virtual model's wrench (heading frame): the orientation
+    error er (rotation vector, world) and the angular velocity ww (world) in the heading
+    frame, the error clipped to ±max_err; M = k_p e_R + k_d (ω* − ω) + k_ff ω*, ω* = (0, 0,
+    w_cmd)."""
+    eh[0] = cy * er[0] + sy * er[1]
+    eh[1] = -sy * er[0] + cy * er[1]
+    eh[2] = er[2]
+    wh[0] = cy * ww[0] + sy * ww[1]
+    wh[1] = -sy * ww[0] + cy * ww[1]
+    wh[2] = ww[2]
+    wd[2] = w_cmd
+    for i in range(3):
+        eh[i] = _clip(eh[i], -max_err, max_err)
+        b[3 + i] = kp[i] * eh[i] + kd[i] * (wd[i] - wh[i]) + kff[i] * wd[i]
+
+
+@_jit
+def heading_qp_inputs(support, ns, contact, com, Jc, gleg, cy, sy, rh, Jh, gh):
+    """The force QP's inputs for the `ns` legs `support`, heading frame: lever arms
+    rh = R_zᵀ (p_c − com) (z unrotated), Jacobian rows Jh = R_zᵀ J_c and gravity torques
+    gh."""
+    for j in range(ns):
+        k = support[j]
+        dx, dy = contact[k, 0] - com[0], contact[k, 1] - com[1]
+        rh[j, 0] = cy * dx + sy * dy
+        rh[j, 1] = -sy * dx + cy * dy
+        rh[j, 2] = contact[k, 2] - com[2]
+    for j in range(ns):
+        k = support[j]
+        for a in range(3):
+            Jh[j, 0, a] = cy * Jc[k, 0, a] + sy * Jc[k, 1, a]
+            Jh[j, 1, a] = -sy * Jc[k, 0, a] + cy * Jc[k, 1, a]
+            Jh[j, 2, a] = Jc[k, 2, a]
+            gh[j, a] = gleg[3 * k + a]
+
+
+@_jit
+def support_torques(support, ns, fh, cy, sy, Jc, gleg, fdes, tau):
+    """The QP's forces fh (heading frame) of the `ns` legs `support` in the world (fdes)
+    and their stance torques τ_k = −J_c,kᵀ f_k + g_leg,k."""
+    for j in range(ns):
+        k = support[j]
+        fdes[k, 0] = cy * fh[j, 0] - sy * fh[j, 1]
+        fdes[k, 1] = sy * fh[j, 0] + cy * fh[j, 1]
+        fdes[k, 2] = fh[j, 2]
+        stance_torques(k, fdes[k], Jc, gleg, tau)
+
+
+@_jit
+def _smooth(x):
+    """Smoothstep on [0, 1] and its derivative."""
+    if x <= 0.0:
+        return 0.0, 0.0
+    if x >= 1.0:
+        return 1.0, 0.0
+    return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
+
+
+#: layout of the swing parameters (controller.py: _swing_parameters)
+(SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
+ SW_LOST_SPEED, SW_LOST_DEPTH, SW_OFFSET_X) = range(11)   # SW_OFFSET_X: 4 values, per leg
+
+
+@_jit
+def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, rhy_w, rhz_w,
+                 hx, hy, hz, P, foot_radius, target, vt, foothold):
+    """Swing leg k: foot target from the lift-off offset r₀ (heading frame, relative to
+    the hip) to the inverted-pendulum foothold
+        Δ = ½ v*_hip T_stance + k_fb (v_hip − v*_hip) √(h/g)
+    (clipped to step_max, plus foothold_offset_x), blended with a smoothstep until
+    step_interp_end; height up to swing_height at mid-swing, then down to touchdown_depth
+    below the ground. r_w: trunk→hip (world), h = (hx, hy, hz): the hip. Writes `target`,
+    `vt` and the foothold (world xy). P: the swing parameters (SW_*)."""
+    T = P[SW_T]
+    Tsw = (1.0 - P[SW_DUTY]) * T
+    Tst = P[SW_DUTY] * T
+    step_max, interp_end, h_swing = P[SW_MAX], P[SW_INTERP_END], P[SW_HEIGHT]
+    # inverted-pendulum foothold relative to the hip, heading frame
+    vhx_w = vb[0] + ww[1] * rhz_w - ww[2] * rhy_w
+    vhy_w = vb[1] + ww[2] * rhx_w - ww[0] * rhz_w
+    vx = cy * vhx_w + sy * vhy_w
+    vy = -sy * vhx_w + cy * vhy_w
+    rx = cy * rhx_w + sy * rhy_w
+    ry = -sy * rhx_w + cy * rhy_w
+    vdx = vcx - wc * ry
+    vdy = vcy + wc * rx
+    h = hz - ground
+    h = 0.05 if 0.05 > h else h                  # Python's max(h, 0.05)
+    sq = math.sqrt(h / P[SW_GRAVITY])
+    dx = 0.5 * vdx * Tst + P[SW_FEEDBACK] * (vx - vdx) * sq
+    dy = 0.5 * vdy * Tst + P[SW_FEEDBACK] * (vy - vdy) * sq
+    dx = -step_max if -step_max > dx else dx     # Python's min(max(d, -step_max), step_max)
+    dx = step_max if step_max < dx else dx
+    dx = dx + P[SW_OFFSET_X + k]
+    dy = -step_max if -step_max > dy else dy
+    dy = step_max if step_max < dy else dy
+    sig, dsig = _smooth(sp / interp_end)
+    ox = r0x + sig * (dx - r0x)
+    oy = r0y + sig * (dy - r0y)
+    rate = dsig / (interp_end * Tsw)
+    dox, doy = rate * (dx - r0x), rate * (dy - r0y)
+    target[0] = hx + cy * ox - sy * oy
+    target[1] = hy + sy * ox + cy * oy
+    vt[0] = vhx_w + cy * dox - sy * doy
+    vt[1] = vhy_w + sy * dox + cy * doy
+    # height: up to the apex at mid-swing, then down to below the ground
+    if sp < 0.5:
+        a, da = _smooth(2.0 * sp)
+        z, dz = h_swing * a, h_swing * da * 2.0 / Tsw
+    else:
+        a, da = _smooth(2.0 * sp - 1.0)
+        span = -P[SW_DEPTH] - h_swing
+        z, dz = h_swing + span * a, span * da * 2.0 / Tsw
+    target[2] = ground + foot_radius[k] + z
+    vt[2] = dz
+    foothold[k, 0] = hx + cy * dx - sy * dy
+    foothold[k, 1] = hy + sy * dx + cy * dy
+
+
+@_jit
+def lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius, foothold,
+                    target, vt):
+    """Leg k without the contact it should have: the foot at the last foothold (trotting)
+    or under the hip (hx, hy), lowered at lost_contact_speed from touchdown_depth to at
+    most lost_contact_depth below the ground since contact was lost; zero velocity."""
+    if trotting:
+        target[0], target[1] = foothold[k, 0], foothold[k, 1]
+    else:
+        target[0], target[1] = hx, hy
+    depth = P[SW_DEPTH] + P[SW_LOST_SPEED] * (t - lost_since[k])
+    depth = depth if not (P[SW_LOST_DEPTH] < depth) else P[SW_LOST_DEPTH]   # min(d, max)
+    target[2] = ground + foot_radius[k] - depth
+    vt[0] = 0.0
+    vt[1] = 0.0
+    vt[2] = 0.0
+
+
+@_jit
+def position_controlled_torques(states, trotting, t, swing_phase, r_liftoff, lost_since,
+                                foothold, P, foot_radius, ground, v_cmd, w_cmd, pb, R, vb, ww,
+                                cy, sy, Jf, qj, dqj, gleg, kp, kd, hip, geo, target, vt, tau):
+    """The legs not in support (states: 0 support, 1 swing, 2 lost contact) follow a foot
+    target (swing_target / lowering_target) by analytic IK and joint PD with gravity
+    feed-forward (foot_position_control) into τ."""
+    for k in range(4):
+        st = states[k]
+        if st == 0:
+            continue
+        hx0, hy0, hz0 = hip[k, 0], hip[k, 1], hip[k, 2]
+        rhx_w = R[0, 0] * hx0 + R[0, 1] * hy0 + R[0, 2] * hz0     # trunk→hip, world
+        rhy_w = R[1, 0] * hx0 + R[1, 1] * hy0 + R[1, 2] * hz0
+        rhz_w = R[2, 0] * hx0 + R[2, 1] * hy0 + R[2, 2] * hz0
+        hx, hy, hz = pb[0] + rhx_w, pb[1] + rhy_w, pb[2] + rhz_w
+        if st == 1:
+            swing_target(k, swing_phase[k], r_liftoff[k, 0], r_liftoff[k, 1], vb, ww, cy, sy,
+                         v_cmd[0], v_cmd[1], w_cmd, ground, rhx_w, rhy_w, rhz_w, hx, hy, hz,
+                         P, foot_radius, target, vt, foothold)
+        else:
+            lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius,
+                            foothold, target, vt)
+        foot_position_control(k, target, vt, pb, R, vb, ww, Jf, qj, dqj, gleg, kp, kd, hip,
+                              geo, tau)

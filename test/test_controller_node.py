@@ -225,8 +225,23 @@ class FakeRobot:
             and self.sub.get_publisher_count() > 0
 
     def publish(self, ns, q=None, names=None, velocity=None, z=0.41, quat=(0, 0, 0, 1),
-                fz=65.0):
+                fz=65.0, only=None):
+        """The state of stamp `ns`: base state, foot wrenches, then the joint state (as
+        sim_node sends them); only="js" / "rest": the joint state / the other five."""
         stamp = _stamp(ns)
+        if only != "js":
+            self._publish_rest(stamp, z, quat, fz)
+        if only == "rest":
+            return
+        js = JointState()
+        js.header.stamp = stamp
+        js.name = list(JOINTS if names is None else names)
+        qq = self.q if q is None else np.asarray(q, dtype=float)
+        js.position = [float(x) for x in qq]
+        js.velocity = [0.0] * len(qq) if velocity is None else [float(x) for x in velocity]
+        self.pub_js.publish(js)
+
+    def _publish_rest(self, stamp, z, quat, fz):
         o = Odometry()
         o.header.stamp = stamp
         o.header.frame_id, o.child_frame_id = "world", "base"
@@ -240,13 +255,6 @@ class FakeRobot:
             w.header.frame_id = "world"
             w.wrench.force.z = float(fz)
             p.publish(w)
-        js = JointState()
-        js.header.stamp = stamp
-        js.name = list(JOINTS if names is None else names)
-        qq = self.q if q is None else np.asarray(q, dtype=float)
-        js.position = [float(x) for x in qq]
-        js.velocity = [0.0] * len(qq) if velocity is None else [float(x) for x in velocity]
-        self.pub_js.publish(js)
 
 
 def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
@@ -288,6 +296,13 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
         assert ctrl.alive(), ctrl.log()
         # and it goes on answering good states
         assert step(10) and step(11), ctrl.log()
+        # a joint state that comes before the rest of its state (the base state and the
+        # foot wrenches, taken from a helper node's queues) is answered once the rest is in
+        robot.publish(13 * PERIOD_NS, only="js")
+        ros.spin_for(0.3)
+        assert 13 * PERIOD_NS not in robot.answers
+        robot.publish(13 * PERIOD_NS, only="rest")
+        assert ros.spin_until(lambda: 13 * PERIOD_NS in robot.answers, 3.0, [ctrl]), ctrl.log()
 
         # modes: ~/trot service and the `mode` parameter (validated)
         trot = ros.node.create_client(SetBool, "/controller_node/trot")
@@ -308,7 +323,7 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
 
         assert not set_mode("gallop") and mode() == "stand"
         assert set_mode("trot") and mode() == "trot"
-        assert step(12), ctrl.log()
+        assert step(14), ctrl.log()
         assert ctrl.alive()
     finally:
         ros.close()
@@ -318,7 +333,7 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
     assert "non-finite position or velocity" in log and "missing joints LF_KFE" not in log
     assert "missing joints RH_KFE" in log and "base state: non-finite" in log
     assert "orientation norm" in log and "foot wrench: non-finite" in log
-    assert "'rejected': 7" in log, log[-2000:]
+    assert "'rejected': 7" in log and "'dropped_incomplete': 0" in log, log[-2000:]
 
 
 # -----------------------------------------------------------------------------------------

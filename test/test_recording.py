@@ -1,6 +1,8 @@
 """McapRecorder (starleth_sim.ros.recording): the rosbag2 MCAP layout, read back with independent
 readers (rosbags, mcap_ros2). No ROS graph, no processes: fast."""
 import json
+import os
+import sys
 
 import pytest
 import yaml
@@ -466,3 +468,19 @@ def test_process_recorder_finalises_the_file_when_its_parent_is_gone(tmp_path):
         assert reader.get_summary() is not None              # finished: summary written
         md = {m.name: m.metadata for m in reader.iter_metadata()}
     assert secs == list(range(500)) and "rosbag2" in md
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux scheduling and pipes")
+def test_process_recorder_writer_stays_in_the_background(tmp_path):
+    """The writer process runs under SCHED_BATCH (a hand-over does not hand it the CPU of
+    the simulator that wrote it) and its pipe holds many hand-overs (a hand-over does not
+    wait for the writer)."""
+    from starleth_sim.ros.recording import ProcessRecorder
+    rec = ProcessRecorder(str(tmp_path / "bg.mcap"))
+    try:
+        assert os.sched_getscheduler(rec._proc.pid) == os.SCHED_BATCH
+        with open("/proc/sys/fs/pipe-max-size") as f:
+            expected = min(ProcessRecorder.PIPE_SIZE, int(f.read()))
+        assert rec.pipe_size >= expected > 64 * 1024
+    finally:
+        rec.close()

@@ -72,8 +72,10 @@ Lockstep critical path (command in -> step -> state out): commands are taken as 
 and the common valid case is decoded without an rclpy message object (:mod:`.cdr`; the
 rest is deserialised and validated in full); the state goes out as CDR bytes patched into
 templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, for
-publishing and recording alike), what a controller waits for first (/joint_states, the foot
-wrenches, the base state), then /clock, /starleth/imu, /starleth/solver; the recorder only
+publishing and recording alike), what a controller waits for first (the foot wrenches,
+the base state, then /joint_states: a controller answers on the joint state and finds the
+rest of the state already there; controller_node then takes it from its queues, one wake-up
+per state), then /clock, /starleth/imu, /starleth/solver; the recorder only
 takes the bytes over (:class:`~.recording.ProcessRecorder`: a writer process adds them to
 the file, outside this interpreter, handed over every ``HAND_OVER_STEPS`` steps;
 :class:`~.recording.QueuedRecorder`, a writer thread, where no process can be started;
@@ -160,10 +162,11 @@ IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w"
 class CycleTimes:
     """Per-cycle timestamps of the lockstep critical path (time.perf_counter, i.e.
     CLOCK_MONOTONIC: comparable across processes on one host), for benchmarks: command in,
-    stepped, /joint_states out, state topics out, recording handed over, post-publish work
+    stepped, the other state messages out (foot wrenches, base state), /joint_states out
+    (the state a controller waits for is out), recording handed over, post-publish work
     done (prepare, visualisation). Off unless a benchmark sets ``SimNode.timing``."""
 
-    FIELDS = ("command_in", "stepped", "joint_states_out", "state_out", "recorded", "done")
+    FIELDS = ("command_in", "stepped", "others_out", "state_out", "recorded", "done")
 
     def __init__(self, capacity=200_000):
         self.stamp = np.zeros(capacity, np.int64)
@@ -654,19 +657,10 @@ class SimNode:
         svc = self.service
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         wanted = self._wanted
-        # /joint_states first: it is what a lockstep controller waits for
-        if svc.counters["steps"] or svc.counters["resets"]:
-            send = wanted("joint_states", record)
-        else:   # state 0: the exact count
-            send = (self.pubs["joint_states"][0].get_subscription_count() > 0
-                    or (record and self.recorder is not None))
         timing = self.timing
-        if send:
-            self._publish_joint_states(sec, nsec, record)
-        if timing is not None:
-            timing.row[2] = time.perf_counter()
-        # then the rest of what a controller waits for (foot wrenches, base state), then
-        # the others
+        # what a controller waits for first: the foot wrenches and the base state, then
+        # /joint_states, the message a controller answers on (controller_node takes the
+        # others when it arrives: one wake-up of its executor per state), then the others
         feet = [f for f in FEET if wanted(f, record)]
         if feet:
             self._publish_foot_wrenches(sec, nsec, feet, record)
@@ -675,6 +669,15 @@ class SimNode:
             base = self._base_values()
             if want_odom:
                 self._publish_odometry(sec, nsec, base, record)
+        if timing is not None:
+            timing.row[2] = time.perf_counter()
+        if svc.counters["steps"] or svc.counters["resets"]:
+            send = wanted("joint_states", record)
+        else:   # state 0: the exact count
+            send = (self.pubs["joint_states"][0].get_subscription_count() > 0
+                    or (record and self.recorder is not None))
+        if send:
+            self._publish_joint_states(sec, nsec, record)
         if timing is not None:
             timing.row[3] = time.perf_counter()
         if "clock" in self.pubs and wanted("clock", record):

@@ -26,8 +26,9 @@ base state and four foot wrenches of every stamp; ``--composed`` runs it in the 
 process instead, on sim_node's executor (the composed mode), and this process only pings
 and pauses. Both nodes time their part of every cycle (``SimNode.timing``,
 ``ControllerNode.timing``: CLOCK_MONOTONIC, one clock for both processes) and the cycle is
-broken down into step, sim publish (the state topics a controller waits for), controller
-receive (until its sixth message is in), controller compute, command back (publish to the
+broken down into step, sim publish (the state topics a controller waits for; of which the
+five before /joint_states), controller receive (until its sixth message is in), controller
+compute, command back (publish to the
 sim's callback), beside what runs in parallel (recording hand-over, prepare, /tf). The
 cycle rate of a round is counted from sim_node's timestamps.
 
@@ -544,7 +545,7 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         in_round |= (out_t >= t0) & (out_t <= t1)
     sim_row = {int(s): i for i, s in enumerate(sim_stamp)}
     ctl_row = {int(s): i for i, s in enumerate(ctl_stamp)}
-    seg = {k: [] for k in ("step", "sim_publish", "of_which_joint_states",
+    seg = {k: [] for k in ("step", "sim_publish", "of_which_other_messages",
                            "controller_first_in", "controller_receive", "controller_compute",
                            "command_back", "of_which_command_publish", "cycle",
                            "record_handover_parallel",
@@ -556,7 +557,7 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         a, b, cr = sim_t[i], sim_t[j], ctl_t[c]     # cr: first in, complete, computed, sent
         seg["step"].append(a[F["stepped"]] - a[F["command_in"]])
         seg["sim_publish"].append(a[F["state_out"]] - a[F["stepped"]])
-        seg["of_which_joint_states"].append(a[F["joint_states_out"]] - a[F["stepped"]])
+        seg["of_which_other_messages"].append(a[F["others_out"]] - a[F["stepped"]])
         seg["controller_first_in"].append(cr[0] - a[F["stepped"]])
         seg["controller_receive"].append(cr[1] - a[F["state_out"]])
         seg["controller_compute"].append(cr[2] - cr[1])
