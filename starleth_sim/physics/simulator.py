@@ -22,7 +22,7 @@ step per control update, as in the paper's Fig. 5).
 from __future__ import annotations
 
 import logging
-import time
+from time import perf_counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +39,9 @@ from . import prox
 
 log = logging.getLogger("starleth_sim")
 
+
+#: float64 (numpy's built-in dtypes are singletons: `is` is the cheap test)
+_FLOAT64 = np.dtype(np.float64)
 
 #: contact states: no normal force, inside the friction cone, on its boundary
 CONTACT_STATES = ("open", "stick", "slip")
@@ -122,6 +125,7 @@ class Simulator:
                                  report_views(b, nc, self.n_joints))
                                 for b in (np.zeros(report_size(nc, self.n_joints)) for _ in "ab")]
         self._next_report = 0
+        self._one_physics_step = config.steps_per_control == 1
         #: joint rates are u's entries (no cut joints): nothing to cache
         self._joint_rates_in_u = getattr(self.coords, "n_cut", 1) == 0
         #: bumped whenever the state changes (reset, step, restore): keys the cache of φ̇
@@ -382,7 +386,7 @@ class Simulator:
         the joint order if its length is wrong."""
         if tau is None:
             return np.zeros(self.n_joints)
-        a = tau if type(tau) is np.ndarray and tau.dtype == np.float64 and tau.ndim == 1 \
+        a = tau if type(tau) is np.ndarray and tau.dtype is _FLOAT64 and tau.ndim == 1 \
             else np.asarray(tau, dtype=float).reshape(-1)
         if a.shape[0] != self.n_joints:
             raise ValueError(f"tau must have {self.n_joints} entries (joint order "
@@ -456,13 +460,12 @@ class Simulator:
         """Advance one control period with joint torques `tau` (zero-order hold). On a bad
         `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged; on
         a SimulationError the state is restored to what it was before the step."""
-        t_wall = time.perf_counter()
+        t_wall = perf_counter()
         state = self.state
         stepper = self.stepper
-        n = self.config.steps_per_control
         # one physics step that, failing, leaves the state as it was (and no timed wrench
         # to count down): no rollback copy
-        transactional = n == 1 and not state.pending_wrenches and \
+        transactional = self._one_physics_step and not state.pending_wrenches and \
             stepper.step_is_transactional(state)
         if transactional and not self._persistent_wrenches:
             # the common case: one kernel call that also saturates τ; it writes its reports
@@ -479,15 +482,16 @@ class Simulator:
             self._next_report ^= 1
             d = self._one_step_diagnostics(iterations, status, residual, n_active, retried,
                                            opened, projection_iterations, projected,
-                                           time.perf_counter() - t_wall)
+                                           perf_counter() - t_wall)
         else:
             tau = self._validated_torque(tau)
-            results = self._physics_steps(state, tau, n, rollback=not transactional)
+            results = self._physics_steps(state, tau, self.config.steps_per_control,
+                                          rollback=not transactional)
             active, gap, position = results[-1].active, results[-1].gap, results[-1].position
             impulse = results[0].impulse
             for r in results[1:]:      # in step order (the sum's round-off depends on it)
                 impulse = impulse + r.impulse
-            d = self._control_step_diagnostics(results, time.perf_counter() - t_wall)
+            d = self._control_step_diagnostics(results, perf_counter() - t_wall)
         self._state_version += 1
         state.t += self.control_period
         self._tau = tau

@@ -184,6 +184,7 @@ class MoreauStepper:
         self._one_kernel = (not coords.constant_mass_matrix and self.nb == 0
                             and getattr(coords, "n_cut", 1) == 0)
         self._no_force = np.zeros(0)
+        self._one_kernel_unprofiled = self._one_kernel and not profile
         if self._one_kernel:    # the workspace arrays become views of the packed buffer
             na = coords.joint_v.shape[0]
             effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
@@ -314,8 +315,8 @@ class MoreauStepper:
         profiling); the phase-by-phase path may have updated the contact memory, so its
         caller keeps a copy to restore."""
         p = self._prepared
-        return self._one_kernel and not self.profile and not (
-            p is not None and p[0] is state.q and p[1] is state.u)
+        return self._one_kernel_unprofiled and (
+            p is None or not (p[0] is state.q and p[1] is state.u))
 
     def _step_one_kernel(self, state, tau, f_ext):
         """`step` in one kernel call (tau as given, not saturated again): its StepResult."""
