@@ -24,6 +24,8 @@ from __future__ import annotations
 import logging
 from time import perf_counter
 from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Mapping
 
 import numpy as np
 
@@ -48,6 +50,9 @@ CONTACT_STATES = ("open", "stick", "slip")
 #: a hard contact slips when |Λ_T| ≥ (1 − this) μ Λ_N (the prox projects onto the cone)
 SLIP_TOLERANCE = 1e-6
 
+_CONVERGED = prox.STATUS_CONVERGED
+#: Diagnostics.timings when not profiling (one shared, read-only, empty mapping)
+NO_TIMINGS = MappingProxyType({})
 _STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
            prox.STATUS_NONFINITE: "non_finite"}
 
@@ -87,7 +92,8 @@ class Diagnostics:
     physics_steps: int = 0         # cumulative
     nonconverged_steps: int = 0    # cumulative
     loaded_contacts_opened_total: int = 0  # cumulative
-    timings: dict = field(default_factory=dict)  # cumulative per phase (profile=True) [s]
+    #: cumulative per phase (profile=True) [s]; empty and read-only when not profiling
+    timings: Mapping[str, float] = field(default_factory=lambda: NO_TIMINGS)
 
 
 class Simulator:
@@ -411,14 +417,16 @@ class Simulator:
     def _one_step_diagnostics(self, iterations, status, residual, n_active, retried, opened,
                               projection_iterations, projected, step_time):
         """The Diagnostics of a control period of one physics step (its StepResult's figures),
-        continuing the cumulative counts of the last one."""
+        continuing the cumulative counts of the last one. (Made on every step: written for
+        speed, ≈1 µs of a 28 µs step.)"""
         prev = self.diagnostics
-        bad = status != prox.STATUS_CONVERGED
+        converged = status == _CONVERGED
         return Diagnostics(
-            iterations, iterations, not bad, _STATUS[status], max(0.0, residual), n_active,
-            retried, opened, projection_iterations, int(projected), step_time,
-            prev.physics_steps + 1, prev.nonconverged_steps + bad,
-            prev.loaded_contacts_opened_total + opened, {})
+            iterations, iterations, converged, _STATUS[status],
+            residual if residual > 0.0 else 0.0, n_active, retried, opened,
+            projection_iterations, 1 if projected else 0, step_time,
+            prev.physics_steps + 1, prev.nonconverged_steps + (0 if converged else 1),
+            prev.loaded_contacts_opened_total + opened, NO_TIMINGS)
 
     def _control_step_diagnostics(self, results, step_time):
         """The Diagnostics of a control step from its physics steps' StepResults (sums and
@@ -440,7 +448,7 @@ class Simulator:
                 status = r.status
                 nonconverged += 1
         timings = (dict(zip(PHASES, self.stepper.stats.timings.tolist()))
-                   if self.stepper.profile else {})
+                   if self.stepper.profile else NO_TIMINGS)
         return Diagnostics(
             iterations, worst, nonconverged == 0, _STATUS[status], residual,
             results[-1].n_active, retried, opened, projection_iterations, projections,
