@@ -128,6 +128,22 @@ def test_rejected_torque_keeps_the_last_steps_reports(preset):
     assert not np.array_equal(sim.contact_forces(), before[1])
 
 
+@pytest.mark.parametrize("preset", ["HmJ", "Cm"])
+def test_torque_given_as_list_view_or_float32_steps_like_a_float64_vector(preset):
+    """A list, a strided view and float32 give the same step as a contiguous float64 vector
+    (the one-kernel step takes a copy of anything else rather than a new compilation)."""
+    tau = np.linspace(-3.0, 3.0, 12)
+    states = []
+    for given in (tau, list(tau), np.repeat(tau, 2)[::2], tau.astype(np.float32)):
+        s = Simulator.from_preset(preset)
+        s.step(given)
+        states.append((s.q, s.u, s.applied_torque))
+    for q, u, applied in states[1:3]:
+        assert q.tobytes() == states[0][0].tobytes() and u.tobytes() == states[0][1].tobytes()
+        assert applied.tobytes() == states[0][2].tobytes()
+    np.testing.assert_allclose(states[3][2], tau, atol=1e-6)    # float32's rounding
+
+
 def test_torque_is_saturated_at_the_effort_limit(sim):
     sim.reset()
     sim.step(np.full(12, 100.0))

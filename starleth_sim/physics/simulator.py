@@ -392,8 +392,10 @@ class Simulator:
         the joint order if its length is wrong."""
         if tau is None:
             return np.zeros(self.n_joints)
+        # (the kernels are compiled for contiguous float64 vectors: anything else is
+        # copied into one, rather than compiled for again)
         a = tau if type(tau) is np.ndarray and tau.dtype is _FLOAT64 and tau.ndim == 1 \
-            else np.asarray(tau, dtype=float).reshape(-1)
+            and tau.flags.c_contiguous else np.ascontiguousarray(tau, dtype=float).reshape(-1)
         if a.shape[0] != self.n_joints:
             raise ValueError(f"tau must have {self.n_joints} entries (joint order "
                              f"{', '.join(self.joint_names)}), got {a.shape[0]}")
