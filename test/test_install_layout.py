@@ -89,3 +89,33 @@ def test_readme_layout_lists_every_module():
                         and f"{name}`" not in layout:
                     missing.append(os.path.relpath(os.path.join(dirpath, name), ROOT))
     assert not missing, f"README Layout does not list {missing}"
+
+
+def test_stale_numba_caches_are_dropped_when_any_kernel_source_changes(tmp_path):
+    """numba's cache only sees a kernel's own file: kernel_cache drops every cache file of
+    the package when any of its sources changed (a caller in another file would otherwise
+    keep stale machine code), and keeps them while nothing changed."""
+    from starleth_sim.physics.kernel_cache import drop_stale_kernel_caches
+    pkg = tmp_path / "pkg"
+    (pkg / "sub" / "__pycache__").mkdir(parents=True)
+    (pkg / "__pycache__").mkdir()
+    (pkg / "a.py").write_text("A = 1\n")
+    (pkg / "sub" / "b.py").write_text("B = 1\n")
+
+    def caches():
+        for p in (pkg / "__pycache__" / "a.f-1.py311.nbi", pkg / "sub" / "__pycache__" /
+                  "b.g-3.py311.1.nbc", pkg / "__pycache__" / "a.cpython-311.pyc"):
+            p.write_bytes(b"x")
+
+    def left():
+        return sorted(p.name for p in pkg.rglob("*") if p.suffix in (".nbi", ".nbc", ".pyc"))
+
+    caches()
+    drop_stale_kernel_caches(str(pkg))            # no stamp yet: built by unknown sources
+    assert left() == ["a.cpython-311.pyc"]
+    caches()
+    assert not drop_stale_kernel_caches(str(pkg))     # nothing changed: kept
+    assert len(left()) == 3
+    (pkg / "sub" / "b.py").write_text("B = 2\n")      # a callee in another file changed
+    assert drop_stale_kernel_caches(str(pkg))
+    assert left() == ["a.cpython-311.pyc"]
