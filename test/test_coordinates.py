@@ -293,3 +293,41 @@ def test_contact_forces_are_the_contacts_forces(preset):
             assert f.tobytes() == c.force.tobytes(), (k, c.name)
         loaded += int(np.sum(forces[:, 2] > 0))
     assert loaded > 100
+
+
+@pytest.mark.parametrize("preset", ["HEJD", "HMSD"])
+def test_cut_joint_states_follow_every_state_change(preset):
+    """The cut joints' angles and rates are evaluated once per state (positions and
+    velocities of one state share them) and never served stale: after steps, a restore and
+    a reset, φ and φ̇ equal a fresh evaluation bit for bit, and the minimal coordinates'."""
+    sim = Simulator.from_preset(preset)
+    hold = PostureHold(sim.joint_positions())
+    minimal = Simulator.from_preset("HmJ")
+
+    def fresh(s):
+        c = Simulator.from_preset(preset).coords    # nothing cached
+        return c.joint_positions(s.q), c.joint_velocities(s.q, s.u)
+
+    rng = np.random.default_rng(5)
+    early = None
+    for k in range(30):
+        sim.step(hold.torque(sim) + rng.normal(0.0, 3.0, 12))
+        if k == 10:
+            early = sim.snapshot()
+        phi, phid = sim.joint_positions(), sim.joint_velocities()
+        ref = fresh(sim.state)
+        assert phi.tobytes() == ref[0].tobytes() and phid.tobytes() == ref[1].tobytes()
+    late = sim.joint_positions()
+    sim.restore(early)       # the same arrays' values at another state
+    ref = fresh(sim.state)
+    assert sim.joint_positions().tobytes() == ref[0].tobytes()
+    assert sim.joint_velocities().tobytes() == ref[1].tobytes()
+    assert not np.array_equal(sim.joint_positions(), late)
+    for _ in range(5):          # a moving minimal state, set into this coordinate set
+        minimal.step(rng.normal(0.0, 5.0, 12))
+    sim.reset(minimal.q, minimal.u, minimal=True)
+    np.testing.assert_allclose(sim.joint_positions(), minimal.joint_positions(), atol=1e-9)
+    np.testing.assert_allclose(sim.joint_velocities(), minimal.joint_velocities(), atol=1e-7)
+    sim.reset()
+    np.testing.assert_allclose(sim.joint_positions(), hold.target, atol=1e-12)
+    assert not sim.joint_velocities().any()

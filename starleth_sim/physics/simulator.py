@@ -252,7 +252,7 @@ class Simulator:
         return self._tau.copy()
 
     def joint_positions(self):
-        return self.coords.joint_positions(self.state.q)
+        return self.coords.joint_positions(self.state.q, self.state.u)
 
     def joint_velocities(self):
         if self._joint_rates_in_u:

@@ -435,6 +435,8 @@ class ForestCoordinates:
         self._WtB = np.zeros((self.n_bilateral, self.nv))
         self._cut_q = None
         self._torque_map = None
+        #: the (q, u) objects of the last evaluation of the cut joints (see _cut_state)
+        self._cut_state_at = (None, None)
         self._gB = np.zeros(self.n_bilateral)
 
     def _map_actuated_joints(self, cut_ids):
@@ -506,6 +508,7 @@ class ForestCoordinates:
     # -- dynamics -----------------------------------------------------------------------------
     def _kinematics_for_cuts(self, q, u):
         self._cut_q = q  # W_B and g_B below belong to this configuration (see bilateral)
+        self._cut_state_at = (q, u)
         t = self.tree
         cut_joints(q, u, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
                    t.support, t.oR, t.op, self.cut_P, self.cut_C, self.p_P, self.p_C,
@@ -624,17 +627,26 @@ class ForestCoordinates:
 
     # -- public state mapping -----------------------------------------------------------------
     def _cut_state(self, q, u):
-        if self.n_cut:
-            self._kinematics_for_cuts(q, u)
+        """The cut joints' angles and rates (self._angle, self._rate) at (q, u), with u None
+        when only the angles are wanted; not evaluated again for the same q and u objects
+        (states are never modified in place): a controller asking for the joint positions
+        and velocities of one state costs one evaluation."""
+        if not self.n_cut:
+            return
+        at_q, at_u = self._cut_state_at
+        if at_q is q and (u is None or at_u is u):
+            return
+        self._kinematics_for_cuts(q, np.zeros(self.nv) if u is None else u)
 
-    def joint_positions(self, q):
+    def joint_positions(self, q, u=None):
+        """φ at q; u: the velocities of the same state where known (the cut joints'
+        kinematics then serve joint_velocities(q, u) too)."""
         if self.n_cut == 0:     # one gather (a new array), no masks
             return q[self.joint_q]
         out = np.empty(self.joint_q.shape[0])
         out[self._act_tree] = q[self.joint_q[self._act_tree]]
-        if self.n_cut:
-            self._cut_state(q, np.zeros(self.nv))
-            out[self._act_cut] = self._angle[self.joint_cut[self._act_cut]]
+        self._cut_state(q, u)
+        out[self._act_cut] = self._angle[self.joint_cut[self._act_cut]]
         return out
 
     def joint_velocities(self, q, u):
@@ -642,9 +654,8 @@ class ForestCoordinates:
             return u[self.joint_v]
         out = np.empty(self.joint_v.shape[0])
         out[self._act_tree] = u[self.joint_v[self._act_tree]]
-        if self.n_cut:
-            self._cut_state(q, u)
-            out[self._act_cut] = self._rate[self.joint_cut[self._act_cut]]
+        self._cut_state(q, u)
+        out[self._act_cut] = self._rate[self.joint_cut[self._act_cut]]
         return out
 
     def _trunk_frame(self):
