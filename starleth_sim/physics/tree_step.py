@@ -36,12 +36,12 @@ class TreeStepModel(NamedTuple):
 
     floats: the StepSettings (its 19 fields as floats, see _step_settings) and the
     CompliantLaw (6) of the step, axis, pl_R, pl_p, oR, op (the forward kinematics'
-    scratch), mass, lever, inertia, gravity, c_local, c_radius (the forest's arrays, midpoint_model order), the
-    ground's n, t1, t2 and offset, ε per contact (nc x 2), the actuators' effort and
-    velocity limits (one per actuated joint, public order); ints: [nj, nc, number of
-    actuated joints, nv], then parent, jtype, idx_q, idx_v, c_joint, joint_v and the dofs'
-    parents (KinematicTree.dof_parent, the structure of M's LTDL factor); support: the tree's support matrix;
-    workspace: g_N (nc), contact points (nc x 3), W^T of every contact (nc x 3 x nv), the
+    scratch), mass, lever, inertia, gravity, c_local, c_radius (the forest's arrays,
+    midpoint_model order), the ground's n, t1, t2 and offset, ε per contact (nc x 2), the
+    actuators' effort and velocity limits (one per actuated joint, public order); ints:
+    [nj, nc, number of actuated joints, nv], then parent, jtype, idx_q, idx_v, c_joint,
+    joint_v and the dofs' parents (KinematicTree.dof_parent, the structure of M's LTDL
+    factor); support: the tree's support matrix; workspace: g_N (nc), contact points (nc x 3), W^T of every contact (nc x 3 x nv), the
     factor L of M (nv x nv), u_free and Δu_p (nv each)."""
 
     floats: np.ndarray
@@ -53,13 +53,14 @@ class TreeStepModel(NamedTuple):
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
              velocity_limit):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
-        GroundPlane, ε and the torque limits (see actuator.saturate_torque); returns the record and the workspace's views (gap,
-        position, Wt_all, L, u_free, u_corr), which the stepper keeps as its own arrays."""
+        GroundPlane, ε and the torque limits (see actuator.saturate_torque); returns the
+        record and the workspace's views (gap, position, Wt_all, L, u_free, u_corr), which
+        the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
-            [float(v) for v in settings], [float(v) for v in law], axis, pl_R, pl_p, oR, op, mass, lever, inertia, gravity, c_local, c_radius,
-            ground.n, ground.t1, ground.t2, [ground.offset], eps, effort_limit,
+            [float(v) for v in settings], [float(v) for v in law], axis, pl_R, pl_p, oR,
+            op, mass, lever, inertia, gravity, c_local, c_radius, ground.n, ground.t1, ground.t2, [ground.offset], eps, effort_limit,
             velocity_limit)])
         nj, nc = parent.shape[0], c_joint.shape[0]
         ints = np.concatenate([np.ravel(a).astype(np.int64) for a in (
@@ -100,9 +101,8 @@ def _take(buf, o, n):
 @nb.njit(cache=True)
 def unpack_tree_model(floats, ints, support, workspace, nv):
     """The views of TreeStepModel's buffers: (StepSettings, CompliantLaw's fields, model
-    (midpoint_model's order), normal,
-    tangent1, tangent2, ground_offset, eps, effort_limit, velocity_limit, joint_v, dof_parent,
-    gap, position, Wt_all, L, u_free, u_corr)."""
+    (midpoint_model's order), normal, tangent1, tangent2, ground_offset, eps, effort_limit,
+    velocity_limit, joint_v, dof_parent, gap, position, Wt_all, L, u_free, u_corr)."""
     nj, nc, na = ints[0], ints[1], ints[2]
     settings, o = _take(floats, 0, N_SETTINGS)
     law, o = _take(floats, o, 6)
