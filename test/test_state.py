@@ -89,3 +89,25 @@ def test_profiled_step_is_the_same_step(preset):
     if preset != "Cm":
         assert timings["G"] > 0 and timings["prox"] > 0
     assert not plain.diagnostics.timings
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "Cm"])
+def test_stepper_one_kernel_step_without_torques_is_a_zero_torque_step(preset):
+    """MoreauStepper.step given no torques (None or an empty vector, as the phase-by-phase
+    step accepts) steps like zero torques in the one-kernel path; a vector of the wrong
+    length is refused before anything is done."""
+    from starleth_sim import Simulator
+    ref = Simulator.from_preset(preset)
+    ref.step(np.zeros(12))
+    for tau in (None, np.zeros(0)):
+        sim = Simulator.from_preset(preset)
+        st = sim.stepper
+        for _ in range(sim.config.steps_per_control):
+            st.step(sim.state, tau)
+        assert sim.state.q.tobytes() == ref.state.q.tobytes()
+        assert sim.state.u.tobytes() == ref.state.u.tobytes()
+    sim = Simulator.from_preset(preset)
+    q = sim.state.q
+    with pytest.raises(ValueError, match="12 entries"):
+        sim.stepper.step(sim.state, np.zeros(13))
+    assert sim.state.q is q

@@ -184,6 +184,8 @@ class MoreauStepper:
         self._one_kernel = (not coords.constant_mass_matrix and self.nb == 0
                             and getattr(coords, "n_cut", 1) == 0)
         self._no_force = np.zeros(0)
+        #: τ of no torque (one entry per actuated joint), for a step given none
+        self._no_torque = np.zeros(coords.joint_v.shape[0])
         self._one_kernel_unprofiled = self._one_kernel and not profile
         if self._one_kernel:    # the workspace arrays become views of the packed buffer
             na = coords.joint_v.shape[0]
@@ -320,10 +322,11 @@ class MoreauStepper:
 
     def _step_one_kernel(self, state, tau, f_ext):
         """`step` in one kernel call (tau as given, not saturated again): its StepResult."""
-        report = np.empty(report_size(self.nc, tau.shape[0]))
+        na = self._no_torque.shape[0]
+        report = np.empty(report_size(self.nc, na))
         is_active = np.empty(self.nc, dtype=np.bool_)
         figures = self.step_in_one_kernel(state, tau, report, is_active, f_ext, saturate=False)
-        impulse, gap, position, _ = report_views(report, self.nc, tau.shape[0])
+        impulse, gap, position, _ = report_views(report, self.nc, na)
         return StepResult(is_active, gap, impulse, figures[2], figures[3], figures[4],
                           figures[5], position, figures[0], figures[1], figures[6],
                           figures[7])
@@ -339,6 +342,11 @@ class MoreauStepper:
         status, residual, retried, projection iterations, projected). A NonFiniteTorque or
         SimulationError leaves the state as it was."""
         self._prepared = None       # (a step prepared for another state is stale now)
+        if tau is None or tau.shape[0] == 0:    # no torques, as in the phase-by-phase step
+            tau = self._no_torque
+        elif tau.shape[0] != self._no_torque.shape[0]:  # (the kernel reads one per joint)
+            raise ValueError(f"tau must have {self._no_torque.shape[0]} entries, "
+                             f"got {tau.shape[0]}")
         q, u = state.q, state.u
         qE = np.empty_like(q)
         uE = np.empty_like(u)
