@@ -2,6 +2,7 @@
 run as a child process on a ROS domain, and a test node in its own rclpy context. Every
 wait is bounded; stop() always ends the process."""
 import json
+import os
 import re
 import signal
 import subprocess
@@ -117,3 +118,36 @@ class RosTestNode:
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def nodes_on_domain(domain_id, wait=1.5):
+    """The names of the nodes that another process runs on domain_id (discovered within
+    wait s): a leftover node of an earlier run there would answer or disturb a test's nodes."""
+    probe = RosTestNode(domain_id, "_domain_probe")
+    try:
+        probe.spin_for(wait)
+        return sorted(f"{ns.rstrip('/')}/{n}"
+                      for n, ns in probe.node.get_node_names_and_namespaces()
+                      if n != "_domain_probe")
+    finally:
+        probe.close()
+
+
+def domain_candidates(first, span):
+    """The domain ids first..first+span-1, starting at one chosen by this process's pid (so
+    that concurrent runs start apart)."""
+    return [first + (os.getpid() + i) % span for i in range(span)]
+
+
+def free_domain(candidates, wait=1.5):
+    """The first domain id of candidates on which no other process runs a node; an occupied
+    one is reported on stdout (pytest shows it with the test's output) and skipped."""
+    candidates = list(candidates)
+    for d in candidates:
+        others = nodes_on_domain(d, wait)
+        if not others:
+            return d
+        print(f"ROS domain {d} is taken by nodes of another process ({', '.join(others)}); "
+              "trying the next one")
+    raise RuntimeError(f"no free ROS domain among {candidates}")
+

@@ -16,7 +16,8 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from ros_test_nodes import (NodeProcess, RosTestNode, domain_candidates,  # noqa: E402
+                            free_domain)
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import Twist  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -26,7 +27,17 @@ from std_srvs.srv import SetBool  # noqa: E402
 from starleth_sim.tools import analysis  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DOMAIN_ID = 90 + os.getpid() % 9          # test_sim_node: 50..89, controller tests 10..49
+DOMAIN_RANGE = (90, 9)        # first, span; test_sim_node: 50..89, controller tests 10..49
+DOMAIN_ID = 90 + os.getpid() % 9    # replaced by a free one of the range (_free_domain_id)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_domain_id():
+    """Run this module's nodes on a domain of its range that no other process uses."""
+    global DOMAIN_ID
+    DOMAIN_ID = free_domain(domain_candidates(*DOMAIN_RANGE))
+
+
 START_TIMEOUT = 120.0
 PERIOD_NS = 2_500_000
 
@@ -224,7 +235,7 @@ def test_controller_killed_and_restarted_mid_run_is_followed_without_reset(ros, 
     # loaded machine may add a single late answer elsewhere)
     runs = np.split(np.array(unanswered), np.flatnonzero(np.diff(unanswered) != 1) + 1)
     gap = max(runs, key=len)
-    assert len(gap) >= 3, unanswered
+    assert len(gap) >= 3, (unanswered, s, sim.log()[-3000:])
     after = len(states) - 1 - (gap[-1] + 1)
     assert after > 400                               # the new controller drove > 1 s ...
     late = sum(k > gap[-1] for k in unanswered)
