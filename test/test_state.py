@@ -46,12 +46,15 @@ def contact_memory(state):
     return [a.copy() for a in arrays if a is not None]
 
 
-# HmJ and Cm step in one kernel (no rollback copy: the kernel must leave the state as it
-# was), HEJD phase by phase (the Simulator restores its copy)
-@pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD"])
+# HmJ, Cm, HEJD and HMSD step in one kernel (no rollback copy: the kernel must leave the
+# state as it was; HMSD with its constant M), HEJD profiled phase by phase (the Simulator
+# restores its copy)
+@pytest.mark.parametrize("preset, profile", [("HmJ", False), ("Cm", False), ("HEJD", False),
+                                             ("HMSD", False), ("HEJD", True)])
 @pytest.mark.parametrize("poison", ["nan velocity", "overflowing joint rate in the air"])
-def test_failed_step_restores_the_state(preset, poison):
-    sim = Simulator.from_preset(preset)
+def test_failed_step_restores_the_state(preset, profile, poison):
+    sim = Simulator.from_preset(preset, profile=profile)
+    assert sim.stepper.step_is_transactional(sim.state) is not profile
     q_stand = sim.joint_positions().copy()
     run(sim, q_stand, 10)
     before = sim.snapshot()
@@ -77,7 +80,7 @@ def test_failed_step_restores_the_state(preset, poison):
         np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD"])
+@pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD", "HMSD"])
 def test_profiled_step_is_the_same_step(preset):
     plain = Simulator.from_preset(preset)
     prof = Simulator.from_preset(preset, profile=True)
@@ -111,3 +114,41 @@ def test_stepper_one_kernel_step_without_torques_is_a_zero_torque_step(preset):
     with pytest.raises(ValueError, match="12 entries"):
         sim.stepper.step(sim.state, np.zeros(13))
     assert sim.state.q is q
+
+
+BILATERAL_PRESETS = ("HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP")
+
+
+@pytest.mark.parametrize("preset", BILATERAL_PRESETS)
+def test_one_kernel_step_of_a_cut_forest_is_the_phase_by_phase_step(preset):
+    """The extended and maximal coordinates step in one kernel (tree_step.forest_step_hard:
+    the cut joints' bilateral constraints, M of the trees or constant) with the same result
+    bit for bit as the phase-by-phase path (a profiled Simulator): q, u, Λ and the applied
+    torques over a walking-like PD (the feet lift and land), a timed push (f_ext: the kernel
+    with the wrench's force) and a torque beyond the effort limits (saturated)."""
+    plain = Simulator.from_preset(preset)
+    phased = Simulator.from_preset(preset, profile=True)
+    assert plain.stepper.step_is_transactional(plain.state)
+    assert not phased.stepper.step_is_transactional(phased.state)
+    q_stand = plain.joint_positions().copy()
+    lift = np.tile([0.0, 0.5, -1.0], 4) * np.repeat([1, -1, -1, 1], 3)   # diagonal pairs
+    n_active = set()
+    for k in range(160):
+        for sim in (plain, phased):
+            if k == 60:
+                sim.apply_wrench("base", (0.0, 150.0, 0.0), duration=0.02)
+            target = q_stand + 0.4 * np.sin(2 * np.pi * k / 80) * lift
+            tau = pd(sim, target)
+            if k == 100:
+                tau[1] = 1e4            # saturated at the joint's effort limit
+            sim.step(tau)
+        assert plain.q.tobytes() == phased.q.tobytes(), k
+        assert plain.u.tobytes() == phased.u.tobytes(), k
+        assert plain.applied_torque.tobytes() == phased.applied_torque.tobytes(), k
+        for a, b in zip(plain.contacts, phased.contacts):
+            assert np.asarray(a.impulse).tobytes() == np.asarray(b.impulse).tobytes(), k
+        if k == 100:
+            assert 0 < plain.applied_torque[1] < 1e4
+        n_active.add(plain.diagnostics.active_contacts)
+    assert plain.diagnostics.physics_steps == 160
+    assert len(n_active) > 1, n_active          # contacts were made and broken

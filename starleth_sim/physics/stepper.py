@@ -16,14 +16,16 @@ A step runs in two parts: `MoreauStepper.prepare` does everything that depends o
 (q^S, u^S) (q^M, M, h without τ, the kinematics, the factor of M, M^{-1}W, G), and
 `MoreauStepper.step` adds the joint torques and external forces to h and solves (7) and (8).
 A caller may prepare ahead (sim_node does, while its controller computes); the result is
-the same bit for bit. A step that was not prepared ahead runs with few calls from Python:
-for the minimal coordinates (no bilateral constraints, M depending on q) the whole step is
-one kernel (:mod:`starleth_sim.physics.tree_step`: the midpoint, the contact problem and
-its solution, Eqn. 8); for the other sets the midpoint is one kernel
+the same bit for bit. A step that was not prepared ahead runs as one kernel
+(:mod:`starleth_sim.physics.tree_step`: the midpoint, the bilateral constraints of the cut
+joints, the contact problem and its solution, Eqn. 8): tree_step_hard / tree_step_compliant
+for the minimal coordinates, forest_step_hard for the extended and maximal coordinates with
+hard contacts. The phase-by-phase path (a prepared or profiled step, and compliant contacts
+with bilateral constraints) runs the same kernels from Python: the midpoint
 (`ForestCoordinates.midpoint`: q^M, M and h by the jitted CRBA / RNEA of
 :mod:`starleth_sim.physics.rigid_body`, the contact kinematics), the contact problem set up
-and solved in one (`solve_hard_contacts`, or `solve_compliant`), Eqn. (8) in one
-(`end_of_step`). The kernels, their typed records (`StepSettings`, `ContactProblem`) and the
+and solved (`solve_hard_contacts`, or `solve_compliant`), Eqn. (8) (`end_of_step`). The
+kernels, their typed records (`StepSettings`, `ContactProblem`) and the
 Fig. 7 phases (`PHASES`) are in :mod:`starleth_sim.physics.step_kernels`.
 
 Model, state and workspace (see :mod:`starleth_sim.physics.state`): the stepper holds the
@@ -53,9 +55,11 @@ from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings, clock,
                            complete_hard_contacts, end_of_step, lap, prepare_hard_contacts,
                            solve_compliant, solve_hard_contacts)
+from .actuator import saturate_torque
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
-                        TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TreeStepModel,
-                        report_size, report_views, tree_step_compliant, tree_step_hard)
+                        TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, CutModel, TreeStepModel,
+                        forest_step_hard, report_size, report_views, tree_step_compliant,
+                        tree_step_hard)
 
 
 class SimulationError(RuntimeError):
@@ -178,11 +182,16 @@ class MoreauStepper:
             self.eps[names.index(name)] = (en, et)
         self._never_active = np.full(nc, np.inf)
         self.stats = StepperStats()
-        #: an unprepared, unprofiled step of a set without bilateral constraints whose M
-        #: depends on q (the minimal coordinates) runs as one kernel (tree_step_hard /
-        #: tree_step_compliant); the others phase by phase
-        self._one_kernel = (not coords.constant_mass_matrix and self.nb == 0
-                            and getattr(coords, "n_cut", 1) == 0)
+        #: an unprepared, unprofiled step runs as one kernel: of a set without bilateral
+        #: constraints whose M depends on q (the minimal coordinates) in tree_step_hard /
+        #: tree_step_compliant, of a cut forest (the extended and maximal coordinates) with
+        #: hard contacts in forest_step_hard; the others (compliant contacts with bilateral
+        #: constraints) phase by phase
+        n_cut = getattr(coords, "n_cut", None)
+        self._forest_kernel = bool(self.hard and n_cut is not None
+                                   and (n_cut > 0 or coords.constant_mass_matrix))
+        self._one_kernel = self._forest_kernel or (
+            not coords.constant_mass_matrix and self.nb == 0 and n_cut == 0)
         self._no_force = np.zeros(0)
         #: τ of no torque (one entry per actuated joint), for a step given none
         self._no_torque = np.zeros(coords.joint_v.shape[0])
@@ -197,6 +206,9 @@ class MoreauStepper:
                                              velocity)
             self._tree_model = tuple(pack)
             self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
+            self._effort_limit, self._velocity_limit = effort, velocity
+            if self._forest_kernel:
+                self._cut_model = tuple(CutModel.pack(coords, self.beta / self.dt))
 
     def initial_state(self, q, u, t: float = 0.0) -> SimState:
         """The state (q, u, t) without contact memory or pending wrenches."""
@@ -333,10 +345,13 @@ class MoreauStepper:
 
     def step_in_one_kernel(self, state: SimState, tau, report, is_active, f_ext=None,
                            saturate: bool = True) -> tuple:
-        """`step` in one kernel call (tree_step_hard / tree_step_compliant), for a state that
-        `step_is_transactional` approves: the same result bit for bit as the phase-by-phase
-        path. tau: the torques asked (float64, one per actuated joint), saturated in the
-        kernel by the torque_limits (actuator.saturate_torque) unless saturate is False.
+        """`step` in one kernel call (tree_step_hard / tree_step_compliant /
+        forest_step_hard), for a state that `step_is_transactional` approves: the same
+        result bit for bit as the phase-by-phase path. tau: the torques asked (float64, one
+        per actuated joint), saturated by the torque_limits (actuator.saturate_torque) unless
+        saturate is False: in the kernel, or for a cut forest before it (a cut joint's rate
+        comes from the cut-joint kinematics of the state, ForestCoordinates'
+        joint_velocities, which a controller has usually asked for already).
         Writes the report buffer (tree_step.report_views: Λ, g_N and contact points at q^M,
         the applied torques) and the active flags; returns (|I|, opened, iterations,
         status, residual, retried, projection iterations, projected). A NonFiniteTorque or
@@ -352,7 +367,20 @@ class MoreauStepper:
         uE = np.empty_like(u)
         if f_ext is None:
             f_ext = self._no_force
-        if self.hard:
+        if self._forest_kernel:
+            if saturate:    # (a cut joint's rate comes from the cut-joint kinematics)
+                applied = np.empty(tau.shape[0])
+                if not saturate_torque(tau, self._effort_limit,
+                                       self.coords.joint_velocities(q, u),
+                                       self._velocity_limit, applied):
+                    raise NonFiniteTorque("tau has non-finite entries")
+                tau = applied
+            factor = not (self.constant_M and self._factored)
+            outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
+                forest_step_hard(q, u, tau, f_ext, factor, state.last_impulse,
+                                 state.last_active, state.last_bilateral, report, is_active,
+                                 qE, uE, *self._tree_model, *self._cut_model)
+        elif self.hard:
             outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
                 tree_step_hard(saturate, q, u, tau, f_ext,
                                state.last_impulse, state.last_active, state.last_bilateral,

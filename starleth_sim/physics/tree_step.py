@@ -1,6 +1,8 @@
-"""One whole physics step in one kernel call, for coordinate sets without bilateral
-constraints whose M depends on q (the minimal coordinates; `MoreauStepper` uses it for a step
-that was not prepared ahead and is not profiled).
+"""One whole physics step in one kernel call (`MoreauStepper` uses it for a step that was not
+prepared ahead and is not profiled): tree_step_hard / tree_step_compliant for coordinate sets
+without bilateral constraints whose M depends on q (the minimal coordinates), forest_step_hard
+for hard contacts in a cut forest (the extended and maximal coordinates: bilateral
+constraints of the cut joints, M of the trees or constant).
 
 It runs the same kernels, in the same order, as the phase-by-phase path of
 :mod:`starleth_sim.physics.step_kernels` (so the same result bit for bit) and saves what lies
@@ -17,7 +19,9 @@ import numba as nb
 
 from . import prox
 from .actuator import saturate_torque
-from .coordinates.forest import midpoint_dynamics
+from .coordinates.forest import (cut_joint_torques, cut_joints, integrate_forest,
+                                 midpoint_dynamics, rigid_body_forces)
+from .kinematics import contact_kinematics
 from .step_kernels import (StepSettings, complete_problem, contact_problem, end_of_step,
                            solve_compliant)
 
@@ -303,3 +307,192 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
         n_active += is_active[i]
     _report_contacts(gap, position, report, nc)
     return outcome, n_active, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
+
+
+# --------------------------------------------------------------------------------------------
+# the cut forest: bilateral constraints of the cut joints, M of the trees or constant
+# --------------------------------------------------------------------------------------------
+class CutModel(NamedTuple):
+    """What forest_step_hard needs beyond the TreeStepModel: the cut joints, the actuators'
+    place (tree joint or cut joint), a constant M and its free bodies, and the workspace of
+    the bilateral constraints, packed like TreeStepModel.
+
+    floats: β/Δt (β: bilateral.stabilization, b_B = (β/Δt) g_B), then per cut joint p_P,
+    p_C, a_P, b1_P, b2_P, a_C, b1_C (ForestCoordinates' arrays, ncut x 3 each), then for a
+    constant M: M (nv x nv) and the free bodies' masses, inertias (nr x 3 x 3) and gravity;
+    ints: [ncut, constant M (0/1), nr], cut_P, cut_C, joint_cut (one per actuated joint,
+    public order: its cut joint, -1 inside a tree), root_q, root_v; workspace: W_B^T
+    (5 ncut x nv), g_B and b_B (5 ncut each), φ, φ̇ (ncut each; φ̇ at zero velocity, not
+    used) and the hinge axes in the world (ncut x 3)."""
+
+    floats: np.ndarray
+    ints: np.ndarray
+    workspace: np.ndarray
+
+    @staticmethod
+    def pack(coords, beta_over_dt):
+        """The CutModel of ForestCoordinates `coords` (β/Δt: the factor of b_B)."""
+        c = coords
+        ncut, nv = c.n_cut, c.nv
+        constant = bool(c.constant_mass_matrix)
+        arrays = [[float(beta_over_dt)], c.p_P, c.p_C, c.a_P, c.b1_P, c.b2_P, c.a_C, c.b1_C]
+        if constant:
+            arrays += [c._M_const, c._mass, c._inertia, c._gravity]
+        floats = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in arrays])
+        nr = c.roots.shape[0] if constant else 0
+        ints = np.concatenate([np.ravel(np.asarray(a, dtype=np.int64)) for a in (
+            [ncut, int(constant), nr], c.cut_P, c.cut_C, c.joint_cut,
+            c.root_q if constant else [], c.root_v if constant else [])])
+        nB = 5 * ncut
+        workspace = np.zeros(nB * nv + 2 * nB + 2 * ncut + 3 * ncut)
+        return CutModel(floats, ints, workspace)
+
+
+@nb.njit(cache=True)
+def unpack_cut_model(floats, ints, workspace, na, nv):
+    """The views of CutModel's buffers: (β/Δt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C,
+    b1_C, joint_cut, constant, M, root_q, root_v, body masses, inertias, gravity, W_B^T,
+    g_B, b_B, φ, φ̇, hinge axes); M and the bodies' arrays empty unless M is constant."""
+    ncut, constant, nr = ints[0], ints[1] != 0, ints[2]
+    beta_over_dt = floats[0]
+    o = 1
+    p_P, o = _take(floats, o, 3 * ncut)
+    p_C, o = _take(floats, o, 3 * ncut)
+    a_P, o = _take(floats, o, 3 * ncut)
+    b1_P, o = _take(floats, o, 3 * ncut)
+    b2_P, o = _take(floats, o, 3 * ncut)
+    a_C, o = _take(floats, o, 3 * ncut)
+    b1_C, o = _take(floats, o, 3 * ncut)
+    nM = nv * nv if constant else 0
+    M, o = _take(floats, o, nM)
+    body_mass, o = _take(floats, o, nr)
+    body_inertia, o = _take(floats, o, 9 * nr)
+    body_gravity, o = _take(floats, o, 3 if constant else 0)
+    k = 3
+    cut_P, k = _take(ints, k, ncut)
+    cut_C, k = _take(ints, k, ncut)
+    joint_cut, k = _take(ints, k, na)
+    root_q, k = _take(ints, k, nr)
+    root_v, k = _take(ints, k, nr)
+    nB = 5 * ncut
+    w = 0
+    WtB, w = _take(workspace, w, nB * nv)
+    gB, w = _take(workspace, w, nB)
+    bB, w = _take(workspace, w, nB)
+    angle, w = _take(workspace, w, ncut)
+    rate, w = _take(workspace, w, ncut)
+    axis_world, w = _take(workspace, w, 3 * ncut)
+    return (beta_over_dt, cut_P, cut_C, p_P.reshape((ncut, 3)), p_C.reshape((ncut, 3)),
+            a_P.reshape((ncut, 3)), b1_P.reshape((ncut, 3)), b2_P.reshape((ncut, 3)),
+            a_C.reshape((ncut, 3)), b1_C.reshape((ncut, 3)), joint_cut, constant,
+            M.reshape((nv if constant else 0, nv if constant else 0)), root_q, root_v,
+            body_mass, body_inertia.reshape((nr, 3, 3)), body_gravity,
+            WtB.reshape((nB, nv)), gB, bB, angle, rate, axis_world.reshape((ncut, 3)))
+
+
+@nb.njit(cache=True, inline="always")
+def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
+                     body_inertia, body_gravity, normal, tangent1, tangent2, ground_offset,
+                     jacobian_gap, gap, position, Wt_all, model):
+    """q^M, M and h (without τ) at (q^M, u^S) and the contact kinematics at q^M, as
+    ForestCoordinates.midpoint: one midpoint_dynamics for M of the trees; for a constant M
+    (free bodies) q^M, rigid_body_forces and contact_kinematics."""
+    (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, _, _, _, _, c_joint,
+     c_local, c_radius) = model
+    nv = u.shape[0]
+    qM = np.empty_like(q)
+    h = np.empty(nv)
+    if constant:
+        integrate_forest(q, u, half_dt, jtype, idx_q, idx_v, qM)
+        rigid_body_forces(qM, u, root_q, root_v, body_mass, body_inertia, body_gravity, h)
+        contact_kinematics(qM, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
+                           c_joint, c_local, c_radius, normal, tangent1, tangent2,
+                           ground_offset, jacobian_gap, gap, position, Wt_all)
+        return qM, M_const, h
+    M = np.empty((nv, nv))
+    midpoint_dynamics(q, u, half_dt, *model, normal, tangent1, tangent2, ground_offset,
+                      jacobian_gap, qM, M, h, gap, position, Wt_all)
+    return qM, M, h
+
+
+@nb.njit(cache=True, inline="always")
+def _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
+                        h):
+    """h += the generalized force of the applied joint torques (Sᵀτ inside the trees, the
+    cut joints' equal and opposite body torques about their hinge axes: cut_joint_torques,
+    with the kinematics of the last cut_joints call) + f_ext: the arithmetic, in its order,
+    of ForestCoordinates.add_joint_torques followed by h += f_ext."""
+    tau_cut = np.zeros(cut_P.shape[0])
+    for k in range(applied.shape[0]):
+        if joint_cut[k] < 0:
+            h[joint_v[k]] += applied[k]
+    for k in range(applied.shape[0]):
+        if joint_cut[k] >= 0:
+            tau_cut[joint_cut[k]] = applied[k]
+    cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, model[1], model[2], model[6],
+                      model[7], model[8], h)
+    for k in range(f_ext.shape[0]):
+        h[k] += f_ext[k]
+
+
+@nb.njit(cache=True)
+def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active,
+                     last_bilateral, report, is_active, qE, uE, floats, ints, support,
+                     workspace, cut_floats, cut_ints, cut_workspace):
+    """tree_step_hard's counterpart for a cut forest (the extended and maximal
+    coordinates), hard contacts: Eqn. (6) with M, h, W at the midpoint (_forest_midpoint),
+    the bilateral constraints of the cut joints at q^M (cut_joints: W_B^T, g_B, b_B =
+    (β/Δt) g_B), h += the joint torques and f_ext (_add_forest_torques), the contact and
+    bilateral problem (contact_problem, complete_problem; factor: whether to factor M,
+    False to reuse a constant M's factor in L) and Eqn. (8): the arithmetic, in its order,
+    of MoreauStepper.step's phase-by-phase path, so the same result bit for bit. (floats,
+    ints, support, workspace): a TreeStepModel; (cut_floats, cut_ints, cut_workspace): a
+    CutModel. applied_tau: the torques the motors apply (saturated by the caller: a cut
+    joint's rate needs the cut-joint kinematics of the state). Writes what tree_step_hard
+    writes; the warm-start memory, Λ_B's included, is updated only when the step succeeds.
+    Returns tree_step_hard's tuple."""
+    nv = u.shape[0]
+    (s, _, model, normal, tangent1, tangent2, offset, eps, _, _, joint_v, dof_parent, gap,
+     position, Wt_all, L, u_free, u_corr) = unpack_tree_model(floats, ints, support,
+                                                               workspace, nv)
+    na = joint_v.shape[0]
+    (beta_over_dt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, joint_cut, constant,
+     M_const, root_q, root_v, body_mass, body_inertia, body_gravity, WtB, gB, bB, angle,
+     rate, axis_world) = unpack_cut_model(cut_floats, cut_ints, cut_workspace, na, nv)
+    nc = gap.shape[0]
+    applied = report[7 * nc:7 * nc + na]
+    for k in range(na):
+        if not np.isfinite(applied_tau[k]):
+            return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
+        applied[k] = applied_tau[k]
+    half_dt = 0.5 * s.dt
+    qM, M, h = _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
+                                body_inertia, body_gravity, normal, tangent1, tangent2, offset,
+                                s.jacobian_gap, gap, position, Wt_all, model)
+    (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op) = model[:10]
+    cut_joints(qM, np.zeros(nv), parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
+               cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, WtB, gB, angle, rate,
+               axis_world, True)
+    for k in range(gB.shape[0]):
+        bB[k] = gB[k] * beta_over_dt
+    _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
+                        h)
+    p = contact_problem(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
+                        last_impulse, last_active, None)
+    if not p.ok:
+        return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
+    kept = (last_impulse.copy(), last_active.copy(), last_bilateral.copy())
+    impulse = report[:3 * nc].reshape((nc, 3))
+    it, status, resid, retried, pit, pstatus = complete_problem(
+        s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+        impulse, is_active, u_free, uE, u_corr, None)
+    outcome = TREE_STEP_OK
+    if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
+        outcome = TREE_STEP_NONFINITE_IMPULSE
+    elif not end_of_step(qM, uE, u_corr, pstatus >= 0, half_dt, jtype, idx_q, idx_v, qE):
+        outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
+        last_impulse[:] = kept[0]
+        last_active[:] = kept[1]
+        last_bilateral[:] = kept[2]
+    _report_contacts(gap, position, report, nc)
+    return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
