@@ -209,6 +209,8 @@ class MoreauStepper:
             self._effort_limit, self._velocity_limit = effort, velocity
             if self._forest_kernel:
                 self._cut_model = tuple(CutModel.pack(coords, self.beta / self.dt))
+                #: where the kernel writes φ and φ̇ of the cut joints at the end of the step
+                self._cut_motion = coords.cut_motion_buffers()
 
     def initial_state(self, q, u, t: float = 0.0) -> SimState:
         """The state (q, u, t) without contact memory or pending wrenches."""
@@ -379,7 +381,8 @@ class MoreauStepper:
             outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
                 forest_step_hard(q, u, tau, f_ext, factor, state.last_impulse,
                                  state.last_active, state.last_bilateral, report, is_active,
-                                 qE, uE, *self._tree_model, *self._cut_model)
+                                 qE, uE, *self._cut_motion, *self._tree_model,
+                                 *self._cut_model)
         elif self.hard:
             outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
                 tree_step_hard(saturate, q, u, tau, f_ext,
@@ -408,6 +411,8 @@ class MoreauStepper:
         if outcome == TREE_STEP_NONFINITE_STATE:
             raise SimulationError("non-finite state after the step; state left unchanged")
         state.q, state.u = qE, uE
+        if self._forest_kernel:
+            self.coords.cut_motion_written(qE, uE)
         self.stats.steps += 1
         return n_active, opened, it, status, resid, retried, pit, pstatus >= 0
 

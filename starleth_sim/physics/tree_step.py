@@ -19,8 +19,8 @@ import numba as nb
 
 from . import prox
 from .actuator import saturate_torque
-from .coordinates.forest import (cut_joint_torques, cut_joints, integrate_forest,
-                                 midpoint_dynamics, rigid_body_forces)
+from .coordinates.forest import (cut_joint_motion, cut_joint_torques, cut_joints,
+                                 integrate_forest, midpoint_dynamics, rigid_body_forces)
 from .kinematics import contact_kinematics
 from .step_kernels import (StepSettings, complete_problem, contact_problem, end_of_step,
                            solve_compliant)
@@ -437,8 +437,8 @@ def _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f
 
 @nb.njit(cache=True)
 def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active,
-                     last_bilateral, report, is_active, qE, uE, floats, ints, support,
-                     workspace, cut_floats, cut_ints, cut_workspace):
+                     last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints,
+                     support, workspace, cut_floats, cut_ints, cut_workspace):
     """tree_step_hard's counterpart for a cut forest (the extended and maximal
     coordinates), hard contacts: Eqn. (6) with M, h, W at the midpoint (_forest_midpoint),
     the bilateral constraints of the cut joints at q^M (cut_joints: W_B^T, g_B, b_B =
@@ -449,8 +449,11 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     ints, support, workspace): a TreeStepModel; (cut_floats, cut_ints, cut_workspace): a
     CutModel. applied_tau: the torques the motors apply (saturated by the caller: a cut
     joint's rate needs the cut-joint kinematics of the state). Writes what tree_step_hard
-    writes; the warm-start memory, Λ_B's included, is updated only when the step succeeds.
-    Returns tree_step_hard's tuple."""
+    writes; the warm-start memory, Λ_B's included, is updated only when the step succeeds;
+    a successful step also writes the cut joints' φ and φ̇ at (q^E, u^E) into angle_E and
+    rate_E (cut_joint_motion: what a controller asks for next, at the cost of one forward
+    kinematics and the cut joints' angular Jacobians here rather than a call from Python
+    later). Returns tree_step_hard's tuple."""
     nv = u.shape[0]
     (s, _, model, normal, tangent1, tangent2, offset, eps, _, _, joint_v, dof_parent, gap,
      position, Wt_all, L, u_free, u_corr) = unpack_tree_model(floats, ints, support,
@@ -494,5 +497,8 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
         last_impulse[:] = kept[0]
         last_active[:] = kept[1]
         last_bilateral[:] = kept[2]
+    else:
+        cut_joint_motion(qE, uE, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
+                         cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E)
     _report_contacts(gap, position, report, nc)
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)

@@ -259,17 +259,59 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
         # γ_B = dg_B/dt row by row:
         g_B[row + 3] = -(acw[0] * b2[0] + acw[1] * b2[1] + acw[2] * b2[2])
         g_B[row + 4] = acw[0] * b1[0] + acw[1] * b1[1] + acw[2] * b1[2]
-        # φ: rotation of C's b1 about the axis, seen in P's (b1, b2) basis
-        _rotate(oR[C], b1_C[k], t)  # b1 carried by C (the joint frames coincide at φ = 0)
-        angle[k] = np.arctan2(t[0] * b2[0] + t[1] * b2[1] + t[2] * b2[2],
-                              t[0] * b1[0] + t[1] * b1[1] + t[2] * b1[2])
-        s = 0.0
-        for c in range(nv):
-            s += (aw[0] * (JC[0, c] - JP[0, c]) + aw[1] * (JC[1, c] - JP[1, c])
-                  + aw[2] * (JC[2, c] - JP[2, c])) * u[c]
-        rate[k] = s
+        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t)
         for r in range(3):
             axis_world[k, r] = aw[r]
+
+
+@nb.njit(cache=True, inline="always")
+def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t):
+    """φ and φ̇ of a cut joint: φ the rotation of C's b1 about the hinge axis aw, seen in P's
+    (b1, b2) basis (all in the world); φ̇ = aw·(ω_C − ω_P), with JP, JC the angular
+    Jacobians of P and C (t: scratch)."""
+    _rotate(oR_C, b1_C, t)  # b1 carried by C (the joint frames coincide at φ = 0)
+    angle = np.arctan2(t[0] * b2[0] + t[1] * b2[1] + t[2] * b2[2],
+                       t[0] * b1[0] + t[1] * b1[1] + t[2] * b1[2])
+    s = 0.0
+    for c in range(u.shape[0]):
+        s += (aw[0] * (JC[0, c] - JP[0, c]) + aw[1] * (JC[1, c] - JP[1, c])
+              + aw[2] * (JC[2, c] - JP[2, c])) * u[c]
+    return angle, s
+
+
+@nb.njit(cache=True)
+def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
+                     cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle, rate):
+    """φ and φ̇ of every cut joint at (q, u), and nothing else: the same arithmetic as
+    cut_joints' (so the same values bit for bit) without W_B and g_B. The forward
+    kinematics of q are computed into oR, op."""
+    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
+    nv = u.shape[0]
+    JP = np.empty((3, nv))
+    JC = np.empty((3, nv))
+    aw = np.empty(3)
+    b1 = np.empty(3)
+    b2 = np.empty(3)
+    t = np.empty(3)
+    for k in range(cut_P.shape[0]):
+        P = cut_P[k]
+        C = cut_C[k]
+        _rotate(oR[P], a_P[k], aw)
+        _rotate(oR[P], b1_P[k], b1)
+        _rotate(oR[P], b2_P[k], b2)
+        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP)
+        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC)
+        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t)
+
+
+@nb.njit(cache=True)
+def gather_joint_values(x, index, cut_values, cut_index, out):
+    """out[k] = x[index[k]] for a joint inside a tree (cut_index[k] < 0), cut_values[
+    cut_index[k]] for a cut joint: the joints' φ (x = q) or φ̇ (x = u) in the public order
+    in one call (the masked fancy indexing it replaces cost ≈4 µs)."""
+    for k in range(out.shape[0]):
+        c = cut_index[k]
+        out[k] = x[index[k]] if c < 0 else cut_values[c]
 
 
 @nb.njit(cache=True)
@@ -638,24 +680,33 @@ class ForestCoordinates:
             return
         self._kinematics_for_cuts(q, np.zeros(self.nv) if u is None else u)
 
+    def cut_motion_buffers(self):
+        """(φ, φ̇): the arrays of the cut joints' angles and rates that joint_positions and
+        joint_velocities read; a one-kernel step writes those of its end state into them
+        and then calls cut_motion_written."""
+        return self._angle, self._rate
+
+    def cut_motion_written(self, q, u):
+        """The cut_motion_buffers now hold φ and φ̇ at (q, u) (a one-kernel step wrote them,
+        with the arithmetic of cut_joints)."""
+        self._cut_state_at = (q, u)
+
     def joint_positions(self, q, u=None):
         """φ at q; u: the velocities of the same state where known (the cut joints'
         kinematics then serve joint_velocities(q, u) too)."""
         if self.n_cut == 0:     # one gather (a new array), no masks
             return q[self.joint_q]
-        out = np.empty(self.joint_q.shape[0])
-        out[self._act_tree] = q[self.joint_q[self._act_tree]]
         self._cut_state(q, u)
-        out[self._act_cut] = self._angle[self.joint_cut[self._act_cut]]
+        out = np.empty(self.joint_q.shape[0])
+        gather_joint_values(q, self.joint_q, self._angle, self.joint_cut, out)
         return out
 
     def joint_velocities(self, q, u):
         if self.n_cut == 0:
             return u[self.joint_v]
-        out = np.empty(self.joint_v.shape[0])
-        out[self._act_tree] = u[self.joint_v[self._act_tree]]
         self._cut_state(q, u)
-        out[self._act_cut] = self._rate[self.joint_cut[self._act_cut]]
+        out = np.empty(self.joint_v.shape[0])
+        gather_joint_values(u, self.joint_v, self._rate, self.joint_cut, out)
         return out
 
     def _trunk_frame(self):
