@@ -34,3 +34,15 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.module.__name__ in SERIAL_MODULES:
             item.add_marker(pytest.mark.serial)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_ros_domain(request):
+    """A test module that sets DOMAIN_RANGE = (first, span) runs its ROS nodes on a domain of
+    that range on which no other process runs nodes (ros_test_nodes.free_domain: a leftover
+    node of another run there would answer or disturb them): its DOMAIN_ID is set here,
+    before its own fixtures and tests."""
+    span = getattr(request.module, "DOMAIN_RANGE", None)
+    if span is not None:
+        from ros_test_nodes import domain_candidates, free_domain
+        request.module.DOMAIN_ID = free_domain(domain_candidates(*span))

@@ -21,8 +21,7 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
 from rclpy.parameter import Parameter  # noqa: E402
-from ros_test_nodes import (NodeProcess, RosTestNode, domain_candidates,  # noqa: E402
-                            free_domain)
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from test_bitexact import DEMO_STEPS, demo_states, load_reference  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -33,16 +32,7 @@ from rcl_interfaces.srv import SetParameters, GetParameters  # noqa: E402
 
 # one ROS domain per test module and process (test_sim_node uses 50..89)
 DOMAIN_RANGE = (10, 40)       # first, span
-DOMAIN_ID = 10 + os.getpid() % 40   # replaced by a free one of the range (_free_domain_id)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _free_domain_id():
-    """Run this module's nodes on a domain of its range that no other process uses."""
-    global DOMAIN_ID
-    DOMAIN_ID = free_domain(domain_candidates(*DOMAIN_RANGE))
-
-
+DOMAIN_ID = 10 + os.getpid() % 40   # conftest._free_ros_domain: a free one of the range
 START_TIMEOUT = 120.0    # a first start after a fresh install compiles the numba kernels
 PERIOD_NS = 2_500_000
 JOINTS = [f"{leg}_{j}" for leg in ("LF", "RF", "LH", "RH") for j in ("HAA", "HFE", "KFE")]

@@ -17,23 +17,13 @@ from geometry_msgs.msg import WrenchStamped  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 
-from ros_test_nodes import (NodeProcess, RosTestNode, domain_candidates,  # noqa: E402
-                            free_domain)
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from starleth_sim.tools import replay  # noqa: E402
 from starleth_sim.tools.bench_ros import EchoController  # noqa: E402
 
 # test_sim_node 50..89, controller tests 10..49, conventions 90..98, tf 199..228
 DOMAIN_RANGE = (140, 40)      # first, span
-DOMAIN_ID = 140 + os.getpid() % 40  # replaced by a free one of the range (_free_domain_id)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _free_domain_id():
-    """Run this module's nodes on a domain of its range that no other process uses."""
-    global DOMAIN_ID
-    DOMAIN_ID = free_domain(domain_candidates(*DOMAIN_RANGE))
-
-
+DOMAIN_ID = 140 + os.getpid() % 40  # conftest._free_ros_domain: a free one of the range
 START_TIMEOUT = 120.0
 N_STATES = 240
 K_PUSH, K_PERSIST_ON, K_PERSIST_OFF = 60, 120, 160

@@ -16,8 +16,7 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
-from ros_test_nodes import (NodeProcess, RosTestNode, domain_candidates,  # noqa: E402
-                            free_domain)
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import Twist  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -28,16 +27,7 @@ from starleth_sim.tools import analysis  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (90, 9)        # first, span; test_sim_node: 50..89, controller tests 10..49
-DOMAIN_ID = 90 + os.getpid() % 9    # replaced by a free one of the range (_free_domain_id)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _free_domain_id():
-    """Run this module's nodes on a domain of its range that no other process uses."""
-    global DOMAIN_ID
-    DOMAIN_ID = free_domain(domain_candidates(*DOMAIN_RANGE))
-
-
+DOMAIN_ID = 90 + os.getpid() % 9    # conftest._free_ros_domain: a free one of the range
 START_TIMEOUT = 120.0
 PERIOD_NS = 2_500_000
 

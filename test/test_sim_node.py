@@ -23,22 +23,12 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import Trigger, SetBool  # noqa: E402
 
-from ros_test_nodes import (NodeProcess, RosTestNode, domain_candidates,  # noqa: E402
-                            free_domain)
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from starleth_sim.tools.bench_ros import EchoController  # noqa: E402
 
 # one ROS domain per test module and process (other modules use other ranges)
 DOMAIN_RANGE = (50, 40)       # first, span
-DOMAIN_ID = 50 + os.getpid() % 40   # replaced by a free one of the range (_free_domain_id)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _free_domain_id():
-    """Run this module's nodes on a domain of its range that no other process uses."""
-    global DOMAIN_ID
-    DOMAIN_ID = free_domain(domain_candidates(*DOMAIN_RANGE))
-
-
+DOMAIN_ID = 50 + os.getpid() % 40   # conftest._free_ros_domain: a free one of the range
 START_TIMEOUT = 120.0     # the first start after a fresh install compiles the numba kernels
 PERIOD_NS = 2_500_000
 FEET = ("LF_foot", "RF_foot", "LH_foot", "RH_foot")

@@ -12,21 +12,11 @@ rclpy = pytest.importorskip("rclpy")
 from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from ros_test_nodes import domain_candidates, free_domain  # noqa: E402
 from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
 from starleth_sim.physics.description import starleth_description  # noqa: E402
 
 DOMAIN_RANGE = (199, 30)      # first, span
-DOMAIN_ID = 199 + os.getpid() % 30  # replaced by a free one of the range (_free_domain_id)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _free_domain_id():
-    """Run this module's nodes on a domain of its range that no other process uses."""
-    global DOMAIN_ID
-    DOMAIN_ID = free_domain(domain_candidates(*DOMAIN_RANGE))
-
-
+DOMAIN_ID = 199 + os.getpid() % 30  # conftest._free_ros_domain: a free one of the range
 def test_tf_message_cdr_is_what_rosbags_serialises():
     ts = get_typestore(Stores.ROS2_JAZZY)
     T = ts.types

@@ -211,6 +211,32 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
     return qM, M, h
 
 
+@nb.njit(cache=True, inline="always")
+def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
+                   last_bilateral, report, is_active, u_free, uE, u_corr, qM, half_dt, jtype,
+                   idx_q, idx_v, qE):
+    """The rest of a one-kernel hard-contact step once its ContactProblem p is set up:
+    complete_problem (Λ into the report buffer) and Eqn. (8) (end_of_step). A non-finite
+    result leaves the warm-start memory (Λ, active flags, Λ_B) as it was. Returns
+    (outcome (TREE_STEP_*), iterations, status, residual, retried, projection iterations,
+    projection status)."""
+    nc = gap.shape[0]
+    kept = (last_impulse.copy(), last_active.copy(), last_bilateral.copy())
+    impulse = report[:3 * nc].reshape((nc, 3))
+    it, status, resid, retried, pit, pstatus = complete_problem(
+        s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
+        impulse, is_active, u_free, uE, u_corr, None)
+    outcome = TREE_STEP_OK
+    if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
+        outcome = TREE_STEP_NONFINITE_IMPULSE
+    elif not end_of_step(qM, uE, u_corr, pstatus >= 0, half_dt, jtype, idx_q, idx_v, qE):
+        outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
+        last_impulse[:] = kept[0]
+        last_active[:] = kept[1]
+        last_bilateral[:] = kept[2]
+    return outcome, it, status, resid, retried, pit, pstatus
+
+
 @nb.njit(cache=True)
 def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
                    report, is_active, qE, uE, floats, ints, support, workspace):
@@ -245,19 +271,9 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
                         True, L, last_impulse, last_active, None)
     if not p.ok:
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
-    kept_impulse, kept_active = last_impulse.copy(), last_active.copy()
-    impulse = report[:3 * nc].reshape((nc, 3))
-    it, status, resid, retried, pit, pstatus = complete_problem(
+    outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-        impulse, is_active, u_free, uE, u_corr, None)
-    outcome = TREE_STEP_OK
-    if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
-        outcome = TREE_STEP_NONFINITE_IMPULSE
-    elif not end_of_step(qM, uE, u_corr, pstatus >= 0, half_dt, model[1], model[5],
-                         model[6], qE):
-        outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
-        last_impulse[:] = kept_impulse
-        last_active[:] = kept_active
+        report, is_active, u_free, uE, u_corr, qM, half_dt, model[1], model[5], model[6], qE)
     _report_contacts(gap, position, report, nc)
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
 
@@ -484,20 +500,10 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
                         last_impulse, last_active, None)
     if not p.ok:
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
-    kept = (last_impulse.copy(), last_active.copy(), last_bilateral.copy())
-    impulse = report[:3 * nc].reshape((nc, 3))
-    it, status, resid, retried, pit, pstatus = complete_problem(
+    outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-        impulse, is_active, u_free, uE, u_corr, None)
-    outcome = TREE_STEP_OK
-    if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
-        outcome = TREE_STEP_NONFINITE_IMPULSE
-    elif not end_of_step(qM, uE, u_corr, pstatus >= 0, half_dt, jtype, idx_q, idx_v, qE):
-        outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
-        last_impulse[:] = kept[0]
-        last_active[:] = kept[1]
-        last_bilateral[:] = kept[2]
-    else:
+        report, is_active, u_free, uE, u_corr, qM, half_dt, jtype, idx_q, idx_v, qE)
+    if outcome == TREE_STEP_OK:
         cut_joint_motion(qE, uE, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                          cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E)
     _report_contacts(gap, position, report, nc)
