@@ -199,6 +199,7 @@ class StarlethController:
         # work arrays (no per-call allocation where it is easy)
         self._tau = np.zeros(12)
         self._R = np.eye(3)
+        self._quat_n = np.zeros(4)
         self._Rd = np.eye(3)
         self._q = pin.neutral(m.model)
         self._centre = np.zeros((4, 3))
@@ -336,13 +337,21 @@ class StarlethController:
         quat = np.asarray(s.base_orientation_xyzw, dtype=float)
         vb = np.asarray(s.base_linear_velocity, dtype=float)
         wb = np.asarray(s.base_angular_velocity, dtype=float)
-        add = np.add.reduce                          # = ndarray.sum, without its wrapper
-        if not math.isfinite(float(add(qj) + add(dqj) + add(pb) + add(quat) + add(vb)
-                                   + add(wb))) or float(quat @ quat) < 1e-12:
-            return None
-        quat = quat / math.sqrt(float(quat @ quat))
         R = self._R
-        K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
+        # the checks and the normalisation in one kernel; it leaves inputs of 1e100 or more
+        # (whose sum below could overflow) to numpy, as before
+        status = K.read_state(qj, dqj, pb, quat, vb, wb, self._quat_n, R)
+        if status == 2:
+            add = np.add.reduce                      # = ndarray.sum, without its wrapper
+            if not math.isfinite(float(add(qj) + add(dqj) + add(pb) + add(quat) + add(vb)
+                                       + add(wb))) or float(quat @ quat) < 1e-12:
+                return None
+            quat = quat / math.sqrt(float(quat @ quat))
+            K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
+        elif status:
+            return None
+        else:
+            quat = self._quat_n
         yaw = math.atan2(R[1, 0], R[0, 0])
         cy, sy = math.cos(yaw), math.sin(yaw)
         ww = R @ wb                                  # angular velocity, world frame
