@@ -46,6 +46,9 @@ from . import kernels as K
 from .force_distribution import ContactForceDistribution
 from .model import RobotModel
 
+#: the ufunc behind np.clip / ndarray.clip (the same values, without their Python wrapper)
+_clip = getattr(np, "_core", np.core).umath.clip
+
 # leg states (per control period)
 SUPPORT = 0          # stance, on the ground: torque mode from VMC + QP
 SWING = 1            # swing (also late lift-off / bumped): joint PD on the swing trajectory
@@ -199,6 +202,7 @@ class StarlethController:
         # work arrays (no per-call allocation where it is easy)
         self._tau = np.zeros(12)
         self._R = np.eye(3)
+        self._quat_n = np.zeros(4)
         self._Rd = np.eye(3)
         self._q = pin.neutral(m.model)
         self._centre = np.zeros((4, 3))
@@ -217,6 +221,7 @@ class StarlethController:
         self._all_legs = np.arange(4, dtype=np.int64)
         self._leg_state_arr = np.zeros(4, dtype=np.int64)  # leg_state as an array
         self._swing_p = np.zeros(K.SW_OFFSET_X + 4)
+        self._swing_key = None
         self._mass_g = m.mass * m.gravity
         self._q_nominal = m.nominal_joint_positions(p.height)
         self.reset()
@@ -275,7 +280,7 @@ class StarlethController:
         tau = self._tau
         tau[:] = (np.tile(self._kp3, 4) * (self._q_nominal - qj) - np.tile(self._kd3, 4) * dqj
                   + gleg)
-        tau.clip(self._neg_lim, self._lim, out=tau)   # = np.clip, without its wrapper
+        _clip(tau, self._neg_lim, self._lim, out=tau)   # np.clip's ufunc, no wrapper
         self.desired_forces[:] = 0.0
         self.call_time = time.perf_counter() - t_wall
         self.info = {"mode": "fallen", "leg_state": ["fallen"] * 4, "support": [],
@@ -336,13 +341,21 @@ class StarlethController:
         quat = np.asarray(s.base_orientation_xyzw, dtype=float)
         vb = np.asarray(s.base_linear_velocity, dtype=float)
         wb = np.asarray(s.base_angular_velocity, dtype=float)
-        add = np.add.reduce                          # = ndarray.sum, without its wrapper
-        if not math.isfinite(float(add(qj) + add(dqj) + add(pb) + add(quat) + add(vb)
-                                   + add(wb))) or float(quat @ quat) < 1e-12:
-            return None
-        quat = quat / math.sqrt(float(quat @ quat))
         R = self._R
-        K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
+        # the checks and the normalisation in one kernel; it leaves inputs of 1e100 or more
+        # (whose sum below could overflow) to numpy, as before
+        status = K.read_state(qj, dqj, pb, quat, vb, wb, self._quat_n, R)
+        if status == 2:
+            add = np.add.reduce                      # = ndarray.sum, without its wrapper
+            if not math.isfinite(float(add(qj) + add(dqj) + add(pb) + add(quat) + add(vb)
+                                       + add(wb))) or float(quat @ quat) < 1e-12:
+                return None
+            quat = quat / math.sqrt(float(quat @ quat))
+            K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
+        elif status:
+            return None
+        else:
+            quat = self._quat_n
         yaw = math.atan2(R[1, 0], R[0, 0])
         cy, sy = math.cos(yaw), math.sin(yaw)
         ww = R @ wb                                  # angular velocity, world frame
@@ -605,11 +618,14 @@ class StarlethController:
         """The parameters of kernels.swing_target / lowering_target as one array (layout
         kernels.SW_*), read from self.params on every call (they may be changed)."""
         p = self.params
+        key = (p.gait_period, p.duty_factor, p.step_feedback, p.step_max, p.step_interp_end,
+               p.swing_height, p.touchdown_depth, self.model.gravity, p.lost_contact_speed,
+               p.lost_contact_depth, tuple(p.foothold_offset_x))
         P = self._swing_p
-        P[:K.SW_OFFSET_X] = (p.gait_period, p.duty_factor, p.step_feedback, p.step_max,
-                             p.step_interp_end, p.swing_height, p.touchdown_depth,
-                             self.model.gravity, p.lost_contact_speed, p.lost_contact_depth)
-        P[K.SW_OFFSET_X:] = p.foothold_offset_x
+        if key != self._swing_key:       # written only when a parameter changed
+            P[:K.SW_OFFSET_X] = key[:K.SW_OFFSET_X]
+            P[K.SW_OFFSET_X:] = p.foothold_offset_x
+            self._swing_key = key
         return P
 
     # -- 5. saturation ---------------------------------------------------------------------
@@ -617,7 +633,7 @@ class StarlethController:
         """Step 5: τ clipped to ±effort limit; call_time and info (mode, leg states, support
         legs, contact flags, wrench b, QP status, ground, ψ*, com). Returns a copy of τ."""
         tau = self._tau
-        tau.clip(self._neg_lim, self._lim, out=tau)   # = np.clip, without its wrapper
+        _clip(tau, self._neg_lim, self._lim, out=tau)   # np.clip's ufunc, no wrapper
         ns = len(support)
         self.call_time = time.perf_counter() - t_wall
         self.info = {

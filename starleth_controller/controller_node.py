@@ -88,7 +88,10 @@ from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedR
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
+from .kernels import node_state
 from .model import JOINT_NAMES, LEGS, default_urdf_path
+
+_sum = np.add.reduce     # = ndarray.sum, without its wrapper (a finite sum: all finite)
 
 DEFAULT_WRENCH_TOPICS = tuple(foot_wrench_topic(f"{leg}_foot") for leg in LEGS)
 
@@ -221,6 +224,8 @@ class ControllerNode(Node):
         self._pending: dict[int, _Slot] = {}
         self._last_answer = None          # (stamp_ns, (sec, nanosec), effort, monotonic time)
         self._perm_cache = {}             # tuple(names) -> index array (public order)
+        self._kernel_perm = {}            # the same as int64 arrays for node_state
+        self._R_node = np.eye(3)          # base -> world rotation of the last state
         self._ctrl_mode = None
         self.controller = None
         self._waiting_state = None        # the last state that came before the model
@@ -554,7 +559,45 @@ class ControllerNode(Node):
         return perm, None
 
     def _state(self, stamp, s: _Slot):
-        """RobotState from the messages of one stamp, or (None, reason)."""
+        """RobotState from the messages of one stamp, or (None, key, reason): the common
+        case (12 finite joints, finite values below 1e100, a quaternion of squared norm in
+        (0.5, 2)) read by one kernel into fresh arrays, with the arithmetic of the checks
+        below (_state_checked), which run for anything else and give the reason."""
+        _, _, names, position, velocity = s.js
+        n = len(names)
+        if n == 12 and len(position) == 12 and len(velocity) == 12 and s.odom is not None \
+                and len(s.odom) == 13:
+            perm = self._kernel_perm.get(names)
+            if perm is None:
+                perm, err = self._permutation(names)
+                if err:
+                    return self._state_checked(stamp, s)
+                perm = (np.arange(12, dtype=np.int64) if isinstance(perm, slice)
+                        else np.asarray(perm, dtype=np.int64))
+                if len(self._kernel_perm) < 8:
+                    self._kernel_perm[names] = perm
+            try:
+                forces = np.array(s.wrench, dtype=float)
+                odom = np.array(s.odom, dtype=float)
+            except (TypeError, ValueError):
+                return self._state_checked(stamp, s)
+            if forces.shape == (4, 3):
+                q, dq, pb, quat, v, w = (np.empty(12), np.empty(12), np.empty(3),
+                                         np.empty(4), np.empty(3), np.empty(3))
+                R = self._R_node
+                contact = np.empty(4, dtype=bool)
+                if node_state(np.asarray(position, dtype=float),
+                              np.asarray(velocity, dtype=float), perm, odom, forces,
+                              self._threshold, q, dq, pb, quat, v, w, R, contact) == 0:
+                    if self._twist_in_child:   # base frame -> world frame
+                        v = R @ v
+                    return RobotState(stamp * 1e-9, q, dq, pb, quat, v, w, contact,
+                                      forces), None, None
+        return self._state_checked(stamp, s)
+
+    def _state_checked(self, stamp, s: _Slot):
+        """RobotState from the messages of one stamp after checking them one by one, or
+        (None, key, reason)."""
         _, _, names, position, velocity = s.js
         n = len(names)
         if len(position) != n or len(velocity) != n:
@@ -626,7 +669,7 @@ class ControllerNode(Node):
             self._warn("controller", f"controller update failed at t={stamp * 1e-9:.4f} s: "
                        f"{type(e).__name__}: {e}")
             return
-        if not np.isfinite(tau).all():
+        if not math.isfinite(float(_sum(tau))) and not np.isfinite(tau).all():
             self.counters["controller_errors"] += 1
             self._warn("controller_nan", "controller returned non-finite torques; not sent")
             return
@@ -637,7 +680,7 @@ class ControllerNode(Node):
         if "error" in self.controller.info:
             self._warn("controller_info", f"controller: {self.controller.info['error']}")
         t_computed = time.perf_counter()
-        effort = array.array("d", np.ascontiguousarray(tau).tobytes())
+        effort = array.array("d", np.ascontiguousarray(tau, dtype=float).tobytes())
         sec_nsec = s.js[:2]
         self._last_answer = (stamp, sec_nsec, effort, time.monotonic())
         self._publish(sec_nsec, effort)

@@ -33,6 +33,108 @@ def quat_to_rot(qx, qy, qz, qw, R):
     R[2, 2] = 1 - 2 * (x * x + y * y)
 
 
+#: inputs at least this large (in magnitude) are left to the callers' numpy / math.fsum
+#: checks (read_state, node_state: status 2), whose sums could overflow; below it a sum of
+#: the few dozen values read here is finite whenever every value is
+LARGE = 1e100
+
+
+@_jit
+def _finite_small(a, n):
+    """-1 if a[0:n] holds a NaN or inf, 1 if a value is >= LARGE in magnitude, else 0."""
+    big = 0
+    for i in range(n):
+        v = a[i]
+        if v != v or v - v != 0.0:
+            return -1
+        if abs(v) >= LARGE:
+            big = 1
+    return big
+
+
+@_jit
+def read_state(qj, dqj, pb, quat, vb, wb, quat_n, R):
+    """StarlethController._read_state's checks and arithmetic: 1 (no state: a NaN or inf
+    among the inputs, or a quaternion of squared norm < 1e-12), 2 (a value >= LARGE: the
+    caller decides with its numpy sums), else 0 with quat_n = quat / |quat| (|quat|² summed
+    in order, as numpy's 4-element dot product does) and R = quat_to_rot(quat_n)."""
+    c1 = _finite_small(qj, qj.shape[0])      # one call each: the arrays' layouts may differ
+    c2 = _finite_small(dqj, dqj.shape[0])
+    c3 = _finite_small(pb, pb.shape[0])
+    c4 = _finite_small(quat, quat.shape[0])
+    c5 = _finite_small(vb, vb.shape[0])
+    c6 = _finite_small(wb, wb.shape[0])
+    if min(c1, c2, c3, c4, c5, c6) < 0:
+        return 1
+    if max(c1, c2, c3, c4, c5, c6) > 0:
+        return 2
+    nq = 0.0
+    for i in range(4):
+        nq += quat[i] * quat[i]
+    if nq < 1e-12:
+        return 1
+    n = math.sqrt(nq)
+    for i in range(4):
+        quat_n[i] = quat[i] / n
+    quat_to_rot(quat_n[0], quat_n[1], quat_n[2], quat_n[3], R)
+    return 0
+
+
+@_jit
+def node_state(position, velocity, perm, odom, forces, threshold, q, dq, pb, quat, v, w, R,
+               contact):
+    """controller_node's reading of one stamp's messages, in the order of operations of its
+    numpy code: q, dq = position, velocity [perm]; from the 13 odometry values (position,
+    orientation xyzw, linear and angular velocity) pb, quat / |quat| (|quat|² summed in
+    order), v and w as given, R the rotation of the normalised quaternion (the node's
+    formula: no second normalisation); contact = |force| > threshold per foot (x² + y² + z²
+    summed in order, as numpy's sum over the last axis of a (4, 3) array does). 0: done;
+    1: anything that the checks of the numpy code might refuse (a NaN or inf, a value >=
+    LARGE, |quat|² outside (0.5, 2)): the caller runs them."""
+    for i in range(perm.shape[0]):
+        x = position[perm[i]]
+        y = velocity[perm[i]]
+        if x != x or x - x != 0.0 or abs(x) >= LARGE or \
+                y != y or y - y != 0.0 or abs(y) >= LARGE:
+            return 1
+    if _finite_small(odom, 13) != 0:
+        return 1
+    for k in range(4):
+        for j in range(3):
+            x = forces[k, j]
+            if x != x or x - x != 0.0 or abs(x) >= LARGE:
+                return 1
+    nq = 0.0
+    for i in range(4):
+        nq += odom[3 + i] * odom[3 + i]
+    if not 0.5 < nq < 2.0:
+        return 1
+    for i in range(perm.shape[0]):
+        q[i] = position[perm[i]]
+        dq[i] = velocity[perm[i]]
+    n = math.sqrt(nq)
+    for i in range(3):
+        pb[i] = odom[i]
+        v[i] = odom[7 + i]
+        w[i] = odom[10 + i]
+    for i in range(4):
+        quat[i] = odom[3 + i] / n
+    x, y, z, ww = quat[0], quat[1], quat[2], quat[3]
+    R[0, 0] = 1 - 2 * (y * y + z * z)
+    R[0, 1] = 2 * (x * y - z * ww)
+    R[0, 2] = 2 * (x * z + y * ww)
+    R[1, 0] = 2 * (x * y + z * ww)
+    R[1, 1] = 1 - 2 * (x * x + z * z)
+    R[1, 2] = 2 * (y * z - x * ww)
+    R[2, 0] = 2 * (x * z - y * ww)
+    R[2, 1] = 2 * (y * z + x * ww)
+    R[2, 2] = 1 - 2 * (x * x + y * y)
+    for k in range(4):
+        f0, f1, f2 = forces[k, 0], forces[k, 1], forces[k, 2]
+        contact[k] = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2) > threshold
+    return 0
+
+
 @_jit
 def leg_kinematics(qj, R, pb, hip, geo, centre, contact, Jf, Jc):
     """Foot sphere centres and contact points (world), and the world-frame translational

@@ -435,6 +435,61 @@ def test_bad_input_never_gives_nan_torque():
     assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= 20.0)
 
 
+
+def test_state_kernels_match_the_numpy_arithmetic():
+    """kernels.read_state / node_state (the common case of reading a state in
+    StarlethController and controller_node) give the values of the numpy code they replace
+    bit for bit (|quat|² and |force|² summed in order, no second normalisation in the
+    node's R), and leave NaN, inf and values >= 1e100 to the checks of that code."""
+    from starleth_controller import kernels as K
+    rng = np.random.default_rng(5)
+    quat_n, R = np.zeros(4), np.zeros((3, 3))
+    q, dq, pb, qn, v, w = (np.zeros(12), np.zeros(12), np.zeros(3), np.zeros(4), np.zeros(3),
+                           np.zeros(3))
+    Rn, contact = np.zeros((3, 3)), np.zeros(4, dtype=bool)
+    perm = rng.permutation(12).astype(np.int64)
+    for _ in range(2000):
+        qj, dqj = rng.normal(size=12), rng.normal(size=12) * 10
+        quat = rng.normal(size=4) * rng.uniform(0.75, 1.35)
+        vb, wb, p = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+        assert K.read_state(qj, dqj, p, quat, vb, wb, quat_n, R) == 0
+        ref = quat / math.sqrt(float(quat @ quat))
+        R_ref = np.zeros((3, 3))
+        K.quat_to_rot(ref[0], ref[1], ref[2], ref[3], R_ref)
+        assert quat_n.tobytes() == ref.tobytes() and R.tobytes() == R_ref.tobytes()
+        odom = np.concatenate((p, quat, vb, wb))
+        forces = rng.normal(size=(4, 3)) * rng.uniform(0.0, 10.0, size=(4, 1))
+        nq = float(quat @ quat)
+        status = K.node_state(qj, dqj, perm, odom, forces, 5.0, q, dq, pb, qn, v, w, Rn,
+                              contact)
+        if not 0.5 < nq < 2.0:
+            assert status == 1
+            continue
+        assert status == 0
+        qr = quat / math.sqrt(nq)
+        x, y, z, ww = qr.tolist()
+        Rr = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * ww), 2 * (x * z + y * ww)],
+                       [2 * (x * y + z * ww), 1 - 2 * (x * x + z * z), 2 * (y * z - x * ww)],
+                       [2 * (x * z - y * ww), 2 * (y * z + x * ww), 1 - 2 * (x * x + y * y)]])
+        assert q.tobytes() == qj[perm].tobytes() and dq.tobytes() == dqj[perm].tobytes()
+        assert qn.tobytes() == qr.tobytes() and Rn.tobytes() == Rr.tobytes()
+        assert (contact == (np.sqrt((forces * forces).sum(axis=1)) > 5.0)).all()
+    qj = rng.normal(size=12)
+    for bad, expect in ((np.nan, 1), (np.inf, 1), (-np.inf, 1), (1e100, 2), (-3e200, 2)):
+        a = qj.copy()
+        a[3] = bad
+        assert K.read_state(a, qj, p, quat, vb, wb, quat_n, R) == expect
+        assert K.node_state(a, qj, perm, odom, forces, 5.0, q, dq, pb, qn, v, w, Rn,
+                            contact) == 1
+    assert K.read_state(qj, qj, p, np.full(4, 1e-7), vb, wb, quat_n, R) == 1
+    # a huge value goes the numpy way: the torques are those of before (finite, saturated)
+    sim = Simulator.from_preset("HmJ")
+    ctrl = StarlethController(urdf_path())
+    st = RobotState.from_simulator(sim)
+    st.joint_velocities = np.full(12, 1e150)
+    tau = ctrl.update(st, Command("stand"))
+    assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= 20.0)
+
 def test_controller_does_not_import_the_simulator():
     code = ("import sys, starleth_controller, starleth_controller.controller_node; "
             "assert not any(m.startswith('starleth_sim') for m in sys.modules), "
