@@ -21,7 +21,12 @@ _jit = nb.njit(cache=True, fastmath=False, nogil=True)
 @_jit
 def quat_to_rot(qx, qy, qz, qw, R):
     n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-    x, y, z, w = qx / n, qy / n, qz / n, qw / n
+    rot_of_unit_quat(qx / n, qy / n, qz / n, qw / n, R)
+
+
+@nb.njit(cache=True, inline="always")
+def rot_of_unit_quat(x, y, z, w, R):
+    """R of the unit quaternion (x, y, z, w)."""
     R[0, 0] = 1 - 2 * (y * y + z * z)
     R[0, 1] = 2 * (x * y - z * w)
     R[0, 2] = 2 * (x * z + y * w)
@@ -119,16 +124,7 @@ def node_state(position, velocity, perm, odom, forces, threshold, q, dq, pb, qua
         w[i] = odom[10 + i]
     for i in range(4):
         quat[i] = odom[3 + i] / n
-    x, y, z, ww = quat[0], quat[1], quat[2], quat[3]
-    R[0, 0] = 1 - 2 * (y * y + z * z)
-    R[0, 1] = 2 * (x * y - z * ww)
-    R[0, 2] = 2 * (x * z + y * ww)
-    R[1, 0] = 2 * (x * y + z * ww)
-    R[1, 1] = 1 - 2 * (x * x + z * z)
-    R[1, 2] = 2 * (y * z - x * ww)
-    R[2, 0] = 2 * (x * z - y * ww)
-    R[2, 1] = 2 * (y * z + x * ww)
-    R[2, 2] = 1 - 2 * (x * x + y * y)
+    rot_of_unit_quat(quat[0], quat[1], quat[2], quat[3], R)
     for k in range(4):
         f0, f1, f2 = forces[k, 0], forces[k, 1], forces[k, 2]
         contact[k] = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2) > threshold
