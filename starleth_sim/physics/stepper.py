@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import prox
+from .actuator import saturate_torque
 from .config import ConfigError
 from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
@@ -55,7 +56,6 @@ from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings, clock,
                            complete_hard_contacts, end_of_step, lap, prepare_hard_contacts,
                            solve_compliant, solve_hard_contacts)
-from .actuator import saturate_torque
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
                         TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, CutModel, TreeStepModel,
                         forest_step_hard, report_size, report_views, tree_step_compliant,
