@@ -167,13 +167,48 @@ def col_pattern(A):
     return row_pattern(A.T)
 
 
+#: with more rows than this, delassus first looks for the entries of G that are zero
+#: because their row of W^T and column of M^{-1}W share no velocity (_dof_masks)
+DELASSUS_MASK_ROWS = 24
+
+
 @nb.njit(cache=True, inline="always")
-def delassus(Wt, MinvW, G, wp_ptr, wp_idx):
+def _dof_masks(ptr, idx, nv):
+    """One 64-bit mask per row of a CSR pattern: bit (k·64) // nv set for each nonzero
+    column k (nv velocities in 64 buckets): two rows whose masks share no bit share no
+    nonzero column."""
+    n = ptr.shape[0] - 1
+    masks = np.zeros(n, dtype=np.uint64)
+    for a in range(n):
+        mask = np.uint64(0)
+        for p in range(ptr[a], ptr[a + 1]):
+            mask |= np.uint64(1) << np.uint64((idx[p] * 64) // nv)
+        masks[a] = mask
+    return masks
+
+
+@nb.njit(cache=True, inline="always")
+def delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx):
     """G = W^T M^{-1} W (symmetric; both triangles written). Wt: m x nv, MinvW: nv x m,
-    (wp_ptr, wp_idx): nonzero pattern of the rows of Wt."""
-    m = Wt.shape[0]
+    (wp_ptr, wp_idx): nonzero pattern of the rows of Wt, (mp_ptr, mp_idx): of the columns
+    of MinvW. With more than DELASSUS_MASK_ROWS rows, an entry whose row of W^T and column
+    of M^{-1}W share no velocity (their _dof_masks share no bit) is set to 0.0 without its
+    sum, which would be 0.0 too (a sum of ±0 products from +0): the same G bit for bit, at
+    a fraction of the work when M^{-1} is block-diagonal over many trees (the maximal
+    coordinates: a bilateral row touches two of 17 bodies)."""
+    m, nv = Wt.shape
+    masked = m > DELASSUS_MASK_ROWS
+    if masked:
+        row_mask = _dof_masks(wp_ptr, wp_idx, nv)
+        col_mask = _dof_masks(mp_ptr, mp_idx, nv)
+    else:
+        row_mask = col_mask = np.zeros(0, dtype=np.uint64)
     for a in range(m):
         for b in range(a, m):
+            if masked and (row_mask[a] & col_mask[b]) == 0:
+                G[a, b] = 0.0
+                G[b, a] = 0.0
+                continue
             s = 0.0
             for p in range(wp_ptr[a], wp_ptr[a + 1]):
                 k = wp_idx[p]

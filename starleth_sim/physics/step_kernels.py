@@ -279,7 +279,7 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     Gdiag = np.empty(m)
     if form == prox.FORM_DELASSUS:
         G = np.empty((m, m))
-        prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx)
+        prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx)
         for a in range(m):
             Gdiag[a] = G[a, a]
         gp_ptr, gp_idx = prox.row_pattern(G)
