@@ -126,3 +126,38 @@ def test_too_aggressive_alpha_is_reported_not_accepted():
     sim2.reset(q)
     d2 = sim2.step()
     assert d2.converged and d2.retried
+
+
+@pytest.mark.parametrize("m", [12, 40])
+def test_delassus_of_block_sparse_rows_is_the_dense_product_bit_for_bit(m):
+    """G = W^T M^{-1} W of rows that touch few of many blocks (the maximal coordinates): the
+    entries delassus skips (more than DELASSUS_MASK_ROWS rows, no shared velocity) are +0.0
+    and the others the same sums, bit for bit, as the plain loop over each row's nonzeros."""
+    rng = np.random.default_rng(m)
+    nv, blocks = 102, 17
+    Wt = np.zeros((m, nv))
+    for a in range(m):                       # each row on two random 6-velocity blocks
+        for blk in rng.choice(blocks, 2, replace=False):
+            Wt[a, 6 * blk:6 * blk + 6] = rng.normal(size=6) * (rng.random(6) < 0.8)
+    Wt[0, :6] = -0.0                          # signed zeros are zeros of the pattern
+    Minv = np.zeros((nv, nv))
+    for blk in range(blocks):                # block-diagonal M^{-1}
+        A = rng.normal(size=(6, 6))
+        Minv[6 * blk:6 * blk + 6, 6 * blk:6 * blk + 6] = A @ A.T + 6 * np.eye(6)
+    MinvW = np.ascontiguousarray(Minv @ Wt.T)
+    MinvW[MinvW == 0.0] = 0.0
+    wp_ptr, wp_idx = prox.row_pattern(Wt)
+    mp_ptr, mp_idx = prox.col_pattern(MinvW)
+    G = np.full((m, m), np.nan)
+    prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx)
+    ref = np.empty((m, m))
+    for a in range(m):                       # the plain loop: every pair summed
+        for b in range(a, m):
+            s = 0.0
+            for k in wp_idx[wp_ptr[a]:wp_ptr[a + 1]]:
+                s += Wt[a, k] * MinvW[k, b]
+            ref[a, b] = ref[b, a] = s
+    assert G.tobytes() == ref.tobytes()
+    np.testing.assert_allclose(G, Wt @ MinvW, rtol=1e-12, atol=1e-12)
+    # most pairs of rows share no block: the masked path has entries to skip
+    assert np.count_nonzero(ref == 0.0) > m * m // 2
