@@ -442,8 +442,7 @@ def _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f
     for k in range(applied.shape[0]):
         if joint_cut[k] < 0:
             h[joint_v[k]] += applied[k]
-    for k in range(applied.shape[0]):
-        if joint_cut[k] >= 0:
+        else:
             tau_cut[joint_cut[k]] = applied[k]
     cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, model[1], model[2], model[6],
                       model[7], model[8], h)
