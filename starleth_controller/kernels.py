@@ -44,6 +44,12 @@ def rot_of_unit_quat(x, y, z, w, R):
 LARGE = 1e100
 
 
+@nb.njit(cache=True, inline="always")
+def _unfit(x):
+    """x is NaN, inf or >= LARGE in magnitude (left to the callers' numpy checks)."""
+    return x != x or x - x != 0.0 or abs(x) >= LARGE
+
+
 @_jit
 def _finite_small(a, n):
     """-1 if a[0:n] holds a NaN or inf, 1 if a value is >= LARGE in magnitude, else 0."""
@@ -97,17 +103,13 @@ def node_state(position, velocity, perm, odom, forces, threshold, q, dq, pb, qua
     1: anything that the checks of the numpy code might refuse (a NaN or inf, a value >=
     LARGE, |quat|² outside (0.5, 2)): the caller runs them."""
     for i in range(perm.shape[0]):
-        x = position[perm[i]]
-        y = velocity[perm[i]]
-        if x != x or x - x != 0.0 or abs(x) >= LARGE or \
-                y != y or y - y != 0.0 or abs(y) >= LARGE:
+        if _unfit(position[perm[i]]) or _unfit(velocity[perm[i]]):
             return 1
     if _finite_small(odom, 13) != 0:
         return 1
     for k in range(4):
         for j in range(3):
-            x = forces[k, j]
-            if x != x or x - x != 0.0 or abs(x) >= LARGE:
+            if _unfit(forces[k, j]):
                 return 1
     nq = 0.0
     for i in range(4):
