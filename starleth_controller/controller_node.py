@@ -7,6 +7,8 @@ ROS 2 topics. A thin adapter: no control law in here.
 Subscribed (topic names are the defaults, relative: ``--ros-args -r __ns:=/robot1`` puts
 them under /robot1, beside that robot's sim_node; remap them for another robot):
 
+    starleth/state_bundle                std_msgs/Float64MultiArray   sim_node's state of a step
+                                                                      in one message
     joint_states                         sensor_msgs/JointState       by name: position, velocity
     starleth/base_state                  nav_msgs/Odometry            ground-truth base state
     starleth/{LF,RF,LH,RH}_foot/wrench   geometry_msgs/WrenchStamped  contact: |force| > threshold
@@ -30,6 +32,16 @@ The base state is taken from ``/starleth/base_state`` as *ground truth* (the sim
 Odometry: pose in the world frame, twist in the child (base) frame as REP 105 says; set
 ``twist_frame:=parent`` for a source that gives the linear velocity in the world frame). A
 state estimator is out of scope.
+
+State input (``state_input``): ``auto`` (the default) subscribes to the state bundle
+(:mod:`starleth_interface.state_bundle`: sim_node's joint state, base state and foot forces
+of one step in one message, the same floats) and to the public state topics; the first
+valid bundle makes the node unsubscribe from the public ones and read bundles alone (one
+message per step instead of six: sim_node then sends the public topics only to their other
+subscribers). Any start order works: the bundle is looked for as long as the node runs. A
+source that sends no bundle (a robot driver, a bag) is read from the public topics;
+after a bundle source, restart the node (or set ``state_input:=topics``) to read one.
+``bundle`` / ``topics`` read only that input.
 
 Synchronisation: a simulator (or robot driver) publishes the state of one control step on
 all state topics with the same header stamp. The node keeps the messages of the last few
@@ -85,8 +97,10 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             declare_parameters, init_ros, make_executor,
                                             set_cpu_scheduling, shutdown_ros)
 from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader
+from starleth_interface import state_bundle
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
-                                       TOPIC_JOINT_STATES, foot_wrench_topic)
+                                       TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
+                                       foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
 from .kernels import node_state
 from .model import JOINT_NAMES, LEGS, default_urdf_path
@@ -110,6 +124,10 @@ PARAMETERS = (
     P("effort_array_topic", str, "", "also publish a std_msgs/Float64MultiArray of the 12 "
       "torques on this topic (e.g. /joint_group_effort_controller/commands); empty = off. Do "
       "not send both to a lockstep simulator."),
+    P("state_input", str, "auto", "auto: the public state topics until a state bundle "
+      "arrives, then the bundle alone | bundle | topics", choices=("auto", "bundle", "topics")),
+    P("state_bundle_topic", str, TOPIC_STATE_BUNDLE, "std_msgs/Float64MultiArray state "
+      "bundle input (sim_node's; layout in starleth_interface.state_bundle)"),
     P("joint_states_topic", str, TOPIC_JOINT_STATES, "sensor_msgs/JointState input"),
     P("base_state_topic", str, TOPIC_BASE_STATE, "nav_msgs/Odometry input (ground truth)"),
     P("foot_wrench_topics", list, list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped "
@@ -272,9 +290,18 @@ class ControllerNode(Node):
                                history=HistoryPolicy.KEEP_LAST)
         # the state topics are taken as CDR bytes: the common case is read straight from
         # them (starleth_interface.msg_cdr), anything else deserialised by rclpy
-        self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
-                                               self._on_joint_states_cdr, state_qos, raw=True)
-        self._setup_side_inputs(p, state_qos)
+        self.state_input = p["state_input"]
+        self._bundled = False     # reading the bundle alone (auto: after the first one)
+        self.sub_bundle = (self.create_subscription(
+            Float64MultiArray, p["state_bundle_topic"], self._on_bundle_cdr, state_qos,
+            raw=True) if self.state_input != "topics" else None)
+        self.sub_js = self._side_node = None
+        self._side_inputs = []
+        if self.state_input != "bundle":
+            self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
+                                                   self._on_joint_states_cdr, state_qos,
+                                                   raw=True)
+            self._setup_side_inputs(p, state_qos)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
         self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot)
@@ -335,8 +362,25 @@ class ControllerNode(Node):
             self._side_poll.cancel()
 
     def destroy_node(self):
-        self._side_node.destroy_node()
+        if self._side_node is not None:
+            self._side_node.destroy_node()
         return super().destroy_node()
+
+    def _read_bundles_only(self):
+        """auto: the first bundle arrived; unsubscribe from the public state topics (the
+        simulator then stops sending them to this node) and forget their partial stamps."""
+        self._bundled = True
+        if self.sub_js is not None:
+            self.destroy_subscription(self.sub_js)
+            self.sub_js = None
+            for sub, _ in self._side_inputs:
+                self._side_node.destroy_subscription(sub)
+            self._side_inputs = []
+            self._side_poll.cancel()
+            self._pending.clear()
+        self.log.info(f"state from {self.sub_bundle.topic_name} (one message per step)"
+                      + ("; unsubscribed from the public state topics"
+                         if self.state_input == "auto" else ""))
 
     def _clock_seconds(self) -> float:
         """The node's clock [s]: /clock with use_sim_time, else the system clock."""
@@ -439,7 +483,43 @@ class ControllerNode(Node):
             self._warn("bad_cdr", f"ignored an undecodable {what}: {e}")
             return None
 
+    def _on_bundle_cdr(self, data):
+        """A state bundle: the whole state of its stamp (starleth_interface.state_bundle),
+        answered at once."""
+        r = state_bundle.decode(data)
+        if isinstance(r, str):
+            self.counters["rejected"] += 1
+            self._warn("bundle", f"ignored a message on {self.sub_bundle.topic_name}: {r}")
+            return
+        if not self._bundled:
+            self._read_bundles_only()
+        sec, nsec, v = r
+        stamp = sec * 1_000_000_000 + nsec
+        if self._answered_before(stamp):
+            return
+        s = _Slot()
+        s.js = (sec, nsec, state_bundle.JOINT_NAMES, v[state_bundle.SLICES["q"]],
+                v[state_bundle.SLICES["u"]])
+        s.odom = v[state_bundle.BASE]
+        s.wrench = v[state_bundle.SLICES["force"]].reshape(4, 3)
+        s.n = 6
+        self._complete(stamp, s)
+
+    def _answered_before(self, stamp) -> bool:
+        """`stamp` is the state answered last: a simulator re-sending a state it got no
+        answer for (its first one, sent before the topics matched) gets the same answer
+        again; a copy that crossed the answer in flight (within REPEAT_AFTER) is ignored."""
+        last = self._last_answer
+        if last is None or last[0] != stamp:
+            return False
+        if time.monotonic() - last[3] > self.REPEAT_AFTER:
+            self.counters["repeated"] += 1
+            self._publish(last[1], last[2])
+        return True
+
     def _on_joint_states_cdr(self, data):
+        if self._bundled:       # a public message still queued after the switch
+            return
         # the rest of this state first (one message of each side input), then the joint
         # state, which completes it and gets the answer out; then anything else waiting
         self._take_side_inputs(drain=False)
@@ -479,14 +559,7 @@ class ControllerNode(Node):
                                                   msg.position, msg.velocity))
 
     def _joint_state(self, stamp, js):
-        last = self._last_answer
-        if last is not None and last[0] == stamp:
-            # the same state again: a simulator re-sending a state it got no answer for (its
-            # first one, sent before the topics matched) gets the same answer again; a copy
-            # that crossed the answer in flight (within REPEAT_AFTER) is ignored
-            if time.monotonic() - last[3] > self.REPEAT_AFTER:
-                self.counters["repeated"] += 1
-                self._publish(last[1], last[2])
+        if self._answered_before(stamp):
             return
         s = self._slot(stamp)
         new = s.js is None

@@ -13,6 +13,8 @@ TOPIC_JOINT_STATES = "joint_states"
 TOPIC_BASE_STATE = "starleth/base_state"
 TOPIC_IMU = "starleth/imu"
 TOPIC_SOLVER = "starleth/solver"
+#: the state of a step in one message, sim_node -> controller_node (starleth_interface.state_bundle)
+TOPIC_STATE_BUNDLE = "starleth/state_bundle"
 TOPIC_ROBOT_DESCRIPTION = "robot_description"
 TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
 TOPIC_JOINT_COMMANDS = "joint_commands"

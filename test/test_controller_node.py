@@ -27,6 +27,7 @@ from rclpy.qos import QoSProfile  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from geometry_msgs.msg import WrenchStamped  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 from rcl_interfaces.srv import SetParameters, GetParameters  # noqa: E402
 
@@ -209,13 +210,16 @@ class FakeRobot:
     """Publishes one control step's state (joint state, base state, four foot wrenches) with
     a given stamp, and collects the /joint_commands answers by stamp."""
 
-    def __init__(self, node):
+    def __init__(self, node, ns=""):
         qos = QoSProfile(depth=10)
-        self.pub_js = node.create_publisher(JointState, "/joint_states", qos)
-        self.pub_odom = node.create_publisher(Odometry, "/starleth/base_state", qos)
-        self.pub_w = [node.create_publisher(WrenchStamped, t, qos) for t in WRENCH_TOPICS]
+        self.pub_js = node.create_publisher(JointState, ns + "/joint_states", qos)
+        self.pub_odom = node.create_publisher(Odometry, ns + "/starleth/base_state", qos)
+        self.pub_w = [node.create_publisher(WrenchStamped, ns + t, qos) for t in WRENCH_TOPICS]
+        self.pub_bundle = node.create_publisher(Float64MultiArray, ns + "/starleth/state_bundle",
+                                                qos)
         self.answers = {}
-        self.sub = node.create_subscription(JointState, "/joint_commands", self.on_cmd, qos)
+        self.sub = node.create_subscription(JointState, ns + "/joint_commands", self.on_cmd,
+                                            qos)
         # standing posture (front knees backwards, hind knees forwards)
         self.q = np.array([0.0, 0.6, -1.2, 0.0, 0.6, -1.2, 0.0, -0.6, 1.2, 0.0, -0.6, 1.2])
 
@@ -245,19 +249,31 @@ class FakeRobot:
         js.velocity = [0.0] * len(qq) if velocity is None else [float(x) for x in velocity]
         self.pub_js.publish(js)
 
-    def _publish_rest(self, stamp, z, quat, fz):
+    def publish_bundle(self, ns, q, velocity, z, quat, twist, forces):
+        """The same state as one starleth/state_bundle (sim_node's layout)."""
+        from starleth_interface.state_bundle import StateBundleCdr
+        self.pub_bundle.publish(StateBundleCdr().build(
+            ns // 1_000_000_000, ns % 1_000_000_000, q, velocity, np.zeros(12),
+            (0.0, 0.0, z, *quat), twist, np.asarray(forces).reshape(-1)))
+
+    def _publish_rest(self, stamp, z, quat, fz, twist=(0.0,) * 6):
         o = Odometry()
         o.header.stamp = stamp
         o.header.frame_id, o.child_frame_id = "world", "base"
         o.pose.pose.position.z = float(z)
         ori = o.pose.pose.orientation
         ori.x, ori.y, ori.z, ori.w = (float(x) for x in quat)
+        tw = o.twist.twist
+        (tw.linear.x, tw.linear.y, tw.linear.z,
+         tw.angular.x, tw.angular.y, tw.angular.z) = (float(x) for x in twist)
         self.pub_odom.publish(o)
-        for p in self.pub_w:
+        for k, p in enumerate(self.pub_w):
             w = WrenchStamped()
             w.header.stamp = stamp
             w.header.frame_id = "world"
-            w.wrench.force.z = float(fz)
+            f = w.wrench.force
+            f.x, f.y, f.z = ((0.0, 0.0, float(fz)) if np.ndim(fz) == 0
+                             else (float(x) for x in fz[k]))
             p.publish(w)
 
 
@@ -340,6 +356,83 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
     assert "'rejected': 7" in log and "'dropped_incomplete': 0" in log, log[-2000:]
 
 
+def test_state_bundle_gives_the_public_topics_answers_and_rejects_bad_bundles(tmp_path):
+    """controller_node reading the state bundle (state_input auto) answers exactly what a
+    controller_node reading the public topics answers (the same floats: bit-identical
+    torques) over states that vary every step; after the first bundle it no longer
+    subscribes to the public topics; a bundle of another layout, truncated bytes or a NaN
+    inside is a logged rejection, and good bundles are answered after it."""
+    from std_msgs.msg import MultiArrayDimension
+    from starleth_interface.state_bundle import LABEL, StateBundleCdr
+    topics = Proc("starleth_controller.controller_node", str(tmp_path / "topics.log"),
+                  namespace="/by_topics", state_input="topics", warn_throttle_period=0.0)
+    bundle = Proc("starleth_controller.controller_node", str(tmp_path / "bundle.log"),
+                  namespace="/by_bundle", warn_throttle_period=0.0)
+    ros = RosTestNode(DOMAIN_ID, "fake_robots")
+    try:
+        a, b = FakeRobot(ros.node, "/by_topics"), FakeRobot(ros.node, "/by_bundle")
+        assert ros.spin_until(lambda: a.matched() and b.matched(), START_TIMEOUT,
+                              [topics, bundle]), topics.log() + bundle.log()
+        assert b.pub_bundle.get_subscription_count() == 1
+        assert a.pub_bundle.get_subscription_count() == 0      # state_input:=topics
+        ros.spin_for(0.2)
+        rng = np.random.default_rng(7)
+        for k in range(1, 41):
+            ns = k * PERIOD_NS
+            q = a.q + rng.normal(0.0, 0.05, 12)
+            dq = rng.normal(0.0, 0.5, 12)
+            z = 0.41 + rng.normal(0.0, 0.01)
+            quat = rng.normal(0.0, 0.03, 4) + (0, 0, 0, 1)
+            quat /= np.linalg.norm(quat)
+            twist = rng.normal(0.0, 0.2, 6)
+            forces = np.abs(rng.normal(0.0, 1.0, (4, 3))) * (2, 2, 60) * (k % 4 != 0)
+            a._publish_rest(_stamp(ns), z, quat, forces, twist)
+            a.publish(ns, q=q, velocity=dq, only="js")
+            b.publish_bundle(ns, q, dq, z, quat, twist, forces)
+            assert ros.spin_until(lambda: ns in a.answers and ns in b.answers, 3.0,
+                                  [topics, bundle]), (k, topics.log()[-1500:], bundle.log())
+            got, want = np.asarray(b.answers[ns].effort), np.asarray(a.answers[ns].effort)
+            assert got.tobytes() == want.tobytes(), (k, got - want)
+            assert list(b.answers[ns].name) == JOINTS
+        # the public topics are no longer read: nobody subscribes to them in /by_bundle
+        ros.spin_for(0.3)
+        assert b.pub_js.get_subscription_count() == 0 and \
+            b.pub_odom.get_subscription_count() == 0, "still subscribed to the public topics"
+        # bad bundles: another label, truncated bytes, a NaN position; no answer, no crash
+        m = Float64MultiArray()
+        m.layout.dim = [MultiArrayDimension(label="something_else", size=63, stride=63)]
+        m.data = [0.0, 0.0] + [1.0] * 61
+        b.pub_bundle.publish(m)
+        good = StateBundleCdr().build(0, 42 * PERIOD_NS, b.q, np.zeros(12), np.zeros(12),
+                                      (0, 0, 0.41, 0, 0, 0, 1), np.zeros(6),
+                                      np.tile((0.0, 0.0, 65.0), 4))
+        b.pub_bundle.publish(good[:-8])
+        nan_q = b.q.copy()
+        nan_q[3] = math.nan
+        b.publish_bundle(43 * PERIOD_NS, nan_q, np.zeros(12), 0.41, (0, 0, 0, 1),
+                         np.zeros(6), np.tile((0.0, 0.0, 65.0), 4))
+        ros.spin_for(0.5)
+        assert not {42 * PERIOD_NS, 43 * PERIOD_NS} & set(b.answers)
+        assert bundle.alive(), bundle.log()
+        b.publish_bundle(44 * PERIOD_NS, b.q, np.zeros(12), 0.41, (0, 0, 0, 1), np.zeros(6),
+                         np.tile((0.0, 0.0, 65.0), 4))
+        assert ros.spin_until(lambda: 44 * PERIOD_NS in b.answers, 3.0, [bundle]), bundle.log()
+        # a public joint state after the switch is not read
+        b.publish(45 * PERIOD_NS)
+        ros.spin_for(0.3)
+        assert 45 * PERIOD_NS not in b.answers
+    finally:
+        ros.close()
+        rc_a, rc_b = topics.stop(), bundle.stop()
+    log = bundle.log()
+    assert rc_a == 0 and rc_b == 0, log
+    assert "state from /by_bundle/starleth/state_bundle" in log
+    assert "state from" not in topics.log()
+    assert f"not a {LABEL} bundle" in log and "'something_else'" in log
+    assert "undecodable Float64MultiArray" in log and "non-finite position" in log
+    assert "'rejected': 3" in log, log[-2000:]
+
+
 # -----------------------------------------------------------------------------------------
 # the composed mode: both nodes in one process on one executor (issue 13)
 # -----------------------------------------------------------------------------------------
@@ -365,14 +458,27 @@ def test_composed_mode_records_every_step_and_matches_the_headless_simulator(tmp
     ros.node.create_subscription(
         Clock, "/clock", lambda m: t.__setitem__("now", m.clock.sec + m.clock.nanosec * 1e-9),
         QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    # another subscriber of /joint_states: the controller reads the state bundle, the public
+    # topics still go to everyone else, every step
+    seen = []
+    ros.node.create_subscription(
+        JointState, "/joint_states",
+        lambda m: seen.append(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec),
+        QoSProfile(depth=100))
     try:
-        assert ros.spin_until(lambda: t["now"] >= 1.0, START_TIMEOUT, [sim]), sim.log()[-3000:]
+        assert ros.spin_until(lambda: t["now"] >= 1.0 and len(set(seen)) >= 100,
+                              START_TIMEOUT, [sim]), sim.log()[-3000:]
     finally:
         rc = sim.stop()
         ros.close()
     log = sim.log()
     assert rc == 0, log[-3000:]
     assert "with controller_node in this process" in log and "recording finalised" in log
+    assert "state from /starleth/state_bundle" in log     # the controller reads the bundle
+    later = np.array(sorted(set(seen)))
+    span = (later[-1] - later[0]) // PERIOD_NS + 1
+    # (a watcher outside the lockstep may lose a message under load: most, not all)
+    assert len(later) >= 100 and len(later) >= 0.5 * span, (len(later), span)
     summary = sim.summary()
     assert summary["lockstep_timeouts"] == 0 and summary["commands_rejected"] == 0, summary
 

@@ -30,6 +30,12 @@ nobody subscribes to is not published; while recording it is only recorded):
                                                                        step, interface counters
                                                                        every 40 steps
   robot_description                       std_msgs/String              URDF, transient local
+  starleth/state_bundle                   std_msgs/Float64MultiArray   the state of a step in
+                                                                       one message, for
+                                                                       controller_node (not
+                                                                       recorded; layout:
+                                                                       starleth_interface.
+                                                                       state_bundle)
 
 Subscribed (reliable, depth 10):
 
@@ -72,10 +78,13 @@ Lockstep critical path (command in -> step -> state out): commands are taken as 
 and the common valid case is decoded without an rclpy message object (:mod:`.cdr`; the
 rest is deserialised and validated in full); the state goes out as CDR bytes patched into
 templates (:mod:`starleth_interface.msg_cdr`: each message is serialised once, for
-publishing and recording alike), what a controller waits for first (the foot wrenches,
-the base state, then /joint_states: a controller answers on the joint state and finds the
-rest of the state already there; controller_node then takes it from its queues, one wake-up
-per state), then /clock, /starleth/imu, /starleth/solver; the recorder only
+publishing and recording alike). What a controller waits for goes first: with a
+subscriber to ``starleth/state_bundle`` (controller_node) that one message, and the public
+topics after it, while the controller computes (published only to their other
+subscribers: controller_node then reads the bundle alone); otherwise the foot wrenches,
+the base state, then /joint_states (a controller answers on the joint state and finds the
+rest of the state already there; controller_node takes it from its queues, one wake-up
+per state); then /clock, /starleth/imu, /starleth/solver; the recorder only
 takes the bytes over (:class:`~.recording.ProcessRecorder`: a writer process adds them to
 the file, outside this interpreter, handed over every ``HAND_OVER_STEPS`` steps;
 :class:`~.recording.QueuedRecorder`, a writer thread, where no process can be started;
@@ -116,12 +125,14 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
 from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr, SlotCdr
+from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
+from starleth_interface.state_bundle import StateBundleCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
                                             make_executor, set_cpu_scheduling, shutdown_ros)
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONTACT_MARKERS,
                                        TOPIC_EFFORT_COMMANDS, TOPIC_IMU, TOPIC_JOINT_COMMANDS,
-                                       TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION,
-                                       TOPIC_SOLVER, TOPIC_TF, TOPIC_TF_STATIC, TOPIC_WRENCH,
+                                       TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER,
+                                       TOPIC_STATE_BUNDLE, TOPIC_TF, TOPIC_TF_STATIC, TOPIC_WRENCH,
                                        TOPIC_WRENCH_PERSISTENT, foot_wrench_topic)
 from ..physics.config import ConfigError
 from ..physics.description import STARLETH_FEET as FEET
@@ -162,11 +173,13 @@ IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w"
 class CycleTimes:
     """Per-cycle timestamps of the lockstep critical path (time.perf_counter, i.e.
     CLOCK_MONOTONIC: comparable across processes on one host), for benchmarks: command in,
-    stepped, the other state messages out (foot wrenches, base state), /joint_states out
-    (the state a controller waits for is out), recording handed over, post-publish work
-    done (prepare, visualisation). Off unless a benchmark sets ``SimNode.timing``."""
+    stepped, the state a controller waits for out (the bundle; without a bundle subscriber
+    the foot wrenches, the base state and /joint_states), the other state topics out (the
+    public ones after a bundle; else /clock, imu, solver; recorded or published), the
+    post-publish work done (prepare, visualisation, hand-over to the recorder). Off unless
+    a benchmark sets ``SimNode.timing``."""
 
-    FIELDS = ("command_in", "stepped", "others_out", "state_out", "recorded", "done")
+    FIELDS = ("command_in", "stepped", "state_out", "public_out", "done")
 
     def __init__(self, capacity=200_000):
         self.stamp = np.zeros(capacity, np.int64)
@@ -273,6 +286,11 @@ class SimNode:
         i.header.frame_id = s.base_frame
         self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
         self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
+        # the state bundle (starleth_interface.state_bundle): only for the robot whose
+        # joints and feet are in the bundle's order
+        self._bundle_cdr = (StateBundleCdr.create()
+                            if tuple(sim.joint_names) == BUNDLE_JOINT_NAMES
+                            and self._feet_first else None)
         self.timing = None           # a CycleTimes, set by benchmarks
         self.solver_keys = ("iterations", "max_iterations_step", "converged", "status",
                             "residual", "active_contacts", "retried", "step_time",
@@ -330,6 +348,8 @@ class SimNode:
         pub("imu", Imu, TOPIC_IMU, state_qos)
         pub("solver", DiagnosticArray, TOPIC_SOLVER, state_qos)
         pub("robot_description", String, TOPIC_ROBOT_DESCRIPTION, latched)
+        if self._bundle_cdr is not None:
+            pub("state_bundle", Float64MultiArray, TOPIC_STATE_BUNDLE, state_qos)
         self.subs = {}
         # when recording, inputs are taken as CDR bytes: the recording holds exactly what
         # arrived (as rosbag2 does), and the callback deserialises them. Joint commands are
@@ -658,28 +678,39 @@ class SimNode:
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         wanted = self._wanted
         timing = self.timing
-        # what a controller waits for first: the foot wrenches and the base state, then
-        # /joint_states, the message a controller answers on (controller_node takes the
-        # others when it arrives: one wake-up of its executor per state), then the others
+        first = not (svc.counters["steps"] or svc.counters["resets"])
+        base = joints = forces = None    # read from the simulator once, for every topic
+        bundle = self._bundle_wanted(first)
+        if bundle:
+            # what controller_node waits for, in one message; the public topics follow
+            # while it computes
+            base, joints = self._base_values(), self._joint_values()
+            forces = self.sim.contact_forces()
+            self._publish_bundle(sec, nsec, base, joints, forces)
+            if timing is not None:
+                timing.row[2] = time.perf_counter()
+        # the public topics: what a controller waits for first, the foot wrenches and the
+        # base state, then /joint_states, the message a controller answers on
+        # (controller_node takes the others when it arrives: one wake-up of its executor
+        # per state), then the others
         feet = [f for f in FEET if wanted(f, record)]
         if feet:
-            self._publish_foot_wrenches(sec, nsec, feet, record)
+            self._publish_foot_wrenches(sec, nsec, feet, record, forces)
         want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
-        if want_odom or want_imu:
+        if (want_odom or want_imu) and base is None:
             base = self._base_values()
-            if want_odom:
-                self._publish_odometry(sec, nsec, base, record)
-        if timing is not None:
-            timing.row[2] = time.perf_counter()
-        if svc.counters["steps"] or svc.counters["resets"]:
-            send = wanted("joint_states", record)
-        else:   # state 0: the exact count
+        if want_odom:
+            self._publish_odometry(sec, nsec, base, record)
+        if first:   # state 0: the exact count
             send = (self.pubs["joint_states"][0].get_subscription_count() > 0
                     or (record and self.recorder is not None))
+        else:
+            send = wanted("joint_states", record)
         if send:
-            self._publish_joint_states(sec, nsec, record)
-        if timing is not None:
-            timing.row[3] = time.perf_counter()
+            self._publish_joint_states(
+                sec, nsec, record, joints if joints is not None else self._joint_values())
+        if timing is not None and not bundle:
+            timing.row[2] = time.perf_counter()
         if "clock" in self.pubs and wanted("clock", record):
             if self._clock_cdr is not None:
                 self._emit_cdr("clock", self._clock_cdr.build(sec, nsec, ()), record)
@@ -697,7 +728,7 @@ class SimNode:
                 self._fill_diagnostics(sec, nsec, statuses)
                 self._emit("solver", self.diag_msg, record)
         if timing is not None:
-            timing.row[4] = time.perf_counter()
+            timing.row[3] = time.perf_counter()
         if record:
             self._prepare_next_step()
             self._publish_visualisation()
@@ -706,41 +737,66 @@ class SimNode:
                     svc.k % self.HAND_OVER_STEPS == 0:
                 rec.hand_over()       # the last steps' messages to the writer process
         if timing is not None and record:
-            timing.row[5] = time.perf_counter()
+            timing.row[4] = time.perf_counter()
             timing.commit(svc.stamp_ns)
         # subscriber counts for the next state, taken now that this one is out (off the
-        # lockstep critical path): /joint_states every step, the others every
-        # SUBSCRIBER_REFRESH steps
+        # lockstep critical path): /joint_states and the bundle every step, the others
+        # every SUBSCRIBER_REFRESH steps
         if not (0 <= svc.k - self._counts_k < self.SUBSCRIBER_REFRESH):
             self._refresh_counts()
         else:
-            self._counts["joint_states"] = \
-                self.pubs["joint_states"][0].get_subscription_count()
+            for key in self.EVERY_STEP_COUNTS:
+                if key in self.pubs:
+                    self._counts[key] = self.pubs[key][0].get_subscription_count()
 
-    def _publish_joint_states(self, sec, nsec, record):
-        """joint_states: position, velocity and the applied torque as effort."""
+    #: the topics whose subscriber counts are taken after every step: a controller that
+    #: switches between them (controller_node from /joint_states to the bundle) is
+    #: followed at once
+    EVERY_STEP_COUNTS = ("joint_states", "state_bundle")
+
+    def _bundle_wanted(self, first) -> bool:
+        """Send the state bundle: someone subscribes to it (the exact count for state 0 and
+        for a re-send; else the count taken after the previous step). Never recorded: the
+        recording has the public topics."""
+        if self._bundle_cdr is None:
+            return False
+        if first or self._counts_k < 0:
+            return self.pubs["state_bundle"][0].get_subscription_count() > 0
+        return self._counts.get("state_bundle", 0) > 0
+
+    def _joint_values(self):
+        """(φ, φ̇, applied τ) of the current state, public joint order."""
         sim = self.sim
+        return sim.joint_positions(), sim.joint_velocities(), sim.applied_torque
+
+    def _publish_bundle(self, sec, nsec, base, joints, forces):
+        """starleth/state_bundle: the values of joint_states, base_state and the four foot
+        wrenches of this step in one Float64MultiArray (the same floats, bit for bit)."""
+        p, quat, _, w, _, v_body = base
+        data = self._bundle_cdr.build(sec, nsec, *joints, (*p, *quat), (*v_body, *w),
+                                      forces[:len(FEET)].reshape(-1))
+        self.pubs["state_bundle"][0].publish(data)
+
+    def _publish_joint_states(self, sec, nsec, record, joints):
+        """joint_states: position, velocity and the applied torque as effort (joints:
+        _joint_values())."""
         cdr = self._js_cdr
         if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
-            data = cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
-                             sim.applied_torque)
-            self.pubs["joint_states"][0].publish(data)
-            rec = self.recorder
-            if record and rec is not None and not rec.closed:
-                rec.write(self.pubs["joint_states"][1], data, self.service.stamp_ns)
+            self._emit_cdr("joint_states", cdr.build(sec, nsec, *joints), record)
             return
         js = self.js_msg
         js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
-        js.position = _dbl(sim.joint_positions())
-        js.velocity = _dbl(sim.joint_velocities())
-        js.effort = _dbl(sim.applied_torque)
+        js.position, js.velocity, js.effort = (_dbl(x) for x in joints)
         self._emit("joint_states", js, record)
 
-    def _publish_foot_wrenches(self, sec, nsec, feet, record):
-        """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`."""
+    def _publish_foot_wrenches(self, sec, nsec, feet, record, forces=None):
+        """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`
+        (forces: Simulator.contact_forces() where already read)."""
         cdr = self._wrench_cdr
         if cdr is not None and self._feet_first:
-            for name, f in zip(FEET, self.sim.contact_forces()[:len(FEET)].tolist()):
+            if forces is None:
+                forces = self.sim.contact_forces()
+            for name, f in zip(FEET, forces[:len(FEET)].tolist()):
                 if name in feet:
                     self._emit_cdr(name, cdr.build(sec, nsec, f), record)
             return
@@ -754,36 +810,36 @@ class SimNode:
             self._emit(c.name, m, record)
 
     def _base_values(self):
-        """(position, orientation xyzw, world linear velocity, body rates, R) of the base."""
+        """(position, orientation xyzw, world linear velocity, body rates, R, linear
+        velocity in the base frame) of the base."""
         b = self.sim.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
         R = quat_to_matrix(*quat)
+        v_body = R.T @ v
         return ([float(x) for x in p], [float(x) for x in quat], v,
-                [float(x) for x in w], R)
+                [float(x) for x in w], R, [float(x) for x in v_body])
 
     def _publish_odometry(self, sec, nsec, base, record):
         """starleth/base_state: pose in the world, twist in the base frame."""
-        p, quat, v, w, R = base
-        v_body = R.T @ v
+        p, quat, _, w, _, v_body = base
         if self._odom_cdr is not None:
             self._emit_cdr("base_state", self._odom_cdr.build(
-                sec, nsec, (*p, *quat, float(v_body[0]), float(v_body[1]), float(v_body[2]),
-                            *w)), record)
+                sec, nsec, (*p, *quat, *v_body, *w)), record)
             return
         o = self.odom_msg
         o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
         pp, po = o.pose.pose.position, o.pose.pose.orientation
-        pp.x, pp.y, pp.z = float(p[0]), float(p[1]), float(p[2])
+        pp.x, pp.y, pp.z = p
         po.x, po.y, po.z, po.w = quat
         tl, ta = o.twist.twist.linear, o.twist.twist.angular
-        tl.x, tl.y, tl.z = float(v_body[0]), float(v_body[1]), float(v_body[2])
+        tl.x, tl.y, tl.z = v_body
         ta.x, ta.y, ta.z = w
         self._emit("base_state", o, record)
 
     def _publish_imu(self, sec, nsec, base, record):
         """starleth/imu: orientation, body rates, proper acceleration."""
-        p, quat, v, w, R = base
+        p, quat, v, w, R, _ = base
         a_proper = self.imu.proper_acceleration(self.service.k, v, R)
         if self._imu_cdr is not None:
             self._emit_cdr("imu", self._imu_cdr.build(
@@ -989,10 +1045,11 @@ class SimNode:
         self.publish_state(record=False)
 
     #: the topics a controller waits for before it answers a state
-    STATE_TOPICS = ("joint_states", "base_state", *FEET)
+    STATE_TOPICS = ("joint_states", "base_state", *FEET, "state_bundle")
 
     def _state_subscriber_count(self) -> int:
-        return sum(self.pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS)
+        return sum(self.pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS
+                   if k in self.pubs)
 
     def _republish_for_new_subscribers(self, resend=True) -> bool:
         """While the node waits for a command: when a new subscriber to any state topic

@@ -351,7 +351,7 @@ def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, env=env)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
+    rclpy.init(args=[], context=ctx, domain_id=domain_id)
     node = Node("bench_ping", context=ctx)
     try:
         ex = _make_executor(executor, ctx)
@@ -545,11 +545,10 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         in_round |= (out_t >= t0) & (out_t <= t1)
     sim_row = {int(s): i for i, s in enumerate(sim_stamp)}
     ctl_row = {int(s): i for i, s in enumerate(ctl_stamp)}
-    seg = {k: [] for k in ("step", "sim_publish", "of_which_other_messages",
-                           "controller_first_in", "controller_receive", "controller_compute",
-                           "command_back", "of_which_command_publish", "cycle",
-                           "record_handover_parallel",
-                           "prepare_and_visualisation_parallel")}
+    seg = {k: [] for k in ("step", "sim_publish", "controller_first_in",
+                           "controller_receive", "controller_compute", "command_back",
+                           "of_which_command_publish", "cycle", "public_topics_parallel",
+                           "prepare_record_visualisation_parallel")}
     for i, st in enumerate(sim_stamp):
         j, c = sim_row.get(int(st) + 2_500_000), ctl_row.get(int(st))
         if not in_round[i] or j is None or c is None or not in_round[j]:
@@ -557,15 +556,14 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
         a, b, cr = sim_t[i], sim_t[j], ctl_t[c]     # cr: first in, complete, computed, sent
         seg["step"].append(a[F["stepped"]] - a[F["command_in"]])
         seg["sim_publish"].append(a[F["state_out"]] - a[F["stepped"]])
-        seg["of_which_other_messages"].append(a[F["others_out"]] - a[F["stepped"]])
         seg["controller_first_in"].append(cr[0] - a[F["stepped"]])
         seg["controller_receive"].append(cr[1] - a[F["state_out"]])
         seg["controller_compute"].append(cr[2] - cr[1])
         seg["command_back"].append(b[F["command_in"]] - cr[2])
         seg["of_which_command_publish"].append(cr[3] - cr[2])
         seg["cycle"].append(b[F["command_in"]] - a[F["command_in"]])
-        seg["record_handover_parallel"].append(a[F["recorded"]] - a[F["state_out"]])
-        seg["prepare_and_visualisation_parallel"].append(a[F["done"]] - a[F["recorded"]])
+        seg["public_topics_parallel"].append(a[F["public_out"]] - a[F["state_out"]])
+        seg["prepare_record_visualisation_parallel"].append(a[F["done"]] - a[F["public_out"]])
     lock["breakdown_median_ms"] = {k: float(np.median(v) * 1e3) if v else None
                                    for k, v in seg.items()}
     lock["breakdown_cycles"] = len(seg["cycle"])
@@ -605,7 +603,7 @@ def parent_main(args):
     if args.pin:     # this (controller) process on the last CPU, the sim on the first
         os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=args.domain_id)
+    rclpy.init(args=[], context=ctx, domain_id=args.domain_id)
     node = Node("bench_controller", context=ctx)
     ex = _make_executor(args.executor, ctx)
     ex.add_node(node)
