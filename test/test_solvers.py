@@ -161,3 +161,118 @@ def test_delassus_of_block_sparse_rows_is_the_dense_product_bit_for_bit(m):
     np.testing.assert_allclose(G, Wt @ MinvW, rtol=1e-12, atol=1e-12)
     # most pairs of rows share no block: the masked path has entries to skip
     assert np.count_nonzero(ref == 0.0) > m * m // 2
+
+
+def _dense_cholesky(A):
+    """The textbook dense Cholesky (every sum over all k < j), in plain Python."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = A[j, i]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    return L
+
+
+def _dense_solve(L, b):
+    x = b.copy()
+    n = len(x)
+    for i in range(n):
+        s = x[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x
+
+
+def _bilateral_problem(preset="HMJD", steps=60):
+    """G (contact rows first) and the number of contact rows of a step of `preset` after
+    `steps` steps of a posture hold."""
+    from starleth_sim.physics.posture import PostureHold
+    sim = Simulator.from_preset(preset)
+    hold = PostureHold(sim.joint_positions())
+    for _ in range(steps):
+        sim.step(hold.torque(sim))
+    st = sim.stepper
+    st.prepare(sim.state)
+    problem = st._prepared[6]
+    return problem[5], 3 * len(problem[1]), problem
+
+
+def test_cholesky_with_the_envelope_is_the_dense_factor_bit_for_bit():
+    """linalg.cholesky_upper_input sums only inside the envelope of G_BB (the maximal
+    coordinates' G_BB: 60 rows, under half of the lower triangle in the envelope): the
+    same L and the same solutions, bit for bit, as the dense textbook loops, and L Lᵀ = G_BB;
+    also on a random SPD matrix with an envelope and on a dense one (with a -0.0 in the
+    input, the same values)."""
+    from starleth_sim.physics.linalg import cholesky_solve_vec, cholesky_upper_input
+    G, o, _ = _bilateral_problem()
+    rng = np.random.default_rng(5)
+    n = 24
+    B = rng.normal(size=(n, n)) * (rng.random((n, n)) < 0.3)
+    S = B @ B.T + n * np.eye(n)
+    for i in range(n):                    # an envelope: zeros left of a random first column
+        f = rng.integers(0, i + 1)
+        S[i, :f] = S[:f, i] = 0.0
+    signed = S.copy()       # a -0.0 input (G's sums never give one: 0.0 + -0.0 is +0.0)
+    signed[1, 3] = signed[3, 1] = -0.0
+    cases = [("G_BB of HMJD", G, o), ("random envelope", S, 0),
+             ("dense", B @ B.T + np.eye(n), 0), ("signed zero", signed, 0)]
+    for name, A, off in cases:
+        block = np.ascontiguousarray(A[off:, off:])
+        m = block.shape[0]
+        L = np.zeros((m, m))
+        first = np.empty(m, dtype=np.int64)
+        assert cholesky_upper_input(np.ascontiguousarray(A), off, L, first), name
+        ref = _dense_cholesky(block)
+        if name == "signed zero":   # the same values; a zero's sign may differ
+            assert np.array_equal(L, ref)
+            continue
+        assert L.tobytes() == ref.tobytes(), name
+        np.testing.assert_allclose(L @ L.T, block, rtol=0, atol=1e-12 * np.abs(block).max())
+        b = rng.normal(size=m)
+        x = b.copy()
+        cholesky_solve_vec(L, first, x)
+        assert x.tobytes() == _dense_solve(ref, b).tobytes(), name
+        np.testing.assert_allclose(block @ x, b, rtol=0, atol=1e-9 * np.abs(b).max())
+        if name == "G_BB of HMJD":
+            inside = sum(i - first[i] + 1 for i in range(m))
+            assert m == 60 and inside < 0.5 * m * (m + 1) / 2, inside   # worth the envelope
+    # not positive definite: refused
+    bad = -np.eye(3)
+    assert not cholesky_upper_input(bad, 0, np.zeros((3, 3)), np.empty(3, dtype=np.int64))
+
+
+def test_forest_solve_with_patterns_is_the_scanning_solve_bit_for_bit():
+    """linalg.ltdl_solve_cols_pattern (the maximal coordinates' M^{-1}W and its column
+    pattern from W's pattern) gives MinvW and prox.col_pattern(MinvW) of the scanning
+    ltdl_solve_cols bit for bit, on the contact and bilateral rows of an HMSD step."""
+    from starleth_sim.physics.linalg import ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern
+    _, _, problem = _bilateral_problem("HMSD")
+    sim = Simulator.from_preset("HMSD")
+    dof_parent = sim.coords.tree.dof_parent
+    Wt = problem[2]
+    M = sim.coords.dynamics(sim.q, np.zeros(sim.coords.nv), np.zeros(12))[0]
+    L = np.zeros_like(M)
+    assert ltdl(M, dof_parent, L)
+    assert np.count_nonzero(dof_parent == -1) > 10             # a forest of free bodies
+    a = np.ascontiguousarray(Wt.T)
+    b = a.copy()
+    ltdl_solve_cols(L, dof_parent, a)
+    ptr, idx = ltdl_solve_cols_pattern(L, dof_parent, b, *prox.row_pattern(Wt))
+    assert a.tobytes() == b.tobytes()
+    ref_ptr, ref_idx = prox.col_pattern(a)
+    assert ptr.tolist() == ref_ptr.tolist() and idx.tolist() == ref_idx.tolist()
+    np.testing.assert_allclose(M @ a, Wt.T, rtol=0, atol=1e-9)

@@ -103,7 +103,9 @@ def alpha_setting(value) -> float:
 
 class Patterns(NamedTuple):
     """Nonzero patterns of a problem, each a CSR pair (ptr, idx): the rows of W^T (wp), the
-    columns of M^{-1}W (mp) and the rows of G (gp; empty rows in the velocity form)."""
+    columns of M^{-1}W (mp) and the rows of G (gp; empty rows in the velocity form); and
+    the envelope of L_B, the Cholesky factor of G_BB (lb_first: the first nonzero column
+    of each row, linalg.cholesky_upper_input; empty without the direct bilateral method)."""
 
     wp_ptr: np.ndarray
     wp_idx: np.ndarray
@@ -111,6 +113,7 @@ class Patterns(NamedTuple):
     mp_idx: np.ndarray
     gp_ptr: np.ndarray
     gp_idx: np.ndarray
+    lb_first: np.ndarray
 
 
 class ProxSettings(NamedTuple):
@@ -286,7 +289,7 @@ def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
 
 
 @nb.njit(cache=True)
-def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx):
+def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, lb_first):
     """Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) for the current Λ_U (Eqn. 20, Delassus form)."""
     m = c.shape[0]
     o = 3 * nc
@@ -299,13 +302,14 @@ def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx):
             if l < o:
                 s += G[o + a, l] * lam[l]
         rhs[a] = -s
-    cholesky_solve_vec(LB, rhs)
+    cholesky_solve_vec(LB, lb_first, rhs)
     for a in range(nb_):
         lam[o + a] = rhs[a]
 
 
 @nb.njit(cache=True)
-def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, mp_ptr, mp_idx):
+def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, mp_ptr, mp_idx,
+                               lb_first):
     """Λ_B = −G_BB^{-1} W_B^T (u^S + M^{-1}(h Δt + W_U Λ_U)) (Eqn. 20, velocity form)."""
     m = Wt.shape[0]
     o = 3 * nc
@@ -319,7 +323,7 @@ def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, m
             k = wp_idx[p]
             s += Wt[o + a, k] * uu[k]
         rhs[a] = -s
-    cholesky_solve_vec(LB, rhs)
+    cholesky_solve_vec(LB, lb_first, rhs)
     for a in range(nb_):
         lam[o + a] = rhs[a]
 
@@ -632,7 +636,7 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
         if bilateral_direct:
             for l in range(o, m):
                 new[l] = lam[l]
-            _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx)
+            _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx, pat.lb_first)
         else:
             for l in range(o, m):
                 new[l] = lam[l] - rk[l] * xi[l]
@@ -698,7 +702,7 @@ def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
                 x2 += G[b + 2, l] * lam[l]
             _project_contact(lam, b, x0, x1, x2, rk, mu[i], lam)
         if bilateral_direct:
-            _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx)
+            _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, pat.lb_first)
         else:
             for a in range(o, m):
                 s = c[a]
@@ -765,7 +769,7 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
             for l in range(o, m):
                 new[l] = lam[l]
             _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, new, wp_ptr, wp_idx, mp_ptr,
-                                       mp_idx)
+                                       mp_idx, pat.lb_first)
         else:
             for l in range(o, m):
                 new[l] = lam[l] - rk[l] * xi[l]
@@ -839,7 +843,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
         if bilateral_direct:
             if m > o:
                 _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx,
-                                           mp_ptr, mp_idx)
+                                           mp_ptr, mp_idx, pat.lb_first)
                 _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
         else:
             for a in range(o, m):
@@ -897,4 +901,4 @@ def dense_problem_patterns(Wt, MinvW, G):
     mp = col_pattern(MinvW)
     gp = row_pattern(G) if G.size else (np.zeros(Wt.shape[0] + 1, dtype=np.int64),
                                         np.zeros(0, dtype=np.int64))
-    return Patterns(*wp, *mp, *gp)
+    return Patterns(*wp, *mp, *gp, np.zeros(0, dtype=np.int64))

@@ -31,7 +31,8 @@ from numba.extending import overload
 
 from . import prox
 from .contact import compliant_contact_forces, generalized_contact_force
-from .linalg import cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_vec
+from .linalg import (cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern,
+                     ltdl_solve_vec)
 from .coordinates.forest import integrate_forest
 
 #: Fig. 7 phases, and their indices in StepperStats.timings
@@ -85,7 +86,8 @@ def problem_fields(p):
     """A ContactProblem as the plain tuple that crosses into Python cheaply."""
     pat = p.pat
     return (p.ok, p.active, p.Wt, p.MinvW, p.b, p.G, p.Gdiag, p.LB,
-            (pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx, pat.gp_ptr, pat.gp_idx), p.opened)
+            (pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx, pat.gp_ptr, pat.gp_idx,
+             pat.lb_first), p.opened)
 
 
 @nb.njit(cache=True, inline="always")
@@ -238,7 +240,8 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
     bvec = np.zeros(m)
     e = np.zeros(1, dtype=np.int64)
     if not ok or m == 0:
-        return ok, active, Wt, MinvW, bvec, prox.Patterns(e, e[:0], e, e[:0], e, e[:0]), opened
+        return (ok, active, Wt, MinvW, bvec, prox.Patterns(e, e[:0], e, e[:0], e, e[:0], e[:0]),
+                opened)
     for a in range(na):
         i = active[a]
         for r in range(3):
@@ -247,23 +250,38 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
     for a in range(nb_):
         for j in range(nv):
             Wt[o + a, j] = WtB[a, j]
-    for a in range(m):
-        for j in range(nv):
-            MinvW[j, a] = Wt[a, j]
-    ltdl_solve_cols(L, dof_parent, MinvW)
+    wp_ptr, wp_idx = prox.row_pattern(Wt)
+    trees = 1
+    for k in range(1, nv):
+        if dof_parent[k] == -1:
+            trees += 1
+    if trees > 2:
+        # a forest of free bodies (the maximal coordinates): W's nonzeros into a zeroed
+        # MinvW, then M^{-1}W and the pattern of its columns from the pattern of W's
+        # columns (the rows of W^T), without scanning MinvW (the same MinvW and pattern as
+        # below: the zeros of W stay out of every sum)
+        MinvW[:, :] = 0.0
+        for a in range(m):
+            for p in range(wp_ptr[a], wp_ptr[a + 1]):
+                MinvW[wp_idx[p], a] = Wt[a, wp_idx[p]]
+        mp_ptr, mp_idx = ltdl_solve_cols_pattern(L, dof_parent, MinvW, wp_ptr, wp_idx)
+    else:
+        for a in range(m):
+            for j in range(nv):
+                MinvW[j, a] = Wt[a, j]
+        ltdl_solve_cols(L, dof_parent, MinvW)
+        mp_ptr, mp_idx = prox.col_pattern(MinvW)
     for a in range(o):
         s = 0.0
-        for j in range(nv):
-            s += Wt[a, j] * uS[j]
+        for p in range(wp_ptr[a], wp_ptr[a + 1]):   # (the zeros of a row add nothing)
+            s += Wt[a, wp_idx[p]] * uS[wp_idx[p]]
         bvec[a] = eps[active[a // 3], 0 if a % 3 == 0 else 1] * s
     for a in range(na):
         bvec[3 * a] += normal_law_offset(gap[active[a]], dt, beta_velocity)
     for a in range(nb_):
         bvec[o + a] = bB[a]
-    wp_ptr, wp_idx = prox.row_pattern(Wt)
-    mp_ptr, mp_idx = prox.col_pattern(MinvW)
-    return (ok, active, Wt, MinvW, bvec, prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0]),
-            opened)
+    return (ok, active, Wt, MinvW, bvec,
+            prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0], e[:0]), opened)
 
 
 @nb.njit(cache=True, inline="always")
@@ -271,7 +289,8 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     """Fig. 7 phase "G (and G_B^-1)": G = W^T M^{-1} W (Delassus form) or only diag(G)
     (velocity form), and for the direct bilateral solution (Eqn. 20) the Cholesky factor
     of G_B = W_B^T M^{-1} W_B. Returns (ok, G, diag G, L_B, patterns): `pat` (the
-    prox.Patterns of W^T and M^{-1}W) with the pattern of the rows of G."""
+    prox.Patterns of W^T and M^{-1}W) with the pattern of the rows of G and L_B's
+    envelope."""
     wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m, nv = Wt.shape
     o = 3 * nc
@@ -288,16 +307,14 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
         prox.delassus_diagonal(Wt, MinvW, Gdiag, wp_ptr, wp_idx)
         gp_ptr = np.zeros(m + 1, dtype=np.int64)
         gp_idx = np.zeros(0, dtype=np.int64)
-    full = prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx)
     LB = np.zeros((0, 0))
+    lb_first = np.zeros(0, dtype=np.int64)
     ok = True
     if bilateral_direct and nb_ > 0:
-        GB = np.empty((nb_, nb_))
-        if form == prox.FORM_DELASSUS:
-            for a in range(nb_):
-                for b in range(nb_):
-                    GB[a, b] = G[o + a, o + b]
+        if form == prox.FORM_DELASSUS:     # G_BB: G's lower right block, read in place
+            GB, ob = G, o
         else:
+            GB, ob = np.empty((nb_, nb_)), 0
             for a in range(nb_):
                 for b in range(a, nb_):
                     s = 0.0
@@ -306,7 +323,9 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
                     GB[a, b] = s
                     GB[b, a] = s
         LB = np.zeros((nb_, nb_))
-        ok = cholesky_upper_input(GB, LB)
+        lb_first = np.empty(nb_, dtype=np.int64)
+        ok = cholesky_upper_input(GB, ob, LB, lb_first)
+    full = prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx, lb_first)
     return ok, G, Gdiag, LB, full
 
 
@@ -439,7 +458,7 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, dof_parent, L):
     wp_ptr, wp_idx = prox.row_pattern(Wp)
     mp_ptr, mp_idx = prox.col_pattern(Mp)
     e = np.zeros(1, dtype=np.int64)
-    return contacts, Wp, Mp, prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0])
+    return contacts, Wp, Mp, prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0], e[:0])
 
 
 @nb.njit(cache=True)
@@ -472,7 +491,10 @@ def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr)
     else:
         contacts, Wp, Mp, part = projection_problem(p.Wt, p.MinvW, active, extra, Wt_all,
                                                     dof_parent, L)
-        _, Gp, Gdp, _, full = phase_delassus(s.form, contacts.shape[0], False, Wp, Mp, part)
+        _, Gp, Gdp, _, f = phase_delassus(s.form, contacts.shape[0], False, Wp, Mp, part)
+        # the bilateral rows, G_BB and so L_B are the problem's: L_B's envelope with them
+        full = prox.Patterns(f.wp_ptr, f.wp_idx, f.mp_ptr, f.mp_idx, f.gp_ptr, f.gp_idx,
+                             p.pat.lb_first)
     m = Wp.shape[0]
     ncp = contacts.shape[0]
     bp = np.zeros(m)

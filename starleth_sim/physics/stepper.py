@@ -62,6 +62,9 @@ from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
                         tree_step_hard)
 
 
+_empty = np.empty
+
+
 class SimulationError(RuntimeError):
     """The step could not be completed (non-finite solver output or state); the state was
     left unchanged."""
@@ -365,8 +368,8 @@ class MoreauStepper:
             raise ValueError(f"tau must have {self._no_torque.shape[0]} entries, "
                              f"got {tau.shape[0]}")
         q, u = state.q, state.u
-        qE = np.empty_like(q)
-        uE = np.empty_like(u)
+        qE = _empty(q.shape[0])     # (np.empty: a third of np.empty_like's call)
+        uE = _empty(u.shape[0])
         if f_ext is None:
             f_ext = self._no_force
         if self._forest_kernel:

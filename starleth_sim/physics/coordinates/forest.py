@@ -207,6 +207,23 @@ def _rotate(R, v, out):
         out[r] = R[r, 0] * v[0] + R[r, 1] * v[1] + R[r, 2] * v[2]
 
 
+@nb.njit(cache=True, inline="always")
+def _cut_scratch(nv):
+    """Scratch arrays of a pass over the cut joints: (J_P, J_C (3 x nv), the hinge axis aw
+    and P's perpendiculars b1, b2 in the world, t)."""
+    return (np.empty((3, nv)), np.empty((3, nv)), np.empty(3), np.empty(3), np.empty(3),
+            np.empty(3))
+
+
+@nb.njit(cache=True, inline="always")
+def _hinge_axes(oR_P, a_P, b1_P, b2_P, aw, b1, b2):
+    """The hinge axis a and the perpendiculars b1, b2 of a cut joint, given in the frame of
+    its body P, in the world (aw, b1, b2)."""
+    _rotate(oR_P, a_P, aw)
+    _rotate(oR_P, b1_P, b1)
+    _rotate(oR_P, b2_P, b2)
+
+
 @nb.njit(cache=True)
 def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B, angle, rate,
@@ -218,15 +235,10 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
     if do_fk:
         forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
     nv = u.shape[0]
-    JP = np.empty((3, nv))
-    JC = np.empty((3, nv))
+    JP, JC, aw, b1, b2, t = _cut_scratch(nv)
     xP = np.empty(3)
     xC = np.empty(3)
-    aw = np.empty(3)
     acw = np.empty(3)
-    b1 = np.empty(3)
-    b2 = np.empty(3)
-    t = np.empty(3)
     for k in range(cut_P.shape[0]):
         P = cut_P[k]
         C = cut_C[k]
@@ -236,10 +248,8 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
         _rotate(oR[C], p_C[k], t)
         for r in range(3):
             xC[r] = op[C, r] + t[r]
-        _rotate(oR[P], a_P[k], aw)
+        _hinge_axes(oR[P], a_P[k], b1_P[k], b2_P[k], aw, b1, b2)
         _rotate(oR[C], a_C[k], acw)
-        _rotate(oR[P], b1_P[k], b1)
-        _rotate(oR[P], b2_P[k], b2)
         row = 5 * k
         point_jacobian(P, xP, jtype, axis, idx_v, support, oR, op, JP)
         point_jacobian(C, xC, jtype, axis, idx_v, support, oR, op, JC)
@@ -286,19 +296,11 @@ def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, suppor
     cut_joints' (so the same values bit for bit) without W_B and g_B. The forward
     kinematics of q are computed into oR, op."""
     forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
-    nv = u.shape[0]
-    JP = np.empty((3, nv))
-    JC = np.empty((3, nv))
-    aw = np.empty(3)
-    b1 = np.empty(3)
-    b2 = np.empty(3)
-    t = np.empty(3)
+    JP, JC, aw, b1, b2, t = _cut_scratch(u.shape[0])
     for k in range(cut_P.shape[0]):
         P = cut_P[k]
         C = cut_C[k]
-        _rotate(oR[P], a_P[k], aw)
-        _rotate(oR[P], b1_P[k], b1)
-        _rotate(oR[P], b2_P[k], b2)
+        _hinge_axes(oR[P], a_P[k], b1_P[k], b2_P[k], aw, b1, b2)
         angular_jacobian(P, jtype, axis, idx_v, support, oR, JP)
         angular_jacobian(C, jtype, axis, idx_v, support, oR, JC)
         angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t)
