@@ -348,9 +348,9 @@ class StarlethController:
         if status == 2:
             add = np.add.reduce                      # = ndarray.sum, without its wrapper
             if not math.isfinite(float(add(qj) + add(dqj) + add(pb) + add(quat) + add(vb)
-                                       + add(wb))) or float(quat @ quat) < 1e-12:
+                                       + add(wb))) or K.squared_norm4(quat) < 1e-12:
                 return None
-            quat = quat / math.sqrt(float(quat @ quat))
+            quat = quat / math.sqrt(K.squared_norm4(quat))
             K.quat_to_rot(quat[0], quat[1], quat[2], quat[3], R)
         elif status:
             return None

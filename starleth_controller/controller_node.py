@@ -102,7 +102,7 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
                                        foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
-from .kernels import node_state
+from .kernels import node_state, squared_norm4
 from .model import JOINT_NAMES, LEGS, default_urdf_path
 
 _sum = np.add.reduce     # = ndarray.sum, without its wrapper (a finite sum: all finite)
@@ -691,7 +691,7 @@ class ControllerNode(Node):
         if not _finite(*vals):
             return None, "base_state_nan", "base state: non-finite values"
         quat = np.array(vals[3:7])
-        nq = float(quat @ quat)
+        nq = squared_norm4(quat)
         if not 0.5 < nq < 2.0:
             return None, "base_state_quat", f"base state: orientation norm {math.sqrt(nq):.3g}"
         quat /= math.sqrt(nq)

@@ -51,6 +51,17 @@ def _unfit(x):
 
 
 @_jit
+def squared_norm4(a):
+    """|a|² of a 4-vector summed in order, ((a0² + a1²) + a2²) + a3²: the one rounding of the
+    quaternion norm on every path (numpy's dot product rounds differently per CPU: BLAS
+    kernels with FMA or SIMD partial sums)."""
+    s = 0.0
+    for i in range(4):
+        s += a[i] * a[i]
+    return s
+
+
+@_jit
 def _finite_small(a, n):
     """-1 if a[0:n] holds a NaN or inf, 1 if a value is >= LARGE in magnitude, else 0."""
     big = 0
@@ -68,7 +79,7 @@ def read_state(qj, dqj, pb, quat, vb, wb, quat_n, R):
     """StarlethController._read_state's checks and arithmetic: 1 (no state: a NaN or inf
     among the inputs, or a quaternion of squared norm < 1e-12), 2 (a value >= LARGE: the
     caller decides with its numpy sums), else 0 with quat_n = quat / |quat| (|quat|² summed
-    in order, as numpy's 4-element dot product does) and R = quat_to_rot(quat_n)."""
+    in order: squared_norm4) and R = quat_to_rot(quat_n)."""
     c1 = _finite_small(qj, qj.shape[0])      # one call each: the arrays' layouts may differ
     c2 = _finite_small(dqj, dqj.shape[0])
     c3 = _finite_small(pb, pb.shape[0])
@@ -79,9 +90,7 @@ def read_state(qj, dqj, pb, quat, vb, wb, quat_n, R):
         return 1
     if max(c1, c2, c3, c4, c5, c6) > 0:
         return 2
-    nq = 0.0
-    for i in range(4):
-        nq += quat[i] * quat[i]
+    nq = squared_norm4(quat)
     if nq < 1e-12:
         return 1
     n = math.sqrt(nq)
@@ -96,8 +105,8 @@ def node_state(position, velocity, perm, odom, forces, threshold, q, dq, pb, qua
                contact):
     """controller_node's reading of one stamp's messages, in the order of operations of its
     numpy code: q, dq = position, velocity [perm]; from the 13 odometry values (position,
-    orientation xyzw, linear and angular velocity) pb, quat / |quat| (|quat|² summed in
-    order), v and w as given, R the rotation of the normalised quaternion (the node's
+    orientation xyzw, linear and angular velocity) pb, quat / |quat| (|quat|²:
+    squared_norm4), v and w as given, R the rotation of the normalised quaternion (the node's
     formula: no second normalisation); contact = |force| > threshold per foot (x² + y² + z²
     summed in order, as numpy's sum over the last axis of a (4, 3) array does). 0: done;
     1: anything that the checks of the numpy code might refuse (a NaN or inf, a value >=
@@ -111,9 +120,7 @@ def node_state(position, velocity, perm, odom, forces, threshold, q, dq, pb, qua
         for j in range(3):
             if _unfit(forces[k, j]):
                 return 1
-    nq = 0.0
-    for i in range(4):
-        nq += odom[3 + i] * odom[3 + i]
+    nq = squared_norm4(odom[3:7])
     if not 0.5 < nq < 2.0:
         return 1
     for i in range(perm.shape[0]):

@@ -448,18 +448,22 @@ def test_state_kernels_match_the_numpy_arithmetic():
                            np.zeros(3))
     Rn, contact = np.zeros((3, 3)), np.zeros(4, dtype=bool)
     perm = rng.permutation(12).astype(np.int64)
+
+    def sq4(a):     # |a|² summed in order in Python floats (not numpy's CPU-dependent dot)
+        x = a.tolist()
+        return ((x[0] * x[0] + x[1] * x[1]) + x[2] * x[2]) + x[3] * x[3]
     for _ in range(2000):
         qj, dqj = rng.normal(size=12), rng.normal(size=12) * 10
         quat = rng.normal(size=4) * rng.uniform(0.75, 1.35)
         vb, wb, p = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
         assert K.read_state(qj, dqj, p, quat, vb, wb, quat_n, R) == 0
-        ref = quat / math.sqrt(float(quat @ quat))
+        ref = quat / math.sqrt(sq4(quat))
         R_ref = np.zeros((3, 3))
         K.quat_to_rot(ref[0], ref[1], ref[2], ref[3], R_ref)
         assert quat_n.tobytes() == ref.tobytes() and R.tobytes() == R_ref.tobytes()
         odom = np.concatenate((p, quat, vb, wb))
         forces = rng.normal(size=(4, 3)) * rng.uniform(0.0, 10.0, size=(4, 1))
-        nq = float(quat @ quat)
+        nq = sq4(quat)
         status = K.node_state(qj, dqj, perm, odom, forces, 5.0, q, dq, pb, qn, v, w, Rn,
                               contact)
         if not 0.5 < nq < 2.0:
