@@ -18,6 +18,8 @@ import numpy as np
 import numba as nb
 import pinocchio as pin
 
+from .array_views import view2
+
 JT_FREEFLYER = 0
 JT_REVOLUTE = 1  # axis given in the joint frame
 
@@ -133,9 +135,10 @@ def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
         for c in range(3):
             oR[0, r, c] = 1.0 if r == c else 0.0
         op[0, r] = 0.0
-    Rq = np.empty((3, 3))
-    tmp = np.empty((3, 3))
-    pq = np.zeros(3)
+    scratch = np.zeros(21)      # (one allocation for the three temporaries)
+    Rq = view2(scratch[0:9], (3, 3))
+    tmp = view2(scratch[9:18], (3, 3))
+    pq = scratch[18:21]
     for j in range(1, nj):
         iq = idx_q[j]
         if jtype[j] == JT_FREEFLYER:
@@ -221,8 +224,9 @@ def contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local
     """
     nc = c_joint.shape[0]
     nv = Wt.shape[2]
-    J = np.empty((3, nv))
-    c = np.empty(3)
+    scratch = np.empty(3 * nv + 3)      # (one allocation for J and c)
+    J = view2(scratch[:3 * nv], (3, nv))
+    c = scratch[3 * nv:]
     for i in range(nc):
         j = c_joint[i]
         for k in range(3):

@@ -25,6 +25,7 @@ import numba as nb
 import numpy as np
 import pinocchio as pin
 
+from .array_views import view2, view3
 from .kinematics import JT_FREEFLYER
 
 
@@ -82,9 +83,10 @@ def spatial_inertias(oR, op, mass, lever, inertia, out):
     """out[j] (6 x 6): body j's spatial inertia in the world frame at the world origin,
     [[I_c − m [c]x², m [c]x]; [m [c]x^T, m 1]] with c its centre of mass and I_c its
     rotational inertia about c, both in the world frame."""
-    RI = np.empty((3, 3))
-    Iw = np.empty((3, 3))
-    c = np.empty(3)
+    scratch = np.empty(21)      # (one allocation for the three temporaries)
+    RI = view2(scratch[0:9], (3, 3))
+    Iw = view2(scratch[9:18], (3, 3))
+    c = scratch[18:21]
     for j in range(1, mass.shape[0]):
         m = mass[j]
         R = oR[j]
@@ -123,19 +125,25 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     q."""
     nj = parent.shape[0]
     nv = u.shape[0]
-    S = np.empty((6, nv))
+    # the temporaries in one allocation: I6, V, A, F (zeroed), S, vj, hv, f, ndof
+    n_zero = 36 * nj + 18 * nj
+    scratch = np.empty(n_zero + 6 * nv + 18)
+    scratch[:n_zero] = 0.0
+    I6 = view3(scratch[0:36 * nj], (nj, 6, 6))
+    V = view2(scratch[36 * nj:42 * nj], (nj, 6))
+    A = view2(scratch[42 * nj:48 * nj], (nj, 6))
+    F = view2(scratch[48 * nj:54 * nj], (nj, 6))
+    S = view2(scratch[n_zero:n_zero + 6 * nv], (6, nv))
+    o = n_zero + 6 * nv
+    vj = scratch[o:o + 6]
+    hv = scratch[o + 6:o + 12]
+    f = scratch[o + 12:o + 18]
     motion_subspace(jtype, axis, idx_v, oR, op, S)
-    I6 = np.zeros((nj, 6, 6))
     spatial_inertias(oR, op, mass, lever, inertia, I6)
     ndof = np.empty(nj, dtype=np.int64)
     for j in range(1, nj):
         ndof[j] = 6 if jtype[j] == JT_FREEFLYER else 1
     # -- RNEA, forward pass: V_j = V_λ(j) + S_j u_j, A_j = A_λ(j) + Ṡ_j u_j, A_0 = −g
-    V = np.zeros((nj, 6))
-    A = np.zeros((nj, 6))
-    F = np.zeros((nj, 6))
-    vj = np.empty(6)
-    hv = np.empty(6)
     for r in range(3):
         A[0, 3 + r] = -gravity[r]
     for j in range(1, nj):
@@ -208,7 +216,6 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     for r in range(nv):
         for c in range(nv):
             M[r, c] = 0.0
-    f = np.empty(6)
     for j in range(1, nj):
         iv = idx_v[j]
         Icj = Ic[j]

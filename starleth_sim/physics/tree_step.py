@@ -18,6 +18,7 @@ import numpy as np
 import numba as nb
 
 from . import prox
+from .array_views import view2, view3
 from .actuator import saturate_torque
 from .coordinates.forest import (cut_joint_motion, cut_joint_torques, cut_joints,
                                  integrate_forest, midpoint_dynamics, rigid_body_forces)
@@ -102,7 +103,7 @@ def _take(buf, o, n):
     return buf[o:o + n], o + n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def unpack_tree_model(floats, ints, support, workspace, nv):
     """The views of TreeStepModel's buffers: (StepSettings, CompliantLaw's fields, model
     (midpoint_model's order), normal, tangent1, tangent2, ground_offset, eps, effort_limit,
@@ -143,14 +144,14 @@ def unpack_tree_model(floats, ints, support, workspace, nv):
     L, w = _take(workspace, w, nv * nv)
     u_free, w = _take(workspace, w, nv)
     u_corr, w = _take(workspace, w, nv)
-    model = (parent, jtype, axis.reshape((nj, 3)), pl_R.reshape((nj, 3, 3)),
-             pl_p.reshape((nj, 3)), idx_q, idx_v, support, oR.reshape((nj, 3, 3)),
-             op.reshape((nj, 3)), mass, lever.reshape((nj, 3)), inertia.reshape((nj, 3, 3)),
-             gravity, c_joint, c_local.reshape((nc, 3)), c_radius)
+    model = (parent, jtype, view2(axis, (nj, 3)), view3(pl_R, (nj, 3, 3)),
+             view2(pl_p, (nj, 3)), idx_q, idx_v, support, view3(oR, (nj, 3, 3)),
+             view2(op, (nj, 3)), mass, view2(lever, (nj, 3)), view3(inertia, (nj, 3, 3)),
+             gravity, c_joint, view2(c_local, (nc, 3)), c_radius)
     return (_step_settings(settings), (law[0], law[1], law[2], law[3], law[4], law[5]),
-            model, normal, tangent1, tangent2, offset[0], eps.reshape((nc, 2)), effort_limit,
-            velocity_limit, joint_v, dof_parent, gap, position.reshape((nc, 3)),
-            Wt_all.reshape((nc, 3, nv)), L.reshape((nv, nv)), u_free, u_corr)
+            model, normal, tangent1, tangent2, offset[0], view2(eps, (nc, 2)), effort_limit,
+            velocity_limit, joint_v, dof_parent, gap, view2(position, (nc, 3)),
+            view3(Wt_all, (nc, 3, nv)), view2(L, (nv, nv)), u_free, u_corr)
 
 
 def report_size(nc, na):
@@ -199,9 +200,11 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
     the same arithmetic, in the same order, as ForestCoordinates.midpoint followed by
     add_joint_torques and h += f_ext."""
     nv = u.shape[0]
-    qM = np.empty_like(q)
-    M = np.empty((nv, nv))
-    h = np.empty(nv)
+    nq = q.shape[0]
+    out = np.empty(nq + nv * nv + nv)       # (one allocation for q^M, M and h)
+    qM = out[:nq]
+    M = view2(out[nq:nq + nv * nv], (nv, nv))
+    h = out[nq + nv * nv:]
     midpoint_dynamics(q, u, half_dt, *model, normal, tangent1, tangent2, ground_offset,
                       jacobian_gap, qM, M, h, gap, position, Wt_all)
     for k in range(tau.shape[0]):
@@ -222,7 +225,7 @@ def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last
     projection status)."""
     nc = gap.shape[0]
     kept = (last_impulse.copy(), last_active.copy(), last_bilateral.copy())
-    impulse = report[:3 * nc].reshape((nc, 3))
+    impulse = view2(report[:3 * nc], (nc, 3))
     it, status, resid, retried, pit, pstatus = complete_problem(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         impulse, is_active, u_free, uE, u_corr, None)
@@ -364,7 +367,7 @@ class CutModel(NamedTuple):
         return CutModel(floats, ints, workspace)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def unpack_cut_model(floats, ints, workspace, na, nv):
     """The views of CutModel's buffers: (β/Δt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C,
     b1_C, joint_cut, constant, M, root_q, root_v, body masses, inertias, gravity, W_B^T,
@@ -398,12 +401,12 @@ def unpack_cut_model(floats, ints, workspace, na, nv):
     angle, w = _take(workspace, w, ncut)
     rate, w = _take(workspace, w, ncut)
     axis_world, w = _take(workspace, w, 3 * ncut)
-    return (beta_over_dt, cut_P, cut_C, p_P.reshape((ncut, 3)), p_C.reshape((ncut, 3)),
-            a_P.reshape((ncut, 3)), b1_P.reshape((ncut, 3)), b2_P.reshape((ncut, 3)),
-            a_C.reshape((ncut, 3)), b1_C.reshape((ncut, 3)), joint_cut, constant,
-            M.reshape((nv if constant else 0, nv if constant else 0)), root_q, root_v,
-            body_mass, body_inertia.reshape((nr, 3, 3)), body_gravity,
-            WtB.reshape((nB, nv)), gB, bB, angle, rate, axis_world.reshape((ncut, 3)))
+    return (beta_over_dt, cut_P, cut_C, view2(p_P, (ncut, 3)), view2(p_C, (ncut, 3)),
+            view2(a_P, (ncut, 3)), view2(b1_P, (ncut, 3)), view2(b2_P, (ncut, 3)),
+            view2(a_C, (ncut, 3)), view2(b1_C, (ncut, 3)), joint_cut, constant,
+            view2(M, (nv if constant else 0, nv if constant else 0)), root_q, root_v,
+            body_mass, view3(body_inertia, (nr, 3, 3)), body_gravity,
+            view2(WtB, (nB, nv)), gB, bB, angle, rate, view2(axis_world, (ncut, 3)))
 
 
 @nb.njit(cache=True, inline="always")
