@@ -151,8 +151,9 @@ def prox_disc(x1, x2, radius):
 def row_pattern(A):
     """Nonzero pattern of the rows of A as CSR (ptr, idx), in one pass over A."""
     m, n = A.shape
-    ptr = np.empty(m + 1, dtype=np.int64)
-    idx = np.empty(m * n, dtype=np.int64)
+    buf = np.empty(m + 1 + m * n, dtype=np.int64)   # (one allocation for ptr and idx)
+    ptr = buf[:m + 1]
+    idx = buf[m + 1:]
     cnt = 0
     for a in range(m):
         ptr[a] = cnt
@@ -586,10 +587,10 @@ def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
     """Work arrays of a kernel: (rk, rs, Λ^0, hist, tmp1, tmp2, dsave, xsave) with rk the parameters of the
     first sweep: r itself (no copies with a fixed α), or with the adaptive α (s.alpha < 0)
     its spectral step rs."""
+    if s.alpha >= 0.0:     # (empty views for the arrays that only the adaptive α reads)
+        none = r[:0]
+        return r, r, none, none, none, none, none, none
     hist = np.array([np.inf, 0.0, 1.0])
-    if s.alpha >= 0.0:
-        none = np.empty(0)
-        return r, r, none, hist, none, none, none, none
     rs = r.copy()
     hist[2] = auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs)
     m = r.shape[0]
@@ -609,8 +610,9 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
     m = c.shape[0]
     o = 3 * nc
-    xi = np.empty(m)
-    new = np.empty(m)
+    buf = np.empty(2 * m)      # (one allocation for ξ and the new Λ)
+    xi = buf[:m]
+    new = buf[m:]
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
     rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)
@@ -743,8 +745,9 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m = Wt.shape[0]
     o = 3 * nc
-    xi = np.empty(m)
-    new = np.empty(m)
+    buf = np.empty(2 * m)      # (one allocation for ξ and the new Λ)
+    xi = buf[:m]
+    new = buf[m:]
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
     rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, Wt, Wt, MinvW, pat, nc, r, lam)

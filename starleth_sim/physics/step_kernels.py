@@ -30,6 +30,7 @@ from numba.core import types
 from numba.extending import overload
 
 from . import prox
+from .array_views import view2
 from .contact import compliant_contact_forces, generalized_contact_force
 from .linalg import (cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern,
                      ltdl_solve_vec)
@@ -182,23 +183,17 @@ def active_set(gap, s, last_impulse, last_active):
     (indices of I, number of contacts loaded in the last step that are not in I)."""
     activation_gap, hysteresis, opening_gap = s.activation_gap, s.hysteresis, s.opening_gap
     nc = gap.shape[0]
-    flags = np.zeros(nc, dtype=np.bool_)
+    picked = np.empty(nc, dtype=np.int64)
     na = 0
     opened = 0
     for i in range(nc):
         loaded = last_active[i] and last_impulse[i, 0] > 0.0
         if gap[i] <= activation_gap or (hysteresis and loaded and gap[i] <= opening_gap):
-            flags[i] = True
+            picked[na] = i
             na += 1
         elif loaded:
             opened += 1
-    active = np.empty(na, dtype=np.int64)
-    k = 0
-    for i in range(nc):
-        if flags[i]:
-            active[k] = i
-            k += 1
-    return active, opened
+    return picked[:na], opened
 
 
 @nb.njit(cache=True)
@@ -235,11 +230,13 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
     nb_ = WtB.shape[0]
     o = 3 * na
     m = o + nb_
-    Wt = np.empty((m, nv))
-    MinvW = np.empty((nv, m))
-    bvec = np.zeros(m)
-    e = np.zeros(1, dtype=np.int64)
+    buf = np.empty(2 * m * nv + m)     # (one allocation for W^T, M^{-1}W and b)
+    Wt = view2(buf[:m * nv], (m, nv))
+    MinvW = view2(buf[m * nv:2 * m * nv], (nv, m))
+    bvec = buf[2 * m * nv:]
+    bvec[:] = 0.0
     if not ok or m == 0:
+        e = np.zeros(1, dtype=np.int64)
         return (ok, active, Wt, MinvW, bvec, prox.Patterns(e, e[:0], e, e[:0], e, e[:0], e[:0]),
                 opened)
     for a in range(na):
@@ -280,8 +277,10 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
         bvec[3 * a] += normal_law_offset(gap[active[a]], dt, beta_velocity)
     for a in range(nb_):
         bvec[o + a] = bB[a]
+    # (G's pattern is still to come: wp_ptr[:1] = [0] and an empty index, as placeholders)
     return (ok, active, Wt, MinvW, bvec,
-            prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0], e[:0]), opened)
+            prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, wp_ptr[:1], wp_idx[:0], wp_idx[:0]),
+            opened)
 
 
 @nb.njit(cache=True, inline="always")
@@ -295,20 +294,22 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     m, nv = Wt.shape
     o = 3 * nc
     nb_ = m - o
-    Gdiag = np.empty(m)
     if form == prox.FORM_DELASSUS:
-        G = np.empty((m, m))
+        buf = np.empty(m * m + m)      # (one allocation for G and its diagonal)
+        G = view2(buf[:m * m], (m, m))
+        Gdiag = buf[m * m:]
         prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx)
         for a in range(m):
             Gdiag[a] = G[a, a]
         gp_ptr, gp_idx = prox.row_pattern(G)
     else:
-        G = np.empty((0, 0))
+        Gdiag = np.empty(m)
+        G = view2(Gdiag[:0], (0, 0))
         prox.delassus_diagonal(Wt, MinvW, Gdiag, wp_ptr, wp_idx)
         gp_ptr = np.zeros(m + 1, dtype=np.int64)
         gp_idx = np.zeros(0, dtype=np.int64)
-    LB = np.zeros((0, 0))
-    lb_first = np.zeros(0, dtype=np.int64)
+    LB = view2(Gdiag[:0], (0, 0))      # (empty views: no allocation)
+    lb_first = gp_ptr[:0]
     ok = True
     if bilateral_direct and nb_ > 0:
         if form == prox.FORM_DELASSUS:     # G_BB: G's lower right block, read in place
@@ -355,7 +356,14 @@ def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
     o = 3 * na
     m = c.shape[0]
     nv = u_free.shape[0]
-    lam0 = np.zeros(m)
+    # (one allocation for Λ^0, Λ, r, u^E and μ per contact)
+    buf = np.empty(3 * m + nv + na)
+    lam0 = buf[:m]
+    lam = buf[m:2 * m]
+    r = buf[2 * m:3 * m]
+    u = buf[3 * m:3 * m + nv]
+    mu_vec = buf[3 * m + nv:]
+    lam0[:] = 0.0
     if s.warm_start:
         for a in range(na):
             i = active[a]
@@ -364,11 +372,9 @@ def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
                     lam0[3 * a + k] = last_impulse[i, k]
         for a in range(m - o):
             lam0[o + a] = last_bilateral[a]
-    mu_vec = np.full(na, s.mu)
+    mu_vec[:] = s.mu
     attempts = 2 if fallback_factor > 0.0 else 1
-    r = np.empty(m)
-    u = np.empty(nv)
-    lam = lam0.copy()
+    lam[:] = lam0
     iters = 0
     status = prox.STATUS_CONVERGED
     resid = 0.0
@@ -524,10 +530,11 @@ def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, 
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
         s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active)
     t = lap(timings, PHASE_M_INVERSE, t)
-    G, Gdiag, LB = np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0))
     if ok and Wt.shape[0] != 0:
         ok, G, Gdiag, LB, pat = phase_delassus(s.form, active.shape[0], s.bilateral_direct,
                                                Wt, MinvW, pat)
+    else:
+        G, Gdiag, LB = view2(bvec[:0], (0, 0)), bvec[:0], view2(bvec[:0], (0, 0))
     lap(timings, PHASE_G, t)
     return ContactProblem(ok, active, Wt, MinvW, bvec, G, Gdiag, LB, pat, opened)
 
