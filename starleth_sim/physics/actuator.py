@@ -9,8 +9,10 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .kernel_cache import KERNEL
 
-@nb.njit(cache=True)
+
+@nb.njit(**KERNEL)
 def saturate_torque(tau, limit, qd, qd_limit, out):
     """The torques the motors apply: out = tau clipped to [-limit, limit] (effort limits);
     a torque that drives its joint faster (τ φ̇ > 0) beyond the velocity limit v is derated

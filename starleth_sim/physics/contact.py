@@ -12,6 +12,8 @@ from typing import NamedTuple
 import numpy as np
 import numba as nb
 
+from .kernel_cache import KERNEL
+
 
 def tangent_basis(normal):
     """Unit tangents t1, t2 with (n, t1, t2) right-handed; t1 is the projection of the world
@@ -57,7 +59,7 @@ class CompliantLaw(NamedTuple):
     slip_velocity: float   # ‖γ_T‖ below which a slipping contact counts as stopped [m/s]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, tangent1,
                              tangent2, lam):
     """Compliant contact law of Alg. 1 for all contact points, at (q^M, u^S), with the
@@ -138,7 +140,7 @@ def compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, ta
         lam[i, 2] = l2
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def generalized_contact_force(Wt, lam, out):
     """out += Σ_i W_i λ_i  (W_i = Wt[i]^T), the contribution of the compliant forces to h."""
     nc = lam.shape[0]

@@ -18,6 +18,7 @@ import numpy as np
 import numba as nb
 import pinocchio as pin
 
+from .kernel_cache import KERNEL
 from .array_views import view2
 
 JT_FREEFLYER = 0
@@ -88,7 +89,7 @@ class KinematicTree:
                 self.idx_v, self.support, self.oR, self.op)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def quat_xyzw_to_rot(x, y, z, w, R):
     """Rotation matrix of the unit quaternion (x, y, z, w) (Pinocchio order), written into R."""
     R[0, 0] = 1 - 2 * (y * y + z * z)
@@ -102,7 +103,7 @@ def quat_xyzw_to_rot(x, y, z, w, R):
     R[2, 2] = 1 - 2 * (x * x + y * y)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def axis_angle_to_rot(a, theta, R):
     c = np.cos(theta)
     s = np.sin(theta)
@@ -119,7 +120,7 @@ def axis_angle_to_rot(a, theta, R):
     R[2, 2] = t * z * z + c
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _matmul3(A, B, out):
     """out = A B for 3x3 matrices (explicit loops: BLAS calls cost more than the flops)."""
     for r in range(3):
@@ -127,7 +128,7 @@ def _matmul3(A, B, out):
             out[r, c] = A[r, 0] * B[0, c] + A[r, 1] * B[1, c] + A[r, 2] * B[2, c]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
     """World placements (oR[j], op[j]) of all joint frames: oM_j = oM_parent · placement_j · M_j(q)."""
     nj = parent.shape[0]
@@ -163,7 +164,7 @@ def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
         _matmul3(oR[par], tmp, oR[j])
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
     """Jacobian (3 x nv) of the world velocity of the material point at world position p that
     is rigidly attached to joint frame j; forward_kinematics must have been run."""
@@ -198,7 +199,7 @@ def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
             out[2, iv] = a0 * d1 - a1 * d0
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def contact_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                        c_joint, c_local, c_radius, normal, tangent1, tangent2, ground_offset,
                        jacobian_gap, gap, position, Wt):
@@ -209,7 +210,7 @@ def contact_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support
                    normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
                    normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt):
     """Gaps g_N, contact-point positions and contact-frame Jacobians of all contact points

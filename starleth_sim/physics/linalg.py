@@ -12,8 +12,10 @@ from __future__ import annotations
 import numpy as np
 import numba as nb
 
+from .kernel_cache import KERNEL
 
-@nb.njit(cache=True)
+
+@nb.njit(**KERNEL)
 def cholesky_upper_input(A, o, L, first):
     """L L^T = A[o:, o:] (A symmetric positive definite, only its upper triangle is read;
     o: the offset of the block factored, e.g. G_BB in G), with its
@@ -57,7 +59,7 @@ def cholesky_upper_input(A, o, L, first):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def cholesky_solve_vec(L, first, b):
     """Solve (L L^T) x = b in place (b is overwritten with x), L with the envelope `first`
     of cholesky_upper_input (all zeros: a dense L)."""
@@ -82,7 +84,7 @@ def cholesky_solve_vec(L, first, b):
 # pattern: no fill-in. L is stored in one matrix: D on the diagonal, the unit lower factor's
 # entries L[k, i] at k's ancestors i; nothing else is read or written.
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def ltdl(A, dof_parent, L):
     """The LTDL factor of the SPD matrix A (M of a forest: only its entries A[i, k], i an
     ancestor of k or i = k, are read, the upper triangle) into L (see above). Returns False if A is
@@ -110,7 +112,7 @@ def ltdl(A, dof_parent, L):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def ltdl_solve_vec(L, dof_parent, b):
     """Solve (Lᵀ D L) x = b in place for an LTDL factor (ltdl)."""
     n = b.shape[0]
@@ -130,7 +132,7 @@ def ltdl_solve_vec(L, dof_parent, b):
             j = dof_parent[j]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def ltdl_solve_cols(L, dof_parent, B):
     """Solve (Lᵀ D L) X = B in place for every column of B (ltdl_solve_vec's operations for
     each column, in the same order, so the same result bit for bit). The trees of the forest
@@ -156,7 +158,7 @@ def ltdl_solve_cols(L, dof_parent, B):
         o = e
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
     """ltdl_solve_cols for a B whose nonzero rows of each column are known (ptr, idx: CSR
     by column; for B = W, the row pattern of W^T), and the same pattern of the solution
@@ -224,7 +226,7 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
     return out_ptr, out_idx[:cnt]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _ltdl_solve_tree_cols(L, dof_parent, B, o, e, cols):
     """ltdl_solve_cols for the tree of dofs o..e−1 and the given columns."""
     nc = cols.shape[0]

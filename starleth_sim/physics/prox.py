@@ -66,6 +66,7 @@ from typing import NamedTuple
 import numpy as np
 import numba as nb
 
+from .kernel_cache import KERNEL
 from .linalg import cholesky_solve_vec
 
 SCHEME_JOR = 0
@@ -129,13 +130,13 @@ class ProxSettings(NamedTuple):
     alpha: float = 0.5         # α > 0: r as given; < 0 (ALPHA_AUTO): adaptive α, see above
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def prox_normal(x):
     """Λ_N = −prox_{R0−}(−x): projection of x onto [0, ∞)."""
     return x if x > 0.0 else 0.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def prox_disc(x1, x2, radius):
     """Projection of (x1, x2) onto the disc of the given radius centred at 0."""
     n2 = x1 * x1 + x2 * x2
@@ -147,7 +148,7 @@ def prox_disc(x1, x2, radius):
     return x1 * s, x2 * s
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def row_pattern(A):
     """Nonzero pattern of the rows of A as CSR (ptr, idx), in one pass over A."""
     m, n = A.shape
@@ -165,7 +166,7 @@ def row_pattern(A):
     return ptr, idx[:cnt]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def col_pattern(A):
     """Nonzero pattern of the columns of A as CSR (ptr, idx)."""
     return row_pattern(A.T)
@@ -176,7 +177,7 @@ def col_pattern(A):
 DELASSUS_MASK_ROWS = 24
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _dof_masks(ptr, idx, nv):
     """One 64-bit mask per row of a CSR pattern: bit (k·64) // nv set for each nonzero
     column k (nv velocities in 64 buckets): two rows whose masks share no bit share no
@@ -191,7 +192,7 @@ def _dof_masks(ptr, idx, nv):
     return masks
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx):
     """G = W^T M^{-1} W (symmetric; both triangles written). Wt: m x nv, MinvW: nv x m,
     (wp_ptr, wp_idx): nonzero pattern of the rows of Wt, (mp_ptr, mp_idx): of the columns
@@ -221,7 +222,7 @@ def delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx):
             G[b, a] = s
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def delassus_diagonal(Wt, MinvW, d, wp_ptr, wp_idx):
     """diag(G) without forming G (velocity form)."""
     m = Wt.shape[0]
@@ -233,7 +234,7 @@ def delassus_diagonal(Wt, MinvW, d, wp_ptr, wp_idx):
         d[a] = s
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def prox_parameters(Gdiag, nc, alpha, r):
     """r_N = α/G_NN, r_T = α/max(G_T1T1, G_T2T2) per contact, r_B = α/G_ll per bilateral row.
     α < 0 (adaptive α, ALPHA_AUTO) gives the same with |α|; the kernels then rescale r."""
@@ -249,7 +250,7 @@ def prox_parameters(Gdiag, nc, alpha, r):
         r[l] = alpha / Gdiag[l]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _project_contact(lam, b, xi0, xi1, xi2, r, mu_i, out):
     """Prox update of one contact's three rows (normal first, the disc uses the new Λ_N)."""
     ln = prox_normal(lam[b] - r[b] * xi0)
@@ -259,7 +260,7 @@ def _project_contact(lam, b, xi0, xi1, xi2, r, mu_i, out):
     out[b + 2] = t2
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _kinetic_energy(M, u):
     nv = u.shape[0]
     s = 0.0
@@ -271,7 +272,7 @@ def _kinetic_energy(M, u):
     return 0.5 * s
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _add_impulse_columns(MinvW, lam, u, mp_ptr, mp_idx, ncols):
     """u += M^{-1} W[:, :ncols] Λ[:ncols], with the column pattern of M^{-1} W."""
     for l in range(ncols):
@@ -282,14 +283,14 @@ def _add_impulse_columns(MinvW, lam, u, mp_ptr, mp_idx, ncols):
                 u[k] += MinvW[k, l] * x
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
     """u = u_free + M^{-1} W Λ (Eqn. 17)."""
     u[:] = u_free
     _add_impulse_columns(MinvW, lam, u, mp_ptr, mp_idx, MinvW.shape[1])
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, lb_first):
     """Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) for the current Λ_U (Eqn. 20, Delassus form)."""
     m = c.shape[0]
@@ -308,7 +309,7 @@ def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, lb_first):
         lam[o + a] = rhs[a]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, mp_ptr, mp_idx,
                                lb_first):
     """Λ_B = −G_BB^{-1} W_B^T (u^S + M^{-1}(h Δt + W_U Λ_U)) (Eqn. 20, velocity form)."""
@@ -329,7 +330,7 @@ def _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, lam, wp_ptr, wp_idx, m
         lam[o + a] = rhs[a]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _check(lam_old, lam, tol_rel, tol_abs):
     """(converged by the impulse criterion, max |ΔΛ|, all finite)."""
     ok = True
@@ -347,7 +348,7 @@ def _check(lam_old, lam, tol_rel, tol_abs):
 
 
 # -- adaptive α (solver.alpha: auto) ------------------------------------------------------------
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _delassus_entry(form, G, Wt, MinvW, pat, a, l):
     """G_al: from G (Delassus form) or W_a^T (M^{-1}W)_l (velocity form)."""
     if form == FORM_DELASSUS:
@@ -359,7 +360,7 @@ def _delassus_entry(form, G, Wt, MinvW, pat, a, l):
     return s
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _scaled_apply(form, G, Wt, MinvW, pat, sq, x, y, n, tmp):
     """y = S x with S = R^{1/2} G R^{1/2} restricted to the first n rows (sq = r^{1/2})."""
     if form == FORM_DELASSUS:
@@ -386,7 +387,7 @@ def _scaled_apply(form, G, Wt, MinvW, pat, sq, x, y, n, tmp):
         y[a] = sq[a] * acc
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _power_lambda_max(S3, n_power):
     """λ_max of a symmetric positive semi-definite 3x3 matrix S3 by power iteration."""
     x0, x1, x2 = 1.0, 0.9, 0.8
@@ -404,7 +405,7 @@ def _power_lambda_max(S3, n_power):
     return lam
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def auto_spectral_scale(s, G, Wt, MinvW, pat, nc, r):
     """λ_max of the scaled Delassus matrix S = R^{1/2} G R^{1/2} (r = |α|/diag(G)) that bounds
     the step of the settings' scheme: JOR, S itself (its contact rows S_UU with the direct
@@ -453,7 +454,7 @@ def auto_spectral_scale(s, G, Wt, MinvW, pat, nc, r):
     return lam
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs):
     """The spectral step of the adaptive α: rs = r / λ_max(R^{1/2} G R^{1/2} / |α|), i.e.
     r_l = |α| / (λ_max G_ll) with λ_max of the diagonally scaled G (see
@@ -472,7 +473,7 @@ def auto_spectral_parameters(s, G, Wt, MinvW, pat, nc, r, rs):
     return f
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def auto_step_factor(s, G, Wt, MinvW, pat, nc, old, new, rs, tmp1, tmp2, n):
     """θ of the Barzilai-Borwein step of the increment d = new − old: (dᵀ R_s^{-1} d) over
     the first n rows (those the long step applies to: the contact rows with the direct
@@ -512,7 +513,7 @@ def auto_step_factor(s, G, Wt, MinvW, pat, nc, old, new, rs, tmp1, tmp2, n):
     return _clamp_step(p_, q)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _clamp_step(p_, q):
     """θ = p/q clamped to [1, AUTO_MAX_STEP]; 1 when p is 0 or q is not positive."""
     if p_ == 0.0 or not q > 0.0:
@@ -523,7 +524,7 @@ def _clamp_step(p_, q):
     return min(max(theta, 1.0), AUTO_MAX_STEP)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _auto_guard(res, hist):
     """Tracks the smallest increment of the solve; an increment AUTO_GUARD times larger
     ends the long steps (hist[1] = 1). Returns whether long steps may follow."""
@@ -535,7 +536,7 @@ def _auto_guard(res, hist):
     return hist[1] != 1.0
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _auto_jor_save(k, old, new, xi, res, rs, rk, hist, dsave, xsave):
     """JOR's adaptive α after sweep k: the spectral step rs for the next sweep; after even
     sweeps also d = new − old and ξ^k saved, for the long step that the next sweep takes once
@@ -549,7 +550,7 @@ def _auto_jor_save(k, old, new, xi, res, rs, rk, hist, dsave, xsave):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _auto_jor_long_step(s, nc, xi, rs, rk, dsave, xsave):
     """The long step of JOR from the saved increment d and Gd = ξ − ξ_saved (see
     auto_step_factor): rk = rs θ on the contact rows (and the bilateral prox rows)."""
@@ -566,7 +567,7 @@ def _auto_jor_long_step(s, nc, xi, rs, rk, dsave, xsave):
         rk[l] = rs[l] * theta
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _auto_next(s, G, Wt, MinvW, pat, nc, k, old, new, res, rs, rk, hist, tmp1, tmp2):
     """The parameters rk of the sweep after sweep k (increment new − old, max |ΔΛ| = res) of
     the adaptive α: the Barzilai-Borwein step after even sweeps, the spectral step rs after
@@ -582,7 +583,7 @@ def _auto_next(s, G, Wt, MinvW, pat, nc, k, old, new, res, rs, rk, hist, tmp1, t
         rk[l] = rs[l] * theta
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
     """Work arrays of a kernel: (rk, rs, Λ^0, hist, tmp1, tmp2, dsave, xsave) with rk the parameters of the
     first sweep: r itself (no copies with a fixed α), or with the adaptive α (s.alpha < 0)
@@ -602,7 +603,7 @@ def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
     return rs.copy(), rs, lam.copy(), hist, np.empty(nv), np.empty(nv), np.empty(m), np.empty(m)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
@@ -669,7 +670,7 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     return max_iter, STATUS_MAX_ITER, res
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     """SOR prox on ξ = GΛ + c: contact after contact, reusing the updated impulses."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
@@ -737,7 +738,7 @@ def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     return max_iter, STATUS_MAX_ITER, res
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u):
     """JOR prox iterating in the end velocity u^k (Eqn. 17-19); G is never formed."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
@@ -806,7 +807,7 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     return max_iter, STATUS_MAX_ITER, res
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u):
     """SOR prox in the end velocity: after each contact's projection u is updated (Eqn. 18),
     then the bilateral rows (Eqn. 19, or Eqn. 20 when direct)."""
@@ -881,7 +882,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     return max_iter, STATUS_MAX_ITER, res
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u):
     """One prox solve with the scheme and form of the settings `s` (a `ProxSettings`-like
     record; one jitted call from the stepper). Problem: W^T (Wt), M^{-1}W (MinvW),

@@ -25,6 +25,7 @@ import numba as nb
 import numpy as np
 import pinocchio as pin
 
+from .kernel_cache import KERNEL
 from .array_views import view2, view3
 from .kinematics import JT_FREEFLYER
 
@@ -46,12 +47,12 @@ class BodyInertias:
         return self.mass, self.lever, self.inertia, self.gravity
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def motion_subspace(jtype, axis, idx_v, oR, op, S):
     """S (6 x nv): the world-frame Plücker motion subspace of every joint's velocity
     coordinates (module docstring); forward_kinematics must have been run."""
@@ -78,7 +79,7 @@ def motion_subspace(jtype, axis, idx_v, oR, op, S):
             S[3, iv], S[4, iv], S[5, iv] = _cross(p0, p1, p2, a0, a1, a2)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def spatial_inertias(oR, op, mass, lever, inertia, out):
     """out[j] (6 x 6): body j's spatial inertia in the world frame at the world origin,
     [[I_c − m [c]x², m [c]x]; [m [c]x^T, m 1]] with c its centre of mass and I_c its
@@ -116,7 +117,7 @@ def spatial_inertias(oR, op, mass, lever, inertia, out):
                 I6[3 + r, k] = I6[k, 3 + r]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, inertia,
                            gravity, M, h):
     """M (nv x nv, full) by the composite-rigid-body algorithm and h = −(C(q, u) u + g(q))

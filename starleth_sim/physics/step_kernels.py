@@ -29,6 +29,7 @@ import numba as nb
 from numba.core import types
 from numba.extending import overload
 
+from .kernel_cache import KERNEL
 from . import prox
 from .array_views import view2
 from .contact import compliant_contact_forces, generalized_contact_force
@@ -82,7 +83,7 @@ class ContactProblem(NamedTuple):
     opened: int                 # contacts loaded in the last step that left I
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def problem_fields(p):
     """A ContactProblem as the plain tuple that crosses into Python cheaply."""
     pat = p.pat
@@ -91,14 +92,14 @@ def problem_fields(p):
              pat.lb_first), p.opened)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def problem_from_fields(f):
     """The ContactProblem of problem_fields' tuple."""
     return ContactProblem(f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7],
                           prox.Patterns(*f[8]), f[9])
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def _perf_counter():
     with nb.objmode(t="float64"):
         t = time.perf_counter()
@@ -121,7 +122,7 @@ def lap(timings, phase, since):
     return t
 
 
-@overload(clock, jit_options={"cache": True})
+@overload(clock, jit_options=KERNEL)
 def _clock_jit(timings):
     """In the kernels, clock and lap are chosen by the type of `timings`: with None (not
     profiling) the compiled kernel holds no clock at all (an object-mode block, even one
@@ -131,7 +132,7 @@ def _clock_jit(timings):
     return lambda timings: _perf_counter()
 
 
-@overload(lap, jit_options={"cache": True})
+@overload(lap, jit_options=KERNEL)
 def _lap_jit(timings, phase, since):
     if isinstance(timings, types.NoneType):
         return lambda timings, phase, since: 0.0
@@ -143,7 +144,7 @@ def _lap_jit(timings, phase, since):
     return impl
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def free_velocity(h, dt, uS, dof_parent, L, u_free):
     """u_free = u^S + M^{-1} h Δt with the LTDL factor L of M (linalg.ltdl)."""
     for k in range(uS.shape[0]):
@@ -153,7 +154,7 @@ def free_velocity(h, dt, uS, dof_parent, L, u_free):
         u_free[k] += uS[k]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2,
                     lam, dof_parent, factor, L, u_free, timings):
     """Alg. 1 without bilateral constraints, in one call: the factor of M into L (unless
@@ -176,7 +177,7 @@ def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anch
     return True
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def active_set(gap, s, last_impulse, last_active):
     """The active set I at q^M: g_N,i ≤ s.activation_gap, and with s.hysteresis also every
     contact that carried Λ_N > 0 in the last step while g_N,i ≤ s.opening_gap. Returns
@@ -196,7 +197,7 @@ def active_set(gap, s, last_impulse, last_active):
     return picked[:na], opened
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def normal_law_offset(gap, dt, beta_velocity):
     """The gap terms of the normal law's b_N (ξ_N = γ_N^E + ε_N γ_N^S + b_gap):
     g_N⁺/Δt lets a contact above the ground approach it within the step (never pulls, as
@@ -207,7 +208,7 @@ def normal_law_offset(gap, dt, beta_velocity):
     return beta_velocity * gap / dt
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
                last_active):
     """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
@@ -283,7 +284,7 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
             opened)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     """Fig. 7 phase "G (and G_B^-1)": G = W^T M^{-1} W (Delassus form) or only diag(G)
     (velocity form), and for the direct bilateral solution (Eqn. 20) the Cholesky factor
@@ -330,7 +331,7 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
     return ok, G, Gdiag, LB, full
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
     """c = W^T u_free + b (Eqn. 15), with the row pattern of W^T."""
     m = Wt.shape[0]
@@ -343,7 +344,7 @@ def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
     return c
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
     """Fig. 7 phase "u^E" of the problem p (a ContactProblem) with c = W^T u_free + b: warm
     start (the last step's impulses of contacts that stay active, and of the bilateral
@@ -403,7 +404,7 @@ PROJECTION_TOLERANCE = 1e-6
 PROJECTION_LOOKAHEAD = 5e-3
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, out):
     """g_N^E ≈ g_N(q^M) + ½Δt W_N^T u^E of every contact whose Jacobian is known (in the
     active set or g_N(q^M) ≤ jacobian_gap); +inf for the others. Returns the smallest."""
@@ -422,7 +423,7 @@ def predicted_end_gaps(gap, Wt_all, jacobian_gap, is_active, uE, dt, out):
     return worst
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def projection_problem(Wt, MinvW, active, extra, Wt_all, dof_parent, L):
     """W^T and M^{-1}W of the projection when contacts outside the active set (`extra`) are
     predicted to penetrate: the rows of the active contacts and of `extra` (3 each, as the
@@ -467,7 +468,7 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, dof_parent, L):
     return contacts, Wp, Mp, prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, e, e[:0], e[:0])
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr):
     """Post-step projection (contact.penetration_correction "projection"). With the
     predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of the
@@ -520,7 +521,7 @@ def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr)
     return it, status
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
                     last_active, timings):
     """The torque-independent part of the hard-contact solve for the StepSettings s: the
@@ -539,7 +540,7 @@ def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, 
     return ContactProblem(ok, active, Wt, MinvW, bvec, G, Gdiag, LB, pat, opened)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
                           last_impulse, last_active, timings):
     """contact_problem for a caller that prepares ahead (MoreauStepper.prepare).
@@ -550,7 +551,7 @@ def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent
                                           last_active, timings))
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
                      last_bilateral, impulse, is_active, u_free, u, u_corr, timings):
     """The torque-dependent rest of the hard-contact solve of the ContactProblem p for the
@@ -614,7 +615,7 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
 
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse,
                            last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
                            timings):
@@ -625,7 +626,7 @@ def complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_a
                             impulse, is_active, u_free, u, u_corr, timings)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, h,
                         last_impulse, last_active, last_bilateral, impulse, is_active, u_free,
                         u, u_corr, timings):
@@ -646,7 +647,7 @@ def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, 
     return True, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def end_of_step(qM, uE, u_corr, projected, half_dt, jtype, idx_q, idx_v, qE):
     """Eqn. (8): q^E = q^M ⊕ ½Δt F(q^M) (u^E + Δu_p) (Δu_p = u_corr of the post-step
     projection when it ran, else 0) into qE. False if q^E or u^E is not finite."""
@@ -658,7 +659,7 @@ def end_of_step(qM, uE, u_corr, projected, half_dt, jtype, idx_q, idx_v, qE):
     return all_finite(qE, uE)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def all_finite(a, b):
     for k in range(a.shape[0]):
         if not np.isfinite(a[k]):

@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 import numba as nb
 
+from .kernel_cache import KERNEL
 from . import prox
 from .array_views import view2, view3
 from .actuator import saturate_torque
@@ -88,7 +89,7 @@ class TreeStepModel(NamedTuple):
 N_SETTINGS = len(StepSettings._fields)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _step_settings(a):
     """The StepSettings of its fields packed as floats (TreeStepModel.pack): exact, the
     ints and flags being small whole numbers. (A tuple of 19 fields costs ≈0.3 µs per call to
@@ -98,12 +99,12 @@ def _step_settings(a):
                         a[17] != 0.0, a[18] != 0.0)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _take(buf, o, n):
     return buf[o:o + n], o + n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def unpack_tree_model(floats, ints, support, workspace, nv):
     """The views of TreeStepModel's buffers: (StepSettings, CompliantLaw's fields, model
     (midpoint_model's order), normal, tangent1, tangent2, ground_offset, eps, effort_limit,
@@ -168,7 +169,7 @@ def report_views(report, nc, na):
             report[4 * nc:7 * nc].reshape(nc, 3), report[7 * nc:7 * nc + na])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
     """applied = the torques the motors apply for tau (actuator.saturate_torque at the
     joint rates of u; with saturate False, tau as given: the caller saturated it). False if
@@ -183,7 +184,7 @@ def _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, app
     return saturate_torque(tau, effort_limit, qd, velocity_limit, applied)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _report_contacts(gap, position, report, nc):
     """Copies g_N and the contact points at q^M into the report buffer (report_views)."""
     for i in range(nc):
@@ -192,7 +193,7 @@ def _report_contacts(gap, position, report, nc):
             report[4 * nc + 3 * i + k] = position[i, k]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, tangent2,
                           ground_offset, jacobian_gap, gap, position, Wt_all, model):
     """q^M, M and h at (q^M, u^S) of a tree without cut joints (midpoint_dynamics), then
@@ -214,7 +215,7 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
     return qM, M, h
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
                    last_bilateral, report, is_active, u_free, uE, u_corr, qM, half_dt, jtype,
                    idx_q, idx_v, qE):
@@ -240,7 +241,7 @@ def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last
     return outcome, it, status, resid, retried, pit, pstatus
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
                    report, is_active, qE, uE, floats, ints, support, workspace):
     """One whole step with hard contacts of a coordinate set without bilateral constraints
@@ -281,7 +282,7 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, report,
                         is_active, qE, uE, floats, ints, support, workspace):
     """tree_step_hard's counterpart for compliant contacts (Alg. 1, the CompliantLaw and Δt
@@ -367,7 +368,7 @@ class CutModel(NamedTuple):
         return CutModel(floats, ints, workspace)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def unpack_cut_model(floats, ints, workspace, na, nv):
     """The views of CutModel's buffers: (β/Δt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C,
     b1_C, joint_cut, constant, M, root_q, root_v, body masses, inertias, gravity, W_B^T,
@@ -409,7 +410,7 @@ def unpack_cut_model(floats, ints, workspace, na, nv):
             view2(WtB, (nB, nv)), gB, bB, angle, rate, view2(axis_world, (ncut, 3)))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
                      body_inertia, body_gravity, normal, tangent1, tangent2, ground_offset,
                      jacobian_gap, gap, position, Wt_all, model):
@@ -434,7 +435,7 @@ def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass
     return qM, M, h
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
                         h):
     """h += the generalized force of the applied joint torques (Sᵀτ inside the trees, the
@@ -453,7 +454,7 @@ def _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f
         h[k] += f_ext[k]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active,
                      last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints,
                      support, workspace, cut_floats, cut_ints, cut_workspace):

@@ -30,6 +30,7 @@ import numba as nb
 import numpy as np
 import pinocchio as pin
 
+from ..kernel_cache import KERNEL
 from ..description import RobotDescription
 from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, contact_points,
                           forward_kinematics, point_jacobian, quat_xyzw_to_rot)
@@ -42,7 +43,7 @@ _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModel
 # --------------------------------------------------------------------------------------------
 # jitted kernels over the forest arrays
 # --------------------------------------------------------------------------------------------
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def integrate_forest(q, u, dt, jtype, idx_q, idx_v, out):
     """out = q ⊕ Δt F(q) u: r ← r + Δt v, P ← P ⊗ exp(Δt ω/2) per root, φ ← φ + Δt φ̇."""
     for j in range(1, jtype.shape[0]):
@@ -72,7 +73,7 @@ def integrate_forest(q, u, dt, jtype, idx_q, idx_v, out):
         out[iq + 6] = nw / n
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _quat_rot(q, iq, R):
     """Rotation of the root whose coordinates start at q[iq] (quaternion at iq+3..iq+6)."""
     quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], R)
@@ -80,7 +81,7 @@ def _quat_rot(q, iq, R):
 
 # Pinocchio's free-flyer convention and the transform of its M and h into ours: the
 # cross-check of rigid_body in test/test_kinematics_dynamics.py
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin):
     """u_pin = T u: each root's linear velocity rotated into its body frame (Rs: n_roots x 3 x 3
     receives the roots' rotations)."""
@@ -93,7 +94,7 @@ def to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin):
             u_pin[iv + a] = Rs[r, 0, a] * u[iv] + Rs[r, 1, a] * u[iv + 1] + Rs[r, 2, a] * u[iv + 2]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h):
     """M = Tᵀ M_pin T, h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k)) (M_pin: upper triangle)."""
     n = M_pin.shape[0]
@@ -133,7 +134,7 @@ def from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h):
             h[iv + a] = tmp[a]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def tree_dynamics(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, mass, lever,
                   inertia, gravity, M, h):
     """M and h at (q, u) (rigid_body.mass_matrix_and_forces after the forward kinematics)."""
@@ -142,7 +143,7 @@ def tree_dynamics(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, m
                            gravity, M, h)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def midpoint_dynamics(q, u, half_dt, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support,
                       oR, op, mass, lever, inertia, gravity, c_joint, c_local, c_radius,
                       normal, tangent1, tangent2, ground_offset, jacobian_gap, qM, M, h, gap,
@@ -157,14 +158,14 @@ def midpoint_dynamics(q, u, half_dt, parent, jtype, axis, pl_R, pl_p, idx_q, idx
                    normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def add_at(h, idx, values):
     """h[idx[k]] += values[k] (a fancy-indexed += costs several µs from Python)."""
     for k in range(idx.shape[0]):
         h[idx[k]] += values[k]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h):
     """h = [m g ; −ω × Θ ω] per free body (frames at the CoM, inertial linear velocity)."""
     for r in range(root_v.shape[0]):
@@ -181,7 +182,7 @@ def rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h):
         h[iv + 5] = -(w0 * l1 - w1 * l0)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def angular_jacobian(j, jtype, axis, idx_v, support, oR, out):
     """Jacobian (3 x nv) of the world angular velocity of joint frame j."""
     nv = out.shape[1]
@@ -201,13 +202,13 @@ def angular_jacobian(j, jtype, axis, idx_v, support, oR, out):
                 out[r, iv] = oR[k, r, 0] * axis[k, 0] + oR[k, r, 1] * axis[k, 1] + oR[k, r, 2] * axis[k, 2]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _rotate(R, v, out):
     for r in range(3):
         out[r] = R[r, 0] * v[0] + R[r, 1] * v[1] + R[r, 2] * v[2]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _cut_scratch(nv):
     """Scratch arrays of a pass over the cut joints: (J_P, J_C (3 x nv), the hinge axis aw
     and P's perpendiculars b1, b2 in the world, t)."""
@@ -215,7 +216,7 @@ def _cut_scratch(nv):
             np.empty(3))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _hinge_axes(oR_P, a_P, b1_P, b2_P, aw, b1, b2):
     """The hinge axis a and the perpendiculars b1, b2 of a cut joint, given in the frame of
     its body P, in the world (aw, b1, b2)."""
@@ -224,7 +225,7 @@ def _hinge_axes(oR_P, a_P, b1_P, b2_P, aw, b1, b2):
     _rotate(oR_P, b2_P, b2)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B, angle, rate,
                axis_world, do_fk):
@@ -274,7 +275,7 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
             axis_world[k, r] = aw[r]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**KERNEL, inline="always")
 def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t):
     """φ and φ̇ of a cut joint: φ the rotation of C's b1 about the hinge axis aw, seen in P's
     (b1, b2) basis (all in the world); φ̇ = aw·(ω_C − ω_P), with JP, JC the angular
@@ -289,7 +290,7 @@ def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t):
     return angle, s
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                      cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle, rate):
     """φ and φ̇ of every cut joint at (q, u), and nothing else: the same arithmetic as
@@ -306,7 +307,7 @@ def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, suppor
         angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t)
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def gather_joint_values(x, index, cut_values, cut_index, out):
     """out[k] = x[index[k]] for a joint inside a tree (cut_index[k] < 0), cut_values[
     cut_index[k]] for a cut joint: the joints' φ (x = q) or φ̇ (x = u) in the public order
@@ -316,7 +317,7 @@ def gather_joint_values(x, index, cut_values, cut_index, out):
         out[k] = x[index[k]] if c < 0 else cut_values[c]
 
 
-@nb.njit(cache=True)
+@nb.njit(**KERNEL)
 def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h):
     """h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the actuators of the cut joints."""
     nv = h.shape[0]
