@@ -227,11 +227,11 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
 
 
 @nb.njit(**KERNEL, inline="always")
-def _ltdl_solve_tree_cols(L, dof_parent, B, o, e, cols):
-    """ltdl_solve_cols for the tree of dofs o..e−1 and the given columns."""
-    nc = cols.shape[0]
-    for k in range(e - 1, o - 1, -1):  # (a W column is zero on the legs of other contacts)
-        for p in range(nc):
+def _ltdl_transpose_pass_cols(L, dof_parent, B, o, e, cols):
+    """The Lᵀ pass of _ltdl_solve_tree_cols for some columns of B, skipping their zeros (a W
+    column is zero on the legs of other contacts)."""
+    for k in range(e - 1, o - 1, -1):
+        for p in range(cols.shape[0]):
             c = cols[p]
             x = B[k, c]
             if x != 0.0:
@@ -239,8 +239,27 @@ def _ltdl_solve_tree_cols(L, dof_parent, B, o, e, cols):
                 while j != -1:
                     B[j, c] -= L[k, j] * x
                     j = dof_parent[j]
+
+
+@nb.njit(**KERNEL, inline="always")
+def _ltdl_solve_tree_cols(L, dof_parent, B, o, e, cols):
+    """ltdl_solve_cols for the tree of dofs o..e−1 and the given columns. With every
+    column of B (one tree, as in the minimal coordinates) both passes run along the rows of
+    B, over all columns at once (vectorized); the Lᵀ pass then also subtracts the zero
+    entries of a row (L[k, j]·0 = ±0 changes no nonzero value, so the result differs at most
+    in the sign of an exact zero)."""
+    nc = cols.shape[0]
     if nc == B.shape[1]:    # every column: contiguous rows (vectorized)
-        for k in range(o, e):
+        for k in range(e - 1, o - 1, -1):      # Lᵀ y = b: leaves to roots
+            row = B[k]
+            j = dof_parent[k]
+            while j != -1:
+                lkj = L[k, j]
+                up = B[j]
+                for c in range(nc):
+                    up[c] -= lkj * row[c]
+                j = dof_parent[j]
+        for k in range(o, e):                  # D z = y, L x = z: roots to leaves
             d = L[k, k]
             row = B[k]
             for c in range(nc):
@@ -253,6 +272,7 @@ def _ltdl_solve_tree_cols(L, dof_parent, B, o, e, cols):
                     row[c] -= lkj * up[c]
                 j = dof_parent[j]
         return
+    _ltdl_transpose_pass_cols(L, dof_parent, B, o, e, cols)
     for k in range(o, e):
         d = L[k, k]
         for p in range(nc):
