@@ -202,15 +202,14 @@ def delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx):
     a fraction of the work when M^{-1} is block-diagonal over many trees (the maximal
     coordinates: a bilateral row touches two of 17 bodies)."""
     m, nv = Wt.shape
-    masked = m > DELASSUS_MASK_ROWS
-    if masked:
-        row_mask = _dof_masks(wp_ptr, wp_idx, nv)
-        col_mask = _dof_masks(mp_ptr, mp_idx, nv)
-    else:
-        row_mask = col_mask = np.zeros(0, dtype=np.uint64)
+    if m <= DELASSUS_MASK_ROWS:
+        _delassus_rows(Wt, MinvW, G, wp_ptr, wp_idx)
+        return
+    row_mask = _dof_masks(wp_ptr, wp_idx, nv)
+    col_mask = _dof_masks(mp_ptr, mp_idx, nv)
     for a in range(m):
         for b in range(a, m):
-            if masked and (row_mask[a] & col_mask[b]) == 0:
+            if (row_mask[a] & col_mask[b]) == 0:
                 G[a, b] = 0.0
                 G[b, a] = 0.0
                 continue
@@ -220,6 +219,27 @@ def delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx):
                 s += Wt[a, k] * MinvW[k, b]
             G[a, b] = s
             G[b, a] = s
+
+
+@nb.njit(**KERNEL, inline="always")
+def _delassus_rows(Wt, MinvW, G, wp_ptr, wp_idx):
+    """delassus without masks, row by row: the upper part of row a of G accumulates
+    Wt[a, k] · M^{-1}W[k, a:] over the nonzeros k of row a of W^T, along contiguous rows
+    (vectorized). Each entry gets the same terms in the same order, from +0.0, as the sum
+    of the entry-by-entry loop: the same G bit for bit."""
+    m = Wt.shape[0]
+    for a in range(m):
+        row = G[a]
+        for b in range(a, m):
+            row[b] = 0.0
+        for p in range(wp_ptr[a], wp_ptr[a + 1]):
+            k = wp_idx[p]
+            w = Wt[a, k]
+            mk = MinvW[k]
+            for b in range(a, m):
+                row[b] += w * mk[b]
+        for b in range(a + 1, m):
+            G[b, a] = row[b]
 
 
 @nb.njit(**KERNEL)
