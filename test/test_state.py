@@ -80,12 +80,56 @@ def test_failed_step_restores_the_state(preset, profile, poison):
         np.testing.assert_array_equal(got, want)
 
 
+def test_a_failure_in_a_later_physics_step_of_the_period_undoes_the_earlier_ones():
+    """Cm steps twice per control period, each physics step in its own kernel call
+    (Simulator._kernel_steps): when the second fails, the first is undone as well, and the
+    reports stay those of the last period."""
+    sim = Simulator.from_preset("Cm")
+    assert sim.config.steps_per_control == 2
+    q_stand = sim.joint_positions().copy()
+    run(sim, q_stand, 10)
+    before = sim.snapshot()
+    memory = contact_memory(before)
+    impulses = [c.impulse.copy() for c in sim.contacts]
+    stepper = sim.stepper
+    kernel_step = stepper.step_in_one_kernel
+    moved = []
+
+    def second_fails(*args, **kwargs):
+        if moved:
+            raise SimulationError("injected failure of the second physics step")
+        out = kernel_step(*args, **kwargs)
+        moved.append(not np.array_equal(sim.state.q, before.q))
+        return out
+
+    stepper.step_in_one_kernel = second_fails
+    with pytest.raises(SimulationError, match="injected"):
+        sim.step(pd(sim, q_stand))
+    assert moved == [True]              # the first physics step had changed the state
+    np.testing.assert_array_equal(sim.state.q, before.q)
+    np.testing.assert_array_equal(sim.state.u, before.u)
+    assert sim.t == before.t
+    for got, want in zip(contact_memory(sim.state), memory):
+        np.testing.assert_array_equal(got, want)
+    for c, want in zip(sim.contacts, impulses):
+        np.testing.assert_array_equal(c.impulse, want)
+    # and it steps on as a simulator restored to that state does
+    del stepper.step_in_one_kernel
+    other = Simulator.from_preset("Cm")
+    other.restore(before)
+    np.testing.assert_array_equal(run(sim, q_stand, 5), run(other, q_stand, 5))
+
+
 @pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD", "HMSD"])
 def test_profiled_step_is_the_same_step(preset):
     plain = Simulator.from_preset(preset)
     prof = Simulator.from_preset(preset, profile=True)
     q_stand = plain.joint_positions().copy()
     np.testing.assert_array_equal(run(prof, q_stand, 30), run(plain, q_stand, 30))
+    for field in ("iterations", "max_iterations_step", "converged", "active_contacts",
+                  "physics_steps", "projections", "loaded_contacts_opened_total"):
+        assert getattr(prof.diagnostics, field) == getattr(plain.diagnostics, field), field
+    assert [c.active for c in prof.contacts] == [c.active for c in plain.contacts]
     timings = prof.diagnostics.timings
     assert set(timings) == {"M_and_h", "M_inverse", "G", "prox", "rest"}
     assert timings["M_and_h"] > 0 and timings["M_inverse"] > 0 and timings["rest"] > 0

@@ -123,13 +123,16 @@ class Simulator:
             self._velocity_limit[:] = np.inf
         self.stepper = MoreauStepper(self.coords, config, profile=profile,
                                      torque_limits=(self._effort_limit, self._velocity_limit))
-        #: the reports of a one-kernel step are written into one of two report buffers
-        #: (tree_step.report_views), the other holding the last step's: nothing allocated
-        #: per step, and a failed step leaves the reports as they were
+        #: the reports of the one-kernel steps of a control period are written into one of
+        #: two sets of report buffers (one buffer per physics step, tree_step.report_views),
+        #: the other set holding the last period's: nothing allocated per step, and a failed
+        #: step leaves the reports as they were
         nc = self.coords.n_contacts
-        self._report_buffers = [(b, np.empty(nc, dtype=np.bool_),
-                                 report_views(b, nc, self.n_joints))
-                                for b in (np.zeros(report_size(nc, self.n_joints)) for _ in "ab")]
+        self._report_buffers = [
+            [(b, np.empty(nc, dtype=np.bool_), report_views(b, nc, self.n_joints))
+             for b in (np.zeros(report_size(nc, self.n_joints))
+                       for _ in range(config.steps_per_control))]
+            for _ in "ab"]
         self._next_report = 0
         self._one_physics_step = config.steps_per_control == 1
         #: joint rates are u's entries (no cut joints): nothing to cache
@@ -430,31 +433,32 @@ class Simulator:
             prev.physics_steps + 1, prev.nonconverged_steps + (0 if converged else 1),
             prev.loaded_contacts_opened_total + opened, NO_TIMINGS)
 
-    def _control_step_diagnostics(self, results, step_time):
-        """The Diagnostics of a control step from its physics steps' StepResults (sums and
-        worst cases), continuing the cumulative counts of the last one."""
+    def _control_step_diagnostics(self, figures, step_time):
+        """The Diagnostics of a control step from its physics steps' figures (StepResult.figures'
+        tuples: sums and worst cases), continuing the cumulative counts of the last one."""
         prev = self.diagnostics
         iterations = worst = projection_iterations = projections = opened = nonconverged = 0
         residual = 0.0
         retried = False
         status = prox.STATUS_CONVERGED
-        for r in results:
-            iterations += r.iterations
-            worst = max(worst, r.iterations)
-            residual = max(residual, r.residual)
-            retried |= r.retried
-            opened += r.opened_loaded
-            projection_iterations += r.projection_iterations
-            projections += r.projected
-            if r.status != prox.STATUS_CONVERGED:
-                status = r.status
+        for n_active, step_opened, step_iterations, step_status, step_residual, \
+                step_retried, step_projection_iterations, step_projected in figures:
+            iterations += step_iterations
+            worst = max(worst, step_iterations)
+            residual = max(residual, step_residual)
+            retried |= step_retried
+            opened += step_opened
+            projection_iterations += step_projection_iterations
+            projections += step_projected
+            if step_status != prox.STATUS_CONVERGED:
+                status = step_status
                 nonconverged += 1
         timings = (dict(zip(PHASES, self.stepper.stats.timings.tolist()))
                    if self.stepper.profile else NO_TIMINGS)
         return Diagnostics(
             iterations, worst, nonconverged == 0, _STATUS[status], residual,
-            results[-1].n_active, retried, opened, projection_iterations, projections,
-            step_time, prev.physics_steps + len(results),
+            figures[-1][0], retried, opened, projection_iterations, projections,
+            step_time, prev.physics_steps + len(figures),
             prev.nonconverged_steps + nonconverged,
             prev.loaded_contacts_opened_total + opened, timings)
 
@@ -473,16 +477,16 @@ class Simulator:
         t_wall = perf_counter()
         state = self.state
         stepper = self.stepper
-        # one physics step that, failing, leaves the state as it was (and no timed wrench
-        # to count down): no rollback copy
-        transactional = self._one_physics_step and not state.pending_wrenches and \
-            stepper.step_is_transactional(state)
-        if transactional and not self._persistent_wrenches:
+        # a physics step in one kernel call (not prepared ahead, not profiling) leaves the
+        # state as it was when it fails; with no wrench, every step of the period is one
+        one_kernel = stepper.step_is_transactional(state)
+        in_kernels = one_kernel and not state.pending_wrenches and not self._persistent_wrenches
+        if in_kernels and self._one_physics_step:
             # the common case: one kernel call that also saturates τ; it writes its reports
             # into the spare report buffer, which then becomes the current one
             a = self._torque_array(tau)
             report, active, (impulse, gap, position, tau) = \
-                self._report_buffers[self._next_report]
+                self._report_buffers[self._next_report][0]
             try:
                 (n_active, opened, iterations, status, residual, retried,
                  projection_iterations, projected) = stepper.step_in_one_kernel(
@@ -493,15 +497,23 @@ class Simulator:
             d = self._one_step_diagnostics(iterations, status, residual, n_active, retried,
                                            opened, projection_iterations, projected,
                                            perf_counter() - t_wall)
+        elif in_kernels:
+            # several physics steps, each in one kernel call, τ saturated once per period
+            tau = self._validated_torque(tau)
+            figures, impulse, active, gap, position = self._kernel_steps(state, tau)
+            d = self._control_step_diagnostics(figures, perf_counter() - t_wall)
         else:
             tau = self._validated_torque(tau)
+            # (a one-step period without timed wrenches to count down needs no rollback copy)
+            transactional = self._one_physics_step and not state.pending_wrenches and one_kernel
             results = self._physics_steps(state, tau, self.config.steps_per_control,
                                           rollback=not transactional)
             active, gap, position = results[-1].active, results[-1].gap, results[-1].position
             impulse = results[0].impulse
             for r in results[1:]:      # in step order (the sum's round-off depends on it)
                 impulse = impulse + r.impulse
-            d = self._control_step_diagnostics(results, perf_counter() - t_wall)
+            d = self._control_step_diagnostics([r.figures() for r in results],
+                                               perf_counter() - t_wall)
         self._state_version += 1
         state.t += self.control_period
         self._tau = tau
@@ -511,6 +523,29 @@ class Simulator:
         self._position = position
         self.diagnostics = d
         return self._log_step(d)
+
+    def _kernel_steps(self, state, tau):
+        """The physics steps of a control period, each in one kernel call with the applied
+        torques tau (saturated: MoreauStepper.step_in_one_kernel), their reports written
+        into the spare set of report buffers, which then becomes the current one; the same
+        arithmetic as _physics_steps' (bit for bit). On a SimulationError the state is
+        restored from a copy taken before. Returns (the steps' figures, Λ summed over the
+        period, and the last step's active flags, g_N and contact points)."""
+        stepper = self.stepper
+        buffers = self._report_buffers[self._next_report]
+        before = state.copy(share_qu=True)
+        try:
+            figures = [stepper.step_in_one_kernel(state, tau, report, active, saturate=False)
+                       for report, active, _ in buffers]
+        except SimulationError:
+            self.restore(before)
+            raise
+        self._next_report ^= 1
+        impulse = buffers[0][2][0]
+        for _, _, views in buffers[1:]:    # in step order (as _physics_steps' callers)
+            impulse = impulse + views[0]
+        _, active, (_, gap, position, _) = buffers[-1]
+        return figures, impulse, active, gap, position
 
     def _physics_steps(self, state, tau, n, rollback):
         """The n physics steps of a control period through MoreauStepper.step, with the

@@ -95,6 +95,12 @@ class StepResult:
     projection_iterations: int = 0       # post-step projection (0: it did not run)
     projected: bool = False              # the post-step projection ran
 
+    def figures(self) -> tuple:
+        """(|I|, opened, iterations, status, residual, retried, projection iterations,
+        projected): MoreauStepper.step_in_one_kernel's figures of this step."""
+        return (self.n_active, self.opened_loaded, self.iterations, self.status,
+                self.residual, self.retried, self.projection_iterations, self.projected)
+
 
 @dataclass
 class StepperStats:
