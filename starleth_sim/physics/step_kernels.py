@@ -615,6 +615,15 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
 
 
 
+#: contact_problem and complete_problem inlined into the one-kernel steps
+#: (tree_step.tree_step_hard, forest_step_hard): there the ContactProblem's twenty-odd arrays
+#: need not be passed, returned and reference-counted across calls (≈ 15 % of an HmJ step,
+#: measured side by side); the other callers call them (inlining them everywhere cost 70 s
+#: more of cold compilation, measured)
+contact_problem_inlined = nb.njit(**KERNEL, inline="always")(contact_problem.py_func)
+complete_problem_inlined = nb.njit(**KERNEL, inline="always")(complete_problem.py_func)
+
+
 @nb.njit(**KERNEL)
 def complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse,
                            last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,

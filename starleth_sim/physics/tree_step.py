@@ -24,8 +24,8 @@ from .actuator import saturate_torque
 from .coordinates.forest import (cut_joint_motion, cut_joint_torques, cut_joints,
                                  integrate_forest, midpoint_dynamics, rigid_body_forces)
 from .kinematics import contact_kinematics
-from .step_kernels import (StepSettings, complete_problem, contact_problem, end_of_step,
-                           solve_compliant)
+from .step_kernels import (StepSettings, complete_problem_inlined, contact_problem_inlined,
+                           end_of_step, solve_compliant)
 
 
 #: tree_step_* outcomes (the first entry of their result)
@@ -227,7 +227,7 @@ def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last
     nc = gap.shape[0]
     kept = (last_impulse.copy(), last_active.copy(), last_bilateral.copy())
     impulse = view2(report[:3 * nc], (nc, 3))
-    it, status, resid, retried, pit, pstatus = complete_problem(
+    it, status, resid, retried, pit, pstatus = complete_problem_inlined(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         impulse, is_active, u_free, uE, u_corr, None)
     outcome = TREE_STEP_OK
@@ -271,8 +271,8 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     qM, M, h = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                      tangent2, offset, s.jacobian_gap, gap, position,
                                      Wt_all, model)
-    p = contact_problem(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps, dof_parent,
-                        True, L, last_impulse, last_active, None)
+    p = contact_problem_inlined(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
+                                dof_parent, True, L, last_impulse, last_active, None)
     if not p.ok:
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
@@ -499,8 +499,8 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
         bB[k] = gB[k] * beta_over_dt
     _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
                         h)
-    p = contact_problem(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
-                        last_impulse, last_active, None)
+    p = contact_problem_inlined(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
+                                last_impulse, last_active, None)
     if not p.ok:
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
