@@ -40,13 +40,17 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 	touch $@
 
 # Per-run ROS_DOMAIN_ID (10..99) so concurrent runs on one host do not cross-talk.
-# Two passes: the CPU-bound tests on two pytest-xdist workers (a file's tests on one worker,
+# First the numba kernels into their on-disk cache, disjoint work on 2 processes
+# (starleth-precompile; seconds once cached): else both pytest workers compile the same
+# kernels side by side, about a minute more of a fresh clone's run on 2 cores. Two passes: the CPU-bound tests on two pytest-xdist workers (a file's tests on one worker,
 # so its module fixtures run once), then the tests marked serial (ROS nodes, deadlines,
 # rates, browser; see test/conftest.py) one at a time. Both passes run; the target fails
 # with the first failing pass's pytest status (5, no tests collected, only if neither
 # pass collected any: a -k selection may fall in one pass alone).
 test: venv
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
+	echo "numba kernels into the on-disk cache, 2 processes (starleth-precompile)"; \
+	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || exit $$?; \
 	echo "pass 1: tests not marked serial, 2 workers"; \
 	$(VPY) -m pytest -q -n 2 --dist loadfile -m "not serial" test $(PYTEST_ARGS); a=$$?; \
 	echo "pass 2: tests marked serial, one at a time"; \

@@ -51,6 +51,7 @@ setup(
             'starleth-view = starleth_sim.tools.view:main',
             'starleth-replay = starleth_sim.tools.replay:main',
             'starleth-sweep = starleth_sim.tools.sweep:main',
+            'starleth-precompile = starleth_sim.tools.precompile:main',
         ],
     },
 )

@@ -15,9 +15,12 @@ records. The one-kernel step of the minimal coordinates is in
 :mod:`starleth_sim.physics.tree_step`.
 
 Profiling (Fig. 7 phases, `PHASES`): the kernels add the time of each phase to a `timings`
-array with `t = lap(timings, phase, t)`; when not profiling, timings is None and every lap
-is a no-op: `clock` and `lap` are chosen by the type of `timings`, so the unprofiled kernels
-are compiled without any clock.
+array with `t = lap(timings, phase, t)`; when not profiling, every lap is a no-op. The
+one-kernel steps pass None, and `clock` and `lap`, chosen by the type of `timings`, compile
+them without any clock; the kernels Python calls phase by phase (`solve_hard_contacts`,
+`prepare_hard_contacts`, `complete_hard_contacts`) always get an array, empty when not
+profiling (`NOT_TIMED`), so that each is compiled once for both uses (a second signature of
+each cost ≈ 45 s of cold compilation, measured) at the price of a length test per lap.
 """
 from __future__ import annotations
 
@@ -106,16 +109,25 @@ def _perf_counter():
     return t
 
 
+#: the `timings` of a kernel called phase by phase while not profiling
+#: (writeable, as the profiling array: numba types a read-only array differently)
+NOT_TIMED = np.zeros(0)
+
+
+def _timed(timings) -> bool:
+    return timings is not None and len(timings) != 0
+
+
 def clock(timings):
     """The profiling clock: time.perf_counter() when profiling (timings is the array the
-    phases' times go to), else 0 (timings is None)."""
-    return 0.0 if timings is None else time.perf_counter()
+    phases' times go to), else 0 (timings is None or empty)."""
+    return time.perf_counter() if _timed(timings) else 0.0
 
 
 def lap(timings, phase, since):
     """Profiling: add the time since `since` to timings[phase] and return the clock; a
-    no-op returning 0 when timings is None (not profiling)."""
-    if timings is None:
+    no-op returning 0 when timings is None or empty (not profiling)."""
+    if not _timed(timings):
         return 0.0
     t = time.perf_counter()
     timings[phase] += t - since
@@ -124,12 +136,18 @@ def lap(timings, phase, since):
 
 @overload(clock, jit_options=KERNEL)
 def _clock_jit(timings):
-    """In the kernels, clock and lap are chosen by the type of `timings`: with None (not
-    profiling) the compiled kernel holds no clock at all (an object-mode block, even one
-    never run, costs about 1 µs per kernel call, measured)."""
+    """In the kernels, clock and lap are chosen by the type of `timings`: with None the
+    compiled kernel holds no clock at all (an object-mode block, even one never run, costs
+    about 1 µs per kernel call, measured); with an array, the clock runs when it is not
+    empty."""
     if isinstance(timings, types.NoneType):
         return lambda timings: 0.0
-    return lambda timings: _perf_counter()
+
+    def impl(timings):
+        if timings.shape[0] == 0:
+            return 0.0
+        return _perf_counter()
+    return impl
 
 
 @overload(lap, jit_options=KERNEL)
@@ -138,6 +156,8 @@ def _lap_jit(timings, phase, since):
         return lambda timings, phase, since: 0.0
 
     def impl(timings, phase, since):
+        if timings.shape[0] == 0:
+            return 0.0
         t = _perf_counter()
         timings[phase] += t - since
         return t

@@ -1,0 +1,110 @@
+"""``starleth-precompile``: fills numba's on-disk cache of the kernels, in parallel processes.
+
+Every physics kernel is compiled with ``cache=True`` (``physics.kernel_cache``): the first
+process that calls a kernel compiles it (a few minutes for all of them on a 2-core machine)
+and writes the machine code next to its source; every later process loads it in well under a
+second. Processes started side by side before the cache is filled (two pytest workers, the
+sim and controller nodes of a first ``make demo``, the pool of a sweep) each compile the same
+kernels at the same time. This tool compiles them once, spreading disjoint work over
+``--jobs`` processes, so that those processes only load.
+
+The work units are the public entry points that reach distinct kernels: the one-kernel step
+of each family (tree hard contacts: HmJ; forest: HEJD and the other extended / maximal sets;
+compliant: Cm), the phase-by-phase step that ``profile=True`` runs, the step prepared ahead
+(``Simulator.prepare``, sim_node's path), the controller's kernels (one closed-loop control
+period) and sim_node's command parsers. A unit whose kernels are already cached takes a
+fraction of a second, so running the tool again is cheap.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import sys
+import time
+
+from ..physics.config import PRESETS
+
+#: (unit, rough cold compile time on a 2-core machine [s]); the longest start first, so that
+#: the processes finish close together (longest processing time first)
+UNITS = (
+    ("step:HmJ", 75.0),
+    ("step:HEJD", 55.0),
+    ("profile:HEJD", 40.0),
+    ("profile:HmJ", 30.0),
+    ("prepare:HmJ", 30.0),
+    ("controller", 15.0),
+    ("step:Cm", 7.0),
+    ("profile:Cm", 5.0),
+    ("ros-codec", 3.0),
+) + tuple((f"{kind}:{p}", 1.0) for kind in ("step", "profile", "prepare") for p in PRESETS
+          if (kind, p) not in (("step", "HmJ"), ("step", "HEJD"), ("step", "Cm"),
+                               ("profile", "HEJD"), ("profile", "HmJ"), ("profile", "Cm"),
+                               ("prepare", "HmJ")))
+
+
+def compile_unit(unit: str) -> tuple[str, float]:
+    """Runs the entry point of `unit` ("step:PRESET", "profile:PRESET", "prepare:PRESET",
+    "controller" or "ros-codec") long enough to call each of its kernels once; returns
+    (unit, wall seconds)."""
+    t0 = time.perf_counter()
+    kind, _, preset = unit.partition(":")
+    if kind == "controller":
+        from .evaluation import run_gait
+        run_gait("HmJ", "trot", 0.01, stand_time=0.0)
+    elif kind == "ros-codec":
+        from ..ros.cdr import CommandDecoder
+        CommandDecoder(["joint"])          # compiles its parsers on construction
+    elif kind in ("step", "profile", "prepare") and preset in PRESETS:
+        from ..physics.posture import PostureHold
+        from ..physics.simulator import Simulator
+        sim = Simulator.from_preset(preset, profile=kind == "profile")
+        hold = PostureHold(sim.joint_positions())
+        for _ in range(2):
+            if kind == "prepare":       # the torque-independent part ahead (sim_node's path)
+                sim.prepare()
+            sim.step(hold.torque(sim))
+    else:
+        raise ValueError(f"unknown unit {unit!r}: 'step:PRESET', 'profile:PRESET', "
+                         "'prepare:PRESET', 'controller' or 'ros-codec'")
+    return unit, time.perf_counter() - t0
+
+
+def precompile(jobs: int | None = None, units=None, stream=sys.stdout) -> float:
+    """Compiles (or loads) the kernels of `units` (default: all) in `jobs` processes (default:
+    the CPU count, at most 4); returns the wall time [s]."""
+    units = [u for u, _ in UNITS] if units is None else list(units)
+    jobs = max(1, min(jobs or min(os.cpu_count() or 1, 4), len(units)))
+    t0 = time.perf_counter()
+    if jobs == 1:
+        done = map(compile_unit, units)
+        for unit, seconds in done:
+            print(f"  {unit:<14} {seconds:6.1f} s", file=stream, flush=True)
+    else:
+        # spawn: a fresh interpreter per worker (no forked numba or threading state)
+        with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+            for unit, seconds in pool.imap_unordered(compile_unit, units):
+                print(f"  {unit:<14} {seconds:6.1f} s", file=stream, flush=True)
+    return time.perf_counter() - t0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="starleth-precompile", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--jobs", type=int, default=None,
+                    help="processes (default: the CPU count, at most 4)")
+    ap.add_argument("units", nargs="*",
+                    help="units to compile (default: all): " + ", ".join(u for u, _ in UNITS))
+    args = ap.parse_args(argv)
+    known = {u for u, _ in UNITS}
+    bad = [u for u in args.units if u not in known]
+    if bad:
+        ap.error(f"unknown unit(s) {', '.join(bad)}; known: {', '.join(sorted(known))}")
+    if args.jobs is not None and args.jobs < 1:
+        ap.error("--jobs must be at least 1")
+    print("starleth-precompile: numba kernels into the on-disk cache", flush=True)
+    wall = precompile(args.jobs, args.units or None)
+    print(f"done in {wall:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
