@@ -50,7 +50,7 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 test: venv
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	echo "numba kernels into the on-disk cache, 2 processes (starleth-precompile)"; \
-	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || exit $$?; \
+	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
 	echo "pass 1: tests not marked serial, 2 workers"; \
 	$(VPY) -m pytest -q -n 2 --dist loadfile -m "not serial" test $(PYTEST_ARGS); a=$$?; \
 	echo "pass 2: tests marked serial, one at a time"; \

@@ -38,7 +38,8 @@ def test_worker_processes_write_the_cache_that_later_processes_load(tmp_path, mo
     and each unit is reported. (The cheap unit twice: a cold "step" unit takes minutes.)"""
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     out = io.StringIO()
-    wall = P.precompile(jobs=2, units=["ros-codec", "ros-codec"], stream=out)
+    wall, failed = P.precompile(jobs=2, units=["ros-codec", "ros-codec"], stream=out)
+    assert failed == []
     lines = out.getvalue().splitlines()
     assert [line.split()[0] for line in lines] == ["ros-codec", "ros-codec"]
     assert wall > 0
@@ -66,3 +67,21 @@ def test_phase_kernels_have_one_signature_for_profiled_prepared_and_pushed_steps
     # and the unprofiled run took no time into the (empty) array
     assert SK.NOT_TIMED.shape == (0,)
     assert np.all(sim.stepper.stats.timings == 0.0)
+
+
+def test_a_failing_unit_is_reported_and_fails_the_command(monkeypatch, capsys):
+    """A unit whose entry point raises is reported with its error; the other units still
+    run, and the command exits with status 1 (make test goes on to the tests, which then
+    say what is wrong)."""
+    real = P.compile_unit
+
+    def broken(unit):
+        if unit == "ros-codec":
+            raise RuntimeError("no parser today")
+        return real(unit)
+    monkeypatch.setattr(P, "compile_unit", broken)
+    assert P.main(["--jobs", "1", "ros-codec", "step:HmJ"]) == 1
+    out = capsys.readouterr()
+    assert "ros-codec" in out.out and "FAILED: RuntimeError: no parser today" in out.out
+    assert "step:HmJ" in out.out
+    assert "1 unit(s) failed" in out.err and "ros-codec" in out.err

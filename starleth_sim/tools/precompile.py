@@ -70,22 +70,40 @@ def compile_unit(unit: str) -> tuple[str, float]:
     return unit, time.perf_counter() - t0
 
 
-def precompile(jobs: int | None = None, units=None, stream=sys.stdout) -> float:
+def _try_unit(unit: str) -> tuple[str, float, str | None]:
+    """compile_unit in a worker: (unit, wall seconds, None), or (unit, seconds, the error)
+    when its entry point raised (the other units go on)."""
+    t0 = time.perf_counter()
+    try:
+        return (*compile_unit(unit), None)
+    except Exception as e:      # reported by precompile, which fails at the end
+        return unit, time.perf_counter() - t0, f"{type(e).__name__}: {e}"
+
+
+def precompile(jobs: int | None = None, units=None, stream=None) -> tuple[float, list]:
     """Compiles (or loads) the kernels of `units` (default: all) in `jobs` processes (default:
-    the CPU count, at most 4); returns the wall time [s]."""
+    the CPU count, at most 4), printing each unit's time to `stream` (default stdout);
+    returns (wall time [s], the [(unit, error)] of the units that failed)."""
+    stream = sys.stdout if stream is None else stream
     units = [u for u, _ in UNITS] if units is None else list(units)
     jobs = max(1, min(jobs or min(os.cpu_count() or 1, 4), len(units)))
     t0 = time.perf_counter()
+    failed = []
+
+    def report(done):
+        for unit, seconds, error in done:
+            print(f"  {unit:<14} {seconds:6.1f} s" + (f"  FAILED: {error}" if error else ""),
+                  file=stream, flush=True)
+            if error:
+                failed.append((unit, error))
+
     if jobs == 1:
-        done = map(compile_unit, units)
-        for unit, seconds in done:
-            print(f"  {unit:<14} {seconds:6.1f} s", file=stream, flush=True)
+        report(map(_try_unit, units))
     else:
         # spawn: a fresh interpreter per worker (no forked numba or threading state)
         with multiprocessing.get_context("spawn").Pool(jobs) as pool:
-            for unit, seconds in pool.imap_unordered(compile_unit, units):
-                print(f"  {unit:<14} {seconds:6.1f} s", file=stream, flush=True)
-    return time.perf_counter() - t0
+            report(pool.imap_unordered(_try_unit, units))
+    return time.perf_counter() - t0, failed
 
 
 def main(argv=None):
@@ -102,9 +120,14 @@ def main(argv=None):
     if args.jobs is not None and args.jobs < 1:
         ap.error("--jobs must be at least 1")
     print("starleth-precompile: numba kernels into the on-disk cache", flush=True)
-    wall = precompile(args.jobs, args.units or None)
+    wall, failed = precompile(args.jobs, args.units or None)
+    if failed:
+        print(f"{len(failed)} unit(s) failed in {wall:.1f} s: "
+              f"{', '.join(u for u, _ in failed)}", file=sys.stderr, flush=True)
+        return 1
     print(f"done in {wall:.1f} s", flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
