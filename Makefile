@@ -42,7 +42,8 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 # Per-run ROS_DOMAIN_ID (10..99) so concurrent runs on one host do not cross-talk.
 # First the numba kernels into their on-disk cache, disjoint work on 2 processes
 # (starleth-precompile; seconds once cached): else both pytest workers compile the same
-# kernels side by side, about a minute more of a fresh clone's run on 2 cores. Two passes: the CPU-bound tests on two pytest-xdist workers (a file's tests on one worker,
+# kernels side by side, about a minute more of a fresh clone's run on 2 cores. Then two
+# passes: the CPU-bound tests on two pytest-xdist workers (a file's tests on one worker,
 # so its module fixtures run once), then the tests marked serial (ROS nodes, deadlines,
 # rates, browser; see test/conftest.py) one at a time. Both passes run; the target fails
 # with the first failing pass's pytest status (5, no tests collected, only if neither

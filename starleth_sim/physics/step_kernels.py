@@ -19,8 +19,9 @@ array with `t = lap(timings, phase, t)`; when not profiling, every lap is a no-o
 one-kernel steps pass None, and `clock` and `lap`, chosen by the type of `timings`, compile
 them without any clock; the kernels Python calls phase by phase (`solve_hard_contacts`,
 `prepare_hard_contacts`, `complete_hard_contacts`) always get an array, empty when not
-profiling (`NOT_TIMED`), so that each is compiled once for both uses (a second signature of
-each cost ≈ 45 s of cold compilation, measured) at the price of a length test per lap.
+profiling (`NOT_TIMED`, `kernel_timings`), so that each is compiled once for both uses (a
+second signature cost 30-45 s of cold compilation each, measured) at the price of a length
+test per lap.
 """
 from __future__ import annotations
 
@@ -112,6 +113,12 @@ def _perf_counter():
 #: the `timings` of a kernel called phase by phase while not profiling
 #: (writeable, as the profiling array: numba types a read-only array differently)
 NOT_TIMED = np.zeros(0)
+
+
+def kernel_timings(timings):
+    """The `timings` argument of a kernel called phase by phase: the profiling array, or
+    NOT_TIMED for None (not profiling)."""
+    return NOT_TIMED if timings is None else timings
 
 
 def _timed(timings) -> bool:

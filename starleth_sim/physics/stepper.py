@@ -53,9 +53,9 @@ from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
 from .linalg import ltdl
 from .state import SimState
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
-                           NOT_TIMED, PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings, clock,
-                           complete_hard_contacts, end_of_step, lap, prepare_hard_contacts,
-                           solve_compliant, solve_hard_contacts)
+                           PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings, clock,
+                           complete_hard_contacts, end_of_step, kernel_timings, lap,
+                           prepare_hard_contacts, solve_compliant, solve_hard_contacts)
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
                         TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, CutModel, TreeStepModel,
                         forest_step_hard, report_size, report_views, tree_step_compliant,
@@ -277,7 +277,7 @@ class MoreauStepper:
             problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
                                             WtB, self.bB, self.eps, self.dof_parent, factor,
                                             self.L, state.last_impulse, state.last_active,
-                                            NOT_TIMED if timings is None else timings)
+                                            kernel_timings(timings))
             ok = problem[0]
             if ok:
                 self._factored = True
@@ -477,7 +477,7 @@ class MoreauStepper:
                                     self.bB, self.eps, self.dof_parent, factor, self.L, h,
                                     state.last_impulse, state.last_active,
                                     state.last_bilateral, impulse, is_active, self.u_free, u,
-                                    self.u_corr, NOT_TIMED if timings is None else timings)
+                                    self.u_corr, kernel_timings(timings))
             if not ok:
                 raise SimulationError("mass matrix (or G_B) not positive definite "
                                       "(non-finite state?)")
@@ -486,8 +486,7 @@ class MoreauStepper:
             it, status, resid, retried, pit, pstatus = complete_hard_contacts(
                 self._settings_fields, problem, h, uS, M, self.dof_parent, self.L, gap,
                 self.Wt_all, state.last_impulse, state.last_active, state.last_bilateral,
-                impulse, is_active, self.u_free, u, self.u_corr,
-                NOT_TIMED if timings is None else timings)
+                impulse, is_active, self.u_free, u, self.u_corr, kernel_timings(timings))
             n_active, opened = problem[1].shape[0], problem[9]
         if retried:
             self.stats.retried += 1
