@@ -46,11 +46,9 @@ UNITS = _LONG_UNITS + tuple(
     if unit not in dict(_LONG_UNITS))
 
 
-def compile_unit(unit: str) -> tuple[str, float]:
+def compile_unit(unit: str) -> None:
     """Runs the entry point of `unit` ("step:PRESET", "profile:PRESET", "prepare:PRESET",
-    "controller" or "ros-codec") long enough to call each of its kernels once; returns
-    (unit, wall seconds)."""
-    t0 = time.perf_counter()
+    "controller" or "ros-codec") long enough to call each of its kernels once."""
     kind, _, preset = unit.partition(":")
     if kind == "controller":
         from .evaluation import run_gait
@@ -70,17 +68,18 @@ def compile_unit(unit: str) -> tuple[str, float]:
     else:
         raise ValueError(f"unknown unit {unit!r}: 'step:PRESET', 'profile:PRESET', "
                          "'prepare:PRESET', 'controller' or 'ros-codec'")
-    return unit, time.perf_counter() - t0
 
 
 def _try_unit(unit: str) -> tuple[str, float, str | None]:
     """compile_unit in a worker: (unit, wall seconds, None), or (unit, seconds, the error)
     when its entry point raised (the other units go on)."""
     t0 = time.perf_counter()
+    error = None
     try:
-        return (*compile_unit(unit), None)
+        compile_unit(unit)
     except Exception as e:      # reported by precompile, which fails at the end
-        return unit, time.perf_counter() - t0, f"{type(e).__name__}: {e}"
+        error = f"{type(e).__name__}: {e}"
+    return unit, time.perf_counter() - t0, error
 
 
 def precompile(jobs: int | None = None, units=None, stream=None) -> tuple[float, list]:
