@@ -19,13 +19,13 @@ import numba as nb
 
 from .kernel_cache import KERNEL
 from . import prox
-from .array_views import view2, view3
+from .array_views import borrowed, keep_alive, view2, view3
 from .actuator import saturate_torque
 from .coordinates.forest import (cut_joint_motion, cut_joint_torques, cut_joints,
                                  integrate_forest, midpoint_dynamics, rigid_body_forces)
 from .kinematics import contact_kinematics
-from .step_kernels import (StepSettings, complete_problem_inlined, contact_problem_inlined,
-                           end_of_step, solve_compliant)
+from .step_kernels import (ContactProblem, StepSettings, complete_problem_inlined,
+                           contact_problem_inlined, end_of_step, solve_compliant)
 
 
 #: tree_step_* outcomes (the first entry of their result)
@@ -108,7 +108,10 @@ def _take(buf, o, n):
 def unpack_tree_model(floats, ints, support, workspace, nv):
     """The views of TreeStepModel's buffers: (StepSettings, CompliantLaw's fields, model
     (midpoint_model's order), normal, tangent1, tangent2, ground_offset, eps, effort_limit,
-    velocity_limit, joint_v, dof_parent, gap, position, Wt_all, L, u_free, u_corr)."""
+    velocity_limit, joint_v, dof_parent, gap, position, Wt_all, L, u_free, u_corr), all
+    borrowed (array_views.borrowed: the caller holds the buffers for the whole call)."""
+    floats, ints, support, workspace = (borrowed(floats), borrowed(ints), borrowed(support),
+                                        borrowed(workspace))
     nj, nc, na = ints[0], ints[1], ints[2]
     settings, o = _take(floats, 0, N_SETTINGS)
     law, o = _take(floats, o, 6)
@@ -216,6 +219,19 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
 
 
 @nb.njit(**KERNEL, inline="always")
+def _borrowed_problem(p):
+    """The ContactProblem p with every array borrowed (array_views.borrowed): the kernel
+    that made p holds it (keep_alive(p)) until its last use of the result."""
+    f = p.pat
+    return ContactProblem(p.ok, borrowed(p.active), borrowed(p.Wt), borrowed(p.MinvW),
+                          borrowed(p.b), borrowed(p.G), borrowed(p.Gdiag), borrowed(p.LB),
+                          prox.Patterns(borrowed(f.wp_ptr), borrowed(f.wp_idx),
+                                        borrowed(f.mp_ptr), borrowed(f.mp_idx),
+                                        borrowed(f.gp_ptr), borrowed(f.gp_idx),
+                                        borrowed(f.lb_first)), p.opened)
+
+
+@nb.njit(**KERNEL, inline="always")
 def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
                    last_bilateral, report, is_active, u_free, uE, u_corr, qM, half_dt, jtype,
                    idx_q, idx_v, qE):
@@ -259,6 +275,12 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     the state as it was, and a non-finite τ (TREE_STEP_NONFINITE_TORQUE) is found before
     anything is done. Returns (outcome (TREE_STEP_*), |I|, opened, iterations, status,
     residual, retried, projection iterations, projection status)."""
+    q, u, tau, f_ext, report, is_active, qE, uE = (  # (borrowed: held by the caller)
+        borrowed(q), borrowed(u), borrowed(tau), borrowed(f_ext), borrowed(report),
+        borrowed(is_active), borrowed(qE), borrowed(uE))
+    last_impulse, last_active, last_bilateral = (borrowed(last_impulse),
+                                                 borrowed(last_active),
+                                                 borrowed(last_bilateral))
     nv = u.shape[0]
     (s, _, model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
      dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
@@ -268,17 +290,23 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
         return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * s.dt
-    qM, M, h = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
-                                     tangent2, offset, s.jacobian_gap, gap, position,
-                                     Wt_all, model)
-    p = contact_problem_inlined(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
-                                dof_parent, True, L, last_impulse, last_active, None)
+    # (the step's own arrays are borrowed too once made, and held by keep_alive to the end)
+    qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
+                                tangent2, offset, s.jacobian_gap, gap, position, Wt_all, model)
+    qM, M, h = borrowed(qMh[0]), borrowed(qMh[1]), borrowed(qMh[2])
+    owned = contact_problem_inlined(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
+                                    dof_parent, True, L, last_impulse, last_active, None)
+    p = _borrowed_problem(owned)
     if not p.ok:
+        keep_alive(qMh)
+        keep_alive(owned)
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         report, is_active, u_free, uE, u_corr, qM, half_dt, model[1], model[5], model[6], qE)
     _report_contacts(gap, position, report, nc)
+    keep_alive(qMh)
+    keep_alive(owned)
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
 
 
@@ -291,6 +319,10 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
     the compliant force Δt) and the closed flags (g_N(q^M) ≤ 0) into is_active. A failed
     step leaves the contact state as it was. Returns tree_step_hard's tuple (no prox
     figures)."""
+    q, u, tau, f_ext, report, is_active, qE, uE = (  # (borrowed: held by the caller)
+        borrowed(q), borrowed(u), borrowed(tau), borrowed(f_ext), borrowed(report),
+        borrowed(is_active), borrowed(qE), borrowed(uE))
+    closed, slip, anchor, lam = borrowed(closed), borrowed(slip), borrowed(anchor), borrowed(lam)
     nv = u.shape[0]
     (s, law, model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit,
      joint_v, dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
@@ -301,9 +333,9 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
     if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
         return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * dt
-    qM, M, h = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
-                                     tangent2, offset, jacobian_gap, gap, position, Wt_all,
-                                     model)
+    qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
+                                tangent2, offset, jacobian_gap, gap, position, Wt_all, model)
+    qM, M, h = borrowed(qMh[0]), borrowed(qMh[1]), borrowed(qMh[2])   # (held to the end)
     kept = (closed.copy(), slip.copy(), anchor.copy(), lam.copy())
     if not solve_compliant(law, M, h, u, dt, gap, position, Wt_all, closed, slip, anchor,
                            tangent1, tangent2, lam, dof_parent, True, L, u_free, None):
@@ -326,6 +358,7 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
         is_active[i] = gap[i] <= 0.0
         n_active += is_active[i]
     _report_contacts(gap, position, report, nc)
+    keep_alive(qMh)
     return outcome, n_active, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
 
 
@@ -373,6 +406,7 @@ def unpack_cut_model(floats, ints, workspace, na, nv):
     """The views of CutModel's buffers: (β/Δt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C,
     b1_C, joint_cut, constant, M, root_q, root_v, body masses, inertias, gravity, W_B^T,
     g_B, b_B, φ, φ̇, hinge axes); M and the bodies' arrays empty unless M is constant."""
+    floats, ints, workspace = borrowed(floats), borrowed(ints), borrowed(workspace)
     ncut, constant, nr = ints[0], ints[1] != 0, ints[2]
     beta_over_dt = floats[0]
     o = 1
@@ -473,6 +507,13 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     rate_E (cut_joint_motion: what a controller asks for next, at the cost of one forward
     kinematics and the cut joints' angular Jacobians here rather than a call from Python
     later). Returns tree_step_hard's tuple."""
+    q, u, applied_tau, f_ext, report, is_active, qE, uE = (  # (borrowed: held by the caller)
+        borrowed(q), borrowed(u), borrowed(applied_tau), borrowed(f_ext), borrowed(report),
+        borrowed(is_active), borrowed(qE), borrowed(uE))
+    last_impulse, last_active, last_bilateral = (borrowed(last_impulse),
+                                                 borrowed(last_active),
+                                                 borrowed(last_bilateral))
+    angle_E, rate_E = borrowed(angle_E), borrowed(rate_E)
     nv = u.shape[0]
     (s, _, model, normal, tangent1, tangent2, offset, eps, _, _, joint_v, dof_parent, gap,
      position, Wt_all, L, u_free, u_corr) = unpack_tree_model(floats, ints, support,
@@ -488,9 +529,10 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
             return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
         applied[k] = applied_tau[k]
     half_dt = 0.5 * s.dt
-    qM, M, h = _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
-                                body_inertia, body_gravity, normal, tangent1, tangent2, offset,
-                                s.jacobian_gap, gap, position, Wt_all, model)
+    qMh = _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
+                           body_inertia, body_gravity, normal, tangent1, tangent2, offset,
+                           s.jacobian_gap, gap, position, Wt_all, model)
+    qM, M, h = borrowed(qMh[0]), borrowed(qMh[1]), borrowed(qMh[2])   # (held to the end)
     (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op) = model[:10]
     cut_joints(qM, np.zeros(nv), parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, WtB, gB, angle, rate,
@@ -499,9 +541,12 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
         bB[k] = gB[k] * beta_over_dt
     _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
                         h)
-    p = contact_problem_inlined(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
-                                last_impulse, last_active, None)
+    owned = contact_problem_inlined(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
+                                    last_impulse, last_active, None)
+    p = _borrowed_problem(owned)
     if not p.ok:
+        keep_alive(qMh)
+        keep_alive(owned)
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
@@ -510,4 +555,6 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
         cut_joint_motion(qE, uE, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                          cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E)
     _report_contacts(gap, position, report, nc)
+    keep_alive(qMh)
+    keep_alive(owned)
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
