@@ -67,6 +67,7 @@ import numpy as np
 import numba as nb
 
 from .kernel_cache import KERNEL
+from .array_views import borrowed, keep_alive
 from .linalg import cholesky_solve_vec
 
 SCHEME_JOR = 0
@@ -625,13 +626,24 @@ def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
 
 @nb.njit(**KERNEL, inline="always")
 def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
-    """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out."""
+    """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out.
+    (_jor_prox_delassus on borrowed arrays: no reference counting in the iteration.)"""
+    owner = np.empty(2 * c.shape[0])      # (one allocation for ξ and the new Λ)
+    result = _jor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
+                                borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
+                                borrowed(owner))
+    keep_alive((c, mu, r, lam, u, owner))
+    return result
+
+
+@nb.njit(**KERNEL, inline="always")
+def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, buf):
+    """jor_prox_delassus with its work buffer buf (2m: ξ and the new Λ)."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
     m = c.shape[0]
     o = 3 * nc
-    buf = np.empty(2 * m)      # (one allocation for ξ and the new Λ)
     xi = buf[:m]
     new = buf[m:]
     auto = s.alpha < 0.0
@@ -692,13 +704,24 @@ def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
 
 @nb.njit(**KERNEL, inline="always")
 def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
-    """SOR prox on ξ = GΛ + c: contact after contact, reusing the updated impulses."""
+    """SOR prox on ξ = GΛ + c: contact after contact, reusing the updated impulses.
+    (_sor_prox_delassus on borrowed arrays: no reference counting in the iteration.)"""
+    owner = np.empty(c.shape[0])      # (Λ of the last sweep)
+    result = _sor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
+                                borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
+                                borrowed(owner))
+    keep_alive((c, mu, r, lam, u, owner))
+    return result
+
+
+@nb.njit(**KERNEL, inline="always")
+def _sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, old):
+    """sor_prox_delassus with its work buffer old (m: Λ of the last sweep)."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
     m = c.shape[0]
     o = 3 * nc
-    old = np.empty(m)
     auto = s.alpha < 0.0
     ps = s      # (the loops below reuse the name s for sums)
     rk, rs, lam0, hist, tmp1, tmp2, dsave, xsave = _auto_setup(s, G, G, MinvW, pat, nc, r, lam)

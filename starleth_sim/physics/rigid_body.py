@@ -26,7 +26,7 @@ import numpy as np
 import pinocchio as pin
 
 from .kernel_cache import KERNEL
-from .array_views import view2, view3
+from .array_views import borrowed, keep_alive, view2, view3
 from .kinematics import JT_FREEFLYER
 
 
@@ -128,7 +128,8 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     nv = u.shape[0]
     # the temporaries in one allocation: I6, V, A, F (zeroed), S, vj, hv, f, ndof
     n_zero = 36 * nj + 18 * nj
-    scratch = np.empty(n_zero + 6 * nv + 18)
+    owner = np.empty(n_zero + 6 * nv + 18)
+    scratch = borrowed(owner)       # (no reference counting; held by keep_alive at the end)
     scratch[:n_zero] = 0.0
     I6 = view3(scratch[0:36 * nj], (nj, 6, 6))
     V = view2(scratch[36 * nj:42 * nj], (nj, 6))
@@ -141,7 +142,8 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     f = scratch[o + 12:o + 18]
     motion_subspace(jtype, axis, idx_v, oR, op, S)
     spatial_inertias(oR, op, mass, lever, inertia, I6)
-    ndof = np.empty(nj, dtype=np.int64)
+    ndof_owner = np.empty(nj, dtype=np.int64)
+    ndof = borrowed(ndof_owner)
     for j in range(1, nj):
         ndof[j] = 6 if jtype[j] == JT_FREEFLYER else 1
     # -- RNEA, forward pass: V_j = V_λ(j) + S_j u_j, A_j = A_λ(j) + Ṡ_j u_j, A_0 = −g
@@ -240,3 +242,5 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
                     M[row, col] = s
                     M[col, row] = s
                 a = parent[a]
+    keep_alive(owner)
+    keep_alive(ndof_owner)

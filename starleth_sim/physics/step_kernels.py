@@ -35,7 +35,7 @@ from numba.extending import overload
 
 from .kernel_cache import KERNEL
 from . import prox
-from .array_views import view2
+from .array_views import borrowed, keep_alive, view2
 from .contact import compliant_contact_forces, generalized_contact_force
 from .linalg import (cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern,
                      ltdl_solve_vec)
@@ -384,8 +384,12 @@ def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
     o = 3 * na
     m = c.shape[0]
     nv = u_free.shape[0]
-    # (one allocation for Λ^0, Λ, r, u^E and μ per contact)
-    buf = np.empty(3 * m + nv + na)
+    # (one allocation for Λ^0, Λ, r, u^E and μ per contact; borrowed: no reference counting
+    # in the prox iteration, the owner and c held by keep_alive below)
+    owner = np.empty(3 * m + nv + na)
+    buf = borrowed(owner)
+    c_owner = c
+    c = borrowed(c)
     lam0 = buf[:m]
     lam = buf[m:2 * m]
     r = buf[2 * m:3 * m]
@@ -418,7 +422,9 @@ def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
         if attempt + 1 < attempts:
             retried = True
             alpha *= fallback_factor
-    return u, lam, iters, status, resid, retried
+    keep_alive(c_owner)
+    # (u^E and Λ as owned views: the caller keeps them)
+    return owner[3 * m:3 * m + nv], owner[m:2 * m], iters, status, resid, retried
 
 
 #: the post-step projection runs when a contact's predicted end gap is below

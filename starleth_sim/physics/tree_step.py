@@ -202,10 +202,13 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
     """q^M, M and h at (q^M, u^S) of a tree without cut joints (midpoint_dynamics), then
     h += Sᵀτ (τ in the public order, joint_v its velocity indices) + f_ext (when given):
     the same arithmetic, in the same order, as ForestCoordinates.midpoint followed by
-    add_joint_torques and h += f_ext."""
+    add_joint_torques and h += f_ext. Returns (the owner of their memory, q^M, M, h), the
+    three borrowed (array_views.borrowed): the caller holds the owner (keep_alive) while it
+    uses them."""
     nv = u.shape[0]
     nq = q.shape[0]
-    out = np.empty(nq + nv * nv + nv)       # (one allocation for q^M, M and h)
+    owner = np.empty(nq + nv * nv + nv)     # (one allocation for q^M, M and h)
+    out = borrowed(owner)
     qM = out[:nq]
     M = view2(out[nq:nq + nv * nv], (nv, nv))
     h = out[nq + nv * nv:]
@@ -215,7 +218,7 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
         h[joint_v[k]] += tau[k]
     for k in range(f_ext.shape[0]):
         h[k] += f_ext[k]
-    return qM, M, h
+    return owner, qM, M, h
 
 
 @nb.njit(**KERNEL, inline="always")
@@ -290,10 +293,10 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
         return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * s.dt
-    # (the step's own arrays are borrowed too once made, and held by keep_alive to the end)
+    # (the step's own arrays are borrowed too, their owners held by keep_alive to the end)
     qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                 tangent2, offset, s.jacobian_gap, gap, position, Wt_all, model)
-    qM, M, h = borrowed(qMh[0]), borrowed(qMh[1]), borrowed(qMh[2])
+    _, qM, M, h = qMh
     owned = contact_problem_inlined(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
                                     dof_parent, True, L, last_impulse, last_active, None)
     p = _borrowed_problem(owned)
@@ -335,7 +338,7 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
     half_dt = 0.5 * dt
     qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                 tangent2, offset, jacobian_gap, gap, position, Wt_all, model)
-    qM, M, h = borrowed(qMh[0]), borrowed(qMh[1]), borrowed(qMh[2])   # (held to the end)
+    _, qM, M, h = qMh   # (held to the end)
     kept = (closed.copy(), slip.copy(), anchor.copy(), lam.copy())
     if not solve_compliant(law, M, h, u, dt, gap, position, Wt_all, closed, slip, anchor,
                            tangent1, tangent2, lam, dof_parent, True, L, u_free, None):
@@ -450,23 +453,28 @@ def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass
                      jacobian_gap, gap, position, Wt_all, model):
     """q^M, M and h (without τ) at (q^M, u^S) and the contact kinematics at q^M, as
     ForestCoordinates.midpoint: one midpoint_dynamics for M of the trees; for a constant M
-    (free bodies) q^M, rigid_body_forces and contact_kinematics."""
+    (free bodies) q^M, rigid_body_forces and contact_kinematics. Returns
+    _midpoint_with_forces' tuple (owner, q^M, M, h)."""
     (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, _, _, _, _, c_joint,
      c_local, c_radius) = model
     nv = u.shape[0]
-    qM = np.empty_like(q)
-    h = np.empty(nv)
+    nq = q.shape[0]
+    nM = 0 if constant else nv * nv
+    owner = np.empty(nq + nv + nM)          # (one allocation for q^M, h and M)
+    out = borrowed(owner)
+    qM = out[:nq]
+    h = out[nq:nq + nv]
     if constant:
         integrate_forest(q, u, half_dt, jtype, idx_q, idx_v, qM)
         rigid_body_forces(qM, u, root_q, root_v, body_mass, body_inertia, body_gravity, h)
         contact_kinematics(qM, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                            c_joint, c_local, c_radius, normal, tangent1, tangent2,
                            ground_offset, jacobian_gap, gap, position, Wt_all)
-        return qM, M_const, h
-    M = np.empty((nv, nv))
+        return owner, qM, M_const, h
+    M = view2(out[nq + nv:], (nv, nv))
     midpoint_dynamics(q, u, half_dt, *model, normal, tangent1, tangent2, ground_offset,
                       jacobian_gap, qM, M, h, gap, position, Wt_all)
-    return qM, M, h
+    return owner, qM, M, h
 
 
 @nb.njit(**KERNEL, inline="always")
@@ -532,7 +540,7 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     qMh = _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
                            body_inertia, body_gravity, normal, tangent1, tangent2, offset,
                            s.jacobian_gap, gap, position, Wt_all, model)
-    qM, M, h = borrowed(qMh[0]), borrowed(qMh[1]), borrowed(qMh[2])   # (held to the end)
+    _, qM, M, h = qMh   # (held to the end)
     (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op) = model[:10]
     cut_joints(qM, np.zeros(nv), parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, WtB, gB, angle, rate,
