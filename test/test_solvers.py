@@ -40,7 +40,8 @@ def robot_problem(u_scale, seed, mu=0.8):
                                atol=1e-12)
     na = len(active)
     ok, G, Gdiag, LB, _ = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, pat)
-    c = constraint_velocity(Wt, u_free, bvec, pat.wp_ptr, pat.wp_idx)
+    c = np.empty(Wt.shape[0])
+    constraint_velocity(Wt, u_free, bvec, pat.wp_ptr, pat.wp_idx, c)
     np.testing.assert_allclose(c, Wt @ u_free + bvec, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,

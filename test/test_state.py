@@ -40,9 +40,10 @@ def test_restore_replays_bit_for_bit(preset):
 
 def contact_memory(state):
     """The contact memory of either contact model (hard: Λ and the active flags of the last
-    step; compliant: closed, slip, anchors and forces of Alg. 1)."""
+    step; compliant: closed, slip, anchors and forces of Alg. 1) and Λ_B of the bilateral
+    constraints (empty in the minimal coordinates)."""
     arrays = (state.last_impulse, state.last_active, state.closed, state.slip, state.anchor,
-              state.lam_compliant)
+              state.lam_compliant, state.last_bilateral)
     return [a.copy() for a in arrays if a is not None]
 
 

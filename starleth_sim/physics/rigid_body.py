@@ -80,11 +80,10 @@ def motion_subspace(jtype, axis, idx_v, oR, op, S):
 
 
 @nb.njit(**KERNEL, inline="always")
-def spatial_inertias(oR, op, mass, lever, inertia, out):
+def spatial_inertias(oR, op, mass, lever, inertia, out, scratch):
     """out[j] (6 x 6): body j's spatial inertia in the world frame at the world origin,
     [[I_c − m [c]x², m [c]x]; [m [c]x^T, m 1]] with c its centre of mass and I_c its
-    rotational inertia about c, both in the world frame."""
-    scratch = np.empty(21)      # (one allocation for the three temporaries)
+    rotational inertia about c, both in the world frame. scratch: 21 floats of work space."""
     RI = view2(scratch[0:9], (3, 3))
     Iw = view2(scratch[9:18], (3, 3))
     c = scratch[18:21]
@@ -126,9 +125,10 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     q."""
     nj = parent.shape[0]
     nv = u.shape[0]
-    # the temporaries in one allocation: I6, V, A, F (zeroed), S, vj, hv, f, ndof
+    # the temporaries in one allocation: I6, V, A, F (zeroed), S, vj, hv, f, and the work
+    # space of spatial_inertias
     n_zero = 36 * nj + 18 * nj
-    owner = np.empty(n_zero + 6 * nv + 18)
+    owner = np.empty(n_zero + 6 * nv + 18 + 21)
     scratch = borrowed(owner)       # (no reference counting; held by keep_alive at the end)
     scratch[:n_zero] = 0.0
     I6 = view3(scratch[0:36 * nj], (nj, 6, 6))
@@ -141,11 +141,7 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     hv = scratch[o + 6:o + 12]
     f = scratch[o + 12:o + 18]
     motion_subspace(jtype, axis, idx_v, oR, op, S)
-    spatial_inertias(oR, op, mass, lever, inertia, I6)
-    ndof_owner = np.empty(nj, dtype=np.int64)
-    ndof = borrowed(ndof_owner)
-    for j in range(1, nj):
-        ndof[j] = 6 if jtype[j] == JT_FREEFLYER else 1
+    spatial_inertias(oR, op, mass, lever, inertia, I6, scratch[o + 18:o + 39])
     # -- RNEA, forward pass: V_j = V_λ(j) + S_j u_j, A_j = A_λ(j) + Ṡ_j u_j, A_0 = −g
     for r in range(3):
         A[0, 3 + r] = -gravity[r]
@@ -154,7 +150,7 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
         iv = idx_v[j]
         for r in range(6):
             s = 0.0
-            for d in range(ndof[j]):
+            for d in range(6 if jtype[j] == JT_FREEFLYER else 1):
                 s += S[r, iv + d] * u[iv + d]
             vj[r] = s
             V[j, r] = V[par, r] + s
@@ -204,7 +200,7 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     Ic = I6
     for j in range(nj - 1, 0, -1):
         iv = idx_v[j]
-        for d in range(ndof[j]):
+        for d in range(6 if jtype[j] == JT_FREEFLYER else 1):
             s = 0.0
             for r in range(6):
                 s += S[r, iv + d] * F[j, r]
@@ -222,7 +218,7 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     for j in range(1, nj):
         iv = idx_v[j]
         Icj = Ic[j]
-        for d in range(ndof[j]):
+        for d in range(6 if jtype[j] == JT_FREEFLYER else 1):
             col = iv + d
             for r in range(6):
                 s = 0.0
@@ -232,7 +228,7 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
             a = j
             while a > 0:
                 ia = idx_v[a]
-                for e in range(ndof[a]):
+                for e in range(6 if jtype[a] == JT_FREEFLYER else 1):
                     row = ia + e
                     if a == j and row > col:
                         continue
@@ -243,4 +239,3 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
                     M[col, row] = s
                 a = parent[a]
     keep_alive(owner)
-    keep_alive(ndof_owner)

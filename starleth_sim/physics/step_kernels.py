@@ -359,42 +359,42 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
 
 
 @nb.njit(**KERNEL, inline="always")
-def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx):
+def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx, c):
     """c = W^T u_free + b (Eqn. 15), with the row pattern of W^T."""
     m = Wt.shape[0]
-    c = np.empty(m)
     for a in range(m):
         s = bvec[a]
         for p in range(wp_ptr[a], wp_ptr[a + 1]):
             s += Wt[a, wp_idx[p]] * u_free[wp_idx[p]]
         c[a] = s
-    return c
 
 
 @nb.njit(**KERNEL, inline="always")
-def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
-    """Fig. 7 phase "u^E" of the problem p (a ContactProblem) with c = W^T u_free + b: warm
-    start (the last step's impulses of contacts that stay active, and of the bilateral
-    constraints), the prox iteration, and one retry with α·s.fallback_alpha_factor if it
-    did not converge. Returns (u^E, Λ, iterations, status, residual, retried)."""
+def phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timings, t):
+    """c = W^T u_free + b (constraint_velocity, timed as phase "G" from t), then Fig. 7
+    phase "u^E" of the problem p (a ContactProblem): warm start (the last step's impulses of
+    contacts that stay active, and of the bilateral constraints), the prox iteration, and
+    one retry with α·s.fallback_alpha_factor if it did not converge. Returns (u^E, Λ,
+    iterations, status, residual, retried, the time at the end of phase "G")."""
     active = p.active
     alpha = s.alpha
     fallback_factor = s.fallback_alpha_factor
     na = active.shape[0]
     o = 3 * na
-    m = c.shape[0]
+    m = p.Wt.shape[0]
     nv = u_free.shape[0]
-    # (one allocation for Λ^0, Λ, r, u^E and μ per contact; borrowed: no reference counting
-    # in the prox iteration, the owner and c held by keep_alive below)
-    owner = np.empty(3 * m + nv + na)
+    # (one allocation for Λ^0, Λ, r, u^E, μ per contact and c; borrowed: no reference
+    # counting in the prox iteration, the owner held by keep_alive below)
+    owner = np.empty(4 * m + nv + na)
     buf = borrowed(owner)
-    c_owner = c
-    c = borrowed(c)
+    c = buf[3 * m + nv + na:]
+    constraint_velocity(p.Wt, u_free, p.b, p.pat.wp_ptr, p.pat.wp_idx, c)
+    t = lap(timings, PHASE_G, t)
     lam0 = buf[:m]
     lam = buf[m:2 * m]
     r = buf[2 * m:3 * m]
     u = buf[3 * m:3 * m + nv]
-    mu_vec = buf[3 * m + nv:]
+    mu_vec = buf[3 * m + nv:3 * m + nv + na]
     lam0[:] = 0.0
     if s.warm_start:
         for a in range(na):
@@ -422,9 +422,8 @@ def phase_prox(s, p, u_free, c, M, last_impulse, last_active, last_bilateral):
         if attempt + 1 < attempts:
             retried = True
             alpha *= fallback_factor
-    keep_alive(c_owner)
     # (u^E and Λ as owned views: the caller keeps them)
-    return owner[3 * m:3 * m + nv], owner[m:2 * m], iters, status, resid, retried
+    return owner[3 * m:3 * m + nv], owner[m:2 * m], iters, status, resid, retried, t
 
 
 #: the post-step projection runs when a contact's predicted end gap is below
@@ -586,14 +585,16 @@ def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent
 
 @nb.njit(**KERNEL)
 def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
-                     last_bilateral, impulse, is_active, u_free, u, u_corr, timings):
+                     last_bilateral, impulse, is_active, u_free, u, u_corr, remember, timings):
     """The torque-dependent rest of the hard-contact solve of the ContactProblem p for the
     StepSettings s: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
     c = W^T u_free + b (phase "G"), the prox iteration (phase_prox) and the post-step
     projection (phase_projection; both phase "prox"), timed into `timings` when
     profiling. Writes Λ_U of every contact point into impulse (nc x 3), the active flags,
     Λ_B into last_bilateral, u^E into u and the projection's Δu_p into u_corr; unless the
-    result is non-finite, the warm-start memory (last_impulse, last_active) is updated.
+    result is non-finite, Λ_B is written into last_bilateral, and with `remember` the
+    warm-start memory (last_impulse, last_active) is updated (remember_contacts; the
+    one-kernel steps pass False and do that once the end of the step is known finite).
     Returns (iterations, status, residual, retried, projection iterations, projection
     status)."""
     t = clock(timings)
@@ -614,10 +615,9 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
     if p.Wt.shape[0] == 0:
         u[:] = u_free
     else:
-        c = constraint_velocity(p.Wt, u_free, p.b, p.pat.wp_ptr, p.pat.wp_idx)
-        t = lap(timings, PHASE_G, t)
-        uE, lam, it, status, resid, retried = phase_prox(s, p, u_free, c, M, last_impulse,
-                                                         last_active, last_bilateral)
+        uE, lam, it, status, resid, retried, t = phase_prox(s, p, u_free, M, last_impulse,
+                                                            last_active, last_bilateral,
+                                                            timings, t)
         u[:] = uE
         for a in range(na):
             i = active[a]
@@ -638,12 +638,18 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
         t = clock(timings)
         pit, pstatus = phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, u, u_corr)
         lap(timings, PHASE_PROX, t)
-    if status != prox.STATUS_NONFINITE:
-        for i in range(nc):
-            last_active[i] = is_active[i]
-            for k in range(3):
-                last_impulse[i, k] = impulse[i, k]
+    if remember and status != prox.STATUS_NONFINITE:
+        remember_contacts(is_active, impulse, last_active, last_impulse)
     return it, status, resid, retried, pit, pstatus
+
+
+@nb.njit(**KERNEL, inline="always")
+def remember_contacts(is_active, impulse, last_active, last_impulse):
+    """The warm-start memory of a finished step: its active flags and Λ (nc x 3)."""
+    for i in range(is_active.shape[0]):
+        last_active[i] = is_active[i]
+        for k in range(3):
+            last_impulse[i, k] = impulse[i, k]
 
 
 
@@ -665,7 +671,7 @@ def complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_a
     prepare_hard_contacts; `settings`: the fields of a StepSettings)."""
     return complete_problem(StepSettings(*settings), problem_from_fields(problem), h, uS, M,
                             dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-                            impulse, is_active, u_free, u, u_corr, timings)
+                            impulse, is_active, u_free, u, u_corr, True, timings)
 
 
 @nb.njit(**KERNEL)
@@ -685,7 +691,7 @@ def solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, 
         return False, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     it, status, resid, retried, pit, pstatus = complete_problem(
         s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-        impulse, is_active, u_free, u, u_corr, timings)
+        impulse, is_active, u_free, u, u_corr, True, timings)
     return True, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus
 
 

@@ -25,7 +25,8 @@ from .coordinates.forest import (cut_joint_motion, cut_joint_torques, cut_joints
                                  integrate_forest, midpoint_dynamics, rigid_body_forces)
 from .kinematics import contact_kinematics
 from .step_kernels import (ContactProblem, StepSettings, complete_problem_inlined,
-                           contact_problem_inlined, end_of_step, solve_compliant)
+                           contact_problem_inlined, end_of_step, remember_contacts,
+                           solve_compliant)
 
 
 #: tree_step_* outcomes (the first entry of their result)
@@ -236,27 +237,30 @@ def _borrowed_problem(p):
 
 @nb.njit(**KERNEL, inline="always")
 def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
-                   last_bilateral, report, is_active, u_free, uE, u_corr, qM, half_dt, jtype,
-                   idx_q, idx_v, qE):
+                   last_bilateral, bilateral_E, report, is_active, u_free, uE, u_corr, qM,
+                   half_dt, jtype, idx_q, idx_v, qE):
     """The rest of a one-kernel hard-contact step once its ContactProblem p is set up:
-    complete_problem (Λ into the report buffer) and Eqn. (8) (end_of_step). A non-finite
-    result leaves the warm-start memory (Λ, active flags, Λ_B) as it was. Returns
-    (outcome (TREE_STEP_*), iterations, status, residual, retried, projection iterations,
-    projection status)."""
+    complete_problem (Λ into the report buffer, Λ_B into bilateral_E, which comes in with
+    the last step's Λ_B for the warm start; both nb long) and Eqn. (8) (end_of_step); only
+    when the step ends finite is the warm-start memory (Λ, active flags, Λ_B) updated,
+    else it stays as it was. Returns (outcome (TREE_STEP_*), iterations, status, residual,
+    retried, projection iterations, projection status)."""
     nc = gap.shape[0]
-    kept = (last_impulse.copy(), last_active.copy(), last_bilateral.copy())
     impulse = view2(report[:3 * nc], (nc, 3))
+    for a in range(last_bilateral.shape[0]):
+        bilateral_E[a] = last_bilateral[a]
     it, status, resid, retried, pit, pstatus = complete_problem_inlined(
-        s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-        impulse, is_active, u_free, uE, u_corr, None)
+        s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, bilateral_E,
+        impulse, is_active, u_free, uE, u_corr, False, None)
     outcome = TREE_STEP_OK
-    if status == prox.STATUS_NONFINITE:     # (complete_problem left the memory as it was)
+    if status == prox.STATUS_NONFINITE:
         outcome = TREE_STEP_NONFINITE_IMPULSE
     elif not end_of_step(qM, uE, u_corr, pstatus >= 0, half_dt, jtype, idx_q, idx_v, qE):
-        outcome = TREE_STEP_NONFINITE_STATE     # the memory back to what it was
-        last_impulse[:] = kept[0]
-        last_active[:] = kept[1]
-        last_bilateral[:] = kept[2]
+        outcome = TREE_STEP_NONFINITE_STATE
+    else:
+        remember_contacts(is_active, impulse, last_active, last_impulse)
+        for a in range(last_bilateral.shape[0]):
+            last_bilateral[a] = bilateral_E[a]
     return outcome, it, status, resid, retried, pit, pstatus
 
 
@@ -297,8 +301,9 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
                                 tangent2, offset, s.jacobian_gap, gap, position, Wt_all, model)
     _, qM, M, h = qMh
-    owned = contact_problem_inlined(s, M, u, gap, Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
-                                    dof_parent, True, L, last_impulse, last_active, None)
+    no_rows = u_corr[:0]        # (no bilateral rows: empty views, not allocations)
+    owned = contact_problem_inlined(s, M, u, gap, Wt_all, view2(no_rows, (0, nv)), no_rows,
+                                    eps, dof_parent, True, L, last_impulse, last_active, None)
     p = _borrowed_problem(owned)
     if not p.ok:
         keep_alive(qMh)
@@ -306,7 +311,8 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-        report, is_active, u_free, uE, u_corr, qM, half_dt, model[1], model[5], model[6], qE)
+        last_bilateral, report, is_active, u_free, uE, u_corr, qM, half_dt, model[1],
+        model[5], model[6], qE)     # (no bilateral rows: Λ_B is empty)
     _report_contacts(gap, position, report, nc)
     keep_alive(qMh)
     keep_alive(owned)
@@ -379,7 +385,8 @@ class CutModel(NamedTuple):
     ints: [ncut, constant M (0/1), nr], cut_P, cut_C, joint_cut (one per actuated joint,
     public order: its cut joint, -1 inside a tree), root_q, root_v; workspace: W_B^T
     (5 ncut x nv), g_B and b_B (5 ncut each), φ, φ̇ (ncut each; φ̇ at zero velocity, not
-    used) and the hinge axes in the world (ncut x 3)."""
+    used), the hinge axes in the world (ncut x 3) and the step's Λ_B (5 ncut, kept there
+    until the step is known to end finite)."""
 
     floats: np.ndarray
     ints: np.ndarray
@@ -400,7 +407,7 @@ class CutModel(NamedTuple):
             [ncut, int(constant), nr], c.cut_P, c.cut_C, c.joint_cut,
             c.root_q if constant else [], c.root_v if constant else [])])
         nB = 5 * ncut
-        workspace = np.zeros(nB * nv + 2 * nB + 2 * ncut + 3 * ncut)
+        workspace = np.zeros(nB * nv + 2 * nB + 2 * ncut + 3 * ncut + nB)
         return CutModel(floats, ints, workspace)
 
 
@@ -408,7 +415,8 @@ class CutModel(NamedTuple):
 def unpack_cut_model(floats, ints, workspace, na, nv):
     """The views of CutModel's buffers: (β/Δt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C,
     b1_C, joint_cut, constant, M, root_q, root_v, body masses, inertias, gravity, W_B^T,
-    g_B, b_B, φ, φ̇, hinge axes); M and the bodies' arrays empty unless M is constant."""
+    g_B, b_B, φ, φ̇, hinge axes, the step's Λ_B); M and the bodies' arrays empty unless M is
+    constant."""
     floats, ints, workspace = borrowed(floats), borrowed(ints), borrowed(workspace)
     ncut, constant, nr = ints[0], ints[1] != 0, ints[2]
     beta_over_dt = floats[0]
@@ -439,12 +447,14 @@ def unpack_cut_model(floats, ints, workspace, na, nv):
     angle, w = _take(workspace, w, ncut)
     rate, w = _take(workspace, w, ncut)
     axis_world, w = _take(workspace, w, 3 * ncut)
+    bilateral_E, w = _take(workspace, w, nB)
     return (beta_over_dt, cut_P, cut_C, view2(p_P, (ncut, 3)), view2(p_C, (ncut, 3)),
             view2(a_P, (ncut, 3)), view2(b1_P, (ncut, 3)), view2(b2_P, (ncut, 3)),
             view2(a_C, (ncut, 3)), view2(b1_C, (ncut, 3)), joint_cut, constant,
             view2(M, (nv if constant else 0, nv if constant else 0)), root_q, root_v,
             body_mass, view3(body_inertia, (nr, 3, 3)), body_gravity,
-            view2(WtB, (nB, nv)), gB, bB, angle, rate, view2(axis_world, (ncut, 3)))
+            view2(WtB, (nB, nv)), gB, bB, angle, rate, view2(axis_world, (ncut, 3)),
+            bilateral_E)
 
 
 @nb.njit(**KERNEL, inline="always")
@@ -529,7 +539,8 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     na = joint_v.shape[0]
     (beta_over_dt, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, joint_cut, constant,
      M_const, root_q, root_v, body_mass, body_inertia, body_gravity, WtB, gB, bB, angle,
-     rate, axis_world) = unpack_cut_model(cut_floats, cut_ints, cut_workspace, na, nv)
+     rate, axis_world, bilateral_E) = unpack_cut_model(cut_floats, cut_ints, cut_workspace,
+                                                       na, nv)
     nc = gap.shape[0]
     applied = report[7 * nc:7 * nc + na]
     for k in range(na):
@@ -558,7 +569,8 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
         return TREE_STEP_NOT_PD, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
-        report, is_active, u_free, uE, u_corr, qM, half_dt, jtype, idx_q, idx_v, qE)
+        bilateral_E, report, is_active, u_free, uE, u_corr, qM, half_dt, jtype, idx_q, idx_v,
+        qE)
     if outcome == TREE_STEP_OK:
         cut_joint_motion(qE, uE, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                          cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E)
