@@ -125,12 +125,13 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     q."""
     nj = parent.shape[0]
     nv = u.shape[0]
-    # the temporaries in one allocation: I6, V, A, F (zeroed), S, vj, hv, f, and the work
-    # space of spatial_inertias
+    # the temporaries in one allocation: I6, V, A, F, S, vj, hv, f, and the work space of
+    # spatial_inertias. Every entry of I6, V, A and F is written before it is read but those
+    # of the root (body 0, the world: V_0 = 0, A_0 = −g, I6[0] and F[0] never read), so only
+    # the root's rows are zeroed (the whole of them cost a 5.6 KB memset per step)
     n_zero = 36 * nj + 18 * nj
     owner = np.empty(n_zero + 6 * nv + 18 + 21)
     scratch = borrowed(owner)       # (no reference counting; held by keep_alive at the end)
-    scratch[:n_zero] = 0.0
     I6 = view3(scratch[0:36 * nj], (nj, 6, 6))
     V = view2(scratch[36 * nj:42 * nj], (nj, 6))
     A = view2(scratch[42 * nj:48 * nj], (nj, 6))
@@ -142,6 +143,12 @@ def mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, i
     f = scratch[o + 12:o + 18]
     motion_subspace(jtype, axis, idx_v, oR, op, S)
     spatial_inertias(oR, op, mass, lever, inertia, I6, scratch[o + 18:o + 39])
+    for r in range(6):
+        V[0, r] = 0.0
+        A[0, r] = 0.0
+        F[0, r] = 0.0
+        for k in range(6):
+            I6[0, r, k] = 0.0
     # -- RNEA, forward pass: V_j = V_λ(j) + S_j u_j, A_j = A_λ(j) + Ṡ_j u_j, A_0 = −g
     for r in range(3):
         A[0, 3 + r] = -gravity[r]
