@@ -280,20 +280,19 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
     for k in range(1, nv):
         if dof_parent[k] == -1:
             trees += 1
+    # W = (W^T)^T into MinvW: its nonzeros (the row pattern of W^T) into a zeroed MinvW (a
+    # foot's column is zero but on the base and its own leg; a strided copy of every entry
+    # was the busiest loop of an HmJ step's kernel, measured with perf)
+    MinvW[:, :] = 0.0
+    for a in range(m):
+        for p in range(wp_ptr[a], wp_ptr[a + 1]):
+            MinvW[wp_idx[p], a] = Wt[a, wp_idx[p]]
     if trees > 2:
-        # a forest of free bodies (the maximal coordinates): W's nonzeros into a zeroed
-        # MinvW, then M^{-1}W and the pattern of its columns from the pattern of W's
-        # columns (the rows of W^T), without scanning MinvW (the same MinvW and pattern as
-        # below: the zeros of W stay out of every sum)
-        MinvW[:, :] = 0.0
-        for a in range(m):
-            for p in range(wp_ptr[a], wp_ptr[a + 1]):
-                MinvW[wp_idx[p], a] = Wt[a, wp_idx[p]]
+        # a forest of free bodies (the maximal coordinates): M^{-1}W and the pattern of its
+        # columns from the pattern of W's columns (the rows of W^T), without scanning MinvW
+        # (the same MinvW and pattern as below: the zeros of W stay out of every sum)
         mp_ptr, mp_idx = ltdl_solve_cols_pattern(L, dof_parent, MinvW, wp_ptr, wp_idx)
     else:
-        for a in range(m):
-            for j in range(nv):
-                MinvW[j, a] = Wt[a, j]
         ltdl_solve_cols(L, dof_parent, MinvW)
         mp_ptr, mp_idx = prox.col_pattern(MinvW)
     for a in range(o):
