@@ -481,9 +481,31 @@ def process_cpu_ns(sim_pid) -> dict:
     return out
 
 
+#: commands the real controller sends in a warm-up run before the measured rounds: its
+#: first cycles load its kernels and fill its state (a first round measured without it
+#: counted none in its window, and its pause request once timed out)
+WARMUP_COMMANDS = 200
+
+
+def _warm_up_loop(node, ex, pause, ctl, timeout=60.0):
+    """Runs the lockstep loop until the controller `ctl` (in this process) has sent
+    WARMUP_COMMANDS commands, then pauses the sim again; in the composed mode (ctl None)
+    for one second."""
+    _set_paused(node, ex, pause, False)
+    if ctl is None:
+        _wait(ex, lambda: False, 1.0)
+    else:
+        n0 = ctl.counters["commands"]
+        if not _wait(ex, lambda: ctl.counters["commands"] - n0 >= WARMUP_COMMANDS, timeout):
+            print(f"  warm-up: only {ctl.counters['commands'] - n0} commands in "
+                  f"{timeout:.0f} s", flush=True)
+    _set_paused(node, ex, pause, True)
+
+
 def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
                  ctl=None, sim_pid=None):
     pause = _pause_client(node, ex)
+    _warm_up_loop(node, ex, pause, ctl)
     pp = PingPong(node, ex)
     all_rtts = []
     for r in range(rounds):
