@@ -5,6 +5,10 @@ for every view of its packed buffers (tree_step.unpack_tree_model) on every step
 views cost ≈1 ns. They share the array's memory (and keep it alive, as reshape's view
 does); the caller guarantees that the shape's product is the array's length: nothing is
 checked.
+
+`borrowed` and `keep_alive`: arrays without numba's reference counting inside the one-kernel
+steps (atomic increments and decrements of the owner's count on every view, tuple and call
+took a third of an HmJ step's kernel time; see their docstrings for when they are safe).
 """
 from __future__ import annotations
 
