@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -355,9 +356,17 @@ def test_sim_node_splits_long_recordings_into_a_bag_directory(ros, tmp_path):
 # -----------------------------------------------------------------------------------------
 # discovery on this host
 # -----------------------------------------------------------------------------------------
-def _environ(pid):
-    with open(f"/proc/{pid}/environ", "rb") as f:
-        return dict(kv.split("=", 1) for kv in f.read().decode().split("\0") if "=" in kv)
+def _environ(pid, timeout=10.0):
+    """The environment of process pid. Read while the child is still in execve it can be
+    empty (the new image's environment not set up yet: a KeyError in CI once), so an empty
+    one is read again until the timeout."""
+    t_end = time.monotonic() + timeout
+    while True:
+        with open(f"/proc/{pid}/environ", "rb") as f:
+            env = dict(kv.split("=", 1) for kv in f.read().decode().split("\0") if "=" in kv)
+        if env or time.monotonic() > t_end:
+            return env
+        time.sleep(0.02)
 
 
 def test_children_discover_on_this_host_only_unless_the_user_chose(tmp_path, monkeypatch):

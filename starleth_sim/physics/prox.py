@@ -625,20 +625,29 @@ def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
 
 
 @nb.njit(**KERNEL, inline="always")
-def jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
-    """JOR prox on ξ = GΛ + c. lam: warm start in, solution out. u: end velocity out.
-    (_jor_prox_delassus on borrowed arrays: no reference counting in the iteration.)"""
-    owner = np.empty(2 * c.shape[0])      # (one allocation for ξ and the new Λ)
-    result = _jor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
-                                borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
-                                borrowed(owner))
+def delassus_prox(jor, s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
+    """The prox on ξ = GΛ + c (Delassus form), JOR (jor True) or SOR: _jor_prox_delassus or
+    _sor_prox_delassus on borrowed arrays (array_views.borrowed: no reference counting in
+    the iteration) with their work buffer, the owners held to the end. lam: warm start in,
+    solution out; u: end velocity out. Returns (iterations, status, residual)."""
+    m = c.shape[0]
+    owner = np.empty(2 * m if jor else m)   # (JOR: ξ and the new Λ; SOR: Λ of the last sweep)
+    if jor:
+        result = _jor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
+                                    borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
+                                    borrowed(owner))
+    else:
+        result = _sor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
+                                    borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
+                                    borrowed(owner))
     keep_alive((c, mu, r, lam, u, owner))
     return result
 
 
 @nb.njit(**KERNEL, inline="always")
 def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, buf):
-    """jor_prox_delassus with its work buffer buf (2m: ξ and the new Λ)."""
+    """JOR prox on ξ = GΛ + c with its work buffer buf (2m: ξ and the new Λ); see
+    delassus_prox."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
@@ -703,20 +712,9 @@ def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, bu
 
 
 @nb.njit(**KERNEL, inline="always")
-def sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
-    """SOR prox on ξ = GΛ + c: contact after contact, reusing the updated impulses.
-    (_sor_prox_delassus on borrowed arrays: no reference counting in the iteration.)"""
-    owner = np.empty(c.shape[0])      # (Λ of the last sweep)
-    result = _sor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
-                                borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
-                                borrowed(owner))
-    keep_alive((c, mu, r, lam, u, owner))
-    return result
-
-
-@nb.njit(**KERNEL, inline="always")
 def _sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, old):
-    """sor_prox_delassus with its work buffer old (m: Λ of the last sweep)."""
+    """SOR prox on ξ = GΛ + c, contact after contact reusing the updated impulses, with its
+    work buffer old (m: Λ of the last sweep); see delassus_prox."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
@@ -937,9 +935,8 @@ def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u):
     callers: their calls, with some twenty arrays in and out, cost ≈ 0.5 µs of a one-sweep
     solve of 1.8 µs, measured; the velocity-form kernels stay calls.)"""
     if s.form == FORM_DELASSUS:
-        if s.scheme == SCHEME_JOR:
-            return jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u)
-        return sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u)
+        return delassus_prox(s.scheme == SCHEME_JOR, s, pat, G, c, nc, mu, r, lam, LB, M,
+                             u_free, MinvW, u)
     if s.scheme == SCHEME_JOR:
         return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)

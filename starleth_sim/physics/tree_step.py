@@ -223,6 +223,14 @@ def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, 
 
 
 @nb.njit(**KERNEL, inline="always")
+def _borrowed_step_arrays(q, u, tau, f_ext, report, is_active, qE, uE):
+    """A one-kernel step's per-step arguments, borrowed (array_views.borrowed: the caller
+    holds them for the call)."""
+    return (borrowed(q), borrowed(u), borrowed(tau), borrowed(f_ext), borrowed(report),
+            borrowed(is_active), borrowed(qE), borrowed(uE))
+
+
+@nb.njit(**KERNEL, inline="always")
 def _borrowed_problem(p):
     """The ContactProblem p with every array borrowed (array_views.borrowed): the kernel
     that made p holds it (keep_alive(p)) until its last use of the result."""
@@ -282,12 +290,10 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     the state as it was, and a non-finite τ (TREE_STEP_NONFINITE_TORQUE) is found before
     anything is done. Returns (outcome (TREE_STEP_*), |I|, opened, iterations, status,
     residual, retried, projection iterations, projection status)."""
-    q, u, tau, f_ext, report, is_active, qE, uE = (  # (borrowed: held by the caller)
-        borrowed(q), borrowed(u), borrowed(tau), borrowed(f_ext), borrowed(report),
-        borrowed(is_active), borrowed(qE), borrowed(uE))
-    last_impulse, last_active, last_bilateral = (borrowed(last_impulse),
-                                                 borrowed(last_active),
-                                                 borrowed(last_bilateral))
+    q, u, tau, f_ext, report, is_active, qE, uE = _borrowed_step_arrays(
+        q, u, tau, f_ext, report, is_active, qE, uE)
+    last_impulse, last_active = borrowed(last_impulse), borrowed(last_active)
+    last_bilateral = borrowed(last_bilateral)
     nv = u.shape[0]
     (s, _, model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit, joint_v,
      dof_parent, gap, position, Wt_all, L, u_free, u_corr) = unpack_tree_model(
@@ -328,9 +334,8 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
     the compliant force Δt) and the closed flags (g_N(q^M) ≤ 0) into is_active. A failed
     step leaves the contact state as it was. Returns tree_step_hard's tuple (no prox
     figures)."""
-    q, u, tau, f_ext, report, is_active, qE, uE = (  # (borrowed: held by the caller)
-        borrowed(q), borrowed(u), borrowed(tau), borrowed(f_ext), borrowed(report),
-        borrowed(is_active), borrowed(qE), borrowed(uE))
+    q, u, tau, f_ext, report, is_active, qE, uE = _borrowed_step_arrays(
+        q, u, tau, f_ext, report, is_active, qE, uE)
     closed, slip, anchor, lam = borrowed(closed), borrowed(slip), borrowed(anchor), borrowed(lam)
     nv = u.shape[0]
     (s, law, model, normal, tangent1, tangent2, offset, eps, effort_limit, velocity_limit,
@@ -525,12 +530,10 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     rate_E (cut_joint_motion: what a controller asks for next, at the cost of one forward
     kinematics and the cut joints' angular Jacobians here rather than a call from Python
     later). Returns tree_step_hard's tuple."""
-    q, u, applied_tau, f_ext, report, is_active, qE, uE = (  # (borrowed: held by the caller)
-        borrowed(q), borrowed(u), borrowed(applied_tau), borrowed(f_ext), borrowed(report),
-        borrowed(is_active), borrowed(qE), borrowed(uE))
-    last_impulse, last_active, last_bilateral = (borrowed(last_impulse),
-                                                 borrowed(last_active),
-                                                 borrowed(last_bilateral))
+    q, u, applied_tau, f_ext, report, is_active, qE, uE = _borrowed_step_arrays(
+        q, u, applied_tau, f_ext, report, is_active, qE, uE)
+    last_impulse, last_active = borrowed(last_impulse), borrowed(last_active)
+    last_bilateral = borrowed(last_bilateral)
     angle_E, rate_E = borrowed(angle_E), borrowed(rate_E)
     nv = u.shape[0]
     (s, _, model, normal, tangent1, tangent2, offset, eps, _, _, joint_v, dof_parent, gap,
