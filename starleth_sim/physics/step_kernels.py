@@ -35,7 +35,7 @@ from numba.extending import overload
 
 from .kernel_cache import KERNEL
 from . import prox
-from .array_views import borrowed, keep_alive, view2
+from .array_views import borrowed, view2
 from .contact import compliant_contact_forces, generalized_contact_force
 from .linalg import (cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern,
                      ltdl_solve_vec)
@@ -383,7 +383,7 @@ def phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timin
     m = p.Wt.shape[0]
     nv = u_free.shape[0]
     # (one allocation for Λ^0, Λ, r, u^E, μ per contact and c; borrowed: no reference
-    # counting in the prox iteration, the owner held by keep_alive below)
+    # counting in the prox iteration, the owner held by its use in the return)
     owner = np.empty(4 * m + nv + na)
     buf = borrowed(owner)
     c = buf[3 * m + nv + na:]
@@ -590,8 +590,8 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
     c = W^T u_free + b (phase "G"), the prox iteration (phase_prox) and the post-step
     projection (phase_projection; both phase "prox"), timed into `timings` when
     profiling. Writes Λ_U of every contact point into impulse (nc x 3), the active flags,
-    Λ_B into last_bilateral, u^E into u and the projection's Δu_p into u_corr; unless the
-    result is non-finite, Λ_B is written into last_bilateral, and with `remember` the
+    u^E into u and the projection's Δu_p into u_corr; unless the result is non-finite,
+    Λ_B is written into last_bilateral, and with `remember` the
     warm-start memory (last_impulse, last_active) is updated (remember_contacts; the
     one-kernel steps pass False and do that once the end of the step is known finite).
     Returns (iterations, status, residual, retried, projection iterations, projection
