@@ -28,6 +28,7 @@ rclpy only (no numba): shared by sim_node and controller_node.
 """
 from __future__ import annotations
 
+import itertools
 import struct
 
 import numpy as np
@@ -410,6 +411,39 @@ def _probe(fmt: str, k: int):
     return _PROBE_INT + k      # "i" (int32), "I" (uint32)
 
 
+#: the index offset of SlotCdr.create's second set of probes, and the number of calls
+#: whose probe series differ (each call's series starts at a new multiple of twice the
+#: offset: padding bytes left by an earlier call's serialisations hold other values)
+_SECOND_PROBES = 4096
+_PROBE_SERIES = 1000
+_calls = itertools.count()
+
+
+def _probe_indices(slots):
+    """The index of each slot's probe in the series of its kind (floats, doubles, ints)."""
+    counters, out = {}, []
+    for _, _, fmt in slots:
+        kind = "int" if fmt in "iI" else fmt     # int32 and uint32: one series
+        out.append(counters.get(kind, 0))
+        counters[kind] = out[-1] + 1
+    return out
+
+
+def _slot_offset(raw, raw2, pat, pat2) -> int:
+    """The only CDR-aligned offset (a field of n bytes starts at a multiple of n from the
+    origin) at which raw holds pat and raw2 holds pat2, or −1 if there is none or more."""
+    n = len(pat)
+    found = -1
+    o = raw.find(pat)
+    while o >= 0:
+        if (o - _ORIGIN) % n == 0 and raw2[o:o + n] == pat2:
+            if found >= 0:
+                return -1
+            found = o
+        o = raw.find(pat, o + 1)
+    return found
+
+
 class SlotCdr:
     """CDR bytes of a message of fixed layout (strings and sequence lengths fixed) with
     values of any scalar field patched in: `slots` lists (object, attribute, format) with
@@ -417,7 +451,8 @@ class SlotCdr:
     formats ``d`` float64, ``f`` float32, ``i`` int32, ``I`` uint32). ``build(values)``
     writes the values (in slot order) into a copy of the template: one struct call per run
     of adjacent slots. ``create`` returns None where the layout is not the expected one
-    (every probe value found once, a round trip through rclpy gives the values back); the
+    (each slot at the one aligned offset that holds its probe values in two serialisations
+    with different probes, and a round trip through rclpy gives the values back); the
     caller then keeps publishing message objects. ``msg`` keeps the probe values: pass a
     template copy."""
 
@@ -430,24 +465,31 @@ class SlotCdr:
     def create(cls, msg, slots):
         from rclpy.serialization import deserialize_message, serialize_message
         try:
-            counters = {}
+            base = (next(_calls) % _PROBE_SERIES) * 2 * _SECOND_PROBES
+            indices = [base + k for k in _probe_indices(slots)]
             probes = []
-            for obj, attr, fmt in slots:
+            for (obj, attr, fmt), k in zip(slots, indices):
                 if fmt not in "dfiI" or len(fmt) != 1:
                     return None
-                kind = "int" if fmt in "iI" else fmt     # int32 and uint32: one series
-                k = counters.get(kind, 0)
-                counters[kind] = k + 1
                 probes.append(_probe(fmt, k))
                 setattr(obj, attr, probes[-1])
             raw = serialize_message(msg)
             if raw[:2] != _CDR_LE:
                 return None
+            # a second set of probes: a slot's offset holds the first probe in raw and the
+            # second in raw2. (CDR's padding bytes are not cleared by the serializer: they
+            # can hold a probe value of an earlier serialization in this process, which a
+            # search of raw alone took for a second occurrence, so that a later SlotCdr of
+            # the same layout was refused)
+            second = []
+            for (obj, attr, fmt), k in zip(slots, indices):
+                second.append(_probe(fmt, k + _SECOND_PROBES))
+                setattr(obj, attr, second[-1])
+            raw2 = serialize_message(msg)
             offsets = []
-            for (_, _, fmt), v in zip(slots, probes):
-                pat = struct.pack("<" + fmt, v)
-                o = raw.find(pat)
-                if o < 0 or raw.find(pat, o + 1) >= 0 or (o - _ORIGIN) % len(pat):
+            for (_, _, fmt), v, w in zip(slots, probes, second):
+                o = _slot_offset(raw, raw2, struct.pack("<" + fmt, v), struct.pack("<" + fmt, w))
+                if o < 0:
                     return None
                 offsets.append(o)
             # runs of adjacent slots (in slot order): one Struct each
