@@ -215,10 +215,12 @@ def _bilateral_problem(preset="HMJD", steps=60):
 def test_cholesky_with_the_envelope_is_the_dense_factor_bit_for_bit():
     """linalg.cholesky_upper_input sums only inside the envelope of G_BB (the maximal
     coordinates' G_BB: 60 rows, under half of the lower triangle in the envelope): the
-    same L and the same solutions, bit for bit, as the dense textbook loops, and L Lᵀ = G_BB;
-    also on a random SPD matrix with an envelope and on a dense one (with a -0.0 in the
+    same L and the same solutions, bit for bit, as the dense textbook loops (also
+    cholesky_solve_envelope, whose backward pass runs by the envelope's columns), and
+    L Lᵀ = G_BB; also on a random SPD matrix with an envelope and on a dense one (with a -0.0 in the
     input, the same values)."""
-    from starleth_sim.physics.linalg import cholesky_solve_vec, cholesky_upper_input
+    from starleth_sim.physics.linalg import (cholesky_solve_envelope, cholesky_solve_vec,
+                                             cholesky_upper_input, envelope_columns)
     G, o, _ = _bilateral_problem()
     rng = np.random.default_rng(5)
     n = 24
@@ -248,6 +250,12 @@ def test_cholesky_with_the_envelope_is_the_dense_factor_bit_for_bit():
         cholesky_solve_vec(L, first, x)
         assert x.tobytes() == _dense_solve(ref, b).tobytes(), name
         np.testing.assert_allclose(block @ x, b, rtol=0, atol=1e-9 * np.abs(b).max())
+        # the backward pass by the envelope's columns: the same solution, bit for bit
+        col_ptr, col_idx = envelope_columns(first)
+        assert col_ptr[-1] == sum(i - first[i] for i in range(m)), name
+        y = b.copy()
+        cholesky_solve_envelope(L, first, col_ptr, col_idx, y)
+        assert y.tobytes() == x.tobytes(), name
         if name == "G_BB of HMJD":
             inside = sum(i - first[i] + 1 for i in range(m))
             assert m == 60 and inside < 0.5 * m * (m + 1) / 2, inside   # worth the envelope

@@ -68,7 +68,7 @@ import numba as nb
 
 from .kernel_cache import KERNEL
 from .array_views import borrowed, keep_alive
-from .linalg import cholesky_solve_vec
+from .linalg import cholesky_solve_envelope, cholesky_solve_vec, envelope_columns
 
 SCHEME_JOR = 0
 SCHEME_SOR = 1
@@ -312,20 +312,22 @@ def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
 
 
 @nb.njit(**KERNEL)
-def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, lb_first):
-    """Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) for the current Λ_U (Eqn. 20, Delassus form)."""
+def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, lb_first, direct):
+    """Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) for the current Λ_U (Eqn. 20, Delassus form), with
+    the work of _direct_work: L_B's envelope by columns and the right-hand side's buffer."""
+    col_ptr, col_idx, rhs = direct
     m = c.shape[0]
     o = 3 * nc
     nb_ = m - o
-    rhs = np.empty(nb_)
     for a in range(nb_):
         s = c[o + a]
         for p in range(gp_ptr[o + a], gp_ptr[o + a + 1]):
             l = gp_idx[p]
-            if l < o:
-                s += G[o + a, l] * lam[l]
+            if l >= o:      # (G_BU: the row's pattern is ascending, the contact rows first)
+                break
+            s += G[o + a, l] * lam[l]
         rhs[a] = -s
-    cholesky_solve_vec(LB, lb_first, rhs)
+    cholesky_solve_envelope(LB, lb_first, col_ptr, col_idx, rhs)
     for a in range(nb_):
         lam[o + a] = rhs[a]
 
@@ -631,23 +633,37 @@ def delassus_prox(jor, s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
     the iteration) with their work buffer, the owners held to the end. lam: warm start in,
     solution out; u: end velocity out. Returns (iterations, status, residual)."""
     m = c.shape[0]
-    owner = np.empty(2 * m if jor else m)   # (JOR: ξ and the new Λ; SOR: Λ of the last sweep)
+    nd = m - 3 * nc if s.bilateral_direct else 0
+    nw = 2 * m if jor else m
+    owner = np.empty(nw + nd)   # (JOR: ξ and the new Λ; SOR: Λ of the last sweep; then Λ_B's rhs)
+    work = borrowed(owner)
+    columns = _envelope_columns(s, pat.lb_first, nd)
+    direct = (borrowed(columns[0]), borrowed(columns[1]), work[nw:])
     if jor:
         result = _jor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
                                     borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
-                                    borrowed(owner))
+                                    work[:nw], direct)
     else:
         result = _sor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
                                     borrowed(lam), LB, M, u_free, MinvW, borrowed(u),
-                                    borrowed(owner))
-    keep_alive((c, mu, r, lam, u, owner))
+                                    work[:nw], direct)
+    keep_alive((c, mu, r, lam, u, owner, columns))
     return result
 
 
 @nb.njit(**KERNEL, inline="always")
-def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, buf):
-    """JOR prox on ξ = GΛ + c with its work buffer buf (2m: ξ and the new Λ); see
-    delassus_prox."""
+def _envelope_columns(s, lb_first, nd):
+    """The columns of L_B's envelope (linalg.envelope_columns) for the direct bilateral
+    method's backward solves (nd > 0 bilateral rows), else empty views."""
+    if nd > 0:
+        return envelope_columns(lb_first)
+    return lb_first[:0], lb_first[:0]
+
+
+@nb.njit(**KERNEL, inline="always")
+def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, buf, direct):
+    """JOR prox on ξ = GΛ + c with its work buffer buf (2m: ξ and the new Λ) and the direct
+    bilateral method's work `direct`; see delassus_prox."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
@@ -663,9 +679,12 @@ def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, bu
     if criterion == CRITERION_ENERGY:
         _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
         T_old = _kinetic_energy(M, u)
+    # ξ of the rows the sweep reads: with the direct bilateral method and a fixed α only the
+    # contact rows' (Λ_B is solved for; only the adaptive α's long step reads ξ_B)
+    m_xi = o if bilateral_direct and not auto else m
     res = 0.0
     for k in range(max_iter):
-        for a in range(m):
+        for a in range(m_xi):
             s = c[a]
             for p in range(gp_ptr[a], gp_ptr[a + 1]):
                 l = gp_idx[p]
@@ -680,7 +699,7 @@ def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, bu
         if bilateral_direct:
             for l in range(o, m):
                 new[l] = lam[l]
-            _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx, pat.lb_first)
+            _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx, pat.lb_first, direct)
         else:
             for l in range(o, m):
                 new[l] = lam[l] - rk[l] * xi[l]
@@ -712,9 +731,10 @@ def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, bu
 
 
 @nb.njit(**KERNEL, inline="always")
-def _sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, old):
+def _sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, old, direct):
     """SOR prox on ξ = GΛ + c, contact after contact reusing the updated impulses, with its
-    work buffer old (m: Λ of the last sweep); see delassus_prox."""
+    work buffer old (m: Λ of the last sweep) and the direct bilateral method's work
+    `direct`; see delassus_prox."""
     tol_rel, tol_abs, max_iter = s.tol_rel, s.tol_abs, s.max_iterations
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     gp_ptr, gp_idx, mp_ptr, mp_idx = pat.gp_ptr, pat.gp_idx, pat.mp_ptr, pat.mp_idx
@@ -746,7 +766,7 @@ def _sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, ol
                 x2 += G[b + 2, l] * lam[l]
             _project_contact(lam, b, x0, x1, x2, rk, mu[i], lam)
         if bilateral_direct:
-            _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, pat.lb_first)
+            _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, pat.lb_first, direct)
         else:
             for a in range(o, m):
                 s = c[a]
