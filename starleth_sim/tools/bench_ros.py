@@ -371,10 +371,10 @@ def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=
             proc.wait()
 
 
-def _set_paused(node, ex, client, paused):
+def _set_paused(node, ex, client, paused, timeout=10.0):
     from std_srvs.srv import SetBool
     fut = client.call_async(SetBool.Request(data=paused))
-    if not _wait(ex, fut.done, 10.0) or not fut.result().success:
+    if not _wait(ex, fut.done, timeout) or not fut.result().success:
         raise RuntimeError(f"bench: ~/pause({paused}) failed")
 
 
@@ -499,7 +499,9 @@ def _warm_up_loop(node, ex, pause, ctl, timeout=60.0):
         if not _wait(ex, lambda: ctl.counters["commands"] - n0 >= WARMUP_COMMANDS, timeout):
             print(f"  warm-up: only {ctl.counters['commands'] - n0} commands in "
                   f"{timeout:.0f} s", flush=True)
-    _set_paused(node, ex, pause, True)
+    # (the sim's process answers once its first cycles are done: in the composed mode the
+    # controller's kernels load there then, which once took over 10 s on a loaded machine)
+    _set_paused(node, ex, pause, True, timeout)
 
 
 def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
