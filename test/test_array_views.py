@@ -1,12 +1,14 @@
-"""array_views: views without numba's reshape, and borrowed arrays (no reference counting)
-whose owners keep_alive holds. The one-kernel steps rely on both; test_bitexact checks that
-those steps give the phase-by-phase path's results bit for bit."""
+"""array_views: views without numba's reshape, borrowed arrays (no reference counting) whose
+owners keep_alive holds, and the arena of a step's work arrays. The one-kernel steps rely on
+them; test_bitexact checks that those steps give the phase-by-phase path's results bit for
+bit."""
 import numba as nb
 import numpy as np
 import pytest
 from numba.core.errors import TypingError
 
-from starleth_sim.physics.array_views import borrowed, keep_alive, view2, view3
+from starleth_sim.physics.array_views import (arena_floats, arena_ints, borrowed, keep_alive,
+                                              view2, view3)
 
 
 @nb.njit
@@ -69,3 +71,52 @@ def _borrow_a_scalar(x):
 def test_borrowed_takes_arrays_only():
     with pytest.raises(TypingError):
         _borrow_a_scalar(1.0)
+
+
+@nb.njit
+def _carve(floats, ints, pos, sizes):
+    """arena_floats / arena_ints in turn for `sizes`; each request filled with its index.
+    Returns the arrays' first entries and whether each lies in the arena's buffers."""
+    arena = (floats, ints, pos)
+    firsts = np.empty(sizes.shape[0])
+    inside = np.empty(sizes.shape[0], dtype=np.bool_)
+    for k in range(sizes.shape[0]):
+        if k % 2 == 0:
+            a = arena_floats(arena, sizes[k])
+            a[:] = k
+            firsts[k] = a[0] if a.shape[0] else -1.0
+            inside[k] = a.shape[0] == 0 or (floats.ctypes.data <= a.ctypes.data
+                                            < floats.ctypes.data + 8 * floats.shape[0])
+        else:
+            b = arena_ints(arena, sizes[k])
+            b[:] = k
+            firsts[k] = b[0] if b.shape[0] else -1.0
+            inside[k] = b.shape[0] == 0 or (ints.ctypes.data <= b.ctypes.data
+                                            < ints.ctypes.data + 8 * ints.shape[0])
+    return firsts, inside
+
+
+@nb.njit
+def _no_arena(n):
+    a = arena_floats(None, n)
+    b = arena_ints(None, n)
+    a[:] = 1.5
+    b[:] = 2
+    return a.sum() + b.sum()
+
+
+def test_arena_hands_out_consecutive_parts_and_allocates_when_full():
+    """A step's arena (array_views.arena_floats / arena_ints): requests get consecutive,
+    non-overlapping parts of its buffers while they fit (writes to one do not reach
+    another), a request that does not fit gets an array of its own (the arena is left as
+    it was), and without an arena every request allocates."""
+    floats, ints, pos = np.full(10, np.nan), np.full(6, -1, dtype=np.int64), np.zeros(2, np.int64)
+    sizes = np.array([4, 3, 5, 3, 2, 1], dtype=np.int64)   # floats 4, 5 fit, 2 does not...
+    firsts, inside = _carve(floats, ints, pos, sizes)
+    np.testing.assert_array_equal(firsts, np.arange(6.0))
+    # floats: 4 + 5 fit in 10, the third (2) does not; ints: 3 + 3 fit in 6, the last (1) not
+    np.testing.assert_array_equal(inside, [True, True, True, True, False, False])
+    np.testing.assert_array_equal(floats, [0, 0, 0, 0, 2, 2, 2, 2, 2, np.nan])
+    np.testing.assert_array_equal(ints, [1, 1, 1, 3, 3, 3])
+    np.testing.assert_array_equal(pos, [9, 6])
+    assert _no_arena(4) == 4 * 1.5 + 4 * 2

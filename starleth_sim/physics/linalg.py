@@ -13,6 +13,7 @@ import numpy as np
 import numba as nb
 
 from .kernel_cache import KERNEL
+from .array_views import arena_ints
 
 
 @nb.njit(**KERNEL)
@@ -174,14 +175,15 @@ def ltdl_solve_vec(L, dof_parent, b):
 
 
 @nb.njit(**KERNEL)
-def ltdl_solve_cols(L, dof_parent, B):
+def ltdl_solve_cols(L, dof_parent, B, arena=None):
     """Solve (Lᵀ D L) X = B in place for every column of B (ltdl_solve_vec's operations for
     each column, in the same order, so the same result bit for bit). The trees of the forest
     (contiguous dofs, each starting at a root: dof_parent −1) are solved one by one, each for
     the columns that are not zero over its dofs (the others stay zero: a contact's W column
-    touches one or two trees), along the contiguous rows of B."""
+    touches one or two trees), along the contiguous rows of B. (arena: see
+    array_views.arena_ints.)"""
     n, m = B.shape
-    cols = np.empty(m, dtype=np.int64)
+    cols = arena_ints(arena, m)
     o = 0
     while o < n:
         e = o + 1

@@ -67,7 +67,7 @@ import numpy as np
 import numba as nb
 
 from .kernel_cache import KERNEL
-from .array_views import borrowed, keep_alive
+from .array_views import arena_ints, borrowed, keep_alive
 from .linalg import cholesky_solve_envelope, cholesky_solve_vec, envelope_columns
 
 SCHEME_JOR = 0
@@ -150,10 +150,11 @@ def prox_disc(x1, x2, radius):
 
 
 @nb.njit(**KERNEL, inline="always")
-def row_pattern(A):
-    """Nonzero pattern of the rows of A as CSR (ptr, idx), in one pass over A."""
+def row_pattern(A, arena=None):
+    """Nonzero pattern of the rows of A as CSR (ptr, idx), in one pass over A (its buffer
+    from the step's arena, array_views.arena_ints)."""
     m, n = A.shape
-    buf = np.empty(m + 1 + m * n, dtype=np.int64)   # (one allocation for ptr and idx)
+    buf = arena_ints(arena, m + 1 + m * n)   # (one buffer for ptr and idx)
     ptr = buf[:m + 1]
     idx = buf[m + 1:]
     cnt = 0
@@ -168,9 +169,9 @@ def row_pattern(A):
 
 
 @nb.njit(**KERNEL, inline="always")
-def col_pattern(A):
+def col_pattern(A, arena=None):
     """Nonzero pattern of the columns of A as CSR (ptr, idx)."""
-    return row_pattern(A.T)
+    return row_pattern(A.T, arena)
 
 
 #: with more rows than this, delassus first looks for the entries of G that are zero

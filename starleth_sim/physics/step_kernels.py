@@ -35,7 +35,7 @@ from numba.extending import overload
 
 from .kernel_cache import KERNEL
 from . import prox
-from .array_views import borrowed, view2
+from .array_views import arena_floats, arena_ints, borrowed, view2
 from .contact import compliant_contact_forces, generalized_contact_force
 from .linalg import (cholesky_upper_input, ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern,
                      ltdl_solve_vec)
@@ -205,13 +205,13 @@ def solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anch
 
 
 @nb.njit(**KERNEL, inline="always")
-def active_set(gap, s, last_impulse, last_active):
+def active_set(gap, s, last_impulse, last_active, arena=None):
     """The active set I at q^M: g_N,i ≤ s.activation_gap, and with s.hysteresis also every
     contact that carried Λ_N > 0 in the last step while g_N,i ≤ s.opening_gap. Returns
     (indices of I, number of contacts loaded in the last step that are not in I)."""
     activation_gap, hysteresis, opening_gap = s.activation_gap, s.hysteresis, s.opening_gap
     nc = gap.shape[0]
-    picked = np.empty(nc, dtype=np.int64)
+    picked = arena_ints(arena, nc)
     na = 0
     opened = 0
     for i in range(nc):
@@ -237,7 +237,7 @@ def normal_law_offset(gap, dt, beta_velocity):
 
 @nb.njit(**KERNEL, inline="always")
 def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
-               last_active):
+               last_active, arena=None):
     """Fig. 7 phase "M^-1" (the part that does not depend on the torques): factor M into
     L (unless factor is False: L already holds the factor of a constant M), the active set
     (see active_set), W^T = [W_U^T of the active contacts; W_B^T], M^{-1} W and
@@ -247,18 +247,18 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
     the columns of M^{-1} W.
     Returns (ok, active, Wt, MinvW, b, patterns, opened), the patterns of G still empty; ok
     is False if M is not positive definite; opened counts the loaded contacts that left the
-    active set."""
+    active set. The arrays come from the step's arena (array_views.arena_floats)."""
     dt, beta_velocity = s.dt, s.beta_velocity
     nv = uS.shape[0]
     ok = True
     if factor:
         ok = ltdl(M, dof_parent, L)
-    active, opened = active_set(gap, s, last_impulse, last_active)
+    active, opened = active_set(gap, s, last_impulse, last_active, arena)
     na = active.shape[0]
     nb_ = WtB.shape[0]
     o = 3 * na
     m = o + nb_
-    buf = np.empty(2 * m * nv + m)     # (one allocation for W^T, M^{-1}W and b)
+    buf = arena_floats(arena, 2 * m * nv + m)     # (one buffer for W^T, M^{-1}W and b)
     Wt = view2(buf[:m * nv], (m, nv))
     MinvW = view2(buf[m * nv:2 * m * nv], (nv, m))
     bvec = buf[2 * m * nv:]
@@ -275,7 +275,7 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
     for a in range(nb_):
         for j in range(nv):
             Wt[o + a, j] = WtB[a, j]
-    wp_ptr, wp_idx = prox.row_pattern(Wt)
+    wp_ptr, wp_idx = prox.row_pattern(Wt, arena)
     trees = 1
     for k in range(1, nv):
         if dof_parent[k] == -1:
@@ -293,8 +293,8 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
         # (the same MinvW and pattern as below: the zeros of W stay out of every sum)
         mp_ptr, mp_idx = ltdl_solve_cols_pattern(L, dof_parent, MinvW, wp_ptr, wp_idx)
     else:
-        ltdl_solve_cols(L, dof_parent, MinvW)
-        mp_ptr, mp_idx = prox.col_pattern(MinvW)
+        ltdl_solve_cols(L, dof_parent, MinvW, arena)
+        mp_ptr, mp_idx = prox.col_pattern(MinvW, arena)
     for a in range(o):
         s = 0.0
         for p in range(wp_ptr[a], wp_ptr[a + 1]):   # (the zeros of a row add nothing)
@@ -311,24 +311,24 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
 
 
 @nb.njit(**KERNEL, inline="always")
-def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
+def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat, arena=None):
     """Fig. 7 phase "G (and G_B^-1)": G = W^T M^{-1} W (Delassus form) or only diag(G)
     (velocity form), and for the direct bilateral solution (Eqn. 20) the Cholesky factor
     of G_B = W_B^T M^{-1} W_B. Returns (ok, G, diag G, L_B, patterns): `pat` (the
     prox.Patterns of W^T and M^{-1}W) with the pattern of the rows of G and L_B's
-    envelope."""
+    envelope; G, L_B and the patterns from the step's arena (the Delassus form)."""
     wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m, nv = Wt.shape
     o = 3 * nc
     nb_ = m - o
     if form == prox.FORM_DELASSUS:
-        buf = np.empty(m * m + m)      # (one allocation for G and its diagonal)
+        buf = arena_floats(arena, m * m + m)      # (one buffer for G and its diagonal)
         G = view2(buf[:m * m], (m, m))
         Gdiag = buf[m * m:]
         prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx)
         for a in range(m):
             Gdiag[a] = G[a, a]
-        gp_ptr, gp_idx = prox.row_pattern(G)
+        gp_ptr, gp_idx = prox.row_pattern(G, arena)
     else:
         Gdiag = np.empty(m)
         G = view2(Gdiag[:0], (0, 0))
@@ -350,8 +350,9 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat):
                         s += Wt[o + a, wp_idx[p]] * MinvW[wp_idx[p], o + b]
                     GB[a, b] = s
                     GB[b, a] = s
-        LB = np.zeros((nb_, nb_))
-        lb_first = np.empty(nb_, dtype=np.int64)
+        LB = view2(arena_floats(arena, nb_ * nb_), (nb_, nb_))
+        LB[:, :] = 0.0
+        lb_first = arena_ints(arena, nb_)
         ok = cholesky_upper_input(GB, ob, LB, lb_first)
     full = prox.Patterns(wp_ptr, wp_idx, mp_ptr, mp_idx, gp_ptr, gp_idx, lb_first)
     return ok, G, Gdiag, LB, full
@@ -554,17 +555,19 @@ def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr)
 
 @nb.njit(**KERNEL)
 def contact_problem(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse,
-                    last_active, timings):
+                    last_active, timings, arena=None):
     """The torque-independent part of the hard-contact solve for the StepSettings s: the
     phases "M^-1" and "G" (phase_minv, phase_delassus), timed into `timings` when
-    profiling. Returns the ContactProblem."""
+    profiling. Returns the ContactProblem, its arrays from `arena` (a one-kernel step's,
+    valid until its next reset; None: allocated, for a problem that outlives the call)."""
     t = clock(timings)
     ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-        s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active)
+        s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active,
+        arena)
     t = lap(timings, PHASE_M_INVERSE, t)
     if ok and Wt.shape[0] != 0:
         ok, G, Gdiag, LB, pat = phase_delassus(s.form, active.shape[0], s.bilateral_direct,
-                                               Wt, MinvW, pat)
+                                               Wt, MinvW, pat, arena)
     else:
         G, Gdiag, LB = view2(bvec[:0], (0, 0)), bvec[:0], view2(bvec[:0], (0, 0))
     lap(timings, PHASE_G, t)

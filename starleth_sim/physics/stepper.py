@@ -212,7 +212,7 @@ class MoreauStepper:
             pack, views = TreeStepModel.pack(self.settings, self.compliant_law,
                                              coords.midpoint_model(), self.ground, self.eps,
                                              coords.joint_v, coords.tree.dof_parent, nv, effort,
-                                             velocity)
+                                             velocity, self.nb)
             self._tree_model = tuple(pack)
             self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
             self._effort_limit, self._velocity_limit = effort, velocity

@@ -58,11 +58,12 @@ class TreeStepModel(NamedTuple):
 
     @staticmethod
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
-             velocity_limit):
+             velocity_limit, n_bilateral=0):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
-        GroundPlane, ε and the torque limits (see actuator.saturate_torque); returns the
-        record and the workspace's views (gap, position, Wt_all, L, u_free, u_corr), which
-        the stepper keeps as its own arrays."""
+        GroundPlane, ε and the torque limits (see actuator.saturate_torque), with a step's
+        arena (step_arena) sized for n_bilateral bilateral rows; returns the record and the
+        workspace's views (gap, position, Wt_all, L, u_free, u_corr), which the stepper
+        keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
@@ -70,11 +71,12 @@ class TreeStepModel(NamedTuple):
             op, mass, lever, inertia, gravity, c_local, c_radius, ground.n, ground.t1, ground.t2, [ground.offset], eps, effort_limit,
             velocity_limit)])
         nj, nc = parent.shape[0], c_joint.shape[0]
+        n_floats, n_ints = arena_size(nc, nv, n_bilateral)
         ints = np.concatenate([np.ravel(a).astype(np.int64) for a in (
             [nj, nc, joint_v.shape[0], nv], parent, jtype, idx_q, idx_v, c_joint, joint_v,
-            dof_parent)])
+            dof_parent, [n_floats, n_ints])])
         sizes = (nc, 3 * nc, 3 * nc * nv, nv * nv, nv, nv)
-        workspace = np.zeros(sum(sizes))
+        workspace = np.zeros(sum(sizes) + n_floats + n_ints)
         views, o = [], 0
         for n in sizes:
             views.append(workspace[o:o + n])
@@ -83,6 +85,35 @@ class TreeStepModel(NamedTuple):
         return (TreeStepModel(floats, ints, np.ascontiguousarray(support), workspace),
                 (gap, position.reshape(nc, 3), Wt_all.reshape(nc, 3, nv), L.reshape(nv, nv),
                  u_free, u_corr))
+
+
+def arena_size(nc, nv, nb):
+    """(floats, ints) of a one-kernel step's arena (step_arena) for nc contact points, nv
+    velocities and nb bilateral rows: what contact_problem takes from it with every contact
+    active (m = 3 nc + nb rows): the active set, W^T, M^{-1}W and b, G and its diagonal,
+    L_B; the patterns of W^T, M^{-1}W and G, the columns of ltdl_solve_cols, L_B's envelope
+    (the int64 entries stored in float64 slots, 2 more for the arena's positions)."""
+    m = 3 * nc + nb
+    floats = (2 * m * nv + m) + (m * m + m) + nb * nb
+    ints = nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb + 2
+    return floats, ints
+
+
+@nb.njit(**KERNEL, inline="always")
+def step_arena(ints, workspace, nc, nv):
+    """The arena (array_views.arena_floats) of a one-kernel step, emptied: the workspace
+    after the views of unpack_tree_model, its sizes (arena_size) the last two entries of
+    `ints`; borrowed (the caller holds the buffers for the call)."""
+    ints, workspace = borrowed(ints), borrowed(workspace)
+    n = ints.shape[0]
+    n_floats, n_ints = ints[n - 2], ints[n - 1]
+    w = 4 * nc + 3 * nc * nv + nv * nv + 2 * nv
+    floats = workspace[w:w + n_floats]
+    int_slots = workspace[w + n_floats:w + n_floats + n_ints].view(np.int64)
+    pos = int_slots[:2]
+    pos[0] = 0
+    pos[1] = 0
+    return floats, int_slots[2:], pos
 
 
 #: StepSettings' fields: 12 floats, then 4 ints (form, scheme, max_iterations, criterion),
@@ -309,7 +340,8 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     _, qM, M, h = qMh
     no_rows = u_corr[:0]        # (no bilateral rows: empty views, not allocations)
     owned = contact_problem_inlined(s, M, u, gap, Wt_all, view2(no_rows, (0, nv)), no_rows,
-                                    eps, dof_parent, True, L, last_impulse, last_active, None)
+                                    eps, dof_parent, True, L, last_impulse, last_active, None,
+                                    step_arena(ints, workspace, nc, nv))
     p = _borrowed_problem(owned)
     if not p.ok:
         keep_alive(qMh)
@@ -564,7 +596,8 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
                         h)
     owned = contact_problem_inlined(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
-                                    last_impulse, last_active, None)
+                                    last_impulse, last_active, None,
+                                    step_arena(ints, workspace, nc, nv))
     p = _borrowed_problem(owned)
     if not p.ok:
         keep_alive(qMh)
