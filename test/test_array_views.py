@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from numba.core.errors import TypingError
 
-from starleth_sim.physics.array_views import (arena_floats, arena_ints, borrowed, keep_alive,
-                                              view2, view3)
+from starleth_sim.physics.array_views import (ARENA_ALIGN, arena_floats, arena_ints, borrowed,
+                                              keep_alive, view2, view3)
 
 
 @nb.njit
@@ -105,18 +105,24 @@ def _no_arena(n):
     return a.sum() + b.sum()
 
 
-def test_arena_hands_out_consecutive_parts_and_allocates_when_full():
-    """A step's arena (array_views.arena_floats / arena_ints): requests get consecutive,
-    non-overlapping parts of its buffers while they fit (writes to one do not reach
-    another), a request that does not fit gets an array of its own (the arena is left as
-    it was), and without an arena every request allocates."""
-    floats, ints, pos = np.full(10, np.nan), np.full(6, -1, dtype=np.int64), np.zeros(2, np.int64)
-    sizes = np.array([4, 3, 5, 3, 2, 1], dtype=np.int64)   # floats 4, 5 fit, 2 does not...
+def test_arena_hands_out_aligned_parts_and_allocates_when_full():
+    """A step's arena (array_views.arena_floats / arena_ints): requests get parts of its
+    buffers that do not overlap (writes to one do not reach another), each starting
+    ARENA_ALIGN entries (64 bytes) after the last's start rounded up, while they fit; a
+    request that does not fit gets an array of its own (the arena is left as it was), and
+    without an arena every request allocates."""
+    floats = np.full(24, np.nan)
+    ints = np.full(16, -1, dtype=np.int64)
+    pos = np.zeros(2, np.int64)
+    sizes = np.array([4, 3, 5, 3, 9, 1], dtype=np.int64)   # floats 4, 5, 9; ints 3, 3, 1
     firsts, inside = _carve(floats, ints, pos, sizes)
     np.testing.assert_array_equal(firsts, np.arange(6.0))
-    # floats: 4 + 5 fit in 10, the third (2) does not; ints: 3 + 3 fit in 6, the last (1) not
+    # floats: parts at 0 and 8, the third (9 from 16) does not fit in 24; ints: parts at 0
+    # and 8, the third (1 from 16) does not fit in 16
     np.testing.assert_array_equal(inside, [True, True, True, True, False, False])
-    np.testing.assert_array_equal(floats, [0, 0, 0, 0, 2, 2, 2, 2, 2, np.nan])
-    np.testing.assert_array_equal(ints, [1, 1, 1, 3, 3, 3])
-    np.testing.assert_array_equal(pos, [9, 6])
+    nan = np.nan
+    np.testing.assert_array_equal(floats, [0] * 4 + [nan] * 4 + [2] * 5 + [nan] * 11)
+    np.testing.assert_array_equal(ints, [1] * 3 + [-1] * 5 + [3] * 3 + [-1] * 5)
+    np.testing.assert_array_equal(pos, [16, 16])
+    assert ARENA_ALIGN == 8
     assert _no_arena(4) == 4 * 1.5 + 4 * 2

@@ -110,12 +110,17 @@ def _no_arena(arena) -> bool:
     return isinstance(arena, (types.NoneType, types.Omitted))
 
 
+#: an arena hands out parts that start ARENA_ALIGN entries (64 bytes) apart, as numba's own
+#: allocations are aligned (an HmJ step with unaligned parts ran 3 % slower, measured)
+ARENA_ALIGN = 8
+
+
 def _arena_take(which, dtype):
     def impl(arena, n):
         buf, pos = arena[which], arena[2]
         o = pos[which]
         if o + n <= buf.shape[0]:
-            pos[which] = o + n
+            pos[which] = o + (n + ARENA_ALIGN - 1) // ARENA_ALIGN * ARENA_ALIGN
             return buf[o:o + n]
         return np.empty(n, dtype=dtype)
     return impl

@@ -67,7 +67,7 @@ import numpy as np
 import numba as nb
 
 from .kernel_cache import KERNEL
-from .array_views import arena_ints, borrowed, keep_alive
+from .array_views import arena_floats, arena_ints, borrowed, keep_alive
 from .linalg import cholesky_solve_envelope, cholesky_solve_vec, envelope_columns
 
 SCHEME_JOR = 0
@@ -628,15 +628,17 @@ def _auto_setup(s, G, Wt, MinvW, pat, nc, r, lam):
 
 
 @nb.njit(**KERNEL, inline="always")
-def delassus_prox(jor, s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u):
+def delassus_prox(jor, s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, arena=None):
     """The prox on ξ = GΛ + c (Delassus form), JOR (jor True) or SOR: _jor_prox_delassus or
     _sor_prox_delassus on borrowed arrays (array_views.borrowed: no reference counting in
     the iteration) with their work buffer, the owners held to the end. lam: warm start in,
-    solution out; u: end velocity out. Returns (iterations, status, residual)."""
+    solution out; u: end velocity out; the work buffer from `arena` (a one-kernel step's,
+    array_views.arena_floats). Returns (iterations, status, residual)."""
     m = c.shape[0]
     nd = m - 3 * nc if s.bilateral_direct else 0
     nw = 2 * m if jor else m
-    owner = np.empty(nw + nd)   # (JOR: ξ and the new Λ; SOR: Λ of the last sweep; then Λ_B's rhs)
+    # (JOR: ξ and the new Λ; SOR: Λ of the last sweep; then Λ_B's rhs; from the step's arena)
+    owner = arena_floats(arena, nw + nd)
     work = borrowed(owner)
     columns = _envelope_columns(s, pat.lb_first, nd)
     direct = (borrowed(columns[0]), borrowed(columns[1]), work[nw:])
@@ -945,7 +947,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
 
 
 @nb.njit(**KERNEL, inline="always")
-def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u):
+def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u, arena=None):
     """One prox solve with the scheme and form of the settings `s` (a `ProxSettings`-like
     record; one jitted call from the stepper). Problem: W^T (Wt), M^{-1}W (MinvW),
     u_free = u^S + M^{-1} h Δt, b, G = W^T M^{-1} W and c = W^T u_free + b (Delassus form
@@ -957,7 +959,7 @@ def prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u):
     solve of 1.8 µs, measured; the velocity-form kernels stay calls.)"""
     if s.form == FORM_DELASSUS:
         return delassus_prox(s.scheme == SCHEME_JOR, s, pat, G, c, nc, mu, r, lam, LB, M,
-                             u_free, MinvW, u)
+                             u_free, MinvW, u, arena)
     if s.scheme == SCHEME_JOR:
         return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)

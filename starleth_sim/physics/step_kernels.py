@@ -370,7 +370,8 @@ def constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx, c):
 
 
 @nb.njit(**KERNEL, inline="always")
-def phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timings, t):
+def phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timings, t,
+               arena=None):
     """c = W^T u_free + b (constraint_velocity, timed as phase "G" from t), then Fig. 7
     phase "u^E" of the problem p (a ContactProblem): warm start (the last step's impulses of
     contacts that stay active, and of the bilateral constraints), the prox iteration, and
@@ -385,7 +386,7 @@ def phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timin
     nv = u_free.shape[0]
     # (one allocation for Λ^0, Λ, r, u^E, μ per contact and c; borrowed: no reference
     # counting in the prox iteration, the owner held by its use in the return)
-    owner = np.empty(4 * m + nv + na)
+    owner = arena_floats(arena, 4 * m + nv + na)
     buf = borrowed(owner)
     c = buf[3 * m + nv + na:]
     constraint_velocity(p.Wt, u_free, p.b, p.pat.wp_ptr, p.pat.wp_idx, c)
@@ -415,7 +416,7 @@ def phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timin
         prox.prox_parameters(p.Gdiag, na, alpha, r)
         lam[:] = lam0
         it, status, resid = prox.prox_solve(s, p.pat, p.Wt, p.MinvW, u_free, p.b, p.G, c, na,
-                                            mu_vec, r, lam, p.LB, M, u)
+                                            mu_vec, r, lam, p.LB, M, u, arena)
         iters += it
         if status == prox.STATUS_CONVERGED:
             break
@@ -501,7 +502,7 @@ def projection_problem(Wt, MinvW, active, extra, Wt_all, dof_parent, L):
 
 
 @nb.njit(**KERNEL)
-def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr):
+def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr, arena=None):
     """Post-step projection (contact.penetration_correction "projection"). With the
     predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of the
     contacts outside the active set that would end the step below the ground (a foot that
@@ -519,7 +520,7 @@ def phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, uE, u_corr)
     nc = gap.shape[0]
     for k in range(nv):
         u_corr[k] = 0.0
-    gE = np.empty(nc)
+    gE = arena_floats(arena, nc)
     worst = predicted_end_gaps(gap, Wt_all, s.jacobian_gap, is_active, uE, dt, gE)
     if worst >= -tolerance or beta == 0.0:
         return 0, -1
@@ -587,7 +588,8 @@ def prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent
 
 @nb.njit(**KERNEL)
 def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
-                     last_bilateral, impulse, is_active, u_free, u, u_corr, remember, timings):
+                     last_bilateral, impulse, is_active, u_free, u, u_corr, remember, timings,
+                     arena=None):
     """The torque-dependent rest of the hard-contact solve of the ContactProblem p for the
     StepSettings s: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
     c = W^T u_free + b (phase "G"), the prox iteration (phase_prox) and the post-step
@@ -596,7 +598,8 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
     u^E into u and the projection's Δu_p into u_corr; unless the result is non-finite,
     Λ_B is written into last_bilateral, and with `remember` the
     warm-start memory (last_impulse, last_active) is updated (remember_contacts; the
-    one-kernel steps pass False and do that once the end of the step is known finite).
+    one-kernel steps pass False and do that once the end of the step is known finite;
+    they also pass their arena, array_views.arena_floats).
     Returns (iterations, status, residual, retried, projection iterations, projection
     status)."""
     t = clock(timings)
@@ -619,7 +622,7 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
     else:
         uE, lam, it, status, resid, retried, t = phase_prox(s, p, u_free, M, last_impulse,
                                                             last_active, last_bilateral,
-                                                            timings, t)
+                                                            timings, t, arena)
         u[:] = uE
         for a in range(na):
             i = active[a]
@@ -638,7 +641,8 @@ def complete_problem(s, p, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, l
         t = lap(timings, PHASE_PROX, t)
     if status != prox.STATUS_NONFINITE and s.beta_projection > 0.0:
         t = clock(timings)
-        pit, pstatus = phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, u, u_corr)
+        pit, pstatus = phase_projection(s, p, is_active, gap, Wt_all, dof_parent, L, M, u, u_corr,
+                                        arena)
         lap(timings, PHASE_PROX, t)
     if remember and status != prox.STATUS_NONFINITE:
         remember_contacts(is_active, impulse, last_active, last_impulse)

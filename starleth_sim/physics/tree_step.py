@@ -19,7 +19,8 @@ import numba as nb
 
 from .kernel_cache import KERNEL
 from . import prox
-from .array_views import borrowed, keep_alive, view2, view3
+from .array_views import (ARENA_ALIGN, arena_floats, arena_ints, borrowed, keep_alive,
+                          view2, view3)
 from .actuator import saturate_torque
 from .coordinates.forest import (cut_joint_motion, cut_joint_torques, cut_joints,
                                  integrate_forest, midpoint_dynamics, rigid_body_forces)
@@ -89,14 +90,24 @@ class TreeStepModel(NamedTuple):
 
 def arena_size(nc, nv, nb):
     """(floats, ints) of a one-kernel step's arena (step_arena) for nc contact points, nv
-    velocities and nb bilateral rows: what contact_problem takes from it with every contact
-    active (m = 3 nc + nb rows): the active set, W^T, M^{-1}W and b, G and its diagonal,
-    L_B; the patterns of W^T, M^{-1}W and G, the columns of ltdl_solve_cols, L_B's envelope
-    (the int64 entries stored in float64 slots, 2 more for the arena's positions)."""
+    velocities and nb bilateral rows: what a step takes from it with every contact active
+    (m = 3 nc + nb rows): the midpoint's q^M, M and h; contact_problem's active set, W^T,
+    M^{-1}W and b, G and its diagonal, L_B, the patterns of W^T, M^{-1}W and G, the
+    columns of ltdl_solve_cols and L_B's envelope; the prox's buffers; the projection's
+    gaps; the compliant step's copy of the contact state (the int64 entries stored in
+    float64 slots, 2 more for the arena's positions). A request beyond it allocates."""
     m = 3 * nc + nb
-    floats = (2 * m * nv + m) + (m * m + m) + nb * nb
-    ints = nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb + 2
-    return floats, ints
+    floats = ((2 * m * nv + m) + (m * m + m) + nb * nb
+              + (2 * nv + nv * nv + nv)    # q^M (nq ≤ 2 nv), M and h of the midpoint
+              + (4 * m + nv + nc)          # the prox phase's Λ^0, Λ, r, u^E, μ and c
+              + (2 * m + nb)               # the Delassus-form prox's work
+              + nc                         # the projection's predicted gaps
+              + 6 * nc)                    # the compliant contact state kept
+    ints = (nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb
+            + 2 * nc + 2)
+    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 16 parts at most)
+    slack = 17 * ARENA_ALIGN
+    return floats + slack, ints + slack
 
 
 @nb.njit(**KERNEL, inline="always")
@@ -108,12 +119,22 @@ def step_arena(ints, workspace, nc, nv):
     n = ints.shape[0]
     n_floats, n_ints = ints[n - 2], ints[n - 1]
     w = 4 * nc + 3 * nc * nv + nv * nv + 2 * nv
+    w += _to_aligned(workspace, w)
     floats = workspace[w:w + n_floats]
-    int_slots = workspace[w + n_floats:w + n_floats + n_ints].view(np.int64)
+    w += n_floats
+    int_slots = workspace[w:w + n_ints].view(np.int64)
     pos = int_slots[:2]
     pos[0] = 0
     pos[1] = 0
-    return floats, int_slots[2:], pos
+    ints = int_slots[2:]
+    a = _to_aligned(ints, 0)
+    return floats, ints[a:], pos
+
+
+@nb.njit(**KERNEL, inline="always")
+def _to_aligned(buf, o):
+    """The entries (8 bytes each) from buf[o] to the next 64-byte boundary."""
+    return (-(buf.ctypes.data // 8 + o)) % ARENA_ALIGN
 
 
 #: StepSettings' fields: 12 floats, then 4 ints (form, scheme, max_iterations, criterion),
@@ -230,16 +251,16 @@ def _report_contacts(gap, position, report, nc):
 
 @nb.njit(**KERNEL, inline="always")
 def _midpoint_with_forces(q, u, half_dt, tau, joint_v, f_ext, normal, tangent1, tangent2,
-                          ground_offset, jacobian_gap, gap, position, Wt_all, model):
+                          ground_offset, jacobian_gap, gap, position, Wt_all, model, arena):
     """q^M, M and h at (q^M, u^S) of a tree without cut joints (midpoint_dynamics), then
     h += Sᵀτ (τ in the public order, joint_v its velocity indices) + f_ext (when given):
     the same arithmetic, in the same order, as ForestCoordinates.midpoint followed by
     add_joint_torques and h += f_ext. Returns (the owner of their memory, q^M, M, h), the
     three borrowed (array_views.borrowed): the caller holds the owner (keep_alive) while it
-    uses them."""
+    uses them; their memory from the step's arena."""
     nv = u.shape[0]
     nq = q.shape[0]
-    owner = np.empty(nq + nv * nv + nv)     # (one allocation for q^M, M and h)
+    owner = arena_floats(arena, nq + nv * nv + nv)     # (one buffer for q^M, M and h)
     out = borrowed(owner)
     qM = out[:nq]
     M = view2(out[nq:nq + nv * nv], (nv, nv))
@@ -277,7 +298,7 @@ def _borrowed_problem(p):
 @nb.njit(**KERNEL, inline="always")
 def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active,
                    last_bilateral, bilateral_E, report, is_active, u_free, uE, u_corr, qM,
-                   half_dt, jtype, idx_q, idx_v, qE):
+                   half_dt, jtype, idx_q, idx_v, qE, arena):
     """The rest of a one-kernel hard-contact step once its ContactProblem p is set up:
     complete_problem (Λ into the report buffer, Λ_B into bilateral_E, which comes in with
     the last step's Λ_B for the warm start; both nb long) and Eqn. (8) (end_of_step); only
@@ -290,7 +311,7 @@ def _complete_step(s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last
         bilateral_E[a] = last_bilateral[a]
     it, status, resid, retried, pit, pstatus = complete_problem_inlined(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, bilateral_E,
-        impulse, is_active, u_free, uE, u_corr, False, None)
+        impulse, is_active, u_free, uE, u_corr, False, None, arena)
     outcome = TREE_STEP_OK
     if status == prox.STATUS_NONFINITE:
         outcome = TREE_STEP_NONFINITE_IMPULSE
@@ -334,14 +355,16 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
         return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * s.dt
+    arena = step_arena(ints, workspace, nc, nv)
     # (the step's own arrays are borrowed too, their owners held by keep_alive to the end)
     qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
-                                tangent2, offset, s.jacobian_gap, gap, position, Wt_all, model)
+                                tangent2, offset, s.jacobian_gap, gap, position, Wt_all, model,
+                                arena)
     _, qM, M, h = qMh
     no_rows = u_corr[:0]        # (no bilateral rows: empty views, not allocations)
     owned = contact_problem_inlined(s, M, u, gap, Wt_all, view2(no_rows, (0, nv)), no_rows,
                                     eps, dof_parent, True, L, last_impulse, last_active, None,
-                                    step_arena(ints, workspace, nc, nv))
+                                    arena)
     p = _borrowed_problem(owned)
     if not p.ok:
         keep_alive(qMh)
@@ -350,11 +373,39 @@ def tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_b
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         last_bilateral, report, is_active, u_free, uE, u_corr, qM, half_dt, model[1],
-        model[5], model[6], qE)     # (no bilateral rows: Λ_B is empty)
+        model[5], model[6], qE, arena)     # (no bilateral rows: Λ_B is empty)
     _report_contacts(gap, position, report, nc)
     keep_alive(qMh)
     keep_alive(owned)
     return (outcome, p.active.shape[0], p.opened, it, status, resid, retried, pit, pstatus)
+
+
+@nb.njit(**KERNEL, inline="always")
+def _kept_contact_state(closed, slip, anchor, lam, arena):
+    """A copy of the compliant contact state (the closed and slip flags as ints, the anchors
+    and forces) in the step's arena, for _restore_contact_state after a failed step."""
+    nc = closed.shape[0]
+    flags = arena_ints(arena, 2 * nc)
+    values = arena_floats(arena, 6 * nc)
+    for i in range(nc):
+        flags[i] = closed[i]
+        flags[nc + i] = slip[i]
+        for k in range(3):
+            values[3 * i + k] = anchor[i, k]
+            values[3 * nc + 3 * i + k] = lam[i, k]
+    return flags, values
+
+
+@nb.njit(**KERNEL, inline="always")
+def _restore_contact_state(kept, closed, slip, anchor, lam):
+    flags, values = kept
+    nc = closed.shape[0]
+    for i in range(nc):
+        closed[i] = flags[i] != 0
+        slip[i] = flags[nc + i] != 0
+        for k in range(3):
+            anchor[i, k] = values[3 * i + k]
+            lam[i, k] = values[3 * nc + 3 * i + k]
 
 
 @nb.njit(**KERNEL)
@@ -379,10 +430,12 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
     if not _applied_torque(saturate, tau, u, joint_v, effort_limit, velocity_limit, applied):
         return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
     half_dt = 0.5 * dt
+    arena = step_arena(ints, workspace, nc, nv)
     qMh = _midpoint_with_forces(q, u, half_dt, applied, joint_v, f_ext, normal, tangent1,
-                                tangent2, offset, jacobian_gap, gap, position, Wt_all, model)
+                                tangent2, offset, jacobian_gap, gap, position, Wt_all, model,
+                                arena)
     _, qM, M, h = qMh   # (held to the end)
-    kept = (closed.copy(), slip.copy(), anchor.copy(), lam.copy())
+    kept = _kept_contact_state(closed, slip, anchor, lam, arena)
     if not solve_compliant(law, M, h, u, dt, gap, position, Wt_all, closed, slip, anchor,
                            tangent1, tangent2, lam, dof_parent, True, L, u_free, None):
         outcome = TREE_STEP_NOT_PD
@@ -393,10 +446,7 @@ def tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, r
         if not end_of_step(qM, uE, u_corr, False, half_dt, model[1], model[5], model[6], qE):
             outcome = TREE_STEP_NONFINITE_STATE
     if outcome != TREE_STEP_OK:     # the contact state back to what it was
-        closed[:] = kept[0]
-        slip[:] = kept[1]
-        anchor[:] = kept[2]
-        lam[:] = kept[3]
+        _restore_contact_state(kept, closed, slip, anchor, lam)
     n_active = 0
     for i in range(nc):
         for k in range(3):
@@ -497,7 +547,7 @@ def unpack_cut_model(floats, ints, workspace, na, nv):
 @nb.njit(**KERNEL, inline="always")
 def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
                      body_inertia, body_gravity, normal, tangent1, tangent2, ground_offset,
-                     jacobian_gap, gap, position, Wt_all, model):
+                     jacobian_gap, gap, position, Wt_all, model, arena):
     """q^M, M and h (without τ) at (q^M, u^S) and the contact kinematics at q^M, as
     ForestCoordinates.midpoint: one midpoint_dynamics for M of the trees; for a constant M
     (free bodies) q^M, rigid_body_forces and contact_kinematics. Returns
@@ -507,7 +557,7 @@ def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass
     nv = u.shape[0]
     nq = q.shape[0]
     nM = 0 if constant else nv * nv
-    owner = np.empty(nq + nv + nM)          # (one allocation for q^M, h and M)
+    owner = arena_floats(arena, nq + nv + nM)       # (one buffer for q^M, h and M)
     out = borrowed(owner)
     qM = out[:nq]
     h = out[nq:nq + nv]
@@ -583,9 +633,10 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
             return TREE_STEP_NONFINITE_TORQUE, 0, 0, 0, prox.STATUS_CONVERGED, 0.0, False, 0, -1
         applied[k] = applied_tau[k]
     half_dt = 0.5 * s.dt
+    arena = step_arena(ints, workspace, nc, nv)
     qMh = _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass,
                            body_inertia, body_gravity, normal, tangent1, tangent2, offset,
-                           s.jacobian_gap, gap, position, Wt_all, model)
+                           s.jacobian_gap, gap, position, Wt_all, model, arena)
     _, qM, M, h = qMh   # (held to the end)
     (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op) = model[:10]
     cut_joints(qM, np.zeros(nv), parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
@@ -596,8 +647,7 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
                         h)
     owned = contact_problem_inlined(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
-                                    last_impulse, last_active, None,
-                                    step_arena(ints, workspace, nc, nv))
+                                    last_impulse, last_active, None, arena)
     p = _borrowed_problem(owned)
     if not p.ok:
         keep_alive(qMh)
@@ -606,7 +656,7 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
     outcome, it, status, resid, retried, pit, pstatus = _complete_step(
         s, p, h, u, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral,
         bilateral_E, report, is_active, u_free, uE, u_corr, qM, half_dt, jtype, idx_q, idx_v,
-        qE)
+        qE, arena)
     if outcome == TREE_STEP_OK:
         cut_joint_motion(qE, uE, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                          cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E)
