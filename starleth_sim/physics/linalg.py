@@ -60,16 +60,23 @@ def cholesky_upper_input(A, o, L, first):
     return True
 
 
+@nb.njit(**KERNEL, inline="always")
+def _cholesky_forward(L, first, b):
+    """L y = b in place (the forward pass of cholesky_solve_vec / cholesky_solve_envelope),
+    by rows within the envelope `first`."""
+    for i in range(L.shape[0]):
+        s = b[i]
+        for k in range(first[i], i):
+            s -= L[i, k] * b[k]
+        b[i] = s / L[i, i]
+
+
 @nb.njit(**KERNEL)
 def cholesky_solve_vec(L, first, b):
     """Solve (L L^T) x = b in place (b is overwritten with x), L with the envelope `first`
     of cholesky_upper_input (all zeros: a dense L)."""
     n = L.shape[0]
-    for i in range(n):
-        s = b[i]
-        for k in range(first[i], i):
-            s -= L[i, k] * b[k]
-        b[i] = s / L[i, i]
+    _cholesky_forward(L, first, b)
     for i in range(n - 1, -1, -1):
         s = b[i]
         for k in range(i + 1, n):
@@ -106,11 +113,7 @@ def cholesky_solve_envelope(L, first, col_ptr, col_idx, b):
     result bit for bit, without testing all n² - n pairs (G_BB of the maximal coordinates:
     760 terms instead of 1,770 tests)."""
     n = L.shape[0]
-    for i in range(n):
-        s = b[i]
-        for k in range(first[i], i):
-            s -= L[i, k] * b[k]
-        b[i] = s / L[i, i]
+    _cholesky_forward(L, first, b)
     for i in range(n - 1, -1, -1):
         s = b[i]
         for p in range(col_ptr[i], col_ptr[i + 1]):
