@@ -315,7 +315,8 @@ def _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx):
 @nb.njit(**KERNEL)
 def _bilateral_direct_delassus(G, c, nc, LB, lam, gp_ptr, gp_idx, lb_first, direct):
     """Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) for the current Λ_U (Eqn. 20, Delassus form), with
-    the work of _direct_work: L_B's envelope by columns and the right-hand side's buffer."""
+    delassus_prox's `direct` work: L_B's envelope by columns (col_ptr, col_idx) and the
+    right-hand side's buffer."""
     col_ptr, col_idx, rhs = direct
     m = c.shape[0]
     o = 3 * nc
@@ -640,7 +641,7 @@ def delassus_prox(jor, s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, ar
     # (JOR: ξ and the new Λ; SOR: Λ of the last sweep; then Λ_B's rhs; from the step's arena)
     owner = arena_floats(arena, nw + nd)
     work = borrowed(owner)
-    columns = _envelope_columns(s, pat.lb_first, nd)
+    columns = _envelope_columns(pat.lb_first, nd)
     direct = (borrowed(columns[0]), borrowed(columns[1]), work[nw:])
     if jor:
         result = _jor_prox_delassus(s, pat, G, borrowed(c), nc, borrowed(mu), borrowed(r),
@@ -655,7 +656,7 @@ def delassus_prox(jor, s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, ar
 
 
 @nb.njit(**KERNEL, inline="always")
-def _envelope_columns(s, lb_first, nd):
+def _envelope_columns(lb_first, nd):
     """The columns of L_B's envelope (linalg.envelope_columns) for the direct bilateral
     method's backward solves (nd > 0 bilateral rows), else empty views."""
     if nd > 0:

@@ -49,8 +49,10 @@ class TreeStepModel(NamedTuple):
     actuators' effort and velocity limits (one per actuated joint, public order); ints:
     [nj, nc, number of actuated joints, nv], then parent, jtype, idx_q, idx_v, c_joint,
     joint_v and the dofs' parents (KinematicTree.dof_parent, the structure of M's LTDL
-    factor); support: the tree's support matrix; workspace: g_N (nc), contact points (nc x 3), W^T of every contact (nc x 3 x nv), the
-    factor L of M (nv x nv), u_free and Δu_p (nv each)."""
+    factor), and the sizes of the step's arena (arena_size); support: the tree's support
+    matrix; workspace: g_N (nc), contact points (nc x 3), W^T of every contact
+    (nc x 3 x nv), the factor L of M (nv x nv), u_free and Δu_p (nv each), then the step's
+    arena (step_arena)."""
 
     floats: np.ndarray
     ints: np.ndarray
@@ -398,6 +400,7 @@ def _kept_contact_state(closed, slip, anchor, lam, arena):
 
 @nb.njit(**KERNEL, inline="always")
 def _restore_contact_state(kept, closed, slip, anchor, lam):
+    """The compliant contact state back from _kept_contact_state's copy."""
     flags, values = kept
     nc = closed.shape[0]
     for i in range(nc):
