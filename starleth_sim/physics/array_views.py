@@ -90,10 +90,11 @@ def keep_alive(typingctx, a):
 
 
 # -- a step's arena: its work arrays carved from one workspace instead of allocated ----------
-# arena = (floats, ints, pos): float64 and int64 buffers and the int64 pair pos of their
-# first free entries, or None (the callers that keep what they get, e.g. a problem prepared
-# ahead and returned to Python: every request allocates). A one-kernel step resets pos and
-# passes its arena down; what it hands out is valid until the next reset.
+# arena = (floats, ints, pos): float64 and int64 buffers and pos = [first free float, first
+# free int, requests that did not fit (counted, never reset)], or None (the callers that
+# keep what they get, e.g. a problem prepared ahead and returned to Python: every request
+# allocates). A one-kernel step resets pos[:2] and passes its arena down; what it hands out
+# is valid until the next reset.
 
 def arena_floats(arena, n):
     """n float64 entries (uninitialised): the arena's next n, or a new array when the arena
@@ -122,6 +123,7 @@ def _arena_take(which, dtype):
         if o + n <= buf.shape[0]:
             pos[which] = o + (n + ARENA_ALIGN - 1) // ARENA_ALIGN * ARENA_ALIGN
             return buf[o:o + n]
+        pos[2] += 1
         return np.empty(n, dtype=dtype)
     return impl
 

@@ -97,7 +97,8 @@ def arena_size(nc, nv, nb):
     M^{-1}W and b, G and its diagonal, L_B, the patterns of W^T, M^{-1}W and G, the
     columns of ltdl_solve_cols and L_B's envelope; the prox's buffers; the projection's
     gaps; the compliant step's copy of the contact state (the int64 entries stored in
-    float64 slots, 2 more for the arena's positions). A request beyond it allocates."""
+    float64 slots, 3 more for the arena's positions and misses). A request beyond it
+    allocates (and is counted: arena_usage)."""
     m = 3 * nc + nb
     floats = ((2 * m * nv + m) + (m * m + m) + nb * nb
               + (2 * nv + nv * nv + nv)    # q^M (nq ≤ 2 nv), M and h of the midpoint
@@ -106,7 +107,7 @@ def arena_size(nc, nv, nb):
               + nc                         # the projection's predicted gaps
               + 6 * nc)                    # the compliant contact state kept
     ints = (nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb
-            + 2 * nc + 2)
+            + 2 * nc + 3)
     # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 16 parts at most)
     slack = 17 * ARENA_ALIGN
     return floats + slack, ints + slack
@@ -125,12 +126,25 @@ def step_arena(ints, workspace, nc, nv):
     floats = workspace[w:w + n_floats]
     w += n_floats
     int_slots = workspace[w:w + n_ints].view(np.int64)
-    pos = int_slots[:2]
+    pos = int_slots[:3]
     pos[0] = 0
     pos[1] = 0
-    ints = int_slots[2:]
+    ints = int_slots[3:]
     a = _to_aligned(ints, 0)
     return floats, ints[a:], pos
+
+
+def arena_usage(model) -> tuple:
+    """(floats, ints) the last one-kernel step took from the arena (step_arena) of `model`
+    (a TreeStepModel or its tuple), and the requests that did not fit since it was packed
+    (each allocated instead)."""
+    ints, workspace = model[1], model[3]
+    nc, nv = int(ints[1]), int(ints[3])
+    n_floats = int(ints[-2])
+    w = 4 * nc + 3 * nc * nv + nv * nv + 2 * nv
+    w += (-(workspace.ctypes.data // 8 + w)) % ARENA_ALIGN
+    pos = workspace[w + n_floats:w + n_floats + 3].view(np.int64)
+    return int(pos[0]), int(pos[1]), int(pos[2])
 
 
 @nb.njit(**KERNEL, inline="always")
