@@ -116,20 +116,17 @@ def arena_size(nc, nv, nb):
 @nb.njit(**KERNEL, inline="always")
 def step_arena(ints, workspace, nc, nv):
     """The arena (array_views.arena_floats) of a one-kernel step, emptied: the workspace
-    after the views of unpack_tree_model, its sizes (arena_size) the last two entries of
-    `ints`; borrowed (the caller holds the buffers for the call)."""
+    from _arena_start on, its sizes (arena_size) the last two entries of `ints`; borrowed
+    (the caller holds the buffers for the call)."""
     ints, workspace = borrowed(ints), borrowed(workspace)
     n = ints.shape[0]
     n_floats, n_ints = ints[n - 2], ints[n - 1]
-    w = 4 * nc + 3 * nc * nv + nv * nv + 2 * nv
-    w += _to_aligned(workspace, w)
+    w = _arena_start(workspace, nc, nv)
     floats = workspace[w:w + n_floats]
-    w += n_floats
-    int_slots = workspace[w:w + n_ints].view(np.int64)
-    pos = int_slots[:3]
+    pos = _arena_positions(workspace, w, n_floats)
     pos[0] = 0
     pos[1] = 0
-    ints = int_slots[3:]
+    ints = workspace[w + n_floats + 3:w + n_floats + n_ints].view(np.int64)
     a = _to_aligned(ints, 0)
     return floats, ints[a:], pos
 
@@ -139,12 +136,23 @@ def arena_usage(model) -> tuple:
     (a TreeStepModel or its tuple), and the requests that did not fit since it was packed
     (each allocated instead)."""
     ints, workspace = model[1], model[3]
-    nc, nv = int(ints[1]), int(ints[3])
-    n_floats = int(ints[-2])
-    w = 4 * nc + 3 * nc * nv + nv * nv + 2 * nv
-    w += (-(workspace.ctypes.data // 8 + w)) % ARENA_ALIGN
-    pos = workspace[w + n_floats:w + n_floats + 3].view(np.int64)
+    w = _arena_start(workspace, int(ints[1]), int(ints[3]))
+    pos = _arena_positions(workspace, w, int(ints[-2]))
     return int(pos[0]), int(pos[1]), int(pos[2])
+
+
+@nb.njit(**KERNEL, inline="always")
+def _arena_start(workspace, nc, nv):
+    """Where a TreeStepModel's arena starts in its workspace: after the views of
+    unpack_tree_model (gap, position, Wt_all, L, u_free, u_corr), at a 64-byte boundary."""
+    w = 4 * nc + 3 * nc * nv + nv * nv + 2 * nv
+    return w + _to_aligned(workspace, w)
+
+
+@nb.njit(**KERNEL, inline="always")
+def _arena_positions(workspace, w, n_floats):
+    """The arena's pos (array_views): the first 3 int64 slots after its floats."""
+    return workspace[w + n_floats:w + n_floats + 3].view(np.int64)
 
 
 @nb.njit(**KERNEL, inline="always")
