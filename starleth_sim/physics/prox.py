@@ -665,6 +665,31 @@ def _envelope_columns(lb_first, nd):
 
 
 @nb.njit(**KERNEL, inline="always")
+def _delassus_apply(G, c, lam, xi, gp_ptr, gp_idx, n):
+    """ξ_a = c_a + Σ_l G_al Λ_l for the first n rows (a < n), column by column of the
+    symmetric G (column l is row l): each ξ_a gets the terms of its nonzeros in the order of
+    ascending l, as the row-by-row sum over its pattern does, plus +0.0·Λ_l for the zeros
+    inside column l's envelope (from its first to its last nonzero). Those leave a sum as it
+    is (x + ±0 = x but for x = -0.0; G's zeros are +0.0 and Λ is finite in a sweep that goes
+    on), so ξ is the row-by-row sum's bit for bit; the contiguous stretches vectorize where the
+    row-by-row sum is a chain of dependent additions (JOR sweep of HMJP, 72 rows, 1,156
+    nonzeros: 1.23 -> 0.68 µs)."""
+    for a in range(n):
+        xi[a] = c[a]
+    for l in range(lam.shape[0]):
+        first, last = gp_ptr[l], gp_ptr[l + 1]
+        if first == last:
+            continue
+        a0 = gp_idx[first]
+        a1 = min(gp_idx[last - 1] + 1, n)
+        x = lam[l]
+        xs = xi[a0:a1]
+        gs = G[l, a0:a1]
+        for t in range(a1 - a0):
+            xs[t] += gs[t] * x
+
+
+@nb.njit(**KERNEL, inline="always")
 def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, buf, direct):
     """JOR prox on ξ = GΛ + c with its work buffer buf (2m: ξ and the new Λ) and the direct
     bilateral method's work `direct`; see delassus_prox."""
@@ -688,12 +713,7 @@ def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, bu
     m_xi = o if bilateral_direct and not auto else m
     res = 0.0
     for k in range(max_iter):
-        for a in range(m_xi):
-            s = c[a]
-            for p in range(gp_ptr[a], gp_ptr[a + 1]):
-                l = gp_idx[p]
-                s += G[a, l] * lam[l]
-            xi[a] = s
+        _delassus_apply(G, c, lam, xi, gp_ptr, gp_idx, m_xi)
         if long_step:
             _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
             long_step = False
