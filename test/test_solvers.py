@@ -131,9 +131,10 @@ def test_too_aggressive_alpha_is_reported_not_accepted():
 
 @pytest.mark.parametrize("m", [12, 40])
 def test_delassus_of_block_sparse_rows_is_the_dense_product_bit_for_bit(m):
-    """G = W^T M^{-1} W of rows that touch few of many blocks (the maximal coordinates): the
-    entries delassus skips (more than DELASSUS_MASK_ROWS rows, no shared velocity) are +0.0
-    and the others the same sums, bit for bit, as the plain loop over each row's nonzeros."""
+    """G = W^T M^{-1} W of rows that touch few of many blocks (the maximal coordinates): with
+    more than DELASSUS_ENVELOPE_ROWS rows delassus sums only over the envelopes of the rows
+    of M^{-1}W; the entries it does not reach are +0.0 and the others the same sums, bit for
+    bit, as the plain loop over each row's nonzeros."""
     rng = np.random.default_rng(m)
     nv, blocks = 102, 17
     Wt = np.zeros((m, nv))
@@ -160,7 +161,7 @@ def test_delassus_of_block_sparse_rows_is_the_dense_product_bit_for_bit(m):
             ref[a, b] = ref[b, a] = s
     assert G.tobytes() == ref.tobytes()
     np.testing.assert_allclose(G, Wt @ MinvW, rtol=1e-12, atol=1e-12)
-    # most pairs of rows share no block: the masked path has entries to skip
+    # most pairs of rows share no block: the envelopes leave entries out
     assert np.count_nonzero(ref == 0.0) > m * m // 2
 
 

@@ -325,7 +325,7 @@ def phase_delassus(form, nc, bilateral_direct, Wt, MinvW, pat, arena=None):
         buf = arena_floats(arena, m * m + m)      # (one buffer for G and its diagonal)
         G = view2(buf[:m * m], (m, m))
         Gdiag = buf[m * m:]
-        prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx)
+        prox.delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx, arena)
         for a in range(m):
             Gdiag[a] = G[a, a]
         gp_ptr, gp_idx = prox.row_pattern(G, arena)

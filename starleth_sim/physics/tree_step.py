@@ -95,9 +95,10 @@ def arena_size(nc, nv, nb):
     velocities and nb bilateral rows: what a step takes from it with every contact active
     (m = 3 nc + nb rows): the midpoint's q^M, M and h; contact_problem's active set, W^T,
     M^{-1}W and b, G and its diagonal, L_B, the patterns of W^T, M^{-1}W and G, the
-    columns of ltdl_solve_cols and L_B's envelope; the prox's buffers; the projection's
-    gaps; the compliant step's copy of the contact state (the int64 entries stored in
-    float64 slots, 3 more for the arena's positions and misses). A request beyond it
+    envelopes of M^{-1}W's rows, the columns of ltdl_solve_cols and L_B's envelope; the
+    prox's buffers; the projection's gaps; the compliant step's copy of the contact state
+    (the int64 entries stored in float64 slots, 3 more for the arena's positions and
+    misses). A request beyond it
     allocates (and is counted: arena_usage)."""
     m = 3 * nc + nb
     floats = ((2 * m * nv + m) + (m * m + m) + nb * nb
@@ -107,9 +108,10 @@ def arena_size(nc, nv, nb):
               + nc                         # the projection's predicted gaps
               + 6 * nc)                    # the compliant contact state kept
     ints = (nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb
-            + 2 * nc + 3)
-    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 16 parts at most)
-    slack = 17 * ARENA_ALIGN
+            + 2 * nc + 3
+            + 2 * nv)                      # the envelopes of M^{-1}W's rows (delassus)
+    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 17 parts at most)
+    slack = 18 * ARENA_ALIGN
     return floats + slack, ints + slack
 
 
