@@ -19,7 +19,7 @@ import numba as nb
 import pinocchio as pin
 
 from .kernel_cache import KERNEL
-from .array_views import view2
+from .array_views import arena_floats, view2
 
 JT_FREEFLYER = 0
 JT_REVOLUTE = 1  # axis given in the joint frame
@@ -129,14 +129,16 @@ def _matmul3(A, B, out):
 
 
 @nb.njit(**KERNEL, inline="always")
-def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op):
-    """World placements (oR[j], op[j]) of all joint frames: oM_j = oM_parent · placement_j · M_j(q)."""
+def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena=None):
+    """World placements (oR[j], op[j]) of all joint frames: oM_j = oM_parent · placement_j · M_j(q)
+    (its scratch from a step's arena, array_views.arena_floats, or new)."""
     nj = parent.shape[0]
     for r in range(3):
         for c in range(3):
             oR[0, r, c] = 1.0 if r == c else 0.0
         op[0, r] = 0.0
-    scratch = np.zeros(21)      # (one allocation for the three temporaries)
+    scratch = arena_floats(arena, 21)      # (one buffer for the three temporaries)
+    scratch[:] = 0.0
     Rq = view2(scratch[0:9], (3, 3))
     tmp = view2(scratch[9:18], (3, 3))
     pq = scratch[18:21]

@@ -205,17 +205,20 @@ def ltdl_solve_cols(L, dof_parent, B, arena=None):
 
 
 @nb.njit(**KERNEL)
-def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
+def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx, arena=None):
     """ltdl_solve_cols for a B whose nonzero rows of each column are known (ptr, idx: CSR
     by column; for B = W, the row pattern of W^T), and the same pattern of the solution
     X = M^{-1}B, without scanning B for either: the trees a column touches come from its
     pattern, the solve is ltdl_solve_cols' (the same trees, columns and operations, so the
     same X bit for bit), and a column's nonzero rows are looked for in its trees only (the
     other trees' rows stay the zeros they were). Returns (ptr, idx) of X's nonzero rows by
-    column, ascending: prox.col_pattern(X)."""
+    column, ascending: prox.col_pattern(X). Its work arrays and the pattern come from a
+    step's arena (array_views.arena_ints; two parts) or are new."""
     n, m = B.shape
-    tree = np.empty(n, dtype=np.int64)      # dof -> its tree (trees: contiguous dofs)
-    starts = np.empty(n + 1, dtype=np.int64)
+    nnz = max(ptr[m], 1)
+    work = arena_ints(arena, 4 * n + 3 + (m + 1) + 2 * nnz)
+    tree = work[:n]                         # dof -> its tree (trees: contiguous dofs)
+    starts = work[n:2 * n + 1]
     nt = 0
     for k in range(n):
         if dof_parent[k] == -1 or k == 0:
@@ -224,9 +227,12 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
         tree[k] = nt - 1
     starts[nt] = n
     # the trees of each column (ascending) and the columns of each tree (ascending)
-    ct_ptr = np.empty(m + 1, dtype=np.int64)
-    ct_idx = np.empty(max(ptr[m], 1), dtype=np.int64)
-    t_count = np.zeros(nt + 1, dtype=np.int64)
+    ct_ptr = work[2 * n + 1:2 * n + m + 2]
+    ct_idx = work[2 * n + m + 2:2 * n + m + 2 + nnz]
+    t_count = work[2 * n + m + 2 + nnz:3 * n + m + 3 + nnz][:nt + 1]
+    t_count[:] = 0
+    fill = work[3 * n + m + 3 + nnz:4 * n + m + 3 + nnz][:nt]
+    t_cols = work[4 * n + m + 3 + nnz:]
     k = 0
     for c in range(m):
         ct_ptr[c] = k
@@ -241,8 +247,7 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
     ct_ptr[m] = k
     for t in range(nt):
         t_count[t + 1] += t_count[t]
-    t_cols = np.empty(max(k, 1), dtype=np.int64)
-    fill = t_count[:nt].copy()
+    fill[:] = t_count[:nt]
     for c in range(m):
         for p in range(ct_ptr[c], ct_ptr[c + 1]):
             t = ct_idx[p]
@@ -257,8 +262,9 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx):
     for p in range(k):
         t = ct_idx[p]
         size += starts[t + 1] - starts[t]
-    out_ptr = np.empty(m + 1, dtype=np.int64)
-    out_idx = np.empty(size, dtype=np.int64)
+    out = arena_ints(arena, m + 1 + size)
+    out_ptr = out[:m + 1]
+    out_idx = out[m + 1:]
     cnt = 0
     for c in range(m):
         out_ptr[c] = cnt

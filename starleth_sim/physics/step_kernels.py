@@ -291,7 +291,8 @@ def phase_minv(s, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_
         # a forest of free bodies (the maximal coordinates): M^{-1}W and the pattern of its
         # columns from the pattern of W's columns (the rows of W^T), without scanning MinvW
         # (the same MinvW and pattern as below: the zeros of W stay out of every sum)
-        mp_ptr, mp_idx = ltdl_solve_cols_pattern(L, dof_parent, MinvW, wp_ptr, wp_idx)
+        mp_ptr, mp_idx = ltdl_solve_cols_pattern(L, dof_parent, MinvW, wp_ptr, wp_idx,
+                                                 arena)
     else:
         ltdl_solve_cols(L, dof_parent, MinvW, arena)
         mp_ptr, mp_idx = prox.col_pattern(MinvW, arena)

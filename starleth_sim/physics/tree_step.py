@@ -98,7 +98,8 @@ def arena_size(nc, nv, nb):
     envelopes of M^{-1}W's rows, the columns of ltdl_solve_cols and L_B's envelope; the
     prox's buffers; the projection's gaps; the compliant step's copy of the contact state
     (the int64 entries stored in float64 slots, 3 more for the arena's positions and
-    misses). A request beyond it
+    misses); for a cut forest, the scratch of cut_joints, cut_joint_torques and
+    cut_joint_motion and the work of ltdl_solve_cols_pattern. A request beyond it
     allocates (and is counted: arena_usage)."""
     m = 3 * nc + nb
     floats = ((2 * m * nv + m) + (m * m + m) + nb * nb
@@ -106,12 +107,14 @@ def arena_size(nc, nv, nb):
               + (4 * m + nv + nc)          # the prox phase's Λ^0, Λ, r, u^E, μ and c
               + (2 * m + nb)               # the Delassus-form prox's work
               + nc                         # the projection's predicted gaps
-              + 6 * nc)                    # the compliant contact state kept
+              + 6 * nc                     # the compliant contact state kept
+              + 2 * (6 * nv + 42) + 3 * nv + nb + nv)   # the cut joints' scratch
     ints = (nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb
             + 2 * nc + 3
-            + 2 * nv)                      # the envelopes of M^{-1}W's rows (delassus)
-    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 17 parts at most)
-    slack = 18 * ARENA_ALIGN
+            + 2 * nv                       # the envelopes of M^{-1}W's rows (delassus)
+            + (4 * nv + 3 + (m + 1) + 2 * m * nv) + (m + 1))   # ltdl_solve_cols_pattern
+    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 26 parts at most)
+    slack = 27 * ARENA_ALIGN
     return floats + slack, ints + slack
 
 
@@ -603,19 +606,21 @@ def _forest_midpoint(q, u, half_dt, constant, M_const, root_q, root_v, body_mass
 
 @nb.njit(**KERNEL, inline="always")
 def _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
-                        h):
+                        h, arena):
     """h += the generalized force of the applied joint torques (Sᵀτ inside the trees, the
     cut joints' equal and opposite body torques about their hinge axes: cut_joint_torques,
     with the kinematics of the last cut_joints call) + f_ext: the arithmetic, in its order,
-    of ForestCoordinates.add_joint_torques followed by h += f_ext."""
-    tau_cut = np.zeros(cut_P.shape[0])
+    of ForestCoordinates.add_joint_torques followed by h += f_ext (scratch from the step's
+    arena)."""
+    tau_cut = arena_floats(arena, cut_P.shape[0])
+    tau_cut[:] = 0.0
     for k in range(applied.shape[0]):
         if joint_cut[k] < 0:
             h[joint_v[k]] += applied[k]
         else:
             tau_cut[joint_cut[k]] = applied[k]
     cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, model[1], model[2], model[6],
-                      model[7], model[8], h)
+                      model[7], model[8], h, arena)
     for k in range(f_ext.shape[0]):
         h[k] += f_ext[k]
 
@@ -666,13 +671,15 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
                            s.jacobian_gap, gap, position, Wt_all, model, arena)
     _, qM, M, h = qMh   # (held to the end)
     (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op) = model[:10]
-    cut_joints(qM, np.zeros(nv), parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
+    u_zero = arena_floats(arena, nv)    # (the rates at q^M are not needed: u = 0)
+    u_zero[:] = 0.0
+    cut_joints(qM, u_zero, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, WtB, gB, angle, rate,
-               axis_world, True)
+               axis_world, True, arena)
     for k in range(gB.shape[0]):
         bB[k] = gB[k] * beta_over_dt
     _add_forest_torques(applied, joint_v, joint_cut, axis_world, cut_P, cut_C, f_ext, model,
-                        h)
+                        h, arena)
     owned = contact_problem_inlined(s, M, u, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
                                     last_impulse, last_active, None, arena)
     p = _borrowed_problem(owned)
@@ -686,7 +693,7 @@ def forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active
         qE, arena)
     if outcome == TREE_STEP_OK:
         cut_joint_motion(qE, uE, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, sup, oR, op,
-                         cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E)
+                         cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle_E, rate_E, arena)
     _report_contacts(gap, position, report, nc)
     keep_alive(qMh)
     keep_alive(owned)

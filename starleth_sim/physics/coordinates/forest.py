@@ -30,6 +30,7 @@ import numba as nb
 import numpy as np
 import pinocchio as pin
 
+from ..array_views import arena_floats, view2
 from ..kernel_cache import KERNEL
 from ..description import RobotDescription
 from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, contact_points,
@@ -209,11 +210,14 @@ def _rotate(R, v, out):
 
 
 @nb.njit(**KERNEL, inline="always")
-def _cut_scratch(nv):
-    """Scratch arrays of a pass over the cut joints: (J_P, J_C (3 x nv), the hinge axis aw
-    and P's perpendiculars b1, b2 in the world, t)."""
-    return (np.empty((3, nv)), np.empty((3, nv)), np.empty(3), np.empty(3), np.empty(3),
-            np.empty(3))
+def _cut_scratch(nv, arena):
+    """Scratch arrays of a pass over the cut joints, in one buffer (from a step's arena,
+    array_views.arena_floats, or new): (J_P, J_C (3 x nv), the hinge axis aw and P's
+    perpendiculars b1, b2 in the world, t, and three more 3-vectors)."""
+    buf = arena_floats(arena, 6 * nv + 21)
+    v = buf[6 * nv:]
+    return (view2(buf[:3 * nv], (3, nv)), view2(buf[3 * nv:6 * nv], (3, nv)), v[:3],
+            v[3:6], v[6:9], v[9:12], v[12:15], v[15:18], v[18:21])
 
 
 @nb.njit(**KERNEL, inline="always")
@@ -228,18 +232,15 @@ def _hinge_axes(oR_P, a_P, b1_P, b2_P, aw, b1, b2):
 @nb.njit(**KERNEL)
 def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B, angle, rate,
-               axis_world, do_fk):
+               axis_world, do_fk, arena=None):
     """For every cut joint k (bodies cut_P[k], cut_C[k]; joint origin p_*, axis a_* and the
     perpendicular b1_* in each body frame, b2_P = a_P x b1_P): the 5 rows of W_Bᵀ, the
     position-level violation g_B, the joint angle φ and rate φ̇, and the hinge axis in the
-    world frame."""
+    world frame (scratch from a step's arena, or new)."""
     if do_fk:
-        forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
+        forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena)
     nv = u.shape[0]
-    JP, JC, aw, b1, b2, t = _cut_scratch(nv)
-    xP = np.empty(3)
-    xC = np.empty(3)
-    acw = np.empty(3)
+    JP, JC, aw, b1, b2, t, xP, xC, acw = _cut_scratch(nv, arena)
     for k in range(cut_P.shape[0]):
         P = cut_P[k]
         C = cut_C[k]
@@ -292,12 +293,12 @@ def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t):
 
 @nb.njit(**KERNEL)
 def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
-                     cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle, rate):
+                     cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle, rate, arena=None):
     """φ and φ̇ of every cut joint at (q, u), and nothing else: the same arithmetic as
     cut_joints' (so the same values bit for bit) without W_B and g_B. The forward
-    kinematics of q are computed into oR, op."""
-    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
-    JP, JC, aw, b1, b2, t = _cut_scratch(u.shape[0])
+    kinematics of q are computed into oR, op (scratch from a step's arena, or new)."""
+    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena)
+    JP, JC, aw, b1, b2, t, _, _, _ = _cut_scratch(u.shape[0], arena)
     for k in range(cut_P.shape[0]):
         P = cut_P[k]
         C = cut_C[k]
@@ -318,10 +319,12 @@ def gather_joint_values(x, index, cut_values, cut_index, out):
 
 
 @nb.njit(**KERNEL)
-def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h):
-    """h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the actuators of the cut joints."""
+def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h,
+                      arena=None):
+    """h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the actuators of the cut joints (the Jacobian's
+    scratch from a step's arena, or new)."""
     nv = h.shape[0]
-    J = np.empty((3, nv))
+    J = view2(arena_floats(arena, 3 * nv), (3, nv))
     for k in range(cut_P.shape[0]):
         tq = tau_cut[k]
         if tq == 0.0:
