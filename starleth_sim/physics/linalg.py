@@ -13,7 +13,7 @@ import numpy as np
 import numba as nb
 
 from .kernel_cache import KERNEL
-from .array_views import arena_ints
+from .array_views import arena_floats, arena_ints, view2
 
 
 @nb.njit(**KERNEL)
@@ -212,8 +212,9 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx, arena=None):
     pattern, the solve is ltdl_solve_cols' (the same trees, columns and operations, so the
     same X bit for bit), and a column's nonzero rows are looked for in its trees only (the
     other trees' rows stay the zeros they were). Returns (ptr, idx) of X's nonzero rows by
-    column, ascending: prox.col_pattern(X). Its work arrays and the pattern come from a
-    step's arena (array_views.arena_ints; two parts) or are new."""
+    column, ascending: prox.col_pattern(X). Each tree is solved on a contiguous copy of its
+    columns (_ltdl_solve_tree_block). Its work arrays and the pattern come from a step's
+    arena (array_views.arena_ints, arena_floats; three parts) or are new."""
     n, m = B.shape
     nnz = max(ptr[m], 1)
     work = arena_ints(arena, 4 * n + 3 + (m + 1) + 2 * nnz)
@@ -253,10 +254,14 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx, arena=None):
             t = ct_idx[p]
             t_cols[fill[t]] = c
             fill[t] += 1
+    size = 1
+    for t in range(nt):
+        size = max(size, (starts[t + 1] - starts[t]) * (t_count[t + 1] - t_count[t]))
+    block = arena_floats(arena, size)
     for t in range(nt):
         if t_count[t + 1] > t_count[t]:
-            _ltdl_solve_tree_cols(L, dof_parent, B, starts[t], starts[t + 1],
-                                  t_cols[t_count[t]:t_count[t + 1]])
+            _ltdl_solve_tree_block(L, dof_parent, B, starts[t], starts[t + 1],
+                                   t_cols[t_count[t]:t_count[t + 1]], block)
     # the nonzero rows of X by column, within the column's trees
     size = 0
     for p in range(k):
@@ -276,6 +281,49 @@ def ltdl_solve_cols_pattern(L, dof_parent, B, ptr, idx, arena=None):
                     cnt += 1
     out_ptr[m] = cnt
     return out_ptr, out_idx[:cnt]
+
+
+@nb.njit(**KERNEL, inline="always")
+def _ltdl_solve_tree_block(L, dof_parent, B, o, e, cols, block):
+    """_ltdl_solve_tree_cols for the tree of dofs o..e−1 and some columns of B, on a
+    contiguous copy of those columns' rows (`block`: scratch of (e − o)·len(cols) floats), so
+    that both passes run along rows (vectorized) where the columns of B are strided: the
+    same operations on each entry in the same order (the Lᵀ pass still leaves an entry as it
+    is where the row below is zero), so the same X bit for bit."""
+    nct = cols.shape[0]
+    X = view2(block[:(e - o) * nct], (e - o, nct))
+    for i in range(e - o):
+        Bi = B[o + i]
+        Xi = X[i]
+        for p in range(nct):
+            Xi[p] = Bi[cols[p]]
+    for k in range(e - 1, o - 1, -1):          # Lᵀ y = b: leaves to roots
+        Xk = X[k - o]
+        j = dof_parent[k]
+        while j != -1:
+            lkj = L[k, j]
+            Xj = X[j - o]
+            for p in range(nct):
+                x = Xk[p]
+                Xj[p] = Xj[p] - lkj * x if x != 0.0 else Xj[p]
+            j = dof_parent[j]
+    for k in range(o, e):                      # D z = y, L x = z: roots to leaves
+        d = L[k, k]
+        Xk = X[k - o]
+        for p in range(nct):
+            Xk[p] /= d
+        j = dof_parent[k]
+        while j != -1:
+            lkj = L[k, j]
+            Xj = X[j - o]
+            for p in range(nct):
+                Xk[p] -= lkj * Xj[p]
+            j = dof_parent[j]
+    for i in range(e - o):
+        Bi = B[o + i]
+        Xi = X[i]
+        for p in range(nct):
+            Bi[cols[p]] = Xi[p]
 
 
 @nb.njit(**KERNEL, inline="always")

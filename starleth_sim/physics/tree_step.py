@@ -108,13 +108,14 @@ def arena_size(nc, nv, nb):
               + (2 * m + nb)               # the Delassus-form prox's work
               + nc                         # the projection's predicted gaps
               + 6 * nc                     # the compliant contact state kept
-              + 2 * (6 * nv + 42) + 3 * nv + nb + nv)   # the cut joints' scratch
+              + 2 * (6 * nv + 42) + 3 * nv + nb + nv   # the cut joints' scratch
+              + nv * m)                    # ltdl_solve_cols_pattern's blocks
     ints = (nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb
             + 2 * nc + 3
             + 2 * nv                       # the envelopes of M^{-1}W's rows (delassus)
             + (4 * nv + 3 + (m + 1) + 2 * m * nv) + (m + 1))   # ltdl_solve_cols_pattern
-    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 26 parts at most)
-    slack = 27 * ARENA_ALIGN
+    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 27 parts at most)
+    slack = 28 * ARENA_ALIGN
     return floats + slack, ints + slack
 
 
