@@ -585,6 +585,15 @@ def _auto_guard(res, hist):
     return hist[1] != 1.0
 
 
+@nb.njit(**KERNEL, inline="always")
+def _auto_restart(hist, lam, lam0, rk, rs):
+    """Adaptive α after a non-finite sweep: once per step (hist[1] marks it), Λ back to the
+    warm start and the steps r back to the spectral ones."""
+    hist[1] = 1.0
+    lam[:] = lam0
+    rk[:] = rs
+
+
 @nb.njit(**KERNEL)
 def _auto_jor_save(k, old, new, xi, res, rs, rk, hist, dsave, xsave):
     """JOR's adaptive α after sweep k: the spectral step rs for the next sweep; after even
@@ -714,6 +723,18 @@ def _delassus_apply(G, c, lam, xi, gp_ptr, gp_idx, n):
 
 
 @nb.njit(**KERNEL, inline="always")
+def _jor_project(lam, xi, r, mu, nc, bilateral_direct, new):
+    """A JOR update of Λ into `new`: each contact's three rows by _project_contact; the
+    bilateral rows by the prox (Eqn. 19), Λ_B − r_B ξ_B, or, for the direct method (Eqn. 20,
+    solved by the caller), Λ_B as it is."""
+    for i in range(nc):
+        b = 3 * i
+        _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new)
+    for l in range(3 * nc, lam.shape[0]):
+        new[l] = lam[l] if bilateral_direct else lam[l] - r[l] * xi[l]
+
+
+@nb.njit(**KERNEL, inline="always")
 def _store_checked(lam, l, v, ok, res, finite, tol_rel, tol_abs):
     """Λ_l ← v with _check's test of the row (_row_check)."""
     ok, res, finite = _row_check(lam[l], v, ok, res, finite, tol_rel, tol_abs)
@@ -773,42 +794,24 @@ def _jor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, bu
         if long_step:
             _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
             long_step = False
-        if not (auto or bilateral_direct):
+        if not (auto or bilateral_direct):     # (Λ updated and tested in one pass)
             ok, res, finite = _jor_update_in_place(lam, xi, rk, mu, nc, tol_rel, tol_abs)
-            if not finite:
-                return k + 1, STATUS_NONFINITE, res
-            if criterion == CRITERION_ENERGY:
-                _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
-                T = _kinetic_energy(M, u)
-                ok = abs(T - T_old) <= abs(T_old) * tol_rel + tol_abs
-                T_old = T
-            if ok:
-                _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
-                return k + 1, STATUS_CONVERGED, res
-            continue
-        for i in range(nc):
-            b = 3 * i
-            _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], rk, mu[i], new)
-        if bilateral_direct:
-            for l in range(o, m):
-                new[l] = lam[l]
-            _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx, pat.lb_first, direct)
         else:
-            for l in range(o, m):
-                new[l] = lam[l] - rk[l] * xi[l]
-        ok, res, finite = _check(lam, new, tol_rel, tol_abs)
-        if auto:
-            if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
-                hist[1] = 1.0
-                lam[:] = lam0
-                rk[:] = rs
-                long_step = False
-                if criterion == CRITERION_ENERGY:
-                    _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
-                    T_old = _kinetic_energy(M, u)
-                continue
-            long_step = _auto_jor_save(k, lam, new, xi, res, rs, rk, hist, dsave, xsave)
-        lam[:] = new
+            _jor_project(lam, xi, rk, mu, nc, bilateral_direct, new)
+            if bilateral_direct:
+                _bilateral_direct_delassus(G, c, nc, LB, new, gp_ptr, gp_idx, pat.lb_first,
+                                           direct)
+            ok, res, finite = _check(lam, new, tol_rel, tol_abs)
+            if auto:
+                if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
+                    _auto_restart(hist, lam, lam0, rk, rs)
+                    long_step = False
+                    if criterion == CRITERION_ENERGY:
+                        _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
+                        T_old = _kinetic_energy(M, u)
+                    continue
+                long_step = _auto_jor_save(k, lam, new, xi, res, rs, rk, hist, dsave, xsave)
+            lam[:] = new
         if not finite:
             return k + 1, STATUS_NONFINITE, res
         if criterion == CRITERION_ENERGY:
@@ -870,9 +873,7 @@ def _sor_prox_delassus(s, pat, G, c, nc, mu, r, lam, LB, M, u_free, MinvW, u, ol
         ok, res, finite = _check(old, lam, tol_rel, tol_abs)
         if auto:
             if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
-                hist[1] = 1.0
-                lam[:] = lam0
-                rk[:] = rs
+                _auto_restart(hist, lam, lam0, rk, rs)
                 if criterion == CRITERION_ENERGY:
                     _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
                     T_old = _kinetic_energy(M, u)
@@ -920,23 +921,14 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
         if long_step:
             _auto_jor_long_step(ps, nc, xi, rs, rk, dsave, xsave)
             long_step = False
-        for i in range(nc):
-            b = 3 * i
-            _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], rk, mu[i], new)
+        _jor_project(lam, xi, rk, mu, nc, bilateral_direct, new)
         if bilateral_direct:
-            for l in range(o, m):
-                new[l] = lam[l]
             _bilateral_direct_velocity(Wt, MinvW, u_free, nc, LB, new, wp_ptr, wp_idx, mp_ptr,
                                        mp_idx, pat.lb_first)
-        else:
-            for l in range(o, m):
-                new[l] = lam[l] - rk[l] * xi[l]
         ok, res, finite = _check(lam, new, tol_rel, tol_abs)
         if auto:
             if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
-                hist[1] = 1.0
-                lam[:] = lam0
-                rk[:] = rs
+                _auto_restart(hist, lam, lam0, rk, rs)
                 long_step = False
                 _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
                 if criterion == CRITERION_ENERGY:
@@ -1017,9 +1009,7 @@ def sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
         ok, res, finite = _check(old, lam, tol_rel, tol_abs)
         if auto:
             if not finite and hist[1] != 1.0:   # from the warm start again, spectral steps
-                hist[1] = 1.0
-                lam[:] = lam0
-                rk[:] = rs
+                _auto_restart(hist, lam, lam0, rk, rs)
                 _velocity_from_impulses(u_free, MinvW, lam, u, mp_ptr, mp_idx)
                 if criterion == CRITERION_ENERGY:
                     T_old = _kinetic_energy(M, u)
