@@ -167,13 +167,16 @@ def forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena=
 
 
 @nb.njit(**KERNEL)
-def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out):
+def point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out, zero=True):
     """Jacobian (3 x nv) of the world velocity of the material point at world position p that
-    is rigidly attached to joint frame j; forward_kinematics must have been run."""
+    is rigidly attached to joint frame j; forward_kinematics must have been run. Only the
+    columns of the joints that support j are written; the others are zeroed first unless
+    `zero` is False (the caller zeroed what it reads)."""
     nv = out.shape[1]
-    for r in range(3):
-        for c in range(nv):
-            out[r, c] = 0.0
+    if zero:
+        for r in range(3):
+            for c in range(nv):
+                out[r, c] = 0.0
     nj = jtype.shape[0]
     for k in range(1, nj):
         if not support[j, k]:

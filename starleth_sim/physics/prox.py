@@ -175,7 +175,7 @@ def col_pattern(A, arena=None):
 
 
 #: with more rows than this, delassus sums each row of G only over the columns that each
-#: nonzero of its row of W^T can reach (_delassus_envelopes)
+#: nonzero of its row of W^T can reach (_row_envelopes)
 DELASSUS_ENVELOPE_ROWS = 24
 
 
@@ -900,7 +900,6 @@ def jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, nc, mu, r, lam, LB, M, u)
     bilateral_direct, criterion = s.bilateral_direct, s.criterion
     wp_ptr, wp_idx, mp_ptr, mp_idx = pat.wp_ptr, pat.wp_idx, pat.mp_ptr, pat.mp_idx
     m = Wt.shape[0]
-    o = 3 * nc
     buf = np.empty(2 * m)      # (one allocation for ξ and the new Λ)
     xi = buf[:m]
     new = buf[m:]

@@ -113,9 +113,10 @@ def arena_size(nc, nv, nb):
     ints = (nc + (m + 1 + m * nv) + m + (nv + 1 + nv * m) + (m + 1 + m * m) + nb
             + 2 * nc + 3
             + 2 * nv                       # the envelopes of M^{-1}W's rows (delassus)
-            + (4 * nv + 3 + (m + 1) + 2 * m * nv) + (m + 1))   # ltdl_solve_cols_pattern
-    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 27 parts at most)
-    slack = 28 * ARENA_ALIGN
+            + (4 * nv + 3 + (m + 1) + 2 * m * nv) + (m + 1)   # ltdl_solve_cols_pattern
+            + 2 * nv)                      # the cut joints' columns
+    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 29 parts at most)
+    slack = 30 * ARENA_ALIGN
     return floats + slack, ints + slack
 
 

@@ -30,7 +30,7 @@ import numba as nb
 import numpy as np
 import pinocchio as pin
 
-from ..array_views import arena_floats, view2
+from ..array_views import arena_floats, arena_ints, view2
 from ..kernel_cache import KERNEL
 from ..description import RobotDescription
 from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, contact_points,
@@ -184,12 +184,15 @@ def rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h):
 
 
 @nb.njit(**KERNEL)
-def angular_jacobian(j, jtype, axis, idx_v, support, oR, out):
-    """Jacobian (3 x nv) of the world angular velocity of joint frame j."""
+def angular_jacobian(j, jtype, axis, idx_v, support, oR, out, zero=True):
+    """Jacobian (3 x nv) of the world angular velocity of joint frame j (only the columns
+    of the joints that support j written; the others zeroed first unless `zero` is
+    False)."""
     nv = out.shape[1]
-    for r in range(3):
-        for c in range(nv):
-            out[r, c] = 0.0
+    if zero:
+        for r in range(3):
+            for c in range(nv):
+                out[r, c] = 0.0
     for k in range(1, jtype.shape[0]):
         if not support[j, k]:
             continue
@@ -213,11 +216,12 @@ def _rotate(R, v, out):
 def _cut_scratch(nv, arena):
     """Scratch arrays of a pass over the cut joints, in one buffer (from a step's arena,
     array_views.arena_floats, or new): (J_P, J_C (3 x nv), the hinge axis aw and P's
-    perpendiculars b1, b2 in the world, t, and three more 3-vectors)."""
+    perpendiculars b1, b2 in the world, t, three more 3-vectors, and nv ints for
+    _cut_columns)."""
     buf = arena_floats(arena, 6 * nv + 21)
     v = buf[6 * nv:]
     return (view2(buf[:3 * nv], (3, nv)), view2(buf[3 * nv:6 * nv], (3, nv)), v[:3],
-            v[3:6], v[6:9], v[9:12], v[12:15], v[15:18], v[18:21])
+            v[3:6], v[6:9], v[9:12], v[12:15], v[15:18], v[18:21], arena_ints(arena, nv))
 
 
 @nb.njit(**KERNEL, inline="always")
@@ -229,6 +233,28 @@ def _hinge_axes(oR_P, a_P, b1_P, b2_P, aw, b1, b2):
     _rotate(oR_P, b2_P, b2)
 
 
+@nb.njit(**KERNEL, inline="always")
+def _cut_columns(P, C, jtype, idx_v, support, cols):
+    """The velocities a cut joint's rows can depend on: the dofs of the joints that support
+    body P or body C, ascending (a joint's dofs follow its index), into cols; returns their
+    number. Its Jacobians are zero in every other column."""
+    n = 0
+    for k in range(1, jtype.shape[0]):
+        if support[P, k] or support[C, k]:
+            iv = idx_v[k]
+            for c in range(iv, iv + (6 if jtype[k] == JT_FREEFLYER else 1)):
+                cols[n] = c
+                n += 1
+    return n
+
+
+@nb.njit(**KERNEL, inline="always")
+def _zero_columns(J, cols, n):
+    for r in range(3):
+        for p in range(n):
+            J[r, cols[p]] = 0.0
+
+
 @nb.njit(**KERNEL)
 def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
                cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B, angle, rate,
@@ -236,14 +262,19 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
     """For every cut joint k (bodies cut_P[k], cut_C[k]; joint origin p_*, axis a_* and the
     perpendicular b1_* in each body frame, b2_P = a_P x b1_P): the 5 rows of W_Bᵀ, the
     position-level violation g_B, the joint angle φ and rate φ̇, and the hinge axis in the
-    world frame (scratch from a step's arena, or new)."""
+    world frame (scratch from a step's arena, or new). Only the columns of the velocities
+    the two bodies depend on (_cut_columns) are written: Wt_B's other entries stay the
+    zeros they were made with (the same columns every call). The Jacobians are zero there,
+    so the values are those of a pass over all columns, and the rate φ̇ is its sum but for
+    ±0 terms (the same value)."""
     if do_fk:
         forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena)
     nv = u.shape[0]
-    JP, JC, aw, b1, b2, t, xP, xC, acw = _cut_scratch(nv, arena)
+    JP, JC, aw, b1, b2, t, xP, xC, acw, cols = _cut_scratch(nv, arena)
     for k in range(cut_P.shape[0]):
         P = cut_P[k]
         C = cut_C[k]
+        n = _cut_columns(P, C, jtype, idx_v, support, cols)
         _rotate(oR[P], p_P[k], t)
         for r in range(3):
             xP[r] = op[P, r] + t[r]
@@ -253,15 +284,21 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
         _hinge_axes(oR[P], a_P[k], b1_P[k], b2_P[k], aw, b1, b2)
         _rotate(oR[C], a_C[k], acw)
         row = 5 * k
-        point_jacobian(P, xP, jtype, axis, idx_v, support, oR, op, JP)
-        point_jacobian(C, xC, jtype, axis, idx_v, support, oR, op, JC)
+        _zero_columns(JP, cols, n)
+        _zero_columns(JC, cols, n)
+        point_jacobian(P, xP, jtype, axis, idx_v, support, oR, op, JP, False)
+        point_jacobian(C, xC, jtype, axis, idx_v, support, oR, op, JC, False)
         for r in range(3):
-            for c in range(nv):
+            for p in range(n):
+                c = cols[p]
                 Wt_B[row + r, c] = JP[r, c] - JC[r, c]
             g_B[row + r] = xP[r] - xC[r]
-        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP)
-        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC)
-        for c in range(nv):
+        _zero_columns(JP, cols, n)
+        _zero_columns(JC, cols, n)
+        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP, False)
+        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC, False)
+        for p in range(n):
+            c = cols[p]
             d0 = JC[0, c] - JP[0, c]
             d1 = JC[1, c] - JP[1, c]
             d2 = JC[2, c] - JP[2, c]
@@ -271,21 +308,22 @@ def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR,
         # γ_B = dg_B/dt row by row:
         g_B[row + 3] = -(acw[0] * b2[0] + acw[1] * b2[1] + acw[2] * b2[2])
         g_B[row + 4] = acw[0] * b1[0] + acw[1] * b1[1] + acw[2] * b1[2]
-        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t)
+        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t,
+                                            cols[:n])
         for r in range(3):
             axis_world[k, r] = aw[r]
 
 
 @nb.njit(**KERNEL, inline="always")
-def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t):
+def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t, cols):
     """φ and φ̇ of a cut joint: φ the rotation of C's b1 about the hinge axis aw, seen in P's
     (b1, b2) basis (all in the world); φ̇ = aw·(ω_C − ω_P), with JP, JC the angular
-    Jacobians of P and C (t: scratch)."""
+    Jacobians of P and C, summed over their columns `cols` (t: scratch)."""
     _rotate(oR_C, b1_C, t)  # b1 carried by C (the joint frames coincide at φ = 0)
     angle = np.arctan2(t[0] * b2[0] + t[1] * b2[1] + t[2] * b2[2],
                        t[0] * b1[0] + t[1] * b1[1] + t[2] * b1[2])
     s = 0.0
-    for c in range(u.shape[0]):
+    for c in cols:
         s += (aw[0] * (JC[0, c] - JP[0, c]) + aw[1] * (JC[1, c] - JP[1, c])
               + aw[2] * (JC[2, c] - JP[2, c])) * u[c]
     return angle, s
@@ -298,14 +336,18 @@ def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, suppor
     cut_joints' (so the same values bit for bit) without W_B and g_B. The forward
     kinematics of q are computed into oR, op (scratch from a step's arena, or new)."""
     forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena)
-    JP, JC, aw, b1, b2, t, _, _, _ = _cut_scratch(u.shape[0], arena)
+    JP, JC, aw, b1, b2, t, _, _, _, cols = _cut_scratch(u.shape[0], arena)
     for k in range(cut_P.shape[0]):
         P = cut_P[k]
         C = cut_C[k]
+        n = _cut_columns(P, C, jtype, idx_v, support, cols)
         _hinge_axes(oR[P], a_P[k], b1_P[k], b2_P[k], aw, b1, b2)
-        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP)
-        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC)
-        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t)
+        _zero_columns(JP, cols, n)
+        _zero_columns(JC, cols, n)
+        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP, False)
+        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC, False)
+        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t,
+                                            cols[:n])
 
 
 @nb.njit(**KERNEL)
