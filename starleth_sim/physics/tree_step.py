@@ -114,9 +114,9 @@ def arena_size(nc, nv, nb):
             + 2 * nc + 3
             + 2 * nv                       # the envelopes of M^{-1}W's rows (delassus)
             + (4 * nv + 3 + (m + 1) + 2 * m * nv) + (m + 1)   # ltdl_solve_cols_pattern
-            + 2 * nv)                      # the cut joints' columns
-    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 29 parts at most)
-    slack = 30 * ARENA_ALIGN
+            + 3 * nv)                      # the cut joints' columns
+    # (each part rounded up to ARENA_ALIGN entries, the starts aligned: 30 parts at most)
+    slack = 31 * ARENA_ALIGN
     return floats + slack, ints + slack
 
 

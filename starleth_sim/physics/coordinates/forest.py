@@ -364,19 +364,26 @@ def gather_joint_values(x, index, cut_values, cut_index, out):
 def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h,
                       arena=None):
     """h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the actuators of the cut joints (the Jacobian's
-    scratch from a step's arena, or new)."""
+    scratch from a step's arena, or new), over the velocities the two bodies depend on
+    (_cut_columns): the other columns of J are zero, and h + ±0 is h."""
     nv = h.shape[0]
     J = view2(arena_floats(arena, 3 * nv), (3, nv))
+    cols = arena_ints(arena, nv)
     for k in range(cut_P.shape[0]):
         tq = tau_cut[k]
         if tq == 0.0:
             continue
         f0, f1, f2 = tq * axis_world[k, 0], tq * axis_world[k, 1], tq * axis_world[k, 2]
-        angular_jacobian(cut_C[k], jtype, axis, idx_v, support, oR, J)
-        for c in range(nv):
+        n = _cut_columns(cut_P[k], cut_C[k], jtype, idx_v, support, cols)
+        _zero_columns(J, cols, n)
+        angular_jacobian(cut_C[k], jtype, axis, idx_v, support, oR, J, False)
+        for p in range(n):
+            c = cols[p]
             h[c] += J[0, c] * f0 + J[1, c] * f1 + J[2, c] * f2
-        angular_jacobian(cut_P[k], jtype, axis, idx_v, support, oR, J)
-        for c in range(nv):
+        _zero_columns(J, cols, n)
+        angular_jacobian(cut_P[k], jtype, axis, idx_v, support, oR, J, False)
+        for p in range(n):
+            c = cols[p]
             h[c] -= J[0, c] * f0 + J[1, c] * f1 + J[2, c] * f2
 
 
