@@ -222,6 +222,7 @@ class StarlethController:
         self._leg_state_arr = np.zeros(4, dtype=np.int64)  # leg_state as an array
         self._swing_p = np.zeros(K.SW_OFFSET_X + 4)
         self._swing_key = None
+        self._phase_offsets = (None, None)   # (array, the parameter it was made from)
         self._mass_g = m.mass * m.gravity
         self._q_nominal = m.nominal_joint_positions(p.height)
         self.reset()
@@ -246,7 +247,7 @@ class StarlethController:
         self._w_cmd = 0.0
         self._f_int = np.zeros(2)
         self._t_prev = None
-        self._swing_cycle = [-1] * 4
+        self._swing_cycle = np.full(4, -1, dtype=np.int64)   # cycle of each leg's last lift-off
         self._r_liftoff = np.zeros((4, 2))   # hip→foot at lift-off, heading frame
         self._foothold = np.zeros((4, 2))    # last swing target (world xy)
         self._lost_since = np.full(4, np.nan)
@@ -443,7 +444,7 @@ class StarlethController:
             self._t0 = t
             self._half_cycle = 0
             self._stop_requested = False
-            self._swing_cycle = [-1] * 4
+            self._swing_cycle[:] = -1
         elif self.mode == "trot":
             self._stop_requested = cmd.mode == "stand"
         trotting = self.mode == "trot"
@@ -486,60 +487,35 @@ class StarlethController:
 
     def _leg_states(self, x: _Sample, trotting):
         """Each leg's state (self.leg_state) from its plan and its contact flag (module
-        docstring, step 2), its swing phase s ∈ [0, 1) (1 outside the swing), at a new
-        lift-off the hip→foot offset in the heading frame, and the time since contact was
-        lost. Returns the support legs."""
+        docstring, step 2), its swing phase s ∈ [0, 1) (1 outside the swing), the time since
+        contact was lost (kernels.leg_states), and at a new lift-off the hip→foot offset in
+        the heading frame. Returns the support legs."""
         p = self.params
-        m = self.model
-        t, pb, R, cy, sy, grounded = x.t, x.pb, x.R, x.cy, x.sy, x.grounded
-        contact_pt = self._contact
-        states = self.leg_state
-        swing_phase = self._swing_phase
-        T = p.gait_period
-        for k in range(4):
-            swing_phase[k] = 1.0
-            if trotting:
-                c = (t - self._t0) / T - p.phase_offsets[k]
-                cycle = math.floor(c)
-                phi = c - cycle
-                if phi < 1.0 - p.duty_factor:
-                    sp = phi / (1.0 - p.duty_factor)
-                    swing_phase[k] = sp
-                    if cycle != self._swing_cycle[k]:
-                        # lift-off of a new swing: remember where the foot starts (heading
-                        # frame, relative to the hip)
-                        self._swing_cycle[k] = cycle
-                        hx, hy = (pb + R @ m.hip[k])[:2]
-                        dx, dy = contact_pt[k, 0] - hx, contact_pt[k, 1] - hy
-                        self._r_liftoff[k, 0] = cy * dx + sy * dy
-                        self._r_liftoff[k, 1] = -sy * dx + cy * dy
-                    # early touch-down late in the swing: support; else swing (normal, late
-                    # lift-off or bumped)
-                    states[k] = SUPPORT if (grounded[k] and sp > p.early_touchdown_phase) \
-                        else SWING
-                    continue
-            states[k] = SUPPORT if grounded[k] else LOST_CONTACT
-        for k in range(4):
-            if states[k] == LOST_CONTACT:
-                if self._lost_since[k] != self._lost_since[k]:   # NaN: just lost
-                    self._lost_since[k] = t
-            else:
-                self._lost_since[k] = math.nan
-        support = [k for k in range(4) if states[k] == SUPPORT]
-        for j, k in enumerate(support):      # the kernels' copies
-            self._support_idx[j] = k
-        for k in range(4):
-            self._leg_state_arr[k] = states[k]
-        return support
+        offsets, key = self._phase_offsets, tuple(p.phase_offsets)
+        if offsets[1] != key:      # the array made again only when the parameter changed
+            offsets = self._phase_offsets = (np.array(key, dtype=float), key)
+        ns, lift = K.leg_states(bool(trotting), x.t, self._t0, p.gait_period, offsets[0],
+                                p.duty_factor, p.early_touchdown_phase, x.grounded,
+                                self._swing_phase, self._swing_cycle, self._leg_state_arr,
+                                self._lost_since, self._support_idx)
+        if lift:
+            # lift-off of a new swing: remember where the foot starts (heading frame,
+            # relative to the hip)
+            hip, pb, R, cy, sy, contact_pt = self.model.hip, x.pb, x.R, x.cy, x.sy, self._contact
+            for k in range(4):
+                if lift >> k & 1:
+                    hx, hy = (pb + R @ hip[k])[:2]
+                    dx, dy = contact_pt[k, 0] - hx, contact_pt[k, 1] - hy
+                    self._r_liftoff[k, 0] = cy * dx + sy * dy
+                    self._r_liftoff[k, 1] = -sy * dx + cy * dy
+        self.leg_state = self._leg_state_arr.tolist()
+        return self._support_idx[:ns].tolist()
 
     def _estimate_ground(self, support):
         """Ground height (flat ground assumed): low-pass (0.05 per call) of the mean height of
-        the support feet's contact points."""
-        ns = len(support)
-        if ns:
-            contact_pt = self._contact
-            g_meas = sum(contact_pt[k, 2] for k in support) / ns
-            self._ground += 0.05 * (g_meas - self._ground)
+        the support feet's contact points (kernels.ground_estimate)."""
+        self._ground = K.ground_estimate(self._ground, self._contact, self._support_idx,
+                                         len(support))
 
     # -- 3. support legs -------------------------------------------------------------------
     def _support_leg_torques(self, x: _Sample, trotting, support, gleg, com):

@@ -58,6 +58,8 @@ try:
 except ImportError as e:  # pragma: no cover
     raise ImportError("starleth_controller needs proxsuite (pip install proxsuite)") from e
 
+_SOLVED = proxqp.QPSolverOutput.PROXQP_SOLVED
+
 
 class ContactForceDistribution:
     def __init__(self, mu=0.7, min_normal_force=2.0, weights=(1, 1, 1, 20, 20, 5),
@@ -137,10 +139,12 @@ class ContactForceDistribution:
                 raise ValueError("torque-limited force distribution needs J and gleg")
             torque_rows(J, gleg, self.torque_limit, 5 * n, C, lo, up)
         qp = self._solve_qp(n, H, g, C, lo, up)
-        st = qp.results.info.status
-        self.iterations = int(qp.results.info.iter)
-        x = qp.results.x
-        ok = st == proxqp.QPSolverOutput.PROXQP_SOLVED and math.isfinite(float(x.sum()))
+        results = qp.results              # each attribute read builds a binding object
+        info = results.info
+        st = info.status
+        self.iterations = int(info.iter)
+        x = results.x
+        ok = st == _SOLVED and math.isfinite(float(x.sum()))
         if not ok:
             self.failures += 1
             self.status = str(st).split(".")[-1]

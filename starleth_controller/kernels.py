@@ -406,6 +406,62 @@ def _smooth(x):
     return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
 
 
+#: leg states (controller.py: SUPPORT, SWING, LOST_CONTACT)
+_SUPPORT, _SWING, _LOST_CONTACT = 0, 1, 2
+
+
+@_jit
+def leg_states(trotting, t, t0, T, phase_offsets, duty_factor, early_touchdown, grounded,
+               swing_phase, swing_cycle, states, lost_since, support):
+    """Each leg's state from its plan and its contact flag (controller._leg_states, in its
+    order of operations): while trotting, leg k's gait cycle c = (t − t₀)/T − offset_k
+    and phase φ = c − ⌊c⌋; φ < 1 − duty: swing phase s = φ / (1 − duty), swing (support on
+    an early touch-down, s > early_touchdown), else support if on the ground, lost contact if
+    not. lost_since: the time contact was lost (NaN while not lost). Writes swing_phase (1
+    outside the swing), swing_cycle (the cycle of the last lift-off), states and the first
+    ns entries of support; returns (ns, lift-off mask: bit k set when leg k starts a new
+    swing, whose hip→foot offset the caller takes)."""
+    lift = 0
+    for k in range(4):
+        swing_phase[k] = 1.0
+        if trotting:
+            c = (t - t0) / T - phase_offsets[k]
+            cycle = math.floor(c)
+            phi = c - cycle
+            if phi < 1.0 - duty_factor:
+                sp = phi / (1.0 - duty_factor)
+                swing_phase[k] = sp
+                if cycle != swing_cycle[k]:
+                    swing_cycle[k] = cycle
+                    lift |= 1 << k
+                states[k] = _SUPPORT if (grounded[k] and sp > early_touchdown) else _SWING
+                continue
+        states[k] = _SUPPORT if grounded[k] else _LOST_CONTACT
+    ns = 0
+    for k in range(4):
+        if states[k] == _LOST_CONTACT:
+            if lost_since[k] != lost_since[k]:     # NaN: just lost
+                lost_since[k] = t
+        else:
+            lost_since[k] = math.nan
+        if states[k] == _SUPPORT:
+            support[ns] = k
+            ns += 1
+    return ns, lift
+
+
+@_jit
+def ground_estimate(ground, contact, support, ns):
+    """Low-pass (0.05 per call) of the ground height towards the mean height of the first ns
+    support legs' contact points, summed in leg order (unchanged without support)."""
+    if ns == 0:
+        return ground
+    g = 0.0
+    for j in range(ns):
+        g += contact[support[j], 2]
+    return ground + 0.05 * (g / ns - ground)
+
+
 #: layout of the swing parameters (controller.py: _swing_parameters)
 (SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
  SW_LOST_SPEED, SW_LOST_DEPTH, SW_OFFSET_X) = range(11)   # SW_OFFSET_X: 4 values, per leg

@@ -344,13 +344,28 @@ class DiagnosticArrayCdr:
         self.frame_id = frame_id.encode("utf-8")
         enc = self._encoded
         # the constant strings once as CDR (length, bytes, NUL): only their padding is
-        # worked out per message
+        # worked out per message; each key also with the padding before it for each of the
+        # four alignments it can start at, and the alignment after it
         self.layouts = [(enc(name.encode("utf-8")), enc(hw.encode("utf-8")),
-                         [enc(k.encode("utf-8")) for k in keys]) for name, hw, keys in layouts]
+                         [self._aligned(enc(k.encode("utf-8"))) for k in keys])
+                        for name, hw, keys in layouts]
 
     @staticmethod
     def _encoded(s: bytes) -> bytes:
         return _U32.pack(len(s) + 1) + s + b"\0"
+
+    _PADS = (b"", b"\0\0\0", b"\0\0", b"\0")      # by (offset - origin) % 4
+
+    @classmethod
+    def _aligned(cls, k: bytes):
+        """For each alignment a = (offset - origin) % 4 of the offset a key starts at: (its
+        padding and bytes, its length with the padding, the padding the value's length then
+        needs)."""
+        out = []
+        for a in range(4):
+            kb = cls._PADS[a] + k
+            out.append((kb, len(kb), cls._PADS[(a + len(kb)) % 4]))
+        return tuple(out)
 
     @staticmethod
     def _string(parts, o, s: bytes) -> int:
@@ -371,7 +386,8 @@ class DiagnosticArrayCdr:
         pad = (4 - (o - _ORIGIN) % 4) % 4
         append(b"\0" * pad + _U32.pack(len(statuses)))
         o += pad + 4
-        pads = (b"", b"\0\0\0", b"\0\0", b"\0")      # by (o - origin) % 4
+        pads = self._PADS
+        u32 = _U32.pack
         for index, level, message, values in statuses:
             name, hw, keys = self.layouts[index]
             if len(values) != len(keys):
@@ -389,13 +405,14 @@ class DiagnosticArrayCdr:
             p = pads[(o - _ORIGIN) % 4]
             append(p + _U32.pack(len(values)))
             o += len(p) + 4
+            a = (o - _ORIGIN) % 4
             for k, v in zip(keys, values):
-                p = pads[(o - _ORIGIN) % 4]
+                kb, kn, vp = k[a]
                 vb = v.encode("utf-8")
                 n = len(vb) + 1
-                vp = pads[(o + len(p) + len(k) - _ORIGIN) % 4]
-                append(b"".join((p, k, vp, _U32.pack(n), vb, b"\0")))
-                o += len(p) + len(k) + len(vp) + 4 + n
+                parts += (kb, vp, u32(n), vb, b"\0")
+                a = (a + kn + len(vp) + n) % 4      # the value's length field is 4 bytes
+                o += kn + len(vp) + 4 + n
         return b"".join(parts)
 
 

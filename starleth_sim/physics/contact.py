@@ -41,11 +41,14 @@ class GroundPlane:
         object.__setattr__(self, "t1", t1)
         object.__setattr__(self, "t2", t2)
         object.__setattr__(self, "offset", float(n[2] * self.height))
+        frame = np.vstack([n, t1, t2])
+        frame.setflags(write=False)      # made once: a ROS node reads it every step
+        object.__setattr__(self, "_frame", frame)
 
     @property
     def frame(self):
-        """3x3 matrix whose rows are n, t1, t2 (contact frame -> world: frame.T)."""
-        return np.vstack([self.n, self.t1, self.t2])
+        """3x3 matrix whose rows are n, t1, t2 (contact frame -> world: frame.T); read-only."""
+        return self._frame
 
 
 class CompliantLaw(NamedTuple):

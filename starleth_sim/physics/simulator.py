@@ -470,6 +470,14 @@ class Simulator:
         the same result with or without it."""
         self.stepper.prepare(self.state)
 
+    def next_step_in_one_kernel(self) -> bool:
+        """Whether the next `step`, as things stand (no wrench to apply, not profiling,
+        nothing prepared), runs each physics step in one kernel call. Such a step is faster
+        than the rest a step does after `prepare` (its phases one by one), so preparing it
+        ahead does not pay (HmJ trotting: 27 µs against 41 µs after a 34 µs prepare)."""
+        return (self.stepper.step_is_transactional(self.state)
+                and not self.state.pending_wrenches and not self._persistent_wrenches)
+
     def step(self, tau=None):
         """Advance one control period with joint torques `tau` (zero-order hold). On a bad
         `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged; on

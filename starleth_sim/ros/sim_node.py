@@ -815,10 +815,10 @@ class SimNode:
         b = self.sim.base_state()
         p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
                          b["angular_velocity"])
-        R = quat_to_matrix(*quat)
+        xyzw = quat.tolist()
+        R = quat_to_matrix(*xyzw)
         v_body = R.T @ v
-        return ([float(x) for x in p], [float(x) for x in quat], v,
-                [float(x) for x in w], R, [float(x) for x in v_body])
+        return p.tolist(), xyzw, v, w.tolist(), R, v_body.tolist()
 
     def _publish_odometry(self, sec, nsec, base, record):
         """starleth/base_state: pose in the world, twist in the base frame."""
@@ -858,8 +858,11 @@ class SimNode:
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the
         torque-independent part of the next step meanwhile (Simulator.prepare), which takes
-        it off the lockstep critical path (command in -> step -> state out). The result of
-        the step is the same with or without it."""
+        it off the lockstep critical path (command in -> step -> state out), unless the next
+        step runs in one kernel call (the common case: no wrench), which is faster than the
+        rest of a prepared step. The result of the step is the same with or without it."""
+        if self.sim.next_step_in_one_kernel():
+            return
         try:
             self.sim.prepare()
         except Exception as e:   # pragma: no cover - the step redoes it and reports
