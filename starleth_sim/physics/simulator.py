@@ -315,6 +315,11 @@ class Simulator:
                             CONTACT_STATES[states[i]])
                 for i, n in enumerate(self.contact_names)]
 
+    def contact_points(self) -> np.ndarray:
+        """The contact points (nc x 3, world) of the last control step: the positions of
+        `contacts`, without building the records."""
+        return self._position.copy()
+
     def contact_states(self) -> np.ndarray:
         """Per contact point after the last control step, an index into CONTACT_STATES:
         0 open (no normal impulse), 1 stick, 2 slip. Hard contacts: slip when the tangential

@@ -136,7 +136,7 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_CONT
                                        TOPIC_WRENCH_PERSISTENT, foot_wrench_topic)
 from ..physics.config import ConfigError
 from ..physics.description import STARLETH_FEET as FEET
-from ..physics.simulator import Simulator
+from ..physics.simulator import CONTACT_STATES, Simulator
 from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
@@ -399,6 +399,7 @@ class SimNode:
         s, sim = self.settings, self.sim
         desc = sim.description
         self.frames = FrameTree(desc.model, desc.urdf_xml, s.world_frame, s.tf_frame_prefix)
+        self._tf_joint_q = None      # the joints' indices in the model's q (_tf_configuration)
         self._tf_every = self._every(s.tf_rate)
         self._markers_every = self._every(s.contact_markers_rate)
         self._tf_cdr = TfMessageCdr(self.frames.names(self.frames.dynamic))
@@ -439,6 +440,7 @@ class SimNode:
                 self._marker_slots = self._contact_marker_slots(self.marker_msg)
                 n = len(self.sim.contact_names)
                 self._marker_points = [[0.0] * 6 for _ in range(n)]
+                self._marker_colours = [self.MARKER_COLOURS[name] for name in CONTACT_STATES]
 
     #: colours (r, g, b, a) of the contact states (ContactInfo.state)
     MARKER_COLOURS = {"open": (0.6, 0.6, 0.6, 0.5), "stick": (0.1, 0.75, 0.2, 1.0),
@@ -501,18 +503,19 @@ class SimNode:
         points)."""
         sim, Marker = self.sim, self._Marker
         scale = self.settings.contact_marker_scale
-        colours = self.MARKER_COLOURS
+        colours = self._marker_colours
+        # the contacts' points, forces and states as arrays (the values of sim.contacts'
+        # records, without building them)
+        positions, forces = sim.contact_points(), sim.contact_forces()
         spheres, arrows = [], []
-        for c, pts in zip(sim.contacts, self._marker_points):
-            p = c.position
-            x, y, z = float(p[0]), float(p[1]), float(p[2])
-            spheres += (sec, nsec, x, y, z, *colours[c.state])
-            if c.state == "open":
+        for p, f, state, pts in zip(positions.tolist(), forces.tolist(),
+                                    sim.contact_states().tolist(), self._marker_points):
+            x, y, z = p
+            spheres += (sec, nsec, x, y, z, *colours[state])
+            if state == 0:     # open
                 arrows += (sec, nsec, Marker.DELETE, *pts)
                 continue
-            f = c.force
-            pts[:] = (x, y, z, float(p[0] + scale * f[0]), float(p[1] + scale * f[1]),
-                      float(p[2] + scale * f[2]))
+            pts[:] = (x, y, z, x + scale * f[0], y + scale * f[1], z + scale * f[2])
             arrows += (sec, nsec, Marker.ADD, *pts)
         return spheres + arrows
 
@@ -538,8 +541,7 @@ class SimNode:
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         if self._tf_every and k % self._tf_every == 0 and \
                 (self.recorder is not None or self.tf_pubs):
-            q, _ = minimal_state(self.sim, public_state(self.sim))
-            poses = self.frames.transforms(q, self.frames.dynamic)
+            poses = self.frames.transforms(self._tf_configuration(), self.frames.dynamic)
             self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
         if self._markers_every and k % self._markers_every == 0 and \
                 self._wanted("contact_markers", True):
@@ -549,6 +551,23 @@ class SimNode:
             else:
                 self._fill_contact_markers(sec, nsec)
                 self._emit("contact_markers", self.marker_msg, True)
+
+    def _tf_configuration(self):
+        """q of the current state in the minimal coordinates of the URDF's model (free flyer:
+        position, quaternion x y z w, joint angles), the configuration FrameTree.transforms
+        takes: state_io.minimal_state's q, gathered with the joints' indices found once."""
+        sim = self.sim
+        idx = self._tf_joint_q
+        if idx is None:
+            model = sim.description.model
+            idx = self._tf_joint_q = np.array(
+                [model.joints[model.getJointId(name)].idx_q for name in sim.joint_names])
+        b = sim.base_state()
+        q = np.zeros(sim.description.model.nq)
+        q[0:3] = b["position"]
+        q[3:7] = b["orientation_xyzw"]
+        q[idx] = sim.joint_positions()
+        return q
 
     def _publish_static_transforms(self):
         """/tf_static once (transient local): the fixed joints."""

@@ -100,13 +100,14 @@ class FrameTree:
         pin = self._pin
         pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
         oMf = self.data.oMf
+        frame_id = self._frame_id
+        xyzquat = pin.SE3ToXYZQUAT     # translation, then Eigen's quaternion of the rotation
         out = np.empty((len(edges), 7))
         for k, (parent, child) in enumerate(edges):
-            M = oMf[self._frame_id[child]]
+            M = oMf[frame_id[child]]
             if parent is not None:
-                M = oMf[self._frame_id[parent]].actInv(M)
-            out[k, :3] = M.translation
-            out[k, 3:] = pin.Quaternion(M.rotation).coeffs()      # x, y, z, w
+                M = oMf[frame_id[parent]].actInv(M)
+            out[k] = xyzquat(M)                                    # x, y, z, qx, qy, qz, qw
         return out
 
 
