@@ -367,6 +367,9 @@ class StarlethController:
             grounded = np.asarray(s.foot_force, dtype=float)[:, 2] > p.contact_force_threshold
         else:
             raise ValueError("RobotState needs foot_contact or foot_force")
+        if grounded.shape != (4,):
+            raise ValueError(f"RobotState: 4 feet expected in foot_contact / foot_force, "
+                             f"got {grounded.shape[0] if grounded.ndim == 1 else grounded.shape}")
         return _Sample(t, dt, qj, dqj, pb, quat, vb, wb, R, yaw, cy, sy, ww, grounded)
 
     def _check_fall(self, x: _Sample) -> bool:

@@ -433,6 +433,12 @@ def test_bad_input_never_gives_nan_torque():
     st.joint_velocities = np.full(12, 50.0)
     tau = ctrl.update(st, Command("stand"))
     assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= 20.0)
+    # contact flags for 3 or 5 feet: a clear error (the leg-state kernel reads 4)
+    for flags in ([True] * 3, [True] * 5):
+        st = RobotState.from_simulator(sim)
+        st.foot_contact = np.array(flags)
+        with pytest.raises(ValueError, match="4 feet"):
+            ctrl.update(st, Command("trot"))
 
 
 
