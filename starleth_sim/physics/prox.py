@@ -735,17 +735,10 @@ def _jor_project(lam, xi, r, mu, nc, bilateral_direct, new):
 
 
 @nb.njit(**KERNEL, inline="always")
-def _store_checked(lam, l, v, ok, res, finite, tol_rel, tol_abs):
-    """Λ_l ← v with _check's test of the row (_row_check)."""
-    ok, res, finite = _row_check(lam[l], v, ok, res, finite, tol_rel, tol_abs)
-    lam[l] = v
-    return ok, res, finite
-
-
-@nb.njit(**KERNEL, inline="always")
 def _jor_update_in_place(lam, xi, r, mu, nc, tol_rel, tol_abs):
     """One JOR update with a fixed α and the bilateral rows by the prox (Eqn. 19), in place:
-    Λ ← prox(Λ − r ξ) row by row (a row's update reads only its own Λ once ξ is formed), with
+    Λ ← prox(Λ − r ξ) contact by contact (_project_contact reads a contact's three rows
+    before it writes them, and a row's update reads only its own Λ once ξ is formed), with
     _check's test of each row on the way. The same values and the same (converged, max |ΔΛ|,
     all finite) as _project_contact into a second buffer, _check and a copy back, in one pass
     over Λ instead of three."""
@@ -754,15 +747,15 @@ def _jor_update_in_place(lam, xi, r, mu, nc, tol_rel, tol_abs):
     finite = True
     for i in range(nc):
         b = 3 * i
-        ln = prox_normal(lam[b] - r[b] * xi[b])
-        t1, t2 = prox_disc(lam[b + 1] - r[b + 1] * xi[b + 1],
-                           lam[b + 2] - r[b + 2] * xi[b + 2], mu[i] * ln)
-        ok, res, finite = _store_checked(lam, b, ln, ok, res, finite, tol_rel, tol_abs)
-        ok, res, finite = _store_checked(lam, b + 1, t1, ok, res, finite, tol_rel, tol_abs)
-        ok, res, finite = _store_checked(lam, b + 2, t2, ok, res, finite, tol_rel, tol_abs)
+        old0, old1, old2 = lam[b], lam[b + 1], lam[b + 2]
+        _project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], lam)
+        ok, res, finite = _row_check(old0, lam[b], ok, res, finite, tol_rel, tol_abs)
+        ok, res, finite = _row_check(old1, lam[b + 1], ok, res, finite, tol_rel, tol_abs)
+        ok, res, finite = _row_check(old2, lam[b + 2], ok, res, finite, tol_rel, tol_abs)
     for l in range(3 * nc, lam.shape[0]):
-        ok, res, finite = _store_checked(lam, l, lam[l] - r[l] * xi[l], ok, res, finite,
-                                         tol_rel, tol_abs)
+        v = lam[l] - r[l] * xi[l]
+        ok, res, finite = _row_check(lam[l], v, ok, res, finite, tol_rel, tol_abs)
+        lam[l] = v
     return ok, res, finite
 
 

@@ -141,8 +141,8 @@ from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
-from .state_io import (ImuEstimate, initial_state_record, minimal_state,
-                       parse_initial_state, public_state, quat_to_matrix)
+from .state_io import (ImuEstimate, initial_state_record, joint_indices,
+                       parse_initial_state, quat_to_matrix)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 
@@ -555,13 +555,12 @@ class SimNode:
     def _tf_configuration(self):
         """q of the current state in the minimal coordinates of the URDF's model (free flyer:
         position, quaternion x y z w, joint angles), the configuration FrameTree.transforms
-        takes: state_io.minimal_state's q, gathered with the joints' indices found once."""
+        takes: state_io.minimal_state's q, gathered with the joints' indices
+        (state_io.joint_indices) found once."""
         sim = self.sim
         idx = self._tf_joint_q
         if idx is None:
-            model = sim.description.model
-            idx = self._tf_joint_q = np.array(
-                [model.joints[model.getJointId(name)].idx_q for name in sim.joint_names])
+            idx = self._tf_joint_q = joint_indices(sim.description.model, sim.joint_names)[0]
         b = sim.base_state()
         q = np.zeros(sim.description.model.nq)
         q[0:3] = b["position"]
@@ -573,8 +572,8 @@ class SimNode:
         """/tf_static once (transient local): the fixed joints."""
         if not self._tf_every or not self.frames.static:
             return
-        q, _ = minimal_state(self.sim, public_state(self.sim))
-        poses = self.frames.transforms(q, self.frames.static)   # do not depend on q
+        poses = self.frames.transforms(self._tf_configuration(),
+                                       self.frames.static)   # do not depend on q
         self._emit_tf("tf_static", self._tf_static_cdr.build(0, 0, poses),
                       self.service.stamp_ns)
 

@@ -56,17 +56,24 @@ def minimal_state(sim: Simulator, pub: dict):
     quaternion x y z w, joint angles; world linear velocity, body angular velocity, joint
     rates), as taken by ``Simulator.reset(q, u, minimal=True)``."""
     model = sim.description.model
+    idx_q, idx_v = joint_indices(model, sim.joint_names)
     q = np.zeros(model.nq)
     u = np.zeros(model.nv)
     q[0:3] = pub["base_position"]
     q[3:7] = pub["base_orientation"]
     u[0:3] = pub["base_linear_velocity"]
     u[3:6] = pub["base_angular_velocity"]
-    for i, name in enumerate(sim.joint_names):
-        j = model.joints[model.getJointId(name)]
-        q[j.idx_q] = pub["joint_positions"][i]
-        u[j.idx_v] = pub["joint_velocities"][i]
+    q[idx_q] = pub["joint_positions"]
+    u[idx_v] = pub["joint_velocities"]
     return q, u
+
+
+def joint_indices(model, joint_names):
+    """(idx_q, idx_v): where each named (one-dof) joint's angle and rate sit in the q and u
+    of the pin model `model` (minimal_state's layout)."""
+    joints = [model.joints[model.getJointId(name)] for name in joint_names]
+    return (np.array([j.idx_q for j in joints], dtype=np.int64),
+            np.array([j.idx_v for j in joints], dtype=np.int64))
 
 
 def parse_initial_state(spec, sim: Simulator):
