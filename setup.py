@@ -45,6 +45,7 @@ setup(
             'sim_node_composed = starleth_sim.ros.sim_node:main_composed',
             'starleth-bench = starleth_sim.tools.bench:main',
             'starleth-bench-ros = starleth_sim.tools.bench_ros:main',
+            'starleth-bench-floor = starleth_sim.tools.bench_floor:main',
             'starleth-demo = starleth_sim.tools.demo:main',
             'starleth-eval = starleth_sim.tools.evaluation:main',
             'starleth-analyze = starleth_sim.tools.analysis:main',

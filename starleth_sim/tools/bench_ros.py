@@ -36,6 +36,7 @@ Options: ``--executor`` / ``--sim-executor`` (events | single_threaded) for the 
 (the bare round trips use the same ones), ``--record PATH`` to record the lockstep phase,
 ``--realtime-priority N`` for sim_node's SCHED_FIFO option in the realtime phase.
 The two processes use an isolated ROS_DOMAIN_ID (``--domain-id``, default from the pid).
+``bench_floor`` measures the same loop without the nodes (its floor), in the same way.
 Prints the figures and, with ``--json PATH``, writes them with the node's own summaries.
 The figures depend on what else runs on the machine: run it on an idle one.
 """

@@ -1,0 +1,333 @@
+"""The floor of the real loop (a script, not a test): what the two-process lockstep loop of
+``bench_ros --controller real`` costs without the nodes.
+
+    python -m starleth_sim.tools.bench_floor                  # 3 rounds, ~40 s
+    python -m starleth_sim.tools.bench_floor --rounds 5 --bare-seconds 5 --floor-seconds 10
+
+The same two processes as ``bench_ros`` (this one the controller side, a child the sim
+side, on an isolated ROS domain), the same messages, QoS and executors, but none of the
+nodes' work around them:
+
+- the child's callback on a command (``sensor_msgs/JointState``, the bytes controller_node
+  sends) reads its efforts with sim_node's decoder, runs ``Simulator.step`` (the preset of
+  sim_node's default, HmJ) and publishes the new state as one state bundle (the bytes
+  sim_node sends: :func:`bundle_bytes`);
+- this process's callback on a bundle reads it as controller_node does (the
+  ``node_state`` kernel), runs ``StarlethController.update`` (stand, then trot at 0.3 m/s
+  from 0.5 s of sim time, as bench_ros) and publishes the command (:class:`FloorController`).
+
+No recording, no public topics, no diagnostics, no timeouts, re-sends or checks beyond the
+decoders'. The rounds interleave bare rclpy round trips (bench_ros's ``PingPong``, served by
+the child) with floor cycles, so each round's ratio compares the two under one load of the
+machine. Printed: cycles per second and their ratio to the bare round trips (the figure
+bench_ros gives the real loop), and the medians of the step, the state's way out (bundle
+built and published), and the controller's part (bundle read, update, command published).
+
+``bench_ros --controller real`` beside this on the same machine says how much of a cycle
+the nodes and the recording add; this says how much a cycle of this physics and this
+controller costs at all. The figures depend on what else runs on the machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from ..ros.discovery import keep_discovery_local, local_discovery_env
+
+BUNDLE_TOPIC = "/starleth_floor/state_bundle"
+COMMAND_TOPIC = "/starleth_floor/joint_commands"
+TROT_AT, SPEED = 0.5, 0.3      # s of sim time, m/s: bench_ros's real controller
+
+
+def bundle_bytes(bundle_cdr, sim, stamp_ns):
+    """The state bundle (starleth_interface.state_bundle) of `sim`'s current state, stamped
+    `stamp_ns`: the values sim_node sends (the base's linear velocity in the base frame, as
+    its Odometry; the applied torques; the feet's F = Λ/Δt), through `bundle_cdr`
+    (a StateBundleCdr)."""
+    from ..ros.state_io import quat_to_matrix
+    b = sim.base_state()
+    xyzw = b["orientation_xyzw"].tolist()
+    v_body = (quat_to_matrix(*xyzw).T @ b["linear_velocity"]).tolist()
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return bundle_cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
+                            sim.applied_torque, (*b["position"].tolist(), *xyzw),
+                            (*v_body, *b["angular_velocity"].tolist()),
+                            sim.contact_forces()[:4].reshape(-1))
+
+
+class FloorSim:
+    """The sim side: on each command, its efforts into one ``Simulator.step``, then the new
+    state out as a bundle. ``start()`` sends state 0 (again, until the first command).
+    ``times``: (decode + step, bundle out) [s] per command."""
+
+    def __init__(self, node, preset="HmJ"):
+        from rclpy.qos import QoSProfile
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray
+        from starleth_interface.state_bundle import JOINT_NAMES, StateBundleCdr
+        from ..physics.simulator import Simulator
+        from ..ros.cdr import CommandDecoder
+        self.sim = Simulator.from_preset(preset)
+        self.k = 0
+        self.bundle = StateBundleCdr.create()
+        if self.bundle is None:
+            raise RuntimeError("bench_floor: this rmw's Float64MultiArray bytes are not the "
+                               "state bundle's layout")
+        self.decoder = CommandDecoder(JOINT_NAMES)
+        self.pub = node.create_publisher(Float64MultiArray, BUNDLE_TOPIC, QoSProfile(depth=10))
+        self.sub = node.create_subscription(JointState, COMMAND_TOPIC, self._on_command,
+                                            QoSProfile(depth=10), raw=True)
+        self.times = []
+        self.rejected = 0
+
+    def start(self):
+        if self.k == 0:
+            self.pub.publish(bundle_bytes(self.bundle, self.sim, 0))
+
+    def _on_command(self, data):
+        t0 = time.perf_counter()
+        ok, stamp, effort = self.decoder.joint_command(data)
+        if not ok or stamp != self.k * 2_500_000:
+            self.rejected += 1       # not the answer to the state out (or undecodable)
+            return
+        self.sim.step(effort)
+        self.k += 1
+        t1 = time.perf_counter()
+        self.pub.publish(bundle_bytes(self.bundle, self.sim, self.k * 2_500_000))
+        self.times.append((t1 - t0, time.perf_counter() - t1))
+
+
+class FloorController:
+    """The controller side: each bundle read as controller_node reads it (the node_state
+    kernel; twist in the base frame, contact = |F| > the contact threshold), one
+    ``StarlethController.update``, the torques out as controller_node's JointState. Answers
+    only while ``running``; ``last`` keeps the newest bundle (answered when a round
+    starts). ``times``: bundle in to command out [s]; ``commands``: sent so far."""
+
+    def __init__(self, node, urdf=None, threshold=None):
+        from rclpy.qos import QoSProfile
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray
+        from starleth_controller import Command, StarlethController
+        from starleth_controller.kernels import node_state
+        from starleth_interface.msg_cdr import JointStateCdr
+        from starleth_interface.state_bundle import JOINT_NAMES
+        self.controller = StarlethController(urdf)
+        self.command = Command(mode="stand")
+        self.threshold = float(self.controller.params.contact_force_threshold
+                               if threshold is None else threshold)
+        self._node_state = node_state
+        self._perm = np.arange(12, dtype=np.int64)
+        self._R = np.eye(3)
+        self.cdr = JointStateCdr.create(JOINT_NAMES, ("effort",))
+        self.pub = node.create_publisher(JointState, COMMAND_TOPIC, QoSProfile(depth=10))
+        self.sub = node.create_subscription(Float64MultiArray, BUNDLE_TOPIC, self._on_bundle,
+                                            QoSProfile(depth=10), raw=True)
+        self.running = False
+        self.last = None
+        self.commands = 0
+        self.times = []
+
+    def torques(self, data):
+        """(sec, nsec, 12 torques) answering a bundle's bytes, or None for a bundle that
+        does not decode or whose state the kernel refuses."""
+        from starleth_controller import RobotState
+        from starleth_interface import state_bundle as sb
+        r = sb.decode(data)
+        if isinstance(r, str):
+            return None
+        sec, nsec, v = r
+        q, dq, pb, quat, vel, w = (np.empty(12), np.empty(12), np.empty(3), np.empty(4),
+                                   np.empty(3), np.empty(3))
+        contact = np.empty(4, dtype=bool)
+        forces = v[sb.SLICES["force"]].reshape(4, 3)
+        if self._node_state(v[sb.SLICES["q"]], v[sb.SLICES["u"]], self._perm, v[sb.BASE],
+                            forces, self.threshold, q, dq, pb, quat, vel, w, self._R,
+                            contact) != 0:
+            return None
+        t = (sec * 1_000_000_000 + nsec) * 1e-9
+        if self.command.mode == "stand" and t >= TROT_AT:
+            self.command.mode, self.command.forward = "trot", SPEED
+        state = RobotState(t, q, dq, pb, quat, self._R @ vel, w, contact, forces)
+        return sec, nsec, self.controller.update(state, self.command)
+
+    def _on_bundle(self, data):
+        self.last = data
+        if self.running:
+            self.answer(data)
+
+    def answer(self, data):
+        import array
+        t0 = time.perf_counter()
+        r = self.torques(data)
+        if r is None:
+            return
+        sec, nsec, tau = r
+        self.pub.publish(self.cdr.build(sec, nsec, array.array("d", tau.tobytes())))
+        self.commands += 1
+        self.times.append(time.perf_counter() - t0)
+
+
+# -----------------------------------------------------------------------------------------
+def child_main(args):
+    """The sim side and bench_ros's pong node on one executor, until SIGINT / SIGTERM;
+    prints its timing medians as one JSON line."""
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+    from .bench_ros import PING, PONG, _make_executor
+    rclpy.init(args=[], domain_id=args.domain_id,
+               signal_handler_options=SignalHandlerOptions.NO)
+    stop = []
+    signal.signal(signal.SIGINT, lambda *a: stop.append(1))
+    signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
+    node = Node("bench_floor_sim")
+    floor = FloorSim(node, args.preset)
+    pong_pub = node.create_publisher(JointState, PONG, QoSProfile(depth=10))
+    node.create_subscription(JointState, PING, pong_pub.publish, QoSProfile(depth=10))
+    ex = _make_executor(args.sim_executor, node.context)
+    ex.add_node(node)
+    last_start = 0.0
+    while not stop:
+        if floor.k == 0 and time.monotonic() - last_start > 0.2:
+            floor.start()            # state 0 until the controller side answers it
+            last_start = time.monotonic()
+        ex.spin_once(timeout_sec=0.05)
+    t = np.asarray(floor.times[len(floor.times) // 10:]).reshape(-1, 2) * 1e3
+    print("FLOOR_CHILD " + json.dumps({
+        "steps": floor.k, "rejected": floor.rejected,
+        "base_position": floor.sim.base_state()["position"].round(3).tolist(),
+        "step_ms": float(np.median(t[:, 0])) if len(t) else None,
+        "state_out_ms": float(np.median(t[:, 1])) if len(t) else None}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def _rounds(ex, ctl, pp, args, sim_pid):
+    from .bench_ros import _wait, process_cpu_ns
+    per, rtts_all, cpu = [], [], {}
+    n_total, t_total = 0, 0.0
+    for r in range(-1, args.rounds):           # round -1: warm-up, not counted
+        bare_rate, rtts = pp.measure(args.bare_seconds / max(args.rounds, 1))
+        ctl.running = True
+        if ctl.last is not None:
+            ctl.answer(ctl.last)                 # the state the last round left unanswered
+        t_start = time.perf_counter() + 0.1
+        t_end = t_start + (args.floor_seconds / max(args.rounds, 1) if r >= 0 else 1.0)
+        n0 = cpu0 = None
+        while time.perf_counter() < t_end:
+            ex.spin_once(timeout_sec=0.05)
+            if n0 is None and time.perf_counter() >= t_start:
+                n0, cpu0, t_start = ctl.commands, process_cpu_ns(sim_pid), time.perf_counter()
+        n, t_end = ctl.commands - n0, time.perf_counter()
+        cpu1 = process_cpu_ns(sim_pid)
+        ctl.running = False
+        _wait(ex, lambda: False, 0.05)           # the answer in flight comes back
+        if r < 0:
+            continue
+        rtts_all += rtts
+        rate = n / (t_end - t_start)
+        per.append({"bare_round_trips_per_s": bare_rate, "lockstep_cycles_per_s": rate,
+                    "ratio": rate / bare_rate})
+        for k, v in cpu1.items():
+            cpu[k] = cpu.get(k, 0) + v - cpu0.get(k, 0)
+        n_total += n
+        t_total += t_end - t_start
+        print(f"  round {r + 1}/{args.rounds}: bare {bare_rate:.0f}/s, floor {rate:.0f}/s, "
+              f"ratio {rate / bare_rate:.2f}", flush=True)
+    return per, rtts_all, n_total, t_total, cpu
+
+
+def parent_main(args):
+    import rclpy
+    from rclpy.node import Node
+    from .bench_ros import (PingPong, _make_executor, _wait, bare_figures, lockstep_figures)
+    keep_discovery_local()
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "starleth_sim.tools.bench_floor", "--child", "--domain-id",
+           str(args.domain_id), "--preset", args.preset, "--sim-executor", args.sim_executor]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=None, env=env, text=True)
+    ctx = rclpy.Context()
+    rclpy.init(args=[], context=ctx, domain_id=args.domain_id)
+    node = Node("bench_floor_controller", context=ctx)
+    try:
+        ex = _make_executor(args.executor, ctx)
+        ex.add_node(node)
+        ctl = FloorController(node)
+        if not _wait(ex, lambda: ctl.last is not None and
+                     ctl.pub.get_subscription_count() > 0, 120):
+            raise RuntimeError("bench_floor: no state from the sim side")
+        pp = PingPong(node, ex)
+        per, rtts, n, t, cpu = _rounds(ex, ctl, pp, args, proc.pid)
+        pp.close()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
+    child = next((json.loads(line.split(" ", 1)[1]) for line in out.splitlines()
+                  if line.startswith("FLOOR_CHILD ")), {})
+    bare = bare_figures(rtts)
+    floor = lockstep_figures(per, n, t, 0, bare)
+    ctl_t = np.asarray(ctl.times[len(ctl.times) // 10:]) * 1e3
+    floor["breakdown_median_ms"] = {"step": child.get("step_ms"),
+                                    "state_out": child.get("state_out_ms"),
+                                    "controller": float(np.median(ctl_t)) if len(ctl_t) else None}
+    floor["cpu_per_cycle_ms"] = {**{k: v * 1e-6 / n for k, v in cpu.items()},
+                                 "all": sum(cpu.values()) * 1e-6 / n} if n else {}
+    floor["sim_side"] = child
+    print(f"bare rclpy round trips: {bare['round_trips_per_s']:.0f}/s, median "
+          f"{bare['rtt_median_ms']:.3f} ms", flush=True)
+    print(f"floor cycles: {floor['states_per_s']:.0f}/s ({floor['ratio_to_bare']:.2f}x bare; "
+          f"rounds: median {floor['ratio_median_of_rounds']:.2f}x, min "
+          f"{floor['ratio_min_of_rounds']:.2f}x) [Simulator.step {args.preset} + "
+          f"StarlethController.update, one message each way, no nodes]", flush=True)
+    print("per cycle (medians, ms): " + ", ".join(
+        f"{k} {v:.3f}" for k, v in floor["breakdown_median_ms"].items() if v is not None)
+        + "; CPU time per cycle (ms, all threads): " + ", ".join(
+        f"{k} {v:.3f}" for k, v in floor["cpu_per_cycle_ms"].items()), flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"bare": bare, "floor": floor}, f, indent=1)
+    return bare, floor
+
+
+def main(argv=None):
+    keep_discovery_local()
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--bare-seconds", type=float, default=6.0,
+                   help="bare round trips, in all rounds together")
+    p.add_argument("--floor-seconds", type=float, default=18.0,
+                   help="floor cycles, in all rounds together")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved bare/floor rounds")
+    p.add_argument("--preset", default="HmJ", help="the physics (Table 1 preset)")
+    p.add_argument("--executor", default="events", choices=["events", "single_threaded"])
+    p.add_argument("--sim-executor", default="events", choices=["events", "single_threaded"])
+    p.add_argument("--domain-id", type=int, default=os.getpid() % 30 + 100)
+    p.add_argument("--json", default="")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.rounds < 1:
+        p.error("--rounds must be >= 1")
+    if args.child:
+        child_main(args)
+    else:
+        parent_main(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
