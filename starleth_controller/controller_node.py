@@ -135,7 +135,8 @@ PARAMETERS = (
     P("cmd_vel_topic", str, "cmd_vel", "geometry_msgs/Twist velocity command"),
     P("twist_frame", str, "child", "frame of the Odometry twist's linear velocity: child "
       "(base, REP 105) | parent (world)", choices=("child", "parent")),
-    P("contact_force_threshold", float, 5.0, "a foot is in contact when |force| exceeds this "
+    P("contact_force_threshold", float, ControllerParams.contact_force_threshold,
+      "a foot is in contact when |force| exceeds this "
       "[N]", read_only=False, minimum=0.0),
     P("max_linear_speed", float, 0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]",
       read_only=False, minimum=0.0),
