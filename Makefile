@@ -14,9 +14,7 @@ venv: $(STAMP)
 # rclpy, the venv sees the system site-packages and the ROS wheels are skipped;
 # otherwise the ROS 2 Jazzy PyPI wheels from requirements-ros.txt are installed.
 # The top-level package __init__ files are prerequisites because the editable
-# install only maps top-level packages that existed when it ran. --no-compile: Python
-# writes the bytecode of the modules that are imported when they first are, instead of pip
-# compiling every module of every package (ray alone has thousands): 91 -> 67 s on 2 cores.
+# install only maps top-level packages that existed when it ran.
 $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraints.txt setup.py setup.cfg package.xml \
           $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py starleth_interface/__init__.py)
 	@set -e; \
@@ -33,10 +31,10 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 	  echo "venv: rclpy importable, skipping requirements-ros.txt"; \
 	else \
 	  echo "venv: installing ROS 2 Jazzy wheels (requirements-ros.txt)"; \
-	  $(PIP) install --no-compile -c constraints.txt -r requirements-ros.txt; \
+	  $(PIP) install -c constraints.txt -r requirements-ros.txt; \
 	fi; \
 	echo "venv: installing requirements.txt requirements-test.txt"; \
-	$(PIP) install --no-compile -c constraints.txt -r requirements.txt -r requirements-test.txt; \
+	$(PIP) install -c constraints.txt -r requirements.txt -r requirements-test.txt; \
 	echo "venv: installing starleth_sim (editable)"; \
 	$(PIP) install -e . --no-deps; \
 	touch $@

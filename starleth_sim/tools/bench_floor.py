@@ -39,6 +39,7 @@ import time
 
 import numpy as np
 
+from ..physics.config import PRESETS
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 
 BUNDLE_TOPIC = "/starleth_floor/state_bundle"
@@ -197,7 +198,8 @@ def child_main(args):
     ex = _make_executor(args.sim_executor, node.context)
     ex.add_node(node)
     last_start = 0.0
-    while not stop:
+    parent = os.getppid()
+    while not stop and os.getppid() == parent:     # (a parent killed outright: stop too)
         if floor.k == 0 and time.monotonic() - last_start > 0.2:
             floor.start()            # state 0 until the controller side answers it
             last_start = time.monotonic()
@@ -250,7 +252,8 @@ def _rounds(ex, ctl, pp, args, sim_pid):
 def parent_main(args):
     import rclpy
     from rclpy.node import Node
-    from .bench_ros import (PingPong, _make_executor, _wait, bare_figures, lockstep_figures)
+    from .bench_ros import (PingPong, _make_executor, _wait, bare_figures, lockstep_figures,
+                            print_rates)
     keep_discovery_local()
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "starleth_sim.tools.bench_floor", "--child", "--domain-id",
@@ -289,12 +292,8 @@ def parent_main(args):
     floor["cpu_per_cycle_ms"] = {**{k: v * 1e-6 / n for k, v in cpu.items()},
                                  "all": sum(cpu.values()) * 1e-6 / n} if n else {}
     floor["sim_side"] = child
-    print(f"bare rclpy round trips: {bare['round_trips_per_s']:.0f}/s, median "
-          f"{bare['rtt_median_ms']:.3f} ms", flush=True)
-    print(f"floor cycles: {floor['states_per_s']:.0f}/s ({floor['ratio_to_bare']:.2f}x bare; "
-          f"rounds: median {floor['ratio_median_of_rounds']:.2f}x, min "
-          f"{floor['ratio_min_of_rounds']:.2f}x) [Simulator.step {args.preset} + "
-          f"StarlethController.update, one message each way, no nodes]", flush=True)
+    print_rates(bare, floor, "floor cycles", f") [Simulator.step {args.preset} + "
+                "StarlethController.update, one message each way, no nodes]")
     print("per cycle (medians, ms): " + ", ".join(
         f"{k} {v:.3f}" for k, v in floor["breakdown_median_ms"].items() if v is not None)
         + "; CPU time per cycle (ms, all threads): " + ", ".join(
@@ -313,7 +312,8 @@ def main(argv=None):
     p.add_argument("--floor-seconds", type=float, default=18.0,
                    help="floor cycles, in all rounds together")
     p.add_argument("--rounds", type=int, default=3, help="interleaved bare/floor rounds")
-    p.add_argument("--preset", default="HmJ", help="the physics (Table 1 preset)")
+    p.add_argument("--preset", default="HmJ", choices=PRESETS,
+                   help="the physics (a Table 1 preset)")
     p.add_argument("--executor", default="events", choices=["events", "single_threaded"])
     p.add_argument("--sim-executor", default="events", choices=["events", "single_threaded"])
     p.add_argument("--domain-id", type=int, default=os.getpid() % 30 + 100)

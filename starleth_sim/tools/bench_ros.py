@@ -441,6 +441,17 @@ def lockstep_figures(per, n_total, t_total, stamps_bad, bare):
             "ratio_min_of_rounds": float(np.min(ratios))}
 
 
+def print_rates(bare, lock, what, tail):
+    """Prints the bare round trips (bare_figures) and, beside them, the loop's cycles
+    (lockstep_figures) as `what`, its ratio to the bare rate over all rounds and per round,
+    then `tail`."""
+    print(f"bare rclpy round trips: {bare['round_trips_per_s']:.0f}/s, median "
+          f"{bare['rtt_median_ms']:.3f} ms", flush=True)
+    print(f"{what}: {lock['states_per_s']:.0f}/s ({lock['ratio_to_bare']:.2f}x bare; rounds: "
+          f"median {lock['ratio_median_of_rounds']:.2f}x, min "
+          f"{lock['ratio_min_of_rounds']:.2f}x{tail}", flush=True)
+
+
 def _pause_client(node, ex):
     """sim_node's ~/pause service (std_srvs/SetBool), once it is up (2 min at most)."""
     from std_srvs.srv import SetBool
@@ -675,13 +686,10 @@ def parent_main(args):
             results["controller"] = kind
             results["bare"], results["lockstep"] = bare, lock
             lock["node_summary"] = summary
-            print(f"bare rclpy round trips: {bare['round_trips_per_s']:.0f}/s, median "
-                  f"{bare['rtt_median_ms']:.3f} ms", flush=True)
-            print(f"lockstep control cycles: {lock['states_per_s']:.0f}/s "
-                  f"({lock['ratio_to_bare']:.2f}x bare; rounds: median "
-                  f"{lock['ratio_median_of_rounds']:.2f}x, min {lock['ratio_min_of_rounds']:.2f}x;"
-                  f" goal >= {0.4 if real else 0.75}), sim/wall {lock['sim_time_per_wall']:.2f}"
-                  f" [{kind} controller{', recording' if args.record else ''}]", flush=True)
+            print_rates(bare, lock, "lockstep control cycles",
+                        f"; goal >= {0.4 if real else 0.75}), sim/wall "
+                        f"{lock['sim_time_per_wall']:.2f} [{kind} controller"
+                        f"{', recording' if args.record else ''}]")
             if real:
                 b = lock["breakdown_median_ms"]
                 print("per cycle (medians, ms; " + str(lock["breakdown_cycles"]) + " cycles): "
