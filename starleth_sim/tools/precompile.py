@@ -12,7 +12,7 @@ The work units are the public entry points that reach distinct kernels: the one-
 of each family (tree hard contacts: HmJ; forest: HEJD and the other extended / maximal sets;
 compliant: Cm), the phase-by-phase step that ``profile=True`` runs, the step prepared ahead
 (``Simulator.prepare``, sim_node's path), the controller's kernels (one closed-loop control
-period) and sim_node's command parsers. A unit whose kernels are already cached takes a
+period, and controller_node's reading of a state) and sim_node's command parsers. A unit whose kernels are already cached takes a
 fraction of a second, so running the tool again is cheap.
 """
 from __future__ import annotations
@@ -53,6 +53,7 @@ def compile_unit(unit: str) -> None:
     if kind == "controller":
         from .evaluation import run_gait
         run_gait("HmJ", "trot", 0.01, stand_time=0.0)
+        _controller_node_state()
     elif kind == "ros-codec":
         from ..ros.cdr import CommandDecoder
         CommandDecoder(["joint"])          # compiles its parsers on construction
@@ -68,6 +69,18 @@ def compile_unit(unit: str) -> None:
     else:
         raise ValueError(f"unknown unit {unit!r}: 'step:PRESET', 'profile:PRESET', "
                          "'prepare:PRESET', 'controller' or 'ros-codec'")
+
+
+def _controller_node_state() -> None:
+    """controller_node's reading of a state (kernels.node_state) with the argument types it
+    passes (float64 views of one bundle, int64 permutation, bool contact flags): else the
+    node compiles it on its first state."""
+    import numpy as np
+    from starleth_controller.kernels import node_state
+    v = np.zeros(63)
+    node_state(v[2:14], v[14:26], np.arange(12, dtype=np.int64), v[38:51],
+               v[51:63].reshape(4, 3), 5.0, np.empty(12), np.empty(12), np.empty(3),
+               np.empty(4), np.empty(3), np.empty(3), np.eye(3), np.empty(4, dtype=bool))
 
 
 def _try_unit(unit: str) -> tuple[str, float, str | None]:
