@@ -109,6 +109,26 @@ _sum = np.add.reduce     # = ndarray.sum, without its wrapper (a finite sum: all
 
 DEFAULT_WRENCH_TOPICS = tuple(foot_wrench_topic(f"{leg}_foot") for leg in LEGS)
 
+
+def state_from_values(stamp_ns, position, velocity, perm, odom, forces, threshold,
+                      twist_in_child, R):
+    """The RobotState of one stamp, read by the node_state kernel into fresh arrays: joint
+    positions and velocities (perm: their indices in the public order), the 13 odometry
+    values (pose; twist, its linear part in the base frame when twist_in_child, else in the
+    world), the feet's forces (4 x 3; contact where |force| > threshold); R: the kernel's
+    rotation (scratch, 3 x 3). None when the kernel leaves the values to the node's checks
+    (a non-finite or huge value, a quaternion of squared norm outside (0.5, 2))."""
+    q, dq, pb, quat, v, w = (np.empty(12), np.empty(12), np.empty(3), np.empty(4),
+                             np.empty(3), np.empty(3))
+    contact = np.empty(4, dtype=bool)
+    if node_state(np.asarray(position, dtype=float), np.asarray(velocity, dtype=float), perm,
+                  odom, forces, threshold, q, dq, pb, quat, v, w, R, contact) != 0:
+        return None
+    if twist_in_child:   # base frame -> world frame
+        v = R @ v
+    return RobotState(stamp_ns * 1e-9, q, dq, pb, quat, v, w, contact, forces)
+
+
 P = ParameterSpec
 #: the node's parameters: type, default, description, bounds (one schema: it gives the
 #: declare_parameter descriptors and the checks)
@@ -656,17 +676,11 @@ class ControllerNode(Node):
             except (TypeError, ValueError):
                 return self._state_checked(stamp, s)
             if forces.shape == (4, 3):
-                q, dq, pb, quat, v, w = (np.empty(12), np.empty(12), np.empty(3),
-                                         np.empty(4), np.empty(3), np.empty(3))
-                R = self._R_node
-                contact = np.empty(4, dtype=bool)
-                if node_state(np.asarray(position, dtype=float),
-                              np.asarray(velocity, dtype=float), perm, odom, forces,
-                              self._threshold, q, dq, pb, quat, v, w, R, contact) == 0:
-                    if self._twist_in_child:   # base frame -> world frame
-                        v = R @ v
-                    return RobotState(stamp * 1e-9, q, dq, pb, quat, v, w, contact,
-                                      forces), None, None
+                state = state_from_values(stamp, position, velocity, perm, odom, forces,
+                                          self._threshold, self._twist_in_child,
+                                          self._R_node)
+                if state is not None:
+                    return state, None, None
         return self._state_checked(stamp, s)
 
     def _state_checked(self, stamp, s: _Slot):

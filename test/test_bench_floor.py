@@ -29,24 +29,26 @@ def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
     torques equal controller_node's answer (_on_bundle_cdr) to those bytes, bit for bit."""
     from starleth_controller.controller_node import ControllerNode
     from starleth_sim.ros.sim_node import SimNode
-    from starleth_sim.tools.bench_floor import SPEED, TROT_AT, FloorController, bundle_bytes
+    from starleth_sim.ros.state_io import base_values, joint_values
+    from starleth_sim.tools.bench_floor import FloorController, bundle_bytes
+    from starleth_sim.tools.bench_ros import TROT_AT, TROT_SPEED
     sim_node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep"})
     ctl_node = ControllerNode(context=ctx, parameter_overrides={"mode": "stand"})
     helper = rclpy.create_node("floor_test", context=ctx)
     try:
         floor = FloorController(helper)
         sent, answers = [], []
-        pub, *rest = sim_node.pubs["state_bundle"]
+        _, *rest = sim_node.pubs["state_bundle"]
         sim_node.pubs["state_bundle"] = (types.SimpleNamespace(publish=sent.append), *rest)
         ctl_node._publish = lambda sec_nsec, effort: answers.append(
             (tuple(sec_nsec), np.frombuffer(effort, dtype=float).copy()))
-        ctl_node._vel = (SPEED, 0.0, 0.0)
+        ctl_node._vel = (TROT_SPEED, 0.0, 0.0)
         svc, sim = sim_node.service, sim_node.sim
         modes = set()
         for k in range(400):
             sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
-            sim_node._publish_bundle(sec, nsec, sim_node._base_values(),
-                                     sim_node._joint_values(), sim.contact_forces())
+            sim_node._publish_bundle(sec, nsec, base_values(sim), joint_values(sim),
+                                     sim.contact_forces())
             data = bundle_bytes(sim_node._bundle_cdr, sim, svc.stamp_ns)
             assert data == sent[-1], f"step {k}: the bundle differs from sim_node's"
             if sec + nsec * 1e-9 >= TROT_AT:

@@ -141,8 +141,8 @@ from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
 from .recording import register_msg_text
 from .service import PeriodStats, SimService
-from .state_io import (ImuEstimate, initial_state_record, joint_indices,
-                       parse_initial_state, quat_to_matrix)
+from .state_io import (ImuEstimate, base_values, initial_state_record, joint_indices,
+                       joint_values, parse_initial_state, state_bundle_bytes)
 from .tf import TF_MSG_TEXT, TF_TYPE, FrameTree, TfMessageCdr
 
 
@@ -702,7 +702,7 @@ class SimNode:
         if bundle:
             # what controller_node waits for, in one message; the public topics follow
             # while it computes
-            base, joints = self._base_values(), self._joint_values()
+            base, joints = base_values(self.sim), joint_values(self.sim)
             forces = self.sim.contact_forces()
             self._publish_bundle(sec, nsec, base, joints, forces)
             if timing is not None:
@@ -716,7 +716,7 @@ class SimNode:
             self._publish_foot_wrenches(sec, nsec, feet, record, forces)
         want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
         if (want_odom or want_imu) and base is None:
-            base = self._base_values()
+            base = base_values(self.sim)
         if want_odom:
             self._publish_odometry(sec, nsec, base, record)
         if first:   # state 0: the exact count
@@ -726,7 +726,7 @@ class SimNode:
             send = wanted("joint_states", record)
         if send:
             self._publish_joint_states(
-                sec, nsec, record, joints if joints is not None else self._joint_values())
+                sec, nsec, record, joints if joints is not None else joint_values(self.sim))
         if timing is not None and not bundle:
             timing.row[2] = time.perf_counter()
         if "clock" in self.pubs and wanted("clock", record):
@@ -782,22 +782,15 @@ class SimNode:
             return self.pubs["state_bundle"][0].get_subscription_count() > 0
         return self._counts.get("state_bundle", 0) > 0
 
-    def _joint_values(self):
-        """(φ, φ̇, applied τ) of the current state, public joint order."""
-        sim = self.sim
-        return sim.joint_positions(), sim.joint_velocities(), sim.applied_torque
-
     def _publish_bundle(self, sec, nsec, base, joints, forces):
         """starleth/state_bundle: the values of joint_states, base_state and the four foot
-        wrenches of this step in one Float64MultiArray (the same floats, bit for bit)."""
-        p, quat, _, w, _, v_body = base
-        data = self._bundle_cdr.build(sec, nsec, *joints, (*p, *quat), (*v_body, *w),
-                                      forces[:len(FEET)].reshape(-1))
-        self.pubs["state_bundle"][0].publish(data)
+        wrenches of this step in one Float64MultiArray (state_io.state_bundle_bytes)."""
+        self.pubs["state_bundle"][0].publish(
+            state_bundle_bytes(self._bundle_cdr, sec, nsec, base, joints, forces))
 
     def _publish_joint_states(self, sec, nsec, record, joints):
         """joint_states: position, velocity and the applied torque as effort (joints:
-        _joint_values())."""
+        state_io.joint_values)."""
         cdr = self._js_cdr
         if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
             self._emit_cdr("joint_states", cdr.build(sec, nsec, *joints), record)
@@ -826,17 +819,6 @@ class SimNode:
             f = m.wrench.force
             f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
             self._emit(c.name, m, record)
-
-    def _base_values(self):
-        """(position, orientation xyzw, world linear velocity, body rates, R, linear
-        velocity in the base frame) of the base."""
-        b = self.sim.base_state()
-        p, quat, v, w = (b["position"], b["orientation_xyzw"], b["linear_velocity"],
-                         b["angular_velocity"])
-        xyzw = quat.tolist()
-        R = quat_to_matrix(*xyzw)
-        v_body = R.T @ v
-        return p.tolist(), xyzw, v, w.tolist(), R, v_body.tolist()
 
     def _publish_odometry(self, sec, nsec, base, record):
         """starleth/base_state: pose in the world, twist in the base frame."""

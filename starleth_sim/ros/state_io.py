@@ -10,6 +10,7 @@ import numpy as np
 import yaml
 
 from ..physics.config import ConfigError
+from ..physics.description import STARLETH_FEET
 from ..physics.kinematics import quat_xyzw_to_rot
 from ..physics.simulator import Simulator
 
@@ -211,6 +212,33 @@ def quat_to_matrix(qx, qy, qz, qw):
     R = np.empty((3, 3))
     quat_xyzw_to_rot(float(qx), float(qy), float(qz), float(qw), R)
     return R
+
+
+def base_values(sim: Simulator):
+    """(position, orientation xyzw, world linear velocity, body rates, R, linear velocity in
+    the base frame) of the base, as the state topics carry them (lists of floats; the world
+    velocity and R as arrays)."""
+    b = sim.base_state()
+    xyzw = b["orientation_xyzw"].tolist()
+    R = quat_to_matrix(*xyzw)
+    v = b["linear_velocity"]
+    return (b["position"].tolist(), xyzw, v, b["angular_velocity"].tolist(), R,
+            (R.T @ v).tolist())
+
+
+def joint_values(sim: Simulator):
+    """(φ, φ̇, applied τ) of the current state, public joint order."""
+    return sim.joint_positions(), sim.joint_velocities(), sim.applied_torque
+
+
+def state_bundle_bytes(bundle_cdr, sec, nsec, base, joints, forces) -> bytes:
+    """The state bundle (starleth_interface.state_bundle, through `bundle_cdr`, a
+    StateBundleCdr) of one step from base_values, joint_values and the contact forces
+    F = Λ/Δt (Simulator.contact_forces(): the feet first): the floats of the public state
+    topics, bit for bit."""
+    p, quat, _, w, _, v_body = base
+    return bundle_cdr.build(sec, nsec, *joints, (*p, *quat), (*v_body, *w),
+                            forces[:len(STARLETH_FEET)].reshape(-1))
 
 
 class ImuEstimate:

@@ -30,6 +30,7 @@ controller costs at all. The figures depend on what else runs on the machine.
 from __future__ import annotations
 
 import argparse
+import array
 import json
 import os
 import signal
@@ -41,26 +42,20 @@ import numpy as np
 
 from ..physics.config import PRESETS
 from ..ros.discovery import keep_discovery_local, local_discovery_env
+from .bench_ros import TROT_AT, TROT_SPEED
 
 BUNDLE_TOPIC = "/starleth_floor/state_bundle"
 COMMAND_TOPIC = "/starleth_floor/joint_commands"
-TROT_AT, SPEED = 0.5, 0.3      # s of sim time, m/s: bench_ros's real controller
 
 
 def bundle_bytes(bundle_cdr, sim, stamp_ns):
     """The state bundle (starleth_interface.state_bundle) of `sim`'s current state, stamped
-    `stamp_ns`: the values sim_node sends (the base's linear velocity in the base frame, as
-    its Odometry; the applied torques; the feet's F = Λ/Δt), through `bundle_cdr`
+    `stamp_ns`, as sim_node sends it (state_io.state_bundle_bytes), through `bundle_cdr`
     (a StateBundleCdr)."""
-    from ..ros.state_io import quat_to_matrix
-    b = sim.base_state()
-    xyzw = b["orientation_xyzw"].tolist()
-    v_body = (quat_to_matrix(*xyzw).T @ b["linear_velocity"]).tolist()
+    from ..ros.state_io import base_values, joint_values, state_bundle_bytes
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    return bundle_cdr.build(sec, nsec, sim.joint_positions(), sim.joint_velocities(),
-                            sim.applied_torque, (*b["position"].tolist(), *xyzw),
-                            (*v_body, *b["angular_velocity"].tolist()),
-                            sim.contact_forces()[:4].reshape(-1))
+    return state_bundle_bytes(bundle_cdr, sec, nsec, base_values(sim), joint_values(sim),
+                              sim.contact_forces())
 
 
 class FloorSim:
@@ -106,8 +101,9 @@ class FloorSim:
 
 
 class FloorController:
-    """The controller side: each bundle read as controller_node reads it (the node_state
-    kernel; twist in the base frame, contact = |F| > the contact threshold), one
+    """The controller side: each bundle read as controller_node reads it
+    (controller_node.state_from_values: twist in the base frame, contact = |F| > the
+    contact threshold), one
     ``StarlethController.update``, the torques out as controller_node's JointState. Answers
     only while ``running``; ``last`` keeps the newest bundle (answered when a round
     starts). ``times``: bundle in to command out [s]; ``commands``: sent so far."""
@@ -117,14 +113,14 @@ class FloorController:
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
         from starleth_controller import Command, StarlethController
-        from starleth_controller.kernels import node_state
+        from starleth_controller.controller_node import state_from_values
         from starleth_interface.msg_cdr import JointStateCdr
         from starleth_interface.state_bundle import JOINT_NAMES
         self.controller = StarlethController(urdf)
         self.command = Command(mode="stand")
         self.threshold = float(self.controller.params.contact_force_threshold
                                if threshold is None else threshold)
-        self._node_state = node_state
+        self._state_from_values = state_from_values
         self._perm = np.arange(12, dtype=np.int64)
         self._R = np.eye(3)
         self.cdr = JointStateCdr.create(JOINT_NAMES, ("effort",))
@@ -139,24 +135,18 @@ class FloorController:
     def torques(self, data):
         """(sec, nsec, 12 torques) answering a bundle's bytes, or None for a bundle that
         does not decode or whose state the kernel refuses."""
-        from starleth_controller import RobotState
         from starleth_interface import state_bundle as sb
         r = sb.decode(data)
         if isinstance(r, str):
             return None
         sec, nsec, v = r
-        q, dq, pb, quat, vel, w = (np.empty(12), np.empty(12), np.empty(3), np.empty(4),
-                                   np.empty(3), np.empty(3))
-        contact = np.empty(4, dtype=bool)
-        forces = v[sb.SLICES["force"]].reshape(4, 3)
-        if self._node_state(v[sb.SLICES["q"]], v[sb.SLICES["u"]], self._perm, v[sb.BASE],
-                            forces, self.threshold, q, dq, pb, quat, vel, w, self._R,
-                            contact) != 0:
+        state = self._state_from_values(
+            sec * 1_000_000_000 + nsec, v[sb.SLICES["q"]], v[sb.SLICES["u"]], self._perm,
+            v[sb.BASE], v[sb.SLICES["force"]].reshape(4, 3), self.threshold, True, self._R)
+        if state is None:
             return None
-        t = (sec * 1_000_000_000 + nsec) * 1e-9
-        if self.command.mode == "stand" and t >= TROT_AT:
-            self.command.mode, self.command.forward = "trot", SPEED
-        state = RobotState(t, q, dq, pb, quat, self._R @ vel, w, contact, forces)
+        if self.command.mode == "stand" and state.t >= TROT_AT:
+            self.command.mode, self.command.forward = "trot", TROT_SPEED
         return sec, nsec, self.controller.update(state, self.command)
 
     def _on_bundle(self, data):
@@ -165,7 +155,6 @@ class FloorController:
             self.answer(data)
 
     def answer(self, data):
-        import array
         t0 = time.perf_counter()
         r = self.torques(data)
         if r is None:

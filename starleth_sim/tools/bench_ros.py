@@ -216,7 +216,13 @@ def _controller_params(items):
     return out
 
 
-def make_bench_controller(context, timing=False, trot_at=0.5, speed=0.3, params=None):
+#: the real controller's run: stand, then trot forward at TROT_SPEED [m/s] from TROT_AT [s]
+#: of sim time
+TROT_AT, TROT_SPEED = 0.5, 0.3
+
+
+def make_bench_controller(context, timing=False, trot_at=TROT_AT, speed=TROT_SPEED,
+                          params=None):
     """starleth_controller's ControllerNode as the benchmark's real controller: stands, and
     trots at `speed` from sim time `trot_at` on (checked on every command it sends);
     `params`: more parameter overrides of the node."""

@@ -12,8 +12,9 @@ The work units are the public entry points that reach distinct kernels: the one-
 of each family (tree hard contacts: HmJ; forest: HEJD and the other extended / maximal sets;
 compliant: Cm), the phase-by-phase step that ``profile=True`` runs, the step prepared ahead
 (``Simulator.prepare``, sim_node's path), the controller's kernels (one closed-loop control
-period, and controller_node's reading of a state) and sim_node's command parsers. A unit whose kernels are already cached takes a
-fraction of a second, so running the tool again is cheap.
+period, and controller_node's reading of a state) and sim_node's command parsers. A unit
+whose kernels are already cached takes a fraction of a second, so running the tool again is
+cheap.
 """
 from __future__ import annotations
 
@@ -77,10 +78,12 @@ def _controller_node_state() -> None:
     node compiles it on its first state."""
     import numpy as np
     from starleth_controller.kernels import node_state
-    v = np.zeros(63)
-    node_state(v[2:14], v[14:26], np.arange(12, dtype=np.int64), v[38:51],
-               v[51:63].reshape(4, 3), 5.0, np.empty(12), np.empty(12), np.empty(3),
-               np.empty(4), np.empty(3), np.empty(3), np.eye(3), np.empty(4, dtype=bool))
+    from starleth_interface import state_bundle as sb
+    v = np.zeros(sb.SIZE)
+    node_state(v[sb.SLICES["q"]], v[sb.SLICES["u"]], np.arange(12, dtype=np.int64),
+               v[sb.BASE], v[sb.SLICES["force"]].reshape(4, 3), 5.0, np.empty(12),
+               np.empty(12), np.empty(3), np.empty(4), np.empty(3), np.empty(3), np.eye(3),
+               np.empty(4, dtype=bool))
 
 
 def _try_unit(unit: str) -> tuple[str, float, str | None]:
