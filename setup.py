@@ -1,13 +1,45 @@
+import importlib.util
+import os
 from glob import glob
 
-from setuptools import find_packages, setup
+from setuptools import Extension, find_packages, setup
+from setuptools.command.build_ext import build_ext
 
 package_name = 'starleth_sim'
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def _kernel_build():
+    """starleth_sim/physics/kernel_build.py, loaded by path (the package is not installed
+    yet; the module uses the standard library only)."""
+    path = os.path.join(HERE, package_name, 'physics', 'kernel_build.py')
+    spec = importlib.util.spec_from_file_location('_starleth_kernel_build', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class BuildKernels(build_ext):
+    """Builds the physics kernels (C) with kernel_build: the flags that keep their results
+    bit for bit, the same build as a source checkout's."""
+
+    def build_extension(self, ext):
+        kb = _kernel_build()
+        out = self.get_ext_fullpath(ext.name)
+        seconds = kb.build(out)
+        print(f'built {ext.name} ({out}) in {seconds:.1f} s')
+
+
+KERNELS = Extension('starleth_sim.physics._kernels',
+                    sources=sorted(glob('starleth_sim/physics/csrc/*.c')),
+                    depends=sorted(glob('starleth_sim/physics/csrc/*.h')))
 
 setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
+    ext_modules=[KERNELS],
+    cmdclass={'build_ext': BuildKernels},
     package_data={package_name: ['tools/view_page.html']},   # starleth-view's page template
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
@@ -23,7 +55,7 @@ setup(
         'numpy',
         'pyyaml',
         'pin',
-        'numba',
+        'numba',        # the controller's and the ROS codec's kernels (the physics is C)
         'mcap',
         'mcap-ros2-support',
         'matplotlib',

@@ -1,6 +1,6 @@
 """StarlETH simulator: Moreau time-stepping with hard (JOR/SOR prox) and compliant contacts
-(Gehring et al. 2014). The physics core imports numpy, numba and pin only; the ROS 2 nodes
-live in ``starleth_sim.ros``."""
+(Gehring et al. 2014). The physics core imports numpy and pin only (its kernels are C); the
+ROS 2 nodes live in ``starleth_sim.ros``."""
 from .physics.config import PRESETS, PhysicsConfig, ConfigError, load_preset, available_presets
 from .physics.simulator import Simulator, ContactInfo, Diagnostics
 from .physics.stepper import SimulationError

@@ -171,9 +171,9 @@ def test_push_in_the_air_changes_momentum_by_the_impulse():
         sim.step(np.zeros(12))
     # whole-body horizontal momentum = m v_com; with the joints free, use the CoM velocity
     import pinocchio as pin
-    from starleth_sim.physics.coordinates.forest import _quat_rot
+    from starleth_sim.physics.coordinates.forest import quat_rot
     R = np.zeros((3, 3))
-    _quat_rot(sim.q, 0, R)
+    quat_rot(sim.q, 0, R)
     up = sim.u
     up[0:3] = R.T @ up[0:3]
     pin.centerOfMass(sim.coords.model, sim.coords.data, sim.q, up)

@@ -4,7 +4,7 @@ import pinocchio as pin
 import pytest
 
 from starleth_sim import Simulator
-from starleth_sim.physics.coordinates.forest import _quat_rot
+from starleth_sim.physics.coordinates.forest import quat_rot
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def random_state(sim, seed):
 def pin_velocity(q, u):
     """u_pin = T u (pin's free-flyer linear velocity is in the body frame)."""
     R = np.zeros((3, 3))
-    _quat_rot(q, 0, R)
+    quat_rot(q, 0, R)
     up = u.copy()
     up[0:3] = R.T @ u[0:3]
     return up, R

@@ -7,7 +7,7 @@ from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
 from starleth_sim import Simulator
 from starleth_sim.physics import prox
 from starleth_sim.physics.step_kernels import (StepSettings, constraint_velocity, free_velocity,
-                                               phase_delassus, phase_minv)
+                                               prepare_hard_contacts)
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -28,20 +28,23 @@ def robot_problem(u_scale, seed, mu=0.8):
     L, u_free = np.zeros((nv, nv)), np.zeros(nv)
     eps = np.zeros((sim.coords.n_contacts, 2))
     nc = sim.coords.n_contacts
-    # the paper's active set and law (no hysteresis; no gap terms as every active g_N < 0)
+    # the paper's active set and law (no hysteresis; no gap terms as every active g_N < 0),
+    # the Delassus form with G formed
     paper = st.settings._replace(activation_gap=0.0, hysteresis=False, opening_gap=0.0,
-                                 beta_velocity=0.0)
-    ok, active, Wt, MinvW, bvec, pat, opened = phase_minv(
-        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps, sim.coords.tree.dof_parent,
-        True, L, np.zeros((nc, 3)), np.zeros(nc, dtype=bool))
-    assert ok and len(active) == 4
+                                 beta_velocity=0.0, form=prox.FORM_DELASSUS,
+                                 bilateral_direct=False)
+    problem = prepare_hard_contacts(
+        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
+        sim.coords.tree.dof_parent, True, L, np.zeros((nc, 3)), np.zeros(nc, dtype=bool), None)
+    arrays = problem.arrays()
+    active, Wt, MinvW, bvec, G = (arrays[k] for k in ("active", "Wt", "MinvW", "b", "G"))
+    assert problem.ok and len(active) == 4 and problem.n_active == 4
     free_velocity(h, st.dt, u, sim.coords.tree.dof_parent, L, u_free)
     np.testing.assert_allclose(u_free, u + np.linalg.solve(M, h) * st.dt, rtol=1e-10,
                                atol=1e-12)
     na = len(active)
-    ok, G, Gdiag, LB, _ = phase_delassus(prox.FORM_DELASSUS, na, False, Wt, MinvW, pat)
     c = np.empty(Wt.shape[0])
-    constraint_velocity(Wt, u_free, bvec, pat.wp_ptr, pat.wp_idx, c)
+    constraint_velocity(Wt, u_free, bvec, arrays["wp_ptr"], arrays["wp_idx"], c)
     np.testing.assert_allclose(c, Wt @ u_free + bvec, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(G, Wt @ np.linalg.solve(M, Wt.T), rtol=1e-10, atol=1e-12)
     return dict(M=M, Wt=Wt, MinvW=MinvW, u_free=u_free, bvec=bvec, c=c, G=G, na=na,
@@ -210,7 +213,7 @@ def _bilateral_problem(preset="HMJD", steps=60):
     st = sim.stepper
     st.prepare(sim.state)
     problem = st._prepared[6]
-    return problem[5], 3 * len(problem[1]), problem
+    return problem.arrays()["G"], 3 * problem.n_active, problem.arrays()
 
 
 def test_cholesky_with_the_envelope_is_the_dense_factor_bit_for_bit():
@@ -273,7 +276,7 @@ def test_forest_solve_with_patterns_is_the_scanning_solve_bit_for_bit():
     _, _, problem = _bilateral_problem("HMSD")
     sim = Simulator.from_preset("HMSD")
     dof_parent = sim.coords.tree.dof_parent
-    Wt = problem[2]
+    Wt = problem["Wt"]
     M = sim.coords.dynamics(sim.q, np.zeros(sim.coords.nv), np.zeros(12))[0]
     L = np.zeros_like(M)
     assert ltdl(M, dof_parent, L)

@@ -6,28 +6,13 @@ kernel), so both paths apply the same torques bit for bit.
 """
 from __future__ import annotations
 
-import numba as nb
-import numpy as np
+from . import kernels as _kernels
 
-from .kernel_cache import KERNEL
-
-
-@nb.njit(**KERNEL)
-def saturate_torque(tau, limit, qd, qd_limit, out):
-    """The torques the motors apply: out = tau clipped to [-limit, limit] (effort limits);
-    a torque that drives its joint faster (τ φ̇ > 0) beyond the velocity limit v is derated
-    like a motor's torque-speed line, linearly from full at |φ̇| = v to zero at 2v (its
-    no-load speed): no motor adds power beyond that, so a misbehaving controller cannot spin
-    a leg up without bound, and the torque stays a continuous function of the state.
-    Braking torques are never derated. False if tau has a non-finite entry (out is then not
-    to be used)."""
-    for k in range(tau.shape[0]):
-        t = tau[k]
-        if not np.isfinite(t):
-            return False
-        t = min(max(t, -limit[k]), limit[k])
-        w = abs(qd[k])
-        if w > qd_limit[k] and t * qd[k] > 0.0:
-            t *= max(0.0, 2.0 - w / qd_limit[k])
-        out[k] = t
-    return True
+#: ``saturate_torque(tau, limit, qd, qd_limit, out) -> bool``: the torques the motors apply:
+#: out = tau clipped to [-limit, limit] (effort limits); a torque that drives its joint
+#: faster (τ φ̇ > 0) beyond the velocity limit v is derated like a motor's torque-speed line,
+#: linearly from full at |φ̇| = v to zero at 2v (its no-load speed): no motor adds power
+#: beyond that, so a misbehaving controller cannot spin a leg up without bound, and the
+#: torque stays a continuous function of the state. Braking torques are never derated.
+#: False if tau has a non-finite entry (out is then not to be used).
+saturate_torque = _kernels.saturate_torque

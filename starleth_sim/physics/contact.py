@@ -10,9 +10,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import numba as nb
 
-from .kernel_cache import KERNEL
+from . import kernels as _kernels
 
 
 def tangent_basis(normal):
@@ -62,95 +61,19 @@ class CompliantLaw(NamedTuple):
     slip_velocity: float   # ‖γ_T‖ below which a slipping contact counts as stopped [m/s]
 
 
-@nb.njit(**KERNEL)
-def compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, tangent1,
-                             tangent2, lam):
-    """Compliant contact law of Alg. 1 for all contact points, at (q^M, u^S), with the
-    parameters `law` (the fields of a CompliantLaw; a plain tuple will do, as it crosses
-    from Python cheaper than a namedtuple) and the plane's tangents t1, t2.
-
-    Each closed contact (g_N ≤ 0) is a spring-damper between its current point P and the
-    point P0 (`anchor`) where it was first detected or last re-anchored:
-        λ_N = max(−c_N g_N − d_N γ_N, 0)
-        stick: λ_T = −c_T g_T − d_T γ_T, g_T = tangential part of P − P0; if ‖λ_T‖ ≥ μλ_N
-               it becomes λ_T = −μλ_N γ_T/‖γ_T‖ and the contact slips;
-        slip:  λ_T = −μλ_N γ_T/‖γ_T‖; it sticks again (P0 reset to P) once ‖γ_T‖ ≈ 0 or the
-               force the re-anchored spring-damper would give, −d_T γ_T, is inside the cone.
-    Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
-    in the contact frame (n, t1, t2); the state arrays are updated in place.
-    """
-    p = CompliantLaw(*law)
-    mu, c_n, d_n, c_t, d_t = p.mu, p.c_N, p.d_N, p.c_T, p.d_T
-    slip_velocity = p.slip_velocity
-    nc = gap.shape[0]
-    nv = u.shape[0]
-    for i in range(nc):
-        if gap[i] > 0.0:
-            closed[i] = False
-            slip[i] = False
-            lam[i, 0] = 0.0
-            lam[i, 1] = 0.0
-            lam[i, 2] = 0.0
-            continue
-        if not closed[i]:
-            closed[i] = True
-            slip[i] = False
-            for k in range(3):
-                anchor[i, k] = position[i, k]
-        gn = 0.0
-        g1 = 0.0
-        g2 = 0.0
-        for j in range(nv):
-            gn += Wt[i, 0, j] * u[j]
-            g1 += Wt[i, 1, j] * u[j]
-            g2 += Wt[i, 2, j] * u[j]
-        # γ_N = gn, γ_T = (g1, g2)
-        ln = -c_n * gap[i] - d_n * gn
-        if ln < 0.0:
-            ln = 0.0
-        vt = np.sqrt(g1 * g1 + g2 * g2)
-        lim = mu * ln
-        if slip[i]:
-            if vt > 0.0:
-                l1 = -lim * g1 / vt
-                l2 = -lim * g2 / vt
-            else:
-                l1 = 0.0
-                l2 = 0.0
-            if vt <= slip_velocity or d_t * vt <= lim:
-                slip[i] = False
-                for k in range(3):
-                    anchor[i, k] = position[i, k]
-        else:
-            dx0 = position[i, 0] - anchor[i, 0]
-            dx1 = position[i, 1] - anchor[i, 1]
-            dx2 = position[i, 2] - anchor[i, 2]
-            gt1 = tangent1[0] * dx0 + tangent1[1] * dx1 + tangent1[2] * dx2
-            gt2 = tangent2[0] * dx0 + tangent2[1] * dx1 + tangent2[2] * dx2
-            l1 = -c_t * gt1 - d_t * g1
-            l2 = -c_t * gt2 - d_t * g2
-            if l1 * l1 + l2 * l2 >= lim * lim:
-                if vt > 0.0:
-                    l1 = -lim * g1 / vt
-                    l2 = -lim * g2 / vt
-                else:
-                    s = lim / np.sqrt(l1 * l1 + l2 * l2) if (l1 != 0.0 or l2 != 0.0) else 0.0
-                    l1 *= s
-                    l2 *= s
-                slip[i] = True
-        lam[i, 0] = ln
-        lam[i, 1] = l1
-        lam[i, 2] = l2
-
-
-@nb.njit(**KERNEL)
-def generalized_contact_force(Wt, lam, out):
-    """out += Σ_i W_i λ_i  (W_i = Wt[i]^T), the contribution of the compliant forces to h."""
-    nc = lam.shape[0]
-    nv = out.shape[0]
-    for i in range(nc):
-        a, b, c = lam[i, 0], lam[i, 1], lam[i, 2]
-        if a == 0.0 and b == 0.0 and c == 0.0:
-            continue
-        for j in range(nv):
-            out[j] += Wt[i, 0, j] * a + Wt[i, 1, j] * b + Wt[i, 2, j] * c
+#: The compliant contact law of Alg. 1 for all contact points, at (q^M, u^S):
+#: ``compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, tangent1,
+#: tangent2, lam)`` with the fields of a `CompliantLaw` (a plain tuple will do). Each closed
+#: contact (g_N ≤ 0) is a spring-damper between its current point P and the point P0
+#: (`anchor`) where it was first detected or last re-anchored:
+#:     λ_N = max(−c_N g_N − d_N γ_N, 0)
+#:     stick: λ_T = −c_T g_T − d_T γ_T, g_T = tangential part of P − P0; if ‖λ_T‖ ≥ μλ_N it
+#:            becomes λ_T = −μλ_N γ_T/‖γ_T‖ and the contact slips;
+#:     slip:  λ_T = −μλ_N γ_T/‖γ_T‖; it sticks again (P0 reset to P) once ‖γ_T‖ ≈ 0 or the
+#:            force the re-anchored spring-damper would give, −d_T γ_T, is inside the cone.
+#: Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
+#: in the contact frame (n, t1, t2); the state arrays are updated in place.
+#: ``generalized_contact_force(Wt, lam, out)``: out += Σ_i W_i λ_i (W_i = Wt[i]^T), the
+#: compliant forces' contribution to h.
+compliant_contact_forces = _kernels.compliant_contact_forces
+generalized_contact_force = _kernels.generalized_contact_force

@@ -53,7 +53,8 @@ from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
 from .linalg import ltdl
 from .state import SimState
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
-                           PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings, clock,
+                           PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, ContactProblem,
+                           StepSettings, clock,
                            complete_hard_contacts, end_of_step, kernel_timings, lap,
                            prepare_hard_contacts, solve_compliant, solve_hard_contacts)
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
@@ -190,6 +191,8 @@ class MoreauStepper:
                                   f"(contacts: {', '.join(names)})")
             self.eps[names.index(name)] = (en, et)
         self._never_active = np.full(nc, np.inf)
+        #: the memory of a hard-contact problem prepared ahead (prepare), filled again each time
+        self._problem = ContactProblem()
         self.stats = StepperStats()
         #: an unprepared, unprofiled step runs as one kernel: of a set without bilateral
         #: constraints whose M depends on q (the minimal coordinates) in tree_step_hard /
@@ -277,8 +280,8 @@ class MoreauStepper:
             problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
                                             WtB, self.bB, self.eps, self.dof_parent, factor,
                                             self.L, state.last_impulse, state.last_active,
-                                            kernel_timings(timings))
-            ok = problem[0]
+                                            kernel_timings(timings), self._problem)
+            ok = problem.ok
             if ok:
                 self._factored = True
         else:
@@ -461,8 +464,8 @@ class MoreauStepper:
         return uE, res
 
     def _solve(self, state, M, h, uS, problem, WtB, timings):
-        """u^E of the hard-contact (or bilateral) problem, prepared (`problem`: the tuple of
-        prepare_hard_contacts) or, with problem None, set up and solved in one kernel
+        """u^E of the hard-contact (or bilateral) problem, prepared (`problem`: the
+        ContactProblem of prepare_hard_contacts) or, with problem None, set up and solved in one kernel
         (solve_hard_contacts, with W_B^T of the midpoint); the warm-start memory of `state`
         updated."""
         nc = self.nc
@@ -487,7 +490,7 @@ class MoreauStepper:
                 self._settings_fields, problem, h, uS, M, self.dof_parent, self.L, gap,
                 self.Wt_all, state.last_impulse, state.last_active, state.last_bilateral,
                 impulse, is_active, self.u_free, u, self.u_corr, kernel_timings(timings))
-            n_active, opened = problem[1].shape[0], problem[9]
+            n_active, opened = problem.n_active, problem.opened
         if retried:
             self.stats.retried += 1
         if status != prox.STATUS_CONVERGED:

@@ -11,7 +11,7 @@ Every tree root is a free body with the paper's coordinates (Eqn. 21):
     q_root = [I_r (3), quaternion (x, y, z, w)],   u_root = [I_v (3), B_ω (3)]
 (inertial velocity of the root frame's origin, body-frame angular velocity; Pinocchio's
 quaternion storage order), followed by the angles/rates of the tree's revolute joints.
-M and h come from the jitted CRBA and RNEA of :mod:`starleth_sim.physics.rigid_body`, which
+M and h come from the CRBA and RNEA of :mod:`starleth_sim.physics.rigid_body`, which
 work in these coordinates directly (checked against Pinocchio's, whose roots use body-frame
 linear velocities: M = Tᵀ M_pin T, h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k,body)),
 T = diag(R_kᵀ, I), see from_pin_dynamics). For the maximal set M is constant and
@@ -26,365 +26,46 @@ and its angle φ is recovered from the relative rotation of P and C.
 """
 from __future__ import annotations
 
-import numba as nb
 import numpy as np
 import pinocchio as pin
 
-from ..array_views import arena_floats, arena_ints, view2
-from ..kernel_cache import KERNEL
 from ..description import RobotDescription
-from ..kinematics import (JT_FREEFLYER, KinematicTree, contact_kinematics, contact_points,
-                          forward_kinematics, point_jacobian, quat_xyzw_to_rot)
-from ..rigid_body import BodyInertias, mass_matrix_and_forces
+from ..kernels import (add_at, angular_jacobian, cut_joint_torques, cut_joints,  # noqa: F401
+                       from_pin_dynamics, gather_joint_values, integrate_forest,
+                       midpoint_dynamics, quat_rot,
+                       rigid_body_forces, to_pin_velocity, tree_dynamics)
+from ..kinematics import KinematicTree, contact_kinematics, forward_kinematics, point_jacobian
+from ..rigid_body import BodyInertias
 
 _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
                 "JointModelRZ": pin.JointModelRZ}
 
 
 # --------------------------------------------------------------------------------------------
-# jitted kernels over the forest arrays
-# --------------------------------------------------------------------------------------------
-@nb.njit(**KERNEL)
-def integrate_forest(q, u, dt, jtype, idx_q, idx_v, out):
-    """out = q ⊕ Δt F(q) u: r ← r + Δt v, P ← P ⊗ exp(Δt ω/2) per root, φ ← φ + Δt φ̇."""
-    for j in range(1, jtype.shape[0]):
-        iq = idx_q[j]
-        iv = idx_v[j]
-        if jtype[j] != JT_FREEFLYER:
-            out[iq] = q[iq] + dt * u[iv]
-            continue
-        for k in range(3):
-            out[iq + k] = q[iq + k] + dt * u[iv + k]
-        wx, wy, wz = u[iv + 3] * dt, u[iv + 4] * dt, u[iv + 5] * dt
-        ang = np.sqrt(wx * wx + wy * wy + wz * wz)
-        if ang > 1e-12:
-            s = np.sin(0.5 * ang) / ang
-        else:
-            s = 0.5 - ang * ang / 48.0
-        dx, dy, dz, dw = wx * s, wy * s, wz * s, np.cos(0.5 * ang)
-        x, y, z, w = q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6]
-        nx = w * dx + x * dw + y * dz - z * dy
-        ny = w * dy - x * dz + y * dw + z * dx
-        nz = w * dz + x * dy - y * dx + z * dw
-        nw = w * dw - x * dx - y * dy - z * dz
-        n = np.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
-        out[iq + 3] = nx / n
-        out[iq + 4] = ny / n
-        out[iq + 5] = nz / n
-        out[iq + 6] = nw / n
-
-
-@nb.njit(**KERNEL, inline="always")
-def _quat_rot(q, iq, R):
-    """Rotation of the root whose coordinates start at q[iq] (quaternion at iq+3..iq+6)."""
-    quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], R)
-
-
-# Pinocchio's free-flyer convention and the transform of its M and h into ours: the
-# cross-check of rigid_body in test/test_kinematics_dynamics.py
-@nb.njit(**KERNEL)
-def to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin):
-    """u_pin = T u: each root's linear velocity rotated into its body frame (Rs: n_roots x 3 x 3
-    receives the roots' rotations)."""
-    for k in range(u.shape[0]):
-        u_pin[k] = u[k]
-    for r in range(roots.shape[0]):
-        _quat_rot(q, root_q[r], Rs[r])
-        iv = root_v[r]
-        for a in range(3):
-            u_pin[iv + a] = Rs[r, 0, a] * u[iv] + Rs[r, 1, a] * u[iv + 1] + Rs[r, 2, a] * u[iv + 2]
-
-
-@nb.njit(**KERNEL)
-def from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h):
-    """M = Tᵀ M_pin T, h = Tᵀ (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k)) (M_pin: upper triangle)."""
-    n = M_pin.shape[0]
-    for i in range(n):
-        for j in range(i, n):
-            M[i, j] = M_pin[i, j]
-            M[j, i] = M_pin[i, j]
-    for i in range(n):
-        h[i] = h_pin[i]
-    nr = root_v.shape[0]
-    for r in range(nr):
-        iv = root_v[r]
-        vx, vy, vz = u_pin[iv], u_pin[iv + 1], u_pin[iv + 2]
-        wx, wy, wz = u_pin[iv + 3], u_pin[iv + 4], u_pin[iv + 5]
-        cx = wy * vz - wz * vy
-        cy = wz * vx - wx * vz
-        cz = wx * vy - wy * vx
-        for i in range(n):
-            h[i] += M[i, iv] * cx + M[i, iv + 1] * cy + M[i, iv + 2] * cz
-    tmp = np.empty(3)
-    for r in range(nr):
-        iv = root_v[r]
-        R = Rs[r]
-        for j in range(n):
-            for a in range(3):
-                tmp[a] = R[a, 0] * M[iv, j] + R[a, 1] * M[iv + 1, j] + R[a, 2] * M[iv + 2, j]
-            for a in range(3):
-                M[iv + a, j] = tmp[a]
-        for i in range(n):
-            for a in range(3):
-                tmp[a] = M[i, iv] * R[a, 0] + M[i, iv + 1] * R[a, 1] + M[i, iv + 2] * R[a, 2]
-            for a in range(3):
-                M[i, iv + a] = tmp[a]
-        for a in range(3):
-            tmp[a] = R[a, 0] * h[iv] + R[a, 1] * h[iv + 1] + R[a, 2] * h[iv + 2]
-        for a in range(3):
-            h[iv + a] = tmp[a]
-
-
-@nb.njit(**KERNEL, inline="always")
-def tree_dynamics(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, mass, lever,
-                  inertia, gravity, M, h):
-    """M and h at (q, u) (rigid_body.mass_matrix_and_forces after the forward kinematics)."""
-    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)
-    mass_matrix_and_forces(u, parent, jtype, axis, idx_v, oR, op, mass, lever, inertia,
-                           gravity, M, h)
-
-
-@nb.njit(**KERNEL)
-def midpoint_dynamics(q, u, half_dt, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support,
-                      oR, op, mass, lever, inertia, gravity, c_joint, c_local, c_radius,
-                      normal, tangent1, tangent2, ground_offset, jacobian_gap, qM, M, h, gap,
-                      position, Wt):
-    """What a step needs at its midpoint, in one call over one forward kinematics:
-    q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S) (tree_dynamics) and the contacts'
-    g_N, positions and W^T at q^M (kinematics.contact_points)."""
-    integrate_forest(q, u, half_dt, jtype, idx_q, idx_v, qM)
-    tree_dynamics(qM, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, oR, op, mass, lever,
-                  inertia, gravity, M, h)
-    contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
-                   normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)
-
-
-@nb.njit(**KERNEL)
-def add_at(h, idx, values):
-    """h[idx[k]] += values[k] (a fancy-indexed += costs several µs from Python)."""
-    for k in range(idx.shape[0]):
-        h[idx[k]] += values[k]
-
-
-@nb.njit(**KERNEL)
-def rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h):
-    """h = [m g ; −ω × Θ ω] per free body (frames at the CoM, inertial linear velocity)."""
-    for r in range(root_v.shape[0]):
-        iv = root_v[r]
-        for a in range(3):
-            h[iv + a] = mass[r] * gravity[a]
-        w0, w1, w2 = u[iv + 3], u[iv + 4], u[iv + 5]
-        I = inertia[r]
-        l0 = I[0, 0] * w0 + I[0, 1] * w1 + I[0, 2] * w2
-        l1 = I[1, 0] * w0 + I[1, 1] * w1 + I[1, 2] * w2
-        l2 = I[2, 0] * w0 + I[2, 1] * w1 + I[2, 2] * w2
-        h[iv + 3] = -(w1 * l2 - w2 * l1)
-        h[iv + 4] = -(w2 * l0 - w0 * l2)
-        h[iv + 5] = -(w0 * l1 - w1 * l0)
-
-
-@nb.njit(**KERNEL)
-def angular_jacobian(j, jtype, axis, idx_v, support, oR, out, zero=True):
-    """Jacobian (3 x nv) of the world angular velocity of joint frame j (only the columns
-    of the joints that support j written; the others zeroed first unless `zero` is
-    False)."""
-    nv = out.shape[1]
-    if zero:
-        for r in range(3):
-            for c in range(nv):
-                out[r, c] = 0.0
-    for k in range(1, jtype.shape[0]):
-        if not support[j, k]:
-            continue
-        iv = idx_v[k]
-        if jtype[k] == JT_FREEFLYER:
-            for r in range(3):
-                for c in range(3):
-                    out[r, iv + 3 + c] = oR[k, r, c]
-        else:
-            for r in range(3):
-                out[r, iv] = oR[k, r, 0] * axis[k, 0] + oR[k, r, 1] * axis[k, 1] + oR[k, r, 2] * axis[k, 2]
-
-
-@nb.njit(**KERNEL, inline="always")
-def _rotate(R, v, out):
-    for r in range(3):
-        out[r] = R[r, 0] * v[0] + R[r, 1] * v[1] + R[r, 2] * v[2]
-
-
-@nb.njit(**KERNEL, inline="always")
-def _cut_scratch(nv, arena):
-    """Scratch arrays of a pass over the cut joints, in one buffer (from a step's arena,
-    array_views.arena_floats, or new): (J_P, J_C (3 x nv), the hinge axis aw and P's
-    perpendiculars b1, b2 in the world, t, three more 3-vectors, and nv ints for
-    _cut_columns)."""
-    buf = arena_floats(arena, 6 * nv + 21)
-    v = buf[6 * nv:]
-    return (view2(buf[:3 * nv], (3, nv)), view2(buf[3 * nv:6 * nv], (3, nv)), v[:3],
-            v[3:6], v[6:9], v[9:12], v[12:15], v[15:18], v[18:21], arena_ints(arena, nv))
-
-
-@nb.njit(**KERNEL, inline="always")
-def _hinge_axes(oR_P, a_P, b1_P, b2_P, aw, b1, b2):
-    """The hinge axis a and the perpendiculars b1, b2 of a cut joint, given in the frame of
-    its body P, in the world (aw, b1, b2)."""
-    _rotate(oR_P, a_P, aw)
-    _rotate(oR_P, b1_P, b1)
-    _rotate(oR_P, b2_P, b2)
-
-
-@nb.njit(**KERNEL, inline="always")
-def _cut_columns(P, C, jtype, idx_v, support, cols):
-    """The velocities a cut joint's rows can depend on: the dofs of the joints that support
-    body P or body C, ascending (a joint's dofs follow its index), into cols; returns their
-    number. Its Jacobians are zero in every other column."""
-    n = 0
-    for k in range(1, jtype.shape[0]):
-        if support[P, k] or support[C, k]:
-            iv = idx_v[k]
-            for c in range(iv, iv + (6 if jtype[k] == JT_FREEFLYER else 1)):
-                cols[n] = c
-                n += 1
-    return n
-
-
-@nb.njit(**KERNEL, inline="always")
-def _zero_columns(J, cols, n):
-    for r in range(3):
-        for p in range(n):
-            J[r, cols[p]] = 0.0
-
-
-@nb.njit(**KERNEL)
-def cut_joints(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
-               cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B, angle, rate,
-               axis_world, do_fk, arena=None):
-    """For every cut joint k (bodies cut_P[k], cut_C[k]; joint origin p_*, axis a_* and the
-    perpendicular b1_* in each body frame, b2_P = a_P x b1_P): the 5 rows of W_Bᵀ, the
-    position-level violation g_B, the joint angle φ and rate φ̇, and the hinge axis in the
-    world frame (scratch from a step's arena, or new). Only the columns of the velocities
-    the two bodies depend on (_cut_columns) are written: Wt_B's other entries stay the
-    zeros they were made with (the same columns every call). The Jacobians are zero there,
-    so the values are those of a pass over all columns, and the rate φ̇ is its sum but for
-    ±0 terms (the same value)."""
-    if do_fk:
-        forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena)
-    nv = u.shape[0]
-    JP, JC, aw, b1, b2, t, xP, xC, acw, cols = _cut_scratch(nv, arena)
-    for k in range(cut_P.shape[0]):
-        P = cut_P[k]
-        C = cut_C[k]
-        n = _cut_columns(P, C, jtype, idx_v, support, cols)
-        _rotate(oR[P], p_P[k], t)
-        for r in range(3):
-            xP[r] = op[P, r] + t[r]
-        _rotate(oR[C], p_C[k], t)
-        for r in range(3):
-            xC[r] = op[C, r] + t[r]
-        _hinge_axes(oR[P], a_P[k], b1_P[k], b2_P[k], aw, b1, b2)
-        _rotate(oR[C], a_C[k], acw)
-        row = 5 * k
-        _zero_columns(JP, cols, n)
-        _zero_columns(JC, cols, n)
-        point_jacobian(P, xP, jtype, axis, idx_v, support, oR, op, JP, False)
-        point_jacobian(C, xC, jtype, axis, idx_v, support, oR, op, JC, False)
-        for r in range(3):
-            for p in range(n):
-                c = cols[p]
-                Wt_B[row + r, c] = JP[r, c] - JC[r, c]
-            g_B[row + r] = xP[r] - xC[r]
-        _zero_columns(JP, cols, n)
-        _zero_columns(JC, cols, n)
-        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP, False)
-        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC, False)
-        for p in range(n):
-            c = cols[p]
-            d0 = JC[0, c] - JP[0, c]
-            d1 = JC[1, c] - JP[1, c]
-            d2 = JC[2, c] - JP[2, c]
-            Wt_B[row + 3, c] = b1[0] * d0 + b1[1] * d1 + b1[2] * d2
-            Wt_B[row + 4, c] = b2[0] * d0 + b2[1] * d1 + b2[2] * d2
-        # d/dt (a_C·b2) = −b1·(ω_C − ω_P) and d/dt (a_C·b1) = b2·(ω_C − ω_P), so that
-        # γ_B = dg_B/dt row by row:
-        g_B[row + 3] = -(acw[0] * b2[0] + acw[1] * b2[1] + acw[2] * b2[2])
-        g_B[row + 4] = acw[0] * b1[0] + acw[1] * b1[1] + acw[2] * b1[2]
-        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t,
-                                            cols[:n])
-        for r in range(3):
-            axis_world[k, r] = aw[r]
-
-
-@nb.njit(**KERNEL, inline="always")
-def _angle_and_rate(oR_C, b1_C, aw, b1, b2, JP, JC, u, t, cols):
-    """φ and φ̇ of a cut joint: φ the rotation of C's b1 about the hinge axis aw, seen in P's
-    (b1, b2) basis (all in the world); φ̇ = aw·(ω_C − ω_P), with JP, JC the angular
-    Jacobians of P and C, summed over their columns `cols` (t: scratch)."""
-    _rotate(oR_C, b1_C, t)  # b1 carried by C (the joint frames coincide at φ = 0)
-    angle = np.arctan2(t[0] * b2[0] + t[1] * b2[1] + t[2] * b2[2],
-                       t[0] * b1[0] + t[1] * b1[1] + t[2] * b1[2])
-    s = 0.0
-    for c in cols:
-        s += (aw[0] * (JC[0, c] - JP[0, c]) + aw[1] * (JC[1, c] - JP[1, c])
-              + aw[2] * (JC[2, c] - JP[2, c])) * u[c]
-    return angle, s
-
-
-@nb.njit(**KERNEL)
-def cut_joint_motion(q, u, parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op,
-                     cut_P, cut_C, a_P, b1_P, b2_P, b1_C, angle, rate, arena=None):
-    """φ and φ̇ of every cut joint at (q, u), and nothing else: the same arithmetic as
-    cut_joints' (so the same values bit for bit) without W_B and g_B. The forward
-    kinematics of q are computed into oR, op (scratch from a step's arena, or new)."""
-    forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op, arena)
-    JP, JC, aw, b1, b2, t, _, _, _, cols = _cut_scratch(u.shape[0], arena)
-    for k in range(cut_P.shape[0]):
-        P = cut_P[k]
-        C = cut_C[k]
-        n = _cut_columns(P, C, jtype, idx_v, support, cols)
-        _hinge_axes(oR[P], a_P[k], b1_P[k], b2_P[k], aw, b1, b2)
-        _zero_columns(JP, cols, n)
-        _zero_columns(JC, cols, n)
-        angular_jacobian(P, jtype, axis, idx_v, support, oR, JP, False)
-        angular_jacobian(C, jtype, axis, idx_v, support, oR, JC, False)
-        angle[k], rate[k] = _angle_and_rate(oR[C], b1_C[k], aw, b1, b2, JP, JC, u, t,
-                                            cols[:n])
-
-
-@nb.njit(**KERNEL)
-def gather_joint_values(x, index, cut_values, cut_index, out):
-    """out[k] = x[index[k]] for a joint inside a tree (cut_index[k] < 0), cut_values[
-    cut_index[k]] for a cut joint: the joints' φ (x = q) or φ̇ (x = u) in the public order
-    in one call (the masked fancy indexing it replaces cost ≈4 µs)."""
-    for k in range(out.shape[0]):
-        c = cut_index[k]
-        out[k] = x[index[k]] if c < 0 else cut_values[c]
-
-
-@nb.njit(**KERNEL)
-def cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h,
-                      arena=None):
-    """h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the actuators of the cut joints (the Jacobian's
-    scratch from a step's arena, or new), over the velocities the two bodies depend on
-    (_cut_columns): the other columns of J are zero, and h + ±0 is h."""
-    nv = h.shape[0]
-    J = view2(arena_floats(arena, 3 * nv), (3, nv))
-    cols = arena_ints(arena, nv)
-    for k in range(cut_P.shape[0]):
-        tq = tau_cut[k]
-        if tq == 0.0:
-            continue
-        f0, f1, f2 = tq * axis_world[k, 0], tq * axis_world[k, 1], tq * axis_world[k, 2]
-        n = _cut_columns(cut_P[k], cut_C[k], jtype, idx_v, support, cols)
-        _zero_columns(J, cols, n)
-        angular_jacobian(cut_C[k], jtype, axis, idx_v, support, oR, J, False)
-        for p in range(n):
-            c = cols[p]
-            h[c] += J[0, c] * f0 + J[1, c] * f1 + J[2, c] * f2
-        _zero_columns(J, cols, n)
-        angular_jacobian(cut_P[k], jtype, axis, idx_v, support, oR, J, False)
-        for p in range(n):
-            c = cols[p]
-            h[c] -= J[0, c] * f0 + J[1, c] * f1 + J[2, c] * f2
+# the kernels over the forest arrays (C, csrc/forest.c):
+#   integrate_forest(q, u, dt, jtype, idx_q, idx_v, out): out = q ⊕ Δt F(q) u: r ← r + Δt v,
+#       P ← P ⊗ exp(Δt ω/2) per root, φ ← φ + Δt φ̇;
+#   quat_rot(q, iq, R): the rotation of the root whose coordinates start at q[iq];
+#   to_pin_velocity / from_pin_dynamics: Pinocchio's free-flyer convention and the
+#       transform of its M and h into ours (the cross-check of rigid_body in
+#       test/test_kinematics_dynamics.py);
+#   tree_dynamics(q, u, <tree>, mass, lever, inertia, gravity, M, h): M and h at (q, u);
+#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, n, t1, t2, offset, jacobian_gap, qM,
+#       M, h, gap, position, Wt): what a step needs at its midpoint, over one forward
+#       kinematics: q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S), the contacts' g_N,
+#       positions and W^T at q^M;
+#   add_at(h, idx, values): h[idx[k]] += values[k];
+#   rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h): h = [m g; −ω × Θ ω]
+#       per free body (frames at the CoM, inertial linear velocity);
+#   angular_jacobian(j, jtype, axis, idx_v, support, oR, out, zero=True);
+#   cut_joints(q, u, <tree>, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B,
+#       angle, rate, axis_world, do_fk): for every cut joint the 5 rows of W_Bᵀ, g_B, φ, φ̇
+#       and the hinge axis in the world; only the columns of the velocities the two bodies
+#       depend on are written (Wt_B's others stay the zeros they were made with);
+#   gather_joint_values(x, index, cut_values, cut_index, out): the joints' φ (x = q) or φ̇
+#       (x = u) in the public order;
+#   cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h):
+#       h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the cut joints' actuators.
 
 
 # --------------------------------------------------------------------------------------------
@@ -471,7 +152,7 @@ class ForestCoordinates:
 
     def _index_trees(self, roots, constant_mass_matrix):
         """Sizes and index arrays of the forest: nq, nv, the kinematic tree arrays (self.tree),
-        each tree's root joint and its q / v offsets and the bodies' inertias of the jitted
+        each tree's root joint and its q / v offsets and the bodies' inertias of the
         CRBA / RNEA."""
         forest = self.model
         self.nq, self.nv = forest.nq, forest.nv
@@ -489,7 +170,7 @@ class ForestCoordinates:
                 raise ValueError("the forest's trees must have contiguous velocity indices, "
                                  "parents first")
         self.constant_mass_matrix = constant_mass_matrix
-        #: the bodies' inertias for the jitted CRBA / RNEA (rigid_body)
+        #: the bodies' inertias for the CRBA / RNEA (rigid_body)
         self.inertias = BodyInertias(forest)
         self._midpoint_model = None     # see midpoint
         self._trunk = None              # see _trunk_frame
@@ -637,7 +318,7 @@ class ForestCoordinates:
     def midpoint(self, q, u, dt, ground, gap, position, Wt, jacobian_gap=np.inf):
         """(q^M, M, h) of a step of Δt from (q, u), h without the joint torques: q^M = q ⊕
         ½Δt F(q) u (Eqn. 6), M and h at (q^M, u); and gap, position and Wt filled at q^M as
-        by contact_kinematics. One jitted call unless M is constant."""
+        by contact_kinematics. One kernel call unless M is constant."""
         if self.constant_mass_matrix:
             qM = self.integrate(q, u, 0.5 * dt)
             M, h = self.dynamics(qM, u, None)
@@ -784,7 +465,7 @@ class ForestCoordinates:
         iq, iv = self.root_q[0], self.root_v[0]
         t, rot, rot_t, identity = self._trunk_frame()
         R = np.zeros((3, 3))
-        _quat_rot(q, iq, R)
+        quat_rot(q, iq, R)
         d = R @ t
         pos = q[iq:iq + 3] + d
         w_body = u[iv + 3:iv + 6]

@@ -1,0 +1,159 @@
+/* Contact-point kinematics of a kinematic tree (kinematics.py): forward kinematics, point
+ * Jacobians in the world frame, and the contacts' gaps g_N, positions and W^T. */
+#include "core.h"
+
+/* quat_xyzw_to_rot: R (3 x 3) of the unit quaternion (x, y, z, w) (Pinocchio order). */
+void quat_xyzw_to_rot(double x, double y, double z, double w, double *R) {
+    R[0] = 1.0 - 2.0 * (y * y + z * z);
+    R[1] = 2.0 * (x * y - z * w);
+    R[2] = 2.0 * (x * z + y * w);
+    R[3] = 2.0 * (x * y + z * w);
+    R[4] = 1.0 - 2.0 * (x * x + z * z);
+    R[5] = 2.0 * (y * z - x * w);
+    R[6] = 2.0 * (x * z - y * w);
+    R[7] = 2.0 * (y * z + x * w);
+    R[8] = 1.0 - 2.0 * (x * x + y * y);
+}
+
+/* axis_angle_to_rot: R (3 x 3) of the rotation by theta about the unit axis a. */
+static void axis_angle_to_rot(const double *a, double theta, double *R) {
+    double c = cos(theta);
+    double s = sin(theta);
+    double t = 1.0 - c;
+    double x = a[0], y = a[1], z = a[2];
+    R[0] = t * x * x + c;
+    R[1] = t * x * y - s * z;
+    R[2] = t * x * z + s * y;
+    R[3] = t * x * y + s * z;
+    R[4] = t * y * y + c;
+    R[5] = t * y * z - s * x;
+    R[6] = t * x * z - s * y;
+    R[7] = t * y * z + s * x;
+    R[8] = t * z * z + c;
+}
+
+/* _matmul3: out = A B for 3 x 3 matrices. */
+static void matmul3(const double *A, const double *B, double *out) {
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            out[r * 3 + c] = A[r * 3 + 0] * B[0 * 3 + c] + A[r * 3 + 1] * B[1 * 3 + c]
+                             + A[r * 3 + 2] * B[2 * 3 + c];
+}
+
+/* forward_kinematics: world placements (oR[j], op[j]) of all joint frames,
+ * oM_j = oM_parent · placement_j · M_j(q). */
+void forward_kinematics(const double *q, const tree_t *t, const frames_t *f) {
+    double *oR = f->oR, *op = f->op;
+    for (int r = 0; r < 3; r++) {
+        for (int c = 0; c < 3; c++) oR[r * 3 + c] = r == c ? 1.0 : 0.0;
+        op[r] = 0.0;
+    }
+    double scratch[21] = {0.0}; /* Rq, tmp, pq */
+    double *Rq = scratch, *tmp = scratch + 9, *pq = scratch + 18;
+    for (i64 j = 1; j < t->nj; j++) {
+        i64 iq = t->idx_q[j];
+        if (t->jtype[j] == JT_FREEFLYER) {
+            quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], Rq);
+            pq[0] = q[iq];
+            pq[1] = q[iq + 1];
+            pq[2] = q[iq + 2];
+        } else {
+            axis_angle_to_rot(t->axis + 3 * j, q[iq], Rq);
+            pq[0] = 0.0;
+            pq[1] = 0.0;
+            pq[2] = 0.0;
+        }
+        i64 par = t->parent[j];
+        const double *plR = t->pl_R + 9 * j, *plp = t->pl_p + 3 * j;
+        const double *oRp = oR + 9 * par;
+        /* p_local = placement.p + placement.R pq ; op = op_par + oR_par p_local */
+        for (int r = 0; r < 3; r++) {
+            double pl = plp[r] + plR[r * 3 + 0] * pq[0] + plR[r * 3 + 1] * pq[1]
+                        + plR[r * 3 + 2] * pq[2];
+            tmp[r] = pl;
+        }
+        for (int r = 0; r < 3; r++)
+            op[3 * j + r] = op[3 * par + r] + oRp[r * 3 + 0] * tmp[0] + oRp[r * 3 + 1] * tmp[1]
+                            + oRp[r * 3 + 2] * tmp[2];
+        matmul3(plR, Rq, tmp);
+        matmul3(oRp, tmp, oR + 9 * j);
+    }
+}
+
+/* point_jacobian: J (3 x nv) of the world velocity of the point at world position p attached
+ * to joint frame j; only the supporting joints' columns are written (the rest zeroed first
+ * when `zero`). */
+void point_jacobian(i64 j, const double *p, const tree_t *t, const frames_t *f, double *out,
+                    int zero) {
+    i64 nv = t->nv, nj = t->nj;
+    const double *oR = f->oR, *op = f->op;
+    if (zero)
+        for (i64 k = 0; k < 3 * nv; k++) out[k] = 0.0;
+    for (i64 k = 1; k < nj; k++) {
+        if (!t->support[j * nj + k]) continue;
+        i64 iv = t->idx_v[k];
+        double d0 = p[0] - op[3 * k + 0];
+        double d1 = p[1] - op[3 * k + 1];
+        double d2 = p[2] - op[3 * k + 2];
+        if (t->jtype[k] == JT_FREEFLYER) {
+            const double *R = oR + 9 * k;
+            for (int c = 0; c < 3; c++) {
+                /* linear velocity of the root in the inertial frame */
+                out[c * nv + iv + c] = 1.0;
+                /* angular velocity in the root (body) frame: (R e_c) x d */
+                double a0 = R[0 * 3 + c], a1 = R[1 * 3 + c], a2 = R[2 * 3 + c];
+                out[0 * nv + iv + 3 + c] = a1 * d2 - a2 * d1;
+                out[1 * nv + iv + 3 + c] = a2 * d0 - a0 * d2;
+                out[2 * nv + iv + 3 + c] = a0 * d1 - a1 * d0;
+            }
+        } else {
+            const double *R = oR + 9 * k, *ax = t->axis + 3 * k;
+            double a0 = R[0] * ax[0] + R[1] * ax[1] + R[2] * ax[2];
+            double a1 = R[3] * ax[0] + R[4] * ax[1] + R[5] * ax[2];
+            double a2 = R[6] * ax[0] + R[7] * ax[1] + R[8] * ax[2];
+            out[0 * nv + iv] = a1 * d2 - a2 * d1;
+            out[1 * nv + iv] = a2 * d0 - a0 * d2;
+            out[2 * nv + iv] = a0 * d1 - a1 * d0;
+        }
+    }
+}
+
+/* contact_points: g_N,i = n·c_i − offset − r_i, P_i = c_i − r_i n and, for g_N,i ≤
+ * jacobian_gap, Wt[i] = [n, t1, t2]^T J_P,i (nc x 3 x nv; the other rows left as they were),
+ * from the placements of forward_kinematics. */
+void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *c,
+                    const ground_t *g, double jacobian_gap, double *gap, double *position,
+                    double *Wt) {
+    i64 nv = t->nv;
+    const double *oR = f->oR, *op = f->op;
+    const double *n = g->n, *t1 = g->t1, *t2 = g->t2;
+    double J[3 * nv + 1]; /* (+1: never a zero-length array) */
+    double ci[3];
+    for (i64 i = 0; i < c->nc; i++) {
+        i64 j = c->joint[i];
+        const double *R = oR + 9 * j, *loc = c->local + 3 * i;
+        for (int k = 0; k < 3; k++)
+            ci[k] = R[k * 3 + 0] * loc[0] + R[k * 3 + 1] * loc[1] + R[k * 3 + 2] * loc[2]
+                    + op[3 * j + k];
+        double r = c->radius[i];
+        gap[i] = n[0] * ci[0] + n[1] * ci[1] + n[2] * ci[2] - g->offset - r;
+        for (int k = 0; k < 3; k++) position[3 * i + k] = ci[k] - r * n[k];
+        if (gap[i] > jacobian_gap) continue;
+        point_jacobian(j, position + 3 * i, t, f, J, 1);
+        double *W0 = Wt + (3 * i + 0) * nv, *W1 = Wt + (3 * i + 1) * nv,
+               *W2 = Wt + (3 * i + 2) * nv;
+        for (i64 col = 0; col < nv; col++) {
+            W0[col] = n[0] * J[col] + n[1] * J[nv + col] + n[2] * J[2 * nv + col];
+            W1[col] = t1[0] * J[col] + t1[1] * J[nv + col] + t1[2] * J[2 * nv + col];
+            W2[col] = t2[0] * J[col] + t2[1] * J[nv + col] + t2[2] * J[2 * nv + col];
+        }
+    }
+}
+
+/* contact_kinematics: forward_kinematics at q, then contact_points. */
+void contact_kinematics(const double *q, const tree_t *t, const frames_t *f,
+                        const contact_points_t *c, const ground_t *g, double jacobian_gap,
+                        double *gap, double *position, double *Wt) {
+    forward_kinematics(q, t, f);
+    contact_points(t, f, c, g, jacobian_gap, gap, position, Wt);
+}

@@ -1,0 +1,468 @@
+/* One whole physics step in one call (tree_step.py): tree_step_hard / tree_step_compliant
+ * for the minimal coordinates, forest_step_hard for a cut forest (the extended and maximal
+ * coordinates). The same phases, in the same order, as the phase-by-phase path (so the same
+ * result bit for bit); a failing step leaves the state as it was. The model travels in the
+ * packed buffers of tree_step.TreeStepModel and CutModel (layout in their docstrings). */
+#include "step.h"
+
+#include <string.h>
+
+#define N_SETTINGS 19
+
+/* The views of a TreeStepModel's buffers (tree_step.unpack_tree_model) */
+typedef struct {
+    settings_t s;
+    compliant_law_t law;
+    tree_t tree;
+    frames_t frames;
+    inertias_t inertias;
+    contact_points_t contacts;
+    ground_t ground;
+    const double *eps, *effort_limit, *velocity_limit; /* nc x 2, na, na */
+    i64 na;
+    const i64 *joint_v, *dof_parent;
+    double *gap, *position, *Wt_all, *L, *u_free, *u_corr;
+} tree_model_t;
+
+/* The views of a CutModel's buffers (tree_step.unpack_cut_model) */
+typedef struct {
+    double beta_over_dt;
+    cuts_t cuts;
+    const i64 *joint_cut; /* na */
+    int constant;
+    const double *M; /* nv x nv when constant */
+    i64 nr;
+    const i64 *root_q, *root_v;
+    const double *body_mass, *body_inertia, *body_gravity;
+    double *WtB, *gB, *bB, *angle, *rate, *axis_world, *bilateral_E;
+} cut_model_t;
+
+static void step_settings(const double *f, settings_t *s) {
+    s->activation_gap = f[0];
+    s->mu = f[1];
+    s->alpha = f[2];
+    s->tol_rel = f[3];
+    s->tol_abs = f[4];
+    s->fallback_alpha_factor = f[5];
+    s->opening_gap = f[6];
+    s->dt = f[7];
+    s->beta_velocity = f[8];
+    s->beta_projection = f[9];
+    s->jacobian_gap = f[10];
+    s->projection_tolerance = f[11];
+    s->form = (i64)f[12];
+    s->scheme = (i64)f[13];
+    s->max_iterations = (i64)f[14];
+    s->criterion = (i64)f[15];
+    s->warm_start = f[16] != 0.0;
+    s->bilateral_direct = f[17] != 0.0;
+    s->hysteresis = f[18] != 0.0;
+}
+
+/* The lengths a TreeStepModel's buffers must have, from its ints[0:4] = (nj, nc, na, nv) */
+static void tree_model_sizes(const i64 *ints, i64 *n_floats, i64 *n_ints, i64 *n_ws) {
+    i64 nj = ints[0], nc = ints[1], na = ints[2], nv = ints[3];
+    *n_floats = N_SETTINGS + 6 + 3 * nj + 9 * nj + 3 * nj + 9 * nj + 3 * nj + nj + 3 * nj +
+                9 * nj + 3 + 3 * nc + nc + 3 + 3 + 3 + 1 + 2 * nc + na + na;
+    *n_ints = 4 + 4 * nj + nc + na + nv;
+    *n_ws = nc + 3 * nc + 3 * nc * nv + nv * nv + nv + nv;
+}
+
+const char *check_tree_model(const packed_model_t *m, i64 nv) {
+    if (m->n_ints < 4) return "TreeStepModel: ints too short";
+    const i64 *ints = m->ints;
+    if (ints[0] < 1 || ints[1] < 0 || ints[2] < 0 || ints[3] != nv)
+        return "TreeStepModel: sizes (nj, nc, na, nv) do not match the state";
+    i64 nf, ni, nw;
+    tree_model_sizes(ints, &nf, &ni, &nw);
+    if (m->n_floats != nf || m->n_ints != ni || m->n_workspace < nw ||
+        m->n_support != ints[0] * ints[0])
+        return "TreeStepModel: buffer lengths do not match its sizes";
+    return NULL;
+}
+
+static void unpack_tree_model(const packed_model_t *pm, tree_model_t *t) {
+    const i64 *ints = pm->ints;
+    i64 nj = ints[0], nc = ints[1], na = ints[2], nv = ints[3];
+    const double *f = pm->floats;
+    step_settings(f, &t->s);
+    i64 o = N_SETTINGS;
+    t->law.mu = f[o];
+    t->law.c_N = f[o + 1];
+    t->law.d_N = f[o + 2];
+    t->law.c_T = f[o + 3];
+    t->law.d_T = f[o + 4];
+    t->law.slip_velocity = f[o + 5];
+    o += 6;
+    t->tree.nj = nj;
+    t->tree.nv = nv;
+    t->tree.axis = f + o;
+    o += 3 * nj;
+    t->tree.pl_R = f + o;
+    o += 9 * nj;
+    t->tree.pl_p = f + o;
+    o += 3 * nj;
+    t->frames.oR = pm->floats + o; /* (the forward kinematics' scratch) */
+    o += 9 * nj;
+    t->frames.op = pm->floats + o;
+    o += 3 * nj;
+    t->inertias.mass = f + o;
+    o += nj;
+    t->inertias.lever = f + o;
+    o += 3 * nj;
+    t->inertias.inertia = f + o;
+    o += 9 * nj;
+    t->inertias.gravity = f + o;
+    o += 3;
+    t->contacts.nc = nc;
+    t->contacts.local = f + o;
+    o += 3 * nc;
+    t->contacts.radius = f + o;
+    o += nc;
+    t->ground.n = f + o;
+    o += 3;
+    t->ground.t1 = f + o;
+    o += 3;
+    t->ground.t2 = f + o;
+    o += 3;
+    t->ground.offset = f[o];
+    o += 1;
+    t->eps = f + o;
+    o += 2 * nc;
+    t->effort_limit = f + o;
+    o += na;
+    t->velocity_limit = f + o;
+    i64 k = 4;
+    t->tree.parent = ints + k;
+    k += nj;
+    t->tree.jtype = ints + k;
+    k += nj;
+    t->tree.idx_q = ints + k;
+    k += nj;
+    t->tree.idx_v = ints + k;
+    k += nj;
+    t->contacts.joint = ints + k;
+    k += nc;
+    t->na = na;
+    t->joint_v = ints + k;
+    k += na;
+    t->dof_parent = ints + k;
+    t->tree.support = pm->support;
+    double *w = pm->workspace;
+    t->gap = w;
+    w += nc;
+    t->position = w;
+    w += 3 * nc;
+    t->Wt_all = w;
+    w += 3 * nc * nv;
+    t->L = w;
+    w += nv * nv;
+    t->u_free = w;
+    w += nv;
+    t->u_corr = w;
+}
+
+const char *check_cut_model(const packed_model_t *c, i64 na, i64 nv) {
+    if (c->n_ints < 3) return "CutModel: ints too short";
+    i64 ncut = c->ints[0], constant = c->ints[1] != 0, nr = c->ints[2];
+    if (ncut < 0 || nr < 0 || (!constant && nr != 0))
+        return "CutModel: sizes (ncut, constant, nr) are not valid";
+    i64 nf = 1 + 21 * ncut + (constant ? nv * nv + nr + 9 * nr + 3 : 0);
+    i64 ni = 3 + 2 * ncut + na + 2 * nr;
+    i64 nB = 5 * ncut;
+    i64 nw = nB * nv + 2 * nB + 2 * ncut + 3 * ncut + nB;
+    if (c->n_floats != nf || c->n_ints != ni || c->n_workspace != nw)
+        return "CutModel: buffer lengths do not match its sizes";
+    return NULL;
+}
+
+static void unpack_cut_model(const packed_model_t *pm, i64 na, i64 nv, cut_model_t *c) {
+    const i64 *ints = pm->ints;
+    i64 ncut = ints[0], nr = ints[2];
+    c->constant = ints[1] != 0;
+    c->nr = nr;
+    const double *f = pm->floats;
+    c->beta_over_dt = f[0];
+    i64 o = 1;
+    c->cuts.ncut = ncut;
+    c->cuts.p_P = f + o;
+    o += 3 * ncut;
+    c->cuts.p_C = f + o;
+    o += 3 * ncut;
+    c->cuts.a_P = f + o;
+    o += 3 * ncut;
+    c->cuts.b1_P = f + o;
+    o += 3 * ncut;
+    c->cuts.b2_P = f + o;
+    o += 3 * ncut;
+    c->cuts.a_C = f + o;
+    o += 3 * ncut;
+    c->cuts.b1_C = f + o;
+    o += 3 * ncut;
+    c->M = f + o;
+    o += c->constant ? nv * nv : 0;
+    c->body_mass = f + o;
+    o += nr;
+    c->body_inertia = f + o;
+    o += 9 * nr;
+    c->body_gravity = f + o;
+    i64 k = 3;
+    c->cuts.P = ints + k;
+    k += ncut;
+    c->cuts.C = ints + k;
+    k += ncut;
+    c->joint_cut = ints + k;
+    k += na;
+    c->root_q = ints + k;
+    k += nr;
+    c->root_v = ints + k;
+    i64 nB = 5 * ncut;
+    double *w = pm->workspace;
+    c->WtB = w;
+    w += nB * nv;
+    c->gB = w;
+    w += nB;
+    c->bB = w;
+    w += nB;
+    c->angle = w;
+    w += ncut;
+    c->rate = w;
+    w += ncut;
+    c->axis_world = w;
+    w += 3 * ncut;
+    c->bilateral_E = w;
+}
+
+/* _applied_torque: the torques the motors apply for tau (saturate_torque at the joint rates
+ * of u), or tau as given; 0 if tau has a non-finite entry */
+static int applied_torque(int saturate, const double *tau, i64 n, const double *u,
+                          const tree_model_t *t, double *applied, arena_t *a) {
+    if (!saturate) {
+        for (i64 k = 0; k < n; k++) applied[k] = tau[k];
+        return 1;
+    }
+    double *qd = arena_f(a, t->na);
+    for (i64 k = 0; k < t->na; k++) qd[k] = u[t->joint_v[k]];
+    return saturate_torque(tau, t->effort_limit, qd, t->velocity_limit, applied, n);
+}
+
+/* _report_contacts: g_N and the contact points at q^M into the report buffer */
+static void report_contacts(const double *gap, const double *position, double *report, i64 nc) {
+    for (i64 i = 0; i < nc; i++) {
+        report[3 * nc + i] = gap[i];
+        for (i64 k = 0; k < 3; k++) report[4 * nc + 3 * i + k] = position[3 * i + k];
+    }
+}
+
+/* _midpoint_with_forces: q^M, M and h at (q^M, u^S) (midpoint_dynamics), then h += Sᵀτ and
+ * f_ext */
+static void midpoint_with_forces(const step_arrays_t *x, double half_dt, const double *tau,
+                                 const tree_model_t *t, double *qM, double *M, double *h) {
+    midpoint_dynamics(x->q, x->u, half_dt, &t->tree, &t->frames, &t->inertias, &t->contacts,
+                      &t->ground, t->s.jacobian_gap, qM, M, h, t->gap, t->position, t->Wt_all);
+    for (i64 k = 0; k < t->na; k++) h[t->joint_v[k]] += tau[k];
+    for (i64 k = 0; k < x->n_f_ext; k++) h[k] += x->f_ext[k];
+}
+
+static tree_step_result_t result_of(i64 outcome) {
+    tree_step_result_t r = {outcome, 0, 0, 0, STATUS_CONVERGED, 0.0, 0, 0, -1};
+    return r;
+}
+
+/* _complete_step: complete_problem (Λ into the report buffer, Λ_B into bilateral_E, which
+ * comes in with the last step's Λ_B) and Eqn. (8); the warm-start memory is updated only
+ * when the step ends finite */
+static void complete_step(const settings_t *s, const problem_t *p, const double *h,
+                          const double *M, const tree_model_t *t, const step_arrays_t *x,
+                          double *bilateral_E, const double *qM, double half_dt,
+                          tree_step_result_t *res, arena_t *a) {
+    i64 nc = t->contacts.nc;
+    double *impulse = x->report;
+    for (i64 k = 0; k < x->nb; k++) bilateral_E[k] = x->last_bilateral[k];
+    complete_result_t c = complete_problem(s, p, h, x->u, M, t->dof_parent, t->L, t->gap, nc,
+                                           t->Wt_all, x->last_impulse, x->last_active,
+                                           bilateral_E, x->nb, impulse, x->is_active, t->u_free,
+                                           x->uE, t->u_corr, 0, NULL, a);
+    i64 outcome = TREE_STEP_OK;
+    if (c.status == STATUS_NONFINITE) {
+        outcome = TREE_STEP_NONFINITE_IMPULSE;
+    } else if (!end_of_step(qM, x->uE, t->u_corr, c.projection_status >= 0, half_dt, &t->tree,
+                            x->nq, x->qE, a)) {
+        outcome = TREE_STEP_NONFINITE_STATE;
+    } else {
+        remember_contacts(x->is_active, impulse, nc, x->last_active, x->last_impulse);
+        for (i64 k = 0; k < x->nb; k++) x->last_bilateral[k] = bilateral_E[k];
+    }
+    res->outcome = outcome;
+    res->iterations = c.iterations;
+    res->status = c.status;
+    res->residual = c.residual;
+    res->retried = c.retried;
+    res->projection_iterations = c.projection_iterations;
+    res->projection_status = c.projection_status;
+}
+
+/* tree_step_hard: the applied torques, Eqn. (6) and M, h, W at the midpoint, the contact
+ * problem and its solution, Eqn. (8) */
+tree_step_result_t tree_step_hard(int saturate, const step_arrays_t *x, const packed_model_t *m,
+                                  arena_t *a) {
+    tree_model_t t;
+    unpack_tree_model(m, &t);
+    i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc;
+    double *applied = x->report + 7 * nc;
+    if (!applied_torque(saturate, x->tau, x->n_tau, x->u, &t, applied, a))
+        return result_of(TREE_STEP_NONFINITE_TORQUE);
+    double half_dt = 0.5 * t.s.dt;
+    double *out = arena_f(a, nq + nv * nv + nv);
+    double *qM = out, *M = out + nq, *h = out + nq + nv * nv;
+    midpoint_with_forces(x, half_dt, applied, &t, qM, M, h);
+    problem_t p;
+    contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, NULL, 0, NULL, t.eps, t.dof_parent,
+                    1, t.L, x->last_impulse, x->last_active, NULL, a, &p);
+    if (!p.ok) return result_of(TREE_STEP_NOT_PD);
+    tree_step_result_t res = result_of(TREE_STEP_OK);
+    /* (no bilateral rows: Λ_B is empty, last_bilateral its own buffer) */
+    complete_step(&t.s, &p, h, M, &t, x, x->last_bilateral, qM, half_dt, &res, a);
+    report_contacts(t.gap, t.position, x->report, nc);
+    res.n_active = p.na;
+    res.opened = p.opened;
+    return res;
+}
+
+/* tree_step_compliant: the applied torques, the midpoint, solve_compliant (u^E = u_free) and
+ * Eqn. (8); the report's Λ is the compliant force Δt, is_active the closed flags
+ * (g_N(q^M) ≤ 0). A failed step leaves the contact state as it was. */
+tree_step_result_t tree_step_compliant(int saturate, const step_arrays_t *x, u8 *closed,
+                                       u8 *slip, double *anchor, double *lam,
+                                       const packed_model_t *m, arena_t *a) {
+    tree_model_t t;
+    unpack_tree_model(m, &t);
+    i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc;
+    double dt = t.s.dt;
+    double *applied = x->report + 7 * nc;
+    if (!applied_torque(saturate, x->tau, x->n_tau, x->u, &t, applied, a))
+        return result_of(TREE_STEP_NONFINITE_TORQUE);
+    double half_dt = 0.5 * dt;
+    double *out = arena_f(a, nq + nv * nv + nv);
+    double *qM = out, *M = out + nq, *h = out + nq + nv * nv;
+    midpoint_with_forces(x, half_dt, applied, &t, qM, M, h);
+    /* the contact state kept, for a failed step */
+    u8 *kept_flags = arena_alloc(a, (size_t)(2 * nc));
+    double *kept = arena_f(a, 6 * nc);
+    for (i64 i = 0; i < nc; i++) {
+        kept_flags[i] = closed[i];
+        kept_flags[nc + i] = slip[i];
+        for (i64 k = 0; k < 3; k++) {
+            kept[3 * i + k] = anchor[3 * i + k];
+            kept[3 * nc + 3 * i + k] = lam[3 * i + k];
+        }
+    }
+    i64 outcome;
+    if (!solve_compliant(&t.law, M, h, x->u, nv, dt, nc, t.gap, t.position, t.Wt_all, closed,
+                         slip, anchor, t.ground.t1, t.ground.t2, lam, t.dof_parent, 1, t.L,
+                         t.u_free, NULL)) {
+        outcome = TREE_STEP_NOT_PD;
+    } else {
+        for (i64 k = 0; k < nv; k++) x->uE[k] = t.u_free[k];
+        outcome = TREE_STEP_OK;
+        if (!end_of_step(qM, x->uE, t.u_corr, 0, half_dt, &t.tree, nq, x->qE, a))
+            outcome = TREE_STEP_NONFINITE_STATE;
+    }
+    if (outcome != TREE_STEP_OK) { /* the contact state back to what it was */
+        for (i64 i = 0; i < nc; i++) {
+            closed[i] = kept_flags[i] != 0;
+            slip[i] = kept_flags[nc + i] != 0;
+            for (i64 k = 0; k < 3; k++) {
+                anchor[3 * i + k] = kept[3 * i + k];
+                lam[3 * i + k] = kept[3 * nc + 3 * i + k];
+            }
+        }
+    }
+    i64 n_active = 0;
+    for (i64 i = 0; i < nc; i++) {
+        for (i64 k = 0; k < 3; k++) x->report[3 * i + k] = lam[3 * i + k] * dt;
+        x->is_active[i] = t.gap[i] <= 0.0;
+        n_active += x->is_active[i];
+    }
+    report_contacts(t.gap, t.position, x->report, nc);
+    tree_step_result_t res = result_of(outcome);
+    res.n_active = n_active;
+    return res;
+}
+
+/* _forest_midpoint: q^M, M and h (without τ) and the contact kinematics at q^M; for a
+ * constant M (free bodies) q^M, rigid_body_forces and contact_kinematics. Returns M. */
+static const double *forest_midpoint(const step_arrays_t *x, double half_dt,
+                                     const tree_model_t *t, const cut_model_t *c, double *qM,
+                                     double *h, double *M_buf) {
+    if (c->constant) {
+        integrate_forest(x->q, x->u, half_dt, &t->tree, qM);
+        rigid_body_forces(qM, x->u, c->nr, c->root_q, c->root_v, c->body_mass, c->body_inertia,
+                          c->body_gravity, h);
+        contact_kinematics(qM, &t->tree, &t->frames, &t->contacts, &t->ground,
+                           t->s.jacobian_gap, t->gap, t->position, t->Wt_all);
+        return c->M;
+    }
+    midpoint_dynamics(x->q, x->u, half_dt, &t->tree, &t->frames, &t->inertias, &t->contacts,
+                      &t->ground, t->s.jacobian_gap, qM, M_buf, h, t->gap, t->position,
+                      t->Wt_all);
+    return M_buf;
+}
+
+/* _add_forest_torques: h += Sᵀτ inside the trees, the cut joints' body torques
+ * (cut_joint_torques with the kinematics of the last cut_joints call), + f_ext */
+static void add_forest_torques(const double *applied, const tree_model_t *t,
+                               const cut_model_t *c, const step_arrays_t *x, double *h,
+                               arena_t *a) {
+    double *tau_cut = arena_zeros(a, c->cuts.ncut);
+    for (i64 k = 0; k < t->na; k++) {
+        if (c->joint_cut[k] < 0)
+            h[t->joint_v[k]] += applied[k];
+        else
+            tau_cut[c->joint_cut[k]] = applied[k];
+    }
+    cut_joint_torques(tau_cut, &c->cuts, c->axis_world, &t->tree, t->frames.oR, h, a);
+    for (i64 k = 0; k < x->n_f_ext; k++) h[k] += x->f_ext[k];
+}
+
+/* forest_step_hard: tree_step_hard for a cut forest: the midpoint, the bilateral constraints
+ * of the cut joints at q^M (W_B^T, g_B, b_B = (β/Δt) g_B), the joint torques and f_ext, the
+ * contact and bilateral problem and Eqn. (8); a successful step also writes the cut joints'
+ * φ and φ̇ at (q^E, u^E) into angle_E and rate_E */
+tree_step_result_t forest_step_hard(const step_arrays_t *x, int factor, double *angle_E,
+                                    double *rate_E, const packed_model_t *m,
+                                    const packed_model_t *cm, arena_t *a) {
+    tree_model_t t;
+    unpack_tree_model(m, &t);
+    cut_model_t c;
+    unpack_cut_model(cm, t.na, x->nv, &c);
+    i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc, na = t.na;
+    double *applied = x->report + 7 * nc;
+    for (i64 k = 0; k < na; k++) {
+        if (!isfinite(x->tau[k])) return result_of(TREE_STEP_NONFINITE_TORQUE);
+        applied[k] = x->tau[k];
+    }
+    double half_dt = 0.5 * t.s.dt;
+    i64 nM = c.constant ? 0 : nv * nv;
+    double *out = arena_f(a, nq + nv + nM);
+    double *qM = out, *h = out + nq;
+    const double *M = forest_midpoint(x, half_dt, &t, &c, qM, h, out + nq + nv);
+    double *u_zero = arena_zeros(a, nv); /* (the rates at q^M are not needed: u = 0) */
+    cut_joints(qM, u_zero, &t.tree, &t.frames, &c.cuts, c.WtB, c.gB, c.angle, c.rate,
+               c.axis_world, 1, a);
+    i64 nB = 5 * c.cuts.ncut;
+    for (i64 k = 0; k < nB; k++) c.bB[k] = c.gB[k] * c.beta_over_dt;
+    add_forest_torques(applied, &t, &c, x, h, a);
+    problem_t p;
+    contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, c.WtB, nB, c.bB, t.eps,
+                    t.dof_parent, factor, t.L, x->last_impulse, x->last_active, NULL, a, &p);
+    if (!p.ok) return result_of(TREE_STEP_NOT_PD);
+    tree_step_result_t res = result_of(TREE_STEP_OK);
+    complete_step(&t.s, &p, h, M, &t, x, c.bilateral_E, qM, half_dt, &res, a);
+    if (res.outcome == TREE_STEP_OK)
+        cut_joint_motion(x->qE, x->uE, &t.tree, &t.frames, &c.cuts, angle_E, rate_E, a);
+    report_contacts(t.gap, t.position, x->report, nc);
+    res.n_active = p.na;
+    res.opened = p.opened;
+    return res;
+}

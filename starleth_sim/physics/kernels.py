@@ -1,0 +1,91 @@
+"""The physics kernels: the C extension module ``starleth_sim.physics._kernels`` (sources in
+``csrc/``), loaded here.
+
+An installed package (pip, colcon) holds the module its ``setup.py`` built. A source checkout
+builds it on first use, and again whenever the sources changed since it was built (their
+digest is kept beside the module: `kernel_build`), so an edit never runs stale machine code;
+the build takes a few seconds and says so on stderr. Processes that start together (two
+nodes, test workers) build it once: the first takes a lock, the others wait for it and load
+its result.
+
+The modules of :mod:`starleth_sim.physics` import the kernels from here under the names of
+the Python functions that describe them (linalg, kinematics, rigid_body, contact, prox,
+step_kernels, tree_step, coordinates.forest).
+"""
+from __future__ import annotations
+
+import fcntl
+import importlib
+import os
+import sys
+import time
+
+from . import kernel_build
+
+
+def _read(path: str) -> str | None:
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return None
+
+
+def _progress_line(stream):
+    """A progress(done, total) callback that rewrites one line of stream (a terminal) or
+    stays silent until the end (a log)."""
+    t0 = time.monotonic()
+    tty = hasattr(stream, "isatty") and stream.isatty()
+
+    def progress(done, total):
+        if tty:
+            stream.write(f"\rstarleth_sim: building the physics kernels (C): {done}/{total} "
+                         f"sources, {time.monotonic() - t0:.0f} s ")
+            stream.flush()
+    return progress
+
+
+def ensure_built(stream=None) -> bool:
+    """In a source checkout, builds the module when it is missing or its sources changed
+    (under a lock shared by concurrent processes); True if it built it. Raises
+    kernel_build.BuildError when it cannot."""
+    if not os.path.isdir(kernel_build.CSRC):
+        return False        # an installed package: setup.py built the module
+    stream = sys.stderr if stream is None else stream
+    path = kernel_build.inplace_path()
+    digest_file = path + kernel_build.DIGEST_SUFFIX
+    digest = kernel_build.source_digest()
+    if os.path.exists(path) and _read(digest_file) == digest:
+        return False
+    lock_path = os.path.join(os.path.dirname(path), ".kernel_build.lock")
+    with open(lock_path, "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if os.path.exists(path) and _read(digest_file) == digest:
+                return False        # another process built it while this one waited
+            print("starleth_sim: building the physics kernels (C, a few seconds; once per "
+                  "change of their sources)", file=stream, flush=True)
+            seconds = kernel_build.build(path, progress=_progress_line(stream))
+            if hasattr(stream, "isatty") and stream.isatty():
+                stream.write("\r\033[K")
+            print(f"starleth_sim: physics kernels built in {seconds:.1f} s", file=stream,
+                  flush=True)
+            return True
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _load():
+    ensure_built()
+    try:
+        return importlib.import_module(__package__ + "." + kernel_build.MODULE)
+    except ImportError as e:
+        raise ImportError(
+            f"the physics kernels (starleth_sim.physics.{kernel_build.MODULE}) are not built: "
+            f"{e}. In a source checkout they build on first import (needs a C compiler and "
+            "Python's headers); an installed package builds them in setup.py") from e
+
+
+_kernels = _load()
+globals().update({name: getattr(_kernels, name) for name in dir(_kernels)
+                  if not name.startswith("__")})
