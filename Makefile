@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV   := .venv
 VPY    := $(VENV)/bin/python
-PIP    := $(VPY) -m pip -q --disable-pip-version-check --no-input
+PIP    := $(VPY) -m pip -qq --disable-pip-version-check --no-input
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 
@@ -40,17 +40,16 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 	touch $@
 
 # Per-run ROS_DOMAIN_ID (10..99) so concurrent runs on one host do not cross-talk.
-# First the numba kernels into their on-disk cache, disjoint work on 2 processes
-# (starleth-precompile; seconds once cached): else both pytest workers compile the same
-# kernels side by side, about a minute more of a fresh clone's run on 2 cores. Then two
-# passes: the CPU-bound tests on two pytest-xdist workers (a file's tests on one worker,
-# so its module fixtures run once), then the tests marked serial (ROS nodes, deadlines,
-# rates, browser; see test/conftest.py) one at a time. Both passes run; the target fails
-# with the first failing pass's pytest status (5, no tests collected, only if neither
-# pass collected any: a -k selection may fall in one pass alone).
+# First the kernels ready (starleth-precompile: the C physics kernels, built with the venv,
+# and the controller's and the ROS codec's numba kernels into numba's on-disk cache, about
+# 15 s the first time, then a second or two): else both pytest workers would compile the same
+# kernels side by side. Then two passes: the CPU-bound tests on two pytest-xdist workers (a
+# file's tests on one worker, so its module fixtures run once), then the tests marked serial
+# (ROS nodes, deadlines, rates, browser; see test/conftest.py) one at a time. Both passes
+# run; the target fails with the first failing pass's pytest status (5, no tests collected,
+# only if neither pass collected any: a -k selection may fall in one pass alone).
 test: venv
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
-	echo "numba kernels into the on-disk cache, 2 processes (starleth-precompile)"; \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
 	echo "pass 1: tests not marked serial, 2 workers"; \
 	$(VPY) -m pytest -q -n 2 --dist loadfile -m "not serial" test $(PYTEST_ARGS); a=$$?; \
@@ -60,6 +59,8 @@ test: venv
 	if [ $$b = 5 ] && [ $$a = 0 ]; then b=0; fi; \
 	if [ $$a != 0 ]; then exit $$a; fi; exit $$b
 
+# The main job: the trotting demo over ROS 2 (starleth-demo; it makes the kernels ready
+# first, with a progress line, then runs sim_node + controller_node and summarises the bag).
 demo: venv
 	$(VENV)/bin/starleth-demo
 

@@ -28,6 +28,13 @@ class BuildKernels(build_ext):
         out = self.get_ext_fullpath(ext.name)
         seconds = kb.build(out)
         print(f'built {ext.name} ({out}) in {seconds:.1f} s')
+        if getattr(self, 'editable_mode', False) and not self.inplace:
+            # an editable install copies the module into the source tree: its digest too,
+            # which tells starleth_sim.physics.kernels that the module is current
+            digest = out + kb.DIGEST_SUFFIX
+            target = kb.inplace_path() + kb.DIGEST_SUFFIX
+            with open(digest) as f, open(target, 'w') as g:
+                g.write(f.read())
 
 
 KERNELS = Extension('starleth_sim.physics._kernels',

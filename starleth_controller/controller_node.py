@@ -102,7 +102,9 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
                                        foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
+from starleth_interface.compile_notice import CompileNotice
 from .kernels import node_state, squared_norm4
+from .warmup import warm_up
 from .model import JOINT_NAMES, LEGS, default_urdf_path
 
 _sum = np.add.reduce     # = ndarray.sum, without its wrapper (a finite sum: all finite)
@@ -127,6 +129,22 @@ def state_from_values(stamp_ns, position, velocity, perm, odom, forces, threshol
     if twist_in_child:   # base frame -> world frame
         v = R @ v
     return RobotState(stamp_ns * 1e-9, q, dq, pb, quat, v, w, contact, forces)
+
+
+def compile_kernels(log=print, threshold: float = ControllerParams.contact_force_threshold):
+    """Compiles (or loads from numba's cache) every kernel the node runs before its first
+    state: the controller's (warmup.warm_up) and the state reader's (node_state, with the
+    argument types of a state bundle), saying so while it takes long (CompileNotice: about
+    10 s the first time after an install). Returns the seconds taken."""
+    with CompileNotice("the controller's kernels", log, estimate=10.0) as notice:
+        warm_up()
+        v = np.zeros(state_bundle.SIZE)
+        v[state_bundle.BASE][6] = 1.0           # (a unit quaternion)
+        state_from_values(0, v[state_bundle.SLICES["q"]], v[state_bundle.SLICES["u"]],
+                          np.arange(12, dtype=np.int64), np.array(v[state_bundle.BASE]),
+                          np.array(v[state_bundle.SLICES["force"]].reshape(4, 3)),
+                          float(threshold), True, np.eye(3))
+    return notice.seconds
 
 
 P = ParameterSpec
@@ -286,6 +304,9 @@ class ControllerNode(Node):
         self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
         self.timing = None                # a CycleTimes, set by benchmarks
         self._array_msg = Float64MultiArray()
+
+        # the kernels before the first state (a first run after an install compiles them)
+        compile_kernels(self.log.info, self._threshold)
 
         # the model
         if p["robot_description"]:

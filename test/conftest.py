@@ -18,7 +18,8 @@ def starleth_hmj():
 # pytest worker beside them would take the CPU their timing depends on. The rest (physics,
 # controller, tools) is CPU-bound without deadlines and runs on two workers (pytest-xdist).
 SERIAL_MODULES = {
-    "test_analysis", "test_cdr", "test_controller_node", "test_install_layout",
+    "test_analysis", "test_cdr", "test_compile_notice", "test_controller_node",
+    "test_install_layout",
     "test_recording", "test_replay", "test_ros_conventions", "test_sim_node",
     "test_sim_service", "test_tf", "test_view",
 }

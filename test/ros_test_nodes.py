@@ -13,6 +13,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from starleth_interface.compile_notice import Deadline
 from starleth_sim.ros.discovery import keep_discovery_local, local_discovery_env
 
 keep_discovery_local()     # the test nodes (this process) and every child: this host only
@@ -84,14 +85,16 @@ class RosTestNode:
         self.executor.add_node(self.node)
 
     def spin_until(self, cond, timeout, procs=(), step=0.01):
-        """Spin until cond() (True) or timeout (False); a dead process of procs fails."""
-        t_end = time.monotonic() + timeout
+        """Spin until cond() (True) or timeout (False); a dead process of procs fails. The
+        timeout counts silence: a compile line in the log of one of procs (CompileNotice, a
+        first run compiling kernels) restarts it."""
+        deadline = Deadline(timeout, [p.log_path for p in procs])
         while True:
             if cond():
                 return True
             for p in procs:
                 assert p.alive(), f"process died:\n{p.log()[-3000:]}"
-            if time.monotonic() > t_end:
+            if deadline.expired():
                 return False
             self.executor.spin_once(timeout_sec=step)
 

@@ -34,7 +34,7 @@ from rcl_interfaces.srv import SetParameters, GetParameters  # noqa: E402
 # one ROS domain per test module and process (test_sim_node uses 50..89)
 DOMAIN_RANGE = (10, 40)       # first, span
 DOMAIN_ID = 10 + os.getpid() % 40   # conftest._free_ros_domain: a free one of the range
-START_TIMEOUT = 120.0    # a first start after a fresh install compiles the numba kernels
+START_TIMEOUT = 120.0    # of silence: a node's compile lines restart it (ros_test_nodes)
 PERIOD_NS = 2_500_000
 JOINTS = [f"{leg}_{j}" for leg in ("LF", "RF", "LH", "RH") for j in ("HAA", "HFE", "KFE")]
 WRENCH_TOPICS = [f"/starleth/{leg}_foot/wrench" for leg in ("LF", "RF", "LH", "RH")]
@@ -56,6 +56,33 @@ def _stamp(ns):
 # -----------------------------------------------------------------------------------------
 # the demo: sim_node + controller_node, 18 s of trot, the whole run in the bag
 # -----------------------------------------------------------------------------------------
+def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
+    """A first run on a slow machine, stood in for by STARLETH_TEST_SLOW_COMPILE (every
+    compile block of the nodes 8 s longer) with a start-up time-out of 5 s: the nodes say
+    they compile (CompileNotice: at once, again while it lasts, and how long it took), the
+    demo shows their compile lines and counts its time-out from the last one, and the run
+    goes through."""
+    from starleth_interface.compile_notice import SLOW_COMPILE_ENV
+    from starleth_sim.tools.demo import run_demo
+    monkeypatch.setenv(SLOW_COMPILE_ENV, "8")
+    lines = []
+    r = run_demo(stand=0.5, trot=0.0, speed=0.0, physics="HmJ", record=str(tmp_path / "d.mcap"),
+                 domain_id=DOMAIN_ID, echo=lines.append, startup_timeout=5.0,
+                 run_timeout=120.0, bare_seconds=0.0, precompile_first=False)
+    report = "\n".join(lines)
+    assert r.exit_codes == {"controller_node": 0, "sim_node": 0}, report
+    assert r.joint_states > 0 and r.complete, report
+    assert any("compiling" in line for line in lines), report      # the demo showed them
+    for node, what in (("controller_node", "the controller's kernels"),
+                       ("sim_node", "sim_node's command parsers")):
+        with open(r.logs[node]) as f:
+            log = f.read()
+        assert f"compiling {what} (numba" in log, log
+        assert f"still compiling {what}: " in log, log
+        took = float(log.split(f"{what}: compiled in ")[1].split(" s")[0])
+        assert took >= 8.0, log
+
+
 def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore

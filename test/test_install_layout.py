@@ -91,31 +91,49 @@ def test_readme_layout_lists_every_module():
     assert not missing, f"README Layout does not list {missing}"
 
 
-def test_stale_numba_caches_are_dropped_when_any_kernel_source_changes(tmp_path):
-    """numba's cache only sees a kernel's own file: kernel_cache drops every cache file of
-    the package when any of its sources changed (a caller in another file would otherwise
-    keep stale machine code), and keeps them while nothing changed."""
-    from starleth_sim.physics.kernel_cache import drop_stale_kernel_caches
-    pkg = tmp_path / "pkg"
-    (pkg / "sub" / "__pycache__").mkdir(parents=True)
-    (pkg / "__pycache__").mkdir()
-    (pkg / "a.py").write_text("A = 1\n")
-    (pkg / "sub" / "b.py").write_text("B = 1\n")
+def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_path):
+    """A source checkout builds the C kernels on first use and again after any edit of their
+    sources (their digest, with the flags, beside the module): an edit never runs stale
+    machine code, and an unchanged checkout builds nothing."""
+    import io
+    import shutil
+    from starleth_sim.physics import kernel_build
+    from starleth_sim.physics.kernels import ensure_built
+    csrc = tmp_path / "csrc"
+    shutil.copytree(kernel_build.CSRC, csrc)
+    module = str(tmp_path / ("_kernels" + kernel_build.SUFFIX))
+    out = io.StringIO()
+    assert ensure_built(out, str(csrc), module)                 # missing: built
+    assert "physics kernels built in" in out.getvalue()
+    assert not ensure_built(out, str(csrc), module)             # unchanged: kept
+    stamp = os.stat(module).st_mtime_ns
+    with open(csrc / "step.c", "a") as f:                       # an edit of one source
+        f.write("\n/* edited */\n")
+    assert ensure_built(out, str(csrc), module)
+    assert os.stat(module).st_mtime_ns != stamp
+    assert not ensure_built(out, str(csrc), module)
+    with open(csrc / "core.h", "a") as f:                       # a header counts too
+        f.write("\n/* edited */\n")
+    assert ensure_built(out, str(csrc), module)
+    with open(module + kernel_build.DIGEST_SUFFIX, "w") as f:   # built from other sources
+        f.write("0" * 64 + "\n")
+    assert ensure_built(out, str(csrc), module)
+    assert not ensure_built(out, str(tmp_path / "no_csrc"), module)   # an installed package
 
-    def caches():
-        for p in (pkg / "__pycache__" / "a.f-1.py311.nbi", pkg / "sub" / "__pycache__" /
-                  "b.g-3.py311.1.nbc", pkg / "__pycache__" / "a.cpython-311.pyc"):
-            p.write_bytes(b"x")
 
-    def left():
-        return sorted(p.name for p in pkg.rglob("*") if p.suffix in (".nbi", ".nbc", ".pyc"))
-
-    caches()
-    drop_stale_kernel_caches(str(pkg))            # no stamp yet: built by unknown sources
-    assert left() == ["a.cpython-311.pyc"]
-    caches()
-    assert not drop_stale_kernel_caches(str(pkg))     # nothing changed: kept
-    assert len(left()) == 3
-    (pkg / "sub" / "b.py").write_text("B = 2\n")      # a callee in another file changed
-    assert drop_stale_kernel_caches(str(pkg))
-    assert left() == ["a.cpython-311.pyc"]
+def test_the_installed_package_steps_with_its_built_kernels(prefix, tmp_path):
+    """setup.py (colcon's build) compiles the C kernels into the install; run from outside
+    the source tree, the installed package loads them (no sources there) and steps."""
+    code = ("import starleth_sim.physics.kernels as k, starleth_sim;"
+            "from starleth_sim import Simulator;"
+            "sim = Simulator.from_preset('HEJD'); sim.step(None);"
+            "print(k._kernels.__file__); print(starleth_sim.__file__); print(sim.q[2])")
+    env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix))
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    kernels, pkg, z = r.stdout.split()
+    assert kernels.startswith(str(prefix)) and pkg.startswith(str(prefix))
+    assert not os.path.exists(os.path.join(os.path.dirname(kernels), "csrc"))
+    assert 0.3 < float(z) < 0.5
+    assert "building the physics kernels" not in r.stderr

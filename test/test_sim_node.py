@@ -29,7 +29,7 @@ from starleth_sim.tools.bench_ros import EchoController  # noqa: E402
 # one ROS domain per test module and process (other modules use other ranges)
 DOMAIN_RANGE = (50, 40)       # first, span
 DOMAIN_ID = 50 + os.getpid() % 40   # conftest._free_ros_domain: a free one of the range
-START_TIMEOUT = 120.0     # the first start after a fresh install compiles the numba kernels
+START_TIMEOUT = 120.0     # of silence: a node's compile lines restart it (ros_test_nodes)
 PERIOD_NS = 2_500_000
 FEET = ("LF_foot", "RF_foot", "LH_foot", "RH_foot")
 STATE_TOPICS = {

@@ -45,16 +45,16 @@ def _progress_line(stream):
     return progress
 
 
-def ensure_built(stream=None) -> bool:
-    """In a source checkout, builds the module when it is missing or its sources changed
-    (under a lock shared by concurrent processes); True if it built it. Raises
-    kernel_build.BuildError when it cannot."""
-    if not os.path.isdir(kernel_build.CSRC):
+def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = None) -> bool:
+    """In a source checkout (csrc exists), builds the module (at `path`, default in the
+    package) when it is missing or its sources changed (under a lock shared by concurrent
+    processes); True if it built it. Raises kernel_build.BuildError when it cannot."""
+    if not os.path.isdir(csrc):
         return False        # an installed package: setup.py built the module
     stream = sys.stderr if stream is None else stream
-    path = kernel_build.inplace_path()
+    path = kernel_build.inplace_path() if path is None else path
     digest_file = path + kernel_build.DIGEST_SUFFIX
-    digest = kernel_build.source_digest()
+    digest = kernel_build.source_digest(csrc)
     if os.path.exists(path) and _read(digest_file) == digest:
         return False
     lock_path = os.path.join(os.path.dirname(path), ".kernel_build.lock")
@@ -65,7 +65,7 @@ def ensure_built(stream=None) -> bool:
                 return False        # another process built it while this one waited
             print("starleth_sim: building the physics kernels (C, a few seconds; once per "
                   "change of their sources)", file=stream, flush=True)
-            seconds = kernel_build.build(path, progress=_progress_line(stream))
+            seconds = kernel_build.build(path, csrc, progress=_progress_line(stream))
             if hasattr(stream, "isatty") and stream.isatty():
                 stream.write("\r\033[K")
             print(f"starleth_sim: physics kernels built in {seconds:.1f} s", file=stream,

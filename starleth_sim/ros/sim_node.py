@@ -124,6 +124,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
+from starleth_interface.compile_notice import CompileNotice
 from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr, SlotCdr
 from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
 from starleth_interface.state_bundle import StateBundleCdr
@@ -263,7 +264,9 @@ class SimNode:
         self.js_msg = JointState()
         self.js_msg.name = list(sim.joint_names)
         self._js_cdr = JointStateCdr.create(list(sim.joint_names))
-        self.decoder = CommandDecoder(sim.joint_names)
+        # (numba: compiled on a first run after an install, else loaded from its cache)
+        with CompileNotice("sim_node's command parsers", self.log.info, estimate=3.0):
+            self.decoder = CommandDecoder(sim.joint_names)
         self.wrench_msgs = {}
         for foot in FEET:
             m = WrenchStamped()

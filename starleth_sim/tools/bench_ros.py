@@ -56,6 +56,8 @@ import time
 
 import numpy as np
 
+from starleth_interface.compile_notice import Deadline
+
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 
 PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
@@ -265,6 +267,7 @@ def _spawn(args, mode, rtf, pong, log, record="", timing=""):
         cmd += ["--realtime-priority", str(args.realtime_priority)]
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
     pre = _pin_to_one_cpu if getattr(args, "pin", False) else None
+    _CHILD_LOGS[:] = [log.name]     # (its compile lines restart _wait's time-outs)
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                             preexec_fn=pre)
 
@@ -288,10 +291,16 @@ def _stop(proc, log_path, timeout=20):
     return (json.loads(m.group(1)) if m else None), text
 
 
+#: the log of the child process running now (_spawn)
+_CHILD_LOGS: list = []
+
+
 def _wait(ex, cond, timeout):
-    t_end = time.monotonic() + timeout
+    """Spins until cond() (True) or `timeout` s of silence (False): the child's compile
+    lines (CompileNotice) restart the time-out."""
+    deadline = Deadline(timeout, _CHILD_LOGS)
     while not cond():
-        if time.monotonic() > t_end:
+        if deadline.expired():
             return False
         ex.spin_once(timeout_sec=0.01)
     return True

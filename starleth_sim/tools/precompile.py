@@ -1,135 +1,184 @@
-"""``starleth-precompile``: fills numba's on-disk cache of the kernels, in parallel processes.
+"""``starleth-precompile``: makes every kernel ready before the first run needs it, and
+measures what a cold start costs (``--cold``).
 
-Every physics kernel is compiled with ``cache=True`` (``physics.kernel_cache``): the first
-process that calls a kernel compiles it (a few minutes for all of them on a 2-core machine)
-and writes the machine code next to its source; every later process loads it in well under a
-second. Processes started side by side before the cache is filled (two pytest workers, the
-sim and controller nodes of a first ``make demo``, the pool of a sweep) each compile the same
-kernels at the same time. This tool compiles them once, spreading disjoint work over
-``--jobs`` processes, so that those processes only load.
+Three units, each in a process of its own (``--jobs``, default 2):
 
-The work units are the public entry points that reach distinct kernels: the one-kernel step
-of each family (tree hard contacts: HmJ; forest: HEJD and the other extended / maximal sets;
-compliant: Cm), the phase-by-phase step that ``profile=True`` runs, the step prepared ahead
-(``Simulator.prepare``, sim_node's path), the controller's kernels (one closed-loop control
-period, and controller_node's reading of a state) and sim_node's command parsers. A unit
-whose kernels are already cached takes a fraction of a second, so running the tool again is
-cheap.
+* ``physics``: the C physics kernels (``starleth_sim.physics.kernels``). A source checkout
+  builds them when they are missing or their sources changed (a few seconds); an installed
+  package has them from its build. With ``--cold`` they are built again into a temporary
+  directory, which times a full build without touching the one in use.
+* ``controller``: the controller's numba kernels, by controller_node's own start-up
+  (``controller_node.compile_kernels``: the controller on synthetic states, the state
+  reader), into numba's on-disk cache.
+* ``ros-codec``: sim_node's command parsers (numba, ``ros.cdr.CommandDecoder``).
+
+A unit whose code is ready takes a fraction of a second, so running the tool again is cheap.
+``--cold`` compiles the numba units into an empty, temporary ``NUMBA_CACHE_DIR`` (the real
+cache is left as it is) and prints each unit's seconds and the total: the figures of a
+first run on a fresh clone.
+
+While units compile, one line (rewritten in place on a terminal; a line per unit started and
+finished otherwise) says which, for how long, and about how long they take.
 """
 from __future__ import annotations
 
 import argparse
 import multiprocessing
 import os
+import shutil
 import sys
+import tempfile
 import time
 
-from ..physics.config import PRESETS
-
-#: the units that compile most, with their rough cold compile time on a 2-core machine [s]
-_LONG_UNITS = (
-    ("step:HmJ", 75.0),
-    ("step:HEJD", 55.0),
-    ("profile:HEJD", 40.0),
-    ("profile:HmJ", 30.0),
-    ("prepare:HmJ", 30.0),
-    ("controller", 15.0),
-    ("step:Cm", 7.0),
-    ("profile:Cm", 5.0),
-    ("ros-codec", 3.0),
-)
-#: every (unit, rough cold compile time [s]), the longest first, so that the processes
-#: finish close together (longest processing time first); the step, profiled step and
-#: prepared step of the other presets mostly load what the long units compiled (≈ 1 s)
-UNITS = _LONG_UNITS + tuple(
-    (unit, 1.0) for unit in (f"{kind}:{p}" for kind in ("step", "profile", "prepare")
-                             for p in PRESETS)
-    if unit not in dict(_LONG_UNITS))
+#: (unit, rough cold seconds on a 2-core machine), the longest first
+UNITS = (("controller", 10.0), ("ros-codec", 3.0), ("physics", 4.0))
+ESTIMATE = dict(UNITS)
 
 
-def compile_unit(unit: str) -> None:
-    """Runs the entry point of `unit` ("step:PRESET", "profile:PRESET", "prepare:PRESET",
-    "controller" or "ros-codec") long enough to call each of its kernels once."""
-    kind, _, preset = unit.partition(":")
-    if kind == "controller":
-        from .evaluation import run_gait
-        run_gait("HmJ", "trot", 0.01, stand_time=0.0)
-        _controller_node_state()
-    elif kind == "ros-codec":
+def compile_unit(unit: str, cold_dir: str | None = None) -> None:
+    """Makes the kernels of `unit` ready (see the module docstring); cold_dir: build the C
+    kernels there (``physics`` with --cold)."""
+    if unit == "physics":
+        from ..physics import kernel_build
+        if cold_dir is not None:
+            kernel_build.build(os.path.join(cold_dir, kernel_build.MODULE + kernel_build.SUFFIX))
+        else:
+            from ..physics import kernels   # noqa: F401  (builds a stale checkout's module)
+    elif unit == "controller":
+        from starleth_controller.controller_node import compile_kernels
+        compile_kernels(log=lambda *_: None)
+    elif unit == "ros-codec":
         from ..ros.cdr import CommandDecoder
         CommandDecoder(["joint"])          # compiles its parsers on construction
-    elif kind in ("step", "profile", "prepare") and preset in PRESETS:
-        from ..physics.posture import PostureHold
-        from ..physics.simulator import Simulator
-        sim = Simulator.from_preset(preset, profile=kind == "profile")
-        hold = PostureHold(sim.joint_positions())
-        for _ in range(2):
-            if kind == "prepare":       # the torque-independent part ahead (sim_node's path)
-                sim.prepare()
-            sim.step(hold.torque(sim))
     else:
-        raise ValueError(f"unknown unit {unit!r}: 'step:PRESET', 'profile:PRESET', "
-                         "'prepare:PRESET', 'controller' or 'ros-codec'")
+        raise ValueError(f"unknown unit {unit!r}: one of {', '.join(u for u, _ in UNITS)}")
 
 
-def _controller_node_state() -> None:
-    """controller_node's reading of a state (kernels.node_state) with the argument types it
-    passes (float64 views of one bundle, int64 permutation, bool contact flags): else the
-    node compiles it on its first state."""
-    import numpy as np
-    from starleth_controller.kernels import node_state
-    from starleth_interface import state_bundle as sb
-    v = np.zeros(sb.SIZE)
-    node_state(v[sb.SLICES["q"]], v[sb.SLICES["u"]], np.arange(12, dtype=np.int64),
-               v[sb.BASE], v[sb.SLICES["force"]].reshape(4, 3), 5.0, np.empty(12),
-               np.empty(12), np.empty(3), np.empty(4), np.empty(3), np.empty(3), np.eye(3),
-               np.empty(4, dtype=bool))
-
-
-def _try_unit(unit: str) -> tuple[str, float, str | None]:
-    """compile_unit in a worker: (unit, wall seconds, None), or (unit, seconds, the error)
-    when its entry point raised (the other units go on)."""
+def _try_unit(args) -> tuple[str, float, str | None]:
+    """compile_unit in a worker: (unit, wall seconds, None or the error)."""
+    unit, cold_dir = args
     t0 = time.perf_counter()
     error = None
     try:
-        compile_unit(unit)
+        compile_unit(unit, cold_dir)
     except Exception as e:      # reported by precompile, which fails at the end
         error = f"{type(e).__name__}: {e}"
     return unit, time.perf_counter() - t0, error
 
 
-def precompile(jobs: int | None = None, units=None, stream=None) -> tuple[float, list]:
-    """Compiles (or loads) the kernels of `units` (default: all) in `jobs` processes (default:
-    the CPU count, at most 4), printing each unit's time to `stream` (default stdout);
-    returns (wall time [s], the [(unit, error)] of the units that failed)."""
+class Progress:
+    """The one line that says what compiles: rewritten on a terminal every half second;
+    elsewhere one line per unit started and finished."""
+
+    def __init__(self, stream, units, jobs):
+        self.stream, self.tty = stream, hasattr(stream, "isatty") and stream.isatty()
+        self.t0 = time.monotonic()
+        self.pending = list(units)
+        self.running: dict[str, float] = {}
+        self.jobs = jobs
+        self._shown = 0.0
+        self.estimate = self._estimate(units, jobs)
+
+    @staticmethod
+    def _estimate(units, jobs):
+        """Longest processing time first over `jobs` processes: the rough wall time."""
+        load = [0.0] * max(1, jobs)
+        for u in sorted(units, key=lambda u: -ESTIMATE.get(u, 1.0)):
+            load[load.index(min(load))] += ESTIMATE.get(u, 1.0)
+        return max(load)
+
+    def _start_next(self, n):
+        for _ in range(n):
+            if self.pending:
+                u = self.pending.pop(0)
+                self.running[u] = time.monotonic()
+                if not self.tty:
+                    print(f"  compiling {u} ...", file=self.stream, flush=True)
+
+    def begin(self):
+        self._start_next(self.jobs)
+        self.tick(force=True)
+
+    def tick(self, force=False):
+        if not self.tty:
+            return
+        now = time.monotonic()
+        if not force and now - self._shown < 0.5:
+            return
+        self._shown = now
+        parts = ", ".join(f"{u} {now - t:.0f} s" for u, t in self.running.items())
+        self.stream.write(f"\r\033[Kcompiling kernels: {parts or 'done'} "
+                          f"({now - self.t0:.0f} s of about {self.estimate:.0f} s)")
+        self.stream.flush()
+
+    def done(self, unit, seconds, error):
+        self.running.pop(unit, None)
+        if self.tty:
+            self.stream.write("\r\033[K")
+        print(f"  {unit:<11} {seconds:6.1f} s" + (f"  FAILED: {error}" if error else ""),
+              file=self.stream, flush=True)
+        self._start_next(1)
+        self.tick(force=True)
+
+    def end(self):
+        if self.tty:
+            self.stream.write("\r\033[K")
+            self.stream.flush()
+
+
+def precompile(jobs: int | None = None, units=None, stream=None, cold: bool = False
+               ) -> tuple[float, list]:
+    """Makes the kernels of `units` (default: all) ready in `jobs` processes (default 2),
+    printing each unit's time to `stream` (default stdout) and the progress line; cold: into
+    an empty NUMBA_CACHE_DIR and a temporary build directory (removed afterwards). Returns
+    (wall time [s], the [(unit, error)] of the units that failed)."""
     stream = sys.stdout if stream is None else stream
     units = [u for u, _ in UNITS] if units is None else list(units)
-    jobs = max(1, min(jobs or min(os.cpu_count() or 1, 4), len(units)))
+    jobs = max(1, min(jobs or 2, len(units)))
     t0 = time.perf_counter()
     failed = []
-
-    def report(done):
-        for unit, seconds, error in done:
-            print(f"  {unit:<14} {seconds:6.1f} s" + (f"  FAILED: {error}" if error else ""),
-                  file=stream, flush=True)
-            if error:
-                failed.append((unit, error))
-
-    if jobs == 1:
-        report(map(_try_unit, units))
-    else:
-        # spawn: a fresh interpreter per worker (no forked numba or threading state)
-        with multiprocessing.get_context("spawn").Pool(jobs) as pool:
-            report(pool.imap_unordered(_try_unit, units))
+    tmp = tempfile.mkdtemp(prefix="starleth-cold-") if cold else None
+    saved = os.environ.get("NUMBA_CACHE_DIR")
+    try:
+        if cold:        # (spawned workers inherit the environment)
+            os.environ["NUMBA_CACHE_DIR"] = os.path.join(tmp, "numba")
+        progress = Progress(stream, units, jobs)
+        progress.begin()
+        ctx = multiprocessing.get_context("spawn")  # fresh interpreters: no forked numba state
+        with ctx.Pool(jobs) as pool:
+            results = pool.imap_unordered(_try_unit, [(u, tmp) for u in units])
+            while True:
+                try:
+                    unit, seconds, error = results.next(timeout=0.25)
+                except multiprocessing.TimeoutError:
+                    progress.tick()
+                    continue
+                except StopIteration:
+                    break
+                progress.done(unit, seconds, error)
+                if error:
+                    failed.append((unit, error))
+        progress.end()
+    finally:
+        if cold:
+            if saved is None:
+                os.environ.pop("NUMBA_CACHE_DIR", None)
+            else:
+                os.environ["NUMBA_CACHE_DIR"] = saved
+            shutil.rmtree(tmp, ignore_errors=True)
     return time.perf_counter() - t0, failed
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="starleth-precompile", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--jobs", type=int, default=None,
-                    help="processes (default: the CPU count, at most 4)")
+    ap = argparse.ArgumentParser(prog="starleth-precompile",
+                                 description=__doc__.split("\n\n")[0].strip("`: "))
+    ap.add_argument("--jobs", type=int, default=None, help="processes (default 2)")
+    ap.add_argument("--cold", action="store_true",
+                    help="measure a first run: compile every unit into an empty numba cache "
+                         "and a temporary build directory (the real ones are not touched) "
+                         "and print each unit's seconds and the total")
     ap.add_argument("units", nargs="*",
-                    help="units to compile (default: all): " + ", ".join(u for u, _ in UNITS))
+                    help="units (default: all): " + ", ".join(u for u, _ in UNITS))
     args = ap.parse_args(argv)
     known = {u for u, _ in UNITS}
     bad = [u for u in args.units if u not in known]
@@ -137,13 +186,14 @@ def main(argv=None):
         ap.error(f"unknown unit(s) {', '.join(bad)}; known: {', '.join(sorted(known))}")
     if args.jobs is not None and args.jobs < 1:
         ap.error("--jobs must be at least 1")
-    print("starleth-precompile: numba kernels into the on-disk cache", flush=True)
-    wall, failed = precompile(args.jobs, args.units or None)
+    what = "cold compilation (an empty cache)" if args.cold else "kernels ready"
+    print(f"starleth-precompile: {what}, {args.jobs or 2} processes", flush=True)
+    wall, failed = precompile(args.jobs, args.units or None, cold=args.cold)
     if failed:
         print(f"{len(failed)} unit(s) failed in {wall:.1f} s: "
               f"{', '.join(u for u, _ in failed)}", file=sys.stderr, flush=True)
         return 1
-    print(f"done in {wall:.1f} s", flush=True)
+    print(f"{'total' if args.cold else 'done in'} {wall:.1f} s wall", flush=True)
     return 0
 
 
