@@ -107,14 +107,25 @@ def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_pat
     assert "physics kernels built in" in out.getvalue()
     assert not ensure_built(out, str(csrc), module)             # unchanged: kept
     stamp = os.stat(module).st_mtime_ns
-    with open(csrc / "step.c", "a") as f:                       # an edit of one source
-        f.write("\n/* edited */\n")
+    objects = tmp_path / kernel_build.OBJECTS
+
+    def compiled():
+        return {p.name.rsplit("-", 1)[0]: p.name for p in objects.glob("*.o")}
+    first = compiled()
+    assert sorted(first) == sorted(p[:-2] for p in os.listdir(csrc) if p.endswith(".c"))
+    with open(csrc / "step.c", "a") as f:                       # an edit of one source:
+        f.write("\n/* edited */\n")                            # it alone compiles again
     assert ensure_built(out, str(csrc), module)
     assert os.stat(module).st_mtime_ns != stamp
+    second = compiled()
+    assert [k for k in first if first[k] != second[k]] == ["step"]
+    assert len(list(objects.glob("*.o"))) == len(first)         # the old object removed
     assert not ensure_built(out, str(csrc), module)
-    with open(csrc / "core.h", "a") as f:                       # a header counts too
+    with open(csrc / "core.h", "a") as f:                       # a header: every source
         f.write("\n/* edited */\n")
     assert ensure_built(out, str(csrc), module)
+    third = compiled()
+    assert all(third[k] != second[k] for k in second)
     with open(module + kernel_build.DIGEST_SUFFIX, "w") as f:   # built from other sources
         f.write("0" * 64 + "\n")
     assert ensure_built(out, str(csrc), module)

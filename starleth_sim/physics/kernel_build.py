@@ -11,7 +11,9 @@ Flags: the kernels' results are pinned bit for bit (test/test_bitexact.py), so n
 change the floating-point results: ``-ffp-contract=off`` (no fused multiply-adds, which GCC
 forms by default where the CPU has them), no ``-ffast-math`` or any of its parts that
 reassociate or assume finite values. ``-fno-math-errno`` only lets sqrt compile to one
-instruction (the same correctly rounded value).
+instruction (the same correctly rounded value). ``-O3`` and the machine's own instruction
+set (`ARCH`) vectorize the loops over independent entries (the maximal coordinates' JOR
+sweep: HMJP 6,100 -> 10,600 steps/s against -O2 for the default target, measured).
 
 Standard library only: setup.py loads this file before anything is installed.
 """
@@ -33,9 +35,16 @@ MODULE = "_kernels"
 #: the file of the built module, and the digest of what it was built from, in the package
 SUFFIX = sysconfig.get_config_var("EXT_SUFFIX") or ".so"
 DIGEST_SUFFIX = ".digest"
+#: a source checkout's object files (kernels.ensure_built), beside the module
+OBJECTS = ".kernel_objects"
 
-FLAGS = ("-std=gnu11", "-O2", "-ffp-contract=off", "-fno-math-errno", "-fPIC",
-         "-fvisibility=hidden", "-Wall")
+#: the target CPU: this machine's (``-march=native``, as numba's JIT targeted it), or what
+#: $STARLETH_KERNEL_ARCH names (empty: the compiler's default target, for a build that runs
+#: on other machines than the one it was built on). Vector instructions change no result:
+#: without reassociation only independent entries are computed side by side.
+ARCH = os.environ.get("STARLETH_KERNEL_ARCH", "native")
+FLAGS = ("-std=gnu11", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fPIC",
+         "-fvisibility=hidden", "-Wall") + ((f"-march={ARCH}",) if ARCH else ())
 
 
 class BuildError(RuntimeError):
@@ -89,32 +98,61 @@ def _run(cmd):
     return p.stdout
 
 
-def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=None) -> float:
+def _object_key(src: str, cc, headers: bytes) -> str:
+    """What an object file depends on: the compiler command, the flags, the Python headers'
+    place, every header of the kernels and the source itself."""
+    h = hashlib.sha256()
+    h.update(" ".join(cc + list(FLAGS)).encode() + b"\0" + _python_include().encode())
+    h.update(headers)
+    with open(src, "rb") as f:
+        h.update(f.read())
+    return h.hexdigest()[:32]
+
+
+def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=None,
+          object_cache: str | None = None) -> float:
     """Compiles the kernels into the extension module file out_path (replaced atomically,
     with the digest beside it: out_path + DIGEST_SUFFIX); returns the wall time [s].
-    progress(done, total) is called as the sources finish. Raises BuildError."""
+    progress(done, total) is called as the sources finish. object_cache: a directory that
+    keeps each source's object file under the digest of what it depends on (its own text,
+    the headers, the flags), so that after an edit only the edited sources compile again
+    (all of them after an edit of a header). Raises BuildError."""
     t0 = time.perf_counter()
     cc = compiler()
     digest = source_digest(csrc)
     include = ["-I" + csrc, "-I" + _python_include()]
-    define = [f'-DKERNELS_SOURCE_DIGEST="{digest}"']
     srcs = sources(csrc)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(srcs)))
     out_dir = os.path.dirname(os.path.abspath(out_path))
     os.makedirs(out_dir, exist_ok=True)
+    headers = b"".join(open(os.path.join(csrc, n), "rb").read()
+                       for n in sorted(os.listdir(csrc)) if n.endswith(".h"))
     with tempfile.TemporaryDirectory(prefix="starleth-kernels-") as tmp:
-        objects = [os.path.join(tmp, os.path.basename(s)[:-2] + ".o") for s in srcs]
+        cache = object_cache or tmp
+        os.makedirs(cache, exist_ok=True)
+        objects = [os.path.join(cache, os.path.basename(s)[:-2] + "-"
+                                + _object_key(s, cc, headers) + ".o") for s in srcs]
         done = 0
 
         def compile_one(pair):
             src, obj = pair
-            _run(cc + list(FLAGS) + include + define + ["-c", src, "-o", obj])
+            if os.path.exists(obj):
+                return
+            part = obj + f".{os.getpid()}.tmp"
+            _run(cc + list(FLAGS) + include + ["-c", src, "-o", part])
+            os.replace(part, obj)
 
         with ThreadPoolExecutor(jobs) as pool:
             for _ in pool.map(compile_one, zip(srcs, objects)):
                 done += 1
                 if progress:
                     progress(done, len(srcs))
+        if object_cache:    # the objects of other versions: removed
+            keep = set(objects)
+            for name in os.listdir(object_cache):
+                path = os.path.join(object_cache, name)
+                if name.endswith(".o") and path not in keep:
+                    os.remove(path)
         fd, tmp_out = tempfile.mkstemp(prefix=".build-", suffix=SUFFIX, dir=out_dir)
         os.close(fd)
         try:

@@ -65,7 +65,9 @@ def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = 
                 return False        # another process built it while this one waited
             print("starleth_sim: building the physics kernels (C, a few seconds; once per "
                   "change of their sources)", file=stream, flush=True)
-            seconds = kernel_build.build(path, csrc, progress=_progress_line(stream))
+            seconds = kernel_build.build(path, csrc, progress=_progress_line(stream),
+                                         object_cache=os.path.join(os.path.dirname(path),
+                                                                   kernel_build.OBJECTS))
             if hasattr(stream, "isatty") and stream.isatty():
                 stream.write("\r\033[K")
             print(f"starleth_sim: physics kernels built in {seconds:.1f} s", file=stream,

@@ -14,10 +14,6 @@
 
 #include "step.h"
 
-#ifndef KERNELS_SOURCE_DIGEST
-#define KERNELS_SOURCE_DIGEST "unknown"
-#endif
-
 static PyObject *np_empty; /* numpy.empty */
 
 /* ---------------------------------------------------------------------------------------
@@ -1734,8 +1730,7 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         }
     }
     Py_INCREF(&ProblemType);
-    if (PyModule_AddObject(m, "ContactProblem", (PyObject *)&ProblemType) < 0 ||
-        PyModule_AddStringConstant(m, "SOURCE_DIGEST", KERNELS_SOURCE_DIGEST) < 0) {
+    if (PyModule_AddObject(m, "ContactProblem", (PyObject *)&ProblemType) < 0) {
         Py_DECREF(m);
         return NULL;
     }
