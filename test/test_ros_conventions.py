@@ -137,7 +137,10 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
             return min(sim_time.values()) > 2.5
         assert ros.spin_until(trotted, 180, procs=procs.values(), step=0.05), \
             f"the robots did not both reach t = 2.5 s: {sim_time}"
-        assert clock.t is not None and clock.t > 2.0      # robot1's /clock went along
+        # robot1's /clock went along (its first message may come after the joint states:
+        # the robots may pass 2.5 s before this node's subscriptions match)
+        assert ros.spin_until(lambda: clock.t is not None and clock.t > 2.0, 10.0,
+                              procs=procs.values()), clock.t
         for sub in stamp_subs:
             node.destroy_subscription(sub)
         for tag in ("robot1", "robot2"):

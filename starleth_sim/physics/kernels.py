@@ -58,7 +58,14 @@ def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = 
     if os.path.exists(path) and _read(digest_file) == digest:
         return False
     lock_path = os.path.join(os.path.dirname(path), ".kernel_build.lock")
-    with open(lock_path, "a") as lock:
+    try:
+        lock = open(lock_path, "a")
+    except OSError as e:
+        raise kernel_build.BuildError(
+            f"the physics kernels in {os.path.dirname(path)} are "
+            f"{'out of date' if os.path.exists(path) else 'not built'} and cannot be built "
+            f"there ({e.strerror}): build the package again where it is writable") from None
+    with lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             if os.path.exists(path) and _read(digest_file) == digest:
@@ -78,7 +85,11 @@ def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = 
 
 
 def _load():
-    ensure_built()
+    try:
+        ensure_built()
+    except kernel_build.BuildError as e:
+        raise ImportError(f"starleth_sim: the physics kernels (C) could not be built: {e}") \
+            from None
     try:
         return importlib.import_module(__package__ + "." + kernel_build.MODULE)
     except ImportError as e:

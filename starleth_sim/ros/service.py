@@ -50,7 +50,7 @@ class SimService:
         self.failed = False                  # paused after the physics failed twice
         self.state_version = 0               # bumped whenever a new state exists
         self._timed_out_stamps = deque(maxlen=256)
-        # warm up (numba dispatch, first solve) so that the first real step is not slow;
+        # warm up (first calls, first solve) so that the first real step is not slow;
         # reset() then restores the initial state and clears the solver's contact memory
         sim.reset(q=self.q0, u=self.u0, t=0.0)
         try:

@@ -39,7 +39,7 @@ def measure(preset: str, seconds: float, repeats: int = 3):
         sim = Simulator.from_preset(preset)
         hold = PostureHold(sim.joint_positions())
         n = int(round(seconds / sim.control_period))
-        sim.step(hold.torque(sim))  # warm-up (numba dispatch, caches)
+        sim.step(hold.torque(sim))  # warm-up (first calls, caches)
         wall = 0.0
         it = 0
         for _ in range(n):
@@ -234,7 +234,7 @@ def measure_vs_mujoco(presets, rounds: int, steps: int) -> VsMujoco | None:
         return None
     mj = MujocoStanding(mujoco, model, first)
     runners = {"MuJoCo": mj, **runners}
-    for r in runners.values():   # warm-up (numba dispatch, caches)
+    for r in runners.values():   # warm-up (first calls, caches)
         r.run(50)
     rates = {n: [] for n in runners}
     for _ in range(rounds):
