@@ -5,7 +5,7 @@ environment's ROS_DOMAIN_ID if set, else one chosen from the pid), discovering p
 host only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the environment sets it):
 
 * ``sim_node`` (lockstep, as fast as the controller answers, physics HmJ, recording to
-  ``runs/demo.mcap``), and
+  ``runs/demo.mcap``; started paused, set going once both nodes are up), and
 * ``controller_node`` (starleth_controller), started right after it: sim_node re-sends its
   first state until the controller answers, so the start order does not matter.
 
@@ -310,7 +310,13 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
         twist.linear.x = float(speed)
         cmd_pub.publish(twist)
         last_cmd = time.monotonic()
-        echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting)")
+        # sim_node started paused: its clock starts now, not while this process was still
+        # discovering the nodes (a lockstep run at several times real time would otherwise
+        # stand longer than asked)
+        res = _wait_future(ex, pause_cli.call_async(SetBool.Request(data=False)), 10.0, procs,
+                           "/sim_node/pause")
+        echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting); "
+             f"sim_node {res.message}")
         while clock["first"] is None:
             _check_alive(procs)
             if deadline.expired():
@@ -464,7 +470,7 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
     procs = []
     try:
         sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
-                      "record": bag}
+                      "record": bag, "start_paused": True}
         if in_process:
             procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
                                      domain_id, stem + ".sim_node.log",
