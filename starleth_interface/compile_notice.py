@@ -1,10 +1,11 @@
 """Saying that kernels compile, and telling compilation from silence.
 
 A first run after an install (or after an edit) compiles numba kernels for seconds, in which a
-process prints nothing of its own. `CompileNotice` wraps such a block: when it has run for
-`after` seconds it logs that it is compiling (what, and a rough estimate), then a line every
-`every` seconds with the time so far, and at the end how long it took; a block that ends
-sooner (the kernels came from numba's cache) says nothing. A tool that waits for a process
+process prints nothing of its own. `CompileNotice` wraps such a block: once numba compiles
+in it (numba's "numba:compile" events; loading from numba's cache is no compilation) and the
+block has run for `after` seconds, it logs that it is compiling (what, and a rough
+estimate), then a line every `every` seconds with the time so far, and at the end how long
+it took; a block that only loads the cache says nothing. A tool that waits for a process
 to come up (starleth-demo, the node tests) reads those lines from the process's log
 (`LogWatch`) and counts its start-up timeout from the last of them: compilation is progress,
 not silence.
@@ -35,8 +36,33 @@ class CompileNotice:
         self.announced = False
         self.seconds = 0.0
         self._done = threading.Event()
+        self._compiling = threading.Event()
         self._thread = None
+        self._listener = None
         self._t0 = 0.0
+
+    def _listen(self):
+        """Sets _compiling at numba's first compile event (none without numba)."""
+        try:
+            from numba.core import event
+        except ImportError:     # pragma: no cover - numba is a dependency
+            return
+        compiling = self._compiling
+
+        class Listener(event.Listener):
+            def on_start(self, ev):
+                compiling.set()
+
+            def on_end(self, ev):
+                pass
+        self._listener = Listener()
+        event.register("numba:compile", self._listener)
+
+    def _unlisten(self):
+        if self._listener is not None:
+            from numba.core import event
+            event.unregister("numba:compile", self._listener)
+            self._listener = None
 
     def _about(self) -> str:
         return f", about {self.estimate:.0f} s" if self.estimate else ""
@@ -44,6 +70,9 @@ class CompileNotice:
     def _watch(self):
         if self._done.wait(self.after):
             return
+        while not self._compiling.is_set():     # (loading from the cache: nothing to say)
+            if self._done.wait(0.05):
+                return
         self.announced = True
         self.log(f"{COMPILE_MARK} {self.what} (numba: the first run after an install or an "
                  f"edit compiles, later runs load the cache{self._about()})")
@@ -53,17 +82,24 @@ class CompileNotice:
 
     def __enter__(self):
         self._t0 = time.monotonic()
+        self._listen()
         self._thread = threading.Thread(target=self._watch, name="compile-notice",
                                         daemon=True)
         self._thread.start()
         slow = os.environ.get(SLOW_COMPILE_ENV)
-        if slow:
+        if slow:                # the stand-in compiles
+            self._compiling.set()
             time.sleep(float(slow))
         return self
+
+    def compiling(self):
+        """Marks the block as compiling (code that compiles without numba's events)."""
+        self._compiling.set()
 
     def __exit__(self, *exc):
         self._done.set()
         self._thread.join()
+        self._unlisten()
         self.seconds = time.monotonic() - self._t0
         if self.announced:
             self.log(f"{self.what}: compiled in {self.seconds:.1f} s"

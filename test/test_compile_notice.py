@@ -12,6 +12,7 @@ def test_a_long_block_says_it_compiles_and_how_long_it_took():
     lines = []
     with CompileNotice("the widgets", lines.append, estimate=9.0, after=0.05,
                        every=0.1) as notice:
+        notice.compiling()
         time.sleep(0.6)
     assert notice.announced and 0.6 <= notice.seconds < 5.0
     assert lines[0].startswith("compiling the widgets (numba") and "about 9 s" in lines[0]
@@ -23,15 +24,39 @@ def test_a_long_block_says_it_compiles_and_how_long_it_took():
 def test_a_short_block_says_nothing():
     lines = []
     with CompileNotice("the widgets", lines.append, after=0.5) as notice:
-        pass
+        notice.compiling()
     assert lines == [] and not notice.announced
+
+
+def test_a_block_that_loads_from_the_cache_says_nothing_however_long():
+    """No compile event (numba loading its cache, or anything else slow): no compile line."""
+    lines = []
+    with CompileNotice("the widgets", lines.append, after=0.05) as notice:
+        time.sleep(0.3)
+    assert lines == [] and not notice.announced
+
+
+def test_numba_compiling_in_the_block_is_said(tmp_path, monkeypatch):
+    """A numba function compiled in the block (no cache: a new function) is announced."""
+    import numba
+    lines = []
+
+    @numba.njit
+    def add(a, b):
+        return a + b
+    with CompileNotice("the adder", lines.append, after=0.0):
+        add(1.0, 2.0)
+        time.sleep(0.2)     # (the watcher's look, every 0.05 s)
+    assert lines and lines[0].startswith("compiling the adder") and \
+        lines[-1].startswith("the adder: compiled in"), lines
 
 
 def test_a_failing_block_says_so_and_raises():
     lines = []
     try:
-        with CompileNotice("the widgets", lines.append, after=0.0):
-            time.sleep(0.05)
+        with CompileNotice("the widgets", lines.append, after=0.0) as notice:
+            notice.compiling()
+            time.sleep(0.2)
             raise RuntimeError("broken")
     except RuntimeError:
         pass

@@ -99,7 +99,7 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
             procs[tag + "_sim"] = ns_process(
                 "starleth_sim.ros.sim_node", str(tmp_path / f"{tag}.sim.log"), ns,
                 mode="lockstep", real_time_factor=0.0, record=str(tmp_path / f"{tag}.mcap"),
-                publish_clock=(i == 0))
+                publish_clock=(i == 0), start_paused=True)
             procs[tag + "_ctl"] = ns_process(
                 "starleth_controller.controller_node", str(tmp_path / f"{tag}.ctl.log"), ns,
                 mode="trot")
@@ -123,6 +123,15 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
         twist = Twist()
         twist.linear.x = 0.3
         clock = ClockWatch(ros)
+        # the simulators start paused and go once their controllers hear /cmd_vel (in
+        # lockstep at several times real time, a robot would otherwise be past its first
+        # seconds before this node's publishers match)
+        assert ros.spin_until(lambda: all(p.get_subscription_count() == 1
+                                          for p in cmd_vel.values()), START_TIMEOUT,
+                              procs=procs.values())
+        for i in (1, 2):
+            r = ros.call(SetBool, f"/robot{i}/sim_node/pause", SetBool.Request(data=False))
+            assert r.success and "running" in r.message, r.message
         sim_time = {1: 0.0, 2: 0.0}
         best_effort = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
         stamp_subs = [node.create_subscription(
