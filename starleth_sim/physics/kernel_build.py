@@ -65,8 +65,7 @@ def source_digest(csrc: str = CSRC) -> str:
     for name in sorted(os.listdir(csrc)):
         if name.endswith((".c", ".h")):
             h.update(name.encode() + b"\0")
-            with open(os.path.join(csrc, name), "rb") as f:
-                h.update(f.read())
+            h.update(_read_bytes(os.path.join(csrc, name)))
     return h.hexdigest()
 
 
@@ -98,14 +97,18 @@ def _run(cmd):
     return p.stdout
 
 
+def _read_bytes(path: str) -> bytes:
+    with open(path, "rb") as f:
+        return f.read()
+
+
 def _object_key(src: str, cc, headers: bytes) -> str:
     """What an object file depends on: the compiler command, the flags, the Python headers'
     place, every header of the kernels and the source itself."""
     h = hashlib.sha256()
     h.update(" ".join(cc + list(FLAGS)).encode() + b"\0" + _python_include().encode())
     h.update(headers)
-    with open(src, "rb") as f:
-        h.update(f.read())
+    h.update(_read_bytes(src))
     return h.hexdigest()[:32]
 
 
@@ -125,7 +128,7 @@ def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=Non
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(srcs)))
     out_dir = os.path.dirname(os.path.abspath(out_path))
     os.makedirs(out_dir, exist_ok=True)
-    headers = b"".join(open(os.path.join(csrc, n), "rb").read()
+    headers = b"".join(_read_bytes(os.path.join(csrc, n))
                        for n in sorted(os.listdir(csrc)) if n.endswith(".h"))
     with tempfile.TemporaryDirectory(prefix="starleth-kernels-") as tmp:
         cache = object_cache or tmp
@@ -163,9 +166,10 @@ def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=Non
             if os.path.exists(tmp_out):
                 os.remove(tmp_out)
     digest_file = out_path + DIGEST_SUFFIX
-    with open(digest_file + ".tmp", "w") as f:
+    part = f"{digest_file}.{os.getpid()}.tmp"
+    with open(part, "w") as f:
         f.write(digest + "\n")
-    os.replace(digest_file + ".tmp", digest_file)
+    os.replace(part, digest_file)
     return time.perf_counter() - t0
 
 

@@ -233,25 +233,7 @@ static int get_settings(PyObject *o, const char *fn, settings_t *s) {
     }
     memset(s, 0, sizeof(*s));
     if (n == 19) {
-        s->activation_gap = f[0];
-        s->mu = f[1];
-        s->alpha = f[2];
-        s->tol_rel = f[3];
-        s->tol_abs = f[4];
-        s->fallback_alpha_factor = f[5];
-        s->opening_gap = f[6];
-        s->dt = f[7];
-        s->beta_velocity = f[8];
-        s->beta_projection = f[9];
-        s->jacobian_gap = f[10];
-        s->projection_tolerance = f[11];
-        s->form = (i64)f[12];
-        s->scheme = (i64)f[13];
-        s->max_iterations = (i64)f[14];
-        s->criterion = (i64)f[15];
-        s->warm_start = f[16] != 0.0;
-        s->bilateral_direct = f[17] != 0.0;
-        s->hysteresis = f[18] != 0.0;
+        settings_from_fields(f, s);
     } else { /* form, scheme, tol_rel, tol_abs, max_iterations, criterion, direct, alpha */
         s->form = (i64)f[0];
         s->scheme = (i64)f[1];

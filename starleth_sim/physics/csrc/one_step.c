@@ -37,27 +37,6 @@ typedef struct {
     double *WtB, *gB, *bB, *angle, *rate, *axis_world, *bilateral_E;
 } cut_model_t;
 
-static void step_settings(const double *f, settings_t *s) {
-    s->activation_gap = f[0];
-    s->mu = f[1];
-    s->alpha = f[2];
-    s->tol_rel = f[3];
-    s->tol_abs = f[4];
-    s->fallback_alpha_factor = f[5];
-    s->opening_gap = f[6];
-    s->dt = f[7];
-    s->beta_velocity = f[8];
-    s->beta_projection = f[9];
-    s->jacobian_gap = f[10];
-    s->projection_tolerance = f[11];
-    s->form = (i64)f[12];
-    s->scheme = (i64)f[13];
-    s->max_iterations = (i64)f[14];
-    s->criterion = (i64)f[15];
-    s->warm_start = f[16] != 0.0;
-    s->bilateral_direct = f[17] != 0.0;
-    s->hysteresis = f[18] != 0.0;
-}
 
 /* The lengths a TreeStepModel's buffers must have, from its ints[0:4] = (nj, nc, na, nv) */
 static void tree_model_sizes(const i64 *ints, i64 *n_floats, i64 *n_ints, i64 *n_ws) {
@@ -85,7 +64,7 @@ static void unpack_tree_model(const packed_model_t *pm, tree_model_t *t) {
     const i64 *ints = pm->ints;
     i64 nj = ints[0], nc = ints[1], na = ints[2], nv = ints[3];
     const double *f = pm->floats;
-    step_settings(f, &t->s);
+    settings_from_fields(f, &t->s);
     i64 o = N_SETTINGS;
     t->law.mu = f[o];
     t->law.c_N = f[o + 1];

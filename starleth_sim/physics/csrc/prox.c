@@ -610,6 +610,51 @@ static prox_result_t result(i64 it, i64 status, double res) {
     return out;
 }
 
+/* The energy criterion: |T^{k+1} − T^k| ≤ |T^k| T_rel + T_abs with T = ½ uᵀMu; T^k in *T_old,
+ * replaced by T^{k+1} */
+static int energy_converged(const double *M, const double *u, i64 nv, double *T_old,
+                            double tol_rel, double tol_abs) {
+    double T = kinetic_energy(M, u, nv);
+    int ok = fabs(T - *T_old) <= fabs(*T_old) * tol_rel + tol_abs;
+    *T_old = T;
+    return ok;
+}
+
+/* What a Delassus-form solve needs for u = u_free + M^{-1} W Λ (Eqn. 17) and its energy */
+typedef struct {
+    const double *u_free, *MinvW, *M;
+    const i64 *mp_ptr, *mp_idx;
+    i64 nv, m;
+    double *u;
+} velocity_t;
+
+static void velocity_of(const velocity_t *v, const double *lam) {
+    velocity_from_impulses(v->u_free, v->MinvW, v->nv, v->m, lam, v->u, v->mp_ptr, v->mp_idx);
+}
+
+/* The end of sweep k of a Delassus-form solve, ck the check of its Λ: 1 when the solve ends
+ * (*out: non-finite Λ; or converged by the impulse criterion or by the energy one (T^k in
+ * *T_old), with u = u_free + M^{-1}WΛ), else 0 */
+static int delassus_sweep_end(const velocity_t *v, const double *lam, check_t ck, i64 k,
+                              i64 criterion, double *T_old, double tol_rel, double tol_abs,
+                              prox_result_t *out) {
+    int ok = ck.ok;
+    if (!ck.finite) {
+        *out = result(k + 1, STATUS_NONFINITE, ck.res);
+        return 1;
+    }
+    if (criterion == CRITERION_ENERGY) {
+        velocity_of(v, lam);
+        ok = energy_converged(v->M, v->u, v->nv, T_old, tol_rel, tol_abs);
+    }
+    if (ok) {
+        velocity_of(v, lam);
+        *out = result(k + 1, STATUS_CONVERGED, ck.res);
+        return 1;
+    }
+    return 0;
+}
+
 /* _jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
 static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pat,
                                        const double *G, const double *c, i64 m, i64 nc,
@@ -627,12 +672,13 @@ static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pa
     double *xi = buf, *new_ = buf + m;
     int autoa = s->alpha < 0.0;
     dop_t D = {s->form, G, G, MinvW, pat, m, nv};
+    velocity_t v = {u_free, MinvW, M, mp_ptr, mp_idx, nv, m, u};
     auto_t w = auto_setup(s, &D, nc, r, lam, ar);
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
     int long_step = 0;
     double T_old = 0.0;
     if (criterion == CRITERION_ENERGY) {
-        velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
+        velocity_of(&v, lam);
         T_old = kinetic_energy(M, u, nv);
     }
     i64 m_xi = (bilateral_direct && !autoa) ? o : m;
@@ -659,7 +705,7 @@ static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pa
                     auto_restart(hist, lam, w.lam0, rk, rs, m);
                     long_step = 0;
                     if (criterion == CRITERION_ENERGY) {
-                        velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
+                        velocity_of(&v, lam);
                         T_old = kinetic_energy(M, u, nv);
                     }
                     continue;
@@ -670,20 +716,11 @@ static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pa
             memcpy(lam, new_, (size_t)m * sizeof(double));
         }
         res = ck.res;
-        int ok = ck.ok;
-        if (!ck.finite) return result(k + 1, STATUS_NONFINITE, res);
-        if (criterion == CRITERION_ENERGY) {
-            velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
-            double T = kinetic_energy(M, u, nv);
-            ok = fabs(T - T_old) <= fabs(T_old) * tol_rel + tol_abs;
-            T_old = T;
-        }
-        if (ok) {
-            velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
-            return result(k + 1, STATUS_CONVERGED, res);
-        }
+        prox_result_t out;
+        if (delassus_sweep_end(&v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
+            return out;
     }
-    velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
+    velocity_of(&v, lam);
     return result(max_iter, STATUS_MAX_ITER, res);
 }
 
@@ -703,11 +740,12 @@ static prox_result_t sor_prox_delassus(const settings_t *s, const patterns_t *pa
     i64 o = 3 * nc;
     int autoa = s->alpha < 0.0;
     dop_t D = {s->form, G, G, MinvW, pat, m, nv};
+    velocity_t v = {u_free, MinvW, M, mp_ptr, mp_idx, nv, m, u};
     auto_t w = auto_setup(s, &D, nc, r, lam, ar);
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
     double T_old = 0.0;
     if (criterion == CRITERION_ENERGY) {
-        velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
+        velocity_of(&v, lam);
         T_old = kinetic_energy(M, u, nv);
     }
     double res = 0.0;
@@ -750,27 +788,18 @@ static prox_result_t sor_prox_delassus(const settings_t *s, const patterns_t *pa
             if (!ck.finite && hist[1] != 1.0) { /* from Λ^0 again, spectral steps */
                 auto_restart(hist, lam, w.lam0, rk, rs, m);
                 if (criterion == CRITERION_ENERGY) {
-                    velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
+                    velocity_of(&v, lam);
                     T_old = kinetic_energy(M, u, nv);
                 }
                 continue;
             }
             auto_next(s, &D, nc, k, old, lam, ck.res, rs, rk, hist, w.tmp1, w.tmp2);
         }
-        int ok = ck.ok;
-        if (!ck.finite) return result(k + 1, STATUS_NONFINITE, res);
-        if (criterion == CRITERION_ENERGY) {
-            velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
-            double T = kinetic_energy(M, u, nv);
-            ok = fabs(T - T_old) <= fabs(T_old) * tol_rel + tol_abs;
-            T_old = T;
-        }
-        if (ok) {
-            velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
-            return result(k + 1, STATUS_CONVERGED, res);
-        }
+        prox_result_t out;
+        if (delassus_sweep_end(&v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
+            return out;
     }
-    velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
+    velocity_of(&v, lam);
     return result(max_iter, STATUS_MAX_ITER, res);
 }
 
@@ -874,11 +903,8 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
         memcpy(lam, new_, (size_t)m * sizeof(double));
         int ok = ck.ok;
         if (!ck.finite) return result(k + 1, STATUS_NONFINITE, res);
-        if (criterion == CRITERION_ENERGY) {
-            double T = kinetic_energy(M, u, nv);
-            ok = fabs(T - T_old) <= fabs(T_old) * tol_rel + tol_abs;
-            T_old = T;
-        }
+        if (criterion == CRITERION_ENERGY)
+            ok = energy_converged(M, u, nv, &T_old, tol_rel, tol_abs);
         if (ok) return result(k + 1, STATUS_CONVERGED, res);
     }
     return result(max_iter, STATUS_MAX_ITER, res);
@@ -969,11 +995,8 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
         }
         int ok = ck.ok;
         if (!ck.finite) return result(k + 1, STATUS_NONFINITE, res);
-        if (criterion == CRITERION_ENERGY) {
-            double T = kinetic_energy(M, u, nv);
-            ok = fabs(T - T_old) <= fabs(T_old) * tol_rel + tol_abs;
-            T_old = T;
-        }
+        if (criterion == CRITERION_ENERGY)
+            ok = energy_converged(M, u, nv, &T_old, tol_rel, tol_abs);
         if (ok) return result(k + 1, STATUS_CONVERGED, res);
     }
     return result(max_iter, STATUS_MAX_ITER, res);

@@ -5,6 +5,9 @@
 
 #include "core.h"
 
+/* A StepSettings from its 19 fields as floats (the ints and flags small whole numbers) */
+void settings_from_fields(const double *f, settings_t *s);
+
 /* u_free = u^S + M^{-1} h Δt with the LTDL factor L of M */
 void free_velocity(const double *h, double dt, const double *uS, i64 nv, const i64 *dof_parent,
                    const double *L, double *u_free);
