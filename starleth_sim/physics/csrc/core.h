@@ -3,8 +3,8 @@
  * (Alg. 1), the rigid-body algorithms and the kinematics of a forest of floating trees.
  *
  * Built at install time into the extension module starleth_sim.physics._kernels (module.c
- * holds its Python bindings; starleth_sim/physics/kernels.py loads it and rebuilds it when
- * these sources changed). The Python modules of starleth_sim.physics describe each
+ * and bind*.c hold its Python bindings; starleth_sim/physics/kernels.py loads it and rebuilds
+ * it when these sources changed). The Python modules of starleth_sim.physics describe each
  * algorithm; the functions here have the names of the Python functions they implement.
  *
  * Conventions

@@ -1,0 +1,290 @@
+/* The bindings' argument helpers: arrays through the buffer protocol, their kinds and
+ * sizes checked, the records (settings, patterns, the tree, the contacts, ...) read from
+ * them; new numpy arrays for the few results that are new. */
+#include "bind.h"
+
+PyObject *np_empty;
+
+void release(held_t *h) {
+    for (int k = 0; k < h->n; k++) PyBuffer_Release(&h->v[k]);
+    h->n = 0;
+}
+
+static int format_ok(const Py_buffer *b, int base) {
+    const char *f = b->format ? b->format : "B";
+    if (*f == '@' || *f == '=' || *f == '<') f++;
+    if (f[0] == 0 || f[1] != 0) return 0;
+    switch (base) {
+    case F64: return f[0] == 'd' && b->itemsize == 8;
+    case I64: return (f[0] == 'l' || f[0] == 'q') && b->itemsize == 8;
+    case BOOL: return f[0] == '?' && b->itemsize == 1;
+    }
+    return 0;
+}
+
+static const char *kind_name(int base) {
+    return base == F64 ? "float64" : base == I64 ? "int64" : "bool";
+}
+
+/* An array argument into v (its buffer kept in h); 0 with an exception set on error. */
+int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h, val_t *v) {
+    int writable = kind == F64W || kind == I64W || kind == BOOLW || kind == F64N;
+    int base = (kind == F64 || kind == F64W || kind == F64N) ? F64
+               : (kind == I64 || kind == I64W)               ? I64
+                                                             : BOOL;
+    if (h->n >= MAX_BUFFERS) {
+        PyErr_Format(PyExc_RuntimeError, "%s: too many arrays", fn);
+        return 0;
+    }
+    Py_buffer *b = &h->v[h->n];
+    int flags = PyBUF_FORMAT | PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(o, b, flags) != 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_ValueError,
+                     "%s: %s must be a C-contiguous%s numpy array of %s, got %.100s", fn, name,
+                     writable ? ", writeable" : "", kind_name(base), Py_TYPE(o)->tp_name);
+        return 0;
+    }
+    h->n++;
+    if (!format_ok(b, base)) {
+        PyErr_Format(PyExc_ValueError, "%s: %s must be an array of %s (format '%s')", fn, name,
+                     kind_name(base), b->format ? b->format : "B");
+        return 0;
+    }
+    if (b->ndim > 4) {
+        PyErr_Format(PyExc_ValueError, "%s: %s has more than 4 dimensions", fn, name);
+        return 0;
+    }
+    v->p = b->buf;
+    v->len = b->itemsize ? b->len / b->itemsize : 0;
+    v->nd = b->ndim;
+    for (int k = 0; k < b->ndim; k++) v->shape[k] = b->shape[k];
+    return 1;
+}
+
+/* Parses the positional arguments args[0:nargs] by spec (the first n_required required, the
+ * others keep the defaults the caller put into vals). */
+int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
+          int n_spec, int n_required, val_t *vals, held_t *h) {
+    if (nargs < n_required || nargs > n_spec) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d%s arguments (%zd given)", fn, n_required,
+                     n_required == n_spec ? "" : " or more", nargs);
+        return 0;
+    }
+    for (Py_ssize_t k = 0; k < nargs; k++) {
+        PyObject *o = args[k];
+        val_t *v = &vals[k];
+        const char *name = spec[k].name;
+        switch (spec[k].kind) {
+        case FLOAT:
+            v->f = PyFloat_AsDouble(o);
+            if (v->f == -1.0 && PyErr_Occurred()) {
+                PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
+                return 0;
+            }
+            break;
+        case INT: {
+            PyObject *idx = PyNumber_Index(o);
+            if (!idx) {
+                PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
+                return 0;
+            }
+            v->i = PyLong_AsLongLong(idx);
+            Py_DECREF(idx);
+            if (v->i == -1 && PyErr_Occurred()) return 0;
+            break;
+        }
+        case FLAG: {
+            int t = PyObject_IsTrue(o);
+            if (t < 0) return 0;
+            v->i = t;
+            break;
+        }
+        case OBJ:
+            v->o = o;
+            break;
+        case F64N:
+            if (o == Py_None) {
+                v->p = NULL;
+                v->len = 0;
+                break;
+            }
+            if (!get_array(o, F64N, fn, name, h, v)) return 0;
+            if (v->len == 0) v->p = NULL;
+            break;
+        default:
+            if (!get_array(o, spec[k].kind, fn, name, h, v)) return 0;
+        }
+    }
+    return 1;
+}
+
+
+int need(int ok, const char *fn, const char *what) {
+    if (!ok) PyErr_Format(PyExc_ValueError, "%s: %s", fn, what);
+    return ok;
+}
+
+/* A new numpy array of n items (kind F64 or I64) copied from data, 1-d */
+PyObject *new_array(const void *data, int base, Py_ssize_t n) {
+    PyObject *arr = PyObject_CallFunction(np_empty, "(n)s", n, base == F64 ? "float64" : "int64");
+    if (!arr) return NULL;
+    Py_buffer b;
+    if (PyObject_GetBuffer(arr, &b, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) != 0) {
+        Py_DECREF(arr);
+        return NULL;
+    }
+    if (n) memcpy(b.buf, data, (size_t)n * 8);
+    PyBuffer_Release(&b);
+    return arr;
+}
+
+/* the reshaped view arr.reshape(shape) (a new reference; arr's reference is taken) */
+PyObject *reshaped(PyObject *arr, Py_ssize_t r, Py_ssize_t c) {
+    if (!arr) return NULL;
+    PyObject *out = PyObject_CallMethod(arr, "reshape", "(nn)", r, c);
+    Py_DECREF(arr);
+    return out;
+}
+
+PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ssize_t n_idx) {
+    PyObject *a = new_array(ptr, I64, n_ptr);
+    PyObject *b = a ? new_array(idx, I64, n_idx) : NULL;
+    if (!b) {
+        Py_XDECREF(a);
+        return NULL;
+    }
+    return Py_BuildValue("(NN)", a, b);
+}
+
+/* The settings: a StepSettings (19 fields) or a prox.ProxSettings (8 fields) */
+int get_settings(PyObject *o, const char *fn, settings_t *s) {
+    PyObject *seq = PySequence_Fast(o, "settings must be a sequence");
+    if (!seq) return 0;
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    PyObject **it = PySequence_Fast_ITEMS(seq);
+    double f[19];
+    int ok = n == 19 || n == 8;
+    for (Py_ssize_t k = 0; ok && k < n; k++) {
+        f[k] = PyFloat_AsDouble(it[k]);
+        if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
+    }
+    Py_DECREF(seq);
+    if (!ok) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_ValueError,
+                     "%s: settings must be the 19 numbers of a StepSettings or the 8 of a "
+                     "ProxSettings",
+                     fn);
+        return 0;
+    }
+    memset(s, 0, sizeof(*s));
+    if (n == 19) {
+        settings_from_fields(f, s);
+    } else { /* form, scheme, tol_rel, tol_abs, max_iterations, criterion, direct, alpha */
+        s->form = (i64)f[0];
+        s->scheme = (i64)f[1];
+        s->tol_rel = f[2];
+        s->tol_abs = f[3];
+        s->max_iterations = (i64)f[4];
+        s->criterion = (i64)f[5];
+        s->bilateral_direct = f[6] != 0.0;
+        s->alpha = f[7];
+    }
+    if (s->form != FORM_DELASSUS && s->form != FORM_VELOCITY) {
+        PyErr_Format(PyExc_ValueError, "%s: settings: unknown form %lld", fn, (long long)s->form);
+        return 0;
+    }
+    return 1;
+}
+
+/* A prox.Patterns (7 arrays of int64) */
+int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat) {
+    static const char *names[7] = {"wp_ptr", "wp_idx", "mp_ptr", "mp_idx",
+                                   "gp_ptr", "gp_idx", "lb_first"};
+    PyObject *seq = PySequence_Fast(o, "patterns must be a sequence");
+    if (!seq) return 0;
+    if (PySequence_Fast_GET_SIZE(seq) != 7) {
+        Py_DECREF(seq);
+        PyErr_Format(PyExc_ValueError, "%s: pat must be a prox.Patterns (7 arrays)", fn);
+        return 0;
+    }
+    const i64 *p[7];
+    Py_ssize_t n_lb = 0;
+    for (int k = 0; k < 7; k++) {
+        val_t v;
+        if (!get_array(PySequence_Fast_GET_ITEM(seq, k), I64, fn, names[k], h, &v)) {
+            Py_DECREF(seq);
+            return 0;
+        }
+        p[k] = v.p;
+        if (k == 6) n_lb = v.len;
+    }
+    Py_DECREF(seq);
+    pat->wp_ptr = p[0];
+    pat->wp_idx = p[1];
+    pat->mp_ptr = p[2];
+    pat->mp_idx = p[3];
+    pat->gp_ptr = p[4];
+    pat->gp_idx = p[5];
+    pat->lb_first = p[6];
+    pat->n_lb = n_lb;
+    return 1;
+}
+
+int get_law(PyObject *o, const char *fn, compliant_law_t *law) {
+    PyObject *seq = PySequence_Fast(o, "law must be a sequence");
+    if (!seq) return 0;
+    double f[6];
+    int ok = PySequence_Fast_GET_SIZE(seq) == 6;
+    for (int k = 0; ok && k < 6; k++) {
+        f[k] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(seq, k));
+        if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
+    }
+    Py_DECREF(seq);
+    if (!ok) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_ValueError, "%s: law must be the 6 numbers of a CompliantLaw", fn);
+        return 0;
+    }
+    law->mu = f[0];
+    law->c_N = f[1];
+    law->d_N = f[2];
+    law->c_T = f[3];
+    law->d_T = f[4];
+    law->slip_velocity = f[5];
+    return 1;
+}
+
+/* The tree's arrays (kinematics.KinematicTree); sizes from parent / jtype (nj) */
+int tree_of(const char *fn, const val_t *parent, const val_t *jtype, const val_t *axis,
+            const val_t *pl_R, const val_t *pl_p, const val_t *idx_q, const val_t *idx_v,
+            const val_t *support, i64 nv, tree_t *t) {
+    i64 nj = jtype->len;
+    if (!need((!parent || parent->len == nj) && (!axis || axis->len == 3 * nj) &&
+                  (!pl_R || pl_R->len == 9 * nj) && (!pl_p || pl_p->len == 3 * nj) &&
+                  (!idx_q || idx_q->len == nj) && (!idx_v || idx_v->len == nj) &&
+                  (!support || support->len == nj * nj),
+              fn, "the tree's arrays do not have one entry per joint"))
+        return 0;
+    t->nj = nj;
+    t->nv = nv;
+    t->parent = parent ? parent->p : NULL;
+    t->jtype = jtype->p;
+    t->axis = axis ? axis->p : NULL;
+    t->pl_R = pl_R ? pl_R->p : NULL;
+    t->pl_p = pl_p ? pl_p->p : NULL;
+    t->idx_q = idx_q ? idx_q->p : NULL;
+    t->idx_v = idx_v ? idx_v->p : NULL;
+    t->support = support ? support->p : NULL;
+    return 1;
+}
+
+int frames_of(const char *fn, const val_t *oR, const val_t *op, i64 nj, frames_t *f) {
+    if (!need((!oR || oR->len == 9 * nj) && (!op || op->len == 3 * nj), fn,
+              "oR / op must have one entry per joint"))
+        return 0;
+    f->oR = oR ? oR->p : NULL;
+    f->op = op ? op->p : NULL;
+    return 1;
+}

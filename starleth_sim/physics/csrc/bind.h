@@ -1,0 +1,166 @@
+/* The Python bindings of the kernels (bind*.c, module.c): argument parsing and checks,
+ * shared by the binding files; see module.c. */
+#ifndef STARLETH_BIND_H
+#define STARLETH_BIND_H
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <string.h>
+
+#include "step.h"
+
+/* The kinds of arguments */
+enum {
+    F64 = 1,      /* float64 array, read */
+    I64 = 2,      /* int64 array, read */
+    BOOL = 3,     /* bool array, read */
+    F64W = 4,     /* float64 array, written */
+    I64W = 5,     /* int64 array, written */
+    BOOLW = 6,    /* bool array, written */
+    FLOAT = 7,    /* a number */
+    INT = 8,      /* an integer */
+    FLAG = 9,     /* truth value */
+    OBJ = 10,     /* any object, as it is */
+    F64N = 11,    /* float64 array or None (read and written; NULL when None or empty) */
+};
+
+typedef struct {
+    const char *name;
+    int kind;
+} spec_t;
+
+typedef struct {
+    void *p;         /* data */
+    Py_ssize_t len;  /* number of items */
+    int nd;
+    Py_ssize_t shape[4];
+    double f;
+    i64 i;
+    PyObject *o;
+} val_t;
+
+#define MAX_BUFFERS 48
+
+typedef struct {
+    Py_buffer v[MAX_BUFFERS];
+    int n;
+} held_t;
+
+#define PARSE(fn, spec, n_required, vals, h)                                                  \
+    parse(args, nargs, fn, spec, (int)(sizeof(spec) / sizeof(spec[0])), n_required, vals, h)
+
+/* Runs the code (the macro's last arguments) without the GIL, with the scratch arena `a`
+ * reset and its out-of-memory jump set; `failed` becomes 1 when memory ran out. */
+#define RUN_NOGIL(a, failed, ...)                                                             \
+    do {                                                                                      \
+        jmp_buf jb_;                                                                          \
+        arena_reset(a);                                                                       \
+        (a)->oom = &jb_;                                                                      \
+        PyThreadState *ts_ = PyEval_SaveThread();                                             \
+        if (setjmp(jb_) == 0) {                                                               \
+            __VA_ARGS__;                                                                      \
+        } else {                                                                              \
+            failed = 1;                                                                       \
+        }                                                                                     \
+        PyEval_RestoreThread(ts_);                                                            \
+        (a)->oom = NULL;                                                                      \
+    } while (0)
+
+/* the same with the GIL held (short kernels) */
+#define RUN(a, failed, ...)                                                                   \
+    do {                                                                                      \
+        jmp_buf jb_;                                                                          \
+        arena_reset(a);                                                                       \
+        (a)->oom = &jb_;                                                                      \
+        if (setjmp(jb_) == 0) {                                                               \
+            __VA_ARGS__;                                                                      \
+        } else {                                                                              \
+            failed = 1;                                                                       \
+        }                                                                                     \
+        (a)->oom = NULL;                                                                      \
+    } while (0)
+
+#define FN(name)                                                                              \
+    PyObject *py_##name(PyObject *self __attribute__((unused)), PyObject *const *args,          \
+                        Py_ssize_t nargs)
+#define DONE_NONE                                                                             \
+    release(&h);                                                                              \
+    if (failed) return PyErr_NoMemory();                                                      \
+    Py_RETURN_NONE
+#define FAIL                                                                                  \
+    do {                                                                                      \
+        release(&h);                                                                          \
+        return NULL;                                                                          \
+    } while (0)
+
+/* the helpers (bind.c): each returns 0 (NULL) with an exception set on error */
+extern PyObject *np_empty; /* numpy.empty, set by the module's init */
+void release(held_t *h);
+int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h, val_t *v);
+int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
+          int n_spec, int n_required, val_t *vals, held_t *h);
+int need(int ok, const char *fn, const char *what);
+PyObject *new_array(const void *data, int base, Py_ssize_t n);
+PyObject *reshaped(PyObject *arr, Py_ssize_t r, Py_ssize_t c);
+PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ssize_t n_idx);
+int get_settings(PyObject *o, const char *fn, settings_t *s);
+int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat);
+int get_law(PyObject *o, const char *fn, compliant_law_t *law);
+int tree_of(const char *fn, const val_t *parent, const val_t *jtype, const val_t *axis,
+            const val_t *pl_R, const val_t *pl_p, const val_t *idx_q, const val_t *idx_v,
+            const val_t *support, i64 nv, tree_t *t);
+int frames_of(const char *fn, const val_t *oR, const val_t *op, i64 nj, frames_t *f);
+
+/* the bindings (bind_geometry.c, bind_prox.c, bind_step.c) */
+FN(ltdl);
+FN(ltdl_solve_vec);
+FN(ltdl_solve_cols);
+FN(ltdl_solve_cols_pattern);
+FN(cholesky_upper_input);
+FN(cholesky_solve_vec);
+FN(envelope_columns);
+FN(cholesky_solve_envelope);
+FN(quat_xyzw_to_rot);
+FN(quat_rot);
+FN(forward_kinematics);
+FN(point_jacobian);
+FN(angular_jacobian);
+FN(contact_points);
+FN(contact_kinematics);
+FN(integrate_forest);
+FN(to_pin_velocity);
+FN(from_pin_dynamics);
+FN(tree_dynamics);
+FN(midpoint_dynamics);
+FN(add_at);
+FN(rigid_body_forces);
+FN(cut_joints);
+FN(gather_joint_values);
+FN(cut_joint_torques);
+FN(compliant_contact_forces);
+FN(generalized_contact_force);
+FN(saturate_torque);
+FN(row_pattern);
+FN(col_pattern);
+FN(prox_parameters);
+FN(delassus);
+FN(delassus_diagonal);
+FN(auto_spectral_scale);
+FN(prox_solve);
+FN(free_velocity);
+FN(constraint_velocity);
+FN(solve_compliant);
+FN(end_of_step);
+FN(prepare_hard_contacts);
+FN(complete_hard_contacts);
+FN(solve_hard_contacts);
+FN(tree_step_hard);
+FN(tree_step_compliant);
+FN(forest_step_hard);
+FN(scratch_arena_stats);
+
+/* the ContactProblem type (bind_step.c) */
+extern PyTypeObject ProblemType;
+
+#endif

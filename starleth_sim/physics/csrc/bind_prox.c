@@ -1,0 +1,220 @@
+/* Bindings of the prox kernels and the step phases. */
+#include "bind.h"
+
+/* ---------------------------------------------------------------------------------------
+ * prox
+ * ------------------------------------------------------------------------------------- */
+static PyObject *pattern_of(PyObject *const *args, Py_ssize_t nargs, int by_columns) {
+    const char *fn = by_columns ? "col_pattern" : "row_pattern";
+    static const spec_t spec[] = {{"A", F64}};
+    val_t v[1];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    if (!parse(args, nargs, fn, spec, 1, 1, v, &h)) FAIL;
+    if (!need(v[0].nd == 2, fn, "A must be 2-d")) FAIL;
+    i64 r = v[0].shape[0], c = v[0].shape[1], n = by_columns ? c : r;
+    i64 *ptr = NULL, *idx = NULL;
+    arena_t *a = scratch_arena();
+    if (by_columns)
+        RUN(a, failed, col_pattern(v[0].p, r, c, a, &ptr, &idx));
+    else
+        RUN(a, failed, row_pattern(v[0].p, r, c, a, &ptr, &idx));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return pair_of_arrays(ptr, n + 1, idx, ptr[n]);
+}
+
+FN(row_pattern) { return pattern_of(args, nargs, 0); }
+FN(col_pattern) { return pattern_of(args, nargs, 1); }
+
+FN(prox_parameters) {
+    static const spec_t spec[] = {{"Gdiag", F64}, {"nc", INT}, {"alpha", FLOAT}, {"r", F64W}};
+    val_t v[4];
+    held_t h = {.n = 0};
+    if (!PARSE("prox_parameters", spec, 4, v, &h)) FAIL;
+    i64 m = v[0].len;
+    if (!need(v[3].len == m && v[1].i >= 0 && 3 * v[1].i <= m, "prox_parameters",
+              "r must have Gdiag's length and 3 nc rows fit")) FAIL;
+    prox_parameters(v[0].p, m, v[1].i, v[2].f, v[3].p);
+    release(&h);
+    Py_RETURN_NONE;
+}
+
+FN(delassus) {
+    static const spec_t spec[] = {{"Wt", F64},     {"MinvW", F64},  {"G", F64W},  {"wp_ptr", I64},
+                                  {"wp_idx", I64}, {"mp_ptr", I64}, {"mp_idx", I64}};
+    val_t v[7];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    if (!PARSE("delassus", spec, 7, v, &h)) FAIL;
+    i64 m = v[0].nd == 2 ? v[0].shape[0] : -1, nv = v[0].nd == 2 ? v[0].shape[1] : -1;
+    if (!need(m >= 0 && v[1].len == nv * m && v[2].len == m * m && v[3].len == m + 1 &&
+                  v[5].len == m + 1,
+              "delassus", "Wt must be m x nv, MinvW nv x m, G m x m, the pointers m + 1"))
+        FAIL;
+    arena_t *a = scratch_arena();
+    RUN(a, failed, delassus(v[0].p, v[1].p, v[2].p, m, nv, v[3].p, v[4].p, v[5].p, v[6].p, a));
+    DONE_NONE;
+}
+
+FN(delassus_diagonal) {
+    static const spec_t spec[] = {
+        {"Wt", F64}, {"MinvW", F64}, {"d", F64W}, {"wp_ptr", I64}, {"wp_idx", I64}};
+    val_t v[5];
+    held_t h = {.n = 0};
+    if (!PARSE("delassus_diagonal", spec, 5, v, &h)) FAIL;
+    i64 m = v[0].nd == 2 ? v[0].shape[0] : -1, nv = v[0].nd == 2 ? v[0].shape[1] : -1;
+    if (!need(m >= 0 && v[1].len == nv * m && v[2].len == m && v[3].len == m + 1,
+              "delassus_diagonal", "sizes do not match"))
+        FAIL;
+    delassus_diagonal(v[0].p, v[1].p, v[2].p, m, nv, v[3].p, v[4].p);
+    release(&h);
+    Py_RETURN_NONE;
+}
+
+/* the sizes of a problem given as arrays: m rows, nv velocities; 0 if they do not match */
+static int problem_sizes(const char *fn, const val_t *Wt, const val_t *MinvW, const val_t *G,
+                         const settings_t *s, i64 *m, i64 *nv) {
+    if (!need(Wt->nd == 2, fn, "Wt must be 2-d")) return 0;
+    *m = Wt->shape[0];
+    *nv = Wt->shape[1];
+    return need(MinvW->len == *nv * *m &&
+                    (s->form != FORM_DELASSUS || G->len == *m * *m),
+                fn, "Wt (m x nv), MinvW (nv x m) and G (m x m, Delassus form) do not match");
+}
+
+FN(auto_spectral_scale) {
+    static const spec_t spec[] = {{"s", OBJ},  {"G", F64},   {"Wt", F64}, {"MinvW", F64},
+                                  {"pat", OBJ}, {"nc", INT}, {"r", F64}};
+    val_t v[7];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    settings_t s;
+    patterns_t pat;
+    i64 m, nv;
+    if (!PARSE("auto_spectral_scale", spec, 7, v, &h) ||
+        !get_settings(v[0].o, "auto_spectral_scale", &s) ||
+        !get_patterns(v[4].o, "auto_spectral_scale", &h, &pat) ||
+        !problem_sizes("auto_spectral_scale", &v[2], &v[3], &v[1], &s, &m, &nv) ||
+        !need(v[6].len == m && 3 * v[5].i <= m && v[5].i >= 0, "auto_spectral_scale",
+              "r must have m entries"))
+        FAIL;
+    double lam = 0.0;
+    arena_t *a = scratch_arena();
+    RUN(a, failed, lam = auto_spectral_scale(&s, v[1].p, v[2].p, v[3].p, &pat, m, nv, v[5].i, v[6].p, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return PyFloat_FromDouble(lam);
+}
+
+FN(prox_solve) {
+    static const spec_t spec[] = {{"s", OBJ},      {"pat", OBJ}, {"Wt", F64},   {"MinvW", F64},
+                                  {"u_free", F64}, {"bvec", F64}, {"G", F64},   {"c", F64},
+                                  {"nc", INT},     {"mu", F64},  {"r", F64},    {"lam", F64W},
+                                  {"LB", F64},     {"M", F64},   {"u", F64W}};
+    val_t v[15];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    settings_t s;
+    patterns_t pat;
+    i64 m, nv;
+    if (!PARSE("prox_solve", spec, 15, v, &h) || !get_settings(v[0].o, "prox_solve", &s) ||
+        !get_patterns(v[1].o, "prox_solve", &h, &pat) ||
+        !problem_sizes("prox_solve", &v[2], &v[3], &v[6], &s, &m, &nv))
+        FAIL;
+    i64 nc = v[8].i;
+    i64 nb_LB = v[12].nd == 2 ? v[12].shape[0] : 0;
+    if (!need(nc >= 0 && 3 * nc <= m && v[4].len == nv && v[5].len == m &&
+                  (s.form != FORM_DELASSUS || v[7].len == m) && v[9].len >= nc &&
+                  v[10].len == m && v[11].len == m && v[14].len == nv &&
+                  (s.criterion != CRITERION_ENERGY || v[13].len == nv * nv) &&
+                  (!s.bilateral_direct || m == 3 * nc || (nb_LB == m - 3 * nc && pat.n_lb == nb_LB)),
+              "prox_solve", "the arrays do not match the problem's m rows and nv velocities"))
+        FAIL;
+    prox_result_t res = {0, 0, 0.0};
+    arena_t *a = scratch_arena();
+    RUN(a, failed, res = prox_solve(&s, &pat, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p, m, nv, nc,
+                                    v[9].p, v[10].p, v[11].p, v[12].p, nb_LB, v[13].p, v[14].p, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return Py_BuildValue("(LLd)", (long long)res.iterations, (long long)res.status, res.residual);
+}
+
+/* ---------------------------------------------------------------------------------------
+ * step phases
+ * ------------------------------------------------------------------------------------- */
+FN(free_velocity) {
+    static const spec_t spec[] = {{"h", F64},          {"dt", FLOAT}, {"uS", F64},
+                                  {"dof_parent", I64}, {"L", F64},    {"u_free", F64W}};
+    val_t v[6];
+    held_t h = {.n = 0};
+    if (!PARSE("free_velocity", spec, 6, v, &h)) FAIL;
+    i64 nv = v[2].len;
+    if (!need(v[0].len == nv && v[3].len == nv && v[4].len == nv * nv && v[5].len == nv,
+              "free_velocity", "sizes do not match"))
+        FAIL;
+    free_velocity(v[0].p, v[1].f, v[2].p, nv, v[3].p, v[4].p, v[5].p);
+    release(&h);
+    Py_RETURN_NONE;
+}
+
+FN(constraint_velocity) {
+    static const spec_t spec[] = {{"Wt", F64},     {"u_free", F64}, {"bvec", F64},
+                                  {"wp_ptr", I64}, {"wp_idx", I64}, {"c", F64W}};
+    val_t v[6];
+    held_t h = {.n = 0};
+    if (!PARSE("constraint_velocity", spec, 6, v, &h)) FAIL;
+    i64 m = v[0].nd == 2 ? v[0].shape[0] : -1, nv = v[0].nd == 2 ? v[0].shape[1] : -1;
+    if (!need(m >= 0 && v[1].len == nv && v[2].len == m && v[3].len == m + 1 && v[5].len == m,
+              "constraint_velocity", "sizes do not match"))
+        FAIL;
+    constraint_velocity(v[0].p, m, nv, v[1].p, v[2].p, v[3].p, v[4].p, v[5].p);
+    release(&h);
+    Py_RETURN_NONE;
+}
+
+FN(solve_compliant) {
+    static const spec_t spec[] = {
+        {"law", OBJ},      {"M", F64},        {"h", F64W},      {"uS", F64},     {"dt", FLOAT},
+        {"gap", F64},      {"position", F64}, {"Wt_all", F64},  {"closed", BOOLW}, {"slip", BOOLW},
+        {"anchor", F64W},  {"t1", F64},       {"t2", F64},      {"lam", F64W},   {"dof_parent", I64},
+        {"factor", FLAG},  {"L", F64W},       {"u_free", F64W}, {"timings", F64N}};
+    val_t v[19];
+    held_t h = {.n = 0};
+    compliant_law_t law;
+    if (!PARSE("solve_compliant", spec, 19, v, &h) || !get_law(v[0].o, "solve_compliant", &law)) FAIL;
+    i64 nv = v[3].len, nc = v[5].len;
+    if (!need(v[1].len == nv * nv && v[2].len == nv && v[6].len == 3 * nc &&
+                  v[7].len == 3 * nc * nv && v[8].len == nc && v[9].len == nc &&
+                  v[10].len == 3 * nc && v[11].len == 3 && v[12].len == 3 && v[13].len == 3 * nc &&
+                  v[14].len == nv && v[16].len == nv * nv && v[17].len == nv &&
+                  (!v[18].p || v[18].len >= 5),
+              "solve_compliant", "sizes do not match"))
+        FAIL;
+    int ok = solve_compliant(&law, v[1].p, v[2].p, v[3].p, nv, v[4].f, nc, v[5].p, v[6].p, v[7].p,
+                             v[8].p, v[9].p, v[10].p, v[11].p, v[12].p, v[13].p, v[14].p,
+                             (int)v[15].i, v[16].p, v[17].p, v[18].p);
+    release(&h);
+    return PyBool_FromLong(ok);
+}
+
+FN(end_of_step) {
+    static const spec_t spec[] = {{"qM", F64},   {"uE", F64},      {"u_corr", F64},
+                                  {"projected", FLAG}, {"half_dt", FLOAT}, {"jtype", I64},
+                                  {"idx_q", I64}, {"idx_v", I64},  {"qE", F64W}};
+    val_t v[9];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    tree_t t;
+    if (!PARSE("end_of_step", spec, 9, v, &h)) FAIL;
+    i64 nv = v[1].len;
+    if (!tree_of("end_of_step", NULL, &v[5], NULL, NULL, NULL, &v[6], &v[7], NULL, nv, &t) ||
+        !need(v[2].len == nv && v[8].len == v[0].len, "end_of_step", "sizes do not match"))
+        FAIL;
+    int ok = 0;
+    arena_t *a = scratch_arena();
+    RUN(a, failed, ok = end_of_step(v[0].p, v[1].p, v[2].p, (int)v[3].i, v[4].f, &t, v[0].len, v[8].p, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return PyBool_FromLong(ok);
+}

@@ -1,0 +1,432 @@
+/* Bindings of the prepared contact problem (ContactProblem) and the one-kernel steps. */
+#include "bind.h"
+
+/* ---------------------------------------------------------------------------------------
+ * ContactProblem: a hard-contact problem prepared ahead (prepare_hard_contacts), in memory
+ * of its own, for complete_hard_contacts.
+ * ------------------------------------------------------------------------------------- */
+typedef struct {
+    PyObject_HEAD arena_t arena;
+    problem_t p;
+    int filled;
+    i64 nc, nv, nb;
+} ProblemObject;
+
+
+
+static void problem_dealloc(ProblemObject *self) {
+    arena_free(&self->arena);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+__attribute__((noinline)) static PyObject *problem_new(PyTypeObject *type, PyObject *args,
+                                                     PyObject *kw) {
+    (void)args;
+    (void)kw;
+    ProblemObject *self = (ProblemObject *)type->tp_alloc(type, 0);
+    if (self) {
+        arena_init(&self->arena, 0);
+        self->filled = 0;
+    }
+    return (PyObject *)self;
+}
+
+static PyObject *problem_get_ok(ProblemObject *self, void *c) {
+    (void)c;
+    return PyBool_FromLong(self->filled && self->p.ok);
+}
+static PyObject *problem_get_n_active(ProblemObject *self, void *c) {
+    (void)c;
+    return PyLong_FromLongLong(self->filled ? self->p.na : 0);
+}
+static PyObject *problem_get_opened(ProblemObject *self, void *c) {
+    (void)c;
+    return PyLong_FromLongLong(self->filled ? self->p.opened : 0);
+}
+
+/* copies of the problem's arrays, for inspection: a dict */
+static PyObject *problem_arrays(ProblemObject *self, PyObject *unused) {
+    (void)unused;
+    if (!self->filled) {
+        PyErr_SetString(PyExc_ValueError, "ContactProblem: not prepared");
+        return NULL;
+    }
+    problem_t *p = &self->p;
+    int full = p->ok && p->m > 0; /* (else the patterns are empty: pointers of one entry) */
+    i64 m = p->m, nv = p->nv;
+    i64 nnz_w = full ? p->pat.wp_ptr[m] : 0, nnz_m = full ? p->pat.mp_ptr[m] : 0;
+    int g = full && p->G;
+    PyObject *d = PyDict_New();
+    if (!d) return NULL;
+    struct { const char *k; PyObject *v; } items[] = {
+        {"active", new_array(p->active, I64, p->na)},
+        {"Wt", reshaped(new_array(p->Wt, F64, m * nv), m, nv)},
+        {"MinvW", reshaped(new_array(p->MinvW, F64, nv * m), nv, m)},
+        {"b", new_array(p->b, F64, m)},
+        {"G", g ? reshaped(new_array(p->G, F64, m * m), m, m) : reshaped(new_array(NULL, F64, 0), 0, 0)},
+        {"Gdiag", full ? new_array(p->Gdiag, F64, m) : new_array(NULL, F64, 0)},
+        {"LB", reshaped(new_array(p->LB, F64, p->nb_LB * p->nb_LB), p->nb_LB, p->nb_LB)},
+        {"wp_ptr", new_array(p->pat.wp_ptr, I64, full ? m + 1 : 1)},
+        {"wp_idx", new_array(p->pat.wp_idx, I64, nnz_w)},
+        {"mp_ptr", new_array(p->pat.mp_ptr, I64, full ? m + 1 : 1)},
+        {"mp_idx", new_array(p->pat.mp_idx, I64, nnz_m)},
+        {"gp_ptr", new_array(p->pat.gp_ptr, I64, full ? m + 1 : 1)},
+        {"gp_idx", new_array(p->pat.gp_idx, I64, g ? p->pat.gp_ptr[m] : 0)},
+        {"lb_first", new_array(p->pat.lb_first, I64, p->pat.n_lb)},
+    };
+    int n = (int)(sizeof(items) / sizeof(items[0]));
+    int ok = 1;
+    for (int k = 0; k < n; k++) {
+        if (!items[k].v || PyDict_SetItemString(d, items[k].k, items[k].v) != 0) ok = 0;
+        Py_XDECREF(items[k].v);
+    }
+    if (!ok) {
+        Py_DECREF(d);
+        return NULL;
+    }
+    return d;
+}
+
+static PyGetSetDef problem_getset[] = {
+    {"ok", (getter)problem_get_ok, NULL, "M (and G_B) positive definite", NULL},
+    {"n_active", (getter)problem_get_n_active, NULL, "|I|, the active contacts", NULL},
+    {"opened", (getter)problem_get_opened, NULL,
+     "contacts loaded in the last step that left the active set", NULL},
+    {NULL, NULL, NULL, NULL, NULL}};
+
+static PyMethodDef problem_methods[] = {
+    {"arrays", (PyCFunction)problem_arrays, METH_NOARGS,
+     "Copies of the problem's arrays (active, Wt, MinvW, b, G, Gdiag, LB and the patterns)."},
+    {NULL, NULL, 0, NULL}};
+
+PyTypeObject ProblemType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "starleth_sim.physics._kernels.ContactProblem",
+    .tp_basicsize = sizeof(ProblemObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "A hard-contact problem prepared ahead (prepare_hard_contacts): the active set, "
+              "W^T, M^{-1}W, b, G, L_B and their patterns, in memory of its own.",
+    .tp_new = problem_new,
+    .tp_dealloc = (destructor)problem_dealloc,
+    .tp_getset = problem_getset,
+    .tp_methods = problem_methods,
+};
+
+/* The sizes shared by the contact-problem kernels */
+static int contact_problem_sizes(const char *fn, const val_t *M, const val_t *uS,
+                                 const val_t *gap, const val_t *Wt_all, const val_t *WtB,
+                                 const val_t *bB, const val_t *eps, const val_t *dof_parent,
+                                 const val_t *L, const val_t *last_impulse,
+                                 const val_t *last_active, const val_t *timings, i64 *nv,
+                                 i64 *nc, i64 *nb) {
+    *nv = uS->len;
+    *nc = gap->len;
+    *nb = bB->len;
+    return need(M->len == *nv * *nv && Wt_all->len == 3 * *nc * *nv &&
+                    WtB->len == *nb * *nv && eps->len == 2 * *nc && dof_parent->len == *nv &&
+                    L->len == *nv * *nv && last_impulse->len == 3 * *nc &&
+                    last_active->len == *nc && (!timings->p || timings->len >= 5),
+                fn, "the arrays do not match the contacts, bilateral rows and velocities");
+}
+
+FN(prepare_hard_contacts) {
+    static const spec_t spec[] = {
+        {"settings", OBJ}, {"M", F64},          {"uS", F64},          {"gap", F64},
+        {"Wt_all", F64},   {"WtB", F64},        {"bB", F64},          {"eps", F64},
+        {"dof_parent", I64}, {"factor", FLAG},  {"L", F64W},          {"last_impulse", F64},
+        {"last_active", BOOL}, {"timings", F64N}, {"problem", OBJ}};
+    val_t v[15];
+    v[14].o = Py_None;
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    settings_t s;
+    i64 nv, nc, nb;
+    if (!PARSE("prepare_hard_contacts", spec, 14, v, &h) ||
+        !get_settings(v[0].o, "prepare_hard_contacts", &s) ||
+        !contact_problem_sizes("prepare_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
+                               &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb))
+        FAIL;
+    ProblemObject *pr;
+    if (v[14].o == Py_None) {
+        pr = (ProblemObject *)problem_new(&ProblemType, NULL, NULL);
+        if (!pr) FAIL;
+    } else if (Py_IS_TYPE(v[14].o, &ProblemType)) {
+        pr = (ProblemObject *)v[14].o;
+        Py_INCREF(pr);
+    } else {
+        release(&h);
+        PyErr_SetString(PyExc_TypeError, "prepare_hard_contacts: problem must be a ContactProblem");
+        return NULL;
+    }
+    pr->filled = 0;
+    arena_t *a = &pr->arena;
+    RUN(a, failed, contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p,
+                                   v[7].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, v[13].p,
+                                   a, &pr->p));
+    release(&h);
+    if (failed) {
+        Py_DECREF(pr);
+        return PyErr_NoMemory();
+    }
+    pr->filled = 1;
+    pr->nc = nc;
+    pr->nv = nv;
+    pr->nb = nb;
+    return (PyObject *)pr;
+}
+
+FN(complete_hard_contacts) {
+    static const spec_t spec[] = {
+        {"settings", OBJ},    {"problem", OBJ},      {"h", F64},          {"uS", F64},
+        {"M", F64},           {"dof_parent", I64},   {"L", F64},          {"gap", F64},
+        {"Wt_all", F64},      {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W},
+        {"impulse", F64W},    {"is_active", BOOLW},  {"u_free", F64W},    {"u", F64W},
+        {"u_corr", F64W},     {"timings", F64N}};
+    val_t v[18];
+    held_t h = {.n = 0};
+    settings_t s;
+    if (!PARSE("complete_hard_contacts", spec, 18, v, &h) ||
+        !get_settings(v[0].o, "complete_hard_contacts", &s))
+        FAIL;
+    if (!Py_IS_TYPE(v[1].o, &ProblemType) || !((ProblemObject *)v[1].o)->filled ||
+        !((ProblemObject *)v[1].o)->p.ok) {
+        release(&h);
+        PyErr_SetString(PyExc_ValueError,
+                        "complete_hard_contacts: problem must be a ContactProblem prepared with ok");
+        return NULL;
+    }
+    ProblemObject *pr = (ProblemObject *)v[1].o;
+    i64 nv = pr->nv, nc = pr->nc, nb = pr->nb;
+    if (!need(v[2].len == nv && v[3].len == nv && v[4].len == nv * nv && v[5].len == nv &&
+                  v[6].len == nv * nv && v[7].len == nc && v[8].len == 3 * nc * nv &&
+                  v[9].len == 3 * nc && v[10].len == nc && v[11].len == nb &&
+                  v[12].len == 3 * nc && v[13].len == nc && v[14].len == nv && v[15].len == nv &&
+                  v[16].len == nv && (!v[17].p || v[17].len >= 5),
+              "complete_hard_contacts", "the arrays do not match the prepared problem"))
+        FAIL;
+    /* the solve's work in the scratch arena: the problem stays as prepared */
+    volatile int failed = 0;
+    complete_result_t r = {0, 0, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN(a, failed, r = complete_problem(&s, &pr->p, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p, nc,
+                                        v[8].p, v[9].p, v[10].p, v[11].p, nb, v[12].p, v[13].p,
+                                        v[14].p, v[15].p, v[16].p, 1, v[17].p, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return Py_BuildValue("(LLdOLL)", (long long)r.iterations, (long long)r.status, r.residual,
+                         r.retried ? Py_True : Py_False, (long long)r.projection_iterations,
+                         (long long)r.projection_status);
+}
+
+FN(solve_hard_contacts) {
+    static const spec_t spec[] = {
+        {"settings", OBJ},   {"M", F64},           {"uS", F64},          {"gap", F64},
+        {"Wt_all", F64},     {"WtB", F64},         {"bB", F64},          {"eps", F64},
+        {"dof_parent", I64}, {"factor", FLAG},     {"L", F64W},          {"h", F64},
+        {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W}, {"impulse", F64W},
+        {"is_active", BOOLW}, {"u_free", F64W},    {"u", F64W},          {"u_corr", F64W},
+        {"timings", F64N}};
+    val_t v[21];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    settings_t s;
+    i64 nv, nc, nb;
+    if (!PARSE("solve_hard_contacts", spec, 21, v, &h) ||
+        !get_settings(v[0].o, "solve_hard_contacts", &s) ||
+        !contact_problem_sizes("solve_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
+                               &v[7], &v[8], &v[10], &v[12], &v[13], &v[20], &nv, &nc, &nb) ||
+        !need(v[11].len == nv && v[14].len == nb && v[15].len == 3 * nc && v[16].len == nc &&
+                  v[17].len == nv && v[18].len == nv && v[19].len == nv,
+              "solve_hard_contacts", "the arrays do not match the problem"))
+        FAIL;
+    problem_t p = {0};
+    complete_result_t r = {0, STATUS_CONVERGED, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN(a, failed, {
+        contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p, v[7].p,
+                        v[8].p, (int)v[9].i, v[10].p, v[12].p, v[13].p, v[20].p, a, &p);
+        if (p.ok)
+            r = complete_problem(&s, &p, v[11].p, v[2].p, v[1].p, v[8].p, v[10].p, v[3].p, nc,
+                                 v[4].p, v[12].p, v[13].p, v[14].p, nb, v[15].p, v[16].p,
+                                 v[17].p, v[18].p, v[19].p, 1, v[20].p, a);
+    });
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    if (!p.ok)
+        return Py_BuildValue("(OLLLLdOLL)", Py_False, 0LL, 0LL, 0LL, (long long)STATUS_CONVERGED,
+                             0.0, Py_False, 0LL, -1LL);
+    return Py_BuildValue("(OLLLLdOLL)", Py_True, (long long)p.na, (long long)p.opened,
+                         (long long)r.iterations, (long long)r.status, r.residual,
+                         r.retried ? Py_True : Py_False, (long long)r.projection_iterations,
+                         (long long)r.projection_status);
+}
+
+/* ---------------------------------------------------------------------------------------
+ * the one-kernel steps
+ * ------------------------------------------------------------------------------------- */
+static int packed_of(const val_t *v, packed_model_t *m) {
+    m->floats = v[0].p;
+    m->n_floats = v[0].len;
+    m->ints = v[1].p;
+    m->n_ints = v[1].len;
+    m->support = v[2].p;
+    m->n_support = v[2].len;
+    m->workspace = v[3].p;
+    m->n_workspace = v[3].len;
+    return 1;
+}
+
+/* The step arrays: v = q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report,
+ * is_active, qE, uE; checked against the model */
+static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *m,
+                          step_arrays_t *x) {
+    const char *bad = check_tree_model(m, v[1].len);
+    if (bad) {
+        PyErr_Format(PyExc_ValueError, "%s: %s", fn, bad);
+        return 0;
+    }
+    i64 nc = m->ints[1], na = m->ints[2], nv = m->ints[3];
+    x->q = v[0].p;
+    x->nq = v[0].len;
+    x->u = v[1].p;
+    x->nv = v[1].len;
+    x->tau = v[2].p;
+    x->n_tau = v[2].len;
+    x->f_ext = v[3].p;
+    x->n_f_ext = v[3].len;
+    x->last_impulse = v[4].p;
+    x->last_active = v[5].p;
+    x->last_bilateral = v[6].p;
+    x->nb = v[6].len;
+    x->report = v[7].p;
+    x->is_active = v[8].p;
+    x->qE = v[9].p;
+    x->uE = v[10].p;
+    /* q: nq ≥ every idx_q + its joint's coordinates (checked by the model's own sizes) */
+    const i64 *jtype = m->ints + 4 + m->ints[0], *idx_q = m->ints + 4 + 2 * m->ints[0],
+              *idx_v = m->ints + 4 + 3 * m->ints[0];
+    for (i64 j = 1; j < m->ints[0]; j++) {
+        i64 wq = jtype[j] == JT_FREEFLYER ? 7 : 1, wv = jtype[j] == JT_FREEFLYER ? 6 : 1;
+        if (idx_q[j] < 0 || idx_q[j] + wq > x->nq || idx_v[j] < 0 || idx_v[j] + wv > nv) {
+            PyErr_Format(PyExc_ValueError, "%s: q or u is too short for the model", fn);
+            return 0;
+        }
+    }
+    return need(x->n_tau == na && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
+                    v[4].len == 3 * nc && v[5].len == nc && v[7].len == 7 * nc + na &&
+                    v[8].len == nc && v[9].len == x->nq && v[10].len == nv,
+                fn, "the step's arrays do not match the model (tau: one torque per joint, "
+                    "f_ext: nv or empty, report: 7 nc + na)");
+}
+
+static PyObject *step_result(const tree_step_result_t *r) {
+    return Py_BuildValue("(LLLLLdOLL)", (long long)r->outcome, (long long)r->n_active,
+                         (long long)r->opened, (long long)r->iterations, (long long)r->status,
+                         r->residual, r->retried ? Py_True : Py_False,
+                         (long long)r->projection_iterations, (long long)r->projection_status);
+}
+
+#define STEP_ARRAYS                                                                           \
+    {"q", F64}, {"u", F64}, {"tau", F64}, {"f_ext", F64}, {"last_impulse", F64W},             \
+        {"last_active", BOOLW}, {"last_bilateral", F64W}, {"report", F64W},                  \
+        {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
+#define MODEL_BUFFERS                                                                         \
+    {"floats", F64W}, {"ints", I64}, {"support", BOOL}, {"workspace", F64W}
+
+FN(tree_step_hard) {
+    static const spec_t spec[] = {{"saturate", FLAG}, STEP_ARRAYS, MODEL_BUFFERS};
+    val_t v[16];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    packed_model_t m;
+    step_arrays_t x;
+    if (!PARSE("tree_step_hard", spec, 16, v, &h) || !packed_of(&v[12], &m) ||
+        !step_arrays_of("tree_step_hard", &v[1], &m, &x))
+        FAIL;
+    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, &x, &m, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return step_result(&r);
+}
+
+FN(tree_step_compliant) {
+    static const spec_t spec[] = {{"saturate", FLAG}, {"q", F64}, {"u", F64}, {"tau", F64},
+                                  {"f_ext", F64}, {"closed", BOOLW}, {"slip", BOOLW},
+                                  {"anchor", F64W}, {"lam", F64W}, {"report", F64W},
+                                  {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W},
+                                  MODEL_BUFFERS};
+    val_t v[17];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    packed_model_t m;
+    step_arrays_t x;
+    if (!PARSE("tree_step_compliant", spec, 17, v, &h) || !packed_of(&v[13], &m)) FAIL;
+    /* the step arrays in tree_step_hard's order: lam and closed stand in for the warm-start
+     * memory (of the same lengths), which a compliant step has none of */
+    val_t w[11] = {v[1], v[2], v[3], v[4], v[8], v[5], v[8], v[9], v[10], v[11], v[12]};
+    w[6].len = 0;
+    if (!step_arrays_of("tree_step_compliant", w, &m, &x)) FAIL;
+    i64 nc = m.ints[1];
+    if (
+        !need(v[5].len == nc && v[6].len == nc && v[7].len == 3 * nc && v[8].len == 3 * nc,
+              "tree_step_compliant", "closed, slip, anchor and lam must match the contacts"))
+        FAIL;
+    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN_NOGIL(a, failed, r = tree_step_compliant((int)v[0].i, &x, v[5].p, v[6].p, v[7].p, v[8].p, &m, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return step_result(&r);
+}
+
+FN(forest_step_hard) {
+    static const spec_t spec[] = {{"q", F64},           {"u", F64},
+                                  {"applied_tau", F64}, {"f_ext", F64},
+                                  {"factor", FLAG},     {"last_impulse", F64W},
+                                  {"last_active", BOOLW}, {"last_bilateral", F64W},
+                                  {"report", F64W},     {"is_active", BOOLW},
+                                  {"qE", F64W},         {"uE", F64W},
+                                  {"angle_E", F64W},    {"rate_E", F64W},
+                                  MODEL_BUFFERS,        {"cut_floats", F64},
+                                  {"cut_ints", I64},    {"cut_workspace", F64W}};
+    val_t v[21];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    packed_model_t m, c;
+    step_arrays_t x;
+    if (!PARSE("forest_step_hard", spec, 21, v, &h) || !packed_of(&v[14], &m)) FAIL;
+    val_t w[11] = {v[0], v[1], v[2], v[3], v[5], v[6], v[7], v[8], v[9], v[10], v[11]};
+    if (!step_arrays_of("forest_step_hard", w, &m, &x)) FAIL;
+    c.floats = v[18].p;
+    c.n_floats = v[18].len;
+    c.ints = v[19].p;
+    c.n_ints = v[19].len;
+    c.support = NULL;
+    c.n_support = 0;
+    c.workspace = v[20].p;
+    c.n_workspace = v[20].len;
+    const char *bad = check_cut_model(&c, m.ints[2], x.nv);
+    if (bad) {
+        release(&h);
+        PyErr_Format(PyExc_ValueError, "forest_step_hard: %s", bad);
+        return NULL;
+    }
+    i64 ncut = c.ints[0];
+    if (!need(x.nb == 5 * ncut && v[12].len == ncut && v[13].len == ncut, "forest_step_hard",
+              "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints"))
+        FAIL;
+    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN_NOGIL(a, failed, r = forest_step_hard(&x, (int)v[4].i, v[12].p, v[13].p, &m, &c, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return step_result(&r);
+}
+
+FN(scratch_arena_stats) {
+    (void)args;
+    (void)nargs;
+    arena_t *a = scratch_arena();
+    return Py_BuildValue("(LnL)", (long long)a->misses, (Py_ssize_t)a->cap, (long long)a->wanted);
+}
