@@ -107,10 +107,11 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
 
         def graph_ready():
             names = dict(node.get_topic_names_and_types())
-            return all(f"/robot{i}/joint_commands" in names and
-                       node.count_publishers(f"/robot{i}/joint_commands") == 1 and
-                       node.count_subscribers(f"/robot{i}/joint_commands") == 1
-                       for i in (1, 2))
+            return node.count_publishers("/clock") >= 1 and all(
+                f"/robot{i}/joint_commands" in names and
+                node.count_publishers(f"/robot{i}/joint_commands") == 1 and
+                node.count_subscribers(f"/robot{i}/joint_commands") == 1
+                for i in (1, 2))
         assert ros.spin_until(graph_ready, START_TIMEOUT, procs=procs.values()), \
             "\n".join(p.log()[-2000:] for p in procs.values())
         # /clock comes from robot1's simulator only
