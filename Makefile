@@ -65,11 +65,13 @@ demo: venv
 	$(VENV)/bin/starleth-demo
 
 # starleth-bench, then the side-by-side comparison with MuJoCo (requirements-bench.txt, an
-# optional dependency installed here only)
+# optional dependency installed here only), then what a first run compiles, from an empty
+# cache (starleth-precompile --cold: each unit's seconds and the total)
 bench: venv
 	$(PIP) install -r requirements-bench.txt
 	$(VENV)/bin/starleth-bench
 	$(VENV)/bin/starleth-bench --vs-mujoco
+	$(VENV)/bin/starleth-precompile --cold --jobs 2
 
 eval: venv
 	$(VENV)/bin/starleth-eval
