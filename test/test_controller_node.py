@@ -56,6 +56,43 @@ def _stamp(ns):
 # -----------------------------------------------------------------------------------------
 # the demo: sim_node + controller_node, 18 s of trot, the whole run in the bag
 # -----------------------------------------------------------------------------------------
+def test_a_service_call_whose_response_is_lost_is_sent_again():
+    """A service discovered a moment ago can take a request and lose its response (its
+    response topic not matched yet: rclpy's "failed to send response"); the demo's calls
+    are idempotent and sent again every retry_every s until a response comes."""
+    from starleth_sim.tools.demo import DemoError, _call
+
+    class Future:
+        def __init__(self, result):
+            self.result_ = result
+
+        def done(self):
+            return self.result_ is not None
+
+        def result(self):
+            return self.result_
+
+    class Client:
+        def __init__(self, answers):
+            self.answers, self.requests = list(answers), []
+
+        def call_async(self, request):
+            self.requests.append(request)
+            return Future(self.answers.pop(0) if self.answers else None)
+
+    class Executor:
+        def spin_once(self, timeout_sec):
+            pass
+
+    lost_first = Client([None, "running"])
+    assert _call(Executor(), lost_first, "go", 5.0, [], "pause", retry_every=0.05) == "running"
+    assert lost_first.requests == ["go", "go"]
+    never = Client([])
+    with pytest.raises(DemoError, match="timeout"):
+        _call(Executor(), never, "go", 0.2, [], "pause", retry_every=0.05)
+    assert 3 <= len(never.requests) <= 5
+
+
 def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
     """A first run on a slow machine, stood in for by STARLETH_TEST_SLOW_COMPILE (every
     compile block of the nodes 8 s longer) with a start-up time-out of 5 s: the nodes say

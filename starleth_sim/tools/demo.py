@@ -241,14 +241,23 @@ class DemoResult:
         return p
 
 
-def _wait_future(ex, fut, timeout, procs, what):
+def _call(ex, client, request, timeout, procs, what, retry_every=1.0):
+    """client's response to request, sent again every retry_every s until one comes (an
+    idempotent request): a service discovered a moment ago may not have matched its
+    response topic yet, and that first request's response is lost."""
     t_end = time.monotonic() + timeout
-    while not fut.done():
-        _check_alive(procs)
-        if time.monotonic() > t_end:
-            raise DemoError(f"timeout ({timeout:g} s) waiting for {what}")
-        ex.spin_once(timeout_sec=0.02)
-    return fut.result()
+    futures = []
+    while True:
+        futures.append(client.call_async(request))
+        t_next = time.monotonic() + retry_every
+        while time.monotonic() < t_next:
+            for fut in futures:
+                if fut.done():
+                    return fut.result()
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"timeout ({timeout:g} s) waiting for {what}")
+            ex.spin_once(timeout_sec=0.02)
 
 
 def _check_alive(procs):
@@ -313,8 +322,7 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
         # sim_node started paused: its clock starts now, not while this process was still
         # discovering the nodes (a lockstep run at several times real time would otherwise
         # stand longer than asked)
-        res = _wait_future(ex, pause_cli.call_async(SetBool.Request(data=False)), 10.0, procs,
-                           "/sim_node/pause")
+        res = _call(ex, pause_cli, SetBool.Request(data=False), 10.0, procs, "/sim_node/pause")
         echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting); "
              f"sim_node {res.message}")
         while clock["first"] is None:
@@ -341,15 +349,15 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
                 last_cmd = time.monotonic()
             t = clock["t"]
             if t_trot is None and t >= stand:
-                res = _wait_future(ex, trot_cli.call_async(SetBool.Request(data=True)), 10.0,
-                                   procs, "/controller_node/trot")
+                res = _call(ex, trot_cli, SetBool.Request(data=True), 10.0, procs,
+                            "/controller_node/trot")
                 if not res.success:
                     raise DemoError(f"/controller_node/trot refused: {res.message}")
                 t_trot = clock["t"]
                 echo(f"  t = {t_trot:.3f} s: trot ({res.message})")
             elif t_trot is not None and t >= t_trot + trot:
-                res = _wait_future(ex, pause_cli.call_async(SetBool.Request(data=True)), 10.0,
-                                   procs, "/sim_node/pause")
+                res = _call(ex, pause_cli, SetBool.Request(data=True), 10.0, procs,
+                            "/sim_node/pause")
                 wall_end = time.perf_counter()
                 t_pause = clock["t"]
                 echo(f"  t = {t_pause:.3f} s: {res.message}")
