@@ -514,8 +514,10 @@ def test_composed_mode_records_every_step_and_matches_the_headless_simulator(tmp
     from starleth_sim.ros.state_io import parse_initial_state
 
     bag = tmp_path / "composed.mcap"
+    # (paced at real time: a watcher in another process keeps up with 400 states/s, not
+    # with the thousands an unpaced lockstep loop runs)
     sim = Proc("starleth_sim.ros.sim_node", str(tmp_path / "composed.log"), mode="lockstep",
-               real_time_factor=0.0, record=str(bag),
+               real_time_factor=1.0, record=str(bag),
                pre_args=("--composed", "--controller-param", "mode:=stand"))
     ros = RosTestNode(DOMAIN_ID, "composed_watch")
     t = {"now": 0.0}
