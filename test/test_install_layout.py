@@ -31,6 +31,16 @@ def _site_packages(prefix):
     raise AssertionError("no site-packages under the install prefix")
 
 
+def _run_installed(prefix, cwd, code):
+    """`python -c code` with the installed package (from outside the source tree), which
+    must succeed; its CompletedProcess."""
+    env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix))
+    r = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return r
+
+
 def test_executables_and_share(prefix):
     exe = prefix / "lib" / "starleth_sim" / "sim_node"
     assert exe.is_file() and os.access(exe, os.X_OK)
@@ -51,10 +61,7 @@ def test_installed_package_finds_its_share_directory(prefix, tmp_path):
             "from starleth_sim.ros.parameters import load_default_parameters, default_settings_file;"
             "print(starleth_sim.__file__); print(d.package_share_dir());"
             "print(default_settings_file()); print(load_default_parameters()['physics'])")
-    env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix))
-    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
-                       text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
+    r = _run_installed(prefix, tmp_path, code)
     mod, share, yaml_path, physics = r.stdout.split()
     assert mod.startswith(str(prefix))
     # starleth-view's page template is package data
@@ -139,10 +146,7 @@ def test_the_installed_package_steps_with_its_built_kernels(prefix, tmp_path):
             "from starleth_sim import Simulator;"
             "sim = Simulator.from_preset('HEJD'); sim.step(None);"
             "print(k._kernels.__file__); print(starleth_sim.__file__); print(sim.q[2])")
-    env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix))
-    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
-                       text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
+    r = _run_installed(prefix, tmp_path, code)
     kernels, pkg, z = r.stdout.split()
     assert kernels.startswith(str(prefix)) and pkg.startswith(str(prefix))
     assert not os.path.exists(os.path.join(os.path.dirname(kernels), "csrc"))
