@@ -92,6 +92,7 @@ from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
+from starleth_interface.compile_notice import CompileNotice
 from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
                                             ParameterSpec, StopSignals, ThrottledLog,
                                             declare_parameters, init_ros, make_executor,
@@ -102,7 +103,6 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
                                        foot_wrench_topic)
 from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
-from starleth_interface.compile_notice import CompileNotice
 from .kernels import node_state, squared_norm4
 from .warmup import warm_up
 from .model import JOINT_NAMES, LEGS, default_urdf_path

@@ -49,10 +49,10 @@ def warm_up(urdf: str | None = None, params: ControllerParams | None = None) -> 
     for _ in range(40):
         update((True,) * 4, stand)
     cycle = int(round(p.gait_period / PERIOD))
-    for k in range(cycle):                              # trot, every foot on the ground
+    for _ in range(cycle):                              # trot, every foot on the ground
         update((True,) * 4, trot)
     for k in range(cycle):                              # trot, the planned stance feet only
-        first_half = (k % cycle) < cycle // 2
+        first_half = k < cycle // 2
         update((first_half, not first_half, not first_half, first_half), trot)
     for _ in range(cycle // 2):                         # trot, no foot down: searching
         update((False,) * 4, trot)

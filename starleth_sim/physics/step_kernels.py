@@ -52,15 +52,13 @@ The kernels:
   bvec, wp_ptr, wp_idx, c)``: u_free and c = W^T u_free + b (Eqn. 15).
 
 Profiling (Fig. 7 phases, `PHASES`): the kernels add the time of each phase to a `timings`
-array (five floats); an empty array or None means not profiling. The stepper's own Python
+array (five floats); None (or an empty array) means not profiling. The stepper's own Python
 between the kernels times itself with `clock` and `lap`.
 """
 from __future__ import annotations
 
 import time
 from typing import NamedTuple
-
-import numpy as np
 
 from .kernels import (ContactProblem, complete_hard_contacts,  # noqa: F401
                       constraint_velocity, end_of_step, free_velocity, prepare_hard_contacts,
@@ -95,16 +93,6 @@ class StepSettings(NamedTuple):
     warm_start: bool            # Λ^0 = the last step's Λ of the contacts that stay in I
     bilateral_direct: bool      # Λ_B by Eqn. 20 (else prox rows, Eqn. 19)
     hysteresis: bool            # contact.activation "hysteresis" (else the gap test alone)
-
-
-#: the `timings` of a kernel called phase by phase while not profiling
-NOT_TIMED = np.zeros(0)
-
-
-def kernel_timings(timings):
-    """The `timings` argument of a kernel called phase by phase: the profiling array, or
-    NOT_TIMED for None (not profiling)."""
-    return NOT_TIMED if timings is None else timings
 
 
 def _timed(timings) -> bool:

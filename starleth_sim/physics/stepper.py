@@ -55,7 +55,7 @@ from .state import SimState
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, ContactProblem,
                            StepSettings, clock,
-                           complete_hard_contacts, end_of_step, kernel_timings, lap,
+                           complete_hard_contacts, end_of_step, lap,
                            prepare_hard_contacts, solve_compliant, solve_hard_contacts)
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
                         TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, CutModel, TreeStepModel,
@@ -215,7 +215,7 @@ class MoreauStepper:
             pack, views = TreeStepModel.pack(self.settings, self.compliant_law,
                                              coords.midpoint_model(), self.ground, self.eps,
                                              coords.joint_v, coords.tree.dof_parent, nv, effort,
-                                             velocity, self.nb)
+                                             velocity)
             self._tree_model = tuple(pack)
             self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
             self._effort_limit, self._velocity_limit = effort, velocity
@@ -280,7 +280,7 @@ class MoreauStepper:
             problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
                                             WtB, self.bB, self.eps, self.dof_parent, factor,
                                             self.L, state.last_impulse, state.last_active,
-                                            kernel_timings(timings), self._problem)
+                                            timings, self._problem)
             ok = problem.ok
             if ok:
                 self._factored = True
@@ -465,9 +465,9 @@ class MoreauStepper:
 
     def _solve(self, state, M, h, uS, problem, WtB, timings):
         """u^E of the hard-contact (or bilateral) problem, prepared (`problem`: the
-        ContactProblem of prepare_hard_contacts) or, with problem None, set up and solved in one kernel
-        (solve_hard_contacts, with W_B^T of the midpoint); the warm-start memory of `state`
-        updated."""
+        ContactProblem of prepare_hard_contacts) or, with problem None, set up and solved in
+        one kernel (solve_hard_contacts, with W_B^T of the midpoint); the warm-start memory
+        of `state` updated."""
         nc = self.nc
         impulse = np.empty((nc, 3))
         is_active = np.empty(nc, dtype=np.bool_)
@@ -480,7 +480,7 @@ class MoreauStepper:
                                     self.bB, self.eps, self.dof_parent, factor, self.L, h,
                                     state.last_impulse, state.last_active,
                                     state.last_bilateral, impulse, is_active, self.u_free, u,
-                                    self.u_corr, kernel_timings(timings))
+                                    self.u_corr, timings)
             if not ok:
                 raise SimulationError("mass matrix (or G_B) not positive definite "
                                       "(non-finite state?)")
@@ -489,7 +489,7 @@ class MoreauStepper:
             it, status, resid, retried, pit, pstatus = complete_hard_contacts(
                 self._settings_fields, problem, h, uS, M, self.dof_parent, self.L, gap,
                 self.Wt_all, state.last_impulse, state.last_active, state.last_bilateral,
-                impulse, is_active, self.u_free, u, self.u_corr, kernel_timings(timings))
+                impulse, is_active, self.u_free, u, self.u_corr, timings)
             n_active, opened = problem.n_active, problem.opened
         if retried:
             self.stats.retried += 1

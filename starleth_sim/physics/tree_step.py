@@ -71,12 +71,11 @@ class TreeStepModel(NamedTuple):
 
     @staticmethod
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
-             velocity_limit, n_bilateral=0):
+             velocity_limit):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
         GroundPlane, ε and the torque limits (see actuator.saturate_torque); returns the
         record and the workspace's views (gap, position, Wt_all, L, u_free, u_corr), which
-        the stepper keeps as its own arrays. (n_bilateral: unused, the kernels' work arrays
-        are their own.)"""
+        the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
