@@ -25,34 +25,32 @@ static inline void prox_disc(double x1, double x2, double radius, double *o1, do
     *o2 = x2 * s;
 }
 
-/* row_pattern: CSR pattern of the rows of A (m x n), one arena buffer for ptr and idx */
-void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx) {
+/* The CSR pattern of the rows of the m x n matrix whose entry (r, k) is A[r * rs + k * ks]
+ * (row_pattern's loop; col_pattern = row_pattern(A.T) with the strides swapped), one arena
+ * buffer for ptr and idx */
+static void strided_row_pattern(const double *A, i64 m, i64 n, i64 rs, i64 ks, arena_t *a,
+                                i64 **ptr, i64 **idx) {
     i64 *buf = arena_i(a, m + 1 + m * n);
     i64 *p = buf, *ix = buf + m + 1;
     i64 cnt = 0;
     for (i64 r = 0; r < m; r++) {
         p[r] = cnt;
         for (i64 k = 0; k < n; k++)
-            if (A[r * n + k] != 0.0) ix[cnt++] = k;
+            if (A[r * rs + k * ks] != 0.0) ix[cnt++] = k;
     }
     p[m] = cnt;
     *ptr = p;
     *idx = ix;
 }
 
+/* row_pattern: CSR pattern of the rows of A (m x n) */
+void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx) {
+    strided_row_pattern(A, m, n, n, 1, a, ptr, idx);
+}
+
 /* col_pattern: row_pattern(A.T), the pattern of the n columns of A (m x n) */
 void col_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx) {
-    i64 *buf = arena_i(a, n + 1 + n * m);
-    i64 *p = buf, *ix = buf + n + 1;
-    i64 cnt = 0;
-    for (i64 c = 0; c < n; c++) {
-        p[c] = cnt;
-        for (i64 k = 0; k < m; k++)
-            if (A[k * n + c] != 0.0) ix[cnt++] = k;
-    }
-    p[n] = cnt;
-    *ptr = p;
-    *idx = ix;
+    strided_row_pattern(A, n, m, 1, n, a, ptr, idx);
 }
 
 /* _row_envelopes: first / one past the last nonzero column of each row k of M^{-1}W (nv
@@ -655,32 +653,43 @@ static int delassus_sweep_end(const velocity_t *v, const double *lam, check_t ck
     return 0;
 }
 
+/* T^0 of the energy criterion (u from Λ^0), 0 for the impulse criterion */
+static double initial_energy(const velocity_t *v, const double *lam, i64 criterion) {
+    if (criterion != CRITERION_ENERGY) return 0.0;
+    velocity_of(v, lam);
+    return kinetic_energy(v->M, v->u, v->nv);
+}
+
+/* A Delassus-form problem, ξ = GΛ + c, as its JOR and SOR sweeps read it (delassus_prox) */
+typedef struct {
+    const settings_t *s;
+    const patterns_t *pat;
+    const double *G, *c, *mu, *r, *LB;
+    double *lam;        /* Λ: warm start in, solution out */
+    i64 m, nc, nb_LB;
+    dop_t D;            /* G as the adaptive α reads it */
+    velocity_t v;       /* u^E = u_free + M^{-1}WΛ and its energy */
+    direct_t direct;    /* the direct bilateral method's work */
+    arena_t *ar;
+} delassus_t;
+
 /* _jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
-static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pat,
-                                       const double *G, const double *c, i64 m, i64 nc,
-                                       const double *mu, const double *r, double *lam,
-                                       const double *LB, i64 nb_LB, const double *M,
-                                       const double *u_free, const double *MinvW, i64 nv,
-                                       double *u, double *buf, const direct_t *direct,
-                                       arena_t *ar) {
+static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
+    const settings_t *s = P->s;
+    const double *G = P->G, *c = P->c, *mu = P->mu;
+    double *lam = P->lam;
+    i64 m = P->m, nc = P->nc;
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
     i64 max_iter = s->max_iterations, criterion = s->criterion;
     int bilateral_direct = s->bilateral_direct;
-    const i64 *gp_ptr = pat->gp_ptr, *gp_idx = pat->gp_idx, *mp_ptr = pat->mp_ptr,
-              *mp_idx = pat->mp_idx;
+    const i64 *gp_ptr = P->pat->gp_ptr, *gp_idx = P->pat->gp_idx;
     i64 o = 3 * nc;
     double *xi = buf, *new_ = buf + m;
     int autoa = s->alpha < 0.0;
-    dop_t D = {s->form, G, G, MinvW, pat, m, nv};
-    velocity_t v = {u_free, MinvW, M, mp_ptr, mp_idx, nv, m, u};
-    auto_t w = auto_setup(s, &D, nc, r, lam, ar);
+    auto_t w = auto_setup(s, &P->D, nc, P->r, lam, P->ar);
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
     int long_step = 0;
-    double T_old = 0.0;
-    if (criterion == CRITERION_ENERGY) {
-        velocity_of(&v, lam);
-        T_old = kinetic_energy(M, u, nv);
-    }
+    double T_old = initial_energy(&P->v, lam, criterion);
     i64 m_xi = (bilateral_direct && !autoa) ? o : m;
     double res = 0.0;
     for (i64 k = 0; k < max_iter; k++) {
@@ -695,19 +704,16 @@ static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pa
         } else {
             jor_project(lam, xi, rk, mu, nc, m, bilateral_direct, new_);
             if (bilateral_direct)
-                bilateral_direct_delassus(G, c, m, nc, LB, nb_LB, new_, gp_ptr, gp_idx,
-                                          pat->lb_first, direct->col_ptr, direct->col_idx,
-                                          direct->rhs);
+                bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, new_, gp_ptr, gp_idx,
+                                          P->pat->lb_first, P->direct.col_ptr,
+                                          P->direct.col_idx, P->direct.rhs);
             ck = check(lam, new_, m, tol_rel, tol_abs);
             if (autoa) {
                 if (!ck.finite && hist[1] != 1.0) { /* from Λ^0 again, spectral steps */
                     res = ck.res;
                     auto_restart(hist, lam, w.lam0, rk, rs, m);
                     long_step = 0;
-                    if (criterion == CRITERION_ENERGY) {
-                        velocity_of(&v, lam);
-                        T_old = kinetic_energy(M, u, nv);
-                    }
+                    T_old = initial_energy(&P->v, lam, criterion);
                     continue;
                 }
                 long_step = auto_jor_save(k, lam, new_, xi, ck.res, rs, rk, hist, w.dsave,
@@ -717,37 +723,28 @@ static prox_result_t jor_prox_delassus(const settings_t *s, const patterns_t *pa
         }
         res = ck.res;
         prox_result_t out;
-        if (delassus_sweep_end(&v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
+        if (delassus_sweep_end(&P->v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
             return out;
     }
-    velocity_of(&v, lam);
+    velocity_of(&P->v, lam);
     return result(max_iter, STATUS_MAX_ITER, res);
 }
 
 /* _sor_prox_delassus: SOR on ξ = GΛ + c, work buffer old (m: Λ of the last sweep) */
-static prox_result_t sor_prox_delassus(const settings_t *s, const patterns_t *pat,
-                                       const double *G, const double *c, i64 m, i64 nc,
-                                       const double *mu, const double *r, double *lam,
-                                       const double *LB, i64 nb_LB, const double *M,
-                                       const double *u_free, const double *MinvW, i64 nv,
-                                       double *u, double *old, const direct_t *direct,
-                                       arena_t *ar) {
+static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
+    const settings_t *s = P->s;
+    const double *G = P->G, *c = P->c, *mu = P->mu;
+    double *lam = P->lam;
+    i64 m = P->m, nc = P->nc;
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
     i64 max_iter = s->max_iterations, criterion = s->criterion;
     int bilateral_direct = s->bilateral_direct;
-    const i64 *gp_ptr = pat->gp_ptr, *gp_idx = pat->gp_idx, *mp_ptr = pat->mp_ptr,
-              *mp_idx = pat->mp_idx;
+    const i64 *gp_ptr = P->pat->gp_ptr, *gp_idx = P->pat->gp_idx;
     i64 o = 3 * nc;
     int autoa = s->alpha < 0.0;
-    dop_t D = {s->form, G, G, MinvW, pat, m, nv};
-    velocity_t v = {u_free, MinvW, M, mp_ptr, mp_idx, nv, m, u};
-    auto_t w = auto_setup(s, &D, nc, r, lam, ar);
+    auto_t w = auto_setup(s, &P->D, nc, P->r, lam, P->ar);
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
-    double T_old = 0.0;
-    if (criterion == CRITERION_ENERGY) {
-        velocity_of(&v, lam);
-        T_old = kinetic_energy(M, u, nv);
-    }
+    double T_old = initial_energy(&P->v, lam, criterion);
     double res = 0.0;
     for (i64 k = 0; k < max_iter; k++) {
         memcpy(old, lam, (size_t)m * sizeof(double));
@@ -769,9 +766,9 @@ static prox_result_t sor_prox_delassus(const settings_t *s, const patterns_t *pa
             project_contact(lam, b, x0, x1, x2, rk, mu[i], lam);
         }
         if (bilateral_direct) {
-            bilateral_direct_delassus(G, c, m, nc, LB, nb_LB, lam, gp_ptr, gp_idx,
-                                      pat->lb_first, direct->col_ptr, direct->col_idx,
-                                      direct->rhs);
+            bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, lam, gp_ptr, gp_idx,
+                                      P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
+                                      P->direct.rhs);
         } else {
             for (i64 a = o; a < m; a++) {
                 double sm = c[a];
@@ -787,19 +784,16 @@ static prox_result_t sor_prox_delassus(const settings_t *s, const patterns_t *pa
         if (autoa) {
             if (!ck.finite && hist[1] != 1.0) { /* from Λ^0 again, spectral steps */
                 auto_restart(hist, lam, w.lam0, rk, rs, m);
-                if (criterion == CRITERION_ENERGY) {
-                    velocity_of(&v, lam);
-                    T_old = kinetic_energy(M, u, nv);
-                }
+                T_old = initial_energy(&P->v, lam, criterion);
                 continue;
             }
-            auto_next(s, &D, nc, k, old, lam, ck.res, rs, rk, hist, w.tmp1, w.tmp2);
+            auto_next(s, &P->D, nc, k, old, lam, ck.res, rs, rk, hist, w.tmp1, w.tmp2);
         }
         prox_result_t out;
-        if (delassus_sweep_end(&v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
+        if (delassus_sweep_end(&P->v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
             return out;
     }
-    velocity_of(&v, lam);
+    velocity_of(&P->v, lam);
     return result(max_iter, STATUS_MAX_ITER, res);
 }
 
@@ -826,12 +820,11 @@ static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_
     double *work = arena_f(ar, nw + nd);
     i64 *col_ptr, *col_idx;
     envelope_columns_of(pat, nd, ar, &col_ptr, &col_idx);
-    direct_t direct = {col_ptr, col_idx, work + nw};
-    if (jor)
-        return jor_prox_delassus(s, pat, G, c, m, nc, mu, r, lam, LB, nb_LB, M, u_free, MinvW,
-                                 nv, u, work, &direct, ar);
-    return sor_prox_delassus(s, pat, G, c, m, nc, mu, r, lam, LB, nb_LB, M, u_free, MinvW, nv,
-                             u, work, &direct, ar);
+    delassus_t P = {s, pat, G, c, mu, r, LB, lam, m, nc, nb_LB,
+                    {s->form, G, G, MinvW, pat, m, nv},
+                    {u_free, MinvW, M, pat->mp_ptr, pat->mp_idx, nv, m, u},
+                    {col_ptr, col_idx, work + nw}, ar};
+    return jor ? jor_prox_delassus(&P, work) : sor_prox_delassus(&P, work);
 }
 
 /* jor_prox_velocity: JOR in the end velocity u^k (Eqn. 17-19), G never formed */
