@@ -229,3 +229,40 @@ def test_a_steady_run_allocates_nothing(preset):
     episode(sim, q_stand)
     again = scratch_arena_stats()[0] - before - first
     assert again == 0, f"{preset}: {again} requests allocated in the second episode"
+
+
+@pytest.mark.parametrize("preset", ["HmJ", "HEJD"])
+def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
+    """The one-kernel steps read their model from packed buffers (tree_step.TreeStepModel,
+    CutModel): a buffer one entry short or long, for the sizes its header claims, is a
+    clear ValueError before anything is read or written."""
+    from starleth_sim.physics.tree_step import forest_step_hard, tree_step_hard
+    sim = Simulator.from_preset(preset)
+    st, s = sim.stepper, sim.state
+    model = list(st._tree_model)
+    out = (np.empty(7 * st.nc + 12), np.empty(st.nc, dtype=bool), np.empty_like(s.q),
+           np.empty_like(s.u))
+
+    def step(tree, cut=None):
+        if preset == "HmJ":
+            return tree_step_hard(False, s.q, s.u, np.zeros(12), np.zeros(0), s.last_impulse,
+                                  s.last_active, s.last_bilateral, *out, *tree)
+        return forest_step_hard(s.q, s.u, np.zeros(12), np.zeros(0), True, s.last_impulse,
+                                s.last_active, s.last_bilateral, *out,
+                                *st.coords.cut_motion_buffers(), *tree, *(cut or st._cut_model))
+    q0 = s.q.copy()
+    for k in (0, 1, 3):                 # floats, ints, workspace
+        for change in (lambda a: a[:-1], lambda a: np.concatenate([a, a[:1]])):
+            bad = list(model)
+            bad[k] = change(model[k])
+            if k == 3 and len(bad[k]) > len(model[k]):
+                continue                # (a longer workspace is allowed: its tail unused)
+            with pytest.raises(ValueError, match="TreeStepModel: buffer lengths"):
+                step(bad)
+    if preset == "HEJD":
+        cf, ci, cw = st._cut_model
+        for bad in ((cf[:-1], ci, cw), (cf, ci[:-1], cw), (cf, ci, cw[:-1])):
+            with pytest.raises(ValueError, match="CutModel: buffer lengths"):
+                step(model, bad)
+    assert np.array_equal(s.q, q0)
+    step(model)                         # the packed model as it is: one step

@@ -38,13 +38,84 @@ typedef struct {
 } cut_model_t;
 
 
-/* The lengths a TreeStepModel's buffers must have, from its ints[0:4] = (nj, nc, na, nv) */
-static void tree_model_sizes(const i64 *ints, i64 *n_floats, i64 *n_ints, i64 *n_ws) {
+/* A cursor over a packed buffer of `len` entries: at(c, n) is the offset of its next n
+ * entries; a request past the end marks it bad (and gives offset 0, so that no pointer
+ * leaves the buffer). One layout serves the unpacking and the check of the lengths. */
+typedef struct {
+    i64 o, len;
+    int bad;
+} cursor_t;
+
+static i64 at(cursor_t *c, i64 n) {
+    if (n < 0 || c->o + n > c->len) {
+        c->bad = 1;
+        return 0;
+    }
+    i64 start = c->o;
+    c->o += n;
+    return start;
+}
+
+/* unpack_tree_model: the views of a TreeStepModel's buffers; 0 if the buffers' lengths are
+ * not the layout's for the sizes in ints[0:4] = (nj, nc, na, nv) (checked by
+ * check_tree_model first: then nothing is read out of bounds) */
+static int unpack_tree_model(const packed_model_t *pm, tree_model_t *t) {
+    const i64 *ints = pm->ints;
     i64 nj = ints[0], nc = ints[1], na = ints[2], nv = ints[3];
-    *n_floats = N_SETTINGS + 6 + 3 * nj + 9 * nj + 3 * nj + 9 * nj + 3 * nj + nj + 3 * nj +
-                9 * nj + 3 + 3 * nc + nc + 3 + 3 + 3 + 1 + 2 * nc + na + na;
-    *n_ints = 4 + 4 * nj + nc + na + nv;
-    *n_ws = nc + 3 * nc + 3 * nc * nv + nv * nv + nv + nv;
+    double *f = pm->floats;
+    cursor_t cf = {0, pm->n_floats, 0}, ci = {4, pm->n_ints, 0};
+    cursor_t cw = {0, pm->n_workspace, 0};
+    i64 settings = at(&cf, N_SETTINGS), law = at(&cf, 6);
+    t->tree.nj = nj;
+    t->tree.nv = nv;
+    t->tree.axis = f + at(&cf, 3 * nj);
+    t->tree.pl_R = f + at(&cf, 9 * nj);
+    t->tree.pl_p = f + at(&cf, 3 * nj);
+    t->frames.oR = f + at(&cf, 9 * nj); /* (the forward kinematics' scratch) */
+    t->frames.op = f + at(&cf, 3 * nj);
+    t->inertias.mass = f + at(&cf, nj);
+    t->inertias.lever = f + at(&cf, 3 * nj);
+    t->inertias.inertia = f + at(&cf, 9 * nj);
+    t->inertias.gravity = f + at(&cf, 3);
+    t->contacts.nc = nc;
+    t->contacts.local = f + at(&cf, 3 * nc);
+    t->contacts.radius = f + at(&cf, nc);
+    t->ground.n = f + at(&cf, 3);
+    t->ground.t1 = f + at(&cf, 3);
+    t->ground.t2 = f + at(&cf, 3);
+    i64 offset = at(&cf, 1);
+    t->eps = f + at(&cf, 2 * nc);
+    t->effort_limit = f + at(&cf, na);
+    t->velocity_limit = f + at(&cf, na);
+    t->tree.parent = ints + at(&ci, nj);
+    t->tree.jtype = ints + at(&ci, nj);
+    t->tree.idx_q = ints + at(&ci, nj);
+    t->tree.idx_v = ints + at(&ci, nj);
+    t->contacts.joint = ints + at(&ci, nc);
+    t->na = na;
+    t->joint_v = ints + at(&ci, na);
+    t->dof_parent = ints + at(&ci, nv);
+    t->tree.support = pm->support;
+    double *w = pm->workspace;
+    t->gap = w + at(&cw, nc);
+    t->position = w + at(&cw, 3 * nc);
+    t->Wt_all = w + at(&cw, 3 * nc * nv);
+    t->L = w + at(&cw, nv * nv);
+    t->u_free = w + at(&cw, nv);
+    t->u_corr = w + at(&cw, nv);
+    if (cf.bad || ci.bad || cw.bad || cf.o != cf.len || ci.o != ci.len ||
+        pm->n_support != nj * nj)
+        return 0;
+    settings_from_fields(f + settings, &t->s);
+    const double *l = f + law;
+    t->law.mu = l[0];
+    t->law.c_N = l[1];
+    t->law.d_N = l[2];
+    t->law.c_T = l[3];
+    t->law.d_T = l[4];
+    t->law.slip_velocity = l[5];
+    t->ground.offset = f[offset];
+    return 1;
 }
 
 const char *check_tree_model(const packed_model_t *m, i64 nv) {
@@ -52,93 +123,52 @@ const char *check_tree_model(const packed_model_t *m, i64 nv) {
     const i64 *ints = m->ints;
     if (ints[0] < 1 || ints[1] < 0 || ints[2] < 0 || ints[3] != nv)
         return "TreeStepModel: sizes (nj, nc, na, nv) do not match the state";
-    i64 nf, ni, nw;
-    tree_model_sizes(ints, &nf, &ni, &nw);
-    if (m->n_floats != nf || m->n_ints != ni || m->n_workspace < nw ||
-        m->n_support != ints[0] * ints[0])
-        return "TreeStepModel: buffer lengths do not match its sizes";
+    tree_model_t t;
+    if (!unpack_tree_model(m, &t)) return "TreeStepModel: buffer lengths do not match its sizes";
     return NULL;
 }
 
-static void unpack_tree_model(const packed_model_t *pm, tree_model_t *t) {
+/* unpack_cut_model: the views of a CutModel's buffers; 0 if their lengths are not the
+ * layout's for its sizes ints[0:3] = (ncut, constant, nr) (check_cut_model) */
+static int unpack_cut_model(const packed_model_t *pm, i64 na, i64 nv, cut_model_t *c) {
     const i64 *ints = pm->ints;
-    i64 nj = ints[0], nc = ints[1], na = ints[2], nv = ints[3];
+    i64 ncut = ints[0], nr = ints[2];
+    c->constant = ints[1] != 0;
+    c->nr = nr;
     const double *f = pm->floats;
-    settings_from_fields(f, &t->s);
-    i64 o = N_SETTINGS;
-    t->law.mu = f[o];
-    t->law.c_N = f[o + 1];
-    t->law.d_N = f[o + 2];
-    t->law.c_T = f[o + 3];
-    t->law.d_T = f[o + 4];
-    t->law.slip_velocity = f[o + 5];
-    o += 6;
-    t->tree.nj = nj;
-    t->tree.nv = nv;
-    t->tree.axis = f + o;
-    o += 3 * nj;
-    t->tree.pl_R = f + o;
-    o += 9 * nj;
-    t->tree.pl_p = f + o;
-    o += 3 * nj;
-    t->frames.oR = pm->floats + o; /* (the forward kinematics' scratch) */
-    o += 9 * nj;
-    t->frames.op = pm->floats + o;
-    o += 3 * nj;
-    t->inertias.mass = f + o;
-    o += nj;
-    t->inertias.lever = f + o;
-    o += 3 * nj;
-    t->inertias.inertia = f + o;
-    o += 9 * nj;
-    t->inertias.gravity = f + o;
-    o += 3;
-    t->contacts.nc = nc;
-    t->contacts.local = f + o;
-    o += 3 * nc;
-    t->contacts.radius = f + o;
-    o += nc;
-    t->ground.n = f + o;
-    o += 3;
-    t->ground.t1 = f + o;
-    o += 3;
-    t->ground.t2 = f + o;
-    o += 3;
-    t->ground.offset = f[o];
-    o += 1;
-    t->eps = f + o;
-    o += 2 * nc;
-    t->effort_limit = f + o;
-    o += na;
-    t->velocity_limit = f + o;
-    i64 k = 4;
-    t->tree.parent = ints + k;
-    k += nj;
-    t->tree.jtype = ints + k;
-    k += nj;
-    t->tree.idx_q = ints + k;
-    k += nj;
-    t->tree.idx_v = ints + k;
-    k += nj;
-    t->contacts.joint = ints + k;
-    k += nc;
-    t->na = na;
-    t->joint_v = ints + k;
-    k += na;
-    t->dof_parent = ints + k;
-    t->tree.support = pm->support;
+    cursor_t cf = {0, pm->n_floats, 0}, ci = {3, pm->n_ints, 0};
+    cursor_t cw = {0, pm->n_workspace, 0};
+    i64 beta = at(&cf, 1);
+    c->cuts.ncut = ncut;
+    c->cuts.p_P = f + at(&cf, 3 * ncut);
+    c->cuts.p_C = f + at(&cf, 3 * ncut);
+    c->cuts.a_P = f + at(&cf, 3 * ncut);
+    c->cuts.b1_P = f + at(&cf, 3 * ncut);
+    c->cuts.b2_P = f + at(&cf, 3 * ncut);
+    c->cuts.a_C = f + at(&cf, 3 * ncut);
+    c->cuts.b1_C = f + at(&cf, 3 * ncut);
+    c->M = f + at(&cf, c->constant ? nv * nv : 0);
+    c->body_mass = f + at(&cf, nr);
+    c->body_inertia = f + at(&cf, 9 * nr);
+    c->body_gravity = f + at(&cf, c->constant ? 3 : 0);
+    c->cuts.P = ints + at(&ci, ncut);
+    c->cuts.C = ints + at(&ci, ncut);
+    c->joint_cut = ints + at(&ci, na);
+    c->root_q = ints + at(&ci, nr);
+    c->root_v = ints + at(&ci, nr);
+    i64 nB = 5 * ncut;
     double *w = pm->workspace;
-    t->gap = w;
-    w += nc;
-    t->position = w;
-    w += 3 * nc;
-    t->Wt_all = w;
-    w += 3 * nc * nv;
-    t->L = w;
-    w += nv * nv;
-    t->u_free = w;
-    w += nv;
-    t->u_corr = w;
+    c->WtB = w + at(&cw, nB * nv);
+    c->gB = w + at(&cw, nB);
+    c->bB = w + at(&cw, nB);
+    c->angle = w + at(&cw, ncut);
+    c->rate = w + at(&cw, ncut);
+    c->axis_world = w + at(&cw, 3 * ncut);
+    c->bilateral_E = w + at(&cw, nB);
+    if (cf.bad || ci.bad || cw.bad || cf.o != cf.len || ci.o != ci.len || cw.o != cw.len)
+        return 0;
+    c->beta_over_dt = f[beta];
+    return 1;
 }
 
 const char *check_cut_model(const packed_model_t *c, i64 na, i64 nv) {
@@ -146,70 +176,9 @@ const char *check_cut_model(const packed_model_t *c, i64 na, i64 nv) {
     i64 ncut = c->ints[0], constant = c->ints[1] != 0, nr = c->ints[2];
     if (ncut < 0 || nr < 0 || (!constant && nr != 0))
         return "CutModel: sizes (ncut, constant, nr) are not valid";
-    i64 nf = 1 + 21 * ncut + (constant ? nv * nv + nr + 9 * nr + 3 : 0);
-    i64 ni = 3 + 2 * ncut + na + 2 * nr;
-    i64 nB = 5 * ncut;
-    i64 nw = nB * nv + 2 * nB + 2 * ncut + 3 * ncut + nB;
-    if (c->n_floats != nf || c->n_ints != ni || c->n_workspace != nw)
-        return "CutModel: buffer lengths do not match its sizes";
+    cut_model_t cm;
+    if (!unpack_cut_model(c, na, nv, &cm)) return "CutModel: buffer lengths do not match its sizes";
     return NULL;
-}
-
-static void unpack_cut_model(const packed_model_t *pm, i64 na, i64 nv, cut_model_t *c) {
-    const i64 *ints = pm->ints;
-    i64 ncut = ints[0], nr = ints[2];
-    c->constant = ints[1] != 0;
-    c->nr = nr;
-    const double *f = pm->floats;
-    c->beta_over_dt = f[0];
-    i64 o = 1;
-    c->cuts.ncut = ncut;
-    c->cuts.p_P = f + o;
-    o += 3 * ncut;
-    c->cuts.p_C = f + o;
-    o += 3 * ncut;
-    c->cuts.a_P = f + o;
-    o += 3 * ncut;
-    c->cuts.b1_P = f + o;
-    o += 3 * ncut;
-    c->cuts.b2_P = f + o;
-    o += 3 * ncut;
-    c->cuts.a_C = f + o;
-    o += 3 * ncut;
-    c->cuts.b1_C = f + o;
-    o += 3 * ncut;
-    c->M = f + o;
-    o += c->constant ? nv * nv : 0;
-    c->body_mass = f + o;
-    o += nr;
-    c->body_inertia = f + o;
-    o += 9 * nr;
-    c->body_gravity = f + o;
-    i64 k = 3;
-    c->cuts.P = ints + k;
-    k += ncut;
-    c->cuts.C = ints + k;
-    k += ncut;
-    c->joint_cut = ints + k;
-    k += na;
-    c->root_q = ints + k;
-    k += nr;
-    c->root_v = ints + k;
-    i64 nB = 5 * ncut;
-    double *w = pm->workspace;
-    c->WtB = w;
-    w += nB * nv;
-    c->gB = w;
-    w += nB;
-    c->bB = w;
-    w += nB;
-    c->angle = w;
-    w += ncut;
-    c->rate = w;
-    w += ncut;
-    c->axis_world = w;
-    w += 3 * ncut;
-    c->bilateral_E = w;
 }
 
 /* _applied_torque: the torques the motors apply for tau (saturate_torque at the joint rates
