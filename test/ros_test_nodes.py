@@ -21,11 +21,12 @@ keep_discovery_local()     # the test nodes (this process) and every child: this
 
 class NodeProcess:
     """`python -m module [pre_args] --ros-args -p k:=v ...` as a child process on domain_id
-    (optionally renamed to `name`, under `namespace`); its output in log_path."""
+    (optionally renamed to `name`, under `namespace`; run by `wrapper`, a command prefix,
+    with `preexec_fn` called in the child before it starts); its output in log_path."""
 
     def __init__(self, module, log_path, domain_id, name=None, namespace=None, pre_args=(),
-                 **params):
-        cmd = [sys.executable, "-m", module, *pre_args, "--ros-args"]
+                 preexec_fn=None, wrapper=(), **params):
+        cmd = [*wrapper, sys.executable, "-m", module, *pre_args, "--ros-args"]
         if name:
             cmd += ["-r", f"__node:={name}"]
         if namespace:
@@ -38,7 +39,7 @@ class NodeProcess:
         self.log_path = log_path
         self._log = open(log_path, "w")
         self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
-                                     stderr=subprocess.STDOUT, env=env)
+                                     stderr=subprocess.STDOUT, env=env, preexec_fn=preexec_fn)
 
     def alive(self):
         return self.proc.poll() is None

@@ -458,7 +458,7 @@ def test_process_recorder_finalises_the_file_when_its_parent_is_gone(tmp_path):
         m.clock.sec = k
         rec.write("/clock", serialize_message(m), k)
     rec.hand_over()
-    rec._out.close()                 # what the parent's death does to the pipe
+    rec._proc.stdin.close()          # what the parent's death does to the pipe
     assert rec._proc.wait(30) == 0
     from mcap.reader import make_reader
     with open(path, "rb") as f:

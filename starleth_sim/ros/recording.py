@@ -36,6 +36,8 @@ from collections import OrderedDict
 
 import yaml
 
+from .mcap_sink import FileSink, RecordingError, close_damaged, repair
+
 SEPARATOR = "=" * 80
 RMW_DURATION_INFINITE = {"sec": 9223372036854775807, "nsec": 999999999}
 ROSBAG2_METADATA_VERSION = 9
@@ -255,6 +257,13 @@ class _Topic:
         self.qos_yaml, self.type_hash, self.count = qos_yaml, type_hash, 0
 
 
+def _cause(error) -> str:
+    """An OSError as the cause of a failed recording: '[Errno 28] No space left on device'."""
+    if isinstance(error, OSError) and error.errno is not None:
+        return f"[Errno {error.errno}] {error.strerror}"
+    return str(error) or type(error).__name__
+
+
 class McapRecorder:
     """Write ROS 2 messages to an MCAP file that rosbag2 and rosbags read as a bag.
 
@@ -267,7 +276,13 @@ class McapRecorder:
 
     Thread-safe; ``close`` is idempotent and also called by ``__exit__``. Writing after
     ``close`` is ignored (returns False), so a signal handler may close the file while the
-    owner still holds it."""
+    owner still holds it.
+
+    A write that fails (disk full, file-size limit, I/O error) raises
+    :class:`~.mcap_sink.RecordingError` once: the file is then closed as a complete bag
+    holding every message up to the last chunk that reached the disk
+    (:func:`~.mcap_sink.close_damaged`), :attr:`failure` says why, and the recorder is
+    closed (later writes return False)."""
 
     def __init__(self, path: str, *, chunk_size: int = 256 * 1024, compression: str = "none",
                  library: str = "starleth_sim", ros_distro: str | None = None,
@@ -280,9 +295,16 @@ class McapRecorder:
         self.path = str(path)
         d = os.path.dirname(os.path.abspath(self.path))
         os.makedirs(d, exist_ok=True)
-        self._file = open(self.path, "wb")
+        self.failure = None            # why the recording stopped early (RecordingError)
+        self.messages_on_disk = 0      # messages in chunks that reached the file
+        self._disk_counts = {}         # topic -> messages in chunks that reached the file
+        self._file = FileSink(self.path)
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp[compression])
-        self._writer.start(profile="ros2", library=library)
+        try:
+            self._writer.start(profile="ros2", library=library)
+        except OSError as e:
+            self._file.close()
+            raise RecordingError(f"{self.path}: {_cause(e)}") from None
         self._compression = "" if compression == "none" else compression
         self._lock = threading.Lock()
         self._schemas: dict[str, int] = {}
@@ -304,16 +326,20 @@ class McapRecorder:
             if topic in self._topics:
                 return self._topics[topic].channel_id
             name = type_name(msg_type)
-            if name not in self._schemas:
-                data = message_definition(name).encode("utf-8")
-                self._schemas[name] = self._writer.register_schema(
-                    name=name, encoding="ros2msg", data=data)
+            self._check_open()
             qos_yaml = qos_profiles_yaml(qos)
             meta = {"offered_qos_profiles": qos_yaml}
             if type_hash:
                 meta["topic_type_hash"] = type_hash
-            cid = self._writer.register_channel(topic=topic, message_encoding="cdr",
-                                                schema_id=self._schemas[name], metadata=meta)
+            try:
+                if name not in self._schemas:
+                    data = message_definition(name).encode("utf-8")
+                    self._schemas[name] = self._writer.register_schema(
+                        name=name, encoding="ros2msg", data=data)
+                cid = self._writer.register_channel(topic=topic, message_encoding="cdr",
+                                                    schema_id=self._schemas[name], metadata=meta)
+            except OSError as e:
+                self._fail(e)
             self._topics[topic] = _Topic(topic, name, cid, qos_yaml, type_hash or "")
             return cid
 
@@ -330,15 +356,22 @@ class McapRecorder:
         md = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
         with self._lock:
             if not self._closed:
-                self._writer.add_metadata(name, md)
+                try:
+                    self._writer.add_metadata(name, md)
+                except OSError as e:
+                    self._fail(e)
 
     def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
         if isinstance(data, str):
             data = data.encode("utf-8")
         with self._lock:
             if not self._closed:
-                self._writer.add_attachment(create_time=time.time_ns(), log_time=int(log_time_ns),
-                                            name=name, media_type=media_type, data=bytes(data))
+                try:
+                    self._writer.add_attachment(create_time=time.time_ns(),
+                                                log_time=int(log_time_ns), name=name,
+                                                media_type=media_type, data=bytes(data))
+                except OSError as e:
+                    self._fail(e)
 
     # -- messages ---------------------------------------------------------------------------
     def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
@@ -351,13 +384,19 @@ class McapRecorder:
             if self._closed:
                 return False
             t = self._topics[topic]
-            t.count += 1
             publish = log_time_ns if publish_time_ns is None else int(publish_time_ns)
-            self._writer.add_message(t.channel_id, log_time_ns, bytes(msg), publish, t.count)
+            try:
+                self._writer.add_message(t.channel_id, log_time_ns, bytes(msg), publish,
+                                         t.count + 1)
+            except OSError as e:
+                self._fail(e)
+            t.count += 1
             self.message_count += 1
-            pos = self._file.tell()
-            if pos != self._flushed_at:          # a chunk went to the file
+            pos = self._file.pos
+            if pos != self._flushed_at:          # a chunk went to the file (this message too)
                 self._flushed_at, self._bytes_since_flush = pos, 0
+                self.messages_on_disk = self.message_count
+                self._disk_counts = {name: x.count for name, x in self._topics.items()}
             self._bytes_since_flush += len(msg)
             if self._start_ns is None or log_time_ns < self._start_ns:
                 self._start_ns = log_time_ns
@@ -380,27 +419,30 @@ class McapRecorder:
 
     # -- closing ------------------------------------------------------------------------------
     def bag_metadata(self) -> dict:
-        """The rosbag2 BagMetadata (version 9) of what has been written so far."""
+        """The rosbag2 BagMetadata (version 9) of what has been written so far (after a
+        failure: of the messages in the file)."""
         start = self._start_ns or 0
         duration = (self._end_ns - start) if self._end_ns is not None else 0
         fname = os.path.basename(self.path)
+        failed = self.failure is not None
+        n = self.messages_on_disk if failed else self.message_count
         return {
             "version": ROSBAG2_METADATA_VERSION,
             "storage_identifier": "mcap",
             "duration": {"nanoseconds": duration},
             "starting_time": {"nanoseconds_since_epoch": start},
-            "message_count": self.message_count,
+            "message_count": n,
             "topics_with_message_count": [
                 {"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": "cdr",
                                     "offered_qos_profiles": yaml.safe_load(t.qos_yaml),
                                     "type_description_hash": t.type_hash},
-                 "message_count": t.count}
+                 "message_count": self._disk_counts.get(t.name, 0) if failed else t.count}
                 for t in self._topics.values()],
             "compression_format": self._compression,
             "compression_mode": "",
             "relative_file_paths": [fname],
             "files": [{"path": fname, "starting_time": {"nanoseconds_since_epoch": start},
-                       "duration": {"nanoseconds": duration}, "message_count": self.message_count}],
+                       "duration": {"nanoseconds": duration}, "message_count": n}],
             "custom_data": self.custom_data,
             "ros_distro": self.ros_distro,
         }
@@ -409,23 +451,49 @@ class McapRecorder:
     def closed(self) -> bool:
         return self._closed
 
+    def _check_open(self):
+        if self.failure is not None:
+            raise RecordingError(self.failure)
+
+    def _fail(self, error, data_end=None):
+        """A write failed: close the file as a complete bag up to the last whole record
+        (data_end: the end of the data section, when the failure came after it), mark the
+        recorder failed and closed, raise RecordingError (the caller holds the lock)."""
+        self._closed = True
+        cause = _cause(error)
+        end = self._file.good_end if data_end is None else data_end
+        complete = close_damaged(self._file.fd, end, {"cause": cause,
+                                                       "messages": str(self.messages_on_disk)})
+        self._file.close()
+        self.failure = (f"{self.path}: {cause}; " + (
+            f"the file is closed, complete up to the last message written "
+            f"({self.messages_on_disk} messages)" if complete else
+            "the file is cut after the last message written: read it with --salvage"))
+        raise RecordingError(self.failure) from None
+
     def close(self) -> None:
+        """Write the rosbag2 metadata record and the summary, close the file (idempotent).
+        A failure on the way closes the file as a complete bag up to its last whole chunk
+        (raises RecordingError)."""
         with self._lock:
             if self._closed:
                 return
-            self._closed = True
             try:
                 serialized = yaml.safe_dump(self.bag_metadata(), sort_keys=False)
                 self._writer.add_metadata("rosbag2", {"serialized_metadata": serialized,
                                                       "ROS_DISTRO": self.ros_distro})
-                self._writer.finish()
-            finally:
-                self._file.flush()
-                try:
-                    os.fsync(self._file.fileno())
-                except OSError:
-                    pass
-                self._file.close()
+                self._writer.flush()            # the last chunk
+            except OSError as e:
+                self._fail(e)
+            self.messages_on_disk = self.message_count
+            data_end = self._file.pos
+            try:
+                self._writer.finish()           # DataEnd, the summary, the footer
+            except OSError as e:
+                self._fail(e, data_end)
+            self._closed = True
+            self._file.fsync()
+            self._file.close()
 
     def __enter__(self):
         return self
@@ -446,12 +514,16 @@ class SplitRecorder:
     bag directory holding ``<name>_0.mcap``, ``<name>_1.mcap``, ... and ``metadata.yaml``. A
     new file is started when the current one spans `max_duration_ns` of message time or
     holds `max_size` bytes (0: no limit); every file is a complete bag on its own (all
-    topics, metadata records and attachments), and ``metadata.yaml`` (rosbag2 BagMetadata)
-    lists the files; it is rewritten at every split and at close. The memory of an all-day
-    recording stays flat: each closed file's indexes leave memory with it.
+    topics, metadata records and attachments). ``metadata.yaml`` (rosbag2 BagMetadata)
+    lists the files: it is written at close, and at the splits that bring the number of
+    files to a power of two, so that writing it costs O(1) per split however many files
+    there are (the tools of this package read a directory's .mcap files without it; a
+    recording cut short has one listing at least half of its files). The memory of an
+    all-day recording stays flat: each closed file's indexes leave memory with it.
 
     Same interface as :class:`McapRecorder`; `path` is the directory (a trailing ``.mcap``
-    is dropped from the name)."""
+    is dropped from the name). A failed write closes the current file as McapRecorder
+    does, writes metadata.yaml and raises RecordingError (:attr:`failure`)."""
 
     def __init__(self, path: str, *, max_duration_ns: int = 0, max_size: int = 0, **kwargs):
         path = str(path)
@@ -472,8 +544,11 @@ class SplitRecorder:
         self._done = []            # per closed file: its "files" entry of the metadata
         self._done_counts = {}     # topic -> messages in the closed files
         self._topic_meta = {}      # topic -> topic_metadata (name, type, QoS, hash)
+        self._span = None          # (start, end) ns of the closed files' messages
         self._closed = False
+        self.failure = None
         self.message_count = 0
+        self.metadata_writes = 0   # how often metadata.yaml was written
         self._current = None
         self._open_next()
 
@@ -489,29 +564,42 @@ class SplitRecorder:
     def _open_next(self):
         index = len(self._done)
         rec = McapRecorder(os.path.join(self.path, f"{self.name}_{index}.mcap"), **self._kwargs)
+        self._current = rec
         for topic, typ, qos, type_hash in self._topics:
             rec.add_topic(topic, typ, qos, type_hash)
         for name, data in self._metadata:
             rec.add_metadata(name, data)
         for name, media_type, data, log_time in self._attachments:
             rec.add_attachment(name, media_type, data, log_time)
-        self._current = rec
 
-    def _retire(self, cur):
-        """Keep only the summary of a closed file (its indexes leave memory with it)."""
+    def _retire(self):
+        """Keep only the summary of the current file, closed (its indexes leave memory
+        with it)."""
+        cur, self._current = self._current, None
+        if cur is None:
+            return
         meta = cur.bag_metadata()
-        self._done.append(meta["files"][0])
+        entry = meta["files"][0]
+        self._done.append(entry)
+        if entry["message_count"]:
+            start = entry["starting_time"]["nanoseconds_since_epoch"]
+            end = start + entry["duration"]["nanoseconds"]
+            self._span = (start, end) if self._span is None else \
+                (min(self._span[0], start), max(self._span[1], end))
         for t in meta["topics_with_message_count"]:
             name = t["topic_metadata"]["name"]
             self._topic_meta.setdefault(name, t["topic_metadata"])
             self._done_counts[name] = self._done_counts.get(name, 0) + t["message_count"]
 
     def _split(self):
-        cur = self._current
-        cur.close()
-        self._retire(cur)
+        try:
+            self._current.close()
+        finally:
+            self._retire()
         self._open_next()
-        self._write_metadata_yaml()
+        n = len(self._done)
+        if n & (n - 1) == 0:        # 1, 2, 4, 8, ... files closed: O(1) per split
+            self._write_metadata_yaml()
 
     def _full(self, log_time_ns) -> bool:
         cur = self._current
@@ -521,20 +609,35 @@ class SplitRecorder:
             return True
         return bool(self.max_size) and cur.size >= self.max_size
 
+    def _fail(self, error):
+        """The current file failed (McapRecorder closed it as far as it could): keep its
+        summary, write metadata.yaml if possible, raise RecordingError."""
+        self._closed = True
+        self.failure = str(error)
+        self._retire()
+        try:
+            self._write_metadata_yaml()
+        except OSError:
+            pass
+        raise RecordingError(self.failure) from None
+
     # -- the McapRecorder interface -----------------------------------------------------------
     def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
         with self._lock:
             if topic not in (t[0] for t in self._topics):
                 self._topics.append((topic, msg_type, qos, type_hash))
-            return self._current.add_topic(topic, msg_type, qos, type_hash)
+            try:
+                return self._current.add_topic(topic, msg_type, qos, type_hash)
+            except RecordingError as e:
+                self._fail(e)
 
     @property
     def topics(self) -> dict:
-        return self._current.topics
+        return {t[0]: type_name(t[1]) for t in self._topics}
 
     def counts(self) -> dict:
         total = dict(self._done_counts)
-        if not self._current.closed:
+        if self._current is not None and not self._current.closed:
             for name, n in self._current.counts().items():
                 total[name] = total.get(name, 0) + n
         return total
@@ -542,20 +645,31 @@ class SplitRecorder:
     def add_metadata(self, name: str, data: dict) -> None:
         with self._lock:
             self._metadata.append((name, dict(data)))
-            self._current.add_metadata(name, data)
+            if self._current is not None:
+                try:
+                    self._current.add_metadata(name, data)
+                except RecordingError as e:
+                    self._fail(e)
 
     def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
         with self._lock:
             self._attachments.append((name, media_type, data, log_time_ns))
-            self._current.add_attachment(name, media_type, data, log_time_ns)
+            if self._current is not None:
+                try:
+                    self._current.add_attachment(name, media_type, data, log_time_ns)
+                except RecordingError as e:
+                    self._fail(e)
 
     def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
         with self._lock:
             if self._closed:
                 return False
-            if self._full(int(log_time_ns)):
-                self._split()
-            ok = self._current.write(topic, msg, log_time_ns, publish_time_ns)
+            try:
+                if self._full(int(log_time_ns)):
+                    self._split()
+                ok = self._current.write(topic, msg, log_time_ns, publish_time_ns)
+            except RecordingError as e:
+                self._fail(e)
             self.message_count += ok
             return ok
 
@@ -568,36 +682,43 @@ class SplitRecorder:
         files = list(self._done)
         topic_meta = dict(self._topic_meta)
         counts = dict(self._done_counts)
-        base = None
-        if not self._current.closed:
+        span = self._span
+        if self._current is not None and not self._current.closed:
             base = self._current.bag_metadata()
-            files.append(base["files"][0])
+            entry = base["files"][0]
+            files.append(entry)
+            if entry["message_count"]:
+                start = entry["starting_time"]["nanoseconds_since_epoch"]
+                end = start + entry["duration"]["nanoseconds"]
+                span = (start, end) if span is None else (min(span[0], start),
+                                                          max(span[1], end))
             for t in base["topics_with_message_count"]:
                 name = t["topic_metadata"]["name"]
                 topic_meta.setdefault(name, t["topic_metadata"])
                 counts[name] = counts.get(name, 0) + t["message_count"]
-        timed = [f for f in files if f["message_count"]] or files[:1]
-        start = min(f["starting_time"]["nanoseconds_since_epoch"] for f in timed)
-        end = max(f["starting_time"]["nanoseconds_since_epoch"] + f["duration"]["nanoseconds"]
-                  for f in timed)
-        rec = self._current
+        if span is None:
+            first = files[0]["starting_time"]["nanoseconds_since_epoch"] if files else 0
+            span = (first, first)
+        compression = self._kwargs.get("compression", "none")
         return {
             "version": ROSBAG2_METADATA_VERSION,
             "storage_identifier": "mcap",
-            "duration": {"nanoseconds": end - start},
-            "starting_time": {"nanoseconds_since_epoch": start},
+            "duration": {"nanoseconds": span[1] - span[0]},
+            "starting_time": {"nanoseconds_since_epoch": span[0]},
             "message_count": sum(f["message_count"] for f in files),
             "topics_with_message_count": [{"topic_metadata": m, "message_count": counts.get(n, 0)}
                                           for n, m in topic_meta.items()],
-            "compression_format": rec._compression,
+            "compression_format": "" if compression == "none" else compression,
             "compression_mode": "",
             "relative_file_paths": [f["path"] for f in files],
             "files": files,
-            "custom_data": rec.custom_data,
-            "ros_distro": rec.ros_distro,
+            "custom_data": dict(self._kwargs.get("custom_data") or {}),
+            "ros_distro": self._kwargs.get("ros_distro") or os.environ.get("ROS_DISTRO",
+                                                                             "jazzy"),
         }
 
     def _write_metadata_yaml(self):
+        self.metadata_writes += 1
         data = {"rosbag2_bagfile_information": self.bag_metadata()}
         tmp = os.path.join(self.path, "metadata.yaml.tmp")
         with open(tmp, "w") as f:
@@ -609,9 +730,18 @@ class SplitRecorder:
             if self._closed:
                 return
             self._closed = True
-            self._current.close()
-            self._retire(self._current)
-            self._write_metadata_yaml()
+            try:
+                self._current.close()
+            except RecordingError as e:
+                self.failure = str(e)
+                raise
+            finally:
+                self._retire()
+                try:
+                    self._write_metadata_yaml()
+                except OSError:
+                    if self.failure is None:
+                        raise
 
     def __enter__(self):
         return self
@@ -631,12 +761,16 @@ class QueuedRecorder:
     queued, then finalises the file: a process that calls it on SIGINT / SIGTERM leaves a
     complete file holding every message written before. The writer releases the GIL after
     every BATCH messages (``time.sleep(0)``), so a caller waiting for it runs within a few
-    messages' time."""
+    messages' time.
+
+    A failed write (the file closed as far as it could be: McapRecorder) stops the writer:
+    :attr:`failure` says why, `on_failure(message)` is called once (from the writer
+    thread), later writes return False and what was queued is dropped (:attr:`dropped`)."""
 
     POLL = 0.002   # s: the writer looks at the queue this often when it ran empty
     BATCH = 4      # messages written between two releases of the GIL
 
-    def __init__(self, inner):
+    def __init__(self, inner, on_failure=None):
         import collections
         self.inner = inner
         self._queue = collections.deque()
@@ -645,8 +779,12 @@ class QueuedRecorder:
         self._idle.set()
         self._closing = False
         self._closed = False
+        self._drop = False             # close ran out of time: drop what is queued
         self.message_count = 0         # messages handed over (written or queued)
-        self.error = None              # the writer's exception, if it failed
+        self.dropped = 0               # messages handed over and not written
+        self.failure = None
+        self.close_note = ""
+        self._on_failure = on_failure
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self._thread.start()
 
@@ -662,15 +800,27 @@ class QueuedRecorder:
                 self._wake.clear()
                 continue
             self._idle.clear()
+            if self._drop or self.failure is not None:
+                self.dropped += len(q)
+                q.clear()
+                continue
             for _ in range(self.BATCH):
                 if not q:
                     break
                 item = q.popleft()
                 try:
                     inner.write(*item)
-                except Exception as e:  # pragma: no cover - disk full, ...: keep the error
-                    self.error = e
+                except Exception as e:   # RecordingError: the file is closed already
+                    self._failed(e)
+                    break
             time.sleep(0)              # let a waiting thread take the GIL
+
+    def _failed(self, error):
+        self.failure = str(error)
+        self.dropped += 1 + len(self._queue)
+        self._queue.clear()
+        if self._on_failure is not None:
+            self._on_failure(self.failure)
 
     def flush(self, timeout=None) -> bool:
         """Wait until every message handed over is in the writer's file buffers."""
@@ -686,7 +836,7 @@ class QueuedRecorder:
 
     # -- the recorder interface -----------------------------------------------------------------
     def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
-        if self._closing:
+        if self._closing or self.failure is not None:
             return False
         if not isinstance(msg, (bytes, bytearray, memoryview)):
             from rclpy.serialization import serialize_message
@@ -699,17 +849,24 @@ class QueuedRecorder:
         self.message_count += 1
         return True
 
-    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+    def _inner_call(self, op, *args):
         self.flush()
-        return self.inner.add_topic(topic, msg_type, qos, type_hash)
+        if self.failure is not None:
+            raise RecordingError(self.failure)
+        try:
+            return getattr(self.inner, op)(*args)
+        except RecordingError as e:
+            self._failed(e)
+            raise
+
+    def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
+        return self._inner_call("add_topic", topic, msg_type, qos, type_hash)
 
     def add_metadata(self, name: str, data: dict) -> None:
-        self.flush()
-        self.inner.add_metadata(name, data)
+        self._inner_call("add_metadata", name, data)
 
     def add_attachment(self, name: str, media_type: str, data, log_time_ns: int = 0) -> None:
-        self.flush()
-        self.inner.add_attachment(name, media_type, data, log_time_ns)
+        self._inner_call("add_attachment", name, media_type, data, log_time_ns)
 
     def counts(self) -> dict:
         self.flush()
@@ -730,18 +887,30 @@ class QueuedRecorder:
 
     @property
     def closed(self) -> bool:
-        return self._closing
+        return self._closing or self.failure is not None
 
-    def close(self) -> None:
-        """Write what is queued, stop the writer, finalise the file (idempotent)."""
+    def close(self, timeout=None, metadata=None) -> None:
+        """Write what is queued (within `timeout` s: what is left then is dropped, counted
+        in :attr:`dropped` and :attr:`close_note`), add the `metadata` records ({name:
+        data}), stop the writer, finalise the file (idempotent)."""
         if self._closed:
             return
+        self._closed = True
         self._closing = True
         self._wake.set()
-        self._thread.join()
-        while self._queue:             # the writer died: write the rest here
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            self._drop = True
+            before = self.dropped
+            self._thread.join()
+            self.close_note = (f"dropped {self.dropped - before} queued messages at close "
+                               f"(the writer was {timeout:g} s behind)")
+        while self._queue and self.failure is None:   # the writer died: write the rest here
             self.inner.write(*self._queue.popleft())
-        self._closed = True
+        if self.failure is not None:
+            return
+        for name, data in (metadata or {}).items():
+            self.inner.add_metadata(name, data)
         self.inner.close()
 
     def __enter__(self):
@@ -782,68 +951,249 @@ class ProcessRecorder:
     after the state is out: one pipe write and one wake-up of the writer per 20 ms of sim
     time instead of one per step); ``add_topic``, ``add_metadata``, ``add_attachment`` and
     ``close`` are sent at once and wait for the child's answer (an error there is raised
-    here). ``close`` sends what is buffered and waits until the child has finalised the
-    file. The child ignores SIGINT / SIGTERM (its parent closes it) and finalises the file
+    here). The child ignores SIGINT / SIGTERM (its parent closes it) and finalises the file
     when its input ends, so even a parent killed outright leaves a complete file.
-    Same interface as :class:`McapRecorder` (``write`` returns False after ``close``)."""
+    Same interface as :class:`McapRecorder` (``write`` returns False after ``close``).
+
+    The caller never waits for the writer: the pipe is non-blocking, and what it does not
+    take stays here (up to MAX_BACKLOG bytes; beyond, a hand-over's messages are dropped and
+    counted in :attr:`dropped`). The writer can fail (disk full, file-size limit, I/O
+    error; it then closes the file as a complete bag up to its last chunk, reports and
+    exits) or be killed (its file is then repaired here: :func:`~.mcap_sink.repair`): the
+    next hand-over finds out, sets :attr:`failure` (file, cause, how to read what was
+    written), calls `on_failure(message)` once, and the recorder is closed; nothing raises
+    on the caller's hot path."""
 
     FLUSH_BYTES = 64 * 1024
     #: bytes the pipe to the writer holds (Linux's default is 64 kB, about two hand-overs of
-    #: sim_node: a hand-over then waits whenever the writer is a batch behind)
+    #: sim_node)
     PIPE_SIZE = 1 << 20
+    #: bytes handed over and held here while the writer is behind (about 40 s of sim_node's
+    #: recording); more is dropped, counted
+    MAX_BACKLOG = 64 << 20
 
     def __init__(self, path: str, *, max_duration_ns: int = 0, max_size: int = 0,
-                 **kwargs):
+                 on_failure=None, **kwargs):
+        import collections
         import pickle
         import struct
         import subprocess
         self._pickle = pickle
         self._head = struct.Struct("<HqI")          # topic index, log time, size
         self.path = str(path)
-        self._proc = subprocess.Popen(
+        self.split = max_duration_ns > 0 or max_size > 0
+        self._proc = subprocess.Popen(     # OSError: no process (the caller falls back)
             [sys.executable, "-m", "starleth_sim.ros.recording", "--writer"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
             env=dict(os.environ, PYTHONPATH=os.pathsep.join(
                 p for p in (os.path.dirname(os.path.dirname(os.path.dirname(
                     os.path.abspath(__file__)))), os.environ.get("PYTHONPATH", "")) if p)))
-        self._out = self._proc.stdin
-        self.pipe_size = _enlarge_pipe(self._out.fileno(), self.PIPE_SIZE)
+        self._fd = self._proc.stdin.fileno()
+        self._in_fd = self._proc.stdout.fileno()
+        os.set_blocking(self._fd, False)
+        self.pipe_size = _enlarge_pipe(self._fd, self.PIPE_SIZE)
         self._topics = {}
         self._buf = bytearray()
+        self._buf_messages = 0
+        self._pending = collections.deque()   # [frame, messages] not yet (all) in the pipe
+        self._pending_bytes = 0
+        self._sent = 0                        # bytes of the first pending frame in the pipe
+        self._answers = bytearray()
         self._closed = False
-        self.message_count = 0
-        self._call("open", self.path, int(max_duration_ns), int(max_size), kwargs)
+        self._on_failure = None               # told of failures once the file is open
+        self.failure = None
+        self.close_note = ""
+        self.message_count = 0                # messages handed over
+        self.dropped = 0                      # of them, dropped: the writer was too far behind
+        try:
+            self._call("open", self.path, int(max_duration_ns), int(max_size), kwargs)
+        except BaseException:
+            self._abandon()
+            raise
+        self._on_failure = on_failure
 
     # -- the pipe -------------------------------------------------------------------------------
-    def _send(self, kind: bytes, payload: bytes):
-        self._out.write(kind + len(payload).to_bytes(4, "little") + payload)
+    def _queue(self, kind: bytes, payload, messages=0) -> bool:
+        frame = kind + len(payload).to_bytes(4, "little") + payload
+        if kind == b"M" and self._pending_bytes + len(frame) > self.MAX_BACKLOG:
+            self.dropped += messages
+            return False
+        self._pending.append([frame, messages])
+        self._pending_bytes += len(frame)
+        return True
 
-    def _call(self, *request):
-        """Send a request and wait for the child's answer (raises its error)."""
+    def _drain(self) -> bool:
+        """Put what the pipe takes into it without waiting; False if the writer is gone."""
+        pending = self._pending
+        while pending:
+            frame = pending[0][0]
+            try:
+                n = os.write(self._fd, memoryview(frame)[self._sent:])
+            except BlockingIOError:
+                return True
+            except OSError as e:                 # EPIPE: the writer process ended
+                self._writer_gone(e)
+                return False
+            self._sent += n
+            if self._sent == len(frame):
+                pending.popleft()
+                self._pending_bytes -= len(frame)
+                self._sent = 0
+        return True
+
+    def _drain_until(self, deadline) -> bool:
+        """Wait until everything pending is in the pipe (False at the deadline, or if the
+        writer is gone)."""
+        import select
+        while self._pending:
+            if not self._drain():
+                return False
+            if not self._pending:
+                break
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                return False
+            select.select([], [self._fd], [], 0.1 if left is None else min(left, 0.1))
+            if self._proc.poll() is not None:
+                self._drain()
+                if self._pending:
+                    self._writer_gone(EOFError("the recording process ended"))
+                    return False
+        return True
+
+    def _read_answer(self, deadline):
+        """The child's next answer (ok, value); None at the deadline; EOFError if it ended."""
+        import select
+        while True:
+            if len(self._answers) >= 4:
+                size = int.from_bytes(self._answers[:4], "little")
+                if len(self._answers) >= 4 + size:
+                    data = bytes(self._answers[4:4 + size])
+                    del self._answers[:4 + size]
+                    return self._pickle.loads(data)
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                return None
+            r, _, _ = select.select([self._in_fd], [], [], 0.1 if left is None else min(left, 0.1))
+            if r:
+                chunk = os.read(self._in_fd, 1 << 16)
+                if not chunk:
+                    raise EOFError("the recording process ended")
+                self._answers += chunk
+
+    def _call(self, *request, timeout=None):
+        """Send a request and wait for the child's answer (raises its error; RecordingError
+        if the child failed or ended)."""
+        if self.failure is not None:
+            raise RecordingError(self.failure)
+        deadline = None if timeout is None else time.monotonic() + timeout
         self.hand_over()
+        self._queue(b"R", self._pickle.dumps(request))
+        if not self._drain_until(deadline):
+            if self.failure is not None:
+                raise RecordingError(self.failure)
+            raise TimeoutError(f"the recording process ({self.path}) is {timeout:g} s behind")
         try:
-            self._send(b"R", self._pickle.dumps(request))
-            self._out.flush()
-            size = int.from_bytes(self._read(4), "little")
-            ok, value = self._pickle.loads(self._read(size))
+            answer = self._read_answer(deadline)
         except (OSError, EOFError, ValueError) as e:
-            raise OSError(f"the recording process ({self.path}) failed: {e}") from None
+            self._writer_gone(e)
+            raise RecordingError(self.failure) from None
+        if answer is None:
+            raise TimeoutError(f"the recording process ({self.path}) is {timeout:g} s behind")
+        ok, value = answer
         if not ok:
+            if isinstance(value, RecordingError):     # the file failed: the child exits
+                self._writer_gone(value)
             raise value
         return value
 
-    def _read(self, n):
-        data = self._proc.stdout.read(n)
-        if data is None or len(data) != n:
-            raise EOFError("the recording process ended")
-        return data
-
     def hand_over(self):
-        """Send the buffered messages to the writer process."""
+        """Send the buffered messages to the writer process (what the pipe does not take
+        now waits here; never blocks)."""
+        if self._closed:
+            return
         if self._buf:
-            self._send(b"M", bytes(self._buf))
-            self._out.flush()
+            self._queue(b"M", bytes(self._buf), self._buf_messages)
             self._buf.clear()
+            self._buf_messages = 0
+        if self._pending:
+            self._drain()
+
+    @property
+    def backlog(self) -> int:
+        """Bytes handed over that are not in the pipe yet (the writer is behind)."""
+        return self._pending_bytes - self._sent + len(self._buf)
+
+    # -- failures ---------------------------------------------------------------------------
+    def _writer_gone(self, error):
+        """The writer failed or ended: find out why (its report, else its exit status),
+        repair the file if it could not, close this recorder, tell on_failure once."""
+        if self.failure is not None:
+            return
+        self._closed = True
+        self.dropped += self._buf_messages + sum(m for _, m in self._pending)
+        self._buf.clear()
+        self._pending.clear()
+        self._pending_bytes = self._sent = 0
+        report = error if isinstance(error, RecordingError) else None
+        try:
+            self._proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            self._proc.wait(5)
+        except Exception:   # pragma: no cover - a writer that hangs
+            self._proc.kill()
+            self._proc.wait(5)
+        if report is None:      # its own report, if it wrote one before it exited
+            try:
+                while True:
+                    answer = self._read_answer(time.monotonic() + 1.0)
+                    if answer is None:
+                        break
+                    if not answer[0] and isinstance(answer[1], RecordingError):
+                        report = answer[1]
+            except (OSError, EOFError, ValueError):
+                pass
+        if report is not None:
+            self.failure = str(report)
+        else:
+            self.failure = self._repair_after(self._proc.returncode)
+        if self._on_failure is not None:
+            self._on_failure(self.failure)
+
+    def _repair_after(self, returncode) -> str:
+        """The writer ended without a report (killed): close its file here."""
+        import signal
+        if returncode is not None and returncode < 0:
+            how = f"killed by {signal.Signals(-returncode).name}"
+        else:
+            how = f"exit status {returncode}"
+        path = self.path
+        if self.split:
+            import glob
+            import re
+            d = path[:-len(".mcap")] if path.endswith(".mcap") else path
+            numbered = sorted(glob.glob(os.path.join(d, "*_*.mcap")),
+                              key=lambda p: int(re.findall(r"_(\d+)\.mcap$", p)[0])
+                              if re.findall(r"_(\d+)\.mcap$", p) else -1)
+            path = numbered[-1] if numbered else d
+        try:
+            result = repair(path, {"cause": f"the recording process ended ({how})"})
+        except OSError as e:
+            result = f"unreadable ({e})"
+        state = {"complete": "the file is complete",
+                 "repaired": "the file is closed, complete up to the last message written",
+                 "cut": "the file is cut after the last message written: read it with "
+                        "--salvage"}.get(result, f"the file is {result}")
+        return f"{path}: the recording process ended ({how}); {state}"
+
+    def _abandon(self):
+        try:
+            self._proc.kill()
+            self._proc.wait(5)
+        except Exception:   # pragma: no cover
+            pass
 
     # -- the recorder interface ---------------------------------------------------------------
     def add_topic(self, topic: str, msg_type, qos=None, type_hash: str | None = None) -> int:
@@ -879,8 +1229,11 @@ class ProcessRecorder:
         log_time_ns = int(log_time_ns)
         if len(self._buf) > self.FLUSH_BYTES:
             self.hand_over()
+            if self._closed:
+                return False
         self._buf += self._head.pack(self._topics[topic][0], log_time_ns, len(msg))
         self._buf += msg
+        self._buf_messages += 1
         self.message_count += 1
         return True
 
@@ -888,22 +1241,65 @@ class ProcessRecorder:
     def closed(self) -> bool:
         return self._closed
 
-    def close(self) -> None:
-        """Send what is buffered, let the child finalise the file, wait for it."""
+    def close(self, timeout=None, metadata=None) -> None:
+        """Send what is buffered, add the `metadata` records ({name: data}), let the child
+        finalise the file and wait for it. With a `timeout` (s) nothing waits longer: what
+        could not be sent by then is dropped, and a writer still busy with what it got
+        finalises the file on its own after this process has gone (:attr:`close_note`
+        says which). A failed writer raises RecordingError (the file is closed as far as
+        it could be)."""
         if self._closed:
+            if self.failure is not None:
+                raise RecordingError(self.failure)
             return
+        deadline = None if timeout is None else time.monotonic() + timeout
+        self.hand_over()
         self._closed = True
+        sent = self._drain_until(deadline)
+        if self.failure is not None:
+            raise RecordingError(self.failure)
+        if not sent:
+            # what has not gone into the pipe is dropped; a frame cut halfway ends the
+            # child's input there (it finalises the file after the last whole batch)
+            n = sum(m for _, m in self._pending)
+            self.dropped += n
+            self.close_note = (f"dropped {n} queued messages at close (the recording "
+                               f"process was {timeout:g} s behind); ")
+            self._pending.clear()
+            self._proc.stdin.close()
+            self.close_note += (f"the recording process (pid {self._proc.pid}) finalises "
+                                f"{self.path} on its own")
+            return
         try:
-            self._call("close")
-        finally:
-            try:
-                self._out.close()
-            except OSError:
-                pass
-            try:
-                self._proc.wait(60)
-            except Exception:   # pragma: no cover
-                self._proc.kill()
+            request = [("add_metadata", name, dict(data)) for name, data in
+                       (metadata or {}).items()]
+            self._queue(b"R", self._pickle.dumps(("close", request)))
+            if self._drain_until(deadline):
+                answer = self._read_answer(deadline)
+            else:
+                answer = None
+        except (OSError, EOFError, ValueError) as e:
+            self._writer_gone(e)
+            raise RecordingError(self.failure) from None
+        if self.failure is not None:
+            raise RecordingError(self.failure)
+        if answer is None:
+            self._proc.stdin.close()
+            self.close_note = (f"the recording process (pid {self._proc.pid}) is still "
+                               f"writing; it finalises {self.path} on its own")
+            return
+        ok, value = answer
+        try:
+            self._proc.stdin.close()
+        except OSError:
+            pass
+        if not ok:
+            self.failure = str(value)
+            raise value
+        try:
+            self._proc.wait(5 if deadline is None else max(deadline - time.monotonic(), 0.1))
+        except Exception:   # pragma: no cover - it has answered: it is ending
+            pass
 
     def __enter__(self):
         return self
@@ -926,7 +1322,10 @@ def _background_scheduling():
 
 def _writer_main():
     """The child of :class:`ProcessRecorder`: requests and message batches on stdin,
-    answers on stdout; finalises the file on 'close' or when stdin ends."""
+    answers on stdout; finalises the file on 'close' or when stdin ends. A failed write
+    (the recorder has closed the file as far as it could) is reported as an answer
+    (False, RecordingError) that nobody asked for, and the child exits: the parent finds
+    its pipe closed and reads the report."""
     import pickle
     import signal
     import struct
@@ -952,11 +1351,15 @@ def _writer_main():
             break
         if kind == b"M":
             o = 0
-            while o < size:
-                i, t, n = head.unpack_from(payload, o)
-                o += head.size
-                rec.write(names[i], payload[o:o + n], t)
-                o += n
+            try:
+                while o < size:
+                    i, t, n = head.unpack_from(payload, o)
+                    o += head.size
+                    rec.write(names[i], payload[o:o + n], t)
+                    o += n
+            except RecordingError as e:
+                answer(False, e)
+                return
             continue
         request = pickle.loads(payload)
         op, args = request[0], request[1:]
@@ -975,16 +1378,26 @@ def _writer_main():
                 if topic not in names:
                     names.append(topic)
             elif op == "close":
+                for _, name, data in (args[0] if args else ()):
+                    rec.add_metadata(name, data)
                 rec.close()
                 answer(True, rec.message_count)
                 return
             else:
                 value = getattr(rec, op)(*args)
             answer(True, value)
+        except RecordingError as e:
+            answer(False, e)
+            return
         except Exception as e:
+            if op == "open" and isinstance(e, OSError):   # one line: file and cause
+                e = RecordingError(f"{args[0]}: {_cause(e)}")
             answer(False, e)
     if rec is not None:
-        rec.close()
+        try:
+            rec.close()
+        except RecordingError:
+            pass
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--writer"]:

@@ -140,7 +140,7 @@ from ..physics.description import STARLETH_FEET as FEET
 from ..physics.simulator import CONTACT_STATES, Simulator
 from .cdr import CommandDecoder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
-from .recording import register_msg_text
+from .recording import RecordingError, register_msg_text
 from .service import PeriodStats, SimService
 from .state_io import (ImuEstimate, base_values, initial_state_record, joint_indices,
                        joint_values, parse_initial_state, state_bundle_bytes)
@@ -236,7 +236,10 @@ class SimNode:
         err = set_cpu_scheduling(s.cpu_scheduling)     # before the writer process starts
         if err:
             self.log.warning(f"cpu_scheduling {s.cpu_scheduling}: {err}")
-        self.recorder = None
+        self.recorder = None             # the recorder while it records (None: off or failed)
+        self._recorder_stats = None      # the recorder, also after it failed
+        self.recording_failure = None    # why the recording stopped early
+        self._dropped_seen = 0           # recorded messages dropped, as last reported
         if s.record:
             self._open_recorder(s.record)
         self._publish_robot_description()
@@ -303,7 +306,8 @@ class SimNode:
         self.iface_keys = ("mode", "real_time_factor", "sim_time", "step", "paused",
                            "waiting_for_first_command", *SimService.COUNTERS,
                            "period_error_p50_ms", "period_error_p99_ms", "period_error_max_ms",
-                           "overruns", "recorded_messages")
+                           "overruns", "recorded_messages", "recording_dropped",
+                           "recording")
         self.diag_msg = DiagnosticArray()
         self.solver_status = DiagnosticStatus(name="starleth_sim: solver",
                                               hardware_id="starleth_sim")
@@ -591,16 +595,22 @@ class SimNode:
                      max_size=s.record_max_size)
         try:
             # written by a process of its own: nothing of the writing on this interpreter
-            self.recorder = rec = ProcessRecorder(path, **split, **common)
-        except FileExistsError:
-            raise
+            self.recorder = rec = ProcessRecorder(path, **split, **common,
+                                                  on_failure=self._recording_failed)
+        except RecordingError as e:      # the file cannot be written: one line, exit 2
+            raise ConfigError(f"parameter record: cannot record to {e}") from None
         except OSError as e:
             # no child process: a thread of this one, mostly while the controller computes
-            self.log.warning(f"recording in this process ({e})")
-            file_rec = (SplitRecorder(path, **split, **common)
-                        if s.record_max_duration > 0 or s.record_max_size > 0
-                        else McapRecorder(path, **common))
-            self.recorder = rec = QueuedRecorder(file_rec)
+            self.log.warning(f"recording in this process (no recording process: {e})")
+            try:
+                file_rec = (SplitRecorder(path, **split, **common)
+                            if s.record_max_duration > 0 or s.record_max_size > 0
+                            else McapRecorder(path, **common))
+            except OSError as e:
+                raise ConfigError(f"parameter record: cannot record to {path}: "
+                                  f"{e.strerror or e}") from None
+            self.recorder = rec = QueuedRecorder(file_rec, on_failure=self._recording_failed)
+        self._recorder_stats = rec
         for key, (p, topic, typ, qos) in self.pubs.items():
             rec.add_topic(topic, typ, qos)
         for key, (sobj, topic, typ, qos) in self.subs.items():
@@ -638,6 +648,30 @@ class SimNode:
     def _publish_robot_description(self):
         msg = String(data=self.sim.description.urdf_xml)
         self._emit("robot_description", msg, True)
+
+    def _recording_failed(self, message):
+        """The recorder failed (disk full, file-size limit, I/O error, its process gone);
+        it has closed the file as far as it could (message: file, cause, how to read it).
+        The simulation goes on without recording; /starleth/solver says
+        ``recording: failed (...)``. Called once, from the thread that found out."""
+        self.recording_failure = message
+        self.recorder = None
+        self.log.error(f"recording failed: {message}. The simulation goes on without "
+                       "recording.")
+
+    def recording_state(self) -> str:
+        """'off', 'on' or 'failed (<file>: <cause>; ...)' (/starleth/solver's recording)."""
+        if self.recording_failure is not None:
+            return f"failed ({self.recording_failure})"
+        return "on" if self.recorder is not None else "off"
+
+    def _check_recording_drops(self, rec):
+        dropped = rec.dropped
+        if dropped != self._dropped_seen:
+            self._dropped_seen = dropped
+            self.service.warnings.warn(
+                "record_dropped", f"recording {rec.path}: the recording process is behind; "
+                f"{dropped} messages dropped so far")
 
     # -- publishing ------------------------------------------------------------------------
     def _log_warning(self, message):
@@ -754,9 +788,11 @@ class SimNode:
             self._prepare_next_step()
             self._publish_visualisation()
             rec = self.recorder
-            if rec is not None and not rec.closed and hasattr(rec, "hand_over") and \
-                    svc.k % self.HAND_OVER_STEPS == 0:
-                rec.hand_over()       # the last steps' messages to the writer process
+            if rec is not None and svc.k % self.HAND_OVER_STEPS == 0:
+                if hasattr(rec, "hand_over"):
+                    rec.hand_over()   # the last steps' messages to the writer process
+                if rec.dropped:
+                    self._check_recording_drops(rec)
         if timing is not None and record:
             timing.row[4] = time.perf_counter()
             timing.commit(svc.stamp_ns)
@@ -894,11 +930,19 @@ class SimNode:
                 svc.paused, not svc.started, *(c[k] for k in SimService.COUNTERS),
                 ps.get("period_error_p50_ms", ""), ps.get("period_error_p99_ms", ""),
                 ps.get("period_error_max_ms", ""), self.period_stats.overruns,
-                self.recorder.message_count if self.recorder is not None else 0)
-        out.append((1, DiagnosticStatus.WARN if svc.last_step_timed_out else DiagnosticStatus.OK,
+                *self._recording_counts(), self.recording_state())
+        out.append((1, DiagnosticStatus.WARN if svc.last_step_timed_out or
+                    self.recording_failure is not None else DiagnosticStatus.OK,
                     "lockstep timeout" if svc.last_step_timed_out else
                     "paused" if svc.paused else "running", [str(v) for v in vals]))
         return out
+
+    def _recording_counts(self):
+        """(messages recorded, dropped) -- (0, 0) without a recording."""
+        rec = self._recorder_stats
+        if rec is None:
+            return 0, 0
+        return rec.message_count - rec.dropped, rec.dropped
 
     def _fill_diagnostics(self, sec, nsec, statuses):
         """The DiagnosticArray message object from _diagnostics() (when the CDR writer is
@@ -1198,23 +1242,32 @@ class SimNode:
         d = self.service.summary()
         if self.settings.mode == "realtime":
             d.update(self.period_stats.summary())
-        if self.recorder is not None:
-            d["recorded_messages"] = self.recorder.message_count
+        if self._recorder_stats is not None:
+            d["recorded_messages"], d["recording_dropped"] = self._recording_counts()
+            d["recording"] = self.recording_state()
         return d
 
+    #: s: SIGINT / SIGTERM end the node within 2 s whatever the recorder has queued (what
+    #: the writer has not taken by then is dropped, counted in the log)
+    CLOSE_TIMEOUT = 1.5
+
     def close(self):
-        """Finalise the recording (idempotent) and log a summary."""
-        summary = self.summary()
+        """Finalise the recording (idempotent; at most CLOSE_TIMEOUT s) and log a summary."""
         rec = self.recorder
         if rec is not None and not rec.closed:
+            summary = self.summary()
             try:
-                rec.add_metadata("starleth_sim_summary",
-                                 {k: json.dumps(v) for k, v in summary.items()})
-                rec.close()
-            except OSError as e:     # the writer process died: what it wrote is there
-                self.log.error(f"recording {rec.path}: {e}")
+                rec.close(timeout=self.CLOSE_TIMEOUT, metadata={"starleth_sim_summary": {
+                    k: json.dumps(v) for k, v in summary.items()}})
+            except (RecordingError, OSError) as e:   # the file is closed as far as it could
+                if self.recording_failure is None:
+                    self.recording_failure = str(e)
+                    self.log.error(f"recording failed while closing: {e}")
             else:
-                self.log.info(f"recording finalised: {rec.path} ({rec.message_count} messages)")
+                note = f"; {rec.close_note}" if rec.close_note else ""
+                self.log.info(f"recording finalised: {rec.path} "
+                              f"({rec.message_count - rec.dropped} messages){note}")
+        summary = self.summary()
         self.log.info("summary: " + json.dumps(summary))
         return summary
 
