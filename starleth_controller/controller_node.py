@@ -149,7 +149,9 @@ def compile_kernels(log=print, threshold: float = ControllerParams.contact_force
 
 P = ParameterSpec
 #: the node's parameters: type, default, description, bounds (one schema: it gives the
-#: declare_parameter descriptors and the checks)
+#: declare_parameter descriptors and the checks). Every number has a range: the contact
+#: threshold up to 1000 N (StarlETH weighs ~250 N: a higher one never sees a contact), the
+#: velocity clips up to 10 m/s and 10 rad/s (the trot is < 1 m/s), the periods up to 1 hour.
 PARAMETERS = (
     P("mode", str, "stand", "stand | trot; settable at runtime (also through the ~/trot "
       "service)", read_only=False, choices=MODES),
@@ -175,18 +177,18 @@ PARAMETERS = (
       "(base, REP 105) | parent (world)", choices=("child", "parent")),
     P("contact_force_threshold", float, ControllerParams.contact_force_threshold,
       "a foot is in contact when |force| exceeds this "
-      "[N]", read_only=False, minimum=0.0),
+      "[N]", read_only=False, minimum=0.0, maximum=1000.0),
     P("max_linear_speed", float, 0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]",
-      read_only=False, minimum=0.0),
+      read_only=False, minimum=0.0, maximum=10.0),
     P("max_yaw_rate", float, 1.0, "clip of |angular.z| of /cmd_vel [rad/s]", read_only=False,
-      minimum=0.0),
+      minimum=0.0, maximum=10.0),
     P("cmd_vel_timeout", float, 0.0, "seconds (the node's clock: sim time with use_sim_time) "
       "after the last cmd_vel when the velocity command falls back to zero; 0 = never",
-      read_only=False, minimum=0.0),
+      read_only=False, minimum=0.0, maximum=3600.0),
     P("state_reliability", str, "reliable", "QoS reliability of the state subscriptions: "
       "reliable | best_effort", choices=("reliable", "best_effort")),
     P("warn_throttle_period", float, 2.0, "minimum seconds between two warnings of the same "
-      "kind", read_only=False, minimum=0.0),
+      "kind", read_only=False, minimum=0.0, maximum=3600.0),
     P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
       choices=EXECUTORS),
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),

@@ -20,7 +20,12 @@ from dataclasses import dataclass, field
 class ParameterSpec:
     """One ROS parameter: `kind` is bool, int, float, str or list; `choices` the legal
     values of a string; `minimum` a lower bound of a number (exclusive with
-    `minimum_exclusive`). `read_only` parameters are fixed once the node runs."""
+    `minimum_exclusive`), `maximum` an upper bound (inclusive); `off_value` one more legal
+    value of a number outside those bounds, which switches the feature off (e.g. 0 for
+    record_max_size: 0 = no split, else >= 1 MiB), `off_meaning` what it means in words.
+    Numbers must be finite. `read_only` parameters are fixed once the node runs.
+    ``range_text()`` renders the bounds (in the parameter file's comments and as the
+    descriptor's additional_constraints, shown by ``ros2 param describe``)."""
 
     name: str
     kind: type
@@ -31,6 +36,25 @@ class ParameterSpec:
     minimum: float | None = None
     minimum_exclusive: bool = False
     maximum: float | None = None
+    off_value: float | None = None
+    off_meaning: str = "off"
+
+    def range_text(self) -> str:
+        """The legal values in words, e.g. "0 (no split) or >= 1048576" or "> 0 and
+        <= 3600"; empty when there are no bounds."""
+        if self.choices:
+            return "one of " + ", ".join(map(str, self.choices))
+        parts = []
+        if self.minimum is not None:
+            parts.append(f"{'>' if self.minimum_exclusive else '>='} "
+                         f"{_bound(self.minimum)}")
+        if self.maximum is not None:
+            parts.append(f"<= {_bound(self.maximum)}")
+        text = " and ".join(parts)
+        if self.off_value is not None:
+            off = f"{_bound(self.off_value)} ({self.off_meaning})"
+            text = f"{off} or {text}" if text else off
+        return text
 
     def coerce(self, value):
         """The value as given on the command line or in YAML, brought to `kind` where that
@@ -57,18 +81,25 @@ class ParameterSpec:
                                  f"got {value!r}")
             if not math.isfinite(value):
                 raise ValueError(f"{what}: expected a finite number, got {value!r}")
+            if self.off_value is not None and value == self.off_value:
+                return
             lo, hi = self.minimum, self.maximum
-            if lo is not None and (value < lo or (self.minimum_exclusive and value == lo)):
-                raise ValueError(f"{what}: must be {'>' if self.minimum_exclusive else '>='} "
-                                 f"{lo:g}, got {value}")
-            if hi is not None and value > hi:
-                raise ValueError(f"{what}: must be <= {hi:g}, got {value}")
+            if (lo is not None and (value < lo or (self.minimum_exclusive and value == lo))) \
+                    or (hi is not None and value > hi):
+                raise ValueError(f"{what}: must be {self.range_text()}, got {value!r}")
             return
         if not isinstance(value, self.kind):
             raise ValueError(f"{what}: expected a {self.kind.__name__}, got {value!r}")
         if self.choices and value not in self.choices:
             raise ValueError(f"{what}: must be one of {', '.join(map(str, self.choices))}, "
                              f"got {value!r}")
+
+
+def _bound(x) -> str:
+    """A bound in a message: integral values without exponent (1048576, not 1.04858e+06)."""
+    if isinstance(x, float) and x.is_integer() and abs(x) < 1e15:
+        return str(int(x))
+    return f"{x:g}" if isinstance(x, float) else str(x)
 
 
 def parameter_defaults(specs) -> dict:
@@ -84,7 +115,8 @@ def declare_parameters(node, specs) -> dict:
     values = {}
     for p in specs:
         desc = ParameterDescriptor(description=p.description, read_only=p.read_only,
-                                   dynamic_typing=True)
+                                   dynamic_typing=True,
+                                   additional_constraints=p.range_text())
         values[p.name] = p.coerce(node.declare_parameter(p.name, p.default, desc).value)
     return values
 
@@ -97,12 +129,15 @@ def _yaml_scalar(value) -> str:
 
 def render_parameters_yaml(specs, header: str, node_key: str = "/**") -> str:
     """A ROS 2 parameter file (``--params-file``) with every parameter at its default and
-    its description as a comment above it."""
+    its description and its legal values (``range_text``) as a comment above it."""
     out = [f"# {line}".rstrip() for line in header.strip().splitlines()]
     out += [f"{node_key}:", "  ros__parameters:"]
     for p in specs:
         for line in textwrap.wrap(p.description, 88):
             out.append(f"    # {line}")
+        if p.range_text():
+            for line in textwrap.wrap(f"Legal values: {p.range_text()}.", 88):
+                out.append(f"    # {line}")
         out.append(f"    {p.name}: {_yaml_scalar(p.default)}")
     return "\n".join(out) + "\n"
 

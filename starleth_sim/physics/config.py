@@ -3,8 +3,56 @@
 
 Every field has a unique name across sections, so overrides can be flat
 (``Simulator.from_preset("HmJ", alpha=0.4)``) or dotted (``{"solver.alpha": 0.4}``).
-A bad file or override raises :class:`ConfigError` naming the field, e.g.
-``HmJ.yaml: solver.alpha: must be in (0, 2), got 2.5``.
+A bad file or override raises :class:`ConfigError` naming the file and the field, e.g.
+``HmJ.yaml: solver.alpha: must be < 2, got 2.5``.
+
+Every number has a physical range (NaN and infinities are refused everywhere); the ranges
+and their reasons:
+
+=============================  ===========================  ================================
+field                          range                        why
+=============================  ===========================  ================================
+control_rate                   [1, 100 000] Hz              a controller's loop: slower than
+                                                            1 Hz is no control, faster than
+                                                            100 kHz no robot's
+steps_per_control              integer [1, 10 000]          and Δt = 1/(control_rate ·
+                                                            steps_per_control) >= 1 µs: at
+                                                            most 10⁶ steps per simulated
+                                                            second (Δt <= the control period
+                                                            follows from N >= 1)
+ground.height                  [-1000, 1000] m              a floor near the robot; far away
+                                                            the positions lose precision
+ground.normal                  3 finite numbers, not zero,  normalised on load; z > 0: a
+                               z > 0 after normalising      floor under the robot (gravity is
+                                                            -z), not a wall or a ceiling
+ground.mu                      [0, 10]                      real materials < 2; 10 is already
+                                                            "never slips"
+contact.restitution_*          [0, 1]                       Newton's impact law: 1 is elastic,
+(and restitution_overrides)                                 > 1 would create energy
+contact.stiffness_*            (0, 1e9] N/m                 a spring, stiffer than any foot
+contact.damping_*              [0, 1e6] N s/m               a damper (explicit: beyond, any
+                                                            Δt is unstable)
+contact.slip_velocity          [0, 1] m/s                   "stopped" threshold (paper ~1e-4)
+contact.activation_gap,        [0, 0.1] m                   gaps near the ground (opening_gap
+contact.opening_gap                                         >= activation_gap)
+contact.penetration_           [0, 1]                       the fraction of the penetration
+stabilization                                               removed per step
+solver.alpha                   (0, 2) or auto               the prox iteration's convergence
+solver.tol_rel                 [0, 1]                       a relative change; 1 = anything
+solver.tol_abs                 [0, 1000] N s                an impulse (and tol_rel or
+                                                            tol_abs > 0)
+solver.max_iterations          integer [1, 1 000 000]       a cap per solve that still ends
+solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
+bilateral.stabilization        [0, 1]                       β of the drift correction
+paper                          names: finite numbers or     figures for reports only
+                               strings
+=============================  ===========================  ================================
+
+YAML files are read with :func:`load_yaml_file` (and text with :func:`load_yaml_text`), the
+project's one loader of configuration YAML (presets, physics_overrides, sim_node's
+parameter file, sweep specs, initial states): a key given twice in one mapping, a file
+that is not UTF-8 text (e.g. binary) or larger than :data:`MAX_CONFIG_BYTES` is a
+ConfigError naming the file (and the key and its lines).
 """
 from __future__ import annotations
 
@@ -20,37 +68,174 @@ class ConfigError(ValueError):
     """A configuration value is missing, of the wrong type, or out of range."""
 
 
+# =========================================================================================
+# the ranges (see the table above)
+# =========================================================================================
+MIN_CONTROL_RATE, MAX_CONTROL_RATE = 1.0, 100_000.0     # Hz
+MAX_STEPS_PER_CONTROL = 10_000
+MIN_DT = 1e-6                                           # s: the smallest physics step
+MAX_ITERATIONS = 1_000_000
+MAX_MU = 10.0
+MAX_GROUND_HEIGHT = 1000.0                              # m
+MAX_STIFFNESS = 1e9                                     # N/m
+MAX_DAMPING = 1e6                                       # N s/m
+MAX_SLIP_VELOCITY = 1.0                                 # m/s
+MAX_GAP = 0.1                                           # m
+MAX_TOL_ABS = 1000.0                                    # N s
+
+
+def _fmt(x) -> str:
+    """A bound or value for a message: integers without exponent (10000, not 1e+04)."""
+    if isinstance(x, int) and not isinstance(x, bool):
+        return str(x)
+    x = float(x)
+    if math.isfinite(x) and x.is_integer() and abs(x) < 1e15:
+        return str(int(x))
+    return f"{x:g}"
+
+
+def _short(v, limit=60) -> str:
+    """repr(v), cut to `limit` characters (a hostile value must not flood the message)."""
+    r = repr(v) if not isinstance(v, int) or isinstance(v, bool) or abs(v) < 10 ** 30 \
+        else f"{'-' if v < 0 else ''}an integer of {len(str(abs(v)))} digits"
+    return r if len(r) <= limit else r[:limit - 3] + "..."
+
+
 def _num(path, v, lo=None, hi=None, lo_open=False, hi_open=False):
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ConfigError(f"{path}: expected a number, got {v!r}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise ConfigError(f"{path}: must be finite, got {v!r}")
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise ConfigError(f"{path}: must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
-    if hi is not None and (v > hi or (hi_open and v == hi)):
-        raise ConfigError(f"{path}: must be {'<' if hi_open else '<='} {hi:g}, got {v:g}")
-    return v
+        raise ConfigError(f"{path}: expected a number, got {_short(v)}")
+    try:
+        x = float(v)
+    except OverflowError:      # an integer beyond the floats
+        x = math.inf if v > 0 else -math.inf
+    if not math.isfinite(x):
+        raise ConfigError(f"{path}: must be finite, got {_short(v)}")
+    if lo is not None and (x < lo or (lo_open and x == lo)):
+        raise ConfigError(f"{path}: must be {'>' if lo_open else '>='} {_fmt(lo)}, "
+                          f"got {_fmt(x)}")
+    if hi is not None and (x > hi or (hi_open and x == hi)):
+        raise ConfigError(f"{path}: must be {'<' if hi_open else '<='} {_fmt(hi)}, "
+                          f"got {_fmt(x)}")
+    return x
 
 
-def _int(path, v, lo=None):
+def _int(path, v, lo=None, hi=None):
     if isinstance(v, bool) or not isinstance(v, int):
-        raise ConfigError(f"{path}: expected an integer, got {v!r}")
+        raise ConfigError(f"{path}: expected an integer, got {_short(v)}")
     if lo is not None and v < lo:
-        raise ConfigError(f"{path}: must be >= {lo}, got {v}")
-    return v
+        raise ConfigError(f"{path}: must be >= {lo}, got {_short(v)}")
+    if hi is not None and v > hi:
+        raise ConfigError(f"{path}: must be <= {_fmt(hi)}, got {_short(v)}")
+    return int(v)
 
 
 def _choice(path, v, choices):
-    if v not in choices:
-        raise ConfigError(f"{path}: must be one of {sorted(choices)}, got {v!r}")
+    if not isinstance(v, str) or v not in choices:
+        raise ConfigError(f"{path}: must be one of {sorted(choices)}, got {_short(v)}")
     return v
 
 
 def _bool(path, v):
     if not isinstance(v, bool):
-        raise ConfigError(f"{path}: expected true or false, got {v!r}")
+        raise ConfigError(f"{path}: expected true or false, got {_short(v)}")
     return v
+
+
+def _str(path, v):
+    if not isinstance(v, str):
+        raise ConfigError(f"{path}: expected a string, got {_short(v)}")
+    return v
+
+
+# =========================================================================================
+# YAML: the one loader of the project's configuration files
+# =========================================================================================
+#: the largest configuration file read [bytes]: a preset is ~2 kB; the cap keeps a wrong
+#: path (a recording, /dev/zero) from being read into memory
+MAX_CONFIG_BYTES = 16 * 1024 * 1024
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping of a YAML document has the same key twice."""
+
+    def __init__(self, key, line, first_line):
+        self.key, self.line, self.first_line = key, line, first_line
+        text = str(key) if len(str(key)) <= 60 else str(key)[:57] + "..."
+        super().__init__(problem=f"duplicate key '{text}' at line {line} (first at line "
+                                 f"{first_line})")
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses a mapping with the same key twice (PyYAML would keep
+    the last one silently). Keys brought in by a merge (``<<: *base``) may be overridden,
+    as YAML defines."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:
+                if key_node.tag == _MERGE_TAG:
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                line = key_node.start_mark.line + 1
+                try:
+                    if key in seen:
+                        raise DuplicateKeyError(key, line, seen[key])
+                    seen[key] = line
+                except TypeError:       # an unhashable key: the base class reports it
+                    continue
+        return super().construct_mapping(node, deep=deep)
+
+
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """A YAML error in one line, with its line and column."""
+    if isinstance(e, yaml.MarkedYAMLError) and e.problem:
+        mark = e.problem_mark or e.context_mark
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        context = f"{e.context}: " if e.context else ""
+        return f"{context}{e.problem}{where}"
+    return " ".join(str(e).split())
+
+
+def load_yaml_text(text: str, source: str):
+    """The YAML document `text` (safe types only); ConfigError naming `source` if it is not
+    valid YAML or repeats a key in a mapping."""
+    try:
+        return yaml.load(text, Loader=UniqueKeyLoader)
+    except DuplicateKeyError as e:
+        raise ConfigError(f"{source}: {e.problem}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{source}: not valid YAML: {_yaml_problem(e)}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: not valid YAML: nested too deeply") from None
+
+
+def load_yaml_file(path: str, source: str | None = None):
+    """The YAML document of the file `path`, read with :func:`load_yaml_text`. ConfigError
+    naming the file when it is missing, unreadable, larger than MAX_CONFIG_BYTES, not UTF-8
+    text (a binary file), not valid YAML or repeats a key. `source`: the name in the
+    messages about its content (default: the file's base name)."""
+    source = source or os.path.basename(path)
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror or e}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES // 2 ** 20} MiB, not a "
+                          "configuration file")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a YAML text file (not UTF-8: byte 0x{raw[e.start]:02x} "
+                          f"at offset {e.start})") from None
+    if "\x00" in text:
+        raise ConfigError(f"{path}: not a YAML text file (binary: a NUL byte at offset "
+                          f"{raw.index(0)})")
+    return load_yaml_text(text, source)
 
 
 @dataclass
@@ -60,16 +245,20 @@ class GroundConfig:
     mu: float = 0.8
 
     def validate(self, p):
-        self.height = _num(f"{p}.height", self.height)
+        self.height = _num(f"{p}.height", self.height, -MAX_GROUND_HEIGHT, MAX_GROUND_HEIGHT)
         n = self.normal
         if not isinstance(n, (list, tuple)) or len(n) != 3:
             raise ConfigError(f"{p}.normal: expected a list of 3 numbers, got {n!r}")
         n = tuple(_num(f"{p}.normal[{i}]", x) for i, x in enumerate(n))
-        norm = math.sqrt(sum(x * x for x in n))
+        norm = math.hypot(*n)          # no overflow of the squares
         if norm < 1e-9:
             raise ConfigError(f"{p}.normal: must not be the zero vector")
-        self.normal = tuple(x / norm for x in n)
-        self.mu = _num(f"{p}.mu", self.mu, lo=0.0)
+        n = tuple(x / norm for x in n)
+        if not n[2] > 0.0:
+            raise ConfigError(f"{p}.normal: must point up (z > 0: a floor under the robot, "
+                              f"gravity is -z), got {list(self.normal)!r}")
+        self.normal = n
+        self.mu = _num(f"{p}.mu", self.mu, 0.0, MAX_MU)
 
 
 @dataclass
@@ -125,14 +314,17 @@ class ContactConfig:
             if not isinstance(v, (list, tuple)) or len(v) != 2:
                 raise ConfigError(f"{p}.restitution_overrides.{name}: expected [eps_N, eps_T], "
                                   f"got {v!r}")
-            clean[str(name)] = tuple(_num(f"{p}.restitution_overrides.{name}[{k}]", x, 0, 1)
+            _str(f"{p}.restitution_overrides: contact name", name)
+            clean[name] = tuple(_num(f"{p}.restitution_overrides.{name}[{k}]", x, 0, 1)
                                      for k, x in enumerate(v))
         self.restitution_overrides = clean
         for n in ("stiffness_normal", "stiffness_tangential"):
-            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0, lo_open=True))
-        for n in ("damping_normal", "damping_tangential", "slip_velocity", "activation_gap",
-                  "opening_gap"):
-            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo=0.0))
+            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), 0.0, MAX_STIFFNESS,
+                                  lo_open=True))
+        for n, hi in (("damping_normal", MAX_DAMPING), ("damping_tangential", MAX_DAMPING),
+                      ("slip_velocity", MAX_SLIP_VELOCITY), ("activation_gap", MAX_GAP),
+                      ("opening_gap", MAX_GAP)):
+            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), 0.0, hi))
         self.activation = _choice(f"{p}.activation", self.activation, {"hysteresis", "paper"})
         if self.activation == "hysteresis" and self.opening_gap < self.activation_gap:
             raise ConfigError(f"{p}.opening_gap: must be >= activation_gap "
@@ -166,11 +358,12 @@ class SolverConfig:
             raise ConfigError(f"{p}.alpha: expected a number or auto, got {self.alpha!r}")
         if self.alpha != "auto":
             self.alpha = _num(f"{p}.alpha", self.alpha, 0.0, 2.0, lo_open=True, hi_open=True)
-        self.tol_rel = _num(f"{p}.tol_rel", self.tol_rel, lo=0.0)
-        self.tol_abs = _num(f"{p}.tol_abs", self.tol_abs, lo=0.0)
+        self.tol_rel = _num(f"{p}.tol_rel", self.tol_rel, 0.0, 1.0)
+        self.tol_abs = _num(f"{p}.tol_abs", self.tol_abs, 0.0, MAX_TOL_ABS)
         if self.tol_rel == 0 and self.tol_abs == 0:
             raise ConfigError(f"{p}.tol_rel/tol_abs: at least one tolerance must be > 0")
-        self.max_iterations = _int(f"{p}.max_iterations", self.max_iterations, lo=1)
+        self.max_iterations = _int(f"{p}.max_iterations", self.max_iterations, 1,
+                                   MAX_ITERATIONS)
         self.criterion = _choice(f"{p}.criterion", self.criterion, {"impulse", "energy"})
         self.warm_start = _bool(f"{p}.warm_start", self.warm_start)
         self.fallback_alpha_factor = _num(f"{p}.fallback_alpha_factor",
@@ -236,13 +429,25 @@ class PhysicsConfig:
             raise ConfigError(f"{p}: name: expected a non-empty string, got {self.name!r}")
         if not isinstance(self.robot, str):
             raise ConfigError(f"{p}: robot: expected a file name, got {self.robot!r}")
+        if not isinstance(self.description, str):
+            raise ConfigError(f"{p}: description: expected a string, got "
+                              f"{self.description!r}")
         try:
             self.coordinates = _choice("coordinates", self.coordinates,
                                        {"minimal", "extended", "maximal"})
             self.contact_model = _choice("contact_model", self.contact_model,
                                          {"hard", "compliant"})
-            self.control_rate = _num("control_rate", self.control_rate, lo=0.0, lo_open=True)
-            self.steps_per_control = _int("steps_per_control", self.steps_per_control, lo=1)
+            self.control_rate = _num("control_rate", self.control_rate, MIN_CONTROL_RATE,
+                                     MAX_CONTROL_RATE)
+            self.steps_per_control = _int("steps_per_control", self.steps_per_control, 1,
+                                          MAX_STEPS_PER_CONTROL)
+            if self.control_rate * self.steps_per_control > 1.0 / MIN_DT:
+                raise ConfigError(
+                    f"steps_per_control: the physics step 1/(control_rate x steps_per_control)"
+                    f" = {1e6 / (self.control_rate * self.steps_per_control):.3g} us must be "
+                    f">= {_fmt(MIN_DT * 1e6)} us (control_rate {_fmt(self.control_rate)} Hz x "
+                    f"steps_per_control {self.steps_per_control} must be <= "
+                    f"{_fmt(1.0 / MIN_DT)} steps/s)")
             for s in self._SECTIONS:
                 getattr(self, s).validate(s)
             if self.coordinates == "minimal" and self.bilateral.method != "none":
@@ -253,6 +458,11 @@ class PhysicsConfig:
                                   "'prox' or 'direct'")
             if not isinstance(self.paper, dict):
                 raise ConfigError(f"paper: expected a mapping, got {self.paper!r}")
+            for k, v in self.paper.items():
+                if not isinstance(k, str):
+                    raise ConfigError(f"paper: expected names as keys, got {k!r}")
+                if not isinstance(v, str):
+                    _num(f"paper.{k}", v)
         except ConfigError as e:
             raise ConfigError(f"{p}: {e}") from None
         return self
@@ -288,14 +498,7 @@ class PhysicsConfig:
     @classmethod
     def from_yaml(cls, path: str) -> "PhysicsConfig":
         name = os.path.basename(path)
-        try:
-            with open(path) as f:
-                data = yaml.safe_load(f)
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: no such configuration file") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{name}: not valid YAML: {e}") from None
-        return cls.from_dict(data, source=name)
+        return cls.from_dict(load_yaml_file(path, name), source=name)
 
     def with_overrides(self, **overrides) -> "PhysicsConfig":
         """A validated copy with fields replaced; keys are unique field names (`alpha`) or
@@ -353,11 +556,10 @@ def available_presets() -> list[str]:
 
 def _is_physics_file(path):
     try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
-        return isinstance(data, dict) and "contact_model" in data
-    except Exception:
+        data = load_yaml_file(path)
+    except ConfigError:
         return False
+    return isinstance(data, dict) and "contact_model" in data
 
 
 def load_preset(name_or_path: str) -> PhysicsConfig:

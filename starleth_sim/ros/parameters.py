@@ -13,12 +13,10 @@ import os
 import sys
 from dataclasses import make_dataclass
 
-import yaml
-
 from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
                                             ParameterSpec, parameter_defaults,
                                             render_parameters_yaml)
-from ..physics.config import ConfigError
+from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 
 P = ParameterSpec
 SIM_NODE_PARAMETERS = (
@@ -33,11 +31,13 @@ SIM_NODE_PARAMETERS = (
       "latest valid command. lockstep: publish the state of step k, wait for the command "
       "stamped t_k, then step.", choices=("realtime", "lockstep")),
     P("real_time_factor", float, 1.0,
-      "Realtime: wall-clock speed (> 0). Lockstep: upper bound on the speed; 0 = as fast as "
-      "the controller answers (0 is only legal in lockstep).", minimum=0.0),
+      "Realtime: wall-clock speed (0.001 to 1000). Lockstep: upper bound on the speed; 0 = "
+      "as fast as the controller answers (0 is only legal in lockstep).",
+      minimum=0.001, maximum=1000.0, off_value=0.0,
+      off_meaning="lockstep: as fast as the controller answers"),
     P("lockstep_timeout", float, 1.0,
-      "Lockstep: seconds to wait for the command of a state before applying timeout_policy.",
-      minimum=0.0, minimum_exclusive=True),
+      "Lockstep: seconds to wait for the command of a state before applying timeout_policy "
+      "(1 ms to 1 hour).", minimum=0.001, maximum=3600.0),
     P("timeout_policy", str, "hold",
       "hold: keep the last valid command; zero: zero torques. Every timeout is logged and "
       "counted.", choices=("hold", "zero")),
@@ -48,10 +48,22 @@ SIM_NODE_PARAMETERS = (
       "Split the recording like `ros2 bag record --max-bag-duration`: with this or "
       "record_max_size > 0, `record` names a bag directory of numbered .mcap files (each "
       "complete on its own) with a rosbag2 metadata.yaml, so the memory of an all-day "
-      "recording stays flat. Seconds of sim time per file; 0 = no limit.", minimum=0.0),
+      "recording stays flat. Seconds of sim time per file: 0 = no limit (no split by "
+      "duration), else 0.1 s (40 steps at 400 Hz; shorter ones would cut a run into "
+      "thousands of files) to 1e6 s.",
+      minimum=0.1, maximum=1e6, off_value=0.0, off_meaning="no split"),
     P("record_max_size", int, 0,
-      "Split the recording like `ros2 bag record --max-bag-size`: bytes per file; 0 = no "
-      "limit.", minimum=0),
+      "Split the recording like `ros2 bag record --max-bag-size`: bytes per file: 0 = no "
+      "limit (no split by size), else at least 1 MiB = 1048576 bytes (smaller ones would "
+      "hold a few messages each) and at most 1 TiB.", minimum=1024 ** 2, maximum=1024 ** 4,
+      off_value=0, off_meaning="no split"),
+    P("max_wrench_force", float, 5000.0,
+      "Largest force of a push on ~/wrench or ~/wrench/persistent, newtons; a larger one is "
+      "rejected with a warning (StarlETH weighs about 25 kg: 5 kN is 20 g).", minimum=0.0,
+      minimum_exclusive=True, maximum=1e6),
+    P("max_wrench_torque", float, 1000.0,
+      "Largest torque of a push on ~/wrench or ~/wrench/persistent, newton metres; a larger "
+      "one is rejected with a warning.", minimum=0.0, minimum_exclusive=True, maximum=1e6),
     P("initial_state", str, "standing",
       '"standing" (feet on the ground), a YAML mapping or the path of a YAML file with any of '
       "base_position, base_orientation (x y z w), joint_positions, base_linear_velocity "
@@ -70,7 +82,8 @@ SIM_NODE_PARAMETERS = (
       choices=EXECUTORS),
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
     P("warn_throttle_period", float, 2.0,
-      "Minimum seconds between two warnings about the same kind of bad input.", minimum=0.0),
+      "Minimum seconds between two warnings about the same kind of bad input.", minimum=0.0,
+      maximum=3600.0),
     P("world_frame", str, "world", "Frame id of the world (the parent of the base pose)."),
     P("base_frame", str, "base", "Frame id of the base (the child frame of the odometry)."),
     P("publish_clock", bool, True,
@@ -80,16 +93,18 @@ SIM_NODE_PARAMETERS = (
       "/tf (world -> base, and parent -> child link of every movable joint) and /tf_static "
       "(the fixed joints), recorded, and published where tf2_msgs is installed; Hz, 0 = off. "
       "Foxglove and Lichtblick move the URDF's links only through TF (they keep 10,000 "
-      "transforms per frame: 50 Hz x 13 transforms fits).", minimum=0.0),
+      "transforms per frame: 50 Hz x 13 transforms fits); at most 1000 Hz (above the "
+      "control rate it is every step).", minimum=0.1, maximum=1000.0, off_value=0.0),
     P("tf_frame_prefix", str, "",
       'Put before every link frame of /tf (e.g. "robot1/" for several robots on one /tf).'),
     P("contact_markers_rate", float, 50.0,
       "visualization_msgs/MarkerArray on starleth/contact_markers: a sphere per contact "
       "point coloured by state (grey open, green stick, red slip) and an arrow along the "
-      "force of each closed contact; Hz, 0 = off.", minimum=0.0),
+      "force of each closed contact; Hz, 0 = off; at most 1000 Hz.", minimum=0.1,
+      maximum=1000.0, off_value=0.0),
     P("contact_marker_scale", float, 0.002,
-      "Length of the contact force arrows, metres per newton.", minimum=0.0,
-      minimum_exclusive=True),
+      "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
+      minimum_exclusive=True, maximum=1.0),
 )
 
 YAML_HEADER = """\
@@ -120,10 +135,7 @@ def _physics_override_dict(self) -> dict:
     """The physics_overrides parameter as a mapping (ConfigError if it is not one)."""
     if not self.physics_overrides.strip():
         return {}
-    try:
-        d = yaml.safe_load(self.physics_overrides)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"parameter physics_overrides: not valid YAML: {e}") from None
+    d = load_yaml_text(self.physics_overrides, "parameter physics_overrides")
     if not isinstance(d, dict):
         raise ConfigError("parameter physics_overrides: expected a mapping such as "
                           f"'{{mu: 0.0}}', got {self.physics_overrides!r}")
@@ -146,19 +158,30 @@ def default_settings_file() -> str:
 
 def load_default_parameters(path: str | None = None) -> dict:
     """The ros__parameters of msg_configs/sim_node.yaml (node key 'sim_node', '/sim_node' or
-    '/**'), falling back to the schema's defaults for anything missing."""
+    '/**'), falling back to the schema's defaults for anything missing (and for all of them
+    when there is no such file). ConfigError naming the file if it is not YAML text, repeats
+    a key or has a value out of its parameter's range (the rules between parameters are
+    ``Settings.validate``'s)."""
     defaults = parameter_defaults(SIM_NODE_PARAMETERS)
     try:
         path = path or default_settings_file()
-        with open(path) as f:
-            data = yaml.safe_load(f) or {}
-    except (OSError, FileNotFoundError):
+    except OSError:
         return defaults
+    if not os.path.isfile(path):
+        return defaults
+    data = load_yaml_file(path) or {}
+    specs = {p.name: p for p in SIM_NODE_PARAMETERS}
     for key in ("sim_node", "/sim_node", "/**"):
-        params = (data.get(key) or {}).get("ros__parameters") if isinstance(data, dict) else None
+        node = data.get(key) if isinstance(data, dict) else None
+        params = node.get("ros__parameters") if isinstance(node, dict) else None
         if isinstance(params, dict):
             for k, v in params.items():
-                if k in defaults:
+                if k in specs:
+                    v = specs[k].coerce(v)
+                    try:
+                        specs[k].check(v)
+                    except ValueError as e:
+                        raise ConfigError(f"{os.path.basename(path)}: {key}: {e}") from None
                     defaults[k] = v
             break
     return defaults

@@ -56,7 +56,6 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 
 import numpy as np
-import yaml
 
 PROG = "starleth-sweep"
 SCENARIOS = ("stand", "trot", "push")
@@ -64,6 +63,18 @@ SCENARIOS = ("stand", "trot", "push")
 SCENARIO_FIELDS = {"kind": (None, "str"), "seconds": (2.0, "num"), "speed": (0.3, "num"),
                    "stand_time": (1.0, "num"), "at": (0.5, "num"), "duration": (0.1, "num"),
                    "magnitude": (0.0, "num"), "direction": ((0.0, 1.0, 0.0), "vec")}
+#: the range of each number of a spec: name -> (low, high, low excluded). Times up to an
+#: hour of simulated time per run; speeds up to 10 m/s either way (StarlETH trots < 1 m/s);
+#: pushes up to 1 MN (StarlETH weighs ~250 N); seeds as numpy's generators take them
+#: (unsigned 32 bits); perturbations up to 1 rad and 10 m/s (standard deviations).
+SCENARIO_RANGES = {"seconds": (0.0, 3600.0, True), "speed": (-10.0, 10.0, False),
+                   "stand_time": (0.0, 3600.0, False), "at": (0.0, 3600.0, False),
+                   "duration": (0.0, 3600.0, True), "magnitude": (0.0, 1e6, False),
+                   "direction": (-1e6, 1e6, False)}
+SEED_RANGE = (0, 2 ** 32 - 1)
+PERTURBATION_RANGES = {"joint_angles": (0.0, 1.0), "base_velocity": (0.0, 10.0)}
+#: the most runs a spec may expand into (presets x overrides x scenarios x seeds)
+MAX_RUNS = 100_000
 SPEC_FIELDS = ("name", "presets", "overrides", "scenarios", "seeds", "perturbation")
 PERTURBATION_FIELDS = ("joint_angles", "base_velocity")
 #: a run "fell" when the trunk tilted more than this [rad] or sank below FALL_HEIGHT [m]
@@ -118,21 +129,34 @@ class Sweep:
     source: str = ""
 
 
-def _num_list(where, v, integer=False):
+def _num_list(where, v, integer=False, bounds=None):
+    """`v` (one number or a list) as a list of finite numbers (integers), each within
+    bounds = (low, high, low excluded) when given."""
     vals = v if isinstance(v, list) else [v]
     out = []
     for x in vals:
-        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) \
-                or (integer and int(x) != x):
+        ok = not isinstance(x, bool) and isinstance(x, (int, float))
+        if ok:     # an int is finite, but float(x) overflows beyond ~1e308
+            ok = abs(x) < 2 ** 1000 if isinstance(x, int) else math.isfinite(x)
+        if not ok or (integer and int(x) != x):
+            text = repr(x) if len(repr(x)) <= 60 else repr(x)[:57] + "..."
             raise SweepError(f"{where}: expected {'integers' if integer else 'finite numbers'}"
-                             f", got {x!r}")
-        out.append(int(x) if integer else float(x))
+                             f", got {text}")
+        x = int(x) if integer else float(x)
+        if bounds is not None:
+            lo, hi, lo_open = bounds
+            if x < lo or x > hi or (lo_open and x == lo):
+                raise SweepError(f"{where}: must be in {'(' if lo_open else '['}{lo:g}, "
+                                 f"{hi:g}], got {x:g}")
+        out.append(x)
     if not out:
         raise SweepError(f"{where}: empty list")
     return out
 
 
-def _scenarios(src, items):
+def _scenarios(src, items, runs_per_scenario=1):
+    """The scenarios' list expanded (a list of values in a field is a grid); SweepError when
+    the sweep would have more than MAX_RUNS runs (`runs_per_scenario` of each)."""
     if not isinstance(items, list) or not items:
         raise SweepError(f"{src}: scenarios: expected a non-empty list of mappings")
     out = []
@@ -152,18 +176,18 @@ def _scenarios(src, items):
             if k == "kind" or k not in sc:
                 continue
             if typ == "vec":
-                d = np.asarray(_num_list(f"{w}.{k}", sc[k]), dtype=float)
+                d = np.asarray(_num_list(f"{w}.{k}", sc[k], bounds=SCENARIO_RANGES[k]),
+                               dtype=float)
                 if d.shape != (3,) or not np.linalg.norm(d) > 0:
                     raise SweepError(f"{w}.{k}: expected a non-zero 3-vector, got {sc[k]!r}")
                 grid[k] = [tuple(float(x) for x in d / np.linalg.norm(d))]
             else:
-                grid[k] = _num_list(f"{w}.{k}", sc[k])
-                lo = {"seconds": 0.0, "duration": 0.0}.get(k)
-                if lo is not None and min(grid[k]) <= lo:
-                    raise SweepError(f"{w}.{k}: must be > 0")
-                if k in ("magnitude", "at", "stand_time") and min(grid[k]) < 0:
-                    raise SweepError(f"{w}.{k}: must be >= 0")
+                grid[k] = _num_list(f"{w}.{k}", sc[k], bounds=SCENARIO_RANGES[k])
         keys = list(grid)
+        n = len(out) + math.prod(len(v) for v in grid.values())
+        if n * runs_per_scenario > MAX_RUNS:
+            raise SweepError(f"{w}: the sweep would have {n * runs_per_scenario} runs or more, "
+                             f"more than {MAX_RUNS}")
         for combo in itertools.product(*(grid[k] for k in keys)):
             out.append(Scenario(kind=kind, **dict(zip(keys, combo))))
     return out
@@ -172,15 +196,12 @@ def _scenarios(src, items):
 def load_spec(path: str) -> Sweep:
     """Read and validate a sweep spec; expand it into the runs of the grid (presets x
     overrides x scenarios x seeds, in that nesting order)."""
-    from ..physics.config import ConfigError, load_preset
+    from ..physics.config import ConfigError, load_preset, load_yaml_file
     src = os.path.basename(path)
-    try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
-    except OSError as e:
-        raise SweepError(f"{path}: cannot read: {e.strerror or e}") from None
-    except yaml.YAMLError as e:
-        raise SweepError(f"{src}: not valid YAML: {e}") from None
+    try:       # duplicate keys, binary files, bad YAML: ConfigError naming the file
+        data = load_yaml_file(path, src)
+    except ConfigError as e:
+        raise SweepError(str(e)) from None
     if not isinstance(data, dict):
         raise SweepError(f"{src}: expected a mapping at the top level")
     unknown = set(data) - set(SPEC_FIELDS)
@@ -193,16 +214,25 @@ def load_spec(path: str) -> Sweep:
     if not isinstance(presets, list) or not presets or \
             not all(isinstance(p, str) for p in presets):
         raise SweepError(f"{src}: presets: expected a non-empty list of preset names")
+    name = data.get("name")
+    if name is not None and not isinstance(name, (str, int)):
+        raise SweepError(f"{src}: name: expected a string")
     overrides = data.get("overrides") or {}
     if not isinstance(overrides, dict):
         raise SweepError(f"{src}: overrides: expected a mapping of field: [values]")
     ov_grid = {}
     for k, v in overrides.items():
+        if not isinstance(k, str):
+            raise SweepError(f"{src}: overrides: expected field names as keys, got {k!r}")
         vals = v if isinstance(v, list) else [v]
         if not vals:
             raise SweepError(f"{src}: overrides.{k}: empty list")
-        ov_grid[str(k)] = vals
+        ov_grid[k] = vals
     ov_keys = list(ov_grid)
+    n_combos = math.prod(len(v) for v in ov_grid.values())
+    if len(presets) * n_combos > MAX_RUNS:
+        raise SweepError(f"{src}: presets x overrides: {len(presets) * n_combos} combinations, "
+                         f"more than the {MAX_RUNS} runs a sweep may have")
     combos = [tuple(zip(ov_keys, c)) for c in itertools.product(*(ov_grid[k] for k in ov_keys))]
     for p in presets:              # every preset with every override combination, checked
         try:
@@ -211,15 +241,17 @@ def load_spec(path: str) -> Sweep:
                 cfg.with_overrides(**dict(c))
         except ConfigError as e:
             raise SweepError(f"{src}: presets/overrides: {e}") from None
-    scenarios = _scenarios(src, data.get("scenarios"))
-    seeds = _num_list(f"{src}: seeds", data.get("seeds", [0]), integer=True)
+    seeds = _num_list(f"{src}: seeds", data.get("seeds", [0]), integer=True,
+                      bounds=(*SEED_RANGE, False))
+    scenarios = _scenarios(src, data.get("scenarios"), len(presets) * n_combos * len(seeds))
     pert = data.get("perturbation") or {}
     if not isinstance(pert, dict) or set(pert) - set(PERTURBATION_FIELDS):
         raise SweepError(f"{src}: perturbation: expected a mapping with "
                          f"{', '.join(PERTURBATION_FIELDS)}")
     for k, v in pert.items():
-        if _num_list(f"{src}: perturbation.{k}", v)[0] < 0 or isinstance(v, list):
+        if isinstance(v, list):
             raise SweepError(f"{src}: perturbation.{k}: expected one number >= 0")
+        _num_list(f"{src}: perturbation.{k}", v, bounds=(*PERTURBATION_RANGES[k], False))
     pert_t = tuple((k, float(pert[k])) for k in PERTURBATION_FIELDS if k in pert)
     runs = []
     for p in presets:
@@ -227,7 +259,7 @@ def load_spec(path: str) -> Sweep:
             for sc in scenarios:
                 for seed in seeds:
                     runs.append(RunSpec(len(runs), p, c, sc, seed, pert_t))
-    name = str(data.get("name") or os.path.splitext(src)[0])
+    name = str(name or os.path.splitext(src)[0])
     return Sweep(name=name, runs=runs, override_keys=ov_keys, source=path)
 
 
