@@ -7,9 +7,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import yaml
 
-from ..physics.config import ConfigError
+from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import STARLETH_FEET
 from ..physics.kinematics import quat_xyzw_to_rot
 from ..physics.simulator import Simulator
@@ -28,17 +27,12 @@ def read_state_spec(spec):
     if s in ("", "standing", "default"):
         return {}
     if s.endswith((".yaml", ".yml", ".json")) and not s.startswith("{"):
+        # the project's YAML loader: duplicate keys, binary files, bad YAML name the file
         try:
-            with open(s) as f:
-                return yaml.safe_load(f) or {}
-        except OSError as e:
-            raise ConfigError(f"parameter initial_state: cannot read {s}: {e}") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"parameter initial_state: {s} is not valid YAML: {e}") from None
-    try:
-        return yaml.safe_load(s)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"parameter initial_state: not valid YAML: {e}") from None
+            return load_yaml_file(s, s) or {}
+        except ConfigError as e:
+            raise ConfigError(f"parameter initial_state: {e}") from None
+    return load_yaml_text(s, "parameter initial_state")
 
 
 def public_state(sim: Simulator) -> dict:
