@@ -271,11 +271,13 @@ def test_record_max_size_1_is_refused_and_0_means_no_split():
 
 def test_record_max_duration_0_001_is_refused_and_0_means_no_split():
     with pytest.raises(ConfigError, match=r"parameter record_max_duration: must be 0 \(no "
-                                          r"split\) or >= 0.1"):
+                                          r"split\) or >= 1 "):
         Settings(record_max_duration=0.001).validate()
     Settings(record_max_duration=0.0).validate()
     Settings(record_max_duration=0).validate()
-    Settings(record_max_duration=0.5).validate()
+    Settings(record_max_duration=1.0).validate()
+    with pytest.raises(ConfigError, match="record_max_duration"):
+        Settings(record_max_duration=0.5).validate()
     with pytest.raises(ConfigError, match="record_max_duration"):
         Settings(record_max_duration=1e300).validate()
 

@@ -109,6 +109,7 @@ class Simulator:
             description = starleth_description(path)
         self.description = description
         self.coords = make_coordinates(config.coordinates, description)
+        self._root_q0 = int(self.coords.root_q[0])     # root_position
         self.joint_names = tuple(description.joint_names)
         self.n_joints = len(self.joint_names)
         lim = np.array(description.effort_limit, dtype=float).reshape(-1)
@@ -285,6 +286,15 @@ class Simulator:
         p, quat, v, w = self.coords.base_state(self.state.q, self.state.u)
         return {"position": p, "orientation_xyzw": quat, "linear_velocity": v,
                 "angular_velocity": w}
+
+    def root_position(self):
+        """(x, y, z) of the first floating body's frame in the world [m] (the trunk: its
+        origin in minimal coordinates, its centre of mass in the maximal ones), read
+        straight from q: a cheap look at where the base is, e.g. to check how far a step
+        moved it (base_state gives the trunk frame itself)."""
+        iq = self._root_q0
+        q = self.state.q
+        return q[iq], q[iq + 1], q[iq + 2]
 
     def gaps(self):
         """g_N of every contact point at the current configuration q."""

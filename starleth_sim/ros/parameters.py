@@ -49,9 +49,9 @@ SIM_NODE_PARAMETERS = (
       "record_max_size > 0, `record` names a bag directory of numbered .mcap files (each "
       "complete on its own) with a rosbag2 metadata.yaml, so the memory of an all-day "
       "recording stays flat. Seconds of sim time per file: 0 = no limit (no split by "
-      "duration), else 0.1 s (40 steps at 400 Hz; shorter ones would cut a run into "
-      "thousands of files) to 1e6 s.",
-      minimum=0.1, maximum=1e6, off_value=0.0, off_meaning="no split"),
+      "duration), else 1 s (400 steps at 400 Hz; shorter ones cut a run into thousands "
+      "of files) to 1e6 s.",
+      minimum=1.0, maximum=1e6, off_value=0.0, off_meaning="no split"),
     P("record_max_size", int, 0,
       "Split the recording like `ros2 bag record --max-bag-size`: bytes per file: 0 = no "
       "limit (no split by size), else at least 1 MiB = 1048576 bytes (smaller ones would "

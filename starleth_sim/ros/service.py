@@ -14,12 +14,34 @@ from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
 from .parameters import Settings
 
+def quoted(names, most=5, longest=64) -> str:
+    """Names from a message, for a log line: at most `most` of them, each cut at `longest`
+    characters (a 1 MB joint name makes a short line, not a 1 MB one)."""
+    names = list(names)
+    out = [repr(n) if len(n) <= longest else
+           f"{n[:longest]!r}... ({len(n)} characters)" for n in names[:most]]
+    if len(names) > most:
+        out.append(f"and {len(names) - most} more")
+    return ", ".join(out)
+
+
 class SimService:
     """Command validation, lockstep bookkeeping and stepping, without any ROS.
 
     Time: step k has stamp ``k * period_ns`` [ns] (integer, so equal stamps compare exact).
     ``command`` is the last valid torque command (joint order), applied with zero-order hold.
-    Every ``submit_*`` returns ``(accepted, reason)`` and never raises on bad input."""
+    Every ``submit_*`` returns ``(accepted, reason)`` and never raises on bad input.
+
+    A step whose result cannot be physical -- the physics failed twice (non-finite state,
+    a mass matrix not positive definite: the stepper refuses those), or the base moved
+    faster than MAX_BASE_SPEED over the control period -- is not a state: ``step`` returns
+    None (nothing to publish or record), the service pauses with ``failed`` set and the
+    reason in ``pause_reason``; only ``reset`` goes on from there."""
+
+    #: m/s: the base moving faster than this over one control period is not physics (the
+    #: robot walks at < 1 m/s; a fall from 10 m reaches 14 m/s; the largest push accepted,
+    #: 5 kN on its 25 kg for a whole second, 200 m/s)
+    MAX_BASE_SPEED = 300.0
 
     COUNTERS = ("commands_received", "commands_accepted", "commands_rejected", "late_commands",
                 "stale_commands", "lockstep_timeouts", "wrenches_accepted", "wrenches_rejected",
@@ -47,7 +69,8 @@ class SimService:
         self.started = not self.lockstep     # lockstep: set by the first answer
         self.answered = False                # lockstep: the current state has its command
         self.last_step_timed_out = False
-        self.failed = False                  # paused after the physics failed twice
+        self.failed = False                  # paused: the physics failed (pause_reason)
+        self.pause_reason = ""
         self.state_version = 0               # bumped whenever a new state exists
         self._timed_out_stamps = deque(maxlen=256)
         # warm up (first calls, first solve) so that the first real step is not slow;
@@ -142,13 +165,13 @@ class SimService:
         if unknown:
             return self._reject("unknown_joint",
                                 f"rejected joint command on {TOPIC_JOINT_COMMANDS}: unknown joint "
-                                f"name(s) {', '.join(map(repr, unknown))} (joints: "
+                                f"name(s) {quoted(unknown)} (joints: "
                                 f"{', '.join(self.joint_names)})")
         if len(set(names)) != len(names):
             dup = sorted({n for n in names if names.count(n) > 1})
             return self._reject("duplicate_joint",
                                 f"rejected joint command on {TOPIC_JOINT_COMMANDS}: duplicate "
-                                f"joint name(s) {', '.join(dup)}")
+                                f"joint name(s) {quoted(dup)}")
         bad = ~np.isfinite(a)
         if bad.any():
             return self._reject("joint_nonfinite",
@@ -198,7 +221,7 @@ class SimService:
         topic = TOPIC_WRENCH_PERSISTENT if persistent else TOPIC_WRENCH
         if link not in self.links:
             self.counters["wrenches_rejected"] += 1
-            msg = (f"rejected wrench on {topic}: unknown link {link!r} in header.frame_id "
+            msg = (f"rejected wrench on {topic}: unknown link {quoted([link])} in header.frame_id "
                    f"(links: {', '.join(sorted(self.links))})")
             self.warnings.warn("unknown_link", msg)
             return False, msg
@@ -207,8 +230,18 @@ class SimService:
         if f.shape != (3,) or m.shape != (3,) or not (np.all(np.isfinite(f)) and
                                                        np.all(np.isfinite(m))):
             self.counters["wrenches_rejected"] += 1
-            msg = f"rejected wrench on {topic} for {link!r}: force and torque must be finite"
+            msg = (f"rejected wrench on {topic} for {quoted([link])}: force and torque must be "
+                   "finite")
             self.warnings.warn("bad_wrench", msg)
+            return False, msg
+        s = self.settings
+        f_norm, m_norm = float(np.linalg.norm(f)), float(np.linalg.norm(m))
+        if f_norm > s.max_wrench_force or m_norm > s.max_wrench_torque:
+            self.counters["wrenches_rejected"] += 1
+            msg = (f"rejected wrench on {topic} for {quoted([link])}: |force| {f_norm:.4g} N, |torque| "
+                   f"{m_norm:.4g} N m; the limits are max_wrench_force {s.max_wrench_force:g} "
+                   f"N and max_wrench_torque {s.max_wrench_torque:g} N m")
+            self.warnings.warn("wrench_too_large", msg)
             return False, msg
         try:
             if persistent:
@@ -242,24 +275,39 @@ class SimService:
             self.on_timeout()
         self.last_step_timed_out = timed_out
         tau = self.command
+        sim = self.sim
+        if self.failed:
+            return None
+        x0, y0, z0 = sim.root_position()
         try:
-            d = self.sim.step(tau)
+            d = sim.step(tau)
         except (SimulationError, ValueError) as e:
             self.counters["simulation_errors"] += 1
             self.warnings.warn("simulation_error", f"physics step failed at t="
-                               f"{self.sim.t:.4f} s ({e}); retrying with zero torques")
+                               f"{sim.t:.4f} s ({e}); retrying with zero torques")
             try:
-                d = self.sim.step(np.zeros(self.n))
+                d = sim.step(np.zeros(self.n))
             except (SimulationError, ValueError) as e2:
-                self.paused = self.failed = True
-                self.errors.warn("simulation_paused", f"physics step failed twice at t="
-                                 f"{self.sim.t:.4f} s ({e2}); simulation paused, call ~/reset")
-                return None
+                return self._fail(f"physics step failed twice at t={sim.t:.4f} s ({e2})")
+        x1, y1, z1 = sim.root_position()
+        moved = ((x1 - x0) ** 2 + (y1 - y0) ** 2 + (z1 - z0) ** 2) ** 0.5
+        if not moved <= self.MAX_BASE_SPEED * self.control_period:     # also NaN
+            self.counters["simulation_errors"] += 1
+            return self._fail(f"the base moved {moved:.4g} m in one control period at t="
+                              f"{self.stamp_ns * 1e-9:.4f} s (more than {self.MAX_BASE_SPEED:g}"
+                              f" m/s: not physics); that state is not published")
         self.k += 1
         self.counters["steps"] += 1
         self.answered = False
         self.state_version += 1
         return d
+
+    def _fail(self, reason):
+        """Pause on a step that is not physics (see the class docstring); returns None."""
+        self.paused = self.failed = True
+        self.pause_reason = reason
+        self.errors.warn("simulation_paused", f"{reason}; simulation paused, call ~/reset")
+        return None
 
     def reset(self):
         """Back to the initial state, wrenches cleared, zero command; sim time advances by one
@@ -267,6 +315,7 @@ class SimService:
         failure ends; a pause asked for with ~/pause stays."""
         if self.failed:
             self.failed = self.paused = False
+            self.pause_reason = ""
         self.k += 1
         self.sim.clear_wrenches()
         self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)

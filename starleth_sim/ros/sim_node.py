@@ -227,6 +227,7 @@ class SimNode:
         self._n_state_subs = 0          # subscribers of the state topics at the last look
         self._counts_k = -10 ** 9
         self._counts = {}
+        self._paused_diag_at = 0.0       # _publish_paused_diagnostics
         self.period_stats = PeriodStats(self.sim.control_period / max(s.real_time_factor, 1e-12))
         self.imu = ImuEstimate(self._model_gravity(), self.sim.control_period)
         self._feet_first = tuple(self.sim.contact_names[:len(FEET)]) == tuple(FEET)
@@ -390,9 +391,20 @@ class SimNode:
         sub("wrench", WrenchStamped, TOPIC_WRENCH, self._on_wrench)
         sub("wrench_persistent", WrenchStamped, TOPIC_WRENCH_PERSISTENT,
             self._on_wrench_persistent)
-        self.srv_reset = node.create_service(Trigger, "~/reset", self._srv_reset)
-        self.srv_pause = node.create_service(SetBool, "~/pause", self._srv_pause)
-        self.srv_step = node.create_service(Trigger, "~/step", self._srv_step)
+        # services: requests and responses kept until served (100 callers at once are all
+        # answered; the default depth of 10 loses the rest, and callers wait forever)
+        srv_qos = QoSProfile(depth=self.SERVICE_QUEUE, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE,
+                             history=HistoryPolicy.KEEP_LAST)
+        self.srv_reset = node.create_service(Trigger, "~/reset", self._srv_reset,
+                                             qos_profile=srv_qos)
+        self.srv_pause = node.create_service(SetBool, "~/pause", self._srv_pause,
+                                             qos_profile=srv_qos)
+        self.srv_step = node.create_service(Trigger, "~/step", self._srv_step,
+                                            qos_profile=srv_qos)
+
+    #: requests (and responses) a service keeps while they wait to be served
+    SERVICE_QUEUE = 1000
 
     def _every(self, rate):
         """Steps between two messages at `rate` Hz (0: never)."""
@@ -924,6 +936,14 @@ class SimNode:
         if not (svc.k % self.INTERFACE_STATUS_EVERY == 0 or svc.last_step_timed_out
                 or svc.paused):
             return out
+        out.append(self._interface_status())
+        return out
+
+    def _interface_status(self):
+        """The interface status of /starleth/solver: (1, level, message, values as str);
+        ERROR with the reason while paused on a step that was not physics, WARN on a
+        lockstep timeout or a failed recording."""
+        svc = self.service
         ps = self._period_summary
         c = svc.counters
         vals = (self.settings.mode, self.settings.real_time_factor, svc.stamp_ns * 1e-9, svc.k,
@@ -931,11 +951,38 @@ class SimNode:
                 ps.get("period_error_p50_ms", ""), ps.get("period_error_p99_ms", ""),
                 ps.get("period_error_max_ms", ""), self.period_stats.overruns,
                 *self._recording_counts(), self.recording_state())
-        out.append((1, DiagnosticStatus.WARN if svc.last_step_timed_out or
-                    self.recording_failure is not None else DiagnosticStatus.OK,
-                    "lockstep timeout" if svc.last_step_timed_out else
-                    "paused" if svc.paused else "running", [str(v) for v in vals]))
-        return out
+        if svc.failed:
+            level, message = DiagnosticStatus.ERROR, f"paused: {svc.pause_reason}"
+        elif svc.last_step_timed_out:
+            level, message = DiagnosticStatus.WARN, "lockstep timeout"
+        else:
+            level = DiagnosticStatus.WARN if self.recording_failure is not None else \
+                DiagnosticStatus.OK
+            message = "paused" if svc.paused else "running"
+        return (1, level, message, [str(v) for v in vals])
+
+    #: s (wall clock) between two /starleth/solver messages while paused: a monitor tells
+    #: a paused simulator from a dead one
+    PAUSED_DIAGNOSTICS_PERIOD = 1.0
+
+    def _publish_paused_diagnostics(self):
+        """While paused: /starleth/solver every PAUSED_DIAGNOSTICS_PERIOD s with the
+        interface status (stamp: the current sim time; published, not recorded: the bag
+        keeps one message per step)."""
+        now = time.monotonic()
+        if now - self._paused_diag_at < self.PAUSED_DIAGNOSTICS_PERIOD:
+            return
+        self._paused_diag_at = now
+        pub = self.pubs["solver"][0]
+        if pub.get_subscription_count() == 0:
+            return
+        sec, nsec = divmod(self.service.stamp_ns, 1_000_000_000)
+        statuses = [self._diagnostics()[0], self._interface_status()]
+        if self._diag_cdr is not None:
+            pub.publish(self._diag_cdr.build(sec, nsec, statuses))
+        else:
+            self._fill_diagnostics(sec, nsec, statuses)
+            pub.publish(self.diag_msg)
 
     def _recording_counts(self):
         """(messages recorded, dropped) -- (0, 0) without a recording."""
@@ -1023,6 +1070,10 @@ class SimNode:
 
     def _srv_pause(self, request, response):
         svc = self.service
+        if svc.failed and not request.data:
+            response.success = False
+            response.message = f"cannot resume: {svc.pause_reason}; call ~/reset"
+            return response
         was = svc.paused
         svc.paused = bool(request.data)
         response.success = True
@@ -1040,7 +1091,7 @@ class SimNode:
             return response
         if svc.step() is None:
             response.success = False
-            response.message = "the physics step failed; simulation paused, call ~/reset"
+            response.message = f"no step: {svc.pause_reason}; call ~/reset"
             return response
         self.publish_state()
         response.success = True
@@ -1146,6 +1197,7 @@ class SimNode:
                 # started paused: a late subscriber gets state 0 (after the first step,
                 # every stamp goes out once)
                 self._republish_for_new_subscribers(resend=self._before_first_step())
+                self._publish_paused_diagnostics()
                 self._spin(executor, 0.05)
                 next_tick = clock() + period
                 ps.restart()
@@ -1195,6 +1247,7 @@ class SimNode:
         while self._running():
             if svc.paused:
                 self._republish_for_new_subscribers(resend=self._before_first_step())
+                self._publish_paused_diagnostics()
                 self._spin(executor, 0.05)
                 pace_origin = None
                 version = -1

@@ -1,0 +1,151 @@
+"""sim_node under faults that must not take it down (issue #33, items 3, 5 and 7): 100
+service calls at once, diagnostics while paused, SIGINT with a writer that is far behind,
+and recording targets that cannot be written (/dev/full, /proc). The node runs as a child
+process on a ROS domain of its own (ros_test_nodes)."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.qos import QoSProfile  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
+
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
+
+DOMAIN_RANGE = (120, 20)      # first, span (conftest._free_ros_domain)
+DOMAIN_ID = 120 + os.getpid() % 20
+START_TIMEOUT = 120.0
+
+
+@pytest.fixture(scope="module")
+def ros():
+    r = RosTestNode(DOMAIN_ID, "sim_node_faults_test", events=True)
+    yield r
+    r.close()
+
+
+def _sim(tmp_path, tag, **params):
+    return NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / f"{tag}.log"), DOMAIN_ID,
+                       **params)
+
+
+def test_a_hundred_concurrent_reset_calls_are_all_answered(ros, tmp_path):
+    """100 callers (one client each) call ~/reset at once: every call is answered (the
+    services keep SERVICE_QUEUE requests and responses; with rclpy's default depth of 10
+    about 11 were), and the node counts 100 resets. The clients keep 100 responses each:
+    with Fast DDS every client of a service also receives the responses to the others, so a
+    process with many concurrent callers gives its clients a depth of at least their
+    number (with the default 10, about 40 of 100 arrive)."""
+    sim = _sim(tmp_path, "sim", mode="realtime", start_paused=True)
+    qos = QoSProfile(depth=100)
+    clients = [ros.node.create_client(Trigger, "/sim_node/reset", qos_profile=qos)
+               for _ in range(100)]
+    try:
+        assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients),
+                              START_TIMEOUT, [sim]), sim.log()
+        futures = [c.call_async(Trigger.Request()) for c in clients]
+        assert ros.spin_until(lambda: all(f.done() for f in futures), 60, [sim]), \
+            f"{sum(f.done() for f in futures)} of 100 answered"
+        assert all(f.result().success for f in futures)
+        r = ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=False))
+        assert r.success
+    finally:
+        for c in clients:
+            ros.node.destroy_client(c)
+        code = sim.stop()
+    assert code == 0
+    assert sim.summary()["resets"] == 100
+
+
+def test_diagnostics_go_on_while_paused(ros, tmp_path):
+    """Paused, /starleth/solver still comes about once a second with the interface status
+    'paused' (a monitor tells a paused simulator from a dead one); sim time stands still."""
+    sim = _sim(tmp_path, "sim", mode="realtime", start_paused=True)
+    got = []
+
+    def on_diag(msg):
+        for st in msg.status:
+            if st.name == "starleth_sim: interface":
+                got.append((time.monotonic(), st.message,
+                            {kv.key: kv.value for kv in st.values}))
+
+    sub = ros.node.create_subscription(DiagnosticArray, "/starleth/solver", on_diag,
+                                       QoSProfile(depth=50))
+    try:
+        assert ros.spin_until(lambda: len(got) >= 1, START_TIMEOUT, [sim]), sim.log()
+        ros.spin_for(3.2)
+        n = len(got)
+        assert 3 <= n <= 6, n
+        assert all(m == "paused" and v["paused"] == "True" and v["sim_time"] == "0.0"
+                   for _, m, v in got)
+    finally:
+        ros.node.destroy_subscription(sub)
+        sim.stop()
+
+
+def test_sigint_ends_the_node_within_two_seconds_whatever_is_queued(ros, tmp_path):
+    """The recording process stopped (SIGSTOP: stuck on a slow disk) while the node runs:
+    the node never waits for it (it keeps publishing), SIGINT ends it within ~2 s and its
+    log says that the writer finishes on its own; resumed, the writer finalises a complete
+    file."""
+    path = tmp_path / "slow.mcap"
+    sim = _sim(tmp_path, "sim", mode="realtime", record=str(path))
+    count = [0]
+    sub = ros.node.create_subscription(JointState, "/joint_states",
+                                       lambda m: count.__setitem__(0, count[0] + 1),
+                                       QoSProfile(depth=100))
+    writer = None
+    try:
+        assert ros.spin_until(lambda: count[0] > 40, START_TIMEOUT, [sim]), sim.log()
+        out = subprocess.run(["pgrep", "-P", str(sim.proc.pid), "-f", "recording --writer"],
+                             capture_output=True, text=True)
+        writer = int(out.stdout.split()[0])
+        os.kill(writer, signal.SIGSTOP)
+        before = count[0]
+        ros.spin_for(3.0)                          # ~6 MB queued: more than the pipe holds
+        assert count[0] - before > 600, "the node waited for its recording process"
+        t = time.monotonic()
+        sim.proc.send_signal(signal.SIGINT)
+        sim.proc.wait(10)
+        took = time.monotonic() - t
+    finally:
+        ros.node.destroy_subscription(sub)
+        if writer is not None:
+            os.kill(writer, signal.SIGCONT)
+        code = sim.stop()
+    assert code == 0, sim.log()
+    assert took < 2.5, f"SIGINT took {took:.2f} s"
+    log = sim.log()
+    assert "finalises" in log and str(path) in log, log[-2000:]
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and os.path.exists(f"/proc/{writer}"):
+        time.sleep(0.1)
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        n = sum(1 for _ in reader.iter_messages())
+        assert reader.get_summary() is not None and n > 1000
+
+
+@pytest.mark.parametrize("target,cause", [("/dev/full", "No space left on device"),
+                                          ("/proc/x.mcap", "")])
+def test_a_recording_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, target, cause):
+    """record:=/dev/full or record:=/proc/x.mcap: sim_node exits with 2 and one line naming
+    the file and the cause, without a traceback and without first trying in-process."""
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID))
+    out = subprocess.run([sys.executable, "-m", "starleth_sim.ros.sim_node", "--ros-args",
+                          "-p", f"record:={target}"], capture_output=True, text=True,
+                         timeout=180, env=env, stdin=subprocess.DEVNULL)
+    assert out.returncode == 2, out.stdout + out.stderr
+    err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
+    assert len(err) == 1 and target in err[0] and cause in err[0], out.stderr
+    assert "Traceback" not in out.stdout + out.stderr
+    assert "recording in this process" not in out.stdout + out.stderr
