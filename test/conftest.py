@@ -20,7 +20,8 @@ def starleth_hmj():
 SERIAL_MODULES = {
     "test_analysis", "test_cdr", "test_compile_notice", "test_controller_node",
     "test_install_layout",
-    "test_recording", "test_replay", "test_ros_conventions", "test_sim_node",
+    "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
+    "test_sim_node", "test_sim_node_faults",
     "test_sim_service", "test_tf", "test_view",
 }
 

@@ -171,7 +171,7 @@ class SimService:
             dup = sorted({n for n in names if names.count(n) > 1})
             return self._reject("duplicate_joint",
                                 f"rejected joint command on {TOPIC_JOINT_COMMANDS}: duplicate "
-                                f"joint name(s) {quoted(dup)}")
+                                f"joint name(s) {', '.join(dup)}")
         bad = ~np.isfinite(a)
         if bad.any():
             return self._reject("joint_nonfinite",

@@ -45,6 +45,9 @@ Subscribed (reliable, depth 10):
                                                                        world axes, at the link
                                                                        origin; zero clears
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger, while paused).
+Each keeps SERVICE_QUEUE requests and responses, so 100 callers at once are all answered
+(with Fast DDS a client also receives the other callers' responses: a process that makes
+many calls at once gives its clients a depth of at least their number).
 
 Lockstep protocol: the state of step k (stamp t_k) is published, then the node waits for a
 command answering it: a ``/joint_commands`` JointState whose header stamp equals t_k, or any
@@ -72,7 +75,23 @@ Bad input (wrong length, NaN/inf, unknown or duplicate joint names, unknown link
 CDR) is rejected with a throttled warning naming the problem; the last valid command stays.
 
 ``~/reset`` restores the initial state; sim time keeps running (the reset takes one control
-period, so stamps stay strictly increasing and answers to the old state are stale).
+period, so stamps stay strictly increasing and answers to the old state are stale). A reset
+during a lockstep exchange: the state being answered is gone; the reset state (stamp
+t_(k+1)) is published and needs an answer of its own; an answer to the earlier stamp,
+arriving before or after the reset, is dropped as stale (counted); a command already taken
+for the old state but not yet stepped on is discarded (the reset zeroes the command).
+
+Faults that do not take the node down: a push over ``max_wrench_force`` /
+``max_wrench_torque`` is rejected with a warning. A step that is not physics (the physics
+failed twice, or the base moved faster than ``SimService.MAX_BASE_SPEED``) is neither
+published nor recorded: the node pauses, says why on /starleth/solver (the interface status,
+ERROR), and goes on only after ``~/reset``. While paused, /starleth/solver still comes once
+a second. The recording can fail (disk full, file-size limit, I/O error, the writer process
+killed): the node logs one error naming the file and the cause, the file is closed as a
+complete bag up to the last message written (:mod:`.mcap_sink`), /starleth/solver says
+``recording: failed (...)``, and the simulation goes on. The node never waits for its
+writer: SIGINT ends it within 2 s, and what the writer has not taken by then is dropped
+(counted) or written by the writer after the node has gone (said in the log).
 
 Lockstep critical path (command in -> step -> state out): commands are taken as CDR bytes
 and the common valid case is decoded without an rclpy message object (:mod:`.cdr`; the
