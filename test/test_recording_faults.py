@@ -292,6 +292,8 @@ def _run_until_the_recording_fails(ros, sim, watch, kill_writer=False):
     it goes on publishing and says so on /starleth/solver. Returns the log."""
     assert ros.spin_until(lambda: watch.joint_states > 40, START_TIMEOUT, [sim]), sim.log()
     if kill_writer:
+        # after a second of recording: the writer has written a few 256 kB chunks
+        assert ros.spin_until(lambda: watch.joint_states > 400, 30, [sim]), sim.log()
         out = subprocess.run(["pgrep", "-P", str(sim.proc.pid), "-f", "recording --writer"],
                              capture_output=True, text=True)
         pids = [int(p) for p in out.stdout.split()]

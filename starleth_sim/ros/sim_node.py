@@ -822,7 +822,7 @@ class SimNode:
             if rec is not None and svc.k % self.HAND_OVER_STEPS == 0:
                 if hasattr(rec, "hand_over"):
                     rec.hand_over()   # the last steps' messages to the writer process
-                if rec.dropped:
+                if rec.dropped and self.recorder is not None:   # (not: it just failed)
                     self._check_recording_drops(rec)
         if timing is not None and record:
             timing.row[4] = time.perf_counter()
