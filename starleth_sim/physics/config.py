@@ -215,8 +215,8 @@ def load_yaml_file(path: str, source: str | None = None):
     """The YAML document of the file `path`, read with :func:`load_yaml_text`. ConfigError
     naming the file when it is missing, unreadable, larger than MAX_CONFIG_BYTES, not UTF-8
     text (a binary file), not valid YAML or repeats a key. `source`: the name in the
-    messages about its content (default: the file's base name)."""
-    source = source or os.path.basename(path)
+    messages about its content (default: the path as given)."""
+    source = source or str(path)
     try:
         with open(path, "rb") as f:
             raw = f.read(MAX_CONFIG_BYTES + 1)
@@ -497,8 +497,7 @@ class PhysicsConfig:
 
     @classmethod
     def from_yaml(cls, path: str) -> "PhysicsConfig":
-        name = os.path.basename(path)
-        return cls.from_dict(load_yaml_file(path, name), source=name)
+        return cls.from_dict(load_yaml_file(path), source=str(path))
 
     def with_overrides(self, **overrides) -> "PhysicsConfig":
         """A validated copy with fields replaced; keys are unique field names (`alpha`) or
