@@ -122,6 +122,7 @@ def test_sigint_ends_the_node_within_two_seconds_whatever_is_queued(ros, tmp_pat
             os.kill(writer, signal.SIGCONT)
         code = sim.stop()
     assert code == 0, sim.log()
+    print(f"SIGINT to exit: {took:.2f} s")
     assert took < 2.5, f"SIGINT took {took:.2f} s"
     log = sim.log()
     assert "finalises" in log and str(path) in log, log[-2000:]

@@ -1321,7 +1321,7 @@ class SimNode:
 
     #: s: SIGINT / SIGTERM end the node within 2 s whatever the recorder has queued (what
     #: the writer has not taken by then is dropped, counted in the log)
-    CLOSE_TIMEOUT = 1.5
+    CLOSE_TIMEOUT = 1.0
 
     def close(self):
         """Finalise the recording (idempotent; at most CLOSE_TIMEOUT s) and log a summary."""
