@@ -322,12 +322,12 @@ def _check_bag_after_failure(path, log, copy=None):
 
 
 def test_sim_node_keeps_publishing_when_the_recording_hits_a_file_size_limit(ros, tmp_path):
-    """sim_node under `ulimit -f` (RLIMIT_FSIZE 3 MB, inherited by its writer process):
+    """sim_node under `ulimit -f` (RLIMIT_FSIZE 1.5 MB, inherited by its writer process):
     the recording fails after a second or two; the node logs one error naming the file and
     the cause, goes on publishing /joint_states, reports recording: failed (...), exits 0
     on SIGINT; the bag reads as a complete bag up to the last message written."""
     path = tmp_path / "limited.mcap"
-    limit = 3_000_000
+    limit = 1_500_000
 
     def limit_file_size():
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
@@ -377,7 +377,7 @@ def _user_namespace_tmpfs():
 
 def test_sim_node_keeps_publishing_when_the_disk_is_full(ros, tmp_path):
     """A really full filesystem (ENOSPC): sim_node runs in a user namespace of its own
-    (`unshare -rm`: no root needed) with a 2 MB tmpfs mounted over a directory, and
+    (`unshare -rm`: no root needed) with a 1 MB tmpfs mounted over a directory, and
     records there."""
     why = _user_namespace_tmpfs()
     if why:
@@ -389,7 +389,7 @@ def test_sim_node_keeps_publishing_when_the_disk_is_full(ros, tmp_path):
     copy = tmp_path / "full.mcap"
     # the node runs as a child of the shell, which passes SIGTERM on and copies the bag
     # out of the tmpfs before the namespace (and its mount) ends
-    script = (f'mount -t tmpfs -o size=2m none {disk} || exit 3; "$@" & pid=$!; '
+    script = (f'mount -t tmpfs -o size=1m none {disk} || exit 3; "$@" & pid=$!; '
               "trap 'kill -TERM $pid' TERM INT; wait $pid; code=$?; "
               'while kill -0 $pid 2>/dev/null; do wait $pid; code=$?; done; '
               f'cp {path} {copy}; exit $code')
