@@ -42,7 +42,11 @@ loop's mean period from the ``starleth_sim_summary`` metadata when present.
 
 A missing topic is reported on stderr (naming it) and its plots are skipped; a truncated
 or corrupt file ends the program with a message and exit status 1 (``--salvage`` reads a
-truncated file up to the damage instead).
+truncated file up to the damage instead). Messages that cannot be decoded are skipped and
+counted on stderr; so are forces and base states holding a NaN, an infinite value or one
+beyond 1e9 (``MAX_VALUE``), and such values of joint torques and solver figures are left
+out. The real-time factor plot has at most ``MAX_RTF_WINDOWS`` windows per run, whatever
+the span of the stamps.
 """
 from __future__ import annotations
 
@@ -86,6 +90,12 @@ OPTIONAL_TOPICS = {TOPIC_ROBOT_DESCRIPTION: "std_msgs/msg/String"}
 
 PLOTS = ("contact_forces", "gait", "base_trajectory", "joint_torques", "solver_iterations",
          "real_time_factor")
+#: the largest magnitude of a recorded force [N], position [m], velocity, joint torque [N m]
+#: or solver value taken as data; beyond it (or infinite) a value is garbage, left out
+MAX_VALUE = 1e9
+#: the real-time factor plot's windows per run at most: a run whose stamps span far more
+#: than MAX_RTF_WINDOWS windows (garbage stamps: two messages 2e9 s apart) gets wider ones
+MAX_RTF_WINDOWS = 100_000
 
 
 class AnalysisError(BagError):
@@ -155,7 +165,7 @@ def _stamp(msg):
 def _to_float(s):
     try:
         return float(s)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return math.nan
 
 
@@ -258,7 +268,7 @@ class Run:
                     except UnicodeDecodeError:
                         pass
         for topic, (n, err) in bag.decode_errors.items():
-            warn(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
+            warn(f"{path}: {n} message(s) on {topic} could not be read ({err})")
         #: the namespace of the StarlETH topics ('' at the root, '/robot1') and their names
         self.namespace = col.namespace or ""
         self.topic_names = {rel: resolve(rel, self.namespace) for rel in TOPICS}
@@ -266,12 +276,20 @@ class Run:
                         if not self.counts.get(self.topic_names[t])]
 
         def arr(rows, width):
-            a = np.array(rows, dtype=float) if rows else np.zeros((0, width))
+            try:
+                a = np.array(rows, dtype=float) if rows else np.zeros((0, width))
+            except (ValueError, TypeError, OverflowError) as e:
+                raise AnalysisError(f"{path}: messages whose fields are not numbers (the "
+                                    f"bag's schema is not the ROS one?): {e}") from None
             return a.reshape(-1, width)
 
         # raw (stamp ns, log ns, pub ns) per series; int64 for exact comparisons
         def times(rows):
-            a = np.array([r[:3] for r in rows], dtype=np.int64).reshape(-1, 3)
+            try:
+                a = np.array([r[:3] for r in rows], dtype=np.int64).reshape(-1, 3)
+            except (ValueError, TypeError, OverflowError) as e:
+                raise AnalysisError(f"{path}: message stamps that are not int64 "
+                                    f"nanoseconds: {e}") from None
             stamp = a[:, 0]
             if stamp.size and not stamp.any():   # unstamped messages: use the log time
                 stamp = a[:, 1].copy()
@@ -285,6 +303,7 @@ class Run:
         series[("joints", None)] = (times(col.joint_stamps),
                                     arr(col.joint_effort, len(JOINTS)))
         series[("solver", None)] = (times(col.solver), arr([r[3:] for r in col.solver], 6))
+        series = self._drop_unusable(series)
         firsts = [s[0][0].min() for s in series.values() if s[0][0].size]
         self.t0_ns = int(min(firsts)) if firsts else 0
         self._series = {}
@@ -297,6 +316,35 @@ class Run:
         self.base_frames = col.base_frames or ("", "")
         self.joint_names = col.joint_names
         self.window = (None, None)
+
+    def _drop_unusable(self, series: dict) -> dict:
+        """series without the garbage a bag may hold, with a counted warning per topic: a
+        wrench or base state holding a NaN, an infinite value or one beyond MAX_VALUE is
+        left out; in joint efforts and solver values (where NaN means 'not recorded') an
+        infinite or absurd value becomes NaN (the solver's residual is kept as recorded)."""
+        rel = {kind: name for name, (kind, _, _) in TOPICS.items()}
+        out = {}
+        for key, ((stamp, log, pub), data) in series.items():
+            with np.errstate(invalid="ignore"):
+                bad = np.abs(data) > MAX_VALUE
+            if key[0] == "solver":                   # a residual may be anything
+                bad[:, 2] = False
+            if key[0] in ("wrench", "base"):
+                bad |= np.isnan(data)
+            rows = bad.any(axis=1)
+            n = int(rows.sum())
+            if n:
+                if key[0] in ("wrench", "base"):
+                    keep = ~rows
+                    stamp, log, pub, data = stamp[keep], log[keep], pub[keep], data[keep]
+                    what = "left out"
+                else:
+                    data = np.where(bad, np.nan, data)
+                    what = "those values left out"
+                warn(f"{self.path}: {n} message(s) on {resolve(rel[key], self.namespace)} "
+                     f"hold NaN, infinite or absurd values (beyond {MAX_VALUE:g}); {what}")
+            out[key] = ((stamp, log, pub), data)
+        return out
 
     @classmethod
     def from_arrays(cls, label, t, base=None, wrench=None, effort=None,
@@ -371,16 +419,17 @@ class Run:
 
     def sim_node_parameters(self) -> dict:
         try:
-            return json.loads(self.metadata.get("starleth_sim", {}).get("parameters", "{}"))
-        except (ValueError, TypeError):
+            params = json.loads(self.metadata.get("starleth_sim", {}).get("parameters", "{}"))
+        except (ValueError, TypeError, RecursionError):
             return {}
+        return params if isinstance(params, dict) else {}
 
     def sim_node_summary(self) -> dict:
         out = {}
         for k, v in self.metadata.get("starleth_sim_summary", {}).items():
             try:
                 out[k] = json.loads(v)
-            except (ValueError, TypeError):
+            except (ValueError, TypeError, RecursionError):
                 out[k] = v
         return out
 
@@ -510,11 +559,19 @@ def real_time_factor(run: Run) -> dict:
     return out
 
 
+def _rtf_window(span, window):
+    """The window [s] of the real-time factor over `span` s of sim time: `window`, or wider
+    where the span would hold more than MAX_RTF_WINDOWS of them."""
+    return max(window, span / MAX_RTF_WINDOWS) if math.isfinite(span) else window
+
+
 def _windowed_rate(t_ref, sim, wall, window):
     """Δsim/Δwall over consecutive windows of `window` seconds of t_ref (a last partial
-    window shorter than half a window is left out)."""
+    window shorter than half a window is left out; at most MAX_RTF_WINDOWS windows: wider
+    ones where the stamps span more)."""
     if t_ref.size < 2:
         return np.zeros(0), np.zeros(0)
+    window = _rtf_window(float(t_ref[-1] - t_ref[0]), window)
     edges = np.arange(t_ref[0], t_ref[-1], window)
     if t_ref[-1] - edges[-1] >= 0.5 * window or edges.size == 1:
         edges = np.append(edges, t_ref[-1])
@@ -822,10 +879,11 @@ def plot_solver(plt, runs, opts):
     its = [r.series("solver")["data"][:, 0] for r in have]
     its = [x[np.isfinite(x)] for x in its]
     hi = max((float(x.max()) for x in its if x.size), default=1.0)
-    if hi <= 80:
-        bins = np.arange(-0.5, hi + 1.5, 1.0)
+    lo = min(min((float(x.min()) for x in its if x.size), default=0.0), 0.0)   # < 0: garbage
+    if hi - lo <= 80:
+        bins = np.arange(math.floor(lo) - 0.5, max(hi, lo) + 1.5, 1.0)
     else:
-        bins = np.linspace(0, hi * 1.0001, 61)
+        bins = np.linspace(lo, hi * 1.0001 if hi > 0 else hi + 1.0, 61)
     for i, r in enumerate(runs):
         if not r.has("solver"):
             continue
@@ -853,11 +911,14 @@ def plot_rtf(plt, runs, opts):
         return None
     fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(13, 4.5))
     top = 0.0
-    # windows: --rtf-window, but at least 10 per run for short runs
-    span = max(float(r.series(*k)["t"][-1] - r.series(*k)["t"][0])
-               for _, r, _ in data for k in (("joints", None), ("solver", None))
-               if r.series(*k)["t"].size > 1) if data else 0.0
+    # windows: --rtf-window, but at least 10 per run for short runs, at most
+    # MAX_RTF_WINDOWS for long ones
+    span = max((float(r.series(*k)["t"][-1] - r.series(*k)["t"][0])
+                for _, r, _ in data for k in (("joints", None), ("wrench", "LF"),
+                                              ("base", None), ("solver", None))
+                if r.series(*k)["t"].size > 1), default=0.0)
     window = min(opts.rtf_window, span / 10) if span > 0 else opts.rtf_window
+    window = _rtf_window(span, window)
     for i, r, x in data:
         if x["source"]:
             ax_a.plot(x["wall"], x["sim"], color=_color(i), lw=1.0,
@@ -1108,6 +1169,9 @@ def run(argv=None) -> int:
         runs.append(r)
     t_read = time.perf_counter() - t_start
     empty = [r for r in runs if not any(s["t"].size for s in r._series.values())]
+    if len(empty) == len(runs) and a.tmin is None and a.tmax is None:
+        raise AnalysisError(f"{', '.join(r.path for r in runs)}: none of the messages on the "
+                            "StarlETH topics could be read (see the warnings above)")
     if len(empty) == len(runs):
         lo = "the start" if a.tmin is None else f"{a.tmin:g} s"
         hi = "the end" if a.tmax is None else f"{a.tmax:g} s"

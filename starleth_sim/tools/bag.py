@@ -2,15 +2,28 @@
 in order) streamed in one pass with CRC checks, topic types, message counts, attachments and
 metadata; damaged or truncated files raise :class:`BagError` with one clear line, or with
 ``salvage`` are read up to the damage. ``starleth-analyze`` (its ``Run``), ``starleth-view``
-and ``starleth-demo`` read bags through :func:`stream_bag` / :func:`read_messages`."""
+and ``starleth-demo`` read bags through :func:`stream_bag` / :func:`read_messages`.
+
+What the file claims never sizes an allocation: a record's length is bounded by the file's
+size, a compressed chunk is decompressed in pieces up to what its data holds (the size its
+header or its frame claims is checked, not allocated), and a message whose log or publish
+time is beyond int64 is counted as unreadable."""
 from __future__ import annotations
 
 import glob
+import io
 import os
 import re
 import sys
+import zlib
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: log and publish times are int64 nanoseconds in ROS 2 (rcutils_time_point_value_t); an
+#: MCAP Message record holds a uint64: one beyond the int64 range is damage
+MAX_TIME_NS = 2 ** 63 - 1
+#: a compressed chunk is decompressed in pieces of this size, so that what is held is what
+#: the chunk's data decompresses to, never the size its header (or the frame's) claims
+DECOMPRESS_PIECE = 1 << 20
 
 
 class BagError(Exception):
@@ -96,14 +109,25 @@ def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: 
     """The records of the open MCAP file f (CRCs checked). At damage: raises BagError,
     or with salvage warns (on_warning, default warn), sets state['truncated'] and stops.
     state['messages'] counts the Message records read."""
-    from mcap.records import Message
+    from mcap.records import Chunk, Message
     from mcap.stream_reader import StreamReader
 
-    records = iter(StreamReader(f, validate_crcs=True, record_size_limit=size + 64).records)
+    records = iter(StreamReader(f, validate_crcs=True, emit_chunks=True,
+                                record_size_limit=size + 64).records)
     state.setdefault("messages", 0)
+    inner = None                  # the records of the chunk being read
     while True:
         try:
-            rec = next(records)
+            if inner is not None:
+                rec = next(inner, None)
+                if rec is None:
+                    inner = None
+                    continue
+            else:
+                rec = next(records)
+                if isinstance(rec, Chunk):
+                    inner = chunk_records(rec)
+                    continue
         except StopIteration:
             return
         except Exception as e:   # anything the reader raises: a damaged file
@@ -121,6 +145,91 @@ def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: 
         if isinstance(rec, Message):
             state["messages"] += 1
         yield rec
+
+
+def decompress_chunk(chunk) -> bytes:
+    """The records section of an MCAP Chunk record, decompressed in bounded pieces (what is
+    held is what the data decompresses to, never more than the header's uncompressed_size
+    plus one piece; mcap's own reader allocates the size the header or the compressed
+    frame claims, 745 GiB for a forged one) and CRC-checked. Raises ValueError."""
+    size, comp, data = chunk.uncompressed_size, chunk.compression, chunk.data
+    if comp == "":
+        out = bytes(data)
+    elif comp in ("zstd", "lz4"):
+        pieces, total = [], 0
+        try:
+            if comp == "zstd":
+                import zstandard
+                reader = zstandard.ZstdDecompressor().stream_reader(data)
+                while total <= size:
+                    piece = reader.read(DECOMPRESS_PIECE)
+                    if not piece:
+                        break
+                    pieces.append(piece)
+                    total += len(piece)
+            else:
+                import lz4.frame
+                dec = lz4.frame.LZ4FrameDecompressor()
+                piece = dec.decompress(data, max_length=DECOMPRESS_PIECE)
+                while True:
+                    pieces.append(piece)
+                    total += len(piece)
+                    if dec.eof or total > size or not piece:
+                        break
+                    piece = dec.decompress(b"", max_length=DECOMPRESS_PIECE)
+        except ImportError:
+            raise ValueError(f"{comp}-compressed chunk: the Python package for {comp} is "
+                             "not installed") from None
+        except Exception as e:   # the decompressors' own error types
+            raise ValueError(f"{comp}-compressed chunk cannot be decompressed: "
+                             f"{type(e).__name__}: {e}") from None
+        if total != size:
+            raise ValueError(f"{comp}-compressed chunk of {len(data)} bytes decompresses to "
+                             f"{'more than ' if total > size else ''}{total} bytes, its header "
+                             f"says {size}")
+        out = b"".join(pieces)
+    else:
+        raise ValueError(f"chunk with unsupported compression {comp!r}")
+    if chunk.uncompressed_crc != 0 and zlib.crc32(out) != chunk.uncompressed_crc:
+        raise ValueError("chunk CRC mismatch (its records are damaged)")
+    return out
+
+
+def chunk_records(chunk):
+    """The Schema, Channel and Message records of a Chunk, one at a time (records of other
+    kinds skipped). Raises ValueError at damage (a record running past the chunk's end)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Message, Schema
+
+    data = decompress_chunk(chunk)
+    end = len(data)
+    stream = ReadDataStream(io.BytesIO(data))
+    while stream.count < end:
+        if end - stream.count < 9:
+            raise ValueError(f"chunk ends inside a record header ({end - stream.count} bytes)")
+        opcode, length = stream.read1(), stream.read8()
+        start = stream.count
+        if length > end - start:
+            raise ValueError(f"a record of {length} bytes runs past the chunk's end "
+                             f"({end - start} bytes left)")
+        if opcode == Opcode.MESSAGE:
+            if length < 22:
+                raise ValueError(f"a Message record of {length} bytes (at least 22)")
+            rec = Message.read(stream, length)
+        elif opcode == Opcode.CHANNEL:
+            rec = Channel.read(stream)
+        elif opcode == Opcode.SCHEMA:
+            rec = Schema.read(stream)
+        else:
+            rec = None
+        used = stream.count - start
+        if used > length:
+            raise ValueError(f"a record (opcode {opcode:#x}) longer than its length {length}")
+        if used < length:
+            stream.read(length - used)
+        if rec is not None:
+            yield rec
 
 
 def _decoder(factory, rec, schema, path, on_warning):
@@ -155,6 +264,11 @@ def _stream_file(path: str, bag: BagMessages, on_channel, salvage: bool, on_warn
                     continue
                 bag.counts[topic] += 1
                 if handle is None:
+                    continue
+                if rec.log_time > MAX_TIME_NS or rec.publish_time > MAX_TIME_NS:
+                    errors.setdefault(topic, [0, "log or publish time beyond the int64 range "
+                                                 f"({max(rec.log_time, rec.publish_time)} ns)"]
+                                      )[0] += 1
                     continue
                 try:
                     handle(rec)
@@ -198,7 +312,8 @@ def read_messages(path: str, select, salvage: bool = False, decode: bool = True,
     bag.messages[topic] = [(log_time ns, message)]. With decode=False the messages are kept
     as CDR bytes, to be decoded (bag.decoders[topic]) only where needed. A file that is not
     MCAP, truncated or corrupt raises BagError (salvage: read up to the damage, with a
-    warning). Messages that cannot be decoded are counted and warned about."""
+    warning). Messages that cannot be decoded (or whose log time is beyond the int64 range)
+    are counted and warned about."""
     on_warning = on_warning or warn
     messages, decoders = {}, {}
 
@@ -217,5 +332,5 @@ def read_messages(path: str, select, salvage: bool = False, decode: bool = True,
     bag = stream_bag(path, on_channel, salvage, on_warning)
     bag.messages, bag.decoders = messages, decoders
     for topic, (n, err) in bag.decode_errors.items():
-        on_warning(f"{path}: {n} message(s) on {topic} could not be decoded ({err})")
+        on_warning(f"{path}: {n} message(s) on {topic} could not be read ({err})")
     return bag

@@ -33,13 +33,17 @@ fall); the output says from when (base more than ``--diverge-position`` from the
 path, or a joint more than ``--diverge-angle`` from its recorded angle).
 
 A bag without the metadata (not recorded by sim_node), a truncated or damaged one
-(``--salvage`` reads up to the damage), or one whose joint states skip steps gives one line
-on stderr and exit status 1.
+(``--salvage`` reads up to the damage), one whose joint states skip steps, or whose
+metadata or messages are not what sim_node writes (a control period that is not a positive
+number, joint names or an initial state that are not JSON or do not fit, a configuration
+whose YAML aliases expand it beyond its size, joint states of the wrong length, a NaN or
+infinite torque) gives one line on stderr and exit status 1.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -93,8 +97,52 @@ class Recording:
 
     def config(self):
         from ..physics.config import PhysicsConfig
-        return PhysicsConfig.from_dict(yaml.safe_load(self.config_yaml),
-                                       source=f"{self.path}: physics_config")
+        what = f"{self.path}: physics_config"
+        return PhysicsConfig.from_dict(bounded_yaml(self.config_yaml, what), source=what)
+
+
+def _cut(text: str, n: int = 300) -> str:
+    """text, cut to about n characters (a metadata value may be megabytes)."""
+    return text if len(text) <= n else text[:n] + "..."
+
+
+def _short(value, n=60) -> str:
+    """repr(value), cut to about n characters."""
+    return _cut(repr(value), n)
+
+
+def bounded_yaml(text: str, what: str):
+    """YAML text from a bag, loaded; a ReplayError where it is not YAML or where its aliases
+    expand it beyond its size (a few hundred bytes of nested aliases make a billion-element
+    list, which the configuration's checks would then walk)."""
+    try:
+        data = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError, ValueError) as e:
+        raise ReplayError(f"{what}: not valid YAML ({type(e).__name__}: "
+                          f"{_cut(str(e), 200)})") from None
+    budget = 2 * len(text) + 16          # nodes: fewer than characters without aliases
+    stack = [data]
+    while stack:
+        x = stack.pop()
+        budget -= 1
+        if budget < 0:
+            raise ReplayError(f"{what}: its YAML aliases expand it far beyond its "
+                              f"{len(text)} characters")
+        if isinstance(x, dict):
+            stack.extend(x.keys())
+            stack.extend(x.values())
+        elif isinstance(x, (list, tuple)):
+            stack.extend(x)
+    return data
+
+
+def _json(md, key, path):
+    """A JSON value of the starleth_sim metadata; ReplayError where it is not JSON."""
+    try:
+        return json.loads(md[key])
+    except (ValueError, TypeError, RecursionError):
+        raise ReplayError(f"{path}: the recorded {key} is not valid JSON "
+                          f"({_short(md[key])})") from None
 
 
 def _metadata(bag, path):
@@ -141,8 +189,19 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     for key in ("joints", "base"):
         if not bag.messages.get(topics[key]):
             raise ReplayError(f"{path}: no messages on {topics[key]}: nothing to replay")
-    period_ns = int(md.get("stamp_period_ns") or round(float(md["control_period"]) * 1e9))
-    joint_names = json.loads(md["joint_names"])
+    try:
+        control_period = float(md["control_period"])
+        period_ns = int(md.get("stamp_period_ns") or round(control_period * 1e9))
+    except (ValueError, TypeError, OverflowError):
+        period_ns, control_period = 0, math.nan
+    if period_ns <= 0 or not (math.isfinite(control_period) and control_period > 0):
+        raise ReplayError(f"{path}: the recorded control period is not a positive number "
+                          f"(control_period {_short(md['control_period'])}, stamp_period_ns "
+                          f"{_short(md.get('stamp_period_ns'))})")
+    joint_names = _json(md, "joint_names", path)
+    if not (isinstance(joint_names, list) and all(isinstance(n, str) for n in joint_names)):
+        raise ReplayError(f"{path}: the recorded joint_names is not a list of names "
+                          f"({_short(md['joint_names'])})")
 
     def by_step(topic, what):
         rows = {}
@@ -173,13 +232,24 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
         raise ReplayError(f"{path}: fewer than two recorded states: nothing to replay")
     names = list(js[0].name)
     if names != joint_names:
-        raise ReplayError(f"{path}: /joint_states names {names} differ from the recorded "
-                          f"joint_names {joint_names}")
+        raise ReplayError(f"{path}: /joint_states names {_short(names, 400)} differ from the "
+                          f"recorded joint_names {_short(joint_names, 400)}")
+    for k in range(n):
+        for field_ in ("position", "velocity", "effort"):
+            have = len(getattr(js[k], field_))
+            if have != len(joint_names):
+                raise ReplayError(f"{path}: the /joint_states of step {k} holds {have} "
+                                  f"{field_} values for {len(joint_names)} joints")
     states = {
         "joint_positions": np.array([js[k].position for k in range(n)], dtype=float),
         "joint_velocities": np.array([js[k].velocity for k in range(n)], dtype=float),
     }
     effort = np.array([js[k].effort for k in range(n)], dtype=float)
+    bad = np.flatnonzero(~np.isfinite(effort[1:]).all(axis=1)) + 1   # [0]: not applied
+    if bad.size:
+        raise ReplayError(f"{path}: the /joint_states effort of step {bad[0]} (the torque "
+                          "applied over the step before it) is NaN or infinite: not a torque "
+                          "the simulator applied; cannot replay it")
     p, o, v, w = [], [], [], []
     for k in range(n):
         m = base[k]
@@ -212,16 +282,16 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     for k, val in bag.metadata.get("starleth_sim_summary", {}).items():
         try:
             summary[k] = json.loads(val)
-        except ValueError:
+        except (ValueError, RecursionError):
             summary[k] = val
-    try:
-        initial = json.loads(md["initial_state"])
-    except ValueError:
-        raise ReplayError(f"{path}: the recorded initial_state is not valid JSON") from None
+    initial = _json(md, "initial_state", path)
+    if not isinstance(initial, dict):
+        raise ReplayError(f"{path}: the recorded initial_state is not a JSON object "
+                          f"({_short(md['initial_state'])})")
     if bag.truncated:
         warn(f"{path}: truncated: replaying the {n - 1} steps before the damage")
     return Recording(path=path, config_yaml=md["physics_config"], initial=initial,
-                     joint_names=joint_names, control_period=float(md["control_period"]),
+                     joint_names=joint_names, control_period=control_period,
                      period_ns=period_ns, namespace=ns,
                      package_version=md.get("package_version", "unknown"), states=states,
                      effort=effort, wrenches=wrenches, summary=summary)
@@ -262,6 +332,7 @@ def _snapshot(sim):
 def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     """Run the recorded torques and wrenches through `config` (default: the recorded one)
     from the recorded initial state, with sim_node's own calls (SimService)."""
+    from ..physics.config import ConfigError
     from ..physics.simulator import Simulator
     from ..ros.parameters import Settings
     from ..ros.service import SimService
@@ -273,16 +344,27 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
                           "does not fit (override control_rate)")
     if own:   # the recorded torques are the applied ones: derating them again would differ
         cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
-    sim = Simulator(cfg)
+    try:
+        sim = Simulator(cfg)
+    except ConfigError:
+        raise
+    except Exception as e:   # the robot's URDF (a path in the recorded configuration)
+        raise ReplayError(f"{cfg.name}: no simulator of this configuration: "
+                          f"{type(e).__name__}: {_cut(str(e))}") from None
     init = rec.initial
-    if init.get("coordinates") == cfg.coordinates and "q" in init:
-        q0, u0 = np.array(init["q"], dtype=float), np.array(init["u"], dtype=float)
-    else:   # another set of coordinates: through the minimal ones
-        sim.reset(init["q_minimal"], init["u_minimal"], minimal=True)
-        q0, u0 = sim.q, sim.u
     warnings = []
-    svc = SimService(sim, Settings(mode="lockstep", warn_throttle_period=1e9), q0, u0,
-                     warn=warnings.append)
+    try:
+        if init.get("coordinates") == cfg.coordinates and "q" in init:
+            q0, u0 = np.array(init["q"], dtype=float), np.array(init["u"], dtype=float)
+        else:   # another set of coordinates: through the minimal ones
+            sim.reset(init["q_minimal"], init["u_minimal"], minimal=True)
+            q0, u0 = sim.q, sim.u
+        # the longest throttle period sim_node's parameter allows: one warning per kind
+        svc = SimService(sim, Settings(mode="lockstep", warn_throttle_period=3600.0), q0, u0,
+                         warn=warnings.append)
+    except (ValueError, TypeError, KeyError, IndexError) as e:
+        raise ReplayError(f"{rec.path}: the recorded initial_state does not fit "
+                          f"{cfg.name}: {type(e).__name__}: {_cut(str(e))}") from None
     n = rec.steps if steps is None else min(steps, rec.steps)
     out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in QUANTITIES}
     first = _snapshot(sim)
@@ -494,7 +576,7 @@ def run(argv=None) -> int:
           f"starleth_sim {rec.package_version}; {sum(map(len, rec.wrenches.values()))} external "
           f"wrench(es); read in {time.perf_counter() - t0:.2f} s ==")
     resets = rec.summary.get("resets", 0)
-    if resets:
+    if isinstance(resets, int) and resets > 0:
         warn(f"the run was reset {resets} time(s) (~/reset); a replay does not reset: it "
              "differs from the first reset on")
     rep = resimulate(rec, label=f"{rec_cfg.name} (replay)", steps=a.steps)

@@ -29,13 +29,17 @@ both work):
 Frames: one every 1/fps s of sim time (header stamps) from the first joint state, each the
 latest recorded sample at or before that time (sample and hold, no interpolation), plus the
 last sample; the base pose and foot forces are the latest at or before the frame's joint
-state. Numbers are rounded: positions and arrows to 0.1 mm, quaternions to 1e-4, times to
-0.1 ms. A 20 s run at 400 Hz gives a 1.7 MB page at the default 50 fps (0.85 MB of it
-the viewer), 7.3 MB with every sample.
+state. Frames are worked out per sample, so that memory goes with the samples in the bag,
+whatever the span of their stamps (two samples 2e9 s apart: 2 frames). A recorded value
+that is NaN, infinite or beyond 1e9 is garbage: the previous value is drawn instead (a
+force: no arrow), with a warning counting the messages. Numbers are rounded: positions and
+arrows to 0.1 mm, quaternions to 1e-4, times to 0.1 ms. A 20 s run at 400 Hz gives a 1.7 MB
+page at the default 50 fps (0.85 MB of it the viewer), 7.3 MB with every sample.
 
 A bag that cannot be read (not MCAP, truncated, corrupt; ``--salvage`` reads a truncated one
-up to the damage), or one without joint states or base state, ends the program with a
-one-line message on stderr and exit status 1.
+up to the damage), one without (readable) joint states or base state, or a shown message
+that cannot be decoded, ends the program with a one-line message on stderr and exit
+status 1.
 """
 from __future__ import annotations
 
@@ -86,6 +90,9 @@ CAMERA_OFFSET = (0.9, -1.35, 0.42)
 #: the camera target's height follows the trunk height averaged over +-this [s]
 CAMERA_HEIGHT_WINDOW = 0.5
 ARROW_HEAD = 0.05           # length of an arrow's cone [m]
+#: the largest magnitude of a recorded position [m], joint angle [rad] or force [N] drawn;
+#: a sample beyond it (or NaN, infinite) is garbage: the previous value is drawn instead
+MAX_VALUE = 1e9
 ARROW_RADIUS = 0.011        # of its shaft [m] (the cone: 2.5 times that)
 
 #: kind -> (relative topic name, message type)
@@ -246,11 +253,18 @@ def _ground_from_metadata(bag):
     text = bag.metadata.get("starleth_sim", {}).get("physics_config")
     try:
         ground = (yaml.safe_load(text) or {}).get("ground", {}) if text else {}
-        n = np.array(ground.get("normal", (0.0, 0.0, 1.0)), dtype=float).reshape(3)
+        normal = ground.get("normal", (0.0, 0.0, 1.0))
+        # three numbers, checked before numpy walks it (YAML aliases can nest a list
+        # a billion elements deep in a few hundred bytes)
+        if not (isinstance(normal, (list, tuple)) and len(normal) == 3
+                and all(isinstance(x, (int, float)) for x in normal)):
+            raise ValueError("bad ground normal")
+        n = np.array(normal, dtype=float)
         h = float(ground.get("height", 0.0))
         if np.linalg.norm(n) < 1e-9 or not np.all(np.isfinite(n)) or not math.isfinite(h):
             raise ValueError("bad ground")
-    except (ValueError, TypeError, AttributeError, yaml.YAMLError):
+    except (ValueError, TypeError, AttributeError, OverflowError, RecursionError,
+            yaml.YAMLError):
         return 0.0, (0.0, 0.0, 1.0)
     n = n / np.linalg.norm(n)
     return h, tuple(float(x) for x in n)
@@ -280,6 +294,11 @@ def read_recording(path: str, namespace: str | None = None, salvage: bool = Fals
             rec.wrenches[foot] = Series.from_bag(bag, topics[foot])
         else:
             warn(f"{path}: no messages on {ns}/{TOPICS[foot][0]}; no {foot} force arrow")
+    for series in (rec.joints, rec.base):
+        if not len(series):
+            n = bag.counts.get(series.topic, 0)
+            raise ViewError(f"{path}: none of the {n} message(s) on {series.topic} could be "
+                            "read, so there is no robot motion to replay")
     rec.ground_height, rec.ground_normal = _ground_from_metadata(bag)
     return rec
 
@@ -289,15 +308,40 @@ def read_recording(path: str, namespace: str | None = None, salvage: bool = Fals
 # =========================================================================================
 def select_frames(t_ns: np.ndarray, fps: float) -> np.ndarray:
     """Indices of the samples (times t_ns, sorted) shown at fps: for each time
-    t_0 + k/fps the latest sample at or before it, each once, plus the last sample."""
-    if t_ns.size == 0:
+    t_0 + k/fps (k = 0 .. span * fps, rounded to the nanosecond) the latest sample at or
+    before it, each once, plus the last sample.
+
+    Worked out per sample, not per grid time: sample i is shown when the first grid time at
+    or after it comes before the next sample. Memory and time go with the number of samples,
+    whatever the span of their stamps (two samples 2e9 s apart at 50 fps are 2 frames, not
+    1e11 grid times)."""
+    n = t_ns.size
+    if n == 0:
         return np.zeros(0, dtype=int)
-    span = (t_ns[-1] - t_ns[0]) * 1e-9
-    k = np.arange(int(math.floor(span * fps + 1e-9)) + 1)
-    grid = t_ns[0] + np.round(k * (1e9 / fps)).astype(np.int64)
-    idx = np.searchsorted(t_ns, grid, side="right") - 1
-    idx = np.unique(np.concatenate([np.clip(idx, 0, t_ns.size - 1), [t_ns.size - 1]]))
-    return idx
+    rel = t_ns - t_ns[0]                                     # int64: exact
+    after = np.append(rel[1:], np.iinfo(np.int64).max)       # the next sample's time
+    step = 1e9 / fps                                         # [ns] between grid times
+    if step <= 1.0:   # a grid time at every nanosecond: each distinct stamp is a frame
+        shown = rel < after
+        shown[-1] = True
+        return np.flatnonzero(shown)
+    last_k = math.floor((t_ns[-1] - t_ns[0]) * 1e-9 * fps + 1e-9)
+
+    def grid(k):                                             # the grid times, t_0 relative
+        return np.clip(np.round(k * step), -2.0 ** 62, 2.0 ** 62).astype(np.int64)
+
+    # k: the first grid index whose time is at or after each sample (the estimate
+    # rel / step is off by one or two where the grid's rounding bites)
+    k = np.ceil(rel / step)
+    for _ in range(8):
+        down = (k > 0) & (grid(k - 1) >= rel)
+        up = grid(k) < rel
+        if not (down.any() or up.any()):
+            break
+        k = k - down + up
+    shown = (k <= last_k) & (grid(k) < after)
+    shown[-1] = True
+    return np.flatnonzero(shown)
 
 
 def load_description(urdf: str, source: str) -> RobotDescription:
@@ -318,37 +362,73 @@ def _joint_indices(desc: RobotDescription):
     return out
 
 
+def _usable(*values) -> bool:
+    """Whether recorded numbers can be drawn: finite, at most MAX_VALUE in magnitude."""
+    try:
+        return all(math.isfinite(v) and abs(v) <= MAX_VALUE for v in values)
+    except (TypeError, ValueError, OverflowError):    # not numbers at all
+        return False
+
+
+def _fields(series: Series, i: int, read):
+    """read(message i of series): its fields, or a ViewError where the message lacks them
+    (a bag whose schema for the type is not the ROS one)."""
+    msg = series.message(i)
+    try:
+        return read(msg)
+    except (AttributeError, TypeError) as e:
+        raise ViewError(f"message {i} on {series.topic} lacks the fields of its type "
+                        f"({type(e).__name__}: {e})") from None
+
+
+def _warn_unusable(rec: Recording, unusable: dict, what: str) -> None:
+    for topic, idx in unusable.items():
+        warn(f"{rec.path}: {len(idx)} message(s) on {topic} hold NaN, infinite or absurd "
+             f"values (beyond {MAX_VALUE:g}); {what}")
+
+
 def configurations(rec: Recording, desc: RobotDescription, frames: np.ndarray):
     """(N, nq) pin configurations at the joint-state samples `frames`: base pose from the
     latest base state at or before each, joint positions by name (a joint a message lacks
-    keeps its previous value, neutral at first)."""
+    keeps its previous value, neutral at first; so does a value that is NaN, infinite or
+    beyond MAX_VALUE, and a base pose holding one, with a warning)."""
     import pinocchio as pin
     model = desc.model
     index = _joint_indices(desc)
     q = np.tile(pin.neutral(model), (frames.size, 1))
     seen = set()
+    unusable = {}                                 # topic -> indices of such messages
     prev = q[0].copy()
     bases = rec.base.latest(rec.joints.t_ns[frames])
     for row, (i, b) in enumerate(zip(frames, bases)):
         q[row] = prev
-        js = rec.joints.message(i)
-        if len(js.position) == len(js.name):
-            for name, value in zip(js.name, js.position):
-                slot = index.get(name)
+        names, positions = _fields(rec.joints, i, lambda m: (list(m.name), list(m.position)))
+        if len(positions) == len(names):
+            for name, value in zip(names, positions):
+                slot = index.get(name) if isinstance(name, str) else None
                 if slot is None:
+                    continue
+                if not _usable(value):
+                    unusable.setdefault(rec.joints.topic, set()).add(int(i))
                     continue
                 seen.add(name)
                 if slot[1] == 1:
                     q[row, slot[0]] = value
                 else:   # continuous joint: (cos, sin)
                     q[row, slot[0]:slot[0] + 2] = (math.cos(value), math.sin(value))
-        pose = rec.base.message(b).pose.pose
-        quat = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
-                         pose.orientation.w])
-        n = np.linalg.norm(quat)
-        q[row, 0:3] = (pose.position.x, pose.position.y, pose.position.z)
-        q[row, 3:7] = quat / n if n > 1e-9 else (0.0, 0.0, 0.0, 1.0)
+        pose = _fields(rec.base, b, lambda m: (
+            m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z,
+            m.pose.pose.orientation.x, m.pose.pose.orientation.y, m.pose.pose.orientation.z,
+            m.pose.pose.orientation.w))
+        if _usable(*pose):
+            quat = np.array(pose[3:], dtype=float)
+            n = np.linalg.norm(quat)
+            q[row, 0:3] = pose[:3]
+            q[row, 3:7] = quat / n if n > 1e-9 else (0.0, 0.0, 0.0, 1.0)
+        else:
+            unusable.setdefault(rec.base.topic, set()).add(int(b))
         prev = q[row]
+    _warn_unusable(rec, unusable, "drawn with the previous value")
     never = [n for n in desc.joint_names if n not in seen]
     if never:
         warn(f"{rec.path}: joint(s) {', '.join(never)} of the URDF are in no joint state; "
@@ -377,11 +457,14 @@ def body_poses(desc: RobotDescription, q: np.ndarray, joint_ids):
 def contact_arrows(rec: Recording, desc: RobotDescription, frames, placements, force_scale):
     """(N, 4, 6) arrows (origin xyz, vector xyz [m]) per frame and foot: from the foot
     contact point (centre of the foot's contact sphere minus its radius along the ground
-    normal) along force * force_scale; zeros for a foot without force messages."""
+    normal) along force * force_scale; zeros for a foot without force messages, and no
+    arrow (a zero vector, with a warning) for a force that is NaN, infinite or beyond
+    MAX_VALUE."""
     arrows = np.zeros((frames.size, len(FEET), 6))
     normal = np.asarray(rec.ground_normal)
     contacts = {c.name: c for c in desc.contacts}
     t_frames = rec.joints.t_ns[frames]
+    unusable = {}                                 # topic -> indices of such messages
     for f, foot in enumerate(FEET):
         spec = contacts.get(f"{foot}_foot")
         series = rec.wrenches.get(foot)
@@ -392,9 +475,14 @@ def contact_arrows(rec: Recording, desc: RobotDescription, frames, placements, f
             continue
         for row, i in enumerate(series.latest(t_frames)):
             centre = placements[row][spec.joint].act(spec.local)
-            force = series.message(i).wrench.force
+            force = _fields(series, i, lambda m: (m.wrench.force.x, m.wrench.force.y,
+                                                  m.wrench.force.z))
             arrows[row, f, :3] = centre - spec.radius * normal
-            arrows[row, f, 3:] = np.array([force.x, force.y, force.z]) * force_scale
+            if _usable(*force):
+                arrows[row, f, 3:] = np.array(force, dtype=float) * force_scale
+            else:
+                unusable.setdefault(series.topic, set()).add(int(i))
+    _warn_unusable(rec, unusable, "no arrow drawn for them")
     return arrows
 
 
@@ -619,10 +707,14 @@ def replay_data(rec: Recording, desc: RobotDescription, fps: float, force_scale:
     joint_ids = sorted({j for j, _, _ in visuals} | {1})   # 1: the free-flyer (trunk)
     poses, placements = body_poses(desc, q, joint_ids)
     arrows = contact_arrows(rec, desc, frames, placements, force_scale)
+    if not np.isfinite(np.round(arrows, POSITION_DECIMALS)).all():
+        raise ViewError(f"force scale {force_scale:g} m/N: the force arrows are too long to "
+                        "write down")
     t0 = min(rec.joints.t_ns[0], rec.base.t_ns[0])
     t = (rec.joints.t_ns[frames] - t0) * 1e-9
     n = rec.joints.t_ns.size
-    rate = (n - 1) / ((rec.joints.t_ns[-1] - rec.joints.t_ns[0]) * 1e-9) if n > 1 else 0.0
+    span = float(rec.joints.t_ns[-1] - rec.joints.t_ns[0]) * 1e-9
+    rate = (n - 1) / span if n > 1 and span > 0 else 0.0     # all at one stamp: no rate
     step = int(np.median(np.diff(frames))) if frames.size > 1 else 1
     data = {
         "format": FORMAT, "source": os.path.basename(os.path.abspath(rec.path).rstrip(os.sep)),
