@@ -28,7 +28,7 @@ def test_alpha_auto_is_accepted_and_bad_values_name_file_and_field(tmp_path):
         path.write_text(yaml.safe_dump(data))
         with pytest.raises(ConfigError, match="solver.alpha: " + message) as e:
             load_preset(str(path))
-        assert str(e.value).startswith("bad.yaml: solver.alpha")
+        assert str(e.value).startswith(f"{path}: solver.alpha")
     assert prox.alpha_setting("auto") == prox.ALPHA_AUTO < 0 and prox.alpha_setting(0.6) == 0.6
 
 
