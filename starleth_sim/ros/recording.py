@@ -1391,7 +1391,8 @@ def _writer_main():
             return
         except Exception as e:
             if op == "open" and isinstance(e, OSError):   # one line: file and cause
-                e = RecordingError(f"{args[0]}: {_cause(e)}")
+                e = RecordingError(f"{args[0]}: {_cause(e)}" if e.errno is not None
+                                   else str(e))           # (a message naming the file)
             answer(False, e)
     if rec is not None:
         try:

@@ -996,7 +996,7 @@ class SimNode:
         if pub.get_subscription_count() == 0:
             return
         sec, nsec = divmod(self.service.stamp_ns, 1_000_000_000)
-        statuses = [self._diagnostics()[0], self._interface_status()]
+        statuses = self._diagnostics()           # paused: the interface status too
         if self._diag_cdr is not None:
             pub.publish(self._diag_cdr.build(sec, nsec, statuses))
         else:
