@@ -509,6 +509,16 @@ class McapRecorder:
             pass
 
 
+def _widen_span(span, files_entry):
+    """(start, end) ns of a bag's messages widened by one file's BagMetadata "files" entry
+    (a file without messages leaves it as it is; span None: nothing yet)."""
+    if not files_entry["message_count"]:
+        return span
+    start = files_entry["starting_time"]["nanoseconds_since_epoch"]
+    end = start + files_entry["duration"]["nanoseconds"]
+    return (start, end) if span is None else (min(span[0], start), max(span[1], end))
+
+
 class SplitRecorder:
     """rosbag2's split recording (``ros2 bag record --max-bag-duration/--max-bag-size``): a
     bag directory holding ``<name>_0.mcap``, ``<name>_1.mcap``, ... and ``metadata.yaml``. A
@@ -526,9 +536,7 @@ class SplitRecorder:
     does, writes metadata.yaml and raises RecordingError (:attr:`failure`)."""
 
     def __init__(self, path: str, *, max_duration_ns: int = 0, max_size: int = 0, **kwargs):
-        path = str(path)
-        if path.endswith(".mcap"):
-            path = path[:-len(".mcap")]
+        path = self.directory(path)
         if os.path.exists(path) and (not os.path.isdir(path) or os.listdir(path)):
             raise FileExistsError(f"{path}: the bag directory exists and is not empty")
         os.makedirs(path, exist_ok=True)
@@ -553,6 +561,18 @@ class SplitRecorder:
         self._open_next()
 
     # -- files ------------------------------------------------------------------------------
+    @staticmethod
+    def directory(path) -> str:
+        """The bag directory of `record` path (a trailing .mcap dropped)."""
+        path = str(path)
+        return path[:-len(".mcap")] if path.endswith(".mcap") else path
+
+    @staticmethod
+    def file_path(directory: str, index: int) -> str:
+        """The index-th file of a bag directory: <directory>/<its name>_<index>.mcap."""
+        name = os.path.basename(os.path.normpath(directory))
+        return os.path.join(directory, f"{name}_{index}.mcap")
+
     @property
     def files(self) -> list:
         """Paths of the files written so far (the current one last)."""
@@ -562,8 +582,7 @@ class SplitRecorder:
         return [os.path.join(self.path, n) for n in names]
 
     def _open_next(self):
-        index = len(self._done)
-        rec = McapRecorder(os.path.join(self.path, f"{self.name}_{index}.mcap"), **self._kwargs)
+        rec = McapRecorder(self.file_path(self.path, len(self._done)), **self._kwargs)
         self._current = rec
         for topic, typ, qos, type_hash in self._topics:
             rec.add_topic(topic, typ, qos, type_hash)
@@ -581,11 +600,7 @@ class SplitRecorder:
         meta = cur.bag_metadata()
         entry = meta["files"][0]
         self._done.append(entry)
-        if entry["message_count"]:
-            start = entry["starting_time"]["nanoseconds_since_epoch"]
-            end = start + entry["duration"]["nanoseconds"]
-            self._span = (start, end) if self._span is None else \
-                (min(self._span[0], start), max(self._span[1], end))
+        self._span = _widen_span(self._span, entry)
         for t in meta["topics_with_message_count"]:
             name = t["topic_metadata"]["name"]
             self._topic_meta.setdefault(name, t["topic_metadata"])
@@ -687,11 +702,7 @@ class SplitRecorder:
             base = self._current.bag_metadata()
             entry = base["files"][0]
             files.append(entry)
-            if entry["message_count"]:
-                start = entry["starting_time"]["nanoseconds_since_epoch"]
-                end = start + entry["duration"]["nanoseconds"]
-                span = (start, end) if span is None else (min(span[0], start),
-                                                          max(span[1], end))
+            span = _widen_span(span, entry)
             for t in base["topics_with_message_count"]:
                 name = t["topic_metadata"]["name"]
                 topic_meta.setdefault(name, t["topic_metadata"])
@@ -1170,14 +1181,12 @@ class ProcessRecorder:
         else:
             how = f"exit status {returncode}"
         path = self.path
-        if self.split:
-            import glob
-            import re
-            d = path[:-len(".mcap")] if path.endswith(".mcap") else path
-            numbered = sorted(glob.glob(os.path.join(d, "*_*.mcap")),
-                              key=lambda p: int(re.findall(r"_(\d+)\.mcap$", p)[0])
-                              if re.findall(r"_(\d+)\.mcap$", p) else -1)
-            path = numbered[-1] if numbered else d
+        if self.split:                    # the last file of the bag directory
+            d = SplitRecorder.directory(path)
+            index = 0
+            while os.path.exists(SplitRecorder.file_path(d, index + 1)):
+                index += 1
+            path = SplitRecorder.file_path(d, index)
         try:
             result = repair(path, {"cause": f"the recording process ended ({how})"})
         except OSError as e:
