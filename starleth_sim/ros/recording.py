@@ -1132,8 +1132,9 @@ class ProcessRecorder:
 
     @property
     def backlog(self) -> int:
-        """Bytes handed over that are not in the pipe yet (the writer is behind)."""
-        return self._pending_bytes - self._sent + len(self._buf)
+        """Bytes handed over that are not in the pipe yet (the writer is behind; at most
+        MAX_BACKLOG)."""
+        return self._pending_bytes - self._sent
 
     # -- failures ---------------------------------------------------------------------------
     def _writer_gone(self, error):
