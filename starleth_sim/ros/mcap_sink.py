@@ -24,8 +24,10 @@ from __future__ import annotations
 import os
 import struct
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-OP_FOOTER, OP_METADATA, OP_DATA_END = 0x02, 0x0C, 0x0F
+from mcap.opcode import Opcode
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"     # the MCAP file's first and last 8 bytes
+OP_FOOTER, OP_METADATA, OP_DATA_END = Opcode.FOOTER, Opcode.METADATA, Opcode.DATA_END
 _RECORD_HEAD = struct.Struct("<BQ")
 
 

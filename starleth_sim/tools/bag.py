@@ -17,7 +17,8 @@ import re
 import sys
 import zlib
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+from ..ros.mcap_sink import MCAP_MAGIC
+
 #: log and publish times are int64 nanoseconds in ROS 2 (rcutils_time_point_value_t); an
 #: MCAP Message record holds a uint64: one beyond the int64 range is damage
 MAX_TIME_NS = 2 ** 63 - 1
