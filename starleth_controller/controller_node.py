@@ -97,7 +97,9 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             ParameterSpec, StopSignals, ThrottledLog,
                                             declare_parameters, init_ros, make_executor,
                                             set_cpu_scheduling, shutdown_ros)
-from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader
+from starleth_interface.cycle_times import CONTROLLER_CYCLE_FIELDS, CycleTimes  # noqa: F401
+from starleth_interface.msg_cdr import (ODOM_FIELDS, WRENCH_FIELDS, JointStateCdr,
+                                       JointStateReader, StampedReader)
 from starleth_interface import state_bundle
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
@@ -194,32 +196,6 @@ PARAMETERS = (
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
 )
 PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
-
-
-#: the float fields read from the state messages (fast path: straight from the CDR bytes)
-ODOM_FIELDS = ("pose.pose.position.x", "pose.pose.position.y", "pose.pose.position.z",
-               "pose.pose.orientation.x", "pose.pose.orientation.y", "pose.pose.orientation.z",
-               "pose.pose.orientation.w", "twist.twist.linear.x", "twist.twist.linear.y",
-               "twist.twist.linear.z", "twist.twist.angular.x", "twist.twist.angular.y",
-               "twist.twist.angular.z")
-WRENCH_FIELDS = ("wrench.force.x", "wrench.force.y", "wrench.force.z")
-
-
-class CycleTimes:
-    """Per-cycle timestamps (time.perf_counter, CLOCK_MONOTONIC: comparable across
-    processes on one host) for benchmarks: first and last message of a stamp in, torques
-    computed, command published. Off unless a benchmark sets ``ControllerNode.timing``."""
-
-    def __init__(self, capacity=200_000):
-        self.stamp = np.zeros(capacity, np.int64)
-        self.t = np.zeros((capacity, 4))
-        self.n = 0
-
-    def add(self, stamp, t_first, t_complete, t_computed, t_sent):
-        if self.n < len(self.stamp):
-            self.stamp[self.n] = stamp
-            self.t[self.n] = (t_first, t_complete, t_computed, t_sent)
-            self.n += 1
 
 
 class _Slot:

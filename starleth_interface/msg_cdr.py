@@ -33,6 +33,19 @@ import struct
 
 import numpy as np
 
+#: the float fields of the per-cycle messages that the nodes write (FixedCdr) and read
+#: (StampedReader): geometry_msgs/WrenchStamped (the force), nav_msgs/Odometry (pose and
+#: twist), sensor_msgs/Imu
+WRENCH_FIELDS = ("wrench.force.x", "wrench.force.y", "wrench.force.z")
+ODOM_FIELDS = ("pose.pose.position.x", "pose.pose.position.y", "pose.pose.position.z",
+               "pose.pose.orientation.x", "pose.pose.orientation.y", "pose.pose.orientation.z",
+               "pose.pose.orientation.w", "twist.twist.linear.x", "twist.twist.linear.y",
+               "twist.twist.linear.z", "twist.twist.angular.x", "twist.twist.angular.y",
+               "twist.twist.angular.z")
+IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w",
+              "angular_velocity.x", "angular_velocity.y", "angular_velocity.z",
+              "linear_acceleration.x", "linear_acceleration.y", "linear_acceleration.z")
+
 _ORIGIN = 4
 _CDR_LE = b"\x00\x01"
 _STAMP = struct.Struct("<iI")

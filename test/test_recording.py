@@ -333,7 +333,7 @@ def test_fixed_cdr_templates_give_rclpys_bytes():
     import numpy as np
     from rclpy.serialization import deserialize_message
     from starleth_interface.msg_cdr import FixedCdr
-    from starleth_sim.ros.sim_node import IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS
+    from starleth_interface.msg_cdr import IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS
     from starleth_interface.msg_cdr import _set
     rng = np.random.default_rng(1)
     cases = [(WrenchStamped, WRENCH_FIELDS, ("world",)), (Odometry, ODOM_FIELDS, ("world", "base")),
@@ -367,7 +367,7 @@ def test_fixed_cdr_templates_give_rclpys_bytes():
 def test_readers_decode_rclpys_bytes_and_fall_back_on_anything_else():
     import numpy as np
     from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader, _set
-    from starleth_controller.controller_node import ODOM_FIELDS, WRENCH_FIELDS
+    from starleth_interface.msg_cdr import ODOM_FIELDS, WRENCH_FIELDS
     rng = np.random.default_rng(2)
     ro = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
     rw = StampedReader(WrenchStamped, WRENCH_FIELDS)

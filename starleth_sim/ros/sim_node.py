@@ -112,7 +112,7 @@ the node prepares the torque-independent part of the next step (``Simulator.prep
 while the controller computes its answer. The base state and the foot forces are read
 through ``Simulator.base_state`` and ``Simulator.contact_forces`` (no per-contact records),
 the contact markers written as CDR bytes too
-(``msg_cdr.SlotCdr``). ``SimNode.timing`` (a :class:`CycleTimes`,
+(``msg_cdr.SlotCdr``). ``SimNode.timing`` (a :class:`~starleth_interface.cycle_times.CycleTimes`,
 benchmarks only) times each part.
 
 The ROS-free parts: :class:`~.service.SimService` (command validation, lockstep bookkeeping,
@@ -144,7 +144,9 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
 from starleth_interface.compile_notice import CompileNotice
-from starleth_interface.msg_cdr import DiagnosticArrayCdr, FixedCdr, JointStateCdr, SlotCdr
+from starleth_interface.cycle_times import CycleTimes  # noqa: F401  (SimNode.timing)
+from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, DiagnosticArrayCdr,
+                                       FixedCdr, JointStateCdr, SlotCdr)
 from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
 from starleth_interface.state_bundle import StateBundleCdr
 from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
@@ -177,41 +179,6 @@ def _package_version() -> str:
 
 def _dbl(a) -> array.array:
     return array.array("d", np.ascontiguousarray(a, dtype=float).tobytes())
-
-
-WRENCH_FIELDS = ("wrench.force.x", "wrench.force.y", "wrench.force.z")
-ODOM_FIELDS = ("pose.pose.position.x", "pose.pose.position.y", "pose.pose.position.z",
-               "pose.pose.orientation.x", "pose.pose.orientation.y", "pose.pose.orientation.z",
-               "pose.pose.orientation.w", "twist.twist.linear.x", "twist.twist.linear.y",
-               "twist.twist.linear.z", "twist.twist.angular.x", "twist.twist.angular.y",
-               "twist.twist.angular.z")
-IMU_FIELDS = ("orientation.x", "orientation.y", "orientation.z", "orientation.w",
-              "angular_velocity.x", "angular_velocity.y", "angular_velocity.z",
-              "linear_acceleration.x", "linear_acceleration.y", "linear_acceleration.z")
-
-
-class CycleTimes:
-    """Per-cycle timestamps of the lockstep critical path (time.perf_counter, i.e.
-    CLOCK_MONOTONIC: comparable across processes on one host), for benchmarks: command in,
-    stepped, the state a controller waits for out (the bundle; without a bundle subscriber
-    the foot wrenches, the base state and /joint_states), the other state topics out (the
-    public ones after a bundle; else /clock, imu, solver; recorded or published), the
-    post-publish work done (prepare, visualisation, hand-over to the recorder). Off unless
-    a benchmark sets ``SimNode.timing``."""
-
-    FIELDS = ("command_in", "stepped", "state_out", "public_out", "done")
-
-    def __init__(self, capacity=200_000):
-        self.stamp = np.zeros(capacity, np.int64)
-        self.t = np.zeros((capacity, len(self.FIELDS)))
-        self.n = 0
-        self.row = np.zeros(len(self.FIELDS))
-
-    def commit(self, stamp):
-        if self.n < len(self.stamp):
-            self.stamp[self.n] = stamp
-            self.t[self.n] = self.row
-            self.n += 1
 
 
 class SimNode:

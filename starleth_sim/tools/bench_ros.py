@@ -57,6 +57,7 @@ import time
 import numpy as np
 
 from starleth_interface.compile_notice import Deadline
+from starleth_interface.cycle_times import CONTROLLER_CYCLE_FIELDS, SIM_CYCLE_FIELDS, CycleTimes
 
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 
@@ -167,9 +168,7 @@ def child_main(args):
     ex.add_node(sim.node)
     ctl = None
     if args.timing:
-        from starleth_sim.ros import sim_node
-        if hasattr(sim_node, "CycleTimes"):
-            sim.timing = sim_node.CycleTimes()
+        sim.timing = CycleTimes(SIM_CYCLE_FIELDS)
     if args.composed:   # the controller on sim_node's executor, in this process
         ctl = make_bench_controller(sim.context, timing=bool(args.timing),
                                     params=_controller_params(args.controller_param))
@@ -233,8 +232,8 @@ def make_bench_controller(context, timing=False, trot_at=TROT_AT, speed=TROT_SPE
     ctl = controller_node.ControllerNode(context=context, parameter_overrides={
         **(params or {}), "mode": "stand"})
     ctl._vel = (speed, 0.0, 0.0)
-    if timing and hasattr(controller_node, "CycleTimes"):
-        ctl.timing = controller_node.CycleTimes()
+    if timing:
+        ctl.timing = CycleTimes(CONTROLLER_CYCLE_FIELDS)
     publish = ctl._publish
 
     def publish_and_switch(stamp, effort):
@@ -565,9 +564,7 @@ def real_loop_figures(windows, sim_stamp, sim_t, ctl_stamp, ctl_t, bare):
     """Rates per round (commands the controller sent in the round's window, or states
     whose topics went out in it) and the per-cycle breakdown (medians over all rounds, ms)
     from the two nodes' timestamps (none if the nodes have no timers)."""
-    from starleth_sim.ros import sim_node
-    fields = getattr(sim_node, "CycleTimes", None)
-    F = {f: i for i, f in enumerate(fields.FIELDS)} if fields else {"state_out": 0}
+    F = {f: i for i, f in enumerate(SIM_CYCLE_FIELDS)}
     if sim_t is None or not len(sim_t):
         sim_t, sim_stamp = np.zeros((0, max(F.values()) + 1)), np.zeros(0, np.int64)
     out_t = sim_t[:, F["state_out"]]
