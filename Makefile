@@ -45,9 +45,11 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 # 15 s the first time, then a second or two): else both pytest workers would compile the same
 # kernels side by side. Then two passes: the CPU-bound tests on two pytest-xdist workers (a
 # file's tests on one worker, so its module fixtures run once), then the tests marked serial
-# (ROS nodes, deadlines, rates, browser; see test/conftest.py) one at a time. Both passes
-# run; the target fails with the first failing pass's pytest status (5, no tests collected,
-# only if neither pass collected any: a -k selection may fall in one pass alone).
+# (ROS nodes, deadlines, rates, browser; see test/conftest.py) one at a time. Then ruff
+# over the tree (ruff.toml: pycodestyle errors and warnings, pyflakes; line length 100).
+# All three passes run; the target fails with the first failing pass's status (a pytest
+# pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
+# in one pass alone).
 test: venv
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
@@ -55,9 +57,11 @@ test: venv
 	$(VPY) -m pytest -q -n 2 --dist loadfile -m "not serial" test $(PYTEST_ARGS); a=$$?; \
 	echo "pass 2: tests marked serial, one at a time"; \
 	$(VPY) -m pytest -q -m serial test $(PYTEST_ARGS); b=$$?; \
+	echo "pass 3: ruff check (ruff.toml)"; \
+	$(VENV)/bin/ruff check .; c=$$?; \
 	if [ $$a = 5 ] && [ $$b = 0 ]; then a=0; fi; \
 	if [ $$b = 5 ] && [ $$a = 0 ]; then b=0; fi; \
-	if [ $$a != 0 ]; then exit $$a; fi; exit $$b
+	if [ $$a != 0 ]; then exit $$a; fi; if [ $$b != 0 ]; then exit $$b; fi; exit $$c
 
 # The main job: the trotting demo over ROS 2 (starleth-demo; it makes the kernels ready
 # first, with a progress line, then runs sim_node + controller_node and summarises the bag).
@@ -107,7 +111,7 @@ constraints:
 	rm -rf $$tmp; echo "constraints.txt refreshed: run make test, then commit it"
 
 clean:
-	rm -rf build install log *.egg-info .pytest_cache
+	rm -rf build install log *.egg-info .pytest_cache .ruff_cache
 	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
 
 distclean: clean

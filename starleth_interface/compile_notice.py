@@ -39,12 +39,13 @@ class CompileNotice:
         self._compiling = threading.Event()
         self._thread = None
         self._listener = None
+        self._unregister = None
         self._t0 = 0.0
 
     def _listen(self):
         """Sets _compiling at numba's first compile event (none without numba)."""
         try:
-            from numba.core import event
+            from numba.core import event  # deferred: numba (0.6 s) only once a block runs
         except ImportError:     # pragma: no cover - numba is a dependency
             return
         compiling = self._compiling
@@ -57,11 +58,11 @@ class CompileNotice:
                 pass
         self._listener = Listener()
         event.register("numba:compile", self._listener)
+        self._unregister = lambda: event.unregister("numba:compile", self._listener)
 
     def _unlisten(self):
         if self._listener is not None:
-            from numba.core import event
-            event.unregister("numba:compile", self._listener)
+            self._unregister()
             self._listener = None
 
     def _about(self) -> str:

@@ -8,9 +8,14 @@ ROS-free service logic and the tools can use the schemas and ThrottledLog.
 from __future__ import annotations
 
 import math
+import os
+import signal
+import sys
 import textwrap
 import time
 from dataclasses import dataclass, field
+
+import yaml
 
 
 # =========================================================================================
@@ -77,8 +82,8 @@ class ParameterSpec:
         if self.kind in (int, float):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or \
                     (self.kind is int and not isinstance(value, int)):
-                raise ValueError(f"{what}: expected {'an integer' if self.kind is int else 'a finite number'}, "
-                                 f"got {value!r}")
+                expected = "an integer" if self.kind is int else "a finite number"
+                raise ValueError(f"{what}: expected {expected}, got {value!r}")
             if not math.isfinite(value):
                 raise ValueError(f"{what}: expected a finite number, got {value!r}")
             if self.off_value is not None and value == self.off_value:
@@ -122,7 +127,6 @@ def declare_parameters(node, specs) -> dict:
 
 
 def _yaml_scalar(value) -> str:
-    import yaml
     return yaml.safe_dump(value, default_flow_style=True, width=10 ** 6).strip() \
         .removesuffix("...").strip()
 
@@ -160,7 +164,6 @@ def set_cpu_scheduling(policy: str):
     """Apply `policy` (CPU_SCHEDULING) to every thread of this process: 'batch' =
     SCHED_BATCH (threads started later inherit it from their creator), 'default' changes
     nothing. Returns None, or the reason it could not be applied (one line)."""
-    import os
     if policy == "default":
         return None
     if policy != "batch":
@@ -231,8 +234,6 @@ def init_ros(prog: str, argv) -> bool:
     """rclpy.init with the given argv and without rclpy's own signal handlers (the
     node's StopSignals decide what a signal does). False, with one line on stderr, when
     ROS cannot start (e.g. a malformed --ros-args rule)."""
-    import sys
-
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     try:
@@ -248,7 +249,6 @@ class StopSignals:
     KeyboardInterrupt (give up on a clean exit). ``ignore()`` while finalising."""
 
     def __init__(self, on_stop=None):
-        import signal
         self.count = 0
         self.on_stop = on_stop
         signal.signal(signal.SIGINT, self._handle)
@@ -267,7 +267,6 @@ class StopSignals:
 
     @staticmethod
     def ignore():
-        import signal
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
 

@@ -41,8 +41,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from starleth_interface.compile_notice import Deadline
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
+                                       TOPIC_SOLVER, resolve)
 
+from ..physics.posture import PostureHold
+from ..physics.simulator import Simulator
 from ..ros.discovery import keep_discovery_local, local_discovery_env
+from .bag import BagError, stream_bag
+from .bench_ros import measure_bare_round_trips
+from .precompile import precompile
+from .view import ViewError, write_html
 
 PERIOD_NS = 2_500_000            # sim_node's stamp period (400 Hz)
 FALL_HEIGHT = 0.3                # a base height below this is a fall [m]
@@ -56,8 +64,6 @@ MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not ch
 # drop test (headless, no ROS)
 # =========================================================================================
 def drop_test(preset="HmJ", height=0.1, seconds=5.0):
-    from ..physics.posture import PostureHold
-    from ..physics.simulator import Simulator
     sim = Simulator.from_preset(preset)
     q = sim.q
     q[2] += height
@@ -371,9 +377,6 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
 
 def read_bag(path, result: DemoResult):
     """Fill `result` from the recording: base trajectory, solver iterations, counts."""
-    from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
-                                           TOPIC_JOINT_STATES, TOPIC_SOLVER, resolve)
-    from .bag import BagError, stream_bag
     if not os.path.exists(path):
         raise DemoError(f"the recording {path} does not exist")
     result.bag_bytes = os.path.getsize(path)
@@ -460,14 +463,12 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
          + ("in one process " if in_process else "") + f"(ROS_DOMAIN_ID={domain_id})")
     keep_discovery_local()      # this process's own ROS context too
     if precompile_first:        # the kernels ready (and said so) before the nodes start
-        from .precompile import precompile
         wall, failed = precompile(stream=sys.stdout)
         if failed:
             raise DemoError("the kernels could not be made ready: "
                             + "; ".join(f"{u}: {e}" for u, e in failed))
         echo(f"  kernels ready in {wall:.1f} s")
     if bare_seconds > 0:
-        from .bench_ros import measure_bare_round_trips
         try:
             result.bare_round_trips, rtt = measure_bare_round_trips(domain_id, bare_seconds)
             echo(f"  bare rclpy round trips {result.bare_round_trips:.0f}/s (median "
@@ -505,8 +506,6 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
 
 def write_replay(result: DemoResult, path: str):
     """The recording as a self-contained 3D replay page (starleth-view)."""
-    from .bag import BagError
-    from .view import ViewError, write_html
     try:
         info = write_html(result.bag, path)
     except (BagError, ViewError, OSError) as e:

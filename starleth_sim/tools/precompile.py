@@ -30,6 +30,8 @@ import sys
 import tempfile
 import time
 
+from ..physics import kernel_build, kernels
+
 #: (unit, rough cold seconds on a 2-core machine), the longest first
 UNITS = (("controller", 10.0), ("ros-codec", 3.0), ("physics", 4.0))
 ESTIMATE = dict(UNITS)
@@ -39,16 +41,16 @@ def compile_unit(unit: str, cold_dir: str | None = None) -> None:
     """Makes the kernels of `unit` ready (see the module docstring); cold_dir: build the C
     kernels there (``physics`` with --cold)."""
     if unit == "physics":
-        from ..physics import kernel_build
         if cold_dir is not None:
             kernel_build.build(os.path.join(cold_dir, kernel_build.MODULE + kernel_build.SUFFIX))
         else:
-            from ..physics import kernels   # noqa: F401  (builds a stale checkout's module)
+            kernels.ensure_built()      # (the import above built a stale checkout's module)
     elif unit == "controller":
-        from starleth_controller.controller_node import compile_kernels
+        from starleth_controller.controller_node import (  # deferred: rclpy and numba, in
+            compile_kernels)                                # this unit's worker only
         compile_kernels(log=lambda *_: None)
     elif unit == "ros-codec":
-        from ..ros.cdr import CommandDecoder
+        from ..ros.cdr import CommandDecoder  # deferred: numba, in this unit's worker only
         CommandDecoder(["joint"])          # compiles its parsers on construction
     else:
         raise ValueError(f"unknown unit {unit!r}: one of {', '.join(u for u, _ in UNITS)}")
