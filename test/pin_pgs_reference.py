@@ -344,9 +344,11 @@ if __name__ == "__main__":
     G1 = np.diag([2.0, 3.0, 3.0])
     c = np.array([-1.0, 0.1, 0.0])
     lam, info = pin_pgs_solve(G1, c, mu1, return_info=True)
-    report("single contact, diag G, sticking", G1, c, mu1, lam, info, np.array([0.5, -0.1 / 3.0, 0.0]))
+    report("single contact, diag G, sticking", G1, c, mu1, lam, info,
+           np.array([0.5, -0.1 / 3.0, 0.0]))
 
-    # (1b) single contact, diagonal G, sliding: L_N = 1/2, L_T = -mu L_N e1, xi_T1 = 4.25 = s*0.25, s=17
+    # (1b) single contact, diagonal G, sliding: L_N = 1/2, L_T = -mu L_N e1,
+    # xi_T1 = 4.25 = s*0.25, s=17
     c = np.array([-1.0, 5.0, 0.0])
     lam, info = pin_pgs_solve(G1, c, mu1, return_info=True)
     report("single contact, diag G, sliding", G1, c, mu1, lam, info, np.array([0.5, -0.25, 0.0]))
@@ -357,7 +359,8 @@ if __name__ == "__main__":
     G1c = np.array([[2.0, 0.5, 0.0], [0.5, 3.0, 0.0], [0.0, 0.0, 3.0]])
     LN = 1.0 / 1.75
     lam, info = pin_pgs_solve(G1c, c, mu1, return_info=True)
-    report("single contact, coupled G, sliding", G1c, c, mu1, lam, info, np.array([LN, -0.5 * LN, 0.0]))
+    report("single contact, coupled G, sliding", G1c, c, mu1, lam, info,
+           np.array([LN, -0.5 * LN, 0.0]))
 
     # (1d) single contact, separating: c_N > 0 => Lambda = 0
     c = np.array([1.0, 5.0, -2.0])
@@ -405,7 +408,8 @@ if __name__ == "__main__":
                max_iterations=100000, **raw)
     run_random("INFO rotation but no fallback", 500, 0, fallback_relaxations=())
     run_random("INFO no rotation, with fallback", 500, 0, tangent_rotation=False)
-    run_random("INFO complementarity_tol=1e-12 (pin-style early stop)", 500, 0, complementarity_tol=1e-12)
+    run_random("INFO complementarity_tol=1e-12 (pin-style early stop)", 500, 0,
+               complementarity_tol=1e-12)
     run_random("INFO PSD G (W 8x12, rank 8), c = W^T u", 200, 2, ndof=8, c_in_range=True)
     run_random("INFO PSD G, c = W^T u, no fallback", 200, 2, ndof=8, c_in_range=True,
                fallback_relaxations=())

@@ -199,9 +199,12 @@ def test_physics_core_does_not_import_ros():
     (parameters, service, state conversions) and the bag reader import no ROS."""
     import subprocess
     import sys
-    code = ("import sys, starleth_sim, starleth_sim.physics.simulator, starleth_sim.physics.stepper;"
-            "import starleth_sim.ros.parameters, starleth_sim.ros.service, starleth_sim.ros.state_io;"
-            "import starleth_sim.tools.bag, starleth_interface.topics, starleth_interface.ros_helpers;"
+    code = ("import sys, starleth_sim, starleth_sim.physics.simulator,"
+            " starleth_sim.physics.stepper;"
+            "import starleth_sim.ros.parameters, starleth_sim.ros.service,"
+            " starleth_sim.ros.state_io;"
+            "import starleth_sim.tools.bag, starleth_interface.topics,"
+            " starleth_interface.ros_helpers;"
             "from starleth_sim import Simulator; Simulator.from_preset('HmJ').step();"
             "bad=[m for m in sys.modules if m.split('.')[0] in ('rclpy','rosidl_runtime_py')];"
             "assert not bad, bad")

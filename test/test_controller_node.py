@@ -10,7 +10,6 @@ finally; every wait is bounded.
   stamped with the state's stamp, and switches modes by service and parameter.
 """
 import array
-import itertools
 import math
 import os
 
@@ -394,7 +393,8 @@ def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
         getp = ros.node.create_client(GetParameters, "/controller_node/get_parameters")
 
         def mode():
-            return ros.call_client(getp, GetParameters.Request(names=["mode"])).values[0].string_value
+            response = ros.call_client(getp, GetParameters.Request(names=["mode"]))
+            return response.values[0].string_value
 
         res = ros.call_client(trot, SetBool.Request(data=True))
         assert res.success and mode() == "trot", res.message

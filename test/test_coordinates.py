@@ -234,9 +234,10 @@ def test_every_table1_preset_stands_10_s(preset):
 @pytest.mark.parametrize("preset", ["HEJD", "HMJD"])
 def test_bilateral_drift_while_trotting_30_s_is_below_the_papers(preset):
     """Position-level violation of the bilateral constraints while trotting at 0.3 m/s for
-    30 s (the full 60 s run is starleth-eval's): its growth (least-squares slope after the first 2 s) must not exceed the paper's
-    0.59 µm/min. (The drift stabilisation β = 1 of the presets bounds the violation; with
-    β = 0, the paper's plain law, HMJD drifts by millimetres per minute here.)"""
+    30 s (the full 60 s run is starleth-eval's): its growth (least-squares slope after the
+    first 2 s) must not exceed the paper's 0.59 µm/min. (The drift stabilisation β = 1 of the
+    presets bounds the violation; with β = 0, the paper's plain law, HMJD drifts by
+    millimetres per minute here.)"""
     sim = Simulator.from_preset(preset)
     ctrl = StarlethController(urdf_path())
     t, g = [], []

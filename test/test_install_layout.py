@@ -45,7 +45,8 @@ def test_executables_and_share(prefix):
     exe = prefix / "lib" / "starleth_sim" / "sim_node"
     assert exe.is_file() and os.access(exe, os.X_OK)
     assert "'console_scripts', 'sim_node'" in exe.read_text()
-    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "starleth_sim").is_file()
+    index = prefix / "share" / "ament_index" / "resource_index"
+    assert (index / "packages" / "starleth_sim").is_file()
     share = prefix / "share" / "starleth_sim"
     assert (share / "package.xml").is_file()
     assert (share / "urdf" / "starleth.urdf").is_file()
@@ -58,7 +59,8 @@ def test_executables_and_share(prefix):
 def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     """Run from outside the source tree: data comes from share/ via the ament index."""
     code = ("import starleth_sim, starleth_sim.physics.description as d;"
-            "from starleth_sim.ros.parameters import load_default_parameters, default_settings_file;"
+            "from starleth_sim.ros.parameters import load_default_parameters,"
+            " default_settings_file;"
             "print(starleth_sim.__file__); print(d.package_share_dir());"
             "print(default_settings_file()); print(load_default_parameters()['physics'])")
     r = _run_installed(prefix, tmp_path, code)

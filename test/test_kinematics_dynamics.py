@@ -88,7 +88,10 @@ def tumble(control_rate, seconds=0.5):
     u[6:] = 0.5
     sim.reset(q, u)
     c = sim.coords
-    energy = lambda: c.kinetic_energy(sim.q, sim.u) + c.potential_energy(sim.q)
+
+    def energy():
+        return c.kinetic_energy(sim.q, sim.u) + c.potential_energy(sim.q)
+
     mass = sim.description.total_mass
 
     def momentum_xy():

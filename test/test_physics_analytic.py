@@ -149,7 +149,8 @@ def test_restitution_override_of_unknown_contact_is_rejected():
 
 def compliant_box(**overrides):
     cfg = load_preset("Cm").with_overrides(control_rate=1000.0, steps_per_control=1, **overrides)
-    return Simulator(cfg, description=RobotDescription.from_urdf_xml(box_urdf((0.2, 0.2, 0.2), 1.0)))
+    box = RobotDescription.from_urdf_xml(box_urdf((0.2, 0.2, 0.2), 1.0))
+    return Simulator(cfg, description=box)
 
 
 def test_compliant_box_slides_and_stops_near_the_coulomb_distance():

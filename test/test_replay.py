@@ -112,8 +112,8 @@ def test_replay_without_the_wrenches_differs_from_the_push_on(recorded):
 def test_open_loop_replay_through_other_configurations(recorded, capsys):
     mcap, tmp = recorded
     out = tmp / "overlay"
-    rc = replay.main([mcap, "--preset", "HmS", "--preset", "Cm", "--out", str(out), "--steps", "120",
-                      "--json", str(tmp / "presets.json")])
+    rc = replay.main([mcap, "--preset", "HmS", "--preset", "Cm", "--out", str(out),
+                      "--steps", "120", "--json", str(tmp / "presets.json")])
     assert rc == 0
     text = capsys.readouterr().out
     assert "open loop" in text and "diverge" in text and "| Cm |" in text

@@ -324,7 +324,8 @@ def test_colcon_build_installs_the_launch_file(tmp_path):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     share = base / "install" / "starleth_sim" / "share" / "starleth_sim"
     assert (share / "launch" / "starleth.launch.xml").is_file()
-    assert (base / "install" / "starleth_sim" / "lib" / "starleth_sim" / "controller_node").is_file()
+    lib = base / "install" / "starleth_sim" / "lib" / "starleth_sim"
+    assert (lib / "controller_node").is_file()
 
 
 # -----------------------------------------------------------------------------------------

@@ -86,8 +86,10 @@ def test_joint_command_validation(sim):
     assert svc.command[0] == -5.0 and svc.command[11] == 5.0 and svc.command[1] == 1.0
     assert svc.submit_joint_command([], [0.5] * 12)[0]                       # joint order
     before = svc.command.copy()
-    for n, e, word in ((["LF_HAA", "FOO"], [1, 2], "'FOO'"), (["LF_HAA", "LF_HAA"], [1, 2], "duplicate"),
-                       (["LF_HAA"], [1, 2], "1 names but 2 efforts"), ([], [1.0] * 3, "no joint names"),
+    for n, e, word in ((["LF_HAA", "FOO"], [1, 2], "'FOO'"),
+                       (["LF_HAA", "LF_HAA"], [1, 2], "duplicate"),
+                       (["LF_HAA"], [1, 2], "1 names but 2 efforts"),
+                       ([], [1.0] * 3, "no joint names"),
                        (["LF_HFE"], [float("nan")], "non-finite effort for LF_HFE")):
         ok, why = svc.submit_joint_command(n, e)
         assert not ok and word in why, why

@@ -154,7 +154,8 @@ def test_contact_markers_show_the_recorded_wrenches(recorded):
     scale = node.settings.contact_marker_scale
     names = node.sim.contact_names
     wrenches = {f: {_stamp(m.ros_msg): m.ros_msg.wrench.force
-                    for m in msgs[f"/starleth/{f}/wrench"]} for f in node.sim.description.foot_names}
+                    for m in msgs[f"/starleth/{f}/wrench"]}
+                for f in node.sim.description.foot_names}
     states_seen = set()
     n_arrows = 0
     assert len(msgs["/starleth/contact_markers"]) == 201
