@@ -203,7 +203,8 @@ def problem(page, kind, value, scripts, targets, tops, names):
     if kind == "make":
         return None if value in targets else "not a Makefile target"
     if kind == "launch":
-        return None if os.path.isfile(os.path.join(ROOT, "launch", value)) else "no such launch file"
+        exists = os.path.isfile(os.path.join(ROOT, "launch", value))
+        return None if exists else "no such launch file"
     if kind == "python -m":
         try:
             return None if importlib.util.find_spec(value) is not None else "no such module"
