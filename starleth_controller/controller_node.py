@@ -104,7 +104,8 @@ from starleth_interface import state_bundle
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
                                        foot_wrench_topic)
-from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
+from .controller import StarlethController
+from .inputs import MODES, Command, ControllerParams, RobotState
 from .kernels import node_state, squared_norm4
 from .warmup import warm_up
 from .model import JOINT_NAMES, LEGS, default_urdf_path

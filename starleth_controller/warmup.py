@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .controller import Command, ControllerParams, RobotState, StarlethController
+from .controller import StarlethController
+from .inputs import Command, ControllerParams, RobotState
 
 #: control period of the synthetic states [s] (sim_node's)
 PERIOD = 0.0025
