@@ -101,8 +101,8 @@ from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, declare_p
 from .controller import StarlethController
 from .inputs import Command, ControllerParams
 from .model import JOINT_NAMES, default_urdf_path
-from .side_inputs import SideInputs
 from .node_parameters import PARAMETERS, PARAMETERS_BY_NAME, check_parameters
+from .side_inputs import SideInputs
 from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
 from .warmup import compile_kernels
 
