@@ -9,8 +9,8 @@ foot placement and joint-space swing-leg control. Modes ``stand`` and ``trot``.
     ctrl = StarlethController(urdf_path)            # URDF path or XML text
     tau = ctrl.update(RobotState.from_simulator(sim), Command("trot", forward=0.3))
 """
-from .controller import (StarlethController, RobotState, Command, ControllerParams, VMCGains,
-                         SUPPORT, SWING, LOST_CONTACT)
+from .controller import StarlethController, SUPPORT, SWING, LOST_CONTACT
+from .inputs import RobotState, Command, ControllerParams, VMCGains
 from .force_distribution import ContactForceDistribution
 from .model import RobotModel, JOINT_NAMES, LEGS, default_urdf_path
 

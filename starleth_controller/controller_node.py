@@ -62,7 +62,8 @@ at once; any other order works too.
 The state topics are taken as CDR bytes and the floats of the common case are read
 straight from them (``starleth_interface.msg_cdr``; anything else is deserialised by rclpy
 and validated as before); the command goes out as CDR bytes patched into a template.
-``ControllerNode.timing`` (a :class:`CycleTimes`, benchmarks only) times each cycle.
+``ControllerNode.timing`` (a ``starleth_interface.cycle_times.CycleTimes``, benchmarks only)
+times each cycle.
 
 Robustness: a message with NaN/inf values, missing joints or wrong array sizes is logged
 (throttled) and ignored; no command is published for its stamp. Exceptions in the controller
@@ -80,7 +81,6 @@ import time
 
 import numpy as np
 
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
@@ -92,135 +92,21 @@ from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
-from starleth_interface.compile_notice import CompileNotice
-from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
-                                            ParameterSpec, StopSignals, ThrottledLog,
-                                            declare_parameters, init_ros, make_executor,
-                                            set_cpu_scheduling, shutdown_ros)
-from starleth_interface.cycle_times import CONTROLLER_CYCLE_FIELDS, CycleTimes  # noqa: F401
+from starleth_interface import state_bundle
 from starleth_interface.msg_cdr import (ODOM_FIELDS, WRENCH_FIELDS, JointStateCdr,
                                        JointStateReader, StampedReader)
-from starleth_interface import state_bundle
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
-                                       TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
-                                       foot_wrench_topic)
-from .controller import StarlethController, RobotState, Command, ControllerParams, MODES
-from .kernels import node_state, squared_norm4
-from .warmup import warm_up
-from .model import JOINT_NAMES, LEGS, default_urdf_path
+from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, declare_parameters,
+                                            init_ros, make_executor, set_cpu_scheduling,
+                                            shutdown_ros)
+from .controller import StarlethController
+from .inputs import Command, ControllerParams
+from .model import JOINT_NAMES, default_urdf_path
+from .node_parameters import PARAMETERS, PARAMETERS_BY_NAME, check_parameters
+from .side_inputs import SideInputs
+from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
+from .warmup import compile_kernels
 
 _sum = np.add.reduce     # = ndarray.sum, without its wrapper (a finite sum: all finite)
-
-DEFAULT_WRENCH_TOPICS = tuple(foot_wrench_topic(f"{leg}_foot") for leg in LEGS)
-
-
-def state_from_values(stamp_ns, position, velocity, perm, odom, forces, threshold,
-                      twist_in_child, R):
-    """The RobotState of one stamp, read by the node_state kernel into fresh arrays: joint
-    positions and velocities (perm: their indices in the public order), the 13 odometry
-    values (pose; twist, its linear part in the base frame when twist_in_child, else in the
-    world), the feet's forces (4 x 3; contact where |force| > threshold); R: the kernel's
-    rotation (scratch, 3 x 3). None when the kernel leaves the values to the node's checks
-    (a non-finite or huge value, a quaternion of squared norm outside (0.5, 2))."""
-    q, dq, pb, quat, v, w = (np.empty(12), np.empty(12), np.empty(3), np.empty(4),
-                             np.empty(3), np.empty(3))
-    contact = np.empty(4, dtype=bool)
-    if node_state(np.asarray(position, dtype=float), np.asarray(velocity, dtype=float), perm,
-                  odom, forces, threshold, q, dq, pb, quat, v, w, R, contact) != 0:
-        return None
-    if twist_in_child:   # base frame -> world frame
-        v = R @ v
-    return RobotState(stamp_ns * 1e-9, q, dq, pb, quat, v, w, contact, forces)
-
-
-def compile_kernels(log=print, threshold: float = ControllerParams.contact_force_threshold):
-    """Compiles (or loads from numba's cache) every kernel the node runs before its first
-    state: the controller's (warmup.warm_up) and the state reader's (node_state, with the
-    argument types of a state bundle), saying so while it takes long (CompileNotice: about
-    10 s the first time after an install). Returns the seconds taken."""
-    with CompileNotice("the controller's kernels", log, estimate=10.0) as notice:
-        warm_up()
-        v = np.zeros(state_bundle.SIZE)
-        v[state_bundle.BASE][6] = 1.0           # (a unit quaternion)
-        state_from_values(0, v[state_bundle.SLICES["q"]], v[state_bundle.SLICES["u"]],
-                          np.arange(12, dtype=np.int64), np.array(v[state_bundle.BASE]),
-                          np.array(v[state_bundle.SLICES["force"]].reshape(4, 3)),
-                          float(threshold), True, np.eye(3))
-    return notice.seconds
-
-
-P = ParameterSpec
-#: the node's parameters: type, default, description, bounds (one schema: it gives the
-#: declare_parameter descriptors and the checks). Every number has a range: the contact
-#: threshold up to 1000 N (StarlETH weighs ~250 N: a higher one never sees a contact), the
-#: velocity clips up to 10 m/s and 10 rad/s (the trot is < 1 m/s), the periods up to 1 hour.
-PARAMETERS = (
-    P("mode", str, "stand", "stand | trot; settable at runtime (also through the ~/trot "
-      "service)", read_only=False, choices=MODES),
-    P("urdf", str, "", "URDF path or XML text for the controller's model; empty = the "
-      "package's starleth.urdf"),
-    P("robot_description", bool, False, "true: build the model from the robot_description "
-      "topic (transient local) instead of `urdf`"),
-    P("joint_commands_topic", str, TOPIC_JOINT_COMMANDS, "sensor_msgs/JointState command "
-      "topic (names + effort, stamped with the state answered); empty = off"),
-    P("effort_array_topic", str, "", "also publish a std_msgs/Float64MultiArray of the 12 "
-      "torques on this topic (e.g. /joint_group_effort_controller/commands); empty = off. Do "
-      "not send both to a lockstep simulator."),
-    P("state_input", str, "auto", "auto: the public state topics until a state bundle "
-      "arrives, then the bundle alone | bundle | topics", choices=("auto", "bundle", "topics")),
-    P("state_bundle_topic", str, TOPIC_STATE_BUNDLE, "std_msgs/Float64MultiArray state "
-      "bundle input (sim_node's; layout in starleth_interface.state_bundle)"),
-    P("joint_states_topic", str, TOPIC_JOINT_STATES, "sensor_msgs/JointState input"),
-    P("base_state_topic", str, TOPIC_BASE_STATE, "nav_msgs/Odometry input (ground truth)"),
-    P("foot_wrench_topics", list, list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped "
-      "inputs, feet in the order LF, RF, LH, RH"),
-    P("cmd_vel_topic", str, "cmd_vel", "geometry_msgs/Twist velocity command"),
-    P("twist_frame", str, "child", "frame of the Odometry twist's linear velocity: child "
-      "(base, REP 105) | parent (world)", choices=("child", "parent")),
-    P("contact_force_threshold", float, ControllerParams.contact_force_threshold,
-      "a foot is in contact when |force| exceeds this "
-      "[N]", read_only=False, minimum=0.0, maximum=1000.0),
-    P("max_linear_speed", float, 0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]",
-      read_only=False, minimum=0.0, maximum=10.0),
-    P("max_yaw_rate", float, 1.0, "clip of |angular.z| of /cmd_vel [rad/s]", read_only=False,
-      minimum=0.0, maximum=10.0),
-    P("cmd_vel_timeout", float, 0.0, "seconds (the node's clock: sim time with use_sim_time) "
-      "after the last cmd_vel when the velocity command falls back to zero; 0 = never",
-      read_only=False, minimum=0.0, maximum=3600.0),
-    P("state_reliability", str, "reliable", "QoS reliability of the state subscriptions: "
-      "reliable | best_effort", choices=("reliable", "best_effort")),
-    P("warn_throttle_period", float, 2.0, "minimum seconds between two warnings of the same "
-      "kind", read_only=False, minimum=0.0, maximum=3600.0),
-    P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
-      choices=EXECUTORS),
-    P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
-)
-PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
-
-
-class _Slot:
-    """The state of one stamp as read from its messages: joint state (sec, nanosec, names,
-    position, velocity), base state (13 floats: position, orientation xyzw, linear and
-    angular velocity), 4 wrench forces (3 floats each)."""
-    __slots__ = ("js", "odom", "wrench", "n", "t_first")
-
-    def __init__(self):
-        self.t_first = time.perf_counter()
-        self.js = None
-        self.odom = None
-        self.wrench = [None, None, None, None]
-        self.n = 0
-
-
-def _stamp_ns(header) -> int:
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
-def _finite(*values) -> bool:
-    try:
-        return math.isfinite(math.fsum(values))
-    except (TypeError, ValueError, OverflowError):
-        return False
 
 
 class ControllerNode(Node):
@@ -237,14 +123,12 @@ class ControllerNode(Node):
                                               (parameter_overrides or {}).items()], **kwargs)
         self.log = self.get_logger()
         p = declare_parameters(self, PARAMETERS)
-        self._check_static(p)
+        check_parameters(p)
         self._warn = ThrottledLog(self.log.warning, float(p["warn_throttle_period"]))
         self._mode = p["mode"]
-        self._threshold = float(p["contact_force_threshold"])
         self._max_v = float(p["max_linear_speed"])
         self._max_w = float(p["max_yaw_rate"])
         self._cmd_vel_timeout = float(p["cmd_vel_timeout"])
-        self._twist_in_child = p["twist_frame"] == "child"
         self.executor_kind = p["executor"]
         err = set_cpu_scheduling(p["cpu_scheduling"])
         if err:
@@ -256,11 +140,10 @@ class ControllerNode(Node):
         self.command = Command(self._mode)
         self.counters = {"states": 0, "commands": 0, "rejected": 0, "repeated": 0,
                          "dropped_incomplete": 0, "controller_errors": 0}
-        self._pending: dict[int, _Slot] = {}
+        self._pending: dict[int, StateSlot] = {}
         self._last_answer = None          # (stamp_ns, (sec, nanosec), effort, monotonic time)
-        self._perm_cache = {}             # tuple(names) -> index array (public order)
-        self._kernel_perm = {}            # the same as int64 arrays for node_state
-        self._R_node = np.eye(3)          # base -> world rotation of the last state
+        self._assembler = StateAssembler(float(p["contact_force_threshold"]),
+                                         p["twist_frame"] == "child")
         self._ctrl_mode = None
         self.controller = None
         self._waiting_state = None        # the last state that came before the model
@@ -284,7 +167,7 @@ class ControllerNode(Node):
         self._array_msg = Float64MultiArray()
 
         # the kernels before the first state (a first run after an install compiles them)
-        compile_kernels(self.log.info, self._threshold)
+        compile_kernels(self.log.info, self._assembler.threshold)
 
         # the model
         if p["robot_description"]:
@@ -315,13 +198,14 @@ class ControllerNode(Node):
         self.sub_bundle = (self.create_subscription(
             Float64MultiArray, p["state_bundle_topic"], self._on_bundle_cdr, state_qos,
             raw=True) if self.state_input != "topics" else None)
-        self.sub_js = self._side_node = None
-        self._side_inputs = []
+        self.sub_js = self._side = None
         if self.state_input != "bundle":
             self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
                                                    self._on_joint_states_cdr, state_qos,
                                                    raw=True)
-            self._setup_side_inputs(p, state_qos)
+            self._side = SideInputs(self, state_qos, p["base_state_topic"],
+                                    p["foot_wrench_topics"], self._on_base_state_cdr,
+                                    self._on_wrench_cdr, self._joint_state_waiting)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
         self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot)
@@ -330,60 +214,9 @@ class ControllerNode(Node):
                       + (f", effort arrays on {p['effort_array_topic']}"
                          if p["effort_array_topic"] else ""))
 
-    #: s: while a joint state waits for the other messages of its stamp, the side inputs
-    #: are looked at this often (steady clock)
-    SIDE_POLL_PERIOD = 0.0005
-
-    def _setup_side_inputs(self, p, state_qos):
-        """The base state and the four foot wrenches ("side inputs") are subscribed on a
-        hidden helper node (``_<name>_side_inputs``) that no executor spins: their messages
-        wait in the subscriptions' queues and are taken when the joint state of a stamp
-        arrives (_take_side_inputs), so the executor thread wakes once per state instead
-        of six times (a simulator that sends /joint_states last, as sim_node does, gets its
-        answer without any wait). Until a stamp is complete, a steady-clock timer takes
-        them every SIDE_POLL_PERIOD (any order of arrival still works). Topic names are
-        resolved by this node (its namespace and remappings)."""
-        self._side_node = Node(f"_{self.get_name()}_side_inputs", context=self.context,
-                               namespace=self.get_namespace(), use_global_arguments=False,
-                               enable_rosout=False, start_parameter_services=False)
-        side = self._side_node
-
-        def sub(typ, topic):
-            return side.create_subscription(typ, self.resolve_topic_name(topic),
-                                            lambda _: None, state_qos, raw=True)
-        self.sub_odom = sub(Odometry, p["base_state_topic"])
-        self.sub_wrench = [sub(WrenchStamped, topic) for topic in p["foot_wrench_topics"]]
-        self._side_inputs = [(self.sub_odom, self._on_base_state_cdr)] + [
-            (s, (lambda data, k=k: self._on_wrench_cdr(k, data)))
-            for k, s in enumerate(self.sub_wrench)]
-        self._side_poll = self.create_timer(self.SIDE_POLL_PERIOD, self._poll_side_inputs,
-                                            clock=Clock(clock_type=ClockType.STEADY_TIME),
-                                            autostart=False)
-
-    def _take_side_inputs(self, drain=True):
-        """The messages waiting in the side inputs' queues (drain=False: at most one of
-        each), into the slots of their stamps (which may complete a stamp and run the
-        controller)."""
-        for sub, on_data in self._side_inputs:
-            while True:
-                with sub.handle:
-                    taken = sub.handle.take_message(sub.msg_type, True)
-                if taken is None:
-                    break
-                on_data(taken[0])
-                if not drain:
-                    break
-
-    def _poll_side_inputs(self):
-        """The timer's callback: take the side inputs; stop polling once no joint state
-        waits for them."""
-        self._take_side_inputs()
-        if not any(s.js is not None for s in self._pending.values()):
-            self._side_poll.cancel()
-
     def destroy_node(self):
-        if self._side_node is not None:
-            self._side_node.destroy_node()
+        if self._side is not None:
+            self._side.destroy()
         return super().destroy_node()
 
     def _read_bundles_only(self):
@@ -393,35 +226,21 @@ class ControllerNode(Node):
         if self.sub_js is not None:
             self.destroy_subscription(self.sub_js)
             self.sub_js = None
-            for sub, _ in self._side_inputs:
-                self._side_node.destroy_subscription(sub)
-            self._side_inputs = []
-            self._side_poll.cancel()
+            self._side.unsubscribe()
             self._pending.clear()
         self.log.info(f"state from {self.sub_bundle.topic_name} (one message per step)"
                       + ("; unsubscribed from the public state topics"
                          if self.state_input == "auto" else ""))
+
+    def _joint_state_waiting(self) -> bool:
+        """A joint state waits for the other messages of its stamp."""
+        return any(s.js is not None for s in self._pending.values())
 
     def _clock_seconds(self) -> float:
         """The node's clock [s]: /clock with use_sim_time, else the system clock."""
         return self.get_clock().now().nanoseconds * 1e-9
 
     # -- parameters ------------------------------------------------------------------------
-    def _check_static(self, p):
-        """ValueError listing every parameter that breaks its schema."""
-        errors = []
-        for spec in PARAMETERS:
-            try:
-                spec.check(p[spec.name])
-            except ValueError as e:
-                errors.append(str(e))
-        topics = p["foot_wrench_topics"]
-        if not errors and (len(topics) != 4 or not all(isinstance(t, str) and t for t in topics)):
-            errors.append(f"parameter foot_wrench_topics: expected 4 topic names (LF, RF, LH, "
-                          f"RH), got {topics!r}")
-        if errors:
-            raise ValueError("; ".join(errors))
-
     def _on_set_parameters(self, params):
         for prm in params:
             spec = PARAMETERS_BY_NAME.get(prm.name)
@@ -436,7 +255,7 @@ class ControllerNode(Node):
                 self._mode = prm.value
                 self.log.info(f"mode -> {prm.value}")
             elif prm.name == "contact_force_threshold":
-                self._threshold = float(prm.value)
+                self._assembler.threshold = float(prm.value)
             elif prm.name == "max_linear_speed":
                 self._max_v = float(prm.value)
             elif prm.name == "max_yaw_rate":
@@ -460,7 +279,7 @@ class ControllerNode(Node):
     def _make_controller(self, urdf, what):
         try:
             ctrl = StarlethController(urdf, ControllerParams(
-                contact_force_threshold=self._threshold))
+                contact_force_threshold=self._assembler.threshold))
         except Exception as e:  # a bad URDF: keep running, answer nothing
             self.log.error(f"cannot build the controller model from {what}: {e}")
             return False
@@ -484,16 +303,13 @@ class ControllerNode(Node):
             if len(self._pending) >= self.MAX_PENDING:
                 oldest = min(self._pending)
                 self._drop_incomplete(oldest, self._pending.pop(oldest))
-            s = self._pending[stamp] = _Slot()
+            s = self._pending[stamp] = StateSlot()
         return s
 
     def _drop_incomplete(self, stamp, slot):
         self.counters["dropped_incomplete"] += 1
-        missing = [name for name, m in (("joint state", slot.js), ("base state", slot.odom),
-                                        *zip((f"{leg} wrench" for leg in LEGS), slot.wrench))
-                   if m is None]
         self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
-                   f"(missing: {', '.join(missing)})")
+                   f"(missing: {', '.join(slot.missing())})")
 
     def _deserialise(self, data, typ, what):
         try:
@@ -517,7 +333,7 @@ class ControllerNode(Node):
         stamp = sec * 1_000_000_000 + nsec
         if self._answered_before(stamp):
             return
-        s = _Slot()
+        s = StateSlot()
         s.js = (sec, nsec, state_bundle.JOINT_NAMES, v[state_bundle.SLICES["q"]],
                 v[state_bundle.SLICES["u"]])
         s.odom = v[state_bundle.BASE]
@@ -542,7 +358,7 @@ class ControllerNode(Node):
             return
         # the rest of this state first (one message of each side input), then the joint
         # state, which completes it and gets the answer out; then anything else waiting
-        self._take_side_inputs(drain=False)
+        self._side.take(drain=False)
         r = self._js_reader.decode(data)
         if r is None:
             msg = self._deserialise(data, JointState, "joint state")
@@ -551,7 +367,7 @@ class ControllerNode(Node):
         else:
             sec, nsec, names, pos, vel = r
             self._joint_state(sec * 1_000_000_000 + nsec, (sec, nsec, names, pos, vel))
-        self._take_side_inputs()
+        self._side.take()
 
     def _on_base_state_cdr(self, data):
         r = self._odom_reader.decode(data)
@@ -575,7 +391,7 @@ class ControllerNode(Node):
 
     def _on_joint_states(self, msg):
         st = msg.header.stamp
-        self._joint_state(_stamp_ns(msg.header), (st.sec, st.nanosec, tuple(msg.name),
+        self._joint_state(stamp_ns(msg.header), (st.sec, st.nanosec, tuple(msg.name),
                                                   msg.position, msg.velocity))
 
     def _joint_state(self, stamp, js):
@@ -585,14 +401,15 @@ class ControllerNode(Node):
         new = s.js is None
         s.js = js
         self._received(stamp, s, new)
-        if stamp in self._pending and self._side_poll.is_canceled():
-            self._side_poll.reset()       # the rest of this stamp is still to come
+        poll = self._side.poll
+        if stamp in self._pending and poll.is_canceled():
+            poll.reset()                  # the rest of this stamp is still to come
 
     def _on_base_state(self, msg):
         o = msg.pose.pose
         pp, po = o.position, o.orientation
         tl, ta = msg.twist.twist.linear, msg.twist.twist.angular
-        self._base_state(_stamp_ns(msg.header), (pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w,
+        self._base_state(stamp_ns(msg.header), (pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w,
                                                  tl.x, tl.y, tl.z, ta.x, ta.y, ta.z))
 
     def _base_state(self, stamp, vals):
@@ -603,7 +420,7 @@ class ControllerNode(Node):
 
     def _on_wrench(self, k, msg):
         f = msg.wrench.force
-        self._foot_wrench(k, _stamp_ns(msg.header), (f.x, f.y, f.z))
+        self._foot_wrench(k, stamp_ns(msg.header), (f.x, f.y, f.z))
 
     def _foot_wrench(self, k, stamp, force):
         s = self._slot(stamp)
@@ -621,7 +438,7 @@ class ControllerNode(Node):
 
     def _on_cmd_vel(self, msg):
         vx, vy, wz = msg.linear.x, msg.linear.y, msg.angular.z
-        if not _finite(vx, vy, wz):
+        if not all_finite(vx, vy, wz):
             self.counters["rejected"] += 1
             self._warn("cmd_vel", "ignored a /cmd_vel with non-finite values")
             return
@@ -633,97 +450,6 @@ class ControllerNode(Node):
         self._vel_time = self._clock_seconds()
 
     # -- one control period ----------------------------------------------------------------
-    def _permutation(self, names):
-        key = tuple(names)
-        perm = self._perm_cache.get(key)
-        if perm is None:
-            if key == JOINT_NAMES:
-                perm = slice(None)
-            else:
-                index = {n: i for i, n in enumerate(key)}
-                if len(index) != len(key):
-                    return None, "duplicate joint names"
-                missing = [n for n in JOINT_NAMES if n not in index]
-                if missing:
-                    return None, f"missing joints {', '.join(missing)}"
-                perm = np.array([index[n] for n in JOINT_NAMES])
-            if len(self._perm_cache) < 8:
-                self._perm_cache[key] = perm
-        return perm, None
-
-    def _state(self, stamp, s: _Slot):
-        """RobotState from the messages of one stamp, or (None, key, reason): the common
-        case (12 finite joints, finite values below 1e100, a quaternion of squared norm in
-        (0.5, 2)) read by one kernel into fresh arrays, with the arithmetic of the checks
-        below (_state_checked), which run for anything else and give the reason."""
-        _, _, names, position, velocity = s.js
-        n = len(names)
-        if n == 12 and len(position) == 12 and len(velocity) == 12 and s.odom is not None \
-                and len(s.odom) == 13:
-            perm = self._kernel_perm.get(names)
-            if perm is None:
-                perm, err = self._permutation(names)
-                if err:
-                    return self._state_checked(stamp, s)
-                perm = (np.arange(12, dtype=np.int64) if isinstance(perm, slice)
-                        else np.asarray(perm, dtype=np.int64))
-                if len(self._kernel_perm) < 8:
-                    self._kernel_perm[names] = perm
-            try:
-                forces = np.array(s.wrench, dtype=float)
-                odom = np.array(s.odom, dtype=float)
-            except (TypeError, ValueError):
-                return self._state_checked(stamp, s)
-            if forces.shape == (4, 3):
-                state = state_from_values(stamp, position, velocity, perm, odom, forces,
-                                          self._threshold, self._twist_in_child,
-                                          self._R_node)
-                if state is not None:
-                    return state, None, None
-        return self._state_checked(stamp, s)
-
-    def _state_checked(self, stamp, s: _Slot):
-        """RobotState from the messages of one stamp after checking them one by one, or
-        (None, key, reason)."""
-        _, _, names, position, velocity = s.js
-        n = len(names)
-        if len(position) != n or len(velocity) != n:
-            return None, "joint_states", (f"/joint_states: {n} names, {len(position)} "
-                                          f"positions, {len(velocity)} velocities")
-        perm, err = self._permutation(names)
-        if err:
-            return None, "joint_states", f"/joint_states: {err}"
-        q = np.asarray(position, dtype=float)[perm]
-        dq = np.asarray(velocity, dtype=float)[perm]
-        # a finite sum means every value is finite (NaN and inf propagate); only a sum that
-        # is not (non-finite values, or an overflow) is looked at value by value
-        add = np.add.reduce
-        if not math.isfinite(float(add(q) + add(dq))) and \
-                not (np.isfinite(q).all() and np.isfinite(dq).all()):
-            return None, "joint_states_nan", "/joint_states: non-finite position or velocity"
-        vals = s.odom
-        if not _finite(*vals):
-            return None, "base_state_nan", "base state: non-finite values"
-        quat = np.array(vals[3:7])
-        nq = squared_norm4(quat)
-        if not 0.5 < nq < 2.0:
-            return None, "base_state_quat", f"base state: orientation norm {math.sqrt(nq):.3g}"
-        quat /= math.sqrt(nq)
-        v = np.array(vals[7:10])
-        if self._twist_in_child:   # base frame -> world frame
-            x, y, z, w = quat.tolist()     # Python floats: the same values, faster products
-            R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-            v = R @ v
-        forces = np.array(s.wrench, dtype=float)
-        if not math.isfinite(float(add(forces, axis=None))) and not np.isfinite(forces).all():
-            return None, "wrench_nan", "foot wrench: non-finite force"
-        contact = np.sqrt((forces * forces).sum(axis=1)) > self._threshold
-        state = RobotState(stamp * 1e-9, q, dq, np.array(vals[0:3]), quat, v,
-                           np.array(vals[10:13]), contact, forces)
-        return state, None, None
-
     def _complete(self, stamp, s):
         # drop this stamp and every older one still waiting
         for st in [st for st in self._pending if st <= stamp]:
@@ -738,7 +464,7 @@ class ControllerNode(Node):
             self._warn("no_model", "state received but no controller model yet (waiting for "
                        "/robot_description)")
             return
-        state, key, reason = self._state(stamp, s)
+        state, key, reason = self._assembler.robot_state(stamp, s)
         if state is None:
             self.counters["rejected"] += 1
             self._warn(key, f"ignored the state of t={stamp * 1e-9:.4f} s: {reason}")

@@ -20,7 +20,10 @@ answered with a safe fallback (the weight shared equally, vertical forces).
 """
 from __future__ import annotations
 
+import importlib
 import math
+import sys
+import types
 
 import numpy as np
 
@@ -38,9 +41,6 @@ def _import_proxqp_portable():
     them are then reproducible bit for bit. The choice is made by answering proxsuite's
     instruction-set probe with "none" while it loads; if proxsuite was already imported by
     someone else, its loaded build is used as it is."""
-    import importlib
-    import sys
-    import types
     if "proxsuite" not in sys.modules:
         probe = types.ModuleType("proxsuite.instructionset")
         probe.has_AVX2 = probe.has_AVX512F = lambda: False

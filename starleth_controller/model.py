@@ -31,6 +31,7 @@ def default_urdf_path() -> str:
     """The StarlETH URDF: the colcon install's share/starleth_sim/urdf, else the source tree
     next to this package."""
     try:  # installed by colcon
+        # deferred: a ROS package, absent where ROS is missing (the model needs no ROS)
         from ament_index_python.packages import get_package_share_directory
         p = os.path.join(get_package_share_directory("starleth_sim"), "urdf", "starleth.urdf")
         if os.path.exists(p):

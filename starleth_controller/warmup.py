@@ -5,8 +5,9 @@ numba compiles a kernel on its first call and keeps the machine code in its on-d
 for it: about 10 s on a 2-core machine. `warm_up` makes that first call happen at start-up,
 on synthetic states that take every path a running controller takes (stand, trot with feet
 on the ground, in the air, searching the ground, a fall, a non-finite state), instead of in
-the middle of a control loop; controller_node calls it before it subscribes, and
-``starleth-precompile`` in its own processes. Every later call of the kernels with the
+the middle of a control loop. `compile_kernels` (controller_node calls it before it
+subscribes, and ``starleth-precompile`` in its own processes) adds the kernel that reads the
+node's states, and says so while it takes long. Every later call of the kernels with the
 argument types of a real run then loads or reuses that code (test_controller checks that a
 closed-loop trot compiles nothing more).
 """
@@ -14,7 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .controller import Command, ControllerParams, RobotState, StarlethController
+from starleth_interface import state_bundle
+from starleth_interface.compile_notice import CompileNotice
+from .controller import StarlethController
+from .inputs import Command, ControllerParams, RobotState
+from .state_intake import state_from_values
 
 #: control period of the synthetic states [s] (sim_node's)
 PERIOD = 0.0025
@@ -62,3 +67,19 @@ def warm_up(urdf: str | None = None, params: ControllerParams | None = None) -> 
     nan[0] = np.nan
     update((True,) * 4, stand, positions=nan)           # a non-finite state
     return n
+
+
+def compile_kernels(log=print, threshold: float = ControllerParams.contact_force_threshold):
+    """Compiles (or loads from numba's cache) every kernel the node runs before its first
+    state: the controller's (warm_up) and the state reader's (node_state, with the
+    argument types of a state bundle), saying so while it takes long (CompileNotice: about
+    10 s the first time after an install). Returns the seconds taken."""
+    with CompileNotice("the controller's kernels", log, estimate=10.0) as notice:
+        warm_up()
+        v = np.zeros(state_bundle.SIZE)
+        v[state_bundle.BASE][6] = 1.0           # (a unit quaternion)
+        state_from_values(0, v[state_bundle.SLICES["q"]], v[state_bundle.SLICES["u"]],
+                          np.arange(12, dtype=np.int64), np.array(v[state_bundle.BASE]),
+                          np.array(v[state_bundle.SLICES["force"]].reshape(4, 3)),
+                          float(threshold), True, np.eye(3))
+    return notice.seconds

@@ -331,7 +331,7 @@ def test_off_value_is_rendered_in_the_parameter_file():
 
 def test_controller_node_numbers_have_caps():
     pytest.importorskip("rclpy")
-    from starleth_controller.controller_node import PARAMETERS, PARAMETERS_BY_NAME
+    from starleth_controller.node_parameters import PARAMETERS, PARAMETERS_BY_NAME
     numbers = [p for p in PARAMETERS if p.kind in (int, float)]
     assert numbers and all(p.maximum is not None for p in numbers)
     for name, bad in (("max_linear_speed", 1e9), ("max_yaw_rate", 100.0),

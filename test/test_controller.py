@@ -22,6 +22,7 @@ import pytest
 from starleth_sim import Simulator
 from starleth_sim.physics.description import urdf_path
 
+from starleth_controller import kernels as K
 from starleth_controller import (Command, ContactForceDistribution,
                                  RobotModel, RobotState, StarlethController, LEGS)
 
@@ -288,7 +289,6 @@ def _random_state(rng, model):
 
 def test_kinematics_match_pinocchio(model):
     """The analytic leg kinematics (feet, Jacobians) agree with Pinocchio on the URDF."""
-    from starleth_controller import kernels as K
     rng = np.random.default_rng(0)
     mdl, data = model.model, model.data
     geo = model.geometry
@@ -346,7 +346,6 @@ def test_force_distribution_qp():
 
 
 def test_force_distribution_respects_torque_limits(model):
-    from starleth_controller import kernels as K
     cfd = ContactForceDistribution(torque_limit=19.0)
     qj = model.nominal_joint_positions(0.41)
     R = np.eye(3)
@@ -447,7 +446,6 @@ def test_state_kernels_match_the_numpy_arithmetic():
     StarlethController and controller_node) give the values of the numpy code they replace
     bit for bit (|quat|² and |force|² summed in order, no second normalisation in the
     node's R), and leave NaN, inf and values >= 1e100 to the checks of that code."""
-    from starleth_controller import kernels as K
     rng = np.random.default_rng(5)
     quat_n, R = np.zeros(4), np.zeros((3, 3))
     q, dq, pb, qn, v, w = (np.zeros(12), np.zeros(12), np.zeros(3), np.zeros(4), np.zeros(3),

@@ -10,8 +10,11 @@ finally; every wait is bounded.
   stamped with the state's stamp, and switches modes by service and parameter.
 """
 import array
+import json
 import math
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -29,6 +32,20 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 from rcl_interfaces.srv import SetParameters, GetParameters  # noqa: E402
+from builtin_interfaces.msg import Time  # noqa: E402
+from std_msgs.msg import MultiArrayDimension  # noqa: E402
+from rclpy.serialization import deserialize_message  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from rclpy.qos import ReliabilityPolicy  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from mcap.reader import make_reader  # noqa: E402
+from starleth_interface.compile_notice import SLOW_COMPILE_ENV  # noqa: E402
+from starleth_interface.state_bundle import LABEL, StateBundleCdr  # noqa: E402
+from starleth_sim.physics.simulator import Simulator  # noqa: E402
+from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
+from starleth_sim.tools import analysis  # noqa: E402
+from starleth_sim.tools.demo import DemoError, _call, print_summary, run_demo  # noqa: E402
 
 # one ROS domain per test module and process (test_sim_node uses 50..89)
 DOMAIN_RANGE = (10, 40)       # first, span
@@ -48,7 +65,6 @@ def Proc(module, log_path, name=None, **params):
 
 
 def _stamp(ns):
-    from builtin_interfaces.msg import Time
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
@@ -59,8 +75,6 @@ def test_a_service_call_whose_response_is_lost_is_sent_again():
     """A service discovered a moment ago can take a request and lose its response (its
     response topic not matched yet: rclpy's "failed to send response"); the demo's calls
     are idempotent and sent again every retry_every s until a response comes."""
-    from starleth_sim.tools.demo import DemoError, _call
-
     class Future:
         def __init__(self, result):
             self.result_ = result
@@ -98,8 +112,6 @@ def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
     they compile (CompileNotice: at once, again while it lasts, and how long it took), the
     demo shows their compile lines and counts its time-out from the last one, and the run
     goes through."""
-    from starleth_interface.compile_notice import SLOW_COMPILE_ENV
-    from starleth_sim.tools.demo import run_demo
     monkeypatch.setenv(SLOW_COMPILE_ENV, "8")
     lines = []
     r = run_demo(stand=0.5, trot=0.0, speed=0.0, physics="HmJ", record=str(tmp_path / "d.mcap"),
@@ -120,10 +132,6 @@ def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
 
 
 def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-    from starleth_sim.tools.demo import run_demo, print_summary
-
     bag = tmp_path / "demo.mcap"
     lines = []
     r = run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record=str(bag),
@@ -194,8 +202,6 @@ def test_demo_trots_4m_and_records_the_whole_run(tmp_path):
     assert list(first.name) == JOINTS and abs(last_t - r.t_end) < 1e-6, (last_t, r.t_end)
 
     # starleth-analyze on the demo bag (issue 7): all plots, and a summary that agrees
-    import json
-    from starleth_sim.tools import analysis
     out = tmp_path / "analysis"
     assert analysis.main([str(bag), "--out", str(out), "--json", str(tmp_path / "a.json")]) == 0
     for name in ("contact_forces", "gait", "base_trajectory", "joint_torques",
@@ -314,7 +320,6 @@ class FakeRobot:
 
     def publish_bundle(self, ns, q, velocity, z, quat, twist, forces):
         """The same state as one starleth/state_bundle (sim_node's layout)."""
-        from starleth_interface.state_bundle import StateBundleCdr
         self.pub_bundle.publish(StateBundleCdr().build(
             ns // 1_000_000_000, ns % 1_000_000_000, q, velocity, np.zeros(12),
             (0.0, 0.0, z, *quat), twist, np.asarray(forces).reshape(-1)))
@@ -426,8 +431,6 @@ def test_state_bundle_gives_the_public_topics_answers_and_rejects_bad_bundles(tm
     torques) over states that vary every step; after the first bundle it no longer
     subscribes to the public topics; a bundle of another layout, truncated bytes or a NaN
     inside is a logged rejection, and good bundles are answered after it."""
-    from std_msgs.msg import MultiArrayDimension
-    from starleth_interface.state_bundle import LABEL, StateBundleCdr
     topics = Proc("starleth_controller.controller_node", str(tmp_path / "topics.log"),
                   namespace="/by_topics", state_input="topics", warn_throttle_period=0.0)
     bundle = Proc("starleth_controller.controller_node", str(tmp_path / "bundle.log"),
@@ -506,12 +509,6 @@ def test_composed_mode_records_every_step_and_matches_the_headless_simulator(tmp
     step, every state's answer, and the joint states are those of the headless Simulator
     driven by the recorded commands, bit for bit: the node's CDR paths (templates, raw
     decoding, queued recording) change nothing of the lockstep results."""
-    from mcap.reader import make_reader
-    from rclpy.serialization import deserialize_message
-    from rosgraph_msgs.msg import Clock
-    from rclpy.qos import ReliabilityPolicy
-    from starleth_sim.physics.simulator import Simulator
-    from starleth_sim.ros.state_io import parse_initial_state
 
     bag = tmp_path / "composed.mcap"
     # (paced at real time: a watcher in another process keeps up with 400 states/s, not
@@ -586,8 +583,6 @@ def test_cpu_scheduling_batch_covers_every_thread_and_later_ones():
     the process, and a thread started afterwards, run under SCHED_BATCH; 'default' changes
     nothing; an unknown policy is a one-line reason, not an exception. In a child process
     (this one keeps its policy)."""
-    import subprocess
-    import sys
     code = r"""
 import os, threading
 from starleth_interface.ros_helpers import set_cpu_scheduling

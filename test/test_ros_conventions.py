@@ -263,7 +263,7 @@ def _declared_parameters(executable):
         from starleth_sim.ros.parameters import Settings
         params = asdict(Settings())
     else:
-        from starleth_controller.controller_node import PARAMETERS
+        from starleth_controller.node_parameters import PARAMETERS
         params = {p.name: p.default for p in PARAMETERS}
     params["use_sim_time"] = False
     return params

@@ -8,7 +8,7 @@ Three units, each in a process of its own (``--jobs``, default 2):
   package has them from its build. With ``--cold`` they are built again into a temporary
   directory, which times a full build without touching the one in use.
 * ``controller``: the controller's numba kernels, by controller_node's own start-up
-  (``controller_node.compile_kernels``: the controller on synthetic states, the state
+  (``starleth_controller.warmup.compile_kernels``: the controller on synthetic states, the state
   reader), into numba's on-disk cache.
 * ``ros-codec``: sim_node's command parsers (numba, ``ros.cdr.CommandDecoder``).
 

@@ -1,0 +1,79 @@
+"""The parameters of ``controller_node``: one schema (type, default, description, bounds) that
+gives the ``declare_parameter`` descriptors and the checks of the values, at start-up
+(``check_parameters``) and when one is set at runtime. No rclpy."""
+from __future__ import annotations
+
+from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
+                                            ParameterSpec)
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
+                                       TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
+                                       foot_wrench_topic)
+from .inputs import MODES, ControllerParams
+from .model import LEGS
+
+DEFAULT_WRENCH_TOPICS = tuple(foot_wrench_topic(f"{leg}_foot") for leg in LEGS)
+
+
+P = ParameterSpec
+#: the node's parameters: type, default, description, bounds (one schema: it gives the
+#: declare_parameter descriptors and the checks). Every number has a range: the contact
+#: threshold up to 1000 N (StarlETH weighs ~250 N: a higher one never sees a contact), the
+#: velocity clips up to 10 m/s and 10 rad/s (the trot is < 1 m/s), the periods up to 1 hour.
+PARAMETERS = (
+    P("mode", str, "stand", "stand | trot; settable at runtime (also through the ~/trot "
+      "service)", read_only=False, choices=MODES),
+    P("urdf", str, "", "URDF path or XML text for the controller's model; empty = the "
+      "package's starleth.urdf"),
+    P("robot_description", bool, False, "true: build the model from the robot_description "
+      "topic (transient local) instead of `urdf`"),
+    P("joint_commands_topic", str, TOPIC_JOINT_COMMANDS, "sensor_msgs/JointState command "
+      "topic (names + effort, stamped with the state answered); empty = off"),
+    P("effort_array_topic", str, "", "also publish a std_msgs/Float64MultiArray of the 12 "
+      "torques on this topic (e.g. /joint_group_effort_controller/commands); empty = off. Do "
+      "not send both to a lockstep simulator."),
+    P("state_input", str, "auto", "auto: the public state topics until a state bundle "
+      "arrives, then the bundle alone | bundle | topics", choices=("auto", "bundle", "topics")),
+    P("state_bundle_topic", str, TOPIC_STATE_BUNDLE, "std_msgs/Float64MultiArray state "
+      "bundle input (sim_node's; layout in starleth_interface.state_bundle)"),
+    P("joint_states_topic", str, TOPIC_JOINT_STATES, "sensor_msgs/JointState input"),
+    P("base_state_topic", str, TOPIC_BASE_STATE, "nav_msgs/Odometry input (ground truth)"),
+    P("foot_wrench_topics", list, list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped "
+      "inputs, feet in the order LF, RF, LH, RH"),
+    P("cmd_vel_topic", str, "cmd_vel", "geometry_msgs/Twist velocity command"),
+    P("twist_frame", str, "child", "frame of the Odometry twist's linear velocity: child "
+      "(base, REP 105) | parent (world)", choices=("child", "parent")),
+    P("contact_force_threshold", float, ControllerParams.contact_force_threshold,
+      "a foot is in contact when |force| exceeds this "
+      "[N]", read_only=False, minimum=0.0, maximum=1000.0),
+    P("max_linear_speed", float, 0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]",
+      read_only=False, minimum=0.0, maximum=10.0),
+    P("max_yaw_rate", float, 1.0, "clip of |angular.z| of /cmd_vel [rad/s]", read_only=False,
+      minimum=0.0, maximum=10.0),
+    P("cmd_vel_timeout", float, 0.0, "seconds (the node's clock: sim time with use_sim_time) "
+      "after the last cmd_vel when the velocity command falls back to zero; 0 = never",
+      read_only=False, minimum=0.0, maximum=3600.0),
+    P("state_reliability", str, "reliable", "QoS reliability of the state subscriptions: "
+      "reliable | best_effort", choices=("reliable", "best_effort")),
+    P("warn_throttle_period", float, 2.0, "minimum seconds between two warnings of the same "
+      "kind", read_only=False, minimum=0.0, maximum=3600.0),
+    P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
+      choices=EXECUTORS),
+    P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
+)
+PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
+
+
+def check_parameters(p) -> None:
+    """ValueError listing every parameter (`p`: name -> value) that breaks its schema."""
+    errors = []
+    for spec in PARAMETERS:
+        try:
+            spec.check(p[spec.name])
+        except ValueError as e:
+            errors.append(str(e))
+    topics = p["foot_wrench_topics"]
+    if not errors and (len(topics) != 4 or not all(isinstance(t, str) and t for t in topics)):
+        errors.append(f"parameter foot_wrench_topics: expected 4 topic names (LF, RF, LH, "
+                      f"RH), got {topics!r}")
+    if errors:
+        raise ValueError("; ".join(errors))
