@@ -17,9 +17,9 @@ nodes' work around them:
   from 0.5 s of sim time, as bench_ros) and publishes the command (:class:`FloorController`).
 
 No recording, no public topics, no diagnostics, no timeouts, re-sends or checks beyond the
-decoders'. The rounds interleave bare rclpy round trips (bench_ros's ``PingPong``, served by
-the child) with floor cycles, so each round's ratio compares the two under one load of the
-machine. Printed: cycles per second and their ratio to the bare round trips (the figure
+decoders'. The rounds interleave bare rclpy round trips (``bench_round_trips.PingPong``,
+served by the child) with floor cycles, so each round's ratio compares the two under one
+load of the machine. Printed: cycles per second and their ratio to the bare round trips (the figure
 bench_ros gives the real loop), and the medians of the step, the state's way out (bundle
 built and published), and the controller's part (bundle read, update, command published).
 
@@ -172,8 +172,8 @@ class FloorController:
 
 # -----------------------------------------------------------------------------------------
 def child_main(args):
-    """The sim side and bench_ros's pong node on one executor, until SIGINT / SIGTERM;
-    prints its timing medians as one JSON line."""
+    """The sim side and the pong side of the bare round trips on one executor, until
+    SIGINT / SIGTERM; prints its timing medians as one JSON line."""
     import rclpy
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
@@ -222,7 +222,7 @@ def _rounds(ex, ctl, pp, args, sim_pid):
         n, t_end = ctl.commands - n0, time.perf_counter()
         cpu1 = process_cpu_ns(sim_pid)
         ctl.running = False
-        spin_until(ex, lambda: False, 0.05)           # the answer in flight comes back
+        spin_until(ex, lambda: False, 0.05)      # the answer in flight comes back
         if r < 0:
             continue
         rtts_all += rtts
@@ -254,7 +254,7 @@ def parent_main(args):
         ex.add_node(node)
         ctl = FloorController(node)
         if not spin_until(ex, lambda: ctl.last is not None and
-                     ctl.pub.get_subscription_count() > 0, 120):
+                          ctl.pub.get_subscription_count() > 0, 120):
             raise RuntimeError("bench_floor: no state from the sim side")
         pp = PingPong(node, ex)
         per, rtts, n, t, cpu = _rounds(ex, ctl, pp, args, proc.pid)
