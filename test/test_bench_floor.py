@@ -31,7 +31,7 @@ def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
     from starleth_sim.ros.sim_node import SimNode
     from starleth_sim.ros.state_io import base_values, joint_values
     from starleth_sim.tools.bench_floor import FloorController, bundle_bytes
-    from starleth_sim.tools.bench_ros import TROT_AT, TROT_SPEED
+    from starleth_sim.tools.bench_controllers import TROT_AT, TROT_SPEED
     sim_node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep"})
     ctl_node = ControllerNode(context=ctx, parameter_overrides={"mode": "stand"})
     helper = rclpy.create_node("floor_test", context=ctx)

@@ -19,7 +19,7 @@ from rclpy.qos import QoSProfile  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from starleth_sim.tools import replay  # noqa: E402
-from starleth_sim.tools.bench_ros import EchoController  # noqa: E402
+from starleth_sim.tools.bench_controllers import EchoController  # noqa: E402
 
 # test_sim_node 50..89, controller tests 10..49, conventions 90..98, tf 199..228
 DOMAIN_RANGE = (140, 40)      # first, span

@@ -334,7 +334,7 @@ def test_colcon_build_installs_the_launch_file(tmp_path):
 def test_sim_node_splits_long_recordings_into_a_bag_directory(ros, tmp_path):
     """record_max_duration: a rosbag2 bag directory of numbered files, each complete on its
     own, a metadata.yaml listing them, and starleth-analyze reads it as one run."""
-    from starleth_sim.tools.bench_ros import EchoController
+    from starleth_sim.tools.bench_controllers import EchoController
     bag = tmp_path / "split"
     sim = None
     ctl = EchoController(ros.node)

@@ -23,12 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..physics.config import PRESETS as DEFAULT_PRESETS   # the paper's Table 1
 from ..physics.config import ConfigError, load_preset
+from ..physics.description import urdf_path
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
-from ..physics.stepper import PHASES
-
-from ..physics.config import PRESETS as DEFAULT_PRESETS   # the paper's Table 1
+from ..physics.stepper import PHASES, StepperStats
 
 
 def measure(preset: str, seconds: float, repeats: int = 3):
@@ -57,7 +57,6 @@ def measure(preset: str, seconds: float, repeats: int = 3):
 
 def breakdown(preset: str, seconds: float):
     """Mean time per physics step and phase [µs] (profiled run, includes timer overhead)."""
-    from ..physics.stepper import StepperStats
     sim = Simulator.from_preset(preset, profile=True)
     hold = PostureHold(sim.joint_positions())
     for _ in range(20):  # warm-up: first calls of the profiled path load compiled code
@@ -87,7 +86,6 @@ def mujoco_model(robot: str, dt: float, mu: float):
         import mujoco
     except ImportError:
         return None, None
-    from ..physics.description import urdf_path
     spec = mujoco.MjSpec.from_file(robot if robot.startswith("/") else urdf_path(robot))
     # the URDF's inertials only: by default MuJoCo gives a link without one (the feet) the
     # mass of its collision geoms at 1000 kg/m³ (+65 g per foot sphere)

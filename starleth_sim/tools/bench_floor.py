@@ -17,9 +17,9 @@ nodes' work around them:
   from 0.5 s of sim time, as bench_ros) and publishes the command (:class:`FloorController`).
 
 No recording, no public topics, no diagnostics, no timeouts, re-sends or checks beyond the
-decoders'. The rounds interleave bare rclpy round trips (bench_ros's ``PingPong``, served by
-the child) with floor cycles, so each round's ratio compares the two under one load of the
-machine. Printed: cycles per second and their ratio to the bare round trips (the figure
+decoders'. The rounds interleave bare rclpy round trips (``bench_round_trips.PingPong``,
+served by the child) with floor cycles, so each round's ratio compares the two under one
+load of the machine. Printed: cycles per second and their ratio to the bare round trips (the figure
 bench_ros gives the real loop), and the medians of the step, the state's way out (bundle
 built and published), and the controller's part (bundle read, update, command published).
 
@@ -40,9 +40,20 @@ import time
 
 import numpy as np
 
+from starleth_controller import Command, StarlethController
+from starleth_interface import state_bundle
+from starleth_interface.msg_cdr import JointStateCdr
+from starleth_interface.ros_helpers import make_executor
+from starleth_interface.state_bundle import JOINT_NAMES, StateBundleCdr
+
 from ..physics.config import PRESETS
+from ..physics.simulator import Simulator
+from ..ros.cdr import CommandDecoder
 from ..ros.discovery import keep_discovery_local, local_discovery_env
-from .bench_ros import TROT_AT, TROT_SPEED
+from ..ros.state_io import base_values, joint_values, state_bundle_bytes
+from .bench_controllers import TROT_AT, TROT_SPEED
+from .bench_loop_figures import bare_figures, lockstep_figures, print_rates, process_cpu_ns
+from .bench_round_trips import PingPong, add_pong, spin_until
 
 BUNDLE_TOPIC = "/starleth_floor/state_bundle"
 COMMAND_TOPIC = "/starleth_floor/joint_commands"
@@ -52,7 +63,6 @@ def bundle_bytes(bundle_cdr, sim, stamp_ns):
     """The state bundle (starleth_interface.state_bundle) of `sim`'s current state, stamped
     `stamp_ns`, as sim_node sends it (state_io.state_bundle_bytes), through `bundle_cdr`
     (a StateBundleCdr)."""
-    from ..ros.state_io import base_values, joint_values, state_bundle_bytes
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
     return state_bundle_bytes(bundle_cdr, sec, nsec, base_values(sim), joint_values(sim),
                               sim.contact_forces())
@@ -67,9 +77,6 @@ class FloorSim:
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
-        from starleth_interface.state_bundle import JOINT_NAMES, StateBundleCdr
-        from ..physics.simulator import Simulator
-        from ..ros.cdr import CommandDecoder
         self.sim = Simulator.from_preset(preset)
         self.k = 0
         self.bundle = StateBundleCdr.create()
@@ -112,10 +119,7 @@ class FloorController:
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
-        from starleth_controller import Command, StarlethController
-        from starleth_controller.controller_node import state_from_values
-        from starleth_interface.msg_cdr import JointStateCdr
-        from starleth_interface.state_bundle import JOINT_NAMES
+        from starleth_controller.controller_node import state_from_values  # deferred: imports rclpy
         self.controller = StarlethController(urdf)
         self.command = Command(mode="stand")
         self.threshold = float(self.controller.params.contact_force_threshold
@@ -135,14 +139,15 @@ class FloorController:
     def torques(self, data):
         """(sec, nsec, 12 torques) answering a bundle's bytes, or None for a bundle that
         does not decode or whose state the kernel refuses."""
-        from starleth_interface import state_bundle as sb
-        r = sb.decode(data)
+        r = state_bundle.decode(data)
         if isinstance(r, str):
             return None
         sec, nsec, v = r
+        parts = state_bundle.SLICES
         state = self._state_from_values(
-            sec * 1_000_000_000 + nsec, v[sb.SLICES["q"]], v[sb.SLICES["u"]], self._perm,
-            v[sb.BASE], v[sb.SLICES["force"]].reshape(4, 3), self.threshold, True, self._R)
+            sec * 1_000_000_000 + nsec, v[parts["q"]], v[parts["u"]], self._perm,
+            v[state_bundle.BASE], v[parts["force"]].reshape(4, 3), self.threshold, True,
+            self._R)
         if state is None:
             return None
         if self.command.mode == "stand" and state.t >= TROT_AT:
@@ -167,14 +172,11 @@ class FloorController:
 
 # -----------------------------------------------------------------------------------------
 def child_main(args):
-    """The sim side and bench_ros's pong node on one executor, until SIGINT / SIGTERM;
-    prints its timing medians as one JSON line."""
+    """The sim side and the pong side of the bare round trips on one executor, until
+    SIGINT / SIGTERM; prints its timing medians as one JSON line."""
     import rclpy
     from rclpy.node import Node
-    from rclpy.qos import QoSProfile
     from rclpy.signals import SignalHandlerOptions
-    from sensor_msgs.msg import JointState
-    from .bench_ros import PING, PONG, _make_executor
     rclpy.init(args=[], domain_id=args.domain_id,
                signal_handler_options=SignalHandlerOptions.NO)
     stop = []
@@ -182,9 +184,8 @@ def child_main(args):
     signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
     node = Node("bench_floor_sim")
     floor = FloorSim(node, args.preset)
-    pong_pub = node.create_publisher(JointState, PONG, QoSProfile(depth=10))
-    node.create_subscription(JointState, PING, pong_pub.publish, QoSProfile(depth=10))
-    ex = _make_executor(args.sim_executor, node.context)
+    add_pong(node)
+    ex = make_executor(args.sim_executor, node.context)[0]
     ex.add_node(node)
     last_start = 0.0
     parent = os.getppid()
@@ -204,7 +205,6 @@ def child_main(args):
 
 
 def _rounds(ex, ctl, pp, args, sim_pid):
-    from .bench_ros import _wait, process_cpu_ns
     per, rtts_all, cpu = [], [], {}
     n_total, t_total = 0, 0.0
     for r in range(-1, args.rounds):           # round -1: warm-up, not counted
@@ -222,7 +222,7 @@ def _rounds(ex, ctl, pp, args, sim_pid):
         n, t_end = ctl.commands - n0, time.perf_counter()
         cpu1 = process_cpu_ns(sim_pid)
         ctl.running = False
-        _wait(ex, lambda: False, 0.05)           # the answer in flight comes back
+        spin_until(ex, lambda: False, 0.05)      # the answer in flight comes back
         if r < 0:
             continue
         rtts_all += rtts
@@ -241,8 +241,6 @@ def _rounds(ex, ctl, pp, args, sim_pid):
 def parent_main(args):
     import rclpy
     from rclpy.node import Node
-    from .bench_ros import (PingPong, _make_executor, _wait, bare_figures, lockstep_figures,
-                            print_rates)
     keep_discovery_local()
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(args.domain_id), PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "starleth_sim.tools.bench_floor", "--child", "--domain-id",
@@ -252,11 +250,11 @@ def parent_main(args):
     rclpy.init(args=[], context=ctx, domain_id=args.domain_id)
     node = Node("bench_floor_controller", context=ctx)
     try:
-        ex = _make_executor(args.executor, ctx)
+        ex = make_executor(args.executor, ctx)[0]
         ex.add_node(node)
         ctl = FloorController(node)
-        if not _wait(ex, lambda: ctl.last is not None and
-                     ctl.pub.get_subscription_count() > 0, 120):
+        if not spin_until(ex, lambda: ctl.last is not None and
+                          ctl.pub.get_subscription_count() > 0, 120):
             raise RuntimeError("bench_floor: no state from the sim side")
         pp = PingPong(node, ex)
         per, rtts, n, t, cpu = _rounds(ex, ctl, pp, args, proc.pid)

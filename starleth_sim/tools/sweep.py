@@ -41,7 +41,8 @@ against each numeric override with several values, e.g. α), and a printed summa
 Ray is an optional extra (``pip install .[ray]``, or ``make ray``). ``--ray auto`` joins
 the cluster started with ``ray start --head`` (``ADDRESS`` e.g. ``ray://host:10001`` another
 one; its workers need starleth_sim installed), ``--ray local`` starts one on this host. The
-same :func:`execute` runs ``starleth-eval``'s tasks.
+same :func:`starleth_sim.tools.task_pool.execute` runs ``starleth-eval``'s tasks, runs of the
+same :func:`starleth_sim.tools.gait_run.run_gait`.
 """
 from __future__ import annotations
 
@@ -52,10 +53,14 @@ import math
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ..physics.config import ConfigError, load_preset, load_yaml_file
+from ..ros.state_io import minimal_state, public_state
+from .gait_run import run_gait
+from .task_pool import SweepError, execute
 
 PROG = "starleth-sweep"
 SCENARIOS = ("stand", "trot", "push")
@@ -81,10 +86,6 @@ PERTURBATION_FIELDS = ("joint_angles", "base_velocity")
 FALL_TILT, FALL_HEIGHT = 1.0, 0.2
 #: columns that are wall-clock measurements (they differ between any two executions)
 TIMING_COLUMNS = ("wall_s", "steps_per_s")
-
-
-class SweepError(ValueError):
-    """A spec that cannot be run: one line, exit status 1."""
 
 
 # =========================================================================================
@@ -196,7 +197,6 @@ def _scenarios(src, items, runs_per_scenario=1):
 def load_spec(path: str) -> Sweep:
     """Read and validate a sweep spec; expand it into the runs of the grid (presets x
     overrides x scenarios x seeds, in that nesting order)."""
-    from ..physics.config import ConfigError, load_preset, load_yaml_file
     src = os.path.basename(path)
     try:       # duplicate keys, binary files, bad YAML: ConfigError naming the file
         data = load_yaml_file(path, src)
@@ -274,7 +274,6 @@ def _perturbation(seed, perturbation):
         return None
 
     def perturb(sim):
-        from ..ros.state_io import minimal_state, public_state
         rng = np.random.default_rng(seed)
         sim.reset()
         pub = public_state(sim)
@@ -288,7 +287,6 @@ def _perturbation(seed, perturbation):
 
 def run_one(spec: RunSpec) -> dict:
     """One headless run with the controller in the loop: a row of the results table."""
-    from .evaluation import run_gait
     sc = spec.scenario
     push = None
     if sc.kind == "push":
@@ -320,76 +318,8 @@ def run_one(spec: RunSpec) -> dict:
 
 
 # =========================================================================================
-# execution: a process pool or Ray, the same tasks, results streamed back
+# execution (task_pool: a process pool or Ray, the same tasks, results streamed back)
 # =========================================================================================
-def progress(done, total, t0, stream=sys.stderr, what="tasks"):
-    """A progress bar with the elapsed time and an ETA, on one line."""
-    width = 30
-    fill = int(width * done / total) if total else width
-    el = time.time() - t0
-    eta = el / done * (total - done) if done else 0.0
-    stream.write(f"\r[{'#' * fill}{'.' * (width - fill)}] {done}/{total} {what}, "
-                 f"{el:5.0f} s elapsed, ~{eta:4.0f} s left")
-    stream.flush()
-
-
-def _call(fn, kwargs):
-    return fn(**kwargs)
-
-
-def _ray_init(address, init_kwargs):
-    try:
-        import ray
-    except ImportError:
-        raise SweepError("--ray needs Ray: pip install '.[ray]' (or make ray)") from None
-    if not ray.is_initialized():
-        kw = dict(init_kwargs or {})
-        kw.setdefault("log_to_driver", False)
-        kw.setdefault("include_dashboard", False)
-        try:
-            ray.init(address=None if address in (None, "local") else address, **kw)
-        except ConnectionError as e:
-            raise SweepError(f"--ray {address}: cannot connect: {e}") from None
-    return ray
-
-
-def execute(tasks, jobs=None, ray=None, ray_init=None, show_progress=True, what="tasks"):
-    """Run tasks [(function, kwargs)] and return their results in task order. jobs: worker
-    processes of the local pool (1: in this process); ray: 'auto', 'local' or an address
-    to run each task as a Ray task instead (ray_init: extra ray.init arguments). Results are
-    taken as they finish, with a progress bar and ETA on stderr."""
-    n = len(tasks)
-    results = [None] * n
-    t0 = time.time()
-    report = (lambda d: progress(d, n, t0, what=what)) if show_progress else (lambda d: None)
-    report(0)
-    if ray is not None:
-        rt = _ray_init(ray, ray_init)
-        remote = rt.remote(num_cpus=1)(_call)
-        refs = {remote.remote(fn, kw): i for i, (fn, kw) in enumerate(tasks)}
-        pending = list(refs)
-        done = 0
-        while pending:
-            ready, pending = rt.wait(pending, num_returns=1)
-            for ref in ready:
-                results[refs[ref]] = rt.get(ref)
-                done += 1
-                report(done)
-    elif (jobs or os.cpu_count() or 1) == 1 or n <= 1:
-        for i, (fn, kw) in enumerate(tasks):
-            results[i] = fn(**kw)
-            report(i + 1)
-    else:
-        with ProcessPoolExecutor(max_workers=min(jobs or os.cpu_count() or 1, n)) as ex:
-            futs = {ex.submit(fn, **kw): i for i, (fn, kw) in enumerate(tasks)}
-            for done, fut in enumerate(as_completed(futs), 1):
-                results[futs[fut]] = fut.result()
-                report(done)
-    if show_progress:
-        sys.stderr.write("\n")
-    return results
-
-
 def run_sweep(sweep: Sweep, jobs=None, ray=None, ray_init=None, show_progress=True) -> list:
     """The rows of the results table, in grid order."""
     return execute([(run_one, {"spec": s}) for s in sweep.runs], jobs, ray, ray_init,
@@ -418,8 +348,8 @@ def write_table(rows, out_dir) -> list:
             w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
     written = [path]
     try:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
+        import pyarrow as pa  # deferred: optional (results.parquet where it is installed)
+        import pyarrow.parquet as pq  # deferred: optional, as above
     except ImportError:
         return written
     table = pa.Table.from_pylist([{k: r.get(k) for k in cols} for r in rows])
