@@ -41,6 +41,7 @@ import time
 import numpy as np
 
 from starleth_controller import Command, StarlethController
+from starleth_controller.state_intake import state_from_values
 from starleth_interface import state_bundle
 from starleth_interface.msg_cdr import JointStateCdr
 from starleth_interface.ros_helpers import make_executor
@@ -109,22 +110,20 @@ class FloorSim:
 
 class FloorController:
     """The controller side: each bundle read as controller_node reads it
-    (controller_node.state_from_values: twist in the base frame, contact = |F| > the
-    contact threshold), one
-    ``StarlethController.update``, the torques out as controller_node's JointState. Answers
-    only while ``running``; ``last`` keeps the newest bundle (answered when a round
-    starts). ``times``: bundle in to command out [s]; ``commands``: sent so far."""
+    (starleth_controller.state_intake.state_from_values: twist in the base frame, contact =
+    |F| > the contact threshold), one ``StarlethController.update``, the torques out as
+    controller_node's JointState. Answers only while ``running``; ``last`` keeps the newest
+    bundle (answered when a round starts). ``times``: bundle in to command out [s];
+    ``commands``: sent so far."""
 
     def __init__(self, node, urdf=None, threshold=None):
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
-        from starleth_controller.controller_node import state_from_values  # deferred: imports rclpy
         self.controller = StarlethController(urdf)
         self.command = Command(mode="stand")
         self.threshold = float(self.controller.params.contact_force_threshold
                                if threshold is None else threshold)
-        self._state_from_values = state_from_values
         self._perm = np.arange(12, dtype=np.int64)
         self._R = np.eye(3)
         self.cdr = JointStateCdr.create(JOINT_NAMES, ("effort",))
@@ -144,7 +143,7 @@ class FloorController:
             return None
         sec, nsec, v = r
         parts = state_bundle.SLICES
-        state = self._state_from_values(
+        state = state_from_values(
             sec * 1_000_000_000 + nsec, v[parts["q"]], v[parts["u"]], self._perm,
             v[state_bundle.BASE], v[parts["force"]].reshape(4, 3), self.threshold, True,
             self._R)

@@ -46,8 +46,8 @@ def compile_unit(unit: str, cold_dir: str | None = None) -> None:
         else:
             kernels.ensure_built()      # (the import above built a stale checkout's module)
     elif unit == "controller":
-        from starleth_controller.controller_node import (  # deferred: rclpy and numba, in
-            compile_kernels)                                # this unit's worker only
+        from starleth_controller.warmup import (  # deferred: numba, in this unit's worker only
+            compile_kernels)
         compile_kernels(log=lambda *_: None)
     elif unit == "ros-codec":
         from ..ros.cdr import CommandDecoder  # deferred: numba, in this unit's worker only
