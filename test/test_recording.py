@@ -484,3 +484,86 @@ def test_process_recorder_writer_stays_in_the_background(tmp_path):
         assert rec.pipe_size >= expected > 64 * 1024
     finally:
         rec.close()
+
+
+# -----------------------------------------------------------------------------------------
+# the Recorder protocol, StorageOptions and open_recorder (sim_node's writer chain)
+# -----------------------------------------------------------------------------------------
+def test_every_recorder_implements_the_protocol_and_closes_with_metadata(tmp_path):
+    """McapRecorder, SplitRecorder, QueuedRecorder and ProcessRecorder are Recorders:
+    hand_over, close(timeout, metadata) (the records land in the file), dropped, failure."""
+    from mcap.reader import make_reader
+    from starleth_sim.ros.recording import (ProcessRecorder, QueuedRecorder, Recorder,
+                                            SplitRecorder)
+    makers = {"mcap": lambda p: McapRecorder(str(p) + ".mcap"),
+              "split": lambda p: SplitRecorder(str(p), max_size=1 << 20),
+              "queued": lambda p: QueuedRecorder(McapRecorder(str(p) + ".mcap")),
+              "process": lambda p: ProcessRecorder(str(p) + ".mcap")}
+    for kind, make in makers.items():
+        rec = make(tmp_path / kind)
+        assert isinstance(rec, Recorder), kind
+        rec.add_topic("/clock", Clock)
+        assert rec.topics == {"/clock": "rosgraph_msgs/msg/Clock"}, kind
+        for k in range(10):
+            assert rec.write("/clock", Clock(), k + 1)
+        rec.hand_over()
+        assert rec.counts() == {"/clock": 10} and rec.message_count == 10, kind
+        rec.close(timeout=5.0, metadata={"summary": {"k": "v"}})
+        assert rec.closed and rec.failure is None and rec.dropped == 0, kind
+        assert not rec.write("/clock", Clock(), 99)
+        path = tmp_path / "split" / "split_0.mcap" if kind == "split" else \
+            tmp_path / f"{kind}.mcap"
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            md = {m.name: m.metadata for m in reader.iter_metadata()}
+            assert sum(1 for _ in reader.iter_messages()) == 10, kind
+        assert md["summary"] == {"k": "v"}, kind
+
+
+def test_storage_options_choose_the_file_writer(tmp_path):
+    from starleth_sim.ros.recording import SplitRecorder, StorageOptions, open_file_recorder
+    one = StorageOptions(uri=str(tmp_path / "one.mcap"), compression="zstd")
+    assert not one.split and one.storage_id == "mcap"
+    rec = open_file_recorder(one)
+    assert isinstance(rec, McapRecorder)
+    rec.close()
+    split = StorageOptions(uri=str(tmp_path / "bag.mcap"), max_bagfile_duration_ns=10 ** 9,
+                           custom_data={"generator": "test"})
+    rec = open_file_recorder(split)
+    assert split.split and isinstance(rec, SplitRecorder)
+    assert rec.path == str(tmp_path / "bag") and rec.max_duration_ns == 10 ** 9
+    rec.close()
+    info = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())
+    assert info["rosbag2_bagfile_information"]["custom_data"] == {"generator": "test"}
+    with pytest.raises(ValueError, match="storage_id"):
+        StorageOptions(uri="x.db3", storage_id="sqlite3")
+
+
+def test_open_recorder_is_a_process_else_a_thread_of_this_one(tmp_path, monkeypatch):
+    """sim_node's chain: a ProcessRecorder; where no process can be started, one warning
+    and a QueuedRecorder over the file's writer; a file that cannot be written: one
+    RecordingError naming it, either way."""
+    import subprocess
+    from starleth_sim.ros.recording import (ProcessRecorder, QueuedRecorder, RecordingError,
+                                            SplitRecorder, StorageOptions, open_recorder)
+    warnings = []
+    rec = open_recorder(StorageOptions(uri=str(tmp_path / "p.mcap")), warn=warnings.append)
+    assert isinstance(rec, ProcessRecorder) and not warnings
+    rec.close()
+    with pytest.raises(RecordingError, match=r"^/proc/x.mcap: \[Errno \d+\]"):
+        open_recorder(StorageOptions(uri="/proc/x.mcap"), warn=warnings.append)
+    assert not warnings
+
+    def no_process(*args, **kwargs):
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(subprocess, "Popen", no_process)
+    failures = []
+    rec = open_recorder(StorageOptions(uri=str(tmp_path / "q"), max_bagfile_size=1 << 20),
+                        on_failure=failures.append, warn=warnings.append)
+    assert isinstance(rec, QueuedRecorder) and isinstance(rec.inner, SplitRecorder)
+    assert warnings == ["recording in this process (no recording process: [Errno 11] "
+                        "Resource temporarily unavailable)"]
+    rec.close()
+    with pytest.raises(RecordingError, match=r"^/proc/x.mcap: "):
+        open_recorder(StorageOptions(uri="/proc/x.mcap"), warn=warnings.append)

@@ -26,7 +26,7 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.ros.mcap_sink import RecordingError, repair  # noqa: E402
+from starleth_sim.ros.recording.mcap_sink import RecordingError, repair  # noqa: E402
 from starleth_sim.ros.recording import (McapRecorder, ProcessRecorder,  # noqa: E402
                                         QueuedRecorder, SplitRecorder)
 from starleth_sim.tools.bag import read_messages  # noqa: E402

@@ -17,7 +17,7 @@ import re
 import sys
 import zlib
 
-from ..ros.mcap_sink import MCAP_MAGIC
+from ..ros.recording.mcap_sink import MCAP_MAGIC
 
 #: log and publish times are int64 nanoseconds in ROS 2 (rcutils_time_point_value_t); an
 #: MCAP Message record holds a uint64: one beyond the int64 range is damage

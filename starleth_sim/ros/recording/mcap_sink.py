@@ -5,7 +5,7 @@ or a writer process killed outright leave an MCAP file cut somewhere in its data
 This module makes such a file a complete MCAP file again, holding every message up to the
 last whole record that reached the disk:
 
-* :class:`FileSink` is the stream :class:`~.recording.McapRecorder` hands to the mcap
+* :class:`FileSink` is the stream :class:`~.mcap_writer.McapRecorder` hands to the mcap
   ``Writer``: unbuffered ``os.write`` calls (a short write is continued, an error raised),
   so that the end of the last write that succeeded is always the end of a whole record
   (the ``Writer`` writes whole records per call) -- :attr:`FileSink.good_end`;
@@ -34,6 +34,13 @@ _RECORD_HEAD = struct.Struct("<BQ")
 class RecordingError(OSError):
     """A recording that could not go on (its file is closed as far as it could be); the
     message names the file, the cause and how to read what was written."""
+
+
+def failure_cause(error) -> str:
+    """An OSError as the cause of a failed recording: '[Errno 28] No space left on device'."""
+    if isinstance(error, OSError) and error.errno is not None:
+        return f"[Errno {error.errno}] {error.strerror}"
+    return str(error) or type(error).__name__
 
 
 class FileSink:
