@@ -164,9 +164,11 @@ class TestRealtime:
             have = dict(node.get_topic_names_and_types())
             if not all(t in have and typ in have[t] for t, typ in ALL_TOPICS.items()):
                 return False
-            pubs = all(any(i.node_name == "sim_node" for i in node.get_publishers_info_by_topic(t))
+            pubs = all(any(i.node_name == "sim_node"
+                               for i in node.get_publishers_info_by_topic(t))
                        for t in list(STATE_TOPICS) + ["/robot_description"])
-            subs = all(any(i.node_name == "sim_node" for i in node.get_subscriptions_info_by_topic(t))
+            subs = all(any(i.node_name == "sim_node"
+                               for i in node.get_subscriptions_info_by_topic(t))
                        for t in INPUT_TOPICS)
             services = dict(node.get_service_names_and_types())
             srv = (services.get("/sim_node/reset") == ["std_srvs/srv/Trigger"]
@@ -239,11 +241,13 @@ class TestRealtime:
         node = ros.node
         diag = DiagWatcher(ros)
         col = Collector(ros, JointState, "/joint_states")
-        eff = node.create_publisher(Float64MultiArray, "/joint_group_effort_controller/commands", 10)
+        eff = node.create_publisher(Float64MultiArray,
+                                    "/joint_group_effort_controller/commands", 10)
         cmd = node.create_publisher(JointState, "/joint_commands", 10)
         push = node.create_publisher(WrenchStamped, "/sim_node/wrench", 10)
         try:
-            assert ros.spin_until(lambda: eff.get_subscription_count() and push.get_subscription_count()
+            assert ros.spin_until(lambda: eff.get_subscription_count()
+                                  and push.get_subscription_count()
                                   and cmd.get_subscription_count(), 10)
             rt.ctl.reply = False
             ros.spin_for(0.1)
@@ -383,7 +387,8 @@ class TestRealtime:
         # the PD controller's commands, recorded as received (how many the test process
         # answered depends on the machine's load)
         assert len(msgs["/joint_commands"]) > 100
-        assert len(msgs["/joint_group_effort_controller/commands"]) >= 5    # (the flood may overflow)
+        # (the flood may overflow)
+        assert len(msgs["/joint_group_effort_controller/commands"]) >= 5
         assert len(msgs["/sim_node/wrench"]) == 2
         # what is needed to re-simulate the run
         from mcap.reader import make_reader
