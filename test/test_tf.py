@@ -64,12 +64,12 @@ def recorded(tmp_path_factory):
                                                      "contact_markers_rate": 400.0})
     try:
         svc = node.service
-        node.publish_state()
+        node.publisher.publish_state()
         for k in range(200):
             if k == 150:
                 svc.submit_wrench("base", (0.0, 400.0, 0.0), (0.0, 0.0, 0.0), False)
             svc.step()
-            node.publish_state()
+            node.publisher.publish_state()
     finally:
         node.destroy()
         rclpy.try_shutdown(context=ctx)
@@ -154,7 +154,8 @@ def test_contact_markers_show_the_recorded_wrenches(recorded):
     scale = node.settings.contact_marker_scale
     names = node.sim.contact_names
     wrenches = {f: {_stamp(m.ros_msg): m.ros_msg.wrench.force
-                    for m in msgs[f"/starleth/{f}/wrench"]} for f in node.sim.description.foot_names}
+                    for m in msgs[f"/starleth/{f}/wrench"]}
+                for f in node.sim.description.foot_names}
     states_seen = set()
     n_arrows = 0
     assert len(msgs["/starleth/contact_markers"]) == 201

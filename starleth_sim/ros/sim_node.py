@@ -182,10 +182,6 @@ class SimNode:
     def _log_error(self, message):
         self.log.error(message)
 
-    def publish_state(self, record=True):
-        """Publish the state of the current step (:meth:`.StatePublisher.publish_state`)."""
-        self.publisher.publish_state(record)
-
     def _record_input(self, key, data):
         self.recording.write_input(self.subs[key][1], data, self.service.stamp_ns)
 
