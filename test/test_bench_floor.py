@@ -25,8 +25,9 @@ def ctx():
 
 def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
     """Over 400 closed-loop steps (stand, then trot from 0.5 s): the floor's bundle bytes
-    equal sim_node's (_publish_bundle) for the same state, and the floor controller's
-    torques equal controller_node's answer (_on_bundle_cdr) to those bytes, bit for bit."""
+    equal sim_node's (StatePublisher.publish_bundle) for the same state, and the floor
+    controller's torques equal controller_node's answer (_on_bundle_cdr) to those bytes, bit
+    for bit."""
     from starleth_controller.controller_node import ControllerNode
     from starleth_sim.ros.sim_node import SimNode
     from starleth_sim.ros.state_io import base_values, joint_values
@@ -38,8 +39,9 @@ def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
     try:
         floor = FloorController(helper)
         sent, answers = [], []
-        _, *rest = sim_node.pubs["state_bundle"]
-        sim_node.pubs["state_bundle"] = (types.SimpleNamespace(publish=sent.append), *rest)
+        pubs = sim_node.output.pubs
+        _, *rest = pubs["state_bundle"]
+        pubs["state_bundle"] = (types.SimpleNamespace(publish=sent.append), *rest)
         ctl_node._publish = lambda sec_nsec, effort: answers.append(
             (tuple(sec_nsec), np.frombuffer(effort, dtype=float).copy()))
         ctl_node._vel = (TROT_SPEED, 0.0, 0.0)
@@ -47,9 +49,9 @@ def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
         modes = set()
         for k in range(400):
             sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
-            sim_node._publish_bundle(sec, nsec, base_values(sim), joint_values(sim),
-                                     sim.contact_forces())
-            data = bundle_bytes(sim_node._bundle_cdr, sim, svc.stamp_ns)
+            sim_node.publisher.publish_bundle(sec, nsec, base_values(sim), joint_values(sim),
+                                              sim.contact_forces())
+            data = bundle_bytes(sim_node.publisher.bundle_cdr, sim, svc.stamp_ns)
             assert data == sent[-1], f"step {k}: the bundle differs from sim_node's"
             if sec + nsec * 1e-9 >= TROT_AT:
                 ctl_node._mode = "trot"

@@ -164,7 +164,8 @@ class TestRealtime:
             have = dict(node.get_topic_names_and_types())
             if not all(t in have and typ in have[t] for t, typ in ALL_TOPICS.items()):
                 return False
-            pubs = all(any(i.node_name == "sim_node" for i in node.get_publishers_info_by_topic(t))
+            pubs = all(any(i.node_name == "sim_node"
+                               for i in node.get_publishers_info_by_topic(t))
                        for t in list(STATE_TOPICS) + ["/robot_description"])
             subs = all(any(i.node_name == "sim_node"
                                for i in node.get_subscriptions_info_by_topic(t))
@@ -581,17 +582,19 @@ def test_contact_markers_cdr_equals_the_message_objects():
     deleted and keeps its last points, as there)."""
     from rclpy.serialization import deserialize_message, serialize_message
     from visualization_msgs.msg import MarkerArray
+    from starleth_sim.ros.contact_markers import MARKER_COLOURS
     from starleth_sim.ros.sim_node import SimNode
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
     node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep",
                                                      "contact_markers_rate": 400.0})
     try:
-        assert node._marker_cdr is not None
+        markers = node.publisher.visualisation.markers
+        assert markers.cdr is not None
         # made again in this process (the serializer leaves CDR's padding bytes as its buffer
         # held them, so they can hold probe values of an earlier SlotCdr.create: it refused
         # the same layout from the second or third time on, 2,999 times in 3,000)
-        made = [node._contact_marker_cdr(MarkerArray) for _ in range(50)]
+        made = [markers.make_cdr() for _ in range(50)]
         assert all(m is not None for m in made), sum(m is None for m in made)
         svc = node.service
         actions = set()
@@ -600,10 +603,10 @@ def test_contact_markers_cdr_equals_the_message_objects():
                 svc.submit_wrench("base", (0.0, 0.0, 900.0), (0.0, 0.0, 0.0), False)
             svc.step()
             sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
-            back = deserialize_message(node._marker_cdr.build(
-                node._contact_marker_values(sec, nsec)), MarkerArray)
-            node._fill_contact_markers(sec, nsec)
-            assert back == deserialize_message(serialize_message(node.marker_msg),
+            back = deserialize_message(markers.cdr.build(markers.values(sec, nsec)),
+                                       MarkerArray)
+            markers.fill(sec, nsec)
+            assert back == deserialize_message(serialize_message(markers.msg),
                                                MarkerArray), f"step {k}"
             # and both are the simulator's contacts: spheres at the contact points in the
             # colour of their state, arrows along F (contact_marker_scale m/N) unless open
@@ -614,7 +617,7 @@ def test_contact_markers_cdr_equals_the_message_objects():
             for c, sphere, arrow in zip(contacts, spheres, arrows):
                 pos = sphere.pose.position
                 assert (pos.x, pos.y, pos.z) == tuple(float(x) for x in c.position)
-                col = node.MARKER_COLOURS[c.state]
+                col = MARKER_COLOURS[c.state]
                 assert [sphere.color.r, sphere.color.g, sphere.color.b, sphere.color.a] == \
                     pytest.approx(col, abs=1e-7)                       # float32 fields
                 assert (sphere.header.stamp.sec, sphere.header.stamp.nanosec) == (sec, nsec)

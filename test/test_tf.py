@@ -64,12 +64,12 @@ def recorded(tmp_path_factory):
                                                      "contact_markers_rate": 400.0})
     try:
         svc = node.service
-        node.publish_state()
+        node.publisher.publish_state()
         for k in range(200):
             if k == 150:
                 svc.submit_wrench("base", (0.0, 400.0, 0.0), (0.0, 0.0, 0.0), False)
             svc.step()
-            node.publish_state()
+            node.publisher.publish_state()
     finally:
         node.destroy()
         rclpy.try_shutdown(context=ctx)

@@ -17,6 +17,7 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             ParameterSpec, parameter_defaults,
                                             render_parameters_yaml)
 from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
+from ..physics.description import package_share_dir
 
 P = ParameterSpec
 SIM_NODE_PARAMETERS = (
@@ -152,7 +153,6 @@ Settings = make_dataclass(
 
 
 def default_settings_file() -> str:
-    from ..physics.description import package_share_dir
     return os.path.join(package_share_dir(), "msg_configs", "sim_node.yaml")
 
 

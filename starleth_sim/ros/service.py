@@ -238,9 +238,9 @@ class SimService:
         f_norm, m_norm = float(np.linalg.norm(f)), float(np.linalg.norm(m))
         if f_norm > s.max_wrench_force or m_norm > s.max_wrench_torque:
             self.counters["wrenches_rejected"] += 1
-            msg = (f"rejected wrench on {topic} for {quoted([link])}: |force| {f_norm:.4g} N, |torque| "
-                   f"{m_norm:.4g} N m; the limits are max_wrench_force {s.max_wrench_force:g} "
-                   f"N and max_wrench_torque {s.max_wrench_torque:g} N m")
+            msg = (f"rejected wrench on {topic} for {quoted([link])}: |force| {f_norm:.4g} N, "
+                   f"|torque| {m_norm:.4g} N m; the limits are max_wrench_force "
+                   f"{s.max_wrench_force:g} N and max_wrench_torque {s.max_wrench_torque:g} N m")
             self.warnings.warn("wrench_too_large", msg)
             return False, msg
         try:

@@ -21,6 +21,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: the .msg text of tf2_msgs/msg/TFMessage (not installed without a full ROS install); the
@@ -70,8 +71,6 @@ class FrameTree:
     forward kinematics of the minimal-coordinate configuration q (free flyer first)."""
 
     def __init__(self, model, urdf_xml: str, world_frame: str = "world", prefix: str = ""):
-        import pinocchio as pin
-        self._pin = pin
         self.model = model
         self.data = model.createData()
         edges = urdf_joint_edges(urdf_xml)
@@ -97,7 +96,6 @@ class FrameTree:
     def transforms(self, q, edges) -> np.ndarray:
         """(len(edges), 7) [x, y, z, qx, qy, qz, qw] of each edge's child frame in its parent
         frame at configuration q (minimal coordinates: pin's free flyer + joint angles)."""
-        pin = self._pin
         pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
         oMf = self.data.oMf
         frame_id = self._frame_id

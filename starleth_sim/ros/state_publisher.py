@@ -1,0 +1,286 @@
+"""The state sim_node publishes after every step, one publish path per topic: the state
+bundle, the foot wrenches, the base state, /joint_states, /clock, the IMU and /starleth/solver,
+in the order a controller waits for them, then (off the lockstep critical path) the
+preparation of the next step, TF and markers, and the hand-over to the recorder. Each
+message is written as CDR bytes patched into a template (:mod:`starleth_interface.msg_cdr`),
+or filled in a message object where no template could be made."""
+from __future__ import annotations
+
+import array
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray, String
+
+from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr,
+                                       JointStateCdr)
+from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
+from starleth_interface.state_bundle import StateBundleCdr
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_IMU,
+                                       TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER,
+                                       TOPIC_STATE_BUNDLE, foot_wrench_topic)
+from ..physics.description import STARLETH_FEET as FEET
+from .qos import CLOCK_QOS, LATCHED_QOS, STATE_QOS
+from .state_io import base_values, joint_values, state_bundle_bytes
+from .visualisation import Visualisation
+
+
+def float_array(a) -> array.array:
+    """`a` as an array('d') (what rclpy's float64[] fields take without a copy per item)."""
+    return array.array("d", np.ascontiguousarray(a, dtype=float).tobytes())
+
+
+class StatePublisher:
+    """The state topics of `sim` through `output` (a :class:`~.topic_output.TopicOutput`:
+    their publishers are made here), at the stamps of `service`; /starleth/solver from
+    `diagnostics` (a :class:`~.solver_diagnostics.SolverDiagnostics`), the IMU's
+    acceleration from `imu` (a :class:`~.state_io.ImuEstimate`), TF and markers from a
+    :class:`~.visualisation.Visualisation` made here. ``timing`` (a
+    :class:`~starleth_interface.cycle_times.CycleTimes`, benchmarks only) times each
+    part."""
+
+    #: the topics a controller waits for before it answers a state
+    STATE_TOPICS = ("joint_states", "base_state", *FEET, "state_bundle")
+
+    def __init__(self, node, sim, settings, service, output, diagnostics, imu, log):
+        self.sim, self.settings, self.service = sim, settings, service
+        self.output, self.diagnostics, self.imu = output, diagnostics, imu
+        self.recording = output.recording
+        self.timing = None           # a CycleTimes, set by benchmarks
+        self._feet_first = tuple(sim.contact_names[:len(FEET)]) == tuple(FEET)
+        self._make_templates()
+        self._make_publishers()
+        self.visualisation = Visualisation(node, sim, settings, service, output, log)
+
+    def _make_templates(self):
+        s, sim = self.settings, self.sim
+        self.clock_msg = Clock()
+        self.js_msg = JointState()
+        self.js_msg.name = list(sim.joint_names)
+        self._js_cdr = JointStateCdr.create(list(sim.joint_names))
+        self.wrench_msgs = {}
+        for foot in FEET:
+            m = WrenchStamped()
+            m.header.frame_id = s.world_frame
+            self.wrench_msgs[foot] = m
+        self.odom_msg = Odometry()
+        self.odom_msg.header.frame_id = s.world_frame
+        self.odom_msg.child_frame_id = s.base_frame
+        self.imu_msg = Imu()
+        self.imu_msg.header.frame_id = s.base_frame
+        # the state topics of every step go out as CDR bytes patched into templates
+        # (starleth_interface.msg_cdr; None: as message objects)
+        w = WrenchStamped()
+        w.header.frame_id = s.world_frame
+        self._wrench_cdr = FixedCdr.create(w, WRENCH_FIELDS)
+        o = Odometry()
+        o.header.frame_id, o.child_frame_id = s.world_frame, s.base_frame
+        self._odom_cdr = FixedCdr.create(o, ODOM_FIELDS)
+        i = Imu()
+        i.header.frame_id = s.base_frame
+        self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
+        self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
+        # the state bundle (starleth_interface.state_bundle): only for the robot whose
+        # joints and feet are in the bundle's order
+        self.bundle_cdr = (StateBundleCdr.create()
+                           if tuple(sim.joint_names) == BUNDLE_JOINT_NAMES
+                           and self._feet_first else None)
+
+    def _make_publishers(self):
+        add = self.output.add
+        if self.settings.publish_clock:
+            add("clock", Clock, TOPIC_CLOCK, CLOCK_QOS)
+        add("joint_states", JointState, TOPIC_JOINT_STATES, STATE_QOS)
+        for foot in FEET:
+            add(foot, WrenchStamped, foot_wrench_topic(foot), STATE_QOS)
+        add("base_state", Odometry, TOPIC_BASE_STATE, STATE_QOS)
+        add("imu", Imu, TOPIC_IMU, STATE_QOS)
+        add("solver", DiagnosticArray, TOPIC_SOLVER, STATE_QOS)
+        add("robot_description", String, TOPIC_ROBOT_DESCRIPTION, LATCHED_QOS)
+        if self.bundle_cdr is not None:
+            add("state_bundle", Float64MultiArray, TOPIC_STATE_BUNDLE, STATE_QOS)
+
+    # -- the state of a step ---------------------------------------------------------------
+    def publish_state(self, record=True):
+        """Publish the state of the current step (stamp t_k) on every state topic;
+        record=False: a re-send of a state already published (not recorded again)."""
+        svc, out = self.service, self.output
+        sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
+        wanted = out.wanted
+        timing = self.timing
+        first = not (svc.counters["steps"] or svc.counters["resets"])
+        base = joints = forces = None    # read from the simulator once, for every topic
+        bundle = self._bundle_wanted(first)
+        if bundle:
+            # what controller_node waits for, in one message; the public topics follow
+            # while it computes
+            base, joints = base_values(self.sim), joint_values(self.sim)
+            forces = self.sim.contact_forces()
+            self.publish_bundle(sec, nsec, base, joints, forces)
+            if timing is not None:
+                timing.row[2] = time.perf_counter()
+        # the public topics: what a controller waits for first, the foot wrenches and the
+        # base state, then /joint_states, the message a controller answers on
+        # (controller_node takes the others when it arrives: one wake-up of its executor
+        # per state), then the others
+        feet = [f for f in FEET if wanted(f, record)]
+        if feet:
+            self._publish_foot_wrenches(sec, nsec, feet, record, forces)
+        want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
+        if (want_odom or want_imu) and base is None:
+            base = base_values(self.sim)
+        if want_odom:
+            self._publish_odometry(sec, nsec, base, record)
+        if first:   # state 0: the exact count
+            send = (out.subscription_count("joint_states") > 0
+                    or (record and self.recording.recorder is not None))
+        else:
+            send = wanted("joint_states", record)
+        if send:
+            self._publish_joint_states(
+                sec, nsec, record, joints if joints is not None else joint_values(self.sim))
+        if timing is not None and not bundle:
+            timing.row[2] = time.perf_counter()
+        if "clock" in out.pubs and wanted("clock", record):
+            self._publish_clock(sec, nsec, record)
+        if want_imu:
+            self._publish_imu(sec, nsec, base, record)
+        if wanted("solver", record):
+            self.diagnostics.publish(out, sec, nsec, record)
+        if timing is not None:
+            timing.row[3] = time.perf_counter()
+        if record:
+            self._prepare_next_step()
+            self.visualisation.publish()
+            self.recording.after_state(svc.k)
+        if timing is not None and record:
+            timing.row[4] = time.perf_counter()
+            timing.commit(svc.stamp_ns)
+        out.update_counts()
+
+    def republish_state(self):
+        """Send the current state again on every topic with subscribers (not recorded)."""
+        self.output.forget_counts()       # fresh subscriber counts
+        self.publish_state(record=False)
+
+    def state_subscriber_count(self) -> int:
+        """The subscribers of the topics a controller waits for (STATE_TOPICS), now."""
+        pubs = self.output.pubs
+        return sum(pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS
+                   if k in pubs)
+
+    def publish_robot_description(self):
+        self.output.emit("robot_description", String(data=self.sim.description.urdf_xml),
+                         True)
+
+    # -- one path per topic ----------------------------------------------------------------
+    def _bundle_wanted(self, first) -> bool:
+        """Send the state bundle: someone subscribes to it (the exact count for state 0 and
+        for a re-send; else the count taken after the previous step). Never recorded: the
+        recording has the public topics."""
+        if self.bundle_cdr is None:
+            return False
+        out = self.output
+        if first or out.counts_k < 0:
+            return out.subscription_count("state_bundle") > 0
+        return out.counts.get("state_bundle", 0) > 0
+
+    def publish_bundle(self, sec, nsec, base, joints, forces):
+        """starleth/state_bundle: the values of joint_states, base_state and the four foot
+        wrenches of this step in one Float64MultiArray (state_io.state_bundle_bytes)."""
+        self.output.pubs["state_bundle"][0].publish(
+            state_bundle_bytes(self.bundle_cdr, sec, nsec, base, joints, forces))
+
+    def _publish_joint_states(self, sec, nsec, record, joints):
+        """joint_states: position, velocity and the applied torque as effort (joints:
+        state_io.joint_values)."""
+        cdr = self._js_cdr
+        if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
+            self.output.emit_cdr("joint_states", cdr.build(sec, nsec, *joints), record)
+            return
+        js = self.js_msg
+        js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
+        js.position, js.velocity, js.effort = (float_array(x) for x in joints)
+        self.output.emit("joint_states", js, record)
+
+    def _publish_foot_wrenches(self, sec, nsec, feet, record, forces=None):
+        """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`
+        (forces: Simulator.contact_forces() where already read)."""
+        cdr = self._wrench_cdr
+        if cdr is not None and self._feet_first:
+            if forces is None:
+                forces = self.sim.contact_forces()
+            for name, f in zip(FEET, forces[:len(FEET)].tolist()):
+                if name in feet:
+                    self.output.emit_cdr(name, cdr.build(sec, nsec, f), record)
+            return
+        for c in self.sim.contacts[:len(FEET)]:
+            if c.name not in feet:
+                continue
+            m = self.wrench_msgs[c.name]
+            m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+            f = m.wrench.force
+            f.x, f.y, f.z = float(c.force[0]), float(c.force[1]), float(c.force[2])
+            self.output.emit(c.name, m, record)
+
+    def _publish_odometry(self, sec, nsec, base, record):
+        """starleth/base_state: pose in the world, twist in the base frame."""
+        p, quat, _, w, _, v_body = base
+        if self._odom_cdr is not None:
+            self.output.emit_cdr("base_state", self._odom_cdr.build(
+                sec, nsec, (*p, *quat, *v_body, *w)), record)
+            return
+        o = self.odom_msg
+        o.header.stamp.sec, o.header.stamp.nanosec = sec, nsec
+        pp, po = o.pose.pose.position, o.pose.pose.orientation
+        pp.x, pp.y, pp.z = p
+        po.x, po.y, po.z, po.w = quat
+        tl, ta = o.twist.twist.linear, o.twist.twist.angular
+        tl.x, tl.y, tl.z = v_body
+        ta.x, ta.y, ta.z = w
+        self.output.emit("base_state", o, record)
+
+    def _publish_clock(self, sec, nsec, record):
+        """/clock: the sim time."""
+        if self._clock_cdr is not None:
+            self.output.emit_cdr("clock", self._clock_cdr.build(sec, nsec, ()), record)
+        else:
+            c = self.clock_msg.clock
+            c.sec, c.nanosec = sec, nsec
+            self.output.emit("clock", self.clock_msg, record)
+
+    def _publish_imu(self, sec, nsec, base, record):
+        """starleth/imu: orientation, body rates, proper acceleration."""
+        p, quat, v, w, R, _ = base
+        a_proper = self.imu.proper_acceleration(self.service.k, v, R)
+        if self._imu_cdr is not None:
+            self.output.emit_cdr("imu", self._imu_cdr.build(
+                sec, nsec, (*quat, *w, float(a_proper[0]), float(a_proper[1]),
+                            float(a_proper[2]))), record)
+            return
+        imu = self.imu_msg
+        imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
+        io_ = imu.orientation
+        io_.x, io_.y, io_.z, io_.w = quat
+        iw, ia = imu.angular_velocity, imu.linear_acceleration
+        iw.x, iw.y, iw.z = w
+        ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
+        self.output.emit("imu", imu, record)
+
+    def _prepare_next_step(self):
+        """The controller now works on its answer to the state just published: do the
+        torque-independent part of the next step meanwhile (Simulator.prepare), which takes
+        it off the lockstep critical path (command in -> step -> state out), unless the next
+        step runs in one kernel call (the common case: no wrench), which is faster than the
+        rest of a prepared step. The result of the step is the same with or without it."""
+        if self.sim.next_step_in_one_kernel():
+            return
+        try:
+            self.sim.prepare()
+        except Exception as e:   # pragma: no cover - the step redoes it and reports
+            self.service.warnings.warn("prepare", f"preparing the next step failed: {e}")

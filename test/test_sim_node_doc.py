@@ -1,0 +1,63 @@
+"""doc/sim_node.md against the one parameter schema of sim_node (SIM_NODE_PARAMETERS): its
+parameter table lists every parameter of the schema, in the schema's order, with the
+schema's type, default, legal values and description, and the page sets no parameter the
+schema lacks."""
+import os
+import re
+
+from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS
+
+DOC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "doc",
+                   "sim_node.md")
+ROS_TYPES = {str: "string", float: "double", int: "integer", bool: "bool"}
+
+
+def doc_text():
+    with open(DOC, encoding="utf-8") as f:
+        return f.read()
+
+
+def parameter_rows(text):
+    """{name: [type, default, legal values, description]} of the table of the section
+    '## Parameters' (cells split on unescaped '|', '\\|' read as '|')."""
+    section = text.split("\n## Parameters\n", 1)[1].split("\n## ", 1)[0]
+    rows = {}
+    for line in section.splitlines():
+        m = re.match(r"\| `([^`]+)` \|", line)
+        if not m:
+            continue
+        cells = [c.strip().replace("\\|", "|")
+                 for c in re.split(r"(?<!\\)\|", line.strip().strip("|"))]
+        assert m.group(1) not in rows, f"{m.group(1)} twice in the table"
+        rows[m.group(1)] = cells[1:]
+    return rows
+
+
+def default_text(p):
+    if p.kind is bool:
+        return "true" if p.default else "false"
+    if p.kind is str:
+        return f'"{p.default}"'
+    return repr(p.default) if p.kind is float else str(p.default)
+
+
+def test_the_parameter_table_is_the_schema():
+    rows = parameter_rows(doc_text())
+    assert list(rows) == [p.name for p in SIM_NODE_PARAMETERS], \
+        "doc/sim_node.md's parameter table: names or order differ from SIM_NODE_PARAMETERS"
+    for p in SIM_NODE_PARAMETERS:
+        typ, default, legal, description = rows[p.name]
+        assert typ == ROS_TYPES[p.kind], p.name
+        assert default == f"`{default_text(p)}`", p.name
+        assert legal == (p.range_text() or "any"), p.name
+        assert description == p.description, p.name
+
+
+def test_the_page_sets_no_parameter_the_schema_lacks():
+    """Every `name:=value` of the page (command lines and text) is a parameter of the
+    schema, except the remapping __ns and the controller's --controller-param options."""
+    text = doc_text()
+    names = {p.name for p in SIM_NODE_PARAMETERS}
+    set_here = set(re.findall(r"(?<![\w-])(?<!--controller-param )([A-Za-z_]\w*):=", text))
+    assert set_here - {"__ns"} <= names, sorted(set_here - {"__ns"} - names)
+    assert set_here & names, "no parameter set on the page at all: the pattern is stale"
