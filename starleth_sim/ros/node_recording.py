@@ -12,8 +12,7 @@ from importlib.metadata import version
 import yaml
 
 from ..physics.config import ConfigError
-from .recording import (McapRecorder, ProcessRecorder, QueuedRecorder, RecordingError,
-                        SplitRecorder)
+from .recording import RecordingError, StorageOptions, open_recorder
 from .state_io import initial_state_record
 from .tf import TF_TYPE
 
@@ -27,31 +26,22 @@ def package_version() -> str:
 
 
 def make_recorder(path, settings, on_failure, log):
-    """The recorder of sim_node's `settings` writing to `path`: a writer process of its own
-    (nothing of the writing on this interpreter), or where no process can be started, a
-    writer thread of this one; with record_max_duration / record_max_size a rosbag2 bag
-    directory of numbered files, each complete on its own. `on_failure(message)` is called
-    once if the recording fails later. ConfigError (exit 2) if `path` cannot be written."""
+    """The recorder of sim_node's `settings` writing to `path`
+    (:func:`~.recording.open_recorder`: a writer process of its own, or where no process can
+    be started, a writer thread of this one; with record_max_duration / record_max_size a
+    rosbag2 bag directory of numbered files, each complete on its own). `on_failure(message)`
+    is called once if the recording fails later. ConfigError (exit 2) if `path` cannot be
+    written."""
     s = settings
-    common = dict(compression=s.record_compression,
-                  custom_data={"generator": "starleth_sim sim_node"})
-    split = dict(max_duration_ns=int(round(s.record_max_duration * 1e9)),
-                 max_size=s.record_max_size)
+    options = StorageOptions(
+        uri=path, compression=s.record_compression,
+        custom_data={"generator": "starleth_sim sim_node"},
+        max_bagfile_duration_ns=int(round(s.record_max_duration * 1e9)),
+        max_bagfile_size=s.record_max_size)
     try:
-        return ProcessRecorder(path, **split, **common, on_failure=on_failure)
+        return open_recorder(options, on_failure=on_failure, warn=log.warning)
     except RecordingError as e:      # the file cannot be written: one line, exit 2
         raise ConfigError(f"parameter record: cannot record to {e}") from None
-    except OSError as e:
-        # no child process: a thread of this one, mostly while the controller computes
-        log.warning(f"recording in this process (no recording process: {e})")
-    try:
-        file_rec = (SplitRecorder(path, **split, **common)
-                    if s.record_max_duration > 0 or s.record_max_size > 0
-                    else McapRecorder(path, **common))
-    except OSError as e:
-        raise ConfigError(f"parameter record: cannot record to {path}: "
-                          f"{e.strerror or e}") from None
-    return QueuedRecorder(file_rec, on_failure=on_failure)
 
 
 def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, pubs, subs,
@@ -152,8 +142,7 @@ class NodeRecording:
         steps' messages to the writer process and report new drops."""
         rec = self.recorder
         if rec is not None and k % self.HAND_OVER_STEPS == 0:
-            if hasattr(rec, "hand_over"):
-                rec.hand_over()   # the last steps' messages to the writer process
+            rec.hand_over()   # the last steps' messages to the writer process (if any)
             if rec.dropped and self.recorder is not None:   # (not: it just failed)
                 self._check_drops(rec)
 
