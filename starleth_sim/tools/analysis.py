@@ -1,6 +1,4 @@
-"""``starleth-analyze``: plots and a short summary of recorded runs (this module: the command
-line; the run is read by :mod:`.analysis_run`, summarised by :mod:`.analysis_summary` and
-plotted by :mod:`.analysis_plots`).
+"""``starleth-analyze``: plots and a short summary of recorded runs.
 
     starleth-analyze runs/demo.mcap
     starleth-analyze compliant.mcap hard.mcap --label compliant hard --tmax 1.0
@@ -49,6 +47,9 @@ counted on stderr; so are forces and base states holding a NaN, an infinite valu
 beyond 1e9 (``MAX_VALUE``), and such values of joint torques and solver figures are left
 out. The real-time factor plot has at most ``MAX_RTF_WINDOWS`` windows per run, whatever
 the span of the stamps.
+
+This module is the command line; the run is read by :mod:`.analysis_run`, summarised by
+:mod:`.analysis_summary` and plotted by :mod:`.analysis_plots`.
 """
 from __future__ import annotations
 

@@ -1,6 +1,4 @@
-"""``starleth-replay``: re-simulate a recorded run open loop from its bag (this module: the
-command line and the overlay plots; the recording is read by :mod:`.replay_recording`,
-re-simulated and compared by :mod:`.replay_resimulation`).
+"""``starleth-replay``: re-simulate a recorded run open loop from its bag.
 
     starleth-replay runs/demo.mcap                       # bit-identical to the recording?
     starleth-replay runs/demo.mcap --preset HMJD --preset Cm --out replay/
@@ -40,6 +38,9 @@ metadata or messages are not what sim_node writes (a control period that is not 
 number, joint names or an initial state that are not JSON or do not fit, a configuration
 whose YAML aliases expand it beyond its size, joint states of the wrong length, a NaN or
 infinite torque) gives one line on stderr and exit status 1.
+
+This module is the command line and the overlay plots; the recording is read by
+:mod:`.replay_recording`, re-simulated and compared by :mod:`.replay_resimulation`.
 """
 from __future__ import annotations
 

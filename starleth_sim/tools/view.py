@@ -1,7 +1,4 @@
-"""``starleth-view``: a recorded run replayed in 3D, as one self-contained HTML file (this
-module: the command line and :func:`write_html`; the run is read by :mod:`.view_recording`,
-its frames worked out by :mod:`.view_frames`, drawn by :mod:`.view_scene` and written into the
-page by :mod:`.view_page`).
+"""``starleth-view``: a recorded run replayed in 3D, as one self-contained HTML file.
 
     starleth-view runs/demo.mcap                    # writes runs/demo.html
     starleth-view run.mcap -o replay.html --fps 30
@@ -43,6 +40,10 @@ A bag that cannot be read (not MCAP, truncated, corrupt; ``--salvage`` reads a t
 up to the damage), one without (readable) joint states or base state, or a shown message
 that cannot be decoded, ends the program with a one-line message on stderr and exit
 status 1.
+
+This module is the command line and :func:`write_html`; the run is read by
+:mod:`.view_recording`, its frames worked out by :mod:`.view_frames`, drawn by
+:mod:`.view_scene` and written into the page by :mod:`.view_page`.
 """
 from __future__ import annotations
 
