@@ -12,14 +12,14 @@ import time
 
 import numpy as np
 
-from ..physics.description import STARLETH_JOINT_NAMES
+from ..physics.description import LEGS, STARLETH_JOINT_NAMES
 from .bag import BagError, stream_bag
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
                                        TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, foot_wrench_topic,
                                        namespace_of, resolve)
 
 PROG = "starleth-analyze"
-FEET = ("LF", "RF", "LH", "RH")
+FEET = LEGS
 JOINTS = STARLETH_JOINT_NAMES
 
 

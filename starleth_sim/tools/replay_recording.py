@@ -13,11 +13,12 @@ import numpy as np
 import yaml
 
 from ..physics.config import PhysicsConfig
+from ..physics.description import LEGS
 from .bag import BagError, read_messages
 from starleth_interface.topics import foot_wrench_topic, resolve
 
 PROG = "starleth-replay"
-FEET = ("LF", "RF", "LH", "RH")
+FEET = LEGS
 #: the quantities compared step by step, as the recording holds them
 QUANTITIES = ("joint_positions", "joint_velocities", "base_position", "base_orientation",
               "base_linear_velocity", "base_angular_velocity", "foot_forces")
