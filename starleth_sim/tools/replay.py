@@ -49,6 +49,7 @@ import json
 import os
 import sys
 import time
+
 import numpy as np
 
 from ..physics.config import ConfigError, load_preset
