@@ -25,7 +25,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from starleth_sim import Simulator  # noqa: E402
-from starleth_sim.tools import analysis, bag  # noqa: E402
+from starleth_sim.tools import analysis, analysis_plots, analysis_run, bag  # noqa: E402
 from starleth_sim.physics.posture import PostureHold  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 
@@ -240,7 +240,7 @@ def test_trot_gait_speed_and_wall_clock(tmp_path):
     for f in FEET:
         assert 0.4 < S["feet"][f]["stance_fraction"] < 0.9
     # diagonal pairs: LF and RH stance overlap almost entirely, LF and RF much less
-    r = analysis.Run(str(path), "trot")
+    r = analysis_run.Run(str(path), "trot")
     t, lf = r.normal_force("LF")
     _, rh = r.normal_force("RH")
     _, rf = r.normal_force("RF")
@@ -326,8 +326,8 @@ def test_two_bag_overlay(tmp_path):
     # both runs in the plots' legends; every plot has axis labels with units, a title, a legend
     opts = analysis.build_parser().parse_args([str(soft), str(hard)])
     opts.foot_given, opts.foot = False, "LF"
-    runs = [analysis.Run(str(soft), "compliant"), analysis.Run(str(hard), "hard contact")]
-    figs = analysis.make_figures(runs, opts)
+    runs = [analysis_run.Run(str(soft), "compliant"), analysis_run.Run(str(hard), "hard contact")]
+    figs = analysis_plots.make_figures(runs, opts)
     assert set(figs) == set(PLOTS) | {"normal_force_LF"}
     try:
         for name, fig in figs.items():
@@ -471,7 +471,7 @@ def test_joint_states_by_name(tmp_path):
     """A user's /joint_states: other order, an extra joint; efforts are matched by name."""
     path = tmp_path / "js.mcap"
     w = BagWriter(path, skip=set(ALL_TOPICS) - {"/joint_states"})
-    names = list(reversed(analysis.JOINTS)) + ["sensor_joint"]
+    names = list(reversed(analysis_run.JOINTS)) + ["sensor_joint"]
     for k in range(20):
         js = JointState(name=names, effort=[float(i + 1) for i in range(len(names))])
         js.header.stamp = stamp(k)

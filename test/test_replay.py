@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.tools import replay  # noqa: E402
+from starleth_sim.tools import replay, replay_recording, replay_resimulation  # noqa: E402
 from starleth_sim.tools.bench_controllers import EchoController  # noqa: E402
 
 # test_sim_node 50..89, controller tests 10..49, conventions 90..98, tf 199..228
@@ -86,7 +86,7 @@ def test_lockstep_run_and_its_replay_are_bit_identical(recorded, capsys):
     assert "bit-identical: all" in text
     doc = json.loads(out.read_text())
     assert doc["bit_identical"] and doc["steps"] >= N_STATES - 1
-    rec = replay.load_recording(mcap)
+    rec = replay_recording.load_recording(mcap)
     assert rec.package_version and rec.package_version != ""
     # the three wrenches were recorded with the step after which they were applied
     ks = sorted(rec.wrenches)
@@ -99,11 +99,11 @@ def test_lockstep_run_and_its_replay_are_bit_identical(recorded, capsys):
 
 def test_replay_without_the_wrenches_differs_from_the_push_on(recorded):
     mcap, _ = recorded
-    rec = replay.load_recording(mcap)
+    rec = replay_recording.load_recording(mcap)
     k_push = min(rec.wrenches)
     rec.wrenches = {}
-    rep = replay.resimulate(rec)
-    c = replay.compare_exact(rec, rep)
+    rep = replay_resimulation.resimulate(rec)
+    c = replay_resimulation.compare_exact(rec, rep)
     assert not c.identical
     assert c.first_step == k_push + 1            # the state after the pushed step
     assert c.first_quantities["base_linear_velocity"] > 1e-3

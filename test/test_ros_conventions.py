@@ -24,7 +24,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
-from starleth_sim.tools import analysis  # noqa: E402
+from starleth_sim.tools import analysis_run  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (90, 9)        # first, span; test_sim_node: 50..89, controller tests 10..49
@@ -164,7 +164,7 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
         assert summary["lockstep_timeouts"] == 0, summary
         assert summary["stale_commands"] == 0 and summary["late_commands"] == 0, summary
         assert summary["steps"] > 800, summary
-        run = analysis.Run(str(tmp_path / f"{tag}.mcap"), tag)
+        run = analysis_run.Run(str(tmp_path / f"{tag}.mcap"), tag)
         assert run.namespace == f"/{tag}" and not run.missing, (run.namespace, run.missing)
         assert set(run.counts) >= {f"/{tag}/joint_states", f"/{tag}/joint_commands"}
         assert not any(t.startswith("/robot1" if tag == "robot2" else "/robot2")
@@ -173,8 +173,8 @@ def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
         base = run.series("base")["data"]
         assert base[-1, 0] - base[0, 0] > 0.2, tag
     # /clock only in robot1's bag
-    assert "/clock" in analysis.Run(str(tmp_path / "robot1.mcap"), "1").counts
-    assert "/clock" not in analysis.Run(str(tmp_path / "robot2.mcap"), "2").counts
+    assert "/clock" in analysis_run.Run(str(tmp_path / "robot1.mcap"), "1").counts
+    assert "/clock" not in analysis_run.Run(str(tmp_path / "robot2.mcap"), "2").counts
 
 
 # -----------------------------------------------------------------------------------------
@@ -197,7 +197,7 @@ def test_controller_started_3_s_after_sim_node_gets_going_without_reset(ros, tmp
     assert codes == [0, 0]
     s = sim.summary()
     assert s["resets"] == 0 and s["lockstep_timeouts"] == 0, s
-    run = analysis.Run(str(tmp_path / "late.mcap"), "late")
+    run = analysis_run.Run(str(tmp_path / "late.mcap"), "late")
     js = run.series("joints")["t"]
     assert run.counts["/joint_commands"] >= len(js) - 1     # every state answered
     assert abs(js[0]) < 1e-12 and np.all(np.diff(js) > 0)   # from t = 0, no state twice
@@ -229,7 +229,7 @@ def test_controller_killed_and_restarted_mid_run_is_followed_without_reset(ros, 
     assert codes == [0, 0]
     s = sim.summary()
     assert s["resets"] == 0, s
-    run = analysis.Run(str(tmp_path / "restart.mcap"), "restart")
+    run = analysis_run.Run(str(tmp_path / "restart.mcap"), "restart")
     states = run.series("joints")["stamp"]
     # the recorder logs a command at the stamp of the state it answers
     answered = set(_log_times(tmp_path / "restart.mcap", "/joint_commands"))
@@ -355,13 +355,13 @@ def test_sim_node_splits_long_recordings_into_a_bag_directory(ros, tmp_path):
     assert meta["storage_identifier"] == "mcap"
     total = 0
     for f in meta["files"]:
-        one = analysis.Run(str(bag / f["path"]), f["path"])      # complete on its own
+        one = analysis_run.Run(str(bag / f["path"]), f["path"])      # complete on its own
         assert not one.truncated and one.urdf and "starleth_sim" in one.metadata
         assert one.messages == f["message_count"]
         total += f["message_count"]
         assert f["duration"]["nanoseconds"] < 1e9
     assert total == meta["message_count"]
-    run = analysis.Run(str(bag), "split")
+    run = analysis_run.Run(str(bag), "split")
     js = run.series("joints")["t"]
     assert np.allclose(np.diff(js), PERIOD_NS * 1e-9)          # one run, no step missing
     assert js[-1] - js[0] > 3.1

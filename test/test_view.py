@@ -28,7 +28,7 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from starleth_sim.tools import view  # noqa: E402
+from starleth_sim.tools import view, view_page  # noqa: E402
 from starleth_sim.physics.description import (STARLETH_JOINT_NAMES, RobotDescription,  # noqa: E402
                                       urdf_path)
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
@@ -143,7 +143,7 @@ def test_page_is_self_contained_with_expected_frames(drop):
     assert not re.search(r"<script[^>]+src=|<link[^>]+href=|@import", text)
     assert "handle_command" in text
     # 0.5 s at 50 fps: 26 frames, one every 8th of the 201 samples
-    assert data["format"] == view.FORMAT
+    assert data["format"] == view_page.FORMAT
     assert data["frames"] == info["frames"] == 26 and data["samples"] == 201
     assert data["t"] == pytest.approx([k * 0.02 for k in range(26)], abs=1e-9)
     assert data["sample_rate"] == pytest.approx(400.0)
@@ -348,7 +348,7 @@ def chromium(tmp_path, url, *args):
 
 
 def robot_mask(png):
-    """Pixels of the robot's orange (view.ROBOT_COLOR / LEG_COLOR, shaded) in a screenshot:
+    """Pixels of the robot's orange (view_scene.ROBOT_COLOR / LEG_COLOR, shaded) in a screenshot:
     red-dominant, green about half of red, little blue; the ground and sky are grey/blue,
     the force arrows green."""
     import matplotlib.image as mpimg

@@ -1,8 +1,9 @@
 """The one bag reader: a ROS 2 bag (an .mcap file, or a rosbag2 directory of .mcap files read
 in order) streamed in one pass with CRC checks, topic types, message counts, attachments and
 metadata; damaged or truncated files raise :class:`BagError` with one clear line, or with
-``salvage`` are read up to the damage. ``starleth-analyze`` (its ``Run``), ``starleth-view``
-and ``starleth-demo`` read bags through :func:`stream_bag` / :func:`read_messages`.
+``salvage`` are read up to the damage. ``starleth-analyze`` (its ``analysis_run.Run``),
+``starleth-view`` and ``starleth-demo`` read bags through :func:`stream_bag` /
+:func:`read_messages`.
 
 What the file claims never sizes an allocation: a record's length is bounded by the file's
 size, a compressed chunk is decompressed in pieces up to what its data holds (the size its
@@ -16,6 +17,14 @@ import os
 import re
 import sys
 import zlib
+
+import lz4.frame
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
 
 from ..ros.recording.mcap_sink import MCAP_MAGIC
 
@@ -110,9 +119,6 @@ def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: 
     """The records of the open MCAP file f (CRCs checked). At damage: raises BagError,
     or with salvage warns (on_warning, default warn), sets state['truncated'] and stops.
     state['messages'] counts the Message records read."""
-    from mcap.records import Chunk, Message
-    from mcap.stream_reader import StreamReader
-
     records = iter(StreamReader(f, validate_crcs=True, emit_chunks=True,
                                 record_size_limit=size + 64).records)
     state.setdefault("messages", 0)
@@ -160,7 +166,6 @@ def decompress_chunk(chunk) -> bytes:
         pieces, total = [], 0
         try:
             if comp == "zstd":
-                import zstandard
                 reader = zstandard.ZstdDecompressor().stream_reader(data)
                 while total <= size:
                     piece = reader.read(DECOMPRESS_PIECE)
@@ -169,7 +174,6 @@ def decompress_chunk(chunk) -> bytes:
                     pieces.append(piece)
                     total += len(piece)
             else:
-                import lz4.frame
                 dec = lz4.frame.LZ4FrameDecompressor()
                 piece = dec.decompress(data, max_length=DECOMPRESS_PIECE)
                 while True:
@@ -178,9 +182,6 @@ def decompress_chunk(chunk) -> bytes:
                     if dec.eof or total > size or not piece:
                         break
                     piece = dec.decompress(b"", max_length=DECOMPRESS_PIECE)
-        except ImportError:
-            raise ValueError(f"{comp}-compressed chunk: the Python package for {comp} is "
-                             "not installed") from None
         except Exception as e:   # the decompressors' own error types
             raise ValueError(f"{comp}-compressed chunk cannot be decompressed: "
                              f"{type(e).__name__}: {e}") from None
@@ -199,10 +200,6 @@ def decompress_chunk(chunk) -> bytes:
 def chunk_records(chunk):
     """The Schema, Channel and Message records of a Chunk, one at a time (records of other
     kinds skipped). Raises ValueError at damage (a record running past the chunk's end)."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Channel, Message, Schema
-
     data = decompress_chunk(chunk)
     end = len(data)
     stream = ReadDataStream(io.BytesIO(data))
@@ -249,9 +246,6 @@ def _decoder(factory, rec, schema, path, on_warning):
 
 def _stream_file(path: str, bag: BagMessages, on_channel, salvage: bool, on_warning):
     """One MCAP file into bag; see stream_bag."""
-    from mcap.records import Attachment, Channel, Message, Metadata, Schema
-    from mcap_ros2.decoder import DecoderFactory
-
     size, complete = check_mcap_file(path, salvage)
     factory = DecoderFactory()
     schemas, handlers, state = {}, {}, {}

@@ -1,0 +1,249 @@
+"""The recording ``starleth-replay`` re-simulates, read from a bag written by sim_node: the
+physics configuration, initial state and control period of its metadata, the recorded states
+step by step (the quantities compared), the applied torques and the external wrenches, with
+every check that the bag holds what sim_node writes; the tool's warnings and its error."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+
+import numpy as np
+import yaml
+
+from ..physics.config import PhysicsConfig
+from ..physics.description import LEGS
+from .bag import BagError, read_messages
+from starleth_interface.topics import foot_wrench_topic, resolve
+
+PROG = "starleth-replay"
+FEET = LEGS
+#: the quantities compared step by step, as the recording holds them
+QUANTITIES = ("joint_positions", "joint_velocities", "base_position", "base_orientation",
+              "base_linear_velocity", "base_angular_velocity", "foot_forces")
+STATE_QUANTITIES = QUANTITIES[:-1]
+
+
+class ReplayError(BagError):
+    """A bag that cannot be replayed: one line, exit status 1."""
+
+
+def warn(message: str) -> None:
+    print(f"{PROG}: warning: {message}", file=sys.stderr)
+
+
+@dataclass
+class Recording:
+    """What a replay needs from a bag, as arrays over the recorded states k = 0..N
+    (stamp k * period_ns)."""
+
+    path: str
+    config_yaml: str
+    initial: dict                  # the recorded initial_state.json
+    joint_names: list
+    control_period: float
+    period_ns: int
+    namespace: str
+    package_version: str
+    states: dict                   # quantity -> (N+1, width) float64, as recorded
+    effort: np.ndarray             # (N+1, 12): effort[k+1] = torque applied over k -> k+1
+    wrenches: dict = field(default_factory=dict)   # k -> [(link, force, torque, persistent)]
+    summary: dict = field(default_factory=dict)    # sim_node's closing summary, if any
+
+    @property
+    def steps(self) -> int:
+        return self.effort.shape[0] - 1
+
+    def config(self):
+        what = f"{self.path}: physics_config"
+        return PhysicsConfig.from_dict(bounded_yaml(self.config_yaml, what), source=what)
+
+
+def shortened(text: str, n: int = 300) -> str:
+    """text, cut to about n characters (a metadata value may be megabytes)."""
+    return text if len(text) <= n else text[:n] + "..."
+
+
+def _short(value, n=60) -> str:
+    """repr(value), cut to about n characters."""
+    return shortened(repr(value), n)
+
+
+def bounded_yaml(text: str, what: str):
+    """YAML text from a bag, loaded; a ReplayError where it is not YAML or where its aliases
+    expand it beyond its size (a few hundred bytes of nested aliases make a billion-element
+    list, which the configuration's checks would then walk)."""
+    try:
+        data = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError, ValueError) as e:
+        raise ReplayError(f"{what}: not valid YAML ({type(e).__name__}: "
+                          f"{shortened(str(e), 200)})") from None
+    budget = 2 * len(text) + 16          # nodes: fewer than characters without aliases
+    stack = [data]
+    while stack:
+        x = stack.pop()
+        budget -= 1
+        if budget < 0:
+            raise ReplayError(f"{what}: its YAML aliases expand it far beyond its "
+                              f"{len(text)} characters")
+        if isinstance(x, dict):
+            stack.extend(x.keys())
+            stack.extend(x.values())
+        elif isinstance(x, (list, tuple)):
+            stack.extend(x)
+    return data
+
+
+def _json(md, key, path):
+    """A JSON value of the starleth_sim metadata; ReplayError where it is not JSON."""
+    try:
+        return json.loads(md[key])
+    except (ValueError, TypeError, RecursionError):
+        raise ReplayError(f"{path}: the recorded {key} is not valid JSON "
+                          f"({_short(md[key])})") from None
+
+
+def _metadata(bag, path):
+    md = bag.metadata.get("starleth_sim")
+    need = ("physics_config", "initial_state", "joint_names", "control_period")
+    if not md or any(k not in md for k in need):
+        missing = need if not md else [k for k in need if k not in md]
+        raise ReplayError(f"{path}: no replay metadata (starleth_sim record lacks "
+                          f"{', '.join(missing)}): the bag was not recorded by sim_node "
+                          "(record:=...), so its physics configuration and initial state "
+                          "are unknown")
+    return md
+
+
+def load_recording(path: str, salvage: bool = False) -> Recording:
+    """Read the metadata, the states, the applied torques and the wrenches of a bag."""
+    # the metadata comes first (sim_node writes it when the recording opens); a bag without
+    # it is refused before its messages are decoded
+    probe = read_messages(path, lambda t, ty: False, salvage=salvage, on_warning=warn)
+    md = _metadata(probe, path)
+    ns = md.get("namespace", "")
+    ns = "" if ns in ("", "/") else ns
+    topics = {
+        "joints": md.get("joint_states_topic") or resolve("joint_states", ns),
+        "base": md.get("base_state_topic") or resolve("starleth/base_state", ns),
+        **{f: resolve(foot_wrench_topic(f"{f}_foot"), ns) for f in FEET}}
+    wrench_topics = {md.get("wrench_topic"): False, md.get("wrench_persistent_topic"): True}
+    wrench_topics.pop(None, None)
+    if not wrench_topics:   # bags of before the topic names were recorded
+        for t in probe.types:
+            if t.endswith("/wrench/persistent"):
+                wrench_topics[t] = True
+            elif t.endswith("/wrench") and "/starleth/" not in t:
+                wrench_topics[t] = False
+    wanted = set(topics.values()) | set(wrench_topics)
+    bag = read_messages(path, lambda t, ty: t in wanted, salvage=salvage, on_warning=warn)
+    for key in ("joints", "base"):
+        if not bag.messages.get(topics[key]):
+            raise ReplayError(f"{path}: no messages on {topics[key]}: nothing to replay")
+    try:
+        control_period = float(md["control_period"])
+        period_ns = int(md.get("stamp_period_ns") or round(control_period * 1e9))
+    except (ValueError, TypeError, OverflowError):
+        period_ns, control_period = 0, math.nan
+    if period_ns <= 0 or not (math.isfinite(control_period) and control_period > 0):
+        raise ReplayError(f"{path}: the recorded control period is not a positive number "
+                          f"(control_period {_short(md['control_period'])}, stamp_period_ns "
+                          f"{_short(md.get('stamp_period_ns'))})")
+    joint_names = _json(md, "joint_names", path)
+    if not (isinstance(joint_names, list) and all(isinstance(n, str) for n in joint_names)):
+        raise ReplayError(f"{path}: the recorded joint_names is not a list of names "
+                          f"({_short(md['joint_names'])})")
+
+    def by_step(topic, what):
+        rows = {}
+        for _, m in bag.messages.get(topic, ()):
+            s = m.header.stamp
+            ns_ = s.sec * 1_000_000_000 + s.nanosec
+            k, r = divmod(ns_, period_ns)
+            if r:
+                raise ReplayError(f"{path}: {topic}: stamp {ns_} ns is not a multiple of the "
+                                  f"control period ({period_ns} ns)")
+            rows.setdefault(k, m)       # a re-sent state has the same stamp and values
+        if not rows:
+            return rows
+        ks = sorted(rows)
+        if ks[0] != 0 or ks[-1] != len(ks) - 1:
+            gap = next((a + 1 for a, b in zip([-1] + ks, ks) if b != a + 1), ks[-1])
+            raise ReplayError(f"{path}: {what} of step {gap} (t = {gap * period_ns * 1e-9:.4f} s) "
+                              "is missing from the recording: cannot replay it")
+        return rows
+
+    js = by_step(topics["joints"], "/joint_states")
+    base = by_step(topics["base"], "the base state")
+    n = min(len(js), len(base))
+    if len(js) != len(base):
+        warn(f"{path}: {len(js)} joint states but {len(base)} base states; comparing the "
+             f"first {n}")
+    if n < 2:
+        raise ReplayError(f"{path}: fewer than two recorded states: nothing to replay")
+    names = list(js[0].name)
+    if names != joint_names:
+        raise ReplayError(f"{path}: /joint_states names {_short(names, 400)} differ from the "
+                          f"recorded joint_names {_short(joint_names, 400)}")
+    for k in range(n):
+        for field_ in ("position", "velocity", "effort"):
+            have = len(getattr(js[k], field_))
+            if have != len(joint_names):
+                raise ReplayError(f"{path}: the /joint_states of step {k} holds {have} "
+                                  f"{field_} values for {len(joint_names)} joints")
+    states = {
+        "joint_positions": np.array([js[k].position for k in range(n)], dtype=float),
+        "joint_velocities": np.array([js[k].velocity for k in range(n)], dtype=float),
+    }
+    effort = np.array([js[k].effort for k in range(n)], dtype=float)
+    bad = np.flatnonzero(~np.isfinite(effort[1:]).all(axis=1)) + 1   # [0]: not applied
+    if bad.size:
+        raise ReplayError(f"{path}: the /joint_states effort of step {bad[0]} (the torque "
+                          "applied over the step before it) is NaN or infinite: not a torque "
+                          "the simulator applied; cannot replay it")
+    p, o, v, w = [], [], [], []
+    for k in range(n):
+        m = base[k]
+        pp, po = m.pose.pose.position, m.pose.pose.orientation
+        tl, ta = m.twist.twist.linear, m.twist.twist.angular
+        p.append((pp.x, pp.y, pp.z))
+        o.append((po.x, po.y, po.z, po.w))
+        v.append((tl.x, tl.y, tl.z))
+        w.append((ta.x, ta.y, ta.z))
+    states.update(base_position=np.array(p), base_orientation=np.array(o),
+                  base_linear_velocity=np.array(v), base_angular_velocity=np.array(w))
+    forces = np.full((n, 3 * len(FEET)), np.nan)
+    for i, f in enumerate(FEET):
+        rows = by_step(topics[f], f"the {f} foot wrench")
+        for k, m in rows.items():
+            if k < n:
+                fm = m.wrench.force
+                forces[k, 3 * i:3 * i + 3] = (fm.x, fm.y, fm.z)
+    states["foot_forces"] = forces
+    wrenches = {}
+    for topic, persistent in wrench_topics.items():
+        for log_ns, m in bag.messages.get(topic, ()):
+            k = int(log_ns) // period_ns
+            f, t = m.wrench.force, m.wrench.torque
+            wrenches.setdefault(k, []).append(
+                (log_ns, m.header.frame_id, (f.x, f.y, f.z), (t.x, t.y, t.z), persistent))
+    for k in wrenches:   # in the order they were taken
+        wrenches[k] = [w_[1:] for w_ in sorted(wrenches[k], key=lambda x: x[0])]
+    summary = {}
+    for k, val in bag.metadata.get("starleth_sim_summary", {}).items():
+        try:
+            summary[k] = json.loads(val)
+        except (ValueError, RecursionError):
+            summary[k] = val
+    initial = _json(md, "initial_state", path)
+    if not isinstance(initial, dict):
+        raise ReplayError(f"{path}: the recorded initial_state is not a JSON object "
+                          f"({_short(md['initial_state'])})")
+    if bag.truncated:
+        warn(f"{path}: truncated: replaying the {n - 1} steps before the damage")
+    return Recording(path=path, config_yaml=md["physics_config"], initial=initial,
+                     joint_names=joint_names, control_period=control_period,
+                     period_ns=period_ns, namespace=ns,
+                     package_version=md.get("package_version", "unknown"), states=states,
+                     effort=effort, wrenches=wrenches, summary=summary)

@@ -1,0 +1,224 @@
+"""The recorded run ``starleth-view`` replays: the joint states, base state and foot wrenches
+of one robot of a bag (kept as CDR bytes, sorted by stamp, decoded only where shown), with
+the URDF and the ground it was recorded with; the tool's warnings and its error."""
+from __future__ import annotations
+
+import math
+import struct
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import yaml
+
+from ..physics.description import LEGS, urdf_path
+from .bag import read_messages
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
+                                       TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of)
+
+PROG = "starleth-view"
+FEET = LEGS
+
+#: kind -> (relative topic name, message type)
+TOPICS = {"joints": (TOPIC_JOINT_STATES, "sensor_msgs/msg/JointState"),
+          "base": (TOPIC_BASE_STATE, "nav_msgs/msg/Odometry"),
+          "description": (TOPIC_ROBOT_DESCRIPTION, "std_msgs/msg/String"),
+          **{foot: (foot_wrench_topic(f"{foot}_foot"),
+                    "geometry_msgs/msg/WrenchStamped") for foot in FEET}}
+
+
+class ViewError(Exception):
+    """A run that cannot be replayed: main() prints the message and exits with 1."""
+
+
+def warn(message: str) -> None:
+    print(f"{PROG}: warning: {message}", file=sys.stderr)
+
+
+def match_topic(topic: str):
+    """(kind, namespace) of a bag topic that is one of TOPICS under some namespace
+    ('/joint_states' -> ('joints', ''), '/robot1/starleth/base_state' -> ('base', '/robot1')),
+    or None."""
+    for kind, (rel, _) in TOPICS.items():
+        ns = namespace_of(topic, rel)
+        if ns is not None:
+            return kind, ns
+    return None
+
+
+def _select(topic: str, type_name: str) -> bool:
+    m = match_topic(topic)
+    return m is not None and TOPICS[m[0]][1] == type_name
+
+
+def cdr_stamp_ns(data) -> int:
+    """Header stamp [ns] of a CDR-serialised message whose first field is a std_msgs/Header
+    (JointState, Odometry, WrenchStamped), read without decoding the message."""
+    if len(data) < 12:
+        raise ValueError(f"{len(data)} bytes: too short for a message with a header")
+    fmt = "<iI" if data[1] & 1 else ">iI"   # encapsulation id: odd = little-endian
+    sec, nanosec = struct.unpack_from(fmt, data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+@dataclass
+class Series:
+    """Messages of one topic sorted by time: t [ns] (header stamps, or the log times when
+    the messages are unstamped), the CDR bytes and the decoder."""
+
+    topic: str
+    t_ns: np.ndarray
+    raw: list
+    decode: object
+
+    @classmethod
+    def from_bag(cls, bag, topic):
+        rows = bag.messages.get(topic, [])
+        try:
+            stamps = np.array([cdr_stamp_ns(d) for _, d in rows], dtype=np.int64)
+        except ValueError as e:
+            raise ViewError(f"{bag.path}: a message on {topic} is damaged ({e})") from None
+        if stamps.size and not stamps.any():
+            stamps = np.array([log for log, _ in rows], dtype=np.int64)
+        order = np.argsort(stamps, kind="stable")
+        return cls(topic, stamps[order], [rows[i][1] for i in order], bag.decoders.get(topic))
+
+    def __len__(self):
+        return self.t_ns.size
+
+    def message(self, i):
+        """Message i, decoded."""
+        try:
+            return self.decode(self.raw[i])
+        except Exception as e:   # a message the schema does not describe
+            raise ViewError(f"message {i} on {self.topic} cannot be decoded: "
+                            f"{type(e).__name__}: {e}") from None
+
+    def latest(self, t_ns):
+        """Index of the latest message at or before each of t_ns (the first one before it)."""
+        return np.clip(np.searchsorted(self.t_ns, t_ns, side="right") - 1, 0, len(self) - 1)
+
+
+@dataclass
+class Recording:
+    """The series of one robot of a bag, and where its URDF and ground come from."""
+
+    path: str
+    namespace: str
+    joints: Series
+    base: Series
+    wrenches: dict                 # foot -> Series (feet without messages left out)
+    urdf: str
+    urdf_source: str
+    ground_height: float = 0.0
+    ground_normal: tuple = (0.0, 0.0, 1.0)
+    truncated: bool = False
+
+
+def _choose_namespace(found: dict, requested, path: str, bag) -> str:
+    """The namespace whose joint states and base state the bag holds (requested, the only
+    one, or the first in sorted order, with a warning)."""
+    complete = sorted(ns for ns, kinds in found.items()
+                      if bag.counts.get(kinds.get("joints"), 0)
+                      and bag.counts.get(kinds.get("base"), 0))
+    if requested is not None:
+        ns = "/" + requested.strip("/") if requested.strip("/") else ""
+        if ns in complete:
+            return ns
+        have = ", ".join(repr(n or "/") for n in complete) or "none"
+        raise ViewError(f"{path}: no {TOPIC_JOINT_STATES} and {TOPIC_BASE_STATE} messages under "
+                        f"the namespace {ns or '/'!r} (namespaces with both: {have})")
+    if not complete:
+        missing = []
+        for kind in ("joints", "base"):
+            rel, typ = TOPICS[kind]
+            if not any(bag.counts.get(k.get(kind), 0) for k in found.values()):
+                missing.append(f"{rel} ({typ})")
+        topics = ", ".join(f"{t} ({ty or 'no schema'})" for t, ty in sorted(bag.types.items()))
+        if not missing:
+            raise ViewError(f"{path}: {TOPIC_JOINT_STATES} and {TOPIC_BASE_STATE} are in "
+                            f"different namespaces; the bag's topics: {topics or 'none'}")
+        raise ViewError(f"{path}: no messages on {' nor '.join(missing)}, so there is no robot "
+                        f"motion to replay; the bag's topics: {topics or 'none'}")
+    if len(complete) > 1:
+        warn(f"{path}: robots under the namespaces {', '.join(n or '/' for n in complete)}; "
+             f"replaying {complete[0] or '/'} (--namespace picks another)")
+    return complete[0]
+
+
+def _urdf_from_bag(bag, topics: dict, path: str):
+    """(URDF text, where it came from): the namespace's robot_description topic, the
+    starleth.urdf attachment (sim_node's recorder), another .urdf attachment, or the
+    package's URDF."""
+    topic = topics.get("description")
+    if topic and bag.messages.get(topic):
+        try:
+            return bag.decoders[topic](bag.messages[topic][0][1]).data, f"topic {topic}"
+        except Exception as e:   # a damaged message: try the attachments
+            warn(f"{path}: cannot decode {topic} ({e}); using another URDF")
+    names = sorted(bag.attachments, key=lambda n: (n != "starleth.urdf", n))
+    for name in names:
+        if name.endswith(".urdf"):
+            try:
+                return bag.attachments[name].decode("utf-8"), f"attachment {name}"
+            except UnicodeDecodeError:
+                continue
+    with open(urdf_path()) as f:
+        return f.read(), "package urdf/starleth.urdf (none in the bag)"
+
+
+def _ground_from_metadata(bag):
+    """(height, unit normal) of the ground from the recording's physics configuration
+    (sim_node's 'starleth_sim' metadata), else the default flat ground z = 0."""
+    text = bag.metadata.get("starleth_sim", {}).get("physics_config")
+    try:
+        ground = (yaml.safe_load(text) or {}).get("ground", {}) if text else {}
+        normal = ground.get("normal", (0.0, 0.0, 1.0))
+        # three numbers, checked before numpy walks it (YAML aliases can nest a list
+        # a billion elements deep in a few hundred bytes)
+        if not (isinstance(normal, (list, tuple)) and len(normal) == 3
+                and all(isinstance(x, (int, float)) for x in normal)):
+            raise ValueError("bad ground normal")
+        n = np.array(normal, dtype=float)
+        h = float(ground.get("height", 0.0))
+        if np.linalg.norm(n) < 1e-9 or not np.all(np.isfinite(n)) or not math.isfinite(h):
+            raise ValueError("bad ground")
+    except (ValueError, TypeError, AttributeError, OverflowError, RecursionError,
+            yaml.YAMLError):
+        return 0.0, (0.0, 0.0, 1.0)
+    n = n / np.linalg.norm(n)
+    return h, tuple(float(x) for x in n)
+
+
+def read_recording(path: str, namespace: str | None = None, salvage: bool = False):
+    """The Recording of one robot of a bag. Raises BagError for a bag that cannot be
+    read, ViewError for one without joint states or base state."""
+    bag = read_messages(path, _select, salvage=salvage, decode=False,
+                                 on_warning=warn)
+    found = {}                                   # namespace -> {kind: topic}
+    for topic in bag.types:
+        m = match_topic(topic)
+        if m is not None and _select(topic, bag.types[topic]):
+            found.setdefault(m[1], {})[m[0]] = topic
+        elif m is not None:
+            warn(f"{path}: topic {topic} has type {bag.types[topic] or '(no schema)'}, "
+                 f"expected {TOPICS[m[0]][1]}; ignored")
+    ns = _choose_namespace(found, namespace, path, bag)
+    topics = found[ns]
+    urdf, source = _urdf_from_bag(bag, topics, path)
+    rec = Recording(path=path, namespace=ns, joints=Series.from_bag(bag, topics["joints"]),
+                    base=Series.from_bag(bag, topics["base"]), wrenches={}, urdf=urdf,
+                    urdf_source=source, truncated=bag.truncated)
+    for foot in FEET:
+        if topics.get(foot) and bag.messages.get(topics[foot]):
+            rec.wrenches[foot] = Series.from_bag(bag, topics[foot])
+        else:
+            warn(f"{path}: no messages on {ns}/{TOPICS[foot][0]}; no {foot} force arrow")
+    for series in (rec.joints, rec.base):
+        if not len(series):
+            n = bag.counts.get(series.topic, 0)
+            raise ViewError(f"{path}: none of the {n} message(s) on {series.topic} could be "
+                            "read, so there is no robot motion to replay")
+    rec.ground_height, rec.ground_normal = _ground_from_metadata(bag)
+    return rec
+

@@ -1,0 +1,190 @@
+"""The 3D scene of a ``starleth-view`` page as meshcat commands: the robot's URDF visuals as
+three.js objects, the checkerboard ground, the force arrows, the background and the camera."""
+from __future__ import annotations
+
+import base64
+import math
+import struct
+import xml.etree.ElementTree as ET
+import zlib
+
+import numpy as np
+import pinocchio as pin
+
+from ..physics.description import RobotDescription, _origin
+from .view_recording import FEET, Recording, warn
+
+#: colours (0xRRGGBB): a distinctive orange robot, green arrows, grey ground, blue-grey sky
+ROBOT_COLOR = 0xF07818      # boxes (the trunk)
+LEG_COLOR = 0xD2600C        # cylinders (hips, thighs, shanks)
+FOOT_COLOR = 0x303030       # spheres (feet)
+ARROW_COLOR = 0x18B43C
+GROUND_COLORS = ((0xD6, 0xD6, 0xCC), (0xBC, 0xBC, 0xB2))   # unlit 0.5 m checkerboard
+GROUND_SQUARE = 0.5         # [m]
+SKY_TOP, SKY_BOTTOM = (0.84, 0.89, 0.95), (0.62, 0.69, 0.78)
+#: camera position relative to the followed trunk point, world axes [m]
+CAMERA_OFFSET = (0.9, -1.35, 0.42)
+ARROW_HEAD = 0.05           # length of an arrow's cone [m]
+ARROW_RADIUS = 0.011        # of its shaft [m] (the cone: 2.5 times that)
+
+
+def _matrix(M4) -> list:
+    """A 4x4 homogeneous matrix as meshcat/three.js want it: 16 numbers, column-major."""
+    return [float(round(x, 6)) + 0.0 for x in np.asarray(M4, dtype=float).T.reshape(16)]
+
+
+def _mesh(uid: str, name: str, geometry: dict, color: int, matrix, **material) -> dict:
+    """A three.js JSON object (format 4.5, what meshcat's set_object takes): one Mesh."""
+    mat = {"uuid": f"{uid}/material", "type": "MeshLambertMaterial", "color": color,
+           "side": 2, **material}
+    return {"metadata": {"version": 4.5, "type": "Object"},
+            "geometries": [dict(geometry, uuid=f"{uid}/geometry")],
+            "materials": [mat],
+            "object": {"uuid": uid, "type": "Mesh", "name": name,
+                       "geometry": f"{uid}/geometry", "material": f"{uid}/material",
+                       "matrix": _matrix(matrix)}}
+
+
+_ROT_Y_TO_Z = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+
+
+def _visual_geometry(geom):
+    """(three.js geometry dict, extra 4x4 intrinsic transform, colour) of a URDF <geometry>
+    element, or None for a mesh or an unknown shape."""
+    box, sphere, cyl = geom.find("box"), geom.find("sphere"), geom.find("cylinder")
+    if box is not None:
+        x, y, z = (float(v) for v in box.get("size").split())
+        return {"type": "BoxGeometry", "width": x, "height": y, "depth": z}, np.eye(4), \
+            ROBOT_COLOR
+    if sphere is not None:
+        return {"type": "SphereGeometry", "radius": float(sphere.get("radius")),
+                "widthSegments": 20, "heightSegments": 14}, np.eye(4), FOOT_COLOR
+    if cyl is not None:   # three.js cylinders lie along y, URDF ones along z
+        r = float(cyl.get("radius"))
+        return {"type": "CylinderGeometry", "radiusTop": r, "radiusBottom": r,
+                "height": float(cyl.get("length")), "radialSegments": 20}, _ROT_Y_TO_Z, \
+            LEG_COLOR
+    return None
+
+
+def robot_visuals(desc: RobotDescription):
+    """[(pin joint id, visual name, three.js object)] of the URDF's <visual> elements, each
+    placed in the frame of the joint that moves it (fixed joints merged by pin)."""
+    model = desc.model
+    out = []
+    for link in ET.fromstring(desc.urdf_xml).findall("link"):
+        lname = link.get("name")
+        for k, vis in enumerate(link.findall("visual")):
+            geom = vis.find("geometry")
+            try:
+                shape = _visual_geometry(geom) if geom is not None else None
+            except (TypeError, ValueError, AttributeError):   # missing/odd attributes
+                shape = None
+            if shape is None:
+                warn(f"link {lname}: visual {k} is not a box, sphere or cylinder; not drawn")
+                continue
+            if not model.existFrame(lname):
+                continue
+            frame = model.frames[model.getFrameId(lname)]
+            placement = frame.placement * _origin(vis)
+            geometry, intrinsic, color = shape
+            name = f"{lname}_{k}" if len(link.findall("visual")) > 1 else lname
+            obj = _mesh(f"robot/{name}", name, geometry, color,
+                        pin.SE3(placement).homogeneous @ intrinsic)
+            out.append((int(frame.parentJoint), name, obj))
+    return out
+
+
+def _ground_pose(height, normal, centre_xy):
+    """4x4 pose of the ground plane: z axis along the normal, origin on the plane below
+    centre_xy."""
+    n = np.asarray(normal, dtype=float)
+    z = np.array([0.0, 0.0, 1.0])
+    axis, c = np.cross(z, n), float(np.dot(z, n))
+    R = np.eye(3)
+    if np.linalg.norm(axis) > 1e-9:
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        R = np.eye(3) + K + K @ K / (1.0 + c)
+    x, y = centre_xy
+    pz = (height - n[0] * x - n[1] * y) / n[2] if abs(n[2]) > 0.1 else 0.0
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, ((x, y, pz) if abs(n[2]) > 0.1 else height * n)
+    return M
+
+
+def _png_rgb(pixels) -> bytes:
+    """A PNG file of an (h, w, 3) uint8 RGB image."""
+    pixels = np.asarray(pixels, dtype=np.uint8)
+    h, w, _ = pixels.shape
+    raw = b"".join(b"\x00" + pixels[r].tobytes() for r in range(h))
+
+    def chunk(tag, data):
+        return (struct.pack(">I", len(data)) + tag + data
+                + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+def _ground_object(size: float, tile: float) -> dict:
+    """The ground: a size x size plane (in its xy plane), unlit, with a checkerboard
+    texture (a 2x2 PNG repeated every `tile` m)."""
+    a, b = GROUND_COLORS
+    png = base64.b64encode(_png_rgb([[a, b], [b, a]])).decode("ascii")
+    obj = _mesh("ground", "ground", {"type": "PlaneGeometry", "width": size, "height": size},
+                0xFFFFFF, np.eye(4), type="MeshBasicMaterial", map="ground/texture")
+    obj["images"] = [{"uuid": "ground/image", "url": "data:image/png;base64," + png}]
+    obj["textures"] = [{"uuid": "ground/texture", "image": "ground/image",
+                        "wrap": [1000, 1000],                 # RepeatWrapping
+                        "repeat": [size / tile, size / tile],
+                        "magFilter": 1003}]                   # NearestFilter
+    return obj
+
+
+def scene_commands(desc, visuals, rec: Recording, trunk_xy) -> list:
+    """meshcat commands that build the scene: background, a checkerboard ground plane (in
+    place of meshcat's grid), the robot's visuals under /world/starleth/<joint>, the force
+    arrows under /world/forces/<foot>, the camera. The page follows the trunk by moving
+    /world so that the trunk stays at the origin, which meshcat's orbit controls turn the
+    camera around."""
+    model = desc.model
+    lo, hi = trunk_xy.min(axis=0), trunk_xy.max(axis=0)
+    tile = 2 * GROUND_SQUARE
+    centre = np.round((lo + hi) / 2 / tile) * tile         # squares on multiples of 0.5 m
+    size = tile * 2 * math.ceil((float(np.max(hi - lo)) + 40.0) / (2 * tile))
+    cmds = [
+        {"type": "set_property", "path": "/Background", "property": "top_color",
+         "value": list(SKY_TOP)},
+        {"type": "set_property", "path": "/Background", "property": "bottom_color",
+         "value": list(SKY_BOTTOM)},
+        {"type": "set_property", "path": "/Axes", "property": "visible", "value": False},
+        {"type": "set_property", "path": "/Grid", "property": "visible", "value": False},
+        {"type": "set_object", "path": "/world/ground", "object": _ground_object(size, tile)},
+        {"type": "set_transform", "path": "/world/ground", "matrix": _matrix(
+            _ground_pose(rec.ground_height, rec.ground_normal, centre))},
+    ]
+    for joint, name, obj in visuals:
+        cmds.append({"type": "set_object", "path": f"/world/starleth/{model.names[joint]}/{name}",
+                     "object": obj})
+    shaft = np.eye(4)
+    shaft[1, 3] = 0.5                                      # unit cylinder from y=0 to y=1
+    head = np.eye(4)
+    head[1, 3] = ARROW_HEAD / 2                            # cone from y=0 to the tip
+    for foot in FEET:
+        if foot not in rec.wrenches:
+            continue
+        cmds.append({"type": "set_object", "path": f"/world/forces/{foot}/shaft",
+                     "object": _mesh(f"forces/{foot}/shaft", f"{foot} force", {
+                         "type": "CylinderGeometry", "radiusTop": ARROW_RADIUS,
+                         "radiusBottom": ARROW_RADIUS, "height": 1.0, "radialSegments": 12},
+                         ARROW_COLOR, shaft)})
+        cmds.append({"type": "set_object", "path": f"/world/forces/{foot}/head",
+                     "object": _mesh(f"forces/{foot}/head", f"{foot} force head", {
+                         "type": "ConeGeometry", "radius": 2.5 * ARROW_RADIUS, "height": ARROW_HEAD,
+                         "radialSegments": 12}, ARROW_COLOR, head)})
+    # the camera's position relative to the point it orbits (the origin), given in the
+    # Y-up frame of /Cameras/default/rotated: (x, z, -y) of the world
+    ox, oy, oz = CAMERA_OFFSET
+    cmds.append({"type": "set_property", "path": "/Cameras/default/rotated/<object>",
+                 "property": "position", "value": [ox, oz, -oy]})
+    return cmds
+
