@@ -58,8 +58,8 @@ between the kernels times itself with `clock` and `lap`.
 from __future__ import annotations
 
 import time
-from typing import NamedTuple
 
+from .kernel_layouts import STEP_SETTINGS
 from .kernels import (ContactProblem, complete_hard_contacts,  # noqa: F401
                       constraint_velocity, end_of_step, free_velocity, prepare_hard_contacts,
                       solve_compliant, solve_hard_contacts)
@@ -70,29 +70,12 @@ from .kernels import (PHASE_G, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_PROX,  # no
 PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")
 
 
-class StepSettings(NamedTuple):
-    """The settings of one step as the kernels read them (built once per stepper from the
-    PhysicsConfig, see `MoreauStepper.__init__`)."""
-
-    activation_gap: float       # g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]
-    mu: float                   # μ, Coulomb friction coefficient of the ground
-    alpha: float                # α, prox relaxation: r = α / diag(G) (< 0: adaptive, prox.py)
-    tol_rel: float              # T_rel
-    tol_abs: float              # T_abs [N s]
-    fallback_alpha_factor: float  # a non-converged solve is retried once with α·this (0: no)
-    opening_gap: float          # hysteresis: a loaded contact stays in I while g_N ≤ this [m]
-    dt: float                   # Δt [s]
-    beta_velocity: float        # β_N of the velocity-level penetration correction (or 0)
-    beta_projection: float      # β_N of the post-step projection (or 0: no projection)
-    jacobian_gap: float         # W of a contact is computed while g_N(q^M) ≤ this [m]
-    projection_tolerance: float  # the projection runs below g_N^E = −this [m]
-    form: int                   # prox.FORM_DELASSUS | prox.FORM_VELOCITY
-    scheme: int                 # prox.SCHEME_JOR | prox.SCHEME_SOR
-    max_iterations: int         # prox iteration cap
-    criterion: int              # prox.CRITERION_IMPULSE | prox.CRITERION_ENERGY
-    warm_start: bool            # Λ^0 = the last step's Λ of the contacts that stay in I
-    bilateral_direct: bool      # Λ_B by Eqn. 20 (else prox rows, Eqn. 19)
-    hysteresis: bool            # contact.activation "hysteresis" (else the gap test alone)
+#: The settings of one step as the kernels read them (built once per stepper from the
+#: PhysicsConfig, see `MoreauStepper.__init__`), in the order kernel_layouts.STEP_SETTINGS
+#: declares
+StepSettings = STEP_SETTINGS.named_tuple(
+    "The settings of one step as the kernels read them (a plain tuple of the same numbers "
+    "will do).", __name__)
 
 
 def _timed(timings) -> bool:
