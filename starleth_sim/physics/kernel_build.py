@@ -264,41 +264,76 @@ def _c_layout(layout, L) -> list[str]:
 
 
 def _c_result_types(L) -> list[str]:
-    """The results' Python types (struct sequences) and their converters, for the bindings."""
+    """The results' Python types and their converters, for the bindings. Each result is an
+    object of its own type whose fields are read-only object slots (T_OBJECT_EX members,
+    which Python's attribute look-up specializes: a field costs what a __slots__ attribute
+    costs; a struct sequence's fields, not specialized, cost several times more)."""
     conv = {"i64": "PyLong_FromLongLong((long long)r->{})", "double": "PyFloat_FromDouble(r->{})",
             "bool": "PyBool_FromLong(r->{} != 0)"}
-    lines = ["#ifdef Py_PYTHON_H /* the bindings */"]
+    lines = ["#ifdef Py_PYTHON_H /* the bindings */", "#include <structmember.h>", ""]
     for r in L.RESULTS:
-        lines.append(f"extern PyTypeObject *{r.name}_type;")
-    lines.append("")
-    for r in L.RESULTS:
+        n = len(r.fields)
         fn = r.c_struct[:-2] + "_to_py"
-        lines += [f"/* a {r.name} of r (NULL with an exception set on failure) */",
+        lines += [f"/* {r.name}: its fields ({', '.join(f.name for f in r.fields)}) */",
+                  "typedef struct {", "    PyObject_HEAD", f"    PyObject *f[{n}];",
+                  f"}} {r.name}_object;", f"extern PyTypeObject {r.name}_Type;", "",
+                  f"/* a {r.name} of r (NULL with an exception set on failure) */",
                   f"static inline PyObject *{fn}(const {r.c_struct} *r) {{",
-                  f"    PyObject *o = PyStructSequence_New({r.name}_type), *v;",
-                  "    if (!o) return NULL;"]
+                  f"    {r.name}_object *o = PyObject_New({r.name}_object, &{r.name}_Type);",
+                  "    if (!o) return NULL;",
+                  f"    for (int k = 0; k < {n}; k++) o->f[k] = NULL;"]
         for k, f in enumerate(r.fields):
-            lines += [f"    if (!(v = {conv[f.kind].format(f.name)})) goto fail;",
-                      f"    PyStructSequence_SET_ITEM(o, {k}, v);"]
-        lines += ["    return o;", "fail:", "    Py_DECREF(o);", "    return NULL;", "}", ""]
+            lines.append(f"    if (!(o->f[{k}] = {conv[f.kind].format(f.name)})) goto fail;")
+        lines += ["    return (PyObject *)o;", "fail:", "    Py_DECREF(o);", "    return NULL;",
+                  "}", ""]
     lines += ["#ifdef KERNEL_LAYOUTS_DEFINE_TYPES /* (module.c) */"]
     for r in L.RESULTS:
-        lines += [f"PyTypeObject *{r.name}_type;",
-                  f"static PyStructSequence_Field {r.name}_fields[] = {{"]
-        lines += [f"    {{{_c_string(f.name)}, {_c_string(f.doc)}}}," for f in r.fields]
-        lines += ["    {NULL, NULL}};",
-                  f"static PyStructSequence_Desc {r.name}_desc = {{"
-                  f"\"starleth_sim.physics._kernels.{r.name}\", {_c_string(r.doc)}, "
-                  f"{r.name}_fields, {len(r.fields)}}};"]
-    lines += ["", "/* The result types, made and added to the module m; -1 on failure */",
-              "static int add_result_types(PyObject *m) {"]
-    for r in L.RESULTS:
-        lines += [f"    {r.name}_type = PyStructSequence_NewType(&{r.name}_desc);",
-                  f"    if (!{r.name}_type) return -1;",
-                  f"    Py_INCREF({r.name}_type);",
-                  f"    if (PyModule_AddObject(m, \"{r.name}\", (PyObject *){r.name}_type) < 0) "
-                  "{",
-                  f"        Py_DECREF({r.name}_type);", "        return -1;", "    }"]
+        n, name = len(r.fields), r.name
+        lines += [f"static void {name}_dealloc({name}_object *o) {{",
+                  f"    for (int k = 0; k < {n}; k++) Py_XDECREF(o->f[k]);",
+                  "    PyObject_Free(o);", "}", "",
+                  f"static PyObject *{name}_repr({name}_object *o) {{",
+                  "    return PyUnicode_FromFormat(\"" + name + "("
+                  + ", ".join(f"{f.name}=%R" for f in r.fields) + ")\", "
+                  + ", ".join(f"o->f[{k}]" for k in range(n)) + ");", "}", "",
+                  f"static PyMemberDef {name}_members[] = {{"]
+        lines += [f"    {{{_c_string(f.name)}, T_OBJECT_EX, offsetof({name}_object, f) + "
+                  f"{k} * sizeof(PyObject *), READONLY, {_c_string(f.doc)}}},"
+                  for k, f in enumerate(r.fields)]
+        lines += ["    {NULL, 0, 0, 0, NULL}};", "",
+                  f"PyTypeObject {name}_Type = {{",
+                  f"    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "
+                  f"\"starleth_sim.physics._kernels.{name}\",",
+                  f"    .tp_basicsize = sizeof({name}_object),",
+                  "    .tp_flags = Py_TPFLAGS_DEFAULT,",
+                  f"    .tp_doc = {_c_string(r.doc)},",
+                  f"    .tp_dealloc = (destructor){name}_dealloc,",
+                  f"    .tp_repr = (reprfunc){name}_repr,",
+                  f"    .tp_members = {name}_members,", "};", ""]
+    lines += ["/* The result types, made ready and added to the module m (each with _fields, "
+              "its field names); -1 on failure */",
+              "static int add_result_types(PyObject *m) {",
+              "    static const struct {", "        PyTypeObject *type;",
+              "        const char *name, *fields;", "    } types[] = {"]
+    lines += [f"        {{&{r.name}_Type, \"{r.name}\", "
+              f"\"{' '.join(f.name for f in r.fields)}\"}}," for r in L.RESULTS]
+    lines += ["    };",
+              "    for (size_t k = 0; k < sizeof(types) / sizeof(types[0]); k++) {",
+              "        if (PyType_Ready(types[k].type) < 0) return -1;",
+              "        PyObject *names = PyUnicode_FromString(types[k].fields);",
+              "        PyObject *fields = names ? PyUnicode_Split(names, NULL, -1) : NULL;",
+              "        PyObject *tuple = fields ? PyList_AsTuple(fields) : NULL;",
+              "        Py_XDECREF(names);", "        Py_XDECREF(fields);",
+              "        if (!tuple) return -1;",
+              "        int bad = PyDict_SetItemString(types[k].type->tp_dict, \"_fields\", "
+              "tuple);",
+              "        Py_DECREF(tuple);",
+              "        if (bad < 0) return -1;",
+              "        PyType_Modified(types[k].type);",
+              "        Py_INCREF(types[k].type);",
+              "        if (PyModule_AddObject(m, types[k].name, (PyObject *)types[k].type) < 0) {",
+              "            Py_DECREF(types[k].type);", "            return -1;", "        }",
+              "    }"]
     return lines + ["    return 0;", "}", "#endif", "#endif", ""]
 
 

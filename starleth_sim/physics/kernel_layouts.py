@@ -280,7 +280,7 @@ CUT_MODEL = Layout(
         Field("b2_P", "3 * ncut", "cuts.b2_P", "b2 = a × b1 in the parent", ("ncut", "3")),
         Field("a_C", "3 * ncut", "cuts.a_C", "the joint's axis in the child", ("ncut", "3")),
         Field("b1_C", "3 * ncut", "cuts.b1_C", "b1 in the child", ("ncut", "3")),
-        Field("M", "constant * nv * nv", "M", "a constant M", ("nv", "nv")),
+        Field("M", "constant * nv * nv", "M", "a constant M", ("constant * nv", "nv")),
         Field("body_mass", "nr", "body_mass", "a constant M's free bodies' masses"),
         Field("body_inertia", "9 * nr", "body_inertia", "their inertias", ("nr", "3", "3")),
         Field("body_gravity", "3 * constant", "body_gravity", "and gravity"),

@@ -5,8 +5,10 @@ records.
 Names as the paper's symbols: M, h, W, G = W^T M^{-1} W, Λ, ξ, r, α. The settings reach the
 kernels as one record, `StepSettings` (a plain tuple of its fields will do); a hard-contact
 problem prepared ahead is a `ContactProblem` (the kernels' own object: its arrays in memory
-of its own, `ContactProblem.arrays()` copies them for inspection). The one-kernel steps of
-the minimal and cut-forest coordinates are in :mod:`starleth_sim.physics.tree_step`.
+of its own, `ContactProblem.arrays()` copies them for inspection); the kernels' results are
+records with named fields, declared in :mod:`starleth_sim.physics.kernel_layouts` with the
+settings' fields. The one-kernel steps of the minimal and cut-forest coordinates are in
+:mod:`starleth_sim.physics.tree_step`.
 
 The kernels:
 
@@ -23,8 +25,8 @@ The kernels:
   reused).
 - ``complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all,
   last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
-  timings) -> (iterations, status, residual, retried, projection iterations, projection
-  status)``: the torque-dependent rest: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
+  timings) -> CompletionResult`` (named fields: iterations, status, residual, retried,
+  projection_iterations, projection_status): the torque-dependent rest: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
   c = W^T u_free + b (phase "G"), the prox iteration with the warm start (the last step's
   Λ of the contacts that stay active, and Λ_B) and one retry with α·fallback_alpha_factor
   (phase "prox"), and the post-step projection (phase "prox"): with the predicted end gaps
@@ -37,8 +39,8 @@ The kernels:
   last_bilateral and the warm-start memory (last_impulse, last_active).
 - ``solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, h,
   last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings)
-  -> (ok, |I|, opened, iterations, status, residual, retried, projection iterations,
-  projection status)``: both in one call (the same arithmetic, so the same result bit for
+  -> HardContactsResult`` (ok, n_active (|I|), opened, then CompletionResult's fields): both
+  in one call (the same arithmetic, so the same result bit for
   bit); with ok False (M or G_B not positive definite) nothing else was done.
 - ``solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2,
   lam, dof_parent, factor, L, u_free, timings) -> bool``: Alg. 1 without bilateral

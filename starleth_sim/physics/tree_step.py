@@ -13,7 +13,7 @@ joints), laid out as :mod:`starleth_sim.physics.kernel_layouts` declares (the ke
 them by the C code the build generates from the same declaration). A failing step leaves the
 state as it was; the kernels release the GIL.
 
-The kernels, each returning a `TreeStepResult` (a tuple with named entries: outcome
+The kernels, each returning a `TreeStepResult` (a record with named fields: outcome
 (TREE_STEP_*), n_active (|I|), opened, iterations, status, residual, retried,
 projection_iterations, projection_status):
 
