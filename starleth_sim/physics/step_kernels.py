@@ -26,17 +26,18 @@ The kernels:
 - ``complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all,
   last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
   timings) -> CompletionResult`` (named fields: iterations, status, residual, retried,
-  projection_iterations, projection_status): the torque-dependent rest: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
-  c = W^T u_free + b (phase "G"), the prox iteration with the warm start (the last step's
-  Λ of the contacts that stay active, and Λ_B) and one retry with α·fallback_alpha_factor
-  (phase "prox"), and the post-step projection (phase "prox"): with the predicted end gaps
-  g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of those outside I that would
-  end below the ground, the pseudo-velocity Δu_p = M^{-1}(W_N P_N + W_B P_B) of
-  P_N ≥ 0 ⊥ W_N^T Δu_p + (2/Δt)(max(g_N^E, 0) + β_N min(g_N^E, 0)) ≥ 0, W_B^T Δu_p = 0,
-  frictionless, so that q^E = q^M ⊕ ½Δt (u^E + Δu_p) loses the fraction β_N of every
-  penetration (projection status −1: not needed). Writes Λ_U of every contact (nc x 3),
-  the active flags, u^E, Δu_p into u_corr; unless the result is non-finite, Λ_B into
-  last_bilateral and the warm-start memory (last_impulse, last_active).
+  projection_iterations, projection_status): the torque-dependent rest: u_free = u^S +
+  M^{-1} h Δt (phase "M^-1"), c = W^T u_free + b (phase "G"), the prox iteration with the
+  warm start (the last step's Λ of the contacts that stay active, and Λ_B) and one retry
+  with α·fallback_alpha_factor (phase "prox"), and the post-step projection (phase
+  "prox"): with the predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active
+  contacts and of those outside I that would end below the ground, the pseudo-velocity
+  Δu_p = M^{-1}(W_N P_N + W_B P_B) of P_N ≥ 0 ⊥ W_N^T Δu_p + (2/Δt)(max(g_N^E, 0) + β_N
+  min(g_N^E, 0)) ≥ 0, W_B^T Δu_p = 0, frictionless, so that q^E = q^M ⊕ ½Δt (u^E + Δu_p)
+  loses the fraction β_N of every penetration (projection status −1: not needed). Writes
+  Λ_U of every contact (nc x 3), the active flags, u^E, Δu_p into u_corr; unless the
+  result is non-finite, Λ_B into last_bilateral and the warm-start memory (last_impulse,
+  last_active).
 - ``solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, h,
   last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings)
   -> HardContactsResult`` (ok, n_active (|I|), opened, then CompletionResult's fields): both
