@@ -129,8 +129,9 @@ def length(layout: Layout, buffer: str, sizes: dict) -> int:
     return sum(n for _, _, n in offsets(layout, buffer, sizes))
 
 
-def describe(layout: Layout) -> str:
-    """The layout in words, for a docstring: each buffer's fields, in order, with sizes."""
+def describe(layout: Layout, indent: str = "    ") -> str:
+    """The layout in words, for a docstring (each line indented by `indent`): each buffer's
+    fields, in order, with sizes."""
     lines = []
     for b in layout.buffers:
         lines.append(f"{b.name} ({b.dtype}{'' if b.exact else ', at least this long'}):")
@@ -140,7 +141,7 @@ def describe(layout: Layout) -> str:
                 size += f" ({f.record.name}'s fields)"
             shape = f" as ({', '.join(f.shape)})" if f.shape else ""
             lines.append(f"    {f.name} [{size}{shape}]: {f.doc}")
-    return "\n".join(lines)
+    return "\n".join(indent + line for line in lines) + "\n"
 
 
 # -- the records -------------------------------------------------------------------------
@@ -326,8 +327,8 @@ RECORDS = (STEP_SETTINGS, PROX_SETTINGS, COMPLIANT_LAW)
 # -- the named results -------------------------------------------------------------------
 
 class Result(NamedTuple):
-    """A kernel's named result: a C struct, returned to Python as a struct sequence (a tuple
-    whose entries also have names)."""
+    """A kernel's named result: a C struct, returned to Python as an object of its own type
+    whose fields are read-only attributes (and whose type's _fields names them)."""
 
     name: str           # the Python type, an attribute of the kernels' module
     c_struct: str

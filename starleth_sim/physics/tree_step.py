@@ -123,7 +123,7 @@ class TreeStepModel(NamedTuple):
                                                "u_corr")))
 
 
-TreeStepModel.__doc__ += describe(TREE_STEP_MODEL)
+TreeStepModel.__doc__ = TreeStepModel.__doc__.rstrip(" ") + describe(TREE_STEP_MODEL)
 
 
 def report_size(nc, na):
@@ -175,4 +175,4 @@ class CutModel(NamedTuple):
                         np.zeros(length(L, "workspace", sizes)))
 
 
-CutModel.__doc__ += describe(CUT_MODEL)
+CutModel.__doc__ = CutModel.__doc__.rstrip(" ") + describe(CUT_MODEL)
