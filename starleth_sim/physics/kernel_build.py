@@ -28,6 +28,7 @@ loads kernel_layouts by its path).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.util
 import json
@@ -337,6 +338,7 @@ def _c_result_types(L) -> list[str]:
     return lines + ["    return 0;", "}", "#endif", "#endif", ""]
 
 
+@functools.lru_cache(maxsize=None)
 def c_header() -> str:
     """The text of kernel_layouts.h, generated from kernel_layouts' declarations: the
     records' decoders, the result structs, packed_model_t, each layout's struct and
