@@ -2,7 +2,8 @@
 (Gehring et al. 2014). The physics core imports numpy and pin only (its kernels are C); the
 ROS 2 nodes live in ``starleth_sim.ros``."""
 from .physics.config import PRESETS, PhysicsConfig, ConfigError, load_preset, available_presets
-from .physics.simulator import Simulator, ContactInfo, Diagnostics
+from .physics.diagnostics import Diagnostics
+from .physics.simulator import Simulator, ContactInfo
 from .physics.stepper import SimulationError
 
 __all__ = ["Simulator", "ContactInfo", "Diagnostics", "PhysicsConfig", "ConfigError",

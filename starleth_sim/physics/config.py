@@ -63,6 +63,8 @@ from dataclasses import dataclass, field, fields, asdict
 
 import yaml
 
+from .description import package_share_dir
+
 
 class ConfigError(ValueError):
     """A configuration value is missing, of the wrong type, or out of range."""
@@ -510,7 +512,9 @@ class PhysicsConfig:
         for key, value in overrides.items():
             if "." in key:
                 sec, _, name = key.partition(".")
-                if sec not in self._SECTIONS or name not in {f.name for f in fields(getattr(cfg, sec))}:
+                names = {f.name for f in fields(getattr(cfg, sec))} \
+                    if sec in self._SECTIONS else ()
+                if name not in names:
                     raise ConfigError(f"override '{key}': no such field")
                 setattr(getattr(cfg, sec), name, value)
             elif key in {f.name for f in fields(cfg)} and not key.startswith("_"):
@@ -535,7 +539,6 @@ class PhysicsConfig:
 
 
 def config_dir() -> str:
-    from .description import package_share_dir
     return os.path.join(package_share_dir(), "msg_configs")
 
 

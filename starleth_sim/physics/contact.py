@@ -7,11 +7,11 @@ models share: the plane, its tangent basis, and per-contact bookkeeping.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
 from . import kernels as _kernels
+from .kernel_layouts import COMPLIANT_LAW
 
 
 def tangent_basis(normal):
@@ -50,15 +50,10 @@ class GroundPlane:
         return self._frame
 
 
-class CompliantLaw(NamedTuple):
-    """The parameters of the compliant contact law (Alg. 1)."""
-
-    mu: float              # μ, Coulomb friction coefficient
-    c_N: float             # normal stiffness [N/m]
-    d_N: float             # normal damping [N s/m]
-    c_T: float             # tangential stiffness [N/m]
-    d_T: float             # tangential damping [N s/m]
-    slip_velocity: float   # ‖γ_T‖ below which a slipping contact counts as stopped [m/s]
+#: The parameters of the compliant contact law (Alg. 1), in the order
+#: kernel_layouts.COMPLIANT_LAW declares
+CompliantLaw = COMPLIANT_LAW.named_tuple(
+    "The parameters of the compliant contact law (Alg. 1).", __name__)
 
 
 #: The compliant contact law of Alg. 1 for all contact points, at (q^M, u^S):

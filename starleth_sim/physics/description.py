@@ -45,7 +45,8 @@ def urdf_path(name: str = "starleth.urdf") -> str:
 
 @dataclass(frozen=True)
 class ContactPointSpec:
-    """A contact point: a sphere of `radius` centred at `local` in the frame of pin joint `joint`."""
+    """A contact point: a sphere of `radius` centred at `local` in the frame of pin joint
+    `joint`."""
 
     name: str
     link: str

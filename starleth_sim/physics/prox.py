@@ -46,10 +46,11 @@ themselves, per step and per iteration:
     spectral step leaves; with the direct method dᵀGd is the Schur complement's form, as
     Λ_B follows Λ_U), clamped to [1, AUTO_MAX_STEP]; the sweeps in between take the spectral
     step, which damps the high modes a long step excites. JOR gets Gd for free as
-    ξ^{k+1} − ξ^k, which the next sweep computes anyway (so its long step is set there). SOR with bilateral prox rows
-    takes the long steps on its contact rows only (its Gauss-Seidel sweep over the
-    bilateral rows is not a gradient step: long steps there slowed HMSP 7x); its bilateral
-    rows are over-relaxed instead, r_B = |α| ω / G_BB with ω = AUTO_SOR_BILATERAL_OMEGA;
+    ξ^{k+1} − ξ^k, which the next sweep computes anyway (so its long step is set there). SOR
+    with bilateral prox rows takes the long steps on its contact rows only (its Gauss-Seidel
+    sweep over the bilateral rows is not a gradient step: long steps there slowed HMSP 7x);
+    its bilateral rows are over-relaxed instead, r_B = |α| ω / G_BB with
+    ω = AUTO_SOR_BILATERAL_OMEGA;
   * divergence guard: when the increment grows to AUTO_GUARD times the smallest one of
     the solve, or a value becomes non-finite (then from the warm start again), the rest of
     the solve takes the spectral step only (monotone, convergent for linear problems).
@@ -65,6 +66,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .kernel_layouts import PROX_SETTINGS
 from .kernels import (  # noqa: F401  (the constants are the kernels' own)
     ALPHA_AUTO, AUTO_GUARD, AUTO_MAX_STEP, AUTO_POWER_ITERATIONS, AUTO_SOR_BILATERAL_OMEGA,
     CRITERION_ENERGY, CRITERION_IMPULSE, DELASSUS_ENVELOPE_ROWS, FORM_DELASSUS, FORM_VELOCITY,
@@ -118,17 +120,11 @@ class Patterns(NamedTuple):
     lb_first: np.ndarray
 
 
-class ProxSettings(NamedTuple):
-    """The settings the prox kernels read (any record with these fields will do)."""
-
-    form: int                  # FORM_DELASSUS (Eqn. 12-16) | FORM_VELOCITY (Eqn. 17-19)
-    scheme: int                # SCHEME_JOR | SCHEME_SOR
-    tol_rel: float             # T_rel
-    tol_abs: float             # T_abs [N s]
-    max_iterations: int
-    criterion: int             # CRITERION_IMPULSE | CRITERION_ENERGY (½ uᵀMu)
-    bilateral_direct: bool     # Λ_B by Eqn. 20 after each sweep (else prox rows, Eqn. 19)
-    alpha: float = 0.5         # α > 0: r as given; < 0 (ALPHA_AUTO): adaptive α, see above
+#: The settings the prox kernels read, in the order kernel_layouts.PROX_SETTINGS declares
+#: (the kernels read a StepSettings too)
+ProxSettings = PROX_SETTINGS.named_tuple(
+    "The settings the prox kernels read (any sequence of these numbers in this order will "
+    "do).", __name__)
 
 
 def dense_problem_patterns(Wt, MinvW, G):

@@ -22,22 +22,21 @@ step per control update, as in the paper's Fig. 5).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from time import perf_counter
-from dataclasses import dataclass, field
-from types import MappingProxyType
-from typing import Mapping
 
 import numpy as np
 
 from .actuator import saturate_torque
 from .config import PhysicsConfig, load_preset
 from .coordinates import make_coordinates
+from .diagnostics import (NO_TIMINGS, Diagnostics, control_step_diagnostics,
+                          one_step_diagnostics)
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
 from .state import SimState
 from .stepper import MoreauStepper, NonFiniteTorque, SimulationError, PHASES
 from .tree_step import report_size, report_views
-from . import prox
 
 log = logging.getLogger("starleth_sim")
 
@@ -50,11 +49,6 @@ CONTACT_STATES = ("open", "stick", "slip")
 #: a hard contact slips when |Λ_T| ≥ (1 − this) μ Λ_N (the prox projects onto the cone)
 SLIP_TOLERANCE = 1e-6
 
-_CONVERGED = prox.STATUS_CONVERGED
-#: Diagnostics.timings when not profiling (one shared, read-only, empty mapping)
-NO_TIMINGS = MappingProxyType({})
-_STATUS = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
-           prox.STATUS_NONFINITE: "non_finite"}
 
 
 @dataclass
@@ -69,31 +63,6 @@ class ContactInfo:
     force: np.ndarray       # impulse / control period [N]
     position: np.ndarray    # contact point in the world frame [m]
     state: str = "open"     # open | stick | slip (CONTACT_STATES), see Simulator.contact_states
-
-
-@dataclass(slots=True)
-class Diagnostics:
-    """Solver figures of the last control step (summed / worst over its physics steps)."""
-
-    iterations: int = 0            # prox iterations, summed over the physics steps
-    max_iterations_step: int = 0   # worst physics step
-    converged: bool = True         # every physics step converged
-    status: str = "converged"
-    residual: float = 0.0          # max |Λ^{k+1} − Λ^k| of the final iterations [N s]
-    active_contacts: int = 0
-    retried: bool = False          # a step needed the fallback α
-    #: contacts that carried Λ_N > 0 in the previous physics step and left the active set by
-    #: the activation test alone (with contact.activation "hysteresis" only beyond
-    #: opening_gap), summed over the physics steps
-    loaded_contacts_opened: int = 0
-    projection_iterations: int = 0  # post-step projection, summed over the physics steps
-    projections: int = 0           # physics steps that needed the post-step projection
-    step_time: float = 0.0         # wall time of the control step [s]
-    physics_steps: int = 0         # cumulative
-    nonconverged_steps: int = 0    # cumulative
-    loaded_contacts_opened_total: int = 0  # cumulative
-    #: cumulative per phase (profile=True) [s]; empty and read-only when not profiling
-    timings: Mapping[str, float] = field(default_factory=lambda: NO_TIMINGS)
 
 
 class Simulator:
@@ -354,7 +323,8 @@ class Simulator:
     # -- external wrenches ----------------------------------------------------------------
     def _check_link(self, link):
         if link not in self.coords.link_names():
-            raise ValueError(f"unknown link '{link}' (links: {', '.join(self.coords.link_names())})")
+            raise ValueError(f"unknown link '{link}' "
+                             f"(links: {', '.join(self.coords.link_names())})")
 
     @staticmethod
     def _vec3(name, v):
@@ -434,49 +404,6 @@ class Simulator:
             raise self._non_finite_torque(a)
         return out
 
-    def _one_step_diagnostics(self, iterations, status, residual, n_active, retried, opened,
-                              projection_iterations, projected, step_time):
-        """The Diagnostics of a control period of one physics step (its StepResult's figures),
-        continuing the cumulative counts of the last one. (Made on every step: written for
-        speed, ≈1 µs of a 28 µs step.)"""
-        prev = self.diagnostics
-        converged = status == _CONVERGED
-        return Diagnostics(
-            iterations, iterations, converged, _STATUS[status],
-            residual if residual > 0.0 else 0.0, n_active, retried, opened,
-            projection_iterations, 1 if projected else 0, step_time,
-            prev.physics_steps + 1, prev.nonconverged_steps + (0 if converged else 1),
-            prev.loaded_contacts_opened_total + opened, NO_TIMINGS)
-
-    def _control_step_diagnostics(self, figures, step_time):
-        """The Diagnostics of a control step from its physics steps' figures (StepResult.figures'
-        tuples: sums and worst cases), continuing the cumulative counts of the last one."""
-        prev = self.diagnostics
-        iterations = worst = projection_iterations = projections = opened = nonconverged = 0
-        residual = 0.0
-        retried = False
-        status = prox.STATUS_CONVERGED
-        for n_active, step_opened, step_iterations, step_status, step_residual, \
-                step_retried, step_projection_iterations, step_projected in figures:
-            iterations += step_iterations
-            worst = max(worst, step_iterations)
-            residual = max(residual, step_residual)
-            retried |= step_retried
-            opened += step_opened
-            projection_iterations += step_projection_iterations
-            projections += step_projected
-            if step_status != prox.STATUS_CONVERGED:
-                status = step_status
-                nonconverged += 1
-        timings = (dict(zip(PHASES, self.stepper.stats.timings.tolist()))
-                   if self.stepper.profile else NO_TIMINGS)
-        return Diagnostics(
-            iterations, worst, nonconverged == 0, _STATUS[status], residual,
-            figures[-1][0], retried, opened, projection_iterations, projections,
-            step_time, prev.physics_steps + len(figures),
-            prev.nonconverged_steps + nonconverged,
-            prev.loaded_contacts_opened_total + opened, timings)
-
     def prepare(self):
         """Do now the part of the next step that does not depend on the torques (q^M, M, h,
         the contact and bilateral kinematics, the factor of M, M^{-1}W and G; see
@@ -516,20 +443,17 @@ class Simulator:
             report, active, (impulse, gap, position, tau) = \
                 self._report_buffers[self._next_report][0]
             try:
-                (n_active, opened, iterations, status, residual, retried,
-                 projection_iterations, projected) = stepper.step_in_one_kernel(
-                    state, a, report, active)
+                r = stepper.step_in_one_kernel(state, a, report, active)
             except NonFiniteTorque:
                 raise self._non_finite_torque(a) from None
             self._next_report ^= 1
-            d = self._one_step_diagnostics(iterations, status, residual, n_active, retried,
-                                           opened, projection_iterations, projected,
-                                           perf_counter() - t_wall)
+            d = one_step_diagnostics(self.diagnostics, r, perf_counter() - t_wall)
         elif in_kernels:
             # several physics steps, each in one kernel call, τ saturated once per period
             tau = self._validated_torque(tau)
             figures, impulse, active, gap, position = self._kernel_steps(state, tau)
-            d = self._control_step_diagnostics(figures, perf_counter() - t_wall)
+            d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
+                                         self._timings())
         else:
             tau = self._validated_torque(tau)
             # (a one-step period without timed wrenches to count down needs no rollback copy)
@@ -540,8 +464,8 @@ class Simulator:
             impulse = results[0].impulse
             for r in results[1:]:      # in step order (the sum's round-off depends on it)
                 impulse = impulse + r.impulse
-            d = self._control_step_diagnostics([r.figures() for r in results],
-                                               perf_counter() - t_wall)
+            d = control_step_diagnostics(self.diagnostics, results, perf_counter() - t_wall,
+                                         self._timings())
         self._state_version += 1
         state.t += self.control_period
         self._tau = tau
@@ -552,13 +476,19 @@ class Simulator:
         self.diagnostics = d
         return self._log_step(d)
 
+    def _timings(self):
+        """Diagnostics.timings: the cumulative phase times when profiling."""
+        if not self.stepper.profile:
+            return NO_TIMINGS
+        return dict(zip(PHASES, self.stepper.stats.timings.tolist()))
+
     def _kernel_steps(self, state, tau):
         """The physics steps of a control period, each in one kernel call with the applied
         torques tau (saturated: MoreauStepper.step_in_one_kernel), their reports written
         into the spare set of report buffers, which then becomes the current one; the same
         arithmetic as _physics_steps' (bit for bit). On a SimulationError the state is
-        restored from a copy taken before. Returns (the steps' figures, Λ summed over the
-        period, and the last step's active flags, g_N and contact points)."""
+        restored from a copy taken before. Returns (the steps' TreeStepResults, Λ summed over
+        the period, and the last step's active flags, g_N and contact points)."""
         stepper = self.stepper
         buffers = self._report_buffers[self._next_report]
         before = state.copy(share_qu=True)

@@ -5,8 +5,10 @@ records.
 Names as the paper's symbols: M, h, W, G = W^T M^{-1} W, Λ, ξ, r, α. The settings reach the
 kernels as one record, `StepSettings` (a plain tuple of its fields will do); a hard-contact
 problem prepared ahead is a `ContactProblem` (the kernels' own object: its arrays in memory
-of its own, `ContactProblem.arrays()` copies them for inspection). The one-kernel steps of
-the minimal and cut-forest coordinates are in :mod:`starleth_sim.physics.tree_step`.
+of its own, `ContactProblem.arrays()` copies them for inspection); the kernels' results are
+records with named fields, declared in :mod:`starleth_sim.physics.kernel_layouts` with the
+settings' fields. The one-kernel steps of the minimal and cut-forest coordinates are in
+:mod:`starleth_sim.physics.tree_step`.
 
 The kernels:
 
@@ -23,22 +25,23 @@ The kernels:
   reused).
 - ``complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all,
   last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr,
-  timings) -> (iterations, status, residual, retried, projection iterations, projection
-  status)``: the torque-dependent rest: u_free = u^S + M^{-1} h Δt (phase "M^-1"),
-  c = W^T u_free + b (phase "G"), the prox iteration with the warm start (the last step's
-  Λ of the contacts that stay active, and Λ_B) and one retry with α·fallback_alpha_factor
-  (phase "prox"), and the post-step projection (phase "prox"): with the predicted end gaps
-  g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active contacts and of those outside I that would
-  end below the ground, the pseudo-velocity Δu_p = M^{-1}(W_N P_N + W_B P_B) of
-  P_N ≥ 0 ⊥ W_N^T Δu_p + (2/Δt)(max(g_N^E, 0) + β_N min(g_N^E, 0)) ≥ 0, W_B^T Δu_p = 0,
-  frictionless, so that q^E = q^M ⊕ ½Δt (u^E + Δu_p) loses the fraction β_N of every
-  penetration (projection status −1: not needed). Writes Λ_U of every contact (nc x 3),
-  the active flags, u^E, Δu_p into u_corr; unless the result is non-finite, Λ_B into
-  last_bilateral and the warm-start memory (last_impulse, last_active).
+  timings) -> CompletionResult`` (named fields: iterations, status, residual, retried,
+  projection_iterations, projection_status): the torque-dependent rest: u_free = u^S +
+  M^{-1} h Δt (phase "M^-1"), c = W^T u_free + b (phase "G"), the prox iteration with the
+  warm start (the last step's Λ of the contacts that stay active, and Λ_B) and one retry
+  with α·fallback_alpha_factor (phase "prox"), and the post-step projection (phase
+  "prox"): with the predicted end gaps g_N^E = g_N(q^M) + ½Δt W_N^T u^E of the active
+  contacts and of those outside I that would end below the ground, the pseudo-velocity
+  Δu_p = M^{-1}(W_N P_N + W_B P_B) of P_N ≥ 0 ⊥ W_N^T Δu_p + (2/Δt)(max(g_N^E, 0) + β_N
+  min(g_N^E, 0)) ≥ 0, W_B^T Δu_p = 0, frictionless, so that q^E = q^M ⊕ ½Δt (u^E + Δu_p)
+  loses the fraction β_N of every penetration (projection status −1: not needed). Writes
+  Λ_U of every contact (nc x 3), the active flags, u^E, Δu_p into u_corr; unless the
+  result is non-finite, Λ_B into last_bilateral and the warm-start memory (last_impulse,
+  last_active).
 - ``solve_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, h,
   last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings)
-  -> (ok, |I|, opened, iterations, status, residual, retried, projection iterations,
-  projection status)``: both in one call (the same arithmetic, so the same result bit for
+  -> HardContactsResult`` (ok, n_active (|I|), opened, then CompletionResult's fields): both
+  in one call (the same arithmetic, so the same result bit for
   bit); with ok False (M or G_B not positive definite) nothing else was done.
 - ``solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2,
   lam, dof_parent, factor, L, u_free, timings) -> bool``: Alg. 1 without bilateral
@@ -58,8 +61,8 @@ between the kernels times itself with `clock` and `lap`.
 from __future__ import annotations
 
 import time
-from typing import NamedTuple
 
+from .kernel_layouts import STEP_SETTINGS
 from .kernels import (ContactProblem, complete_hard_contacts,  # noqa: F401
                       constraint_velocity, end_of_step, free_velocity, prepare_hard_contacts,
                       solve_compliant, solve_hard_contacts)
@@ -70,29 +73,12 @@ from .kernels import (PHASE_G, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_PROX,  # no
 PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")
 
 
-class StepSettings(NamedTuple):
-    """The settings of one step as the kernels read them (built once per stepper from the
-    PhysicsConfig, see `MoreauStepper.__init__`)."""
-
-    activation_gap: float       # g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]
-    mu: float                   # μ, Coulomb friction coefficient of the ground
-    alpha: float                # α, prox relaxation: r = α / diag(G) (< 0: adaptive, prox.py)
-    tol_rel: float              # T_rel
-    tol_abs: float              # T_abs [N s]
-    fallback_alpha_factor: float  # a non-converged solve is retried once with α·this (0: no)
-    opening_gap: float          # hysteresis: a loaded contact stays in I while g_N ≤ this [m]
-    dt: float                   # Δt [s]
-    beta_velocity: float        # β_N of the velocity-level penetration correction (or 0)
-    beta_projection: float      # β_N of the post-step projection (or 0: no projection)
-    jacobian_gap: float         # W of a contact is computed while g_N(q^M) ≤ this [m]
-    projection_tolerance: float  # the projection runs below g_N^E = −this [m]
-    form: int                   # prox.FORM_DELASSUS | prox.FORM_VELOCITY
-    scheme: int                 # prox.SCHEME_JOR | prox.SCHEME_SOR
-    max_iterations: int         # prox iteration cap
-    criterion: int              # prox.CRITERION_IMPULSE | prox.CRITERION_ENERGY
-    warm_start: bool            # Λ^0 = the last step's Λ of the contacts that stay in I
-    bilateral_direct: bool      # Λ_B by Eqn. 20 (else prox rows, Eqn. 19)
-    hysteresis: bool            # contact.activation "hysteresis" (else the gap test alone)
+#: The settings of one step as the kernels read them (built once per stepper from the
+#: PhysicsConfig, see `MoreauStepper.__init__`), in the order kernel_layouts.STEP_SETTINGS
+#: declares
+StepSettings = STEP_SETTINGS.named_tuple(
+    "The settings of one step as the kernels read them (a plain tuple of the same numbers "
+    "will do).", __name__)
 
 
 def _timed(timings) -> bool:

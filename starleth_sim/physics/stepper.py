@@ -59,8 +59,8 @@ from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            prepare_hard_contacts, solve_compliant, solve_hard_contacts)
 from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
                         TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, CutModel, TreeStepModel,
-                        forest_step_hard, report_size, report_views, tree_step_compliant,
-                        tree_step_hard)
+                        TreeStepResult, forest_step_hard, report_size, report_views,
+                        tree_step_compliant, tree_step_hard)
 
 
 _empty = np.empty
@@ -92,15 +92,17 @@ class StepResult:
     retried: bool = False
     position: np.ndarray | None = None   # contact points at q^M (nc x 3) [m]
     n_active: int = 0                    # contacts in the active set
-    opened_loaded: int = 0               # contacts loaded in the last step, not in the set
+    opened: int = 0                      # contacts loaded in the last step, not in the set
     projection_iterations: int = 0       # post-step projection (0: it did not run)
-    projected: bool = False              # the post-step projection ran
+    projection_status: int = -1          # its prox.STATUS_*, −1: it did not run
 
-    def figures(self) -> tuple:
-        """(|I|, opened, iterations, status, residual, retried, projection iterations,
-        projected): MoreauStepper.step_in_one_kernel's figures of this step."""
-        return (self.n_active, self.opened_loaded, self.iterations, self.status,
-                self.residual, self.retried, self.projection_iterations, self.projected)
+    # (n_active, opened, iterations, status, residual, retried, projection_iterations and
+    # projection_status: the figures a TreeStepResult of the one-kernel step has too)
+
+    @property
+    def projected(self) -> bool:
+        """The post-step projection ran."""
+        return self.projection_status >= 0
 
 
 @dataclass
@@ -351,14 +353,14 @@ class MoreauStepper:
         na = self._no_torque.shape[0]
         report = np.empty(report_size(self.nc, na))
         is_active = np.empty(self.nc, dtype=np.bool_)
-        figures = self.step_in_one_kernel(state, tau, report, is_active, f_ext, saturate=False)
+        r = self.step_in_one_kernel(state, tau, report, is_active, f_ext, saturate=False)
         impulse, gap, position, _ = report_views(report, self.nc, na)
-        return StepResult(is_active, gap, impulse, figures[2], figures[3], figures[4],
-                          figures[5], position, figures[0], figures[1], figures[6],
-                          figures[7])
+        return StepResult(is_active, gap, impulse, r.iterations, r.status, r.residual,
+                          r.retried, position, r.n_active, r.opened, r.projection_iterations,
+                          r.projection_status)
 
     def step_in_one_kernel(self, state: SimState, tau, report, is_active, f_ext=None,
-                           saturate: bool = True) -> tuple:
+                           saturate: bool = True) -> TreeStepResult:
         """`step` in one kernel call (tree_step_hard / tree_step_compliant /
         forest_step_hard), for a state that `step_is_transactional` approves: the same
         result bit for bit as the phase-by-phase path. tau: the torques asked (float64, one
@@ -367,9 +369,9 @@ class MoreauStepper:
         comes from the cut-joint kinematics of the state, ForestCoordinates'
         joint_velocities, which a controller has usually asked for already).
         Writes the report buffer (tree_step.report_views: Λ, g_N and contact points at q^M,
-        the applied torques) and the active flags; returns (|I|, opened, iterations,
-        status, residual, retried, projection iterations, projected). A NonFiniteTorque or
-        SimulationError leaves the state as it was."""
+        the applied torques) and the active flags; returns the kernel's TreeStepResult
+        (its outcome TREE_STEP_OK). A NonFiniteTorque or SimulationError leaves the state as
+        it was."""
         self._prepared = None       # (a step prepared for another state is stale now)
         if tau is None or tau.shape[0] == 0:    # no torques, as in the phase-by-phase step
             tau = self._no_torque
@@ -390,32 +392,29 @@ class MoreauStepper:
                     raise NonFiniteTorque("tau has non-finite entries")
                 tau = applied
             factor = not (self.constant_M and self._factored)
-            outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                forest_step_hard(q, u, tau, f_ext, factor, state.last_impulse,
+            r = forest_step_hard(q, u, tau, f_ext, factor, state.last_impulse,
                                  state.last_active, state.last_bilateral, report, is_active,
-                                 qE, uE, *self._cut_motion, *self._tree_model,
-                                 *self._cut_model)
+                                 qE, uE, *self._cut_motion, *self._tree_model, *self._cut_model)
         elif self.hard:
-            outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                tree_step_hard(saturate, q, u, tau, f_ext,
-                               state.last_impulse, state.last_active, state.last_bilateral,
-                               report, is_active, qE, uE, *self._tree_model)
+            r = tree_step_hard(saturate, q, u, tau, f_ext, state.last_impulse,
+                               state.last_active, state.last_bilateral, report, is_active, qE,
+                               uE, *self._tree_model)
         else:
-            outcome, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                tree_step_compliant(saturate, q, u, tau, f_ext, state.closed, state.slip,
+            r = tree_step_compliant(saturate, q, u, tau, f_ext, state.closed, state.slip,
                                     state.anchor, state.lam_compliant, report, is_active, qE,
                                     uE, *self._tree_model)
+        outcome = r.outcome
         if outcome == TREE_STEP_NONFINITE_TORQUE:
             raise NonFiniteTorque("tau has non-finite entries")
         if outcome == TREE_STEP_NOT_PD:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
         self._factored = True
-        if retried:
+        if r.retried:
             self.stats.retried += 1
-        if status != prox.STATUS_CONVERGED:
+        if r.status != prox.STATUS_CONVERGED:
             self.stats.nonconverged += 1
-        if pstatus >= 0:
+        if r.projection_status >= 0:
             self.stats.projections += 1
         if outcome == TREE_STEP_NONFINITE_IMPULSE:
             raise SimulationError("prox iteration produced non-finite impulses; "
@@ -426,7 +425,7 @@ class MoreauStepper:
         if self._forest_kernel:
             self.coords.cut_motion_written(qE, uE)
         self.stats.steps += 1
-        return n_active, opened, it, status, resid, retried, pit, pstatus >= 0
+        return r
 
     def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of
@@ -475,31 +474,32 @@ class MoreauStepper:
         gap = self.gap if self.hard else self._never_active
         if problem is None:
             factor = not (self.constant_M and self._factored)
-            ok, n_active, opened, it, status, resid, retried, pit, pstatus = \
-                solve_hard_contacts(self._settings_fields, M, uS, gap, self.Wt_all, WtB,
+            r = solve_hard_contacts(self._settings_fields, M, uS, gap, self.Wt_all, WtB,
                                     self.bB, self.eps, self.dof_parent, factor, self.L, h,
                                     state.last_impulse, state.last_active,
                                     state.last_bilateral, impulse, is_active, self.u_free, u,
                                     self.u_corr, timings)
-            if not ok:
+            if not r.ok:
                 raise SimulationError("mass matrix (or G_B) not positive definite "
                                       "(non-finite state?)")
             self._factored = True
+            n_active, opened = r.n_active, r.opened
         else:
-            it, status, resid, retried, pit, pstatus = complete_hard_contacts(
+            r = complete_hard_contacts(
                 self._settings_fields, problem, h, uS, M, self.dof_parent, self.L, gap,
                 self.Wt_all, state.last_impulse, state.last_active, state.last_bilateral,
                 impulse, is_active, self.u_free, u, self.u_corr, timings)
             n_active, opened = problem.n_active, problem.opened
-        if retried:
+        if r.retried:
             self.stats.retried += 1
-        if status != prox.STATUS_CONVERGED:
+        if r.status != prox.STATUS_CONVERGED:
             self.stats.nonconverged += 1
-        if status == prox.STATUS_NONFINITE:
+        if r.status == prox.STATUS_NONFINITE:
             raise SimulationError("prox iteration produced non-finite impulses; "
                                   "state left unchanged")
-        if pstatus >= 0:
+        if r.projection_status >= 0:
             self.stats.projections += 1
-        return u, StepResult(is_active, self.gap.copy(), impulse, it, status, resid, retried,
-                             self.position.copy(), n_active if self.hard else 0, opened, pit,
-                             pstatus >= 0)
+        return u, StepResult(is_active, self.gap.copy(), impulse, r.iterations, r.status,
+                             r.residual, r.retried, self.position.copy(),
+                             n_active if self.hard else 0, opened, r.projection_iterations,
+                             r.projection_status)

@@ -9,10 +9,13 @@ They run the same phases, in the same order, as the phase-by-phase path of
 :mod:`starleth_sim.physics.step_kernels` (so the same result bit for bit) and save what lies
 between them: the calls from Python and the Python around them. The model, ground and
 workspace arrays travel packed in four buffers (`TreeStepModel`, and `CutModel` for the cut
-joints). A failing step leaves the state as it was; the kernels release the GIL.
+joints), laid out as :mod:`starleth_sim.physics.kernel_layouts` declares (the kernels unpack
+them by the C code the build generates from the same declaration). A failing step leaves the
+state as it was; the kernels release the GIL.
 
-The kernels, each returning (outcome (TREE_STEP_*), |I|, opened, iterations, status,
-residual, retried, projection iterations, projection status):
+The kernels, each returning a `TreeStepResult` (a record with named fields: outcome
+(TREE_STEP_*), n_active (|I|), opened, iterations, status, residual, retried,
+projection_iterations, projection_status):
 
 - ``tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
   report, is_active, qE, uE, floats, ints, support, workspace)``: the applied torques
@@ -42,27 +45,48 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .kernel_layouts import (CUT_MODEL, STEP_REPORT, TREE_STEP_MODEL, describe, evaluate,
+                             length, offsets)
 from .kernels import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,  # noqa: F401
                       TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TREE_STEP_OK,
-                      forest_step_hard, tree_step_compliant, tree_step_hard)
+                      TreeStepResult, forest_step_hard, tree_step_compliant, tree_step_hard)
+
+_DTYPES = {"float64": np.float64, "int64": np.int64, "bool": np.bool_}
+
+
+def pack_buffer(layout, buffer, values, sizes):
+    """One buffer of a layout (kernel_layouts), its fields in the declared order: values maps
+    each field's name to its array (a record field: the record's fields; header fields come
+    from `sizes`). A ValueError names a field whose size is not the declared one."""
+    dtype = _DTYPES[layout.buffer(buffer).dtype]
+    parts = []
+    for f, _, n in offsets(layout, buffer, sizes):
+        value = sizes[f.name] if f.kind in ("header", "flag") else values[f.name]
+        a = np.ravel(np.asarray(value, dtype=np.float64 if f.kind == "record" else None))
+        if a.shape[0] != n:
+            raise ValueError(f"{layout.name}.{buffer}: {f.name} has {a.shape[0]} entries, "
+                             f"the layout {n}")
+        parts.append(a.astype(dtype))
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+
+def buffer_views(layout, buffer, array, sizes):
+    """{field: its view of `array`} for one buffer of a layout (shaped as declared)."""
+    out = {}
+    for f, o, n in offsets(layout, buffer, sizes):
+        v = array[o:o + n]
+        out[f.name] = v.reshape([evaluate(e, sizes) for e in f.shape]) if f.shape else v
+    return out
 
 
 class TreeStepModel(NamedTuple):
     """The model, ground and workspace arrays of the one-kernel step (tree_step_hard /
     tree_step_compliant) packed into four buffers, so that a call from Python passes four
-    arrays instead of some thirty. The packing is pure layout (csrc/one_step.c reads it,
-    unpack_tree_model): the kernels compute exactly what the phase-by-phase path computes.
+    arrays instead of some thirty. The packing is pure layout: the kernels compute exactly
+    what the phase-by-phase path computes, and check the buffers' lengths against the sizes
+    in their header on every call. The layout (kernel_layouts.TREE_STEP_MODEL):
 
-    floats: the StepSettings (its 19 fields as floats, see _step_settings) and the
-    CompliantLaw (6) of the step, axis, pl_R, pl_p, oR, op (the forward kinematics'
-    scratch), mass, lever, inertia, gravity, c_local, c_radius (the forest's arrays,
-    midpoint_model order), the ground's n, t1, t2 and offset, ε per contact (nc x 2), the
-    actuators' effort and velocity limits (one per actuated joint, public order); ints:
-    [nj, nc, number of actuated joints, nv], then parent, jtype, idx_q, idx_v, c_joint,
-    joint_v and the dofs' parents (KinematicTree.dof_parent, the structure of M's LTDL
-    factor); support: the tree's support matrix; workspace: g_N (nc), contact points
-    (nc x 3), W^T of every contact (nc x 3 x nv), the factor L of M (nv x nv), u_free and
-    Δu_p (nv each). The kernels check these lengths against ints[0:4] on every call."""
+    """
 
     floats: np.ndarray
     ints: np.ndarray
@@ -78,53 +102,51 @@ class TreeStepModel(NamedTuple):
         the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
-        floats = np.concatenate([np.ravel(a).astype(np.float64) for a in (
-            [float(v) for v in settings], [float(v) for v in law], axis, pl_R, pl_p, oR,
-            op, mass, lever, inertia, gravity, c_local, c_radius, ground.n, ground.t1,
-            ground.t2, [ground.offset], eps, effort_limit, velocity_limit)])
-        nj, nc = parent.shape[0], c_joint.shape[0]
-        ints = np.concatenate([np.ravel(a).astype(np.int64) for a in (
-            [nj, nc, joint_v.shape[0], nv], parent, jtype, idx_q, idx_v, c_joint, joint_v,
-            dof_parent)])
-        sizes = (nc, 3 * nc, 3 * nc * nv, nv * nv, nv, nv)
-        workspace = np.zeros(sum(sizes))
-        views, o = [], 0
-        for n in sizes:
-            views.append(workspace[o:o + n])
-            o += n
-        gap, position, Wt_all, L, u_free, u_corr = views
-        return (TreeStepModel(floats, ints, np.ascontiguousarray(support), workspace),
-                (gap, position.reshape(nc, 3), Wt_all.reshape(nc, 3, nv), L.reshape(nv, nv),
-                 u_free, u_corr))
+        sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
+                 "nv": nv}
+        values = dict(
+            settings=[float(v) for v in settings], law=[float(v) for v in law], axis=axis,
+            pl_R=pl_R, pl_p=pl_p, oR=oR, op=op, mass=mass, lever=lever, inertia=inertia,
+            gravity=gravity, c_local=c_local, c_radius=c_radius, ground_n=ground.n,
+            ground_t1=ground.t1, ground_t2=ground.t2, ground_offset=[ground.offset], eps=eps,
+            effort_limit=effort_limit, velocity_limit=velocity_limit, parent=parent,
+            jtype=jtype, idx_q=idx_q, idx_v=idx_v, c_joint=c_joint, joint_v=joint_v,
+            dof_parent=dof_parent, support=support)
+        L = TREE_STEP_MODEL
+        workspace = np.zeros(length(L, "workspace", sizes))
+        views = buffer_views(L, "workspace", workspace, sizes)
+        return (TreeStepModel(pack_buffer(L, "floats", values, sizes),
+                              pack_buffer(L, "ints", values, sizes),
+                              np.ascontiguousarray(pack_buffer(L, "support", values, sizes)),
+                              workspace),
+                tuple(views[name] for name in ("gap", "position", "Wt_all", "L", "u_free",
+                                               "u_corr")))
+
+
+TreeStepModel.__doc__ = TreeStepModel.__doc__.rstrip(" ") + describe(TREE_STEP_MODEL)
 
 
 def report_size(nc, na):
     """The length of a one-kernel step's report buffer (see report_views)."""
-    return 7 * nc + na
+    return length(STEP_REPORT, "report", {"nc": nc, "na": na})
 
 
 def report_views(report, nc, na):
     """The views of a one-kernel step's report buffer (float64, report_size(nc, na)):
     (Λ (nc x 3, contact frame), g_N at q^M (nc), contact points at q^M (nc x 3), the
-    applied torques (na)): what the step reports, written by the kernel in one buffer so
-    that a caller allocates nothing per step."""
-    return (report[:3 * nc].reshape(nc, 3), report[3 * nc:4 * nc],
-            report[4 * nc:7 * nc].reshape(nc, 3), report[7 * nc:7 * nc + na])
+    applied torques (na)), the fields of kernel_layouts.STEP_REPORT in order: what the step
+    reports, written by the kernel in one buffer so that a caller allocates nothing per
+    step."""
+    return tuple(buffer_views(STEP_REPORT, "report", report, {"nc": nc, "na": na}).values())
 
 
 class CutModel(NamedTuple):
     """What forest_step_hard needs beyond the TreeStepModel: the cut joints, the actuators'
     place (tree joint or cut joint), a constant M and its free bodies, and the workspace of
-    the bilateral constraints, packed like TreeStepModel.
+    the bilateral constraints, packed like TreeStepModel (na and nv: the TreeStepModel's).
+    The layout (kernel_layouts.CUT_MODEL):
 
-    floats: β/Δt (β: bilateral.stabilization, b_B = (β/Δt) g_B), then per cut joint p_P,
-    p_C, a_P, b1_P, b2_P, a_C, b1_C (ForestCoordinates' arrays, ncut x 3 each), then for a
-    constant M: M (nv x nv) and the free bodies' masses, inertias (nr x 3 x 3) and gravity;
-    ints: [ncut, constant M (0/1), nr], cut_P, cut_C, joint_cut (one per actuated joint,
-    public order: its cut joint, -1 inside a tree), root_q, root_v; workspace: W_B^T
-    (5 ncut x nv), g_B and b_B (5 ncut each), φ, φ̇ (ncut each; φ̇ at zero velocity, not
-    used), the hinge axes in the world (ncut x 3) and the step's Λ_B (5 ncut, kept there
-    until the step is known to end finite)."""
+    """
 
     floats: np.ndarray
     ints: np.ndarray
@@ -134,16 +156,23 @@ class CutModel(NamedTuple):
     def pack(coords, beta_over_dt):
         """The CutModel of ForestCoordinates `coords` (β/Δt: the factor of b_B)."""
         c = coords
-        ncut, nv = c.n_cut, c.nv
         constant = bool(c.constant_mass_matrix)
-        arrays = [[float(beta_over_dt)], c.p_P, c.p_C, c.a_P, c.b1_P, c.b2_P, c.a_C, c.b1_C]
+        sizes = {"ncut": c.n_cut, "constant": int(constant),
+                 "nr": c.roots.shape[0] if constant else 0, "na": c.joint_v.shape[0],
+                 "nv": c.nv}
+        values = dict(beta_over_dt=[float(beta_over_dt)], p_P=c.p_P, p_C=c.p_C, a_P=c.a_P,
+                      b1_P=c.b1_P, b2_P=c.b2_P, a_C=c.a_C, b1_C=c.b1_C, cut_P=c.cut_P,
+                      cut_C=c.cut_C, joint_cut=c.joint_cut)
         if constant:
-            arrays += [c._M_const, c._mass, c._inertia, c._gravity]
-        floats = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in arrays])
-        nr = c.roots.shape[0] if constant else 0
-        ints = np.concatenate([np.ravel(np.asarray(a, dtype=np.int64)) for a in (
-            [ncut, int(constant), nr], c.cut_P, c.cut_C, c.joint_cut,
-            c.root_q if constant else [], c.root_v if constant else [])])
-        nB = 5 * ncut
-        workspace = np.zeros(nB * nv + 2 * nB + 2 * ncut + 3 * ncut + nB)
-        return CutModel(floats, ints, workspace)
+            values.update(M=c.M_const, body_mass=c.body_mass, body_inertia=c.body_inertia,
+                          body_gravity=c.body_gravity, root_q=c.root_q, root_v=c.root_v)
+        else:
+            values.update({k: [] for k in ("M", "body_mass", "body_inertia", "body_gravity",
+                                           "root_q", "root_v")})
+        L = CUT_MODEL
+        return CutModel(pack_buffer(L, "floats", values, sizes),
+                        pack_buffer(L, "ints", values, sizes),
+                        np.zeros(length(L, "workspace", sizes)))
+
+
+CutModel.__doc__ = CutModel.__doc__.rstrip(" ") + describe(CUT_MODEL)

@@ -262,15 +262,15 @@ class ForestCoordinates:
         """Single free bodies with frames at their centres of mass: the constant mass matrix
         M = diag(m_k I, Θ_k) and the masses, inertias and gravity of rigid_body_forces."""
         forest = self.model
-        self._mass = np.array([forest.inertias[int(r)].mass for r in self.roots])
-        self._inertia = np.array([forest.inertias[int(r)].inertia for r in self.roots])
-        self._gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
+        self.body_mass = np.array([forest.inertias[int(r)].mass for r in self.roots])
+        self.body_inertia = np.array([forest.inertias[int(r)].inertia for r in self.roots])
+        self.body_gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
         M = np.zeros((self.nv, self.nv))
         for i, r in enumerate(self.roots):
             v = self.root_v[i]
-            M[v:v + 3, v:v + 3] = self._mass[i] * np.eye(3)
-            M[v + 3:v + 6, v + 3:v + 6] = self._inertia[i]
-        self._M_const = M
+            M[v:v + 3, v:v + 3] = self.body_mass[i] * np.eye(3)
+            M[v + 3:v + 6, v + 3:v + 6] = self.body_inertia[i]
+        self.M_const = M
 
     # -- configuration space ------------------------------------------------------------------
     def neutral(self):
@@ -301,10 +301,10 @@ class ForestCoordinates:
         """(M, h) at (q, u); h includes the joint torques τ (public order) unless tau is None
         (see add_joint_torques)."""
         if self.constant_mass_matrix:
-            M = self._M_const
+            M = self.M_const
             h = np.empty(self.nv)
-            rigid_body_forces(q, u, self.root_q, self.root_v, self._mass, self._inertia,
-                              self._gravity, h)
+            rigid_body_forces(q, u, self.root_q, self.root_v, self.body_mass, self.body_inertia,
+                              self.body_gravity, h)
         else:
             M = np.empty((self.nv, self.nv))
             h = np.empty(self.nv)

@@ -157,14 +157,14 @@ PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ss
     return Py_BuildValue("(NN)", a, b);
 }
 
-/* The settings: a StepSettings (19 fields) or a prox.ProxSettings (8 fields) */
+/* The settings: a StepSettings or a prox.ProxSettings (their fields: kernel_layouts) */
 int get_settings(PyObject *o, const char *fn, settings_t *s) {
     PyObject *seq = PySequence_Fast(o, "settings must be a sequence");
     if (!seq) return 0;
     Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
     PyObject **it = PySequence_Fast_ITEMS(seq);
-    double f[19];
-    int ok = n == 19 || n == 8;
+    double f[STEP_SETTINGS_LENGTH];
+    int ok = n == STEP_SETTINGS_LENGTH || n == PROX_SETTINGS_LENGTH;
     for (Py_ssize_t k = 0; ok && k < n; k++) {
         f[k] = PyFloat_AsDouble(it[k]);
         if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
@@ -173,24 +173,16 @@ int get_settings(PyObject *o, const char *fn, settings_t *s) {
     if (!ok) {
         PyErr_Clear();
         PyErr_Format(PyExc_ValueError,
-                     "%s: settings must be the 19 numbers of a StepSettings or the 8 of a "
+                     "%s: settings must be the %d numbers of a StepSettings or the %d of a "
                      "ProxSettings",
-                     fn);
+                     fn, STEP_SETTINGS_LENGTH, PROX_SETTINGS_LENGTH);
         return 0;
     }
     memset(s, 0, sizeof(*s));
-    if (n == 19) {
+    if (n == STEP_SETTINGS_LENGTH)
         settings_from_fields(f, s);
-    } else { /* form, scheme, tol_rel, tol_abs, max_iterations, criterion, direct, alpha */
-        s->form = (i64)f[0];
-        s->scheme = (i64)f[1];
-        s->tol_rel = f[2];
-        s->tol_abs = f[3];
-        s->max_iterations = (i64)f[4];
-        s->criterion = (i64)f[5];
-        s->bilateral_direct = f[6] != 0.0;
-        s->alpha = f[7];
-    }
+    else
+        prox_settings_from_fields(f, s);
     if (s->form != FORM_DELASSUS && s->form != FORM_VELOCITY) {
         PyErr_Format(PyExc_ValueError, "%s: settings: unknown form %lld", fn, (long long)s->form);
         return 0;
@@ -235,24 +227,20 @@ int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat) {
 int get_law(PyObject *o, const char *fn, compliant_law_t *law) {
     PyObject *seq = PySequence_Fast(o, "law must be a sequence");
     if (!seq) return 0;
-    double f[6];
-    int ok = PySequence_Fast_GET_SIZE(seq) == 6;
-    for (int k = 0; ok && k < 6; k++) {
+    double f[COMPLIANT_LAW_LENGTH];
+    int ok = PySequence_Fast_GET_SIZE(seq) == COMPLIANT_LAW_LENGTH;
+    for (int k = 0; ok && k < COMPLIANT_LAW_LENGTH; k++) {
         f[k] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(seq, k));
         if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
     }
     Py_DECREF(seq);
     if (!ok) {
         PyErr_Clear();
-        PyErr_Format(PyExc_ValueError, "%s: law must be the 6 numbers of a CompliantLaw", fn);
+        PyErr_Format(PyExc_ValueError, "%s: law must be the %d numbers of a CompliantLaw", fn,
+                     COMPLIANT_LAW_LENGTH);
         return 0;
     }
-    law->mu = f[0];
-    law->c_N = f[1];
-    law->d_N = f[2];
-    law->c_T = f[3];
-    law->d_T = f[4];
-    law->slip_velocity = f[5];
+    compliant_law_from_fields(f, law);
     return 1;
 }
 

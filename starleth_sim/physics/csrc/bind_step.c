@@ -212,9 +212,7 @@ FN(complete_hard_contacts) {
                                         v[14].p, v[15].p, v[16].p, 1, v[17].p, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
-    return Py_BuildValue("(LLdOLL)", (long long)r.iterations, (long long)r.status, r.residual,
-                         r.retried ? Py_True : Py_False, (long long)r.projection_iterations,
-                         (long long)r.projection_status);
+    return complete_result_to_py(&r);
 }
 
 FN(solve_hard_contacts) {
@@ -251,13 +249,13 @@ FN(solve_hard_contacts) {
     });
     release(&h);
     if (failed) return PyErr_NoMemory();
-    if (!p.ok)
-        return Py_BuildValue("(OLLLLdOLL)", Py_False, 0LL, 0LL, 0LL, (long long)STATUS_CONVERGED,
-                             0.0, Py_False, 0LL, -1LL);
-    return Py_BuildValue("(OLLLLdOLL)", Py_True, (long long)p.na, (long long)p.opened,
-                         (long long)r.iterations, (long long)r.status, r.residual,
-                         r.retried ? Py_True : Py_False, (long long)r.projection_iterations,
-                         (long long)r.projection_status);
+    hard_contacts_result_t out = {0, 0, 0, 0, STATUS_CONVERGED, 0.0, 0, 0, -1};
+    if (p.ok) {
+        hard_contacts_result_t done = {1, p.na, p.opened, r.iterations, r.status, r.residual,
+                                       r.retried, r.projection_iterations, r.projection_status};
+        out = done;
+    }
+    return hard_contacts_result_to_py(&out);
 }
 
 /* ---------------------------------------------------------------------------------------
@@ -284,7 +282,9 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
         PyErr_Format(PyExc_ValueError, "%s: %s", fn, bad);
         return 0;
     }
-    i64 nc = m->ints[1], na = m->ints[2], nv = m->ints[3];
+    tree_model_t t;
+    unpack_tree_model(m, &t);
+    i64 nc = t.contacts.nc, na = t.na, nv = t.tree.nv;
     x->q = v[0].p;
     x->nq = v[0].len;
     x->u = v[1].p;
@@ -297,32 +297,27 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     x->last_active = v[5].p;
     x->last_bilateral = v[6].p;
     x->nb = v[6].len;
-    x->report = v[7].p;
     x->is_active = v[8].p;
     x->qE = v[9].p;
     x->uE = v[10].p;
     /* q: nq ≥ every idx_q + its joint's coordinates (checked by the model's own sizes) */
-    const i64 *jtype = m->ints + 4 + m->ints[0], *idx_q = m->ints + 4 + 2 * m->ints[0],
-              *idx_v = m->ints + 4 + 3 * m->ints[0];
-    for (i64 j = 1; j < m->ints[0]; j++) {
-        i64 wq = jtype[j] == JT_FREEFLYER ? 7 : 1, wv = jtype[j] == JT_FREEFLYER ? 6 : 1;
-        if (idx_q[j] < 0 || idx_q[j] + wq > x->nq || idx_v[j] < 0 || idx_v[j] + wv > nv) {
+    for (i64 j = 1; j < t.tree.nj; j++) {
+        i64 wq = t.tree.jtype[j] == JT_FREEFLYER ? 7 : 1;
+        i64 wv = t.tree.jtype[j] == JT_FREEFLYER ? 6 : 1;
+        if (t.tree.idx_q[j] < 0 || t.tree.idx_q[j] + wq > x->nq || t.tree.idx_v[j] < 0 ||
+            t.tree.idx_v[j] + wv > nv) {
             PyErr_Format(PyExc_ValueError, "%s: q or u is too short for the model", fn);
             return 0;
         }
     }
-    return need(x->n_tau == na && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
-                    v[4].len == 3 * nc && v[5].len == nc && v[7].len == 7 * nc + na &&
-                    v[8].len == nc && v[9].len == x->nq && v[10].len == nv,
-                fn, "the step's arrays do not match the model (tau: one torque per joint, "
-                    "f_ext: nv or empty, report: 7 nc + na)");
-}
-
-static PyObject *step_result(const tree_step_result_t *r) {
-    return Py_BuildValue("(LLLLLdOLL)", (long long)r->outcome, (long long)r->n_active,
-                         (long long)r->opened, (long long)r->iterations, (long long)r->status,
-                         r->residual, r->retried ? Py_True : Py_False,
-                         (long long)r->projection_iterations, (long long)r->projection_status);
+    if (!need(x->n_tau == na && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
+                  v[4].len == 3 * nc && v[5].len == nc && v[7].len == report_length(nc, na) &&
+                  v[8].len == nc && v[9].len == x->nq && v[10].len == nv,
+              fn, "the step's arrays do not match the model (tau: one torque per joint, "
+                  "f_ext: nv or empty, report: 7 nc + na)"))
+        return 0;
+    report_views(v[7].p, nc, na, &x->report);
+    return 1;
 }
 
 #define STEP_ARRAYS                                                                           \
@@ -347,7 +342,7 @@ FN(tree_step_hard) {
     RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, &x, &m, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
-    return step_result(&r);
+    return tree_step_result_to_py(&r);
 }
 
 FN(tree_step_compliant) {
@@ -367,7 +362,7 @@ FN(tree_step_compliant) {
     val_t w[11] = {v[1], v[2], v[3], v[4], v[8], v[5], v[8], v[9], v[10], v[11], v[12]};
     w[6].len = 0;
     if (!step_arrays_of("tree_step_compliant", w, &m, &x)) FAIL;
-    i64 nc = m.ints[1];
+    i64 nc = m.ints[TREE_STEP_MODEL_NC];
     if (
         !need(v[5].len == nc && v[6].len == nc && v[7].len == 3 * nc && v[8].len == 3 * nc,
               "tree_step_compliant", "closed, slip, anchor and lam must match the contacts"))
@@ -377,7 +372,7 @@ FN(tree_step_compliant) {
     RUN_NOGIL(a, failed, r = tree_step_compliant((int)v[0].i, &x, v[5].p, v[6].p, v[7].p, v[8].p, &m, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
-    return step_result(&r);
+    return tree_step_result_to_py(&r);
 }
 
 FN(forest_step_hard) {
@@ -406,13 +401,13 @@ FN(forest_step_hard) {
     c.n_support = 0;
     c.workspace = v[20].p;
     c.n_workspace = v[20].len;
-    const char *bad = check_cut_model(&c, m.ints[2], x.nv);
+    const char *bad = check_cut_model(&c, m.ints[TREE_STEP_MODEL_NA], x.nv);
     if (bad) {
         release(&h);
         PyErr_Format(PyExc_ValueError, "forest_step_hard: %s", bad);
         return NULL;
     }
-    i64 ncut = c.ints[0];
+    i64 ncut = c.ints[CUT_MODEL_NCUT];
     if (!need(x.nb == 5 * ncut && v[12].len == ncut && v[13].len == ncut, "forest_step_hard",
               "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints"))
         FAIL;
@@ -421,7 +416,7 @@ FN(forest_step_hard) {
     RUN_NOGIL(a, failed, r = forest_step_hard(&x, (int)v[4].i, v[12].p, v[13].p, &m, &c, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
-    return step_result(&r);
+    return tree_step_result_to_py(&r);
 }
 
 FN(scratch_arena_stats) {

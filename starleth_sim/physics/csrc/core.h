@@ -286,9 +286,9 @@ int saturate_torque(const double *tau, const double *limit, const double *qd,
                     const double *qd_limit, double *out, i64 n);
 
 /* ---------------------------------------------------------------------------------------
- * prox.c (prox.py)
+ * delassus.c, prox.c and prox_alpha.c (prox.py)
  * ------------------------------------------------------------------------------------- */
-/* r (m) from diag(G) (m) for nc contacts */
+/* delassus.c: r (m) from diag(G) (m) for nc contacts */
 void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r);
 /* the pattern of the rows of A (m x n) / of its columns, from the arena */
 void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);
@@ -299,13 +299,13 @@ void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv,
               arena_t *a);
 void delassus_diagonal(const double *Wt, const double *MinvW, double *d, i64 m, i64 nv,
                        const i64 *wp_ptr, const i64 *wp_idx);
-/* auto_spectral_scale (adaptive α): G is m x m (Delassus form), else unused */
+/* prox_alpha.c: auto_spectral_scale (adaptive α): G is m x m (Delassus form), else unused */
 double auto_spectral_scale(const settings_t *s, const double *G, const double *Wt,
                            const double *MinvW, const patterns_t *pat, i64 m, i64 nv, i64 nc,
                            const double *r, arena_t *a);
-/* One prox solve (prox.prox_solve): Wt m x nv, MinvW nv x m, u_free nv, bvec m, G m x m and c
- * m (Delassus form), mu nc, r m, lam m (warm start in, Λ out), LB nb_LB x nb_LB, M nv x nv
- * (energy criterion), u nv (u^E out). */
+/* prox.c: one prox solve (prox.prox_solve): Wt m x nv, MinvW nv x m, u_free nv, bvec m,
+ * G m x m and c m (Delassus form), mu nc, r m, lam m (warm start in, Λ out), LB nb_LB x nb_LB,
+ * M nv x nv (energy criterion), u nv (u^E out). */
 prox_result_t prox_solve(const settings_t *s, const patterns_t *pat, const double *Wt,
                          const double *MinvW, const double *u_free, const double *bvec,
                          const double *G, const double *c, i64 m, i64 nv, i64 nc,

@@ -8,6 +8,7 @@
  * every physics step, check the sizes of everything they touch and release the GIL. Work
  * arrays come from the calling thread's scratch arena, emptied on every call. The argument
  * helpers are in bind.c (bind.h). */
+#define KERNEL_LAYOUTS_DEFINE_TYPES /* the result types' definitions (kernel_layouts.h) */
 #include "bind.h"
 
 /* The module: its functions (the bindings of bind_geometry.c, bind_prox.c and bind_step.c),
@@ -55,11 +56,11 @@ static PyMethodDef methods[] = {
     DEF(solve_compliant, "solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, t1, t2, lam, dof_parent, factor, L, u_free, timings) -> bool."),
     DEF(end_of_step, "end_of_step(qM, uE, u_corr, projected, half_dt, jtype, idx_q, idx_v, qE) -> bool."),
     DEF(prepare_hard_contacts, "prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active, timings, problem=None) -> ContactProblem."),
-    DEF(complete_hard_contacts, "complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings) -> (iterations, status, residual, retried, projection iterations, projection status)."),
-    DEF(solve_hard_contacts, "solve_hard_contacts(...) -> (ok, |I|, opened, iterations, status, residual, retried, projection iterations, projection status)."),
-    DEF(tree_step_hard, "tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> result."),
-    DEF(tree_step_compliant, "tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> result."),
-    DEF(forest_step_hard, "forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> result."),
+    DEF(complete_hard_contacts, "complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings) -> CompletionResult."),
+    DEF(solve_hard_contacts, "solve_hard_contacts(...) -> HardContactsResult."),
+    DEF(tree_step_hard, "tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
+    DEF(tree_step_compliant, "tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
+    DEF(forest_step_hard, "forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> TreeStepResult."),
     DEF(scratch_arena_stats, "scratch_arena_stats() -> (misses, capacity [bytes], bytes the last call wanted) of this thread's scratch arena."),
     {NULL, NULL, 0, NULL}};
 
@@ -114,6 +115,10 @@ PyMODINIT_FUNC PyInit__kernels(void) {
             Py_DECREF(m);
             return NULL;
         }
+    }
+    if (add_result_types(m) < 0) {
+        Py_DECREF(m);
+        return NULL;
     }
     Py_INCREF(&ProblemType);
     if (PyModule_AddObject(m, "ContactProblem", (PyObject *)&ProblemType) < 0) {

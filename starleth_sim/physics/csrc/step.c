@@ -5,29 +5,6 @@
 
 #include <string.h>
 
-/* step_kernels.StepSettings from its fields (the order of its declaration) */
-void settings_from_fields(const double *f, settings_t *s) {
-    s->activation_gap = f[0];
-    s->mu = f[1];
-    s->alpha = f[2];
-    s->tol_rel = f[3];
-    s->tol_abs = f[4];
-    s->fallback_alpha_factor = f[5];
-    s->opening_gap = f[6];
-    s->dt = f[7];
-    s->beta_velocity = f[8];
-    s->beta_projection = f[9];
-    s->jacobian_gap = f[10];
-    s->projection_tolerance = f[11];
-    s->form = (i64)f[12];
-    s->scheme = (i64)f[13];
-    s->max_iterations = (i64)f[14];
-    s->criterion = (i64)f[15];
-    s->warm_start = f[16] != 0.0;
-    s->bilateral_direct = f[17] != 0.0;
-    s->hysteresis = f[18] != 0.0;
-}
-
 /* free_velocity: u_free = u^S + M^{-1} h Δt with the LTDL factor L of M */
 void free_velocity(const double *h, double dt, const double *uS, i64 nv, const i64 *dof_parent,
                    const double *L, double *u_free) {

@@ -1,0 +1,84 @@
+"""The solver figures of a control step (`Diagnostics`): made from the figures of its physics
+steps (the kernels' TreeStepResult or the stepper's StepResult, which name them alike),
+continuing the cumulative counts of the last control step. No ROS anywhere in here."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Mapping
+
+from . import prox
+
+#: Diagnostics.timings when not profiling (one shared, read-only, empty mapping)
+NO_TIMINGS = MappingProxyType({})
+#: Diagnostics.status of each prox.STATUS_*
+STATUS_NAMES = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
+                prox.STATUS_NONFINITE: "non_finite"}
+_CONVERGED = prox.STATUS_CONVERGED
+
+
+@dataclass(slots=True)
+class Diagnostics:
+    """Solver figures of the last control step (summed / worst over its physics steps)."""
+
+    iterations: int = 0            # prox iterations, summed over the physics steps
+    max_iterations_step: int = 0   # worst physics step
+    converged: bool = True         # every physics step converged
+    status: str = "converged"
+    residual: float = 0.0          # max |Λ^{k+1} − Λ^k| of the final iterations [N s]
+    active_contacts: int = 0
+    retried: bool = False          # a step needed the fallback α
+    #: contacts that carried Λ_N > 0 in the previous physics step and left the active set by
+    #: the activation test alone (with contact.activation "hysteresis" only beyond
+    #: opening_gap), summed over the physics steps
+    loaded_contacts_opened: int = 0
+    projection_iterations: int = 0  # post-step projection, summed over the physics steps
+    projections: int = 0           # physics steps that needed the post-step projection
+    step_time: float = 0.0         # wall time of the control step [s]
+    physics_steps: int = 0         # cumulative
+    nonconverged_steps: int = 0    # cumulative
+    loaded_contacts_opened_total: int = 0  # cumulative
+    #: cumulative per phase (profile=True) [s]; empty and read-only when not profiling
+    timings: Mapping[str, float] = field(default_factory=lambda: NO_TIMINGS)
+
+
+def one_step_diagnostics(prev: Diagnostics, r, step_time: float) -> Diagnostics:
+    """The Diagnostics of a control period of one physics step, whose figures are r's (a
+    TreeStepResult), continuing the cumulative counts of prev. (Made on every step: written
+    for speed, ≈1 µs of a 28 µs step.)"""
+    iterations, status, residual, opened = r.iterations, r.status, r.residual, r.opened
+    converged = status == _CONVERGED
+    return Diagnostics(
+        iterations, iterations, converged, STATUS_NAMES[status],
+        residual if residual > 0.0 else 0.0, r.n_active, r.retried, opened,
+        r.projection_iterations, 1 if r.projection_status >= 0 else 0, step_time,
+        prev.physics_steps + 1, prev.nonconverged_steps + (0 if converged else 1),
+        prev.loaded_contacts_opened_total + opened, NO_TIMINGS)
+
+
+def control_step_diagnostics(prev: Diagnostics, figures, step_time: float,
+                             timings=NO_TIMINGS) -> Diagnostics:
+    """The Diagnostics of a control step from its physics steps' figures (TreeStepResults or
+    StepResults: sums and worst cases), continuing the cumulative counts of prev; timings:
+    the cumulative phase times when profiling."""
+    iterations = worst = projection_iterations = projections = opened = nonconverged = 0
+    residual = 0.0
+    retried = False
+    status = _CONVERGED
+    for f in figures:
+        iterations += f.iterations
+        worst = max(worst, f.iterations)
+        residual = max(residual, f.residual)
+        retried |= f.retried
+        opened += f.opened
+        projection_iterations += f.projection_iterations
+        projections += f.projection_status >= 0
+        if f.status != _CONVERGED:
+            status = f.status
+            nonconverged += 1
+    return Diagnostics(
+        iterations, worst, nonconverged == 0, STATUS_NAMES[status], residual,
+        figures[-1].n_active, retried, opened, projection_iterations, projections,
+        step_time, prev.physics_steps + len(figures),
+        prev.nonconverged_steps + nonconverged,
+        prev.loaded_contacts_opened_total + opened, timings)
