@@ -55,7 +55,8 @@ class ContactPointSpec:
     radius: float
 
 
-def _origin(elem):
+def urdf_origin(elem):
+    """The placement (pin.SE3) of a URDF element's <origin> (xyz, rpy); identity without one."""
     o = elem.find("origin") if elem is not None else None
     xyz = np.zeros(3)
     rpy = np.zeros(3)
@@ -80,7 +81,7 @@ def contact_points_from_urdf(urdf_xml: str, model: pin.Model) -> list[ContactPoi
         frame = model.frames[model.getFrameId(lname)]
         for k, coll in enumerate(colls):
             cname = coll.get("name") or f"{lname}_{k}"
-            placement = frame.placement * _origin(coll)
+            placement = frame.placement * urdf_origin(coll)
             geom = coll.find("geometry")
             sphere = geom.find("sphere") if geom is not None else None
             box = geom.find("box") if geom is not None else None

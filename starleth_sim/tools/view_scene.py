@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 import pinocchio as pin
 
-from ..physics.description import RobotDescription, _origin
+from ..physics.description import RobotDescription, urdf_origin
 from .view_recording import FEET, Recording, warn
 
 #: colours (0xRRGGBB): a distinctive orange robot, green arrows, grey ground, blue-grey sky
@@ -86,7 +86,7 @@ def robot_visuals(desc: RobotDescription):
             if not model.existFrame(lname):
                 continue
             frame = model.frames[model.getFrameId(lname)]
-            placement = frame.placement * _origin(vis)
+            placement = frame.placement * urdf_origin(vis)
             geometry, intrinsic, color = shape
             name = f"{lname}_{k}" if len(link.findall("visual")) > 1 else lname
             obj = _mesh(f"robot/{name}", name, geometry, color,
