@@ -423,3 +423,17 @@ def test_self_check_docstring():
     assert [(v.path, v.line, v.rule) for v in found] == [
         ("starleth_sim/b.py", 1, "module-docstring"),
         ("starleth_sim/c.py", 1, "module-docstring")], _report(found)
+
+
+def test_c_sources_at_most_600_lines():
+    """The C kernels (``starleth_sim/physics/csrc``) follow the modules' size rule too."""
+    csrc = os.path.join(ROOT, "starleth_sim", "physics", "csrc")
+    sources = [f for f in os.listdir(csrc) if f.endswith((".c", ".h"))]
+    assert len(sources) > 10
+    long = []
+    for name in sorted(sources):
+        with open(os.path.join(csrc, name)) as f:
+            n = sum(1 for _ in f)
+        if n > MAX_LINES:
+            long.append(f"starleth_sim/physics/csrc/{name}: {n} lines (at most {MAX_LINES})")
+    assert not long, "\n".join(long)

@@ -263,3 +263,13 @@ def test_a_stale_name_is_found():
     assert problem("README.md", "make", "no-such-target", scripts, targets, tops, names)
     assert problem("README.md", "path", "runs/my_run.mcap", scripts, targets, tops,
                    names) is None
+
+
+def test_readme_stays_a_page_for_users():
+    """The README is for users (at most 400 lines; measurements go to doc/performance.md)
+    and starts with the two commands."""
+    with open(os.path.join(ROOT, "README.md")) as f:
+        text = f.read()
+    assert text.count("\n") <= 400, f"README.md has {text.count(chr(10))} lines (at most 400)"
+    first_block = text[:text.index("```", text.index("```") + 3)]
+    assert "make demo" in first_block and "make test" in first_block
