@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from starleth_sim import Simulator
-from starleth_sim.physics import kernel_build, kernel_layouts, kernels
+from starleth_sim.physics import kernel_build, kernel_codegen, kernel_layouts, kernels
 from starleth_sim.physics.contact import CompliantLaw
 from starleth_sim.physics.kernel_layouts import (CUT_MODEL, HEADER_KINDS, LAYOUTS, RECORDS,
                                                  RESULTS, STEP_REPORT, TREE_STEP_MODEL,
@@ -50,7 +50,7 @@ def test_the_python_records_and_results_have_the_declared_fields():
         assert all(isinstance(getattr(t, f.name), types.MemberDescriptorType)
                    for f in r.fields)
     for r in RECORDS:
-        assert f"#define {kernel_build._upper(r.name)}_LENGTH {len(r.fields)}" in \
+        assert f"#define {kernel_codegen.upper_snake(r.name)}_LENGTH {len(r.fields)}" in \
             kernel_build.c_header()
 
 

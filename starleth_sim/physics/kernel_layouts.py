@@ -1,7 +1,8 @@
 """The packed layouts the one-kernel steps read and the records the kernels return, declared
-once: `kernel_build` generates the C side from these declarations (`c_header`: the structs,
-the unpacking of every buffer and the named results, into the header ``kernel_layouts.h`` of
-the build), and :mod:`starleth_sim.physics.tree_step` packs the buffers by them.
+once: :mod:`~starleth_sim.physics.kernel_codegen` generates the C side from these
+declarations (`c_header`: the structs, the unpacking of every buffer and the named results,
+into the header ``kernel_layouts.h`` that `kernel_build` writes for the build), and
+:mod:`starleth_sim.physics.tree_step` packs the buffers by them.
 
 A layout is a list of buffers (float64, int64 or bool arrays), each an ordered list of fields.
 A field's size is an expression over the layout's sizes: those its header holds (the first
