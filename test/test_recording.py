@@ -499,6 +499,13 @@ def test_every_recorder_implements_the_protocol_and_closes_with_metadata(tmp_pat
               "split": lambda p: SplitRecorder(str(p), max_size=1 << 20),
               "queued": lambda p: QueuedRecorder(McapRecorder(str(p) + ".mcap")),
               "process": lambda p: ProcessRecorder(str(p) + ".mcap")}
+    # every writer implements what the protocol only declares (hand_over and the context
+    # manager have defaults there)
+    declared = ("add_topic", "add_metadata", "add_attachment", "write", "counts", "close",
+                "closed", "topics")
+    for cls in (McapRecorder, SplitRecorder, QueuedRecorder, ProcessRecorder):
+        missing = [m for m in declared if getattr(cls, m) is getattr(Recorder, m)]
+        assert not missing, (cls.__name__, missing)
     for kind, make in makers.items():
         rec = make(tmp_path / kind)
         assert isinstance(rec, Recorder), kind

@@ -115,13 +115,16 @@ class Recorder(Protocol):
         """{topic: messages written}."""
 
     def hand_over(self) -> None:
-        """Pass the messages buffered in the caller on to the writer now, without waiting
-        (nothing to do where the writer takes them at once)."""
+        """Pass the messages buffered in the caller on to the writer now, without waiting.
+        This default does nothing: the in-process file writers take every write at once."""
 
     def close(self, timeout: float | None = None, metadata: dict | None = None) -> None:
         """Write what is still queued (within `timeout` s where the writing is queued),
         add the `metadata` records ({name: data}), finalise the file (idempotent)."""
 
-    def __enter__(self): ...
+    def __enter__(self):
+        return self
 
-    def __exit__(self, *exc): ...
+    def __exit__(self, *exc):
+        self.close()
+        return False

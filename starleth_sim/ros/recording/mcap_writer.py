@@ -29,7 +29,7 @@ from collections import OrderedDict
 import yaml
 from mcap.writer import CompressionType, Writer
 
-from .interface import DEFAULT_CHUNK_SIZE
+from .interface import DEFAULT_CHUNK_SIZE, Recorder
 from .mcap_sink import FileSink, RecordingError, close_damaged, failure_cause
 from .qos import qos_profiles_yaml
 from .schemas import message_definition, type_name
@@ -46,7 +46,7 @@ class _Topic:
         self.qos_yaml, self.type_hash, self.count = qos_yaml, type_hash, 0
 
 
-class McapRecorder:
+class McapRecorder(Recorder):
     """Write ROS 2 messages to an MCAP file that rosbag2 and rosbags read as a bag.
 
         rec = McapRecorder("run.mcap")
@@ -254,9 +254,6 @@ class McapRecorder:
             "the file is cut after the last message written: read it with --salvage"))
         raise RecordingError(self.failure) from None
 
-    def hand_over(self) -> None:
-        """Nothing to hand over: every write goes to the file's buffers at once."""
-
     def close(self, timeout=None, metadata=None) -> None:
         """Add the `metadata` records ({name: data}), write the rosbag2 metadata record and
         the summary, close the file (idempotent; `timeout` is not needed: nothing is
@@ -283,13 +280,6 @@ class McapRecorder:
             self._closed = True
             self._file.fsync()
             self._file.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
 
     def __del__(self):  # pragma: no cover - best effort
         try:

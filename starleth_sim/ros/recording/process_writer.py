@@ -12,7 +12,7 @@ import subprocess
 import sys
 import time
 
-from .interface import StorageOptions
+from .interface import Recorder, StorageOptions
 from .mcap_sink import RecordingError, repair
 from .qos import qos_to_dict
 from .schemas import registered_msg_text, type_name
@@ -51,7 +51,7 @@ def enlarge_pipe(fd, size) -> int:
         return 0
 
 
-class ProcessRecorder:
+class ProcessRecorder(Recorder):
     """A recorder (:class:`~.mcap_writer.McapRecorder`, or :class:`SplitRecorder` when
     `max_duration_ns` or `max_size` is given) in a child process of its own (``python -m
     starleth_sim.ros.recording --writer``: :mod:`.writer_child`): the caller hands CDR
@@ -403,10 +403,3 @@ class ProcessRecorder:
             self._proc.wait(5 if deadline is None else max(deadline - time.monotonic(), 0.1))
         except Exception:   # pragma: no cover - it has answered: it is ending
             pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False

@@ -6,10 +6,11 @@ import collections
 import threading
 import time
 
+from .interface import Recorder
 from .mcap_sink import RecordingError
 
 
-class QueuedRecorder:
+class QueuedRecorder(Recorder):
     """A recorder (:class:`McapRecorder` or :class:`SplitRecorder`) written by a thread of
     its own, off the caller's critical path: ``write`` hands the CDR bytes over (a queue
     append; message objects are serialised first, in the caller, as they may change
@@ -144,10 +145,6 @@ class QueuedRecorder:
         """Messages in the chunks that reached the file (the file's writer's count)."""
         return self.inner.messages_on_disk
 
-    def hand_over(self) -> None:
-        """Nothing to hand over: the writer thread takes what is queued by itself (it looks
-        at the queue every POLL s)."""
-
     @property
     def closed(self) -> bool:
         return self._closing or self.failure is not None
@@ -173,10 +170,3 @@ class QueuedRecorder:
         if self.failure is not None:
             return
         self.inner.close(metadata=metadata)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False

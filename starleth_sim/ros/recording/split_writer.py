@@ -7,7 +7,7 @@ import threading
 
 import yaml
 
-from .interface import StorageOptions
+from .interface import Recorder, StorageOptions
 from .mcap_sink import RecordingError
 from .mcap_writer import ROSBAG2_METADATA_VERSION, McapRecorder
 from .schemas import type_name
@@ -23,7 +23,7 @@ def _widen_span(span, files_entry):
     return (start, end) if span is None else (min(span[0], start), max(span[1], end))
 
 
-class SplitRecorder:
+class SplitRecorder(Recorder):
     """rosbag2's split recording (``ros2 bag record --max-bag-duration/--max-bag-size``): a
     bag directory holding ``<name>_0.mcap``, ``<name>_1.mcap``, ... and ``metadata.yaml``. A
     new file is started when the current one spans `max_duration_ns` of message time or
@@ -213,9 +213,6 @@ class SplitRecorder:
             n += self._current.messages_on_disk
         return n
 
-    def hand_over(self) -> None:
-        """Nothing to hand over: every write goes to the current file's buffers at once."""
-
     def bag_metadata(self) -> dict:
         """The rosbag2 BagMetadata of the whole bag (all files)."""
         files = list(self._done)
@@ -280,10 +277,3 @@ class SplitRecorder:
                 except OSError:
                     if self.failure is None:
                         raise
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
