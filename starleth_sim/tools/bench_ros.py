@@ -66,7 +66,7 @@ from .bench_controllers import make_bench_controller, node_parameters
 from .bench_loop_figures import print_rates, real_loop_figures
 from .bench_ros_phases import controller_phase, lockstep_beside_bare
 from .bench_ros_sim import child_main
-from .bench_round_trips import CHILD_LOGS, PingPong
+from .bench_round_trips import CHILD_LOGS
 
 
 # -----------------------------------------------------------------------------------------
@@ -115,39 +115,6 @@ def _stop(proc, log_path, timeout=20):
         text = f.read()
     m = re.search(r"BENCH_SUMMARY (\{.*\})", text)
     return (json.loads(m.group(1)) if m else None), text
-
-
-def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=60.0):
-    """Bare rclpy JointState round trips per second between this process and a child
-    running only the pong node (the reference the real loop is compared with); also
-    returns the median round trip [s]. Used by starleth-demo right before its run."""
-    import rclpy
-    from rclpy.node import Node
-    keep_discovery_local()
-    cmd = [sys.executable, "-m", "starleth_sim.tools.bench_ros", "--child", "--pong-only",
-           "--domain-id", str(domain_id), "--sim-executor", executor]
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env=env)
-    ctx = rclpy.Context()
-    rclpy.init(args=[], context=ctx, domain_id=domain_id)
-    node = Node("bench_ping", context=ctx)
-    try:
-        ex = make_executor(executor, ctx)[0]
-        ex.add_node(node)
-        pp = PingPong(node, ex, startup)
-        rate, rtts = pp.measure(seconds)
-        pp.close()
-        return rate, float(np.median(rtts))
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 # -----------------------------------------------------------------------------------------

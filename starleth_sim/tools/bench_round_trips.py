@@ -1,15 +1,24 @@
 """Bare rclpy round trips, the reference of the loop benchmarks (``bench_ros``,
 ``bench_floor``, starleth-demo): the ping and pong topics, the pong node's echo, the ping
-side (:class:`PingPong`), and spinning an executor until a condition holds.
+side (:class:`PingPong`), spinning an executor until a condition holds, and the rate of bare
+round trips against a child process running only the pong side (:func:`measure_bare_round_trips`).
 
 A JointState with 12 names and 3 x 12 values (like /joint_states) goes out on PING, the
 pong side publishes it back on PONG, the next one goes out when the echo is in.
 """
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
 import time
 
+import numpy as np
+
 from starleth_interface.compile_notice import Deadline
+from starleth_interface.ros_helpers import make_executor
+
+from ..ros.discovery import keep_discovery_local, local_discovery_env
 
 PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
 
@@ -83,3 +92,36 @@ class PingPong:
     def close(self):
         self.node.destroy_publisher(self.pub)
         self.node.destroy_subscription(self.sub)
+
+
+def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=60.0):
+    """Bare rclpy JointState round trips per second between this process and a child
+    running only the pong node (the reference the real loop is compared with); also
+    returns the median round trip [s]. Used by starleth-demo right before its run."""
+    import rclpy
+    from rclpy.node import Node
+    keep_discovery_local()
+    cmd = [sys.executable, "-m", "starleth_sim.tools.bench_ros", "--child", "--pong-only",
+           "--domain-id", str(domain_id), "--sim-executor", executor]
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env=env)
+    ctx = rclpy.Context()
+    rclpy.init(args=[], context=ctx, domain_id=domain_id)
+    node = Node("bench_ping", context=ctx)
+    try:
+        ex = make_executor(executor, ctx)[0]
+        ex.add_node(node)
+        pp = PingPong(node, ex, startup)
+        rate, rtts = pp.measure(seconds)
+        pp.close()
+        return rate, float(np.median(rtts))
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

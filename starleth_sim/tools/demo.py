@@ -48,7 +48,7 @@ from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bag import BagError, stream_bag
-from .bench_ros import measure_bare_round_trips
+from .bench_round_trips import measure_bare_round_trips
 from .precompile import precompile
 from .view import ViewError, write_html
 
