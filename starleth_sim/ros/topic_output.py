@@ -37,15 +37,11 @@ class TopicOutput:
     def emit(self, key, msg, record):
         """Publish (and record) a message object; while recording, a topic nobody
         subscribes to is only recorded."""
-        p, topic, _, _ = self.pubs[key]
         rec = self.recording.recorder
         if record and rec is not None and not rec.closed:
-            data = serialize_message(msg)
-            if self.counts.get(key, 1) > 0:
-                p.publish(data)
-            rec.write(topic, data, self.service.stamp_ns)
+            self.emit_cdr(key, serialize_message(msg), record)
         else:
-            p.publish(msg)
+            self.pubs[key][0].publish(msg)
 
     def emit_cdr(self, key, data, record):
         """The same for CDR bytes."""
