@@ -669,18 +669,25 @@ def test_replay_good_bag_still_runs(replay_md, tmp_path):
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
 def test_compressed_bags_read_as_uncompressed_ones(tmp_path, compression):
     """The chunks decompressed in bounded pieces hold what mcap's own reader gives: the same
-    messages, log times and counts as the uncompressed bag, over many small chunks."""
+    messages, log times and counts as the uncompressed bag, over many small chunks. (Both
+    bags get the same CDR bytes: rclpy leaves padding bytes uninitialised, so serialising
+    the messages once per bag could make the two bags' messages differ there.)"""
     from mcap.reader import make_reader
+    messages = []
+    for k in range(300):
+        st = stamp(0, k * PERIOD_NS)
+        messages.append(("/joint_states", serialize_message(joint_state(st, 0.001 * k)),
+                         k * PERIOD_NS))
+        messages.append(("/starleth/base_state", serialize_message(odometry(st, 0.01 * k)),
+                         k * PERIOD_NS))
     paths = {}
     for comp in ("none", compression):
         paths[comp] = tmp_path / f"{comp}.mcap"
         rec = McapRecorder(str(paths[comp]), chunk_size=4096, compression=comp)
         rec.add_topic("/joint_states", JointState)
         rec.add_topic("/starleth/base_state", Odometry)
-        for k in range(300):
-            st = stamp(0, k * PERIOD_NS)
-            rec.write("/joint_states", joint_state(st, 0.001 * k), k * PERIOD_NS)
-            rec.write("/starleth/base_state", odometry(st, 0.01 * k), k * PERIOD_NS)
+        for topic, data, log_time in messages:
+            rec.write(topic, data, log_time)
         rec.close()
     got = {c: bagmod.read_messages(str(p), lambda t, ty: True, decode=False)
            for c, p in paths.items()}
