@@ -308,15 +308,16 @@ class ControllerNode(Node):
 
     def _drop_incomplete(self, stamp, slot):
         self.counters["dropped_incomplete"] += 1
+        missing = ", ".join(slot.missing())
         self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
-                   f"(missing: {', '.join(slot.missing())})")
+                   f"(missing: {missing})", missing)
 
     def _deserialise(self, data, typ, what):
         try:
             return deserialize_message(data, typ)
         except Exception as e:   # malformed CDR: ignore it, never die
             self.counters["rejected"] += 1
-            self._warn("bad_cdr", f"ignored an undecodable {what}: {e}")
+            self._warn("bad_cdr", f"ignored an undecodable {what}: {e}", what)
             return None
 
     def _on_bundle_cdr(self, data):
@@ -325,7 +326,8 @@ class ControllerNode(Node):
         r = state_bundle.decode(data)
         if isinstance(r, str):
             self.counters["rejected"] += 1
-            self._warn("bundle", f"ignored a message on {self.sub_bundle.topic_name}: {r}")
+            self._warn("bundle", f"ignored a message on {self.sub_bundle.topic_name}: {r}",
+                       r.split(" (")[0])       # the problem without its values
             return
         if not self._bundled:
             self._read_bundles_only()
@@ -467,7 +469,8 @@ class ControllerNode(Node):
         state, key, reason = self._assembler.robot_state(stamp, s)
         if state is None:
             self.counters["rejected"] += 1
-            self._warn(key, f"ignored the state of t={stamp * 1e-9:.4f} s: {reason}")
+            self._warn(key, f"ignored the state of t={stamp * 1e-9:.4f} s: {reason}",
+                       reason if key == "joint_states" else "")   # the others hold values
             return
         vx, vy, wz = self._vel
         if self._cmd_vel_timeout > 0 and self._vel_time is not None and \
@@ -480,7 +483,7 @@ class ControllerNode(Node):
         except Exception as e:
             self.counters["controller_errors"] += 1
             self._warn("controller", f"controller update failed at t={stamp * 1e-9:.4f} s: "
-                       f"{type(e).__name__}: {e}")
+                       f"{type(e).__name__}: {e}", type(e).__name__)
             return
         if not math.isfinite(float(_sum(tau))) and not np.isfinite(tau).all():
             self.counters["controller_errors"] += 1

@@ -55,7 +55,7 @@ PARAMETERS = (
     P("state_reliability", str, "reliable", "QoS reliability of the state subscriptions: "
       "reliable | best_effort", choices=("reliable", "best_effort")),
     P("warn_throttle_period", float, 2.0, "minimum seconds between two warnings of the same "
-      "kind", read_only=False, minimum=0.0, maximum=3600.0),
+      "problem (a kind and what it names)", read_only=False, minimum=0.0, maximum=3600.0),
     P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
       choices=EXECUTORS),
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),

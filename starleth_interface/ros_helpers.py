@@ -14,6 +14,7 @@ import sys
 import textwrap
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import yaml
 
@@ -198,9 +199,17 @@ def make_executor(kind: str, context):
 
 @dataclass
 class ThrottledLog:
-    """At most one message per `period` seconds per kind of problem; the next one says how
-    many were suppressed. `counts` has every occurrence by kind. Call it (or ``warn``) with
-    (kind, message); returns whether the message was logged."""
+    """At most one message per `period` seconds per problem, a problem being a kind (e.g.
+    'unknown_joint') and a detail that names the thing (the joint, the link, the topic...):
+    each distinct problem is logged at least once, and its next message says how many like
+    it were suppressed. `counts` has every occurrence by kind. Call it (or ``warn``) with
+    (kind, message, detail); returns whether the message was logged.
+
+    At most MAX_DETAILS details of one kind are throttled apart (a flood of distinct names
+    cannot flood the log): the further ones share one throttle, and the first of them says
+    so."""
+
+    MAX_DETAILS: ClassVar[int] = 32
 
     log: object = None
     period: float = 2.0
@@ -208,9 +217,20 @@ class ThrottledLog:
     counts: dict = field(default_factory=dict)
     _last: dict = field(default_factory=dict, repr=False)
     _suppressed: dict = field(default_factory=dict, repr=False)
+    _details: dict = field(default_factory=dict, repr=False)
 
-    def __call__(self, key: str, message: str) -> bool:
-        self.counts[key] = self.counts.get(key, 0) + 1
+    def __call__(self, kind: str, message: str, detail: str = "") -> bool:
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        key = (kind, detail)
+        if key not in self._last:
+            n = self._details.get(kind, 0)
+            if n >= self.MAX_DETAILS:
+                key = (kind, None)             # the overflow: one throttle for the rest
+                if key not in self._last:
+                    message += (f" (more than {self.MAX_DETAILS} distinct problems of this "
+                                "kind: the further ones are throttled together)")
+            else:
+                self._details[kind] = n + 1
         now = self.clock()
         last = self._last.get(key)
         if last is not None and now - last < self.period:

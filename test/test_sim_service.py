@@ -82,18 +82,47 @@ def test_joint_command_validation(sim):
     svc, warns = make(sim)
     names = list(sim.joint_names)
     assert svc.submit_joint_command(names, np.arange(12.0))[0]
-    assert svc.submit_joint_command(["RH_KFE", "LF_HAA"], [5.0, -5.0])[0]   # subset by name
-    assert svc.command[0] == -5.0 and svc.command[11] == 5.0 and svc.command[1] == 1.0
+    # every joint by name in another order: each effort goes to its joint
+    assert svc.submit_joint_command(names[::-1], np.arange(12.0))[0]
+    assert np.array_equal(svc.command, np.arange(12.0)[::-1])
     assert svc.submit_joint_command([], [0.5] * 12)[0]                       # joint order
+    assert np.all(svc.command == 0.5)
     before = svc.command.copy()
     for n, e, word in ((["LF_HAA", "FOO"], [1, 2], "'FOO'"),
                        (["LF_HAA", "LF_HAA"], [1, 2], "duplicate"),
-                       (["LF_HAA"], [1, 2], "1 names but 2 efforts"),
+                       (names, [1.0] * 11, "12 names but 11 efforts"),
                        ([], [1.0] * 3, "no joint names"),
-                       (["LF_HFE"], [float("nan")], "non-finite effort for LF_HFE")):
+                       (names, [0.0] + [float("nan")] + [0.0] * 10,
+                        f"non-finite effort for {names[1]}")):
         ok, why = svc.submit_joint_command(n, e)
         assert not ok and word in why, why
     assert np.array_equal(svc.command, before)
+    assert svc.counters["commands_rejected"] == 5
+
+
+def test_a_command_naming_some_joints_but_not_all_is_rejected(sim):
+    """11 of the 12 joints: rejected with one line naming the missing joint, counted, and
+    the last valid command kept (the missing joint does not silently get 0 N m)."""
+    svc, warns = make(sim)
+    names = list(sim.joint_names)
+    assert svc.submit_joint_command(names, [3.0] * 12)[0]
+    ok, why = svc.submit_joint_command(names[:7] + names[8:], [1.0] * 11)
+    assert not ok
+    assert why == (f"rejected joint command on joint_commands: no effort for {names[7]} (a "
+                   "command names all 12 joints, or none for joint order); keeping the last "
+                   "valid command")
+    assert warns == [why]
+    assert svc.counters["commands_rejected"] == 1 and np.all(svc.command == 3.0)
+    ok, why = svc.submit_joint_command(["RH_KFE", "LF_HAA"], [5.0, -5.0])
+    assert not ok and "no effort for " + ", ".join(names[1:-1]) + " (" in why
+    assert np.all(svc.command == 3.0)
+    # the same problem again is throttled, another missing joint is a new problem: printed
+    svc.submit_joint_command(names[:7] + names[8:], [1.0] * 11)
+    svc.submit_joint_command(names[1:], [1.0] * 11)
+    assert len(warns) == 3 and warns[-1].startswith(f"rejected joint command on "
+                                                    f"joint_commands: no effort for {names[0]} ")
+    assert svc.counters["commands_rejected"] == 4
+    assert svc.summary()["warnings_by_kind"] == {"missing_joint": 4}
 
 
 def test_throttled_warnings():
@@ -107,6 +136,53 @@ def test_throttled_warnings():
     w.warn("a", "bad a")
     assert out == ["bad a", "bad b", "bad a (9 more like this suppressed in the last 1.5 s)"]
     assert w.counts == {"a": 11, "b": 1}
+
+
+def test_throttled_warnings_by_kind_and_detail():
+    """Two different problems of one kind (a bad wrench on two links) are both printed; the
+    same one again is suppressed; the counts stay by kind."""
+    t = [0.0]
+    out = []
+    w = ThrottledLog(out.append, period=1.0, clock=lambda: t[0])
+    assert w("bad_wrench", "bad wrench on base", "base")
+    assert not w("bad_wrench", "bad wrench on base", "base")
+    assert w("bad_wrench", "bad wrench on LF_THIGH", "LF_THIGH")
+    t[0] = 1.5
+    assert w("bad_wrench", "bad wrench on base", "base")
+    assert out == ["bad wrench on base", "bad wrench on LF_THIGH",
+                   "bad wrench on base (1 more like this suppressed in the last 1.5 s)"]
+    assert w.counts == {"bad_wrench": 4}
+
+
+def test_a_flood_of_distinct_problems_is_throttled_after_max_details():
+    """1000 distinct unknown names within one period: MAX_DETAILS lines, then one saying
+    that the further ones are throttled together, then nothing until the period is over."""
+    out = []
+    w = ThrottledLog(out.append, period=10.0, clock=lambda: 0.0)
+    for i in range(1000):
+        w("unknown_joint", f"unknown joint j{i}", f"j{i}")
+    m = ThrottledLog.MAX_DETAILS
+    assert len(out) == m + 1
+    assert out[m] == (f"unknown joint j{m} (more than {m} distinct problems of this kind: "
+                      "the further ones are throttled together)")
+    assert w.counts == {"unknown_joint": 1000}
+    w("unknown_joint", "unknown joint j0", "j0")           # one of the first: still apart
+    assert len(out) == m + 1
+
+
+def test_a_second_different_bad_wrench_is_printed(sim):
+    """The issue's case: two different bad wrenches within the throttle period are both
+    printed (before, the second was counted but never shown)."""
+    svc, warns = make(sim, warn_throttle_period=60.0)
+    svc.submit_wrench("base", (1e9, 0, 0), (0, 0, 0))
+    svc.submit_wrench("base", (1e9, 0, 0), (0, 0, 0))
+    svc.submit_wrench("LF_THIGH", (1e9, 0, 0), (0, 0, 0))
+    svc.submit_wrench("base", (1e9, 0, 0), (0, 0, 0), persistent=True)
+    assert [w.split(":")[0] for w in warns] == [
+        "rejected wrench on ~/wrench for 'base'",
+        "rejected wrench on ~/wrench for 'LF_THIGH'",
+        "rejected wrench on ~/wrench/persistent for 'base'"]
+    assert svc.counters["wrenches_rejected"] == 4
 
 
 def test_lockstep_bookkeeping(sim):

@@ -83,7 +83,8 @@ SIM_NODE_PARAMETERS = (
       choices=EXECUTORS),
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
     P("warn_throttle_period", float, 2.0,
-      "Minimum seconds between two warnings about the same kind of bad input.", minimum=0.0,
+      "Minimum seconds between two warnings about the same problem (a kind of bad input "
+      "and what it names: the joint, the link, the topic).", minimum=0.0,
       maximum=3600.0),
     P("world_frame", str, "world", "Frame id of the world (the parent of the base pose)."),
     P("base_frame", str, "base", "Frame id of the base (the child frame of the odometry)."),

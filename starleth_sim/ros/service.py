@@ -92,9 +92,10 @@ class SimService:
         return self.sim.control_period
 
     # -- commands --------------------------------------------------------------------------
-    def _reject(self, key, message):
+    def _reject(self, kind, message, detail=""):
+        """Count and log (throttled per kind and detail) a rejected command."""
         self.counters["commands_rejected"] += 1
-        self.warnings.warn(key, message)
+        self.warnings.warn(kind, message, detail)
         return False, message
 
     def _accept(self, tau):
@@ -123,13 +124,14 @@ class SimService:
             return self._reject("effort_length",
                                 f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: "
                                 f"{a.shape[0]} values, expected {self.n} (joint order "
-                                f"{', '.join(self.joint_names)}); keeping the last valid command")
+                                f"{', '.join(self.joint_names)}); keeping the last valid command",
+                                str(a.shape[0]))
         bad = ~np.isfinite(a)
         if bad.any():
-            names = [self.joint_names[i] for i in np.flatnonzero(bad)]
+            which = ", ".join(self.joint_names[i] for i in np.flatnonzero(bad))
             return self._reject("effort_nonfinite",
                                 f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: non-finite "
-                                f"torque for {', '.join(names)}; keeping the last valid command")
+                                f"torque for {which}; keeping the last valid command", which)
         if self.lockstep and self.answered:
             self.counters["stale_commands"] += 1
             self.warnings.warn("stale", "dropped an extra effort command: the current state "
@@ -138,9 +140,13 @@ class SimService:
         return self._accept(a)
 
     def submit_joint_command(self, names, efforts, stamp_ns=None):
-        """A JointState command: efforts by joint name. All names must be known and unique;
-        joints not named keep their last command. Empty names with n efforts = joint order.
-        In lockstep the stamp must equal the stamp of the state being answered."""
+        """A JointState command: efforts by joint name. The names must be the simulator's
+        joints, each once and all of them, in any order; an empty name list means joint
+        order (then n efforts). A command naming some joints but not all is rejected (one
+        line naming the missing ones): holding the others at their last command would
+        keep a torque the sender may no longer know it is applying. In lockstep the stamp
+        must equal the stamp of the state being answered. The names are checked first
+        (:meth:`_joint_order`), then the fields."""
         self.counters["commands_received"] += 1
         names = list(names)
         a, err = self._check_values(efforts, "joint command")
@@ -149,41 +155,54 @@ class SimService:
         if names == self._joint_name_list and a.shape[0] == self.n and np.isfinite(a).all() \
                 and (not self.lockstep or self._stamp_ok(stamp_ns)):
             return self._accept(a)   # fast path: every joint in joint order, valid
-        if not names:
-            if a.shape[0] != self.n:
-                return self._reject("joint_length",
-                                    f"rejected joint command on {TOPIC_JOINT_COMMANDS}: no joint "
-                                    f"names and {a.shape[0]} efforts (give names, or {self.n} "
-                                    "efforts in joint order)")
-            names = list(self.joint_names)
-        if a.shape[0] != len(names):
+        order, problem = self._joint_order(names)
+        if order is None:
+            return self._reject(*problem)
+        if a.shape[0] != self.n:
             return self._reject("joint_length",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: {len(names)} "
-                                f"names but {a.shape[0]} efforts (this simulator takes effort "
-                                "commands only)")
-        unknown = [n for n in names if n not in self.joint_index]
-        if unknown:
-            return self._reject("unknown_joint",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: unknown joint "
-                                f"name(s) {quoted(unknown)} (joints: "
-                                f"{', '.join(self.joint_names)})")
-        if len(set(names)) != len(names):
-            dup = sorted({n for n in names if names.count(n) > 1})
-            return self._reject("duplicate_joint",
-                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: duplicate "
-                                f"joint name(s) {', '.join(dup)}")
+                                f"rejected joint command on {TOPIC_JOINT_COMMANDS}: "
+                                + (f"{len(names)} names but {a.shape[0]} efforts (this "
+                                   "simulator takes effort commands only)" if names else
+                                   f"no joint names and {a.shape[0]} efforts (give the names, "
+                                   f"or {self.n} efforts in joint order)"),
+                                f"{len(names)}/{a.shape[0]}")
         bad = ~np.isfinite(a)
         if bad.any():
+            which = ", ".join(self.joint_names[order[i]] for i in np.flatnonzero(bad))
             return self._reject("joint_nonfinite",
                                 f"rejected joint command on {TOPIC_JOINT_COMMANDS}: non-finite "
-                                f"effort for {', '.join(names[i] for i in np.flatnonzero(bad))}; "
-                                "keeping the last valid command")
+                                f"effort for {which}; keeping the last valid command", which)
         if self.lockstep and not self._stamp_ok(stamp_ns):
             return self._stale(stamp_ns)
-        tau = self.command.copy()
-        for n, v in zip(names, a):
-            tau[self.joint_index[n]] = v
+        tau = np.empty(self.n)
+        tau[order] = a
         return self._accept(tau)
+
+    def _joint_order(self, names):
+        """(index in joint order of each name, None), or (None, (kind, message, detail)) when
+        the names are not every joint once: unknown, repeated or missing names. No names:
+        joint order."""
+        if not names:
+            return np.arange(self.n), None
+        topic = TOPIC_JOINT_COMMANDS
+        unknown = [n for n in names if n not in self.joint_index]
+        if unknown:
+            which = quoted(unknown)
+            return None, ("unknown_joint", f"rejected joint command on {topic}: unknown joint "
+                          f"name(s) {which} (joints: {', '.join(self.joint_names)}); keeping "
+                          "the last valid command", which)
+        order = [self.joint_index[n] for n in names]
+        if len(set(order)) != len(order):
+            dup = ", ".join(sorted({n for n in names if names.count(n) > 1}))
+            return None, ("duplicate_joint", f"rejected joint command on {topic}: duplicate "
+                          f"joint name(s) {dup}; keeping the last valid command", dup)
+        if len(order) != self.n:
+            given = set(order)
+            missing = ", ".join(n for i, n in enumerate(self.joint_names) if i not in given)
+            return None, ("missing_joint", f"rejected joint command on {topic}: no effort "
+                          f"for {missing} (a command names all {self.n} joints, or none for "
+                          "joint order); keeping the last valid command", missing)
+        return np.array(order), None
 
     def submit_ordered_joint_command(self, efforts, stamp_ns):
         """submit_joint_command for a command already known to name every joint in joint
@@ -219,11 +238,12 @@ class SimService:
         """A push on `link` (world axes, at the link origin): one control period, or until
         replaced/cleared (zero wrench) when persistent."""
         topic = TOPIC_WRENCH_PERSISTENT if persistent else TOPIC_WRENCH
+        detail = f"{topic} {quoted([link])}"     # each topic and link is warned of apart
         if link not in self.links:
             self.counters["wrenches_rejected"] += 1
             msg = (f"rejected wrench on {topic}: unknown link {quoted([link])} in header.frame_id "
                    f"(links: {', '.join(sorted(self.links))})")
-            self.warnings.warn("unknown_link", msg)
+            self.warnings.warn("unknown_link", msg, detail)
             return False, msg
         f = np.array(force, dtype=float).reshape(-1)
         m = np.array(torque, dtype=float).reshape(-1)
@@ -232,7 +252,7 @@ class SimService:
             self.counters["wrenches_rejected"] += 1
             msg = (f"rejected wrench on {topic} for {quoted([link])}: force and torque must be "
                    "finite")
-            self.warnings.warn("bad_wrench", msg)
+            self.warnings.warn("bad_wrench", msg, detail)
             return False, msg
         s = self.settings
         f_norm, m_norm = float(np.linalg.norm(f)), float(np.linalg.norm(m))
@@ -241,7 +261,7 @@ class SimService:
             msg = (f"rejected wrench on {topic} for {quoted([link])}: |force| {f_norm:.4g} N, "
                    f"|torque| {m_norm:.4g} N m; the limits are max_wrench_force "
                    f"{s.max_wrench_force:g} N and max_wrench_torque {s.max_wrench_torque:g} N m")
-            self.warnings.warn("wrench_too_large", msg)
+            self.warnings.warn("wrench_too_large", msg, detail)
             return False, msg
         try:
             if persistent:
@@ -250,7 +270,7 @@ class SimService:
                 self.sim.apply_wrench(link, f, m)
         except ValueError as e:
             self.counters["wrenches_rejected"] += 1
-            self.warnings.warn("bad_wrench", f"rejected wrench on {topic}: {e}")
+            self.warnings.warn("bad_wrench", f"rejected wrench on {topic}: {e}", detail)
             return False, str(e)
         self.counters["wrenches_accepted"] += 1
         return True, "ok"

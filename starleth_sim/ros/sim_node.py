@@ -141,8 +141,9 @@ class SimNode:
                     try:
                         msg = deserialize_message(data, typ)
                     except Exception as e:   # malformed CDR: reject, never die
+                        topic = self.subs[key][1]
                         self.service.warnings.warn("bad_cdr", f"dropped an undecodable "
-                                                   f"message on {self.subs[key][1]}: {e}")
+                                                   f"message on {topic}: {e}", topic)
                         return
                     handler(msg)
             sobj = node.create_subscription(typ, topic, cb, COMMAND_QOS,
