@@ -118,6 +118,9 @@ def read_mcap(path):
     return out, conns
 
 
+FEET_ORDER = ("LF", "RF", "LH", "RH")      # the public joint order
+
+
 def total_mass():
     from starleth_sim.physics.description import starleth_description
     return starleth_description().total_mass
@@ -275,10 +278,13 @@ class TestRealtime:
                                ([float("nan")] + [0.0] * 11, "non-finite torque for LF_HAA"),
                                ([float("inf")] * 12, None)):
                 send_until_logged(eff, Float64MultiArray(data=data), text)
+            joints = [f"{leg}_{j}" for leg in FEET_ORDER for j in ("HAA", "HFE", "KFE")]
             for names, efforts, text in (
                     (["LF_HAA", "FOO"], [1.0, 2.0], "unknown joint name(s) 'FOO'"),
-                    (["LF_HAA"], [1.0, 2.0], "1 names but 2 efforts"),
-                    (["LF_HFE"], [float("nan")], "non-finite effort for LF_HFE"),
+                    (joints[:-1], [1.0] * 11, "no effort for RH_KFE (a command names all "
+                                              "12 joints"),
+                    (joints, [1.0] * 11, "12 names but 11 efforts"),
+                    (joints, [0.0, float("nan")] + [0.0] * 10, "non-finite effort for LF_HFE"),
                     (["LF_HFE", "LF_HFE"], [1.0, 1.0], "duplicate joint name(s) LF_HFE")):
                 send_until_logged(cmd, JointState(name=names, effort=efforts), text)
             for _ in range(30):                                     # a flood: warnings throttled
@@ -309,8 +315,9 @@ class TestRealtime:
                                   and diag.get("wrenches_rejected") >= 2, 5), diag.values
             log = rt.sim.log()
             for text in ("11 values, expected 12", "non-finite torque for LF_HAA",
-                         "unknown joint name(s) 'FOO'", "1 names but 2 efforts",
-                         "non-finite effort for LF_HFE", "duplicate joint name(s) LF_HFE",
+                         "unknown joint name(s) 'FOO'", "12 names but 11 efforts",
+                         "no effort for RH_KFE", "non-finite effort for LF_HFE",
+                         "duplicate joint name(s) LF_HFE",
                          "unknown link 'nope'", "force and torque must be finite"):
                 assert text in log, text
             assert log.count("13 values, expected 12") <= 2        # throttled
