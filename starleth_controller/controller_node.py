@@ -95,8 +95,10 @@ from std_srvs.srv import SetBool
 from starleth_interface import state_bundle
 from starleth_interface.msg_cdr import (ODOM_FIELDS, WRENCH_FIELDS, JointStateCdr,
                                        JointStateReader, StampedReader)
-from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, declare_parameters,
-                                            init_ros, make_executor, set_cpu_scheduling,
+from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, UnknownParameterError,
+                                            capture_python_warnings, check_parameter_names,
+                                            declare_parameters, init_ros, make_executor,
+                                            route_python_logging, set_cpu_scheduling,
                                             shutdown_ros)
 from .controller import StarlethController
 from .inputs import Command, ControllerParams
@@ -123,7 +125,14 @@ class ControllerNode(Node):
                                               (parameter_overrides or {}).items()], **kwargs)
         self.log = self.get_logger()
         p = declare_parameters(self, PARAMETERS)
+        try:
+            check_parameter_names(self, PARAMETERS)   # a mistyped name: an error, not ignored
+        except UnknownParameterError:
+            super().destroy_node()            # (nothing of this class is set up yet)
+            raise
         check_parameters(p)
+        self._unroute_logging = route_python_logging(self.log, ("starleth_controller",
+                                                                "starleth_interface"))
         self._warn = ThrottledLog(self.log.warning, float(p["warn_throttle_period"]))
         self._mode = p["mode"]
         self._max_v = float(p["max_linear_speed"])
@@ -215,6 +224,7 @@ class ControllerNode(Node):
                          if p["effort_array_topic"] else ""))
 
     def destroy_node(self):
+        self._unroute_logging()
         if self._side is not None:
             self._side.destroy()
         return super().destroy_node()
@@ -532,9 +542,13 @@ def main(args=None):
     try:
         try:
             node = ControllerNode()
+        except UnknownParameterError as e:
+            print(f"controller_node: {e}", file=sys.stderr)
+            return 2
         except ValueError as e:
             print(f"controller_node: configuration error: {e}", file=sys.stderr)
             return 2
+        capture_python_warnings(node.log)   # numpy's, numba's warnings: the node's log
         executor, kind = make_executor(node.executor_kind, node.context)
         executor.add_node(node)
         node.log.info(f"executor: {kind}; ready")

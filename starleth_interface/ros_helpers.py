@@ -7,6 +7,8 @@ ROS-free service logic and the tools can use the schemas and ThrottledLog.
 """
 from __future__ import annotations
 
+import difflib
+import logging
 import math
 import os
 import signal
@@ -127,6 +129,46 @@ def declare_parameters(node, specs) -> dict:
     return values
 
 
+#: parameters of ROS itself, which a node accepts besides its schema's: rclpy declares the
+#: first two on every node, and a publisher or subscription with QoS overriding declares its
+#: qos_overrides.<topic>.<entity>.<policy> parameters
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+ROS_PARAMETER_PREFIXES = ("qos_overrides.",)
+
+
+class UnknownParameterError(ValueError):
+    """Parameters given to a node (``-p``, ``--params-file``, ``parameter_overrides``) that
+    it does not have (rclpy would ignore them). Its text is one line naming each with the
+    closest known name, e.g. ``unknown parameter 'recrod' (did you mean 'record'?)``."""
+
+
+def check_parameter_names(node, specs) -> None:
+    """Raise UnknownParameterError if a parameter override of the rclpy `node` names neither
+    a parameter of `specs` nor one of ROS's own (ROS_PARAMETERS, ROS_PARAMETER_PREFIXES, or
+    any the node has declared). Call it after declaring the schema's parameters."""
+    known = [p.name for p in specs] + list(ROS_PARAMETERS)
+    unknown = [name for name in parameter_override_names(node)
+               if name not in known and not name.startswith(ROS_PARAMETER_PREFIXES)
+               and not node.has_parameter(name)]
+    if not unknown:
+        return
+    parts = []
+    for name in sorted(unknown):
+        close = difflib.get_close_matches(name, known, n=1)
+        parts.append(repr(name) + (f" (did you mean {close[0]!r}?)" if close else ""))
+    raise UnknownParameterError(f"unknown parameter{'s' if len(parts) > 1 else ''} "
+                                + ", ".join(parts))
+
+
+def parameter_override_names(node) -> list:
+    """The names of the parameter overrides rcl resolved for the rclpy `node` (its ``-p``
+    rules, the keys of ``--params-file`` files that match its name and namespace, wildcards
+    included) and those given to its constructor. rclpy has no public accessor for them
+    (it keeps them to initialise declared parameters and ignores the rest): this reads its
+    attribute, and a test (test_strict_inputs) fails if rclpy stops having it."""
+    return list(getattr(node, "_parameter_overrides", None) or ())
+
+
 def _yaml_scalar(value) -> str:
     return yaml.safe_dump(value, default_flow_style=True, width=10 ** 6).strip() \
         .removesuffix("...").strip()
@@ -245,6 +287,69 @@ class ThrottledLog:
         return True
 
     warn = __call__
+
+
+class RosLogHandler(logging.Handler):
+    """Forwards Python ``logging`` records to an rclpy logger (the node's), the level mapped
+    (the numbers are the same: DEBUG 10 ... ERROR 40, CRITICAL 50 = FATAL): the physics
+    core, which imports no ROS, logs through ``logging``, and in a node its messages come
+    out in the node's format, ``[WARN] [...] [sim_node]: ...``, and on /rosout."""
+
+    def __init__(self, ros_logger):
+        super().__init__()
+        self.ros_logger = ros_logger
+
+    def emit(self, record):
+        try:
+            msg = self.format(record)
+            log = self.ros_logger
+            # one call site per severity: rclpy refuses a call site that changes severity
+            if record.levelno >= logging.CRITICAL:
+                log.fatal(msg)
+            elif record.levelno >= logging.ERROR:
+                log.error(msg)
+            elif record.levelno >= logging.WARNING:
+                log.warning(msg)
+            elif record.levelno >= logging.INFO:
+                log.info(msg)
+            else:
+                log.debug(msg)
+        except Exception:   # a context already shut down: never let logging raise
+            self.handleError(record)
+
+
+def route_python_logging(ros_logger, names=("starleth_sim", "starleth_controller",
+                                            "starleth_interface")):
+    """Forward the Python loggers `names` (and their children) to the rclpy `ros_logger`,
+    their level set to its effective one; a logger another node of this process forwards
+    already is left to it. Returns a function that undoes what this call did (call it when
+    the node is destroyed)."""
+    level = int(ros_logger.get_effective_level())       # LoggingSeverity, an IntEnum
+    undo = []
+    for name in names:
+        py_logger = logging.getLogger(name)
+        if any(isinstance(h, RosLogHandler) for h in py_logger.handlers):
+            continue
+        handler = RosLogHandler(ros_logger)
+        old_level = py_logger.level
+        py_logger.addHandler(handler)
+        py_logger.setLevel(level)
+        undo.append((py_logger, handler, old_level))
+
+    def restore():
+        for py_logger, handler, old_level in undo:
+            py_logger.removeHandler(handler)
+            py_logger.setLevel(old_level)
+        undo.clear()
+    return restore
+
+
+def capture_python_warnings(ros_logger):
+    """Python ``warnings`` (numpy's, numba's...) of this process through the rclpy
+    `ros_logger` instead of bare lines on stderr (``logging.captureWarnings``: process-wide,
+    for a node's console script)."""
+    logging.captureWarnings(True)
+    return route_python_logging(ros_logger, ("py.warnings",))
 
 
 # =========================================================================================

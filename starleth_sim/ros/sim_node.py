@@ -31,8 +31,11 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
 from starleth_interface.compile_notice import CompileNotice
-from starleth_interface.ros_helpers import (StopSignals, declare_parameters, init_ros,
-                                            make_executor, set_cpu_scheduling, shutdown_ros)
+from starleth_interface.ros_helpers import (StopSignals, UnknownParameterError,
+                                            capture_python_warnings, check_parameter_names,
+                                            declare_parameters, init_ros, make_executor,
+                                            route_python_logging, set_cpu_scheduling,
+                                            shutdown_ros)
 from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS,
                                        TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT)
 from ..physics.config import ConfigError
@@ -62,7 +65,17 @@ class SimNode:
         node = self.node
         self.log = node.get_logger()
         specs = [replace(p, default=defaults[p.name]) for p in SIM_NODE_PARAMETERS]
-        self.settings = Settings(**declare_parameters(node, specs)).validate()
+        values = declare_parameters(node, specs)
+        try:
+            check_parameter_names(node, specs)      # a mistyped name: an error, not ignored
+        except UnknownParameterError:
+            node.destroy_node()
+            raise
+        self.settings = Settings(**values).validate()
+        # the physics core's Python logging (e.g. "prox iteration did not converge") in
+        # this node's log
+        self._unroute_logging = route_python_logging(self.log, ("starleth_sim",
+                                                                "starleth_interface"))
         s = self.settings
         overrides = s.physics_override_dict()
         self.sim = sim = Simulator.from_preset(s.physics, **overrides)
@@ -295,6 +308,7 @@ class SimNode:
 
     def destroy(self):
         self.close()
+        self._unroute_logging()
         self.node.destroy_node()
 
 
@@ -353,9 +367,13 @@ def main(args=None, controller_params=None):
     try:
         try:
             sim_node = holder["node"] = SimNode()
+        except UnknownParameterError as e:
+            print(f"sim_node: {e}", file=sys.stderr)
+            return 2
         except (ConfigError, ValueError, OSError) as e:
             print(f"sim_node: configuration error: {e}", file=sys.stderr)
             return 2
+        capture_python_warnings(sim_node.log)   # numpy's, numba's warnings: the node's log
         if signals.requested:
             sim_node.request_stop()
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)
@@ -368,7 +386,9 @@ def main(args=None, controller_params=None):
                     context=sim_node.context, parameter_overrides=controller_params,
                     namespace=sim_node.node.get_namespace(), use_global_arguments=False)
             except ValueError as e:
-                print(f"controller_node: configuration error: {e}", file=sys.stderr)
+                print(f"controller_node: "
+                      f"{'' if isinstance(e, UnknownParameterError) else 'configuration error: '}"
+                      f"{e}", file=sys.stderr)
                 return 2
             executor.add_node(ctl)
             kind += ", with controller_node in this process"
