@@ -150,14 +150,18 @@ def check_parameter_names(node, specs) -> None:
     unknown = [name for name in parameter_override_names(node)
                if name not in known and not name.startswith(ROS_PARAMETER_PREFIXES)
                and not node.has_parameter(name)]
-    if not unknown:
-        return
+    if unknown:
+        raise UnknownParameterError(unknown_parameters_text(unknown, known))
+
+
+def unknown_parameters_text(unknown, known) -> str:
+    """The line "unknown parameter 'recrod' (did you mean 'record'?)" for the names `unknown`,
+    each with the closest of `known` (difflib) if one is close."""
     parts = []
     for name in sorted(unknown):
         close = difflib.get_close_matches(name, known, n=1)
         parts.append(repr(name) + (f" (did you mean {close[0]!r}?)" if close else ""))
-    raise UnknownParameterError(f"unknown parameter{'s' if len(parts) > 1 else ''} "
-                                + ", ".join(parts))
+    return f"unknown parameter{'s' if len(parts) > 1 else ''} " + ", ".join(parts)
 
 
 def parameter_override_names(node) -> list:

@@ -304,6 +304,10 @@ def test_sim_node_parameter_file_values_are_checked_naming_the_file(tmp_path):
     params.write_text("/**:\n  ros__parameters:\n    record_max_size: 1\n")
     with pytest.raises(ConfigError, match=r"mine\.yaml: /\*\*: parameter record_max_size"):
         load_default_parameters(str(params))
+    params.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    recrod: x.mcap\n")
+    with pytest.raises(ConfigError, match=r"^mine\.yaml: /\*\*: unknown parameter 'recrod' "
+                       r"\(did you mean 'record'\?\)$"):
+        load_default_parameters(str(params))
     params.write_bytes(BINARY)
     with pytest.raises(ConfigError, match=r"mine\.yaml: not a YAML text file"):
         load_default_parameters(str(params))

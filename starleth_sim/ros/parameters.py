@@ -14,8 +14,8 @@ import sys
 from dataclasses import make_dataclass
 
 from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
-                                            ParameterSpec, parameter_defaults,
-                                            render_parameters_yaml)
+                                            ROS_PARAMETERS, ParameterSpec, parameter_defaults,
+                                            render_parameters_yaml, unknown_parameters_text)
 from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import package_share_dir
 
@@ -161,8 +161,8 @@ def load_default_parameters(path: str | None = None) -> dict:
     """The ros__parameters of msg_configs/sim_node.yaml (node key 'sim_node', '/sim_node' or
     '/**'), falling back to the schema's defaults for anything missing (and for all of them
     when there is no such file). ConfigError naming the file if it is not YAML text, repeats
-    a key or has a value out of its parameter's range (the rules between parameters are
-    ``Settings.validate``'s)."""
+    a key, names a parameter sim_node does not have or has a value out of its parameter's
+    range (the rules between parameters are ``Settings.validate``'s)."""
     defaults = parameter_defaults(SIM_NODE_PARAMETERS)
     try:
         path = path or default_settings_file()
@@ -176,6 +176,10 @@ def load_default_parameters(path: str | None = None) -> dict:
         node = data.get(key) if isinstance(data, dict) else None
         params = node.get("ros__parameters") if isinstance(node, dict) else None
         if isinstance(params, dict):
+            unknown = [k for k in params if k not in specs and k not in ROS_PARAMETERS]
+            if unknown:
+                raise ConfigError(f"{os.path.basename(path)}: {key}: "
+                                  f"{unknown_parameters_text(unknown, list(specs))}")
             for k, v in params.items():
                 if k in specs:
                     v = specs[k].coerce(v)
