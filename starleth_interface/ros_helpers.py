@@ -1,6 +1,8 @@
 """Helpers both nodes use: one parameter schema type (name, type, default, description,
 bounds) that feeds ``declare_parameter`` descriptors, validation and the YAML parameter
-files; the executor choice; throttled logging of bad input.
+files, and the check that every parameter given to a node is one it has; the executor
+choice; throttled logging of bad input (per problem: kind and detail); Python ``logging``
+forwarded to the node's rclpy logger.
 
 Importing this module does not import rclpy (only the functions that need it do), so the
 ROS-free service logic and the tools can use the schemas and ThrottledLog.
