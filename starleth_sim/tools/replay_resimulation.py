@@ -76,7 +76,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
         else:   # another set of coordinates: through the minimal ones
             sim.reset(init["q_minimal"], init["u_minimal"], minimal=True)
             q0, u0 = sim.q, sim.u
-        # the longest throttle period sim_node's parameter allows: one warning per kind
+        # the longest throttle period sim_node's parameter allows: one warning per problem
         svc = SimService(sim, Settings(mode="lockstep", warn_throttle_period=3600.0), q0, u0,
                          warn=warnings.append)
     except (ValueError, TypeError, KeyError, IndexError) as e:
