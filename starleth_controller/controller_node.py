@@ -23,10 +23,11 @@ Published:
 
 Service ``~/trot`` (std_srvs/SetBool): true = trot, false = stand (sets the ``mode`` parameter).
 
-Time: with ``use_sim_time:=true`` the node's clock follows /clock, and ``cmd_vel_timeout``
-counts sim time; the controller's own time is always the state's stamp. The 0.1 s after
-which a repeated state is answered again is wall time (it is about messages in flight, and
-a lockstep simulator's clock stands still while it waits for the answer).
+Time: with ``use_sim_time:=true`` the node's clock follows /clock (the launch file remaps it
+to the robot's ``<namespace>/clock``, beside its sim_node: ``-r /clock:=clock``), and
+``cmd_vel_timeout`` counts sim time; the controller's own time is always the state's stamp.
+The 0.1 s after which a repeated state is answered again is wall time (it is about messages
+in flight, and a lockstep simulator's clock stands still while it waits for the answer).
 
 The base state is taken from ``/starleth/base_state`` as *ground truth* (the simulator's
 Odometry: pose in the world frame, twist in the child (base) frame as REP 105 says; set

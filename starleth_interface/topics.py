@@ -3,8 +3,9 @@ can use them without importing rclpy).
 
 Names are relative (REP 135 style): a node started with ``--ros-args -r __ns:=/robot1``
 publishes ``/robot1/joint_states`` and so on, so that several robots share one ROS domain.
-``/clock``, ``/tf`` and ``/tf_static`` are global, as ROS defines them (a second simulator in
-the same domain sets ``publish_clock:=false``). ``~/...`` names are private to the node
+``/clock``, ``/tf`` and ``/tf_static`` are global, as ROS defines them; each robot's clock
+goes into its namespace by a remap (``-r /clock:=clock``, as the launch file does), since
+robots in one domain do not share one sim time. ``~/...`` names are private to the node
 (``/robot1/sim_node/wrench``).
 """
 

@@ -20,13 +20,14 @@ keep_discovery_local()     # the test nodes (this process) and every child: this
 
 
 class NodeProcess:
-    """`python -m module [pre_args] --ros-args -p k:=v ...` as a child process on domain_id
-    (optionally renamed to `name`, under `namespace`; run by `wrapper`, a command prefix,
-    with `preexec_fn` called in the child before it starts); its output in log_path."""
+    """`python -m module [pre_args] --ros-args [ros_args] -p k:=v ...` as a child process on
+    domain_id (optionally renamed to `name`, under `namespace`; run by `wrapper`, a command
+    prefix, with `preexec_fn` called in the child before it starts); its output in
+    log_path."""
 
     def __init__(self, module, log_path, domain_id, name=None, namespace=None, pre_args=(),
-                 preexec_fn=None, wrapper=(), **params):
-        cmd = [*wrapper, sys.executable, "-m", module, *pre_args, "--ros-args"]
+                 preexec_fn=None, wrapper=(), ros_args=(), **params):
+        cmd = [*wrapper, sys.executable, "-m", module, *pre_args, "--ros-args", *ros_args]
         if name:
             cmd += ["-r", f"__node:={name}"]
         if namespace:

@@ -333,7 +333,8 @@ def test_sim_node_keeps_publishing_when_the_recording_hits_a_file_size_limit(ros
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
-                      preexec_fn=limit_file_size, mode="realtime", record=str(path))
+                      preexec_fn=limit_file_size, mode="realtime",
+                      realtime_start="immediately", record=str(path))   # runs uncommanded
     watch = _Watch(ros)
     try:
         log = _run_until_the_recording_fails(ros, sim, watch)
@@ -353,7 +354,7 @@ def test_sim_node_keeps_publishing_when_its_writer_is_killed(ros, tmp_path):
     (file, signal), goes on publishing; the bag is complete up to the last whole chunk."""
     path = tmp_path / "killed.mcap"
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
-                      mode="realtime", record=str(path))
+                      mode="realtime", realtime_start="immediately", record=str(path))
     watch = _Watch(ros)
     try:
         log = _run_until_the_recording_fails(ros, sim, watch, kill_writer=True)
@@ -395,7 +396,7 @@ def test_sim_node_keeps_publishing_when_the_disk_is_full(ros, tmp_path):
               f'cp {path} {copy}; exit $code')
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
                       wrapper=("unshare", "-rm", "sh", "-c", script, "sh"),
-                      mode="realtime", record=str(path))
+                      mode="realtime", realtime_start="immediately", record=str(path))
     watch = _Watch(ros)
     try:
         log = _run_until_the_recording_fails(ros, sim, watch)

@@ -86,7 +86,8 @@ def test_sigint_ends_the_node_within_two_seconds_whatever_is_queued(ros, tmp_pat
     log says that the writer finishes on its own; resumed, the writer finalises a complete
     file."""
     path = tmp_path / "slow.mcap"
-    sim = _sim(tmp_path, "sim", mode="realtime", record=str(path))
+    sim = _sim(tmp_path, "sim", mode="realtime", realtime_start="immediately",   # no controller
+               record=str(path))
     count = [0]
     sub = ros.node.create_subscription(JointState, "/joint_states",
                                        lambda m: count.__setitem__(0, count[0] + 1),

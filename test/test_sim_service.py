@@ -185,6 +185,20 @@ def test_a_second_different_bad_wrench_is_printed(sim):
     assert svc.counters["wrenches_rejected"] == 4
 
 
+def test_realtime_starts_with_the_first_valid_command(sim):
+    """realtime_start first_command (the default): not started until a command is
+    accepted (a rejected one does not start it); immediately: started from the outset."""
+    svc, _ = make(sim, mode="realtime")
+    assert svc.settings.realtime_start == "first_command" and not svc.started
+    assert not svc.submit_effort_array([float("nan")] * 12)[0] and not svc.started
+    assert not svc.submit_joint_command(["no_such_joint"], [1.0])[0] and not svc.started
+    assert svc.submit_effort_array([0.5] * 12)[0] and svc.started
+    svc, _ = make(sim, mode="realtime", realtime_start="immediately")
+    assert svc.started
+    with pytest.raises(ConfigError, match="realtime_start"):
+        Settings(realtime_start="later").validate()
+
+
 def test_lockstep_bookkeeping(sim):
     svc, warns = make(sim, mode="lockstep", real_time_factor=0.0, timeout_policy="hold")
     names = list(sim.joint_names)

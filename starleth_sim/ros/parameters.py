@@ -74,6 +74,12 @@ SIM_NODE_PARAMETERS = (
     P("start_paused", bool, False,
       "Start paused (call ~/pause with data=false, or ~/step): lets a controller connect "
       "first."),
+    P("realtime_start", str, "first_command",
+      "Realtime mode: first_command: the clock starts with the first valid command (until "
+      "then the initial state is published, again for each new subscriber and every 0.5 s, "
+      "/clock stays at 0 and the robot does not move, so it does not fall before a "
+      "controller answers); immediately: the clock runs from the start, commands or not.",
+      choices=("first_command", "immediately")),
     P("realtime_priority", int, 0,
       "Realtime mode: > 0 runs the stepping thread with SCHED_FIFO at this priority (needs "
       "CAP_SYS_NICE or an rtprio limit; falls back to normal priority with a warning). Makes "
@@ -89,8 +95,10 @@ SIM_NODE_PARAMETERS = (
     P("world_frame", str, "world", "Frame id of the world (the parent of the base pose)."),
     P("base_frame", str, "base", "Frame id of the base (the child frame of the odometry)."),
     P("publish_clock", bool, True,
-      "Publish /clock (global). With several simulators in one ROS domain (one per "
-      "namespace), let only one publish it."),
+      "Publish the sim time on /clock. Several robots in one ROS domain: remap it into each "
+      "robot's namespace (--ros-args -r /clock:=clock on both nodes, as the launch file "
+      "does), so that each robot's nodes follow its own sim time; without that remap, let "
+      "only one simulator publish /clock."),
     P("tf_rate", float, 50.0,
       "/tf (world -> base, and parent -> child link of every movable joint) and /tf_static "
       "(the fixed joints), recorded, and published where tf2_msgs is installed; Hz, 0 = off. "

@@ -66,7 +66,9 @@ class SimService:
         self.command = np.zeros(self.n)
         self.k = 0
         self.paused = self.settings.start_paused
-        self.started = not self.lockstep     # lockstep: set by the first answer
+        # set by the first valid command (lockstep: the first answer; realtime: the clock
+        # starts then, unless realtime_start is immediately)
+        self.started = not self.lockstep and self.settings.realtime_start == "immediately"
         self.answered = False                # lockstep: the current state has its command
         self.last_step_timed_out = False
         self.failed = False                  # paused: the physics failed (pause_reason)
@@ -101,9 +103,9 @@ class SimService:
     def _accept(self, tau):
         self.command = tau
         self.counters["commands_accepted"] += 1
+        self.started = True
         if self.lockstep:
             self.answered = True
-            self.started = True
         return True, "ok"
 
     def _check_values(self, values, what):

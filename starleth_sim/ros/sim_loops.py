@@ -1,7 +1,9 @@
 """The loops that step sim_node: lockstep (publish the state of step k, wait for the command
 answering it, step; before the first command, re-send state 0 until a controller answers)
-and realtime (a wall-clock loop holding the latest valid command); both run until stopped
-or the ROS context is shut down. The protocol in words: doc/sim_node.md, "Lockstep"."""
+and realtime (a wall-clock loop holding the latest valid command; with realtime_start
+first_command, the default, it too re-sends state 0 and its clock starts with the first
+valid command); both run until stopped or the ROS context is shut down. The protocol in
+words: doc/sim_node.md, "Lockstep" and "Realtime mode"."""
 from __future__ import annotations
 
 import gc
@@ -101,6 +103,19 @@ class SimLoops:
         self.diagnostics.publish_paused(self.publisher.output.pubs["solver"][0])
         self._spin(executor, 0.05)
 
+    def _wait_for_first_command(self, executor, last_republish) -> float:
+        """One turn of a loop before the first command: re-send the whole state when a new
+        subscriber appears and every REPUBLISH_PERIOD s, so that a late controller sees it
+        (no timeout, no step); returns the time of the last re-send."""
+        now = time.monotonic()
+        if self._republish_for_new_subscribers():
+            last_republish = now
+        elif now - last_republish > self.REPUBLISH_PERIOD:
+            last_republish = now
+            self.publisher.republish_state()
+        self._spin(executor, 0.05)
+        return last_republish
+
     def _set_realtime_priority(self):
         """realtime_priority > 0: SCHED_FIFO for the stepping thread (needs CAP_SYS_NICE or
         an rtprio limit); on failure the loop runs at normal priority, with a warning."""
@@ -121,12 +136,25 @@ class SimLoops:
         clock = time.perf_counter
         next_tick = clock() + period
         margin = self.SPIN_MARGIN
+        waiting, last_republish = not svc.started, time.monotonic()
+        if waiting:
+            self.log.info("realtime: waiting for the first command (the clock starts with it; "
+                          "realtime_start:=immediately starts it now)")
         while self.running():
             if svc.paused:
                 self._while_paused(executor)
                 next_tick = clock() + period
                 ps.restart()
                 continue
+            if waiting:
+                if not svc.started:
+                    last_republish = self._wait_for_first_command(executor, last_republish)
+                    continue
+                waiting = False
+                self.log.info(f"realtime: first command received; the clock starts at t="
+                              f"{svc.stamp_ns * 1e-9:.4f} s")
+                next_tick = clock() + period
+                ps.restart()
             # wait in the executor (commands, services) until shortly before the tick,
             # then spin on the clock
             while True:
@@ -190,15 +218,8 @@ class SimLoops:
                     self.publisher.publish_state()
                 continue
             if not svc.started:
-                # before the first command: no timeout; re-send the whole state when a new
-                # subscriber appears and every 0.5 s, so a late controller sees it
-                now = clock()
-                if self._republish_for_new_subscribers():
-                    last_republish = now
-                elif now - last_republish > self.REPUBLISH_PERIOD:
-                    last_republish = now
-                    self.publisher.republish_state()
-                self._spin(executor, 0.05)
+                # before the first command: no timeout (state 0 re-sent for late controllers)
+                last_republish = self._wait_for_first_command(executor, last_republish)
                 continue
             # waiting for the answer to a state: a controller that is slow to answer may be
             # a new one (restarted); re-send the state when new subscribers appear (looked

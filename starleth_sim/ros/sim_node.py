@@ -36,8 +36,9 @@ from starleth_interface.ros_helpers import (StopSignals, UnknownParameterError,
                                             declare_parameters, init_ros, make_executor,
                                             route_python_logging, set_cpu_scheduling,
                                             shutdown_ros)
-from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS,
-                                       TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT)
+from starleth_interface.topics import (TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS,
+                                       TOPIC_JOINT_COMMANDS, TOPIC_WRENCH,
+                                       TOPIC_WRENCH_PERSISTENT)
 from ..physics.config import ConfigError
 from ..physics.simulator import Simulator
 from .cdr import CommandDecoder
@@ -381,10 +382,14 @@ def main(args=None, controller_params=None):
         if controller_params is not None:
             from starleth_controller.controller_node import (  # deferred: composed mode only
                 ControllerNode)
+            # the controller follows the clock sim_node publishes (/clock remapped, e.g.
+            # into the namespace, applies to both nodes, as it would in two processes)
+            clock = sim_node.node.resolve_topic_name(TOPIC_CLOCK)
             try:
                 ctl = holder["controller"] = ControllerNode(
                     context=sim_node.context, parameter_overrides=controller_params,
-                    namespace=sim_node.node.get_namespace(), use_global_arguments=False)
+                    namespace=sim_node.node.get_namespace(), use_global_arguments=False,
+                    cli_args=["--ros-args", "-r", f"{TOPIC_CLOCK}:={clock}"])
             except ValueError as e:
                 print(f"controller_node: "
                       f"{'' if isinstance(e, UnknownParameterError) else 'configuration error: '}"

@@ -1,0 +1,241 @@
+"""Sim time as users meet it (issue #35): each robot of the launch file has its own clock
+(two namespaced robots in lockstep, their controllers with use_sim_time:=true, started with
+the `--ros-args` the launch file gives them); in realtime mode the clock waits for the first
+command (the robot does not fall before a controller answers); and the README's "Write your
+own controller" example, run as written, keeps the robot standing.
+
+Nodes run as child processes on an isolated ROS_DOMAIN_ID; every wait is bounded and every
+child is stopped in a finally."""
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from launch_file import launch_nodes  # noqa: E402
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rcl_interfaces.msg import ParameterEvent  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_srvs.srv import SetBool  # noqa: E402
+
+from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
+from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DOMAIN_RANGE = (200, 20)       # first, span (conftest._free_ros_domain)
+DOMAIN_ID = 200 + os.getpid() % 20
+START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)
+BEST_EFFORT = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+def seconds(stamp):
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+@pytest.fixture(scope="module")
+def ros():
+    node = RosTestNode(DOMAIN_ID, "sim_time_test", events=True)
+    try:
+        yield node
+    finally:
+        node.close()
+
+
+class Latest:
+    """The latest message of a topic, and how many came."""
+
+    def __init__(self, ros, typ, topic, qos=10):
+        self.msg, self.n = None, 0
+        self.sub = ros.node.create_subscription(typ, topic, self._cb, qos)
+        self.ros = ros
+
+    def _cb(self, msg):
+        self.msg, self.n = msg, self.n + 1
+
+    def close(self):
+        self.ros.node.destroy_subscription(self.sub)
+
+
+def stop_all(procs):
+    return {k: p.stop() for k, p in procs.items()}
+
+
+# -----------------------------------------------------------------------------------------
+# one clock per robot
+# -----------------------------------------------------------------------------------------
+def test_each_robot_of_the_launch_file_has_its_own_clock(ros, tmp_path):
+    """Two robots started as the launch file starts them (namespace:=robot1 / robot2, its
+    defaults otherwise: lockstep, use_sim_time:=true, publish_clock:=true). robot1 is paused
+    at about 0.3 s, robot2 runs on to about 1 s: each controller's clock (the stamp of the
+    parameter event it sends when a parameter is set: rclpy stamps it with the node's clock)
+    is its own robot's sim time, not the other's."""
+    procs = {}
+    node = ros.node
+    try:
+        for ns in ("robot1", "robot2"):
+            for spec in launch_nodes(namespace=ns):
+                assert spec["namespace"] == f"/{ns}"
+                procs[f"{ns}_{spec['exec']}"] = NodeProcess(
+                    spec["module"], str(tmp_path / f"{ns}.{spec['exec']}.log"), DOMAIN_ID,
+                    ros_args=spec["ros_args"])
+        stamps = {ns: Latest(ros, JointState, f"/{ns}/joint_states") for ns in ("robot1",
+                                                                               "robot2")}
+
+        def sim_time(ns):
+            m = stamps[ns].msg
+            return seconds(m.header.stamp) if m is not None else 0.0
+        assert ros.spin_until(lambda: min(sim_time("robot1"), sim_time("robot2")) > 0.1,
+                              START_TIMEOUT, procs=procs.values()), \
+            "\n".join(p.log()[-1500:] for p in procs.values())
+        # each robot publishes its own clock; nobody publishes /clock
+        assert node.count_publishers("/robot1/clock") == 1
+        assert node.count_publishers("/robot2/clock") == 1
+        assert node.count_publishers("/clock") == 0
+        # robot1 stops early, robot2 goes on
+        assert ros.spin_until(lambda: sim_time("robot1") > 0.3, 30.0, procs=procs.values())
+        assert ros.call(SetBool, "/robot1/sim_node/pause", SetBool.Request(data=True)).success
+        ros.spin_for(0.2)
+        t1 = sim_time("robot1")
+        assert ros.spin_until(lambda: sim_time("robot2") > t1 + 0.7, 30.0, procs=procs.values())
+        assert ros.call(SetBool, "/robot2/sim_node/pause", SetBool.Request(data=True)).success
+        ros.spin_for(0.3)
+        robot = {ns: sim_time(ns) for ns in ("robot1", "robot2")}
+        assert robot["robot1"] == pytest.approx(t1, abs=1e-9)   # paused: it stayed
+        # each controller's clock now: set a parameter (to its value) and read the event
+        events = {}
+
+        def on_event(msg):
+            events.setdefault(msg.node, seconds(msg.stamp))
+        sub = node.create_subscription(ParameterEvent, "/parameter_events", on_event, 10)
+        for ns in ("robot1", "robot2"):
+            req = SetParameters.Request(
+                parameters=[Parameter("mode", value="stand").to_parameter_msg()])
+            r = ros.call(SetParameters, f"/{ns}/controller_node/set_parameters", req)
+            assert r.results[0].successful, r.results[0].reason
+        names = ("/robot1/controller_node", "/robot2/controller_node")
+        assert ros.spin_until(lambda: all(n in events for n in names), 10.0), events
+        node.destroy_subscription(sub)
+    finally:
+        codes = stop_all(procs)
+    assert all(c == 0 for c in codes.values()), codes
+    print(f"sim time: {robot}; controllers' clocks: {events}")
+    # (a lost best-effort clock message would leave a clock a step or two behind)
+    assert robot["robot2"] - robot["robot1"] > 0.6, robot
+    for ns in ("robot1", "robot2"):
+        assert events[f"/{ns}/controller_node"] == pytest.approx(robot[ns], abs=0.01), \
+            (events, robot)
+
+
+# -----------------------------------------------------------------------------------------
+# realtime: the clock starts with the first command
+# -----------------------------------------------------------------------------------------
+def test_realtime_robot_waits_for_its_controller_without_falling(ros, tmp_path):
+    """sim_node in realtime mode (its default) without a controller for 2 s: the initial
+    state is published again and again, stamped 0, the base at its standing height (with
+    realtime_start:=immediately it would be lying at 0.08 m by then); once controller_node
+    answers, the clock runs and the robot stands (it never drops below 0.35 m)."""
+    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "rt.log"), DOMAIN_ID)
+    base = Latest(ros, Odometry, "starleth/base_state")
+    clock = Latest(ros, Clock, "/clock", BEST_EFFORT)
+    heights = []
+    sub = ros.node.create_subscription(
+        Odometry, "starleth/base_state",
+        lambda m: heights.append((seconds(m.header.stamp), m.pose.pose.position.z)), 100)
+    ctl = None
+    try:
+        assert ros.spin_until(lambda: base.msg is not None, START_TIMEOUT, procs=[sim]), \
+            sim.log()[-3000:]
+        n0, z0 = base.n, base.msg.pose.pose.position.z
+        ros.spin_for(2.0)
+        waited = (base.n - n0, seconds(base.msg.header.stamp), base.msg.pose.pose.position.z,
+                  clock.msg)
+        ctl = NodeProcess("starleth_controller.controller_node", str(tmp_path / "rt_ctl.log"),
+                          DOMAIN_ID)
+        assert ros.spin_until(lambda: seconds(base.msg.header.stamp) > 1.5, START_TIMEOUT,
+                              procs=[sim, ctl])
+        t_clock = seconds(clock.msg.clock) if clock.msg is not None else None
+    finally:
+        codes = [p.stop() for p in (ctl, sim) if p is not None]
+        ros.node.destroy_subscription(sub)
+        base.close()
+        clock.close()
+    assert codes == [0, 0]
+    n_waiting, t_waiting, z_waiting, clock_waiting = waited
+    z = [h for _, h in heights]
+    print(f"realtime, no controller for 2 s: {n_waiting} states, stamp {t_waiting} s, base "
+          f"{z_waiting:.4f} m; with controller_node: /clock {t_clock:.3f} s, base "
+          f"{min(z):.4f} to {max(z):.4f} m")
+    assert n_waiting >= 2                    # state 0 re-sent every 0.5 s
+    assert t_waiting == 0.0, waited
+    assert clock_waiting is None or seconds(clock_waiting.clock) == 0.0, waited
+    assert z_waiting == z0 == pytest.approx(STARLETH_STANDING_HEIGHT, abs=1e-6)   # unmoved
+    assert t_clock is not None and t_clock > 1.0
+    assert min(z) > 0.35, min(z)             # standing, not collapsed (0.08 m)
+    log = sim.log()
+    assert "waiting for the first command" in log and "first command received" in log
+
+
+# -----------------------------------------------------------------------------------------
+# the README's controller, as written
+# -----------------------------------------------------------------------------------------
+def readme_controller():
+    """The python code block of README.md's "Write your own controller" section."""
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
+        text = f.read()
+    section = text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert len(blocks) == 1, blocks
+    return blocks[0]
+
+
+def test_readme_controller_is_at_most_20_lines():
+    assert readme_controller().count("\n") <= 20
+
+
+def test_readme_controller_keeps_the_robot_standing(ros, tmp_path):
+    """The example as the README says to run it: beside `sim_node --ros-args -p
+    mode:=lockstep`, as a script with no arguments. 3 s of sim time: the base stays at its
+    standing height (within a few mm), every state answered."""
+    script = tmp_path / "stand.py"
+    script.write_text(readme_controller())
+    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "readme_sim.log"), DOMAIN_ID,
+                      mode="lockstep")
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1")
+    log = open(tmp_path / "stand.log", "w")
+    ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL, stdout=log,
+                           stderr=subprocess.STDOUT, env=env)
+    heights = []
+    sub = ros.node.create_subscription(
+        Odometry, "starleth/base_state",
+        lambda m: heights.append((seconds(m.header.stamp), m.pose.pose.position.z)), 100)
+    try:
+        assert ros.spin_until(lambda: heights and heights[-1][0] >= 3.0, START_TIMEOUT,
+                              procs=[sim]), (sim.log()[-2000:], heights[-3:])
+        assert ctl.poll() is None, (tmp_path / "stand.log").read_text()
+        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
+    finally:
+        ros.node.destroy_subscription(sub)
+        ctl.send_signal(2)
+        try:
+            ctl.wait(10)
+        except subprocess.TimeoutExpired:
+            ctl.kill()
+            ctl.wait(10)
+        log.close()
+        code = sim.stop()
+    assert code == 0
+    z = [h for t, h in heights if t > 0]
+    sag = STARLETH_STANDING_HEIGHT - min(z)
+    print(f"README controller: {len(z)} states, base height {min(z):.4f} to {max(z):.4f} m")
+    assert 0.0 <= sag < 0.01, sag                 # holds itself up: gives a few mm at most
+    assert max(z[-100:]) - min(z[-100:]) < 0.001  # settled: at rest over the last 0.25 s
+    s = sim.summary()
+    assert s["lockstep_timeouts"] == 0 and s["stale_commands"] == 0, s
