@@ -250,9 +250,9 @@ def test_the_robot_stands_for_2s_on_mujoco_style_gains(preset, kd, feed_forward,
     standing torques as τ_ff or without: the base sags by less than `sag` (without τ_ff
     the springs carry the weight: 13 mm on HmJ, 15 mm on Cm after a 26 mm dip; with it,
     < 2 mm) and then stays (< 1 mm over the last 1 s), the trunk level, the feet put.
-    Cm: kd 1, since kd 2 evaluated at every physics step of Δt = 1.25 ms makes the light
-    shanks chatter on the compliant ground, as the torque path does at an 800 Hz control
-    rate (the explicit damping limit of the scheme, doc/physics.md); and no τ_ff, which
+    Cm: kd 1, since kd 2 evaluated at every physics step of Δt = 1.25 ms makes the legs
+    chatter on the compliant ground, as the torque path does at an 800 Hz control rate
+    (doc/physics.md, "Joint impedance"); and no τ_ff, which
     kicks the unloaded compliant feet apart in the first milliseconds (the torque path
     too)."""
     q0, ff = standing_torques(preset, 80.0, kd)
