@@ -396,7 +396,7 @@ class Simulator:
         :mod:`starleth_sim.physics.impedance`). On a bad `tau` (wrong length, NaN/inf) a
         ValueError is raised and the state is unchanged; on a SimulationError the state is
         restored to what it was before the step."""
-        if isinstance(tau, ImpedanceCommand):
+        if type(tau) is ImpedanceCommand:      # (cheaper than isinstance, on every step)
             if tau.joint_names != self.joint_names:
                 raise ValueError("ImpedanceCommand: made for the joints "
                                  f"{', '.join(tau.joint_names)}, not {', '.join(self.joint_names)}")
