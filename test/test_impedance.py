@@ -156,10 +156,12 @@ def test_with_one_physics_step_an_impedance_step_is_the_torque_step_of_the_formu
 def test_the_kernel_and_the_phase_by_phase_paths_give_the_same_run(preset):
     """The one-kernel steps (law in C inside the kernel, or, for a cut forest, before it)
     and the general path (profiling: the law through MoreauStepper.impedance_torque and the
-    phase-by-phase step) agree bit for bit; so does replaying the recorded per-step
-    torques (step_applied) from the same initial state."""
+    phase-by-phase step; a step prepared ahead, whose first physics step uses what
+    `prepare` did) agree bit for bit; so does replaying the recorded per-step torques
+    (step_applied) from the same initial state."""
     fast = Simulator.from_preset(preset)
     general = Simulator.from_preset(preset, profile=True)
+    prepared = Simulator.from_preset(preset)
     replay = Simulator.from_preset(preset)
     q0 = fast.joint_positions()
     start = fast.snapshot()
@@ -168,9 +170,12 @@ def test_the_kernel_and_the_phase_by_phase_paths_give_the_same_run(preset):
         cmd = swaying_command(fast, q0, k, kp=150.0, kd=4.0)
         fast.step(cmd)
         general.step(cmd)
+        prepared.prepare()
+        prepared.step(cmd)
         recorded.append(fast.applied_torques_per_step)
-        assert np.array_equal(fast.q, general.q) and np.array_equal(fast.u, general.u), k
-        assert np.array_equal(recorded[-1], general.applied_torques_per_step)
+        for other in (general, prepared):
+            assert np.array_equal(fast.q, other.q) and np.array_equal(fast.u, other.u), k
+            assert np.array_equal(recorded[-1], other.applied_torques_per_step)
     replay.restore(start)
     for torques in recorded:
         replay.step_applied(torques)
@@ -188,19 +193,22 @@ def test_a_torque_command_reports_the_same_torque_at_every_physics_step():
 def test_a_joint_tracks_a_1hz_sine_with_the_gain_and_phase_of_its_second_order_system():
     """MuJoCo-style position forwarding (q* = A sin ωt, q̇* = 0, kp 80, kd 2) on the left
     front knee of the robot falling freely far above the ground (uniform gravity does not
-    act on the joints of a free-falling body), the other joints held stiffly. The knee
+    act on the joints of a free-falling body), the other joints held stiffly (kp 500, kd 3:
+    they move < 1e-4 rad). The knee
     then obeys I q̈ + kd q̇ + kp q = kp q*, I its inertia with the base free and the other
     joints locked (from M): steady-state gain |G| and phase arg G of G = kp / (kp − Iω² +
-    i kd ω). The fitted response agrees to 1 % in gain and 0.01 rad in phase (the
-    integration at Δt = 1.25 ms, the Coriolis terms and the stiff but not rigid other
-    joints account for less; a missing or doubled kd term would be 0.16 rad off)."""
+    i kd ω), the phase less the half step ωΔt/2 (3.9 mrad) by which a torque held from each
+    step's start lags (a zero-order hold). The fitted response agrees to 0.1 % in gain and
+    1 mrad in phase (measured: 1e-5 and 0.02 mrad); a missing or doubled kd term would be
+    0.16 rad off, the law at the step's end (no lag) 3.9 mrad. (At 1 Hz the inertia term
+    Iω² = 0.13 N m/rad is small beside kp: the test pins the law and its timing, not I.)"""
     sim = Simulator.from_preset("Cm")
     q = sim.q
     q[2] = 50.0                     # 50 m up: 3 s of free fall stay well clear
     sim.reset(q)
     j, amplitude, omega, kp, kd = 2, 0.2, 2 * np.pi, 80.0, 2.0
     q0 = sim.joint_positions()
-    kps, kds = np.full(12, 2000.0), np.full(12, 20.0)
+    kps, kds = np.full(12, 500.0), np.full(12, 3.0)    # the others: stiff, quiet
     kps[j], kds[j] = kp, kd
     times, angles = [], []
     for k in range(1200):
@@ -211,6 +219,7 @@ def test_a_joint_tracks_a_1hz_sine_with_the_gain_and_phase_of_its_second_order_s
         times.append(t + sim.control_period)
         angles.append(sim.joint_positions()[j] - q0[j])
     assert min(c.gap for c in sim.contacts) > 1.0
+    assert np.abs(np.delete(sim.joint_positions() - q0, j)).max() < 1e-4
     t, y = np.array(times), np.array(angles)
     keep = t >= 1.0             # the transient (decay time 2I/kd) is long gone
     basis = np.column_stack([np.sin(omega * t[keep]), np.cos(omega * t[keep]),
@@ -224,9 +233,11 @@ def test_a_joint_tracks_a_1hz_sine_with_the_gain_and_phase_of_its_second_order_s
     M = np.triu(M) + np.triu(M, 1).T
     dofs = list(range(6)) + [model.joints[model.getJointId(sim.joint_names[j])].idx_v]
     inertia = 1.0 / np.linalg.inv(M[np.ix_(dofs, dofs)])[-1, -1]
-    G = kp / (kp - inertia * omega ** 2 + 1j * kd * omega)
-    assert gain == pytest.approx(abs(G), rel=0.01), (gain, abs(G), inertia)
-    assert phase == pytest.approx(np.angle(G), abs=0.01), (phase, np.angle(G), inertia)
+    G = kp / (kp - inertia * omega ** 2 + 1j * kd * omega) * np.exp(-0.5j * omega * sim.dt)
+    print(f"gain {gain:.5f} (predicted {abs(G):.5f}), phase {phase:.5f} rad (predicted "
+          f"{np.angle(G):.5f}), I = {inertia:.3e} kg m²")
+    assert gain == pytest.approx(abs(G), rel=1e-3), (gain, abs(G), inertia)
+    assert phase == pytest.approx(np.angle(G), abs=1e-3), (phase, np.angle(G), inertia)
 
 
 def standing_torques(preset, kp, kd):
