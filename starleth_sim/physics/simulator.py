@@ -33,17 +33,17 @@ import numpy as np
 
 from .actuator import saturate_torque
 from .config import PhysicsConfig, load_preset
+from .contact import CONTACT_STATES, ContactInfo, contact_states
 from .coordinates import make_coordinates
-from .impedance import ImpedanceCommand
 from .diagnostics import (NO_TIMINGS, Diagnostics, control_step_diagnostics,
                           one_step_diagnostics)
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
-from .contact import CONTACT_STATES, ContactInfo, contact_states
+from .impedance import ImpedanceCommand
 from .state import SimState
-from .wrenches import ExternalWrenches
 from .stepper import MoreauStepper, NonFiniteTorque, SimulationError, PHASES
 from .tree_step import report_size, report_views
+from .wrenches import ExternalWrenches
 
 log = logging.getLogger("starleth_sim")
 
