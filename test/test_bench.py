@@ -47,3 +47,12 @@ def test_vs_mujoco_without_mujoco_says_so(monkeypatch, capsys):
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1
     assert "mujoco is not installed" in out[0] and "requirements-bench.txt" in out[0]
+
+
+def test_impedance_prints_both_steps_side_by_side(capsys):
+    assert bench.main(["--impedance", "--rounds", "1", "--steps", "5", "HmJ", "Cm"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
+    assert [r[:2] for r in rows] == [["HmJ", "1"], ["Cm", "2"]]
+    for r in rows:      # µs per control step, and their ratio
+        torque, imp, ratio = (float(x) for x in r[2:])
+        assert torque > 0 and imp > 0 and ratio == pytest.approx(imp / torque, abs=0.01)

@@ -2,7 +2,8 @@
 
 The hard contact laws (unilateral contact, spatial Coulomb friction, Newton-type impacts)
 are solved by the prox iterations in :mod:`starleth_sim.physics.prox`; this module holds what both
-models share: the plane, its tangent basis, and per-contact bookkeeping.
+models share: the plane, its tangent basis, and per-contact bookkeeping, and the contact
+reports of a control step (`ContactInfo`, `contact_states`).
 """
 from __future__ import annotations
 
@@ -72,3 +73,37 @@ CompliantLaw = COMPLIANT_LAW.named_tuple(
 #: compliant forces' contribution to h.
 compliant_contact_forces = _kernels.compliant_contact_forces
 generalized_contact_force = _kernels.generalized_contact_force
+
+
+#: contact states: no normal force, inside the friction cone, on its boundary
+CONTACT_STATES = ("open", "stick", "slip")
+#: a hard contact slips when |Λ_T| ≥ (1 − this) μ Λ_N (the prox projects onto the cone)
+SLIP_TOLERANCE = 1e-6
+
+
+
+@dataclass
+class ContactInfo:
+    name: str
+    active: bool            # at the last step's midpoint: hard contacts in the active set
+                            # (g_N ≤ activation_gap, or loaded and g_N ≤ opening_gap with
+                            # contact.activation "hysteresis"); compliant ones closed
+                            # (g_N ≤ 0)
+    gap: float              # g_N at the last step's midpoint [m] (negative: penetration)
+    impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
+    force: np.ndarray       # impulse / control period [N]
+    position: np.ndarray    # contact point in the world frame [m]
+    state: str = "open"     # open | stick | slip (CONTACT_STATES), see Simulator.contact_states
+
+
+def contact_states(impulse, hard: bool, mu: float, slip):
+    """Per contact point, an index into CONTACT_STATES from its Λ (nc x 3, contact frame):
+    0 open (no normal impulse), 1 stick, 2 slip. Hard contacts: slip when the tangential
+    impulse is on the boundary of the friction cone, |Λ_T| ≥ (1 − SLIP_TOLERANCE) μ Λ_N;
+    compliant contacts: `slip`, the slip flags of Alg. 1."""
+    lam = impulse
+    normal = lam[:, 0] > 0.0
+    if hard:
+        tangential = np.hypot(lam[:, 1], lam[:, 2])
+        slip = tangential >= (1.0 - SLIP_TOLERANCE) * mu * lam[:, 0]
+    return np.where(normal, np.where(slip, 2, 1), 0)

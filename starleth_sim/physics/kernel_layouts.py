@@ -251,6 +251,8 @@ TREE_STEP_MODEL = Layout(
          Field("idx_v", "nj", "tree.idx_v", "each joint's first entry of u"),
          Field("c_joint", "nc", "contacts.joint", "each contact point's joint"),
          Field("joint_v", "na", "joint_v", "each actuated joint's entry of u"),
+         Field("joint_q", "na", "joint_q",
+               "each actuated joint's entry of q (-1: a cut joint, whose φ is not in q)"),
          Field("dof_parent", "nv", "dof_parent",
                "the dofs' parents (KinematicTree.dof_parent: the structure of M's factor)"),
      )),
@@ -321,7 +323,21 @@ STEP_REPORT = Layout(
         Field("applied_torque", "na", "applied_torque", "the torques applied"),
     )),))
 
-LAYOUTS = (TREE_STEP_MODEL, CUT_MODEL, STEP_REPORT)
+#: a joint impedance command (impedance.ImpedanceCommand.packed), one row per term, one
+#: entry per actuated joint (public order): τ = τ_ff + kp (q* − q) + kd (q̇* − q̇), a NaN target
+#: (or τ_ff) leaving its term out
+IMPEDANCE_COMMAND = Layout(
+    "ImpedanceCommand", "impedance_command", ("na",), (),
+    (Buffer("command", "float64", (
+        Field("position", "na", "position", "q*, the position targets [rad] (NaN: no kp term)"),
+        Field("velocity", "na", "velocity",
+              "q̇*, the velocity targets [rad/s] (NaN: no kd term)"),
+        Field("kp", "na", "kp", "the stiffnesses [N m/rad], finite, ≥ 0"),
+        Field("kd", "na", "kd", "the dampings [N m s/rad], finite, ≥ 0"),
+        Field("effort", "na", "effort", "τ_ff, the feed-forward torques [N m] (NaN: none)"),
+    )),))
+
+LAYOUTS = (TREE_STEP_MODEL, CUT_MODEL, STEP_REPORT, IMPEDANCE_COMMAND)
 RECORDS = (STEP_SETTINGS, PROX_SETTINGS, COMPLIANT_LAW)
 
 

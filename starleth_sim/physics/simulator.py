@@ -4,6 +4,7 @@
     sim = Simulator.from_preset("HmJ")           # or "Cm", "HmS", a YAML path; **overrides
     sim.reset()                                   # standing on the ground
     sim.step(tau)                                 # one control period (1/400 s), 12 torques
+    sim.step(ImpedanceCommand.create(sim.joint_names, position=q_star, kp=80.0, kd=2.0))
     sim.q, sim.u, sim.t, sim.contacts, sim.diagnostics
     snap = sim.snapshot(); ...; sim.restore(snap) # back to a saved state
 
@@ -14,7 +15,11 @@ workspace (the stepper's arrays, the reports of the last step) are not part of i
 
 Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
 URDF effort limits; beyond the URDF velocity limit v a torque that drives its joint faster
-is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``).
+is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``). A
+joint impedance command (:mod:`starleth_sim.physics.impedance`) is evaluated at every
+physics step of the control period from that step's start state, then saturated the same
+way; ``applied_torques_per_step`` holds every physics step's applied torques, and
+``step_applied`` replays them bit for bit.
 Contact impulses are reported in the world frame, summed over the physics steps of the
 control period; forces are impulse / control period (F = Λ/Δt with one
 step per control update, as in the paper's Fig. 5).
@@ -22,48 +27,29 @@ step per control update, as in the paper's Fig. 5).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from time import perf_counter
 
 import numpy as np
 
 from .actuator import saturate_torque
 from .config import PhysicsConfig, load_preset
+from .contact import CONTACT_STATES, ContactInfo, contact_states
 from .coordinates import make_coordinates
 from .diagnostics import (NO_TIMINGS, Diagnostics, control_step_diagnostics,
                           one_step_diagnostics)
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
+from .impedance import ImpedanceCommand
 from .state import SimState
 from .stepper import MoreauStepper, NonFiniteTorque, SimulationError, PHASES
 from .tree_step import report_size, report_views
+from .wrenches import ExternalWrenches
 
 log = logging.getLogger("starleth_sim")
 
 
 #: float64 (numpy's built-in dtypes are singletons: `is` is the cheap test)
 _FLOAT64 = np.dtype(np.float64)
-
-#: contact states: no normal force, inside the friction cone, on its boundary
-CONTACT_STATES = ("open", "stick", "slip")
-#: a hard contact slips when |Λ_T| ≥ (1 − this) μ Λ_N (the prox projects onto the cone)
-SLIP_TOLERANCE = 1e-6
-
-
-
-@dataclass
-class ContactInfo:
-    name: str
-    active: bool            # at the last step's midpoint: hard contacts in the active set
-                            # (g_N ≤ activation_gap, or loaded and g_N ≤ opening_gap with
-                            # contact.activation "hysteresis"); compliant ones closed
-                            # (g_N ≤ 0)
-    gap: float              # g_N at the last step's midpoint [m] (negative: penetration)
-    impulse: np.ndarray     # Λ in the world frame, summed over the control period [N s]
-    force: np.ndarray       # impulse / control period [N]
-    position: np.ndarray    # contact point in the world frame [m]
-    state: str = "open"     # open | stick | slip (CONTACT_STATES), see Simulator.contact_states
-
 
 class Simulator:
     """One simulated robot (or body) on a ground plane."""
@@ -112,8 +98,8 @@ class Simulator:
         self._joint_velocity_cache = (-1, None)
         self.contact_names = tuple(description.contact_names())
         self.control_period = config.control_period
-        #: an input like the torques (not evolving state): {link: (force, torque)}
-        self._persistent_wrenches = {}
+        #: the persistent wrenches: an input like the torques (not evolving state)
+        self._wrenches = ExternalWrenches(self.coords)
         self.state: SimState | None = None
         self._nonconv_logged = 0
         self._opened_logged = 0
@@ -180,6 +166,8 @@ class Simulator:
         self.state = self.stepper.initial_state(q, u, float(t))
         self._state_version += 1
         self._tau = np.zeros(self.n_joints)
+        self._applied_steps = self._tau     # see applied_torques_per_step
+        self._command = None
         nc = self.coords.n_contacts
         self._impulse = np.zeros((nc, 3))
         self._active = np.zeros(nc, dtype=bool)
@@ -221,8 +209,27 @@ class Simulator:
 
     @property
     def applied_torque(self):
-        """The saturated torques applied during the last control step."""
+        """The saturated torques applied during the last control step (of an impedance
+        command, those of the period's first physics step: the law at the state the
+        command was answered to; all of them in applied_torques_per_step)."""
         return self._tau.copy()
+
+    @property
+    def applied_torques_per_step(self):
+        """The saturated torques applied at each physics step of the last control step,
+        (steps_per_control x n_joints): what `step_applied` takes to replay the step bit
+        for bit (with torques, every row is applied_torque)."""
+        s = self._applied_steps
+        if s is None:   # the one-kernel steps' reports (the current set of report buffers)
+            return np.array([v[3] for _, _, v in self._report_buffers[self._next_report ^ 1]])
+        return np.tile(s, (self.config.steps_per_control, 1)) if s.ndim == 1 else s.copy()
+
+    @property
+    def last_command(self):
+        """The command of the last control step as validated: an ImpedanceCommand, the
+        joint torques (a copy), or the per-step torques of step_applied; None after reset."""
+        c = self._command
+        return c if c is None or isinstance(c, ImpedanceCommand) else c.copy()
 
     def joint_positions(self):
         return self.coords.joint_positions(self.state.q, self.state.u)
@@ -304,14 +311,8 @@ class Simulator:
         0 open (no normal impulse), 1 stick, 2 slip. Hard contacts: slip when the tangential
         impulse is on the boundary of the friction cone, |Λ_T| ≥ (1 − 1e-6) μ Λ_N; compliant
         contacts: the slip flag of Alg. 1."""
-        lam = self._impulse
-        normal = lam[:, 0] > 0.0
-        if self.stepper.hard:
-            tangential = np.hypot(lam[:, 1], lam[:, 2])
-            slip = tangential >= (1.0 - SLIP_TOLERANCE) * self.stepper.ground.mu * lam[:, 0]
-        else:
-            slip = self.state.slip
-        return np.where(normal, np.where(slip, 2, 1), 0)
+        return contact_states(self._impulse, self.stepper.hard, self.stepper.ground.mu,
+                              self.state.slip)
 
     def contact(self, name: str) -> ContactInfo:
         try:
@@ -321,23 +322,10 @@ class Simulator:
         return self.contacts[i]
 
     # -- external wrenches ----------------------------------------------------------------
-    def _check_link(self, link):
-        if link not in self.coords.link_names():
-            raise ValueError(f"unknown link '{link}' "
-                             f"(links: {', '.join(self.coords.link_names())})")
-
-    @staticmethod
-    def _vec3(name, v):
-        a = np.asarray(v, dtype=float).reshape(-1)
-        if a.shape != (3,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"{name} must be 3 finite numbers, got {v!r}")
-        return a
-
     def apply_wrench(self, link: str, force, torque=(0.0, 0.0, 0.0), duration: float | None = None):
         """Apply a wrench (world axes, at the origin of `link`) for `duration` seconds
         (default: one control period) starting with the next step."""
-        self._check_link(link)
-        f, m = self._vec3("force", force), self._vec3("torque", torque)
+        f, m = self._wrenches.checked(link, force, torque)
         duration = self.control_period if duration is None else float(duration)
         if not (duration > 0 and np.isfinite(duration)):
             raise ValueError("duration must be positive")
@@ -345,34 +333,11 @@ class Simulator:
 
     def set_persistent_wrench(self, link: str, force, torque=(0.0, 0.0, 0.0)):
         """Apply a wrench on `link` at every step until cleared (a zero wrench clears it)."""
-        self._check_link(link)
-        f, m = self._vec3("force", force), self._vec3("torque", torque)
-        if not f.any() and not m.any():
-            self._persistent_wrenches.pop(link, None)
-        else:
-            self._persistent_wrenches[link] = (f, m)
+        self._wrenches.set_persistent(link, force, torque)
 
     def clear_wrenches(self):
-        self._persistent_wrenches.clear()
+        self._wrenches.persistent.clear()
         self.state.pending_wrenches.clear()
-
-    def _external_force(self, state, dt):
-        """The generalized force of the wrenches over the next physics step at state.q;
-        counts the timed wrenches of `state` down (None: no wrench)."""
-        pending = state.pending_wrenches
-        if not self._persistent_wrenches and not pending:
-            return None
-        q = state.q
-        f_ext = np.zeros(self.coords.nv)
-        for link, (f, m) in self._persistent_wrenches.items():
-            f_ext += self.coords.wrench_generalized_force(q, link, f, m)
-        for w in pending:
-            link, f, m, remaining = w
-            frac = min(remaining, dt) / dt
-            f_ext += frac * self.coords.wrench_generalized_force(q, link, f, m)
-            w[3] = remaining - dt
-        pending[:] = [w for w in pending if w[3] > 1e-12]
-        return f_ext
 
     # -- stepping -------------------------------------------------------------------------
     def _torque_array(self, tau):
@@ -423,12 +388,19 @@ class Simulator:
     def _no_wrench_to_apply(self, state) -> bool:
         """Neither a timed nor a persistent wrench acts in the next step (with none, `step`
         runs each physics step in one kernel when the stepper allows it)."""
-        return not state.pending_wrenches and not self._persistent_wrenches
+        return self._wrenches.none_to_apply(state)
 
     def step(self, tau=None):
-        """Advance one control period with joint torques `tau` (zero-order hold). On a bad
-        `tau` (wrong length, NaN/inf) a ValueError is raised and the state is unchanged; on
-        a SimulationError the state is restored to what it was before the step."""
+        """Advance one control period with joint torques `tau` (zero-order hold), or with
+        an ImpedanceCommand (its law evaluated at every physics step, see
+        :mod:`starleth_sim.physics.impedance`). On a bad `tau` (wrong length, NaN/inf) a
+        ValueError is raised and the state is unchanged; on a SimulationError the state is
+        restored to what it was before the step."""
+        if type(tau) is ImpedanceCommand:      # (cheaper than isinstance, on every step)
+            if tau.joint_names != self.joint_names:
+                raise ValueError("ImpedanceCommand: made for the joints "
+                                 f"{', '.join(tau.joint_names)}, not {', '.join(self.joint_names)}")
+            return self._step_per_physics_step(tau.packed, tau, impedance=True)
         t_wall = perf_counter()
         state = self.state
         stepper = self.stepper
@@ -447,27 +419,31 @@ class Simulator:
             except NonFiniteTorque:
                 raise self._non_finite_torque(a) from None
             self._next_report ^= 1
+            asked = a
             d = one_step_diagnostics(self.diagnostics, r, perf_counter() - t_wall)
         elif in_kernels:
             # several physics steps, each in one kernel call, τ saturated once per period
-            tau = self._validated_torque(tau)
+            tau = self._validated_torque(asked := self._torque_array(tau))
             figures, impulse, active, gap, position = self._kernel_steps(state, tau)
             d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
                                          self._timings())
         else:
-            tau = self._validated_torque(tau)
+            tau = self._validated_torque(asked := self._torque_array(tau))
             # (a one-step period without timed wrenches to count down needs no rollback copy)
             transactional = self._one_physics_step and not state.pending_wrenches and one_kernel
             results = self._physics_steps(state, tau, self.config.steps_per_control,
                                           rollback=not transactional)
-            active, gap, position = results[-1].active, results[-1].gap, results[-1].position
-            impulse = results[0].impulse
-            for r in results[1:]:      # in step order (the sum's round-off depends on it)
-                impulse = impulse + r.impulse
+            impulse, active, gap, position = self._period_reports(results)
             d = control_step_diagnostics(self.diagnostics, results, perf_counter() - t_wall,
                                          self._timings())
+        self._command = asked.copy()
+        self._applied_steps = tau
+        return self._step_done(d, tau, impulse, active, gap, position)
+
+    def _step_done(self, d, tau, impulse, active, gap, position):
+        """The end of a control step: t, the reports, the diagnostics and their log."""
         self._state_version += 1
-        state.t += self.control_period
+        self.state.t += self.control_period
         self._tau = tau
         self._impulse = impulse
         self._active = active
@@ -476,25 +452,87 @@ class Simulator:
         self.diagnostics = d
         return self._log_step(d)
 
+    @staticmethod
+    def _period_reports(results):
+        """(Λ summed over the period, and the last step's active flags, g_N and contact
+        points) of the StepResults of a control period's physics steps."""
+        impulse = results[0].impulse
+        for r in results[1:]:      # in step order (the sum's round-off depends on it)
+            impulse = impulse + r.impulse
+        last = results[-1]
+        return impulse, last.active, last.gap, last.position
+
     def _timings(self):
         """Diagnostics.timings: the cumulative phase times when profiling."""
         if not self.stepper.profile:
             return NO_TIMINGS
         return dict(zip(PHASES, self.stepper.stats.timings.tolist()))
 
-    def _kernel_steps(self, state, tau):
+    def step_applied(self, torques):
+        """Advance one control period applying `torques` (steps_per_control x n_joints, or
+        n_joints for every step) at its physics steps as given, NOT saturated again: the
+        applied torques of a recorded run (applied_torques_per_step), which this replays bit
+        for bit from the same state (saturating a derated torque again would derate it
+        twice). ValueError on a wrong shape or a non-finite entry (state unchanged)."""
+        n = self.config.steps_per_control
+        a = np.array(torques, dtype=np.float64)
+        if a.ndim == 1:
+            a = np.tile(a, (n, 1))
+        if a.shape != (n, self.n_joints):
+            raise ValueError(f"step_applied: torques must be {n} x {self.n_joints} (physics "
+                             f"steps x joints {', '.join(self.joint_names)}), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise self._non_finite_torque(a.min(axis=0) + a.max(axis=0))
+        return self._step_per_physics_step(a, a, impedance=False)
+
+    def _step_per_physics_step(self, torques, command, impedance):
+        """A control period whose torques change from physics step to physics step: an
+        impedance command's law (torques: its packed buffer) at each step's start state, or
+        applied torques (torques: one row per step) as given."""
+        t_wall = perf_counter()
+        state = self.state
+        if self.stepper.step_is_transactional(state) and self._no_wrench_to_apply(state):
+            figures, impulse, active, gap, position = self._kernel_steps(
+                state, torques, impedance=impedance, per_step=not impedance)
+            applied = None      # (in the current report buffers)
+            tau = self._report_buffers[self._next_report ^ 1][0][2][3]
+        else:
+            stepper, applied = self.stepper, []
+
+            def torque_of_step(state, i):
+                tau = stepper.impedance_torque(torques, state.q, state.u) if impedance \
+                    else torques[i]
+                applied.append(tau)
+                return tau
+            figures = self._physics_steps(state, None, self.config.steps_per_control, True,
+                                          torque_of_step)
+            impulse, active, gap, position = self._period_reports(figures)
+            tau, applied = applied[0], np.array(applied)
+        d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
+                                     self._timings())
+        self._command = command
+        self._applied_steps = applied
+        return self._step_done(d, tau, impulse, active, gap, position)
+
+    def _kernel_steps(self, state, tau, impedance=False, per_step=False):
         """The physics steps of a control period, each in one kernel call with the applied
-        torques tau (saturated: MoreauStepper.step_in_one_kernel), their reports written
+        torques tau (saturated: MoreauStepper.step_in_one_kernel; per_step: tau[i] at step
+        i; impedance: tau an impedance command's packed buffer), their reports written
         into the spare set of report buffers, which then becomes the current one; the same
         arithmetic as _physics_steps' (bit for bit). On a SimulationError the state is
-        restored from a copy taken before. Returns (the steps' TreeStepResults, Λ summed over
-        the period, and the last step's active flags, g_N and contact points)."""
+        restored from a copy taken before (one step alone fails leaving it as it was).
+        Returns (the steps' TreeStepResults, Λ summed over the period, and the last step's
+        active flags, g_N and contact points)."""
         stepper = self.stepper
         buffers = self._report_buffers[self._next_report]
-        before = state.copy(share_qu=True)
+        before = state.copy(share_qu=True) if len(buffers) > 1 else state
         try:
-            figures = [stepper.step_in_one_kernel(state, tau, report, active, saturate=False)
-                       for report, active, _ in buffers]
+            figures = [stepper.step_in_one_kernel(state, tau[i] if per_step else tau, report,
+                                                  active, saturate=False, impedance=impedance)
+                       for i, (report, active, _) in enumerate(buffers)]
+        except NonFiniteTorque:
+            self.restore(before)
+            raise ValueError("the impedance law gave non-finite torques") from None
         except SimulationError:
             self.restore(before)
             raise
@@ -505,17 +543,26 @@ class Simulator:
         _, active, (_, gap, position, _) = buffers[-1]
         return figures, impulse, active, gap, position
 
-    def _physics_steps(self, state, tau, n, rollback):
+    def _physics_steps(self, state, tau, n, rollback, torque_of_step=None):
         """The n physics steps of a control period through MoreauStepper.step, with the
-        wrenches; their StepResults. On a SimulationError the state is restored from a copy
-        taken before (with rollback; the stepper never writes into q and u)."""
+        wrenches and the torques tau (or torque_of_step(state, i) at step i); their
+        StepResults. On a SimulationError the state is restored from a copy taken before
+        (with rollback; the stepper never writes into q and u)."""
         stepper = self.stepper
         dt = stepper.dt
         before = state.copy(share_qu=True) if rollback else None
-        wrenches = self._persistent_wrenches or state.pending_wrenches
+        wrenches = not self._wrenches.none_to_apply(state)
+        force = self._wrenches.generalized_force
         try:
-            return [stepper.step(state, tau, self._external_force(state, dt) if wrenches
-                                 else None) for _ in range(n)]
+            if torque_of_step is None:
+                return [stepper.step(state, tau, force(state, dt) if wrenches
+                                     else None) for _ in range(n)]
+            return [stepper.step(state, torque_of_step(state, i),
+                                 force(state, dt) if wrenches else None)
+                    for i in range(n)]
+        except NonFiniteTorque:
+            self.restore(before)
+            raise ValueError("the impedance law gave non-finite torques") from None
         except SimulationError:
             if before is not None:
                 self.restore(before)

@@ -50,6 +50,7 @@ from .actuator import saturate_torque
 from .config import ConfigError
 from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
+from .impedance import TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_SATURATED, impedance_torque
 from .linalg import ltdl
 from .state import SimState
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
@@ -210,17 +211,17 @@ class MoreauStepper:
         #: τ of no torque (one entry per actuated joint), for a step given none
         self._no_torque = np.zeros(coords.joint_v.shape[0])
         self._one_kernel_unprofiled = self._one_kernel and not profile
+        na = coords.joint_v.shape[0]
+        effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
+            if torque_limits is None else torque_limits
+        self._effort_limit, self._velocity_limit = effort, velocity
         if self._one_kernel:    # the workspace arrays become views of the packed buffer
-            na = coords.joint_v.shape[0]
-            effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
-                if torque_limits is None else torque_limits
             pack, views = TreeStepModel.pack(self.settings, self.compliant_law,
                                              coords.midpoint_model(), self.ground, self.eps,
                                              coords.joint_v, coords.tree.dof_parent, nv, effort,
-                                             velocity)
+                                             velocity, coords.joint_q)
             self._tree_model = tuple(pack)
             self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
-            self._effort_limit, self._velocity_limit = effort, velocity
             if self._forest_kernel:
                 self._cut_model = tuple(CutModel.pack(coords, self.beta / self.dt))
                 #: where the kernel writes φ and φ̇ of the cut joints at the end of the step
@@ -360,25 +361,34 @@ class MoreauStepper:
                           r.projection_status)
 
     def step_in_one_kernel(self, state: SimState, tau, report, is_active, f_ext=None,
-                           saturate: bool = True) -> TreeStepResult:
+                           saturate: bool = True, impedance: bool = False) -> TreeStepResult:
         """`step` in one kernel call (tree_step_hard / tree_step_compliant /
         forest_step_hard), for a state that `step_is_transactional` approves: the same
         result bit for bit as the phase-by-phase path. tau: the torques asked (float64, one
         per actuated joint), saturated by the torque_limits (actuator.saturate_torque) unless
         saturate is False: in the kernel, or for a cut forest before it (a cut joint's rate
         comes from the cut-joint kinematics of the state, ForestCoordinates'
-        joint_velocities, which a controller has usually asked for already).
+        joint_velocities, which a controller has usually asked for already). With impedance
+        True, tau is an ImpedanceCommand's packed buffer: the law at the joint angles and
+        rates of (state.q, state.u), then saturated (`saturate` is not read).
         Writes the report buffer (tree_step.report_views: Λ, g_N and contact points at q^M,
         the applied torques) and the active flags; returns the kernel's TreeStepResult
         (its outcome TREE_STEP_OK). A NonFiniteTorque or SimulationError leaves the state as
         it was."""
         self._prepared = None       # (a step prepared for another state is stale now)
-        if tau is None or tau.shape[0] == 0:    # no torques, as in the phase-by-phase step
+        q, u = state.q, state.u
+        mode = TORQUE_SATURATED if saturate else TORQUE_AS_GIVEN
+        if impedance:
+            if self._forest_kernel:     # the law at φ, φ̇ of the cut-joint kinematics
+                tau = self.impedance_torque(tau, q, u)
+                saturate = False
+            else:
+                mode = TORQUE_IMPEDANCE
+        elif tau is None or tau.shape[0] == 0:  # no torques, as in the phase-by-phase step
             tau = self._no_torque
         elif tau.shape[0] != self._no_torque.shape[0]:  # (the kernel reads one per joint)
             raise ValueError(f"tau must have {self._no_torque.shape[0]} entries, "
                              f"got {tau.shape[0]}")
-        q, u = state.q, state.u
         qE = _empty(q.shape[0])     # (np.empty: a third of np.empty_like's call)
         uE = _empty(u.shape[0])
         if f_ext is None:
@@ -396,11 +406,11 @@ class MoreauStepper:
                                  state.last_active, state.last_bilateral, report, is_active,
                                  qE, uE, *self._cut_motion, *self._tree_model, *self._cut_model)
         elif self.hard:
-            r = tree_step_hard(saturate, q, u, tau, f_ext, state.last_impulse,
+            r = tree_step_hard(mode, q, u, tau, f_ext, state.last_impulse,
                                state.last_active, state.last_bilateral, report, is_active, qE,
                                uE, *self._tree_model)
         else:
-            r = tree_step_compliant(saturate, q, u, tau, f_ext, state.closed, state.slip,
+            r = tree_step_compliant(mode, q, u, tau, f_ext, state.closed, state.slip,
                                     state.anchor, state.lam_compliant, report, is_active, qE,
                                     uE, *self._tree_model)
         outcome = r.outcome
@@ -426,6 +436,20 @@ class MoreauStepper:
             self.coords.cut_motion_written(qE, uE)
         self.stats.steps += 1
         return r
+
+    def impedance_torque(self, command, q, u):
+        """The applied torques of an impedance command's law (its packed buffer) at the
+        joint angles and rates of (q, u), saturated (actuator.saturate_torque at the same
+        rates by the torque_limits): what the one-kernel tree steps compute inside, by the
+        same C functions (bit for bit). NonFiniteTorque if the law overflows."""
+        c = self.coords
+        qd = c.joint_velocities(q, u)
+        law = _empty(qd.shape[0])
+        impedance_torque(command, c.joint_positions(q, u), qd, law)
+        applied = _empty(qd.shape[0])
+        if not saturate_torque(law, self._effort_limit, qd, self._velocity_limit, applied):
+            raise NonFiniteTorque("the impedance law gave non-finite torques")
+        return applied
 
     def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of

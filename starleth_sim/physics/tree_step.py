@@ -95,11 +95,12 @@ class TreeStepModel(NamedTuple):
 
     @staticmethod
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
-             velocity_limit):
+             velocity_limit, joint_q):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
-        GroundPlane, ε and the torque limits (see actuator.saturate_torque); returns the
-        record and the workspace's views (gap, position, Wt_all, L, u_free, u_corr), which
-        the stepper keeps as its own arrays."""
+        GroundPlane, ε, the torque limits (see actuator.saturate_torque) and the actuated
+        joints' entries of u and q (joint_v, joint_q: the impedance law reads q and u
+        there); returns the record and the workspace's views (gap, position, Wt_all, L,
+        u_free, u_corr), which the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
@@ -111,7 +112,7 @@ class TreeStepModel(NamedTuple):
             ground_t1=ground.t1, ground_t2=ground.t2, ground_offset=[ground.offset], eps=eps,
             effort_limit=effort_limit, velocity_limit=velocity_limit, parent=parent,
             jtype=jtype, idx_q=idx_q, idx_v=idx_v, c_joint=c_joint, joint_v=joint_v,
-            dof_parent=dof_parent, support=support)
+            joint_q=joint_q, dof_parent=dof_parent, support=support)
         L = TREE_STEP_MODEL
         workspace = np.zeros(length(L, "workspace", sizes))
         views = buffer_views(L, "workspace", workspace, sizes)

@@ -6,6 +6,11 @@ are physics steps per second (the paper's "evaluations per second") and the real
 All configurations run in the same process, one after the other, so their ratios are
 comparable on a shared machine.
 
+``--impedance``: the joint impedance step (``ImpedanceCommand``, its law evaluated at every
+physics step inside the kernels) beside the torque step of the same PD hold (the torques
+computed in Python once per control step), on the given presets (default HmJ Cm), in
+interleaved rounds in one process: µs per control step (median of the rounds) and the ratio.
+
 ``--vs-mujoco``: the same robot (``urdf/starleth.urdf`` compiled by MuJoCo, free base joint,
 ground plane, Δt = 2.5 ms, Newton solver, elliptic cones, μ as in the preset) standing under
 the same joint PD hold from the same standing state, beside `Simulator` on the given presets
@@ -26,6 +31,7 @@ import numpy as np
 from ..physics.config import PRESETS as DEFAULT_PRESETS   # the paper's Table 1
 from ..physics.config import ConfigError, load_preset
 from ..physics.description import urdf_path
+from ..physics.impedance import ImpedanceCommand
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..physics.stepper import PHASES, StepperStats
@@ -68,6 +74,48 @@ def breakdown(preset: str, seconds: float):
         sim.step(hold.torque(sim))
     steps = sim.stepper.stats.steps
     return {k: 1e6 * v / steps for k, v in zip(PHASES, sim.stepper.stats.timings)}
+
+
+#: --impedance: the presets compared by default
+IMPEDANCE_PRESETS = ("HmJ", "Cm")
+
+
+def measure_impedance(preset: str, rounds: int, steps: int):
+    """(µs per control step of the torque step, of the impedance step): the median of
+    `rounds` interleaved rounds of `steps` control steps each, both simulators standing
+    under the PostureHold gains (the torque one with τ computed from the published state,
+    untimed; the impedance one with a fixed command). Only Simulator.step is timed."""
+    torque_sim, imp_sim = Simulator.from_preset(preset), Simulator.from_preset(preset)
+    hold = PostureHold(torque_sim.joint_positions())
+    command = ImpedanceCommand.create(imp_sim.joint_names, position=hold.target, kp=hold.kp,
+                                      kd=hold.kd)
+    torque_sim.step(hold.torque(torque_sim))    # warm-up (first calls, caches)
+    imp_sim.step(command)
+    times = {"torque": [], "impedance": []}
+    for _ in range(rounds):
+        wall = 0.0
+        for _ in range(steps):
+            tau = hold.torque(torque_sim)
+            t0 = time.perf_counter()
+            torque_sim.step(tau)
+            wall += time.perf_counter() - t0
+        times["torque"].append(wall / steps)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            imp_sim.step(command)
+        times["impedance"].append((time.perf_counter() - t0) / steps)
+    return tuple(1e6 * float(np.median(times[k])) for k in ("torque", "impedance"))
+
+
+def impedance(presets, rounds: int, steps: int) -> int:
+    print(f"Impedance step against torque step, {rounds} interleaved rounds x {steps} "
+          f"control steps, µs per control step (median); Python {sys.version.split()[0]}")
+    print(f"{'config':7s} {'phys/ctl':>8s} {'torque':>9s} {'impedance':>9s} {'ratio':>6s}")
+    for p in presets:
+        torque, imp = measure_impedance(p, rounds, steps)
+        n = load_preset(p).steps_per_control
+        print(f"{p:7s} {n:8d} {torque:9.2f} {imp:9.2f} {imp / torque:6.2f}", flush=True)
+    return 0
 
 
 #: --vs-mujoco: the presets compared by default, and the like-with-like tolerances
@@ -285,12 +333,16 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--vs-mujoco", action="store_true",
                     help="side by side with MuJoCo on the same robot (needs mujoco)")
-    ap.add_argument("--rounds", type=int, default=5, help="--vs-mujoco: interleaved rounds")
+    ap.add_argument("--impedance", action="store_true",
+                    help="the impedance step beside the torque step (default HmJ Cm)")
+    ap.add_argument("--rounds", type=int, default=5,
+                    help="--vs-mujoco, --impedance: interleaved rounds")
     ap.add_argument("--steps", type=int, default=2000,
-                    help="--vs-mujoco: physics steps per round")
+                    help="--vs-mujoco: physics steps per round; --impedance: control steps")
     args = ap.parse_args(argv)
     if not args.presets:
-        args.presets = list(VS_MUJOCO_PRESETS if args.vs_mujoco else DEFAULT_PRESETS)
+        args.presets = list(VS_MUJOCO_PRESETS if args.vs_mujoco else IMPEDANCE_PRESETS
+                            if args.impedance else DEFAULT_PRESETS)
     try:
         configs = {p: load_preset(p) for p in args.presets}
     except ConfigError as e:
@@ -299,6 +351,10 @@ def main(argv=None):
         if args.rounds < 1 or args.steps < 1:
             ap.error("--rounds and --steps must be positive")
         return vs_mujoco(args.presets, args.rounds, args.steps)
+    if args.impedance:
+        if args.rounds < 1 or args.steps < 1:
+            ap.error("--rounds and --steps must be positive")
+        return impedance(args.presets, args.rounds, args.steps)
 
     print(f"StarlETH standing under a joint PD hold, {args.seconds:g} s simulated x "
           f"{args.repeats} runs per configuration; Python {sys.version.split()[0]}")

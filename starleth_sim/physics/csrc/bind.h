@@ -141,6 +141,7 @@ FN(cut_joint_torques);
 FN(compliant_contact_forces);
 FN(generalized_contact_force);
 FN(saturate_torque);
+FN(impedance_torque);
 FN(row_pattern);
 FN(col_pattern);
 FN(prox_parameters);

@@ -274,9 +274,10 @@ static int packed_of(const val_t *v, packed_model_t *m) {
 }
 
 /* The step arrays: v = q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report,
- * is_active, qE, uE; checked against the model */
+ * is_active, qE, uE; checked against the model and the torque mode (TORQUE_*: tau is one
+ * torque per joint, or a command of 5 per joint) */
 static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *m,
-                          step_arrays_t *x) {
+                          i64 torque_mode, step_arrays_t *x) {
     const char *bad = check_tree_model(m, v[1].len);
     if (bad) {
         PyErr_Format(PyExc_ValueError, "%s: %s", fn, bad);
@@ -310,11 +311,23 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
             return 0;
         }
     }
-    if (!need(x->n_tau == na && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
+    if (torque_mode < TORQUE_AS_GIVEN || torque_mode > TORQUE_IMPEDANCE) {
+        PyErr_Format(PyExc_ValueError, "%s: torque_mode must be 0, 1 or 2 (TORQUE_*)", fn);
+        return 0;
+    }
+    if (torque_mode == TORQUE_IMPEDANCE) /* the law reads q at each joint's entry */
+        for (i64 k = 0; k < na; k++)
+            if (t.joint_q[k] < 0 || t.joint_q[k] >= x->nq) {
+                PyErr_Format(PyExc_ValueError, "%s: joint %lld has no entry of q (a cut joint?)",
+                             fn, (long long)k);
+                return 0;
+            }
+    i64 n_tau = torque_mode == TORQUE_IMPEDANCE ? impedance_command_length(na) : na;
+    if (!need(x->n_tau == n_tau && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
                   v[4].len == 3 * nc && v[5].len == nc && v[7].len == report_length(nc, na) &&
                   v[8].len == nc && v[9].len == x->nq && v[10].len == nv,
-              fn, "the step's arrays do not match the model (tau: one torque per joint, "
-                  "f_ext: nv or empty, report: 7 nc + na)"))
+              fn, "the step's arrays do not match the model (tau: one torque per joint, or 5 "
+                  "per joint for an impedance command; f_ext: nv or empty; report: 7 nc + na)"))
         return 0;
     report_views(v[7].p, nc, na, &x->report);
     return 1;
@@ -328,14 +341,14 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     {"floats", F64W}, {"ints", I64}, {"support", BOOL}, {"workspace", F64W}
 
 FN(tree_step_hard) {
-    static const spec_t spec[] = {{"saturate", FLAG}, STEP_ARRAYS, MODEL_BUFFERS};
+    static const spec_t spec[] = {{"torque_mode", INT}, STEP_ARRAYS, MODEL_BUFFERS};
     val_t v[16];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m;
     step_arrays_t x;
     if (!PARSE("tree_step_hard", spec, 16, v, &h) || !packed_of(&v[12], &m) ||
-        !step_arrays_of("tree_step_hard", &v[1], &m, &x))
+        !step_arrays_of("tree_step_hard", &v[1], &m, v[0].i, &x))
         FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
@@ -346,7 +359,7 @@ FN(tree_step_hard) {
 }
 
 FN(tree_step_compliant) {
-    static const spec_t spec[] = {{"saturate", FLAG}, {"q", F64}, {"u", F64}, {"tau", F64},
+    static const spec_t spec[] = {{"torque_mode", INT}, {"q", F64}, {"u", F64}, {"tau", F64},
                                   {"f_ext", F64}, {"closed", BOOLW}, {"slip", BOOLW},
                                   {"anchor", F64W}, {"lam", F64W}, {"report", F64W},
                                   {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W},
@@ -361,7 +374,7 @@ FN(tree_step_compliant) {
      * memory (of the same lengths), which a compliant step has none of */
     val_t w[11] = {v[1], v[2], v[3], v[4], v[8], v[5], v[8], v[9], v[10], v[11], v[12]};
     w[6].len = 0;
-    if (!step_arrays_of("tree_step_compliant", w, &m, &x)) FAIL;
+    if (!step_arrays_of("tree_step_compliant", w, &m, v[0].i, &x)) FAIL;
     i64 nc = m.ints[TREE_STEP_MODEL_NC];
     if (
         !need(v[5].len == nc && v[6].len == nc && v[7].len == 3 * nc && v[8].len == 3 * nc,
@@ -392,7 +405,7 @@ FN(forest_step_hard) {
     step_arrays_t x;
     if (!PARSE("forest_step_hard", spec, 21, v, &h) || !packed_of(&v[14], &m)) FAIL;
     val_t w[11] = {v[0], v[1], v[2], v[3], v[5], v[6], v[7], v[8], v[9], v[10], v[11]};
-    if (!step_arrays_of("forest_step_hard", w, &m, &x)) FAIL;
+    if (!step_arrays_of("forest_step_hard", w, &m, TORQUE_AS_GIVEN, &x)) FAIL;
     c.floats = v[18].p;
     c.n_floats = v[18].len;
     c.ints = v[19].p;
@@ -417,6 +430,22 @@ FN(forest_step_hard) {
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);
+}
+
+FN(impedance_torque) {
+    static const spec_t spec[] = {{"command", F64}, {"q", F64}, {"qd", F64}, {"out", F64W}};
+    val_t v[4];
+    held_t h = {.n = 0};
+    if (!PARSE("impedance_torque", spec, 4, v, &h)) FAIL;
+    i64 n = v[3].len;
+    if (!need(v[0].len == impedance_command_length(n) && v[1].len == n && v[2].len == n,
+              "impedance_torque", "command: 5 entries per joint; q, qd and out: one"))
+        FAIL;
+    impedance_command_t c;
+    impedance_command_views((double *)v[0].p, n, &c); /* (read only) */
+    impedance_torque(&c, v[1].p, v[2].p, v[3].p, n);
+    release(&h);
+    Py_RETURN_NONE;
 }
 
 FN(scratch_arena_stats) {

@@ -58,8 +58,9 @@ static PyMethodDef methods[] = {
     DEF(prepare_hard_contacts, "prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active, timings, problem=None) -> ContactProblem."),
     DEF(complete_hard_contacts, "complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings) -> CompletionResult."),
     DEF(solve_hard_contacts, "solve_hard_contacts(...) -> HardContactsResult."),
-    DEF(tree_step_hard, "tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(tree_step_compliant, "tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
+    DEF(impedance_torque, "impedance_torque(command, q, qd, out): the joint impedance law."),
+    DEF(tree_step_hard, "tree_step_hard(torque_mode, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
+    DEF(tree_step_compliant, "tree_step_compliant(torque_mode, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
     DEF(forest_step_hard, "forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> TreeStepResult."),
     DEF(scratch_arena_stats, "scratch_arena_stats() -> (misses, capacity [bytes], bytes the last call wanted) of this thread's scratch arena."),
     {NULL, NULL, 0, NULL}};
@@ -95,6 +96,8 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         {"TREE_STEP_NONFINITE_IMPULSE", TREE_STEP_NONFINITE_IMPULSE},
         {"TREE_STEP_NONFINITE_STATE", TREE_STEP_NONFINITE_STATE},
         {"TREE_STEP_NONFINITE_TORQUE", TREE_STEP_NONFINITE_TORQUE},
+        {"TORQUE_AS_GIVEN", TORQUE_AS_GIVEN}, {"TORQUE_SATURATED", TORQUE_SATURATED},
+        {"TORQUE_IMPEDANCE", TORQUE_IMPEDANCE},
     };
     static const struct {
         const char *name;

@@ -30,16 +30,38 @@ const char *check_cut_model(const packed_model_t *c, i64 na, i64 nv) {
     return NULL;
 }
 
-/* _applied_torque: the torques the motors apply for tau (saturate_torque at the joint rates
- * of u), or tau as given; 0 if tau has a non-finite entry */
-static int applied_torque(int saturate, const double *tau, i64 n, const double *u,
-                          const tree_model_t *t, double *applied, arena_t *a) {
-    if (!saturate) {
+/* impedance_torque: the law term by term in this order (τ_ff, then the kp term, then the kd
+ * term), which impedance.py's description and its tests follow */
+void impedance_torque(const impedance_command_t *c, const double *q, const double *qd,
+                      double *tau, i64 n) {
+    for (i64 k = 0; k < n; k++) {
+        double t = isnan(c->effort[k]) ? 0.0 : c->effort[k];
+        if (!isnan(c->position[k])) t += c->kp[k] * (c->position[k] - q[k]);
+        if (!isnan(c->velocity[k])) t += c->kd[k] * (c->velocity[k] - qd[k]);
+        tau[k] = t;
+    }
+}
+
+/* _applied_torque: the torques the motors apply for tau (torque_mode TORQUE_*: as given,
+ * saturate_torque at the joint rates of u, or the impedance law of the command tau at (q, u)
+ * saturated); 0 if the torques have a non-finite entry */
+static int applied_torque(int torque_mode, const double *tau, i64 n, const double *q,
+                          const double *u, const tree_model_t *t, double *applied, arena_t *a) {
+    if (torque_mode == TORQUE_AS_GIVEN) {
         for (i64 k = 0; k < n; k++) applied[k] = tau[k];
         return 1;
     }
     double *qd = arena_f(a, t->na);
     for (i64 k = 0; k < t->na; k++) qd[k] = u[t->joint_v[k]];
+    if (torque_mode == TORQUE_IMPEDANCE) {
+        impedance_command_t c;  /* (the views are read only) */
+        impedance_command_views((double *)tau, t->na, &c);
+        double *qj = arena_f(a, t->na), *law = arena_f(a, t->na);
+        for (i64 k = 0; k < t->na; k++) qj[k] = q[t->joint_q[k]];
+        impedance_torque(&c, qj, qd, law, t->na);
+        tau = law;
+        n = t->na;
+    }
     return saturate_torque(tau, t->effort_limit, qd, t->velocity_limit, applied, n);
 }
 
@@ -100,15 +122,15 @@ static void complete_step(const settings_t *s, const problem_t *p, const double 
     res->projection_status = c.projection_status;
 }
 
-/* tree_step_hard: the applied torques, Eqn. (6) and M, h, W at the midpoint, the contact
+/* tree_step_hard: the applied torques (of the step's start state), Eqn. (6) and M, h, W at the midpoint, the contact
  * problem and its solution, Eqn. (8) */
-tree_step_result_t tree_step_hard(int saturate, const step_arrays_t *x, const packed_model_t *m,
-                                  arena_t *a) {
+tree_step_result_t tree_step_hard(int torque_mode, const step_arrays_t *x,
+                                  const packed_model_t *m, arena_t *a) {
     tree_model_t t;
     unpack_tree_model(m, &t);
     i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc;
     double *applied = x->report.applied_torque;
-    if (!applied_torque(saturate, x->tau, x->n_tau, x->u, &t, applied, a))
+    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, applied, a))
         return result_of(TREE_STEP_NONFINITE_TORQUE);
     double half_dt = 0.5 * t.s.dt;
     double *out = arena_f(a, nq + nv * nv + nv);
@@ -130,7 +152,7 @@ tree_step_result_t tree_step_hard(int saturate, const step_arrays_t *x, const pa
 /* tree_step_compliant: the applied torques, the midpoint, solve_compliant (u^E = u_free) and
  * Eqn. (8); the report's Λ is the compliant force Δt, is_active the closed flags
  * (g_N(q^M) ≤ 0). A failed step leaves the contact state as it was. */
-tree_step_result_t tree_step_compliant(int saturate, const step_arrays_t *x, u8 *closed,
+tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, u8 *closed,
                                        u8 *slip, double *anchor, double *lam,
                                        const packed_model_t *m, arena_t *a) {
     tree_model_t t;
@@ -138,7 +160,7 @@ tree_step_result_t tree_step_compliant(int saturate, const step_arrays_t *x, u8 
     i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc;
     double dt = t.s.dt;
     double *applied = x->report.applied_torque;
-    if (!applied_torque(saturate, x->tau, x->n_tau, x->u, &t, applied, a))
+    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, applied, a))
         return result_of(TREE_STEP_NONFINITE_TORQUE);
     double half_dt = 0.5 * dt;
     double *out = arena_f(a, nq + nv * nv + nv);

@@ -62,6 +62,17 @@ enum {
     TREE_STEP_NONFINITE_TORQUE = 4
 };
 
+/* one_step.c: how a one-kernel step reads its tau (tree_step.TORQUE_*): the torques as
+ * given, the torques saturated (saturate_torque at the joint rates of u^S), or a joint
+ * impedance command (kernel_layouts.IMPEDANCE_COMMAND, 5 na entries) whose law
+ * (impedance_torque at the joint angles and rates of (q^S, u^S)) is then saturated */
+enum { TORQUE_AS_GIVEN = 0, TORQUE_SATURATED = 1, TORQUE_IMPEDANCE = 2 };
+
+/* τ = τ_ff + kp (q* − q) + kd (q̇* − q̇) per joint (n), at the joint angles q and rates qd; a
+ * NaN target or τ_ff leaves its term out (impedance.impedance_torque) */
+void impedance_torque(const impedance_command_t *c, const double *q, const double *qd,
+                      double *tau, i64 n);
+
 /* The per-step arrays of a one-kernel step; lengths from the model (nq: q's). */
 typedef struct {
     const double *q, *u, *tau, *f_ext;
@@ -80,9 +91,9 @@ typedef struct {
 const char *check_tree_model(const packed_model_t *m, i64 nv);
 const char *check_cut_model(const packed_model_t *cut, i64 na, i64 nv);
 
-tree_step_result_t tree_step_hard(int saturate, const step_arrays_t *x, const packed_model_t *m,
-                                  arena_t *a);
-tree_step_result_t tree_step_compliant(int saturate, const step_arrays_t *x, u8 *closed,
+tree_step_result_t tree_step_hard(int torque_mode, const step_arrays_t *x,
+                                  const packed_model_t *m, arena_t *a);
+tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, u8 *closed,
                                        u8 *slip, double *anchor, double *lam,
                                        const packed_model_t *m, arena_t *a);
 tree_step_result_t forest_step_hard(const step_arrays_t *x, int factor, double *angle_E,

@@ -1,0 +1,124 @@
+"""Joint impedance commands: the typed record `ImpedanceCommand` and its law, evaluated by
+the simulator at every physics step (not once per control message).
+
+Per actuated joint i (public joint order LF, RF, LH, RH x HAA, HFE, KFE):
+
+    τ_i = τ_ff,i + kp_i (q*_i − q_i) + kd_i (q̇*_i − q̇_i)
+
+then saturated like any joint torque (actuator.saturate_torque: the effort limit, and the
+velocity derating at the same joint rate q̇_i). q*, q̇*: the position and velocity targets,
+kp, kd ≥ 0 (finite) the stiffness and damping, τ_ff the feed-forward torque. A NaN in q*_i,
+q̇*_i or τ_ff,i leaves that term out for joint i (NaN q* with a kp: no spring; NaN q̇*: no
+damper; NaN τ_ff: none), so one record carries pure torque, pure damping, or full
+impedance, joint by joint. The sum is formed in this order, term by term (τ_ff, then the kp
+term, then the kd term), by the one C function `impedance_torque` that every path calls.
+
+Which state: (q, q̇) is the state at the START of each physics step, (q^S, u^S): the state
+at which the step's torque saturation already reads q̇ (so the law and the derating see the
+same rates), and the state a controller publishing at the physics rate would have measured:
+the law is a digital PD with a zero-order hold at Δt. With one physics step per control
+period an impedance step is therefore exactly the torque step of the torque the formula
+gives at the published state. The midpoint q^M (where h(q^M, u^S) is evaluated) would add
+an implicit damping ½Δt·kp to the law, a property of the step size rather than of the
+command, and for the cut joints of the extended and maximal coordinates it would need the
+cut-joint kinematics at q^M; the start state has neither drawback.
+
+Validation (`ImpedanceCommand.create`): a ValueError naming the field and the joints, for a
+wrong length, a negative or non-finite gain, or an infinite target or τ_ff (NaN is allowed
+there: it means "term off"); the ROS layer turns that into a throttled warning and keeps
+the last valid command.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import kernels as _kernels
+from .kernel_layouts import IMPEDANCE_COMMAND
+
+#: the command's fields, in the order of the packed layout (kernel_layouts.IMPEDANCE_COMMAND)
+FIELDS = tuple(f.name for f in IMPEDANCE_COMMAND.buffers[0].fields)
+#: the gains: finite and ≥ 0
+GAINS = ("kp", "kd")
+#: the fields in which NaN means "this term off"
+OPTIONAL_TERMS = ("position", "velocity", "effort")
+
+#: how a one-kernel step reads its torque argument (tree_step_hard, tree_step_compliant):
+#: as given, saturated, or an impedance command (5 per joint) whose law is then saturated
+TORQUE_AS_GIVEN = _kernels.TORQUE_AS_GIVEN
+TORQUE_SATURATED = _kernels.TORQUE_SATURATED
+TORQUE_IMPEDANCE = _kernels.TORQUE_IMPEDANCE
+
+#: ``impedance_torque(command, q, qd, out)``: out = the law of the packed command
+#: (ImpedanceCommand.packed, flat) at the joint angles q and rates qd (float64, one per joint)
+impedance_torque = _kernels.impedance_torque
+
+
+@dataclass(frozen=True, eq=False)
+class ImpedanceCommand:
+    """A joint impedance command (see the module docstring), one entry per actuated joint in
+    the public joint order. Build it with `create`, which validates; its arrays are read
+    only. Fields (paper-style symbols): position q* [rad], velocity q̇* [rad/s], kp [N m/rad],
+    kd [N m s/rad], effort τ_ff [N m]; `packed` holds them as one float64 buffer in the
+    order FIELDS, as the kernels read it."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+    effort: np.ndarray
+    packed: np.ndarray
+    joint_names: tuple
+
+    @classmethod
+    def create(cls, joint_names, position=None, velocity=0.0, kp=0.0, kd=0.0,
+               effort=0.0) -> "ImpedanceCommand":
+        """A validated command for the joints `joint_names` (their order). Each field is a
+        number (the same for every joint) or one value per joint; position None: no spring
+        (NaN), velocity 0: the damper pulls q̇ to rest (MuJoCo's position actuator), None:
+        no damper; effort None: no τ_ff. ValueError naming the field and the joints on a
+        wrong length, a negative or non-finite gain, or an infinite target or τ_ff."""
+        names = tuple(joint_names)
+        n = len(names)
+        given = dict(position=position, velocity=velocity, kp=kp, kd=kd, effort=effort)
+        arrays = {}
+        for name in FIELDS:
+            value = np.nan if given[name] is None else given[name]
+            try:
+                a = np.array(value, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"ImpedanceCommand: {name} must be numbers, got "
+                                 f"{value!r}") from None
+            if a.shape[0] == 1:
+                a = np.repeat(a, n)
+            if a.shape[0] != n:
+                raise ValueError(f"ImpedanceCommand: {name} must have {n} entries (joint "
+                                 f"order {', '.join(names)}) or one, got {a.shape[0]}")
+            if name in GAINS:
+                bad = ~(np.isfinite(a) & (a >= 0.0))
+                rule = "finite and >= 0"
+            else:
+                bad = np.isinf(a)
+                rule = "finite, or NaN for no such term"
+            if bad.any():
+                which = ", ".join(f"{names[i]} ({a[i]:g})" for i in np.flatnonzero(bad))
+                raise ValueError(f"ImpedanceCommand: {name} must be {rule}: {which}")
+            arrays[name] = a
+        packed = np.concatenate([arrays[name] for name in FIELDS])
+        packed.flags.writeable = False
+        views = {name: packed[k * n:(k + 1) * n] for k, name in enumerate(FIELDS)}
+        return cls(packed=packed, joint_names=names, **views)
+
+    def torque(self, q, qd) -> np.ndarray:
+        """The law's torques (before saturation) at joint angles q and rates qd (public
+        order), by the kernels' own function: what a step applies, bit for bit, before
+        actuator.saturate_torque."""
+        n = len(self.joint_names)
+        q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1)
+        qd = np.ascontiguousarray(qd, dtype=np.float64).reshape(-1)
+        if q.shape[0] != n or qd.shape[0] != n:
+            raise ValueError(f"ImpedanceCommand.torque: q and qd need {n} entries")
+        out = np.empty(n)
+        impedance_torque(self.packed, q, qd, out)
+        return out
