@@ -41,6 +41,7 @@ LAUNCH_TAGS = {
     "arg": {"launch"},
     "node": {"launch_ros"},
     "param": {"launch_ros"},
+    "remap": {"launch_ros"},
 }
 
 
