@@ -14,6 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from starleth_interface.compile_notice import Deadline
+from starleth_sim.ros.child_process import start_child_as_node
 from starleth_sim.ros.discovery import keep_discovery_local, local_discovery_env
 
 keep_discovery_local()     # the test nodes (this process) and every child: this host only
@@ -40,7 +41,8 @@ class NodeProcess:
         self.log_path = log_path
         self._log = open(log_path, "w")
         self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
-                                     stderr=subprocess.STDOUT, env=env, preexec_fn=preexec_fn)
+                                     stderr=subprocess.STDOUT, env=env,
+                                     preexec_fn=start_child_as_node(preexec_fn))
 
     def alive(self):
         return self.proc.poll() is None

@@ -46,6 +46,7 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, T
 
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
+from ..ros.child_process import start_child_as_node
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bag import BagError, stream_bag
 from .bench_round_trips import measure_bare_round_trips
@@ -139,7 +140,8 @@ class NodeProcess:
         self.name, self.log_path = name, log_path
         self._log = open(log_path, "w")
         self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
-                                     stderr=subprocess.STDOUT, env=env)
+                                     stderr=subprocess.STDOUT, env=env,
+                                     preexec_fn=start_child_as_node())
 
     def alive(self) -> bool:
         return self.proc.poll() is None
