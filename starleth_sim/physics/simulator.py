@@ -151,9 +151,26 @@ class Simulator:
             Wt = np.zeros((c.n_contacts, 3, c.nv))
             g = self.stepper.ground
             c.contact_kinematics(q, g, gap, pos, Wt)
-            for iq in c.root_q:  # every floating body of the coordinate set
-                q[iq:iq + 3] -= g.n * (gap.min() + self.REST_OVERLAP)
+            if g.flat:
+                for iq in c.root_q:  # every floating body of the coordinate set
+                    q[iq:iq + 3] -= g.n * (gap.min() + self.REST_OVERLAP)
+            else:
+                self._rest_on_terrain(q, gap, pos, Wt)
         return q
+
+    def _rest_on_terrain(self, q, gap, pos, Wt, iterations=8):
+        """Lowers (or raises) q vertically until its lowest contact rests on the terrain
+        (g_N = −REST_OVERLAP; the surfaces' normals are not vertical, so a few rounds)."""
+        c, g = self.coords, self.stepper.ground
+        frames = np.zeros((c.n_contacts, 10))
+        for _ in range(iterations):
+            c.contact_kinematics(q, g, gap, pos, Wt, np.inf, frames)
+            i = int(np.argmin(gap))
+            dz = (gap[i] + self.REST_OVERLAP) / frames[i, 2]
+            for iq in c.root_q:
+                q[iq + 2] -= dz
+            if abs(gap[i] + self.REST_OVERLAP) < 1e-12:
+                break
 
     def reset(self, q=None, u=None, t: float = 0.0, minimal: bool = False):
         """Set the state (default: `default_state()` at rest). With minimal=True, q and u are
@@ -275,8 +292,14 @@ class Simulator:
 
     def contact_impulses(self) -> np.ndarray:
         """Λ of every contact point (order of contact_names) in the world frame, summed over
-        the last control period (nc x 3) [N s]."""
-        return self._impulse @ self.stepper.ground.frame     # frame rows: n, t1, t2
+        the last control period (nc x 3) [N s]. On a terrain each contact's impulse is turned
+        by the frame of its surface at the last physics step (with several physics steps
+        per control period, their impulses are summed in that frame)."""
+        ground = self.stepper.ground
+        if ground.flat:
+            return self._impulse @ ground.frame     # frame rows: n, t1, t2
+        frames = self.stepper.frames[:, :9].reshape(-1, 3, 3)
+        return np.einsum("ik,ikj->ij", self._impulse, frames)
 
     def contact_forces(self) -> np.ndarray:
         """F = Λ/Δt of every contact point in the world frame over the last control period
@@ -308,7 +331,8 @@ class Simulator:
         normal = lam[:, 0] > 0.0
         if self.stepper.hard:
             tangential = np.hypot(lam[:, 1], lam[:, 2])
-            slip = tangential >= (1.0 - SLIP_TOLERANCE) * self.stepper.ground.mu * lam[:, 0]
+            mu = self.stepper.ground.mu if self.stepper.ground.flat else self.stepper.frames[:, 9]
+            slip = tangential >= (1.0 - SLIP_TOLERANCE) * mu * lam[:, 0]
         else:
             slip = self.state.slip
         return np.where(normal, np.where(slip, 2, 1), 0)
