@@ -65,7 +65,7 @@ import yaml
 
 from .config_checks import (ConfigError, check_bool as _bool, check_choice as _choice,
                             check_int as _int, check_number as _num, check_str as _str,
-                            fmt_bound as _fmt, short_repr as _short)
+                            fmt_bound as _fmt)
 from .description import package_share_dir
 from .terrain import TerrainConfig
 

@@ -50,10 +50,10 @@ _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModel
 #       transform of its M and h into ours (the cross-check of rigid_body in
 #       test/test_kinematics_dynamics.py);
 #   tree_dynamics(q, u, <tree>, mass, lever, inertia, gravity, M, h): M and h at (q, u);
-#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, n, t1, t2, offset, jacobian_gap, qM,
-#       M, h, gap, position, Wt, terrain, frames): what a step needs at its midpoint, over one forward
-#       kinematics: q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S), the contacts' g_N,
-#       positions and W^T at q^M;
+#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, n, t1, t2, offset, jacobian_gap,
+#       qM, M, h, gap, position, Wt, terrain, frames): what a step needs at its midpoint,
+#       over one forward kinematics: q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S),
+#       the contacts' g_N, positions, W^T and surface frames (with μ) at q^M;
 #   add_at(h, idx, values): h[idx[k]] += values[k];
 #   rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h): h = [m g; −ω × Θ ω]
 #       per free body (frames at the CoM, inertial linear velocity);
