@@ -166,7 +166,7 @@ class Simulator:
         for _ in range(iterations):
             c.contact_kinematics(q, g, gap, pos, Wt, np.inf, frames)
             i = int(np.argmin(gap))
-            dz = (gap[i] + self.REST_OVERLAP) / frames[i, 2]
+            dz = (gap[i] + self.REST_OVERLAP) / max(frames[i, 2], 0.1)
             for iq in c.root_q:
                 q[iq + 2] -= dz
             if abs(gap[i] + self.REST_OVERLAP) < 1e-12:
