@@ -15,6 +15,7 @@ from starleth_sim.physics.config import ConfigError, PhysicsConfig
 from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_urdf
 from starleth_sim.physics.posture import PostureHold
 from starleth_sim.physics.terrain import TerrainConfig, pack_terrain, terrain_height
+from starleth_sim.tools.bench_terrain import terrain_rounds, terrains
 
 R = 0.1    # the test sphere's radius [m]
 
@@ -58,7 +59,7 @@ def test_rough_heights_stay_within_the_amplitude_and_follow_the_seed():
     cfg = {"amplitude": 0.015, "wavelength": 0.3, "seed": 7, "size": 3.0}
     p = packed(rough=cfg)
     nx, ny = int(p[1]), int(p[2])
-    h = p[8:].reshape(nx, ny)
+    h = p[14:].reshape(nx, ny)
     assert np.abs(h).max() <= 0.015 + 1e-15
     assert np.abs(h).max() > 0.9 * 0.015                     # scaled to the amplitude
     assert np.all(h[0] == 0) and np.all(h[:, -1] == 0)        # faded out at the border
@@ -304,3 +305,10 @@ def test_robot_stands_on_terrain(preset, terrain):
     assert support == pytest.approx(weight, rel=0.03)
     if sim.config.contact_model == "hard":
         assert worst >= -1e-4, f"penetration {-worst * 1e3:.3f} mm"
+
+
+def test_terrain_bench_runs_the_three_grounds():
+    """starleth-bench --terrain's measurement (its figures go to doc/performance.md): the
+    three grounds, each standing the same (the tiles and the heightfield are flat, 1 cm up)."""
+    figures = terrain_rounds(rounds=1, steps=5)
+    assert list(figures) == list(terrains()) and all(v > 0 for v in figures.values())

@@ -42,7 +42,14 @@ import numpy as np
 from .config_checks import ConfigError, check_int, check_number, short_repr
 
 #: the floats of the packed terrain's header (csrc/terrain.c TERRAIN_HEADER)
-TERRAIN_HEADER = 8
+TERRAIN_HEADER = 14
+#: a box is tested for the contacts whose centre lies within this of its bounds in x and y
+#: [m]: the gap to a box farther away is > BOX_REACH − r, and such a gap is the plane's or
+#: another surface's (a contact only needs exact gaps near its surfaces)
+BOX_REACH = 0.1
+#: the side of the bins of the boxes [m], and their most per side
+BIN_SIZE = 0.25
+MAX_BINS = 512
 #: the floats per packed box (csrc/terrain.c BOX_STRIDE)
 BOX_STRIDE = 11
 MAX_BOXES = 10_000
@@ -125,7 +132,7 @@ def _grid_heights(path, v, scale):
 def _png_heights(path, file):
     """A grey PNG's values in [0, 1] (8 or 16 bits)."""
     try:
-        from PIL import Image      # optional: Pillow (comes with matplotlib)
+        from PIL import Image  # deferred: Pillow is optional (with matplotlib), for PNGs only
     except ImportError:
         raise ConfigError(f"{path}: reading a PNG needs Pillow (pip install pillow)") from None
     try:
@@ -297,32 +304,57 @@ def pack_terrain(terrain: TerrainConfig | None, ground_height=0.0, ground_mu=0.8
     heightfield's heights; a surface without μ gets the ground's."""
     boxes = [] if terrain is None else terrain.all_boxes(ground_height)
     grid = None if terrain is None else terrain.grid(ground_height)
-    out = np.zeros(TERRAIN_HEADER + BOX_STRIDE * len(boxes) +
-                   (grid[2].size if grid is not None else 0))
-    out[0] = len(boxes)
-    out[7] = ground_mu
+    header = np.zeros(TERRAIN_HEADER)
+    header[0] = len(boxes)
+    header[7] = ground_mu
+    packed_boxes = np.zeros((len(boxes), BOX_STRIDE))
     for k, b in enumerate(boxes):
         c, s, yaw = b["centre"], b["size"], b["yaw"]
         cs, sn = math.cos(yaw), math.sin(yaw)
         hx, hy = 0.5 * s[0], 0.5 * s[1]
-        o = TERRAIN_HEADER + BOX_STRIDE * k
-        out[o:o + BOX_STRIDE] = [c[0], c[1], c[2], hx, hy, 0.5 * s[2], cs, sn,
-                                 ground_mu if b["mu"] is None else b["mu"],
-                                 abs(cs) * hx + abs(sn) * hy, abs(sn) * hx + abs(cs) * hy]
+        packed_boxes[k] = [c[0], c[1], c[2], hx, hy, 0.5 * s[2], cs, sn,
+                           ground_mu if b["mu"] is None else b["mu"],
+                           abs(cs) * hx + abs(sn) * hy, abs(sn) * hx + abs(cs) * hy]
+    bins = _bins(packed_boxes, header)
+    heights = np.zeros(0)
     if grid is not None:
         origin, cell, heights, mu = grid
-        out[1], out[2] = heights.shape
-        out[3], out[4], out[5] = origin[0], origin[1], cell
-        out[6] = ground_mu if mu is None else mu
-        out[TERRAIN_HEADER + BOX_STRIDE * len(boxes):] = heights.ravel()
-    return out
+        header[1], header[2] = heights.shape
+        header[3], header[4], header[5] = origin[0], origin[1], cell
+        header[6] = ground_mu if mu is None else mu
+    return np.concatenate([header, packed_boxes.ravel(), *bins, np.ravel(heights)])
+
+
+def _bins(boxes, header):
+    """The xy bins of the boxes (their bounds grown by BOX_REACH): (starts, items), and
+    the bins' origin, size and counts into the header."""
+    if not len(boxes):
+        return ()
+    lo = np.stack([boxes[:, 0] - boxes[:, 9], boxes[:, 1] - boxes[:, 10]], 1) - BOX_REACH
+    hi = np.stack([boxes[:, 0] + boxes[:, 9], boxes[:, 1] + boxes[:, 10]], 1) + BOX_REACH
+    x0, y0 = lo.min(axis=0)
+    extent = max(hi[:, 0].max() - x0, hi[:, 1].max() - y0)
+    size = max(BIN_SIZE, extent / MAX_BINS)
+    nbx = max(1, math.ceil((hi[:, 0].max() - x0) / size))
+    nby = max(1, math.ceil((hi[:, 1].max() - y0) / size))
+    members = [[] for _ in range(nbx * nby)]
+    for k in range(len(boxes)):
+        i0, j0 = np.floor((lo[k] - (x0, y0)) / size).astype(int)
+        i1, j1 = np.floor((hi[k] - (x0, y0)) / size).astype(int)
+        for i in range(max(i0, 0), min(i1, nbx - 1) + 1):
+            for j in range(max(j0, 0), min(j1, nby - 1) + 1):
+                members[i * nby + j].append(k)
+    starts = np.cumsum([0] + [len(m) for m in members])
+    header[8:14] = [x0, y0, size, nbx, nby, starts[-1]]
+    return starts.astype(float), np.array([k for m in members for k in m], dtype=float)
 
 
 def terrain_height(packed, x, y):
     """The highest surface of a packed terrain above (x, y) from the plane z = 0 up: the
     boxes' tops and the heightfield (for tests and tools; the plane's own height is not
     included)."""
-    nbox = int(packed[0])
+    nbox, nbx, nby, n_items = int(packed[0]), int(packed[11]), int(packed[12]), \
+        int(packed[13])
     best = -math.inf
     for k in range(nbox):
         b = packed[TERRAIN_HEADER + BOX_STRIDE * k:][:BOX_STRIDE]
@@ -333,7 +365,8 @@ def terrain_height(packed, x, y):
     nx, ny = int(packed[1]), int(packed[2])
     if nx:
         x0, y0, cell = packed[3:6]
-        hs = packed[TERRAIN_HEADER + BOX_STRIDE * nbox:].reshape(nx, ny)
+        o = TERRAIN_HEADER + BOX_STRIDE * nbox + (nbx * nby + 1 if nbox else 0) + n_items
+        hs = packed[o:].reshape(nx, ny)
         u, v = (x - x0) / cell, (y - y0) / cell
         if 0 <= u <= nx - 1 and 0 <= v <= ny - 1:
             i, j = min(int(u), nx - 2), min(int(v), ny - 2)

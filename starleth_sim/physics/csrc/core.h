@@ -246,6 +246,7 @@ void contact_kinematics(const double *q, const tree_t *t, const frames_t *f,
  * the plane of g and its terrain: its gap, and its frame and μ into out (FRAME_STRIDE);
  * terrain_is_flat: the terrain holds the plane alone */
 int terrain_is_flat(const ground_t *g);
+double terrain_plane_mu(const ground_t *g);
 double terrain_contact(const ground_t *g, const double *c, double r, double *out);
 
 /* ---------------------------------------------------------------------------------------

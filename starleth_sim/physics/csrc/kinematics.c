@@ -128,7 +128,7 @@ void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *
     i64 nv = t->nv;
     const double *oR = f->oR, *op = f->op;
     int flat = terrain_is_flat(g);
-    double plane_mu = g->n_terrain >= 8 ? g->terrain[7] : 0.0;
+    double plane_mu = terrain_plane_mu(g);
     double J[3 * nv + 1]; /* (+1: never a zero-length array) */
     double ci[3], fr[FRAME_STRIDE];
     for (i64 i = 0; i < c->nc; i++) {

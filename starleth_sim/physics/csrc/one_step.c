@@ -14,7 +14,7 @@ const char *check_tree_model(const packed_model_t *m, i64 nv) {
     if (ints[TREE_STEP_MODEL_NJ] < 1 || ints[TREE_STEP_MODEL_NC] < 0 ||
         ints[TREE_STEP_MODEL_NA] < 0 || ints[TREE_STEP_MODEL_NV] != nv)
         return "TreeStepModel: sizes (nj, nc, na, nv) do not match the state";
-    if (ints[TREE_STEP_MODEL_NT] < 8) return "TreeStepModel: the packed terrain lacks its header";
+    if (ints[TREE_STEP_MODEL_NT] < 14) return "TreeStepModel: the packed terrain lacks its header";
     tree_model_t t;
     if (!unpack_tree_model(m, &t)) return "TreeStepModel: buffer lengths do not match its sizes";
     return NULL;

@@ -1,18 +1,26 @@
 /* The contact query against the terrain (terrain.py): the ground plane, yawed boxes and a
  * bilinear heightfield, packed into one float array by terrain.pack_terrain:
- *   header (TERRAIN_HEADER): n_box, nx, ny, x0, y0, cell, μ of the heightfield, μ of the plane
+ *   header (TERRAIN_HEADER): n_box, nx, ny, x0, y0, cell, μ of the heightfield, μ of the
+ *                            plane, the bins' bx0, by0, size, nbx, nby, and n_items
  *   boxes (n_box x BOX_STRIDE): centre (3), half sizes (3), cos ψ, sin ψ, μ, and the half
  *                               sizes of the box's axis-aligned bounds in x and y
+ *   bins (with boxes: nbx x nby + 1 starts, then n_items box indices): the boxes whose
+ *        bounds, grown by terrain.BOX_REACH, overlap bin (i, j) of the xy grid of squares of
+ *        `size` from (bx0, by0); a contact tests the boxes of its centre's bin only
  *   heights (nx x ny): h[ix * ny + iy] at (x0 + ix cell, y0 + iy cell)
  * The surface rule: each contact sphere takes the surface with the smallest gap; a tie goes
  * to the first in the order plane, boxes (as listed), heightfield. */
 #include "core.h"
 
-#define TERRAIN_HEADER 8
+#define TERRAIN_HEADER 14
 #define BOX_STRIDE 11
 
 int terrain_is_flat(const ground_t *g) {
     return g->n_terrain < TERRAIN_HEADER || (g->terrain[0] == 0.0 && g->terrain[1] == 0.0);
+}
+
+double terrain_plane_mu(const ground_t *g) {
+    return g->n_terrain >= TERRAIN_HEADER ? g->terrain[7] : 0.0;
 }
 
 /* _tangents: (n, t1, t2, μ) into out; t1 the projection of the world x axis (y if n is
@@ -116,10 +124,20 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
     const double *bn = n;
     double nb[3], mu = plane_mu;
     int from_plane = 1;
-    i64 nbox = (i64)T[0];
-    const double *boxes = T + TERRAIN_HEADER;
-    for (i64 k = 0; k < nbox; k++) {
-        const double *b = boxes + BOX_STRIDE * k;
+    i64 nbox = (i64)T[0], nbx = (i64)T[11], nby = (i64)T[12];
+    const double *boxes = T + TERRAIN_HEADER, *bins = boxes + BOX_STRIDE * nbox;
+    const double *items = bins + (nbox ? nbx * nby + 1 : 0), *heights = items + (i64)T[13];
+    i64 first = 0, last = 0;
+    if (nbox) {
+        double u = floor((c[0] - T[8]) / T[10]), v = floor((c[1] - T[9]) / T[10]);
+        if (u >= 0.0 && v >= 0.0 && u < (double)nbx && v < (double)nby) {
+            i64 bin = (i64)u * nby + (i64)v;
+            first = (i64)bins[bin];
+            last = (i64)bins[bin + 1];
+        }
+    }
+    for (i64 it = first; it < last; it++) {
+        const double *b = boxes + BOX_STRIDE * (i64)items[it];
         /* a lower bound of the distance: outside the box's axis-aligned bounds */
         double lb = py_max(py_max(fabs(c[0] - b[0]) - b[9], fabs(c[1] - b[1]) - b[10]),
                            fabs(c[2] - b[2]) - b[5]);
@@ -137,7 +155,7 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
     }
     if (T[1] > 0.0) {
         double h, nh[3];
-        if (heightfield(T, boxes + BOX_STRIDE * nbox, c, &h, nh)) {
+        if (heightfield(T, heights, c, &h, nh)) {
             double gh = (c[2] - h) * nh[2] - r;
             if (gh < best) {
                 best = gh;
