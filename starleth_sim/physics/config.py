@@ -44,6 +44,17 @@ solver.tol_abs                 [0, 1000] N s                an impulse (and tol_
 solver.max_iterations          integer [1, 1 000 000]       a cap per solve that still ends
 solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
 bilateral.stabilization        [0, 1]                       β of the drift correction
+terrain.boxes                  <= 10 000; centre within     positions near the robot; a box
+                               +-1000 m, size (0, 1000] m,  has a volume; μ as ground.mu
+                               yaw [-2π, 2π], μ [0, 10]
+terrain.heightfield            2 to 4096 points a side,     a grid a kernel can hold; cell
+                               cell (0, 100] m, heights     and heights on the robot's scale
+                               within +-1000 m
+terrain.stairs / slope /       rise (0, 1] m, run (0, 10]   steps a legged robot meets;
+rough                          m, count [1, 100]; angle     slopes up to 45°; amplitude up
+                               (0, 45]°, length (0, 100] m; to 0.5 m (physics/terrain.py)
+                               amplitude (0, 0.5] m,
+                               wavelength (0, 100] m
 paper                          names: finite numbers or     figures for reports only
                                strings
 =============================  ===========================  ================================
