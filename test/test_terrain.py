@@ -16,6 +16,8 @@ from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_
 from starleth_sim.physics.posture import PostureHold
 from starleth_sim.physics.terrain import TerrainConfig, pack_terrain, terrain_height
 from starleth_sim.tools.bench_terrain import terrain_rounds, terrains
+from starleth_sim.tools.view_recording import terrain_from_metadata
+from starleth_sim.tools.view_scene import terrain_objects
 
 R = 0.1    # the test sphere's radius [m]
 
@@ -312,3 +314,42 @@ def test_terrain_bench_runs_the_three_grounds():
     three grounds, each standing the same (the tiles and the heightfield are flat, 1 cm up)."""
     figures = terrain_rounds(rounds=1, steps=5)
     assert list(figures) == list(terrains()) and all(v > 0 for v in figures.values())
+
+
+# -- starleth-view draws the recorded terrain --------------------------------------------
+
+class _Bag:
+    """What terrain_from_metadata reads of a bag: its metadata."""
+
+    def __init__(self, config):
+        text = yaml.safe_dump(config.to_dict(), sort_keys=False)
+        self.metadata = {"starleth_sim": {"physics_config": text}}
+
+
+def test_view_draws_the_recorded_terrain(capsys):
+    """The bag's physics YAML (what sim_node records) gives starleth-view the terrain: each
+    box of the stairs where the generator puts it, the heightfield as a mesh through its
+    grid points (every k-th of a 300 x 300 grid: at most 128 a side); a recorded terrain
+    that is not valid is not drawn, with a warning."""
+    heights = np.random.default_rng(0).uniform(0.0, 0.02, (300, 300))
+    cfg = load_preset("HmJ").with_overrides(
+        stairs={"rise": 0.04, "run": 0.25, "count": 3, "start": 0.5},
+        heightfield={"origin": [-3.0, -3.0], "cell": 0.02, "heights": heights})
+    terrain = terrain_from_metadata(_Bag(cfg), "bag.mcap")
+    objects = dict(terrain_objects(terrain))
+    assert [k for k in objects if k.startswith("box")] == ["box0", "box1", "box2"]
+    box = objects["box1"]
+    assert box["geometries"][0]["depth"] == pytest.approx(0.08)
+    assert box["object"]["matrix"][12:15] == pytest.approx([0.5 + 1.5 * 0.25, 0.0, 0.04])
+    mesh = objects["heightfield"]["geometries"][0]["data"]
+    pts = np.array(mesh["attributes"]["position"]["array"]).reshape(-1, 3)
+    assert len(pts) <= 128 ** 2 and len(mesh["index"]["array"]) % 3 == 0
+    ix = np.round((pts[:, 0] + 3.0) / 0.02).astype(int)
+    iy = np.round((pts[:, 1] + 3.0) / 0.02).astype(int)
+    np.testing.assert_allclose(pts[:, 2], heights[ix, iy], atol=1e-5)
+    assert {ix.min(), ix.max(), iy.max()} == {0, 299}                # the grid's corners
+    bad = _Bag(cfg)
+    bad.metadata["starleth_sim"]["physics_config"] = yaml.safe_dump(
+        {"terrain": {"stairs": {"rise": -1, "run": 0.3, "count": 2}}})
+    assert terrain_from_metadata(bad, "bag.mcap") is None
+    assert "terrain is not valid, not drawn" in capsys.readouterr().err
