@@ -198,6 +198,49 @@ def test_foot_resting_at_a_step_edge_does_not_chatter():
     assert np.abs(np.diff(normals, axis=0)).max() < 0.05      # continuously
 
 
+@pytest.mark.parametrize("preset,terrain", [("HmJ", "stairs"), ("Cm", "rough"),
+                                            ("HESD", "step"), ("HMJP", "slope")])
+def test_every_step_path_gives_the_same_terrain_run_bit_for_bit(preset, terrain):
+    """On a terrain, the one-kernel step, the profiled phase-by-phase step and the prepared
+    step (Simulator.prepare, then a push) carry each contact's surface frame and μ alike:
+    the same run, bit for bit (a dropped robot: impacts on the terrain, then standing)."""
+    runs = []
+    for mode in ("kernel", "profile", "prepare"):
+        sim = Simulator.from_preset(preset, profile=mode == "profile", **TERRAINS[terrain])
+        q = sim.q
+        q[2] += 0.03
+        sim.reset(q)
+        hold = PostureHold(sim.joint_positions())
+        impulses = []
+        for k in range(150):
+            if mode == "prepare":
+                sim.prepare()
+            if k == 60:
+                sim.apply_wrench("base", [30.0, -10.0, 0.0], [0.0, 2.0, 1.0])
+            sim.step(hold.torque(sim))
+            impulses.append(sim.contact_impulses())
+        runs.append((sim.q, sim.u, np.array(impulses), sim.stepper.frames.copy()))
+    for other in runs[1:]:
+        for a, b in zip(runs[0], other):
+            np.testing.assert_array_equal(a, b)
+    assert np.abs(runs[0][2]).sum() > 0       # on the terrain
+
+
+def test_png_heightfield_is_read_with_its_scale(tmp_path):
+    """A grey PNG (8 bits): rows are x, columns y; white is `scale` metres, black 0."""
+    from PIL import Image  # deferred: Pillow is optional (it comes with matplotlib)
+    grey = np.array([[0, 255, 51], [102, 0, 255]], dtype=np.uint8)
+    Image.fromarray(grey, mode="L").save(tmp_path / "h.png")
+    t = TerrainConfig(heightfield={"origin": [0, 0], "cell": 0.5,
+                                   "heights": str(tmp_path / "h.png"), "scale": 0.1})
+    t.validate("terrain")
+    np.testing.assert_allclose(t.heightfield["heights"], grey / 255 * 0.1, rtol=1e-15)
+    t = TerrainConfig(heightfield={"origin": [0, 0], "cell": 0.5,
+                                   "heights": str(tmp_path / "h.png")})
+    with pytest.raises(ConfigError, match="a PNG needs heightfield.scale"):
+        t.validate("terrain")
+
+
 # -- the configuration -------------------------------------------------------------------
 
 def test_terrain_config_round_trips_through_the_recorded_dict_bit_for_bit(tmp_path):

@@ -205,7 +205,7 @@ typedef struct {
     i64 nb_LB;           /* LB's dimension (0: none) */
     patterns_t pat;
     i64 opened;
-    const double *frames; /* nc x FRAME_STRIDE: the contacts' μ (NULL: settings_t.mu) */
+    const double *mu;     /* nc: each contact's μ (a copy, from the arena; NULL: settings_t.mu) */
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------

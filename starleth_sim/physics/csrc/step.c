@@ -251,7 +251,7 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
         for (i64 r_ = 0; r_ < m - o; r_++) lam0[o + r_] = last_bilateral[r_];
     }
     for (i64 k = 0; k < na; k++)
-        mu_vec[k] = p->frames ? p->frames[FRAME_STRIDE * active[k] + 9] : s->mu;
+        mu_vec[k] = p->mu ? p->mu[active[k]] : s->mu;
     int attempts = fallback_factor > 0.0 ? 2 : 1;
     memcpy(lam, lam0, (size_t)m * sizeof(double));
     i64 it_sum = 0;
@@ -429,7 +429,12 @@ void contact_problem(const settings_t *s, const double *M, const double *uS, i64
     double t = kclock(timings);
     phase_minv(s, M, uS, nv, gap, nc, Wt_all, WtB, nb, bB, eps, dof_parent, factor, L,
                last_impulse, last_active, a, p);
-    p->frames = frames;
+    p->mu = NULL;
+    if (frames) { /* (copied: a prepared problem outlives the call) */
+        double *mu = arena_f(a, nc);
+        for (i64 i = 0; i < nc; i++) mu[i] = frames[FRAME_STRIDE * i + 9];
+        p->mu = mu;
+    }
     t = klap(timings, PHASE_M_INVERSE, t);
     if (p->ok && p->m != 0) {
         patterns_t full;
