@@ -116,8 +116,18 @@ def _grid_heights(path, v, scale):
             raise ConfigError(f"{path}: expected a list of rows of numbers")
         if len({len(r) for r in v}) != 1:
             raise ConfigError(f"{path}: the rows must have one length")
-        a = np.array([[check_number(f"{path}[{i}][{j}]", x) for j, x in enumerate(r)]
-                      for i, r in enumerate(v)], dtype=float)
+        if len(v) > MAX_GRID or len(v[0]) > MAX_GRID:    # (before walking it: YAML aliases
+            raise ConfigError(f"{path}: the grid must have 2 to {MAX_GRID} points a side, "
+                              f"got {len(v)} x {len(v[0])}")    # make big lists of few bytes)
+        try:
+            if any(isinstance(x, bool) for r in v for x in r):
+                raise TypeError
+            a = np.array(v, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            for i, r in enumerate(v):                   # the first bad entry, named
+                for j, x in enumerate(r):
+                    check_number(f"{path}[{i}][{j}]", x)
+            raise ConfigError(f"{path}: expected rows of numbers") from None
     if a.ndim != 2 or a.dtype.kind not in "fiu":
         raise ConfigError(f"{path}: expected a 2-d array of numbers, got shape {a.shape}")
     a = np.ascontiguousarray(a, dtype=float)
