@@ -392,9 +392,9 @@ class _Bag:
 def test_view_draws_the_recorded_terrain(capsys):
     """The bag's physics YAML (what sim_node records) gives starleth-view the terrain: each
     box of the stairs where the generator puts it, the heightfield as a mesh through its
-    grid points (every k-th of a 300 x 300 grid: at most 128 a side); a recorded terrain
+    grid points (every other point of a 150 x 150 grid: at most 128 a side); a recorded terrain
     that is not valid is not drawn, with a warning."""
-    heights = np.random.default_rng(0).uniform(0.0, 0.02, (300, 300))
+    heights = np.random.default_rng(0).uniform(0.0, 0.02, (150, 150))
     cfg = load_preset("HmJ").with_overrides(
         stairs={"rise": 0.04, "run": 0.25, "count": 3, "start": 0.5},
         heightfield={"origin": [-3.0, -3.0], "cell": 0.02, "heights": heights})
@@ -410,7 +410,7 @@ def test_view_draws_the_recorded_terrain(capsys):
     ix = np.round((pts[:, 0] + 3.0) / 0.02).astype(int)
     iy = np.round((pts[:, 1] + 3.0) / 0.02).astype(int)
     np.testing.assert_allclose(pts[:, 2], heights[ix, iy], atol=1e-5)
-    assert {ix.min(), ix.max(), iy.max()} == {0, 299}                # the grid's corners
+    assert {ix.min(), ix.max(), iy.max()} == {0, 149}                # the grid's corners
     bad = _Bag(cfg)
     bad.metadata["starleth_sim"]["physics_config"] = yaml.safe_dump(
         {"terrain": {"stairs": {"rise": -1, "run": 0.3, "count": 2}}})

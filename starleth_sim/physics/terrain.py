@@ -8,8 +8,10 @@ The plane is the `ground` section (height, normal, μ), as before; `terrain` add
   (yaw in radians about z, default 0; μ default ground.mu). Steps and stairs are boxes.
 - ``heightfield``: one grid ``{origin: [x0, y0], cell: c, heights: ..., mu: μ}``: the
   heights h[ix][iy] at (x0 + ix·c, y0 + iy·c), given inline (a list of nx rows of ny
-  numbers, nx, ny >= 2), as the path of a ``.npy`` file (nx x ny) or of a grey PNG
-  (``scale``: the height of white, black is 0; rows of the image are x, columns y). The
+  numbers, nx, ny >= 2), as the path of a ``.npy`` file (nx x ny), of a grey PNG
+  (``scale``: the height of white, black is 0; rows of the image are x, columns y) or as
+  ``{shape: [nx, ny], float64: <base64 of the little-endian doubles>}`` (how `to_dict`, hence
+  a recording, writes it). The
   surface is bilinear in each cell; outside the grid there is no heightfield.
 - generators: ``stairs: {rise, run, count, start, width, landing, mu}`` (boxes: step k of
   height k·rise from x = start + (k−1)·run, the last one `landing` long),
@@ -33,6 +35,8 @@ floor) the contact takes the nearer one only.
 """
 from __future__ import annotations
 
+import base64
+import binascii
 import math
 import os
 from dataclasses import dataclass, field
@@ -94,6 +98,8 @@ def _grid_heights(path, v, scale):
     """The heights (nx x ny float array) of an inline list, a .npy file or a grey PNG."""
     if isinstance(v, np.ndarray):           # validated before (a copy with overrides)
         a = v
+    elif isinstance(v, dict):               # to_dict's form: {shape, float64 (base64)}
+        a = _packed_heights(path, v)
     elif isinstance(v, str):
         if not os.path.isfile(v):
             raise ConfigError(f"{path}: no such file: {short_repr(v)}")
@@ -137,6 +143,25 @@ def _grid_heights(path, v, scale):
     if not np.all(np.isfinite(a)) or np.abs(a).max() > MAX_EXTENT:
         raise ConfigError(f"{path}: heights must be finite and within +-{MAX_EXTENT:g} m")
     return a
+
+
+def _packed_heights(path, v):
+    """The heights of {shape: [nx, ny], float64: base64 of the little-endian doubles}."""
+    _mapping(path, v, ("shape", "float64"), ("shape", "float64"))
+    shape = v["shape"]
+    if not isinstance(shape, (list, tuple)) or len(shape) != 2:
+        raise ConfigError(f"{path}.shape: expected [nx, ny], got {short_repr(shape)}")
+    nx, ny = (check_int(f"{path}.shape[{k}]", n, 2, MAX_GRID) for k, n in enumerate(shape))
+    if not isinstance(v["float64"], str) or len(v["float64"]) > 4 * nx * ny * 8 // 3 + 8:
+        raise ConfigError(f"{path}.float64: expected the base64 of {nx} x {ny} doubles")
+    try:
+        raw = base64.b64decode(v["float64"], validate=True)
+    except (binascii.Error, ValueError):
+        raise ConfigError(f"{path}.float64: not base64") from None
+    if len(raw) != 8 * nx * ny:
+        raise ConfigError(f"{path}.float64: {len(raw)} bytes, {nx} x {ny} doubles are "
+                          f"{8 * nx * ny}")
+    return np.frombuffer(raw, dtype="<f8").reshape(nx, ny).astype(float)
 
 
 def _png_heights(path, file):
@@ -254,12 +279,16 @@ class TerrainConfig:
 
     def to_dict(self) -> dict:
         """Plain data (YAML): a heightfield's heights inline, so the dict alone re-creates
-        the terrain (a recording's physics YAML needs no other file)."""
+        the terrain (a recording's physics YAML needs no other file), as {shape, float64: the
+        base64 of the little-endian doubles}: exact, and read fast (a 256 x 256 grid as a
+        YAML list of numbers takes PyYAML seconds)."""
         h = self.heightfield
         return {"boxes": [dict(b) for b in self.boxes],
                 "heightfield": None if h is None else
                 {"origin": list(h["origin"]), "cell": h["cell"],
-                 "heights": h["heights"].tolist(), "mu": h["mu"]},
+                 "heights": {"shape": list(h["heights"].shape), "float64": base64.b64encode(
+                     h["heights"].astype("<f8").tobytes()).decode("ascii")},
+                 "mu": h["mu"]},
                 "stairs": _plain(self.stairs), "slope": _plain(self.slope),
                 "rough": _plain(self.rough)}
 
