@@ -47,9 +47,9 @@ bilateral.stabilization        [0, 1]                       β of the drift corr
 terrain.boxes                  <= 10 000; centre within     positions near the robot; a box
                                +-1000 m, size (0, 1000] m,  has a volume; μ as ground.mu
                                yaw [-2π, 2π], μ [0, 10]
-terrain.heightfield            2 to 4096 points a side,     a grid a kernel can hold; cell
-                               cell (0, 100] m, heights     and heights on the robot's scale
-                               within +-1000 m
+terrain.heightfield            2 to 1024 points a side,     a recorded configuration stays
+                               cell (0, 100] m, heights     < 16 MiB (MAX_CONFIG_BYTES); cell
+                               within +-1000 m              and heights on the robot's scale
 terrain.stairs / slope /       rise (0, 1] m, run (0, 10]   steps a legged robot meets;
 rough                          m, count [1, 100]; angle     slopes up to 45°; amplitude up
                                (0, 45]°, length (0, 100] m; to 0.5 m (physics/terrain.py)

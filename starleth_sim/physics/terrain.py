@@ -57,7 +57,9 @@ MAX_BINS = 512
 #: the floats per packed box (csrc/terrain.c BOX_STRIDE)
 BOX_STRIDE = 11
 MAX_BOXES = 10_000
-MAX_GRID = 4096                     # points per side of a heightfield
+#: points per side of a heightfield: 1024² doubles are 8 MiB, 11 MiB of base64 in a
+#: recorded configuration (the configuration loader reads at most 16 MiB)
+MAX_GRID = 1024
 MAX_EXTENT = 1000.0                 # m: positions and sizes
 MAX_MU = 10.0
 ROUGH_WAVES = 8
