@@ -61,7 +61,8 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
     sim = Simulator.from_preset("HmJ")
     st, s = sim.stepper, sim.state
     nc, na = st.nc, sim.n_joints
-    sizes = {"nj": st.coords.tree.parent.shape[0], "nc": nc, "na": na, "nv": st.nv}
+    sizes = {"nj": st.coords.tree.parent.shape[0], "nc": nc, "na": na, "nv": st.nv,
+             "nt": st.ground.terrain.shape[0]}
 
     def step(floats):
         report = np.empty(report_size(nc, na))
@@ -100,8 +101,8 @@ def test_pack_writes_each_field_where_the_layout_says(preset):
     floats, ints, support, workspace = st._tree_model
     c = st.coords
     sizes = {"nj": c.tree.parent.shape[0], "nc": c.n_contacts, "na": c.joint_v.shape[0],
-             "nv": c.nv}
-    assert list(ints[:4]) == [sizes[k] for k in ("nj", "nc", "na", "nv")]
+             "nv": c.nv, "nt": st.ground.terrain.shape[0]}
+    assert list(ints[:5]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt")]
     for name, array in (("floats", floats), ("ints", ints), ("support", support)):
         assert array.shape[0] == length(TREE_STEP_MODEL, name, sizes)
     f = buffer_views(TREE_STEP_MODEL, "floats", floats, sizes)

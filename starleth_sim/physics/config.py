@@ -44,6 +44,17 @@ solver.tol_abs                 [0, 1000] N s                an impulse (and tol_
 solver.max_iterations          integer [1, 1 000 000]       a cap per solve that still ends
 solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
 bilateral.stabilization        [0, 1]                       β of the drift correction
+terrain.boxes                  <= 10 000; centre within     positions near the robot; a box
+                               +-1000 m, size (0, 1000] m,  has a volume; μ as ground.mu
+                               yaw [-2π, 2π], μ [0, 10]
+terrain.heightfield            2 to 1024 points a side,     a recorded configuration stays
+                               cell (0, 100] m, heights     < 16 MiB (MAX_CONFIG_BYTES); cell
+                               within +-1000 m              and heights on the robot's scale
+terrain.stairs / slope /       rise (0, 1] m, run (0, 10]   steps a legged robot meets;
+rough                          m, count [1, 100]; angle     slopes up to 45°; amplitude up
+                               (0, 45]°, length (0, 100] m; to 0.5 m (physics/terrain.py)
+                               amplitude (0, 0.5] m,
+                               wavelength (0, 100] m
 paper                          names: finite numbers or     figures for reports only
                                strings
 =============================  ===========================  ================================
@@ -63,11 +74,11 @@ from dataclasses import dataclass, field, fields, asdict
 
 import yaml
 
+from .config_checks import (ConfigError, check_bool as _bool, check_choice as _choice,
+                            check_int as _int, check_number as _num, check_str as _str,
+                            fmt_bound as _fmt)
 from .description import package_share_dir
-
-
-class ConfigError(ValueError):
-    """A configuration value is missing, of the wrong type, or out of range."""
+from .terrain import TerrainConfig
 
 
 # =========================================================================================
@@ -84,69 +95,6 @@ MAX_DAMPING = 1e6                                       # N s/m
 MAX_SLIP_VELOCITY = 1.0                                 # m/s
 MAX_GAP = 0.1                                           # m
 MAX_TOL_ABS = 1000.0                                    # N s
-
-
-def _fmt(x) -> str:
-    """A bound or value for a message: integers without exponent (10000, not 1e+04)."""
-    if isinstance(x, int) and not isinstance(x, bool):
-        return str(x)
-    x = float(x)
-    if math.isfinite(x) and x.is_integer() and abs(x) < 1e15:
-        return str(int(x))
-    return f"{x:g}"
-
-
-def _short(v, limit=60) -> str:
-    """repr(v), cut to `limit` characters (a hostile value must not flood the message)."""
-    r = repr(v) if not isinstance(v, int) or isinstance(v, bool) or abs(v) < 10 ** 30 \
-        else f"{'-' if v < 0 else ''}an integer of {len(str(abs(v)))} digits"
-    return r if len(r) <= limit else r[:limit - 3] + "..."
-
-
-def _num(path, v, lo=None, hi=None, lo_open=False, hi_open=False):
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ConfigError(f"{path}: expected a number, got {_short(v)}")
-    try:
-        x = float(v)
-    except OverflowError:      # an integer beyond the floats
-        x = math.inf if v > 0 else -math.inf
-    if not math.isfinite(x):
-        raise ConfigError(f"{path}: must be finite, got {_short(v)}")
-    if lo is not None and (x < lo or (lo_open and x == lo)):
-        raise ConfigError(f"{path}: must be {'>' if lo_open else '>='} {_fmt(lo)}, "
-                          f"got {_fmt(x)}")
-    if hi is not None and (x > hi or (hi_open and x == hi)):
-        raise ConfigError(f"{path}: must be {'<' if hi_open else '<='} {_fmt(hi)}, "
-                          f"got {_fmt(x)}")
-    return x
-
-
-def _int(path, v, lo=None, hi=None):
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise ConfigError(f"{path}: expected an integer, got {_short(v)}")
-    if lo is not None and v < lo:
-        raise ConfigError(f"{path}: must be >= {lo}, got {_short(v)}")
-    if hi is not None and v > hi:
-        raise ConfigError(f"{path}: must be <= {_fmt(hi)}, got {_short(v)}")
-    return int(v)
-
-
-def _choice(path, v, choices):
-    if not isinstance(v, str) or v not in choices:
-        raise ConfigError(f"{path}: must be one of {sorted(choices)}, got {_short(v)}")
-    return v
-
-
-def _bool(path, v):
-    if not isinstance(v, bool):
-        raise ConfigError(f"{path}: expected true or false, got {_short(v)}")
-    return v
-
-
-def _str(path, v):
-    if not isinstance(v, str):
-        raise ConfigError(f"{path}: expected a string, got {_short(v)}")
-    return v
 
 
 # =========================================================================================
@@ -412,10 +360,12 @@ class PhysicsConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     bilateral: BilateralConfig = field(default_factory=BilateralConfig)
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
+    #: boxes and a heightfield on the ground plane (physics/terrain.py)
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
     #: paper's figures for this configuration (Table 1), for benchmarks and reports
     paper: dict = field(default_factory=dict)
 
-    _SECTIONS = ("ground", "contact", "solver", "bilateral", "actuator")
+    _SECTIONS = ("ground", "contact", "solver", "bilateral", "actuator", "terrain")
 
     @property
     def dt(self) -> float:
@@ -499,7 +449,13 @@ class PhysicsConfig:
 
     @classmethod
     def from_yaml(cls, path: str) -> "PhysicsConfig":
-        return cls.from_dict(load_yaml_file(path), source=str(path))
+        data = load_yaml_file(path)
+        grid = data.get("terrain", None) if isinstance(data, dict) else None
+        grid = grid.get("heightfield") if isinstance(grid, dict) else None
+        if isinstance(grid, dict) and isinstance(grid.get("heights"), str):
+            # (a heightfield file is found next to the configuration)
+            grid["heights"] = os.path.join(os.path.dirname(str(path)), grid["heights"])
+        return cls.from_dict(data, source=str(path))
 
     def with_overrides(self, **overrides) -> "PhysicsConfig":
         """A validated copy with fields replaced; keys are unique field names (`alpha`) or
@@ -535,6 +491,7 @@ class PhysicsConfig:
         d["ground"]["normal"] = list(d["ground"]["normal"])
         d["contact"]["restitution_overrides"] = {k: list(v) for k, v in
                                                  d["contact"]["restitution_overrides"].items()}
+        d["terrain"] = self.terrain.to_dict()
         return d
 
 

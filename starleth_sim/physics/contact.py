@@ -7,12 +7,13 @@ reports of a control step (`ContactInfo`, `contact_states`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import kernels as _kernels
 from .kernel_layouts import COMPLIANT_LAW
+from .terrain import pack_terrain
 
 
 def tangent_basis(normal):
@@ -29,13 +30,22 @@ def tangent_basis(normal):
 
 @dataclass(frozen=True)
 class GroundPlane:
-    """The plane {x | n·x = n·p0}; p0 = (0, 0, height) so `height` is its height at the origin."""
+    """The plane {x | n·x = n·p0}; p0 = (0, 0, height) so `height` is its height at the origin;
+    and the terrain on it, packed (terrain.pack_terrain; None: the plane alone). The kernels
+    read the plane and the terrain; `terrain` is the packed array they get."""
 
     height: float = 0.0
     normal: tuple = (0.0, 0.0, 1.0)
     mu: float = 0.8
+    terrain: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
+        packed = pack_terrain(None, self.height, self.mu) if self.terrain is None \
+            else np.ascontiguousarray(self.terrain, dtype=float)
+        packed.setflags(write=False)
+        object.__setattr__(self, "terrain", packed)
+        #: the plane alone (no box, no heightfield): every contact's frame is the plane's
+        object.__setattr__(self, "flat", bool(packed[0] == 0 and packed[1] == 0))
         n, t1, t2 = tangent_basis(self.normal)
         object.__setattr__(self, "n", n)
         object.__setattr__(self, "t1", t1)
@@ -58,8 +68,8 @@ CompliantLaw = COMPLIANT_LAW.named_tuple(
 
 
 #: The compliant contact law of Alg. 1 for all contact points, at (q^M, u^S):
-#: ``compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, tangent1,
-#: tangent2, lam)`` with the fields of a `CompliantLaw` (a plain tuple will do). Each closed
+#: ``compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, frames,
+#: lam)`` with the fields of a `CompliantLaw` (a plain tuple will do). Each closed
 #: contact (g_N ≤ 0) is a spring-damper between its current point P and the point P0
 #: (`anchor`) where it was first detected or last re-anchored:
 #:     λ_N = max(−c_N g_N − d_N γ_N, 0)
@@ -68,7 +78,9 @@ CompliantLaw = COMPLIANT_LAW.named_tuple(
 #:     slip:  λ_T = −μλ_N γ_T/‖γ_T‖; it sticks again (P0 reset to P) once ‖γ_T‖ ≈ 0 or the
 #:            force the re-anchored spring-damper would give, −d_T γ_T, is inside the cone.
 #: Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
-#: in the contact frame (n, t1, t2); the state arrays are updated in place.
+#: in each contact's frame (n, t1, t2), `frames` (nc x 10) holding that frame and its μ per
+#: contact (written by the contact kinematics: the plane's, or the terrain surface's); the
+#: state arrays are updated in place.
 #: ``generalized_contact_force(Wt, lam, out)``: out += Σ_i W_i λ_i (W_i = Wt[i]^T), the
 #: compliant forces' contribution to h.
 compliant_contact_forces = _kernels.compliant_contact_forces

@@ -82,3 +82,32 @@ def control_step_diagnostics(prev: Diagnostics, figures, step_time: float,
         step_time, prev.physics_steps + len(figures),
         prev.nonconverged_steps + nonconverged,
         prev.loaded_contacts_opened_total + opened, timings)
+
+
+class StepWarnings:
+    """Warns through `log` (the first time, then every 1000th) of a control step that did not
+    converge or that opened loaded contacts by the gap test alone (contact.activation
+    `activation`). Call it with a step's Diagnostics and its end time; returns them."""
+
+    def __init__(self, log, activation: str):
+        self.log = log
+        self.activation = activation
+        self.nonconverged = 0
+        self.opened = 0
+
+    def __call__(self, d: "Diagnostics", t: float) -> "Diagnostics":
+        if not d.converged:
+            self.nonconverged += 1
+            if self.nonconverged == 1 or self.nonconverged % 1000 == 0:
+                self.log.warning("t=%.4f s: prox iteration did not converge (%s, %d "
+                                 "iterations, residual %.3g N s); %d such steps so far", t,
+                                 d.status, d.max_iterations_step, d.residual,
+                                 d.nonconverged_steps)
+        if d.loaded_contacts_opened:
+            self.opened += 1
+            if self.opened == 1 or self.opened % 1000 == 0:
+                self.log.warning("t=%.4f s: %d loaded contact(s) left the active set by the "
+                                 "gap test alone (contact.activation '%s'); %d so far", t,
+                                 d.loaded_contacts_opened, self.activation,
+                                 d.loaded_contacts_opened_total)
+        return d

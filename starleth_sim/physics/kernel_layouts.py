@@ -234,6 +234,8 @@ TREE_STEP_MODEL = Layout(
         Field("ground_t2", "3", "ground.t2", "the ground's second tangent"),
         Field("ground_offset", "1", "ground.offset", "the ground plane n·x = this",
               kind="value"),
+        Field("terrain", "nt", "ground.terrain",
+              "the terrain, packed (terrain.pack_terrain; the plane alone: its header)"),
         Field("eps", "2 * nc", "eps", "(ε_N, ε_T) per contact", ("nc", "2")),
         Field("effort_limit", "na", "effort_limit",
               "the actuators' effort limits (public joint order)"),
@@ -245,6 +247,7 @@ TREE_STEP_MODEL = Layout(
          _header("nc", "contacts.nc", "contact points"),
          _header("na", "na", "actuated joints"),
          _header("nv", "tree.nv", "velocities"),
+         _header("nt", "ground.n_terrain", "the packed terrain's floats"),
          Field("parent", "nj", "tree.parent", "each joint's parent"),
          Field("jtype", "nj", "tree.jtype", "each joint's type (JT_*)"),
          Field("idx_q", "nj", "tree.idx_q", "each joint's first entry of q"),
@@ -268,6 +271,8 @@ TREE_STEP_MODEL = Layout(
          Field("L", "nv * nv", "L", "the LTDL factor of M", ("nv", "nv")),
          Field("u_free", "nv", "u_free", "u^S + M^{-1} h Δt"),
          Field("u_corr", "nv", "u_corr", "Δu_p of the post-step projection"),
+         Field("frames", "10 * nc", "ground.frames",
+               "each contact's surface frame (n, t1, t2) and μ at q^M", ("nc", "10")),
      ), exact=False)))
 
 CUT_MODEL = Layout(

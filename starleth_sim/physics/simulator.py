@@ -35,7 +35,7 @@ from .actuator import saturate_torque
 from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, contact_states
 from .coordinates import make_coordinates
-from .diagnostics import (NO_TIMINGS, Diagnostics, control_step_diagnostics,
+from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_diagnostics,
                           one_step_diagnostics)
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
@@ -101,8 +101,7 @@ class Simulator:
         #: the persistent wrenches: an input like the torques (not evolving state)
         self._wrenches = ExternalWrenches(self.coords)
         self.state: SimState | None = None
-        self._nonconv_logged = 0
-        self._opened_logged = 0
+        self._log_step = StepWarnings(log, config.contact.activation)
         self.reset()
 
     # -- construction ---------------------------------------------------------------------
@@ -137,9 +136,26 @@ class Simulator:
             Wt = np.zeros((c.n_contacts, 3, c.nv))
             g = self.stepper.ground
             c.contact_kinematics(q, g, gap, pos, Wt)
-            for iq in c.root_q:  # every floating body of the coordinate set
-                q[iq:iq + 3] -= g.n * (gap.min() + self.REST_OVERLAP)
+            if g.flat:
+                for iq in c.root_q:  # every floating body of the coordinate set
+                    q[iq:iq + 3] -= g.n * (gap.min() + self.REST_OVERLAP)
+            else:
+                self._rest_on_terrain(q, gap, pos, Wt)
         return q
+
+    def _rest_on_terrain(self, q, gap, pos, Wt, iterations=8):
+        """Lowers (or raises) q vertically until its lowest contact rests on the terrain
+        (g_N = −REST_OVERLAP; the surfaces' normals are not vertical, so a few rounds)."""
+        c, g = self.coords, self.stepper.ground
+        frames = np.zeros((c.n_contacts, 10))
+        for _ in range(iterations):
+            c.contact_kinematics(q, g, gap, pos, Wt, np.inf, frames)
+            i = int(np.argmin(gap))
+            dz = (gap[i] + self.REST_OVERLAP) / max(frames[i, 2], 0.1)
+            for iq in c.root_q:
+                q[iq + 2] -= dz
+            if abs(gap[i] + self.REST_OVERLAP) < 1e-12:
+                break
 
     def reset(self, q=None, u=None, t: float = 0.0, minimal: bool = False):
         """Set the state (default: `default_state()` at rest). With minimal=True, q and u are
@@ -282,8 +298,14 @@ class Simulator:
 
     def contact_impulses(self) -> np.ndarray:
         """Λ of every contact point (order of contact_names) in the world frame, summed over
-        the last control period (nc x 3) [N s]."""
-        return self._impulse @ self.stepper.ground.frame     # frame rows: n, t1, t2
+        the last control period (nc x 3) [N s]. On a terrain each contact's impulse is turned
+        by the frame of its surface at the last physics step (with several physics steps
+        per control period, their impulses are summed in that frame)."""
+        ground = self.stepper.ground
+        if ground.flat:
+            return self._impulse @ ground.frame     # frame rows: n, t1, t2
+        frames = self.stepper.frames[:, :9].reshape(-1, 3, 3)
+        return np.einsum("ik,ikj->ij", self._impulse, frames)
 
     def contact_forces(self) -> np.ndarray:
         """F = Λ/Δt of every contact point in the world frame over the last control period
@@ -311,7 +333,9 @@ class Simulator:
         0 open (no normal impulse), 1 stick, 2 slip. Hard contacts: slip when the tangential
         impulse is on the boundary of the friction cone, |Λ_T| ≥ (1 − 1e-6) μ Λ_N; compliant
         contacts: the slip flag of Alg. 1."""
-        return contact_states(self._impulse, self.stepper.hard, self.stepper.ground.mu,
+        ground = self.stepper.ground
+        return contact_states(self._impulse, self.stepper.hard,
+                              ground.mu if ground.flat else self.stepper.frames[:, 9],
                               self.state.slip)
 
     def contact(self, name: str) -> ContactInfo:
@@ -450,7 +474,7 @@ class Simulator:
         self._gap = gap
         self._position = position
         self.diagnostics = d
-        return self._log_step(d)
+        return self._log_step(d, self.state.t)
 
     @staticmethod
     def _period_reports(results):
@@ -567,21 +591,3 @@ class Simulator:
             if before is not None:
                 self.restore(before)
             raise
-
-    def _log_step(self, d: Diagnostics) -> Diagnostics:
-        """Warns (the first time, then every 1000th) of a control step that did not converge
-        or that opened loaded contacts by the gap test alone; returns d."""
-        if not d.converged:
-            self._nonconv_logged += 1
-            if self._nonconv_logged == 1 or self._nonconv_logged % 1000 == 0:
-                log.warning("t=%.4f s: prox iteration did not converge (%s, %d iterations, "
-                            "residual %.3g N s); %d such steps so far", self.state.t, d.status,
-                            d.max_iterations_step, d.residual, d.nonconverged_steps)
-        if d.loaded_contacts_opened:
-            self._opened_logged += 1
-            if self._opened_logged == 1 or self._opened_logged % 1000 == 0:
-                log.warning("t=%.4f s: %d loaded contact(s) left the active set by the gap "
-                            "test alone (contact.activation '%s'); %d so far", self.state.t,
-                            d.loaded_contacts_opened, self.config.contact.activation,
-                            d.loaded_contacts_opened_total)
-        return d

@@ -53,6 +53,7 @@ from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
 from .impedance import TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_SATURATED, impedance_torque
 from .linalg import ltdl
 from .state import SimState
+from .terrain import pack_terrain
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, ContactProblem,
                            StepSettings, clock,
@@ -126,8 +127,9 @@ class MoreauStepper:
         self.coords = coords
         self.cfg = config
         self.profile = profile
-        self.ground = GroundPlane(config.ground.height, tuple(config.ground.normal),
-                                  config.ground.mu)
+        g = config.ground
+        self.ground = GroundPlane(g.height, tuple(g.normal), g.mu,
+                                  pack_terrain(config.terrain, g.height, g.mu))
         self.dt = config.dt
         self.hard = config.contact_model == "hard"
         c = config.contact
@@ -151,6 +153,7 @@ class MoreauStepper:
         self.L = np.zeros((nv, nv))           # LTDL factor of M (linalg.ltdl)
         self.u_free = np.zeros(nv)            # u^S + M^{-1} h Δt
         self.u_corr = np.zeros(nv)            # Δu_p of the post-step projection
+        self.frames = np.zeros((nc, 10))      # each contact's (n, t1, t2, μ) at q^M
         self.bB = np.zeros(self.nb)           # (β/Δt) g_B
         self._factored = False                # L holds the factor of a constant M
         self._prepared = None                 # see prepare
@@ -221,7 +224,8 @@ class MoreauStepper:
                                              coords.joint_v, coords.tree.dof_parent, nv, effort,
                                              velocity, coords.joint_q)
             self._tree_model = tuple(pack)
-            self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr = views
+            (self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr,
+             self.frames) = views
             if self._forest_kernel:
                 self._cut_model = tuple(CutModel.pack(coords, self.beta / self.dt))
                 #: where the kernel writes φ and φ̇ of the cut joints at the end of the step
@@ -242,7 +246,7 @@ class MoreauStepper:
         t = clock(timings)
         # (the contact kinematics share the forward kinematics of M and h: phase "M and h")
         qM, M, h0 = coords.midpoint(q, u, dt, self.ground, self.gap, self.position,
-                                    self.Wt_all, self.jacobian_gap)
+                                    self.Wt_all, self.jacobian_gap, self.frames)
         t = lap(timings, PHASE_M_AND_H, t)
         if self.nb:
             WtB, gB = coords.bilateral(qM)
@@ -283,7 +287,7 @@ class MoreauStepper:
             problem = prepare_hard_contacts(self._settings_fields, M, u, gap, self.Wt_all,
                                             WtB, self.bB, self.eps, self.dof_parent, factor,
                                             self.L, state.last_impulse, state.last_active,
-                                            timings, self._problem)
+                                            timings, self.frames, self._problem)
             ok = problem.ok
             if ok:
                 self._factored = True
@@ -457,12 +461,12 @@ class MoreauStepper:
         also factors M unless the step was prepared)."""
         dt = self.dt
         law = self._compliant_law_fields
-        t1, t2 = self.ground.t1, self.ground.t2
+        frames = self.frames
         if self.nb:  # bilateral constraints still need the prox solve (no contact rows)
             prof = timings is not None
             t = clock(timings) if prof else 0.0
             compliant_contact_forces(law, self.gap, self.position, self.Wt_all, uS,
-                                     state.closed, state.slip, state.anchor, t1, t2,
+                                     state.closed, state.slip, state.anchor, frames,
                                      state.lam_compliant)
             generalized_contact_force(self.Wt_all, state.lam_compliant, h)
             if prof:
@@ -471,7 +475,7 @@ class MoreauStepper:
         else:
             factor = not prepared and not (self.constant_M and self._factored)
             if not solve_compliant(law, M, h, uS, dt, self.gap, self.position, self.Wt_all,
-                                   state.closed, state.slip, state.anchor, t1, t2,
+                                   state.closed, state.slip, state.anchor, frames,
                                    state.lam_compliant, self.dof_parent, factor, self.L,
                                    self.u_free, timings):
                 raise SimulationError("mass matrix not positive definite (non-finite state?)")
@@ -502,7 +506,7 @@ class MoreauStepper:
                                     self.bB, self.eps, self.dof_parent, factor, self.L, h,
                                     state.last_impulse, state.last_active,
                                     state.last_bilateral, impulse, is_active, self.u_free, u,
-                                    self.u_corr, timings)
+                                    self.u_corr, timings, self.frames)
             if not r.ok:
                 raise SimulationError("mass matrix (or G_B) not positive definite "
                                       "(non-finite state?)")

@@ -100,16 +100,17 @@ class TreeStepModel(NamedTuple):
         GroundPlane, ε, the torque limits (see actuator.saturate_torque) and the actuated
         joints' entries of u and q (joint_v, joint_q: the impedance law reads q and u
         there); returns the record and the workspace's views (gap, position, Wt_all, L,
-        u_free, u_corr), which the stepper keeps as its own arrays."""
+        u_free, u_corr, frames), which the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
-                 "nv": nv}
+                 "nv": nv, "nt": ground.terrain.shape[0]}
         values = dict(
             settings=[float(v) for v in settings], law=[float(v) for v in law], axis=axis,
             pl_R=pl_R, pl_p=pl_p, oR=oR, op=op, mass=mass, lever=lever, inertia=inertia,
             gravity=gravity, c_local=c_local, c_radius=c_radius, ground_n=ground.n,
-            ground_t1=ground.t1, ground_t2=ground.t2, ground_offset=[ground.offset], eps=eps,
+            ground_t1=ground.t1, ground_t2=ground.t2, ground_offset=[ground.offset],
+            terrain=ground.terrain, eps=eps,
             effort_limit=effort_limit, velocity_limit=velocity_limit, parent=parent,
             jtype=jtype, idx_q=idx_q, idx_v=idx_v, c_joint=c_joint, joint_v=joint_v,
             joint_q=joint_q, dof_parent=dof_parent, support=support)
@@ -121,7 +122,7 @@ class TreeStepModel(NamedTuple):
                               np.ascontiguousarray(pack_buffer(L, "support", values, sizes)),
                               workspace),
                 tuple(views[name] for name in ("gap", "position", "Wt_all", "L", "u_free",
-                                               "u_corr")))
+                                               "u_corr", "frames")))
 
 
 TreeStepModel.__doc__ = TreeStepModel.__doc__.rstrip(" ") + describe(TREE_STEP_MODEL)

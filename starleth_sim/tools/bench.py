@@ -35,6 +35,7 @@ from ..physics.impedance import ImpedanceCommand
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..physics.stepper import PHASES, StepperStats
+from .bench_terrain import print_terrain_rounds
 
 
 def measure(preset: str, seconds: float, repeats: int = 3):
@@ -335,11 +336,17 @@ def main(argv=None):
                     help="side by side with MuJoCo on the same robot (needs mujoco)")
     ap.add_argument("--impedance", action="store_true",
                     help="the impedance step beside the torque step (default HmJ Cm)")
-    ap.add_argument("--rounds", type=int, default=5,
-                    help="--vs-mujoco, --impedance: interleaved rounds")
+    ap.add_argument("--terrain", action="store_true",
+                    help="the cost of the terrain's contact query (50 boxes, a 256x256 "
+                         "heightfield) against the flat ground, interleaved (first preset, "
+                         "default HmJ)")
+    ap.add_argument("--rounds", type=int, default=None,
+                    help="--vs-mujoco, --impedance, --terrain: interleaved rounds (default 5, "
+                         "5, 21)")
     ap.add_argument("--steps", type=int, default=2000,
                     help="--vs-mujoco: physics steps per round; --impedance: control steps")
     args = ap.parse_args(argv)
+    terrain_preset = args.presets[0] if args.presets else "HmJ"
     if not args.presets:
         args.presets = list(VS_MUJOCO_PRESETS if args.vs_mujoco else IMPEDANCE_PRESETS
                             if args.impedance else DEFAULT_PRESETS)
@@ -347,11 +354,17 @@ def main(argv=None):
         configs = {p: load_preset(p) for p in args.presets}
     except ConfigError as e:
         ap.error(str(e))
+    if args.terrain:
+        if args.rounds is not None and args.rounds < 1:
+            ap.error("--rounds must be positive")
+        return print_terrain_rounds(terrain_preset, args.rounds or 21)
     if args.vs_mujoco:
+        args.rounds = 5 if args.rounds is None else args.rounds
         if args.rounds < 1 or args.steps < 1:
             ap.error("--rounds and --steps must be positive")
         return vs_mujoco(args.presets, args.rounds, args.steps)
     if args.impedance:
+        args.rounds = 5 if args.rounds is None else args.rounds
         if args.rounds < 1 or args.steps < 1:
             ap.error("--rounds and --steps must be positive")
         return impedance(args.presets, args.rounds, args.steps)

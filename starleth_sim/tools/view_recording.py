@@ -11,7 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
+from ..physics.config_checks import ConfigError
 from ..physics.description import LEGS, urdf_path
+from ..physics.terrain import TerrainConfig
 from .bag import read_messages
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
                                        TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of)
@@ -113,6 +115,8 @@ class Recording:
     ground_height: float = 0.0
     ground_normal: tuple = (0.0, 0.0, 1.0)
     truncated: bool = False
+    #: the terrain on the ground (physics.terrain.TerrainConfig, validated), or None
+    terrain: object = None
 
 
 def _choose_namespace(found: dict, requested, path: str, bag) -> str:
@@ -190,6 +194,26 @@ def _ground_from_metadata(bag):
     return h, tuple(float(x) for x in n)
 
 
+def terrain_from_metadata(bag, path):
+    """The recording's terrain (its physics configuration's `terrain` section, validated),
+    or None: none recorded, or one that is not valid (with a warning: not drawn)."""
+    text = bag.metadata.get("starleth_sim", {}).get("physics_config")
+    try:
+        data = yaml.safe_load(text) if text else None
+    except (yaml.YAMLError, RecursionError):
+        return None
+    section = data.get("terrain") if isinstance(data, dict) else None
+    if not section:
+        return None
+    try:
+        terrain = TerrainConfig(**section)
+        terrain.validate("terrain")
+    except (TypeError, ConfigError) as e:
+        warn(f"{path}: the recorded terrain is not valid, not drawn: {e}")
+        return None
+    return None if terrain.is_flat else terrain
+
+
 def read_recording(path: str, namespace: str | None = None, salvage: bool = False):
     """The Recording of one robot of a bag. Raises BagError for a bag that cannot be
     read, ViewError for one without joint states or base state."""
@@ -220,5 +244,6 @@ def read_recording(path: str, namespace: str | None = None, salvage: bool = Fals
             raise ViewError(f"{path}: none of the {n} message(s) on {series.topic} could be "
                             "read, so there is no robot motion to replay")
     rec.ground_height, rec.ground_normal = _ground_from_metadata(bag)
+    rec.terrain = terrain_from_metadata(bag, path)
     return rec
 

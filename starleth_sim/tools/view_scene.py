@@ -21,6 +21,9 @@ FOOT_COLOR = 0x303030       # spheres (feet)
 ARROW_COLOR = 0x18B43C
 GROUND_COLORS = ((0xD6, 0xD6, 0xCC), (0xBC, 0xBC, 0xB2))   # unlit 0.5 m checkerboard
 GROUND_SQUARE = 0.5         # [m]
+TERRAIN_COLOR = 0x9A9A8E    # boxes and heightfield (lit, a little darker than the ground)
+#: a heightfield is drawn with at most this many points a side (every k-th point)
+TERRAIN_DRAWN_POINTS = 128
 SKY_TOP, SKY_BOTTOM = (0.84, 0.89, 0.95), (0.62, 0.69, 0.78)
 #: camera position relative to the followed trunk point, world axes [m]
 CAMERA_OFFSET = (0.9, -1.35, 0.42)
@@ -140,6 +143,41 @@ def _ground_object(size: float, tile: float) -> dict:
     return obj
 
 
+def terrain_objects(terrain, ground_height=0.0) -> list:
+    """[(name, three.js object)] of a terrain (physics.terrain.TerrainConfig): each box
+    (stairs included) and the heightfield as a triangle mesh (every k-th point of its grid,
+    at most TERRAIN_DRAWN_POINTS a side)."""
+    out = []
+    for k, b in enumerate(terrain.all_boxes(ground_height)):
+        M = np.eye(4)
+        c, s = math.cos(b["yaw"]), math.sin(b["yaw"])
+        M[:2, :2] = [[c, -s], [s, c]]
+        M[:3, 3] = b["centre"]
+        sx, sy, sz = b["size"]
+        out.append((f"box{k}", _mesh(f"terrain/box{k}", f"terrain box {k}", {
+            "type": "BoxGeometry", "width": sx, "height": sy, "depth": sz}, TERRAIN_COLOR, M)))
+    grid = terrain.grid(ground_height)
+    if grid is not None:
+        (x0, y0), cell, heights, _ = grid
+        step = max(1, math.ceil(max(heights.shape) / TERRAIN_DRAWN_POINTS))
+        ix = np.unique(np.r_[np.arange(0, heights.shape[0], step), heights.shape[0] - 1])
+        iy = np.unique(np.r_[np.arange(0, heights.shape[1], step), heights.shape[1] - 1])
+        X, Y = np.meshgrid(x0 + ix * cell, y0 + iy * cell, indexing="ij")
+        pts = np.stack([X, Y, heights[np.ix_(ix, iy)]], axis=-1).reshape(-1, 3)
+        nx, ny = len(ix), len(iy)
+        a = (np.arange(nx - 1)[:, None] * ny + np.arange(ny - 1)[None, :]).ravel()
+        tri = np.stack([a, a + ny, a + 1, a + 1, a + ny, a + ny + 1], axis=1).ravel()
+        geometry = {"type": "BufferGeometry", "data": {
+            "attributes": {"position": {"itemSize": 3, "type": "Float32Array",
+                                        "array": np.round(pts.ravel(), 5).tolist(),
+                                        "normalized": False}},
+            "index": {"type": "Uint32Array", "array": tri.tolist()}}}
+        out.append(("heightfield", _mesh("terrain/heightfield", "terrain heightfield",
+                                         geometry, TERRAIN_COLOR, np.eye(4),
+                                         flatShading=True)))
+    return out
+
+
 def scene_commands(desc, visuals, rec: Recording, trunk_xy) -> list:
     """meshcat commands that build the scene: background, a checkerboard ground plane (in
     place of meshcat's grid), the robot's visuals under /world/starleth/<joint>, the force
@@ -162,6 +200,9 @@ def scene_commands(desc, visuals, rec: Recording, trunk_xy) -> list:
         {"type": "set_transform", "path": "/world/ground", "matrix": _matrix(
             _ground_pose(rec.ground_height, rec.ground_normal, centre))},
     ]
+    if rec.terrain is not None:
+        for name, obj in terrain_objects(rec.terrain, rec.ground_height):
+            cmds.append({"type": "set_object", "path": f"/world/terrain/{name}", "object": obj})
     for joint, name, obj in visuals:
         cmds.append({"type": "set_object", "path": f"/world/starleth/{model.names[joint]}/{name}",
                      "object": obj})

@@ -50,10 +50,10 @@ _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModel
 #       transform of its M and h into ours (the cross-check of rigid_body in
 #       test/test_kinematics_dynamics.py);
 #   tree_dynamics(q, u, <tree>, mass, lever, inertia, gravity, M, h): M and h at (q, u);
-#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, n, t1, t2, offset, jacobian_gap, qM,
-#       M, h, gap, position, Wt): what a step needs at its midpoint, over one forward
-#       kinematics: q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S), the contacts' g_N,
-#       positions and W^T at q^M;
+#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, n, t1, t2, offset, jacobian_gap,
+#       qM, M, h, gap, position, Wt, terrain, frames): what a step needs at its midpoint,
+#       over one forward kinematics: q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S),
+#       the contacts' g_N, positions, W^T and surface frames (with μ) at q^M;
 #   add_at(h, idx, values): h[idx[k]] += values[k];
 #   rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h): h = [m g; −ω × Θ ω]
 #       per free body (frames at the CoM, inertial linear velocity);
@@ -315,20 +315,21 @@ class ForestCoordinates:
             self.add_joint_torques(q, u, tau, h)
         return M, h
 
-    def midpoint(self, q, u, dt, ground, gap, position, Wt, jacobian_gap=np.inf):
+    def midpoint(self, q, u, dt, ground, gap, position, Wt, jacobian_gap=np.inf, frames=None):
         """(q^M, M, h) of a step of Δt from (q, u), h without the joint torques: q^M = q ⊕
-        ½Δt F(q) u (Eqn. 6), M and h at (q^M, u); and gap, position and Wt filled at q^M as
-        by contact_kinematics. One kernel call unless M is constant."""
+        ½Δt F(q) u (Eqn. 6), M and h at (q^M, u); and gap, position, Wt (and frames) filled at
+        q^M as by contact_kinematics. One kernel call unless M is constant."""
         if self.constant_mass_matrix:
             qM = self.integrate(q, u, 0.5 * dt)
             M, h = self.dynamics(qM, u, None)
-            self.contact_kinematics(qM, ground, gap, position, Wt, jacobian_gap)
+            self.contact_kinematics(qM, ground, gap, position, Wt, jacobian_gap, frames)
             return qM, M, h
         qM = np.empty_like(q)
         M = np.empty((self.nv, self.nv))
         h = np.empty(self.nv)
         midpoint_dynamics(q, u, 0.5 * dt, *self.midpoint_model(), ground.n, ground.t1,
-                          ground.t2, ground.offset, jacobian_gap, qM, M, h, gap, position, Wt)
+                          ground.t2, ground.offset, jacobian_gap, qM, M, h, gap, position, Wt,
+                          ground.terrain, frames)
         return qM, M, h
 
     def midpoint_model(self):
@@ -372,14 +373,17 @@ class ForestCoordinates:
             self._kinematics_for_cuts(q, np.zeros(self.nv) if u is None else u)
         return self._WtB, self._gB
 
-    def contact_kinematics(self, q, ground, gap, position, Wt, jacobian_gap=np.inf):
+    def contact_kinematics(self, q, ground, gap, position, Wt, jacobian_gap=np.inf,
+                           frames=None):
         """Fill gap (nc) and position (nc x 3) of all contact points, and Wt (nc x 3 x nv)
-        of those with g_N ≤ jacobian_gap."""
+        of those with g_N ≤ jacobian_gap, against the ground plane and its terrain (a
+        contact.GroundPlane); frames (nc x 10, optional): each contact's surface frame
+        (n, t1, t2) and μ."""
         t = self.tree
         contact_kinematics(q, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
                            t.support, t.oR, t.op, self.c_joint, self.c_local, self.c_radius,
                            ground.n, ground.t1, ground.t2, ground.offset, jacobian_gap, gap,
-                           position, Wt)
+                           position, Wt, ground.terrain, frames)
 
     def _link_point(self, frame):
         src = self.src

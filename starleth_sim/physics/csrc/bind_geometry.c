@@ -222,13 +222,19 @@ static int contacts_of(const char *fn, const val_t *c_joint, const val_t *c_loca
 }
 
 static int ground_of(const char *fn, const val_t *n, const val_t *t1, const val_t *t2,
-                     double offset, ground_t *g) {
-    if (!need(n->len == 3 && t1->len == 3 && t2->len == 3, fn, "the ground's n, t1, t2 must be 3-vectors"))
+                     double offset, const val_t *terrain, const val_t *frames, i64 nc,
+                     ground_t *g) {
+    if (!need(n->len == 3 && t1->len == 3 && t2->len == 3, fn, "the ground's n, t1, t2 must be 3-vectors") ||
+        !need(terrain->len >= 14, fn, "terrain must be a packed terrain (terrain.pack_terrain)") ||
+        !need(!frames->p || frames->len == 10 * nc, fn, "frames must be nc x 10 or None"))
         return 0;
     g->n = n->p;
     g->t1 = t1->p;
     g->t2 = t2->p;
     g->offset = offset;
+    g->n_terrain = terrain->len;
+    g->terrain = terrain->p;
+    g->frames = frames->p;
     return 1;
 }
 
@@ -244,19 +250,19 @@ FN(contact_points) {
         {"support", BOOL}, {"oR", F64},          {"op", F64},        {"c_joint", I64},
         {"c_local", F64},  {"c_radius", F64},    {"normal", F64},    {"tangent1", F64},
         {"tangent2", F64}, {"ground_offset", FLOAT}, {"jacobian_gap", FLOAT}, {"gap", F64W},
-        {"position", F64W}, {"Wt", F64W}};
-    val_t v[18];
+        {"position", F64W}, {"Wt", F64W}, {"terrain", F64}, {"frames", F64N}};
+    val_t v[20];
     held_t h = {.n = 0};
     tree_t t;
     frames_t f;
     contact_points_t c;
     ground_t g;
-    if (!PARSE("contact_points", spec, 18, v, &h)) FAIL;
+    if (!PARSE("contact_points", spec, 20, v, &h)) FAIL;
     i64 nv = v[17].nd == 3 ? v[17].shape[2] : 0;
     if (!tree_of("contact_points", &v[0], &v[1], &v[2], NULL, NULL, NULL, &v[3], &v[4], nv, &t) ||
         !frames_of("contact_points", &v[5], &v[6], t.nj, &f) ||
         !contacts_of("contact_points", &v[7], &v[8], &v[9], &c) ||
-        !ground_of("contact_points", &v[10], &v[11], &v[12], v[13].f, &g) ||
+        !ground_of("contact_points", &v[10], &v[11], &v[12], v[13].f, &v[18], &v[19], c.nc, &g) ||
         !contact_outputs("contact_points", &v[15], &v[16], &v[17], c.nc, nv))
         FAIL;
     contact_points(&t, &f, &c, &g, v[14].f, v[15].p, v[16].p, v[17].p);
@@ -271,19 +277,19 @@ FN(contact_kinematics) {
         {"support", BOOL}, {"oR", F64W},        {"op", F64W},       {"c_joint", I64},
         {"c_local", F64},  {"c_radius", F64},   {"normal", F64},    {"tangent1", F64},
         {"tangent2", F64}, {"ground_offset", FLOAT}, {"jacobian_gap", FLOAT}, {"gap", F64W},
-        {"position", F64W}, {"Wt", F64W}};
-    val_t v[22];
+        {"position", F64W}, {"Wt", F64W}, {"terrain", F64}, {"frames", F64N}};
+    val_t v[24];
     held_t h = {.n = 0};
     tree_t t;
     frames_t f;
     contact_points_t c;
     ground_t g;
-    if (!PARSE("contact_kinematics", spec, 22, v, &h)) FAIL;
+    if (!PARSE("contact_kinematics", spec, 24, v, &h)) FAIL;
     i64 nv = v[21].nd == 3 ? v[21].shape[2] : 0;
     if (!tree_of("contact_kinematics", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], nv, &t) ||
         !frames_of("contact_kinematics", &v[9], &v[10], t.nj, &f) ||
         !contacts_of("contact_kinematics", &v[11], &v[12], &v[13], &c) ||
-        !ground_of("contact_kinematics", &v[14], &v[15], &v[16], v[17].f, &g) ||
+        !ground_of("contact_kinematics", &v[14], &v[15], &v[16], v[17].f, &v[22], &v[23], c.nc, &g) ||
         !contact_outputs("contact_kinematics", &v[19], &v[20], &v[21], c.nc, nv))
         FAIL;
     contact_kinematics(v[0].p, &t, &f, &c, &g, v[18].f, v[19].p, v[20].p, v[21].p);
@@ -381,21 +387,22 @@ FN(midpoint_dynamics) {
         {"gravity", F64},   {"c_joint", I64},  {"c_local", F64},   {"c_radius", F64},
         {"normal", F64},    {"tangent1", F64}, {"tangent2", F64},  {"ground_offset", FLOAT},
         {"jacobian_gap", FLOAT}, {"qM", F64W}, {"M", F64W},        {"h", F64W},
-        {"gap", F64W},      {"position", F64W}, {"Wt", F64W}};
-    val_t v[31];
+        {"gap", F64W},      {"position", F64W}, {"Wt", F64W},      {"terrain", F64},
+        {"frames", F64N}};
+    val_t v[33];
     held_t h = {.n = 0};
     tree_t t;
     frames_t f;
     inertias_t b;
     contact_points_t c;
     ground_t g;
-    if (!PARSE("midpoint_dynamics", spec, 31, v, &h)) FAIL;
+    if (!PARSE("midpoint_dynamics", spec, 33, v, &h)) FAIL;
     i64 nv = v[1].len;
     if (!tree_of("midpoint_dynamics", &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], &v[9], &v[10], nv, &t) ||
         !frames_of("midpoint_dynamics", &v[11], &v[12], t.nj, &f) ||
         !inertias_of("midpoint_dynamics", &v[13], &v[14], &v[15], &v[16], t.nj, &b) ||
         !contacts_of("midpoint_dynamics", &v[17], &v[18], &v[19], &c) ||
-        !ground_of("midpoint_dynamics", &v[20], &v[21], &v[22], v[23].f, &g) ||
+        !ground_of("midpoint_dynamics", &v[20], &v[21], &v[22], v[23].f, &v[31], &v[32], c.nc, &g) ||
         !need(v[25].len == v[0].len && v[26].len == nv * nv && v[27].len == nv,
               "midpoint_dynamics", "qM, M and h do not match q and u") ||
         !contact_outputs("midpoint_dynamics", &v[28], &v[29], &v[30], c.nc, nv))
@@ -526,19 +533,19 @@ FN(cut_joint_torques) {
 FN(compliant_contact_forces) {
     static const spec_t spec[] = {{"law", OBJ},      {"gap", F64},     {"position", F64},
                                   {"Wt", F64},       {"u", F64},       {"closed", BOOLW},
-                                  {"slip", BOOLW},   {"anchor", F64W}, {"tangent1", F64},
-                                  {"tangent2", F64}, {"lam", F64W}};
-    val_t v[11];
+                                  {"slip", BOOLW},   {"anchor", F64W}, {"frames", F64},
+                                  {"lam", F64W}};
+    val_t v[10];
     held_t h = {.n = 0};
     compliant_law_t law;
-    if (!PARSE("compliant_contact_forces", spec, 11, v, &h) || !get_law(v[0].o, "compliant_contact_forces", &law)) FAIL;
+    if (!PARSE("compliant_contact_forces", spec, 10, v, &h) || !get_law(v[0].o, "compliant_contact_forces", &law)) FAIL;
     i64 nc = v[1].len, nv = v[4].len;
     if (!need(v[2].len == 3 * nc && v[3].len == 3 * nc * nv && v[5].len == nc && v[6].len == nc &&
-                  v[7].len == 3 * nc && v[8].len == 3 && v[9].len == 3 && v[10].len == 3 * nc,
+                  v[7].len == 3 * nc && v[8].len == 10 * nc && v[9].len == 3 * nc,
               "compliant_contact_forces", "sizes do not match the contacts"))
         FAIL;
     compliant_contact_forces(&law, nc, nv, v[1].p, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p,
-                             v[8].p, v[9].p, v[10].p);
+                             v[8].p, v[9].p);
     release(&h);
     Py_RETURN_NONE;
 }

@@ -177,23 +177,23 @@ FN(solve_compliant) {
     static const spec_t spec[] = {
         {"law", OBJ},      {"M", F64},        {"h", F64W},      {"uS", F64},     {"dt", FLOAT},
         {"gap", F64},      {"position", F64}, {"Wt_all", F64},  {"closed", BOOLW}, {"slip", BOOLW},
-        {"anchor", F64W},  {"t1", F64},       {"t2", F64},      {"lam", F64W},   {"dof_parent", I64},
+        {"anchor", F64W},  {"frames", F64},   {"lam", F64W},    {"dof_parent", I64},
         {"factor", FLAG},  {"L", F64W},       {"u_free", F64W}, {"timings", F64N}};
-    val_t v[19];
+    val_t v[18];
     held_t h = {.n = 0};
     compliant_law_t law;
-    if (!PARSE("solve_compliant", spec, 19, v, &h) || !get_law(v[0].o, "solve_compliant", &law)) FAIL;
+    if (!PARSE("solve_compliant", spec, 18, v, &h) || !get_law(v[0].o, "solve_compliant", &law)) FAIL;
     i64 nv = v[3].len, nc = v[5].len;
     if (!need(v[1].len == nv * nv && v[2].len == nv && v[6].len == 3 * nc &&
                   v[7].len == 3 * nc * nv && v[8].len == nc && v[9].len == nc &&
-                  v[10].len == 3 * nc && v[11].len == 3 && v[12].len == 3 && v[13].len == 3 * nc &&
-                  v[14].len == nv && v[16].len == nv * nv && v[17].len == nv &&
-                  (!v[18].p || v[18].len >= 5),
+                  v[10].len == 3 * nc && v[11].len == 10 * nc && v[12].len == 3 * nc &&
+                  v[13].len == nv && v[15].len == nv * nv && v[16].len == nv &&
+                  (!v[17].p || v[17].len >= 5),
               "solve_compliant", "sizes do not match"))
         FAIL;
     int ok = solve_compliant(&law, v[1].p, v[2].p, v[3].p, nv, v[4].f, nc, v[5].p, v[6].p, v[7].p,
-                             v[8].p, v[9].p, v[10].p, v[11].p, v[12].p, v[13].p, v[14].p,
-                             (int)v[15].i, v[16].p, v[17].p, v[18].p);
+                             v[8].p, v[9].p, v[10].p, v[11].p, v[12].p, v[13].p,
+                             (int)v[14].i, v[15].p, v[16].p, v[17].p);
     release(&h);
     return PyBool_FromLong(ok);
 }

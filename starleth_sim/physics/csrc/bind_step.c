@@ -133,9 +133,11 @@ FN(prepare_hard_contacts) {
         {"settings", OBJ}, {"M", F64},          {"uS", F64},          {"gap", F64},
         {"Wt_all", F64},   {"WtB", F64},        {"bB", F64},          {"eps", F64},
         {"dof_parent", I64}, {"factor", FLAG},  {"L", F64W},          {"last_impulse", F64},
-        {"last_active", BOOL}, {"timings", F64N}, {"problem", OBJ}};
-    val_t v[15];
-    v[14].o = Py_None;
+        {"last_active", BOOL}, {"timings", F64N}, {"frames", F64N}, {"problem", OBJ}};
+    val_t v[16];
+    v[14].p = NULL; /* (frames and problem are optional) */
+    v[14].len = 0;
+    v[15].o = Py_None;
     held_t h = {.n = 0};
     volatile int failed = 0;
     settings_t s;
@@ -143,14 +145,15 @@ FN(prepare_hard_contacts) {
     if (!PARSE("prepare_hard_contacts", spec, 14, v, &h) ||
         !get_settings(v[0].o, "prepare_hard_contacts", &s) ||
         !contact_problem_sizes("prepare_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
-                               &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb))
+                               &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb) ||
+        !need(!v[14].p || v[14].len == 10 * nc, "prepare_hard_contacts", "frames must be nc x 10"))
         FAIL;
     ProblemObject *pr;
-    if (v[14].o == Py_None) {
+    if (v[15].o == Py_None) {
         pr = (ProblemObject *)problem_new(&ProblemType, NULL, NULL);
         if (!pr) FAIL;
-    } else if (Py_IS_TYPE(v[14].o, &ProblemType)) {
-        pr = (ProblemObject *)v[14].o;
+    } else if (Py_IS_TYPE(v[15].o, &ProblemType)) {
+        pr = (ProblemObject *)v[15].o;
         Py_INCREF(pr);
     } else {
         release(&h);
@@ -160,8 +163,8 @@ FN(prepare_hard_contacts) {
     pr->filled = 0;
     arena_t *a = &pr->arena;
     RUN(a, failed, contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p,
-                                   v[7].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, v[13].p,
-                                   a, &pr->p));
+                                   v[7].p, v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p,
+                                   v[13].p, a, &pr->p));
     release(&h);
     if (failed) {
         Py_DECREF(pr);
@@ -222,8 +225,10 @@ FN(solve_hard_contacts) {
         {"dof_parent", I64}, {"factor", FLAG},     {"L", F64W},          {"h", F64},
         {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W}, {"impulse", F64W},
         {"is_active", BOOLW}, {"u_free", F64W},    {"u", F64W},          {"u_corr", F64W},
-        {"timings", F64N}};
-    val_t v[21];
+        {"timings", F64N},   {"frames", F64N}};
+    val_t v[22];
+    v[21].p = NULL; /* (frames is optional) */
+    v[21].len = 0;
     held_t h = {.n = 0};
     volatile int failed = 0;
     settings_t s;
@@ -233,7 +238,8 @@ FN(solve_hard_contacts) {
         !contact_problem_sizes("solve_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
                                &v[7], &v[8], &v[10], &v[12], &v[13], &v[20], &nv, &nc, &nb) ||
         !need(v[11].len == nv && v[14].len == nb && v[15].len == 3 * nc && v[16].len == nc &&
-                  v[17].len == nv && v[18].len == nv && v[19].len == nv,
+                  v[17].len == nv && v[18].len == nv && v[19].len == nv &&
+                  (!v[21].p || v[21].len == 10 * nc),
               "solve_hard_contacts", "the arrays do not match the problem"))
         FAIL;
     problem_t p = {0};
@@ -241,7 +247,7 @@ FN(solve_hard_contacts) {
     arena_t *a = scratch_arena();
     RUN(a, failed, {
         contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p, v[7].p,
-                        v[8].p, (int)v[9].i, v[10].p, v[12].p, v[13].p, v[20].p, a, &p);
+                        v[21].p, v[8].p, (int)v[9].i, v[10].p, v[12].p, v[13].p, v[20].p, a, &p);
         if (p.ok)
             r = complete_problem(&s, &p, v[11].p, v[2].p, v[1].p, v[8].p, v[10].p, v[3].p, nc,
                                  v[4].p, v[12].p, v[13].p, v[14].p, nb, v[15].p, v[16].p,

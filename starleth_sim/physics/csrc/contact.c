@@ -7,18 +7,22 @@
  *   λ_N = max(−c_N g_N − d_N γ_N, 0);
  *   stick: λ_T = −c_T g_T − d_T γ_T, slipping (λ_T = −μλ_N γ_T/‖γ_T‖) once ‖λ_T‖ ≥ μλ_N;
  *   slip: λ_T = −μλ_N γ_T/‖γ_T‖, sticking again (P0 ← P) once ‖γ_T‖ ≈ 0 or d_T ‖γ_T‖ ≤ μλ_N.
- * Wt: nc x 3 x nv, position and anchor nc x 3, lam (nc x 3) receives (λ_N, λ_T1, λ_T2);
- * closed, slip and anchor are updated in place. */
+ * Wt: nc x 3 x nv, position and anchor nc x 3, frames nc x FRAME_STRIDE (each contact's
+ * n, t1, t2 and μ: contact_points), lam (nc x 3) receives (λ_N, λ_T1, λ_T2); closed, slip
+ * and anchor are updated in place. */
 void compliant_contact_forces(const compliant_law_t *law, i64 nc, i64 nv, const double *gap,
                               const double *position, const double *Wt, const double *u,
-                              u8 *closed, u8 *slip, double *anchor, const double *t1,
-                              const double *t2, double *lam) {
-    double mu = law->mu, c_n = law->c_N, d_n = law->d_N, c_t = law->c_T, d_t = law->d_T;
+                              u8 *closed, u8 *slip, double *anchor, const double *frames,
+                              double *lam) {
+    (void)law->mu; /* (μ per contact: its surface's, in frames) */
+    double c_n = law->c_N, d_n = law->d_N, c_t = law->c_T, d_t = law->d_T;
     double slip_velocity = law->slip_velocity;
     for (i64 i = 0; i < nc; i++) {
         double *li = lam + 3 * i;
         const double *pos = position + 3 * i;
         double *anc = anchor + 3 * i;
+        const double *t1 = frames + FRAME_STRIDE * i + 3, *t2 = t1 + 3;
+        double mu = frames[FRAME_STRIDE * i + 9];
         if (gap[i] > 0.0) {
             closed[i] = 0;
             slip[i] = 0;

@@ -163,11 +163,19 @@ typedef struct {
     const double *radius; /* nc */
 } contact_points_t;
 
-/* The ground plane {x | n·x = offset} and its tangents */
+/* The ground plane {x | n·x = offset} and its tangents, and the terrain on it (terrain.c):
+ * n_terrain floats packed by physics/terrain.py (0: the plane alone). frames (nc x 10, or
+ * NULL): where contact_points writes each contact's surface frame (n, t1, t2) and μ. */
 typedef struct {
     const double *n, *t1, *t2; /* 3 each */
     double offset;
+    i64 n_terrain;
+    const double *terrain;
+    double *frames;
 } ground_t;
+
+/* the per-contact entries of ground_t.frames: n (3), t1 (3), t2 (3), μ */
+#define FRAME_STRIDE 10
 
 /* The cut joints of a forest (ForestCoordinates / tree_step.CutModel) */
 typedef struct {
@@ -197,6 +205,7 @@ typedef struct {
     i64 nb_LB;           /* LB's dimension (0: none) */
     patterns_t pat;
     i64 opened;
+    const double *mu;     /* nc: each contact's μ (a copy, from the arena; NULL: settings_t.mu) */
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------
@@ -232,6 +241,13 @@ void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *
 void contact_kinematics(const double *q, const tree_t *t, const frames_t *f,
                         const contact_points_t *c, const ground_t *g, double jacobian_gap,
                         double *gap, double *position, double *Wt);
+
+/* terrain.c (terrain.py): the surface nearest to the sphere of centre c and radius r among
+ * the plane of g and its terrain: its gap, and its frame and μ into out (FRAME_STRIDE);
+ * terrain_is_flat: the terrain holds the plane alone */
+int terrain_is_flat(const ground_t *g);
+double terrain_plane_mu(const ground_t *g);
+double terrain_contact(const ground_t *g, const double *c, double r, double *out);
 
 /* ---------------------------------------------------------------------------------------
  * dynamics.c (rigid_body.py)
@@ -278,8 +294,8 @@ void cut_joint_torques(const double *tau_cut, const cuts_t *c, const double *axi
  * ------------------------------------------------------------------------------------- */
 void compliant_contact_forces(const compliant_law_t *law, i64 nc, i64 nv, const double *gap,
                               const double *position, const double *Wt, const double *u,
-                              u8 *closed, u8 *slip, double *anchor, const double *t1,
-                              const double *t2, double *lam);
+                              u8 *closed, u8 *slip, double *anchor, const double *frames,
+                              double *lam);
 void generalized_contact_force(const double *Wt, const double *lam, i64 nc, i64 nv,
                                double *out);
 int saturate_torque(const double *tau, const double *limit, const double *qd,

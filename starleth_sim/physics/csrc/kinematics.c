@@ -120,15 +120,17 @@ void point_jacobian(i64 j, const double *p, const tree_t *t, const frames_t *f, 
 
 /* contact_points: g_N,i = n·c_i − offset − r_i, P_i = c_i − r_i n and, for g_N,i ≤
  * jacobian_gap, Wt[i] = [n, t1, t2]^T J_P,i (nc x 3 x nv; the other rows left as they were),
- * from the placements of forward_kinematics. */
+ * from the placements of forward_kinematics; (n, t1, t2) the plane's, or on a terrain those
+ * of the contact's surface (terrain_contact), written with μ into g->frames when given. */
 void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *c,
                     const ground_t *g, double jacobian_gap, double *gap, double *position,
                     double *Wt) {
     i64 nv = t->nv;
     const double *oR = f->oR, *op = f->op;
-    const double *n = g->n, *t1 = g->t1, *t2 = g->t2;
+    int flat = terrain_is_flat(g);
+    double plane_mu = terrain_plane_mu(g);
     double J[3 * nv + 1]; /* (+1: never a zero-length array) */
-    double ci[3];
+    double ci[3], fr[FRAME_STRIDE];
     for (i64 i = 0; i < c->nc; i++) {
         i64 j = c->joint[i];
         const double *R = oR + 9 * j, *loc = c->local + 3 * i;
@@ -136,7 +138,26 @@ void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *
             ci[k] = R[k * 3 + 0] * loc[0] + R[k * 3 + 1] * loc[1] + R[k * 3 + 2] * loc[2]
                     + op[3 * j + k];
         double r = c->radius[i];
-        gap[i] = n[0] * ci[0] + n[1] * ci[1] + n[2] * ci[2] - g->offset - r;
+        const double *n = g->n, *t1 = g->t1, *t2 = g->t2;
+        if (flat) {
+            gap[i] = n[0] * ci[0] + n[1] * ci[1] + n[2] * ci[2] - g->offset - r;
+            if (g->frames) {
+                double *o = g->frames + FRAME_STRIDE * i;
+                for (int k = 0; k < 3; k++) {
+                    o[k] = n[k];
+                    o[3 + k] = t1[k];
+                    o[6 + k] = t2[k];
+                }
+                o[9] = plane_mu;
+            }
+        } else {
+            gap[i] = terrain_contact(g, ci, r, fr);
+            n = fr;
+            t1 = fr + 3;
+            t2 = fr + 6;
+            if (g->frames)
+                for (int k = 0; k < FRAME_STRIDE; k++) g->frames[FRAME_STRIDE * i + k] = fr[k];
+        }
         for (int k = 0; k < 3; k++) position[3 * i + k] = ci[k] - r * n[k];
         if (gap[i] > jacobian_gap) continue;
         point_jacobian(j, position + 3 * i, t, f, J, 1);

@@ -14,6 +14,7 @@ const char *check_tree_model(const packed_model_t *m, i64 nv) {
     if (ints[TREE_STEP_MODEL_NJ] < 1 || ints[TREE_STEP_MODEL_NC] < 0 ||
         ints[TREE_STEP_MODEL_NA] < 0 || ints[TREE_STEP_MODEL_NV] != nv)
         return "TreeStepModel: sizes (nj, nc, na, nv) do not match the state";
+    if (ints[TREE_STEP_MODEL_NT] < 14) return "TreeStepModel: the packed terrain lacks its header";
     tree_model_t t;
     if (!unpack_tree_model(m, &t)) return "TreeStepModel: buffer lengths do not match its sizes";
     return NULL;
@@ -137,8 +138,9 @@ tree_step_result_t tree_step_hard(int torque_mode, const step_arrays_t *x,
     double *qM = out, *M = out + nq, *h = out + nq + nv * nv;
     midpoint_with_forces(x, half_dt, applied, &t, qM, M, h);
     problem_t p;
-    contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, NULL, 0, NULL, t.eps, t.dof_parent,
-                    1, t.L, x->last_impulse, x->last_active, NULL, a, &p);
+    contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, NULL, 0, NULL, t.eps,
+                    t.ground.frames, t.dof_parent, 1, t.L, x->last_impulse, x->last_active, NULL,
+                    a, &p);
     if (!p.ok) return result_of(TREE_STEP_NOT_PD);
     tree_step_result_t res = result_of(TREE_STEP_OK);
     /* (no bilateral rows: Λ_B is empty, last_bilateral its own buffer) */
@@ -179,7 +181,7 @@ tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, 
     }
     i64 outcome;
     if (!solve_compliant(&t.law, M, h, x->u, nv, dt, nc, t.gap, t.position, t.Wt_all, closed,
-                         slip, anchor, t.ground.t1, t.ground.t2, lam, t.dof_parent, 1, t.L,
+                         slip, anchor, t.ground.frames, lam, t.dof_parent, 1, t.L,
                          t.u_free, NULL)) {
         outcome = TREE_STEP_NOT_PD;
     } else {
@@ -275,7 +277,7 @@ tree_step_result_t forest_step_hard(const step_arrays_t *x, int factor, double *
     add_forest_torques(applied, &t, &c, x, h, a);
     problem_t p;
     contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, c.WtB, nB, c.bB, t.eps,
-                    t.dof_parent, factor, t.L, x->last_impulse, x->last_active, NULL, a, &p);
+                    t.ground.frames, t.dof_parent, factor, t.L, x->last_impulse, x->last_active, NULL, a, &p);
     if (!p.ok) return result_of(TREE_STEP_NOT_PD);
     tree_step_result_t res = result_of(TREE_STEP_OK);
     complete_step(&t.s, &p, h, M, &t, x, c.bilateral_E, qM, half_dt, &res, a);

@@ -18,7 +18,7 @@ void free_velocity(const double *h, double dt, const double *uS, i64 nv, const i
 int solve_compliant(const compliant_law_t *law, const double *M, double *h, const double *uS,
                     i64 nv, double dt, i64 nc, const double *gap, const double *position,
                     const double *Wt_all, u8 *closed, u8 *slip, double *anchor,
-                    const double *t1, const double *t2, double *lam, const i64 *dof_parent,
+                    const double *frames, double *lam, const i64 *dof_parent,
                     int factor, double *L, double *u_free, double *timings) {
     double t = kclock(timings);
     if (factor) {
@@ -26,8 +26,8 @@ int solve_compliant(const compliant_law_t *law, const double *M, double *h, cons
         t = klap(timings, PHASE_M_INVERSE, t);
         if (!ok) return 0;
     }
-    compliant_contact_forces(law, nc, nv, gap, position, Wt_all, uS, closed, slip, anchor, t1,
-                             t2, lam);
+    compliant_contact_forces(law, nc, nv, gap, position, Wt_all, uS, closed, slip, anchor,
+                             frames, lam);
     generalized_contact_force(Wt_all, lam, nc, nv, h);
     t = klap(timings, PHASE_REST, t);
     free_velocity(h, dt, uS, nv, dof_parent, L, u_free);
@@ -250,7 +250,8 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
         }
         for (i64 r_ = 0; r_ < m - o; r_++) lam0[o + r_] = last_bilateral[r_];
     }
-    for (i64 k = 0; k < na; k++) mu_vec[k] = s->mu;
+    for (i64 k = 0; k < na; k++)
+        mu_vec[k] = p->mu ? p->mu[active[k]] : s->mu;
     int attempts = fallback_factor > 0.0 ? 2 : 1;
     memcpy(lam, lam0, (size_t)m * sizeof(double));
     i64 it_sum = 0;
@@ -422,12 +423,18 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
 /* contact_problem: phases "M^-1" and "G" (phase_minv, phase_delassus) */
 void contact_problem(const settings_t *s, const double *M, const double *uS, i64 nv,
                      const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
-                     const double *bB, const double *eps, const i64 *dof_parent, int factor,
-                     double *L, const double *last_impulse, const u8 *last_active,
-                     double *timings, arena_t *a, problem_t *p) {
+                     const double *bB, const double *eps, const double *frames,
+                     const i64 *dof_parent, int factor, double *L, const double *last_impulse,
+                     const u8 *last_active, double *timings, arena_t *a, problem_t *p) {
     double t = kclock(timings);
     phase_minv(s, M, uS, nv, gap, nc, Wt_all, WtB, nb, bB, eps, dof_parent, factor, L,
                last_impulse, last_active, a, p);
+    p->mu = NULL;
+    if (frames) { /* (copied: a prepared problem outlives the call) */
+        double *mu = arena_f(a, nc);
+        for (i64 i = 0; i < nc; i++) mu[i] = frames[FRAME_STRIDE * i + 9];
+        p->mu = mu;
+    }
     t = klap(timings, PHASE_M_INVERSE, t);
     if (p->ok && p->m != 0) {
         patterns_t full;

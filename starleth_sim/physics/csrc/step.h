@@ -19,7 +19,7 @@ void free_velocity(const double *h, double dt, const double *uS, i64 nv, const i
 int solve_compliant(const compliant_law_t *law, const double *M, double *h, const double *uS,
                     i64 nv, double dt, i64 nc, const double *gap, const double *position,
                     const double *Wt_all, u8 *closed, u8 *slip, double *anchor,
-                    const double *t1, const double *t2, double *lam, const i64 *dof_parent,
+                    const double *frames, double *lam, const i64 *dof_parent,
                     int factor, double *L, double *u_free, double *timings);
 
 /* c = W^T u_free + b (Eqn. 15) */
@@ -28,12 +28,13 @@ void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free,
 
 /* The torque-independent part of the hard-contact solve (contact_problem): the problem's
  * arrays from the arena. gap, Wt_all: nc contacts; WtB (nb x nv), bB (nb): the bilateral
- * rows; eps: nc x 2; last_impulse nc x 3, last_active nc. */
+ * rows; eps: nc x 2; frames: nc x FRAME_STRIDE, the contacts' μ (NULL: settings_t.mu);
+ * last_impulse nc x 3, last_active nc. */
 void contact_problem(const settings_t *s, const double *M, const double *uS, i64 nv,
                      const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
-                     const double *bB, const double *eps, const i64 *dof_parent, int factor,
-                     double *L, const double *last_impulse, const u8 *last_active,
-                     double *timings, arena_t *a, problem_t *p);
+                     const double *bB, const double *eps, const double *frames,
+                     const i64 *dof_parent, int factor, double *L, const double *last_impulse,
+                     const u8 *last_active, double *timings, arena_t *a, problem_t *p);
 
 /* The torque-dependent rest of the hard-contact solve (complete_problem); impulse: nc x 3,
  * is_active: nc, last_bilateral: nb (Λ_B: warm start in, solution out). */

@@ -1,0 +1,181 @@
+/* The contact query against the terrain (terrain.py): the ground plane, yawed boxes and a
+ * bilinear heightfield, packed into one float array by terrain.pack_terrain:
+ *   header (TERRAIN_HEADER): n_box, nx, ny, x0, y0, cell, μ of the heightfield, μ of the
+ *                            plane, the bins' bx0, by0, size, nbx, nby, and n_items
+ *   boxes (n_box x BOX_STRIDE): centre (3), half sizes (3), cos ψ, sin ψ, μ, and the half
+ *                               sizes of the box's axis-aligned bounds in x and y
+ *   bins (with boxes: nbx x nby + 1 starts, then n_items box indices): the boxes whose
+ *        bounds, grown by terrain.BOX_REACH, overlap bin (i, j) of the xy grid of squares of
+ *        `size` from (bx0, by0); a contact tests the boxes of its centre's bin only
+ *   heights (nx x ny): h[ix * ny + iy] at (x0 + ix cell, y0 + iy cell)
+ * The surface rule: each contact sphere takes the surface with the smallest gap; a tie goes
+ * to the first in the order plane, boxes (as listed), heightfield. */
+#include "core.h"
+
+#define TERRAIN_HEADER 14
+#define BOX_STRIDE 11
+
+int terrain_is_flat(const ground_t *g) {
+    return g->n_terrain < TERRAIN_HEADER || (g->terrain[0] == 0.0 && g->terrain[1] == 0.0);
+}
+
+double terrain_plane_mu(const ground_t *g) {
+    return g->n_terrain >= TERRAIN_HEADER ? g->terrain[7] : 0.0;
+}
+
+/* _tangents: (n, t1, t2, μ) into out; t1 the projection of the world x axis (y if n is
+ * nearly parallel to x) onto the tangent plane, t2 = n × t1 (contact.tangent_basis) */
+static void frame_of(const double *n, double mu, double *out) {
+    double rx = 1.0, ry = 0.0;
+    if (!(fabs(n[0]) < 0.9)) {
+        rx = 0.0;
+        ry = 1.0;
+    }
+    double d = rx * n[0] + ry * n[1];
+    double a0 = rx - n[0] * d, a1 = ry - n[1] * d, a2 = 0.0 - n[2] * d;
+    double s = sqrt(a0 * a0 + a1 * a1 + a2 * a2);
+    a0 /= s;
+    a1 /= s;
+    a2 /= s;
+    out[0] = n[0];
+    out[1] = n[1];
+    out[2] = n[2];
+    out[3] = a0;
+    out[4] = a1;
+    out[5] = a2;
+    out[6] = n[1] * a2 - n[2] * a1;
+    out[7] = n[2] * a0 - n[0] * a2;
+    out[8] = n[0] * a1 - n[1] * a0;
+    out[9] = mu;
+}
+
+/* _box_distance: the signed distance of c to box b (negative inside) and the outward unit
+ * normal at the closest point (inside: of the nearest face) */
+static double box_distance(const double *b, const double *c, double *n) {
+    double dx = c[0] - b[0], dy = c[1] - b[1], dz = c[2] - b[2];
+    double cs = b[6], sn = b[7];
+    double p[3] = {cs * dx + sn * dy, -sn * dx + cs * dy, dz};
+    double l[3], out2 = 0.0;
+    int outside = 0;
+    for (int k = 0; k < 3; k++) {
+        double h = b[3 + k], e = fabs(p[k]) - h;
+        if (e > 0.0) {
+            l[k] = p[k] > 0.0 ? e : -e;
+            out2 += e * e;
+            outside = 1;
+        } else {
+            l[k] = 0.0;
+        }
+    }
+    double d;
+    if (outside) {
+        d = sqrt(out2);
+        for (int k = 0; k < 3; k++) l[k] /= d;
+    } else { /* inside: the nearest face (ties: z, then x, then y, so a top face wins) */
+        static const int order[3] = {2, 0, 1};
+        int best = 2;
+        d = fabs(p[2]) - b[5];
+        for (int o = 1; o < 3; o++) {
+            int k = order[o];
+            double e = fabs(p[k]) - b[3 + k];
+            if (e > d) {
+                d = e;
+                best = k;
+            }
+        }
+        l[best] = p[best] >= 0.0 ? 1.0 : -1.0;
+    }
+    n[0] = cs * l[0] - sn * l[1];
+    n[1] = sn * l[0] + cs * l[1];
+    n[2] = l[2];
+    return d;
+}
+
+/* _heightfield: whether (c_x, c_y) lies over the grid; then h there (bilinear in the cell)
+ * and the unit normal of the cell's surface at that point */
+static int heightfield(const double *hdr, const double *hs, const double *c, double *h,
+                       double *n) {
+    i64 nx = (i64)hdr[1], ny = (i64)hdr[2];
+    double x0 = hdr[3], y0 = hdr[4], cell = hdr[5];
+    double u = (c[0] - x0) / cell, v = (c[1] - y0) / cell;
+    if (!(u >= 0.0 && v >= 0.0 && u <= (double)(nx - 1) && v <= (double)(ny - 1))) return 0;
+    i64 i = (i64)u, j = (i64)v;
+    if (i > nx - 2) i = nx - 2;
+    if (j > ny - 2) j = ny - 2;
+    double fx = u - (double)i, fy = v - (double)j;
+    double h00 = hs[i * ny + j], h01 = hs[i * ny + j + 1], h10 = hs[(i + 1) * ny + j],
+           h11 = hs[(i + 1) * ny + j + 1];
+    /* (in this form, equal corners give exactly their height, a flat grid exactly a plane) */
+    double a = h00 + fy * (h01 - h00), b = h10 + fy * (h11 - h10);
+    *h = a + fx * (b - a);
+    double gx = ((1.0 - fy) * (h10 - h00) + fy * (h11 - h01)) / cell;
+    double gy = ((1.0 - fx) * (h01 - h00) + fx * (h11 - h10)) / cell;
+    double s = sqrt(gx * gx + gy * gy + 1.0);
+    n[0] = -gx / s + 0.0; /* (+ 0.0: no negative zero) */
+    n[1] = -gy / s + 0.0;
+    n[2] = 1.0 / s;
+    return 1;
+}
+
+double terrain_contact(const ground_t *g, const double *c, double r, double *out) {
+    const double *T = g->terrain, *n = g->n;
+    double best = n[0] * c[0] + n[1] * c[1] + n[2] * c[2] - g->offset - r;
+    double plane_mu = T[7];
+    const double *bn = n;
+    double nb[3], mu = plane_mu;
+    int from_plane = 1;
+    i64 nbox = (i64)T[0], nbx = (i64)T[11], nby = (i64)T[12];
+    const double *boxes = T + TERRAIN_HEADER, *bins = boxes + BOX_STRIDE * nbox;
+    const double *items = bins + (nbox ? nbx * nby + 1 : 0), *heights = items + (i64)T[13];
+    i64 first = 0, last = 0;
+    if (nbox) {
+        double u = floor((c[0] - T[8]) / T[10]), v = floor((c[1] - T[9]) / T[10]);
+        if (u >= 0.0 && v >= 0.0 && u < (double)nbx && v < (double)nby) {
+            i64 bin = (i64)u * nby + (i64)v;
+            first = (i64)bins[bin];
+            last = (i64)bins[bin + 1];
+        }
+    }
+    for (i64 it = first; it < last; it++) {
+        const double *b = boxes + BOX_STRIDE * (i64)items[it];
+        /* a lower bound of the distance: outside the box's axis-aligned bounds */
+        double lb = py_max(py_max(fabs(c[0] - b[0]) - b[9], fabs(c[1] - b[1]) - b[10]),
+                           fabs(c[2] - b[2]) - b[5]);
+        if (lb - r >= best) continue;
+        double nk[3];
+        double gk = box_distance(b, c, nk) - r;
+        if (gk < best) {
+            best = gk;
+            nb[0] = nk[0];
+            nb[1] = nk[1];
+            nb[2] = nk[2];
+            mu = b[8];
+            from_plane = 0;
+        }
+    }
+    if (T[1] > 0.0) {
+        double h, nh[3];
+        if (heightfield(T, heights, c, &h, nh)) {
+            double gh = (c[2] - h) * nh[2] - r;
+            if (gh < best) {
+                best = gh;
+                nb[0] = nh[0];
+                nb[1] = nh[1];
+                nb[2] = nh[2];
+                mu = T[6];
+                from_plane = 0;
+            }
+        }
+    }
+    if (from_plane) {
+        for (int k = 0; k < 3; k++) {
+            out[k] = bn[k];
+            out[3 + k] = g->t1[k];
+            out[6 + k] = g->t2[k];
+        }
+        out[9] = plane_mu;
+    } else {
+        frame_of(nb, mu, out);
+    }
+    return best;
+}
