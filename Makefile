@@ -68,9 +68,17 @@ test: venv
 	if [ $$a != 0 ]; then exit $$a; fi; if [ $$b != 0 ]; then exit $$b; fi; exit $$c
 
 # The main job: the trotting demo over ROS 2 (starleth-demo; it makes the kernels ready
-# first, with a progress line, then runs sim_node + controller_node and summarises the bag).
+# first, with a progress line, then runs sim_node + controller_node and summarises the bag),
+# with the live view (--live: the URL to open in Foxglove is printed) where foxglove-sdk
+# (requirements-live.txt) is installed; a busy port 8765 only turns the live view off.
 demo: venv
-	$(VENV)/bin/starleth-demo
+	@if $(VPY) -c 'import foxglove' >/dev/null 2>&1; then \
+	  echo "demo: foxglove-sdk installed: with the live view (starleth-demo --live)"; \
+	  $(VENV)/bin/starleth-demo --live; \
+	else \
+	  echo "demo: no live view (pip install -r requirements-live.txt for it)"; \
+	  $(VENV)/bin/starleth-demo; \
+	fi
 
 # starleth-bench, then the side-by-side comparison with MuJoCo (requirements-bench.txt, an
 # optional dependency installed here only), then what a first run compiles, from an empty

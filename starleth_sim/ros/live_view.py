@@ -14,6 +14,7 @@ and the protocol's subprotocol (``foxglove.sdk.v1``): doc/sim_node.md, "Live vie
 """
 from __future__ import annotations
 
+import socket
 import threading
 
 from .recording import message_definition, type_name
@@ -26,11 +27,28 @@ SUBPROTOCOL = "foxglove.sdk.v1"
 
 def viewer_urls(host: str, port: int) -> dict:
     """{viewer: the URL that opens the live view of a server at host:port in it}."""
-    if host in ("0.0.0.0", "", "::"):
+    if host in ("0.0.0.0", "", "::", "127.0.0.1"):
         host = "localhost"
     ws = f"ws://{host}:{port}"
     return {"Foxglove": f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={ws}",
             "Lichtblick": f"Open connection > Foxglove WebSocket > {ws}"}
+
+
+def live_view_lines(host: str, port: int):
+    """(the port is free to serve on, the lines to print: the URLs to open, or why there
+    is no live view) for a live view about to start on host:port (starleth-demo --live)."""
+    try:
+        import foxglove  # noqa: F401  optional dependency: requirements-live.txt
+    except ImportError:
+        return False, [f"  live view: off (foxglove-sdk is not installed: {INSTALL_HINT})"]
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            return False, [f"  live view: off (port {port}: {e.strerror}; the demo goes on "
+                           "without it)"]
+    return True, [f"  live view: open while it runs: {viewer}: {url}"
+                  for viewer, url in viewer_urls(host, port).items()]
 
 
 class _Listener:

@@ -113,9 +113,12 @@ def main(argv=None) -> int:
     ap.add_argument("topics", nargs="*", help="topics to subscribe to (default: all)")
     ap.add_argument("--url", default="ws://localhost:8765")
     ap.add_argument("--seconds", type=float, default=5.0, help="how long to listen")
+    ap.add_argument("--connect-timeout", type=float, default=60.0,
+                    help="seconds to keep trying to connect (a node still starting)")
     args = ap.parse_args(argv)
     try:
-        log = collect(args.url, args.topics or None, args.seconds, connect_timeout=10.0)
+        log = collect(args.url, args.topics or None, args.seconds,
+                      connect_timeout=args.connect_timeout)
     except ImportError:
         print("live_log: the websockets package is missing: pip install -r "
               "requirements-live.txt", file=sys.stderr)
