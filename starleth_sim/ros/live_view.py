@@ -79,16 +79,19 @@ class LiveView:
         #: the topics with at least one subscription now (replaced, never changed in place:
         #: read without a lock by the stepping thread)
         self.subscribed = frozenset()
+        #: steps between two messages of a topic served (live_view_rate; the TF topics
+        #: keep their own rate, tf_rate, and latched topics are always served)
+        self.every = 1
         self.server = foxglove.start_server(name=name, host=host, port=port,
                                             server_listener=_Listener(self),
                                             context=self.context)
         self.host, self.port = host, self.server.port
 
     @classmethod
-    def open(cls, host, port, topics, log, name="sim_node"):
+    def open(cls, host, port, topics, log, name="sim_node", every=1):
         """The live view serving `topics` ([(resolved topic, message type, latched)]) on
-        host:port, or None after one error line on `log` (foxglove-sdk not installed, the
-        port in use, ...): the simulation goes on without it."""
+        host:port every `every` steps, or None after one error line on `log` (foxglove-sdk
+        not installed, the port in use, ...): the simulation goes on without it."""
         try:
             import foxglove   # optional dependency: requirements-live.txt
         except ImportError:
@@ -101,6 +104,7 @@ class LiveView:
             log.error(f"live_view: cannot serve on {host}:{port}: {e}. The simulation goes "
                       "on without the live view (choose another live_view_port).")
             return None
+        live.every = max(1, int(every))
         for topic, typ, latched in topics:
             live.add_topic(topic, typ, latched)
         urls = viewer_urls(host, live.port)

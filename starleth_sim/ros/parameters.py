@@ -111,6 +111,11 @@ SIM_NODE_PARAMETERS = (
       "WebSocket protocol (open it in Foxglove or Lichtblick). Needs foxglove-sdk (pip "
       "install -r requirements-live.txt); without it, or with the port in use, one error "
       "line and the simulation goes on without the live view."),
+    P("live_view_rate", float, 50.0,
+      "Live view: Hz (sim time) of the topics served, each at most at its own rate; 0 = "
+      "every step (400 Hz: costs the lockstep cycle more, doc/performance.md). /tf keeps "
+      "tf_rate; latched topics are always served.", minimum=1.0, maximum=1000.0,
+      off_value=0.0, off_meaning="every step"),
     P("live_view_port", int, 8765, "Live view: TCP port of the WebSocket server.", minimum=1,
       maximum=65535),
     P("live_view_host", str, "127.0.0.1",

@@ -48,6 +48,7 @@ from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state
 from .state_publisher import StatePublisher
 from .tf import TF_TYPE
+from .visualisation import steps_between
 from .topic_output import TopicOutput
 
 
@@ -187,8 +188,10 @@ class SimNode:
                   for _, topic, typ, qos in self.output.pubs.values()]
         topics += [(self.node.resolve_topic_name(topic), TF_TYPE, qos == LATCHED_QOS)
                    for topic, qos in self.publisher.visualisation.tf_topics_recorded().values()]
-        self.output.live = LiveView.open(s.live_view_host, s.live_view_port, topics,
-                                         self.log, name=self.node.get_fully_qualified_name())
+        self.output.live = LiveView.open(
+            s.live_view_host, s.live_view_port, topics, self.log,
+            name=self.node.get_fully_qualified_name(),
+            every=steps_between(s.live_view_rate, self.sim.control_period) or 1)
 
     # -- callbacks -------------------------------------------------------------------------
     def _log_warning(self, message):

@@ -197,7 +197,7 @@ class StatePublisher:
         p, topic, _, _ = self.output.pubs["state_bundle"]
         data = state_bundle_bytes(self.bundle_cdr, sec, nsec, base, joints, forces)
         p.publish(data)
-        if self.output.live is not None:
+        if self.output.live_wants("state_bundle"):
             self.output.live.log(topic, data, self.service.stamp_ns)
 
     def _publish_joint_states(self, sec, nsec, record, joints):

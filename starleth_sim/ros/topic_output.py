@@ -55,14 +55,18 @@ class TopicOutput:
             if self.counts.get(key, 1) > 0:
                 p.publish(data)
             rec.write(topic, data, self.service.stamp_ns)
-        else:
-            p.publish(data)
-        if self.live is not None:
-            self.live.log(topic, data, self.service.stamp_ns)
+        elif self.live is None or self.counts.get(key, 1) > 0:   # (not: built for the live
+            p.publish(data)                                       # view alone)
+        live = self.live
+        if live is not None and (self.service.k % live.every == 0 or topic in live.latched):
+            live.log(topic, data, self.service.stamp_ns)
 
     def live_wants(self, key) -> bool:
-        """The live view is on and a client of it subscribes to `key`'s topic."""
-        return self.live is not None and self.live.wants(self.pubs[key][1])
+        """The live view is on, serves this step (every live.every-th: live_view_rate) and
+        a client of it subscribes to `key`'s topic."""
+        live = self.live
+        return (live is not None and self.service.k % live.every == 0
+                and live.wants(self.pubs[key][1]))
 
     def wanted(self, key, record):
         """Build and publish a topic only if it is recorded or someone subscribes (an

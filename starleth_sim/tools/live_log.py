@@ -75,9 +75,12 @@ async def collect_async(url, topics=None, seconds=5.0, until=None, connect_timeo
     end = time.monotonic() + seconds
     async with ws:
         while time.monotonic() < end and not (until is not None and until(log)):
-            try:
-                m = await asyncio.wait_for(ws.recv(), timeout=max(0.01, end - time.monotonic()))
+            try:      # (at most 0.5 s: `until` is looked at while nothing arrives too)
+                m = await asyncio.wait_for(ws.recv(),
+                                           timeout=min(0.5, max(0.01, end - time.monotonic())))
             except asyncio.TimeoutError:
+                continue
+            except websockets.exceptions.ConnectionClosed:   # the server stopped
                 break
             if isinstance(m, bytes):
                 if m[0] == OP_MESSAGE_DATA:
