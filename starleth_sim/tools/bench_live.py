@@ -94,7 +94,8 @@ def layout_topics(path=None) -> list:
     return sorted({t.lstrip("/") for t in named} | {"/tf", "/tf_static"})
 
 
-def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=False):
+def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=False,
+          rate=None):
     """`topics`: what the client subscribes to (None: every topic; []: no client);
     record: both sim_nodes record (to a temporary directory), as the demo's does, so
     both build every topic."""
@@ -107,6 +108,7 @@ def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=Fals
     procs = {"live_off": _start("live_off", domain_id, logs["live_off"], rec["live_off"]),
              "live_on": _start("live_on", domain_id, logs["live_on"],
                                {"live_view": "true", "live_view_port": port,
+                                **({} if rate is None else {"live_view_rate": float(rate)}),
                                 **rec["live_on"]})}
     stop, client = threading.Event(), {}
 
@@ -182,9 +184,12 @@ def main(argv=None):
                          "shipped Foxglove layout (layout), or there is none (none)")
     ap.add_argument("--record", action="store_true",
                     help="both sim_nodes record (as the demo's does): both build every topic")
+    ap.add_argument("--rate", type=float, default=None,
+                    help="the live view's live_view_rate (default: sim_node's, 50 Hz)")
     args = ap.parse_args(argv)
     topics = {"all": None, "layout": layout_topics(), "none": []}[args.client]
-    bench(args.rounds, args.seconds, args.port, args.domain_id, topics, record=args.record)
+    bench(args.rounds, args.seconds, args.port, args.domain_id, topics, record=args.record,
+          rate=args.rate)
     return 0
 
 
