@@ -163,6 +163,8 @@ class StatePublisher:
             timing.row[4] = time.perf_counter()
             timing.commit(svc.stamp_ns)
         out.update_counts()
+        if out.live is not None:     # the live view's messages of this step, all at once
+            out.live.flush()
 
     def republish_state(self):
         """Send the current state again on every topic with subscribers (not recorded)."""
