@@ -48,8 +48,8 @@ from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state
 from .state_publisher import StatePublisher
 from .tf import TF_TYPE
-from .visualisation import steps_between
 from .topic_output import TopicOutput
+from .visualisation import steps_between
 
 
 class SimNode:
