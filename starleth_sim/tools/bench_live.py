@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from ..physics.description import package_share_dir
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bench_round_trips import spin_until
 from .live_log import collect
@@ -86,7 +87,6 @@ def _run_for(pause, seconds, pid):
 def layout_topics(path=None) -> list:
     """The topics the shipped Foxglove layout (foxglove/starleth_layout.json) names, and
     /tf and /tf_static (its 3D panel follows every transform)."""
-    from ..physics.description import package_share_dir
     path = path or os.path.join(package_share_dir(), "foxglove", "starleth_layout.json")
     with open(path) as f:
         named = re.findall(r'"(/[A-Za-z0-9_/]+)', f.read())
