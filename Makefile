@@ -13,9 +13,11 @@ venv: $(STAMP)
 # Creates .venv (reusing an existing one). With a sourced ROS 2 install providing
 # rclpy, the venv sees the system site-packages and the ROS wheels are skipped;
 # otherwise the ROS 2 Jazzy PyPI wheels from requirements-ros.txt are installed.
+# Then the optional live view's requirements-live.txt (foxglove-sdk: sim_node live_view,
+# starleth-demo --live); where it fails to install, the venv goes on without the live view.
 # The top-level package __init__ files are prerequisites because the editable
 # install only maps top-level packages that existed when it ran.
-$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraints.txt setup.py setup.cfg package.xml \
+$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requirements-live.txt constraints.txt setup.py setup.cfg package.xml \
           $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py starleth_interface/__init__.py)
 	@set -e; \
 	if [ ! -x $(VPY) ]; then \
@@ -33,8 +35,10 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt constraint
 	  echo "venv: installing ROS 2 Jazzy wheels (requirements-ros.txt)"; \
 	  $(PIP) install -c constraints.txt -r requirements-ros.txt; \
 	fi; \
-	echo "venv: installing requirements.txt requirements-test.txt"; \
+	echo "venv: installing requirements.txt requirements-test.txt requirements-live.txt"; \
 	$(PIP) install -c constraints.txt -r requirements.txt -r requirements-test.txt; \
+	$(PIP) install -c constraints.txt -r requirements-live.txt || \
+	  echo "venv: the live view's optional requirements-live.txt failed to install: no live view"; \
 	echo "venv: installing starleth_sim (editable)"; \
 	$(PIP) install -e . --no-deps; \
 	touch $@
@@ -64,9 +68,17 @@ test: venv
 	if [ $$a != 0 ]; then exit $$a; fi; if [ $$b != 0 ]; then exit $$b; fi; exit $$c
 
 # The main job: the trotting demo over ROS 2 (starleth-demo; it makes the kernels ready
-# first, with a progress line, then runs sim_node + controller_node and summarises the bag).
+# first, with a progress line, then runs sim_node + controller_node and summarises the bag),
+# with the live view (--live: the URL to open in Foxglove is printed) where foxglove-sdk
+# (requirements-live.txt) is installed; a busy port 8765 only turns the live view off.
 demo: venv
-	$(VENV)/bin/starleth-demo
+	@if $(VPY) -c 'import foxglove' >/dev/null 2>&1; then \
+	  echo "demo: foxglove-sdk installed: with the live view (starleth-demo --live)"; \
+	  $(VENV)/bin/starleth-demo --live; \
+	else \
+	  echo "demo: no live view (pip install -r requirements-live.txt for it)"; \
+	  $(VENV)/bin/starleth-demo; \
+	fi
 
 # starleth-bench, then the side-by-side comparison with MuJoCo (requirements-bench.txt, an
 # optional dependency installed here only), then what a first run compiles, from an empty
@@ -103,7 +115,7 @@ constraints:
 	@set -e; tmp=$$(mktemp -d); \
 	$(PYTHON) -m venv $$tmp/venv; \
 	$$tmp/venv/bin/python -m pip -q --disable-pip-version-check --no-input install \
-	  -r requirements-ros.txt -r requirements.txt -r requirements-test.txt; \
+	  -r requirements-ros.txt -r requirements.txt -r requirements-test.txt -r requirements-live.txt; \
 	{ echo "# Exact versions the test suite passed with (Python $$($$tmp/venv/bin/python -c 'import sys; print("%d.%d" % sys.version_info[:2])'), $$(date +%Y-%m-%d)); make installs with"; \
 	  echo "# -c constraints.txt. Refresh on purpose with \`make constraints\` (a fresh venv from the"; \
 	  echo "# requirements files without constraints), then run \`make test\` and commit both."; \

@@ -76,7 +76,8 @@ setup(
     license='BSD-3-Clause',
     extras_require={'test': ['pytest'],
                     'ray': ['ray>=2.9'],       # starleth-sweep / starleth-eval --ray
-                    'parquet': ['pyarrow']},   # starleth-sweep's results.parquet
+                    'parquet': ['pyarrow'],    # starleth-sweep's results.parquet
+                    'live': ['foxglove-sdk>=0.30', 'websockets']},   # sim_node live_view
     entry_points={
         'console_scripts': [
             'sim_node = starleth_sim.ros.sim_node:main',

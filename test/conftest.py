@@ -22,7 +22,8 @@ SERIAL_MODULES = {
     "test_install_layout",
     "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
     "test_sim_node", "test_sim_node_faults",
-    "test_sim_service", "test_sim_time", "test_strict_inputs", "test_tf", "test_view",
+    "test_live_view", "test_sim_service", "test_sim_time", "test_strict_inputs", "test_tf",
+    "test_view",
 }
 
 

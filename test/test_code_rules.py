@@ -25,10 +25,11 @@ PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 MAX_LINES = 600
 
 # top-level names a function may import locally: optional dependencies (setup.py's extras
-# included: pyarrow for starleth-sweep's parquet) and ROS packages (rclpy, the rosidl runtime,
-# the interface packages: *_msgs, *_srvs, *_interfaces as rcl_interfaces)
+# included: pyarrow for starleth-sweep's parquet, foxglove and websockets for the live view)
+# and ROS packages (rclpy, the rosidl runtime, the interface packages: *_msgs, *_srvs,
+# *_interfaces as rcl_interfaces)
 OPTIONAL_IMPORTS = {"ray", "mujoco", "meshcat", "matplotlib", "foxglove", "foxglove_sdk",
-                    "pyarrow"}
+                    "pyarrow", "websockets"}
 ROS_IMPORTS = {"rclpy", "ament_index_python"}
 ROS_IMPORT_PATTERNS = tuple(re.compile(p) for p in (r"rosidl_\w+$", r"\w+_msgs$", r"\w+_srvs$",
                                                     r"\w+_interfaces$"))

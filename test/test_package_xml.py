@@ -14,7 +14,7 @@ LAUNCH_FILE = os.path.join(ROOT, "launch", "starleth.launch.xml")
 
 #: Python modules whose rosdep key differs from the module name
 ROSDEP_KEYS = {"numpy": "python3-numpy", "yaml": "python3-yaml",
-               "matplotlib": "python3-matplotlib"}
+               "matplotlib": "python3-matplotlib", "PIL": "python3-pil"}
 
 #: ROS packages imported under their own name that are not message / service packages
 ROS_LIBRARIES = {"rclpy", "rcl_interfaces", "ament_index_python"}
@@ -32,6 +32,8 @@ PIP_ONLY = {
     "pyarrow": "optional extra `parquet` (starleth-sweep)",
     "ray": "optional extra `ray` (starleth-sweep / starleth-eval --ray)",
     "mujoco": "optional: starleth-bench's comparison only",
+    "foxglove": "optional extra `live` (foxglove-sdk: sim_node's live_view), pip only",
+    "websockets": "optional extra `live` (starleth_sim.tools.live_log, a protocol client)",
 }
 
 #: the packages each element of the launch file needs: the XML front end (launch_xml) and the

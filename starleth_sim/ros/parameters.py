@@ -115,6 +115,21 @@ SIM_NODE_PARAMETERS = (
     P("contact_marker_scale", float, 0.002,
       "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
       minimum_exclusive=True, maximum=1.0),
+    P("live_view", bool, False,
+      "Serve every topic sim_node publishes, /tf and /tf_static included, over the Foxglove "
+      "WebSocket protocol (open it in Foxglove or Lichtblick). Needs foxglove-sdk (pip "
+      "install -r requirements-live.txt); without it, or with the port in use, one error "
+      "line and the simulation goes on without the live view."),
+    P("live_view_rate", float, 50.0,
+      "Live view: Hz (sim time) of the topics served, each at most at its own rate; 0 = "
+      "every step (400 Hz: costs the lockstep cycle more, doc/performance.md). /tf keeps "
+      "tf_rate; latched topics are always served.", minimum=1.0, maximum=1000.0,
+      off_value=0.0, off_meaning="every step"),
+    P("live_view_port", int, 8765, "Live view: TCP port of the WebSocket server.", minimum=1,
+      maximum=65535),
+    P("live_view_host", str, "127.0.0.1",
+      "Live view: address to bind (127.0.0.1: this machine only; 0.0.0.0 opens it to the "
+      "network)."),
 )
 
 YAML_HEADER = """\

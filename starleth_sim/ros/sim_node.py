@@ -9,9 +9,9 @@ doc/sim_node.md. This module is the node itself (its parameters, subscriptions, 
 and their callbacks) and its two console scripts, ``sim_node`` (:func:`main`) and
 ``sim_node_composed`` (:func:`main_composed`). The parts it wires together: the publishing of
 the state (:mod:`.state_publisher` through :mod:`.topic_output`, with :mod:`.solver_diagnostics`
-and :mod:`.visualisation`), the recording (:mod:`.node_recording`), the loops
-(:mod:`.sim_loops`) and the ROS-free core (:class:`~.service.SimService`, :mod:`.state_io`,
-:mod:`.parameters`).
+and :mod:`.visualisation`), the live view (:mod:`.live_view`), the recording
+(:mod:`.node_recording`), the loops (:mod:`.sim_loops`) and the ROS-free core
+(:class:`~.service.SimService`, :mod:`.state_io`, :mod:`.parameters`).
 """
 from __future__ import annotations
 
@@ -42,15 +42,18 @@ from starleth_interface.topics import (TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS,
 from ..physics.config import ConfigError
 from ..physics.simulator import Simulator
 from .cdr import CommandDecoder
+from .live_view import LiveView
 from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
-from .qos import COMMAND_QOS, SERVICE_QOS
+from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .service import PeriodStats, SimService
 from .sim_loops import SimLoops
 from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state
 from .state_publisher import StatePublisher
+from .tf import TF_TYPE
 from .topic_output import TopicOutput
+from .visualisation import steps_between
 
 
 class SimNode:
@@ -106,6 +109,8 @@ class SimNode:
             self.log.warning(f"cpu_scheduling {s.cpu_scheduling}: {err}")
         if s.record:
             self._open_recording(s.record)
+        if s.live_view:
+            self._start_live_view()
         self.publisher.publish_robot_description()
         self.publisher.visualisation.publish_static_transforms()
         self.log.info(f"{s.physics} physics, {s.mode} mode"
@@ -189,6 +194,19 @@ class SimNode:
                      namespace=self.node.get_namespace(), pubs=self.output.pubs,
                      subs=self.subs,
                      tf_topics=self.publisher.visualisation.tf_topics_recorded())
+
+    def _start_live_view(self):
+        """The live view (:mod:`.live_view`) of every published topic and the TF topics
+        (None after one error line if it cannot start)."""
+        s = self.settings
+        topics = [(topic, typ, qos == LATCHED_QOS)
+                  for _, topic, typ, qos in self.output.pubs.values()]
+        topics += [(self.node.resolve_topic_name(topic), TF_TYPE, qos == LATCHED_QOS)
+                   for topic, qos in self.publisher.visualisation.tf_topics_recorded().values()]
+        self.output.live = LiveView.open(
+            s.live_view_host, s.live_view_port, topics, self.log,
+            name=self.node.get_fully_qualified_name(),
+            every=steps_between(s.live_view_rate, self.sim.control_period) or 1)
 
     # -- callbacks -------------------------------------------------------------------------
     def _log_warning(self, message):
@@ -303,6 +321,8 @@ class SimNode:
         """Finalise the recording (idempotent; at most NodeRecording.CLOSE_TIMEOUT s) and
         log a summary."""
         self.recording.close(self.summary)
+        if self.output.live is not None:
+            self.output.live.stop()
         summary = self.summary()
         self.log.info("summary: " + json.dumps(summary))
         return summary

@@ -138,7 +138,8 @@ class StatePublisher:
             self._publish_odometry(sec, nsec, base, record)
         if first:   # state 0: the exact count
             send = (out.subscription_count("joint_states") > 0
-                    or (record and self.recording.recorder is not None))
+                    or (record and self.recording.recorder is not None)
+                    or out.live_wants("joint_states"))
         else:
             send = wanted("joint_states", record)
         if send:
@@ -162,6 +163,8 @@ class StatePublisher:
             timing.row[4] = time.perf_counter()
             timing.commit(svc.stamp_ns)
         out.update_counts()
+        if out.live is not None:     # the live view's messages of this step, all at once
+            out.live.flush()
 
     def republish_state(self):
         """Send the current state again on every topic with subscribers (not recorded)."""
@@ -187,14 +190,17 @@ class StatePublisher:
             return False
         out = self.output
         if first or out.counts_k < 0:
-            return out.subscription_count("state_bundle") > 0
-        return out.counts.get("state_bundle", 0) > 0
+            return out.subscription_count("state_bundle") > 0 or out.live_wants("state_bundle")
+        return out.counts.get("state_bundle", 0) > 0 or out.live_wants("state_bundle")
 
     def publish_bundle(self, sec, nsec, base, joints, forces):
         """starleth/state_bundle: the values of joint_states, base_state and the four foot
         wrenches of this step in one Float64MultiArray (state_io.state_bundle_bytes)."""
-        self.output.pubs["state_bundle"][0].publish(
-            state_bundle_bytes(self.bundle_cdr, sec, nsec, base, joints, forces))
+        p, topic, _, _ = self.output.pubs["state_bundle"]
+        data = state_bundle_bytes(self.bundle_cdr, sec, nsec, base, joints, forces)
+        p.publish(data)
+        if self.output.live_wants("state_bundle"):
+            self.output.live.log(topic, data, self.service.stamp_ns)
 
     def _publish_joint_states(self, sec, nsec, record, joints):
         """joint_states: position, velocity and the applied torque as effort (joints:

@@ -1,6 +1,7 @@
 """sim_node's outgoing topics: the publishers by key, publishing a message object or its CDR
 bytes and recording it, and the subscriber counts that decide whether a topic is built at
-all (a topic nobody subscribes to is not published; while recording it is only recorded)."""
+all (a topic nobody subscribes to is not published; while recording it is only recorded),
+and the same bytes to the live view (:mod:`.live_view`) when it is on."""
 from __future__ import annotations
 
 from rclpy.serialization import serialize_message
@@ -24,6 +25,9 @@ class TopicOutput:
         self.pubs = {}
         self.counts_k = -10 ** 9    # the step of the counts (< 0: none yet, or asked for)
         self.counts = {}
+        #: the live view (a :class:`~.live_view.LiveView`, None: off), served every
+        #: topic's CDR bytes and asked whether it wants a topic nobody else wants
+        self.live = None
 
     def add(self, key, typ, topic, qos):
         """Create the publisher of `key`."""
@@ -38,8 +42,8 @@ class TopicOutput:
         """Publish (and record) a message object; while recording, a topic nobody
         subscribes to is only recorded."""
         rec = self.recording.recorder
-        if record and rec is not None and not rec.closed:
-            self.emit_cdr(key, serialize_message(msg), record)
+        if (record and rec is not None and not rec.closed) or self.live_wants(key):
+            self.emit_cdr(key, serialize_message(msg), record)   # serialised once for all
         else:
             self.pubs[key][0].publish(msg)
 
@@ -51,8 +55,18 @@ class TopicOutput:
             if self.counts.get(key, 1) > 0:
                 p.publish(data)
             rec.write(topic, data, self.service.stamp_ns)
-        else:
-            p.publish(data)
+        elif self.live is None or self.counts.get(key, 1) > 0:   # (not: built for the live
+            p.publish(data)                                       # view alone)
+        live = self.live
+        if live is not None and (self.service.k % live.every == 0 or topic in live.latched):
+            live.log(topic, data, self.service.stamp_ns)
+
+    def live_wants(self, key) -> bool:
+        """The live view is on, serves this step (every live.every-th: live_view_rate) and
+        a client of it subscribes to `key`'s topic."""
+        live = self.live
+        return (live is not None and self.service.k % live.every == 0
+                and live.wants(self.pubs[key][1]))
 
     def wanted(self, key, record):
         """Build and publish a topic only if it is recorded or someone subscribes (an
@@ -60,12 +74,12 @@ class TopicOutput:
         counts are taken after the previous state went out (StatePublisher.publish_state):
         /joint_states every step, the other topics every SUBSCRIBER_REFRESH steps, so a new
         subscriber gets its first message at most one step (/joint_states) or that many
-        steps late."""
+        steps late. With the live view on, also a topic one of its clients subscribes to."""
         if record and self.recording.recorder is not None:
             return True
         if self.counts_k < 0:      # no counts yet, or asked for fresh ones
             self.refresh_counts()
-        return self.counts.get(key, 0) > 0
+        return self.counts.get(key, 0) > 0 or (self.live is not None and self.live_wants(key))
 
     def forget_counts(self):
         """Take fresh subscriber counts at the next look."""

@@ -1,7 +1,7 @@
 """What sim_node publishes for viewers, each at its rate and off the lockstep critical path:
 /tf (world -> base and every movable joint) and /tf_static (the fixed joints) from the
 frame tree of :mod:`.tf`, written as CDR bytes and recorded (published where tf2_msgs is
-installed), and the contact markers of :mod:`.contact_markers`."""
+installed, and served by the live view), and the contact markers of :mod:`.contact_markers`."""
 from __future__ import annotations
 
 import numpy as np
@@ -46,7 +46,8 @@ class Visualisation:
                 from tf2_msgs.msg import TFMessage
             except ImportError:
                 log.info("tf2_msgs is not installed (no full ROS install): /tf and "
-                         "/tf_static are recorded but not published")
+                         "/tf_static are recorded (and served by the live view, live_view:="
+                         "true) but not published")
             else:
                 for key, (topic, qos) in self.tf_topics.items():
                     self.tf_pubs[key] = node.create_publisher(TFMessage, topic, qos)
@@ -73,6 +74,9 @@ class Visualisation:
         rec = self.output.recording.recorder
         if rec is not None and not rec.closed:
             rec.write(self.tf_topics[key][0], data, stamp_ns)
+        live = self.output.live      # the live view serves TF without tf2_msgs too
+        if live is not None:
+            live.log(self.tf_topics[key][0], data, stamp_ns)
 
     def publish(self):
         """/tf (every tf_rate-th step) and the contact markers, after the state (off the
@@ -81,7 +85,8 @@ class Visualisation:
         k = svc.k
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
         if self.tf_every and k % self.tf_every == 0 and \
-                (self.output.recording.recorder is not None or self.tf_pubs):
+                (self.output.recording.recorder is not None or self.tf_pubs or
+                 (self.output.live is not None and self.output.live.wants(TOPIC_TF))):
             poses = self.frames.transforms(self.tf_configuration(), self.frames.dynamic)
             self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
         if self.markers_every and k % self.markers_every == 0 and \

@@ -23,6 +23,7 @@ throughout), real-time factor (sim time / wall time), solver iterations, message
 Exit status 0 when the run is complete and the robot trotted without falling (at least 4 m
 in 18 s at 0.3 m/s), non-zero with a message otherwise.
 
+``--live [PORT]``: sim_node also serves the live view (port 8765), whose URLs are printed.
 ``starleth-demo --drop``: the headless drop test (no ROS): StarlETH falls from 0.1 m onto
 flat ground under a joint PD posture hold, settles, and a summary is printed (speed, final
 trunk height, per-foot normal force, solver iterations).
@@ -44,12 +45,12 @@ from starleth_interface.compile_notice import Deadline
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
                                        TOPIC_SOLVER, resolve)
 
-from ..physics.posture import PostureHold
-from ..physics.simulator import Simulator
 from ..ros.child_process import start_child_as_node
 from ..ros.discovery import keep_discovery_local, local_discovery_env
+from ..ros.live_view import live_view_lines
 from .bag import BagError, stream_bag
 from .bench_round_trips import measure_bare_round_trips
+from .drop_test import drop_main
 from .precompile import precompile
 from .view import ViewError, write_html
 
@@ -59,54 +60,6 @@ STEPPING = 0.01                  # sim time [s] on /clock that shows the sim is 
 #: the issue's acceptance: >= 4 m in 18 s of trot at 0.3 m/s (scaled for other settings)
 ACCEPT_DISTANCE, ACCEPT_TROT, ACCEPT_SPEED = 4.0, 18.0, 0.3
 MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not checked [s]
-
-
-# =========================================================================================
-# drop test (headless, no ROS)
-# =========================================================================================
-def drop_test(preset="HmJ", height=0.1, seconds=5.0):
-    sim = Simulator.from_preset(preset)
-    q = sim.q
-    q[2] += height
-    sim.reset(q)
-    hold = PostureHold(sim.joint_positions())
-    n = int(round(seconds / sim.control_period))
-    iters, wall, peak = [], 0.0, 0.0
-    for _ in range(n):
-        tau = hold.torque(sim)
-        t0 = time.perf_counter()
-        d = sim.step(tau)
-        wall += time.perf_counter() - t0
-        iters.append(d.iterations / sim.config.steps_per_control)
-        peak = max(peak, sum(sim.contact(f).force[2] for f in sim.description.foot_names))
-    return sim, np.array(iters), wall, n, peak
-
-
-def drop_main(args) -> int:
-    sim, iters, wall, n, peak = drop_test(args.preset, args.height, args.seconds)
-    steps = n * sim.config.steps_per_control
-    weight = sim.description.total_mass * 9.81
-    print(f"StarlETH drop test: {args.preset}, dropped from {args.height:g} m, "
-          f"{args.seconds:g} s simulated, joint PD posture hold")
-    print(f"  speed          {steps / wall:8.0f} physics steps/s, real-time factor "
-          f"{n * sim.control_period / wall:.1f}")
-    print(f"  trunk height   {sim.q[2]:.4f} m (nominal standing "
-          f"{sim.description.standing_height} m)")
-    print(f"  peak impact    {peak:8.1f} N total normal force ({peak / weight:.1f} x weight)")
-    print("  foot normal forces at the end [N]:")
-    total = 0.0
-    for f in sim.description.foot_names:
-        fz = sim.contact(f).force[2]
-        total += fz
-        print(f"    {f:8s} {fz:8.2f}")
-    print(f"    {'sum':8s} {total:8.2f}   (weight {weight:.2f})")
-    d = sim.diagnostics
-    print(f"  prox iterations per step: mean {iters.mean():.2f}, max {iters.max():.0f}; "
-          f"non-converged steps: {d.nonconverged_steps}")
-    ok = abs(total - weight) < 0.01 * weight and d.nonconverged_steps == 0
-    print("  result: settled, weight carried by the feet" if ok else
-          "  result: NOT settled")
-    return 0 if ok else 1
 
 
 # =========================================================================================
@@ -441,7 +394,8 @@ def read_bag(path, result: DemoResult):
 
 def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.mcap",
              domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0,
-             in_process=False, bare_seconds=2.0, precompile_first=True) -> DemoResult:
+             in_process=False, bare_seconds=2.0, precompile_first=True,
+             live_port=0) -> DemoResult:
     """Run the trotting demo (see the module docstring) and return its figures. Raises
     DemoError if it could not run to the end; both nodes are always stopped.
     in_process: sim_node and controller_node in one process on one executor (the composed
@@ -449,7 +403,7 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
     rclpy round trips for that long, the reference of the lockstep cycle rate.
     precompile_first: make the kernels ready first (starleth-precompile, with its progress
     line), so that the nodes start from the cache. startup_timeout counts silence: the
-    nodes' compile lines (CompileNotice) restart it."""
+    nodes' compile lines (CompileNotice) restart it. live_port > 0: the live view's port."""
     if domain_id is None:
         domain_id = default_domain_id()
     if not 0 <= domain_id <= 232:
@@ -482,6 +436,10 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
     try:
         sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
                       "record": bag, "start_paused": True}
+        if live_port:
+            ok, lines = live_view_lines("127.0.0.1", live_port)
+            sim_params.update(live_view=ok, live_view_port=live_port)
+            echo("\n".join(lines))
         if in_process:
             procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
                                      domain_id, stem + ".sim_node.log",
@@ -559,8 +517,7 @@ def main(argv=None):
                     help="run the headless drop test instead of the ROS demo")
     ap.add_argument("--preset", default="HmJ", help="physics configuration (default HmJ)")
     ap.add_argument("--height", type=float, default=0.1, help="drop test: drop height [m]")
-    ap.add_argument("--seconds", type=float, default=5.0,
-                    help="drop test: simulated time [s]")
+    ap.add_argument("--seconds", type=float, default=5.0, help="drop test: simulated time [s]")
     ap.add_argument("--stand", type=float, default=2.0, help="demo: seconds standing first")
     ap.add_argument("--trot", type=float, default=18.0, help="demo: seconds of trot")
     ap.add_argument("--speed", type=float, default=0.3, help="demo: forward speed [m/s]")
@@ -574,13 +531,15 @@ def main(argv=None):
     ap.add_argument("--bare-seconds", type=float, default=2.0,
                     help="demo: seconds of bare rclpy round trips measured first, the "
                          "reference of the cycle rate (0: skip)")
+    ap.add_argument("--live", nargs="?", type=int, const=8765, default=0, metavar="PORT",
+                    help="demo: sim_node serves the Foxglove live view on PORT (8765)")
     args = ap.parse_args(argv)
     if args.drop:
         return drop_main(args)
     try:
         result = run_demo(args.stand, args.trot, args.speed, args.preset, args.record,
                           args.domain_id, in_process=args.in_process,
-                          bare_seconds=args.bare_seconds)
+                          bare_seconds=args.bare_seconds, live_port=args.live)
     except DemoError as e:
         print(f"starleth-demo: FAILED: {e}", file=sys.stderr)
         return 1

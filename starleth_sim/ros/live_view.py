@@ -1,0 +1,163 @@
+"""sim_node's live view: a Foxglove WebSocket server (the ``foxglove-sdk`` package, the optional
+extra ``live``: requirements-live.txt) that serves the topics sim_node publishes, /tf and
+/tf_static included, to Foxglove or Lichtblick: each topic a channel with its ``ros2msg``
+schema (the recording's, :func:`~.recording.message_definition`) and ``cdr`` messages, the
+very bytes sim_node publishes and records (no second serialisation), logged at the stamp of
+the state (sim time).
+
+A topic is served only while a WebSocket client subscribes to it (:meth:`LiveView.wants`,
+which :class:`~.topic_output.TopicOutput` asks before it builds a topic nobody else wants);
+a latched topic (robot_description, /tf_static) is sent again to each new subscriber. The
+server runs in threads of the SDK; nothing of it runs unless ``live_view`` is true (this
+module imports ``foxglove`` only in :meth:`LiveView.open`). What is served, the URLs to open
+and the protocol's subprotocol (``foxglove.sdk.v1``): doc/sim_node.md, "Live view".
+"""
+from __future__ import annotations
+
+import socket
+import threading
+
+from .recording import message_definition, type_name
+
+INSTALL_HINT = "pip install -r requirements-live.txt (or: pip install 'starleth_sim[live]')"
+#: the WebSocket subprotocol of foxglove-sdk's server (the same messages as the older
+#: foxglove.websocket.v1, which it no longer accepts in the handshake)
+SUBPROTOCOL = "foxglove.sdk.v1"
+
+
+def viewer_urls(host: str, port: int) -> dict:
+    """{viewer: the URL that opens the live view of a server at host:port in it}."""
+    if host in ("0.0.0.0", "", "::", "127.0.0.1"):
+        host = "localhost"
+    ws = f"ws://{host}:{port}"
+    return {"Foxglove": f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={ws}",
+            "Lichtblick": f"Open connection > Foxglove WebSocket > {ws}"}
+
+
+def live_view_lines(host: str, port: int):
+    """(the port is free to serve on, the lines to print: the URLs to open, or why there
+    is no live view) for a live view about to start on host:port (starleth-demo --live)."""
+    try:
+        import foxglove  # noqa: F401  optional dependency: requirements-live.txt
+    except ImportError:
+        return False, [f"  live view: off (foxglove-sdk is not installed: {INSTALL_HINT})"]
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            return False, [f"  live view: off (port {port}: {e.strerror}; the demo goes on "
+                           "without it)"]
+    return True, [f"  live view: open while it runs: {viewer}: {url}"
+                  for viewer, url in viewer_urls(host, port).items()]
+
+
+class _Listener:
+    """The SDK's ServerListener: which topics have subscribers, and the latched messages
+    again for a new subscriber (called from the server's thread)."""
+
+    def __init__(self, live):
+        self.live = live
+
+    def on_subscribe(self, client, channel):
+        self.live.subscribed_changed(channel.topic, +1)
+
+    def on_unsubscribe(self, client, channel):
+        self.live.subscribed_changed(channel.topic, -1)
+
+
+class LiveView:
+    """A running Foxglove WebSocket server (made by :meth:`open`): one channel per topic,
+    ``log`` sends CDR bytes to the clients that subscribe to the topic."""
+
+    def __init__(self, foxglove, host, port, name):
+        self._fox = foxglove
+        self.context = foxglove.Context()
+        self.channels = {}         # topic -> the SDK's channel
+        self.latched = {}          # topic -> (bytes, stamp_ns) of the last latched message
+        self._counts = {}          # topic -> subscriptions now
+        self._lock = threading.Lock()
+        #: the topics with at least one subscription now (replaced, never changed in place:
+        #: read without a lock by the stepping thread)
+        self.subscribed = frozenset()
+        #: steps between two messages of a topic served (live_view_rate; the TF topics
+        #: keep their own rate, tf_rate, and latched topics are always served)
+        self.every = 1
+        self.pending = []          # (channel, bytes, stamp) logged since the last flush
+        self.server = foxglove.start_server(name=name, host=host, port=port,
+                                            server_listener=_Listener(self),
+                                            context=self.context)
+        self.host, self.port = host, self.server.port
+
+    @classmethod
+    def open(cls, host, port, topics, log, name="sim_node", every=1):
+        """The live view serving `topics` ([(resolved topic, message type, latched)]) on
+        host:port every `every` steps, or None after one error line on `log` (foxglove-sdk
+        not installed, the port in use, ...): the simulation goes on without it."""
+        try:
+            import foxglove   # optional dependency: requirements-live.txt
+        except ImportError:
+            log.error(f"live_view: foxglove-sdk is not installed; {INSTALL_HINT}. The "
+                      "simulation goes on without the live view.")
+            return None
+        try:
+            live = cls(foxglove, host, port, name)
+        except Exception as e:    # the SDK raises RuntimeError (FoxgloveError ...)
+            log.error(f"live_view: cannot serve on {host}:{port}: {e}. The simulation goes "
+                      "on without the live view (choose another live_view_port).")
+            return None
+        live.every = max(1, int(every))
+        for topic, typ, latched in topics:
+            live.add_topic(topic, typ, latched)
+        urls = viewer_urls(host, live.port)
+        log.info(f"live view: Foxglove WebSocket server on ws://{host}:{live.port} "
+                 f"({len(live.channels)} topics); open {urls['Foxglove']}")
+        return live
+
+    def add_topic(self, topic, typ, latched=False):
+        """Advertise `topic` of message type `typ` (an rclpy class or 'pkg/msg/Type')."""
+        from foxglove.channel import Channel   # deferred: foxglove is imported in open()
+        name = type_name(typ)
+        schema = self._fox.Schema(name=name, encoding="ros2msg",
+                                  data=message_definition(name).encode("utf-8"))
+        self.channels[topic] = Channel(topic, schema=schema, message_encoding="cdr",
+                                       context=self.context).base
+        if latched:
+            self.latched.setdefault(topic, None)
+
+    def subscribed_changed(self, topic, delta):
+        with self._lock:
+            n = self._counts[topic] = max(0, self._counts.get(topic, 0) + delta)
+            self.subscribed = frozenset(t for t, c in self._counts.items() if c > 0)
+            last = self.latched.get(topic) if delta > 0 and n else None
+        if last is not None:      # a latched topic: its last message to the new subscriber
+            self.channels[topic].log(last[0], log_time=last[1])
+
+    def wants(self, topic) -> bool:
+        """A client subscribes to `topic` (a latched one is always wanted: kept for later)."""
+        return topic in self.subscribed or topic in self.latched
+
+    def log(self, topic, data, stamp_ns):
+        """CDR bytes (immutable: kept as they are) of `topic` at log time stamp_ns for its
+        subscribers (if any): a latched topic's at once, the others at the next flush()."""
+        if topic in self.latched:
+            self.latched[topic] = (data, stamp_ns)
+            if topic in self.subscribed:
+                self.channels[topic].log(data, log_time=stamp_ns)
+        elif topic in self.subscribed:
+            self.pending.append((self.channels[topic], data, stamp_ns))
+
+    def flush(self):
+        """Hand the messages logged since the last flush to the server, one after another
+        (called once the state of a step is out: a wake-up of the server's threads per step
+        rather than per message, which on a busy machine costs the step tens of us each)."""
+        pending = self.pending
+        if pending:
+            self.pending = []
+            for channel, data, stamp_ns in pending:
+                channel.log(data, log_time=stamp_ns)
+
+    def stop(self):
+        """Stop the server (idempotent)."""
+        if self.server is not None:
+            self.server.stop()
+            self.server = None

@@ -1,0 +1,157 @@
+"""sim_node's live view (issue #35): a client of the Foxglove WebSocket protocol
+(starleth_sim.tools.live_log) subscribes to /tf and joint_states of a running sim_node
+(lockstep, with controller_node in its process, recording) and decodes what it receives with
+the schemas the server advertises to the same values as the recording holds at the same
+stamps; the live view off imports no foxglove; without foxglove-sdk, or with the port in
+use, one error line and the simulation goes on."""
+import os
+import socket
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("foxglove")        # the optional extra: requirements-live.txt
+pytest.importorskip("websockets")
+
+from mcap.records import Schema  # noqa: E402
+from mcap_ros2.decoder import DecoderFactory  # noqa: E402
+from mcap_ros2.reader import read_ros2_messages  # noqa: E402
+from ros_test_nodes import NodeProcess  # noqa: E402
+
+from starleth_sim.tools.live_log import collect  # noqa: E402
+
+DOMAIN_RANGE = (229, 4)       # first, span (conftest._free_ros_domain)
+DOMAIN_ID = 229 + os.getpid() % 4
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _decoder(channel):
+    """The CDR decoder of an advertised channel, from the schema the server advertised."""
+    assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
+    schema = Schema(id=1, name=channel["schemaName"], encoding="ros2msg",
+                    data=channel["schema"].encode())
+    return DecoderFactory().decoder_for("cdr", schema)
+
+
+@pytest.fixture(scope="module")
+def live_run(tmp_path_factory):
+    """sim_node in lockstep with controller_node (standing) in its process, recording, the
+    live view on a free port; a client subscribes to /tf and joint_states until it has 20
+    TF messages and 200 joint states. Returns (client's LiveLog, bag path, node log)."""
+    d = tmp_path_factory.mktemp("live")
+    bag, port = str(d / "live.mcap"), free_port()
+    sim = NodeProcess("starleth_sim.ros.sim_node", str(d / "sim_node.log"), DOMAIN_ID,
+                      pre_args=("--composed", "--controller-param", "mode:=stand"),
+                      mode="lockstep", real_time_factor=1.0, record=bag, live_view=True,
+                      live_view_port=port)
+    try:
+        log = collect(f"ws://127.0.0.1:{port}", ["/tf", "joint_states"], seconds=60.0,
+                      connect_timeout=120.0,
+                      until=lambda lg: len(lg.messages.get("/tf", [])) >= 20
+                      and len(lg.messages.get("/joint_states", [])) >= 200)
+    finally:
+        code = sim.stop()
+    assert code == 0, sim.log()
+    return log, bag, sim.log()
+
+
+def test_live_view_serves_tf_and_joint_states_as_recorded(live_run):
+    log, bag, node_log = live_run
+    assert "live view: Foxglove WebSocket server on ws://127.0.0.1:" in node_log
+    ch = log.channels
+    assert ch["/tf"]["schemaName"] == "tf2_msgs/msg/TFMessage"
+    assert ch["/joint_states"]["schemaName"] == "sensor_msgs/msg/JointState"
+    # every topic sim_node publishes is advertised (the topics a recording holds as outputs)
+    assert {"/tf_static", "/robot_description", "/clock", "/starleth/base_state",
+            "/starleth/imu", "/starleth/solver", "/starleth/contact_markers"} <= set(ch)
+    live = {t: log.messages.get(t, []) for t in ("/tf", "/joint_states")}
+    assert len(live["/tf"]) >= 20 and len(live["/joint_states"]) >= 200
+    recorded = {}
+    for m in read_ros2_messages(bag, topics=["/tf", "/joint_states"]):
+        recorded.setdefault(m.channel.topic, {})[m.log_time_ns] = m.ros_msg
+    for topic, msgs in live.items():
+        decode = _decoder(ch[topic])
+        stamps = [t for t, _ in msgs]
+        assert stamps == sorted(stamps), f"{topic}: log times not in order"
+        for t, payload in msgs:
+            got, want = decode(payload), recorded[topic][t]
+            if topic == "/tf":
+                assert len(got.transforms) == len(want.transforms) == 13
+                for a, b in zip(got.transforms, want.transforms):
+                    assert (a.header.frame_id, a.child_frame_id) == \
+                        (b.header.frame_id, b.child_frame_id)
+                    assert a.header.stamp.sec * 10 ** 9 + a.header.stamp.nanosec == t
+                    r, s = a.transform, b.transform
+                    assert [r.translation.x, r.translation.y, r.translation.z, r.rotation.x,
+                            r.rotation.y, r.rotation.z, r.rotation.w] == \
+                        [s.translation.x, s.translation.y, s.translation.z, s.rotation.x,
+                         s.rotation.y, s.rotation.z, s.rotation.w]
+            else:
+                assert got.header.stamp.sec * 10 ** 9 + got.header.stamp.nanosec == t
+                assert list(got.name) == list(want.name) and len(got.name) == 12
+                assert list(got.position) == list(want.position)
+                assert list(got.velocity) == list(want.velocity)
+                assert list(got.effort) == list(want.effort)
+    # the robot stands under the controller: the joints move from the initial posture
+    first, last = (_decoder(ch["/joint_states"])(live["/joint_states"][i][1]) for i in (0, -1))
+    assert list(first.position) != list(last.position)
+
+
+_PROBE = """
+import socket, sys
+import rclpy
+from starleth_sim.ros.sim_node import SimNode
+mode = sys.argv[1]
+if mode == "missing":
+    sys.modules["foxglove"] = None            # foxglove-sdk not installed
+params = {"live_view": mode != "off"}
+if mode == "busy":
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    params["live_view_port"] = busy.getsockname()[1]
+ctx = rclpy.Context()
+rclpy.init(context=ctx)
+node = SimNode(context=ctx, parameter_overrides=params)
+node.service.step()
+node.publisher.publish_state()
+print("LIVE", node.output.live is not None, "FOXGLOVE", sys.modules.get("foxglove") is not None,
+      "STEPS", node.service.counters["steps"], flush=True)
+node.destroy()
+rclpy.shutdown(context=ctx)
+"""
+
+
+def _probe(mode):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONPATH=ROOT,
+               RCUTILS_COLORIZED_OUTPUT="0")
+    p = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True,
+                       timeout=180, env=env, cwd=ROOT)
+    assert p.returncode == 0, p.stdout + p.stderr
+    return p.stdout + p.stderr
+
+
+@pytest.mark.parametrize("mode,live,foxglove", [("off", False, False), ("on", True, True)])
+def test_live_view_off_does_not_import_foxglove(mode, live, foxglove):
+    out = _probe(mode)
+    assert f"LIVE {live} FOXGLOVE {foxglove} STEPS 1" in out
+
+
+@pytest.mark.parametrize("mode,message", [
+    ("missing", "live_view: foxglove-sdk is not installed; pip install -r "
+                "requirements-live.txt"),
+    ("busy", "live_view: cannot serve on 127.0.0.1:")])
+def test_live_view_failure_is_one_error_line_and_the_simulation_goes_on(mode, message):
+    out = _probe(mode)
+    assert "LIVE False" in out and "STEPS 1" in out
+    errors = [ln for ln in out.splitlines() if "ERROR" in ln]
+    assert len(errors) == 1 and message in errors[0], out
+    assert "Traceback" not in out
