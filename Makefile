@@ -47,19 +47,21 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requiremen
 # First the kernels ready (starleth-precompile: the C physics kernels, built with the venv,
 # and the controller's and the ROS codec's numba kernels into numba's on-disk cache, about
 # 15 s the first time, then a second or two): else both pytest workers would compile the same
-# kernels side by side. Then two passes: the CPU-bound tests on two pytest-xdist workers (a
-# file's tests on one worker, so its module fixtures run once), then the tests marked serial
-# (ROS nodes, deadlines, rates, browser; see test/conftest.py) one at a time. Then ruff
-# over the tree (ruff.toml: pycodestyle errors and warnings, pyflakes; line length 100).
-# All three passes run; the target fails with the first failing pass's status (a pytest
+# kernels side by side. Then two passes (test/conftest.py says which test goes where):
+# pass 1 on two pytest-xdist workers, one running the tests that start ROS nodes one after
+# another while the other runs the CPU-bound tests file by file; pass 2, the tests marked
+# serial (rates, deadlines, latencies, a browser), one at a time with nothing beside them.
+# Then ruff over the tree (ruff.toml: pycodestyle errors and warnings, pyflakes; line length
+# 100). All three passes run; the target fails with the first failing pass's status (a pytest
 # pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
 # in one pass alone).
 test: venv
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
-	echo "pass 1: tests not marked serial, 2 workers"; \
-	$(VPY) -m pytest -q -n 2 --dist loadfile -m "not serial" test $(PYTEST_ARGS); a=$$?; \
-	echo "pass 2: tests marked serial, one at a time"; \
+	echo "pass 1: 2 workers: the ROS node tests one by one beside the CPU-bound tests"; \
+	$(VPY) -m pytest -q -n 2 --ros-apart -m "not serial" test \
+	  $(PYTEST_ARGS); a=$$?; \
+	echo "pass 2: tests marked serial (rates, deadlines), one at a time"; \
 	$(VPY) -m pytest -q -m serial test $(PYTEST_ARGS); b=$$?; \
 	echo "pass 3: ruff check (ruff.toml)"; \
 	$(VENV)/bin/ruff check .; c=$$?; \

@@ -13,30 +13,68 @@ def starleth_hmj():
     return Simulator.from_preset("HmJ")
 
 
-# Tests that start ROS 2 nodes or other processes with deadlines, measure rates, or render in
-# a browser run one at a time (`make test` runs them after the others, on their own): a second
-# pytest worker beside them would take the CPU their timing depends on. The rest (physics,
-# controller, tools) is CPU-bound without deadlines and runs on two workers (pytest-xdist).
-SERIAL_MODULES = {
+# How `make test` runs the suite on two cores (pytest-xdist, `-n 2 --ros-apart`):
+# * the tests of ROS_MODULES start ROS 2 nodes or other child processes: they run one after
+#   another on one worker (one unit of work, "ros": two such tests at once would share the
+#   CPU their nodes need and the ROS graph), while the other worker runs the CPU-bound tests
+#   (physics, controller, tools) file by file (a file is a unit, so its module fixtures run
+#   once);
+# * the tests marked `serial` in their files (they measure rates, deadlines or latencies,
+#   or drive a browser) run afterwards, alone: a worker beside them would take the CPU their
+#   timing depends on.
+# The ros unit is collected first and the slowest files next (SLOW_FIRST), so that each
+# worker starts a long unit first and the run does not end on one long file started late.
+# (xdist's own --dist loadgroup would do the grouping, but with pytest 9 its group marks
+# no longer reach the scheduler, hence the scheduler here.)
+ROS_MODULES = {
     "test_analysis", "test_cdr", "test_compile_notice", "test_controller_node",
-    "test_install_layout",
+    "test_install_layout", "test_live_view",
     "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
-    "test_sim_node", "test_sim_node_faults",
-    "test_live_view", "test_sim_service", "test_sim_time", "test_strict_inputs", "test_tf",
-    "test_view",
+    "test_sim_node", "test_sim_node_faults", "test_sim_service", "test_sim_time",
+    "test_strict_inputs", "test_tf", "test_view",
 }
+SLOW_FIRST = ("test_evaluation", "test_precompile", "test_sweep", "test_coordinates",
+              "test_controller", "test_crafted_bags")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--ros-apart", action="store_true",
+                     help="with -n: the tests of conftest.ROS_MODULES one after another on "
+                          "one worker, the other files each as a unit (see conftest.py)")
 
 
 def pytest_configure(config):
     config.addinivalue_line(
-        "markers", "serial: starts ROS nodes or processes with deadlines; run alone "
-                   "(conftest.SERIAL_MODULES)")
+        "markers", "serial: measures rates, deadlines or latencies, or drives a browser: "
+                   "`make test` runs it after the others, alone (see conftest.py)")
+
+
+def _module_of(nodeid: str) -> str:
+    return os.path.splitext(os.path.basename(nodeid.split("::", 1)[0]))[0]
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """With --ros-apart: xdist's load-scope scheduling, a scope being "ros" for the tests of
+    ROS_MODULES and the file for the others, in collection order."""
+    if not config.getoption("ros_apart"):
+        return None
+    from xdist.scheduler import LoadScopeScheduling  # deferred: only under pytest-xdist
+
+    class RosApartScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid):
+            return "ros" if _module_of(nodeid) in ROS_MODULES else nodeid.split("::", 1)[0]
+
+    config.option.loadscopereorder = False
+    return RosApartScheduling(config, log)
 
 
 def pytest_collection_modifyitems(config, items):
-    for item in items:
-        if item.module.__name__ in SERIAL_MODULES:
-            item.add_marker(pytest.mark.serial)
+    def rank(item):
+        mod = _module_of(item.nodeid)
+        if mod in ROS_MODULES:
+            return 0
+        return 1 + SLOW_FIRST.index(mod) if mod in SLOW_FIRST else 1 + len(SLOW_FIRST)
+    items.sort(key=rank)       # stable: the order within a rank is the collection's
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -4,10 +4,13 @@ from the cache says nothing; a start-up timeout counts only silence (compile lin
 process's log restart it)."""
 import time
 
+import pytest
+
 from starleth_interface.compile_notice import (SLOW_COMPILE_ENV, CompileNotice, Deadline,
                                                LogWatch, shows_compiling)
 
 
+@pytest.mark.serial   # the length of a block
 def test_a_long_block_says_it_compiles_and_how_long_it_took():
     lines = []
     with CompileNotice("the widgets", lines.append, estimate=9.0, after=0.05,
@@ -73,6 +76,7 @@ def test_the_slow_compile_stand_in_lengthens_every_block(monkeypatch):
     assert notice.seconds >= 0.3 and lines[0].startswith("compiling the widgets")
 
 
+@pytest.mark.serial   # deadlines
 def test_a_deadline_counts_silence_not_compilation(tmp_path):
     """Expired `timeout` after the last compile line of the logs, however long before."""
     log = tmp_path / "node.log"

@@ -106,6 +106,7 @@ def test_a_service_call_whose_response_is_lost_is_sent_again():
     assert 3 <= len(never.requests) <= 5
 
 
+@pytest.mark.serial   # deadlines
 def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
     """A first run on a slow machine, stood in for by STARLETH_TEST_SLOW_COMPILE (every
     compile block of the nodes 8 s longer) with a start-up time-out of 5 s: the nodes say

@@ -174,6 +174,7 @@ def test_queued_recorder_stops_on_a_failed_write(tmp_path):
     assert rec.closed and rec.write("/clock", _clock(0), 0) is False
 
 
+@pytest.mark.serial   # latencies / a realtime node's rate
 def test_a_writer_that_is_behind_never_makes_the_caller_wait(tmp_path):
     """The writer process stopped (SIGSTOP: as a writer stuck on a slow disk): hand_over
     returns at once however much is queued; beyond MAX_BACKLOG messages are dropped and
@@ -321,6 +322,7 @@ def _check_bag_after_failure(path, log, copy=None):
     assert "Traceback" not in log
 
 
+@pytest.mark.serial   # latencies / a realtime node's rate
 def test_sim_node_keeps_publishing_when_the_recording_hits_a_file_size_limit(ros, tmp_path):
     """sim_node under `ulimit -f` (RLIMIT_FSIZE 1.5 MB, inherited by its writer process):
     the recording fails after a second or two; the node logs one error naming the file and
@@ -349,6 +351,7 @@ def test_sim_node_keeps_publishing_when_the_recording_hits_a_file_size_limit(ros
     assert sim.summary()["recording"].startswith("failed (")
 
 
+@pytest.mark.serial   # latencies / a realtime node's rate
 def test_sim_node_keeps_publishing_when_its_writer_is_killed(ros, tmp_path):
     """The writer process killed (SIGKILL): the node repairs the file, logs one error
     (file, signal), goes on publishing; the bag is complete up to the last whole chunk."""
@@ -376,6 +379,7 @@ def _user_namespace_tmpfs():
         f"unprivileged user namespaces cannot mount a tmpfs here ({out.stderr.strip()})"
 
 
+@pytest.mark.serial   # latencies / a realtime node's rate
 def test_sim_node_keeps_publishing_when_the_disk_is_full(ros, tmp_path):
     """A really full filesystem (ENOSPC): sim_node runs in a user namespace of its own
     (`unshare -rm`: no root needed) with a 1 MB tmpfs mounted over a directory, and

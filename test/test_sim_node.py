@@ -156,6 +156,7 @@ def rt(ros, tmp_path_factory):
         run.ctl.close()
 
 
+@pytest.mark.serial   # a realtime node: its rate and wall-clock timing
 class TestRealtime:
     """One realtime node for these tests, in order: graph, rate, bad input, services, and
     finally SIGINT and the recording it leaves."""

@@ -37,6 +37,7 @@ def _sim(tmp_path, tag, **params):
                        **params)
 
 
+@pytest.mark.serial   # a realtime node's answers within deadlines
 def test_paused_it_still_reports_and_answers_a_hundred_concurrent_calls(ros, tmp_path):
     """Paused, /starleth/solver still comes about once a second with the interface status
     'paused' (a monitor tells a paused simulator from a dead one) and sim time stands
@@ -80,6 +81,7 @@ def test_paused_it_still_reports_and_answers_a_hundred_concurrent_calls(ros, tmp
     assert sim.summary()["resets"] == 100
 
 
+@pytest.mark.serial   # a deadline of 2 s
 def test_sigint_ends_the_node_within_two_seconds_whatever_is_queued(ros, tmp_path):
     """The recording process stopped (SIGSTOP: stuck on a slow disk) while the node runs:
     the node never waits for it (it keeps publishing), SIGINT ends it within ~2 s and its

@@ -137,6 +137,7 @@ def test_each_robot_of_the_launch_file_has_its_own_clock(ros, tmp_path):
 # -----------------------------------------------------------------------------------------
 # realtime: the clock starts with the first command
 # -----------------------------------------------------------------------------------------
+@pytest.mark.serial   # a realtime node and controller
 def test_realtime_robot_waits_for_its_controller_without_falling(ros, tmp_path):
     """sim_node in realtime mode (its default) without a controller for 2 s: the initial
     state is published again and again, stamped 0, the base at its standing height (with

@@ -357,6 +357,7 @@ def robot_mask(png):
     return im, (r > 0.35) & (g > 0.25 * r) & (g < 0.75 * r) & (b < 0.5 * g)
 
 
+@pytest.mark.serial   # a browser
 def test_browser_renders_the_robot_moving(drop, tmp_path):
     if shutil.which("chromium") is None:
         reason = ("chromium not installed: run `make browser-test` (installs Debian's "
