@@ -19,6 +19,7 @@ def starleth_hmj():
 # controller, tools) is CPU-bound without deadlines and runs on two workers (pytest-xdist).
 SERIAL_MODULES = {
     "test_analysis", "test_cdr", "test_compile_notice", "test_controller_node",
+    "test_impedance_ros",
     "test_install_layout",
     "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
     "test_sim_node", "test_sim_node_faults",
