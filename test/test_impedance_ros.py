@@ -12,6 +12,7 @@ explicit damper leaves no room for kd 2 at Δt = 1.25 ms (doc/physics.md, "Joint
 impedance"; test_impedance_commands.py::test_cm_explicit_damper_limit).
 
 sim_node runs as a child process on an isolated ROS_DOMAIN_ID; every wait is bounded."""
+import dataclasses
 import os
 import re
 import subprocess
@@ -222,6 +223,11 @@ def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
     assert rec.applied is not None and rec.applied.shape[1] == (1 if preset == "HmJ" else 2)
     c = compare_exact(rec, resimulate(rec, steps=STATES - 20))
     assert c.identical, (c.first_step, c.first_quantities)
+    # a bag without it (the replay of before: the /joint_states effort, the torque of each
+    # control period's first physics step): exact with one physics step only
+    old = compare_exact(rec, resimulate(dataclasses.replace(rec, applied=None),
+                                        steps=STATES - 20))
+    assert old.identical == (preset == "HmJ"), old.first_step
 
 
 def readme_position_controller():
