@@ -62,7 +62,7 @@ def test_position_targets_by_name_are_tracked_with_the_gains_at_every_step():
 
 
 def test_nan_turns_a_term_off_and_effort_is_feed_forward():
-    svc, _ = service()
+    svc, _ = service(default_kp=80.0, default_kd=2.0)
     q = svc.sim.joint_positions()
     pos, vel, eff = q.copy(), np.zeros(12), np.full(12, 1.5)
     pos[0] = np.nan                    # LF_HAA: no spring

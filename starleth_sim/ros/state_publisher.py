@@ -15,6 +15,7 @@ from geometry_msgs.msg import WrenchStamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr,
@@ -106,11 +107,14 @@ class StatePublisher:
         if self.bundle_cdr is not None:
             add("state_bundle", Float64MultiArray, TOPIC_STATE_BUNDLE, STATE_QOS)
         add("applied_torque", Float64MultiArray, TOPIC_APPLIED_TORQUE, STATE_QOS)
+        # its CDR bytes: a fixed prefix (the layout, the data length) and the float64 data
         n_steps, n = self.sim.config.steps_per_control, self.sim.n_joints
-        self.torque_msg = Float64MultiArray()
-        self.torque_msg.layout.dim = [
+        m = Float64MultiArray(data=[0.0] * (n_steps * n))
+        m.layout.dim = [
             MultiArrayDimension(label="physics_steps", size=n_steps, stride=n_steps * n),
             MultiArrayDimension(label="joints", size=n, stride=n)]
+        raw = serialize_message(m)
+        self._torque_prefix = raw[:len(raw) - 8 * n_steps * n]
 
     # -- the state of a step ---------------------------------------------------------------
     def publish_state(self, record=True):
@@ -221,8 +225,8 @@ class StatePublisher:
         """starleth/applied_torque: the saturated torque of every physics step of the step
         that led to this state (physics_steps x joints, joint order; no header: recorded at
         this state's stamp). What starleth-replay re-applies (Simulator.step_applied)."""
-        self.torque_msg.data = float_array(self.sim.applied_torques_per_step)
-        self.output.emit("applied_torque", self.torque_msg, record)
+        data = np.ascontiguousarray(self.sim.applied_torques_per_step, dtype="<f8").tobytes()
+        self.output.emit_cdr("applied_torque", self._torque_prefix + data, record)
 
     def _publish_foot_wrenches(self, sec, nsec, feet, record, forces=None):
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`
