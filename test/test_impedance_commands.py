@@ -209,3 +209,12 @@ def test_cm_explicit_damper_limit():
         jumps[kd] = float(np.abs(np.diff(np.concatenate(rows), axis=0)).max())
     print(f"Cm, kp 80: largest torque change between physics steps {jumps}")
     assert jumps[1.0] < 0.5 and jumps[2.0] > 5.0
+
+
+def test_gain_lists_as_rclpy_hands_them_over():
+    """A parameter message's double_array_value / integer_array_value is an array.array."""
+    import array
+    spec = GAIN_PARAMETERS["default_kd"]
+    assert spec.coerce(array.array("d", [1.5] * 12)) == [1.5] * 12
+    assert spec.coerce(array.array("q", [2] * 12)) == [2.0] * 12
+    spec.check(spec.coerce(array.array("q", [2] * 12)))

@@ -36,7 +36,9 @@ class GainSpec(ParameterSpec):
                "joint order"
 
     def coerce(self, value):
-        if isinstance(value, (list, tuple)):
+        # a list as rclpy hands it over: a list, or an array('d') / array('q') from a
+        # parameter message (ros2 param set, the command line)
+        if not isinstance(value, (str, bytes)) and hasattr(value, "__iter__"):
             return [float(v) if isinstance(v, int) and not isinstance(v, bool) else v
                     for v in value]
         if isinstance(value, int) and not isinstance(value, bool):
