@@ -218,3 +218,18 @@ def test_gain_lists_as_rclpy_hands_them_over():
     assert spec.coerce(array.array("d", [1.5] * 12)) == [1.5] * 12
     assert spec.coerce(array.array("q", [2] * 12)) == [2.0] * 12
     spec.check(spec.coerce(array.array("q", [2] * 12)))
+
+
+def test_the_intake_packs_commands_as_create_does():
+    """SimService.impedance_command (no second validation) gives create's command."""
+    svc, _ = service(default_kp=[float(i) for i in range(12)], default_kd=0.5)
+    rng = np.random.default_rng(5)
+    q, v, e = (rng.normal(size=12) for _ in range(3))
+    q[2] = np.nan
+    for args in ((q, v, e), (q, 0.0, None), (None, v, None), (None, None, e)):
+        mine = svc.impedance_command(*args)
+        ref = ImpedanceCommand.create(svc.joint_names, *args[:2], svc.kp, svc.kd, args[2])
+        assert np.array_equal(mine.packed, ref.packed, equal_nan=True)
+        assert mine.joint_names == ref.joint_names and not mine.packed.flags.writeable
+        for name in ("position", "velocity", "kp", "kd", "effort"):
+            assert np.array_equal(getattr(mine, name), getattr(ref, name), equal_nan=True)
