@@ -18,6 +18,12 @@ TOPIC_SOLVER = "starleth/solver"
 TOPIC_STATE_BUNDLE = "starleth/state_bundle"
 TOPIC_ROBOT_DESCRIPTION = "robot_description"
 TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
+#: ros2_control forward_command_controller topics: joint targets (joint order) that sim_node
+#: tracks with the impedance law and the gains default_kp, default_kd
+TOPIC_POSITION_COMMANDS = "joint_group_position_controller/commands"
+TOPIC_VELOCITY_COMMANDS = "joint_group_velocity_controller/commands"
+#: the applied torque of every physics step of a control step (recorded; for the replay)
+TOPIC_APPLIED_TORQUE = "starleth/applied_torque"
 TOPIC_JOINT_COMMANDS = "joint_commands"
 TOPIC_CONTACT_MARKERS = "starleth/contact_markers"
 TOPIC_TF = "/tf"

@@ -28,7 +28,7 @@ def starleth_hmj():
 # no longer reach the scheduler, hence the scheduler here.)
 ROS_MODULES = {
     "test_analysis", "test_cdr", "test_compile_notice", "test_controller_node",
-    "test_install_layout", "test_live_view",
+    "test_impedance_ros", "test_install_layout", "test_live_view",
     "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
     "test_sim_node", "test_sim_node_faults", "test_sim_service", "test_sim_time",
     "test_strict_inputs", "test_tf", "test_view",

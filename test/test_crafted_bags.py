@@ -374,6 +374,31 @@ def replay_bag(path, md, names, steps=4, value=0.1, **override):
     return path
 
 
+def applied_bag(path, md, names, steps=4, bad=None):
+    """replay_bag with starleth/applied_torque (1 physics step x 12 joints at t_1..): bad
+    "nan": a NaN torque at step 2; "short": 11 values at step 2; "missing": no message at
+    step 2."""
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+    topic = "/starleth/applied_torque"
+    rec = recorder(path, metadata=dict(md, applied_torque_topic=topic))
+    rec.add_topic(topic, Float64MultiArray)
+    for k in range(steps):
+        st = stamp(0, k * PERIOD_NS)
+        rec.write("/joint_states", joint_state(st, 0.1 if k else 0.0, names), k * PERIOD_NS)
+        rec.write("/starleth/base_state", odometry(st), k * PERIOD_NS)
+        if k == 0 or (k == 2 and bad == "missing"):
+            continue
+        data = [0.1] * (11 if k == 2 and bad == "short" else 12)
+        if k == 2 and bad == "nan":
+            data[3] = math.nan
+        m = Float64MultiArray(data=data)
+        m.layout.dim = [MultiArrayDimension(label="physics_steps", size=1, stride=12),
+                        MultiArrayDimension(label="joints", size=12, stride=12)]
+        rec.write(topic, m, k * PERIOD_NS)
+    rec.close()
+    return path
+
+
 def billion_laughs():
     """A physics configuration of a few hundred bytes whose aliases (anchored in its free
     'paper' mapping) make the ground normal a nested list of 10**9 numbers."""
@@ -638,6 +663,13 @@ REPLAY_CASES = {
     "initial": (lambda d, md, names: replay_bag(d / "b.mcap", md, names, initial_state=json.dumps(
         {"coordinates": "minimal", "q": [1.0, 2.0], "u": "x"})),
         ("initial_state does not fit",)),
+    "applied_nan": (lambda d, md, names: applied_bag(d / "b.mcap", md, names, bad="nan"),
+                    ("/starleth/applied_torque", "t = 0.0050 s", "not applied torques")),
+    "applied_short": (lambda d, md, names: applied_bag(d / "b.mcap", md, names, bad="short"),
+                      ("holds 11 values",)),
+    "applied_missing": (lambda d, md, names: applied_bag(d / "b.mcap", md, names,
+                                                         bad="missing"),
+                        ("no applied torque for step 1 -> 2",)),
     "zstd_1tib": (lambda d, md, names: raw_bag(d / "b.mcap", [
         zstd_claiming(state_records(0, 4), TiB)]), ("compressed chunk",)),
 }

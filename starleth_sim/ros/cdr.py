@@ -5,8 +5,9 @@ names in Python). The outgoing templates (/joint_states and the other per-cycle 
 are in :mod:`starleth_interface.msg_cdr`, shared with controller_node.
 
 Only the common, valid case is decoded here: a ``sensor_msgs/JointState`` whose names are
-exactly the simulator's joints in joint order, or a ``std_msgs/Float64MultiArray`` with n
-values, all finite. Anything else (other names or order, wrong lengths, NaN, big endian,
+exactly the simulator's joints in joint order, with empty position and velocity (a torque
+command) and n finite efforts, or a ``std_msgs/Float64MultiArray`` with n values, all
+finite. Anything else (other names or order, wrong lengths, NaN, big endian,
 truncated data) returns FALLBACK and the node deserialises the message with rclpy and
 runs the full validation, which produces the detailed rejection messages. The parsers
 never read outside the buffer.
@@ -55,16 +56,13 @@ def _f64_into(buf, o, n, out):
 
 
 @nb.njit(cache=True)
-def _skip_f64_sequence(buf, o, nbuf):
-    """Offset after a float64[] starting at o (aligned to 4), or -1 if it does not fit."""
+def _skip_empty_sequence(buf, o, nbuf):
+    """Offset after an empty float64[] starting at o (aligned to 4), or -1 if it does not
+    fit or is not empty."""
     o = _align(o, 4)
-    if o + 4 > nbuf:
+    if o + 4 > nbuf or _u32(buf, o) != 0:
         return -1
-    n = np.int64(_u32(buf, o))
-    o += 4
-    if n > 0:
-        o = _align(o, 8) + 8 * n
-    return o if o <= nbuf else -1
+    return o + 4
 
 
 @nb.njit(cache=True)
@@ -72,7 +70,8 @@ def parse_joint_command(buf, names, names_ptr, effort):
     """A sensor_msgs/JointState command in CDR bytes (uint8 array). Returns
     (status, sec, nanosec): OK when the names are exactly names (flattened UTF-8 bytes,
     names_ptr the n+1 offsets) in that order and effort holds n finite values (written to
-    effort); FALLBACK otherwise (position and velocity are skipped whatever they hold)."""
+    effort) and position and velocity are empty; FALLBACK otherwise (an impedance command
+    among them)."""
     nbuf = buf.shape[0]
     n = names_ptr.shape[0] - 1
     if nbuf < 16 or buf[0] != 0 or buf[1] != 1:
@@ -100,10 +99,10 @@ def parse_joint_command(buf, names, names_ptr, effort):
             if buf[o + k] != names[a + k]:
                 return FALLBACK, 0, 0
         o += slen
-    o = _skip_f64_sequence(buf, o, nbuf)          # position
+    o = _skip_empty_sequence(buf, o, nbuf)        # position
     if o < 0:
         return FALLBACK, 0, 0
-    o = _skip_f64_sequence(buf, o, nbuf)          # velocity
+    o = _skip_empty_sequence(buf, o, nbuf)        # velocity
     if o < 0:
         return FALLBACK, 0, 0
     o = _align(o, 4)

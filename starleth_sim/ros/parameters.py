@@ -9,9 +9,10 @@ parameter's type, default, bounds and description. It feeds the node's
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
-from dataclasses import make_dataclass
+from dataclasses import dataclass, make_dataclass
 
 from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
                                             ROS_PARAMETERS, ParameterSpec, parameter_defaults,
@@ -20,6 +21,38 @@ from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import package_share_dir
 
 P = ParameterSpec
+
+
+@dataclass(frozen=True)
+class GainSpec(ParameterSpec):
+    """A gain of the joints: one number for every joint, or one per joint (a list, in
+    joint order; its length is checked against the robot's joints by SimService), each
+    finite and >= 0. Settable while the node runs (read_only False)."""
+
+    read_only: bool = False
+
+    def range_text(self) -> str:
+        return ">= 0 (finite): one number for every joint, or a list of one per joint in " \
+               "joint order"
+
+    def coerce(self, value):
+        # a list as rclpy hands it over: a list, or an array('d') / array('q') from a
+        # parameter message (ros2 param set, the command line)
+        if not isinstance(value, (str, bytes)) and hasattr(value, "__iter__"):
+            return [float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+                    for v in value]
+        if isinstance(value, int) and not isinstance(value, bool):
+            return float(value)
+        return value
+
+    def check(self, value):
+        values = value if isinstance(value, list) else [value]
+        if not values or not all(isinstance(v, float) and math.isfinite(v) and v >= 0.0
+                                 for v in values):
+            raise ValueError(f"parameter {self.name}: must be {self.range_text()}, got "
+                             f"{value!r}")
+
+
 SIM_NODE_PARAMETERS = (
     P("physics", str, "HmJ",
       "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
@@ -112,6 +145,15 @@ SIM_NODE_PARAMETERS = (
       "point coloured by state (grey open, green stick, red slip) and an arrow along the "
       "force of each closed contact; Hz, 0 = off; at most 1000 Hz.", minimum=0.1,
       maximum=1000.0, off_value=0.0),
+    GainSpec("default_kp", float, 80.0,
+             "Stiffness kp [N m/rad] of joint position targets: a JointState on "
+             "joint_commands with positions, and joint_group_position_controller/commands; "
+             "tau = tau_ff + kp (q* - q) + kd (qd* - qd) at every physics step. One number "
+             "for every joint or 12 in joint order; settable at run time (ros2 param set)."),
+    GainSpec("default_kd", float, 1.0,
+             "Damping kd [N m s/rad] of joint velocity targets (qd* = 0 with a position "
+             "target and no velocity), as default_kp; also the gain of "
+             "joint_group_velocity_controller/commands."),
     P("contact_marker_scale", float, 0.002,
       "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
       minimum_exclusive=True, maximum=1.0),
@@ -131,6 +173,9 @@ SIM_NODE_PARAMETERS = (
       "Live view: address to bind (127.0.0.1: this machine only; 0.0.0.0 opens it to the "
       "network)."),
 )
+
+#: the parameters settable while the node runs: the gains, by name
+GAIN_PARAMETERS = {p.name: p for p in SIM_NODE_PARAMETERS if isinstance(p, GainSpec)}
 
 YAML_HEADER = """\
 Default parameters of sim_node (a ROS 2 parameter file: pass it, or a copy, with

@@ -8,11 +8,15 @@ from collections import deque
 import numpy as np
 
 from starleth_interface.ros_helpers import ThrottledLog
-from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS, TOPIC_WRENCH,
-                                       TOPIC_WRENCH_PERSISTENT)
+from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS,
+                                       TOPIC_POSITION_COMMANDS, TOPIC_VELOCITY_COMMANDS,
+                                       TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT)
+from ..physics.impedance import FIELDS as IMPEDANCE_FIELDS
+from ..physics.impedance import ImpedanceCommand
 from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
 from .parameters import Settings
+
 
 def quoted(names, most=5, longest=64) -> str:
     """Names from a message, for a log line: at most `most` of them, each cut at `longest`
@@ -29,8 +33,12 @@ class SimService:
     """Command validation, lockstep bookkeeping and stepping, without any ROS.
 
     Time: step k has stamp ``k * period_ns`` [ns] (integer, so equal stamps compare exact).
-    ``command`` is the last valid torque command (joint order), applied with zero-order hold.
-    Every ``submit_*`` returns ``(accepted, reason)`` and never raises on bad input.
+    ``command`` is the last valid command, held until the next: joint torques (joint order,
+    zero-order hold), an ImpedanceCommand (its law evaluated at every physics step), or
+    (replay only) the applied torques of each physics step, (steps_per_control x n).
+    ``kp``, ``kd``: the gains of position and velocity targets (default_kp, default_kd;
+    ``set_gains``). Every ``submit_*`` returns ``(accepted, reason)`` and never raises on
+    bad input.
 
     A step whose result cannot be physical -- the physics failed twice (non-finite state,
     a mass matrix not positive definite: the stepper refuses those), or the base moved
@@ -45,7 +53,7 @@ class SimService:
 
     COUNTERS = ("commands_received", "commands_accepted", "commands_rejected", "late_commands",
                 "stale_commands", "lockstep_timeouts", "wrenches_accepted", "wrenches_rejected",
-                "simulation_errors", "resets", "steps")
+                "simulation_errors", "resets", "steps", "impedance_commands", "gains_rejected")
 
     def __init__(self, sim: Simulator, settings: Settings | None = None, q0=None, u0=None,
                  warn=None, error=None):
@@ -64,6 +72,10 @@ class SimService:
         self.errors = ThrottledLog(error or warn, self.settings.warn_throttle_period)
         self.counters = dict.fromkeys(self.COUNTERS, 0)
         self.command = np.zeros(self.n)
+        self.kp = self.kd = None
+        ok, why = self.set_gains(self.settings.default_kp, self.settings.default_kd)
+        if not ok:
+            raise ValueError(why)
         self.k = 0
         self.paused = self.settings.start_paused
         # set by the first valid command (lockstep: the first answer; realtime: the clock
@@ -115,34 +127,53 @@ class SimService:
             return None, f"{what}: values are not numbers"
         return a, None
 
+    #: the Float64MultiArray command topics: key -> (topic, what its values are)
+    ARRAY_TOPICS = {"effort": (TOPIC_EFFORT_COMMANDS, "torque"),
+                    "position": (TOPIC_POSITION_COMMANDS, "position target"),
+                    "velocity": (TOPIC_VELOCITY_COMMANDS, "velocity target")}
+
     def submit_effort_array(self, data):
         """A Float64MultiArray's data: n torques in joint order. In lockstep it answers the
         latest published state (the message has no stamp)."""
+        return self.submit_array("effort", data)
+
+    def submit_array(self, kind, data):
+        """A Float64MultiArray's data on the `kind` topic of ARRAY_TOPICS: n finite values in
+        joint order; effort: torques; position: targets q* tracked with kp, kd (q̇* = 0);
+        velocity: targets q̇* tracked with kd (no spring), as ros2_control's
+        forward_command_controllers. In lockstep it answers the latest published state."""
         self.counters["commands_received"] += 1
-        a, err = self._check_values(data, "effort command")
+        topic, what = self.ARRAY_TOPICS[kind]
+        a, err = self._check_values(data, f"{kind} command")
         if err:
-            return self._reject("effort_type", f"rejected effort command: {err}")
+            return self._reject(f"{kind}_type", f"rejected {kind} command on {topic}: {err}")
         if a.shape[0] != self.n:
-            return self._reject("effort_length",
-                                f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: "
+            return self._reject(f"{kind}_length",
+                                f"rejected {kind} command on {topic}: "
                                 f"{a.shape[0]} values, expected {self.n} (joint order "
                                 f"{', '.join(self.joint_names)}); keeping the last valid command",
                                 str(a.shape[0]))
         bad = ~np.isfinite(a)
         if bad.any():
             which = ", ".join(self.joint_names[i] for i in np.flatnonzero(bad))
-            return self._reject("effort_nonfinite",
-                                f"rejected effort command on {TOPIC_EFFORT_COMMANDS}: non-finite "
-                                f"torque for {which}; keeping the last valid command", which)
+            return self._reject(f"{kind}_nonfinite",
+                                f"rejected {kind} command on {topic}: non-finite "
+                                f"{what} for {which}; keeping the last valid command", which)
         if self.lockstep and self.answered:
             self.counters["stale_commands"] += 1
-            self.warnings.warn("stale", "dropped an extra effort command: the current state "
+            self.warnings.warn("stale", f"dropped an extra {kind} command: the current state "
                                "was already answered")
             return False, "state already answered"
-        return self._accept(a)
+        if kind == "effort":
+            return self._accept(a)
+        if kind == "position":
+            return self._accept_impedance(a, 0.0, None, topic)
+        return self._accept_impedance(None, a, None, topic)
 
-    def submit_joint_command(self, names, efforts, stamp_ns=None):
-        """A JointState command: efforts by joint name. The names must be the simulator's
+    def submit_joint_command(self, names, efforts, stamp_ns=None, position=(), velocity=()):
+        """A JointState command: efforts by joint name (position and velocity empty), or an
+        impedance command (:meth:`_joint_impedance`) when position or velocity holds values.
+        The names must be the simulator's
         joints, each once and all of them, in any order; an empty name list means joint
         order (then n efforts). A command naming some joints but not all is rejected (one
         line naming the missing ones): holding the others at their last command would
@@ -151,6 +182,8 @@ class SimService:
         (:meth:`_joint_order`), then the fields."""
         self.counters["commands_received"] += 1
         names = list(names)
+        if len(position) or len(velocity):
+            return self._joint_impedance(names, position, velocity, efforts, stamp_ns)
         a, err = self._check_values(efforts, "joint command")
         if err:
             return self._reject("joint_type", f"rejected joint command: {err}")
@@ -163,8 +196,7 @@ class SimService:
         if a.shape[0] != self.n:
             return self._reject("joint_length",
                                 f"rejected joint command on {TOPIC_JOINT_COMMANDS}: "
-                                + (f"{len(names)} names but {a.shape[0]} efforts (this "
-                                   "simulator takes effort commands only)" if names else
+                                + (f"{len(names)} names but {a.shape[0]} efforts" if names else
                                    f"no joint names and {a.shape[0]} efforts (give the names, "
                                    f"or {self.n} efforts in joint order)"),
                                 f"{len(names)}/{a.shape[0]}")
@@ -179,6 +211,112 @@ class SimService:
         tau = np.empty(self.n)
         tau[order] = a
         return self._accept(tau)
+
+    def _joint_impedance(self, names, position, velocity, efforts, stamp_ns):
+        """A JointState whose position or velocity holds values: targets q*, q̇* and the
+        feed-forward τ_ff by name, tracked with the gains kp, kd at every physics step. An
+        empty field: position, no spring; velocity, q̇* = 0 (the damper pulls to rest) when a
+        position is given, else no damper; effort, no τ_ff. NaN in a field: that term off
+        for that joint. A filled field holds one value per name (n in joint order without
+        names); infinities are rejected."""
+        if names == self._joint_name_list:
+            order = slice(None)            # every joint in joint order: the common case
+        else:
+            order, problem = self._joint_order(names)
+            if order is None:
+                return self._reject(*problem)
+        topic, m = TOPIC_JOINT_COMMANDS, (len(names) if names else self.n)
+        fields = {}
+        for field, values in (("position", position), ("velocity", velocity),
+                              ("effort", efforts)):
+            a, err = self._check_values(values, f"joint command {field}")
+            if err:
+                return self._reject("joint_type", f"rejected joint command on {topic}: {err}")
+            if a.shape[0] == 0:
+                fields[field] = None
+                continue
+            if a.shape[0] != m:
+                return self._reject("joint_length",
+                                    f"rejected joint command on {topic}: {m} joints but "
+                                    f"{a.shape[0]} {field} values (a field holds one value per "
+                                    "joint, or none); keeping the last valid command",
+                                    f"{field} {m}/{a.shape[0]}")
+            v = np.empty(self.n)
+            v[order] = a
+            inf = np.isinf(v)
+            if inf.any():
+                which = ", ".join(self.joint_names[i] for i in np.flatnonzero(inf))
+                return self._reject("joint_infinite",
+                                    f"rejected joint command on {topic}: infinite {field} for "
+                                    f"{which} (NaN turns a term off); keeping the last valid "
+                                    "command", f"{field} {which}")
+            fields[field] = v
+        if self.lockstep and not self._stamp_ok(stamp_ns):
+            return self._stale(stamp_ns)
+        velocity = fields["velocity"]
+        if velocity is None:
+            velocity = 0.0 if fields["position"] is not None else None
+        return self._accept_impedance(fields["position"], velocity, fields["effort"], topic)
+
+    def _accept_impedance(self, position, velocity, effort, topic):
+        """Hold an ImpedanceCommand of these (checked) targets with the current gains."""
+        self.counters["impedance_commands"] += 1
+        return self._accept(self.impedance_command(position, velocity, effort))
+
+    def impedance_command(self, position, velocity, effort):
+        """The ImpedanceCommand of targets already checked (n values, a number, or None:
+        NaN, that term off) with the current gains (checked by set_gains), packed straight
+        into the layout of ImpedanceCommand.create (impedance.FIELDS), without create's
+        validation again: in lockstep a slow controller's targets come with every state.
+        test_impedance_commands checks it equals create's command."""
+        n = self.n
+        packed = np.empty(len(IMPEDANCE_FIELDS) * n)
+        values = {"position": position, "velocity": velocity, "kp": self.kp, "kd": self.kd,
+                  "effort": effort}
+        for i, name in enumerate(IMPEDANCE_FIELDS):
+            v = values[name]
+            packed[i * n:(i + 1) * n] = np.nan if v is None else v
+        packed.flags.writeable = False
+        return ImpedanceCommand(packed=packed, joint_names=self.joint_names,
+                                **{name: packed[i * n:(i + 1) * n]
+                                   for i, name in enumerate(IMPEDANCE_FIELDS)})
+
+    def set_gains(self, kp=None, kd=None):
+        """The gains of position and velocity targets: each one number for every joint or n
+        (joint order), finite and >= 0 (None: unchanged). A held impedance command takes
+        the new gains at once. (accepted, reason); rejected gains are counted
+        (gains_rejected), warned of and change nothing."""
+        new = {}
+        for name, value in (("default_kp", kp), ("default_kd", kd)):
+            if value is None:
+                new[name] = self.kp if name == "default_kp" else self.kd
+                continue
+            try:
+                a = np.array(value, dtype=float).reshape(-1)
+            except (TypeError, ValueError):
+                return self.reject_gains(name, f"{name}: not numbers ({value!r})")
+            if a.shape[0] == 1:
+                a = np.repeat(a, self.n)
+            if a.shape[0] != self.n:
+                return self.reject_gains(name, f"{name}: {a.shape[0]} values, expected 1 or "
+                                          f"{self.n} (joint order {', '.join(self.joint_names)})")
+            bad = ~(np.isfinite(a) & (a >= 0.0))
+            if bad.any():
+                which = ", ".join(f"{self.joint_names[i]} ({a[i]:g})"
+                                  for i in np.flatnonzero(bad))
+                return self.reject_gains(name, f"{name}: must be finite and >= 0: {which}")
+            new[name] = a
+        self.kp, self.kd = new["default_kp"], new["default_kd"]
+        c = self.command
+        if type(c) is ImpedanceCommand:
+            self.command = self.impedance_command(c.position, c.velocity, c.effort)
+        return True, "ok"
+
+    def reject_gains(self, name, message):
+        self.counters["gains_rejected"] += 1
+        self.warnings.warn("gains", f"rejected gains {message}; keeping the previous gains",
+                           name)
+        return False, message
 
     def _joint_order(self, names):
         """(index in joint order of each name, None), or (None, (kind, message, detail)) when
@@ -302,7 +440,9 @@ class SimService:
             return None
         x0, y0, z0 = sim.root_position()
         try:
-            d = sim.step(tau)
+            # (a 2-d array: the recorded applied torques of each physics step, a replay)
+            d = sim.step_applied(tau) if type(tau) is np.ndarray and tau.ndim == 2 else \
+                sim.step(tau)
         except (SimulationError, ValueError) as e:
             self.counters["simulation_errors"] += 1
             self.warnings.warn("simulation_error", f"physics step failed at t="

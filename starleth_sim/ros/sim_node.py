@@ -23,6 +23,7 @@ from dataclasses import replace
 import numpy as np
 import yaml
 from geometry_msgs.msg import WrenchStamped
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
@@ -37,14 +38,16 @@ from starleth_interface.ros_helpers import (StopSignals, UnknownParameterError,
                                             route_python_logging, set_cpu_scheduling,
                                             shutdown_ros)
 from starleth_interface.topics import (TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS,
-                                       TOPIC_JOINT_COMMANDS, TOPIC_WRENCH,
+                                       TOPIC_JOINT_COMMANDS, TOPIC_POSITION_COMMANDS,
+                                       TOPIC_VELOCITY_COMMANDS, TOPIC_WRENCH,
                                        TOPIC_WRENCH_PERSISTENT)
 from ..physics.config import ConfigError
 from ..physics.simulator import Simulator
 from .cdr import CommandDecoder
 from .live_view import LiveView
 from .node_recording import NodeRecording, describe_run, make_recorder
-from .parameters import SIM_NODE_PARAMETERS, Settings, load_default_parameters
+from .parameters import (GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
+                         load_default_parameters)
 from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .service import PeriodStats, SimService
 from .sim_loops import SimLoops
@@ -104,6 +107,7 @@ class SimNode:
                               self.publisher, self.diagnostics, self.log)
         self._setup_subscriptions()
         self._setup_services()
+        node.add_on_set_parameters_callback(self._on_set_parameters)
         err = set_cpu_scheduling(s.cpu_scheduling)     # before the writer process starts
         if err:
             self.log.warning(f"cpu_scheduling {s.cpu_scheduling}: {err}")
@@ -173,6 +177,10 @@ class SimNode:
             self._on_effort_cdr)
         sub("joint_commands", JointState, TOPIC_JOINT_COMMANDS, self._on_joint_command,
             self._on_joint_command_cdr)
+        sub("position", Float64MultiArray, TOPIC_POSITION_COMMANDS,
+            lambda msg: self._on_array("position", msg))
+        sub("velocity", Float64MultiArray, TOPIC_VELOCITY_COMMANDS,
+            lambda msg: self._on_array("velocity", msg))
         sub("wrench", WrenchStamped, TOPIC_WRENCH, self._on_wrench)
         sub("wrench_persistent", WrenchStamped, TOPIC_WRENCH_PERSISTENT,
             self._on_wrench_persistent)
@@ -245,9 +253,38 @@ class SimNode:
     def _on_joint_command(self, msg):
         st = msg.header.stamp
         if self.service.submit_joint_command(msg.name, msg.effort,
-                                             st.sec * 1_000_000_000 + st.nanosec)[0] \
+                                             st.sec * 1_000_000_000 + st.nanosec,
+                                             msg.position, msg.velocity)[0] \
                 and self.loops.step_on_answer:
             self.loops.advance()
+
+    def _on_array(self, kind, msg):
+        """joint_group_{position,velocity}_controller/commands: targets in joint order."""
+        if self.service.submit_array(kind, msg.data)[0] and self.loops.step_on_answer:
+            self.loops.advance()
+
+    def _on_set_parameters(self, params):
+        """default_kp, default_kd at run time (the other parameters are read only): checked
+        (a rejection is warned of and counted in gains_rejected), then taken by the held
+        command at once."""
+        gains = {}
+        for prm in params:
+            spec = GAIN_PARAMETERS.get(prm.name)
+            if spec is None:
+                continue
+            value = spec.coerce(prm.value)
+            try:
+                spec.check(value)
+            except ValueError as e:
+                self.service.reject_gains(prm.name, str(e))
+                return SetParametersResult(successful=False, reason=str(e))
+            gains[prm.name] = value
+        if gains:
+            ok, why = self.service.set_gains(gains.get("default_kp"), gains.get("default_kd"))
+            if not ok:
+                return SetParametersResult(successful=False, reason=why)
+            self.log.info("gains: " + ", ".join(f"{k} {v}" for k, v in gains.items()))
+        return SetParametersResult(successful=True)
 
     def _wrench(self, key, msg, persistent):
         f, m = msg.wrench.force, msg.wrench.torque

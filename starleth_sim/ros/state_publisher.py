@@ -15,13 +15,15 @@ from geometry_msgs.msg import WrenchStamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64MultiArray, String
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr,
                                        JointStateCdr)
 from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
 from starleth_interface.state_bundle import StateBundleCdr
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_CLOCK, TOPIC_IMU,
+from starleth_interface.topics import (TOPIC_APPLIED_TORQUE, TOPIC_BASE_STATE, TOPIC_CLOCK,
+                                       TOPIC_IMU,
                                        TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER,
                                        TOPIC_STATE_BUNDLE, foot_wrench_topic)
 from ..physics.description import STARLETH_FEET as FEET
@@ -104,6 +106,15 @@ class StatePublisher:
         add("robot_description", String, TOPIC_ROBOT_DESCRIPTION, LATCHED_QOS)
         if self.bundle_cdr is not None:
             add("state_bundle", Float64MultiArray, TOPIC_STATE_BUNDLE, STATE_QOS)
+        add("applied_torque", Float64MultiArray, TOPIC_APPLIED_TORQUE, STATE_QOS)
+        # its CDR bytes: a fixed prefix (the layout, the data length) and the float64 data
+        n_steps, n = self.sim.config.steps_per_control, self.sim.n_joints
+        m = Float64MultiArray(data=[0.0] * (n_steps * n))
+        m.layout.dim = [
+            MultiArrayDimension(label="physics_steps", size=n_steps, stride=n_steps * n),
+            MultiArrayDimension(label="joints", size=n, stride=n)]
+        raw = serialize_message(m)
+        self._torque_prefix = raw[:len(raw) - 8 * n_steps * n]
 
     # -- the state of a step ---------------------------------------------------------------
     def publish_state(self, record=True):
@@ -153,6 +164,8 @@ class StatePublisher:
             self._publish_imu(sec, nsec, base, record)
         if wanted("solver", record):
             self.diagnostics.publish(out, sec, nsec, record)
+        if not first and wanted("applied_torque", record):
+            self._publish_applied_torque(record)
         if timing is not None:
             timing.row[3] = time.perf_counter()
         if record:
@@ -213,6 +226,13 @@ class StatePublisher:
         js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
         js.position, js.velocity, js.effort = (float_array(x) for x in joints)
         self.output.emit("joint_states", js, record)
+
+    def _publish_applied_torque(self, record):
+        """starleth/applied_torque: the saturated torque of every physics step of the step
+        that led to this state (physics_steps x joints, joint order; no header: recorded at
+        this state's stamp). What starleth-replay re-applies (Simulator.step_applied)."""
+        data = np.ascontiguousarray(self.sim.applied_torques_per_step, dtype="<f8").tobytes()
+        self.output.emit_cdr("applied_torque", self._torque_prefix + data, record)
 
     def _publish_foot_wrenches(self, sec, nsec, feet, record, forces=None):
         """starleth/<foot>/wrench: the contact force F = Λ/Δt of each foot in `feet`

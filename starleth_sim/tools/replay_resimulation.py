@@ -1,6 +1,9 @@
 """Re-simulation of a recording for ``starleth-replay``: the recorded torques and wrenches run
 through a configuration with sim_node's own calls (``SimService``), and the replayed run
-compared with the recorded one, bit for bit or by where it diverges."""
+compared with the recorded one, bit for bit or by where it diverges. The torques: those of
+every physics step (starleth/applied_torque, ``Simulator.step_applied``: exact for impedance
+commands, whose torque changes within a control period) where the bag has them, else the
+/joint_states effort (bags of before)."""
 from __future__ import annotations
 
 import time
@@ -14,7 +17,7 @@ from ..ros.parameters import Settings
 from ..ros.service import SimService
 from ..ros.state_io import public_state, quat_to_matrix
 from .replay_recording import (FEET, QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
-                               shortened)
+                               shortened, warn)
 
 
 @dataclass
@@ -83,6 +86,14 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
         raise ReplayError(f"{rec.path}: the recorded initial_state does not fit "
                           f"{cfg.name}: {type(e).__name__}: {shortened(str(e))}") from None
     n = rec.steps if steps is None else min(steps, rec.steps)
+    # the applied torque of each physics step where the bag has it (an impedance run: the
+    # torque changes within a control period) and it fits this configuration
+    applied = rec.applied if rec.applied is not None and \
+        rec.applied.shape[1] == cfg.steps_per_control else None
+    if rec.applied is not None and applied is None:
+        warn(f"{cfg.name}: {cfg.steps_per_control} physics steps per control "
+                        f"period, the recording's applied torques have {rec.applied.shape[1]}: "
+                        "replaying the torques of /joint_states")
     out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in QUANTITIES}
     first = _snapshot(sim)
     for q in QUANTITIES:
@@ -94,7 +105,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     for k in range(n):
         for link, f, m, persistent in rec.wrenches.get(k, ()):
             svc.submit_wrench(link, f, m, persistent)
-        svc.command = rec.effort[k + 1]
+        svc.command = rec.effort[k + 1] if applied is None else applied[k + 1]
         d = svc.step()
         if d is None:
             error = warnings[-1] if warnings else f"the physics failed at step {k}"

@@ -1,0 +1,293 @@
+"""Joint impedance commands through sim_node as users send them (issue #36): an external
+rclpy controller that sends only joint position targets at 50 Hz (kp 80) holds the stand on
+HmJ and Cm, in lockstep and in realtime; the same targets sent as torques by a 400 Hz relay
+(τ = kp (q* − q) − kd q̇ at every state) for comparison (printed); the position forwarding
+topic; the recording replays the impedance run bit for bit (starleth/applied_torque); bad
+input and a negative gain at run time are refused and counted.
+
+Lockstep protocol of a slow controller (doc/sim_node.md): it answers every state, with the
+targets it holds (recomputed at 50 Hz); in realtime it sends at 50 Hz only and the simulator
+keeps tracking the held command. Gains: kd 2 on HmJ; on Cm kd 1, as the compliant contact's
+explicit damper leaves no room for kd 2 at Δt = 1.25 ms (doc/physics.md, "Joint
+impedance"; test_impedance_commands.py::test_cm_explicit_damper_limit).
+
+sim_node runs as a child process on an isolated ROS_DOMAIN_ID; every wait is bounded."""
+import dataclasses
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
+
+from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
+from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
+from starleth_sim.ros.qos import COMMAND_QOS, STATE_QOS  # noqa: E402
+from starleth_sim.tools.replay_recording import load_recording  # noqa: E402
+from starleth_sim.tools.replay_resimulation import compare_exact, resimulate  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DOMAIN_RANGE = (229, 4)        # first, span (conftest._free_ros_domain)
+DOMAIN_ID = 229 + os.getpid() % 4
+START_TIMEOUT = 120.0
+PERIOD_NS = 2_500_000
+SLOW = 8                       # 400 Hz / 50 Hz
+KP = 80.0
+STATES = 320                   # per phase: 0.8 s of sim time
+
+
+def ns_of(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class TargetController:
+    """The external controller: position targets q* (the standing posture, plus 0.05 rad
+    at 1 Hz on the knees), recomputed at 50 Hz. Modes: "impedance" (a JointState of
+    positions: every state in lockstep, every 8th in realtime), "forward" (the same on
+    joint_group_position_controller/commands), "relay" (τ = kp (q* − q) − kd q̇ as effort,
+    every state: a 400 Hz torque loop)."""
+
+    def __init__(self, ros, kd, lockstep):
+        node = ros.node
+        self.kd, self.lockstep = kd, lockstep
+        self.pub = node.create_publisher(JointState, "joint_commands", COMMAND_QOS)
+        self.pub_fwd = node.create_publisher(Float64MultiArray,
+                                             "joint_group_position_controller/commands",
+                                             COMMAND_QOS)
+        self.subs = [node.create_subscription(JointState, "joint_states", self.on_state,
+                                              STATE_QOS),
+                     node.create_subscription(Odometry, "starleth/base_state", self.on_base,
+                                              STATE_QOS)]
+        self.mode = self.phase_ns = self.latest = self.q0 = self.held = None
+        self.names = None
+        self.states, self.z = [], []
+
+    def targets(self, k):
+        q = self.q0.copy()
+        q[2::3] += 0.05 * np.sin(2 * np.pi * k * PERIOD_NS * 1e-9)
+        return q
+
+    def start(self, mode, phase_ns):
+        self.mode, self.phase_ns = mode, phase_ns
+        self.states, self.z = [], []
+        if self.latest is not None and ns_of(self.latest.header.stamp) == phase_ns:
+            self.on_state(self.latest)
+
+    def on_base(self, msg):
+        if self.phase_ns is not None and ns_of(msg.header.stamp) >= self.phase_ns:
+            self.z.append(msg.pose.pose.position.z)
+
+    def on_state(self, msg):
+        self.latest = msg
+        if self.q0 is None:
+            self.q0, self.names = np.array(msg.position), list(msg.name)
+        ns = ns_of(msg.header.stamp)
+        if self.mode is None or ns < self.phase_ns:
+            return
+        k = (ns - self.phase_ns) // PERIOD_NS
+        q, qd = np.array(msg.position), np.array(msg.velocity)
+        if k % SLOW == 0 or self.held is None:
+            self.held = self.targets(k)
+        self.states.append((k, q, self.held))
+        if self.mode == "relay":
+            self.send(msg.header.stamp, effort=KP * (self.held - q) - self.kd * qd)
+        elif self.lockstep or k % SLOW == 0:
+            if self.mode == "forward":
+                self.pub_fwd.publish(Float64MultiArray(data=list(self.held)))
+            else:
+                self.send(msg.header.stamp, position=self.held)
+
+    def send(self, stamp, position=(), effort=()):
+        m = JointState(name=self.names, position=list(position), effort=list(effort))
+        m.header.stamp = stamp
+        self.pub.publish(m)
+
+    def error(self):
+        """RMS of q − q* over the phase's states, and the states (k -> q)."""
+        e = np.array([q - h for _, q, h in self.states[:STATES]])
+        return float(np.sqrt(np.mean(e ** 2))), {k: q for k, q, _ in self.states[:STATES]}
+
+
+@pytest.fixture(scope="module")
+def ros():
+    node = RosTestNode(DOMAIN_ID, "impedance_test", events=True)
+    try:
+        yield node
+    finally:
+        node.close()
+
+
+def run_phase(ros, sim, ctl, mode, first, stand=True):
+    """Pause, reset (not the first phase), start the controller's `mode`, resume; STATES
+    states later: the phase's tracking error, states and lowest base height; stand: the
+    base stayed at the standing height (within 3 cm) and the error is small."""
+    if not first:
+        ctl.mode = None          # no answer of the old mode to the reset state
+        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
+        r = ros.call(Trigger, "/sim_node/reset", Trigger.Request())
+        phase_ns = round(float(re.search(r"sim time ([0-9.]+)", r.message)[1]) * 1e9)
+        assert ros.spin_until(lambda: ctl.latest is not None and
+                              ns_of(ctl.latest.header.stamp) == phase_ns, 10.0, procs=[sim])
+    else:
+        assert ros.spin_until(lambda: ctl.latest is not None, START_TIMEOUT, procs=[sim]), \
+            sim.log()[-2000:]
+        phase_ns = ns_of(ctl.latest.header.stamp)
+    ctl.start(mode, phase_ns)
+    assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=False)).success
+    assert ros.spin_until(lambda: len(ctl.states) >= STATES, 60.0, procs=[sim]), \
+        (mode, len(ctl.states), sim.log()[-2000:])
+    err, states = ctl.error()
+    z = np.array(ctl.z[:STATES])
+    if stand:
+        assert STARLETH_STANDING_HEIGHT - z.min() < 0.03, (mode, z.min(), z.max())
+        assert z.max() < STARLETH_STANDING_HEIGHT + 1e-3 and err < 0.12, (mode, z.max(), err)
+    return err, states, float(z.min())
+
+
+def set_parameter(ros, name, value):
+    p = ParameterMsg(name=name)
+    if isinstance(value, list):
+        p.value.type = ParameterType.PARAMETER_DOUBLE_ARRAY
+        p.value.double_array_value = value
+    else:
+        p.value.type = ParameterType.PARAMETER_DOUBLE
+        p.value.double_value = value
+    r = ros.call(SetParameters, "/sim_node/set_parameters",
+                 SetParameters.Request(parameters=[p]))
+    return r.results[0]
+
+
+@pytest.mark.parametrize("preset, mode", [("HmJ", "lockstep"), ("Cm", "lockstep"),
+                                          ("HmJ", "realtime"), ("Cm", "realtime")])
+def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
+    kd = 2.0 if preset == "HmJ" else 1.0
+    lockstep = mode == "lockstep"
+    bag = tmp_path / "run.mcap"
+    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
+                      physics=preset, mode=mode, start_paused=True, default_kp=KP,
+                      default_kd=kd, record=str(bag), contact_markers_rate=0.0, tf_rate=0.0)
+    ctl = TargetController(ros, kd, lockstep)
+    try:
+        errors, low = {}, {}
+        errors["impedance"], impedance, low["impedance"] = run_phase(ros, sim, ctl,
+                                                                     "impedance", True)
+        # the relay: in realtime its torque comes a transport delay late (or a tick later)
+        errors["relay"], relay, low["relay"] = run_phase(ros, sim, ctl, "relay", False,
+                                                         stand=lockstep)
+        if preset == "HmJ" and lockstep:
+            errors["forward"], forward, low["forward"] = run_phase(ros, sim, ctl, "forward",
+                                                                   False)
+            # bad input, a negative gain: refused, counted; the simulator goes on
+            ctl.send(ctl.latest.header.stamp, position=[float("inf")] + [0.0] * 11)
+            result = set_parameter(ros, "default_kp", -1.0)
+            assert not result.successful and "default_kp" in result.reason
+            assert set_parameter(ros, "default_kd", 1.5).successful
+            assert set_parameter(ros, "default_kp", [70.0] * 12).successful
+            assert not set_parameter(ros, "default_kp", [70.0] * 11).successful
+        print(f"{preset} {mode}: RMS tracking error (rad) of 50 Hz position targets and of "
+              f"their 400 Hz torque relay: " +
+              ", ".join(f"{k} {v:.5f}" for k, v in errors.items()) + "; lowest base (m): " +
+              ", ".join(f"{k} {v:.4f}" for k, v in low.items()))
+        common = sorted(set(impedance) & set(relay))
+        same = all(np.array_equal(impedance[k], relay[k]) for k in common)
+        if lockstep:
+            assert len(common) == STATES
+            # one physics step per period: the relay's torque is the law at the state the
+            # simulator starts the step from, bit for bit; on Cm the law runs at 800 Hz
+            assert same == (preset == "HmJ")
+            if preset == "HmJ":
+                assert all(np.array_equal(impedance[k], forward[k]) for k in common)
+        else:      # late torques only add to the error
+            assert errors["relay"] > errors["impedance"] - 1e-3, errors
+        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
+    finally:
+        for s in ctl.subs:
+            ros.node.destroy_subscription(s)
+        code = sim.stop()
+    assert code == 0, sim.log()[-3000:]
+    s = sim.summary()
+    assert s["impedance_commands"] > 0 and s["lockstep_timeouts"] == 0, s
+    if preset == "HmJ" and lockstep:
+        assert s["commands_rejected"] == 1 and s["gains_rejected"] == 2, s
+        assert "infinite position for LF_HAA" in sim.log()
+    else:
+        assert s["commands_rejected"] == 0, s
+    # the recording replays the impedance phase bit for bit (the applied torque of every
+    # physics step, Simulator.step_applied)
+    rec = load_recording(str(bag))
+    assert rec.applied is not None and rec.applied.shape[1] == (1 if preset == "HmJ" else 2)
+    c = compare_exact(rec, resimulate(rec, steps=STATES - 20))
+    assert c.identical, (c.first_step, c.first_quantities)
+    # a bag without it (the replay of before: the /joint_states effort, the torque of each
+    # control period's first physics step): exact with one physics step only
+    old = compare_exact(rec, resimulate(dataclasses.replace(rec, applied=None),
+                                        steps=STATES - 20))
+    assert old.identical == (preset == "HmJ"), old.first_step
+
+
+def readme_position_controller():
+    """The second python block of README.md's "Write your own controller" section."""
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
+        text = f.read()
+    section = text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert len(blocks) == 2, blocks
+    return blocks[1]
+
+
+def test_readme_position_controller_squats_and_stands(ros, tmp_path):
+    """The README's 50 Hz position controller as written (20 lines), beside `sim_node
+    --ros-args -p mode:=lockstep`, for 2.5 s of sim time: every state answered, the base
+    goes down with the squat (the targets are tracked) and back up, and never falls."""
+    code = readme_position_controller()
+    assert code.count("\n") <= 20
+    script = tmp_path / "squat.py"
+    script.write_text(code)
+    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
+                      mode="lockstep")
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1")
+    log = open(tmp_path / "squat.log", "w")
+    ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL, stdout=log,
+                           stderr=subprocess.STDOUT, env=env)
+    heights = []
+    sub = ros.node.create_subscription(
+        Odometry, "starleth/base_state",
+        lambda m: heights.append((ns_of(m.header.stamp) * 1e-9, m.pose.pose.position.z)),
+        100)
+    try:
+        assert ros.spin_until(lambda: heights and heights[-1][0] >= 2.5, START_TIMEOUT,
+                              procs=[sim]), (sim.log()[-2000:], heights[-3:])
+        assert ctl.poll() is None, (tmp_path / "squat.log").read_text()
+        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
+    finally:
+        ros.node.destroy_subscription(sub)
+        ctl.send_signal(2)
+        try:
+            ctl.wait(10)
+        except subprocess.TimeoutExpired:
+            ctl.kill()
+            ctl.wait(10)
+        log.close()
+        rc = sim.stop()
+    assert rc == 0
+    t = np.array([h[0] for h in heights])
+    z = np.array([h[1] for h in heights])
+    low = z[(t > 0.8) & (t < 1.2)].min()     # the deepest squat at t = 1 s
+    up = z[(t > 1.9) & (t < 2.1)].max()      # standing again at t = 2 s
+    print(f"README position controller: base {z.min():.4f} to {z.max():.4f} m, at the "
+          f"bottom of the squat {low:.4f} m, back up {up:.4f} m")
+    assert STARLETH_STANDING_HEIGHT - 0.03 < up and low < up - 0.02 and z.min() > 0.3
+    s = sim.summary()
+    assert s["lockstep_timeouts"] == 0 and s["stale_commands"] == 0, s
+    assert s["impedance_commands"] >= s["steps"] > 0, s   # every state: position targets
