@@ -15,14 +15,13 @@ sim_node runs as a child process on an isolated ROS_DOMAIN_ID; every wait is bou
 import dataclasses
 import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
+from readme_examples import readme_controller_blocks, run_beside_sim_node  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType  # noqa: E402
@@ -32,7 +31,6 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
-from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
 from starleth_sim.ros.qos import COMMAND_QOS, STATE_QOS  # noqa: E402
 from starleth_sim.tools.replay_recording import load_recording  # noqa: E402
 from starleth_sim.tools.replay_resimulation import compare_exact, resimulate  # noqa: E402
@@ -241,10 +239,7 @@ def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
 
 def readme_position_controller():
     """The second python block of README.md's "Write your own controller" section."""
-    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
-        text = f.read()
-    section = text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    blocks = readme_controller_blocks()
     assert len(blocks) == 2, blocks
     return blocks[1]
 
@@ -255,42 +250,11 @@ def test_readme_position_controller_squats_and_stands(ros, tmp_path):
     goes down with the squat (the targets are tracked) and back up, and never falls."""
     code = readme_position_controller()
     assert code.count("\n") <= 20
-    script = tmp_path / "squat.py"
-    script.write_text(code)
-    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
-                      mode="lockstep")
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1")
-    log = open(tmp_path / "squat.log", "w")
-    ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL, stdout=log,
-                           stderr=subprocess.STDOUT, env=env)
-    heights = []
-    sub = ros.node.create_subscription(
-        Odometry, "starleth/base_state",
-        lambda m: heights.append((ns_of(m.header.stamp) * 1e-9, m.pose.pose.position.z)),
-        100)
-    try:
-        assert ros.spin_until(lambda: heights and heights[-1][0] >= 2.5, START_TIMEOUT,
-                              procs=[sim]), (sim.log()[-2000:], heights[-3:])
-        assert ctl.poll() is None, (tmp_path / "squat.log").read_text()
-        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
-    finally:
-        ros.node.destroy_subscription(sub)
-        ctl.send_signal(2)
-        try:
-            ctl.wait(10)
-        except subprocess.TimeoutExpired:
-            ctl.kill()
-            ctl.wait(10)
-        log.close()
-        rc = sim.stop()
-    assert rc == 0
-    t = np.array([h[0] for h in heights])
-    z = np.array([h[1] for h in heights])
+    t, z, s = run_beside_sim_node(ros, tmp_path, code, DOMAIN_ID, 2.5)
     low = z[(t > 0.8) & (t < 1.2)].min()     # the deepest squat at t = 1 s
     up = z[(t > 1.9) & (t < 2.1)].max()      # standing again at t = 2 s
     print(f"README position controller: base {z.min():.4f} to {z.max():.4f} m, at the "
           f"bottom of the squat {low:.4f} m, back up {up:.4f} m")
     assert STARLETH_STANDING_HEIGHT - 0.03 < up and low < up - 0.02 and z.min() > 0.3
-    s = sim.summary()
     assert s["lockstep_timeouts"] == 0 and s["stale_commands"] == 0, s
     assert s["impedance_commands"] >= s["steps"] > 0, s   # every state: position targets

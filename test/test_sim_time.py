@@ -7,15 +7,13 @@ own controller" example, run as written, keeps the robot standing.
 Nodes run as child processes on an isolated ROS_DOMAIN_ID; every wait is bounded and every
 child is stopped in a finally."""
 import os
-import re
-import subprocess
-import sys
 
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
 from launch_file import launch_nodes  # noqa: E402
+from readme_examples import readme_controller_blocks, run_beside_sim_node  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -27,7 +25,6 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
 from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
-from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (200, 20)       # first, span (conftest._free_ros_domain)
@@ -188,12 +185,10 @@ def test_realtime_robot_waits_for_its_controller_without_falling(ros, tmp_path):
 # the README's controller, as written
 # -----------------------------------------------------------------------------------------
 def readme_controller():
-    """The python code block of README.md's "Write your own controller" section."""
-    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
-        text = f.read()
-    section = text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
-    assert len(blocks) == 2, blocks     # this torque controller; test_impedance_ros: the other
+    """The first python block of README.md's "Write your own controller" section (the
+    other, test_impedance_ros's, is the position controller)."""
+    blocks = readme_controller_blocks()
+    assert len(blocks) == 2, blocks
     return blocks[0]
 
 
@@ -205,38 +200,11 @@ def test_readme_controller_keeps_the_robot_standing(ros, tmp_path):
     """The example as the README says to run it: beside `sim_node --ros-args -p
     mode:=lockstep`, as a script with no arguments. 3 s of sim time: the base stays at its
     standing height (within a few mm), every state answered."""
-    script = tmp_path / "stand.py"
-    script.write_text(readme_controller())
-    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "readme_sim.log"), DOMAIN_ID,
-                      mode="lockstep")
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1")
-    log = open(tmp_path / "stand.log", "w")
-    ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL, stdout=log,
-                           stderr=subprocess.STDOUT, env=env)
-    heights = []
-    sub = ros.node.create_subscription(
-        Odometry, "starleth/base_state",
-        lambda m: heights.append((seconds(m.header.stamp), m.pose.pose.position.z)), 100)
-    try:
-        assert ros.spin_until(lambda: heights and heights[-1][0] >= 3.0, START_TIMEOUT,
-                              procs=[sim]), (sim.log()[-2000:], heights[-3:])
-        assert ctl.poll() is None, (tmp_path / "stand.log").read_text()
-        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
-    finally:
-        ros.node.destroy_subscription(sub)
-        ctl.send_signal(2)
-        try:
-            ctl.wait(10)
-        except subprocess.TimeoutExpired:
-            ctl.kill()
-            ctl.wait(10)
-        log.close()
-        code = sim.stop()
-    assert code == 0
-    z = [h for t, h in heights if t > 0]
+    t, z, summary = run_beside_sim_node(ros, tmp_path, readme_controller(), DOMAIN_ID, 3.0)
+    z = z[t > 0]
     sag = STARLETH_STANDING_HEIGHT - min(z)
     print(f"README controller: {len(z)} states, base height {min(z):.4f} to {max(z):.4f} m")
     assert 0.0 <= sag < 0.01, sag                 # holds itself up: gives a few mm at most
     assert max(z[-100:]) - min(z[-100:]) < 0.001  # settled: at rest over the last 0.25 s
-    s = sim.summary()
+    s = summary
     assert s["lockstep_timeouts"] == 0 and s["stale_commands"] == 0, s

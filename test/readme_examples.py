@@ -1,0 +1,65 @@
+"""The README's controller examples as a user runs them (test_sim_time: the torque PD,
+test_impedance_ros: the 50 Hz position controller): the python blocks of its "Write your own
+controller" section, each run as written, as a script with no arguments, beside `sim_node
+--ros-args -p mode:=lockstep`, while a test node records the base height."""
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from std_srvs.srv import SetBool
+
+from ros_test_nodes import NodeProcess
+from starleth_sim.ros.discovery import local_discovery_env
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)
+
+
+def readme_controller_blocks() -> list:
+    """The python code blocks of README.md's "Write your own controller" section, in order."""
+    with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
+        text = f.read()
+    section = text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", section, re.S)
+
+
+def run_beside_sim_node(ros, tmp_path, code, domain_id, until):
+    """Run `code` as a script beside a lockstep sim_node on `domain_id` until the sim time
+    reaches `until` [s]; then pause and stop both. Returns (t, z): the stamps [s] and base
+    heights [m] of every state, and sim_node's exit summary. Fails if the script died or
+    sim_node did not exit cleanly."""
+    script = tmp_path / "readme_controller.py"
+    script.write_text(code)
+    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "readme_sim.log"), domain_id,
+                      mode="lockstep")
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+    log_path = tmp_path / "readme_controller.log"
+    log = open(log_path, "w")
+    ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL, stdout=log,
+                           stderr=subprocess.STDOUT, env=env)
+    heights = []
+    sub = ros.node.create_subscription(
+        Odometry, "starleth/base_state",
+        lambda m: heights.append((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9,
+                                  m.pose.pose.position.z)), 100)
+    try:
+        assert ros.spin_until(lambda: heights and heights[-1][0] >= until, START_TIMEOUT,
+                              procs=[sim]), (sim.log()[-2000:], heights[-3:])
+        assert ctl.poll() is None, log_path.read_text()
+        assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
+    finally:
+        ros.node.destroy_subscription(sub)
+        ctl.send_signal(2)
+        try:
+            ctl.wait(10)
+        except subprocess.TimeoutExpired:
+            ctl.kill()
+            ctl.wait(10)
+        log.close()
+        code_sim = sim.stop()
+    assert code_sim == 0, sim.log()[-2000:]
+    return (np.array([h[0] for h in heights]), np.array([h[1] for h in heights]),
+            sim.summary())
