@@ -20,6 +20,8 @@ TOPIC_ROBOT_DESCRIPTION = "robot_description"
 TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
 TOPIC_JOINT_COMMANDS = "joint_commands"
 TOPIC_CONTACT_MARKERS = "starleth/contact_markers"
+#: the terrain (visualization_msgs/MarkerArray, latched; only with a terrain)
+TOPIC_TERRAIN = "terrain"
 TOPIC_TF = "/tf"
 TOPIC_TF_STATIC = "/tf_static"
 TOPIC_WRENCH = "~/wrench"

@@ -51,6 +51,7 @@ from .sim_loops import SimLoops
 from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state
 from .state_publisher import StatePublisher
+from .terrain_markers import TerrainTopic
 from .tf import TF_TYPE
 from .topic_output import TopicOutput
 from .visualisation import steps_between
@@ -102,6 +103,8 @@ class SimNode:
                                         self.diagnostics, self.imu, self.log)
         self.loops = SimLoops(self.context, sim, s, self.service, self.period_stats,
                               self.publisher, self.diagnostics, self.log)
+        # (its publisher before the recording and the live view, which take the topics)
+        self.terrain = TerrainTopic.create(self.output, sim.config, s.world_frame, self.log)
         self._setup_subscriptions()
         self._setup_services()
         err = set_cpu_scheduling(s.cpu_scheduling)     # before the writer process starts
@@ -113,6 +116,8 @@ class SimNode:
             self._start_live_view()
         self.publisher.publish_robot_description()
         self.publisher.visualisation.publish_static_transforms()
+        if self.terrain is not None:
+            self.terrain.publish()
         self.log.info(f"{s.physics} physics, {s.mode} mode"
                       + (f", real-time factor {s.real_time_factor:g}" if s.real_time_factor else
                          ", as fast as the controller") +
