@@ -55,4 +55,11 @@ def test_quick_evaluation_results_are_measurements(quick_report):
         assert row["median"] > 100 and abs(row["normal_force_ratio"] - 1.0) < 0.02
     report = (out / "report.md").read_text()
     assert "## Speed beside MuJoCo" in report and "| HmJ | 2.5 |" in report
+    # the terrain (quick: HmJ standing on 3 cm stairs, the feet landing from up to 6 cm)
+    (terrain,) = [r for r in results if r["kind"] == "terrain"]
+    assert (terrain["preset"], terrain["terrain"], terrain["error"]) == ("HmJ", "stairs", None)
+    assert not terrain["fell"] and 0.3 < terrain["height"] < 0.45
+    assert 0.0 < terrain["penetration_max_mm"] < 5.0 and terrain["steps_per_second"] > 100
+    assert terrain["mean_iterations"] > 1.0
+    assert "## Terrain" in report and "| stairs | HmJ | no (" in report
     assert os.path.getsize(out / "results.json") > 1000
