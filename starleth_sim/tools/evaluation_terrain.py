@@ -4,7 +4,10 @@ preset, under the controller's stand mode (the controller does not walk on a ter
 whether it fell, the deepest foot below the surface under it after each step (hard presets;
 ``Simulator.gaps``, which measures against the nearest surface), prox iterations per step and
 physics steps per second. The task (:func:`task_terrain`) and its report section
-(:func:`terrain_section`).
+(:func:`terrain_section`); ``starleth-eval`` runs them with the rest. Alone, to refresh only
+this section of an existing report (and its records in results.json)::
+
+    python -m starleth_sim.tools.evaluation_terrain --out eval [--seconds 5] [--jobs N]
 
 Every run starts from ``Simulator.default_state()``, the standing posture lowered (or raised)
 until its lowest contact rests on the terrain: on uneven ground the other feet are in the air
@@ -12,13 +15,17 @@ and land within the first steps.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import math
+import os
 
 import numpy as np
 
 from ..physics.config import PRESETS as TABLE1
 from ..physics.terrain import pack_terrain, terrain_height
 from .gait_run import run_gait
+from .task_pool import execute
 
 #: the terrains of the evaluation (physics overrides; the feet stand at x = ±0.25 m,
 #: y = ±0.185 m)
@@ -110,3 +117,52 @@ def terrain_section(results):
                      f"{pen} | {_fmt(r['mean_iterations'], '%.1f')} ({r['max_iterations']}) | "
                      f"{r['nonconverged']} | {_fmt(r['steps_per_second'], '%.0f')} |")
     return lines
+
+
+def update_report(out_dir, results):
+    """Replace the terrain section of `out_dir`/report.md (or put it before the speed beside
+    MuJoCo, or at the end) and the terrain records of results.json by `results`."""
+    path = os.path.join(out_dir, "report.md")
+    lines = open(path).read().rstrip("\n").split("\n")
+    heads = [i for i, x in enumerate(lines) if x.startswith("## ")]
+
+    def before(i):       # the index of heading i's blank line before it (or of the heading)
+        return len(lines) if i is None else (i - 1 if i and not lines[i - 1] else i)
+    start = next((i for i in heads if lines[i].startswith("## Terrain")), None)
+    if start is not None:
+        at = before(start)
+        del lines[at:before(next((i for i in heads if i > start), None))]
+    else:
+        at = before(next((i for i in heads if lines[i].startswith("## Speed beside")), None))
+    lines[at:at] = terrain_section(results)
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    rpath = os.path.join(out_dir, "results.json")
+    old = json.load(open(rpath)) if os.path.exists(rpath) else []
+    with open(rpath, "w") as f:
+        json.dump([r for r in old if r.get("kind") != "terrain"] + results, f, indent=1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m starleth_sim.tools.evaluation_terrain",
+                                 description="starleth-eval's terrain part alone: update the "
+                                             "Terrain section of an existing report.")
+    ap.add_argument("--out", default="eval", help="the report's directory (default: eval/)")
+    ap.add_argument("--seconds", type=float, default=5.0, help="seconds of each run")
+    ap.add_argument("--jobs", type=int, default=None, help="worker processes (default: all)")
+    ap.add_argument("--configs", nargs="*", default=list(TABLE1), help="configurations")
+    args = ap.parse_args(argv)
+    if not os.path.isfile(os.path.join(args.out, "report.md")):
+        ap.error(f"no report in {args.out}/: run starleth-eval first")
+    unknown = [c for c in args.configs if c not in TABLE1]
+    if unknown:
+        ap.error(f"unknown configurations {unknown}; known: {list(TABLE1)}")
+    results = execute(terrain_tasks(False, tuple(args.configs), args.seconds),
+                      args.jobs or os.cpu_count() or 1)
+    update_report(args.out, results)
+    print(f"report: {os.path.join(args.out, 'report.md')} ({len(results)} terrain runs)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
