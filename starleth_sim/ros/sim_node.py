@@ -9,9 +9,9 @@ doc/sim_node.md. This module is the node itself (its parameters, subscriptions, 
 and their callbacks) and its two console scripts, ``sim_node`` (:func:`main`) and
 ``sim_node_composed`` (:func:`main_composed`). The parts it wires together: the publishing of
 the state (:mod:`.state_publisher` through :mod:`.topic_output`, with :mod:`.solver_diagnostics`
-and :mod:`.visualisation`), the live view (:mod:`.live_view`), the recording
-(:mod:`.node_recording`), the loops (:mod:`.sim_loops`) and the ROS-free core
-(:class:`~.service.SimService`, :mod:`.state_io`, :mod:`.parameters`).
+and :mod:`.visualisation`), the terrain (:mod:`.terrain_markers`), the live view
+(:mod:`.live_view`), the recording (:mod:`.node_recording`), the loops (:mod:`.sim_loops`)
+and the ROS-free core (:class:`~.service.SimService`, :mod:`.state_io`, :mod:`.parameters`).
 """
 from __future__ import annotations
 
