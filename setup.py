@@ -53,6 +53,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/urdf', glob('urdf/*.urdf')),
         ('share/' + package_name + '/msg_configs', glob('msg_configs/*.yaml')),
+        ('share/' + package_name + '/msg_configs/terrain', glob('msg_configs/terrain/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
         ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
         ('share/' + package_name + '/sweeps', glob('sweeps/*.yaml')),   # starleth-sweep specs

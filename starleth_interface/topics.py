@@ -26,6 +26,8 @@ TOPIC_VELOCITY_COMMANDS = "joint_group_velocity_controller/commands"
 TOPIC_APPLIED_TORQUE = "starleth/applied_torque"
 TOPIC_JOINT_COMMANDS = "joint_commands"
 TOPIC_CONTACT_MARKERS = "starleth/contact_markers"
+#: the terrain (visualization_msgs/MarkerArray, latched; only with a terrain)
+TOPIC_TERRAIN = "terrain"
 TOPIC_TF = "/tf"
 TOPIC_TF_STATIC = "/tf_static"
 TOPIC_WRENCH = "~/wrench"

@@ -55,4 +55,34 @@ def test_quick_evaluation_results_are_measurements(quick_report):
         assert row["median"] > 100 and abs(row["normal_force_ratio"] - 1.0) < 0.02
     report = (out / "report.md").read_text()
     assert "## Speed beside MuJoCo" in report and "| HmJ | 2.5 |" in report
+    # the terrain (quick: HmJ standing on 3 cm stairs, the feet landing from up to 6 cm)
+    (terrain,) = [r for r in results if r["kind"] == "terrain"]
+    assert (terrain["preset"], terrain["terrain"], terrain["error"]) == ("HmJ", "stairs", None)
+    assert not terrain["fell"] and 0.3 < terrain["height"] < 0.45
+    assert 0.0 < terrain["penetration_max_mm"] < 5.0 and terrain["steps_per_second"] > 100
+    assert terrain["mean_iterations"] > 1.0
+    assert "## Terrain" in report and "| stairs | HmJ | no (" in report
     assert os.path.getsize(out / "results.json") > 1000
+
+
+def test_terrain_section_alone_updates_an_existing_report(tmp_path):
+    """python -m starleth_sim.tools.evaluation_terrain: the Terrain section of a report is put
+    before the speed beside MuJoCo, then replaced in place (the rest kept, byte for byte),
+    and results.json's terrain records with it."""
+    from starleth_sim.tools.evaluation_terrain import update_report
+    head, tail = "# R\n\n## Robustness\n\n| a |\n", "\n## Speed beside MuJoCo\n\n| b |\n"
+    (tmp_path / "report.md").write_text(head + tail)
+    (tmp_path / "results.json").write_text(json.dumps([{"kind": "table1"}]))
+    rec = dict(kind="terrain", preset="HmJ", terrain="step", seconds=1.0, error=None,
+               fell=False, max_tilt_deg=1.0, penetration_max_mm=0.001,
+               penetration_mean_mm=0.0005, mean_iterations=5.0, max_iterations=9,
+               nonconverged=0, steps_per_second=1000.0)
+    update_report(str(tmp_path), [rec])
+    first = (tmp_path / "report.md").read_text()
+    assert first.startswith(head + "\n## Terrain") and first.endswith("|\n" + tail)
+    assert "| step | HmJ | no (1.0°) | 1.00 / 0.500 | 5.0 (9) | 0 | 1000 |" in first
+    update_report(str(tmp_path), [dict(rec, terrain="rough")])
+    second = (tmp_path / "report.md").read_text()
+    assert second == first.replace("| step | HmJ", "| rough | HmJ")
+    kinds = [r["kind"] for r in json.loads((tmp_path / "results.json").read_text())]
+    assert kinds == ["table1", "terrain"]

@@ -52,7 +52,8 @@ def test_executables_and_share(prefix):
     assert (share / "urdf" / "starleth.urdf").is_file()
     assert (share / "launch" / "starleth.launch.xml").is_file()
     assert (share / "foxglove" / "starleth_layout.json").is_file()
-    for f in ("sim_node.yaml", "HmJ.yaml", "Cm.yaml", "HmS.yaml"):
+    for f in ("sim_node.yaml", "HmJ.yaml", "Cm.yaml", "HmS.yaml", "terrain/stairs.yaml",
+              "terrain/rough.yaml"):
         assert (share / "msg_configs" / f).is_file(), f
 
 

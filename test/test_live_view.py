@@ -155,3 +155,31 @@ def test_live_view_failure_is_one_error_line_and_the_simulation_goes_on(mode, me
     errors = [ln for ln in out.splitlines() if "ERROR" in ln]
     assert len(errors) == 1 and message in errors[0], out
     assert "Traceback" not in out
+
+
+def test_live_view_sends_the_terrain_to_a_client_that_comes_later():
+    """The terrain (latched, published once at start) reaches a client that connects after
+    it went out, decoded with the advertised schema to the markers of the configuration."""
+    import rclpy
+    from rclpy.serialization import serialize_message
+    from starleth_sim.ros.sim_node import SimNode
+    port = free_port()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    node = SimNode(context=ctx, parameter_overrides={
+        "mode": "lockstep", "live_view": True, "live_view_port": port,
+        "physics_overrides": "{stairs: {rise: 0.05, run: 0.3, count: 2}}"})
+    try:
+        log = collect(f"ws://127.0.0.1:{port}", ["/terrain"], seconds=30.0,
+                      until=lambda lg: lg.messages.get("/terrain"))
+        sent = serialize_message(node.terrain.msg)
+    finally:
+        node.destroy()
+        rclpy.try_shutdown(context=ctx)
+    ch = log.channels["/terrain"]
+    assert ch["schemaName"] == "visualization_msgs/msg/MarkerArray"
+    ((t, payload),) = log.messages["/terrain"]
+    assert t == 0 and len(payload) == len(sent)   # (CDR padding bytes are not zeroed)
+    got = _decoder(ch)(payload)
+    assert [(m.ns, m.type) for m in got.markers] == [("ground", 1), ("boxes", 1), ("boxes", 1)]
+    assert got.markers[2].scale.z == pytest.approx(0.1)       # the second step: 2 rises

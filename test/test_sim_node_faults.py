@@ -145,3 +145,26 @@ def test_a_recording_that_cannot_be_written_is_one_line_and_exit_2(tmp_path):
     assert len(err) == 1 and target in err[0] and cause in err[0], out.stderr
     assert "Traceback" not in out.stdout + out.stderr
     assert "recording in this process" not in out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("how", ["file", "overrides"])
+def test_a_bad_terrain_is_one_line_and_exit_2(tmp_path, how):
+    """A terrain that is not valid, in a physics file (-p physics:=FILE) or in
+    physics_overrides: exit 2 and one line naming the file (or the overrides) and the field,
+    without a traceback."""
+    if how == "file":
+        bad = tmp_path / "bad_stairs.yaml"
+        bad.write_text("contact_model: hard\nterrain:\n  stairs: {rise: -0.04, run: 0.3, "
+                       "count: 2}\n")
+        args, want = ["-p", f"physics:={bad}"], [str(bad), "terrain.stairs.rise", "-0.04"]
+    else:
+        args = ["-p", "physics_overrides:='{boxes: [{centre: [0, 0], size: [1, 1, 1]}]}'"]
+        want = ["with overrides", "terrain.boxes[0].centre", "3 numbers"]
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID))
+    out = subprocess.run([sys.executable, "-m", "starleth_sim.ros.sim_node", "--ros-args",
+                          *args], capture_output=True, text=True, timeout=180, env=env,
+                         stdin=subprocess.DEVNULL)
+    assert out.returncode == 2, out.stdout + out.stderr
+    err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
+    assert len(err) == 1 and all(w in err[0] for w in want), out.stderr
+    assert "Traceback" not in out.stdout + out.stderr

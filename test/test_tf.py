@@ -205,8 +205,9 @@ def test_foxglove_layout_shows_what_sim_node_records(recorded):
     assert three_d["followTf"] == "base"
     tf_children = {t.child_frame_id for t in msgs["/tf"][0].ros_msg.transforms}
     assert "base" in tf_children
-    for topic, opts in three_d["topics"].items():
-        assert opts["visible"] and topic in msgs, topic
+    for topic, opts in three_d["topics"].items():   # (/terrain: only a run on a terrain)
+        assert opts["visible"] and (topic in msgs or topic == "/terrain"), topic
+    assert "/terrain" in three_d["topics"] and "/terrain" not in msgs
     n_paths = 0
     for key, panel in cfg.items():
         if not key.startswith("Plot!"):
@@ -224,3 +225,94 @@ def test_foxglove_layout_shows_what_sim_node_records(recorded):
             float(obj)                                  # a number (or a numeric string)
             n_paths += 1
     assert n_paths == 5
+
+
+# a terrain away from the robot's feet: two steps in front, a box beside, rough ground behind
+TERRAIN = ("{stairs: {rise: 0.04, run: 0.3, count: 2, start: 0.7}, "
+           "boxes: [{centre: [0.0, 1.2, 0.05], size: [0.2, 0.3, 0.1], yaw: 0.5}], "
+           "rough: {amplitude: 0.01, wavelength: 0.5, size: 1.5, seed: 3, centre: [-1.8, 0.0]}}")
+
+
+@pytest.fixture(scope="module")
+def terrain_recorded(tmp_path_factory):
+    """A headless sim_node on TERRAIN (physics_overrides) recording 20 steps."""
+    from starleth_sim.ros.sim_node import SimNode
+    path = str(tmp_path_factory.mktemp("terrain") / "terrain.mcap")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep", "record": path,
+                                                     "physics_overrides": TERRAIN})
+    try:
+        node.publisher.publish_state()
+        for k in range(20):
+            node.service.step()
+            node.publisher.publish_state()
+    finally:
+        node.destroy()
+        rclpy.try_shutdown(context=ctx)
+    msgs = {}
+    for m in read_ros2_messages(path):
+        msgs.setdefault(m.channel.topic, []).append(m)
+    return node, msgs
+
+
+def test_terrain_is_recorded_once_at_start_as_the_physics_sees_it(terrain_recorded):
+    """/terrain: one latched MarkerArray at t = 0 in the world frame; each box (the stairs'
+    included) a cube with the configured centre, size and yaw; the heightfield a triangle
+    list whose every vertex lies on the surface the contact query uses (physics.terrain's
+    terrain_height of the packed terrain); the plane a thin cube just below z = 0."""
+    from starleth_sim.physics.terrain import pack_terrain, terrain_height
+    from starleth_sim.ros.terrain_markers import GROUND_DROP
+    node, msgs = terrain_recorded
+    assert len(msgs["/terrain"]) == 1
+    m = msgs["/terrain"][0]
+    assert m.log_time_ns == 0 and m.schema.name == "visualization_msgs/msg/MarkerArray"
+    assert "durability: transient_local" in m.channel.metadata["offered_qos_profiles"]
+    markers = m.ros_msg.markers
+    by_ns = {}
+    for mk in markers:
+        assert mk.header.frame_id == "world" and mk.action == 0
+        by_ns.setdefault(mk.ns, []).append(mk)
+    assert sorted((k, len(v)) for k, v in by_ns.items()) == \
+        [("boxes", 3), ("ground", 1), ("heightfield", 1)]
+    (ground,) = by_ns["ground"]
+    assert ground.type == 1 and ground.scale.x >= 10.0
+    assert ground.pose.position.z + 0.5 * ground.scale.z == pytest.approx(-GROUND_DROP, abs=1e-12)
+    cfg = node.sim.config
+    boxes = cfg.terrain.all_boxes(cfg.ground.height)
+    assert [b["centre"][0] for b in boxes] == [0.0, 0.7 + 0.15, 0.7 + 0.3 + 0.65]
+    for mk, b in zip(by_ns["boxes"], boxes):
+        assert mk.type == 1
+        p, o, sc = mk.pose.position, mk.pose.orientation, mk.scale
+        assert [p.x, p.y, p.z] == b["centre"] and [sc.x, sc.y, sc.z] == b["size"]
+        assert 2 * np.arctan2(o.z, o.w) == pytest.approx(b["yaw"], abs=1e-12)
+    (hf,) = by_ns["heightfield"]
+    assert hf.type == 11 and len(hf.points) == len(hf.colors) > 0 and len(hf.points) % 3 == 0
+    packed = pack_terrain(cfg.terrain, cfg.ground.height, cfg.ground.mu)
+    pts = np.array([[q.x, q.y, q.z] for q in hf.points])
+    assert pts[:, 0].min() == pytest.approx(-2.55) and pts[:, 0].max() == pytest.approx(-1.05)
+    assert np.abs(pts[:, 2]).max() > 0.005
+    for x, y, z in pts[::7]:
+        assert z == pytest.approx(terrain_height(packed, x, y), abs=1e-12)
+
+
+def test_shipped_terrain_presets_run_in_sim_node():
+    """-p physics:=terrain/stairs.yaml finds the shipped file (msg_configs/terrain/) from any
+    directory: HmJ's physics with the stairs; the topic is added with a terrain only."""
+    from starleth_sim.ros.sim_node import SimNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    cwd = os.getcwd()
+    try:
+        os.chdir("/")
+        node = SimNode(context=ctx, parameter_overrides={"physics": "terrain/stairs.yaml",
+                                                         "mode": "lockstep"})
+        try:
+            assert node.sim.config.name == "stairs" and node.sim.config.solver.alpha == 0.6
+            assert len(node.sim.config.terrain.all_boxes()) == 3
+            assert "terrain" in node.output.pubs and len(node.terrain.msg.markers) == 4
+        finally:
+            node.destroy()
+    finally:
+        os.chdir(cwd)
+        rclpy.try_shutdown(context=ctx)

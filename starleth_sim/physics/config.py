@@ -522,8 +522,14 @@ def _is_physics_file(path):
 
 
 def load_preset(name_or_path: str) -> PhysicsConfig:
-    """A preset name from msg_configs/ (e.g. 'HmJ') or the path of a YAML file."""
+    """A preset name from msg_configs/ (e.g. 'HmJ') or the path of a YAML file; a relative
+    path that is not a file here is looked for in msg_configs/ (the shipped terrains:
+    'terrain/stairs.yaml')."""
     if os.path.sep in name_or_path or name_or_path.endswith((".yaml", ".yml")):
+        shipped = os.path.join(config_dir(), name_or_path)
+        if not os.path.isabs(name_or_path) and not os.path.exists(name_or_path) and \
+                os.path.isfile(shipped):
+            return PhysicsConfig.from_yaml(shipped)
         return PhysicsConfig.from_yaml(name_or_path)
     path = os.path.join(config_dir(), f"{name_or_path}.yaml")
     if not os.path.exists(path):

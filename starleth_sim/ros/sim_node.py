@@ -9,9 +9,9 @@ doc/sim_node.md. This module is the node itself (its parameters, subscriptions, 
 and their callbacks) and its two console scripts, ``sim_node`` (:func:`main`) and
 ``sim_node_composed`` (:func:`main_composed`). The parts it wires together: the publishing of
 the state (:mod:`.state_publisher` through :mod:`.topic_output`, with :mod:`.solver_diagnostics`
-and :mod:`.visualisation`), the live view (:mod:`.live_view`), the recording
-(:mod:`.node_recording`), the loops (:mod:`.sim_loops`) and the ROS-free core
-(:class:`~.service.SimService`, :mod:`.state_io`, :mod:`.parameters`).
+and :mod:`.visualisation`), the terrain (:mod:`.terrain_markers`), the live view
+(:mod:`.live_view`), the recording (:mod:`.node_recording`), the loops (:mod:`.sim_loops`)
+and the ROS-free core (:class:`~.service.SimService`, :mod:`.state_io`, :mod:`.parameters`).
 """
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ from .sim_loops import SimLoops
 from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state
 from .state_publisher import StatePublisher
+from .terrain_markers import TerrainTopic
 from .tf import TF_TYPE
 from .topic_output import TopicOutput
 from .visualisation import steps_between
@@ -105,6 +106,8 @@ class SimNode:
                                         self.diagnostics, self.imu, self.log)
         self.loops = SimLoops(self.context, sim, s, self.service, self.period_stats,
                               self.publisher, self.diagnostics, self.log)
+        # (its publisher before the recording and the live view, which take the topics)
+        self.terrain = TerrainTopic.create(self.output, sim.config, s.world_frame, self.log)
         self._setup_subscriptions()
         self._setup_services()
         node.add_on_set_parameters_callback(self._on_set_parameters)
@@ -117,6 +120,8 @@ class SimNode:
             self._start_live_view()
         self.publisher.publish_robot_description()
         self.publisher.visualisation.publish_static_transforms()
+        if self.terrain is not None:
+            self.terrain.publish()
         self.log.info(f"{s.physics} physics, {s.mode} mode"
                       + (f", real-time factor {s.real_time_factor:g}" if s.real_time_factor else
                          ", as fast as the controller") +

@@ -11,6 +11,8 @@ Writes ``eval/report.md``, ``eval/results.json`` and PNG figures:
   * accuracy - foot sink while trotting (Cm), unilateral drift while standing, bilateral drift
     while trotting, for every configuration where they apply;
   * robustness - the push-over stress test per configuration;
+  * terrain - standing on a step, stairs, a slope and rough ground per configuration: falls,
+    penetration, iterations, steps/s (``evaluation_terrain``; ``--quick``: HmJ on the stairs);
   * speed beside MuJoCo - ``starleth-bench --vs-mujoco`` (HmJ, HmS, Cm; run alone after the
     other tasks; skipped with a note where mujoco is not installed).
 Runs are independent tasks, a predefined sweep executed by starleth-sweep's machinery
@@ -35,6 +37,7 @@ import numpy as np
 from ..physics.config import PRESETS as TABLE1   # the paper's Table 1, in its order
 from . import bench
 from .evaluation_report import make_figures, write_report
+from .evaluation_terrain import terrain_tasks
 from .evaluation_tasks import (CONTACT_VARIANTS, task_bilateral_drift, task_contact_variant,
                                task_fig5_damped, task_fig6, task_fig7, task_pushover,
                                task_table1, task_unilateral_drift)
@@ -47,7 +50,7 @@ def plan(quick: bool, configs):
     s = dict(table1=3.0 if quick else 21.0, fig5=3.0 if quick else 4.0,
              fig7=2.0 if quick else 5.0, fig6=1.2 if quick else 4.0,
              drift=3.0 if quick else 60.0, push=2.0 if quick else 4.0,
-             variants=2.0 if quick else 5.0)
+             variants=2.0 if quick else 5.0, terrain=1.0 if quick else 5.0)
     alphas = (0.2, 0.6, 1.0, 1.4, 1.8) if quick else tuple(np.round(np.arange(0.1, 2.0, 0.1), 2))
     fig6_configs = [c for c in (("HmJ", "HmS", "HMJP", "HMSP") if quick else FIG6_CONFIGS)
                     if c in configs]
@@ -67,6 +70,7 @@ def plan(quick: bool, configs):
     if "HmJ" in configs:
         tasks += [(task_contact_variant, dict(label=lab, overrides=ov, seconds=s["variants"]))
                   for lab, ov in CONTACT_VARIANTS]
+    tasks += terrain_tasks(quick, configs, s["terrain"])
     return tasks
 
 

@@ -1,6 +1,6 @@
 """The report of ``starleth-eval`` from its tasks' result records: the figures (Fig. 5, 6
 and 7, PNG) and ``report.md`` (Table 1, accuracy, the hard-contact rule, the α limits, the
-push-over test, the speed beside MuJoCo), beside the paper's figures.
+push-over test, the terrain, the speed beside MuJoCo), beside the paper's figures.
 """
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from ..physics.config import PRESETS as TABLE1   # the paper's Table 1, in its o
 from ..physics.config import load_preset
 from ..physics.stepper import PHASES
 from .evaluation_tasks import CONTACT_VARIANTS, FIG6_MAX_ITERATIONS
+from .evaluation_terrain import terrain_section
 from .gait_run import GAIT_PERIOD, STAND_BEFORE_TROT
 
 PHASE_LABELS = {"M_and_h": "M and h", "M_inverse": "M⁻¹ (and M⁻¹W)", "G": "G (and G_B⁻¹)",
@@ -310,6 +311,7 @@ def write_report(results, figs, out_dir, quick, elapsed, jobs):
                      f"{'yes' if r['nonfinite'] else 'no'} | {r['max_iterations']} | "
                      f"{converged} | "
                      f"{'yes' if r['completed'] else 'no: ' + str(r['error'])} |")
+    lines += terrain_section(results)
     lines += _vs_mujoco_section(results)
     for key, title in (("fig5", "Fig. 5: LF normal contact force over one trot cycle"),
                        ("fig6", "Fig. 6: prox iterations against α"),
