@@ -456,7 +456,7 @@ def ground_estimate(ground, contact, support, ns):
 
 #: layout of the swing parameters (controller.py: _swing_parameters)
 (SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
- SW_LOST_SPEED, SW_LOST_DEPTH, SW_STEP_DOWN_SPEED, SW_OFFSET_X) = range(12)   # SW_OFFSET_X: 4 values, per leg
+ SW_LOST_SPEED, SW_LOST_DEPTH, SW_STEP_DOWN_SPEED, SW_OFFSET_X) = range(12)   # OFFSET_X: 4
 
 
 @_jit
@@ -543,8 +543,8 @@ def position_controlled_torques(states, trotting, t, swing_phase, r_liftoff, los
                                 liftoff_z, plane, foothold_z):
     """The legs not in support (states: 0 support, 1 swing, 2 lost contact) follow a foot
     target (swing_target / lowering_target; liftoff_z: the legs' lift-off heights, plane:
-    the ground plane, foothold_z: the footholds' expected heights) by analytic IK and joint PD with gravity
-    feed-forward (foot_position_control) into τ."""
+    the ground plane, foothold_z: the footholds' expected heights) by analytic IK and
+    joint PD with gravity feed-forward (foot_position_control) into τ."""
     for k in range(4):
         st = states[k]
         if st == 0:
