@@ -16,7 +16,7 @@ import pytest
 
 from starleth_sim import Simulator
 from starleth_sim.physics.description import urdf_path
-from starleth_sim.tools.demo_terrain import COURSES, course_end, course_terrain
+from starleth_sim.tools.demo_terrain import COURSES, course_end, course_overrides, course_terrain
 
 from starleth_controller import LEGS, Command, RobotState, StarlethController
 from starleth_controller import kernels as K
@@ -126,3 +126,20 @@ def test_ground_plane_is_the_plane_through_the_footholds():
     steep[:, 2] = 2.0 * xy[:, 0]
     update_plane(steep, np.arange(4), 4, stood, plane)
     assert plane[1] == pytest.approx(0.5) and plane[2] == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("course", list(COURSES))
+def test_demo_passes_each_course_to_sim_node_as_its_physics_overrides(course):
+    """``starleth-demo --terrain`` gives sim_node ``-p physics_overrides:="<value>"``: one
+    line without double quotes, which sim_node's settings read back as the course's terrain
+    and the simulator builds (the robot resting on it)."""
+    from starleth_sim.ros.parameters import Settings   # deferred: the ROS side's schema
+
+    value = course_overrides(course)
+    assert '"' not in value and "\n" not in value
+    assert Settings(physics_overrides=value).physics_override_dict() == course_terrain(course)
+    sim = Simulator.from_preset("HmJ", **Settings(physics_overrides=value)
+                                .physics_override_dict())
+    assert not sim.config.terrain.is_flat
+    with pytest.raises(ValueError, match="unknown terrain course"):
+        course_terrain("lava")
