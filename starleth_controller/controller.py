@@ -42,6 +42,7 @@ import numpy as np
 import pinocchio as pin
 
 from . import kernels as K
+from .ground_plane import update_plane
 from .force_distribution import ContactForceDistribution
 from .inputs import MODES, Command, ControllerParams, RobotState, VMCGains
 from .model import RobotModel
@@ -147,6 +148,10 @@ class StarlethController:
         self._swing_cycle = np.full(4, -1, dtype=np.int64)   # cycle of each leg's last lift-off
         self._r_liftoff = np.zeros((4, 2))   # hip→foot at lift-off, heading frame
         self._foothold = np.zeros((4, 2))    # last swing target (world xy)
+        self._foothold_z = np.zeros(4)       # its expected ground height (the plane's)
+        self._liftoff_z = np.zeros(4)        # each swing's lift-off height (contact point)
+        self._stood = np.zeros((4, 3))       # where each foot last stood (contact point)
+        self._plane = np.zeros(3)            # ground plane z = a + g_x x + g_y y (world)
         self._lost_since = np.full(4, np.nan)
         self.leg_state = [SUPPORT] * 4
         self.desired_forces = np.zeros((4, 3))   # ground on robot, world [N]
@@ -314,6 +319,8 @@ class StarlethController:
 
         if not self._initialized:
             self._ground = float(self._contact[:, 2].min())
+            self._stood[:] = self._contact
+            self._stood[:, 2] = self._ground
             self._yaw_des = x.yaw
             self._initialized = True
         return gleg, com
@@ -408,14 +415,18 @@ class StarlethController:
                     dx, dy = contact_pt[k, 0] - hx, contact_pt[k, 1] - hy
                     self._r_liftoff[k, 0] = cy * dx + sy * dy
                     self._r_liftoff[k, 1] = -sy * dx + cy * dy
+                    self._liftoff_z[k] = contact_pt[k, 2]
         self.leg_state = self._leg_state_arr.tolist()
         return self._support_idx[:ns].tolist()
 
     def _estimate_ground(self, support):
-        """Ground height (flat ground assumed): low-pass (0.05 per call) of the mean height of
-        the support feet's contact points (kernels.ground_estimate)."""
+        """The ground under the trunk: low-pass (0.05 per call) of the mean height of the
+        support feet's contact points (kernels.ground_estimate), the reference of the trunk
+        height; and the ground plane through where each foot last stood (the support feet's
+        contact points, ground_plane.update_plane), the height expected under a foothold."""
         self._ground = K.ground_estimate(self._ground, self._contact, self._support_idx,
                                          len(support))
+        update_plane(self._contact, self._support_idx, len(support), self._stood, self._plane)
 
     # -- 3. support legs -------------------------------------------------------------------
     def _support_leg_torques(self, x: _Sample, trotting, support, gleg, com):
@@ -488,7 +499,7 @@ class StarlethController:
             self._lost_since, self._foothold, self._swing_parameters(), m.foot_radius,
             self._ground, self._v_cmd, self._w_cmd, x.pb, x.R, x.vb, x.ww, x.cy, x.sy,
             self._Jf, x.qj, x.dqj, gleg, self._kp3, self._kd3, m.hip, self._geo, self._target,
-            self._vtarget, self._tau)
+            self._vtarget, self._tau, self._liftoff_z, self._plane, self._foothold_z)
 
     def _swing_parameters(self):
         """The parameters of kernels.swing_target / lowering_target as one array (layout
@@ -496,7 +507,7 @@ class StarlethController:
         p = self.params
         key = (p.gait_period, p.duty_factor, p.step_feedback, p.step_max, p.step_interp_end,
                p.swing_height, p.touchdown_depth, self.model.gravity, p.lost_contact_speed,
-               p.lost_contact_depth, tuple(p.foothold_offset_x))
+               p.lost_contact_depth, p.step_down_speed, tuple(p.foothold_offset_x))
         P = self._swing_p
         if key != self._swing_key:       # written only when a parameter changed
             P[:K.SW_OFFSET_X] = key[:K.SW_OFFSET_X]
@@ -522,6 +533,7 @@ class StarlethController:
             "qp_iterations": self.cfd.iterations if ns else 0,
             "qp_failures": self.cfd.failures,
             "ground": self._ground,
+            "ground_plane": self._plane.copy(),
             "yaw_des": self._yaw_des,
             "com": com.copy(),
         }

@@ -104,6 +104,9 @@ class ControllerParams:
     joint_kd: tuple = (3.1, 3.2, 0.2)
     lost_contact_speed: float = 0.2      # lowering rate of a leg searching the ground [m/s]
     lost_contact_depth: float = 0.06     # at most this far below the ground [m]
+    #: lowering rate of a trotting leg that found no ground at the end of its swing (a step
+    #: down: the stance of its pair is short, the foot must find the ground quickly) [m/s]
+    step_down_speed: float = 1.0
     contact_force_threshold: float = 5.0  # grounded from forces when no flags are given [N]
     # falls: beyond this tilt the controller gives up balancing and holds a compact posture
     fall_tilt: float = 0.8               # [rad]

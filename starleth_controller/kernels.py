@@ -15,6 +15,8 @@ import math
 import numba as nb
 import numpy as np
 
+from .ground_plane import plane_height, smoothstep, swing_height
+
 _jit = nb.njit(cache=True, fastmath=False, nogil=True)
 
 
@@ -396,16 +398,6 @@ def support_torques(support, ns, fh, cy, sy, Jc, gleg, fdes, tau):
         stance_torques(k, fdes[k], Jc, gleg, tau)
 
 
-@_jit
-def _smooth(x):
-    """Smoothstep on [0, 1] and its derivative."""
-    if x <= 0.0:
-        return 0.0, 0.0
-    if x >= 1.0:
-        return 1.0, 0.0
-    return x * x * (3.0 - 2.0 * x), 6.0 * x * (1.0 - x)
-
-
 #: leg states (controller.py: SUPPORT, SWING, LOST_CONTACT)
 _SUPPORT, _SWING, _LOST_CONTACT = 0, 1, 2
 
@@ -464,19 +456,22 @@ def ground_estimate(ground, contact, support, ns):
 
 #: layout of the swing parameters (controller.py: _swing_parameters)
 (SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
- SW_LOST_SPEED, SW_LOST_DEPTH, SW_OFFSET_X) = range(11)   # SW_OFFSET_X: 4 values, per leg
+ SW_LOST_SPEED, SW_LOST_DEPTH, SW_STEP_DOWN_SPEED, SW_OFFSET_X) = range(12)   # OFFSET_X: 4
 
 
 @_jit
 def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, rhy_w, rhz_w,
-                 hx, hy, hz, P, foot_radius, target, vt, foothold):
+                 hx, hy, hz, P, foot_radius, target, vt, foothold, z0, plane, foothold_z):
     """Swing leg k: foot target from the lift-off offset r₀ (heading frame, relative to
     the hip) to the inverted-pendulum foothold
         Δ = ½ v*_hip T_stance + k_fb (v_hip − v*_hip) √(h/g)
     (clipped to step_max, plus foothold_offset_x), blended with a smoothstep until
-    step_interp_end; height up to swing_height at mid-swing, then down to touchdown_depth
-    below the ground. r_w: trunk→hip (world), h = (hx, hy, hz): the hip. Writes `target`,
-    `vt` and the foothold (world xy). P: the swing parameters (SW_*)."""
+    step_interp_end; height from the lift-off height z0 up to swing_height above it (or
+    above the foothold) at mid-swing, then down to touchdown_depth below the ground plane's
+    height at the foothold (ground_plane.swing_height). r_w: trunk→hip (world), h = (hx,
+    hy, hz): the hip; `ground`: the trunk's ground height. Writes `target`, `vt`, the
+    foothold (world xy) and its expected height foothold_z[k]. P: the swing parameters
+    (SW_*)."""
     T = P[SW_T]
     Tsw = (1.0 - P[SW_DUTY]) * T
     Tst = P[SW_DUTY] * T
@@ -500,7 +495,7 @@ def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, r
     dx = dx + P[SW_OFFSET_X + k]
     dy = -step_max if -step_max > dy else dy
     dy = step_max if step_max < dy else dy
-    sig, dsig = _smooth(sp / interp_end)
+    sig, dsig = smoothstep(sp / interp_end)
     ox = r0x + sig * (dx - r0x)
     oy = r0y + sig * (dy - r0y)
     rate = dsig / (interp_end * Tsw)
@@ -509,31 +504,31 @@ def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, r
     target[1] = hy + sy * ox + cy * oy
     vt[0] = vhx_w + cy * dox - sy * doy
     vt[1] = vhy_w + sy * dox + cy * doy
-    # height: up to the apex at mid-swing, then down to below the ground
-    if sp < 0.5:
-        a, da = _smooth(2.0 * sp)
-        z, dz = h_swing * a, h_swing * da * 2.0 / Tsw
-    else:
-        a, da = _smooth(2.0 * sp - 1.0)
-        span = -P[SW_DEPTH] - h_swing
-        z, dz = h_swing + span * a, span * da * 2.0 / Tsw
-    target[2] = ground + foot_radius[k] + z
-    vt[2] = dz
     foothold[k, 0] = hx + cy * dx - sy * dy
     foothold[k, 1] = hy + sy * dx + cy * dy
+    z1 = plane_height(plane, foothold[k, 0], foothold[k, 1])
+    foothold_z[k] = z1
+    z, dz = swing_height(sp, z0, z1, h_swing, P[SW_DEPTH], Tsw)
+    target[2] = z + foot_radius[k]
+    vt[2] = dz
 
 
 @_jit
 def lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius, foothold,
-                    target, vt):
+                    target, vt, foothold_z):
     """Leg k without the contact it should have: the foot at the last foothold (trotting)
-    or under the hip (hx, hy), lowered at lost_contact_speed from touchdown_depth to at
-    most lost_contact_depth below the ground since contact was lost; zero velocity."""
+    or under the hip (hx, hy), lowered at lost_contact_speed (trotting: step_down_speed)
+    from touchdown_depth to at
+    most lost_contact_depth below the ground (trotting: the foothold's expected height
+    foothold_z[k]) since contact was lost; zero velocity."""
+    speed = P[SW_LOST_SPEED]
     if trotting:
         target[0], target[1] = foothold[k, 0], foothold[k, 1]
+        ground = foothold_z[k]
+        speed = P[SW_STEP_DOWN_SPEED]
     else:
         target[0], target[1] = hx, hy
-    depth = P[SW_DEPTH] + P[SW_LOST_SPEED] * (t - lost_since[k])
+    depth = P[SW_DEPTH] + speed * (t - lost_since[k])
     depth = depth if not (P[SW_LOST_DEPTH] < depth) else P[SW_LOST_DEPTH]   # min(d, max)
     target[2] = ground + foot_radius[k] - depth
     vt[0] = 0.0
@@ -544,10 +539,12 @@ def lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius, 
 @_jit
 def position_controlled_torques(states, trotting, t, swing_phase, r_liftoff, lost_since,
                                 foothold, P, foot_radius, ground, v_cmd, w_cmd, pb, R, vb, ww,
-                                cy, sy, Jf, qj, dqj, gleg, kp, kd, hip, geo, target, vt, tau):
+                                cy, sy, Jf, qj, dqj, gleg, kp, kd, hip, geo, target, vt, tau,
+                                liftoff_z, plane, foothold_z):
     """The legs not in support (states: 0 support, 1 swing, 2 lost contact) follow a foot
-    target (swing_target / lowering_target) by analytic IK and joint PD with gravity
-    feed-forward (foot_position_control) into τ."""
+    target (swing_target / lowering_target; liftoff_z: the legs' lift-off heights, plane:
+    the ground plane, foothold_z: the footholds' expected heights) by analytic IK and
+    joint PD with gravity feed-forward (foot_position_control) into τ."""
     for k in range(4):
         st = states[k]
         if st == 0:
@@ -560,9 +557,10 @@ def position_controlled_torques(states, trotting, t, swing_phase, r_liftoff, los
         if st == 1:
             swing_target(k, swing_phase[k], r_liftoff[k, 0], r_liftoff[k, 1], vb, ww, cy, sy,
                          v_cmd[0], v_cmd[1], w_cmd, ground, rhx_w, rhy_w, rhz_w, hx, hy, hz,
-                         P, foot_radius, target, vt, foothold)
+                         P, foot_radius, target, vt, foothold, liftoff_z[k], plane,
+                         foothold_z)
         else:
             lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius,
-                            foothold, target, vt)
+                            foothold, target, vt, foothold_z)
         foot_position_control(k, target, vt, pb, R, vb, ww, Jf, qj, dqj, gleg, kp, kd, hip,
                               geo, tau)

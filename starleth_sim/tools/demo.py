@@ -23,6 +23,8 @@ throughout), real-time factor (sim time / wall time), solver iterations, message
 Exit status 0 when the run is complete and the robot trotted without falling (at least 4 m
 in 18 s at 0.3 m/s), non-zero with a message otherwise.
 
+``--terrain step|stairs|slope|rough``: the same on a terrain course (tools/demo_terrain.py,
+recorded to ``runs/demo_<name>.mcap``); the trunk must also cross the course.
 ``--live [PORT]``: sim_node also serves the live view (port 8765), whose URLs are printed.
 ``starleth-demo --drop``: the headless drop test (no ROS): StarlETH falls from 0.1 m onto
 flat ground under a joint PD posture hold, settles, and a summary is printed (speed, final
@@ -50,6 +52,7 @@ from ..ros.discovery import keep_discovery_local, local_discovery_env
 from ..ros.live_view import live_view_lines
 from .bag import BagError, stream_bag
 from .bench_round_trips import measure_bare_round_trips
+from .demo_terrain import COURSES, course_end, course_overrides
 from .drop_test import drop_main
 from .precompile import precompile
 from .view import ViewError, write_html
@@ -161,6 +164,7 @@ class DemoResult:
     in_process: bool = False             # both nodes in one process (sim_node --composed)
     bare_round_trips: float = math.nan   # bare rclpy round trips / s, measured just before
     bare_error: str = ""
+    terrain: str = ""                    # the terrain course (demo_terrain.py), "" flat
 
     @property
     def cycles_per_s(self) -> float:
@@ -194,6 +198,9 @@ class DemoResult:
                      "steps")
         if self.fell:
             p.append(f"the robot fell (base height down to {self.min_height:.3f} m)")
+        if self.terrain and not self.displacement[0] > course_end(self.terrain):
+            p.append(f"the trunk did not cross the {self.terrain} course (x "
+                     f"{self.displacement[0]:+.2f} m, needed > {course_end(self.terrain):g} m)")
         if self.html_error:
             p.append(f"the 3D replay could not be written: {self.html_error}")
         if self.trot >= MIN_TROT_CHECKED and not self.trot_distance >= self.required_distance:
@@ -395,14 +402,15 @@ def read_bag(path, result: DemoResult):
 def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.mcap",
              domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0,
              in_process=False, bare_seconds=2.0, precompile_first=True,
-             live_port=0) -> DemoResult:
+             live_port=0, terrain="") -> DemoResult:
     """Run the trotting demo (see the module docstring) and return its figures. Raises
     DemoError if it could not run to the end; both nodes are always stopped.
     in_process: sim_node and controller_node in one process on one executor (the composed
     mode, ``sim_node --composed``) instead of two. bare_seconds > 0: first measure bare
     rclpy round trips for that long, the reference of the lockstep cycle rate.
     precompile_first: make the kernels ready first (starleth-precompile, with its progress
-    line), so that the nodes start from the cache. startup_timeout counts silence: the
+    line), so that the nodes start from the cache. terrain: a course of demo_terrain.py
+    ("" flat). startup_timeout counts silence: the
     nodes' compile lines (CompileNotice) restart it. live_port > 0: the live view's port."""
     if domain_id is None:
         domain_id = default_domain_id()
@@ -414,8 +422,9 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
         os.remove(bag)
     stem = os.path.splitext(bag)[0]
     result = DemoResult(bag=bag, domain_id=domain_id, physics=physics, stand=stand, trot=trot,
-                        speed=speed, in_process=in_process)
-    echo(f"StarlETH demo: sim_node ({physics}, lockstep) + controller_node over ROS 2 "
+                        speed=speed, in_process=in_process, terrain=terrain)
+    where = f"{physics}, {terrain}" if terrain else physics
+    echo(f"StarlETH demo: sim_node ({where}, lockstep) + controller_node over ROS 2 "
          + ("in one process " if in_process else "") + f"(ROS_DOMAIN_ID={domain_id})")
     keep_discovery_local()      # this process's own ROS context too
     if precompile_first:        # the kernels ready (and said so) before the nodes start
@@ -436,6 +445,8 @@ def run_demo(stand=2.0, trot=18.0, speed=0.3, physics="HmJ", record="runs/demo.m
     try:
         sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
                       "record": bag, "start_paused": True}
+        if terrain:
+            sim_params["physics_overrides"] = course_overrides(terrain)
         if live_port:
             ok, lines = live_view_lines("127.0.0.1", live_port)
             sim_params.update(live_view=ok, live_view_port=live_port)
@@ -521,8 +532,10 @@ def main(argv=None):
     ap.add_argument("--stand", type=float, default=2.0, help="demo: seconds standing first")
     ap.add_argument("--trot", type=float, default=18.0, help="demo: seconds of trot")
     ap.add_argument("--speed", type=float, default=0.3, help="demo: forward speed [m/s]")
-    ap.add_argument("--record", default=os.path.join("runs", "demo.mcap"),
-                    help="demo: MCAP file (default runs/demo.mcap)")
+    ap.add_argument("--record", default=None,
+                    help="demo: MCAP file (default runs/demo.mcap, runs/demo_<terrain>.mcap)")
+    ap.add_argument("--terrain", choices=tuple(COURSES), default="",
+                    help="demo: trot over this terrain course instead of flat ground")
     ap.add_argument("--domain-id", type=int, default=None,
                     help="demo: ROS domain id (default: $ROS_DOMAIN_ID, else from the pid)")
     ap.add_argument("--in-process", action="store_true",
@@ -537,9 +550,12 @@ def main(argv=None):
     if args.drop:
         return drop_main(args)
     try:
-        result = run_demo(args.stand, args.trot, args.speed, args.preset, args.record,
+        record = args.record or os.path.join(
+            "runs", f"demo_{args.terrain}.mcap" if args.terrain else "demo.mcap")
+        result = run_demo(args.stand, args.trot, args.speed, args.preset, record,
                           args.domain_id, in_process=args.in_process,
-                          bare_seconds=args.bare_seconds, live_port=args.live)
+                          bare_seconds=args.bare_seconds, live_port=args.live,
+                          terrain=args.terrain)
     except DemoError as e:
         print(f"starleth-demo: FAILED: {e}", file=sys.stderr)
         return 1

@@ -1,0 +1,145 @@
+"""The controller trots over terrain (issue #37, item 4), headless: controller + Simulator
+in one process, physics HmJ (hard contacts). The controller knows nothing of the terrain: it
+takes the ground from where its feet stood (starleth_controller/ground_plane.py), and a
+foot's contact from its force (> contact_force_threshold, as controller_node does). One run
+per course of starleth_sim/tools/demo_terrain.py (the courses of ``starleth-demo
+--terrain``): 1 s standing, then 9 s of trot at 0.3 m/s; the trunk must cross the course
+(up and down the 10° slope, over the 4 cm step, up the 3 stairs of 4 cm, over ±1.5 cm rough
+ground) without falling, and no hard contact may end a step more than 0.1 mm inside a
+surface, except a foot in a concave corner (doc/physics.md, "Terrain")."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from starleth_sim import Simulator
+from starleth_sim.physics.description import urdf_path
+from starleth_sim.tools.demo_terrain import COURSES, course_end, course_overrides, course_terrain
+
+from starleth_controller import LEGS, Command, RobotState, StarlethController
+from starleth_controller import kernels as K
+from starleth_controller.ground_plane import update_plane
+
+FEET = tuple(f"{leg}_foot" for leg in LEGS)
+#: the deepest a hard contact may be inside a surface at a step's end [m]
+MAX_PENETRATION = 1e-4
+#: a foot pressed into a concave corner (a tread meeting a riser) has one contact, which
+#: takes one surface at a time (doc/physics.md, "Terrain"): up to 1.1 mm into the other was
+#: measured on these courses; this bound keeps that from growing unnoticed
+MAX_CORNER_PENETRATION = 2e-3
+#: a foot is in a corner when its sphere comes this close to two surfaces [m]
+CORNER = 5e-4
+
+
+def surface_gaps(c, r, boxes):
+    """The gaps of a sphere (centre c, radius r) to the plane z = 0 and to each box
+    (axis-aligned: the courses' boxes have no yaw), smallest first."""
+    g = [c[2] - r]
+    for b in boxes:
+        lo = np.subtract(b["centre"], np.multiply(b["size"], 0.5))
+        hi = np.add(b["centre"], np.multiply(b["size"], 0.5))
+        g.append(float(np.linalg.norm(np.maximum(np.maximum(lo - c, c - hi), 0.0))) - r)
+    return sorted(g)
+
+
+def trot_over(course, stand=1.0, trot=9.0, speed=0.3):
+    sim = Simulator.from_preset("HmJ", **course_terrain(course))
+    ctrl = StarlethController(urdf_path())
+    feet = [sim.contact_names.index(f) for f in FEET]
+    boxes = sim.config.terrain.all_boxes()
+    assert all(b["yaw"] == 0.0 for b in boxes)
+    rec = {"x": [], "z": [], "tilt": [], "pen": [], "corner_pen": [0.0], "fallen": False,
+           "qp_ok": True, "tau_ok": True}
+    m = ctrl.model
+    R, centre, contact = np.zeros((3, 3)), np.zeros((4, 3)), np.zeros((4, 3))
+    Jf, Jc = np.zeros((4, 3, 3)), np.zeros((4, 3, 3))
+    for _ in range(int(round((stand + trot) * 400))):
+        b = sim.base_state()
+        cs = sim.contacts
+        st = RobotState(sim.t, sim.joint_positions(), sim.joint_velocities(), b["position"],
+                        b["orientation_xyzw"], b["linear_velocity"], b["angular_velocity"],
+                        None, np.array([cs[i].force for i in feet]))   # contact: force
+        cmd = Command("stand") if sim.t < stand else Command("trot", forward=speed)
+        tau = ctrl.update(st, cmd)
+        rec["fallen"] |= ctrl.mode == "fallen"
+        rec["qp_ok"] &= ctrl.info.get("qp_status") in ("solved", "idle")
+        rec["tau_ok"] &= bool(np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= 20.0))
+        sim.step(tau)
+        x, y, z, w = sim.base_state()["orientation_xyzw"]
+        rec["tilt"].append(math.acos(min(1.0, 1.0 - 2.0 * (x * x + y * y))))
+        rec["x"].append(sim.base_state()["position"][0])
+        rec["z"].append(sim.base_state()["position"][2])
+        gaps = sim.gaps()
+        if boxes:     # the feet in a concave corner (sphere centres from the kinematics)
+            b = sim.base_state()
+            K.quat_to_rot(*b["orientation_xyzw"], R)
+            K.leg_kinematics(sim.joint_positions(), R, b["position"], m.hip, m.geometry,
+                             centre, contact, Jf, Jc)
+            for j, i in enumerate(feet):
+                if surface_gaps(centre[j], m.foot_radius[j], boxes)[1] < CORNER:
+                    rec["corner_pen"].append(-min(0.0, float(gaps[i])))
+                    gaps[i] = 0.0
+        rec["pen"].append(-min(0.0, float(gaps.min())))
+    return rec
+
+
+@pytest.mark.parametrize("course", list(COURSES))
+def test_controller_trots_over_terrain(course):
+    rec = trot_over(course)
+    x, tilt, pen, cpen = rec["x"][-1], max(rec["tilt"]), max(rec["pen"]), max(rec["corner_pen"])
+    print(f"\n[{course}] x {x:.2f} m, tilt max {tilt:.3f} rad, trunk height min "
+          f"{min(rec['z']):.3f} m, penetration max {pen * 1e3:.3f} mm (a foot in a corner: "
+          f"{len(rec['corner_pen']) - 1} steps, {cpen * 1e3:.3f} mm)")
+    assert not rec["fallen"], f"{course}: the controller fell"
+    assert rec["qp_ok"] and rec["tau_ok"], f"{course}: QP failure or torque out of range"
+    assert tilt < 0.2, f"{course}: tilt reached {tilt:.3f} rad"
+    assert min(rec["z"]) > 0.33, f"{course}: trunk down to {min(rec['z']):.3f} m"
+    assert x > course_end(course), f"{course}: trunk at x = {x:.2f} m, not across"
+    assert pen <= MAX_PENETRATION, f"{course}: a contact {pen * 1e3:.3f} mm inside a surface"
+    assert cpen <= MAX_CORNER_PENETRATION, f"{course}: a foot {cpen * 1e3:.3f} mm inside a " \
+        "surface in a concave corner"
+
+
+def test_ground_plane_is_the_plane_through_the_footholds():
+    """The least-squares plane through four footholds on an inclined plane is that plane;
+    collinear footholds give a flat plane at their mean height; slopes are clipped."""
+    gx, gy, a = math.tan(math.radians(10.0)), -0.05, 0.3
+    xy = np.array([[0.3, 0.2], [0.3, -0.2], [-0.3, 0.2], [-0.3, -0.2]]) + [1.0, 0.5]
+    contact = np.column_stack((xy, a + gx * xy[:, 0] + gy * xy[:, 1]))
+    stood, plane = np.zeros((4, 3)), np.zeros(3)
+    update_plane(contact, np.arange(4), 4, stood, plane)
+    np.testing.assert_allclose(plane, [a, gx, gy], atol=1e-12)
+    np.testing.assert_array_equal(stood, contact)
+    # two legs in support: only their footholds move
+    moved = contact + [0.1, 0.0, 0.02]
+    update_plane(moved, np.array([0, 3]), 2, stood, plane)
+    np.testing.assert_array_equal(stood[[1, 2]], contact[[1, 2]])
+    np.testing.assert_array_equal(stood[[0, 3]], moved[[0, 3]])
+    # collinear: flat at the mean height
+    line = np.array([[0.0, 0, 0.1], [0.2, 0, 0.2], [0.4, 0, 0.3], [0.6, 0, 0.4]])
+    update_plane(line, np.arange(4), 4, stood, plane)
+    np.testing.assert_allclose(plane, [0.25, 0.0, 0.0], atol=1e-12)
+    # steeper than MAX_SLOPE: clipped
+    steep = contact.copy()
+    steep[:, 2] = 2.0 * xy[:, 0]
+    update_plane(steep, np.arange(4), 4, stood, plane)
+    assert plane[1] == pytest.approx(0.5) and plane[2] == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("course", list(COURSES))
+def test_demo_passes_each_course_to_sim_node_as_its_physics_overrides(course):
+    """``starleth-demo --terrain`` gives sim_node ``-p physics_overrides:="<value>"``: one
+    line without double quotes, which sim_node's settings read back as the course's terrain
+    and the simulator builds (the robot resting on it)."""
+    from starleth_sim.ros.parameters import Settings   # deferred: the ROS side's schema
+
+    value = course_overrides(course)
+    assert '"' not in value and "\n" not in value
+    assert Settings(physics_overrides=value).physics_override_dict() == course_terrain(course)
+    sim = Simulator.from_preset("HmJ", **Settings(physics_overrides=value)
+                                .physics_override_dict())
+    assert not sim.config.terrain.is_flat
+    with pytest.raises(ValueError, match="unknown terrain course"):
+        course_terrain("lava")
