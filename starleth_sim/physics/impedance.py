@@ -49,6 +49,8 @@ OPTIONAL_TERMS = ("position", "velocity", "effort")
 TORQUE_AS_GIVEN = _kernels.TORQUE_AS_GIVEN
 TORQUE_SATURATED = _kernels.TORQUE_SATURATED
 TORQUE_IMPEDANCE = _kernels.TORQUE_IMPEDANCE
+#: a replay of implicit dampers: per joint the explicit torque, then the damper's kd
+TORQUE_REPLAY = _kernels.TORQUE_REPLAY
 
 #: ``impedance_torque(command, q, qd, out)``: out = the law of the packed command
 #: (ImpedanceCommand.packed, flat) at the joint angles q and rates qd (float64, one per joint)

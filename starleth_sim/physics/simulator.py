@@ -39,7 +39,7 @@ from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_di
                           one_step_diagnostics)
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
-from .impedance import ImpedanceCommand
+from .impedance import TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, ImpedanceCommand
 from .state import SimState
 from .stepper import MoreauStepper, NonFiniteTorque, SimulationError, PHASES
 from .tree_step import report_size, report_views
@@ -238,7 +238,23 @@ class Simulator:
         s = self._applied_steps
         if s is None:   # the one-kernel steps' reports (the current set of report buffers)
             return np.array([v[3] for _, _, v in self._report_buffers[self._next_report ^ 1]])
-        return np.tile(s, (self.config.steps_per_control, 1)) if s.ndim == 1 else s.copy()
+        return s[0].copy() if type(s) is tuple else np.tile(s, (self.config.steps_per_control, 1))
+
+    @property
+    def replay_torques_per_step(self):
+        """What `step_applied` takes to replay the last control step bit for bit, with the
+        implicit dampers of an impedance command (steps_per_control x 2 n_joints): per
+        physics step the explicit torques (the torques added to the dynamics: an implicitly
+        damped joint's law at the step's start state), then the kd of the joints' implicit
+        dampers (0: none; see doc/physics.md, "Joint impedance")."""
+        s = self._applied_steps
+        if s is None:
+            return np.array([np.concatenate((v[4], v[5]))
+                             for _, _, v in self._report_buffers[self._next_report ^ 1]])
+        if type(s) is tuple:
+            return s[1].copy()
+        row = np.concatenate((s, np.zeros(self.n_joints)))
+        return np.tile(row, (self.config.steps_per_control, 1))
 
     @property
     def last_command(self):
@@ -436,7 +452,7 @@ class Simulator:
             # the common case: one kernel call that also saturates τ; it writes its reports
             # into the spare report buffer, which then becomes the current one
             a = self._torque_array(tau)
-            report, active, (impulse, gap, position, tau) = \
+            report, active, (impulse, gap, position, tau, _, _) = \
                 self._report_buffers[self._next_report][0]
             try:
                 r = stepper.step_in_one_kernel(state, a, report, active)
@@ -497,16 +513,27 @@ class Simulator:
         n_joints for every step) at its physics steps as given, NOT saturated again: the
         applied torques of a recorded run (applied_torques_per_step), which this replays bit
         for bit from the same state (saturating a derated torque again would derate it
-        twice). ValueError on a wrong shape or a non-finite entry (state unchanged)."""
-        n = self.config.steps_per_control
+        twice). With implicit dampers (an impedance command with kd on the minimal
+        coordinates) the applied torques depend on the step's end rates: pass
+        replay_torques_per_step (steps_per_control x 2 n_joints: explicit torques, then kd)
+        to replay those bit for bit. ValueError on a wrong shape, a non-finite entry or a
+        negative kd (state unchanged)."""
+        n, nj = self.config.steps_per_control, self.n_joints
         a = np.array(torques, dtype=np.float64)
         if a.ndim == 1:
             a = np.tile(a, (n, 1))
-        if a.shape != (n, self.n_joints):
-            raise ValueError(f"step_applied: torques must be {n} x {self.n_joints} (physics "
-                             f"steps x joints {', '.join(self.joint_names)}), got {a.shape}")
+        if a.shape not in ((n, nj), (n, 2 * nj)):
+            raise ValueError(f"step_applied: torques must be {n} x {nj} (physics steps x "
+                             f"joints {', '.join(self.joint_names)}), or {n} x {2 * nj} "
+                             f"(replay_torques_per_step), got {a.shape}")
         if not np.all(np.isfinite(a)):
-            raise self._non_finite_torque(a.min(axis=0) + a.max(axis=0))
+            bad = a.min(axis=0) + a.max(axis=0)
+            raise self._non_finite_torque(bad[:nj] + bad[nj:] if a.shape[1] > nj else bad)
+        if a.shape[1] > nj:
+            if np.any(a[:, nj:] < 0.0):
+                raise ValueError("step_applied: the dampers' kd must be >= 0")
+            if not self.stepper.implicit_dampers and np.any(a[:, nj:] != 0.0):
+                raise ValueError("step_applied: these coordinates have no implicit dampers")
         return self._step_per_physics_step(a, a, impedance=False)
 
     def _step_per_physics_step(self, torques, command, impedance):
@@ -515,30 +542,28 @@ class Simulator:
         applied torques (torques: one row per step) as given."""
         t_wall = perf_counter()
         state = self.state
+        replay = not impedance and torques.shape[1] > self.n_joints
         if self.stepper.step_is_transactional(state) and self._no_wrench_to_apply(state):
             figures, impulse, active, gap, position = self._kernel_steps(
-                state, torques, impedance=impedance, per_step=not impedance)
+                state, torques, impedance=impedance, per_step=not impedance, replay=replay)
             applied = None      # (in the current report buffers)
             tau = self._report_buffers[self._next_report ^ 1][0][2][3]
         else:
-            stepper, applied = self.stepper, []
-
-            def torque_of_step(state, i):
-                tau = stepper.impedance_torque(torques, state.q, state.u) if impedance \
-                    else torques[i]
-                applied.append(tau)
-                return tau
+            stepper, applied, record = self.stepper, [], []
+            mode = TORQUE_IMPEDANCE if impedance else TORQUE_REPLAY if replay \
+                else TORQUE_AS_GIVEN
             figures = self._physics_steps(state, None, self.config.steps_per_control, True,
-                                          torque_of_step)
+                                          lambda i: torques if impedance else torques[i],
+                                          mode, (applied, record))
             impulse, active, gap, position = self._period_reports(figures)
-            tau, applied = applied[0], np.array(applied)
+            tau, applied = applied[0], (np.array(applied), np.array(record))
         d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
                                      self._timings())
         self._command = command
         self._applied_steps = applied
         return self._step_done(d, tau, impulse, active, gap, position)
 
-    def _kernel_steps(self, state, tau, impedance=False, per_step=False):
+    def _kernel_steps(self, state, tau, impedance=False, per_step=False, replay=False):
         """The physics steps of a control period, each in one kernel call with the applied
         torques tau (saturated: MoreauStepper.step_in_one_kernel; per_step: tau[i] at step
         i; impedance: tau an impedance command's packed buffer), their reports written
@@ -552,7 +577,8 @@ class Simulator:
         before = state.copy(share_qu=True) if len(buffers) > 1 else state
         try:
             figures = [stepper.step_in_one_kernel(state, tau[i] if per_step else tau, report,
-                                                  active, saturate=False, impedance=impedance)
+                                                  active, saturate=False, impedance=impedance,
+                                                  replay=replay)
                        for i, (report, active, _) in enumerate(buffers)]
         except NonFiniteTorque:
             self.restore(before)
@@ -564,12 +590,14 @@ class Simulator:
         impulse = buffers[0][2][0]
         for _, _, views in buffers[1:]:    # in step order (as _physics_steps' callers)
             impulse = impulse + views[0]
-        _, active, (_, gap, position, _) = buffers[-1]
+        _, active, (_, gap, position, _, _, _) = buffers[-1]
         return figures, impulse, active, gap, position
 
-    def _physics_steps(self, state, tau, n, rollback, torque_of_step=None):
+    def _physics_steps(self, state, tau, n, rollback, torque_of_step=None,
+                       mode=TORQUE_AS_GIVEN, out=None):
         """The n physics steps of a control period through MoreauStepper.step, with the
-        wrenches and the torques tau (or torque_of_step(state, i) at step i); their
+        wrenches and the torques tau (or the command torque_of_step(i) of `mode` at step
+        i, its applied torques and replay rows appended to the lists `out`); their
         StepResults. On a SimulationError the state is restored from a copy taken before
         (with rollback; the stepper never writes into q and u)."""
         stepper = self.stepper
@@ -581,9 +609,14 @@ class Simulator:
             if torque_of_step is None:
                 return [stepper.step(state, tau, force(state, dt) if wrenches
                                      else None) for _ in range(n)]
-            return [stepper.step(state, torque_of_step(state, i),
-                                 force(state, dt) if wrenches else None)
-                    for i in range(n)]
+            results = []
+            for i in range(n):
+                results.append(stepper.step(state, torque_of_step(i),
+                                            force(state, dt) if wrenches else None, mode))
+                applied, explicit, damper = stepper.last_torques
+                out[0].append(np.array(applied))
+                out[1].append(np.concatenate((explicit, damper)))
+            return results
         except NonFiniteTorque:
             self.restore(before)
             raise ValueError("the impedance law gave non-finite torques") from None
