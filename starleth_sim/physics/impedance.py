@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels as _kernels
+from .actuator import NonFiniteTorque, saturate_torque
 from .kernel_layouts import IMPEDANCE_COMMAND
 
 #: the command's fields, in the order of the packed layout (kernel_layouts.IMPEDANCE_COMMAND)
@@ -124,3 +125,51 @@ class ImpedanceCommand:
         out = np.empty(n)
         impedance_torque(self.packed, q, qd, out)
         return out
+
+
+def command_torques(tau, q, u, mode, coords, effort_limit, velocity_limit, implicit):
+    """(explicit torques, kd of the implicit dampers) of a step's command at (q, u) of the
+    coordinate set `coords`: mode TORQUE_IMPEDANCE, tau an ImpedanceCommand's packed buffer:
+    its law, saturated (actuator.saturate_torque at the same rates by the limits), a joint's
+    damper implicit where `implicit` (the coordinate set allows it), the joint has a damper
+    term and its law is not saturated: what the tree kernels compute inside, by the same C
+    functions (bit for bit); mode TORQUE_REPLAY, tau's two halves (the explicit torques,
+    then kd). NonFiniteTorque if the law overflows."""
+    na = coords.joint_v.shape[0]
+    if mode == TORQUE_REPLAY:
+        return tau[:na].copy(), tau[na:].copy()
+    qd = coords.joint_velocities(q, u)
+    law = np.empty(na)
+    impedance_torque(tau, coords.joint_positions(q, u), qd, law)
+    applied = np.empty(na)
+    if not saturate_torque(law, effort_limit, qd, velocity_limit, applied):
+        raise NonFiniteTorque("the impedance law gave non-finite torques")
+    kd, velocity = tau[3 * na:4 * na], tau[na:2 * na]
+    damper = np.where(~np.isnan(velocity) & (kd > 0.0) & (applied == law), kd, 0.0) \
+        if implicit else np.zeros(na)
+    return applied, damper
+
+
+def replay_rows(torques, n, joint_names, implicit):
+    """The rows of Simulator.step_applied, validated: n physics steps x nj torques (one row
+    for every step), or x 2 nj (explicit torques, then the implicit dampers' kd ≥ 0, nonzero
+    only where `implicit`). ValueError naming the joints on a wrong shape or value."""
+    nj = len(joint_names)
+    a = np.array(torques, dtype=np.float64)
+    if a.ndim == 1:
+        a = np.tile(a, (n, 1))
+    if a.shape not in ((n, nj), (n, 2 * nj)):
+        raise ValueError(f"step_applied: torques must be {n} x {nj} (physics steps x joints "
+                         f"{', '.join(joint_names)}), or {n} x {2 * nj} "
+                         f"(replay_torques_per_step), got {a.shape}")
+    bad = ~np.isfinite(a).all(axis=0)
+    if bad.any():
+        bad = bad[:nj] | bad[nj:] if a.shape[1] > nj else bad
+        raise ValueError("tau has non-finite entries for "
+                         f"{', '.join(joint_names[i] for i in np.flatnonzero(bad))}")
+    if a.shape[1] > nj:
+        if np.any(a[:, nj:] < 0.0):
+            raise ValueError("step_applied: the dampers' kd must be >= 0")
+        if not implicit and np.any(a[:, nj:] != 0.0):
+            raise ValueError("step_applied: these coordinates have no implicit dampers")
+    return a

@@ -46,12 +46,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import prox
-from .actuator import saturate_torque
+from .actuator import NonFiniteTorque, saturate_torque
 from .config import ConfigError
 from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
 from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, TORQUE_SATURATED,
-                        impedance_torque)
+                        command_torques)
 from .linalg import ltdl
 from .state import SimState
 from .terrain import pack_terrain
@@ -72,10 +72,6 @@ _empty = np.empty
 class SimulationError(RuntimeError):
     """The step could not be completed (non-finite solver output or state); the state was
     left unchanged."""
-
-
-class NonFiniteTorque(ValueError):
-    """The joint torques of a step have a non-finite entry; nothing was done."""
 
 
 @dataclass(slots=True)
@@ -338,7 +334,6 @@ class MoreauStepper:
         if not ok:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
-        dt = self.dt
         coords = self.coords
         t = clock(timings) if prof else 0.0
         if tau is not None and tau.shape[0]:
@@ -352,17 +347,21 @@ class MoreauStepper:
         else:
             uE, res = self._solve_compliant(state, M, h, u, problem, WtB, prepared, timings)
         t = clock(timings) if prof else 0.0
-        # Eqn. (8); with a post-step projection, the positions move by ½Δt Δu_p more
+        self._end_of_step(state, qM, uE, res)
+        if prof:
+            lap(timings, PHASE_REST, t)
+        return res
+
+    def _end_of_step(self, state, qM, uE, res):
+        """Eqn. (8) into state (q^E, u^E); with a post-step projection, the positions move
+        by ½Δt Δu_p more. SimulationError if the result is not finite."""
         qE = np.empty_like(qM)
-        tree = coords.tree
-        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * dt, tree.jtype,
+        tree = self.coords.tree
+        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * self.dt, tree.jtype,
                            tree.idx_q, tree.idx_v, qE):
             raise SimulationError("non-finite state after the step; state left unchanged")
         state.q, state.u = qE, uE
         self.stats.steps += 1
-        if prof:
-            lap(timings, PHASE_REST, t)
-        return res
 
     def step_is_transactional(self, state: SimState) -> bool:
         """Whether the next `step` of `state`, should it fail (SimulationError), leaves the
@@ -411,7 +410,7 @@ class MoreauStepper:
         mode = TORQUE_SATURATED if saturate else TORQUE_AS_GIVEN
         if impedance:
             if self._forest_kernel:     # the law at φ, φ̇ of the cut-joint kinematics
-                tau = self.impedance_torque(tau, q, u)
+                tau = self.torques_of_command(tau, q, u, TORQUE_IMPEDANCE)[0]
                 saturate = False
             else:
                 mode = TORQUE_IMPEDANCE
@@ -479,24 +478,10 @@ class MoreauStepper:
         return r
 
     def torques_of_command(self, tau, q, u, mode):
-        """(explicit torques, kd of the implicit dampers) of a command of `mode` at (q, u):
-        TORQUE_IMPEDANCE, the law saturated (impedance_torque), a joint's damper implicit
-        where `implicit_dampers`, the joint has a damper term and its law is not saturated
-        (what the tree kernels do inside); TORQUE_REPLAY, tau's two halves."""
-        na = self._no_torque.shape[0]
-        if mode == TORQUE_REPLAY:
-            return tau[:na].copy(), tau[na:].copy()
-        c = self.coords
-        qd = c.joint_velocities(q, u)
-        law = _empty(na)
-        impedance_torque(tau, c.joint_positions(q, u), qd, law)
-        applied = _empty(na)
-        if not saturate_torque(law, self._effort_limit, qd, self._velocity_limit, applied):
-            raise NonFiniteTorque("the impedance law gave non-finite torques")
-        kd, velocity = tau[3 * na:4 * na], tau[na:2 * na]
-        damper = np.where(~np.isnan(velocity) & (kd > 0.0) & (applied == law), kd, 0.0) \
-            if self.implicit_dampers else np.zeros(na)
-        return applied, damper
+        """(explicit torques, kd of the implicit dampers) of a command of `mode` at (q, u)
+        (impedance.command_torques with this stepper's limits)."""
+        return command_torques(tau, q, u, mode, self.coords, self._effort_limit,
+                               self._velocity_limit, self.implicit_dampers)
 
     def _step_implicit(self, state, tau, f_ext, damper, check):
         """The phase-by-phase step with implicit dampers, as the tree kernels do it: M~ = M +
@@ -527,30 +512,9 @@ class MoreauStepper:
             damper[over] = 0.0
             state.restore_memory(kept)
             h = h0.copy()
-        applied = np.where(damper > 0.0, applied, tau)
-        self.last_torques = (applied, tau, damper)
-        qE = np.empty_like(qM)
-        tree = self.coords.tree
-        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * self.dt, tree.jtype,
-                           tree.idx_q, tree.idx_v, qE):
-            raise SimulationError("non-finite state after the step; state left unchanged")
-        state.q, state.u = qE, uE
-        self.stats.steps += 1
+        self.last_torques = (np.where(damper > 0.0, applied, tau), tau, damper)
+        self._end_of_step(state, qM, uE, res)
         return res
-
-    def impedance_torque(self, command, q, u):
-        """The applied torques of an impedance command's law (its packed buffer) at the
-        joint angles and rates of (q, u), saturated (actuator.saturate_torque at the same
-        rates by the torque_limits): what the one-kernel tree steps compute inside, by the
-        same C functions (bit for bit). NonFiniteTorque if the law overflows."""
-        c = self.coords
-        qd = c.joint_velocities(q, u)
-        law = _empty(qd.shape[0])
-        impedance_torque(command, c.joint_positions(q, u), qd, law)
-        applied = _empty(qd.shape[0])
-        if not saturate_torque(law, self._effort_limit, qd, self._velocity_limit, applied):
-            raise NonFiniteTorque("the impedance law gave non-finite torques")
-        return applied
 
     def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of
