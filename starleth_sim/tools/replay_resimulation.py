@@ -90,6 +90,9 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     # torque changes within a control period) and it fits this configuration
     applied = rec.applied if rec.applied is not None and \
         rec.applied.shape[1] == cfg.steps_per_control else None
+    # (with the implicit dampers' replay rows where this simulator has implicit dampers)
+    if applied is not None and rec.replay is not None and sim.stepper.implicit_dampers:
+        applied = rec.replay
     if rec.applied is not None and applied is None:
         warn(f"{cfg.name}: {cfg.steps_per_control} physics steps per control "
                         f"period, the recording's applied torques have {rec.applied.shape[1]}: "
