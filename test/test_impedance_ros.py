@@ -7,9 +7,9 @@ input and a negative gain at run time are refused and counted.
 
 Lockstep protocol of a slow controller (doc/sim_node.md): it answers every state, with the
 targets it holds (recomputed at 50 Hz); in realtime it sends at 50 Hz only and the simulator
-keeps tracking the held command. Gains: kd 2 on HmJ; on Cm kd 1, as the compliant contact's
-explicit damper leaves no room for kd 2 at Δt = 1.25 ms (doc/physics.md, "Joint
-impedance"; test_impedance_commands.py::test_cm_explicit_damper_limit).
+keeps tracking the held command. Gains: kp 80, kd 2 on HmJ and Cm (on Cm the implicit
+damper makes kd 2 stable beside the compliant contact's explicit damper: doc/physics.md,
+"Joint impedance"; test_impedance_commands.py::test_cm_holds_the_stand_on_kp_80_kd_2).
 
 sim_node runs as a child process on an isolated ROS_DOMAIN_ID; every wait is bounded."""
 import dataclasses
@@ -171,7 +171,7 @@ def set_parameter(ros, name, value):
 @pytest.mark.parametrize("preset, mode", [("HmJ", "lockstep"), ("Cm", "lockstep"),
                                           ("HmJ", "realtime"), ("Cm", "realtime")])
 def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
-    kd = 2.0 if preset == "HmJ" else 1.0
+    kd = 2.0
     lockstep = mode == "lockstep"
     bag = tmp_path / "run.mcap"
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
