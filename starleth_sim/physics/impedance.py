@@ -1,27 +1,31 @@
 """Joint impedance commands: the typed record `ImpedanceCommand` and its law, evaluated by
 the simulator at every physics step (not once per control message).
 
-Per actuated joint i (public joint order LF, RF, LH, RH x HAA, HFE, KFE):
+Per actuated joint i (public joint order LF, RF, LH, RH x HAA, HFE, KFE), at each physics
+step from (q^S, u^S) to u^E:
 
-    τ_i = τ_ff,i + kp_i (q*_i − q_i) + kd_i (q̇*_i − q̇_i)
+    τ_i = τ_ff,i + kp_i (q*_i − q^S_i) + kd_i (q̇*_i − q̇^E_i)
 
-then saturated like any joint torque (actuator.saturate_torque: the effort limit, and the
-velocity derating at the same joint rate q̇_i). q*, q̇*: the position and velocity targets,
-kp, kd ≥ 0 (finite) the stiffness and damping, τ_ff the feed-forward torque. A NaN in q*_i,
-q̇*_i or τ_ff,i leaves that term out for joint i (NaN q* with a kp: no spring; NaN q̇*: no
-damper; NaN τ_ff: none), so one record carries pure torque, pure damping, or full
-impedance, joint by joint. The sum is formed in this order, term by term (τ_ff, then the kp
-term, then the kd term), by the one C function `impedance_torque` that every path calls.
+the spring explicit, the damper implicit where the coordinates allow it (the minimal ones:
+every joint rate an entry of u): the law at the start state, τ_S, goes into h and
+M + Δt·diag(kd) replaces M in the step's solve, so τ = τ_S − kd (q̇^E − q̇^S) (as MuJoCo
+integrates joint damping). Saturation (actuator.saturate_torque: the effort limit, and the
+velocity derating): a joint whose τ_S is saturated takes it saturated, explicitly; a damped
+joint whose τ would be saturated at q̇^E loses its damper in one second solve. The extended
+and maximal coordinates keep the damper explicit (at q̇^S). q*, q̇*: the position and
+velocity targets, kp, kd ≥ 0 (finite) the stiffness and damping, τ_ff the feed-forward
+torque. A NaN in q*_i, q̇*_i or τ_ff,i leaves that term out for joint i (NaN q* with a kp:
+no spring; NaN q̇*: no damper; NaN τ_ff: none), so one record carries pure torque, pure
+damping, or full impedance, joint by joint. The sum is formed in this order, term by term
+(τ_ff, then the kp term, then the kd term), by the one C function `impedance_torque` that
+every path calls. See doc/physics.md, "Joint impedance", for the stability it buys.
 
-Which state: (q, q̇) is the state at the START of each physics step, (q^S, u^S): the state
-at which the step's torque saturation already reads q̇ (so the law and the derating see the
-same rates), and the state a controller publishing at the physics rate would have measured:
-the law is a digital PD with a zero-order hold at Δt. With one physics step per control
-period an impedance step is therefore exactly the torque step of the torque the formula
-gives at the published state. The midpoint q^M (where h(q^M, u^S) is evaluated) would add
-an implicit damping ½Δt·kp to the law, a property of the step size rather than of the
+Which state for the spring: the start of each physics step, (q^S, u^S): the state at which
+the step's torque saturation already reads q̇, and the state a controller publishing at the
+physics rate would have measured. The midpoint q^M (where h(q^M, u^S) is evaluated) would
+add an implicit damping ½Δt·kp to the law, a property of the step size rather than of the
 command, and for the cut joints of the extended and maximal coordinates it would need the
-cut-joint kinematics at q^M; the start state has neither drawback.
+cut-joint kinematics at q^M.
 
 Validation (`ImpedanceCommand.create`): a ValueError naming the field and the joints, for a
 wrong length, a negative or non-finite gain, or an infinite target or τ_ff (NaN is allowed
