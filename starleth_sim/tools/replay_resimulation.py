@@ -2,7 +2,8 @@
 through a configuration with sim_node's own calls (``SimService``), and the replayed run
 compared with the recorded one, bit for bit or by where it diverges. The torques: those of
 every physics step (starleth/applied_torque, ``Simulator.step_applied``: exact for impedance
-commands, whose torque changes within a control period) where the bag has them, else the
+commands, whose torque changes within a control period, their implicit dampers re-solved)
+where the bag has them, else the
 /joint_states effort (bags of before)."""
 from __future__ import annotations
 
