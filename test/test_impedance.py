@@ -53,7 +53,8 @@ def test_the_torque_of_every_physics_step_of_cm_is_the_law_with_an_implicit_damp
     """Cm runs 2 physics steps per control period: each step's applied torque is τ_ff +
     kp (q* − q^S) + kd (q̇* − q̇^E), the damper at the step's END rates (implicit), on every
     joint whose law at the start state is not saturated and whose torque at q̇^E is not
-    either; the others take the law at the start state, saturated (1e-12). The per-step
+    either (those lose it in a second solve); the others take the law at the start state,
+    saturated (1e-12). The per-step
     states come from a twin with one physics step per control step at the same Δt, fed the
     recorded replay rows: it must pass through the main run's states bit for bit."""
     sim = Simulator.from_preset("Cm")
@@ -63,7 +64,7 @@ def test_the_torque_of_every_physics_step_of_cm_is_the_law_with_an_implicit_damp
     assert twin.dt == sim.dt
     twin.reset(sim.q, sim.u)
     q0 = sim.joint_positions()
-    clipped = damped = 0
+    clipped = damped = dropped = 0
     for k in range(120):
         cmd = swaying_command(sim, q0, k)
         sim.step(cmd)
@@ -89,9 +90,12 @@ def test_the_torque_of_every_physics_step_of_cm_is_the_law_with_an_implicit_damp
             assert np.array_equal(saturated(sim, row, qd_end)[dampers], row[dampers])
             clipped += int(np.isclose(abs(row[11]), sim.description.effort_limit[11]))
             damped += int(dampers.sum())
+            # a joint that could be damped but was not: its torque at q̇^E was saturated
+            dropped += int(np.sum(~dampers & (explicit == law) & ~np.isnan(cmd.velocity)))
         assert np.array_equal(twin.q, sim.q) and np.array_equal(twin.u, sim.u), k
     assert clipped > 100        # the saturation was exercised
     assert damped > 1500        # and the implicit dampers (10 joints can have one)
+    assert dropped > 0          # and the second solve (measured: 2 joint-steps)
 
 
 def test_a_nan_target_turns_its_term_off_for_that_joint_only():

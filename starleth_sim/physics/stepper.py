@@ -311,7 +311,8 @@ class MoreauStepper:
         p = self._prepared
         self._prepared = None
         prepared = p is not None and p[0] is state.q and p[1] is state.u
-        if self._one_kernel and not prof and (not prepared or mode != TORQUE_AS_GIVEN):
+        if self._one_kernel and not prof and (
+                not prepared or (mode != TORQUE_AS_GIVEN and self.implicit_dampers)):
             return self._step_one_kernel(state, tau, f_ext, mode)
         damper = None
         if mode != TORQUE_AS_GIVEN:
