@@ -74,13 +74,13 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
         assert r.outcome == kernels.TREE_STEP_OK
         return report_views(report, nc, na)
     floats = st._tree_model[0]
-    _, gap, _, applied = (a.copy() for a in step(floats.copy()))
+    _, gap, _, applied, _, _ = (a.copy() for a in step(floats.copy()))
     assert np.array_equal(applied, np.full(na, 3.0))
     changed = floats.copy()
     f = buffer_views(TREE_STEP_MODEL, "floats", changed, sizes)
     f["ground_offset"][0] += 0.01
     f["effort_limit"][:] = 0.0
-    _, gap2, _, applied2 = step(changed)
+    _, gap2, _, applied2, _, _ = step(changed)
     assert np.allclose(gap2, gap - 0.01, atol=1e-12)
     assert np.array_equal(applied2, np.zeros(na))
     header = kernel_build.c_header()
@@ -141,12 +141,13 @@ def test_the_report_follows_its_layout_and_the_kernel_writes_it_there():
     tau = np.linspace(-1.0, 1.0, na)
     r = sim.stepper.step_in_one_kernel(sim.state, tau, report, active)
     assert isinstance(r, kernels.TreeStepResult) and r.outcome == kernels.TREE_STEP_OK
-    impulse, gap, position, applied = report_views(report, nc, na)
+    impulse, gap, position, applied, explicit, damper = report_views(report, nc, na)
     assert np.isfinite(report).all()
     assert np.array_equal(applied, tau)     # (far below the limits: applied as asked)
+    assert np.array_equal(explicit, tau) and not damper.any()   # (torques: no dampers)
     assert (gap < 0.0).sum() == r.n_active
     st = sim.stepper        # (g_N and the contact points at q^M, from its workspace)
     assert np.array_equal(gap, st.gap) and np.array_equal(position, st.position)
     assert (impulse[:, 0] >= 0.0).all() and impulse[:, 0].sum() > 0.0
     assert [f.name for f, _, _ in offsets(STEP_REPORT, "report", {"nc": nc, "na": na})] == \
-        ["impulse", "gap", "position", "applied_torque"]
+        ["impulse", "gap", "position", "applied_torque", "explicit_torque", "damper"]

@@ -240,7 +240,7 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
     sim = Simulator.from_preset(preset)
     st, s = sim.stepper, sim.state
     model = list(st._tree_model)
-    out = (np.empty(7 * st.nc + 12), np.empty(st.nc, dtype=bool), np.empty_like(s.q),
+    out = (np.empty(7 * st.nc + 3 * 12), np.empty(st.nc, dtype=bool), np.empty_like(s.q),
            np.empty_like(s.u))
 
     def step(tree, cut=None):

@@ -16,3 +16,7 @@ from . import kernels as _kernels
 #: torque stays a continuous function of the state. Braking torques are never derated.
 #: False if tau has a non-finite entry (out is then not to be used).
 saturate_torque = _kernels.saturate_torque
+
+
+class NonFiniteTorque(ValueError):
+    """The joint torques of a step have a non-finite entry; nothing was done."""

@@ -1,27 +1,31 @@
 """Joint impedance commands: the typed record `ImpedanceCommand` and its law, evaluated by
 the simulator at every physics step (not once per control message).
 
-Per actuated joint i (public joint order LF, RF, LH, RH x HAA, HFE, KFE):
+Per actuated joint i (public joint order LF, RF, LH, RH x HAA, HFE, KFE), at each physics
+step from (q^S, u^S) to u^E:
 
-    τ_i = τ_ff,i + kp_i (q*_i − q_i) + kd_i (q̇*_i − q̇_i)
+    τ_i = τ_ff,i + kp_i (q*_i − q^S_i) + kd_i (q̇*_i − q̇^E_i)
 
-then saturated like any joint torque (actuator.saturate_torque: the effort limit, and the
-velocity derating at the same joint rate q̇_i). q*, q̇*: the position and velocity targets,
-kp, kd ≥ 0 (finite) the stiffness and damping, τ_ff the feed-forward torque. A NaN in q*_i,
-q̇*_i or τ_ff,i leaves that term out for joint i (NaN q* with a kp: no spring; NaN q̇*: no
-damper; NaN τ_ff: none), so one record carries pure torque, pure damping, or full
-impedance, joint by joint. The sum is formed in this order, term by term (τ_ff, then the kp
-term, then the kd term), by the one C function `impedance_torque` that every path calls.
+the spring explicit, the damper implicit where the coordinates allow it (the minimal ones:
+every joint rate an entry of u): the law at the start state, τ_S, goes into h and
+M + Δt·diag(kd) replaces M in the step's solve, so τ = τ_S − kd (q̇^E − q̇^S) (as MuJoCo
+integrates joint damping). Saturation (actuator.saturate_torque: the effort limit, and the
+velocity derating): a joint whose τ_S is saturated takes it saturated, explicitly; a damped
+joint whose τ would be saturated at q̇^E loses its damper in one second solve. The extended
+and maximal coordinates keep the damper explicit (at q̇^S). q*, q̇*: the position and
+velocity targets, kp, kd ≥ 0 (finite) the stiffness and damping, τ_ff the feed-forward
+torque. A NaN in q*_i, q̇*_i or τ_ff,i leaves that term out for joint i (NaN q* with a kp:
+no spring; NaN q̇*: no damper; NaN τ_ff: none), so one record carries pure torque, pure
+damping, or full impedance, joint by joint. The sum is formed in this order, term by term
+(τ_ff, then the kp term, then the kd term), by the one C function `impedance_torque` that
+every path calls. See doc/physics.md, "Joint impedance", for the stability it buys.
 
-Which state: (q, q̇) is the state at the START of each physics step, (q^S, u^S): the state
-at which the step's torque saturation already reads q̇ (so the law and the derating see the
-same rates), and the state a controller publishing at the physics rate would have measured:
-the law is a digital PD with a zero-order hold at Δt. With one physics step per control
-period an impedance step is therefore exactly the torque step of the torque the formula
-gives at the published state. The midpoint q^M (where h(q^M, u^S) is evaluated) would add
-an implicit damping ½Δt·kp to the law, a property of the step size rather than of the
+Which state for the spring: the start of each physics step, (q^S, u^S): the state at which
+the step's torque saturation already reads q̇, and the state a controller publishing at the
+physics rate would have measured. The midpoint q^M (where h(q^M, u^S) is evaluated) would
+add an implicit damping ½Δt·kp to the law, a property of the step size rather than of the
 command, and for the cut joints of the extended and maximal coordinates it would need the
-cut-joint kinematics at q^M; the start state has neither drawback.
+cut-joint kinematics at q^M.
 
 Validation (`ImpedanceCommand.create`): a ValueError naming the field and the joints, for a
 wrong length, a negative or non-finite gain, or an infinite target or τ_ff (NaN is allowed
@@ -35,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels as _kernels
+from .actuator import NonFiniteTorque, saturate_torque
 from .kernel_layouts import IMPEDANCE_COMMAND
 
 #: the command's fields, in the order of the packed layout (kernel_layouts.IMPEDANCE_COMMAND)
@@ -49,6 +54,8 @@ OPTIONAL_TERMS = ("position", "velocity", "effort")
 TORQUE_AS_GIVEN = _kernels.TORQUE_AS_GIVEN
 TORQUE_SATURATED = _kernels.TORQUE_SATURATED
 TORQUE_IMPEDANCE = _kernels.TORQUE_IMPEDANCE
+#: a replay of implicit dampers: per joint the explicit torque, then the damper's kd
+TORQUE_REPLAY = _kernels.TORQUE_REPLAY
 
 #: ``impedance_torque(command, q, qd, out)``: out = the law of the packed command
 #: (ImpedanceCommand.packed, flat) at the joint angles q and rates qd (float64, one per joint)
@@ -122,3 +129,51 @@ class ImpedanceCommand:
         out = np.empty(n)
         impedance_torque(self.packed, q, qd, out)
         return out
+
+
+def command_torques(tau, q, u, mode, coords, effort_limit, velocity_limit, implicit):
+    """(explicit torques, kd of the implicit dampers) of a step's command at (q, u) of the
+    coordinate set `coords`: mode TORQUE_IMPEDANCE, tau an ImpedanceCommand's packed buffer:
+    its law, saturated (actuator.saturate_torque at the same rates by the limits), a joint's
+    damper implicit where `implicit` (the coordinate set allows it), the joint has a damper
+    term and its law is not saturated: what the tree kernels compute inside, by the same C
+    functions (bit for bit); mode TORQUE_REPLAY, tau's two halves (the explicit torques,
+    then kd). NonFiniteTorque if the law overflows."""
+    na = coords.joint_v.shape[0]
+    if mode == TORQUE_REPLAY:
+        return tau[:na].copy(), tau[na:].copy()
+    qd = coords.joint_velocities(q, u)
+    law = np.empty(na)
+    impedance_torque(tau, coords.joint_positions(q, u), qd, law)
+    applied = np.empty(na)
+    if not saturate_torque(law, effort_limit, qd, velocity_limit, applied):
+        raise NonFiniteTorque("the impedance law gave non-finite torques")
+    kd, velocity = tau[3 * na:4 * na], tau[na:2 * na]
+    damper = np.where(~np.isnan(velocity) & (kd > 0.0) & (applied == law), kd, 0.0) \
+        if implicit else np.zeros(na)
+    return applied, damper
+
+
+def replay_rows(torques, n, joint_names, implicit):
+    """The rows of Simulator.step_applied, validated: n physics steps x nj torques (one row
+    for every step), or x 2 nj (explicit torques, then the implicit dampers' kd ≥ 0, nonzero
+    only where `implicit`). ValueError naming the joints on a wrong shape or value."""
+    nj = len(joint_names)
+    a = np.array(torques, dtype=np.float64)
+    if a.ndim == 1:
+        a = np.tile(a, (n, 1))
+    if a.shape not in ((n, nj), (n, 2 * nj)):
+        raise ValueError(f"step_applied: torques must be {n} x {nj} (physics steps x joints "
+                         f"{', '.join(joint_names)}), or {n} x {2 * nj} "
+                         f"(replay_torques_per_step), got {a.shape}")
+    bad = ~np.isfinite(a).all(axis=0)
+    if bad.any():
+        bad = bad[:nj] | bad[nj:] if a.shape[1] > nj else bad
+        raise ValueError("tau has non-finite entries for "
+                         f"{', '.join(joint_names[i] for i in np.flatnonzero(bad))}")
+    if a.shape[1] > nj:
+        if np.any(a[:, nj:] < 0.0):
+            raise ValueError("step_applied: the dampers' kd must be >= 0")
+        if not implicit and np.any(a[:, nj:] != 0.0):
+            raise ValueError("step_applied: these coordinates have no implicit dampers")
+    return a

@@ -326,6 +326,9 @@ STEP_REPORT = Layout(
         Field("gap", "nc", "gap", "g_N at q^M"),
         Field("position", "3 * nc", "position", "the contact points at q^M", ("nc", "3")),
         Field("applied_torque", "na", "applied_torque", "the torques applied"),
+        Field("explicit_torque", "na", "explicit_torque",
+              "the torques added to h (an implicit damper's joint: the law at u^S)"),
+        Field("damper", "na", "damper", "kd of the implicit dampers (0: none)"),
     )),))
 
 #: a joint impedance command (impedance.ImpedanceCommand.packed), one row per term, one

@@ -17,12 +17,10 @@ Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at
 URDF effort limits; beyond the URDF velocity limit v a torque that drives its joint faster
 is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``). A
 joint impedance command (:mod:`starleth_sim.physics.impedance`) is evaluated at every
-physics step of the control period from that step's start state, then saturated the same
-way; ``applied_torques_per_step`` holds every physics step's applied torques, and
-``step_applied`` replays them bit for bit.
-Contact impulses are reported in the world frame, summed over the physics steps of the
-control period; forces are impulse / control period (F = Λ/Δt with one
-step per control update, as in the paper's Fig. 5).
+physics step, its damper implicit (``applied_torques_per_step``; ``step_applied`` of
+``replay_torques_per_step`` replays a step bit for bit). Contact impulses are reported in
+the world frame, summed over the physics steps of the control period; forces are impulse /
+control period (F = Λ/Δt with one step per control update, as in the paper's Fig. 5).
 """
 from __future__ import annotations
 
@@ -31,7 +29,7 @@ from time import perf_counter
 
 import numpy as np
 
-from .actuator import saturate_torque
+from .actuator import NonFiniteTorque, saturate_torque
 from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, contact_states
 from .coordinates import make_coordinates
@@ -39,9 +37,10 @@ from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_di
                           one_step_diagnostics)
 from .description import (RobotDescription, starleth_description, leg_angles_for_height,
                           urdf_path)
-from .impedance import ImpedanceCommand
+from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, ImpedanceCommand,
+                        replay_rows)
 from .state import SimState
-from .stepper import MoreauStepper, NonFiniteTorque, SimulationError, PHASES
+from .stepper import MoreauStepper, SimulationError, PHASES
 from .tree_step import report_size, report_views
 from .wrenches import ExternalWrenches
 
@@ -226,19 +225,30 @@ class Simulator:
     @property
     def applied_torque(self):
         """The saturated torques applied during the last control step (of an impedance
-        command, those of the period's first physics step: the law at the state the
-        command was answered to; all of them in applied_torques_per_step)."""
+        command, those of the period's first physics step; all in applied_torques_per_step)."""
         return self._tau.copy()
 
     @property
     def applied_torques_per_step(self):
         """The saturated torques applied at each physics step of the last control step,
-        (steps_per_control x n_joints): what `step_applied` takes to replay the step bit
-        for bit (with torques, every row is applied_torque)."""
+        (steps_per_control x n_joints; with torques, every row is applied_torque; an
+        implicit damper's at the step's end rates: replay_torques_per_step replays them)."""
         s = self._applied_steps
         if s is None:   # the one-kernel steps' reports (the current set of report buffers)
             return np.array([v[3] for _, _, v in self._report_buffers[self._next_report ^ 1]])
-        return np.tile(s, (self.config.steps_per_control, 1)) if s.ndim == 1 else s.copy()
+        return s[0].copy() if type(s) is tuple else np.tile(s, (self.config.steps_per_control, 1))
+
+    @property
+    def replay_torques_per_step(self):
+        """What `step_applied` takes to replay the last control step bit for bit with the
+        implicit dampers (steps_per_control x 2 n_joints): per physics step the explicit
+        torques (a damped joint's: its law at the start state), then the dampers' kd."""
+        s = self._applied_steps
+        if s is None:
+            return np.array([np.concatenate((v[4], v[5]))
+                             for _, _, v in self._report_buffers[self._next_report ^ 1]])
+        return s[1].copy() if type(s) is tuple else \
+            np.tile(np.r_[s, np.zeros(self.n_joints)], (self.config.steps_per_control, 1))
 
     @property
     def last_command(self):
@@ -424,7 +434,7 @@ class Simulator:
             if tau.joint_names != self.joint_names:
                 raise ValueError("ImpedanceCommand: made for the joints "
                                  f"{', '.join(tau.joint_names)}, not {', '.join(self.joint_names)}")
-            return self._step_per_physics_step(tau.packed, tau, impedance=True)
+            return self._step_per_physics_step(tau.packed, tau, TORQUE_IMPEDANCE)
         t_wall = perf_counter()
         state = self.state
         stepper = self.stepper
@@ -436,7 +446,7 @@ class Simulator:
             # the common case: one kernel call that also saturates τ; it writes its reports
             # into the spare report buffer, which then becomes the current one
             a = self._torque_array(tau)
-            report, active, (impulse, gap, position, tau) = \
+            report, active, (impulse, gap, position, tau, _, _) = \
                 self._report_buffers[self._next_report][0]
             try:
                 r = stepper.step_in_one_kernel(state, a, report, active)
@@ -493,55 +503,43 @@ class Simulator:
         return dict(zip(PHASES, self.stepper.stats.timings.tolist()))
 
     def step_applied(self, torques):
-        """Advance one control period applying `torques` (steps_per_control x n_joints, or
-        n_joints for every step) at its physics steps as given, NOT saturated again: the
-        applied torques of a recorded run (applied_torques_per_step), which this replays bit
-        for bit from the same state (saturating a derated torque again would derate it
-        twice). ValueError on a wrong shape or a non-finite entry (state unchanged)."""
-        n = self.config.steps_per_control
-        a = np.array(torques, dtype=np.float64)
-        if a.ndim == 1:
-            a = np.tile(a, (n, 1))
-        if a.shape != (n, self.n_joints):
-            raise ValueError(f"step_applied: torques must be {n} x {self.n_joints} (physics "
-                             f"steps x joints {', '.join(self.joint_names)}), got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise self._non_finite_torque(a.min(axis=0) + a.max(axis=0))
-        return self._step_per_physics_step(a, a, impedance=False)
+        """Advance one control period applying recorded torques at its physics steps as
+        given (NOT saturated again: a derated torque would be derated twice):
+        replay_torques_per_step (explicit torques, then the implicit dampers' kd), which
+        replays the step bit for bit from the same state, or torques (steps_per_control x
+        n_joints, or n_joints for every step). ValueError on a wrong shape or value."""
+        a = replay_rows(torques, self.config.steps_per_control, self.joint_names,
+                        self.stepper.implicit_dampers)
+        return self._step_per_physics_step(a, a, TORQUE_REPLAY if a.shape[1] > self.n_joints
+                                           else TORQUE_AS_GIVEN)
 
-    def _step_per_physics_step(self, torques, command, impedance):
+    def _step_per_physics_step(self, torques, command, mode):
         """A control period whose torques change from physics step to physics step: an
-        impedance command's law (torques: its packed buffer) at each step's start state, or
-        applied torques (torques: one row per step) as given."""
+        impedance command's law (mode TORQUE_IMPEDANCE, torques: its packed buffer) at each
+        step's start state, or applied torques (one row per step; TORQUE_REPLAY: with the
+        implicit dampers) as given."""
         t_wall = perf_counter()
         state = self.state
         if self.stepper.step_is_transactional(state) and self._no_wrench_to_apply(state):
-            figures, impulse, active, gap, position = self._kernel_steps(
-                state, torques, impedance=impedance, per_step=not impedance)
+            figures, impulse, active, gap, position = self._kernel_steps(state, torques, mode)
             applied = None      # (in the current report buffers)
             tau = self._report_buffers[self._next_report ^ 1][0][2][3]
         else:
-            stepper, applied = self.stepper, []
-
-            def torque_of_step(state, i):
-                tau = stepper.impedance_torque(torques, state.q, state.u) if impedance \
-                    else torques[i]
-                applied.append(tau)
-                return tau
+            out = ([], [])
             figures = self._physics_steps(state, None, self.config.steps_per_control, True,
-                                          torque_of_step)
+                                          torques, mode, out)
             impulse, active, gap, position = self._period_reports(figures)
-            tau, applied = applied[0], np.array(applied)
+            tau, applied = out[0][0], (np.array(out[0]), np.array(out[1]))
         d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
                                      self._timings())
         self._command = command
         self._applied_steps = applied
         return self._step_done(d, tau, impulse, active, gap, position)
 
-    def _kernel_steps(self, state, tau, impedance=False, per_step=False):
+    def _kernel_steps(self, state, tau, mode=None):
         """The physics steps of a control period, each in one kernel call with the applied
-        torques tau (saturated: MoreauStepper.step_in_one_kernel; per_step: tau[i] at step
-        i; impedance: tau an impedance command's packed buffer), their reports written
+        torques tau (saturated: MoreauStepper.step_in_one_kernel; a mode TORQUE_*: tau an
+        impedance command's packed buffer, or rows, tau[i] at step i), their reports written
         into the spare set of report buffers, which then becomes the current one; the same
         arithmetic as _physics_steps' (bit for bit). On a SimulationError the state is
         restored from a copy taken before (one step alone fails leaving it as it was).
@@ -551,8 +549,11 @@ class Simulator:
         buffers = self._report_buffers[self._next_report]
         before = state.copy(share_qu=True) if len(buffers) > 1 else state
         try:
+            per_step = mode in (TORQUE_AS_GIVEN, TORQUE_REPLAY)
             figures = [stepper.step_in_one_kernel(state, tau[i] if per_step else tau, report,
-                                                  active, saturate=False, impedance=impedance)
+                                                  active, saturate=False,
+                                                  impedance=mode == TORQUE_IMPEDANCE,
+                                                  replay=mode == TORQUE_REPLAY)
                        for i, (report, active, _) in enumerate(buffers)]
         except NonFiniteTorque:
             self.restore(before)
@@ -564,26 +565,32 @@ class Simulator:
         impulse = buffers[0][2][0]
         for _, _, views in buffers[1:]:    # in step order (as _physics_steps' callers)
             impulse = impulse + views[0]
-        _, active, (_, gap, position, _) = buffers[-1]
+        _, active, (_, gap, position, _, _, _) = buffers[-1]
         return figures, impulse, active, gap, position
 
-    def _physics_steps(self, state, tau, n, rollback, torque_of_step=None):
+    def _physics_steps(self, state, tau, n, rollback, commands=None, mode=None, out=None):
         """The n physics steps of a control period through MoreauStepper.step, with the
-        wrenches and the torques tau (or torque_of_step(state, i) at step i); their
-        StepResults. On a SimulationError the state is restored from a copy taken before
-        (with rollback; the stepper never writes into q and u)."""
+        wrenches and the torques tau, or the commands of `mode` (an impedance command's
+        buffer, or row i at step i; their applied torques and replay rows appended to
+        `out`); their StepResults. On a SimulationError the state is restored from a copy
+        taken before (with rollback; the stepper never writes into q and u)."""
         stepper = self.stepper
         dt = stepper.dt
         before = state.copy(share_qu=True) if rollback else None
         wrenches = not self._wrenches.none_to_apply(state)
         force = self._wrenches.generalized_force
         try:
-            if torque_of_step is None:
+            if commands is None:
                 return [stepper.step(state, tau, force(state, dt) if wrenches
                                      else None) for _ in range(n)]
-            return [stepper.step(state, torque_of_step(state, i),
-                                 force(state, dt) if wrenches else None)
-                    for i in range(n)]
+            results = []
+            for i in range(n):
+                c = commands if mode == TORQUE_IMPEDANCE else commands[i]
+                results.append(stepper.step(state, c, force(state, dt) if wrenches else None,
+                                            mode))
+                out[0].append(stepper.last_torques[0].copy())
+                out[1].append(np.concatenate(stepper.last_torques[1:]))
+            return results
         except NonFiniteTorque:
             self.restore(before)
             raise ValueError("the impedance law gave non-finite torques") from None

@@ -95,3 +95,12 @@ class SimState:
         new.pending_wrenches = [[link, f.copy(), m.copy(), remaining]
                                 for link, f, m, remaining in pending] if pending else []
         return new
+
+    def restore_memory(self, other: "SimState"):
+        """The contact memory of `other` (a copy of this state) copied back into this
+        state's arrays, in place (a step solved again from the same memory)."""
+        for name in ("last_impulse", "last_active", "last_bilateral", "closed", "slip",
+                     "anchor", "lam_compliant"):
+            a = getattr(self, name)
+            if a is not None:
+                a[...] = getattr(other, name)

@@ -46,11 +46,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import prox
-from .actuator import saturate_torque
+from .actuator import NonFiniteTorque, saturate_torque
 from .config import ConfigError
 from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
-from .impedance import TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_SATURATED, impedance_torque
+from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, TORQUE_SATURATED,
+                        command_torques)
 from .linalg import ltdl
 from .state import SimState
 from .terrain import pack_terrain
@@ -71,10 +72,6 @@ _empty = np.empty
 class SimulationError(RuntimeError):
     """The step could not be completed (non-finite solver output or state); the state was
     left unchanged."""
-
-
-class NonFiniteTorque(ValueError):
-    """The joint torques of a step have a non-finite entry; nothing was done."""
 
 
 @dataclass(slots=True)
@@ -214,6 +211,11 @@ class MoreauStepper:
         #: τ of no torque (one entry per actuated joint), for a step given none
         self._no_torque = np.zeros(coords.joint_v.shape[0])
         self._one_kernel_unprofiled = self._one_kernel and not profile
+        #: joint dampers are implicit where every joint rate is an entry of u and M is
+        #: factored with the step (the tree kernels' sets: the minimal coordinates)
+        self.implicit_dampers = self._one_kernel and not self._forest_kernel
+        #: (applied τ, explicit τ, kd of the implicit dampers) of the last `step`
+        self.last_torques = None
         na = coords.joint_v.shape[0]
         effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
             if torque_limits is None else torque_limits
@@ -295,18 +297,33 @@ class MoreauStepper:
             ok = self._factor(M, timings)
         self._prepared = (q, u, qM, M, h0, ok, problem, WtB)
 
-    def step(self, state: SimState, tau, f_ext=None) -> "StepResult":
+    def step(self, state: SimState, tau, f_ext=None, mode=TORQUE_AS_GIVEN) -> "StepResult":
         """Advance state by Δt with joint torques tau (public joint order) and an optional
         generalized external force f_ext: state.q and state.u become q^E and u^E, and the
-        contact memory is updated (state.t is the caller's). Returns the StepResult. On a
+        contact memory is updated (state.t is the caller's). mode TORQUE_IMPEDANCE: tau is
+        an impedance command's packed buffer (the law at the state, saturated, its dampers
+        implicit where `implicit_dampers`: see `torques_of_command`); TORQUE_REPLAY: tau is
+        the explicit torques then the dampers' kd (2 per joint). `last_torques` then holds
+        the applied, explicit torques and dampers. Returns the StepResult. On a
         SimulationError, q and u are unchanged but the contact memory may not be (the
         Simulator restores its snapshot)."""
         prof = self.profile
         p = self._prepared
         self._prepared = None
         prepared = p is not None and p[0] is state.q and p[1] is state.u
-        if self._one_kernel and not prepared and not prof:
-            return self._step_one_kernel(state, tau, f_ext)
+        if self._one_kernel and not prof and (
+                not prepared or (mode != TORQUE_AS_GIVEN and self.implicit_dampers)):
+            return self._step_one_kernel(state, tau, f_ext, mode)
+        damper = None
+        if mode != TORQUE_AS_GIVEN:
+            tau, damper = self.torques_of_command(tau, state.q, state.u, mode)
+            if damper.any():
+                prepared = False    # (prepare factored M, not M~)
+            else:
+                damper = None
+        if damper is not None:
+            return self._step_implicit(state, tau, f_ext, damper, mode == TORQUE_IMPEDANCE)
+        self.last_torques = None if tau is None else (tau, tau, np.zeros(tau.shape[0]))
         timings = self.stats.timings if prof else None
         if prepared:
             _, u, qM, M, h, ok, problem, WtB = p
@@ -318,7 +335,6 @@ class MoreauStepper:
         if not ok:
             raise SimulationError("mass matrix (or G_B) not positive definite "
                                   "(non-finite state?)")
-        dt = self.dt
         coords = self.coords
         t = clock(timings) if prof else 0.0
         if tau is not None and tau.shape[0]:
@@ -332,17 +348,21 @@ class MoreauStepper:
         else:
             uE, res = self._solve_compliant(state, M, h, u, problem, WtB, prepared, timings)
         t = clock(timings) if prof else 0.0
-        # Eqn. (8); with a post-step projection, the positions move by ½Δt Δu_p more
+        self._end_of_step(state, qM, uE, res)
+        if prof:
+            lap(timings, PHASE_REST, t)
+        return res
+
+    def _end_of_step(self, state, qM, uE, res):
+        """Eqn. (8) into state (q^E, u^E); with a post-step projection, the positions move
+        by ½Δt Δu_p more. SimulationError if the result is not finite."""
         qE = np.empty_like(qM)
-        tree = coords.tree
-        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * dt, tree.jtype,
+        tree = self.coords.tree
+        if not end_of_step(qM, uE, self.u_corr, res.projected, 0.5 * self.dt, tree.jtype,
                            tree.idx_q, tree.idx_v, qE):
             raise SimulationError("non-finite state after the step; state left unchanged")
         state.q, state.u = qE, uE
         self.stats.steps += 1
-        if prof:
-            lap(timings, PHASE_REST, t)
-        return res
 
     def step_is_transactional(self, state: SimState) -> bool:
         """Whether the next `step` of `state`, should it fail (SimulationError), leaves the
@@ -353,19 +373,24 @@ class MoreauStepper:
         return self._one_kernel_unprofiled and (
             p is None or not (p[0] is state.q and p[1] is state.u))
 
-    def _step_one_kernel(self, state, tau, f_ext):
-        """`step` in one kernel call (tau as given, not saturated again): its StepResult."""
+    def _step_one_kernel(self, state, tau, f_ext, mode=TORQUE_AS_GIVEN):
+        """`step` in one kernel call (tau as given, not saturated again, or a command of
+        `mode`): its StepResult."""
         na = self._no_torque.shape[0]
         report = np.empty(report_size(self.nc, na))
         is_active = np.empty(self.nc, dtype=np.bool_)
-        r = self.step_in_one_kernel(state, tau, report, is_active, f_ext, saturate=False)
-        impulse, gap, position, _ = report_views(report, self.nc, na)
+        r = self.step_in_one_kernel(state, tau, report, is_active, f_ext, saturate=False,
+                                    impedance=mode == TORQUE_IMPEDANCE,
+                                    replay=mode == TORQUE_REPLAY)
+        impulse, gap, position, applied, explicit, damper = report_views(report, self.nc, na)
+        self.last_torques = (applied, explicit, damper)
         return StepResult(is_active, gap, impulse, r.iterations, r.status, r.residual,
                           r.retried, position, r.n_active, r.opened, r.projection_iterations,
                           r.projection_status)
 
     def step_in_one_kernel(self, state: SimState, tau, report, is_active, f_ext=None,
-                           saturate: bool = True, impedance: bool = False) -> TreeStepResult:
+                           saturate: bool = True, impedance: bool = False,
+                           replay: bool = False) -> TreeStepResult:
         """`step` in one kernel call (tree_step_hard / tree_step_compliant /
         forest_step_hard), for a state that `step_is_transactional` approves: the same
         result bit for bit as the phase-by-phase path. tau: the torques asked (float64, one
@@ -374,7 +399,9 @@ class MoreauStepper:
         comes from the cut-joint kinematics of the state, ForestCoordinates'
         joint_velocities, which a controller has usually asked for already). With impedance
         True, tau is an ImpedanceCommand's packed buffer: the law at the joint angles and
-        rates of (state.q, state.u), then saturated (`saturate` is not read).
+        rates of (state.q, state.u), then saturated (`saturate` is not read), its dampers
+        implicit (tree kernels; a cut forest's stay explicit); with replay True, tau holds
+        the explicit torques then the dampers' kd (report_views' explicit_torque, damper).
         Writes the report buffer (tree_step.report_views: Λ, g_N and contact points at q^M,
         the applied torques) and the active flags; returns the kernel's TreeStepResult
         (its outcome TREE_STEP_OK). A NonFiniteTorque or SimulationError leaves the state as
@@ -384,10 +411,20 @@ class MoreauStepper:
         mode = TORQUE_SATURATED if saturate else TORQUE_AS_GIVEN
         if impedance:
             if self._forest_kernel:     # the law at φ, φ̇ of the cut-joint kinematics
-                tau = self.impedance_torque(tau, q, u)
+                tau = self.torques_of_command(tau, q, u, TORQUE_IMPEDANCE)[0]
                 saturate = False
             else:
                 mode = TORQUE_IMPEDANCE
+        elif replay:
+            na = self._no_torque.shape[0]
+            if tau.shape[0] != 2 * na:
+                raise ValueError(f"a replay needs {2 * na} entries, got {tau.shape[0]}")
+            if self._forest_kernel:
+                if np.any(tau[na:] != 0.0):
+                    raise ValueError("a cut forest has no implicit dampers to replay")
+                tau = np.ascontiguousarray(tau[:na])
+            else:
+                mode = TORQUE_REPLAY
         elif tau is None or tau.shape[0] == 0:  # no torques, as in the phase-by-phase step
             tau = self._no_torque
         elif tau.shape[0] != self._no_torque.shape[0]:  # (the kernel reads one per joint)
@@ -441,19 +478,44 @@ class MoreauStepper:
         self.stats.steps += 1
         return r
 
-    def impedance_torque(self, command, q, u):
-        """The applied torques of an impedance command's law (its packed buffer) at the
-        joint angles and rates of (q, u), saturated (actuator.saturate_torque at the same
-        rates by the torque_limits): what the one-kernel tree steps compute inside, by the
-        same C functions (bit for bit). NonFiniteTorque if the law overflows."""
-        c = self.coords
-        qd = c.joint_velocities(q, u)
-        law = _empty(qd.shape[0])
-        impedance_torque(command, c.joint_positions(q, u), qd, law)
-        applied = _empty(qd.shape[0])
-        if not saturate_torque(law, self._effort_limit, qd, self._velocity_limit, applied):
-            raise NonFiniteTorque("the impedance law gave non-finite torques")
-        return applied
+    def torques_of_command(self, tau, q, u, mode):
+        """(explicit torques, kd of the implicit dampers) of a command of `mode` at (q, u)
+        (impedance.command_torques with this stepper's limits)."""
+        return command_torques(tau, q, u, mode, self.coords, self._effort_limit,
+                               self._velocity_limit, self.implicit_dampers)
+
+    def _step_implicit(self, state, tau, f_ext, damper, check):
+        """The phase-by-phase step with implicit dampers, as the tree kernels do it: M~ = M +
+        Δt K_d, the applied torques τ − kd (q̇^E − q̇^S); with check, a damped joint whose
+        torque would be saturated at q̇^E loses its damper and the step is solved once more
+        from the same contact memory."""
+        u = state.u
+        qM, M, h, WtB = self._midpoint(state.q, u, None)
+        self.coords.add_joint_torques(qM, u, tau, h)
+        if f_ext is not None:
+            h += f_ext
+        jv = self.coords.joint_v
+        kept = state.copy()
+        h0 = h.copy()
+        damper = damper.copy()
+        for attempt in (0, 1):
+            Md = M.copy()
+            Md[jv, jv] += self.dt * damper
+            if self.hard:
+                uE, res = self._solve(state, Md, h, u, None, WtB, None)
+            else:
+                uE, res = self._solve_compliant(state, Md, h, u, None, WtB, False, None)
+            applied = tau - damper * (uE[jv] - u[jv])
+            over = (damper > 0.0) & ((np.abs(applied) > self._effort_limit) | (
+                (np.abs(uE[jv]) > self._velocity_limit) & (applied * uE[jv] > 0.0)))
+            if attempt or not check or not over.any():
+                break
+            damper[over] = 0.0
+            state.restore_memory(kept)
+            h = h0.copy()
+        self.last_torques = (np.where(damper > 0.0, applied, tau), tau, damper)
+        self._end_of_step(state, qM, uE, res)
+        return res
 
     def _solve_compliant(self, state, M, h, uS, problem, WtB, prepared, timings):
         """Alg. 1: the compliant forces at (q^M, u^S) join h; then u^E by the prox solve of

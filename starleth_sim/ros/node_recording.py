@@ -75,8 +75,10 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
         "wrench_persistent_topic": subs["wrench_persistent"][1],
         "applied_torque_topic": pubs["applied_torque"][1],
         "replay": "torques: applied_torque_topic at log time t_(k+1) = the torques of each "
-                  "physics step of step k -> k+1 (physics_steps x joints, saturated, "
-                  "derated); in bags without it, /joint_states effort at stamp t_(k+1) = the "
+                  "physics step of step k -> k+1 (physics_steps x 3 x joints: the torques "
+                  "applied, saturated, derated; the explicit torques; the kd of the implicit "
+                  "dampers: Simulator.step_applied of the last two); in bags without it, "
+                  "/joint_states effort at stamp t_(k+1) = the "
                   "torque applied over step k -> k+1 (joint order joint_names); "
                   "inputs (commands, wrenches): log time t_k = the stamp of the state "
                   "after which they were taken: a wrench acts from step k -> k+1"})

@@ -150,7 +150,7 @@ SIM_NODE_PARAMETERS = (
              "joint_commands with positions, and joint_group_position_controller/commands; "
              "tau = tau_ff + kp (q* - q) + kd (qd* - qd) at every physics step. One number "
              "for every joint or 12 in joint order; settable at run time (ros2 param set)."),
-    GainSpec("default_kd", float, 1.0,
+    GainSpec("default_kd", float, 2.0,
              "Damping kd [N m s/rad] of joint velocity targets (qd* = 0 with a position "
              "target and no velocity), as default_kp; also the gain of "
              "joint_group_velocity_controller/commands."),

@@ -109,12 +109,13 @@ class StatePublisher:
         add("applied_torque", Float64MultiArray, TOPIC_APPLIED_TORQUE, STATE_QOS)
         # its CDR bytes: a fixed prefix (the layout, the data length) and the float64 data
         n_steps, n = self.sim.config.steps_per_control, self.sim.n_joints
-        m = Float64MultiArray(data=[0.0] * (n_steps * n))
+        m = Float64MultiArray(data=[0.0] * (n_steps * 3 * n))
         m.layout.dim = [
-            MultiArrayDimension(label="physics_steps", size=n_steps, stride=n_steps * n),
+            MultiArrayDimension(label="physics_steps", size=n_steps, stride=n_steps * 3 * n),
+            MultiArrayDimension(label="applied_explicit_kd", size=3, stride=3 * n),
             MultiArrayDimension(label="joints", size=n, stride=n)]
         raw = serialize_message(m)
-        self._torque_prefix = raw[:len(raw) - 8 * n_steps * n]
+        self._torque_prefix = raw[:len(raw) - 8 * n_steps * 3 * n]
 
     # -- the state of a step ---------------------------------------------------------------
     def publish_state(self, record=True):
@@ -229,9 +230,13 @@ class StatePublisher:
 
     def _publish_applied_torque(self, record):
         """starleth/applied_torque: the saturated torque of every physics step of the step
-        that led to this state (physics_steps x joints, joint order; no header: recorded at
-        this state's stamp). What starleth-replay re-applies (Simulator.step_applied)."""
-        data = np.ascontiguousarray(self.sim.applied_torques_per_step, dtype="<f8").tobytes()
+        that led to this state, with the explicit torques and the kd of the implicit dampers
+        (physics_steps x 3 x joints, joint order; no header: recorded at this state's
+        stamp). What starleth-replay re-applies (Simulator.step_applied)."""
+        sim = self.sim
+        rows = np.concatenate((sim.applied_torques_per_step[:, None],
+                               sim.replay_torques_per_step.reshape(-1, 2, sim.n_joints)), 1)
+        data = np.ascontiguousarray(rows, dtype="<f8").tobytes()
         self.output.emit_cdr("applied_torque", self._torque_prefix + data, record)
 
     def _publish_foot_wrenches(self, sec, nsec, feet, record, forces=None):

@@ -9,7 +9,9 @@ state (q, u in the simulator's coordinates, and in minimal coordinates), the con
 the package version, and the topic names. The torques applied at each physics step of step
 k -> k+1 are the ``starleth/applied_torque`` message at t_(k+1) (saturated at the effort limit
 and derated at the velocity limit: what the motors applied; an impedance command's torque
-changes within a control period), replayed with ``Simulator.step_applied``; in bags without
+changes within a control period; with the explicit torques and the implicit dampers' kd
+that ``Simulator.step_applied`` re-solves), replayed with ``Simulator.step_applied``; in bags
+without
 that topic, the effort of the ``/joint_states`` message stamped t_(k+1), and every external
 wrench the node
 took is recorded on its input topic with the log time t_k of the state after which it was

@@ -51,6 +51,9 @@ class Recording:
     #: (N+1, physics steps, 12): applied[k+1] = the torques of each physics step of k -> k+1
     #: (starleth/applied_torque); None in bags recorded without it
     applied: np.ndarray | None = None
+    #: (N+1, physics steps, 24): per physics step the explicit torques, then the kd of the
+    #: implicit dampers (Simulator.replay_torques_per_step); None in bags without them
+    replay: np.ndarray | None = None
     wrenches: dict = field(default_factory=dict)   # k -> [(link, force, torque, persistent)]
     summary: dict = field(default_factory=dict)    # sim_node's closing summary, if any
 
@@ -225,8 +228,8 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
                 fm = m.wrench.force
                 forces[k, 3 * i:3 * i + 3] = (fm.x, fm.y, fm.z)
     states["foot_forces"] = forces
-    applied = _applied_torques(bag.messages.get(applied_topic, ()), period_ns, n,
-                               len(joint_names), path, applied_topic)
+    applied, replay = _applied_torques(bag.messages.get(applied_topic, ()), period_ns, n,
+                                       len(joint_names), path, applied_topic)
     wrenches = {}
     for topic, persistent in wrench_topics.items():
         for log_ns, m in bag.messages.get(topic, ()):
@@ -252,15 +255,18 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
                      joint_names=joint_names, control_period=control_period,
                      period_ns=period_ns, namespace=ns,
                      package_version=md.get("package_version", "unknown"), states=states,
-                     effort=effort, applied=applied, wrenches=wrenches, summary=summary)
+                     effort=effort, applied=applied, replay=replay, wrenches=wrenches,
+                     summary=summary)
 
 
 def _applied_torques(rows, period_ns, n, n_joints, path, topic):
     """(n, physics steps, n_joints) from the starleth/applied_torque messages (log time
-    t_(k+1): the step k -> k+1), or None when the bag has none; ReplayError on a message
+    t_(k+1): the step k -> k+1), and with the layout physics_steps x 3 x joints (applied,
+    explicit torques, kd of the implicit dampers) the replay rows (n, physics steps, 2
+    n_joints; else None); (None, None) when the bag has none; ReplayError on a message
     that is not such torques or a step without one."""
     if not rows:
-        return None
+        return None, None
     by_step = {}
     for log_ns, m in rows:
         k = int(log_ns) // period_ns
@@ -268,18 +274,24 @@ def _applied_torques(rows, period_ns, n, n_joints, path, topic):
             by_step.setdefault(k, m)
     dims = list(rows[0][1].layout.dim)
     steps = dims[0].size if dims else 0
-    out = None
+    terms = dims[1].size if len(dims) == 3 else 1
+    out = replay = None
     for k in range(1, n):
         m = by_step.get(k)
         if m is None:
             raise ReplayError(f"{path}: {topic}: no applied torque for step {k - 1} -> {k} "
                               f"(t = {k * period_ns * 1e-9:.4f} s): cannot replay it")
         a = np.array(m.data, dtype=float)
-        if steps < 1 or a.shape[0] != steps * n_joints or not np.isfinite(a).all():
+        if steps < 1 or terms not in (1, 3) or a.shape[0] != steps * terms * n_joints or \
+                not np.isfinite(a).all():
             raise ReplayError(f"{path}: {topic}: the message of t = {k * period_ns * 1e-9:.4f} s "
                               f"holds {a.shape[0]} values (layout {steps} physics steps x "
                               f"{n_joints} joints expected, all finite): not applied torques")
         if out is None:
             out = np.zeros((n, steps, n_joints))
-        out[k] = a.reshape(steps, n_joints)
-    return out
+            replay = np.zeros((n, steps, 2 * n_joints)) if terms == 3 else None
+        a = a.reshape(steps, terms, n_joints)
+        out[k] = a[:, 0]
+        if replay is not None:
+            replay[k] = a[:, 1:].reshape(steps, 2 * n_joints)
+    return out, replay

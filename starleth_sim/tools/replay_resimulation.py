@@ -2,7 +2,8 @@
 through a configuration with sim_node's own calls (``SimService``), and the replayed run
 compared with the recorded one, bit for bit or by where it diverges. The torques: those of
 every physics step (starleth/applied_torque, ``Simulator.step_applied``: exact for impedance
-commands, whose torque changes within a control period) where the bag has them, else the
+commands, whose torque changes within a control period, their implicit dampers re-solved)
+where the bag has them, else the
 /joint_states effort (bags of before)."""
 from __future__ import annotations
 
@@ -90,6 +91,9 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     # torque changes within a control period) and it fits this configuration
     applied = rec.applied if rec.applied is not None and \
         rec.applied.shape[1] == cfg.steps_per_control else None
+    # (with the implicit dampers' replay rows where this simulator has implicit dampers)
+    if applied is not None and rec.replay is not None and sim.stepper.implicit_dampers:
+        applied = rec.replay
     if rec.applied is not None and applied is None:
         warn(f"{cfg.name}: {cfg.steps_per_control} physics steps per control "
                         f"period, the recording's applied torques have {rec.applied.shape[1]}: "

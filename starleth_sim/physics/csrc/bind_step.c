@@ -317,8 +317,8 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
             return 0;
         }
     }
-    if (torque_mode < TORQUE_AS_GIVEN || torque_mode > TORQUE_IMPEDANCE) {
-        PyErr_Format(PyExc_ValueError, "%s: torque_mode must be 0, 1 or 2 (TORQUE_*)", fn);
+    if (torque_mode < TORQUE_AS_GIVEN || torque_mode > TORQUE_REPLAY) {
+        PyErr_Format(PyExc_ValueError, "%s: torque_mode must be 0 to 3 (TORQUE_*)", fn);
         return 0;
     }
     if (torque_mode == TORQUE_IMPEDANCE) /* the law reads q at each joint's entry */
@@ -328,12 +328,13 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
                              fn, (long long)k);
                 return 0;
             }
-    i64 n_tau = torque_mode == TORQUE_IMPEDANCE ? impedance_command_length(na) : na;
+    i64 n_tau = torque_mode == TORQUE_IMPEDANCE ? impedance_command_length(na)
+                : torque_mode == TORQUE_REPLAY ? 2 * na : na;
     if (!need(x->n_tau == n_tau && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
                   v[4].len == 3 * nc && v[5].len == nc && v[7].len == report_length(nc, na) &&
                   v[8].len == nc && v[9].len == x->nq && v[10].len == nv,
               fn, "the step's arrays do not match the model (tau: one torque per joint, or 5 "
-                  "per joint for an impedance command; f_ext: nv or empty; report: 7 nc + na)"))
+                  "per joint for an impedance command, 2 for a replay; f_ext: nv or empty; report: 7 nc + 3 na)"))
         return 0;
     report_views(v[7].p, nc, na, &x->report);
     return 1;

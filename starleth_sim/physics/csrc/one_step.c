@@ -44,18 +44,27 @@ void impedance_torque(const impedance_command_t *c, const double *q, const doubl
 }
 
 /* _applied_torque: the torques the motors apply for tau (torque_mode TORQUE_*: as given,
- * saturate_torque at the joint rates of u, or the impedance law of the command tau at (q, u)
- * saturated); 0 if the torques have a non-finite entry */
+ * saturate_torque at the joint rates of u, the impedance law of the command tau at (q, u)
+ * saturated, or a replay) into the report's explicit_torque, and the kd of the implicit
+ * dampers into its damper: with an impedance command, the joints with a damper term whose
+ * law at (q^S, u^S) is not saturated; 0 if the torques have a non-finite entry */
 static int applied_torque(int torque_mode, const double *tau, i64 n, const double *q,
-                          const double *u, const tree_model_t *t, double *applied, arena_t *a) {
-    if (torque_mode == TORQUE_AS_GIVEN) {
-        for (i64 k = 0; k < n; k++) applied[k] = tau[k];
+                          const double *u, const tree_model_t *t, const report_t *r,
+                          arena_t *a) {
+    double *applied = r->explicit_torque;
+    for (i64 k = 0; k < t->na; k++) r->damper[k] = 0.0;
+    if (torque_mode == TORQUE_AS_GIVEN || torque_mode == TORQUE_REPLAY) {
+        for (i64 k = 0; k < t->na; k++) {
+            applied[k] = tau[k];
+            if (torque_mode == TORQUE_REPLAY) r->damper[k] = tau[t->na + k];
+            if (!isfinite(applied[k]) || !isfinite(r->damper[k])) return 0;
+        }
         return 1;
     }
     double *qd = arena_f(a, t->na);
     for (i64 k = 0; k < t->na; k++) qd[k] = u[t->joint_v[k]];
+    impedance_command_t c;  /* (the views are read only) */
     if (torque_mode == TORQUE_IMPEDANCE) {
-        impedance_command_t c;  /* (the views are read only) */
         impedance_command_views((double *)tau, t->na, &c);
         double *qj = arena_f(a, t->na), *law = arena_f(a, t->na);
         for (i64 k = 0; k < t->na; k++) qj[k] = q[t->joint_q[k]];
@@ -63,7 +72,51 @@ static int applied_torque(int torque_mode, const double *tau, i64 n, const doubl
         tau = law;
         n = t->na;
     }
-    return saturate_torque(tau, t->effort_limit, qd, t->velocity_limit, applied, n);
+    if (!saturate_torque(tau, t->effort_limit, qd, t->velocity_limit, applied, n)) return 0;
+    if (torque_mode == TORQUE_IMPEDANCE)
+        for (i64 k = 0; k < t->na; k++)
+            if (!isnan(c.velocity[k]) && c.kd[k] > 0.0 && applied[k] == tau[k])
+                r->damper[k] = c.kd[k];
+    return 1;
+}
+
+/* _damped: M~ = M + Δt K_d (K_d: the dampers on the actuated joints' diagonal entries) into
+ * Md, from M; 0 if no joint has an implicit damper (Md then unused) */
+static int damped(const double *M, const tree_model_t *t, const double *damper, i64 nv,
+                  double *Md) {
+    int any = 0;
+    for (i64 k = 0; k < t->na; k++) any |= damper[k] > 0.0;
+    if (!any) return 0;
+    for (i64 k = 0; k < nv * nv; k++) Md[k] = M[k];
+    for (i64 k = 0; k < t->na; k++) {
+        i64 j = t->joint_v[k];
+        Md[j * nv + j] += t->s.dt * damper[k];
+    }
+    return 1;
+}
+
+/* _implicit_torques: the applied torques after the step: τ = τ_explicit − kd (q̇^E − q̇^S) on
+ * the implicitly damped joints (the law at q̇^E), τ_explicit on the others. With check (an
+ * impedance command): a damped joint whose τ would be saturated at q̇^E loses its damper
+ * (and keeps its explicit torque, the law at u^S, unsaturated there); 1 if one did. */
+static int implicit_torques(const tree_model_t *t, const double *uS, const double *uE,
+                            const report_t *r, int check) {
+    int dropped = 0;
+    for (i64 k = 0; k < t->na; k++) {
+        i64 j = t->joint_v[k];
+        double tk = r->explicit_torque[k];
+        if (r->damper[k] > 0.0) {
+            tk -= r->damper[k] * (uE[j] - uS[j]);
+            double lim = t->effort_limit[k], v = t->velocity_limit[k], w = fabs(uE[j]);
+            if (check && (fabs(tk) > lim || (w > v && tk * uE[j] > 0.0))) {
+                r->damper[k] = 0.0;
+                tk = r->explicit_torque[k];
+                dropped = 1;
+            }
+        }
+        r->applied_torque[k] = tk;
+    }
+    return dropped;
 }
 
 /* _report_contacts: g_N and the contact points at q^M into the report buffer */
@@ -123,37 +176,68 @@ static void complete_step(const settings_t *s, const problem_t *p, const double 
     res->projection_status = c.projection_status;
 }
 
-/* tree_step_hard: the applied torques (of the step's start state), Eqn. (6) and M, h, W at the midpoint, the contact
- * problem and its solution, Eqn. (8) */
+/* tree_step_hard: the applied torques (of the step's start state), Eqn. (6) and M, h, W at
+ * the midpoint, the contact problem (with M~ = M + Δt K_d of the implicit dampers) and its
+ * solution, Eqn. (8); a damped joint whose torque at u^E would be saturated loses its damper,
+ * and the step is solved once more from the same memory */
 tree_step_result_t tree_step_hard(int torque_mode, const step_arrays_t *x,
                                   const packed_model_t *m, arena_t *a) {
     tree_model_t t;
     unpack_tree_model(m, &t);
     i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc;
-    double *applied = x->report.applied_torque;
-    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, applied, a))
+    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, &x->report, a))
         return result_of(TREE_STEP_NONFINITE_TORQUE);
     double half_dt = 0.5 * t.s.dt;
-    double *out = arena_f(a, nq + nv * nv + nv);
-    double *qM = out, *M = out + nq, *h = out + nq + nv * nv;
-    midpoint_with_forces(x, half_dt, applied, &t, qM, M, h);
+    double *out = arena_f(a, nq + 2 * nv * nv + nv + 4 * nc);
+    double *qM = out, *M = out + nq, *h = out + nq + nv * nv, *Md = h + nv;
+    double *kept = Md + nv * nv;    /* the warm-start memory, for a second solve */
+    midpoint_with_forces(x, half_dt, x->report.explicit_torque, &t, qM, M, h);
+    int implicit = damped(M, &t, x->report.damper, nv, Md);
+    for (i64 k = 0; k < 3 * nc; k++) kept[k] = x->last_impulse[k];
+    for (i64 k = 0; k < nc; k++) kept[3 * nc + k] = x->last_active[k];
     problem_t p;
-    contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, NULL, 0, NULL, t.eps,
-                    t.ground.frames, t.dof_parent, 1, t.L, x->last_impulse, x->last_active, NULL,
-                    a, &p);
-    if (!p.ok) return result_of(TREE_STEP_NOT_PD);
-    tree_step_result_t res = result_of(TREE_STEP_OK);
-    /* (no bilateral rows: Λ_B is empty, last_bilateral its own buffer) */
-    complete_step(&t.s, &p, h, M, &t, x, x->last_bilateral, qM, half_dt, &res, a);
+    tree_step_result_t res;
+    for (int pass = 0; pass < 2; pass++) {
+        contact_problem(&t.s, implicit ? Md : M, x->u, nv, t.gap, nc, t.Wt_all, NULL, 0, NULL,
+                        t.eps, t.ground.frames, t.dof_parent, 1, t.L, x->last_impulse,
+                        x->last_active, NULL, a, &p);
+        if (!p.ok) return result_of(TREE_STEP_NOT_PD);
+        res = result_of(TREE_STEP_OK);
+        /* (no bilateral rows: Λ_B is empty, last_bilateral its own buffer) */
+        complete_step(&t.s, &p, h, implicit ? Md : M, &t, x, x->last_bilateral, qM, half_dt,
+                      &res, a);
+        if (!implicit || res.outcome != TREE_STEP_OK ||
+            !implicit_torques(&t, x->u, x->uE, &x->report, pass == 0 &&
+                              torque_mode == TORQUE_IMPEDANCE))
+            break;
+        for (i64 k = 0; k < 3 * nc; k++) x->last_impulse[k] = kept[k];
+        for (i64 k = 0; k < nc; k++) x->last_active[k] = kept[3 * nc + k] != 0.0;
+        implicit = damped(M, &t, x->report.damper, nv, Md);
+    }
+    if (!implicit) implicit_torques(&t, x->u, x->uE, &x->report, 0);
     report_contacts(t.gap, t.position, &x->report, nc);
     res.n_active = p.na;
     res.opened = p.opened;
     return res;
 }
 
-/* tree_step_compliant: the applied torques, the midpoint, solve_compliant (u^E = u_free) and
- * Eqn. (8); the report's Λ is the compliant force Δt, is_active the closed flags
- * (g_N(q^M) ≤ 0). A failed step leaves the contact state as it was. */
+/* _restore_contacts: the compliant contact state back to what kept holds */
+static void restore_contacts(const u8 *kept_flags, const double *kept, i64 nc, u8 *closed,
+                             u8 *slip, double *anchor, double *lam) {
+    for (i64 i = 0; i < nc; i++) {
+        closed[i] = kept_flags[i] != 0;
+        slip[i] = kept_flags[nc + i] != 0;
+        for (i64 k = 0; k < 3; k++) {
+            anchor[3 * i + k] = kept[3 * i + k];
+            lam[3 * i + k] = kept[3 * nc + 3 * i + k];
+        }
+    }
+}
+
+/* tree_step_compliant: the applied torques, the midpoint, solve_compliant (u^E = u_free,
+ * with M~ = M + Δt K_d and the second solve of tree_step_hard) and Eqn. (8); the report's
+ * Λ is the compliant force Δt, is_active the closed flags (g_N(q^M) ≤ 0). A failed step
+ * leaves the contact state as it was. */
 tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, u8 *closed,
                                        u8 *slip, double *anchor, double *lam,
                                        const packed_model_t *m, arena_t *a) {
@@ -161,13 +245,14 @@ tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, 
     unpack_tree_model(m, &t);
     i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc;
     double dt = t.s.dt;
-    double *applied = x->report.applied_torque;
-    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, applied, a))
+    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, &x->report, a))
         return result_of(TREE_STEP_NONFINITE_TORQUE);
     double half_dt = 0.5 * dt;
-    double *out = arena_f(a, nq + nv * nv + nv);
-    double *qM = out, *M = out + nq, *h = out + nq + nv * nv;
-    midpoint_with_forces(x, half_dt, applied, &t, qM, M, h);
+    double *out = arena_f(a, nq + 2 * nv * nv + 2 * nv);
+    double *qM = out, *M = out + nq, *h = out + nq + nv * nv, *h0 = h + nv, *Md = h0 + nv;
+    midpoint_with_forces(x, half_dt, x->report.explicit_torque, &t, qM, M, h);
+    int implicit = damped(M, &t, x->report.damper, nv, Md);
+    for (i64 k = 0; k < nv; k++) h0[k] = h[k];   /* (solve_compliant adds the contacts) */
     /* the contact state kept, for a failed step */
     u8 *kept_flags = arena_alloc(a, (size_t)(2 * nc));
     double *kept = arena_f(a, 6 * nc);
@@ -180,26 +265,29 @@ tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, 
         }
     }
     i64 outcome;
-    if (!solve_compliant(&t.law, M, h, x->u, nv, dt, nc, t.gap, t.position, t.Wt_all, closed,
-                         slip, anchor, t.ground.frames, lam, t.dof_parent, 1, t.L,
-                         t.u_free, NULL)) {
-        outcome = TREE_STEP_NOT_PD;
-    } else {
+    for (int pass = 0; pass < 2; pass++) {
+        if (!solve_compliant(&t.law, implicit ? Md : M, h, x->u, nv, dt, nc, t.gap, t.position,
+                             t.Wt_all, closed, slip, anchor, t.ground.frames, lam, t.dof_parent,
+                             1, t.L, t.u_free, NULL)) {
+            outcome = TREE_STEP_NOT_PD;
+            break;
+        }
         for (i64 k = 0; k < nv; k++) x->uE[k] = t.u_free[k];
         outcome = TREE_STEP_OK;
+        if (!implicit || !implicit_torques(&t, x->u, x->uE, &x->report, pass == 0 &&
+                                           torque_mode == TORQUE_IMPEDANCE))
+            break;
+        restore_contacts(kept_flags, kept, nc, closed, slip, anchor, lam);
+        for (i64 k = 0; k < nv; k++) h[k] = h0[k];
+        implicit = damped(M, &t, x->report.damper, nv, Md);
+    }
+    if (outcome == TREE_STEP_OK) {
+        if (!implicit) implicit_torques(&t, x->u, x->uE, &x->report, 0);
         if (!end_of_step(qM, x->uE, t.u_corr, 0, half_dt, &t.tree, nq, x->qE, a))
             outcome = TREE_STEP_NONFINITE_STATE;
     }
-    if (outcome != TREE_STEP_OK) { /* the contact state back to what it was */
-        for (i64 i = 0; i < nc; i++) {
-            closed[i] = kept_flags[i] != 0;
-            slip[i] = kept_flags[nc + i] != 0;
-            for (i64 k = 0; k < 3; k++) {
-                anchor[3 * i + k] = kept[3 * i + k];
-                lam[3 * i + k] = kept[3 * nc + 3 * i + k];
-            }
-        }
-    }
+    if (outcome != TREE_STEP_OK) /* the contact state back to what it was */
+        restore_contacts(kept_flags, kept, nc, closed, slip, anchor, lam);
     i64 n_active = 0;
     for (i64 i = 0; i < nc; i++) {
         for (i64 k = 0; k < 3; k++) x->report.impulse[3 * i + k] = lam[3 * i + k] * dt;
@@ -260,9 +348,10 @@ tree_step_result_t forest_step_hard(const step_arrays_t *x, int factor, double *
     unpack_cut_model(cm, t.na, x->nv, &c);
     i64 nv = x->nv, nq = x->nq, nc = t.contacts.nc, na = t.na;
     double *applied = x->report.applied_torque;
-    for (i64 k = 0; k < na; k++) {
+    for (i64 k = 0; k < na; k++) {  /* (a cut forest's dampers stay explicit) */
         if (!isfinite(x->tau[k])) return result_of(TREE_STEP_NONFINITE_TORQUE);
-        applied[k] = x->tau[k];
+        applied[k] = x->report.explicit_torque[k] = x->tau[k];
+        x->report.damper[k] = 0.0;
     }
     double half_dt = 0.5 * t.s.dt;
     i64 nM = c.constant ? 0 : nv * nv;

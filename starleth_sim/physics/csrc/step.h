@@ -67,7 +67,7 @@ enum {
  * given, the torques saturated (saturate_torque at the joint rates of u^S), or a joint
  * impedance command (kernel_layouts.IMPEDANCE_COMMAND, 5 na entries) whose law
  * (impedance_torque at the joint angles and rates of (q^S, u^S)) is then saturated */
-enum { TORQUE_AS_GIVEN = 0, TORQUE_SATURATED = 1, TORQUE_IMPEDANCE = 2 };
+enum { TORQUE_AS_GIVEN = 0, TORQUE_SATURATED = 1, TORQUE_IMPEDANCE = 2, TORQUE_REPLAY = 3 };
 
 /* τ = τ_ff + kp (q* − q) + kd (q̇* − q̇) per joint (n), at the joint angles q and rates qd; a
  * NaN target or τ_ff leaves its term out (impedance.impedance_torque) */
