@@ -242,3 +242,13 @@ def test_the_intake_packs_commands_as_create_does():
         assert mine.joint_names == ref.joint_names and not mine.packed.flags.writeable
         for name in ("position", "velocity", "kp", "kd", "effort"):
             assert np.array_equal(getattr(mine, name), getattr(ref, name), equal_nan=True)
+
+
+def test_absurd_gains_are_refused_with_their_range():
+    """kp above 1e5 N m/rad or kd above 1e3 N m s/rad (the torques saturate at 20 N m) is
+    refused like a negative one, the message giving the range."""
+    for name, bad in (("default_kp", 1e6), ("default_kd", [2.0] * 11 + [1e4])):
+        spec = GAIN_PARAMETERS[name]
+        with pytest.raises(ValueError, match=rf"parameter {name}: must be >= 0 and <= "):
+            spec.check(spec.coerce(bad))
+    GAIN_PARAMETERS["default_kp"].check(1e5)

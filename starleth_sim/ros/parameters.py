@@ -32,8 +32,8 @@ class GainSpec(ParameterSpec):
     read_only: bool = False
 
     def range_text(self) -> str:
-        return ">= 0 (finite): one number for every joint, or a list of one per joint in " \
-               "joint order"
+        return f">= 0 and <= {self.maximum:g}: one number for every joint, or a list of one " \
+               "per joint in joint order"
 
     def coerce(self, value):
         # a list as rclpy hands it over: a list, or an array('d') / array('q') from a
@@ -47,8 +47,8 @@ class GainSpec(ParameterSpec):
 
     def check(self, value):
         values = value if isinstance(value, list) else [value]
-        if not values or not all(isinstance(v, float) and math.isfinite(v) and v >= 0.0
-                                 for v in values):
+        if not values or not all(isinstance(v, float) and math.isfinite(v)
+                                 and 0.0 <= v <= self.maximum for v in values):
             raise ValueError(f"parameter {self.name}: must be {self.range_text()}, got "
                              f"{value!r}")
 
@@ -149,11 +149,13 @@ SIM_NODE_PARAMETERS = (
              "Stiffness kp [N m/rad] of joint position targets: a JointState on "
              "joint_commands with positions, and joint_group_position_controller/commands; "
              "tau = tau_ff + kp (q* - q) + kd (qd* - qd) at every physics step. One number "
-             "for every joint or 12 in joint order; settable at run time (ros2 param set)."),
+             "for every joint or 12 in joint order; settable at run time (ros2 param set). At "
+             "most 1e5 (the joints' torques saturate at 20 N m: 0.2 mrad of error).",
+             maximum=1e5),
     GainSpec("default_kd", float, 2.0,
              "Damping kd [N m s/rad] of joint velocity targets (qd* = 0 with a position "
              "target and no velocity), as default_kp; also the gain of "
-             "joint_group_velocity_controller/commands."),
+             "joint_group_velocity_controller/commands. At most 1e3.", maximum=1e3),
     P("contact_marker_scale", float, 0.002,
       "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
       minimum_exclusive=True, maximum=1.0),
