@@ -51,23 +51,21 @@ def test_frame_tree_is_the_urdf_joint_tree():
     assert {e.child for e in edges} | {"base"} == {c for _, c in tree.dynamic + tree.static}
 
 
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    """A headless sim_node (in this process, its own ROS context) that records 200 steps:
-    the robot collapses under zero torques (every joint moves), then a push."""
+def record_headless(path, parameters, steps, before_step=None):
+    """A headless sim_node (in this process, its own ROS context) with `parameters`,
+    recording to `path` while it takes `steps` steps (`before_step(service, k)` first, if
+    given); returns the node and the bag's messages by topic."""
     from starleth_sim.ros.sim_node import SimNode
-    path = str(tmp_path_factory.mktemp("tf") / "tf.mcap")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
     node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep", "record": path,
-                                                     "tf_rate": 100.0,
-                                                     "contact_markers_rate": 400.0})
+                                                     **parameters})
     try:
         svc = node.service
         node.publisher.publish_state()
-        for k in range(200):
-            if k == 150:
-                svc.submit_wrench("base", (0.0, 400.0, 0.0), (0.0, 0.0, 0.0), False)
+        for k in range(steps):
+            if before_step is not None:
+                before_step(svc, k)
             svc.step()
             node.publisher.publish_state()
     finally:
@@ -77,6 +75,17 @@ def recorded(tmp_path_factory):
     for m in read_ros2_messages(path):
         msgs.setdefault(m.channel.topic, []).append(m)
     return node, msgs
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """200 steps recorded: the robot collapses under zero torques (every joint moves), then a
+    push."""
+    def push(svc, k):
+        if k == 150:
+            svc.submit_wrench("base", (0.0, 400.0, 0.0), (0.0, 0.0, 0.0), False)
+    return record_headless(str(tmp_path_factory.mktemp("tf") / "tf.mcap"),
+                           {"tf_rate": 100.0, "contact_markers_rate": 400.0}, 200, push)
 
 
 def _stamp(msg):
@@ -236,24 +245,8 @@ TERRAIN = ("{stairs: {rise: 0.04, run: 0.3, count: 2, start: 0.7}, "
 @pytest.fixture(scope="module")
 def terrain_recorded(tmp_path_factory):
     """A headless sim_node on TERRAIN (physics_overrides) recording 20 steps."""
-    from starleth_sim.ros.sim_node import SimNode
-    path = str(tmp_path_factory.mktemp("terrain") / "terrain.mcap")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep", "record": path,
-                                                     "physics_overrides": TERRAIN})
-    try:
-        node.publisher.publish_state()
-        for k in range(20):
-            node.service.step()
-            node.publisher.publish_state()
-    finally:
-        node.destroy()
-        rclpy.try_shutdown(context=ctx)
-    msgs = {}
-    for m in read_ros2_messages(path):
-        msgs.setdefault(m.channel.topic, []).append(m)
-    return node, msgs
+    return record_headless(str(tmp_path_factory.mktemp("terrain") / "terrain.mcap"),
+                           {"physics_overrides": TERRAIN}, 20)
 
 
 def test_terrain_is_recorded_once_at_start_as_the_physics_sees_it(terrain_recorded):
