@@ -27,14 +27,16 @@ def starleth_hmj():
 # (xdist's own --dist loadgroup would do the grouping, but with pytest 9 its group marks
 # no longer reach the scheduler, hence the scheduler here.)
 ROS_MODULES = {
-    "test_analysis", "test_cdr", "test_compile_notice", "test_controller_node",
-    "test_impedance_ros", "test_install_layout", "test_live_view",
+    "test_compile_notice", "test_controller_node", "test_impedance_ros", "test_install_layout",
+    "test_live_view",
     "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
-    "test_sim_node", "test_sim_node_faults", "test_sim_service", "test_sim_time",
-    "test_strict_inputs", "test_tf", "test_view",
+    "test_sim_node", "test_sim_node_faults", "test_sim_time", "test_strict_inputs", "test_tf",
 }
-SLOW_FIRST = ("test_evaluation", "test_precompile", "test_sweep", "test_coordinates",
-              "test_controller", "test_crafted_bags")
+# (test_analysis, test_view, test_cdr and test_sim_service start no nodes: they write and
+# read bags or serialise messages; test_compile_notice starts none either, but its watcher
+# looks every 0.05 s, which the CPU-bound worker beside it could delay)
+SLOW_FIRST = ("test_evaluation", "test_analysis", "test_precompile", "test_sweep",
+              "test_coordinates", "test_controller", "test_crafted_bags")
 
 
 def pytest_addoption(parser):
