@@ -36,6 +36,7 @@ from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..physics.stepper import PHASES, StepperStats
 from .bench_terrain import print_terrain_rounds
+from .bench_timing import timed_steps
 
 
 def measure(preset: str, seconds: float, repeats: int = 3):
@@ -47,14 +48,7 @@ def measure(preset: str, seconds: float, repeats: int = 3):
         hold = PostureHold(sim.joint_positions())
         n = int(round(seconds / sim.control_period))
         sim.step(hold.torque(sim))  # warm-up (first calls, caches)
-        wall = 0.0
-        it = 0
-        for _ in range(n):
-            tau = hold.torque(sim)
-            t0 = time.perf_counter()
-            d = sim.step(tau)
-            wall += time.perf_counter() - t0
-            it += d.iterations
+        wall, it = timed_steps(sim, n, hold)
         steps = n * sim.config.steps_per_control
         rates.append(steps / wall)
         rtfs.append(n * sim.control_period / wall)
@@ -94,17 +88,8 @@ def measure_impedance(preset: str, rounds: int, steps: int):
     imp_sim.step(command)
     times = {"torque": [], "impedance": []}
     for _ in range(rounds):
-        wall = 0.0
-        for _ in range(steps):
-            tau = hold.torque(torque_sim)
-            t0 = time.perf_counter()
-            torque_sim.step(tau)
-            wall += time.perf_counter() - t0
-        times["torque"].append(wall / steps)
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            imp_sim.step(command)
-        times["impedance"].append((time.perf_counter() - t0) / steps)
+        times["torque"].append(timed_steps(torque_sim, steps, hold)[0] / steps)
+        times["impedance"].append(timed_steps(imp_sim, steps, command=command)[0] / steps)
     return tuple(1e6 * float(np.median(times[k])) for k in ("torque", "impedance"))
 
 

@@ -11,13 +11,13 @@ median of its rounds' times per physics step, and the ratio to the plane's.
 """
 from __future__ import annotations
 
-import time
 
 import numpy as np
 
 from ..physics.config import load_preset
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
+from .bench_timing import timed_steps
 
 TILE = 0.3            # m
 TILE_HEIGHT = 0.01    # m
@@ -52,12 +52,7 @@ def terrain_rounds(preset="HmJ", rounds=21, steps=200):
     times = {name: [] for name in sims}
     for _ in range(rounds):
         for name, (sim, hold) in sims.items():
-            wall = 0.0
-            for _ in range(steps):
-                tau = hold.torque(sim)
-                t0 = time.perf_counter()
-                sim.step(tau)
-                wall += time.perf_counter() - t0
+            wall, _ = timed_steps(sim, steps, hold)
             times[name].append(1e6 * wall / (steps * sim.config.steps_per_control))
     return {name: float(np.median(t)) for name, t in times.items()}
 
