@@ -69,3 +69,21 @@ def test_a_child_whose_parent_is_killed_is_ended():
     if alive(pid):
         os.kill(pid, signal.SIGKILL)
         pytest.fail("the child outlived its killed parent by 10 s")
+
+
+def test_stop_child_interrupts_and_kills_one_that_does_not_stop():
+    """stop_child: a child that obeys SIGINT ends with its own status; one that ignores it is
+    killed after the time-out (None)."""
+    from starleth_sim.ros.child_process import stop_child
+    ignoring = "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); " \
+               "print('up', flush=True); time.sleep(60)"
+    obeying = subprocess.Popen([sys.executable, "-c", SLEEPER], stdout=subprocess.PIPE,
+                               preexec_fn=start_child_as_node())
+    deaf = subprocess.Popen([sys.executable, "-c", ignoring], stdout=subprocess.PIPE)
+    for p in (obeying, deaf):
+        assert p.stdout.readline().strip() == b"up"
+    assert stop_child(obeying, 5.0) not in (0, None)    # KeyboardInterrupt: status 1
+    t0 = time.monotonic()
+    assert stop_child(deaf, 0.5) is None and deaf.poll() is not None
+    assert time.monotonic() - t0 < 5.0
+    assert stop_child(deaf) == deaf.returncode          # already ended: its status

@@ -9,6 +9,7 @@ its parent's death.
   nodes; Linux sends the child SIGTERM when the parent goes (PR_SET_PDEATHSIG), which ends a
   node as a SIGTERM from a user does. Elsewhere this part does nothing.
 
+``stop_child`` stops one as a user's Ctrl-C would (the benchmarks' children).
 ``start_child_as_node`` is a ``preexec_fn`` for ``subprocess.Popen``; call Popen from the main
 thread (the parent-death signal follows the thread that started the child).
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import ctypes
 import signal
+import subprocess
 import sys
 
 PR_SET_PDEATHSIG = 1
@@ -41,3 +43,18 @@ def start_child_as_node(then=None):
         if then is not None:
             then()
     return preexec
+
+
+def stop_child(proc, timeout: float = 20.0):
+    """Stop the child `proc` (a subprocess.Popen) as a user's Ctrl-C would: SIGINT (a node
+    finalises its recording and prints its summary), then SIGKILL if it has not ended
+    within `timeout` seconds. Returns its exit status, None if it had to be killed."""
+    if proc.poll() is not None:
+        return proc.returncode
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        return None

@@ -38,6 +38,7 @@ from ..physics.description import package_share_dir
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bench_round_trips import spin_until
 from .live_log import collect
+from ..ros.child_process import stop_child
 
 PERIOD_S = 0.0025
 
@@ -142,12 +143,9 @@ def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=Fals
     finally:
         stop.set()
         for p in procs.values():
-            p.send_signal(signal.SIGINT)
+            p.send_signal(signal.SIGINT)     # both at once, then wait for each
         for p in procs.values():
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+            stop_child(p, 30.0)
         if listener.is_alive():
             listener.join(10)
         node.destroy_node()

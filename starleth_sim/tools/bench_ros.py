@@ -51,7 +51,6 @@ import argparse
 import json
 import os
 import re
-import signal
 import subprocess
 import sys
 import shutil
@@ -61,6 +60,7 @@ import numpy as np
 
 from starleth_interface.ros_helpers import make_executor
 
+from ..ros.child_process import stop_child
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bench_controllers import make_bench_controller, node_parameters
 from .bench_loop_figures import print_rates, real_loop_figures
@@ -104,13 +104,7 @@ def _pin_to_one_cpu():
 
 
 def _stop(proc, log_path, timeout=20):
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    stop_child(proc, timeout)
     with open(log_path) as f:
         text = f.read()
     m = re.search(r"BENCH_SUMMARY (\{.*\})", text)

@@ -8,7 +8,6 @@ pong side publishes it back on PONG, the next one goes out when the echo is in.
 """
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ import numpy as np
 from starleth_interface.compile_notice import Deadline
 from starleth_interface.ros_helpers import make_executor
 
+from ..ros.child_process import stop_child
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 
 PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
@@ -119,9 +119,4 @@ def measure_bare_round_trips(domain_id, seconds=2.0, executor="events", startup=
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_child(proc, 10.0)
