@@ -19,6 +19,7 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             render_parameters_yaml, unknown_parameters_text)
 from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import package_share_dir
+from .command_delay import MAX_COMMAND_DELAY
 
 P = ParameterSpec
 
@@ -156,6 +157,16 @@ SIM_NODE_PARAMETERS = (
              "Damping kd [N m s/rad] of joint velocity targets (qd* = 0 with a position "
              "target and no velocity), as default_kp; also the gain of "
              "joint_group_velocity_controller/commands. At most 1e3.", maximum=1e3),
+    P("command_delay", float, 0.0,
+      "Latency of every command, seconds of sim time (a controller's transport and loop "
+      "latency on the robot, as Isaac Lab's DelayedPDActuator models it): a command "
+      "received while the state of time t is the latest (lockstep: the answer to it) takes "
+      "effect at t + command_delay, the command in effect holding until then. On every "
+      "command topic: a torque acts late as a whole; an impedance command's targets act "
+      "late, its law still acts at every physics step on the current state. A whole number "
+      "of control periods (else rounded to the nearest, logged); 0 = none (bit for bit as "
+      "without it). Settable at run time (the commands received before keep their time).",
+      read_only=False, minimum=0.0, maximum=MAX_COMMAND_DELAY),
     P("contact_marker_scale", float, 0.002,
       "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
       minimum_exclusive=True, maximum=1.0),
@@ -178,6 +189,8 @@ SIM_NODE_PARAMETERS = (
 
 #: the parameters settable while the node runs: the gains, by name
 GAIN_PARAMETERS = {p.name: p for p in SIM_NODE_PARAMETERS if isinstance(p, GainSpec)}
+#: the other one settable while the node runs
+COMMAND_DELAY = next(p for p in SIM_NODE_PARAMETERS if p.name == "command_delay")
 
 YAML_HEADER = """\
 Default parameters of sim_node (a ROS 2 parameter file: pass it, or a copy, with

@@ -15,7 +15,8 @@ from ..physics.impedance import FIELDS as IMPEDANCE_FIELDS
 from ..physics.impedance import ImpedanceCommand
 from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
-from .parameters import Settings
+from .command_delay import DelayLine, delay_periods
+from .parameters import COMMAND_DELAY, Settings
 
 
 def quoted(names, most=5, longest=64) -> str:
@@ -33,9 +34,12 @@ class SimService:
     """Command validation, lockstep bookkeeping and stepping, without any ROS.
 
     Time: step k has stamp ``k * period_ns`` [ns] (integer, so equal stamps compare exact).
-    ``command`` is the last valid command, held until the next: joint torques (joint order,
-    zero-order hold), an ImpedanceCommand (its law evaluated at every physics step), or
-    (replay only) the applied torques of each physics step, (steps_per_control x n).
+    ``command`` is the command in effect, the last valid command, held until the next:
+    joint torques (joint order, zero-order hold), an ImpedanceCommand (its law evaluated at
+    every physics step), or (replay only) the applied torques of each physics step,
+    (steps_per_control x n). With a command delay of d control periods (``command_delay``,
+    :mod:`.command_delay`) a valid command waits in ``delay`` and is in effect from the d-th
+    step after the state it was received at on.
     ``kp``, ``kd``: the gains of position and velocity targets (default_kp, default_kd;
     ``set_gains``). Every ``submit_*`` returns ``(accepted, reason)`` and never raises on
     bad input.
@@ -72,6 +76,8 @@ class SimService:
         self.errors = ThrottledLog(error or warn, self.settings.warn_throttle_period)
         self.counters = dict.fromkeys(self.COUNTERS, 0)
         self.command = np.zeros(self.n)
+        self.delay = DelayLine()
+        self.delay_text = self.set_command_delay(self.settings.command_delay)[1]
         self.kp = self.kd = None
         ok, why = self.set_gains(self.settings.default_kp, self.settings.default_kd)
         if not ok:
@@ -113,12 +119,30 @@ class SimService:
         return False, message
 
     def _accept(self, tau):
-        self.command = tau
+        self._hold(tau)
         self.counters["commands_accepted"] += 1
         self.started = True
         if self.lockstep:
             self.answered = True
         return True, "ok"
+
+    def _hold(self, tau):
+        """`tau` in effect from now on, or with a command delay from d steps on."""
+        if self.delay.steps or self.delay.pending:
+            self.delay.put(self.k, tau)
+        else:
+            self.command = tau
+
+    def set_command_delay(self, seconds):
+        """The command delay: `seconds` (the parameter command_delay's range) as a whole
+        number of control periods, for the commands received from now on (pending ones keep
+        their step). (accepted, a line saying what it is, or why not.)"""
+        try:
+            COMMAND_DELAY.check(COMMAND_DELAY.coerce(seconds))
+        except ValueError as e:
+            return False, str(e)
+        self.delay.steps, text = delay_periods(float(seconds), self.control_period)
+        return True, text
 
     def _check_values(self, values, what):
         try:
@@ -307,10 +331,16 @@ class SimService:
                 return self.reject_gains(name, f"{name}: must be finite and >= 0: {which}")
             new[name] = a
         self.kp, self.kd = new["default_kp"], new["default_kd"]
-        c = self.command
-        if type(c) is ImpedanceCommand:
-            self.command = self.impedance_command(c.position, c.velocity, c.effort)
+        self.command = self._with_gains(self.command)
+        if self.delay.pending:
+            self.delay.update(self._with_gains)
         return True, "ok"
+
+    def _with_gains(self, c):
+        """An impedance command `c` with the current gains (any other command as it is)."""
+        if type(c) is ImpedanceCommand:
+            return self.impedance_command(c.position, c.velocity, c.effort)
+        return c
 
     def reject_gains(self, name, message):
         self.counters["gains_rejected"] += 1
@@ -425,8 +455,8 @@ class SimService:
                            f"within {self.settings.lockstep_timeout:g} s; stepping with "
                            f"{'the last command held' if pol == 'hold' else 'zero torques'} "
                            f"({self.counters['lockstep_timeouts']} timeouts so far)")
-        if pol == "zero":
-            self.command = np.zeros(self.n)
+        if pol == "zero":       # the missing answer (with a command delay: in d steps)
+            self._hold(np.zeros(self.n))
 
     def step(self, timed_out: bool = False):
         """One control period with the current command; returns the Diagnostics (or None
@@ -434,6 +464,10 @@ class SimService:
         if timed_out:
             self.on_timeout()
         self.last_step_timed_out = timed_out
+        if self.delay.pending:
+            due = self.delay.due(self.k)
+            if due is not None:
+                self.command = due
         tau = self.command
         sim = self.sim
         if self.failed:
@@ -482,6 +516,7 @@ class SimService:
         self.sim.clear_wrenches()
         self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)
         self.command = np.zeros(self.n)
+        self.delay.clear()
         self.answered = False
         self.counters["resets"] += 1
         self.state_version += 1

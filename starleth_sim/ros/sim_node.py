@@ -46,7 +46,7 @@ from ..physics.simulator import Simulator
 from .cdr import CommandDecoder
 from .live_view import LiveView
 from .node_recording import NodeRecording, describe_run, make_recorder
-from .parameters import (GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
+from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
                          load_default_parameters)
 from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .service import PeriodStats, SimService
@@ -127,7 +127,9 @@ class SimNode:
                          ", as fast as the controller") +
                       (f", recording to {s.record}" if s.record else "") +
                       f"; {sim.n_joints} joints, control period "
-                      f"{sim.control_period * 1e3:g} ms")
+                      f"{sim.control_period * 1e3:g} ms" +
+                      (f"; {self.service.delay_text}" if self.service.delay.steps or
+                       s.command_delay else ""))
 
     @property
     def timing(self):
@@ -269,11 +271,20 @@ class SimNode:
             self.loops.advance()
 
     def _on_set_parameters(self, params):
-        """default_kp, default_kd at run time (the other parameters are read only): checked
-        (a rejection is warned of and counted in gains_rejected), then taken by the held
-        command at once."""
-        gains = {}
+        """default_kp, default_kd and command_delay at run time (the other parameters are
+        read only): checked (a rejection is warned of, and gains counted in
+        gains_rejected), then the gains taken by the held command at once, the delay by the
+        commands received from then on."""
+        gains, delay = {}, None
         for prm in params:
+            if prm.name == COMMAND_DELAY.name:
+                delay = COMMAND_DELAY.coerce(prm.value)
+                try:
+                    COMMAND_DELAY.check(delay)
+                except ValueError as e:
+                    self.service.warnings.warn("command_delay", f"rejected {e}")
+                    return SetParametersResult(successful=False, reason=str(e))
+                continue
             spec = GAIN_PARAMETERS.get(prm.name)
             if spec is None:
                 continue
@@ -289,6 +300,8 @@ class SimNode:
             if not ok:
                 return SetParametersResult(successful=False, reason=why)
             self.log.info("gains: " + ", ".join(f"{k} {v}" for k, v in gains.items()))
+        if delay is not None:
+            self.log.info(self.service.set_command_delay(delay)[1])
         return SetParametersResult(successful=True)
 
     def _wrench(self, key, msg, persistent):
