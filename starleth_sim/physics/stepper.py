@@ -154,8 +154,7 @@ class MoreauStepper:
         self.L = np.zeros((nv, nv))           # LTDL factor of M (linalg.ltdl)
         self.u_free = np.zeros(nv)            # u^S + M^{-1} h Δt
         self.u_corr = np.zeros(nv)            # Δu_p of the post-step projection
-        #: each contact's (n, t1, t2, μ, surface) at q^M (contact.FRAME_STRIDE); the surfaces
-        #: are the contacts' memory of which slot holds which surface (csrc/kinematics.c)
+        #: each contact's (n, t1, t2, μ, surface) at q^M (contact.FRAME_STRIDE; the surface: memory)
         self.frames = np.zeros((nc, FRAME_STRIDE))
         self.bB = np.zeros(self.nb)           # (β/Δt) g_B
         self._factored = False                # L holds the factor of a constant M

@@ -19,11 +19,12 @@
 #define TERRAIN_HEADER 15
 #define BOX_STRIDE 11
 /* a contact's second surface (terrain.py SECOND_SURFACE_*): its normal more than 20° from
- * the first's (cos 20°), its gap within the reach of the first's and its own [m]; none: a
- * gap of SECOND_SURFACE_NONE */
+ * the first's (cos 20°), the two facing each other by more than 1 nm (second_ok), its gap
+ * within the reach of the first's and its own [m]; none: a gap of SECOND_SURFACE_NONE */
 #define SECOND_SURFACE_COS 0.9396926207859084
 #define SECOND_SURFACE_REACH 0.1
 #define SECOND_SURFACE_NONE 1000.0
+#define SECOND_SURFACE_FACING 1e-9
 
 int terrain_is_flat(const ground_t *g) {
     return g->n_terrain < TERRAIN_HEADER || (g->terrain[0] == 0.0 && g->terrain[1] == 0.0);
@@ -135,25 +136,42 @@ static int heightfield(const double *hdr, const double *hs, const double *c, dou
     return 1;
 }
 
+/* second_ok: whether a surface of gap gk and normal nk (its closest point to the sphere
+ * pk = c − (gk + r) nk) makes a concave corner with the first surface (normal n1, closest
+ * point p1): its normal more than 20° from n1, and each closest point in front of the
+ * other surface's tangent plane (by more than SECOND_SURFACE_FACING), so the two face each
+ * other across the sphere (not two faces side by side, as two tiles at one height). */
+static int second_ok(const double *c, double r, double gk, const double *nk, const double *n1,
+                     const double *p1) {
+    if (!(nk[0] * n1[0] + nk[1] * n1[1] + nk[2] * n1[2] < SECOND_SURFACE_COS)) return 0;
+    double pk[3], a = 0.0, b = 0.0;
+    for (int k = 0; k < 3; k++) {
+        pk[k] = c[k] - (gk + r) * nk[k];
+        a += n1[k] * (pk[k] - p1[k]);
+        b += nk[k] * (p1[k] - pk[k]);
+    }
+    return a > SECOND_SURFACE_FACING && b > SECOND_SURFACE_FACING;
+}
+
 /* nearest: the surface with the smallest gap among the plane, the boxes of c's bin and the
- * heightfield; with n1 given, among those other than surface `skip` whose normal n has
- * n·n1 < SECOND_SURFACE_COS only, and none (SECOND_SURFACE_NONE) unless one is within
- * `reach`. Surfaces: −1 the plane, k ≥ 0 box k, −2 the heightfield. Its gap is returned, its
+ * heightfield; with n1 given, among those (other than surface `skip`) that make a concave
+ * corner with the first surface (normal n1, closest point p1: second_ok) and have a gap
+ * within `reach` only, and none (SECOND_SURFACE_NONE) if there is no such surface.
+ * Surfaces: −1 the plane, k ≥ 0 box k, −2 the heightfield. Its gap is returned, its
  * normal, μ and number go to n_out, mu_out, id_out. A tie goes to the first of plane,
  * boxes (in their order), heightfield. */
-static double nearest(const ground_t *g, const double *c, double r, const double *n1, i64 skip,
-                      double reach, double *n_out, double *mu_out, i64 *id_out) {
+static double nearest(const ground_t *g, const double *c, double r, const double *n1,
+                      const double *p1, i64 skip, double reach, double *n_out, double *mu_out,
+                      i64 *id_out) {
     const double *T = g->terrain, *n = g->n;
     double best = SECOND_SURFACE_NONE;
     *id_out = -3;
-    if (!n1 || n[0] * n1[0] + n[1] * n1[1] + n[2] * n1[2] < SECOND_SURFACE_COS) {
-        double gp = n[0] * c[0] + n[1] * c[1] + n[2] * c[2] - g->offset - r;
-        if (!n1 || gp <= reach) {
-            best = gp;
-            for (int k = 0; k < 3; k++) n_out[k] = n[k];
-            *mu_out = T[7];
-            *id_out = -1;
-        }
+    double gp = n[0] * c[0] + n[1] * c[1] + n[2] * c[2] - g->offset - r;
+    if (!n1 || (skip != -1 && gp <= reach && second_ok(c, r, gp, n, n1, p1))) {
+        best = gp;
+        for (int k = 0; k < 3; k++) n_out[k] = n[k];
+        *mu_out = T[7];
+        *id_out = -1;
     }
     i64 nbox = (i64)T[0], nbx = (i64)T[11], nby = (i64)T[12];
     const double *boxes = T + TERRAIN_HEADER, *bins = boxes + BOX_STRIDE * nbox;
@@ -177,9 +195,7 @@ static double nearest(const ground_t *g, const double *c, double r, const double
         if (lb - r >= best || (n1 && lb - r > reach)) continue;
         double nk[3];
         double gk = box_distance(b, c, nk) - r;
-        if (n1 && !(nk[0] * n1[0] + nk[1] * n1[1] + nk[2] * n1[2] < SECOND_SURFACE_COS))
-            continue;
-        if (gk < best && (!n1 || gk <= reach)) {
+        if (gk < best && (!n1 || (gk <= reach && second_ok(c, r, gk, nk, n1, p1)))) {
             best = gk;
             for (int k = 0; k < 3; k++) n_out[k] = nk[k];
             *mu_out = b[8];
@@ -190,8 +206,7 @@ static double nearest(const ground_t *g, const double *c, double r, const double
         double h, nh[3];
         if (heightfield(T, heights, c, &h, nh)) {
             double gh = (c[2] - h) * nh[2] - r;
-            if (gh < best && (!n1 || (gh <= reach && nh[0] * n1[0] + nh[1] * n1[1] +
-                                      nh[2] * n1[2] < SECOND_SURFACE_COS))) {
+            if (gh < best && (!n1 || (gh <= reach && second_ok(c, r, gh, nh, n1, p1)))) {
                 best = gh;
                 for (int k = 0; k < 3; k++) n_out[k] = nh[k];
                 *mu_out = T[6];
@@ -222,13 +237,16 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
                        double *second, double *second_gap) {
     double nb[3], mu, n2[3], mu2;
     i64 id, id2;
-    double best = nearest(g, c, r, NULL, -3, 0.0, nb, &mu, &id);
+    double best = nearest(g, c, r, NULL, NULL, -3, 0.0, nb, &mu, &id);
     surface_frame(g, id, nb, mu, out);
     if (!second) return best;
     /* the second surface: only near the first (a concave corner), else none */
-    double g2 = best <= SECOND_SURFACE_REACH
-                    ? nearest(g, c, r, nb, id, SECOND_SURFACE_REACH, n2, &mu2, &id2)
-                    : SECOND_SURFACE_NONE;
+    double g2 = SECOND_SURFACE_NONE;
+    if (best <= SECOND_SURFACE_REACH) {
+        double p1[3];
+        for (int k = 0; k < 3; k++) p1[k] = c[k] - (best + r) * nb[k];
+        g2 = nearest(g, c, r, nb, p1, id, SECOND_SURFACE_REACH, n2, &mu2, &id2);
+    }
     if (g2 < SECOND_SURFACE_NONE) {
         surface_frame(g, id2, n2, mu2, second);
     } else {
