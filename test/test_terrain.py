@@ -79,7 +79,8 @@ def test_rough_heights_stay_within_the_amplitude_and_follow_the_seed():
 def test_the_c_query_reads_the_packed_terrain_where_python_packs_it():
     """Simulator.gaps of a sphere over each step of a stair and over a heightfield: the
     distance to the surface the generator claims (the packed layout read by csrc/terrain.c
-    is the one terrain.py writes)."""
+    is the one terrain.py writes); more than BOX_REACH above the terrain's top, the plane's
+    (terrain.TOP: gaps are exact within BOX_REACH − r of the terrain)."""
     sim = body_sim(sphere_urdf(R, 1.0), stairs={"rise": 0.04, "run": 0.3, "count": 3,
                                                 "start": 0.5, "mu": 0.5})
     for k, x in ((0, 0.2), (1, 0.65), (2, 0.95), (3, 1.25)):
@@ -91,10 +92,17 @@ def test_the_c_query_reads_the_packed_terrain_where_python_packs_it():
     sim = body_sim(sphere_urdf(R, 1.0), heightfield={"origin": [0.0, 0.0], "cell": 0.1,
                                                      "heights": grid.tolist()})
     q = sim.q
-    q[:3] = [0.25, 0.1, 0.5]
+    q[:3] = [0.25, 0.1, 0.2]
     sim.reset(q)
     n = np.array([-0.1, 0.0, 1.0]) / math.hypot(0.1, 1.0)
-    assert sim.gaps()[0] == pytest.approx((0.5 - 0.025) * n[2] - R, abs=1e-15)
+    assert sim.gaps()[0] == pytest.approx((0.2 - 0.025) * n[2] - R, abs=1e-15)
+    # more than BOX_REACH (0.1 m) above the terrain's top (0.04 m): the plane alone
+    q[2] = R + 0.04 + 0.1 + 1e-6
+    sim.reset(q)
+    assert sim.gaps()[0] == q[2] - R
+    q[2] -= 2e-6
+    sim.reset(q)
+    assert sim.gaps()[0] < q[2] - R - 0.02          # the heightfield (h = 0.025 m here)
 
 
 # -- bodies on the terrain: cross-checks against the plane --------------------------------

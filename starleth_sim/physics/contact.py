@@ -7,13 +7,13 @@ reports of a control step (`ContactInfo`, `contact_states`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from . import kernels as _kernels
 from .kernel_layouts import COMPLIANT_LAW
-from .terrain import pack_terrain
+from .terrain import TOP, pack_terrain
 
 
 def tangent_basis(normal):
@@ -170,6 +170,11 @@ def rest_on_ground(coords, ground, q, overlap, iterations=8):
         for iq in c.root_q:  # every floating body of the coordinate set
             q[iq:iq + 3] -= ground.n * (gap.min() + overlap)
         return
+    # (the gaps of every height exact: not the plane alone above terrain.TOP + BOX_REACH, so
+    # that a first round that overshoots upwards still sees the terrain)
+    packed = ground.terrain.copy()
+    packed[TOP] = np.inf
+    ground = replace(ground, terrain=packed)
     for _ in range(iterations):
         c.contact_kinematics(q, ground, gap, pos, Wt, np.inf, frames)
         i = int(np.argmin(gap))

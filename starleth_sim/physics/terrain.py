@@ -48,8 +48,12 @@ from .config_checks import ConfigError, check_int, check_number, short_repr
 
 #: the floats of the packed terrain's header (csrc/terrain.c TERRAIN_HEADER), and the index
 #: of its flag: the contacts have a second surface each (every terrain that is not flat)
-TERRAIN_HEADER = 15
+TERRAIN_HEADER = 16
 SECOND_SURFACES = 14
+#: the index of the terrain's top: the highest z of its boxes and heightfield; a contact
+#: sphere whose lowest point is more than BOX_REACH above it meets the plane alone (its gap
+#: to the terrain is more than BOX_REACH: beyond where gaps are exact, see BOX_REACH)
+TOP = 15
 #: a contact sphere's second surface (csrc/terrain.c): the nearest other surface whose
 #: normal is more than SECOND_SURFACE_ANGLE from the first's, when both gaps are within
 #: SECOND_SURFACE_REACH [m]; with none, its slot's gap is SECOND_SURFACE_NONE [m]
@@ -373,6 +377,9 @@ def pack_terrain(terrain: TerrainConfig | None, ground_height=0.0, ground_mu=0.8
         header[3], header[4], header[5] = origin[0], origin[1], cell
         header[6] = ground_mu if mu is None else mu
     header[SECOND_SURFACES] = float(bool(len(boxes)) or grid is not None)
+    tops = [b[2] + b[5] for b in packed_boxes] + ([float(np.max(heights))] if len(heights)
+                                                    else [])
+    header[TOP] = max(tops) if tops else ground_height
     return np.concatenate([header, packed_boxes.ravel(), *bins, np.ravel(heights)])
 
 

@@ -225,7 +225,7 @@ static int ground_of(const char *fn, const val_t *n, const val_t *t1, const val_
                      double offset, const val_t *terrain, const val_t *frames, i64 nc,
                      ground_t *g) {
     if (!need(n->len == 3 && t1->len == 3 && t2->len == 3, fn, "the ground's n, t1, t2 must be 3-vectors") ||
-        !need(terrain->len >= 15, fn, "terrain must be a packed terrain (terrain.pack_terrain)") ||
+        !need(terrain->len >= 16, fn, "terrain must be a packed terrain (terrain.pack_terrain)") ||
         !need(!frames->p || frames->len == FRAME_STRIDE * nc, fn, "frames must be nc x 11 or None"))
         return 0;
     g->n = n->p;

@@ -1,8 +1,9 @@
 /* The contact query against the terrain (terrain.py): the ground plane, yawed boxes and a
  * bilinear heightfield, packed into one float array by terrain.pack_terrain:
  *   header (TERRAIN_HEADER): n_box, nx, ny, x0, y0, cell, μ of the heightfield, μ of the
- *                            plane, the bins' bx0, by0, size, nbx, nby, n_items, and 1 if
- *                            the contacts have a second surface each (else 0)
+ *                            plane, the bins' bx0, by0, size, nbx, nby, n_items, 1 if
+ *                            the contacts have a second surface each (else 0), and the
+ *                            top (the highest z of the boxes and the heightfield)
  *   boxes (n_box x BOX_STRIDE): centre (3), half sizes (3), cos ψ, sin ψ, μ, and the half
  *                               sizes of the box's axis-aligned bounds in x and y
  *   bins (with boxes: nbx x nby + 1 starts, then n_items box indices): the boxes whose
@@ -16,11 +17,15 @@
  * within SECOND_SURFACE_REACH; a sphere has none elsewhere. */
 #include "core.h"
 
-#define TERRAIN_HEADER 15
+#define TERRAIN_HEADER 16
+#define TERRAIN_TOP 15
 #define BOX_STRIDE 11
 /* a contact's second surface (terrain.py SECOND_SURFACE_*): its normal more than 20° from
  * the first's (cos 20°), the two facing each other by more than 1 nm (second_ok), its gap
  * within the reach of the first's and its own [m]; none: a gap of SECOND_SURFACE_NONE */
+/* terrain.BOX_REACH: the boxes of a bin are those within this of it in xy; a contact whose
+ * lowest point is more than this above the terrain's top meets the plane alone [m] */
+#define BOX_REACH 0.1
 #define SECOND_SURFACE_COS 0.9396926207859084
 #define SECOND_SURFACE_REACH 0.1
 #define SECOND_SURFACE_NONE 1000.0
@@ -237,6 +242,16 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
                        double *second, double *second_gap) {
     double nb[3], mu, n2[3], mu2;
     i64 id, id2;
+    if (c[2] - r > g->terrain[TERRAIN_TOP] + BOX_REACH) {
+        /* far above the terrain (more than BOX_REACH over its top): the plane alone */
+        surface_frame(g, -1, g->n, g->terrain[7], out);
+        if (second) {
+            for (int k = 0; k < FRAME_STRIDE; k++) second[k] = out[k];
+            second[10] = 0.0;
+            *second_gap = SECOND_SURFACE_NONE;
+        }
+        return g->n[0] * c[0] + g->n[1] * c[1] + g->n[2] * c[2] - g->offset - r;
+    }
     double best = nearest(g, c, r, NULL, NULL, -3, 0.0, nb, &mu, &id);
     surface_frame(g, id, nb, mu, out);
     if (!second) return best;
