@@ -14,12 +14,15 @@ from starleth_sim import Simulator, load_preset
 from starleth_sim.physics.config import ConfigError, PhysicsConfig
 from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_urdf
 from starleth_sim.physics.posture import PostureHold
-from starleth_sim.physics.terrain import TerrainConfig, pack_terrain, terrain_height
+from starleth_sim.physics.terrain import (SECOND_SURFACE_NONE, TERRAIN_HEADER, TerrainConfig,
+                                         pack_terrain, terrain_height)
 from starleth_sim.tools.bench_terrain import terrain_rounds, terrains
 from starleth_sim.tools.view_recording import terrain_from_metadata
 from starleth_sim.tools.view_scene import terrain_objects
 
 R = 0.1    # the test sphere's radius [m]
+#: the corner tests' sphere: a box's gap is exact within terrain.BOX_REACH (0.1 m) − r of it
+RC = 0.05
 
 
 def body_sim(urdf, preset="HmJ", **overrides):
@@ -61,7 +64,7 @@ def test_rough_heights_stay_within_the_amplitude_and_follow_the_seed():
     cfg = {"amplitude": 0.015, "wavelength": 0.3, "seed": 7, "size": 3.0}
     p = packed(rough=cfg)
     nx, ny = int(p[1]), int(p[2])
-    h = p[14:].reshape(nx, ny)
+    h = p[TERRAIN_HEADER:].reshape(nx, ny)
     assert np.abs(h).max() <= 0.015 + 1e-15
     assert np.abs(h).max() > 0.9 * 0.015                     # scaled to the amplitude
     assert np.all(h[0] == 0) and np.all(h[:, -1] == 0)        # faded out at the border
@@ -76,7 +79,8 @@ def test_rough_heights_stay_within_the_amplitude_and_follow_the_seed():
 def test_the_c_query_reads_the_packed_terrain_where_python_packs_it():
     """Simulator.gaps of a sphere over each step of a stair and over a heightfield: the
     distance to the surface the generator claims (the packed layout read by csrc/terrain.c
-    is the one terrain.py writes)."""
+    is the one terrain.py writes); more than BOX_REACH above the terrain's top, the plane's
+    (terrain.TOP: gaps are exact within BOX_REACH − r of the terrain)."""
     sim = body_sim(sphere_urdf(R, 1.0), stairs={"rise": 0.04, "run": 0.3, "count": 3,
                                                 "start": 0.5, "mu": 0.5})
     for k, x in ((0, 0.2), (1, 0.65), (2, 0.95), (3, 1.25)):
@@ -88,10 +92,17 @@ def test_the_c_query_reads_the_packed_terrain_where_python_packs_it():
     sim = body_sim(sphere_urdf(R, 1.0), heightfield={"origin": [0.0, 0.0], "cell": 0.1,
                                                      "heights": grid.tolist()})
     q = sim.q
-    q[:3] = [0.25, 0.1, 0.5]
+    q[:3] = [0.25, 0.1, 0.2]
     sim.reset(q)
     n = np.array([-0.1, 0.0, 1.0]) / math.hypot(0.1, 1.0)
-    assert sim.gaps()[0] == pytest.approx((0.5 - 0.025) * n[2] - R, abs=1e-15)
+    assert sim.gaps()[0] == pytest.approx((0.2 - 0.025) * n[2] - R, abs=1e-15)
+    # more than BOX_REACH (0.1 m) above the terrain's top (0.04 m): the plane alone
+    q[2] = R + 0.04 + 0.1 + 1e-6
+    sim.reset(q)
+    assert sim.gaps()[0] == q[2] - R
+    q[2] -= 2e-6
+    sim.reset(q)
+    assert sim.gaps()[0] < q[2] - R - 0.02          # the heightfield (h = 0.025 m here)
 
 
 # -- bodies on the terrain: cross-checks against the plane --------------------------------
@@ -241,24 +252,75 @@ def test_png_heightfield_is_read_with_its_scale(tmp_path):
         t.validate("terrain")
 
 
-def test_sphere_pressed_into_a_concave_corner_stays_within_microns_of_both_surfaces():
+@pytest.mark.parametrize("preset", ["HmJ", "HMJD", "Cm"])
+def test_sphere_pressed_into_a_concave_corner_is_held_by_both_surfaces(preset):
     """Where two surfaces meet in a concave corner (the floor and a step's riser) a contact
-    takes the nearer one only: a sphere pushed into the riser (20 N) alternates between
-    the two from step to step (a limitation: one contact point has one surface), and the
-    post-step projection keeps it within 10 µm of both for 2 s."""
-    sim = body_sim(sphere_urdf(R, 1.0),
-                   boxes=[{"centre": [0.5, 0.0, 0.05], "size": [1.0, 1.0, 0.1]}])
+    sphere has a contact on each (csrc/terrain.c, the second surface): a sphere of 1 kg
+    pushed into the riser by 20 N for 2 s stays in the corner (hard: within 1 µm of both
+    surfaces; compliant: neither spring deflected more than the whole load would, |F| / c_N),
+    and at rest the two surfaces together carry the load, (−20 N, 0, m g). (How they share
+    it is statically indeterminate with friction: the floor's friction may take part of the
+    20 N.)"""
+    sim = body_sim(sphere_urdf(RC, 1.0), preset,
+                   boxes=[{"centre": [0.5, 0.0, 0.15], "size": [1.0, 1.0, 0.3]}])
+    assert sim.coords.n_contacts == 2 * len(sim.contact_names)       # two slots per sphere
     q = sim.q
-    q[:3] = [-R + 1e-9, 0.0, R - 1e-9]
+    q[:3] = [-RC + 1e-9, 0.0, RC - 1e-9]
     sim.reset(q)
     sim.set_persistent_wrench(sim.coords.link_names()[-1], [20.0, 0.0, 0.0])
     riser, floor = [], []
     for _ in range(2000):
         sim.step()
-        riser.append(-(sim.q[0] + R))       # the distance to the riser's plane x = 0
-        floor.append(sim.q[2] - R)
-    assert min(riser) >= -1e-5 and min(floor) >= -1e-5
-    assert max(floor) <= 1e-5 and max(riser) <= 1e-5            # it stays in the corner
+        riser.append(-(sim.q[0] + RC))       # the distance to the riser's plane x = 0
+        floor.append(sim.q[2] - RC)
+    g = 9.81
+    if sim.config.contact_model == "hard":
+        assert min(riser) >= -1e-6 and min(floor) >= -1e-6
+        assert max(floor) <= 1e-6 and max(riser) <= 1e-6
+    else:                                   # Alg. 1's springs: deflection = force / c_N
+        most = math.hypot(20.0, g) / sim.config.contact.stiffness_normal
+        assert -most * 1.02 <= riser[-1] < 0.0 and -most * 1.02 <= floor[-1] < 0.0
+    force = sim.contact_forces()[0]         # both surfaces' forces, summed (world)
+    # (to the prox's accuracy: it stops on a relative change of 1e-6 per iteration, which
+    # JOR's slow contraction in a corner leaves at a few 1e-5 of the load)
+    np.testing.assert_allclose(force, [-20.0, 0.0, g], rtol=1e-4, atol=1e-9)
+    c = sim.contacts[0]
+    assert c.active and c.state == "stick"
+
+
+def test_a_sphere_has_a_second_surface_only_in_a_concave_corner():
+    """The second contact slot of a sphere: in the corner of the floor and a riser, the
+    riser (normal −x) beside the floor; on the floor far from the step, on the step's top,
+    and over its convex edge, none (SECOND_SURFACE_NONE); on a flat heightfield lying on
+    the plane (the same surface twice), none."""
+    sim = body_sim(sphere_urdf(RC, 1.0),
+                   boxes=[{"centre": [0.5, 0.0, 0.15], "size": [1.0, 1.0, 0.3]}])
+    c = sim.coords
+
+    def slots(x, z):
+        q = sim.q
+        q[:3] = [x, 0.0, z]
+        gap, frames = np.zeros(2), np.zeros((2, 11))
+        c.contact_kinematics(q, sim.stepper.ground, gap, np.zeros((2, 3)),
+                             np.zeros((2, 3, c.nv)), np.inf, frames)
+        return gap, frames[:, :3]
+
+    gap, n = slots(-RC + 0.002, RC + 0.001)       # the corner, 2 mm into the riser
+    np.testing.assert_allclose(gap, [-0.002, 0.001], atol=1e-12)
+    np.testing.assert_allclose(n, [[-1, 0, 0], [0, 0, 1]], atol=1e-15)
+    gap, n = slots(-RC, RC - 0.001)               # touching the riser, 1 mm into the floor
+    np.testing.assert_allclose(gap, [-0.001, 0.0], atol=1e-12)
+    np.testing.assert_allclose(n, [[0, 0, 1], [-1, 0, 0]], atol=1e-15)
+    for x, z in ((-0.5, RC), (0.5, 0.3 + RC), (1.0 + 0.03, 0.3 + RC)):   # floor, top, edge
+        gap, n = slots(x, z)
+        assert gap[1] == SECOND_SURFACE_NONE, (x, z, gap)
+    flat = body_sim(sphere_urdf(RC, 1.0), heightfield={"origin": [-1, -1], "cell": 0.5,
+                                                      "heights": [[0.0] * 5] * 5})
+    q = flat.q
+    gap = np.zeros(2)
+    flat.coords.contact_kinematics(q, flat.stepper.ground, gap, np.zeros((2, 3)),
+                                   np.zeros((2, 3, flat.coords.nv)))
+    assert gap[1] == SECOND_SURFACE_NONE and abs(gap[0]) < 1e-8
 
 
 # -- the configuration -------------------------------------------------------------------

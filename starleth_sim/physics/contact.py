@@ -7,13 +7,13 @@ reports of a control step (`ContactInfo`, `contact_states`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from . import kernels as _kernels
 from .kernel_layouts import COMPLIANT_LAW
-from .terrain import pack_terrain
+from .terrain import TOP, pack_terrain
 
 
 def tangent_basis(normal):
@@ -78,12 +78,16 @@ CompliantLaw = COMPLIANT_LAW.named_tuple(
 #:     slip:  λ_T = −μλ_N γ_T/‖γ_T‖; it sticks again (P0 reset to P) once ‖γ_T‖ ≈ 0 or the
 #:            force the re-anchored spring-damper would give, −d_T γ_T, is inside the cone.
 #: Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
-#: in each contact's frame (n, t1, t2), `frames` (nc x 10) holding that frame and its μ per
-#: contact (written by the contact kinematics: the plane's, or the terrain surface's); the
+#: in each contact's frame (n, t1, t2), `frames` (nc x FRAME_STRIDE) holding that frame and
+#: its μ per contact (written by the contact kinematics: the plane's, or the terrain
+#: surface's); the
 #: state arrays are updated in place.
 #: ``generalized_contact_force(Wt, lam, out)``: out += Σ_i W_i λ_i (W_i = Wt[i]^T), the
 #: compliant forces' contribution to h.
 compliant_contact_forces = _kernels.compliant_contact_forces
+#: the entries per contact of a frames array (csrc/core.h): n (3), t1 (3), t2 (3), μ and the
+#: surface (0 none or not known, 1 the plane, 2 the heightfield, 3 + k box k)
+FRAME_STRIDE = 11
 generalized_contact_force = _kernels.generalized_contact_force
 
 
@@ -119,3 +123,63 @@ def contact_states(impulse, hard: bool, mu: float, slip):
         tangential = np.hypot(lam[:, 1], lam[:, 2])
         slip = tangential >= (1.0 - SLIP_TOLERANCE) * mu * lam[:, 0]
     return np.where(normal, np.where(slip, 2, 1), 0)
+
+
+class SphereSlots:
+    """The public, per-sphere view of the contact slots (on a terrain a contact sphere has
+    two, i and ns + i: csrc/kinematics.c; on the plane one, and every view is the array
+    itself): a sphere's gap is its slots' smallest, its point that of that slot, its force
+    their sum (world frame), it is active when either is, and its state is that of the slot
+    with the larger normal impulse."""
+
+    def __init__(self, n_spheres: int, n_slots: int):
+        self.ns, self.two = n_spheres, n_slots != n_spheres
+
+    def gaps(self, gap):
+        ns = self.ns
+        return np.minimum(gap[:ns], gap[ns:]) if self.two else gap
+
+    def points(self, gap, position):
+        ns = self.ns
+        if not self.two:
+            return position
+        return np.where((gap[ns:] < gap[:ns])[:, None], position[ns:], position[:ns])
+
+    def sums(self, world):
+        return world[:self.ns] + world[self.ns:] if self.two else world
+
+    def active(self, active):
+        return active[:self.ns] | active[self.ns:] if self.two else active
+
+    def states(self, states, impulse):
+        ns = self.ns
+        if not self.two:
+            return states
+        return np.where(impulse[ns:, 0] > impulse[:ns, 0], states[ns:], states[:ns])
+
+
+def rest_on_ground(coords, ground, q, overlap, iterations=8):
+    """Moves q (in place) so that its lowest contact rests on the ground with g_N = −overlap:
+    on the plane every floating body along n at once; on a terrain vertically, in a few
+    rounds (the surfaces' normals are not vertical)."""
+    c = coords
+    gap, pos = np.zeros(c.n_contacts), np.zeros((c.n_contacts, 3))
+    Wt, frames = np.zeros((c.n_contacts, 3, c.nv)), np.zeros((c.n_contacts, FRAME_STRIDE))
+    if ground.flat:
+        c.contact_kinematics(q, ground, gap, pos, Wt)
+        for iq in c.root_q:  # every floating body of the coordinate set
+            q[iq:iq + 3] -= ground.n * (gap.min() + overlap)
+        return
+    # (the gaps of every height exact: not the plane alone above terrain.TOP + BOX_REACH, so
+    # that a first round that overshoots upwards still sees the terrain)
+    packed = ground.terrain.copy()
+    packed[TOP] = np.inf
+    ground = replace(ground, terrain=packed)
+    for _ in range(iterations):
+        c.contact_kinematics(q, ground, gap, pos, Wt, np.inf, frames)
+        i = int(np.argmin(gap))
+        dz = (gap[i] + overlap) / max(frames[i, 2], 0.1)
+        for iq in c.root_q:
+            q[iq + 2] -= dz
+        if abs(gap[i] + overlap) < 1e-12:
+            break

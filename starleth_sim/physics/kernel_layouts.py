@@ -271,8 +271,8 @@ TREE_STEP_MODEL = Layout(
          Field("L", "nv * nv", "L", "the LTDL factor of M", ("nv", "nv")),
          Field("u_free", "nv", "u_free", "u^S + M^{-1} h Δt"),
          Field("u_corr", "nv", "u_corr", "Δu_p of the post-step projection"),
-         Field("frames", "10 * nc", "ground.frames",
-               "each contact's surface frame (n, t1, t2) and μ at q^M", ("nc", "10")),
+         Field("frames", "11 * nc", "ground.frames",
+               "each contact's surface frame (n, t1, t2), μ and surface at q^M", ("nc", "11")),
      ), exact=False)))
 
 CUT_MODEL = Layout(

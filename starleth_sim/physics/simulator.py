@@ -31,7 +31,7 @@ import numpy as np
 
 from .actuator import NonFiniteTorque, saturate_torque
 from .config import PhysicsConfig, load_preset
-from .contact import CONTACT_STATES, ContactInfo, contact_states
+from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, rest_on_ground
 from .coordinates import make_coordinates
 from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_diagnostics,
                           one_step_diagnostics)
@@ -62,7 +62,10 @@ class Simulator:
             path = config.robot if config.robot.startswith("/") else urdf_path(config.robot)
             description = starleth_description(path)
         self.description = description
-        self.coords = make_coordinates(config.coordinates, description)
+        self.coords = make_coordinates(config.coordinates, description,
+                                       second_surfaces=not config.terrain.is_flat)
+        #: the reports per contact sphere (on a terrain a sphere has two contact slots)
+        self._spheres = SphereSlots(self.coords.n_contact_spheres, self.coords.n_contacts)
         self._root_q0 = int(self.coords.root_q[0])     # root_position
         self.joint_names = tuple(description.joint_names)
         self.n_joints = len(self.joint_names)
@@ -130,31 +133,8 @@ class Simulator:
             joints = np.array([0.0, hfe, kfe] * 2 + [0.0, -hfe, -kfe] * 2)
             q = c.make_state([0.0, 0.0, d.standing_height], [0, 0, 0, 1], joints)
         if c.n_contacts:
-            gap = np.zeros(c.n_contacts)
-            pos = np.zeros((c.n_contacts, 3))
-            Wt = np.zeros((c.n_contacts, 3, c.nv))
-            g = self.stepper.ground
-            c.contact_kinematics(q, g, gap, pos, Wt)
-            if g.flat:
-                for iq in c.root_q:  # every floating body of the coordinate set
-                    q[iq:iq + 3] -= g.n * (gap.min() + self.REST_OVERLAP)
-            else:
-                self._rest_on_terrain(q, gap, pos, Wt)
+            rest_on_ground(c, self.stepper.ground, q, self.REST_OVERLAP)
         return q
-
-    def _rest_on_terrain(self, q, gap, pos, Wt, iterations=8):
-        """Lowers (or raises) q vertically until its lowest contact rests on the terrain
-        (g_N = −REST_OVERLAP; the surfaces' normals are not vertical, so a few rounds)."""
-        c, g = self.coords, self.stepper.ground
-        frames = np.zeros((c.n_contacts, 10))
-        for _ in range(iterations):
-            c.contact_kinematics(q, g, gap, pos, Wt, np.inf, frames)
-            i = int(np.argmin(gap))
-            dz = (gap[i] + self.REST_OVERLAP) / max(frames[i, 2], 0.1)
-            for iq in c.root_q:
-                q[iq + 2] -= dz
-            if abs(gap[i] + self.REST_OVERLAP) < 1e-12:
-                break
 
     def reset(self, q=None, u=None, t: float = 0.0, minimal: bool = False):
         """Set the state (default: `default_state()` at rest). With minimal=True, q and u are
@@ -179,6 +159,7 @@ class Simulator:
         for iq in self.coords.root_q:
             q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
         self.state = self.stepper.initial_state(q, u, float(t))
+        self.stepper.frames[:, 10] = 0.0     # (no slot holds a surface yet)
         self._state_version += 1
         self._tau = np.zeros(self.n_joints)
         self._applied_steps = self._tau     # see applied_torques_per_step
@@ -193,7 +174,10 @@ class Simulator:
     def snapshot(self) -> SimState:
         """A copy of the current state (q, u, t, contact memory, timed wrenches), for
         `restore`. The persistent wrenches are settings, not state: a snapshot keeps none."""
-        return self.state.copy()
+        s = self.state.copy()
+        if self.coords.second_surfaces:
+            s.surfaces = self.stepper.frames[:, 10].copy()
+        return s
 
     def restore(self, snapshot: SimState):
         """Continue from a state taken by `snapshot` (which stays usable: the simulator
@@ -204,6 +188,8 @@ class Simulator:
                 or memory is None or memory.shape != (self.coords.n_contacts, 3):
             raise ValueError("restore: the snapshot is not a state of this simulator")
         self.state = snapshot.copy()
+        if self.coords.second_surfaces:
+            self.stepper.frames[:, 10] = 0.0 if snapshot.surfaces is None else snapshot.surfaces
         self._state_version += 1
 
     @property
@@ -299,23 +285,25 @@ class Simulator:
         return q[iq], q[iq + 1], q[iq + 2]
 
     def gaps(self):
-        """g_N of every contact point at the current configuration q."""
+        """g_N of every contact point at the current configuration q (on a terrain: to its
+        nearest surface, the smallest of its gaps)."""
         c = self.coords
         gap = np.zeros(c.n_contacts)
         c.contact_kinematics(self.state.q, self.stepper.ground, gap, np.zeros((c.n_contacts, 3)),
                              np.zeros((c.n_contacts, 3, c.nv)))
-        return gap
+        return self._spheres.gaps(gap)
 
     def contact_impulses(self) -> np.ndarray:
         """Λ of every contact point (order of contact_names) in the world frame, summed over
         the last control period (nc x 3) [N s]. On a terrain each contact's impulse is turned
         by the frame of its surface at the last physics step (with several physics steps
-        per control period, their impulses are summed in that frame)."""
+        per control period, their impulses are summed in that frame; a sphere's two
+        surfaces' impulses are summed in the world frame)."""
         ground = self.stepper.ground
         if ground.flat:
             return self._impulse @ ground.frame     # frame rows: n, t1, t2
         frames = self.stepper.frames[:, :9].reshape(-1, 3, 3)
-        return np.einsum("ik,ikj->ij", self._impulse, frames)
+        return self._spheres.sums(np.einsum("ik,ikj->ij", self._impulse, frames))
 
     def contact_forces(self) -> np.ndarray:
         """F = Λ/Δt of every contact point in the world frame over the last control period
@@ -326,9 +314,10 @@ class Simulator:
     @property
     def contacts(self):
         world = self.contact_impulses()
-        pos = self._position
-        states = self.contact_states()
-        return [ContactInfo(n, bool(self._active[i]), float(self._gap[i]), world[i].copy(),
+        sp = self._spheres
+        pos, gap = sp.points(self._gap, self._position), sp.gaps(self._gap)
+        states, active = self.contact_states(), sp.active(self._active)
+        return [ContactInfo(n, bool(active[i]), float(gap[i]), world[i].copy(),
                             world[i] / self.control_period, pos[i].copy(),
                             CONTACT_STATES[states[i]])
                 for i, n in enumerate(self.contact_names)]
@@ -336,7 +325,7 @@ class Simulator:
     def contact_points(self) -> np.ndarray:
         """The contact points (nc x 3, world) of the last control step: the positions of
         `contacts`, without building the records."""
-        return self._position.copy()
+        return self._spheres.points(self._gap, self._position).copy()
 
     def contact_states(self) -> np.ndarray:
         """Per contact point after the last control step, an index into CONTACT_STATES:
@@ -344,9 +333,10 @@ class Simulator:
         impulse is on the boundary of the friction cone, |Λ_T| ≥ (1 − 1e-6) μ Λ_N; compliant
         contacts: the slip flag of Alg. 1."""
         ground = self.stepper.ground
-        return contact_states(self._impulse, self.stepper.hard,
-                              ground.mu if ground.flat else self.stepper.frames[:, 9],
-                              self.state.slip)
+        return self._spheres.states(
+            contact_states(self._impulse, self.stepper.hard,
+                           ground.mu if ground.flat else self.stepper.frames[:, 9],
+                           self.state.slip), self._impulse)
 
     def contact(self, name: str) -> ContactInfo:
         try:

@@ -54,6 +54,9 @@ class SimState:
     lam_compliant: np.ndarray | None = None
     #: timed external wrenches still to apply: [link, force, torque, remaining time [s]]
     pending_wrenches: list = field(default_factory=list)
+    #: on a terrain, the surface each contact slot held at the last step (nc; the stepper
+    #: keeps it in its frames, column 10: Simulator.snapshot / restore carry it), else None
+    surfaces: np.ndarray | None = None
 
     @classmethod
     def initial(cls, q, u, t: float, n_contacts: int, n_bilateral: int,
@@ -94,6 +97,8 @@ class SimState:
         pending = self.pending_wrenches
         new.pending_wrenches = [[link, f.copy(), m.copy(), remaining]
                                 for link, f, m, remaining in pending] if pending else []
+        a = self.surfaces
+        new.surfaces = None if a is None else a.copy()
         return new
 
     def restore_memory(self, other: "SimState"):

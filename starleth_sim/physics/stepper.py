@@ -48,13 +48,13 @@ import numpy as np
 from . import prox
 from .actuator import NonFiniteTorque, saturate_torque
 from .config import ConfigError
-from .contact import (CompliantLaw, GroundPlane, compliant_contact_forces,
+from .contact import (FRAME_STRIDE, CompliantLaw, GroundPlane, compliant_contact_forces,
                       generalized_contact_force)
 from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, TORQUE_SATURATED,
                         command_torques)
 from .linalg import ltdl
 from .state import SimState
-from .terrain import pack_terrain
+from .terrain import SECOND_SURFACES, pack_terrain
 from .step_kernels import (PHASES, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_REST,
                            PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, ContactProblem,
                            StepSettings, clock,
@@ -127,6 +127,10 @@ class MoreauStepper:
         g = config.ground
         self.ground = GroundPlane(g.height, tuple(g.normal), g.mu,
                                   pack_terrain(config.terrain, g.height, g.mu))
+        if coords.second_surfaces != bool(self.ground.terrain[SECOND_SURFACES]):
+            raise ValueError("MoreauStepper: a terrain needs coordinates with a second contact "
+                             "slot per sphere (make_coordinates(..., second_surfaces=True)), "
+                             "the plane alone one slot")
         self.dt = config.dt
         self.hard = config.contact_model == "hard"
         c = config.contact
@@ -150,7 +154,8 @@ class MoreauStepper:
         self.L = np.zeros((nv, nv))           # LTDL factor of M (linalg.ltdl)
         self.u_free = np.zeros(nv)            # u^S + M^{-1} h Δt
         self.u_corr = np.zeros(nv)            # Δu_p of the post-step projection
-        self.frames = np.zeros((nc, 10))      # each contact's (n, t1, t2, μ) at q^M
+        #: each contact's (n, t1, t2, μ, surface) at q^M (contact.FRAME_STRIDE; the surface: memory)
+        self.frames = np.zeros((nc, FRAME_STRIDE))
         self.bB = np.zeros(self.nb)           # (β/Δt) g_B
         self._factored = False                # L holds the factor of a constant M
         self._prepared = None                 # see prepare
@@ -187,12 +192,12 @@ class MoreauStepper:
         self._compliant_law_fields = tuple(self.compliant_law)
         #: Newton-type impact law per contact: (ε_N, ε_T), defaults overridden by name
         self.eps = np.tile([c.restitution_normal, c.restitution_tangential], (nc, 1))
-        names = list(coords.contact_names)
+        names = np.array(coords.contact_names)
         for name, (en, et) in c.restitution_overrides.items():
             if name not in names:
                 raise ConfigError(f"contact.restitution_overrides: unknown contact '{name}' "
-                                  f"(contacts: {', '.join(names)})")
-            self.eps[names.index(name)] = (en, et)
+                                  f"(contacts: {', '.join(dict.fromkeys(names))})")
+            self.eps[names == name] = (en, et)      # (both slots of a sphere on a terrain)
         self._never_active = np.full(nc, np.inf)
         #: the memory of a hard-contact problem prepared ahead (prepare), filled again each time
         self._problem = ContactProblem()

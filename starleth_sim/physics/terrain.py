@@ -31,7 +31,8 @@ continuously round an edge or a corner: a foot resting on a step edge has one ga
 normal, and nothing switches. The heightfield's gap is (c_z − h(x, y)) n_z − r with the
 normal n of the cell's bilinear surface at (c_x, c_y) (the distance to the tangent plane
 there). Where two surfaces meet in a concave corner (a foot against a riser, on the
-floor) the contact takes the nearer one only.
+floor) the sphere has a second contact, on the other surface (SECOND_SURFACE_*; the
+coordinates give each sphere two contact slots on a terrain: doc/physics.md, "Terrain").
 """
 from __future__ import annotations
 
@@ -45,8 +46,20 @@ import numpy as np
 
 from .config_checks import ConfigError, check_int, check_number, short_repr
 
-#: the floats of the packed terrain's header (csrc/terrain.c TERRAIN_HEADER)
-TERRAIN_HEADER = 14
+#: the floats of the packed terrain's header (csrc/terrain.c TERRAIN_HEADER), and the index
+#: of its flag: the contacts have a second surface each (every terrain that is not flat)
+TERRAIN_HEADER = 16
+SECOND_SURFACES = 14
+#: the index of the terrain's top: the highest z of its boxes and heightfield; a contact
+#: sphere whose lowest point is more than BOX_REACH above it meets the plane alone (its gap
+#: to the terrain is more than BOX_REACH: beyond where gaps are exact, see BOX_REACH)
+TOP = 15
+#: a contact sphere's second surface (csrc/terrain.c): the nearest other surface whose
+#: normal is more than SECOND_SURFACE_ANGLE from the first's, when both gaps are within
+#: SECOND_SURFACE_REACH [m]; with none, its slot's gap is SECOND_SURFACE_NONE [m]
+SECOND_SURFACE_ANGLE = 20.0         # degrees
+SECOND_SURFACE_REACH = 0.1
+SECOND_SURFACE_NONE = 1000.0
 #: a box is tested for the contacts whose centre lies within this of its bounds in x and y
 #: [m]: the gap to a box farther away is > BOX_REACH − r, and such a gap is the plane's or
 #: another surface's (a contact only needs exact gaps near its surfaces)
@@ -363,6 +376,10 @@ def pack_terrain(terrain: TerrainConfig | None, ground_height=0.0, ground_mu=0.8
         header[1], header[2] = heights.shape
         header[3], header[4], header[5] = origin[0], origin[1], cell
         header[6] = ground_mu if mu is None else mu
+    header[SECOND_SURFACES] = float(bool(len(boxes)) or grid is not None)
+    tops = [b[2] + b[5] for b in packed_boxes] + ([float(np.max(heights))] if len(heights)
+                                                    else [])
+    header[TOP] = max(tops) if tops else ground_height
     return np.concatenate([header, packed_boxes.ravel(), *bins, np.ravel(heights)])
 
 

@@ -1,6 +1,6 @@
 """The terrain part of ``starleth-eval``: the robot standing on each terrain of TERRAINS (a
 step under its left feet, stairs under all four, a 5° slope, rough ground) with each
-preset, under the controller's stand mode (the controller does not walk on a terrain yet):
+preset, under the controller's stand mode (its walking on terrain: test_terrain_walk.py):
 whether it fell, the deepest foot below the surface under it after each step (hard presets;
 ``Simulator.gaps``, which measures against the nearest surface), prox iterations per step and
 physics steps per second. The task (:func:`task_terrain`) and its report section
@@ -93,8 +93,8 @@ def terrain_section(results):
         return []
     seconds = rows[0]["seconds"]
     lines = ["", "## Terrain: standing on a step, stairs, a slope, rough ground", "",
-             f"The controller's stand mode for {seconds:g} s on each terrain (the controller "
-             "does not walk on a terrain yet), from the standing posture resting on the "
+             f"The controller's stand mode for {seconds:g} s on each terrain, from the "
+             "standing posture resting on the "
              "terrain by its lowest contact (the other feet land in the first steps). "
              "step: 4 cm under the left feet; stairs: 3 cm steps, the hind feet on the first, "
              "the front feet on the third; slope: 5°, facing uphill; rough: ±1.5 cm, "

@@ -251,12 +251,36 @@ class ForestCoordinates:
         """The contact points (desc.contacts) in forest frames: their forest joint
         (c_joint), position in that joint's body frame (c_local) and radius (c_radius)."""
         cs = self.desc.contacts
+        #: contact slots (the kernels' contacts: one per sphere, two on a terrain)
         self.n_contacts = len(cs)
+        #: the contact spheres (desc.contacts) and each slot's sphere
+        self.n_contact_spheres = len(cs)
+        self.contact_sphere = np.arange(len(cs), dtype=np.int64)
         self.contact_names = [c.name for c in cs]
         self.c_joint = np.array([self.joint_map[c.joint][0] for c in cs], dtype=np.int64)
         self.c_local = np.array([self.joint_map[c.joint][1].actInv(c.local) for c in cs],
                                 dtype=float).reshape(-1, 3)
         self.c_radius = np.array([c.radius for c in cs], dtype=float)
+
+    @property
+    def second_surfaces(self) -> bool:
+        """Whether each contact sphere has a second slot (add_second_surface_slots)."""
+        return self.n_contacts != self.n_contact_spheres
+
+    def add_second_surface_slots(self):
+        """Two contact slots per sphere (before anything uses the contacts): slot i its
+        nearest surface, slot n_contact_spheres + i its second surface, the other side of a
+        concave corner of a terrain (csrc/terrain.c). The slots of a sphere share its name,
+        joint, point and radius."""
+        if self.second_surfaces or self._midpoint_model is not None:
+            raise RuntimeError("add_second_surface_slots: once, before the contacts are used")
+        ns = self.n_contact_spheres
+        self.n_contacts = 2 * ns
+        self.contact_sphere = np.tile(np.arange(ns, dtype=np.int64), 2)
+        self.contact_names = self.contact_names * 2
+        self.c_joint = np.tile(self.c_joint, 2)
+        self.c_local = np.tile(self.c_local, (2, 1))
+        self.c_radius = np.tile(self.c_radius, 2)
 
     def _init_constant_mass_matrix(self):
         """Single free bodies with frames at their centres of mass: the constant mass matrix
@@ -377,7 +401,7 @@ class ForestCoordinates:
                            frames=None):
         """Fill gap (nc) and position (nc x 3) of all contact points, and Wt (nc x 3 x nv)
         of those with g_N ≤ jacobian_gap, against the ground plane and its terrain (a
-        contact.GroundPlane); frames (nc x 10, optional): each contact's surface frame
+        contact.GroundPlane); frames (nc x 11, optional): each contact's surface frame
         (n, t1, t2) and μ."""
         t = self.tree
         contact_kinematics(q, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,

@@ -35,9 +35,15 @@ COORDINATE_SETS = {"minimal": minimal_coordinates, "extended": extended_coordina
                    "maximal": maximal_coordinates}
 
 
-def make_coordinates(name: str, desc: RobotDescription) -> ForestCoordinates:
+def make_coordinates(name: str, desc: RobotDescription,
+                     second_surfaces: bool = False) -> ForestCoordinates:
+    """The coordinate set `name` of `desc`; with second_surfaces (a terrain), two contact
+    slots per contact sphere (ForestCoordinates.add_second_surface_slots)."""
     try:
-        return COORDINATE_SETS[name](desc)
+        coords = COORDINATE_SETS[name](desc)
     except KeyError:
         raise ValueError(f"unknown coordinates '{name}' (known: {sorted(COORDINATE_SETS)})") \
             from None
+    if second_surfaces:
+        coords.add_second_surface_slots()
+    return coords

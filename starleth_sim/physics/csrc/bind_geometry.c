@@ -225,8 +225,8 @@ static int ground_of(const char *fn, const val_t *n, const val_t *t1, const val_
                      double offset, const val_t *terrain, const val_t *frames, i64 nc,
                      ground_t *g) {
     if (!need(n->len == 3 && t1->len == 3 && t2->len == 3, fn, "the ground's n, t1, t2 must be 3-vectors") ||
-        !need(terrain->len >= 14, fn, "terrain must be a packed terrain (terrain.pack_terrain)") ||
-        !need(!frames->p || frames->len == 10 * nc, fn, "frames must be nc x 10 or None"))
+        !need(terrain->len >= 16, fn, "terrain must be a packed terrain (terrain.pack_terrain)") ||
+        !need(!frames->p || frames->len == FRAME_STRIDE * nc, fn, "frames must be nc x 11 or None"))
         return 0;
     g->n = n->p;
     g->t1 = t1->p;
@@ -541,7 +541,7 @@ FN(compliant_contact_forces) {
     if (!PARSE("compliant_contact_forces", spec, 10, v, &h) || !get_law(v[0].o, "compliant_contact_forces", &law)) FAIL;
     i64 nc = v[1].len, nv = v[4].len;
     if (!need(v[2].len == 3 * nc && v[3].len == 3 * nc * nv && v[5].len == nc && v[6].len == nc &&
-                  v[7].len == 3 * nc && v[8].len == 10 * nc && v[9].len == 3 * nc,
+                  v[7].len == 3 * nc && v[8].len == FRAME_STRIDE * nc && v[9].len == 3 * nc,
               "compliant_contact_forces", "sizes do not match the contacts"))
         FAIL;
     compliant_contact_forces(&law, nc, nv, v[1].p, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p,

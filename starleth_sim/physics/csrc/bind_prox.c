@@ -186,7 +186,7 @@ FN(solve_compliant) {
     i64 nv = v[3].len, nc = v[5].len;
     if (!need(v[1].len == nv * nv && v[2].len == nv && v[6].len == 3 * nc &&
                   v[7].len == 3 * nc * nv && v[8].len == nc && v[9].len == nc &&
-                  v[10].len == 3 * nc && v[11].len == 10 * nc && v[12].len == 3 * nc &&
+                  v[10].len == 3 * nc && v[11].len == FRAME_STRIDE * nc && v[12].len == 3 * nc &&
                   v[13].len == nv && v[15].len == nv * nv && v[16].len == nv &&
                   (!v[17].p || v[17].len >= 5),
               "solve_compliant", "sizes do not match"))

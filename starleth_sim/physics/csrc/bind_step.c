@@ -146,7 +146,7 @@ FN(prepare_hard_contacts) {
         !get_settings(v[0].o, "prepare_hard_contacts", &s) ||
         !contact_problem_sizes("prepare_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
                                &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb) ||
-        !need(!v[14].p || v[14].len == 10 * nc, "prepare_hard_contacts", "frames must be nc x 10"))
+        !need(!v[14].p || v[14].len == FRAME_STRIDE * nc, "prepare_hard_contacts", "frames must be nc x 11"))
         FAIL;
     ProblemObject *pr;
     if (v[15].o == Py_None) {
@@ -239,7 +239,7 @@ FN(solve_hard_contacts) {
                                &v[7], &v[8], &v[10], &v[12], &v[13], &v[20], &nv, &nc, &nb) ||
         !need(v[11].len == nv && v[14].len == nb && v[15].len == 3 * nc && v[16].len == nc &&
                   v[17].len == nv && v[18].len == nv && v[19].len == nv &&
-                  (!v[21].p || v[21].len == 10 * nc),
+                  (!v[21].p || v[21].len == FRAME_STRIDE * nc),
               "solve_hard_contacts", "the arrays do not match the problem"))
         FAIL;
     problem_t p = {0};

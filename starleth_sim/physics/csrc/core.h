@@ -164,7 +164,7 @@ typedef struct {
 } contact_points_t;
 
 /* The ground plane {x | n·x = offset} and its tangents, and the terrain on it (terrain.c):
- * n_terrain floats packed by physics/terrain.py (0: the plane alone). frames (nc x 10, or
+ * n_terrain floats packed by physics/terrain.py (0: the plane alone). frames (nc x 11, or
  * NULL): where contact_points writes each contact's surface frame (n, t1, t2) and μ. */
 typedef struct {
     const double *n, *t1, *t2; /* 3 each */
@@ -174,8 +174,9 @@ typedef struct {
     double *frames;
 } ground_t;
 
-/* the per-contact entries of ground_t.frames: n (3), t1 (3), t2 (3), μ */
-#define FRAME_STRIDE 10
+/* the per-contact entries of ground_t.frames: n (3), t1 (3), t2 (3), μ, and the surface
+ * (terrain.c: 0 none or not known, 1 the plane, 2 the heightfield, 3 + k box k) */
+#define FRAME_STRIDE 11
 
 /* The cut joints of a forest (ForestCoordinates / tree_step.CutModel) */
 typedef struct {
@@ -243,11 +244,16 @@ void contact_kinematics(const double *q, const tree_t *t, const frames_t *f,
                         double *gap, double *position, double *Wt);
 
 /* terrain.c (terrain.py): the surface nearest to the sphere of centre c and radius r among
- * the plane of g and its terrain: its gap, and its frame and μ into out (FRAME_STRIDE);
- * terrain_is_flat: the terrain holds the plane alone */
+ * the plane of g and its terrain: its gap, and its frame and μ into out (FRAME_STRIDE); with
+ * `second` given, the sphere's second surface (a concave corner: terrain.c) too, its frame
+ * into second and its gap into *second_gap (SECOND_SURFACE_NONE: none);
+ * terrain_is_flat: the terrain holds the plane alone; terrain_has_second_surfaces: the
+ * contacts come in two slots per sphere (contact_points) */
 int terrain_is_flat(const ground_t *g);
+int terrain_has_second_surfaces(const ground_t *g);
 double terrain_plane_mu(const ground_t *g);
-double terrain_contact(const ground_t *g, const double *c, double r, double *out);
+double terrain_contact(const ground_t *g, const double *c, double r, double *out,
+                       double *second, double *second_gap);
 
 /* ---------------------------------------------------------------------------------------
  * dynamics.c (rigid_body.py)

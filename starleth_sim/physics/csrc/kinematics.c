@@ -118,56 +118,86 @@ void point_jacobian(i64 j, const double *p, const tree_t *t, const frames_t *f, 
     }
 }
 
+/* slot i of the contacts: its surface frame fr (n, t1, t2, μ) into g->frames when given,
+ * P_i = c − r n and, for g_N,i ≤ jacobian_gap, Wt[i] = [n, t1, t2]^T J_P,i at P_i on joint j */
+static void contact_slot(const tree_t *t, const frames_t *f, const ground_t *g, i64 i, i64 j,
+                         const double *ci, double r, const double *fr, double gap,
+                         double jacobian_gap, double *position, double *Wt, double *J) {
+    i64 nv = t->nv;
+    const double *n = fr, *t1 = fr + 3, *t2 = fr + 6;
+    if (g->frames)
+        for (int k = 0; k < FRAME_STRIDE; k++) g->frames[FRAME_STRIDE * i + k] = fr[k];
+    for (int k = 0; k < 3; k++) position[3 * i + k] = ci[k] - r * n[k];
+    if (gap > jacobian_gap) return;
+    point_jacobian(j, position + 3 * i, t, f, J, 1);
+    double *W0 = Wt + (3 * i + 0) * nv, *W1 = Wt + (3 * i + 1) * nv,
+           *W2 = Wt + (3 * i + 2) * nv;
+    for (i64 col = 0; col < nv; col++) {
+        W0[col] = n[0] * J[col] + n[1] * J[nv + col] + n[2] * J[2 * nv + col];
+        W1[col] = t1[0] * J[col] + t1[1] * J[nv + col] + t1[2] * J[2 * nv + col];
+        W2[col] = t2[0] * J[col] + t2[1] * J[nv + col] + t2[2] * J[2 * nv + col];
+    }
+}
+
 /* contact_points: g_N,i = n·c_i − offset − r_i, P_i = c_i − r_i n and, for g_N,i ≤
  * jacobian_gap, Wt[i] = [n, t1, t2]^T J_P,i (nc x 3 x nv; the other rows left as they were),
  * from the placements of forward_kinematics; (n, t1, t2) the plane's, or on a terrain those
- * of the contact's surface (terrain_contact), written with μ into g->frames when given. */
+ * of the contact's surface (terrain_contact), written with μ into g->frames when given.
+ * On a terrain with second surfaces (terrain_has_second_surfaces) the nc contacts are two
+ * slots per sphere, i and nc/2 + i (i < nc/2; c_joint, c_local, c_radius repeat): its
+ * nearest surface and its second one (terrain_contact), in that order unless the slots held
+ * them the other way round at the last call with g->frames (entry 10: the surface). */
 void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *c,
                     const ground_t *g, double jacobian_gap, double *gap, double *position,
                     double *Wt) {
     i64 nv = t->nv;
     const double *oR = f->oR, *op = f->op;
     int flat = terrain_is_flat(g);
-    double plane_mu = terrain_plane_mu(g);
+    int two = !flat && terrain_has_second_surfaces(g);
+    i64 ns = two ? c->nc / 2 : c->nc;
     double J[3 * nv + 1]; /* (+1: never a zero-length array) */
-    double ci[3], fr[FRAME_STRIDE];
-    for (i64 i = 0; i < c->nc; i++) {
+    double ci[3], fr[FRAME_STRIDE], fr2[FRAME_STRIDE];
+    if (flat) {
+        for (int k = 0; k < 3; k++) {
+            fr[k] = g->n[k];
+            fr[3 + k] = g->t1[k];
+            fr[6 + k] = g->t2[k];
+        }
+        fr[9] = terrain_plane_mu(g);
+        fr[10] = 1.0;
+    }
+    for (i64 i = 0; i < ns; i++) {
         i64 j = c->joint[i];
         const double *R = oR + 9 * j, *loc = c->local + 3 * i;
         for (int k = 0; k < 3; k++)
             ci[k] = R[k * 3 + 0] * loc[0] + R[k * 3 + 1] * loc[1] + R[k * 3 + 2] * loc[2]
                     + op[3 * j + k];
         double r = c->radius[i];
-        const double *n = g->n, *t1 = g->t1, *t2 = g->t2;
         if (flat) {
+            const double *n = g->n;
             gap[i] = n[0] * ci[0] + n[1] * ci[1] + n[2] * ci[2] - g->offset - r;
-            if (g->frames) {
-                double *o = g->frames + FRAME_STRIDE * i;
-                for (int k = 0; k < 3; k++) {
-                    o[k] = n[k];
-                    o[3 + k] = t1[k];
-                    o[6 + k] = t2[k];
-                }
-                o[9] = plane_mu;
-            }
+        } else if (!two) {
+            double g2;
+            gap[i] = terrain_contact(g, ci, r, fr, NULL, &g2);
         } else {
-            gap[i] = terrain_contact(g, ci, r, fr);
-            n = fr;
-            t1 = fr + 3;
-            t2 = fr + 6;
-            if (g->frames)
-                for (int k = 0; k < FRAME_STRIDE; k++) g->frames[FRAME_STRIDE * i + k] = fr[k];
+            /* a slot keeps its surface while the sphere keeps it (its memory, warm start,
+             * hysteresis, Alg. 1's anchor, is that surface's): the two swap when the one the
+             * second slot held at the last step (g->frames) is now the nearest */
+            double g1, g2;
+            g1 = terrain_contact(g, ci, r, fr, fr2, &g2);
+            double was0 = g->frames ? g->frames[FRAME_STRIDE * i + 10] : 0.0;
+            double was1 = g->frames ? g->frames[FRAME_STRIDE * (ns + i) + 10] : 0.0;
+            double s1 = fr[10], s2 = fr2[10];
+            int swap = (s1 == was1 && s1 != was0) || (s2 != 0.0 && s2 == was0 && s2 != was1);
+            const double *a = swap ? fr2 : fr, *b = swap ? fr : fr2;
+            gap[i] = swap ? g2 : g1;
+            gap[ns + i] = swap ? g1 : g2;
+            contact_slot(t, f, g, ns + i, j, ci, r, b, gap[ns + i], jacobian_gap, position,
+                         Wt, J);
+            contact_slot(t, f, g, i, j, ci, r, a, gap[i], jacobian_gap, position, Wt, J);
+            continue;
         }
-        for (int k = 0; k < 3; k++) position[3 * i + k] = ci[k] - r * n[k];
-        if (gap[i] > jacobian_gap) continue;
-        point_jacobian(j, position + 3 * i, t, f, J, 1);
-        double *W0 = Wt + (3 * i + 0) * nv, *W1 = Wt + (3 * i + 1) * nv,
-               *W2 = Wt + (3 * i + 2) * nv;
-        for (i64 col = 0; col < nv; col++) {
-            W0[col] = n[0] * J[col] + n[1] * J[nv + col] + n[2] * J[2 * nv + col];
-            W1[col] = t1[0] * J[col] + t1[1] * J[nv + col] + t1[2] * J[2 * nv + col];
-            W2[col] = t2[0] * J[col] + t2[1] * J[nv + col] + t2[2] * J[2 * nv + col];
-        }
+        contact_slot(t, f, g, i, j, ci, r, fr, gap[i], jacobian_gap, position, Wt, J);
     }
 }
 
