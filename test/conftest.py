@@ -27,13 +27,13 @@ def starleth_hmj():
 # (xdist's own --dist loadgroup would do the grouping, but with pytest 9 its group marks
 # no longer reach the scheduler, hence the scheduler here.)
 ROS_MODULES = {
-    "test_compile_notice", "test_controller_node", "test_impedance_ros", "test_install_layout",
-    "test_live_view",
+    "test_compile_notice", "test_controller_node", "test_impedance_ros", "test_live_view",
     "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
     "test_sim_node", "test_sim_node_faults", "test_sim_time", "test_strict_inputs", "test_tf",
 }
 # (test_analysis, test_view, test_cdr and test_sim_service start no nodes: they write and
-# read bags or serialise messages; test_compile_notice starts none either, but its watcher
+# read bags or serialise messages; test_install_layout builds and runs the installed package
+# without a node; test_compile_notice starts none either, but its watcher
 # looks every 0.05 s, which the CPU-bound worker beside it could delay)
 SLOW_FIRST = ("test_evaluation", "test_analysis", "test_precompile", "test_sweep",
               "test_coordinates", "test_controller", "test_crafted_bags")
@@ -79,13 +79,27 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=rank)       # stable: the order within a rank is the collection's
 
 
+#: DOMAIN_RANGE -> the free domain chosen for the modules with that range, in this process
+_DOMAINS = {}
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _free_ros_domain(request):
     """A test module that sets DOMAIN_RANGE = (first, span) runs its ROS nodes on a domain of
     that range on which no other process runs nodes (ros_test_nodes.free_domain: a leftover
     node of another run there would answer or disturb them): its DOMAIN_ID is set here,
-    before its own fixtures and tests."""
+    before its own fixtures and tests. The ranges of every collected module are probed at
+    once, when the first of them starts (one wait of 1.5 s per process, not one per module);
+    the modules of one range share its domain, one after another."""
     span = getattr(request.module, "DOMAIN_RANGE", None)
-    if span is not None:
-        from ros_test_nodes import domain_candidates, free_domain
-        request.module.DOMAIN_ID = free_domain(domain_candidates(*span))
+    if span is None:
+        return
+    span = tuple(span)
+    if span not in _DOMAINS:
+        from ros_test_nodes import domain_candidates, free_domains
+        spans = {span} | {tuple(m.DOMAIN_RANGE) for m in
+                          {getattr(item, "module", None) for item in request.session.items}
+                          if hasattr(m, "DOMAIN_RANGE")}
+        spans = sorted(s for s in spans if s not in _DOMAINS)
+        _DOMAINS.update(zip(spans, free_domains([domain_candidates(*s) for s in spans])))
+    request.module.DOMAIN_ID = _DOMAINS[span]

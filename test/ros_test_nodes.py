@@ -127,17 +127,30 @@ class RosTestNode:
         rclpy.try_shutdown(context=self.context)
 
 
-def nodes_on_domain(domain_id, wait=1.5):
-    """The names of the nodes that another process runs on domain_id (discovered within
-    wait s): a leftover node of an earlier run there would answer or disturb a test's nodes."""
-    probe = RosTestNode(domain_id, "_domain_probe")
+def nodes_on_domains(domain_ids, wait=1.5):
+    """{domain id: the names of the nodes that another process runs there} (discovered within
+    wait s, the domains side by side: a probe node on each, each in its own context): a
+    leftover node of an earlier run there would answer or disturb a test's nodes."""
+    probes = []
     try:
-        probe.spin_for(wait)
-        return sorted(f"{ns.rstrip('/')}/{n}"
-                      for n, ns in probe.node.get_node_names_and_namespaces()
-                      if n != "_domain_probe")
+        for d in domain_ids:
+            probes.append(RosTestNode(d, f"_domain_probe_{d}"))   # one logger each
+        t_end = time.monotonic() + wait
+        while time.monotonic() < t_end:
+            for p in probes:
+                p.executor.spin_once(timeout_sec=0.01 / len(probes))
+        return {d: sorted(f"{ns.rstrip('/')}/{n}"
+                          for n, ns in p.node.get_node_names_and_namespaces()
+                          if not n.startswith("_domain_probe"))
+                for d, p in zip(domain_ids, probes)}
     finally:
-        probe.close()
+        for p in probes:
+            p.close()
+
+
+def nodes_on_domain(domain_id, wait=1.5):
+    """The names of the nodes that another process runs on domain_id (nodes_on_domains)."""
+    return nodes_on_domains([domain_id], wait)[domain_id]
 
 
 def domain_candidates(first, span):
@@ -157,4 +170,24 @@ def free_domain(candidates, wait=1.5):
         print(f"ROS domain {d} is taken by nodes of another process ({', '.join(others)}); "
               "trying the next one")
     raise RuntimeError(f"no free ROS domain among {candidates}")
+
+
+def free_domains(candidate_lists, wait=1.5):
+    """free_domain of each list of candidates, in one wait for them all: the first candidate
+    of every list probed side by side (nodes_on_domains), the next ones of a list whose first
+    is taken one by one. The domain ids, in the order of the lists."""
+    firsts = sorted({c[0] for c in candidate_lists})
+    others = nodes_on_domains(firsts, wait)
+    chosen = []
+    for c in candidate_lists:
+        if not others[c[0]]:
+            chosen.append(c[0])
+            continue
+        print(f"ROS domain {c[0]} is taken by nodes of another process "
+              f"({', '.join(others[c[0]])}); trying the next one")
+        try:
+            chosen.append(free_domain(c[1:], wait))
+        except RuntimeError:
+            raise RuntimeError(f"no free ROS domain among {list(c)}") from None
+    return chosen
 

@@ -1,7 +1,12 @@
 """colcon layout check: an install of the package into a prefix (what colcon's ament_python
 build does: setup.py install --single-version-externally-managed with setup.cfg's
 install_scripts=$base/lib/starleth_sim) has the executables where `ros2 run` looks and the
-ament index marker, URDF and configs under share/."""
+ament index marker, URDF and configs under share/. Where colcon is installed, the prefix is
+colcon's own build of the package (`colcon build --packages-select starleth_sim`), else the
+setup.py commands of that build.
+
+No test here starts a ROS node (one runs the installed sim_node with a bad parameter, which
+exits before it joins a ROS graph): the file runs beside the ROS node tests (conftest.py)."""
 import os
 import subprocess
 import sys
@@ -9,19 +14,44 @@ import sys
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+COLCON = os.path.join(os.path.dirname(sys.executable), "colcon")
 
 
 @pytest.fixture(scope="module")
 def prefix(tmp_path_factory):
+    """The install prefix of starleth_sim: colcon's where colcon is installed (one build for
+    every test here: the build is the slow part), else setup.py's."""
     tmp = tmp_path_factory.mktemp("install")
+    if os.path.exists(COLCON):
+        base = tmp / "ws"
+        r = subprocess.run([COLCON, "--log-base", str(base / "log"), "build", "--base-paths",
+                            ROOT, "--build-base", str(base / "build"), "--install-base",
+                            str(base / "install"), "--packages-select", "starleth_sim"],
+                           cwd=tmp, capture_output=True, text=True, timeout=600,
+                           stdin=subprocess.DEVNULL)
+        assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+        return base / "install" / "starleth_sim"
     prefix = tmp / "prefix"
     cmd = [sys.executable, "setup.py", "-q", "build", "--build-base", str(tmp / "build"),
            "egg_info", "--egg-base", str(tmp),
            "install", "--prefix", str(prefix), "--single-version-externally-managed",
            "--record", str(tmp / "record.txt")]
-    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
+                       stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stdout + r.stderr
     return prefix
+
+
+def test_colcon_build_installs_the_launch_file(prefix):
+    """`colcon build` (the prefix fixture's build) installs the launch file and both nodes'
+    executables where `ros2 launch` and `ros2 run` look."""
+    if not os.path.exists(COLCON):
+        pytest.skip("colcon not installed (pip install colcon-common-extensions)")
+    assert (prefix / "share" / "colcon-core" / "packages" / "starleth_sim").is_file()
+    share = prefix / "share" / "starleth_sim"
+    assert (share / "launch" / "starleth.launch.xml").is_file()
+    lib = prefix / "lib" / "starleth_sim"
+    assert (lib / "controller_node").is_file() and (lib / "sim_node").is_file()
 
 
 def _site_packages(prefix):
@@ -77,7 +107,7 @@ def test_installed_sim_node_runs(prefix, tmp_path):
     """The installed console script resolves to the node's main: a bad parameter is reported
     as a configuration error (exit 2) before any physics is set up."""
     env = dict(os.environ, PYTHONPATH=_site_packages(prefix), AMENT_PREFIX_PATH=str(prefix),
-               ROS_DOMAIN_ID=str(100 + os.getpid() % 2))
+               ROS_DOMAIN_ID=str(220 + os.getpid() % 8))   # no test module's range
     r = subprocess.run([str(prefix / "lib" / "starleth_sim" / "sim_node"), "--ros-args",
                         "-p", "mode:=bogus"], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=120)
