@@ -28,15 +28,16 @@ def starleth_hmj():
 # no longer reach the scheduler, hence the scheduler here.)
 ROS_MODULES = {
     "test_compile_notice", "test_controller_node", "test_impedance_ros", "test_live_view",
-    "test_recording", "test_recording_faults", "test_replay", "test_ros_conventions",
-    "test_sim_node", "test_sim_node_faults", "test_sim_time", "test_strict_inputs", "test_tf",
+    "test_recording_faults", "test_replay", "test_ros_conventions", "test_sim_node",
+    "test_sim_node_faults", "test_sim_time", "test_strict_inputs", "test_tf",
 }
 # (test_analysis, test_view, test_cdr and test_sim_service start no nodes: they write and
-# read bags or serialise messages; test_install_layout builds and runs the installed package
-# without a node; test_compile_notice starts none either, but its watcher
-# looks every 0.05 s, which the CPU-bound worker beside it could delay)
+# read bags or serialise messages; nor do test_recording (its recorders write bags, from
+# writer processes too) and test_install_layout (it builds the package and runs what it
+# installed); test_compile_notice starts none either, but its watcher looks every 0.05 s,
+# which the CPU-bound worker beside it could delay)
 SLOW_FIRST = ("test_evaluation", "test_analysis", "test_precompile", "test_sweep",
-              "test_coordinates", "test_controller", "test_crafted_bags")
+              "test_coordinates", "test_controller", "test_crafted_bags", "test_install_layout")
 
 
 def pytest_addoption(parser):
