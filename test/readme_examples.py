@@ -37,27 +37,33 @@ def run_beside_sim_node(ros, tmp_path, code, domain_id, until):
                       mode="lockstep")
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
     log_path = tmp_path / "readme_controller.log"
-    log = open(log_path, "w")
-    ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL, stdout=log,
-                           stderr=subprocess.STDOUT, env=env)
     heights = []
     sub = ros.node.create_subscription(
         Odometry, "starleth/base_state",
         lambda m: heights.append((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9,
                                   m.pose.pose.position.z)), 100)
+    log, ctl = open(log_path, "w"), None
     try:
+        # the controller only once this subscription sees sim_node's publisher (a lockstep
+        # run goes at thousands of states per second: a late match would miss its start)
+        assert ros.spin_until(lambda: ros.node.count_publishers("starleth/base_state") > 0,
+                              START_TIMEOUT, procs=[sim]), sim.log()[-2000:]
+        ros.spin_until(lambda: False, 0.5, procs=[sim])      # (and the match to take effect)
+        ctl = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL,
+                               stdout=log, stderr=subprocess.STDOUT, env=env)
         assert ros.spin_until(lambda: heights and heights[-1][0] >= until, START_TIMEOUT,
                               procs=[sim]), (sim.log()[-2000:], heights[-3:])
         assert ctl.poll() is None, log_path.read_text()
         assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=True)).success
     finally:
         ros.node.destroy_subscription(sub)
-        ctl.send_signal(2)
-        try:
-            ctl.wait(10)
-        except subprocess.TimeoutExpired:
-            ctl.kill()
-            ctl.wait(10)
+        if ctl is not None:
+            ctl.send_signal(2)
+            try:
+                ctl.wait(10)
+            except subprocess.TimeoutExpired:
+                ctl.kill()
+                ctl.wait(10)
         log.close()
         code_sim = sim.stop()
     assert code_sim == 0, sim.log()[-2000:]
