@@ -253,9 +253,8 @@ class ForestCoordinates:
         cs = self.desc.contacts
         #: contact slots (the kernels' contacts: one per sphere, two on a terrain)
         self.n_contacts = len(cs)
-        #: the contact spheres (desc.contacts) and each slot's sphere
+        #: the contact spheres (desc.contacts): slots i and n_contact_spheres + i are sphere i's
         self.n_contact_spheres = len(cs)
-        self.contact_sphere = np.arange(len(cs), dtype=np.int64)
         self.contact_names = [c.name for c in cs]
         self.c_joint = np.array([self.joint_map[c.joint][0] for c in cs], dtype=np.int64)
         self.c_local = np.array([self.joint_map[c.joint][1].actInv(c.local) for c in cs],
@@ -276,7 +275,6 @@ class ForestCoordinates:
             raise RuntimeError("add_second_surface_slots: once, before the contacts are used")
         ns = self.n_contact_spheres
         self.n_contacts = 2 * ns
-        self.contact_sphere = np.tile(np.arange(ns, dtype=np.int64), 2)
         self.contact_names = self.contact_names * 2
         self.c_joint = np.tile(self.c_joint, 2)
         self.c_local = np.tile(self.c_local, (2, 1))

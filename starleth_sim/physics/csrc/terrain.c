@@ -13,19 +13,20 @@
  * The surface rule: each contact sphere takes the surface with the smallest gap; a tie goes
  * to the first in the order plane, boxes (as listed), heightfield. Its second surface (the
  * other side of a concave corner: a tread and its riser, the floor and a box's side) is
- * the nearest of the others whose normal is more than 20° from the first's, when both are
- * within SECOND_SURFACE_REACH; a sphere has none elsewhere. */
+ * the nearest of the others that make a concave corner with the first (second_ok), when
+ * both are within SECOND_SURFACE_REACH; a sphere has none elsewhere. */
 #include "core.h"
 
 #define TERRAIN_HEADER 16
+#define TERRAIN_SECOND 14 /* header entries (terrain.SECOND_SURFACES, terrain.TOP) */
 #define TERRAIN_TOP 15
 #define BOX_STRIDE 11
-/* a contact's second surface (terrain.py SECOND_SURFACE_*): its normal more than 20° from
- * the first's (cos 20°), the two facing each other by more than 1 nm (second_ok), its gap
- * within the reach of the first's and its own [m]; none: a gap of SECOND_SURFACE_NONE */
 /* terrain.BOX_REACH: the boxes of a bin are those within this of it in xy; a contact whose
  * lowest point is more than this above the terrain's top meets the plane alone [m] */
 #define BOX_REACH 0.1
+/* a contact's second surface (terrain.py SECOND_SURFACE_*): its normal more than 20° from
+ * the first's (cos 20°), the two facing each other by more than 1 nm (second_ok), its gap
+ * within the reach of the first's and its own [m]; none: a gap of SECOND_SURFACE_NONE */
 #define SECOND_SURFACE_COS 0.9396926207859084
 #define SECOND_SURFACE_REACH 0.1
 #define SECOND_SURFACE_NONE 1000.0
@@ -36,7 +37,7 @@ int terrain_is_flat(const ground_t *g) {
 }
 
 int terrain_has_second_surfaces(const ground_t *g) {
-    return g->n_terrain >= TERRAIN_HEADER && g->terrain[14] != 0.0;
+    return g->n_terrain >= TERRAIN_HEADER && g->terrain[TERRAIN_SECOND] != 0.0;
 }
 
 double terrain_plane_mu(const ground_t *g) {
@@ -67,6 +68,12 @@ static void frame_of(const double *n, double mu, double *out) {
     out[7] = n[2] * a0 - n[0] * a2;
     out[8] = n[0] * a1 - n[1] * a0;
     out[9] = mu;
+}
+
+/* g_N of the sphere (centre c, radius r) to the ground plane */
+static double plane_gap(const ground_t *g, const double *c, double r) {
+    const double *n = g->n;
+    return n[0] * c[0] + n[1] * c[1] + n[2] * c[2] - g->offset - r;
 }
 
 /* the surface codes of frame entry 10 (FRAME_STRIDE): 0 none (or not known), the plane,
@@ -171,7 +178,7 @@ static double nearest(const ground_t *g, const double *c, double r, const double
     const double *T = g->terrain, *n = g->n;
     double best = SECOND_SURFACE_NONE;
     *id_out = -3;
-    double gp = n[0] * c[0] + n[1] * c[1] + n[2] * c[2] - g->offset - r;
+    double gp = plane_gap(g, c, r);
     if (!n1 || (skip != -1 && gp <= reach && second_ok(c, r, gp, n, n1, p1))) {
         best = gp;
         for (int k = 0; k < 3; k++) n_out[k] = n[k];
@@ -238,6 +245,13 @@ static void surface_frame(const ground_t *g, i64 id, const double *nb, double mu
     out[10] = surface_code(id);
 }
 
+/* no second surface: the first's frame (finite), surface 0, gap SECOND_SURFACE_NONE */
+static double no_second_surface(const double *out, double *second) {
+    for (int k = 0; k < FRAME_STRIDE; k++) second[k] = out[k];
+    second[10] = 0.0;
+    return SECOND_SURFACE_NONE;
+}
+
 double terrain_contact(const ground_t *g, const double *c, double r, double *out,
                        double *second, double *second_gap) {
     double nb[3], mu, n2[3], mu2;
@@ -245,12 +259,8 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
     if (c[2] - r > g->terrain[TERRAIN_TOP] + BOX_REACH) {
         /* far above the terrain (more than BOX_REACH over its top): the plane alone */
         surface_frame(g, -1, g->n, g->terrain[7], out);
-        if (second) {
-            for (int k = 0; k < FRAME_STRIDE; k++) second[k] = out[k];
-            second[10] = 0.0;
-            *second_gap = SECOND_SURFACE_NONE;
-        }
-        return g->n[0] * c[0] + g->n[1] * c[1] + g->n[2] * c[2] - g->offset - r;
+        if (second) *second_gap = no_second_surface(out, second);
+        return plane_gap(g, c, r);
     }
     double best = nearest(g, c, r, NULL, NULL, -3, 0.0, nb, &mu, &id);
     surface_frame(g, id, nb, mu, out);
@@ -262,12 +272,10 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
         for (int k = 0; k < 3; k++) p1[k] = c[k] - (best + r) * nb[k];
         g2 = nearest(g, c, r, nb, p1, id, SECOND_SURFACE_REACH, n2, &mu2, &id2);
     }
-    if (g2 < SECOND_SURFACE_NONE) {
+    if (g2 < SECOND_SURFACE_NONE)
         surface_frame(g, id2, n2, mu2, second);
-    } else {
-        for (int k = 0; k < FRAME_STRIDE; k++) second[k] = out[k];
-        second[10] = 0.0;
-    }
+    else
+        no_second_surface(out, second);
     *second_gap = g2;
     return best;
 }
