@@ -20,6 +20,7 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
 from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import package_share_dir
 from .command_delay import MAX_COMMAND_DELAY
+from .ros2_control_description import INTERFACES, parse_command_interfaces
 
 P = ParameterSpec
 
@@ -52,6 +53,22 @@ class GainSpec(ParameterSpec):
                                  and 0.0 <= v <= self.maximum for v in values):
             raise ValueError(f"parameter {self.name}: must be {self.range_text()}, got "
                              f"{value!r}")
+
+
+@dataclass(frozen=True)
+class InterfaceListSpec(ParameterSpec):
+    """A string naming joint interfaces: empty, or a comma-separated list of position,
+    velocity, effort, each at most once."""
+
+    def range_text(self) -> str:
+        return f"empty (none) or a comma-separated list of {', '.join(INTERFACES)}"
+
+    def check(self, value):
+        super().check(value)
+        try:
+            parse_command_interfaces(value, f"parameter {self.name}")
+        except ConfigError as e:
+            raise ValueError(str(e)) from None
 
 
 SIM_NODE_PARAMETERS = (
@@ -167,6 +184,16 @@ SIM_NODE_PARAMETERS = (
       "of control periods (else rounded to the nearest, logged); 0 = none (bit for bit as "
       "without it). Settable at run time (the commands received before keep their time).",
       read_only=False, minimum=0.0, maximum=MAX_COMMAND_DELAY),
+    InterfaceListSpec(
+        "ros2_control_command_interfaces", str, "",
+        "Realtime mode: add a <ros2_control> section to the robot_description this node "
+        "publishes (and records), for ros2_control_node with the hardware "
+        "topic_based_ros2_control/TopicBasedSystem on this node's joint_commands and "
+        "joint_states: every joint with these command interfaces (e.g. "
+        "position,velocity,effort: an impedance command with feed-forward torque; effort: "
+        "torques), the state interfaces position, velocity and effort, and the initial "
+        "position commands = the initial joint positions; empty: no section. See "
+        "launch/starleth_ros2_control.launch.xml."),
     P("contact_marker_scale", float, 0.002,
       "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
       minimum_exclusive=True, maximum=1.0),
@@ -213,6 +240,10 @@ def _validate(self) -> "Settings":
     if self.mode == "realtime" and self.real_time_factor == 0.0:
         raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
                           "in lockstep mode; realtime mode needs a factor > 0")
+    if self.mode == "lockstep" and self.ros2_control_command_interfaces:
+        raise ConfigError("parameter ros2_control_command_interfaces: topic_based_ros2_control"
+                          " needs realtime mode (its commands answer no state: they carry "
+                          "the time they were sent and come every control cycle)")
     return self
 
 
