@@ -22,6 +22,7 @@ import argparse
 import sys
 from xml.sax.saxutils import quoteattr
 
+from starleth_interface.topics import TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES
 from ..physics.config import ConfigError
 
 #: the joint interfaces sim_node serves: command (JointState fields it reads on
@@ -34,8 +35,8 @@ HARDWARE_PLUGIN = "topic_based_ros2_control/TopicBasedSystem"
 #: ros2_control_node, the robot's), and a threshold below any difference, so that the
 #: hardware publishes every cycle (its default 1e-5 skips a cycle whose position commands
 #: equal the joint positions within 1e-5 rad in sum)
-HARDWARE_PARAMETERS = (("joint_commands_topic", "joint_commands"),
-                       ("joint_states_topic", "joint_states"),
+HARDWARE_PARAMETERS = (("joint_commands_topic", TOPIC_JOINT_COMMANDS),
+                       ("joint_states_topic", TOPIC_JOINT_STATES),
                        ("trigger_joint_command_threshold", "-1"))
 
 
