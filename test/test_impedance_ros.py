@@ -350,7 +350,7 @@ def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
 def readme_position_controller():
     """The second python block of README.md's "Write your own controller" section."""
     blocks = readme_controller_blocks()
-    assert len(blocks) == 2, blocks
+    assert len(blocks) == 3, blocks
     return blocks[1]
 
 
