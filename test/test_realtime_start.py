@@ -1,6 +1,6 @@
 """Realtime mode as ROS controllers meet it: the clock runs from the start with the drives
 holding the initial posture (realtime_start hold, the default), so a controller on a sim-time
-timer runs from the start (the README's timer example, run as written, trots the robot in
+timer runs from the start (doc/controllers.md's timer example, run as written, trots the robot in
 place), the robot stands for a minute with no controller, and a controller that connects
 late takes over without a jump; realtime_start first_command still waits with the clock at
 0; in lockstep a timer controller gets a hint in sim_node's log.
@@ -16,7 +16,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from readme_examples import readme_controller_blocks  # noqa: E402
+from controller_examples import controllers_page_blocks  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -61,7 +61,7 @@ class SimClock:
 
 
 def start_script(code, path, name):
-    """`code` run as a script with no arguments (as a user runs a README example)."""
+    """`code` run as a script with no arguments (as a user runs an example of the docs)."""
     script = path / f"{name}.py"
     script.write_text(code)
     env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1")
@@ -97,16 +97,16 @@ def recorded(path):
 
 
 def timer_controller():
-    """The third python block of README.md's "Write your own controller": the 50 Hz
-    sim-time timer that trots the robot in place."""
-    blocks = readme_controller_blocks()
+    """The third python block of doc/controllers.md: the 50 Hz sim-time timer that trots
+    the robot in place."""
+    blocks = controllers_page_blocks()
     assert len(blocks) == 3 and "create_timer" in blocks[2], blocks
     return blocks[2]
 
 
 @pytest.mark.serial   # realtime nodes
-def test_readme_timer_controller_trots_from_the_start(ros, tmp_path):
-    """The README's timer controller, as written, beside `sim_node --ros-args -p
+def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
+    """The timer controller example, as written, beside `sim_node --ros-args -p
     default_kp:=300.0` (realtime, the default): sim time runs before it starts, so its timer
     fires; sim_node receives its first command within 1 s of sim time after the node
     appears, and the robot trots in place (each diagonal pair alone on the ground over a
@@ -241,7 +241,7 @@ def test_first_command_start_keeps_the_clock_at_zero(ros, tmp_path):
 
 
 def test_timer_controller_in_lockstep_gets_a_hint(ros, tmp_path):
-    """The README's timer controller beside a lockstep sim_node: its sim-time clock never
+    """The timer controller example beside a lockstep sim_node: its sim-time clock never
     moves (nothing answers state 0), so it sends nothing; after 5 s sim_node logs one hint
     that such a controller belongs in realtime mode."""
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,

@@ -12,7 +12,8 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from launch_file import launch_nodes  # noqa: E402
-from readme_examples import readme_controller_blocks, run_beside_sim_node  # noqa: E402
+from controller_examples import (controllers_page_blocks, readme_controller_blocks,  # noqa: E402
+                                 run_beside_sim_node)  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -132,10 +133,10 @@ def test_each_robot_of_the_launch_file_has_its_own_clock(ros, tmp_path):
 # the README's controller, as written
 # -----------------------------------------------------------------------------------------
 def readme_controller():
-    """The first python block of README.md's "Write your own controller" section (the
-    other, test_impedance_ros's, is the position controller)."""
+    """The python block of README.md's "Write your own controller" section (the first of
+    doc/controllers.md too)."""
     blocks = readme_controller_blocks()
-    assert len(blocks) == 3, blocks
+    assert len(blocks) == 1 and blocks[0] == controllers_page_blocks()[0], blocks
     return blocks[0]
 
 
