@@ -115,7 +115,7 @@ def test_section_names_the_urdf_joints_with_interfaces_sim_node_serves(standing)
     """Exactly the URDF's actuated joints, each with the same command interfaces (the
     JointState fields sim_node reads on joint_commands) and the state interfaces of its
     joint_states; the hardware on sim_node's topics, publishing every cycle; initial values
-    = the posture sim_node starts in."""
+    = the posture sim_node starts in, at rest, without feed-forward."""
     with open(SECTION_FILE) as f:
         info = section_info(f.read())
     assert info.type == "system" and info.plugin == rcd.HARDWARE_PLUGIN
@@ -123,7 +123,10 @@ def test_section_names_the_urdf_joints_with_interfaces_sim_node_serves(standing)
     for j, joint in enumerate(info.joints):
         assert [c.name for c in joint.command_interfaces] == ["position", "velocity", "effort"]
         assert [s.name for s in joint.state_interfaces] == ["position", "velocity", "effort"]
-        assert float(joint.state_interfaces[0].initial_value) == standing.joint_positions()[j]
+        q0 = standing.joint_positions()[j]
+        assert float(joint.state_interfaces[0].initial_value) == q0
+        # (ros2_control's own handles start from these; TopicBasedSystem from the state's)
+        assert [float(c.initial_value) for c in joint.command_interfaces] == [q0, 0.0, 0.0]
     params = info.hardware_parameters
     assert params["joint_commands_topic"] == TOPIC_JOINT_COMMANDS
     assert params["joint_states_topic"] == TOPIC_JOINT_STATES
@@ -214,7 +217,7 @@ def test_joints_with_different_command_interfaces_are_rejected(standing, service
     different interfaces give fields that do not line up with the names, which sim_node
     rejects (one line) instead of guessing; hence the same interfaces on every joint."""
     text = rcd.simulator_section(standing, ("effort",)).replace(
-        '<command_interface name="effort"/>', '<command_interface name="position"/>', 1)
+        '<command_interface name="effort">', '<command_interface name="position">', 1)
     node = StubNode()
     TopicBasedSystem(node, section_info(text)).write()
     (msg,) = node.sent

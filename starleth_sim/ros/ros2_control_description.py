@@ -12,10 +12,9 @@ test/test_ros2_control_files.py checks that the file is up to date).
 What the hardware does with the section (doc/sim_node.md, "ros2_control controllers"):
 every control cycle it publishes one JointState naming every joint of the section, with one
 field per command interface the joints declare (so every joint declares the same ones, or
-the fields would not line up with the names); the command values start at the
-``initial_value`` of the joint's state interface of the same name, here the initial joint
-positions, so before any controller writes, the hardware asks sim_node to hold the initial
-posture. ROS-free."""
+the fields would not line up with the names); the command values start at the initial
+values, here the initial joint positions with zero velocity and effort, so before any
+controller writes, the hardware asks sim_node to hold the initial posture. ROS-free."""
 from __future__ import annotations
 
 import argparse
@@ -56,8 +55,12 @@ def ros2_control_section(name: str, joint_names, initial_positions,
                          command_interfaces=DEFAULT_COMMAND_INTERFACES) -> str:
     """The <ros2_control> element (text, indented for the end of a URDF) of system `name`
     with hardware TopicBasedSystem: every joint in `joint_names` with `command_interfaces`
-    and the state interfaces position, velocity and effort, its position's initial value
-    from `initial_positions` (joint order)."""
+    and the state interfaces position, velocity and effort. Initial values: the position
+    state and command from `initial_positions` (joint order), the velocity and effort
+    commands 0, i.e. sim_node's hold of the initial posture (TopicBasedSystem starts its
+    commands from the state interfaces' initial values; ros2_control's own handles, as its
+    successor joint_state_topic_hardware_interface uses them, from the command interfaces',
+    else NaN)."""
     if not command_interfaces:
         raise ValueError("a ros2_control section needs at least one command interface")
     params = "".join(f"\n      <param name={quoteattr(k)}>{v}</param>"
@@ -67,14 +70,19 @@ def ros2_control_section(name: str, joint_names, initial_positions,
              f"      <plugin>{HARDWARE_PLUGIN}</plugin>{params}",
              "    </hardware>"]
     for joint, q0 in zip(joint_names, initial_positions, strict=True):
+        initial = {"position": float(q0), "velocity": 0.0, "effort": 0.0}
         lines.append(f"    <joint name={quoteattr(joint)}>")
-        lines += [f"      <command_interface name=\"{i}\"/>" for i in command_interfaces]
-        lines.append("      <state_interface name=\"position\">"
-                     f"<param name=\"initial_value\">{float(q0)!r}</param></state_interface>")
+        lines += [_interface("command", i, initial[i]) for i in command_interfaces]
+        lines.append(_interface("state", "position", initial["position"]))
         lines += [f"      <state_interface name=\"{i}\"/>" for i in INTERFACES[1:]]
         lines.append("    </joint>")
     lines.append("  </ros2_control>")
     return "\n".join(lines) + "\n"
+
+
+def _interface(kind, name, initial_value) -> str:
+    return (f"      <{kind}_interface name=\"{name}\"><param name=\"initial_value\">"
+            f"{initial_value!r}</param></{kind}_interface>")
 
 
 def with_ros2_control(urdf_xml: str, section: str) -> str:
