@@ -113,7 +113,7 @@ def main(argv=None) -> int:
                     help="as sim_node's initial_state parameter")
     args = ap.parse_args(argv)
     from ..physics.simulator import Simulator      # deferred: --help stays quick
-    from .state_io import parse_initial_state
+    from .state_io import parse_initial_state       # deferred: --help stays quick
     try:
         interfaces = parse_command_interfaces(args.command_interfaces, "--command-interfaces")
         if not interfaces:
