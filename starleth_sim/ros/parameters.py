@@ -77,7 +77,10 @@ SIM_NODE_PARAMETERS = (
       "HmS, HEJD, HEJP, HESD, HESP, HMJD, HMJP, HMSD, HMSP) or the path of a preset YAML "
       "file."),
     P("physics_overrides", str, "",
-      'Overrides of physics fields, a YAML mapping, e.g. "{mu: 0.0, alpha: 0.4}".'),
+      'Overrides of physics fields, a YAML mapping in a string, e.g. {mu: 0.0, alpha: 0.4}. '
+      "On the command line quote it twice, so that ROS reads a string and not a mapping: "
+      "-p \"physics_overrides:='{control_rate: 1000.0, mu: 0.5}'\"; in a parameter file: "
+      "physics_overrides: '{mu: 0.0}'."),
     P("mode", str, "realtime",
       "realtime: a wall-clock loop at 400 Hz x real_time_factor, zero-order hold of the "
       "latest valid command. lockstep: publish the state of step k, wait for the command "
