@@ -15,6 +15,7 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
+from launch_file import Substitutions, launch_values  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import Twist  # noqa: E402
@@ -289,9 +290,11 @@ def test_launch_file_names_our_executables_and_declared_parameters():
     nodes = list(root.iter("node"))
     assert {n.get("exec") for n in nodes} == {"sim_node", "controller_node"}
 
+    sub = Substitutions(launch_values(path), path).evaluate
+
     def value(text):
-        # $(var x) -> the argument's default; launch then reads the value as YAML
-        text = re.sub(r"\$\(var (\w+)\)", lambda m: args[m.group(1)], text)
+        # the substitutions with the arguments' defaults; launch then reads it as YAML
+        text = sub(text)
         return yaml.safe_load(text) if text != "" else ""
 
     for n in nodes:
