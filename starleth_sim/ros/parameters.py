@@ -240,6 +240,14 @@ def frame_name_problem(name: str, empty_ok: bool = False) -> str:
     return ""
 
 
+def namespace_frame_prefix(namespace: str) -> str:
+    """The frame prefix of a robot under `namespace` by the launch file's convention
+    (robot_state_publisher's): 'robot1/' for /robot1 (or robot1, /robot1/), '' at the
+    root."""
+    ns = (namespace or "").strip("/")
+    return ns + "/" if ns else ""
+
+
 def _robot_frame(self, link: str) -> str:
     """The frame id of a link of this robot: tf_frame_prefix + link."""
     return self.tf_frame_prefix + link

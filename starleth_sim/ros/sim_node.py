@@ -47,7 +47,7 @@ from .cdr import CommandDecoder
 from .live_view import LiveView
 from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
-                         load_default_parameters)
+                         load_default_parameters, namespace_frame_prefix)
 from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .service import PeriodStats, SimService
 from .sim_loops import SimLoops
@@ -159,7 +159,8 @@ class SimNode:
             self.log.info(
                 f"namespace {ns} without tf_frame_prefix: this robot's frames ({s.world_frame} "
                 f"-> {root}, {root} -> its links) are those of any other robot on /tf; with "
-                f"several robots set tf_frame_prefix:={ns.strip('/')}/ (the launch file does)")
+                f"several robots set tf_frame_prefix:={namespace_frame_prefix(ns)} (the launch "
+                "file does)")
 
     def _model_gravity(self):
         try:
