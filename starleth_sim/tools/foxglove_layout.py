@@ -53,11 +53,13 @@ def shipped_layout_path() -> str:
 
 def robots(namespaces, frame_prefixes=None) -> list:
     """[(namespace, frame prefix)] of the robots: the namespaces normalised ('/robot1'), the
-    prefixes given (in order) or the launch file's (robot1/). ValueError naming what is
-    wrong."""
+    prefixes given (in order) or the launch file's (robot1/); no namespace: one robot at
+    the root, unprefixed (the shipped layout's). ValueError naming what is wrong."""
     prefixes = list(frame_prefixes or [])
     if len(prefixes) > len(namespaces):
         raise ValueError(f"{len(prefixes)} --frame-prefix for {len(namespaces)} namespace(s)")
+    if not namespaces:
+        return [("", "")]
     out = []
     for k, ns in enumerate(namespaces):
         if not NAMESPACE.fullmatch(ns):
@@ -166,7 +168,7 @@ def run(argv=None) -> int:
     ap = build_parser()
     a = ap.parse_args(argv)
     try:
-        robots_ = robots(a.namespace, a.frame_prefix) or [("", "")]
+        robots_ = robots(a.namespace, a.frame_prefix)
     except ValueError as e:
         ap.error(str(e))
     path = a.layout or shipped_layout_path()
