@@ -215,6 +215,25 @@ def test_foxglove_layout_shows_what_sim_node_records(recorded):
     assert foxglove_layout.namespaced_layout(layout, foxglove_layout.robots([])) == layout
 
 
+def test_starleth_layout_refuses_what_is_not_a_namespace_or_a_prefix(tmp_path, capsys):
+    """Bad arguments: one usage line and exit 2; a layout with a panel it cannot rewrite:
+    one line and exit 1."""
+    import json
+    from starleth_sim.tools import foxglove_layout
+    for args, words in ((["robot 1"], "not a ROS namespace"),
+                        (["robot1", "/robot1"], "named twice"),
+                        (["robot1", "--frame-prefix", "/r1/"], "must not start with '/'"),
+                        (["--frame-prefix", "r1/"], "1 --frame-prefix for 0 namespace")):
+        with pytest.raises(SystemExit) as e:
+            foxglove_layout.main(args)
+        assert e.value.code == 2 and words in capsys.readouterr().err, args
+    odd = tmp_path / "odd.json"
+    odd.write_text(json.dumps({"configById": {"Map!x": {}}, "layout": "Map!x"}))
+    assert foxglove_layout.main(["robot1", "--layout", str(odd)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "a Map panel is not handled here" in err, err
+
+
 @pytest.fixture(scope="module")
 def prefixed(tmp_path_factory):
     """20 steps of a sim_node with tf_frame_prefix robot1/ (TF and markers every step),
