@@ -54,6 +54,35 @@ class GainSpec(ParameterSpec):
                              f"{value!r}")
 
 
+def frame_name_problem(name: str, empty_ok: bool = False) -> str:
+    """Why `name` cannot be (the start of) a TF frame id, or '' if it can: tf2 refuses a
+    leading '/', and a frame id is one word (no white space)."""
+    if not name:
+        return "" if empty_ok else "must not be empty"
+    if name.startswith("/"):
+        return "must not start with '/' (tf2 refuses such frame ids)"
+    if any(c.isspace() for c in name):
+        return "must not contain white space"
+    return ""
+
+
+@dataclass(frozen=True)
+class FrameSpec(ParameterSpec):
+    """A TF frame name, or with `prefix` the start of one (may be empty)."""
+
+    prefix: bool = False
+
+    def range_text(self) -> str:
+        return ("empty, or the start of a frame name" if self.prefix else "a frame name") + \
+            ": not starting with '/', no white space"
+
+    def check(self, value):
+        super().check(value)
+        problem = frame_name_problem(value, empty_ok=self.prefix)
+        if problem:
+            raise ValueError(f"parameter {self.name}: {problem}, got {value!r}")
+
+
 SIM_NODE_PARAMETERS = (
     P("physics", str, "HmJ",
       "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
@@ -126,10 +155,10 @@ SIM_NODE_PARAMETERS = (
       "Minimum seconds between two warnings about the same problem (a kind of bad input "
       "and what it names: the joint, the link, the topic).", minimum=0.0,
       maximum=3600.0),
-    P("world_frame", str, "world",
+    FrameSpec("world_frame", str, "world",
       "Frame id of the world (the parent of the base pose), shared by every robot: "
       "tf_frame_prefix is not put before it."),
-    P("base_frame", str, "base",
+    FrameSpec("base_frame", str, "base",
       "The base link: the root link of the URDF (the floating base; checked at start), the "
       "child frame of the odometry, the frame of the IMU; tf_frame_prefix is put before it."),
     P("publish_clock", bool, True,
@@ -143,12 +172,12 @@ SIM_NODE_PARAMETERS = (
       "Foxglove and Lichtblick move the URDF's links only through TF (they keep 10,000 "
       "transforms per frame: 50 Hz x 13 transforms fits); at most 1000 Hz (above the "
       "control rate it is every step).", minimum=0.1, maximum=1000.0, off_value=0.0),
-    P("tf_frame_prefix", str, "",
+    FrameSpec("tf_frame_prefix", str, "",
       'Put before every frame of the robot (robot_state_publisher\'s frame_prefix): the link '
       "frames of /tf and /tf_static, the odometry's child frame, the IMU's frame; not before "
       'world_frame. "robot1/" for several robots on one /tf (the launch file sets '
       "namespace + '/'). Not derived from the node's namespace (a namespaced node without it "
-      "says so at start)."),
+      "says so at start).", prefix=True),
     P("contact_markers_rate", float, 50.0,
       "visualization_msgs/MarkerArray on starleth/contact_markers: a sphere per contact "
       "point coloured by state (grey open, green stick, red slip) and an arrow along the "
@@ -218,26 +247,10 @@ def _validate(self) -> "Settings":
         except ValueError as e:
             raise ConfigError(str(e)) from None
         setattr(self, p.name, value)
-    for name in ("world_frame", "base_frame", "tf_frame_prefix"):
-        problem = frame_name_problem(getattr(self, name), empty_ok=name == "tf_frame_prefix")
-        if problem:
-            raise ConfigError(f"parameter {name}: {problem}, got {getattr(self, name)!r}")
     if self.mode == "realtime" and self.real_time_factor == 0.0:
         raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
                           "in lockstep mode; realtime mode needs a factor > 0")
     return self
-
-
-def frame_name_problem(name: str, empty_ok: bool = False) -> str:
-    """Why `name` cannot be (the start of) a TF frame id, or '' if it can: tf2 refuses a
-    leading '/', and a frame id is one word (no white space)."""
-    if not name:
-        return "" if empty_ok else "must not be empty"
-    if name.startswith("/"):
-        return "must not start with '/' (tf2 refuses such frame ids)"
-    if any(c.isspace() for c in name):
-        return "must not contain white space"
-    return ""
 
 
 def namespace_frame_prefix(namespace: str) -> str:
