@@ -19,6 +19,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from launch_file import launch_nodes  # noqa: E402
 from layout_checks import check_layout  # noqa: E402
+from tf_trees import tf_tree, world_poses  # noqa: E402
 from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from readme_examples import readme_controller_blocks, run_beside_sim_node  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
@@ -198,17 +199,6 @@ def bag_messages(path):
     return out
 
 
-def tf_tree(msgs):
-    """{child frame: parent frame} of a bag's /tf and /tf_static (each child once)."""
-    parent = {}
-    for topic in ("/tf_static", "/tf"):
-        for m in msgs[topic]:
-            for t in m.ros_msg.transforms:
-                assert parent.setdefault(t.child_frame_id, t.header.frame_id) == \
-                    t.header.frame_id, t.child_frame_id
-    return parent
-
-
 def test_each_robot_has_its_own_tf_tree(two_robots):
     """The launch file prefixes each robot's frames with its namespace: every child frame
     on /tf of the two robots is distinct (robot1/..., robot2/...), both trees hang from the
@@ -329,25 +319,15 @@ def page_data(path):
     return json.loads(m.group(1))
 
 
-def world_poses(msgs, stamp_ns):
-    """{frame: world pose (pin.SE3)} from a bag's /tf message at stamp_ns and its
-    /tf_static, or None where no /tf message has that stamp."""
-    tf = next((m.ros_msg.transforms for m in msgs["/tf"]
-               if m.ros_msg.transforms[0].header.stamp.sec * 10 ** 9
-               + m.ros_msg.transforms[0].header.stamp.nanosec == stamp_ns), None)
-    if tf is None:
-        return None
-    world = {"world": pin.SE3.Identity()}
-    pending = list(tf) + list(msgs["/tf_static"][0].ros_msg.transforms)
-    while pending:
-        t = pending.pop(0)
-        if t.header.frame_id not in world:
-            pending.append(t)
-            continue
-        p, r = t.transform.translation, t.transform.rotation
-        world[t.child_frame_id] = world[t.header.frame_id] * pin.SE3(
-            pin.Quaternion(r.w, r.x, r.y, r.z).matrix(), np.array([p.x, p.y, p.z]))
-    return world
+def tf_at(msgs, stamp_ns):
+    """{frame: world pose} from a bag's /tf message at stamp_ns and its /tf_static, or None
+    where no /tf message has that stamp."""
+    for m in msgs["/tf"]:
+        s = m.ros_msg.transforms[0].header.stamp
+        if s.sec * 10 ** 9 + s.nanosec == stamp_ns:
+            return world_poses(list(m.ros_msg.transforms)
+                               + list(msgs["/tf_static"][0].ros_msg.transforms))
+    return None
 
 
 def test_starleth_view_draws_both_robots_side_by_side(two_robots, tmp_path, capsys):
@@ -373,7 +353,7 @@ def test_starleth_view_draws_both_robots_side_by_side(two_robots, tmp_path, caps
         assert all(f.startswith(f"{ns}/") for f in robot["tf_frames"])
         poses = np.array(robot["poses"]).reshape(data["frames"], -1, 7)
         for k, t in enumerate(data["t"]):
-            world = world_poses(msgs, data["t0_ns"] + round(t * 1e9))
+            world = tf_at(msgs, data["t0_ns"] + round(t * 1e9))
             if world is None:         # (robot1 paused: no /tf of its own at later frames)
                 continue
             for b, frame in enumerate(robot["tf_frames"]):

@@ -13,6 +13,7 @@ from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
+from tf_trees import world_poses  # noqa: E402
 from starleth_sim.physics.description import starleth_description  # noqa: E402
 
 DOMAIN_RANGE = (199, 30)      # first, span
@@ -132,16 +133,7 @@ def test_recorded_transforms_agree_with_pinocchio_forward_kinematics(recorded):
         for name, angle in zip(js.name, js.position):
             q[model.joints[model.getJointId(name)].idx_q] = angle
         pin.framesForwardKinematics(model, data, q)
-        world = {"world": pin.SE3.Identity()}
-        pending = list(tfs) + list(msgs["/tf_static"][0].ros_msg.transforms)
-        while pending:
-            t = pending.pop(0)
-            if t.header.frame_id not in world:
-                pending.append(t)
-                continue
-            tr, r = t.transform.translation, t.transform.rotation
-            M = pin.SE3(pin.Quaternion(r.w, r.x, r.y, r.z).matrix(), np.array([tr.x, tr.y, tr.z]))
-            world[t.child_frame_id] = world[t.header.frame_id] * M
+        world = world_poses(list(tfs) + list(msgs["/tf_static"][0].ros_msg.transforms))
         assert len(world) == 1 + len(tfs) + len(msgs["/tf_static"][0].ros_msg.transforms)
         for link, M in world.items():
             if link == "world":
