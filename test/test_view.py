@@ -396,3 +396,35 @@ def test_browser_renders_the_robot_moving(drop, tmp_path):
     assert 'data-ready="1"' in body and 'data-error' not in body, body
     assert f'data-frame="{drop["data"]["t"].index(T_LANDED)}"' in body, body
     assert 'data-playing="0"' in body
+
+
+@pytest.mark.serial   # a browser
+def test_browser_renders_two_robots_side_by_side(tmp_path):
+    """Two robots of one bag (robot2 1 m to the left of robot1) in one page, with the camera
+    held (follow=0, looking from the front right): the robot of the page of robot1 alone is
+    drawn at the same pixels, and robot2 adds a robot of its own behind it, to its right in
+    the image (partly hidden by robot1); no script error."""
+    if shutil.which("chromium") is None:
+        reason = ("chromium not installed: run `make browser-test` (installs Debian's "
+                  "chromium with apt-get, then runs these tests)")
+        print(reason)
+        pytest.skip(reason)
+    bag = write_synthetic_bag(tmp_path / "two.mcap", ("/robot1", "/robot2"))
+    masks = {}
+    for name, only in (("both", []), ("one", ["--namespace", "/robot1"])):
+        page = tmp_path / f"{name}.html"
+        assert view.main([str(bag), "-o", str(page), *only]) == 0
+        png = tmp_path / f"{name}.png"
+        url = f"{page.resolve().as_uri()}?t=0.05&paused=1&follow=0"
+        p = chromium(tmp_path, url, f"--screenshot={png}")
+        assert p.returncode == 0 and png.exists(), p.stderr[-2000:]
+        masks[name] = robot_mask(png)[1]
+        body = re.search(r"<body[^>]*>", chromium(tmp_path, url, "--dump-dom").stdout).group(0)
+        assert 'data-ready="1"' in body and "data-error" not in body, body
+    one, both = masks["one"], masks["both"]
+    print(f"robot pixels: robot1 alone {one.sum()}, both robots {both.sum()}")
+    assert one.sum() > 2000
+    assert (one & both).sum() > 0.9 * one.sum()          # robot1 where it was
+    added = both & ~one                                    # and robot2 beside it
+    assert added.sum() > 1000
+    assert np.nonzero(added)[1].mean() > np.nonzero(one)[1].mean() + 50
