@@ -1,8 +1,11 @@
-"""Sim time as users meet it (issue #35): each robot of the launch file has its own clock
-(two namespaced robots in lockstep, their controllers with use_sim_time:=true, started with
-the `--ros-args` the launch file gives them); in realtime mode the clock waits for the first
-command (the robot does not fall before a controller answers); and the README's "Write your
-own controller" example, run as written, keeps the robot standing.
+"""Sim time and several robots as users meet them: each robot of the launch file has its own
+clock (two namespaced robots in lockstep, their controllers with use_sim_time:=true, started
+with the `--ros-args` the launch file gives them) and its own TF tree (its frames prefixed
+with its namespace, `world` shared), and the tools read their bags (starleth-view draws both
+in one scene, starleth-layout's layout names what they recorded, starleth-analyze and
+starleth-replay read them); in realtime mode the clock waits for the first command (the
+robot does not fall before a controller answers); and the README's "Write your own
+controller" example, run as written, keeps the robot standing.
 
 Nodes run as child processes on an isolated ROS_DOMAIN_ID; every wait is bounded and every
 child is stopped in a finally."""
