@@ -89,7 +89,10 @@ SIM_NODE_PARAMETERS = (
       "HmS, HEJD, HEJP, HESD, HESP, HMJD, HMJP, HMSD, HMSP) or the path of a preset YAML "
       "file."),
     P("physics_overrides", str, "",
-      'Overrides of physics fields, a YAML mapping, e.g. "{mu: 0.0, alpha: 0.4}".'),
+      'Overrides of physics fields, a YAML mapping in a string, e.g. {mu: 0.0, alpha: 0.4}. '
+      "On the command line quote it twice, so that ROS reads a string and not a mapping: "
+      "-p \"physics_overrides:='{control_rate: 1000.0, mu: 0.5}'\"; in a parameter file: "
+      "physics_overrides: '{mu: 0.0}'."),
     P("mode", str, "realtime",
       "realtime: a wall-clock loop at 400 Hz x real_time_factor, zero-order hold of the "
       "latest valid command. lockstep: publish the state of step k, wait for the command "
@@ -137,12 +140,17 @@ SIM_NODE_PARAMETERS = (
     P("start_paused", bool, False,
       "Start paused (call ~/pause with data=false, or ~/step): lets a controller connect "
       "first."),
-    P("realtime_start", str, "first_command",
-      "Realtime mode: first_command: the clock starts with the first valid command (until "
-      "then the initial state is published, again for each new subscriber and every 0.5 s, "
-      "/clock stays at 0 and the robot does not move, so it does not fall before a "
-      "controller answers); immediately: the clock runs from the start, commands or not.",
-      choices=("first_command", "immediately")),
+    P("realtime_start", str, "hold",
+      "Realtime mode: hold: physics and /clock run from the start, and until the first valid "
+      "command the joints hold the initial posture through the joint impedance law (q* = the "
+      "initial joint angles, default_kp, default_kd), as position-controlled drives do at "
+      "power-up (again after each ~/reset); controllers on sim-time timers (ros2_control's "
+      "controller_manager) run from the start. first_command: the clock starts with the "
+      "first valid command (until then the initial state is published, again for each new "
+      "subscriber and every 0.5 s, /clock stays at 0 and the robot does not move); "
+      "immediately: the clock runs from the start with zero torques until a command (the "
+      "robot falls).",
+      choices=("hold", "first_command", "immediately")),
     P("realtime_priority", int, 0,
       "Realtime mode: > 0 runs the stepping thread with SCHED_FIFO at this priority (needs "
       "CAP_SYS_NICE or an rtprio limit; falls back to normal priority with a warning). Makes "

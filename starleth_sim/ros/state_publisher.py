@@ -192,6 +192,11 @@ class StatePublisher:
         return sum(pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS
                    if k in pubs)
 
+    def clock_subscriber_count(self) -> int:
+        """The subscribers of /clock (nodes on sim time), now (0 without publish_clock)."""
+        pub = self.output.pubs.get("clock")
+        return pub[0].get_subscription_count() if pub is not None else 0
+
     def publish_robot_description(self):
         self.output.emit("robot_description", String(data=self.sim.description.urdf_xml),
                          True)
