@@ -92,6 +92,7 @@ setup(
             'starleth-eval = starleth_sim.tools.evaluation:main',
             'starleth-analyze = starleth_sim.tools.analysis:main',
             'starleth-view = starleth_sim.tools.view:main',
+            'starleth-layout = starleth_sim.tools.foxglove_layout:main',
             'starleth-replay = starleth_sim.tools.replay:main',
             'starleth-sweep = starleth_sim.tools.sweep:main',
             'starleth-precompile = starleth_sim.tools.precompile:main',

@@ -3,10 +3,14 @@ no `launch` package in the venv to run them): their arguments with their default
 each node the program and the `--ros-args` that launch_ros would give it (node name,
 namespace, every `<param name= value=>` as `-p`, every `<param from=>` as `--params-file`,
 every `<remap>` as `-r`) and its `args`, so that a test starts the nodes a launch file
-describes and a broken launch file fails it. Only what the files use is understood (`$(var
-x)` and `$(find-pkg-share starleth_sim)` substitutions, `<arg>`, `<node>` with `<param>` and
-`<remap>`); anything else raises, and so does a program that is neither one of ours nor one
-of ROS_PROGRAMS."""
+describes and a broken launch file fails it. Only what the files use is understood (`<arg>`,
+`<node>` with `<param>` and `<remap>`; the substitutions `$(var x)`, `$(find-pkg-share
+starleth_sim)` (the source tree, which has the layout of the package's share directory) and
+`$(eval 'python expression')`, parsed with launch's grammar: arguments apart by one space,
+quoted or not, substitutions nested in them, a backslash escaping the next character; an
+argument's default may use the arguments declared before it); anything else raises, and so
+does a program that is neither one of ours nor one of ROS_PROGRAMS."""
+import math
 import os
 import re
 import shlex
@@ -26,20 +30,105 @@ def console_scripts():
         return dict(re.findall(r"['\"]([\w-]+) = ([\w.]+):\w+['\"]", f.read()))
 
 
+class Substitutions:
+    """Launch's substitution text (launch/frontend/grammar.lark) over the argument values
+    `values`: `evaluate(text)` is the text with its `$(var x)`, `$(find-pkg-share
+    starleth_sim)` and `$(eval '...')` done (the expression evaluated as launch's
+    PythonExpression does, with math's names)."""
+
+    def __init__(self, values, where):
+        self.values, self.where = values, where
+
+    def evaluate(self, text):
+        self.text, self.pos = text or "", 0
+        out = []
+        while self.pos < len(self.text):
+            out.append(self._substitution() if self._at("$(") else self._char())
+        return "".join(out)
+
+    def _at(self, token):
+        return self.text.startswith(token, self.pos)
+
+    def _fail(self, why):
+        raise ValueError(f"{self.where}: {why} at character {self.pos} of {self.text!r}")
+
+    def _char(self):
+        """One character of text, a backslash escaping the next one."""
+        c = self.text[self.pos]
+        if c == "\\" and self.pos + 1 < len(self.text):
+            self.pos += 1
+            c = self.text[self.pos]
+        self.pos += 1
+        return c
+
+    def _substitution(self):
+        m = re.compile(r"\$\(([A-Za-z][\w-]*)").match(self.text, self.pos)
+        if not m:
+            self._fail("a substitution without a name")
+        self.pos = m.end()
+        args = []
+        while self._at(" "):
+            self.pos += 1
+            args.append(self._argument())
+        if not self._at(")"):
+            self._fail("a substitution not closed")
+        self.pos += 1
+        return self._perform(m.group(1), args)
+
+    def _argument(self):
+        """One argument: a quoted text (substitutions in it) or an unquoted word."""
+        quote = self.text[self.pos] if self._at("'") or self._at('"') else None
+        self.pos += quote is not None
+        out = []
+        while self.pos < len(self.text):
+            c = self.text[self.pos]
+            if quote is not None and c == quote:
+                self.pos += 1
+                return "".join(out)
+            if quote is None and c in " )":
+                return "".join(out)
+            if quote is None and c in "'\"(":
+                self._fail(f"{c!r} in an unquoted argument")
+            out.append(self._substitution() if self._at("$(") else self._char())
+        self._fail("an argument not closed")
+
+    def _perform(self, name, args):
+        if name == "var" and len(args) == 1:
+            if args[0] not in self.values:
+                self._fail(f"no argument {args[0]!r} declared before")
+            return self.values[args[0]]
+        if name == "eval" and len(args) == 1:
+            return str(eval(args[0], {}, {**vars(math), "math": math}))
+        if name == "find-pkg-share" and args == ["starleth_sim"]:
+            return ROOT
+        self._fail(f"substitution $({name}) with {len(args)} argument(s) not understood here")
+
+
+def launch_values(path=LAUNCH_FILE, **arguments):
+    """{argument: value} of the file's <arg>s as `ros2 launch` takes them: those given
+    (name:=value, taken as they are), the others' defaults evaluated in order."""
+    root = ET.parse(path).getroot()
+    declared = [a.get("name") for a in root.iter("arg")]
+    unknown = set(arguments) - set(declared)
+    if unknown:
+        raise ValueError(f"{path}: no argument(s) {sorted(unknown)}")
+    values = {}
+    subs = Substitutions(values, path)
+    for a in root.iter("arg"):
+        name = a.get("name")
+        if name in arguments:
+            values[name] = str(arguments[name])
+        elif a.get("default") is None:
+            raise ValueError(f"{path}: argument {name!r} has no default and was not given")
+        else:
+            values[name] = subs.evaluate(a.get("default"))
+    return values
+
+
 def launch_arguments(path=LAUNCH_FILE):
     """{name: default (None: none)} of the file's <arg>s, as written."""
     root = ET.parse(path).getroot()
     return {a.get("name"): a.get("default") for a in root.iter("arg")}
-
-
-def _substitute(path, values, text):
-    """`text` with $(var x) and $(find-pkg-share starleth_sim) (the source tree, which has
-    the layout of the package's share directory) replaced."""
-    out = re.sub(r"\$\(var (\w+)\)", lambda m: values[m.group(1)], text or "")
-    out = out.replace("$(find-pkg-share starleth_sim)", ROOT)
-    if "$(" in out:
-        raise ValueError(f"{path}: substitution not understood here: {text!r}")
-    return out
 
 
 def _node_ros_args(path, child, sub):
@@ -69,21 +158,7 @@ def launch_nodes(path=LAUNCH_FILE, **arguments):
     root = ET.parse(path).getroot()
     if root.tag != "launch":
         raise ValueError(f"{path}: root element {root.tag!r}, expected 'launch'")
-    defaults = launch_arguments(path)
-    unknown = set(arguments) - set(defaults)
-    if unknown:
-        raise ValueError(f"{path}: no argument(s) {sorted(unknown)}")
-    values = {}
-    for k, v in defaults.items():          # in order: a default may use an earlier argument
-        values[k] = str(arguments[k]) if k in arguments else \
-            (None if v is None else _substitute(path, values, v))
-    missing = [k for k, v in values.items() if v is None]
-    if missing:
-        raise ValueError(f"{path}: argument(s) {missing} have no default and were not given")
-
-    def sub(text):
-        return _substitute(path, values, text)
-
+    sub = Substitutions(launch_values(path, **arguments), path).evaluate
     scripts = console_scripts()
     nodes = []
     for child in root:

@@ -529,7 +529,8 @@ def test_view_values(bags, tmp_path):
     for topic in ("/joint_states", "/starleth/base_state", *WRENCH_TOPICS):
         assert f"5 message(s) on {topic} hold NaN, infinite or absurd values" in err, err
     data = page_data(tmp_path / "p.html")
-    assert all(math.isfinite(x) for x in data["poses"] + data["arrows"])
+    robot, = data["robots"]
+    assert all(math.isfinite(x) for x in robot["poses"] + robot["arrows"])
 
 
 def test_view_times(bags, tmp_path):

@@ -32,8 +32,9 @@ K_PUSH, K_PERSIST_ON, K_PERSIST_OFF = 60, 120, 160
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    """A lockstep run: PD hold; a 300 N lateral push on the base answering state K_PUSH; a
-    persistent 40 N forward pull from K_PERSIST_ON to K_PERSIST_OFF."""
+    """A lockstep run with tf_frame_prefix robot/: PD hold; a 300 N lateral push on the
+    base (named by its frame, robot/base) answering state K_PUSH; a persistent 40 N forward
+    pull (on the link name, base) from K_PERSIST_ON to K_PERSIST_OFF."""
     tmp = tmp_path_factory.mktemp("replay")
     ros = RosTestNode(DOMAIN_ID, "replay_test", events=True)
     node = ros.node
@@ -42,9 +43,9 @@ def recorded(tmp_path_factory):
     persist = node.create_publisher(WrenchStamped, "/sim_node/wrench/persistent", 10)
     orig = ctl._on_state
 
-    def wrench(pub, fx, fy):
+    def wrench(pub, fx, fy, frame="base"):
         w = WrenchStamped()
-        w.header.frame_id = "base"
+        w.header.frame_id = frame
         w.wrench.force.x, w.wrench.force.y = fx, fy
         pub.publish(w)
 
@@ -53,7 +54,7 @@ def recorded(tmp_path_factory):
             return
         k = len(ctl.stamps)
         if k == K_PUSH:
-            wrench(push, 0.0, 300.0)
+            wrench(push, 0.0, 300.0, "robot/base")
         elif k == K_PERSIST_ON:
             wrench(persist, 40.0, 0.0)
         elif k == K_PERSIST_OFF:
@@ -64,7 +65,7 @@ def recorded(tmp_path_factory):
     ctl.sub = node.create_subscription(JointState, "/joint_states", on_state, QoSProfile(depth=10))
     mcap = str(tmp / "run.mcap")
     sim = NodeProcess("starleth_sim.ros.sim_node", tmp / "sim.log", DOMAIN_ID, mode="lockstep",
-                      real_time_factor=0.0, record=mcap)
+                      real_time_factor=0.0, record=mcap, tf_frame_prefix="robot/")
     try:
         ok = ros.spin_until(lambda: len(ctl.stamps) >= N_STATES or not sim.alive(),
                             START_TIMEOUT)
@@ -92,6 +93,9 @@ def test_lockstep_run_and_its_replay_are_bit_identical(recorded, capsys):
     # the three wrenches were recorded with the step after which they were applied
     ks = sorted(rec.wrenches)
     assert len(ks) == 3 and [w[3] for k in ks for w in rec.wrenches[k]] == [False, True, True]
+    # (the push named the base by its frame: replayed with the recorded frame prefix)
+    assert [w[0] for k in ks for w in rec.wrenches[k]] == ["robot/base", "base", "base"]
+    assert rec.frame_prefix == "robot/"
     assert all(K_PUSH - 1 <= k <= K_PUSH + 1 for k in ks[:1])
     # the robot moved: the push shows in the base velocity
     vy = rec.states["base_linear_velocity"][:, 1]

@@ -15,6 +15,7 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
+from launch_file import Substitutions, launch_nodes, launch_values  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from geometry_msgs.msg import Twist  # noqa: E402
@@ -289,9 +290,11 @@ def test_launch_file_names_our_executables_and_declared_parameters():
     nodes = list(root.iter("node"))
     assert {n.get("exec") for n in nodes} == {"sim_node", "controller_node"}
 
+    sub = Substitutions(launch_values(path), path).evaluate
+
     def value(text):
-        # $(var x) -> the argument's default; launch then reads the value as YAML
-        text = re.sub(r"\$\(var (\w+)\)", lambda m: args[m.group(1)], text)
+        # the substitutions with the arguments' defaults; launch then reads it as YAML
+        text = sub(text)
         return yaml.safe_load(text) if text != "" else ""
 
     for n in nodes:
@@ -307,6 +310,24 @@ def test_launch_file_names_our_executables_and_declared_parameters():
     text = open(path).read()
     for a in args:
         assert f"$(var {a})" in text, a
+
+
+def test_launch_file_prefixes_the_frames_with_the_namespace():
+    """frame_prefix's default ($(eval ...), evaluated as launch does) is robot_state_
+    publisher's convention, namespace_frame_prefix: robot1/ for robot1 or /robot1/, none at
+    the root; it goes to sim_node's tf_frame_prefix, and frame_prefix:=... overrides it."""
+    from starleth_sim.ros.parameters import namespace_frame_prefix
+
+    def sim_node_prefix(**args):
+        spec = next(n for n in launch_nodes(**args) if n["exec"] == "sim_node")
+        args = spec["ros_args"]
+        return next(a.split(":=", 1)[1] for a in args if a.startswith("tf_frame_prefix:="))
+    for ns in ("", "/", "robot1", "/robot1/", "fleet/robot_7"):
+        want = namespace_frame_prefix(ns)
+        assert launch_values(namespace=ns)["frame_prefix"] == want, ns
+        assert sim_node_prefix(namespace=ns) == (want or "''"), ns
+    assert namespace_frame_prefix("/fleet/robot_7") == "fleet/robot_7/"
+    assert sim_node_prefix(namespace="robot1", frame_prefix="r1_") == "r1_"
 
 
 # -----------------------------------------------------------------------------------------

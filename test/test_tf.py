@@ -13,6 +13,7 @@ from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
+from tf_trees import world_poses  # noqa: E402
 from starleth_sim.physics.description import starleth_description  # noqa: E402
 
 DOMAIN_RANGE = (199, 30)      # first, span
@@ -132,16 +133,7 @@ def test_recorded_transforms_agree_with_pinocchio_forward_kinematics(recorded):
         for name, angle in zip(js.name, js.position):
             q[model.joints[model.getJointId(name)].idx_q] = angle
         pin.framesForwardKinematics(model, data, q)
-        world = {"world": pin.SE3.Identity()}
-        pending = list(tfs) + list(msgs["/tf_static"][0].ros_msg.transforms)
-        while pending:
-            t = pending.pop(0)
-            if t.header.frame_id not in world:
-                pending.append(t)
-                continue
-            tr, r = t.transform.translation, t.transform.rotation
-            M = pin.SE3(pin.Quaternion(r.w, r.x, r.y, r.z).matrix(), np.array([tr.x, tr.y, tr.z]))
-            world[t.child_frame_id] = world[t.header.frame_id] * M
+        world = world_poses(list(tfs) + list(msgs["/tf_static"][0].ros_msg.transforms))
         assert len(world) == 1 + len(tfs) + len(msgs["/tf_static"][0].ros_msg.transforms)
         for link, M in world.items():
             if link == "world":
@@ -197,43 +189,117 @@ def test_contact_markers_show_the_recorded_wrenches(recorded):
 def test_foxglove_layout_shows_what_sim_node_records(recorded):
     """The shipped layout: a 3D panel following `base` with the URDF and the contact markers,
     plots of the four foot normal forces and of the solver iterations; every topic it names
-    is in a recording and every field path exists on the recorded messages."""
+    is in a recording and every field path exists on the recorded messages; starleth-layout
+    without a namespace gives it as it is."""
     import json
-    import re
+    from layout_checks import check_layout
+    from starleth_sim.tools import foxglove_layout
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     layout = json.load(open(os.path.join(root, "foxglove", "starleth_layout.json")))
     node, msgs = recorded
-    cfg = layout["configById"]
-
-    def leaves(tree):
-        if isinstance(tree, str):
-            return [tree]
-        return leaves(tree["first"]) + leaves(tree["second"])
-    assert sorted(leaves(layout["layout"])) == sorted(cfg)
-    three_d = cfg["3D!starleth"]
+    three_d = layout["configById"]["3D!starleth"]
     assert three_d["followTf"] == "base"
-    tf_children = {t.child_frame_id for t in msgs["/tf"][0].ros_msg.transforms}
-    assert "base" in tf_children
-    for topic, opts in three_d["topics"].items():   # (/terrain: only a run on a terrain)
-        assert opts["visible"] and (topic in msgs or topic == "/terrain"), topic
-    assert "/terrain" in three_d["topics"] and "/terrain" not in msgs
-    n_paths = 0
-    for key, panel in cfg.items():
-        if not key.startswith("Plot!"):
-            continue
-        for path in panel["paths"]:
-            topic, _, fields = path["value"].partition(".")
-            assert topic in msgs, topic
-            obj = msgs[topic][-1].ros_msg
-            for part in fields.split("."):
-                name = re.match(r"\w+", part).group(0)
-                obj = getattr(obj, name)               # the field exists
-                if "[:]" in part:                       # {key==...} filters: check one element
-                    m = re.search(r'\{(\w+)=="([^"]+)"\}', part)
-                    obj = next(o for o in obj if getattr(o, m.group(1)) == m.group(2))
-            float(obj)                                  # a number (or a numeric string)
-            n_paths += 1
-    assert n_paths == 5
+    tf_children = {t.child_frame_id for m in msgs["/tf"][:1] + msgs["/tf_static"]
+                   for t in m.ros_msg.transforms}
+    topics, layers, n_paths = check_layout(layout, msgs, tf_children)
+    assert sorted(topics) == ["/robot_description", "/starleth/contact_markers", "/terrain"]
+    assert "/terrain" not in msgs and layers == [] and n_paths == 5
+    assert foxglove_layout.namespaced_layout(layout, foxglove_layout.robots([])) == layout
+
+
+def test_starleth_layout_refuses_what_is_not_a_namespace_or_a_prefix(tmp_path, capsys):
+    """Bad arguments: one usage line and exit 2; a layout with a panel it cannot rewrite:
+    one line and exit 1."""
+    import json
+    from starleth_sim.tools import foxglove_layout
+    for args, words in ((["robot 1"], "not a ROS namespace"),
+                        (["robot1", "/robot1"], "named twice"),
+                        (["robot1", "--frame-prefix", "/r1/"], "must not start with '/'"),
+                        (["--frame-prefix", "r1/"], "1 --frame-prefix for 0 namespace")):
+        with pytest.raises(SystemExit) as e:
+            foxglove_layout.main(args)
+        assert e.value.code == 2 and words in capsys.readouterr().err, args
+    odd = tmp_path / "odd.json"
+    odd.write_text(json.dumps({"configById": {"Map!x": {}}, "layout": "Map!x"}))
+    assert foxglove_layout.main(["robot1", "--layout", str(odd)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "a Map panel is not handled here" in err, err
+
+
+@pytest.fixture(scope="module")
+def prefixed(tmp_path_factory):
+    """20 steps of a sim_node with tf_frame_prefix robot1/ (TF and markers every step),
+    pushed at step 5 on its frame robot1/base, on the link name LF_SHANK and on robot2/base
+    (another robot's frame); returns the node, the bag's messages and the pushes' answers."""
+    answers = []
+
+    def push(svc, k):
+        if k == 5:
+            for frame in ("robot1/base", "LF_SHANK", "robot2/base"):
+                answers.append(svc.submit_wrench(frame, (0.0, 50.0, 0.0), (0.0, 0.0, 0.0)))
+    node, msgs = record_headless(str(tmp_path_factory.mktemp("prefix") / "prefixed.mcap"),
+                                 {"tf_frame_prefix": "robot1/", "tf_rate": 400.0,
+                                  "contact_markers_rate": 400.0}, 20, push)
+    return node, msgs, answers
+
+
+def test_a_frame_prefix_names_every_frame_of_the_robot(prefixed):
+    """tf_frame_prefix robot1/: every link's frame on /tf and /tf_static is robot1/<link>,
+    world (unprefixed, shared) the parent of robot1/base; the odometry's child frame and the
+    IMU's frame are robot1/base, the foot wrenches and the contact markers in world: every
+    frame a message names is in the tree. A wrench names its link by its frame or by the
+    URDF's name; another robot's frame is rejected."""
+    import json
+    import xml.etree.ElementTree as ET
+    node, msgs, answers = prefixed
+    links = {lnk.get("name") for lnk in ET.fromstring(node.sim.description.urdf_xml)
+             .findall("link")}
+    parent = {t.child_frame_id: t.header.frame_id
+              for m in msgs["/tf_static"][:1] + msgs["/tf"][:1] for t in m.ros_msg.transforms}
+    assert set(parent) == {f"robot1/{lnk}" for lnk in links}
+    assert parent.pop("robot1/base") == "world"
+    assert all(p.startswith("robot1/") for p in parent.values())
+    tree = set(parent) | {"robot1/base", "world"}
+    odom = msgs["/starleth/base_state"][-1].ros_msg
+    assert (odom.header.frame_id, odom.child_frame_id) == ("world", "robot1/base")
+    assert msgs["/starleth/imu"][-1].ros_msg.header.frame_id == "robot1/base"
+    named = {m.ros_msg.header.frame_id for f in node.sim.description.foot_names
+             for m in msgs[f"/starleth/{f}/wrench"]}
+    named |= {mk.header.frame_id for m in msgs["/starleth/contact_markers"]
+              for mk in m.ros_msg.markers}
+    assert named == {"world"} and named <= tree
+    assert [ok for ok, _ in answers] == [True, True, False]
+    assert "unknown link 'robot2/base'" in answers[2][1] and "robot1/<link>" in answers[2][1]
+    assert node.service.counters["wrenches_accepted"] == 2
+    from mcap.reader import make_reader
+    with open(node.settings.record, "rb") as f:
+        md = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert json.loads(md["starleth_sim"]["parameters"])["tf_frame_prefix"] == "robot1/"
+
+
+def test_frames_are_checked_at_start(capfd):
+    """base_frame must be the URDF's root link, a frame name must not start with '/' nor
+    hold white space: a ConfigError naming the parameter. A namespaced sim_node without a
+    prefix says how to set one (the launch file's convention)."""
+    from starleth_sim.physics.config import ConfigError
+    from starleth_sim.ros.sim_node import SimNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID, args=["--ros-args", "-r", "__ns:=/robot9"])
+    try:
+        for bad, words in (({"base_frame": "base_link"}, ("base_frame", "'base_link'",
+                                                           "root link", "('base')")),
+                           ({"tf_frame_prefix": "/robot9/"}, ("tf_frame_prefix", "'/'")),
+                           ({"world_frame": "my world"}, ("world_frame", "white space"))):
+            with pytest.raises(ConfigError) as e:
+                SimNode(context=ctx, parameter_overrides={"mode": "lockstep", **bad})
+            assert all(w in str(e.value) for w in words), (words, str(e.value))
+        capfd.readouterr()
+        SimNode(context=ctx, parameter_overrides={"mode": "lockstep"}).destroy()
+        err = capfd.readouterr().err
+        assert "namespace /robot9 without tf_frame_prefix" in err, err
+        assert "tf_frame_prefix:=robot9/" in err
+    finally:
+        rclpy.try_shutdown(context=ctx)
 
 
 # a terrain away from the robot's feet: two steps in front, a box beside, rough ground behind

@@ -146,21 +146,23 @@ def test_page_is_self_contained_with_expected_frames(drop):
     assert data["format"] == view_page.FORMAT
     assert data["frames"] == info["frames"] == 26 and data["samples"] == 201
     assert data["t"] == pytest.approx([k * 0.02 for k in range(26)], abs=1e-9)
-    assert data["sample_rate"] == pytest.approx(400.0)
-    assert len(data["poses"]) == 26 * len(data["bodies"]) * 7
-    assert len(data["arrows"]) == 26 * 4 * 6
-    assert data["bodies"][data["trunk"]] == "root_joint"
-    assert info["bytes"] == drop["html"].stat().st_size and info["namespace"] == ""
-    assert data["urdf_source"] == "topic /robot_description"
+    robot, = data["robots"]
+    assert robot["sample_rate"] == pytest.approx(400.0) and robot["samples"] == 201
+    assert len(robot["poses"]) == 26 * len(robot["bodies"]) * 7
+    assert len(robot["arrows"]) == 26 * 4 * 6
+    assert robot["bodies"][robot["trunk"]] == "root_joint"
+    assert robot["tf_frames"][robot["trunk"]] == "base" and robot["name"] == ""
+    assert info["bytes"] == drop["html"].stat().st_size and info["namespaces"] == [""]
+    assert robot["urdf_source"] == "topic /robot_description"
     # the page says how it subsamples, rounds and scales
     for phrase in ("1 in 8 samples", "latest recorded sample at or before", "0.1 mm",
                    "0.002 m/N (1 m = 500 N)", "?t=1.5&amp;paused=1"):
         assert phrase in text, phrase
     # the scene: every URDF visual under the joint that moves it, arrows, ground
     paths = [c["path"] for c in drop["scene"] if c["type"] == "set_object"]
-    assert "/world/starleth/root_joint/base" in paths
-    assert "/world/starleth/LF_KFE/LF_FOOT" in paths      # the foot, merged into the shank
-    assert sum(p.startswith("/world/starleth/") for p in paths) == 17
+    assert "/world/robots/base/base" in paths              # frame base, visual base
+    assert "/world/robots/LF_SHANK/LF_FOOT" in paths       # the foot, merged into the shank
+    assert sum(p.startswith("/world/robots/") for p in paths) == 17
     assert {f"/world/forces/{f}/shaft" for f in FEET} <= set(paths)
     assert "/world/ground" in paths
 
@@ -169,10 +171,11 @@ def test_poses_are_forward_kinematics_of_the_recorded_states(drop):
     """Every frame: the body transforms in the page are pin's FK of the joint state recorded
     at the frame's time, to the rounding (0.1 mm, quaternions 1e-4)."""
     data, rec = drop["data"], drop["rec"]
+    robot, = data["robots"]
     model = RobotDescription.from_urdf_xml(open(urdf_path()).read()).model
     fk = model.createData()
-    poses = np.array(data["poses"]).reshape(data["frames"], len(data["bodies"]), 7)
-    ids = [model.getJointId(b) for b in data["bodies"]]
+    poses = np.array(robot["poses"]).reshape(data["frames"], len(robot["bodies"]), 7)
+    ids = [model.getJointId(b) for b in robot["bodies"]]
     for k, t in enumerate(data["t"]):
         key = data["t0_ns"] + round(t * 1e9)
         q = configuration(model, rec["/joint_states"][key], rec["/starleth/base_state"][key])
@@ -186,7 +189,7 @@ def test_poses_are_forward_kinematics_of_the_recorded_states(drop):
             R = quat_to_rot(*poses[k, b, 3:])
             assert np.abs(R - M.rotation).max() < 5e-4
     # the robot moves: in the air at first, landed 15 cm lower later
-    trunk = poses[:, data["trunk"], 2]
+    trunk = poses[:, robot["trunk"], 2]
     landed = data["t"].index(T_LANDED)
     assert trunk[0] - trunk[landed] > 0.1
 
@@ -195,7 +198,7 @@ def test_arrows_are_recorded_wrenches_times_scale(drop, tmp_path):
     data, rec = drop["data"], drop["rec"]
     scale = data["force_scale"]
     assert scale == view.DEFAULT_FORCE_SCALE
-    arrows = np.array(data["arrows"]).reshape(data["frames"], 4, 6)
+    arrows = np.array(data["robots"][0]["arrows"]).reshape(data["frames"], 4, 6)
     desc = RobotDescription.from_urdf_xml(open(urdf_path()).read())
     model, fk = desc.model, desc.model.createData()
     contacts = {c.name: c for c in desc.contacts}
@@ -218,7 +221,7 @@ def test_arrows_are_recorded_wrenches_times_scale(drop, tmp_path):
     out = tmp_path / "half.html"
     assert view.main([str(drop["bag"]), "-o", str(out), "--force-scale", "0.001"]) == 0
     half = page_json(out.read_text(), "replay-data")
-    a2 = np.array(half["arrows"]).reshape(arrows.shape)
+    a2 = np.array(half["robots"][0]["arrows"]).reshape(arrows.shape)
     assert np.abs(a2[:, :, 3:] * 2 - arrows[:, :, 3:]).max() <= 4 * POS_TOL
     assert "0.001 m/N (1 m = 1000 N)" in out.read_text()
 
@@ -242,25 +245,31 @@ def test_fps_subsampling(drop, tmp_path):
 
 
 def test_namespaced_bags_and_urdf_sources(tmp_path, capsys):
-    """Topics under namespaces are found by suffix; the robot is picked with --namespace;
-    the URDF comes from the namespace's robot_description, else the package."""
+    """Topics under namespaces are found by suffix; every robot of a bag is drawn, or those
+    picked with --namespace; robots recorded without a frame prefix are drawn under their
+    namespaces (with a warning); the URDF comes from the namespace's robot_description,
+    else the package."""
     narrow = open(urdf_path()).read().replace('<box size="0.60 0.37 0.16"/></geometry></visual>',
                                               '<box size="0.50 0.37 0.16"/></geometry></visual>')
     assert narrow != open(urdf_path()).read()
     bag = write_synthetic_bag(tmp_path / "two.mcap", ("/robot1", "/robot2"), urdf=narrow)
-    rc, out, err = run_view(capsys, bag, "-o", tmp_path / "one.html")
-    assert rc == 0 and "/robot1" in err and "/robot2" in err and "--namespace" in err
-    text = (tmp_path / "one.html").read_text()
+    rc, out, err = run_view(capsys, bag, "-o", tmp_path / "both.html")
+    assert rc == 0 and "2 robots (robot1/, robot2/)" in out, out
+    assert "recorded without tf_frame_prefix" in err and "robot1/, robot2/" in err, err
+    text = (tmp_path / "both.html").read_text()
     data, scene = page_json(text, "replay-data"), page_json(text, "replay-scene")
-    assert data["namespace"] == "/robot1" and data["frames"] == 6          # 0.1 s at 50 fps
-    assert data["urdf_source"] == "topic /robot1/robot_description"
-    trunk = next(c for c in scene if c["path"] == "/world/starleth/root_joint/base")
+    assert [r["namespace"] for r in data["robots"]] == ["/robot1", "/robot2"]
+    assert [r["name"] for r in data["robots"]] == ["robot1/", "robot2/"]
+    assert data["frames"] == 6                                             # 0.1 s at 50 fps
+    assert data["robots"][0]["urdf_source"] == "topic /robot1/robot_description"
+    trunk = next(c for c in scene if c["path"] == "/world/robots/robot2/base/base")
     assert trunk["object"]["geometries"][0]["width"] == 0.5
     rc, _, _ = run_view(capsys, bag, "-o", tmp_path / "two.html", "--namespace", "robot2")
     assert rc == 0
     data2 = page_json((tmp_path / "two.html").read_text(), "replay-data")
-    poses = np.array(data2["poses"]).reshape(6, len(data2["bodies"]), 7)
-    assert data2["namespace"] == "/robot2" and np.allclose(poses[:, data2["trunk"], 1], 1.0)
+    robot, = data2["robots"]
+    poses = np.array(robot["poses"]).reshape(6, len(robot["bodies"]), 7)
+    assert robot["namespace"] == "/robot2" and np.allclose(poses[:, robot["trunk"], 1], 1.0)
     # FK of the synthetic joint states (names in another order than the model's)
     model = RobotDescription.from_urdf_xml(narrow).model
     fk = model.createData()
@@ -269,7 +278,7 @@ def test_namespaced_bags_and_urdf_sources(tmp_path, capsys):
         key = data2["t0_ns"] + round(t * 1e9)
         pin.forwardKinematics(model, fk, configuration(
             model, rec["/robot2/joint_states"][key], rec["/robot2/starleth/base_state"][key]))
-        for b, name in enumerate(data2["bodies"]):
+        for b, name in enumerate(robot["bodies"]):
             assert np.abs(poses[k, b, :3] - fk.oMi[model.getJointId(name)].translation).max() \
                 <= POS_TOL
     rc, _, err = run_view(capsys, bag, "--namespace", "/robot3")
@@ -277,7 +286,7 @@ def test_namespaced_bags_and_urdf_sources(tmp_path, capsys):
     # no URDF in the bag: the package's
     plain = write_synthetic_bag(tmp_path / "plain.mcap", ("",), description=False)
     info = view.write_html(str(plain))
-    assert info["namespace"] == "" and info["urdf_source"].startswith("package")
+    assert info["namespaces"] == [""] and info["urdf_sources"][0].startswith("package")
     assert (tmp_path / "plain.html").exists()
 
 
@@ -387,3 +396,35 @@ def test_browser_renders_the_robot_moving(drop, tmp_path):
     assert 'data-ready="1"' in body and 'data-error' not in body, body
     assert f'data-frame="{drop["data"]["t"].index(T_LANDED)}"' in body, body
     assert 'data-playing="0"' in body
+
+
+@pytest.mark.serial   # a browser
+def test_browser_renders_two_robots_side_by_side(tmp_path):
+    """Two robots of one bag (robot2 1 m to the left of robot1) in one page, with the camera
+    held (follow=0, looking from the front right): the robot of the page of robot1 alone is
+    drawn at the same pixels, and robot2 adds a robot of its own behind it, to its right in
+    the image (partly hidden by robot1); no script error."""
+    if shutil.which("chromium") is None:
+        reason = ("chromium not installed: run `make browser-test` (installs Debian's "
+                  "chromium with apt-get, then runs these tests)")
+        print(reason)
+        pytest.skip(reason)
+    bag = write_synthetic_bag(tmp_path / "two.mcap", ("/robot1", "/robot2"))
+    masks = {}
+    for name, only in (("both", []), ("one", ["--namespace", "/robot1"])):
+        page = tmp_path / f"{name}.html"
+        assert view.main([str(bag), "-o", str(page), *only]) == 0
+        png = tmp_path / f"{name}.png"
+        url = f"{page.resolve().as_uri()}?t=0.05&paused=1&follow=0"
+        p = chromium(tmp_path, url, f"--screenshot={png}")
+        assert p.returncode == 0 and png.exists(), p.stderr[-2000:]
+        masks[name] = robot_mask(png)[1]
+        body = re.search(r"<body[^>]*>", chromium(tmp_path, url, "--dump-dom").stdout).group(0)
+        assert 'data-ready="1"' in body and "data-error" not in body, body
+    one, both = masks["one"], masks["both"]
+    print(f"robot pixels: robot1 alone {one.sum()}, both robots {both.sum()}")
+    assert one.sum() > 2000
+    assert (one & both).sum() > 0.9 * one.sum()          # robot1 where it was
+    added = both & ~one                                    # and robot2 beside it
+    assert added.sum() > 1000
+    assert np.nonzero(added)[1].mean() > np.nonzero(one)[1].mean() + 50

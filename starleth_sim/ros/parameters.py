@@ -71,6 +71,35 @@ class InterfaceListSpec(ParameterSpec):
             raise ValueError(str(e)) from None
 
 
+def frame_name_problem(name: str, empty_ok: bool = False) -> str:
+    """Why `name` cannot be (the start of) a TF frame id, or '' if it can: tf2 refuses a
+    leading '/', and a frame id is one word (no white space)."""
+    if not name:
+        return "" if empty_ok else "must not be empty"
+    if name.startswith("/"):
+        return "must not start with '/' (tf2 refuses such frame ids)"
+    if any(c.isspace() for c in name):
+        return "must not contain white space"
+    return ""
+
+
+@dataclass(frozen=True)
+class FrameSpec(ParameterSpec):
+    """A TF frame name, or with `prefix` the start of one (may be empty)."""
+
+    prefix: bool = False
+
+    def range_text(self) -> str:
+        return ("empty, or the start of a frame name" if self.prefix else "a frame name") + \
+            ": not starting with '/', no white space"
+
+    def check(self, value):
+        super().check(value)
+        problem = frame_name_problem(value, empty_ok=self.prefix)
+        if problem:
+            raise ValueError(f"parameter {self.name}: {problem}, got {value!r}")
+
+
 SIM_NODE_PARAMETERS = (
     P("physics", str, "HmJ",
       "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
@@ -151,8 +180,12 @@ SIM_NODE_PARAMETERS = (
       "Minimum seconds between two warnings about the same problem (a kind of bad input "
       "and what it names: the joint, the link, the topic).", minimum=0.0,
       maximum=3600.0),
-    P("world_frame", str, "world", "Frame id of the world (the parent of the base pose)."),
-    P("base_frame", str, "base", "Frame id of the base (the child frame of the odometry)."),
+    FrameSpec("world_frame", str, "world",
+      "Frame id of the world (the parent of the base pose), shared by every robot: "
+      "tf_frame_prefix is not put before it."),
+    FrameSpec("base_frame", str, "base",
+      "The base link: the root link of the URDF (the floating base; checked at start), the "
+      "child frame of the odometry, the frame of the IMU; tf_frame_prefix is put before it."),
     P("publish_clock", bool, True,
       "Publish the sim time on /clock. Several robots in one ROS domain: remap it into each "
       "robot's namespace (--ros-args -r /clock:=clock on both nodes, as the launch file "
@@ -164,8 +197,12 @@ SIM_NODE_PARAMETERS = (
       "Foxglove and Lichtblick move the URDF's links only through TF (they keep 10,000 "
       "transforms per frame: 50 Hz x 13 transforms fits); at most 1000 Hz (above the "
       "control rate it is every step).", minimum=0.1, maximum=1000.0, off_value=0.0),
-    P("tf_frame_prefix", str, "",
-      'Put before every link frame of /tf (e.g. "robot1/" for several robots on one /tf).'),
+    FrameSpec("tf_frame_prefix", str, "",
+      'Put before every frame of the robot (robot_state_publisher\'s frame_prefix): the link '
+      "frames of /tf and /tf_static, the odometry's child frame, the IMU's frame; not before "
+      'world_frame. "robot1/" for several robots on one /tf (the launch file sets '
+      "namespace + '/'). Not derived from the node's namespace (a namespaced node without it "
+      "says so at start).", prefix=True),
     P("contact_markers_rate", float, 50.0,
       "visualization_msgs/MarkerArray on starleth/contact_markers: a sphere per contact "
       "point coloured by state (grey open, green stick, red slip) and an arrow along the "
@@ -255,6 +292,19 @@ def _validate(self) -> "Settings":
     return self
 
 
+def namespace_frame_prefix(namespace: str) -> str:
+    """The frame prefix of a robot under `namespace` by the launch file's convention
+    (robot_state_publisher's): 'robot1/' for /robot1 (or robot1, /robot1/), '' at the
+    root."""
+    ns = (namespace or "").strip("/")
+    return ns + "/" if ns else ""
+
+
+def _robot_frame(self, link: str) -> str:
+    """The frame id of a link of this robot: tf_frame_prefix + link."""
+    return self.tf_frame_prefix + link
+
+
 def _physics_override_dict(self) -> dict:
     """The physics_overrides parameter as a mapping (ConfigError if it is not one)."""
     if not self.physics_overrides.strip():
@@ -267,10 +317,12 @@ def _physics_override_dict(self) -> dict:
 
 
 #: The node's settings as a typed record, one field per parameter of the schema, with its
-#: default; ``validate()`` checks them, ``physics_override_dict()`` parses the overrides.
+#: default; ``validate()`` checks them, ``physics_override_dict()`` parses the overrides,
+#: ``robot_frame(link)`` names a link's frame.
 Settings = make_dataclass(
     "Settings", [(p.name, p.kind, p.default) for p in SIM_NODE_PARAMETERS],
     namespace={"validate": _validate, "physics_override_dict": _physics_override_dict,
+               "robot_frame": _robot_frame,
                "__module__": __name__, "__doc__": "sim_node's settings (see "
                "SIM_NODE_PARAMETERS for each field's meaning)."})
 

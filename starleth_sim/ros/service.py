@@ -452,15 +452,27 @@ class SimService:
                 not self.warnings.counts.get("timer_controller"):
             self.warnings.warn("timer_controller", TIMER_CONTROLLER_HINT)
 
-    def submit_wrench(self, link, force, torque, persistent=False):
-        """A push on `link` (world axes, at the link origin): one control period, or until
-        replaced/cleared (zero wrench) when persistent."""
+    def link_of_frame(self, frame_id: str) -> str:
+        """The link a wrench's header.frame_id names: its frame on /tf (tf_frame_prefix +
+        link) or the URDF's link name."""
+        prefix = self.settings.tf_frame_prefix
+        if prefix and frame_id.startswith(prefix) and frame_id[len(prefix):] in self.links:
+            return frame_id[len(prefix):]
+        return frame_id
+
+    def submit_wrench(self, frame_id, force, torque, persistent=False):
+        """A push on the link `frame_id` names (link_of_frame; world axes, at the link
+        origin): one control period, or until replaced/cleared (zero wrench) when
+        persistent."""
         topic = TOPIC_WRENCH_PERSISTENT if persistent else TOPIC_WRENCH
+        link = self.link_of_frame(frame_id)
         detail = f"{topic} {quoted([link])}"     # each topic and link is warned of apart
         if link not in self.links:
             self.counters["wrenches_rejected"] += 1
+            prefix = self.settings.tf_frame_prefix
             msg = (f"rejected wrench on {topic}: unknown link {quoted([link])} in header.frame_id "
-                   f"(links: {', '.join(sorted(self.links))})")
+                   f"(links: {', '.join(sorted(self.links))}"
+                   + (f", each also as its frame {prefix}<link>" if prefix else "") + ")")
             self.warnings.warn("unknown_link", msg, detail)
             return False, msg
         f = np.array(force, dtype=float).reshape(-1)

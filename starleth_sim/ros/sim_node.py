@@ -47,7 +47,7 @@ from .cdr import CommandDecoder
 from .live_view import LiveView
 from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
-                         load_default_parameters)
+                         load_default_parameters, namespace_frame_prefix)
 from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .period_stats import PeriodStats
 from .service import SimService
@@ -56,7 +56,7 @@ from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state
 from .state_publisher import StatePublisher
 from .terrain_markers import TerrainTopic
-from .tf import TF_TYPE
+from .tf import TF_TYPE, base_link
 from .topic_output import TopicOutput
 from .visualisation import steps_between
 
@@ -88,6 +88,7 @@ class SimNode:
         s = self.settings
         overrides = s.physics_override_dict()
         self.sim = sim = Simulator.from_preset(s.physics, **overrides)
+        self._check_frames()
         q0, u0, init_desc = parse_initial_state(s.initial_state, sim)
         self.initial_state_desc = init_desc
         # two call sites: rclpy refuses one call site that logs at two severities
@@ -143,6 +144,25 @@ class SimNode:
         self.publisher.timing = value
 
     # -- setup -----------------------------------------------------------------------------
+    def _check_frames(self):
+        """base_frame must name the URDF's root link (the odometry's child frame is that
+        link's frame on /tf); a namespaced node without tf_frame_prefix is told how to keep
+        its frames apart from another robot's (the prefix is not derived from the namespace,
+        as robot_state_publisher does not: the frame names stay what the user set)."""
+        s = self.settings
+        root = base_link(self.sim.description.urdf_xml)
+        if s.base_frame != root:
+            raise ConfigError(f"parameter base_frame: {s.base_frame!r} is not the root link "
+                              f"of the robot's URDF ({root!r}), whose frame on /tf is the "
+                              "odometry's child frame; use base_frame:=" + root)
+        ns = self.node.get_namespace()
+        if ns != "/" and not s.tf_frame_prefix:
+            self.log.info(
+                f"namespace {ns} without tf_frame_prefix: this robot's frames ({s.world_frame} "
+                f"-> {root}, {root} -> its links) are those of any other robot on /tf; with "
+                f"several robots set tf_frame_prefix:={namespace_frame_prefix(ns)} (the launch "
+                "file does)")
+
     def _model_gravity(self):
         try:
             g = np.array(self.sim.description.model.gravity.linear, dtype=float)

@@ -72,21 +72,22 @@ class StatePublisher:
             m = WrenchStamped()
             m.header.frame_id = s.world_frame
             self.wrench_msgs[foot] = m
+        base = s.robot_frame(s.base_frame)        # the base's frame on /tf (prefixed)
         self.odom_msg = Odometry()
         self.odom_msg.header.frame_id = s.world_frame
-        self.odom_msg.child_frame_id = s.base_frame
+        self.odom_msg.child_frame_id = base
         self.imu_msg = Imu()
-        self.imu_msg.header.frame_id = s.base_frame
+        self.imu_msg.header.frame_id = base
         # the state topics of every step go out as CDR bytes patched into templates
         # (starleth_interface.msg_cdr; None: as message objects)
         w = WrenchStamped()
         w.header.frame_id = s.world_frame
         self._wrench_cdr = FixedCdr.create(w, WRENCH_FIELDS)
         o = Odometry()
-        o.header.frame_id, o.child_frame_id = s.world_frame, s.base_frame
+        o.header.frame_id, o.child_frame_id = s.world_frame, base
         self._odom_cdr = FixedCdr.create(o, ODOM_FIELDS)
         i = Imu()
-        i.header.frame_id = s.base_frame
+        i.header.frame_id = base
         self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
         self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
         # the state bundle (starleth_interface.state_bundle): only for the robot whose

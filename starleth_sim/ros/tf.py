@@ -65,6 +65,11 @@ def root_link(edges) -> str:
     return roots.pop()
 
 
+def base_link(urdf_xml: str) -> str:
+    """The URDF's root link: the floating base, the child of world on /tf."""
+    return root_link(urdf_joint_edges(urdf_xml))
+
+
 class FrameTree:
     """The TF edges of a robot: world -> root link (the floating base) and one per URDF joint,
     each (parent frame, child frame); `transforms(q)` gives their poses from Pinocchio's

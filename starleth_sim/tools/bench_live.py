@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from ..physics.description import package_share_dir
+from .foxglove_layout import shipped_layout_path
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bench_round_trips import spin_until
 from .live_log import collect
@@ -88,7 +88,7 @@ def _run_for(pause, seconds, pid):
 def layout_topics(path=None) -> list:
     """The topics the shipped Foxglove layout (foxglove/starleth_layout.json) names, and
     /tf and /tf_static (its 3D panel follows every transform)."""
-    path = path or os.path.join(package_share_dir(), "foxglove", "starleth_layout.json")
+    path = path or shipped_layout_path()
     with open(path) as f:
         named = re.findall(r'"(/[A-Za-z0-9_/]+)', f.read())
     # relative names (a client matches them in any namespace), the global TF as it is

@@ -14,6 +14,7 @@ import yaml
 
 from ..physics.config import PhysicsConfig
 from ..physics.description import LEGS
+from ..ros.parameters import frame_name_problem
 from .bag import BagError, read_messages
 from starleth_interface.topics import foot_wrench_topic, resolve
 
@@ -54,7 +55,9 @@ class Recording:
     #: (N+1, physics steps, 24): per physics step the explicit torques, then the kd of the
     #: implicit dampers (Simulator.replay_torques_per_step); None in bags without them
     replay: np.ndarray | None = None
-    wrenches: dict = field(default_factory=dict)   # k -> [(link, force, torque, persistent)]
+    wrenches: dict = field(default_factory=dict)   # k -> [(frame, force, torque, persistent)]
+    #: sim_node's tf_frame_prefix: a wrench's frame may name its link with it
+    frame_prefix: str = ""
     summary: dict = field(default_factory=dict)    # sim_node's closing summary, if any
 
     @property
@@ -120,6 +123,23 @@ def _metadata(bag, path):
                           "(record:=...), so its physics configuration and initial state "
                           "are unknown")
     return md
+
+
+def _frame_prefix(md, path) -> str:
+    """The recorded tf_frame_prefix ('' in bags without it, with a warning where it is not
+    a frame prefix)."""
+    try:
+        params = json.loads(md.get("parameters") or "{}")
+    except (ValueError, TypeError, RecursionError):
+        params = None
+    prefix = params.get("tf_frame_prefix", "") if isinstance(params, dict) else ""
+    problem = frame_name_problem(prefix, empty_ok=True) if isinstance(prefix, str) else \
+        "not a string"
+    if problem:
+        warn(f"{path}: the recorded tf_frame_prefix {_short(prefix)} {problem}; wrenches are "
+             "taken on unprefixed link names")
+        return ""
+    return prefix
 
 
 def load_recording(path: str, salvage: bool = False) -> Recording:
@@ -256,7 +276,7 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
                      period_ns=period_ns, namespace=ns,
                      package_version=md.get("package_version", "unknown"), states=states,
                      effort=effort, applied=applied, replay=replay, wrenches=wrenches,
-                     summary=summary)
+                     summary=summary, frame_prefix=_frame_prefix(md, path))
 
 
 def _applied_torques(rows, period_ns, n, n_joints, path, topic):

@@ -81,8 +81,10 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
             sim.reset(init["q_minimal"], init["u_minimal"], minimal=True)
             q0, u0 = sim.q, sim.u
         # the longest throttle period sim_node's parameter allows: one warning per problem
-        svc = SimService(sim, Settings(mode="lockstep", warn_throttle_period=3600.0), q0, u0,
-                         warn=warnings.append)
+        # (and sim_node's frame prefix: a wrench may name its link by its frame)
+        settings = Settings(mode="lockstep", warn_throttle_period=3600.0,
+                            tf_frame_prefix=rec.frame_prefix)
+        svc = SimService(sim, settings, q0, u0, warn=warnings.append)
     except (ValueError, TypeError, KeyError, IndexError) as e:
         raise ReplayError(f"{rec.path}: the recorded initial_state does not fit "
                           f"{cfg.name}: {type(e).__name__}: {shortened(str(e))}") from None

@@ -14,9 +14,9 @@ import numpy as np
 from ..physics.description import RobotDescription
 from .view_frames import body_poses, configurations, contact_arrows, select_frames
 from .view_recording import FEET, PROG, Recording, ViewError
-from .view_scene import ARROW_HEAD, CAMERA_OFFSET, robot_visuals, scene_commands
+from .view_scene import ARROW_HEAD, CAMERA_OFFSET, body_frames, robot_visuals, scene_commands
 
-FORMAT = "starleth-view/1"
+FORMAT = "starleth-view/2"
 #: decimals of the numbers in the page: positions/arrows [m], quaternions, times [s]
 POSITION_DECIMALS = 4
 QUATERNION_DECIMALS = 4
@@ -73,60 +73,100 @@ def meshcat_bundle() -> tuple:
     return js, "\n\n".join(notices).replace("*/", "* /")
 
 
-def replay_data(rec: Recording, desc: RobotDescription, fps: float, force_scale: float):
-    """The page's data: frame times, body poses, force arrows and what they mean; and the
-    scene commands."""
-    frames = select_frames(rec.joints.t_ns, fps)
-    q = configurations(rec, desc, frames)
-    visuals = robot_visuals(desc)
+def page_times(recs, fps: float) -> np.ndarray:
+    """The page's frame times [ns]: each robot's frames at fps (select_frames of its joint
+    states), merged (one robot: its own)."""
+    times = [r.joints.t_ns[select_frames(r.joints.t_ns, fps)] for r in recs]
+    return np.unique(np.concatenate(times))
+
+
+def _robot_data(rec: Recording, desc: RobotDescription, name: str, t_ns, force_scale):
+    """One robot's part of the page at the frame times t_ns (its latest joint state at or
+    before each, its first before it): its poses and arrows, what they come from; and its
+    part of the scene: (rec, visuals, {pin joint: frame name}, name)."""
+    samples = rec.joints.latest(t_ns)
+    q = configurations(rec, desc, samples)
+    visuals = robot_visuals(desc, name)
     joint_ids = sorted({j for j, _, _ in visuals} | {1})   # 1: the free-flyer (trunk)
     poses, placements = body_poses(desc, q, joint_ids)
-    arrows = contact_arrows(rec, desc, frames, placements, force_scale)
+    arrows = contact_arrows(rec, desc, samples, placements, force_scale)
     if not np.isfinite(np.round(arrows, POSITION_DECIMALS)).all():
         raise ViewError(f"force scale {force_scale:g} m/N: the force arrows are too long to "
                         "write down")
-    t0 = min(rec.joints.t_ns[0], rec.base.t_ns[0])
-    t = (rec.joints.t_ns[frames] - t0) * 1e-9
     n = rec.joints.t_ns.size
     span = float(rec.joints.t_ns[-1] - rec.joints.t_ns[0]) * 1e-9
     rate = (n - 1) / span if n > 1 and span > 0 else 0.0     # all at one stamp: no rate
-    step = int(np.median(np.diff(frames))) if frames.size > 1 else 1
+    shown = np.unique(samples)
+    step = int(np.median(np.diff(shown))) if shown.size > 1 else 1
+    poses[:, :, :3] = np.round(poses[:, :, :3], POSITION_DECIMALS)
+    poses[:, :, 3:] = np.round(poses[:, :, 3:], QUATERNION_DECIMALS)
+    frames = body_frames(desc, joint_ids, name)
     data = {
-        "format": FORMAT, "source": os.path.basename(os.path.abspath(rec.path).rstrip(os.sep)),
-        "namespace": rec.namespace, "frames": int(frames.size), "fps": fps,
-        "samples": n, "sample_rate": round(rate, 3), "duration": round(float(t[-1]), 4),
-        "t0_ns": int(t0), "t": _rounded(t, TIME_DECIMALS),     # t: seconds after t0_ns
-        "bodies": [desc.model.names[j] for j in joint_ids], "trunk": joint_ids.index(1),
-        "poses": [], "feet": list(FEET),
+        "name": name, "namespace": rec.namespace, "frame_prefix": rec.frame_prefix,
+        "source": os.path.basename(os.path.abspath(rec.path).rstrip(os.sep)),
+        "samples": n, "sample_rate": round(rate, 3),
+        "subsampling": f"1 in {step} samples" if step > 1 else "every sample",
+        "bodies": [desc.model.names[j] for j in joint_ids], "tf_frames": frames,
+        "trunk": joint_ids.index(1), "poses": (poses.reshape(-1) + 0.0).tolist(),
         "has_force": [foot in rec.wrenches for foot in FEET],
-        "arrows": _rounded(arrows, POSITION_DECIMALS), "force_scale": force_scale,
+        "arrows": _rounded(arrows, POSITION_DECIMALS), "urdf_source": rec.urdf_source,
+    }
+    scene = (rec, visuals, dict(zip(joint_ids, frames)), name)
+    return data, scene, poses[:, data["trunk"], :2]
+
+
+def replay_data(robots, fps: float, force_scale: float):
+    """The page's data for `robots` ([(Recording, RobotDescription, name)], name: the
+    prefix of its frames in the page): the frame times, each robot's body poses and force
+    arrows and what they mean; and the scene commands (the ground of the first robot's
+    recording)."""
+    recs = [r for r, _, _ in robots]
+    t_ns = page_times(recs, fps)
+    t0 = min(min(r.joints.t_ns[0], r.base.t_ns[0]) for r in recs)
+    t = (t_ns - t0) * 1e-9
+    parts = [_robot_data(rec, desc, name, t_ns, force_scale) for rec, desc, name in robots]
+    sources = list(dict.fromkeys(p[0]["source"] for p in parts))
+    data = {
+        "format": FORMAT, "source": ", ".join(sources), "frames": int(t_ns.size), "fps": fps,
+        "samples": sum(p[0]["samples"] for p in parts), "duration": round(float(t[-1]), 4),
+        "t0_ns": int(t0), "t": _rounded(t, TIME_DECIMALS),     # t: seconds after t0_ns
+        "robots": [p[0] for p in parts], "feet": list(FEET), "force_scale": force_scale,
         "arrow_head": ARROW_HEAD,
         "rounding": {"position": 10.0 ** -POSITION_DECIMALS,
                      "quaternion": 10.0 ** -QUATERNION_DECIMALS,
                      "time": 10.0 ** -TIME_DECIMALS},
         "camera": {"offset": list(CAMERA_OFFSET), "height_window": CAMERA_HEIGHT_WINDOW},
-        "urdf_source": rec.urdf_source,
-        "ground": {"height": rec.ground_height, "normal": list(rec.ground_normal)},
-        "subsampling": f"1 in {step} samples" if step > 1 else "every sample",
+        "ground": {"height": recs[0].ground_height, "normal": list(recs[0].ground_normal)},
     }
-    poses[:, :, :3] = np.round(poses[:, :, :3], POSITION_DECIMALS)
-    poses[:, :, 3:] = np.round(poses[:, :, 3:], QUATERNION_DECIMALS)
-    data["poses"] = (poses.reshape(-1) + 0.0).tolist()
-    scene = scene_commands(desc, visuals, rec, poses[:, data["trunk"], :2])
+    trunk_xy = np.concatenate([p[2] for p in parts])
+    scene = scene_commands(recs[0], [p[1] for p in parts], trunk_xy)
     return data, scene
+
+
+def _robot_line(robot: dict, several: bool) -> str:
+    """What a robot's frames come from: its subsampling of its joint states (and, with
+    several robots, its name, bag and namespace)."""
+    rate = f" at {robot['sample_rate']:g} Hz" if robot["sample_rate"] else ""
+    line = f"{robot['subsampling']} of the {robot['samples']} joint states{rate}"
+    ns = f"namespace {robot['namespace']}" if robot["namespace"] else ""
+    if several:
+        where = ", ".join(x for x in (robot["source"], ns) if x)
+        return f"{robot['name'] or 'robot'} ({where}): {line}"
+    return (f"namespace {robot['namespace']}: " if ns else "") + line
 
 
 def _info_lines(data: dict) -> tuple:
     """The page's explanation: (always shown: frames and subsampling, the force scale;
     under 'more': rounding, URDF, controls)."""
-    ns = f" · namespace {data['namespace']}" if data["namespace"] else ""
-    rate = f" at {data['sample_rate']:g} Hz" if data["sample_rate"] else ""
+    robots = data["robots"]
+    several = len(robots) > 1
     scale = data["force_scale"]
-    shown = [
-        f"{data['duration']:.2f} s{ns} · {data['frames']} frames at {data['fps']:g} fps: "
-        f"{data['subsampling']} of the {data['samples']} joint states{rate}",
-        f"green arrows: foot contact forces, {scale:g} m/N (1 m = {1 / scale:g} N)",
-    ]
+    shown = [f"{data['duration']:.2f} s · {data['frames']} frames at {data['fps']:g} fps"
+             + (f", {len(robots)} robots" if several else "") + ":"]
+    shown += [_robot_line(r, several) for r in robots]
+    shown.append(f"green arrows: foot contact forces, {scale:g} m/N (1 m = {1 / scale:g} N)")
+    urdfs = "; ".join(f"{r['name'] or 'robot'}: {r['urdf_source']}" if several else
+                      r["urdf_source"] for r in robots)
     more = [
         "Each frame shows the latest recorded sample at or before its time (sample and "
         "hold, no interpolation); the last sample is always a frame.",
@@ -134,11 +174,16 @@ def _info_lines(data: dict) -> tuple:
         f"starleth/base_state; rounded: {ROUNDING_TEXT}.",
         "Arrows start at the foot contact points (sphere centre minus radius along the "
         "ground normal); forces in the world frame.",
-        f"URDF: {data['urdf_source']}.",
+        f"URDF: {urdfs}.",
         "Mouse: drag to orbit, scroll to zoom, right-drag to pan. Keys: space play/pause, "
         "←/→ step.",
         "URL options: ?t=1.5&paused=1&speed=0.5&follow=0.",
     ]
+    if several:
+        more.insert(0, "Several robots: each frame shows every robot at its latest sample "
+                       "at or before the frame's time (their stamps on one time line); the "
+                       "camera follows their mean trunk position; the ground is the first "
+                       "recording's.")
     return shown, more
 
 

@@ -1,11 +1,13 @@
-"""The recorded run ``starleth-view`` replays: the joint states, base state and foot wrenches
-of one robot of a bag (kept as CDR bytes, sorted by stamp, decoded only where shown), with
-the URDF and the ground it was recorded with; the tool's warnings and its error."""
+"""The recorded runs ``starleth-view`` replays: the joint states, base state and foot wrenches
+of each robot of a bag (kept as CDR bytes, sorted by stamp, decoded only where shown), with
+the URDF, the frame prefix and the ground it was recorded with; the tool's warnings and its
+error."""
 from __future__ import annotations
 
 import math
 import struct
 import sys
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +16,7 @@ import yaml
 from ..physics.config_checks import ConfigError
 from ..physics.description import LEGS, urdf_path
 from ..physics.terrain import TerrainConfig
+from ..ros.tf import base_link
 from .bag import read_messages
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
                                        TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of)
@@ -31,6 +34,10 @@ TOPICS = {"joints": (TOPIC_JOINT_STATES, "sensor_msgs/msg/JointState"),
 
 class ViewError(Exception):
     """A run that cannot be replayed: main() prints the message and exits with 1."""
+
+
+class NamespaceNotFound(ViewError):
+    """A bag without a robot under the namespaces asked for."""
 
 
 def warn(message: str) -> None:
@@ -117,21 +124,38 @@ class Recording:
     truncated: bool = False
     #: the terrain on the ground (physics.terrain.TerrainConfig, validated), or None
     terrain: object = None
+    #: put before the robot's frames on /tf (sim_node's tf_frame_prefix): what its base
+    #: state's child frame has before the URDF's root link ('' where it has nothing more)
+    frame_prefix: str = ""
 
 
-def _choose_namespace(found: dict, requested, path: str, bag) -> str:
-    """The namespace whose joint states and base state the bag holds (requested, the only
-    one, or the first in sorted order, with a warning)."""
-    complete = sorted(ns for ns, kinds in found.items()
-                      if bag.counts.get(kinds.get("joints"), 0)
-                      and bag.counts.get(kinds.get("base"), 0))
+def normalised_namespace(ns: str) -> str:
+    """'robot1', '/robot1/' -> '/robot1'; '', '/' -> ''."""
+    return "/" + ns.strip("/") if ns.strip("/") else ""
+
+
+def complete_namespaces(found: dict, bag) -> list:
+    """The namespaces (sorted) under which the bag has both joint states and base states."""
+    return sorted(ns for ns, kinds in found.items()
+                  if bag.counts.get(kinds.get("joints"), 0)
+                  and bag.counts.get(kinds.get("base"), 0))
+
+
+def _choose_namespaces(found: dict, requested, path: str, bag) -> list:
+    """The namespaces of the robots to replay: every one whose joint states and base state
+    the bag holds, or those of `requested` (a list) among them. ViewError where there is
+    none."""
+    complete = complete_namespaces(found, bag)
     if requested is not None:
-        ns = "/" + requested.strip("/") if requested.strip("/") else ""
-        if ns in complete:
-            return ns
+        wanted = [normalised_namespace(r) for r in requested]
+        chosen = [ns for ns in complete if ns in wanted]
+        if chosen:
+            return chosen
         have = ", ".join(repr(n or "/") for n in complete) or "none"
-        raise ViewError(f"{path}: no {TOPIC_JOINT_STATES} and {TOPIC_BASE_STATE} messages under "
-                        f"the namespace {ns or '/'!r} (namespaces with both: {have})")
+        names = ", ".join(repr(n or "/") for n in wanted)
+        raise NamespaceNotFound(f"{path}: no {TOPIC_JOINT_STATES} and {TOPIC_BASE_STATE} "
+                                f"messages under the namespace(s) {names} (namespaces with "
+                                f"both: {have})")
     if not complete:
         missing = []
         for kind in ("joints", "base"):
@@ -144,10 +168,7 @@ def _choose_namespace(found: dict, requested, path: str, bag) -> str:
                             f"different namespaces; the bag's topics: {topics or 'none'}")
         raise ViewError(f"{path}: no messages on {' nor '.join(missing)}, so there is no robot "
                         f"motion to replay; the bag's topics: {topics or 'none'}")
-    if len(complete) > 1:
-        warn(f"{path}: robots under the namespaces {', '.join(n or '/' for n in complete)}; "
-             f"replaying {complete[0] or '/'} (--namespace picks another)")
-    return complete[0]
+    return complete
 
 
 def _urdf_from_bag(bag, topics: dict, path: str):
@@ -214,11 +235,28 @@ def terrain_from_metadata(bag, path):
     return None if terrain.is_flat else terrain
 
 
-def read_recording(path: str, namespace: str | None = None, salvage: bool = False):
-    """The Recording of one robot of a bag. Raises BagError for a bag that cannot be
-    read, ViewError for one without joint states or base state."""
-    bag = read_messages(path, _select, salvage=salvage, decode=False,
-                                 on_warning=warn)
+def frame_prefix(rec: Recording) -> str:
+    """What the robot's base state names its child frame with before the URDF's root link
+    (sim_node's tf_frame_prefix); '' where the child frame is that link (or, with a
+    warning, another frame, or a message that cannot be read: its error comes where the
+    message is drawn)."""
+    try:
+        child = rec.base.message(0).child_frame_id
+        root = base_link(rec.urdf)
+    except (ViewError, ValueError, AttributeError, ET.ParseError):
+        return ""
+    if isinstance(child, str) and child.endswith(root):
+        return child[:len(child) - len(root)]
+    warn(f"{rec.path}: the base state's child frame {child!r} is not the URDF's root link "
+         f"{root!r} (with a prefix); the robot's frames are named without a prefix")
+    return ""
+
+
+def read_recordings(path: str, namespaces=None, salvage: bool = False) -> list:
+    """The Recordings of the robots of a bag: all of them, or those under `namespaces` (a
+    list). Raises BagError for a bag that cannot be read, ViewError for one without joint
+    states or base state (under those namespaces)."""
+    bag = read_messages(path, _select, salvage=salvage, decode=False, on_warning=warn)
     found = {}                                   # namespace -> {kind: topic}
     for topic in bag.types:
         m = match_topic(topic)
@@ -227,12 +265,19 @@ def read_recording(path: str, namespace: str | None = None, salvage: bool = Fals
         elif m is not None:
             warn(f"{path}: topic {topic} has type {bag.types[topic] or '(no schema)'}, "
                  f"expected {TOPICS[m[0]][1]}; ignored")
-    ns = _choose_namespace(found, namespace, path, bag)
-    topics = found[ns]
+    ground = _ground_from_metadata(bag)
+    terrain = terrain_from_metadata(bag, path)
+    return [_robot(bag, path, ns, found[ns], ground, terrain)
+            for ns in _choose_namespaces(found, namespaces, path, bag)]
+
+
+def _robot(bag, path, ns, topics, ground, terrain) -> Recording:
+    """The Recording of the robot under `ns` (its topics: {kind: topic})."""
     urdf, source = _urdf_from_bag(bag, topics, path)
     rec = Recording(path=path, namespace=ns, joints=Series.from_bag(bag, topics["joints"]),
                     base=Series.from_bag(bag, topics["base"]), wrenches={}, urdf=urdf,
-                    urdf_source=source, truncated=bag.truncated)
+                    urdf_source=source, truncated=bag.truncated, terrain=terrain)
+    rec.ground_height, rec.ground_normal = ground
     for foot in FEET:
         if topics.get(foot) and bag.messages.get(topics[foot]):
             rec.wrenches[foot] = Series.from_bag(bag, topics[foot])
@@ -243,7 +288,6 @@ def read_recording(path: str, namespace: str | None = None, salvage: bool = Fals
             n = bag.counts.get(series.topic, 0)
             raise ViewError(f"{path}: none of the {n} message(s) on {series.topic} could be "
                             "read, so there is no robot motion to replay")
-    rec.ground_height, rec.ground_normal = _ground_from_metadata(bag)
-    rec.terrain = terrain_from_metadata(bag, path)
+    rec.frame_prefix = frame_prefix(rec)
     return rec
 

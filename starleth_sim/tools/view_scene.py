@@ -70,9 +70,10 @@ def _visual_geometry(geom):
     return None
 
 
-def robot_visuals(desc: RobotDescription):
+def robot_visuals(desc: RobotDescription, robot: str = ""):
     """[(pin joint id, visual name, three.js object)] of the URDF's <visual> elements, each
-    placed in the frame of the joint that moves it (fixed joints merged by pin)."""
+    placed in the frame of the joint that moves it (fixed joints merged by pin); `robot`
+    (the robot's frame prefix) keeps the objects' ids apart from another robot's."""
     model = desc.model
     out = []
     for link in ET.fromstring(desc.urdf_xml).findall("link"):
@@ -92,7 +93,7 @@ def robot_visuals(desc: RobotDescription):
             placement = frame.placement * urdf_origin(vis)
             geometry, intrinsic, color = shape
             name = f"{lname}_{k}" if len(link.findall("visual")) > 1 else lname
-            obj = _mesh(f"robot/{name}", name, geometry, color,
+            obj = _mesh(f"robots/{robot}{name}", name, geometry, color,
                         pin.SE3(placement).homogeneous @ intrinsic)
             out.append((int(frame.parentJoint), name, obj))
     return out
@@ -178,13 +179,27 @@ def terrain_objects(terrain, ground_height=0.0) -> list:
     return out
 
 
-def scene_commands(desc, visuals, rec: Recording, trunk_xy) -> list:
-    """meshcat commands that build the scene: background, a checkerboard ground plane (in
-    place of meshcat's grid), the robot's visuals under /world/starleth/<joint>, the force
-    arrows under /world/forces/<foot>, the camera. The page follows the trunk by moving
-    /world so that the trunk stays at the origin, which meshcat's orbit controls turn the
-    camera around."""
+def body_frames(desc: RobotDescription, joint_ids, prefix: str) -> list:
+    """The frame names (as on /tf: prefix + link) of the bodies the pin joints joint_ids
+    move: each joint's child link (the first body frame on it; fixed links are merged
+    into it)."""
     model = desc.model
+    out = []
+    for j in joint_ids:
+        link = next(f.name for f in model.frames
+                    if f.parentJoint == j and f.type == pin.FrameType.BODY)
+        out.append(prefix + link)
+    return out
+
+
+def scene_commands(ground: Recording, robots, trunk_xy) -> list:
+    """meshcat commands that build the scene: background, a checkerboard ground plane (in
+    place of meshcat's grid) and the terrain of `ground` (a Recording), for each robot
+    (robots: [(Recording, visuals, {pin joint id: frame name}, name)]) its visuals under
+    /world/robots/<frame> (its bodies' frames as on /tf: robot1/base, ...) and its force
+    arrows under /world/forces/<name><foot>, the camera. The page follows the trunks (their
+    mean point) by moving /world so that it stays at the origin, which meshcat's orbit
+    controls turn the camera around."""
     lo, hi = trunk_xy.min(axis=0), trunk_xy.max(axis=0)
     tile = 2 * GROUND_SQUARE
     centre = np.round((lo + hi) / 2 / tile) * tile         # squares on multiples of 0.5 m
@@ -198,14 +213,28 @@ def scene_commands(desc, visuals, rec: Recording, trunk_xy) -> list:
         {"type": "set_property", "path": "/Grid", "property": "visible", "value": False},
         {"type": "set_object", "path": "/world/ground", "object": _ground_object(size, tile)},
         {"type": "set_transform", "path": "/world/ground", "matrix": _matrix(
-            _ground_pose(rec.ground_height, rec.ground_normal, centre))},
+            _ground_pose(ground.ground_height, ground.ground_normal, centre))},
     ]
-    if rec.terrain is not None:
-        for name, obj in terrain_objects(rec.terrain, rec.ground_height):
+    if ground.terrain is not None:
+        for name, obj in terrain_objects(ground.terrain, ground.ground_height):
             cmds.append({"type": "set_object", "path": f"/world/terrain/{name}", "object": obj})
-    for joint, name, obj in visuals:
-        cmds.append({"type": "set_object", "path": f"/world/starleth/{model.names[joint]}/{name}",
-                     "object": obj})
+    for rec, visuals, frames, robot in robots:
+        for joint, name, obj in visuals:
+            cmds.append({"type": "set_object", "path": f"/world/robots/{frames[joint]}/{name}",
+                         "object": obj})
+        cmds += _arrow_objects(rec, robot)
+    # the camera's position relative to the point it orbits (the origin), given in the
+    # Y-up frame of /Cameras/default/rotated: (x, z, -y) of the world
+    ox, oy, oz = CAMERA_OFFSET
+    cmds.append({"type": "set_property", "path": "/Cameras/default/rotated/<object>",
+                 "property": "position", "value": [ox, oz, -oy]})
+    return cmds
+
+
+def _arrow_objects(rec: Recording, robot: str) -> list:
+    """The force arrows of a robot (`robot`: its frame prefix), a shaft and a head per foot
+    with force messages, under /world/forces/<robot><foot>."""
+    cmds = []
     shaft = np.eye(4)
     shaft[1, 3] = 0.5                                      # unit cylinder from y=0 to y=1
     head = np.eye(4)
@@ -213,19 +242,15 @@ def scene_commands(desc, visuals, rec: Recording, trunk_xy) -> list:
     for foot in FEET:
         if foot not in rec.wrenches:
             continue
-        cmds.append({"type": "set_object", "path": f"/world/forces/{foot}/shaft",
-                     "object": _mesh(f"forces/{foot}/shaft", f"{foot} force", {
+        path = f"forces/{robot}{foot}"
+        cmds.append({"type": "set_object", "path": f"/world/{path}/shaft",
+                     "object": _mesh(f"{path}/shaft", f"{robot}{foot} force", {
                          "type": "CylinderGeometry", "radiusTop": ARROW_RADIUS,
                          "radiusBottom": ARROW_RADIUS, "height": 1.0, "radialSegments": 12},
                          ARROW_COLOR, shaft)})
-        cmds.append({"type": "set_object", "path": f"/world/forces/{foot}/head",
-                     "object": _mesh(f"forces/{foot}/head", f"{foot} force head", {
+        cmds.append({"type": "set_object", "path": f"/world/{path}/head",
+                     "object": _mesh(f"{path}/head", f"{robot}{foot} force head", {
                          "type": "ConeGeometry", "radius": 2.5 * ARROW_RADIUS, "height": ARROW_HEAD,
                          "radialSegments": 12}, ARROW_COLOR, head)})
-    # the camera's position relative to the point it orbits (the origin), given in the
-    # Y-up frame of /Cameras/default/rotated: (x, z, -y) of the world
-    ox, oy, oz = CAMERA_OFFSET
-    cmds.append({"type": "set_property", "path": "/Cameras/default/rotated/<object>",
-                 "property": "position", "value": [ox, oz, -oy]})
     return cmds
 
