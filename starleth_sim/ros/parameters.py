@@ -135,7 +135,8 @@ SIM_NODE_PARAMETERS = (
       "only one simulator publish /clock."),
     P("tf_rate", float, 50.0,
       "/tf (world -> base, and parent -> child link of every movable joint) and /tf_static "
-      "(the fixed joints), recorded, and published where tf2_msgs is installed; Hz, 0 = off. "
+      "(the fixed joints), recorded, and published where tf2_msgs is importable (a ROS "
+      "install's, or the one `make venv` generates); Hz, 0 = off. "
       "Foxglove and Lichtblick move the URDF's links only through TF (they keep 10,000 "
       "transforms per frame: 50 Hz x 13 transforms fits); at most 1000 Hz (above the "
       "control rate it is every step).", minimum=0.1, maximum=1000.0, off_value=0.0),
