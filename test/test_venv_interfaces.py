@@ -82,3 +82,20 @@ def test_generated_earlier_is_up_to_date_until_its_sources_change(generate, tmp_
     marker.write_text("0" * 64 + "\n")                  # generated from other sources
     assert generate.main([]) == 0 and calls == [generate.source_digest("tf2_msgs")]
     assert generate.main(["--force"]) == 0 and len(calls) == 2
+
+
+def test_the_failure_line_names_the_cause(generate):
+    """What a failed command's output is reduced to: CMake's message under "CMake Error
+    at", a compiler's or pip's error line, else the last line."""
+    cmake = ["-- The C compiler identification is unknown",
+             "CMake Error at /x/CMakeDetermineCCompiler.cmake:48 (message):",
+             "  Could not find the compiler specified in the environment variable CC:", "",
+             "CMake Error: CMAKE_C_COMPILER not set, after EnableLanguage",
+             "-- Configuring incomplete, errors occurred!"]
+    assert generate.first_error(cmake) == \
+        "Could not find the compiler specified in the environment variable CC:"
+    pip = ["ERROR: Could not find a version that satisfies the requirement cmake==4.4.5",
+           "ERROR: No matching distribution found for cmake==4.4.5"]
+    assert generate.first_error(pip) == pip[0]
+    assert generate.first_error(["gmake: *** [all] Killed", "  "]) == "gmake: *** [all] Killed"
+    assert generate.first_error([]) == ""

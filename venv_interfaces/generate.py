@@ -96,9 +96,21 @@ def run(cmd, log, env=None):
             raise StepFailed(f"{cmd[0]}: {e.strerror}") from None
     if proc.returncode != 0:
         with open(log) as f:
-            last = [ln.strip() for ln in f.read().splitlines() if ln.strip()][-1:]
+            output = f.read().rsplit("\n$ ", 1)[-1].splitlines()[1:]    # this command's
         raise StepFailed(f"{os.path.basename(cmd[0])} exited with {proc.returncode}"
-                         + (f": {last[0][:160]}" if last else ""))
+                         + (f": {first_error(output)[:200]}" if output else ""))
+
+
+def first_error(lines) -> str:
+    """The line of a command's output that says what went wrong: the first error line (with
+    the message under CMake's "CMake Error at ...:"), else the last line."""
+    lines = [ln.strip() for ln in lines if ln.strip()]
+    for i, ln in enumerate(lines):
+        if "error" in ln.lower():
+            if ln.startswith("CMake Error at") and i + 1 < len(lines):
+                return lines[i + 1]
+            return ln
+    return lines[-1] if lines else ""
 
 
 def build_environment():
@@ -166,6 +178,7 @@ def generate(pkg, digest) -> None:
          "install", "-c", CONSTRAINTS, "-r", REQUIREMENTS], log)
     say(pkg, f"generator wheels installed ({os.path.basename(REQUIREMENTS)}, "
              f"{time.monotonic() - t:.1f} s)")
+    t = time.monotonic()
     for step in cmake_steps(pkg, build, log):
         say(pkg, f"{step} ({time.monotonic() - t:.1f} s)")
         t = time.monotonic()
