@@ -26,7 +26,7 @@ JAZZY_TF_MESSAGE_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf2
 TF_STATIC_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def tf_message_type():
+def tf2_msgs_or_skip():
     """tf2_msgs' TFMessage, or a skip that says where it comes from."""
     try:
         from tf2_msgs.msg import TFMessage
@@ -40,7 +40,7 @@ class TfListener:
     """A test node subscribing to /tf and /tf_static typed tf2_msgs/msg/TFMessage."""
 
     def __init__(self, name, subscriptions=1):
-        TFMessage = tf_message_type()
+        TFMessage = tf2_msgs_or_skip()
         self.ros = RosTestNode(DOMAIN_ID, name)
         self.got = {"/tf_static": []}
         node = self.ros.node
@@ -54,7 +54,7 @@ class TfListener:
     def subscribe_one_more(self):
         key = f"/tf#{len(self.got) - 1}"
         self.got[key] = []
-        self.ros.node.create_subscription(tf_message_type(), "/tf", self.got[key].append, 100)
+        self.ros.node.create_subscription(tf2_msgs_or_skip(), "/tf", self.got[key].append, 100)
         return key
 
 
@@ -75,7 +75,7 @@ def _parents(messages):
 def test_tf2_msgs_has_the_type_hash_of_jazzy():
     """The type hash in the installed package's type description (share/tf2_msgs/msg/
     TFMessage.json, written by the rosidl generator) is Jazzy's."""
-    tf_message_type()
+    tf2_msgs_or_skip()
     prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
     paths = [os.path.join(p, "share", "tf2_msgs", "msg", "TFMessage.json")
              for p in prefixes + [sys.prefix]]       # (the venv: where `make venv` puts it)
@@ -216,3 +216,41 @@ def test_live_view_serves_tf_before_any_command(waiting_sim):
     assert {t for t, _ in tf} == {0}                  # state 0, log time = its stamp
     assert len(log.messages.get("/tf_static", [])) >= 1
     assert len(log.messages.get("/joint_states", [])) >= 3
+
+
+class _Log:
+    def __init__(self):
+        self.lines = []
+
+    def info(self, text):
+        self.lines.append(("info", text))
+
+    def warning(self, text):
+        self.lines.append(("warning", text))
+
+
+def test_without_a_usable_tf2_msgs_one_line_says_tf_is_not_published(monkeypatch):
+    """sim_node's one line where tf2_msgs is missing (info: where it comes from) or its type
+    support does not load (a warning with the cause); no publisher then, no crash."""
+    from starleth_sim.ros.visualisation import tf_message_type
+    monkeypatch.setitem(sys.modules, "tf2_msgs", None)
+    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
+    log = _Log()
+    assert tf_message_type(log) is None
+    assert len(log.lines) == 1 and log.lines[0][0] == "info"
+    assert "`make venv` generates it" in log.lines[0][1]
+    assert log.lines[0][1].endswith("recorded (and served by the live view, live_view:=true) "
+                                    "but not published")
+    monkeypatch.undo()
+    assert tf_message_type(_Log()) is tf2_msgs_or_skip()      # (skips where it is missing)
+    import rclpy.type_support
+
+    def broken(t):
+        raise ImportError("libtf2_msgs__rosidl_typesupport_c.so: cannot open shared object")
+    monkeypatch.setattr(rclpy.type_support, "check_for_type_support", broken)
+    log = _Log()
+    assert tf_message_type(log) is None
+    assert log.lines == [("warning", "tf2_msgs is installed but its type support does not "
+                          "load (libtf2_msgs__rosidl_typesupport_c.so: cannot open shared "
+                          "object): /tf and /tf_static are recorded (and served by the live "
+                          "view, live_view:=true) but not published")]

@@ -99,3 +99,18 @@ def test_the_failure_line_names_the_cause(generate):
     assert generate.first_error(pip) == pip[0]
     assert generate.first_error(["gmake: *** [all] Killed", "  "]) == "gmake: *** [all] Killed"
     assert generate.first_error([]) == ""
+
+
+def test_a_package_that_fails_its_check_is_removed_again(generate, tmp_path):
+    """What the install step wrote (CMake's install_manifest.txt) is removed when rclpy
+    cannot load it, so that sim_node does not find a broken tf2_msgs; nothing else is."""
+    build, prefix = tmp_path / "build", tmp_path / "prefix"
+    build.mkdir()
+    (prefix / "lib").mkdir(parents=True)
+    installed = [prefix / "lib" / "libtf2_msgs__rosidl_generator_c.so", prefix / "x.py"]
+    for p in installed + [prefix / "lib" / "libgeometry_msgs.so"]:
+        p.write_text("")
+    (build / "install_manifest.txt").write_text(
+        "\n".join(map(str, installed + [prefix / "gone.py"])))
+    generate.uninstall(str(build))
+    assert sorted(p.name for p in prefix.rglob("*") if p.is_file()) == ["libgeometry_msgs.so"]

@@ -10,8 +10,9 @@ Run by `make venv` with the venv's python (``python venv_interfaces/generate.py`
    <venv>/share/<package>/venv_interfaces.digest); --force generates it again;
 2. the generator wheels (requirements-interfaces.txt, pinned by constraints.txt) into the venv;
 3. cmake configure, build and install with the venv as the install prefix, beside the wheels
-   (the Python module in site-packages, the libraries in <venv>/lib); the build tree and its
-   log in <venv>/.venv_interfaces/ (kept where a step fails, removed once installed);
+   (the Python module in site-packages, the libraries in <venv>/lib); the build tree in
+   <venv>/.venv_interfaces/<package>/ (removed once installed), every command's output in
+   <venv>/.venv_interfaces/<package>.log;
 4. a check that rclpy loads the package's type support; the type hashes are printed.
 Each step prints a progress line. Where one fails, one line says why and that /tf and
 /tf_static are recorded but not published; the exit status is then 1 (make venv goes on).
@@ -85,8 +86,8 @@ def installed_state(pkg, digest) -> str | None:
 
 
 def run(cmd, log, env=None):
-    """Run `cmd` with its output appended to `log`; StepFailed with its last lines if it
-    fails."""
+    """Run `cmd` with its output appended to `log`; StepFailed with the line that says what
+    went wrong if it fails."""
     with open(log, "a") as f:
         f.write(f"\n$ {' '.join(cmd)}\n")
         f.flush()
@@ -161,6 +162,16 @@ def check_and_hashes(pkg, log) -> list[str]:
     return hashes
 
 
+def uninstall(build):
+    """Remove the files the install step of `build` wrote (CMake's install_manifest.txt)."""
+    manifest = os.path.join(build, "install_manifest.txt")
+    if os.path.isfile(manifest):
+        with open(manifest) as f:
+            for path in f.read().splitlines():
+                if os.path.isfile(path) or os.path.islink(path):
+                    os.remove(path)
+
+
 def generate(pkg, digest) -> None:
     """Steps 2 to 4 for `pkg`, with a progress line each; StepFailed where one fails."""
     if not os.path.isfile(os.path.join(PREFIX, "share", "geometry_msgs", "cmake",
@@ -182,7 +193,12 @@ def generate(pkg, digest) -> None:
     for step in cmake_steps(pkg, build, log):
         say(pkg, f"{step} ({time.monotonic() - t:.1f} s)")
         t = time.monotonic()
-    for line in check_and_hashes(pkg, log):
+    try:
+        hashes = check_and_hashes(pkg, log)
+    except (StepFailed, OSError, ValueError, KeyError):
+        uninstall(build)      # not left importable: sim_node would try to publish with it
+        raise
+    for line in hashes:
         say(pkg, f"rclpy loads {line}")
     with open(os.path.join(PREFIX, "share", pkg, DIGEST_FILE), "w") as f:
         f.write(digest + "\n")
@@ -204,7 +220,7 @@ def main(argv=None) -> int:
             continue
         try:
             generate(pkg, digest)
-        except StepFailed as e:
+        except (StepFailed, OSError, ValueError, KeyError) as e:   # (a file, a JSON field)
             print(f"venv: {pkg} not generated ({e}): {without}", flush=True)
             status = 1
     return status

@@ -24,6 +24,26 @@ def steps_between(rate, control_period) -> int:
     return max(1, int(round(1.0 / (rate * control_period))))
 
 
+def tf_message_type(log):
+    """tf2_msgs' TFMessage with its type support loaded, or None after one line on `log`
+    saying why /tf and /tf_static are recorded but not published."""
+    lost = ("/tf and /tf_static are recorded (and served by the live view, live_view:=true) "
+            "but not published")
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        log.info("tf2_msgs is not installed (no ROS install provides it; `make venv` "
+                 f"generates it from venv_interfaces/): {lost}")
+        return None
+    try:
+        from rclpy.type_support import check_for_type_support
+        check_for_type_support(TFMessage)
+    except Exception as e:     # a broken install: its type support library does not load
+        log.warning(f"tf2_msgs is installed but its type support does not load ({e}): {lost}")
+        return None
+    return TFMessage
+
+
 class Visualisation:
     """/tf, /tf_static and the contact markers of `sim` for `settings` (tf_rate,
     tf_frame_prefix, contact_markers_rate, contact_marker_scale, world_frame), published on
@@ -47,16 +67,10 @@ class Visualisation:
         #: /tf's DDS subscribers: the count (at most SUBSCRIBER_REFRESH steps old), its step,
         #: and the count when /tf last went out on DDS (a re-send goes to newcomers only)
         self._tf_subs, self._tf_subs_k, self._tf_sent_to = 0, -10 ** 9, 0
-        if self.tf_every:
-            try:
-                from tf2_msgs.msg import TFMessage
-            except ImportError:
-                log.info("tf2_msgs is not installed (no ROS install provides it; `make venv` "
-                         "generates it from venv_interfaces/): /tf and /tf_static are recorded "
-                         "(and served by the live view, live_view:=true) but not published")
-            else:
-                for key, (topic, qos) in self.tf_topics.items():
-                    self.tf_pubs[key] = node.create_publisher(TFMessage, topic, qos)
+        TFMessage = tf_message_type(log) if self.tf_every else None
+        if TFMessage is not None:
+            for key, (topic, qos) in self.tf_topics.items():
+                self.tf_pubs[key] = node.create_publisher(TFMessage, topic, qos)
         self.markers = None
         if self.markers_every:
             try:
