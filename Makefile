@@ -5,6 +5,7 @@ VPY    := $(VENV)/bin/python
 PIP    := $(VPY) -m pip -qq --disable-pip-version-check --no-input
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
+LIVE_PORT ?= 8765
 
 .PHONY: venv test demo bench eval ray browser-test constraints clean distclean
 
@@ -80,11 +81,12 @@ test: venv
 # The main job: the trotting demo over ROS 2 (starleth-demo; it makes the kernels ready
 # first, with a progress line, then runs sim_node + controller_node and summarises the bag),
 # with the live view (--live: the URL to open in Foxglove is printed) where foxglove-sdk
-# (requirements-live.txt) is installed; a busy port 8765 only turns the live view off.
+# (requirements-live.txt) is installed, on port LIVE_PORT (make demo LIVE_PORT=9000; 8765 by
+# default); a busy port only turns the live view off.
 demo: venv
 	@if $(VPY) -c 'import foxglove' >/dev/null 2>&1; then \
-	  echo "demo: foxglove-sdk installed: with the live view (starleth-demo --live)"; \
-	  $(VENV)/bin/starleth-demo --live; \
+	  echo "demo: foxglove-sdk installed: with the live view (starleth-demo --live $(LIVE_PORT))"; \
+	  $(VENV)/bin/starleth-demo --live $(LIVE_PORT); \
 	else \
 	  echo "demo: no live view (pip install -r requirements-live.txt for it)"; \
 	  $(VENV)/bin/starleth-demo; \

@@ -370,9 +370,24 @@ def init_ros(prog: str, argv) -> bool:
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:
-        print(f"{prog}: cannot initialise ROS: {e}", file=sys.stderr)
+        print(f"{prog}: cannot initialise ROS: {e}" + mapping_override_hint(argv),
+              file=sys.stderr)
         return False
     return True
+
+
+def mapping_override_hint(argv) -> str:
+    """For a `-p name:={...}` rule in argv (ROS parses the value as YAML, and a mapping is
+    no parameter type: rcl says "Unknown YAML event"), the line saying how to pass it as the
+    string a parameter such as physics_overrides takes; "" when there is none."""
+    argv = list(argv or ())
+    for flag, rule in zip(argv, argv[1:]):
+        name, sep, value = rule.partition(":=")
+        if flag in ("-p", "--param") and sep and value.lstrip().startswith("{"):
+            return (f"\n{flag} {rule}: ROS reads a value in braces as a YAML mapping, which no "
+                    "parameter type holds; quote it once more so that ROS reads a string: "
+                    f"-p \"{name}:='{value}'\"")
+    return ""
 
 
 class StopSignals:

@@ -23,7 +23,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from readme_examples import readme_controller_blocks, run_beside_sim_node  # noqa: E402
+from controller_examples import controllers_page_blocks, run_beside_sim_node  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType  # noqa: E402
@@ -347,23 +347,23 @@ def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
             assert old.first_quantities["joint_positions"] < 1e-6, old.first_quantities
 
 
-def readme_position_controller():
-    """The second python block of README.md's "Write your own controller" section."""
-    blocks = readme_controller_blocks()
-    assert len(blocks) == 2, blocks
+def position_controller_example():
+    """The 50 Hz position controller of doc/controllers.md (its second python block)."""
+    blocks = controllers_page_blocks()
+    assert len(blocks) == 3 and "squat" in blocks[1], blocks
     return blocks[1]
 
 
-def test_readme_position_controller_squats_and_stands(ros, tmp_path):
-    """The README's 50 Hz position controller as written (20 lines), beside `sim_node
+def test_position_controller_example_squats_and_stands(ros, tmp_path):
+    """doc/controllers.md's 50 Hz position controller as written (20 lines), beside `sim_node
     --ros-args -p mode:=lockstep`, for 2.5 s of sim time: every state answered, the base
     goes down with the squat (the targets are tracked) and back up, and never falls."""
-    code = readme_position_controller()
+    code = position_controller_example()
     assert code.count("\n") <= 20
     t, z, s = run_beside_sim_node(ros, tmp_path, code, DOMAIN_ID, 2.5)
     low = z[(t > 0.8) & (t < 1.2)].min()     # the deepest squat at t = 1 s
     up = z[(t > 1.9) & (t < 2.1)].max()      # standing again at t = 2 s
-    print(f"README position controller: base {z.min():.4f} to {z.max():.4f} m, at the "
+    print(f"position controller example: base {z.min():.4f} to {z.max():.4f} m, at the "
           f"bottom of the squat {low:.4f} m, back up {up:.4f} m")
     assert STARLETH_STANDING_HEIGHT - 0.03 < up and low < up - 0.02 and z.min() > 0.3
     assert s["lockstep_timeouts"] == 0 and s["stale_commands"] == 0, s

@@ -96,6 +96,10 @@ def test_executables_and_share(prefix):
     assert (share / "urdf" / "starleth.urdf").is_file()
     assert (share / "launch" / "starleth.launch.xml").is_file()
     assert (share / "foxglove" / "starleth_layout.json").is_file()
+    # the ros2_control path: its launch file finds the controllers in share/config
+    assert (share / "launch" / "starleth_ros2_control.launch.xml").is_file()
+    assert (share / "config" / "starleth_controllers.yaml").is_file()
+    assert (share / "urdf" / "starleth_ros2_control.xml").is_file()
     for f in ("sim_node.yaml", "HmJ.yaml", "Cm.yaml", "HmS.yaml", "terrain/stairs.yaml",
               "terrain/rough.yaml"):
         assert (share / "msg_configs" / f).is_file(), f

@@ -183,3 +183,63 @@ def test_live_view_sends_the_terrain_to_a_client_that_comes_later():
     got = _decoder(ch)(payload)
     assert [(m.ns, m.type) for m in got.markers] == [("ground", 1), ("boxes", 1), ("boxes", 1)]
     assert got.markers[2].scale.z == pytest.approx(0.1)       # the second step: 2 rises
+
+
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_a_client_offering_either_subprotocol_name_is_served(subprotocol):
+    """The live view's server (no node: a LiveView with one topic) serves a client that
+    offers foxglove.sdk.v1, as current Foxglove and Lichtblick do, and one that offers only
+    foxglove.websocket.v1, as Lichtblick before its December 2025 releases does (the SDK's
+    own server answers that one HTTP 400): both get the advertisement and the same bytes,
+    the handshake naming the protocol they asked for."""
+    import threading
+    import time
+
+    import websockets
+    import websockets.sync.client as ws_client
+    from starleth_sim.ros.live_view import LiveView
+
+    class Log:
+        def info(self, m):
+            self.line = m
+
+        error = info
+
+    log = Log()
+    live = LiveView.open("127.0.0.1", free_port(), [("/chatter", "std_msgs/msg/String", False)],
+                         log)
+    assert live is not None, log.line
+    assert "foxglove.websocket.v1" in log.line
+    backend_port = live.server.port
+    payload = b"\x00\x01\x00\x00\x06\x00\x00\x00hello\x00"      # CDR of String "hello"
+    stop = threading.Event()
+
+    def publish():
+        k = 0
+        while not stop.is_set():
+            live.log("/chatter", payload, k)
+            live.flush()
+            k += 1
+            time.sleep(0.01)
+
+    pub = threading.Thread(target=publish, daemon=True)
+    pub.start()
+    try:
+        with ws_client.connect(f"ws://127.0.0.1:{live.port}", subprotocols=[subprotocol],
+                               open_timeout=10) as ws:
+            assert ws.subprotocol == subprotocol
+            got = collect(f"ws://127.0.0.1:{live.port}", ["/chatter"], seconds=10.0,
+                          until=lambda lg: len(lg.messages.get("/chatter", [])) >= 5,
+                          subprotocol=subprotocol)
+        if subprotocol == "foxglove.websocket.v1":    # what the SDK's server alone answers
+            with pytest.raises(websockets.exceptions.InvalidStatus, match="400"):
+                ws_client.connect(f"ws://127.0.0.1:{backend_port}", open_timeout=10,
+                                  subprotocols=[subprotocol])
+    finally:
+        stop.set()
+        pub.join(5)
+        live.stop()
+    assert got.channels["/chatter"]["schemaName"] == "std_msgs/msg/String"
+    assert len(got.messages["/chatter"]) >= 5
+    assert all(m == payload for _, m in got.messages["/chatter"])
+    assert live.front.legacy_clients == (2 if subprotocol == "foxglove.websocket.v1" else 0)

@@ -1,16 +1,24 @@
 """package.xml declares what the installed package needs at run time, no more: every ROS
 package the code imports (top-level, local and optional imports alike: rosdep installs them
-whether or not the import is guarded) and every package the installed launch file needs is an
-``exec_depend``, and every ``exec_depend`` is one of those. Python libraries that come from
+whether or not the import is guarded) and every package the installed launch files need is an
+``exec_depend`` (for the ros2_control launch file: ros2_control's programs, the controllers
+of config/ and the hardware plugin of the <ros2_control> section), and every ``exec_depend``
+is one of those. Python libraries that come from
 pip (requirements.txt) are listed here with the reason they are not in package.xml."""
 import ast
+import glob
 import os
 import sys
 import xml.etree.ElementTree as ET
 
+import yaml
+
+from starleth_sim.ros.ros2_control_description import HARDWARE_PLUGIN
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
-LAUNCH_FILE = os.path.join(ROOT, "launch", "starleth.launch.xml")
+LAUNCH_FILES = sorted(glob.glob(os.path.join(ROOT, "launch", "*.launch.xml")))
+CONTROLLER_FILES = sorted(glob.glob(os.path.join(ROOT, "config", "*.yaml")))
 
 #: Python modules whose rosdep key differs from the module name
 ROSDEP_KEYS = {"numpy": "python3-numpy", "yaml": "python3-yaml",
@@ -98,15 +106,30 @@ def _is_ros_package(mod):
 
 
 def launch_dependencies():
-    tree = ET.parse(LAUNCH_FILE)
+    """{package: why} of the launch files: what each element needs, the packages of the
+    programs they start, and for ros2_control the packages of the controller types in
+    config/ and of the hardware plugin sim_node's section names."""
     need, unknown = {}, []
-    for el in tree.getroot().iter():
-        if el.tag not in LAUNCH_TAGS:
-            unknown.append(el.tag)
-            continue
-        for key in LAUNCH_TAGS[el.tag]:
-            need[key] = f"<{el.tag}> in launch/starleth.launch.xml"
+    for path in LAUNCH_FILES:
+        name = os.path.relpath(path, ROOT)
+        for el in ET.parse(path).getroot().iter():
+            if el.tag not in LAUNCH_TAGS:
+                unknown.append(el.tag)
+                continue
+            for key in LAUNCH_TAGS[el.tag]:
+                need[key] = f"<{el.tag}> in {name}"
+            if el.tag == "node" and el.get("pkg") != "starleth_sim":
+                need[el.get("pkg")] = f"a program started by {name}"
+                if el.get("exec") == "ros2_control_node":
+                    need[HARDWARE_PLUGIN.split("/")[0]] = f"the hardware of {name}"
     assert not unknown, f"launch file elements not in LAUNCH_TAGS: {sorted(set(unknown))}"
+    for path in CONTROLLER_FILES:
+        with open(path) as f:
+            for key, section in yaml.safe_load(f).items():
+                if key.endswith("controller_manager"):
+                    for c in section["ros__parameters"].values():
+                        if isinstance(c, dict) and "type" in c:
+                            need[c["type"].split("/")[0]] = f"a controller of {path}"
     return need
 
 

@@ -7,6 +7,7 @@ import pytest
 
 from starleth_sim import ConfigError
 from starleth_interface.ros_helpers import ThrottledLog
+from starleth_sim.physics.impedance import ImpedanceCommand
 from starleth_sim.ros.parameters import Settings, load_default_parameters, render_yaml
 from starleth_sim.ros.service import SimService, quoted
 from starleth_sim.ros.state_io import initial_state_record, parse_initial_state
@@ -185,18 +186,106 @@ def test_a_second_different_bad_wrench_is_printed(sim):
     assert svc.counters["wrenches_rejected"] == 4
 
 
-def test_realtime_starts_with_the_first_valid_command(sim):
-    """realtime_start first_command (the default): not started until a command is
-    accepted (a rejected one does not start it); immediately: started from the outset."""
-    svc, _ = make(sim, mode="realtime")
-    assert svc.settings.realtime_start == "first_command" and not svc.started
+def test_realtime_start_first_command_and_immediately(sim):
+    """realtime_start first_command: not started until a command is accepted (a rejected
+    one does not start it); immediately: started from the outset, with zero torques."""
+    svc, _ = make(sim, mode="realtime", realtime_start="first_command")
+    assert not svc.started and not svc.holding
     assert not svc.submit_effort_array([float("nan")] * 12)[0] and not svc.started
     assert not svc.submit_joint_command(["no_such_joint"], [1.0])[0] and not svc.started
     assert svc.submit_effort_array([0.5] * 12)[0] and svc.started
     svc, _ = make(sim, mode="realtime", realtime_start="immediately")
-    assert svc.started
+    assert svc.started and not svc.holding and np.all(svc.command == 0.0)
     with pytest.raises(ConfigError, match="realtime_start"):
         Settings(realtime_start="later").validate()
+
+
+def test_realtime_start_hold_until_the_first_valid_command(sim):
+    """realtime_start hold (the default): the clock runs from the start and the command in
+    effect is the joint impedance law toward the initial joint angles with default_kp /
+    default_kd; gains set at run time reach it; a rejected command leaves it, the first
+    valid one ends it (with a command delay: when that command comes into effect); a reset
+    brings it back. Lockstep never holds (the controller answers before every step)."""
+    svc, _ = make(sim, mode="realtime", default_kp=60.0, default_kd=1.5)
+    assert Settings().realtime_start == "hold"
+    c = svc.command
+    assert svc.started and svc.holding and type(c) is ImpedanceCommand
+    np.testing.assert_array_equal(c.position, sim.joint_positions())
+    np.testing.assert_array_equal(c.velocity, 0.0)
+    assert np.all(c.kp == 60.0) and np.all(c.kd == 1.5) and np.all(np.isnan(c.effort))
+    assert svc.set_gains(kp=90.0)[0] and np.all(svc.command.kp == 90.0)
+    assert not svc.submit_effort_array([float("nan")] * 12)[0] and svc.holding
+    svc.step()
+    assert svc.holding and svc.k == 1
+    assert svc.submit_effort_array([0.5] * 12)[0] and not svc.holding
+    np.testing.assert_array_equal(svc.command, 0.5)
+    svc.reset()
+    assert svc.holding and np.all(svc.command.kp == 90.0)
+    svc, _ = make(sim, mode="realtime", command_delay=0.005)     # two control periods
+    assert svc.submit_effort_array([0.5] * 12)[0] and svc.holding
+    svc.step()
+    svc.step()
+    assert svc.holding
+    svc.step()
+    assert not svc.holding and np.all(svc.command == 0.5)
+    svc, _ = make(sim, mode="lockstep")
+    assert not svc.started and not svc.holding
+
+
+def test_lockstep_commands_that_answer_no_state_get_one_hint(sim):
+    """Lockstep: a stale answer after a reset is one command answering no state, no hint;
+    three in a row (a controller on its own timer, stamping its own time) give one hint,
+    once per run, naming realtime mode."""
+    svc, warns = make(sim, mode="lockstep", warn_throttle_period=0.0)
+    names = list(sim.joint_names)
+    assert not svc.submit_joint_command(names, [0.0] * 12, stamp_ns=1)[0]
+    assert svc.submit_joint_command(names, [0.0] * 12, stamp_ns=0)[0]      # resets the count
+    svc.step()
+    for stamp in (7, 8, 9, 10, 11, 12):
+        assert not svc.submit_joint_command(names, [0.0] * 12, stamp_ns=stamp)[0]
+    hints = [w for w in warns if "mode:=realtime" in w]
+    assert len(hints) == 1 and "answer no state" in hints[0], warns
+    assert svc.counters["stale_commands"] == 7
+
+
+def test_hold_sags_as_the_joint_stiffness_predicts(sim):
+    """The hold of the initial posture (default_kp 80, default_kd 2, HmJ) settles where the
+    joints' stiffness puts it: at rest kp (q* - q) = τ = -Jᵀ F per stance leg, so each foot
+    moves J kp⁻¹ Jᵀ F relative to the trunk, and the trunk sinks by the mean of those
+    vertical displacements (F: the settled ground forces, J: the foot point's Jacobian in
+    the leg's joints, Pinocchio). The simulated sag matches that prediction within 5 %, and
+    stays within 2 cm of the standing height for 60 s."""
+    import pinocchio as pin
+    svc, _ = make(sim, mode="realtime")
+    z0 = sim.base_state()["position"][2]
+    heights = np.empty(60 * 400)
+    for k in range(heights.size):
+        assert svc.step() is not None
+        heights[k] = sim.base_state()["position"][2]
+    assert np.all(np.abs(heights - z0) < 0.02), (heights.min(), heights.max())
+    desc, kp = sim.description, svc.kp
+    model, data = desc.model, desc.model.createData()
+    q = pin.neutral(model)
+    q[[model.joints[model.getJointId(n)].idx_q for n in sim.joint_names]] = svc.hold_position
+    pin.computeJointJacobians(model, data, q)
+    forces = sim.contact_forces()
+    sag = []
+    for i, foot in enumerate(desc.foot_names):
+        c = next(c for c in desc.contacts if c.name == foot)
+        jac = pin.getJointJacobian(model, data, c.joint, pin.LOCAL_WORLD_ALIGNED)
+        r = data.oMi[c.joint].rotation @ c.local
+        leg = [j for j in model.supports[c.joint] if j > 1]     # after the free flyer
+        cols = [model.joints[j].idx_v for j in leg]
+        stiffness = [kp[sim.joint_names.index(model.names[j])] for j in leg]
+        j_leg = (jac[:3] - pin.skew(r) @ jac[3:])[:, cols]
+        f = forces[desc.contact_names().index(foot)]
+        sag.append((j_leg @ np.diag(1.0 / np.array(stiffness)) @ j_leg.T @ f)[2])
+    predicted, simulated = float(np.mean(sag)), z0 - heights[-1]
+    print(f"hold at kp {kp[0]:g}: sag predicted {predicted * 1e3:.2f} mm, simulated "
+          f"{simulated * 1e3:.2f} mm; lowest {(z0 - heights.min()) * 1e3:.2f} mm below")
+    assert len(sag) == 4 and all(len(model.supports[c.joint]) == 5 for c in desc.contacts[:4])
+    assert predicted > 0.005
+    assert simulated == pytest.approx(predicted, rel=0.05)
 
 
 def test_lockstep_bookkeeping(sim):
@@ -253,6 +342,11 @@ def test_reset_advances_time_and_restores_state(sim):
     assert not np.allclose(sim.q, q0)
     svc.reset()
     assert svc.k == 11 and sim.t == pytest.approx(11 * sim.control_period)
+    assert np.array_equal(sim.q, q0) and svc.holding       # realtime_start hold (default)
+    svc, _ = make(sim, realtime_start="first_command")
+    svc.submit_effort_array([5.0] * 12)
+    svc.step()
+    svc.reset()
     assert np.array_equal(sim.q, q0) and np.all(svc.command == 0.0)
 
 

@@ -1,8 +1,7 @@
 """Sim time as users meet it (issue #35): each robot of the launch file has its own clock
 (two namespaced robots in lockstep, their controllers with use_sim_time:=true, started with
-the `--ros-args` the launch file gives them); in realtime mode the clock waits for the first
-command (the robot does not fall before a controller answers); and the README's "Write your
-own controller" example, run as written, keeps the robot standing.
+the `--ros-args` the launch file gives them), and the README's "Write your own controller"
+example, run as written, keeps the robot standing. (Realtime mode's start: test_realtime_start.)
 
 Nodes run as child processes on an isolated ROS_DOMAIN_ID; every wait is bounded and every
 child is stopped in a finally."""
@@ -13,14 +12,13 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from launch_file import launch_nodes  # noqa: E402
-from readme_examples import readme_controller_blocks, run_beside_sim_node  # noqa: E402
+from controller_examples import (controllers_page_blocks, readme_controller_blocks,  # noqa: E402
+                                 run_beside_sim_node)  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rcl_interfaces.msg import ParameterEvent  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
@@ -132,63 +130,13 @@ def test_each_robot_of_the_launch_file_has_its_own_clock(ros, tmp_path):
 
 
 # -----------------------------------------------------------------------------------------
-# realtime: the clock starts with the first command
-# -----------------------------------------------------------------------------------------
-@pytest.mark.serial   # a realtime node and controller
-def test_realtime_robot_waits_for_its_controller_without_falling(ros, tmp_path):
-    """sim_node in realtime mode (its default) without a controller for 2 s: the initial
-    state is published again and again, stamped 0, the base at its standing height (with
-    realtime_start:=immediately it would be lying at 0.08 m by then); once controller_node
-    answers, the clock runs and the robot stands (it never drops below 0.35 m)."""
-    sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "rt.log"), DOMAIN_ID)
-    base = Latest(ros, Odometry, "starleth/base_state")
-    clock = Latest(ros, Clock, "/clock", BEST_EFFORT)
-    heights = []
-    sub = ros.node.create_subscription(
-        Odometry, "starleth/base_state",
-        lambda m: heights.append((seconds(m.header.stamp), m.pose.pose.position.z)), 100)
-    ctl = None
-    try:
-        assert ros.spin_until(lambda: base.msg is not None, START_TIMEOUT, procs=[sim]), \
-            sim.log()[-3000:]
-        n0, z0 = base.n, base.msg.pose.pose.position.z
-        ros.spin_for(2.0)
-        waited = (base.n - n0, seconds(base.msg.header.stamp), base.msg.pose.pose.position.z,
-                  clock.msg)
-        ctl = NodeProcess("starleth_controller.controller_node", str(tmp_path / "rt_ctl.log"),
-                          DOMAIN_ID)
-        assert ros.spin_until(lambda: seconds(base.msg.header.stamp) > 1.5, START_TIMEOUT,
-                              procs=[sim, ctl])
-        t_clock = seconds(clock.msg.clock) if clock.msg is not None else None
-    finally:
-        codes = [p.stop() for p in (ctl, sim) if p is not None]
-        ros.node.destroy_subscription(sub)
-        base.close()
-        clock.close()
-    assert codes == [0, 0]
-    n_waiting, t_waiting, z_waiting, clock_waiting = waited
-    z = [h for _, h in heights]
-    print(f"realtime, no controller for 2 s: {n_waiting} states, stamp {t_waiting} s, base "
-          f"{z_waiting:.4f} m; with controller_node: /clock {t_clock:.3f} s, base "
-          f"{min(z):.4f} to {max(z):.4f} m")
-    assert n_waiting >= 2                    # state 0 re-sent every 0.5 s
-    assert t_waiting == 0.0, waited
-    assert clock_waiting is None or seconds(clock_waiting.clock) == 0.0, waited
-    assert z_waiting == z0 == pytest.approx(STARLETH_STANDING_HEIGHT, abs=1e-6)   # unmoved
-    assert t_clock is not None and t_clock > 1.0
-    assert min(z) > 0.35, min(z)             # standing, not collapsed (0.08 m)
-    log = sim.log()
-    assert "waiting for the first command" in log and "first command received" in log
-
-
-# -----------------------------------------------------------------------------------------
 # the README's controller, as written
 # -----------------------------------------------------------------------------------------
 def readme_controller():
-    """The first python block of README.md's "Write your own controller" section (the
-    other, test_impedance_ros's, is the position controller)."""
+    """The python block of README.md's "Write your own controller" section (the first of
+    doc/controllers.md too)."""
     blocks = readme_controller_blocks()
-    assert len(blocks) == 2, blocks
+    assert len(blocks) == 1 and blocks[0] == controllers_page_blocks()[0], blocks
     return blocks[0]
 
 

@@ -9,20 +9,20 @@ A topic is served only while a WebSocket client subscribes to it (:meth:`LiveVie
 which :class:`~.topic_output.TopicOutput` asks before it builds a topic nobody else wants);
 a latched topic (robot_description, /tf_static) is sent again to each new subscriber. The
 server runs in threads of the SDK; nothing of it runs unless ``live_view`` is true (this
-module imports ``foxglove`` only in :meth:`LiveView.open`). What is served, the URLs to open
-and the protocol's subprotocol (``foxglove.sdk.v1``): doc/sim_node.md, "Live view".
+module imports ``foxglove`` only in :meth:`LiveView.open`); a front of it
+(:mod:`.live_view_front`) takes the connections, so that clients offering either name of the
+protocol's subprotocol connect. What is served and the URLs to open: doc/sim_node.md, "Live
+view".
 """
 from __future__ import annotations
 
 import socket
 import threading
 
+from .live_view_front import LEGACY_SUBPROTOCOL, SUBPROTOCOL, SubprotocolFront
 from .recording import message_definition, type_name
 
 INSTALL_HINT = "pip install -r requirements-live.txt (or: pip install 'starleth_sim[live]')"
-#: the WebSocket subprotocol of foxglove-sdk's server (the same messages as the older
-#: foxglove.websocket.v1, which it no longer accepts in the handshake)
-SUBPROTOCOL = "foxglove.sdk.v1"
 
 
 def viewer_urls(host: str, port: int) -> dict:
@@ -83,10 +83,17 @@ class LiveView:
         #: keep their own rate, tf_rate, and latched topics are always served)
         self.every = 1
         self.pending = []          # (channel, bytes, stamp) logged since the last flush
-        self.server = foxglove.start_server(name=name, host=host, port=port,
+        # the SDK's server on a loopback port of its own, behind the front on host:port
+        # (which lets in the clients offering the older subprotocol name too)
+        self.server = foxglove.start_server(name=name, host="127.0.0.1", port=0,
                                             server_listener=_Listener(self),
                                             context=self.context)
-        self.host, self.port = host, self.server.port
+        try:
+            self.front = SubprotocolFront(host, port, self.server.port)
+        except OSError:
+            self.server.stop()
+            raise
+        self.host, self.port = host, self.front.port
 
     @classmethod
     def open(cls, host, port, topics, log, name="sim_node", every=1):
@@ -110,7 +117,9 @@ class LiveView:
             live.add_topic(topic, typ, latched)
         urls = viewer_urls(host, live.port)
         log.info(f"live view: Foxglove WebSocket server on ws://{host}:{live.port} "
-                 f"({len(live.channels)} topics); open {urls['Foxglove']}")
+                 f"({len(live.channels)} topics; subprotocol {SUBPROTOCOL} or "
+                 f"{LEGACY_SUBPROTOCOL}: Foxglove, Lichtblick of any release); open "
+                 f"{urls['Foxglove']}")
         return live
 
     def add_topic(self, topic, typ, latched=False):
@@ -157,7 +166,8 @@ class LiveView:
                 channel.log(data, log_time=stamp_ns)
 
     def stop(self):
-        """Stop the server (idempotent)."""
+        """Stop the front and the server (idempotent)."""
         if self.server is not None:
+            self.front.stop()
             self.server.stop()
             self.server = None

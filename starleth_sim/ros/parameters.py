@@ -20,6 +20,7 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
 from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import package_share_dir
 from .command_delay import MAX_COMMAND_DELAY
+from .ros2_control_description import INTERFACES, parse_command_interfaces
 
 P = ParameterSpec
 
@@ -54,13 +55,32 @@ class GainSpec(ParameterSpec):
                              f"{value!r}")
 
 
+@dataclass(frozen=True)
+class InterfaceListSpec(ParameterSpec):
+    """A string naming joint interfaces: empty, or a comma-separated list of position,
+    velocity, effort, each at most once."""
+
+    def range_text(self) -> str:
+        return f"empty (none) or a comma-separated list of {', '.join(INTERFACES)}"
+
+    def check(self, value):
+        super().check(value)
+        try:
+            parse_command_interfaces(value, f"parameter {self.name}")
+        except ConfigError as e:
+            raise ValueError(str(e)) from None
+
+
 SIM_NODE_PARAMETERS = (
     P("physics", str, "HmJ",
       "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
       "HmS, HEJD, HEJP, HESD, HESP, HMJD, HMJP, HMSD, HMSP) or the path of a preset YAML "
       "file."),
     P("physics_overrides", str, "",
-      'Overrides of physics fields, a YAML mapping, e.g. "{mu: 0.0, alpha: 0.4}".'),
+      'Overrides of physics fields, a YAML mapping in a string, e.g. {mu: 0.0, alpha: 0.4}. '
+      "On the command line quote it twice, so that ROS reads a string and not a mapping: "
+      "-p \"physics_overrides:='{control_rate: 1000.0, mu: 0.5}'\"; in a parameter file: "
+      "physics_overrides: '{mu: 0.0}'."),
     P("mode", str, "realtime",
       "realtime: a wall-clock loop at 400 Hz x real_time_factor, zero-order hold of the "
       "latest valid command. lockstep: publish the state of step k, wait for the command "
@@ -108,12 +128,17 @@ SIM_NODE_PARAMETERS = (
     P("start_paused", bool, False,
       "Start paused (call ~/pause with data=false, or ~/step): lets a controller connect "
       "first."),
-    P("realtime_start", str, "first_command",
-      "Realtime mode: first_command: the clock starts with the first valid command (until "
-      "then the initial state is published, again for each new subscriber and every 0.5 s, "
-      "/clock stays at 0 and the robot does not move, so it does not fall before a "
-      "controller answers); immediately: the clock runs from the start, commands or not.",
-      choices=("first_command", "immediately")),
+    P("realtime_start", str, "hold",
+      "Realtime mode: hold: physics and /clock run from the start, and until the first valid "
+      "command the joints hold the initial posture through the joint impedance law (q* = the "
+      "initial joint angles, default_kp, default_kd), as position-controlled drives do at "
+      "power-up (again after each ~/reset); controllers on sim-time timers (ros2_control's "
+      "controller_manager) run from the start. first_command: the clock starts with the "
+      "first valid command (until then the initial state is published, again for each new "
+      "subscriber and every 0.5 s, /clock stays at 0 and the robot does not move); "
+      "immediately: the clock runs from the start with zero torques until a command (the "
+      "robot falls).",
+      choices=("hold", "first_command", "immediately")),
     P("realtime_priority", int, 0,
       "Realtime mode: > 0 runs the stepping thread with SCHED_FIFO at this priority (needs "
       "CAP_SYS_NICE or an rtprio limit; falls back to normal priority with a warning). Makes "
@@ -168,6 +193,16 @@ SIM_NODE_PARAMETERS = (
       "of control periods (else rounded to the nearest, logged); 0 = none (bit for bit as "
       "without it). Settable at run time (the commands received before keep their time).",
       read_only=False, minimum=0.0, maximum=MAX_COMMAND_DELAY),
+    InterfaceListSpec(
+        "ros2_control_command_interfaces", str, "",
+        "Realtime mode: add a <ros2_control> section to the robot_description this node "
+        "publishes (and records), for ros2_control_node with the hardware "
+        "topic_based_ros2_control/TopicBasedSystem on this node's joint_commands and "
+        "joint_states: every joint with these command interfaces (e.g. "
+        "position,velocity,effort: an impedance command with feed-forward torque; effort: "
+        "torques), the state interfaces position, velocity and effort, and the initial "
+        "position commands = the initial joint positions; empty: no section. See "
+        "launch/starleth_ros2_control.launch.xml."),
     P("contact_marker_scale", float, 0.002,
       "Length of the contact force arrows, metres per newton (at most 1 m/N).", minimum=0.0,
       minimum_exclusive=True, maximum=1.0),
@@ -214,6 +249,10 @@ def _validate(self) -> "Settings":
     if self.mode == "realtime" and self.real_time_factor == 0.0:
         raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
                           "in lockstep mode; realtime mode needs a factor > 0")
+    if self.mode == "lockstep" and self.ros2_control_command_interfaces:
+        raise ConfigError("parameter ros2_control_command_interfaces: topic_based_ros2_control"
+                          " needs realtime mode (its commands answer no state: they carry "
+                          "the time they were sent and come every control cycle)")
     return self
 
 

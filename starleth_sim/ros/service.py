@@ -1,6 +1,5 @@
 """The ROS-free half of sim_node: command validation, lockstep bookkeeping, counters and
-stepping (:class:`SimService`), and the statistics of the realtime loop's period
-(:class:`PeriodStats`). :mod:`.sim_node` is the rclpy plumbing around them."""
+stepping (:class:`SimService`). :mod:`.sim_node` is the rclpy plumbing around it."""
 from __future__ import annotations
 
 from collections import deque
@@ -30,6 +29,17 @@ def quoted(names, most=5, longest=64) -> str:
     return ", ".join(out)
 
 
+#: the hint of a lockstep node whose commands answer no state (SimService._answers_no_state)
+#: or that waits long for its first answer (sim_loops)
+TIMER_CONTROLLER_HINT = (
+    "lockstep: the commands arriving answer no state. In lockstep each command answers the "
+    "state it was sent for (a JointState stamped with that state's stamp, sent from the "
+    "state's callback); a controller that runs on its own timer (ros2_control's "
+    "controller_manager, a create_timer loop on sim time) belongs in realtime mode "
+    "(mode:=realtime), where the clock runs on its own (doc/sim_node.md, \"Lockstep or "
+    "realtime\")")
+
+
 class SimService:
     """Command validation, lockstep bookkeeping and stepping, without any ROS.
 
@@ -42,7 +52,9 @@ class SimService:
     step after the state it was received at on.
     ``kp``, ``kd``: the gains of position and velocity targets (default_kp, default_kd;
     ``set_gains``). Every ``submit_*`` returns ``(accepted, reason)`` and never raises on
-    bad input.
+    bad input. Realtime mode with realtime_start hold (the default): the clock runs from
+    the start and, until the first valid command is in effect, the command is the drives'
+    hold of the initial posture (``holding``; :meth:`_start_hold`).
 
     A step whose result cannot be physical -- the physics failed twice (non-finite state,
     a mass matrix not positive definite: the stepper refuses those), or the base moved
@@ -84,15 +96,23 @@ class SimService:
             raise ValueError(why)
         self.k = 0
         self.paused = self.settings.start_paused
-        # set by the first valid command (lockstep: the first answer; realtime: the clock
-        # starts then, unless realtime_start is immediately)
-        self.started = not self.lockstep and self.settings.realtime_start == "immediately"
+        start = "lockstep" if self.lockstep else self.settings.realtime_start
+        # set by the first valid command (lockstep: the first answer; realtime_start
+        # first_command: the clock starts then); realtime_start hold or immediately: the
+        # clock runs from the start
+        self.started = start in ("hold", "immediately")
+        #: realtime_start hold: until the first valid command (and after each reset) the
+        #: joints hold the initial posture (hold_command); cleared by a valid command
+        self.hold_at_start = start == "hold"
+        self.holding = False
+        self.hold_position = None            # the initial joint angles q* of the hold
         self.answered = False                # lockstep: the current state has its command
         self.last_step_timed_out = False
         self.failed = False                  # paused: the physics failed (pause_reason)
         self.pause_reason = ""
         self.state_version = 0               # bumped whenever a new state exists
         self._timed_out_stamps = deque(maxlen=256)
+        self._unanswering = 0                # lockstep: commands in a row that answer no state
         # warm up (first calls, first solve) so that the first real step is not slow;
         # reset() then restores the initial state and clears the solver's contact memory
         sim.reset(q=self.q0, u=self.u0, t=0.0)
@@ -101,6 +121,17 @@ class SimService:
         except (SimulationError, ValueError):
             pass
         sim.reset(q=self.q0, u=self.u0, t=0.0)
+        if self.hold_at_start:
+            self.hold_position = sim.joint_positions().copy()
+            self._start_hold()
+
+    def _start_hold(self):
+        """realtime_start hold: the command in effect becomes the drives' hold of the
+        initial posture, the joint impedance law with q* = the initial joint angles, q̇* = 0
+        and the gains default_kp, default_kd (as position-controlled drives hold at power-up),
+        until the next valid command."""
+        self.command = self.impedance_command(self.hold_position, 0.0, None)
+        self.holding = True
 
     # -- time ------------------------------------------------------------------------------
     @property
@@ -119,6 +150,7 @@ class SimService:
         return False, message
 
     def _accept(self, tau):
+        self._unanswering = 0
         self._hold(tau)
         self.counters["commands_accepted"] += 1
         self.started = True
@@ -132,6 +164,7 @@ class SimService:
             self.delay.put(self.k, tau)
         else:
             self.command = tau
+            self.holding = False
 
     def set_command_delay(self, seconds):
         """The command delay: `seconds` (the parameter command_delay's range) as a whole
@@ -187,6 +220,7 @@ class SimService:
             self.counters["stale_commands"] += 1
             self.warnings.warn("stale", f"dropped an extra {kind} command: the current state "
                                "was already answered")
+            self._answers_no_state()
             return False, "state already answered"
         if kind == "effort":
             return self._accept(a)
@@ -402,7 +436,21 @@ class SimService:
         self.warnings.warn("stale", f"dropped a stale command on {TOPIC_JOINT_COMMANDS}: {what}; "
                            "lockstep expects header.stamp = the stamp of the /joint_states it "
                            f"answers (t={self.stamp_ns * 1e-9:.4f} s)")
+        self._answers_no_state()
         return False, "stale"
+
+    #: lockstep: this many commands in a row that answer no state give the hint (once)
+    UNANSWERING_HINT = 3
+
+    def _answers_no_state(self):
+        """Lockstep: a command that answers no state (stale, or one more for a state already
+        answered). Once UNANSWERING_HINT come in a row (a reset's stale answer is one), the
+        log gets one hint, once per run: such commands come from a controller that runs on
+        its own timer, which belongs in realtime mode."""
+        self._unanswering += 1
+        if self._unanswering == self.UNANSWERING_HINT and \
+                not self.warnings.counts.get("timer_controller"):
+            self.warnings.warn("timer_controller", TIMER_CONTROLLER_HINT)
 
     def submit_wrench(self, link, force, torque, persistent=False):
         """A push on `link` (world axes, at the link origin): one control period, or until
@@ -468,6 +516,7 @@ class SimService:
             due = self.delay.due(self.k)
             if due is not None:
                 self.command = due
+                self.holding = False
         tau = self.command
         sim = self.sim
         if self.failed:
@@ -506,7 +555,8 @@ class SimService:
         return None
 
     def reset(self):
-        """Back to the initial state, wrenches cleared, zero command; sim time advances by one
+        """Back to the initial state, wrenches cleared, zero command (realtime_start hold: the
+        hold of the initial posture, until the next valid command); sim time advances by one
         control period (stamps stay strictly increasing). A pause caused by a physics
         failure ends; a pause asked for with ~/pause stays."""
         if self.failed:
@@ -517,6 +567,8 @@ class SimService:
         self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)
         self.command = np.zeros(self.n)
         self.delay.clear()
+        if self.hold_at_start:        # the drives hold the initial posture again
+            self._start_hold()
         self.answered = False
         self.counters["resets"] += 1
         self.state_version += 1
@@ -526,51 +578,3 @@ class SimService:
         d["sim_time"] = self.stamp_ns * 1e-9
         d["warnings_by_kind"] = dict(self.warnings.counts)
         return d
-
-
-class PeriodStats:
-    """Wall-clock tick intervals of the realtime loop: |interval - nominal| in a histogram
-    of 1 us bins (O(1) per tick, percentiles in microseconds, cheap enough to run in the
-    loop), plus count, mean and maximum."""
-
-    BIN = 1e-6
-    NBINS = 20000          # up to 20 ms; larger errors go to the last bin (max is exact)
-
-    def __init__(self, nominal: float):
-        self.nominal = nominal
-        self.hist = np.zeros(self.NBINS, dtype=np.int64)
-        self.n = 0
-        self.total = 0.0
-        self.max_err = 0.0
-        self.last = None
-        self.overruns = 0
-
-    def tick(self, t: float):
-        last = self.last
-        self.last = t
-        if last is None:
-            return
-        iv = t - last
-        err = abs(iv - self.nominal)
-        i = int(err / self.BIN)
-        self.hist[i if i < self.NBINS else self.NBINS - 1] += 1
-        self.n += 1
-        self.total += iv
-        if err > self.max_err:
-            self.max_err = err
-
-    def restart(self):
-        self.last = None
-
-    def percentile_ms(self, p: float) -> float:
-        c = np.cumsum(self.hist)
-        i = int(np.searchsorted(c, p / 100.0 * c[-1]))
-        return (i + 1) * self.BIN * 1e3          # upper edge of the bin
-
-    def summary(self) -> dict:
-        if self.n == 0:
-            return {"ticks": 0}
-        return {"ticks": self.n, "period_mean_ms": self.total / self.n * 1e3,
-                "period_error_p50_ms": self.percentile_ms(50),
-                "period_error_p99_ms": self.percentile_ms(99),
-                "period_error_max_ms": self.max_err * 1e3, "overruns": self.overruns}

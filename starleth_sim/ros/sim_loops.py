@@ -1,14 +1,17 @@
 """The loops that step sim_node: lockstep (publish the state of step k, wait for the command
 answering it, step; before the first command, re-send state 0 until a controller answers)
-and realtime (a wall-clock loop holding the latest valid command; with realtime_start
-first_command, the default, it too re-sends state 0 and its clock starts with the first
-valid command); both run until stopped or the ROS context is shut down. The protocol in
+and realtime (a wall-clock loop holding the latest valid command; with realtime_start hold,
+the default, it runs from the start, the joints holding the initial posture until the first
+valid command; with first_command it too re-sends state 0 and its clock starts with the
+first valid command); both run until stopped or the ROS context is shut down. The protocol in
 words: doc/sim_node.md, "Lockstep" and "Realtime mode"."""
 from __future__ import annotations
 
 import gc
 import os
 import time
+
+import numpy as np
 
 
 class SimLoops:
@@ -22,6 +25,7 @@ class SimLoops:
     CONTEXT_CHECK_PERIOD = 0.01   # s: look at the ROS context at most this often
     REPUBLISH_PERIOD = 0.5        # s: re-send state 0 this often until the first command
     NEW_SUBSCRIBER_CHECK = 0.05   # s: look for new subscribers this often while waiting
+    NO_ANSWER_HINT_AFTER = 5.0    # s: lockstep, no first answer: the hint of a timer controller
 
     def __init__(self, context, sim, settings, service, period_stats, publisher, diagnostics,
                  log):
@@ -32,6 +36,7 @@ class SimLoops:
         self.step_on_answer = False    # set by run() in lockstep mode without pacing
         self._context_ok_until = 0.0
         self._n_state_subs = 0          # subscribers of the state topics at the last look
+        self._no_answer_hinted = False
 
     def running(self):
         """Not stopped and the context not shut down (the context, whose check takes a lock,
@@ -116,6 +121,27 @@ class SimLoops:
         self._spin(executor, 0.05)
         return last_republish
 
+    def _hint_if_no_answer(self, waiting_since):
+        """Lockstep, before the first answer: once nodes have followed this simulator (read
+        its state or its /clock) for NO_ANSWER_HINT_AFTER s and no command came at all, one
+        hint (once per run): a controller that runs on a sim-time timer never runs in
+        lockstep, where the clock moves only with answers."""
+        svc = self.service
+        if self._no_answer_hinted or svc.counters["commands_received"] or \
+                time.monotonic() - waiting_since < self.NO_ANSWER_HINT_AFTER:
+            return
+        followers = self._n_state_subs + self.publisher.clock_subscriber_count()
+        if followers == 0:
+            return
+        self._no_answer_hinted = True
+        self.log.warning(f"lockstep: {followers} subscription(s) follow state 0 or /clock "
+                         f"but no command came in {self.NO_ANSWER_HINT_AFTER:g} s; the clock "
+                         "stays at 0 until a controller answers the state it receives. A "
+                         "controller that runs on a timer on sim time (ros2_control's "
+                         "controller_manager, create_timer with use_sim_time) never runs in "
+                         "lockstep: run sim_node with mode:=realtime (doc/sim_node.md, "
+                         "\"Lockstep or realtime\")")
+
     def _set_realtime_priority(self):
         """realtime_priority > 0: SCHED_FIFO for the stepping thread (needs CAP_SYS_NICE or
         an rtprio limit); on failure the loop runs at normal priority, with a warning."""
@@ -129,6 +155,24 @@ class SimLoops:
             self.log.warning(f"realtime_priority {prio}: cannot switch to SCHED_FIFO ({e}); "
                              "running at normal priority")
 
+    def _report_hold(self, was_holding) -> bool:
+        """One log line when the drives' hold of the initial posture (realtime_start hold)
+        begins (at the start, after a reset) or ends (the first valid command in effect);
+        returns whether it holds now."""
+        svc = self.service
+        if svc.holding and not was_holding:
+            kp, kd = svc.kp, svc.kd
+            gains = (f"kp {kp[0]:g}, kd {kd[0]:g}" if np.ptp(kp) == 0 and np.ptp(kd) == 0
+                     else "default_kp, default_kd")
+            self.log.info(f"realtime: the clock runs from t={svc.stamp_ns * 1e-9:.4f} s; until "
+                          "the first valid command the joints hold the initial posture "
+                          f"(joint impedance, {gains}; realtime_start:=first_command waits "
+                          "for a controller instead)")
+        elif was_holding and not svc.holding:
+            self.log.info(f"realtime: the first command is in effect at t="
+                          f"{svc.stamp_ns * 1e-9:.4f} s: the hold of the initial posture ends")
+        return svc.holding
+
     def _run_realtime(self, executor):
         self._set_realtime_priority()
         svc, ps = self.service, self.period_stats
@@ -139,7 +183,8 @@ class SimLoops:
         waiting, last_republish = not svc.started, time.monotonic()
         if waiting:
             self.log.info("realtime: waiting for the first command (the clock starts with it; "
-                          "realtime_start:=immediately starts it now)")
+                          "realtime_start:=hold runs it from the start)")
+        holding = self._report_hold(False)
         while self.running():
             if svc.paused:
                 self._while_paused(executor)
@@ -156,14 +201,19 @@ class SimLoops:
                 next_tick = clock() + period
                 ps.restart()
             # wait in the executor (commands, services) until shortly before the tick,
-            # then spin on the clock
+            # then spin on the clock; behind the wall clock, still take once what has
+            # arrived (else a loop that stays behind would never see a command)
+            spun = False
             while True:
                 remaining = next_tick - clock()
                 if remaining <= margin or not self.running():
                     break
                 self._spin(executor, min(remaining - margin, 0.05))
+                spun = True
                 if svc.paused:
                     break
+            if not spun:
+                self._spin(executor, 0.0)
             if svc.paused or not self.running():
                 continue
             while clock() < next_tick:
@@ -172,6 +222,8 @@ class SimLoops:
             ps.tick(t)
             if svc.step() is not None:
                 self.publisher.publish_state()
+            if svc.holding is not holding:
+                holding = self._report_hold(holding)
             if svc.k % 400 == 0:
                 self.diagnostics.update_period_summary()
             next_tick += period
@@ -193,7 +245,7 @@ class SimLoops:
         pace_origin = None
         version = svc.state_version
         deadline = clock() + s.lockstep_timeout
-        last_republish = clock()
+        last_republish = waiting_since = clock()
         while self.running():
             if svc.paused:
                 self._while_paused(executor)
@@ -220,6 +272,7 @@ class SimLoops:
             if not svc.started:
                 # before the first command: no timeout (state 0 re-sent for late controllers)
                 last_republish = self._wait_for_first_command(executor, last_republish)
+                self._hint_if_no_answer(waiting_since)
                 continue
             # waiting for the answer to a state: a controller that is slow to answer may be
             # a new one (restarted); re-send the state when new subscribers appear (looked

@@ -49,7 +49,8 @@ from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
                          load_default_parameters)
 from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
-from .service import PeriodStats, SimService
+from .period_stats import PeriodStats
+from .service import SimService
 from .sim_loops import SimLoops
 from .solver_diagnostics import SolverDiagnostics
 from .state_io import ImuEstimate, parse_initial_state

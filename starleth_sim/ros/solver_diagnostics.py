@@ -16,7 +16,8 @@ SOLVER_KEYS = ("iterations", "max_iterations_step", "converged", "status", "resi
                "nonconverged_steps", "loaded_contacts_opened", "loaded_contacts_opened_total",
                "projections", "projection_iterations")
 INTERFACE_KEYS = ("mode", "real_time_factor", "sim_time", "step", "paused",
-                  "waiting_for_first_command", *SimService.COUNTERS,
+                  "waiting_for_first_command", "holding_initial_posture",
+                  *SimService.COUNTERS,
                   "period_error_p50_ms", "period_error_p99_ms", "period_error_max_ms",
                   "overruns", "recorded_messages", "recording_dropped", "recording")
 
@@ -81,7 +82,7 @@ class SolverDiagnostics:
         ps = self.period_summary
         c = svc.counters
         vals = (self.settings.mode, self.settings.real_time_factor, svc.stamp_ns * 1e-9, svc.k,
-                svc.paused, not svc.started, *(c[k] for k in SimService.COUNTERS),
+                svc.paused, not svc.started, svc.holding, *(c[k] for k in SimService.COUNTERS),
                 ps.get("period_error_p50_ms", ""), ps.get("period_error_p99_ms", ""),
                 ps.get("period_error_max_ms", ""), self.period_stats.overruns,
                 *self.recording.counts(), self.recording.state())

@@ -28,6 +28,8 @@ from starleth_interface.topics import (TOPIC_APPLIED_TORQUE, TOPIC_BASE_STATE, T
                                        TOPIC_STATE_BUNDLE, foot_wrench_topic)
 from ..physics.description import STARLETH_FEET as FEET
 from .qos import CLOCK_QOS, LATCHED_QOS, STATE_QOS
+from .ros2_control_description import (parse_command_interfaces, simulator_section,
+                                       with_ros2_control)
 from .state_io import base_values, joint_values, state_bundle_bytes
 from .visualisation import Visualisation
 
@@ -194,9 +196,20 @@ class StatePublisher:
         return sum(pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS
                    if k in pubs)
 
+    def clock_subscriber_count(self) -> int:
+        """The subscribers of /clock (nodes on sim time), now (0 without publish_clock)."""
+        pub = self.output.pubs.get("clock")
+        return pub[0].get_subscription_count() if pub is not None else 0
+
     def publish_robot_description(self):
-        self.output.emit("robot_description", String(data=self.sim.description.urdf_xml),
-                         True)
+        """The URDF on robot_description (latched), with the <ros2_control> section that
+        ros2_control_command_interfaces asks for (its initial values: the simulator's
+        joint positions now, at the initial state)."""
+        urdf = self.sim.description.urdf_xml
+        interfaces = parse_command_interfaces(self.settings.ros2_control_command_interfaces)
+        if interfaces:
+            urdf = with_ros2_control(urdf, simulator_section(self.sim, interfaces))
+        self.output.emit("robot_description", String(data=urdf), True)
 
     # -- one path per topic ----------------------------------------------------------------
     def _bundle_wanted(self, first) -> bool:

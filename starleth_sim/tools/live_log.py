@@ -21,7 +21,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 
-from ..ros.live_view import SUBPROTOCOL
+from ..ros.live_view_front import LEGACY_SUBPROTOCOL, SUBPROTOCOL
 
 OP_MESSAGE_DATA = 0x01
 
@@ -54,18 +54,19 @@ def _matches(topic, wanted) -> bool:
                for w in wanted)
 
 
-async def collect_async(url, topics=None, seconds=5.0, until=None, connect_timeout=30.0):
-    """Connect to `url`, subscribe to `topics` (None: every advertised one; relative names
-    match any namespace) as soon as they are advertised, and collect for `seconds` after
-    the connection (or until ``until(log)`` is true). Retries the connection until
-    connect_timeout (a server still starting)."""
+async def collect_async(url, topics=None, seconds=5.0, until=None, connect_timeout=30.0,
+                        subprotocol=SUBPROTOCOL):
+    """Connect to `url` offering `subprotocol`, subscribe to `topics` (None: every
+    advertised one; relative names match any namespace) as soon as they are advertised,
+    and collect for `seconds` after the connection (or until ``until(log)`` is true).
+    Retries the connection until connect_timeout (a server still starting)."""
     import websockets   # optional dependency: requirements-live.txt
 
     log = LiveLog()
     deadline = time.monotonic() + connect_timeout
     while True:
         try:
-            ws = await websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None)
+            ws = await websockets.connect(url, subprotocols=[subprotocol], max_size=None)
             break
         except (OSError, websockets.exceptions.InvalidHandshake):
             if time.monotonic() > deadline:
@@ -105,9 +106,11 @@ async def collect_async(url, topics=None, seconds=5.0, until=None, connect_timeo
     return log
 
 
-def collect(url, topics=None, seconds=5.0, until=None, connect_timeout=30.0) -> LiveLog:
+def collect(url, topics=None, seconds=5.0, until=None, connect_timeout=30.0,
+            subprotocol=SUBPROTOCOL) -> LiveLog:
     """collect_async, run to its end."""
-    return asyncio.run(collect_async(url, topics, seconds, until, connect_timeout))
+    return asyncio.run(collect_async(url, topics, seconds, until, connect_timeout,
+                                     subprotocol))
 
 
 def main(argv=None) -> int:
@@ -118,10 +121,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=5.0, help="how long to listen")
     ap.add_argument("--connect-timeout", type=float, default=60.0,
                     help="seconds to keep trying to connect (a node still starting)")
+    ap.add_argument("--subprotocol", default=SUBPROTOCOL,
+                    choices=(SUBPROTOCOL, LEGACY_SUBPROTOCOL),
+                    help="the name of the protocol to offer (the older one as clients "
+                         "before 2025 do)")
     args = ap.parse_args(argv)
     try:
         log = collect(args.url, args.topics or None, args.seconds,
-                      connect_timeout=args.connect_timeout)
+                      connect_timeout=args.connect_timeout, subprotocol=args.subprotocol)
     except ImportError:
         print("live_log: the websockets package is missing: pip install -r "
               "requirements-live.txt", file=sys.stderr)

@@ -1,7 +1,8 @@
-"""The README's controller examples as a user runs them (test_sim_time: the torque PD,
-test_impedance_ros: the 50 Hz position controller): the python blocks of its "Write your own
-controller" section, each run as written, as a script with no arguments, beside `sim_node
---ros-args -p mode:=lockstep`, while a test node records the base height."""
+"""The controller examples as a user runs them: the python blocks of README.md's "Write your
+own controller" section (test_sim_time: the torque PD) and of doc/controllers.md
+(test_impedance_ros: the 50 Hz position controller; test_realtime_start: the controller on a
+sim-time timer), each run as written, as a script with no arguments, beside sim_node, while
+a test node records the base height."""
 import os
 import re
 import subprocess
@@ -18,12 +19,21 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)
 
 
+def python_blocks(text: str) -> list:
+    return re.findall(r"```python\n(.*?)```", text, re.S)
+
+
 def readme_controller_blocks() -> list:
     """The python code blocks of README.md's "Write your own controller" section, in order."""
     with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
         text = f.read()
-    section = text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0]
-    return re.findall(r"```python\n(.*?)```", section, re.S)
+    return python_blocks(text.split("## Write your own controller", 1)[1].split("\n## ", 1)[0])
+
+
+def controllers_page_blocks() -> list:
+    """The python code blocks of doc/controllers.md, in order."""
+    with open(os.path.join(ROOT, "doc", "controllers.md"), encoding="utf-8") as f:
+        return python_blocks(f.read())
 
 
 def run_beside_sim_node(ros, tmp_path, code, domain_id, until):
