@@ -16,9 +16,16 @@ venv: $(STAMP)
 # otherwise the ROS 2 Jazzy PyPI wheels from requirements-ros.txt are installed.
 # Then the optional live view's requirements-live.txt (foxglove-sdk: sim_node live_view,
 # starleth-demo --live); where it fails to install, the venv goes on without the live view.
+# Then the ROS 2 interface packages that have no wheel (tf2_msgs: /tf and /tf_static on DDS),
+# generated from venv_interfaces/ with the rosidl generator wheels of
+# requirements-interfaces.txt (venv_interfaces/generate.py; nothing to do where an installed
+# ROS provides them); where that fails, one line says so and the venv goes on.
 # The top-level package __init__ files are prerequisites because the editable
 # install only maps top-level packages that existed when it ran.
-$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requirements-live.txt constraints.txt setup.py setup.cfg package.xml \
+$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requirements-live.txt \
+          requirements-interfaces.txt constraints.txt setup.py setup.cfg package.xml \
+          venv_interfaces/generate.py venv_interfaces/wheel_include_dirs.cmake \
+          $(wildcard venv_interfaces/*/package.xml venv_interfaces/*/CMakeLists.txt venv_interfaces/*/msg/*.msg) \
           $(wildcard starleth_sim/__init__.py starleth_controller/__init__.py starleth_interface/__init__.py)
 	@set -e; \
 	if [ ! -x $(VPY) ]; then \
@@ -40,6 +47,7 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requiremen
 	$(PIP) install -c constraints.txt -r requirements.txt -r requirements-test.txt; \
 	$(PIP) install -c constraints.txt -r requirements-live.txt || \
 	  echo "venv: the live view's optional requirements-live.txt failed to install: no live view"; \
+	$(VPY) venv_interfaces/generate.py || true; \
 	echo "venv: installing starleth_sim (editable)"; \
 	$(PIP) install -e . --no-deps; \
 	touch $@
@@ -119,7 +127,8 @@ constraints:
 	@set -e; tmp=$$(mktemp -d); \
 	$(PYTHON) -m venv $$tmp/venv; \
 	$$tmp/venv/bin/python -m pip -q --disable-pip-version-check --no-input install \
-	  -r requirements-ros.txt -r requirements.txt -r requirements-test.txt -r requirements-live.txt; \
+	  -r requirements-ros.txt -r requirements.txt -r requirements-test.txt -r requirements-live.txt \
+	  -r requirements-interfaces.txt; \
 	{ echo "# Exact versions the test suite passed with (Python $$($$tmp/venv/bin/python -c 'import sys; print("%d.%d" % sys.version_info[:2])'), $$(date +%Y-%m-%d)); make installs with"; \
 	  echo "# -c constraints.txt. Refresh on purpose with \`make constraints\` (a fresh venv from the"; \
 	  echo "# requirements files without constraints), then run \`make test\` and commit both."; \

@@ -180,6 +180,35 @@ def _yaml_scalar(value) -> str:
         .removesuffix("...").strip()
 
 
+#: the ROS type names of the parameter kinds (the doc tables' type column)
+ROS_TYPE_NAMES = {str: "string", float: "double", int: "integer", bool: "bool"}
+
+
+def parameter_table_row(p) -> str:
+    """The markdown row of parameter `p` in a doc page's parameter table: name, ROS type,
+    default, legal values (range_text, or "any"), description ('|' escaped)."""
+    if p.kind is bool:
+        default = "true" if p.default else "false"
+    elif p.kind is str:
+        default = f'"{p.default}"'
+    else:
+        default = repr(p.default) if p.kind is float else str(p.default)
+    cells = [f"`{p.name}`", ROS_TYPE_NAMES[p.kind], f"`{default}`", p.range_text() or "any",
+             p.description]
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+
+def with_parameter_table(page: str, specs) -> str:
+    """`page` (markdown) with the rows of its parameter table (the lines starting with
+    "| `name` |" for a parameter of `specs`) rendered from the schema."""
+    rows = {p.name: parameter_table_row(p) for p in specs}
+    out = []
+    for line in page.split("\n"):
+        name = line[3:].split("`", 1)[0] if line.startswith("| `") else None
+        out.append(rows[name] if name in rows else line)
+    return "\n".join(out)
+
+
 def render_parameters_yaml(specs, header: str, node_key: str = "/**") -> str:
     """A ROS 2 parameter file (``--params-file``) with every parameter at its default and
     its description and its legal values (``range_text``) as a comment above it."""

@@ -30,7 +30,7 @@ ROS_MODULES = {
     "test_compile_notice", "test_controller_node", "test_impedance_ros", "test_live_view",
     "test_realtime_start", "test_recording_faults", "test_replay", "test_ros2_control",
     "test_ros_conventions", "test_sim_node", "test_sim_node_faults", "test_sim_time",
-    "test_strict_inputs", "test_tf",
+    "test_strict_inputs", "test_tf", "test_tf_publishing",
 }
 # (test_analysis, test_view, test_cdr and test_sim_service start no nodes: they write and
 # read bags or serialise messages; nor do test_recording (its recorders write bags, from

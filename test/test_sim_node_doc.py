@@ -5,11 +5,11 @@ schema lacks."""
 import os
 import re
 
+from starleth_interface.ros_helpers import ROS_TYPE_NAMES, parameter_table_row
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS
 
 DOC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "doc",
                    "sim_node.md")
-ROS_TYPES = {str: "string", float: "double", int: "integer", bool: "bool"}
 
 
 def doc_text():
@@ -33,24 +33,19 @@ def parameter_rows(text):
     return rows
 
 
-def default_text(p):
-    if p.kind is bool:
-        return "true" if p.default else "false"
-    if p.kind is str:
-        return f'"{p.default}"'
-    return repr(p.default) if p.kind is float else str(p.default)
-
-
 def test_the_parameter_table_is_the_schema():
+    """The rows are the schema's, in its order, each as the schema renders it (type,
+    default, legal values, description)."""
     rows = parameter_rows(doc_text())
     assert list(rows) == [p.name for p in SIM_NODE_PARAMETERS], \
         "doc/sim_node.md's parameter table: names or order differ from SIM_NODE_PARAMETERS"
+    lines = {line[3:].split("`", 1)[0]: line for line in doc_text().splitlines()
+             if line.startswith("| `")}
     for p in SIM_NODE_PARAMETERS:
+        assert lines[p.name] == parameter_table_row(p), \
+            f"{p.name}: render it with python -m starleth_sim.ros.parameters --doc {DOC}"
         typ, default, legal, description = rows[p.name]
-        assert typ == ROS_TYPES[p.kind], p.name
-        assert default == f"`{default_text(p)}`", p.name
-        assert legal == (p.range_text() or "any"), p.name
-        assert description == p.description, p.name
+        assert typ == ROS_TYPE_NAMES[p.kind] and description == p.description, p.name
 
 
 def test_the_page_sets_no_parameter_the_schema_lacks():

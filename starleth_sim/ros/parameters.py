@@ -16,7 +16,8 @@ from dataclasses import dataclass, make_dataclass
 
 from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
                                             ROS_PARAMETERS, ParameterSpec, parameter_defaults,
-                                            render_parameters_yaml, unknown_parameters_text)
+                                            render_parameters_yaml, unknown_parameters_text,
+                                            with_parameter_table)
 from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
 from ..physics.description import package_share_dir
 from .command_delay import MAX_COMMAND_DELAY
@@ -193,7 +194,8 @@ SIM_NODE_PARAMETERS = (
       "only one simulator publish /clock."),
     P("tf_rate", float, 50.0,
       "/tf (world -> base, and parent -> child link of every movable joint) and /tf_static "
-      "(the fixed joints), recorded, and published where tf2_msgs is installed; Hz, 0 = off. "
+      "(the fixed joints), recorded, and published where tf2_msgs is importable (a ROS "
+      "install's, or the one `make venv` generates); Hz, 0 = off. "
       "Foxglove and Lichtblick move the URDF's links only through TF (they keep 10,000 "
       "transforms per frame: 50 Hz x 13 transforms fits); at most 1000 Hz (above the "
       "control rate it is every step).", minimum=0.1, maximum=1000.0, off_value=0.0),
@@ -371,5 +373,17 @@ def render_yaml() -> str:
     return render_parameters_yaml(SIM_NODE_PARAMETERS, YAML_HEADER)
 
 
+def update_doc_table(path: str) -> None:
+    """Render the rows of the parameter table of doc/sim_node.md (`path`) from the schema."""
+    with open(path, encoding="utf-8") as f:
+        page = f.read()
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(with_parameter_table(page, SIM_NODE_PARAMETERS))
+
+
 if __name__ == "__main__":
-    sys.stdout.write(render_yaml())
+    # no argument: msg_configs/sim_node.yaml on stdout; --doc PAGE: that page's table rows
+    if sys.argv[1:2] == ["--doc"] and len(sys.argv) == 3:
+        update_doc_table(sys.argv[2])
+    else:
+        sys.stdout.write(render_yaml())

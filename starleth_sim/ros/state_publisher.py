@@ -176,6 +176,8 @@ class StatePublisher:
             self._prepare_next_step()
             self.visualisation.publish()
             self.recording.after_state(svc.k)
+        else:
+            self.visualisation.republish()     # /tf with the re-sent state
         if timing is not None and record:
             timing.row[4] = time.perf_counter()
             timing.commit(svc.stamp_ns)
@@ -184,7 +186,8 @@ class StatePublisher:
             out.live.flush()
 
     def republish_state(self):
-        """Send the current state again on every topic with subscribers (not recorded)."""
+        """Send the current state again on every topic with subscribers, /tf included (not
+        recorded)."""
         self.output.forget_counts()       # fresh subscriber counts
         self.publish_state(record=False)
 

@@ -1,7 +1,10 @@
 """What sim_node publishes for viewers, each at its rate and off the lockstep critical path:
 /tf (world -> base and every movable joint) and /tf_static (the fixed joints) from the
-frame tree of :mod:`.tf`, written as CDR bytes and recorded (published where tf2_msgs is
-installed, and served by the live view), and the contact markers of :mod:`.contact_markers`."""
+frame tree of :mod:`.tf`, written as CDR bytes, recorded, served by the live view and
+published on DDS where tf2_msgs is importable (a full ROS install, or the package that
+`make venv` generates: venv_interfaces/), and the contact markers of
+:mod:`.contact_markers`. A re-send of the current state (before the first command) carries
+/tf too."""
 from __future__ import annotations
 
 import numpy as np
@@ -19,6 +22,26 @@ def steps_between(rate, control_period) -> int:
     if rate <= 0:
         return 0
     return max(1, int(round(1.0 / (rate * control_period))))
+
+
+def tf_message_type(log):
+    """tf2_msgs' TFMessage with its type support loaded, or None after one line on `log`
+    saying why /tf and /tf_static are recorded but not published."""
+    lost = ("/tf and /tf_static are recorded (and served by the live view, live_view:=true) "
+            "but not published")
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        log.info("tf2_msgs is not installed (no ROS install provides it; `make venv` "
+                 f"generates it from venv_interfaces/): {lost}")
+        return None
+    try:
+        from rclpy.type_support import check_for_type_support
+        check_for_type_support(TFMessage)
+    except Exception as e:     # a broken install: its type support library does not load
+        log.warning(f"tf2_msgs is installed but its type support does not load ({e}): {lost}")
+        return None
+    return TFMessage
 
 
 class Visualisation:
@@ -41,16 +64,13 @@ class Visualisation:
         #: {key: (topic, qos)} of TF_TYPE; recorded when tf_rate > 0 (tf_topics_recorded)
         self.tf_topics = {"tf": (TOPIC_TF, TF_QOS), "tf_static": (TOPIC_TF_STATIC, LATCHED_QOS)}
         self.tf_pubs = {}
-        if self.tf_every:
-            try:
-                from tf2_msgs.msg import TFMessage
-            except ImportError:
-                log.info("tf2_msgs is not installed (no full ROS install): /tf and "
-                         "/tf_static are recorded (and served by the live view, live_view:="
-                         "true) but not published")
-            else:
-                for key, (topic, qos) in self.tf_topics.items():
-                    self.tf_pubs[key] = node.create_publisher(TFMessage, topic, qos)
+        #: /tf's DDS subscribers: the count (at most SUBSCRIBER_REFRESH steps old), its step,
+        #: and the count when /tf last went out on DDS (a re-send goes to newcomers only)
+        self._tf_subs, self._tf_subs_k, self._tf_sent_to = 0, -10 ** 9, 0
+        TFMessage = tf_message_type(log) if self.tf_every else None
+        if TFMessage is not None:
+            for key, (topic, qos) in self.tf_topics.items():
+                self.tf_pubs[key] = node.create_publisher(TFMessage, topic, qos)
         self.markers = None
         if self.markers_every:
             try:
@@ -67,16 +87,29 @@ class Visualisation:
         """{key: (topic, qos)} of the TF topics a recording holds (none with tf_rate 0)."""
         return self.tf_topics if self.tf_every else {}
 
-    def _emit_tf(self, key, data, stamp_ns):
+    def _emit_tf(self, key, data, stamp_ns, dds=True, record=True):
+        """`key`'s CDR bytes to DDS (where tf2_msgs is importable; dds=False: not), to the
+        recording (record=False: not) and to the live view."""
         pub = self.tf_pubs.get(key)
-        if pub is not None:
+        if pub is not None and dds:
             pub.publish(data)
         rec = self.output.recording.recorder
-        if rec is not None and not rec.closed:
+        if record and rec is not None and not rec.closed:
             rec.write(self.tf_topics[key][0], data, stamp_ns)
         live = self.output.live      # the live view serves TF without tf2_msgs too
         if live is not None:
             live.log(self.tf_topics[key][0], data, stamp_ns)
+
+    def _tf_subscribers(self, fresh=False) -> int:
+        """/tf's DDS subscribers: a count taken at most TopicOutput.SUBSCRIBER_REFRESH steps
+        ago (fresh: now), as for the other topics of a step (TopicOutput.wanted)."""
+        pub = self.tf_pubs.get("tf")
+        if pub is None:
+            return 0
+        k = self.service.k
+        if fresh or not 0 <= k - self._tf_subs_k < self.output.SUBSCRIBER_REFRESH:
+            self._tf_subs, self._tf_subs_k = pub.get_subscription_count(), k
+        return self._tf_subs
 
     def publish(self):
         """/tf (every tf_rate-th step) and the contact markers, after the state (off the
@@ -84,14 +117,37 @@ class Visualisation:
         svc = self.service
         k = svc.k
         sec, nsec = divmod(svc.stamp_ns, 1_000_000_000)
-        if self.tf_every and k % self.tf_every == 0 and \
-                (self.output.recording.recorder is not None or self.tf_pubs or
-                 (self.output.live is not None and self.output.live.wants(TOPIC_TF))):
-            poses = self.frames.transforms(self.tf_configuration(), self.frames.dynamic)
-            self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), svc.stamp_ns)
+        if self.tf_every and k % self.tf_every == 0:
+            n = self._tf_sent_to = self._tf_subscribers()
+            self._publish_tf(sec, nsec, n > 0, True)
         if self.markers_every and k % self.markers_every == 0 and \
                 self.output.wanted("contact_markers", True):
             self.markers.publish(self.output, sec, nsec)
+
+    def republish(self):
+        """/tf of the current state again with a re-send of the state (StatePublisher.
+        republish_state: before the first command, to late subscribers), not recorded: to
+        the live view, and on DDS only where /tf has subscribers it has not reached yet (a
+        tf2 buffer warns of a transform repeated at the same stamp)."""
+        if not self.tf_every:
+            return
+        n = self._tf_subscribers(fresh=True)
+        newcomers, self._tf_sent_to = n > self._tf_sent_to, n
+        sec, nsec = divmod(self.service.stamp_ns, 1_000_000_000)
+        self._publish_tf(sec, nsec, newcomers, False)
+
+    def _publish_tf(self, sec, nsec, dds, record):
+        """/tf of the current state: on DDS if `dds`, recorded if `record`, to the live view
+        if a client of it subscribes; built only if it goes anywhere."""
+        out = self.output
+        rec = out.recording.recorder
+        recorded = record and rec is not None and not rec.closed
+        live = out.live is not None and out.live.wants(TOPIC_TF)
+        if not (dds or recorded or live):
+            return
+        poses = self.frames.transforms(self.tf_configuration(), self.frames.dynamic)
+        self._emit_tf("tf", self._tf_cdr.build(sec, nsec, poses), self.service.stamp_ns,
+                      dds=dds, record=record)
 
     def tf_configuration(self):
         """q of the current state in the minimal coordinates of the URDF's model (free flyer:
