@@ -10,9 +10,8 @@ import sys
 from dataclasses import dataclass, field
 
 import numpy as np
-import yaml
 
-from ..physics.config import PhysicsConfig
+from ..physics.config import PhysicsConfig, load_yaml_text
 from ..physics.description import LEGS
 from .bag import BagError, read_messages
 from starleth_interface.topics import foot_wrench_topic, resolve
@@ -63,7 +62,7 @@ class Recording:
 
     def config(self):
         what = f"{self.path}: physics_config"
-        return PhysicsConfig.from_dict(bounded_yaml(self.config_yaml, what), source=what)
+        return PhysicsConfig.from_dict(load_yaml_text(self.config_yaml, what), source=what)
 
 
 def shortened(text: str, n: int = 300) -> str:
@@ -74,31 +73,6 @@ def shortened(text: str, n: int = 300) -> str:
 def _short(value, n=60) -> str:
     """repr(value), cut to about n characters."""
     return shortened(repr(value), n)
-
-
-def bounded_yaml(text: str, what: str):
-    """YAML text from a bag, loaded; a ReplayError where it is not YAML or where its aliases
-    expand it beyond its size (a few hundred bytes of nested aliases make a billion-element
-    list, which the configuration's checks would then walk)."""
-    try:
-        data = yaml.safe_load(text)
-    except (yaml.YAMLError, RecursionError, ValueError) as e:
-        raise ReplayError(f"{what}: not valid YAML ({type(e).__name__}: "
-                          f"{shortened(str(e), 200)})") from None
-    budget = 2 * len(text) + 16          # nodes: fewer than characters without aliases
-    stack = [data]
-    while stack:
-        x = stack.pop()
-        budget -= 1
-        if budget < 0:
-            raise ReplayError(f"{what}: its YAML aliases expand it far beyond its "
-                              f"{len(text)} characters")
-        if isinstance(x, dict):
-            stack.extend(x.keys())
-            stack.extend(x.values())
-        elif isinstance(x, (list, tuple)):
-            stack.extend(x)
-    return data
 
 
 def _json(md, key, path):
