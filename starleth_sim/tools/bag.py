@@ -176,8 +176,9 @@ def decompress_chunk(chunk) -> bytes:
     frame claims, 745 GiB for a forged one) and CRC-checked. Raises ValueError."""
     size, comp, data = chunk.uncompressed_size, chunk.compression, chunk.data
     if size > MAX_RECORD_BYTES:
-        raise ValueError(f"{comp or 'uncompressed'} chunk declares {size} bytes of records, "
-                         f"more than this reader takes ({MAX_RECORD_BYTES >> 20} MiB)")
+        raise ValueError(f"{comp + '-compressed' if comp else 'uncompressed'} chunk declares "
+                         f"{size} bytes of records, more than this reader takes "
+                         f"({MAX_RECORD_BYTES >> 20} MiB)")
     if comp == "":
         out = bytes(data)
     elif comp in ("zstd", "lz4"):
