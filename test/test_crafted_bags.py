@@ -519,6 +519,33 @@ def test_chunk_records_hold_what_the_data_decompresses_to():
         bagmod.decompress_chunk(c)
 
 
+def test_records_and_what_is_kept_are_bounded(tmp_path, monkeypatch):
+    """A record longer than MAX_RECORD_BYTES is damage (salvage: read up to it); metadata
+    and attachments beyond MAX_KEPT_BYTES in all are left out with one warning naming
+    them (the bounds made small here: the same code as at 64 MiB)."""
+    rec = recorder(tmp_path / "b.mcap", metadata={"physics_config": "x" * 3000})
+    for k in range(3):
+        rec.add_metadata(f"extra{k}", {"data": "y" * 3000})
+    write_state(rec, stamp(0), 0)
+    write_state(rec, stamp(0, PERIOD_NS), PERIOD_NS)
+    rec.add_attachment("big.bin", "application/octet-stream", b"z" * 20_000)
+    rec.close()
+    monkeypatch.setattr(bagmod, "MAX_KEPT_BYTES", 7000)
+    warnings = []
+    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True,
+                               on_warning=warnings.append)
+    assert set(bag.metadata) == {"starleth_sim", "extra0"} and not bag.attachments
+    assert bag.kept_bytes <= 7000 and bag.counts["/joint_states"] == 2
+    assert len(warnings) == 1 and "4 metadata record(s) or attachment(s) left out " \
+        "('extra1', 'extra2', 'big.bin', 'rosbag2'): more than 7000 bytes of them" in warnings[0]
+    monkeypatch.setattr(bagmod, "MAX_RECORD_BYTES", 10_000)
+    with pytest.raises(bagmod.BagError, match="ATTACHMENT record has length 20"):
+        bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True)
+    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True, salvage=True,
+                               on_warning=warnings.append)
+    assert bag.truncated and any("ATTACHMENT record has length 20" in w for w in warnings)
+
+
 # -- the tools on crafted bags --------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory, zeros_3gib):

@@ -333,7 +333,7 @@ def stream_bag(path: str, on_channel, salvage: bool = False, on_warning=None) ->
         names = ", ".join(repr(n[:60]) for n in bag.left_out[:5])
         on_warning(f"{path}: {len(bag.left_out)} metadata record(s) or attachment(s) left out "
                    f"({names}{', ...' if len(bag.left_out) > 5 else ''}): more than "
-                   f"{MAX_KEPT_BYTES >> 20} MiB of them in all")
+                   f"{MAX_KEPT_BYTES} bytes of them in all")
     return bag
 
 
