@@ -55,6 +55,9 @@ rough                          m, count [1, 100]; angle     slopes up to 45°; a
                                (0, 45]°, length (0, 100] m; to 0.5 m (physics/terrain.py)
                                amplitude (0, 0.5] m,
                                wavelength (0, 100] m
+                               slope and rough grids <=     a heightfield's bound (the
+                               1024 points a side; rough:   slope's grid is checked before
+                               size/wavelength <= 511.5     it is made); 2 points per wave
 paper                          names: finite numbers or     figures for reports only
                                strings
 =============================  ===========================  ================================
