@@ -25,7 +25,6 @@ control period (F = Λ/Δt with one step per control update, as in the paper's F
 from __future__ import annotations
 
 import logging
-import math
 from time import perf_counter
 
 import numpy as np
@@ -40,7 +39,7 @@ from .description import (RobotDescription, starleth_description, leg_angles_for
                           urdf_path)
 from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, ImpedanceCommand,
                         replay_rows)
-from .state import SimState
+from .state import SimState, finite_time
 from .stepper import MoreauStepper, SimulationError, PHASES
 from .tree_step import report_size, report_views
 from .wrenches import MAX_TIMED_WRENCHES, ExternalWrenches
@@ -50,21 +49,6 @@ log = logging.getLogger("starleth_sim")
 
 #: float64 (numpy's built-in dtypes are singletons: `is` is the cheap test)
 _FLOAT64 = np.dtype(np.float64)
-
-
-def _finite_time(t) -> float:
-    """A state's time t [s] as a float; ValueError naming it where it is not a finite real
-    number (a NaN time would stay NaN at every later step)."""
-    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer,
-                                                              np.floating)):
-        raise ValueError(f"reset: t must be a number of seconds, got {t!r:.60}")
-    try:
-        x = float(t)
-    except OverflowError:            # an integer beyond the floats
-        x = math.inf
-    if not math.isfinite(x):
-        raise ValueError(f"reset: t must be finite, got {x!r}")
-    return x
 
 
 class Simulator:
@@ -157,7 +141,7 @@ class Simulator:
         """Set the state (default: `default_state()` at rest). With minimal=True, q and u are
         given in minimal coordinates (19/18 for StarlETH) and converted to this simulator's
         coordinate set."""
-        t = _finite_time(t)
+        t = finite_time(t, "reset: t")
         if minimal:
             if q is None:
                 raise ValueError("reset(minimal=True) needs q")

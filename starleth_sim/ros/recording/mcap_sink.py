@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import errno
 import os
+import resource
 import struct
 
 from mcap.opcode import Opcode
@@ -85,7 +86,6 @@ def _file_in_the_way(path: str) -> str | None:
 
 
 def _file_size_limit() -> str:
-    import resource
     soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
     return "unlimited" if soft == resource.RLIM_INFINITY else f"{soft} bytes"
 
