@@ -108,7 +108,8 @@ def test_bad_torque_raises_and_leaves_state_unchanged(sim, tau, message):
 
 @pytest.mark.parametrize("t,message", [
     (math.nan, "t must be finite, got nan"), (math.inf, "t must be finite, got inf"),
-    (-math.inf, "t must be finite, got -inf"), (10 ** 400, "t must be finite, got inf"),
+    (-math.inf, "t must be finite, got -inf"),
+    pytest.param(10 ** 400, "t must be finite, got inf", id="10**400"),
     ("0.5", "t must be a number of seconds, got '0.5'"),
     (True, "t must be a number of seconds, got True"),
 ])
