@@ -99,8 +99,8 @@ from starleth_interface.msg_cdr import (ODOM_FIELDS, WRENCH_FIELDS, JointStateCd
 from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, UnknownParameterError,
                                             capture_python_warnings, check_parameter_names,
                                             declare_parameters, init_ros, make_executor,
-                                            route_python_logging, set_cpu_scheduling,
-                                            shutdown_ros)
+                                            route_python_logging, service_qos,
+                                            set_cpu_scheduling, shutdown_ros)
 from .controller import StarlethController
 from .inputs import Command, ControllerParams
 from .model import JOINT_NAMES, default_urdf_path
@@ -218,7 +218,8 @@ class ControllerNode(Node):
                                     self._on_wrench_cdr, self._joint_state_waiting)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
-        self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot)
+        self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot,
+                                            qos_profile=service_qos())
         self.log.info(f"mode {self._mode}; joint commands on "
                       f"{p['joint_commands_topic'] or '(off)'}"
                       + (f", effort arrays on {p['effort_array_topic']}"

@@ -14,6 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from starleth_interface.compile_notice import Deadline
+from starleth_interface.ros_helpers import service_qos
 from starleth_sim.ros.child_process import start_child_as_node
 from starleth_sim.ros.discovery import keep_discovery_local, local_discovery_env
 
@@ -115,7 +116,7 @@ class RosTestNode:
         return fut.result()
 
     def call(self, srv_type, name, request, timeout=10.0):
-        client = self.node.create_client(srv_type, name)
+        client = self.node.create_client(srv_type, name, qos_profile=service_qos())
         try:
             return self.call_client(client, request, timeout)
         finally:

@@ -1,4 +1,6 @@
 """Configuration validation and the public API's handling of bad input."""
+import math
+
 import numpy as np
 import pytest
 import yaml
@@ -83,6 +85,13 @@ def sim():
     (np.zeros(13), "12 entries"),
     (np.r_[np.zeros(11), np.nan], "non-finite entries for RH_KFE"),
     (np.r_[np.inf, np.zeros(11)], "non-finite entries for LF_HAA"),
+    (np.zeros((3, 4)), r"must be a vector, got an array of shape \(3, 4\)"),
+    (np.zeros((1, 12)), r"must be a vector, got an array of shape \(1, 12\)"),
+    (np.ones(12, dtype=complex), "must be real numbers, got complex128 values"),
+    (np.ones(12, dtype=bool), "must be real numbers, got bool values"),
+    ([True] * 12, "must be real numbers, got bool values"),
+    (["1"] * 12, "must be real numbers, got <U1 values"),
+    ([0.0] * 11 + [[0.0]], "must be real numbers, got a ragged list"),
 ])
 def test_bad_torque_raises_and_leaves_state_unchanged(sim, tau, message):
     sim.reset()
@@ -95,6 +104,70 @@ def test_bad_torque_raises_and_leaves_state_unchanged(sim, tau, message):
     np.testing.assert_array_equal(sim.u, u)
     sim.step(np.zeros(12))  # and it keeps working
     assert sim.t > t
+
+
+@pytest.mark.parametrize("t,message", [
+    (math.nan, "t must be finite, got nan"), (math.inf, "t must be finite, got inf"),
+    (-math.inf, "t must be finite, got -inf"),
+    pytest.param(10 ** 400, "t must be finite, got inf", id="10**400"),
+    ("0.5", "t must be a number of seconds, got '0.5'"),
+    (True, "t must be a number of seconds, got True"),
+])
+def test_reset_refuses_a_time_that_is_not_a_finite_number(sim, t, message):
+    """(a NaN time was taken, and stayed NaN at every later step)"""
+    sim.reset(t=1.0)
+    q = sim.q
+    with pytest.raises(ValueError, match=f"^reset: {message}$"):
+        sim.reset(q, t=t)
+    assert sim.t == 1.0
+    sim.reset(q, t=np.float32(0.5))
+    sim.step(np.zeros(12))
+    assert sim.t == 0.5 + sim.control_period
+
+
+def test_reset_refuses_a_state_that_is_not_real_numbers(sim):
+    q, u = sim.q, sim.u
+    with pytest.raises(ValueError, match="reset: q must be real numbers, got complex128"):
+        sim.reset(q.astype(complex), u)
+    with pytest.raises(ValueError, match=r"reset: u must be a vector, got an array of shape"):
+        sim.reset(q, u.reshape(3, -1))
+
+
+def test_step_applied_and_impedance_commands_refuse_complex_and_bool_arrays(sim):
+    from starleth_sim.physics.impedance import ImpedanceCommand
+    sim.reset()
+    with pytest.raises(ValueError, match="step_applied: torques must be real numbers, got "
+                                         "complex128"):
+        sim.step_applied(np.zeros((1, 12), dtype=complex))
+    with pytest.raises(ValueError, match="ImpedanceCommand: kp must be real numbers, got bool"):
+        ImpedanceCommand.create(sim.joint_names, position=np.zeros(12), kp=[True] * 12)
+    with pytest.raises(ValueError, match=r"ImpedanceCommand: position must be a number or a "
+                                         r"vector, got an array of shape \(3, 4\)"):
+        ImpedanceCommand.create(sim.joint_names, position=np.zeros((3, 4)))
+
+
+def test_timed_wrenches_pending_are_bounded():
+    """At most MAX_TIMED_WRENCHES timed wrenches pending (200 000 made the next step take
+    7.7 s): the next one is refused naming the bound; those taken act as before (their sum:
+    100 pushes of 1 N step as one of 100 N), and once they end there is room again."""
+    from starleth_sim.physics.wrenches import MAX_TIMED_WRENCHES
+    sims = [Simulator.from_preset("HmJ") for _ in range(2)]
+    for s in sims:
+        q = s.q
+        q[2] = 3.0
+        s.reset(q)
+    for _ in range(MAX_TIMED_WRENCHES):
+        sims[0].apply_wrench("base", (0.0, 1.0, 0.0))
+    with pytest.raises(ValueError, match=f"{MAX_TIMED_WRENCHES} timed wrenches are pending, "
+                                         f"the most \\(MAX_TIMED_WRENCHES"):
+        sims[0].apply_wrench("base", (0.0, 1.0, 0.0))
+    sims[1].apply_wrench("base", (0.0, float(MAX_TIMED_WRENCHES), 0.0))
+    for s in sims:
+        s.step(np.zeros(12))
+    np.testing.assert_allclose(sims[0].u, sims[1].u, rtol=0, atol=1e-12)
+    assert abs(sims[1].u[1]) > 1e-3
+    assert not sims[0].state.pending_wrenches
+    sims[0].apply_wrench("base", (0.0, 1.0, 0.0))
 
 
 @pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD"])

@@ -1,17 +1,21 @@
-"""Crafted bags into starleth-view, starleth-analyze and starleth-replay (issue #33, item 6):
-what a bag holds must never size an allocation beyond what is in the file.
+"""Crafted bags into starleth-view, starleth-analyze and starleth-replay: what a bag holds
+must never size an allocation beyond what is in the file, and what is in the file is read
+within bounds (bag.MAX_RECORD_BYTES, the terrain's MAX_GRID).
 
-Each tool runs in a child process whose address space is limited to 4 GB (RLIMIT_AS), so
-an allocation sized from bag content (a frame grid over a time span, windows over a span, a
-chunk's claimed uncompressed size) fails there with a MemoryError and a traceback instead
-of passing unnoticed on a large machine. The bags: (a) two valid messages per topic 2e9 s
-apart (header stamps and log times); (b) garbage payloads (random bytes: random stamps and
-sequence lengths); (c) a valid header followed by a sequence length of 0xFFFFFFF0; NaN,
-infinite and absurd values; stamps at the ends of their ranges and log times beyond int64;
-compressed chunks whose header or frame claims 1 TiB; replay metadata that is not what
-sim_node writes (a zero control period, joint names that are not JSON, a YAML
-billion-laughs configuration, an initial state that does not fit). Each gives exit status 1
-with one line on stderr, or a short result with counted warnings, never a traceback."""
+Each tool runs in a child process whose address space is limited to 1 GB (`ulimit -v
+1000000`; a tool takes 250-350 MB of it reading a small bag), so an allocation sized from
+bag content (a frame grid over a time span, windows over a span, a chunk's claimed or
+declared uncompressed size, a generated terrain) fails there with a MemoryError and a
+traceback instead of passing unnoticed on a large machine. The bags: (a) two valid
+messages per topic 2e9 s apart (header stamps and log times); (b) garbage payloads (random
+bytes: random stamps and sequence lengths); (c) a valid header followed by a sequence
+length of 0xFFFFFFF0; NaN, infinite and absurd values; stamps at the ends of their ranges
+and log times beyond int64; compressed chunks whose header or frame claims 1 TiB, one that
+truthfully declares 3 GiB (98 KB of zstd) and one that declares 4 MiB of its 3 GiB; replay
+metadata that is not what sim_node writes (a zero control period, joint names that are not
+JSON, a YAML billion-laughs configuration, an initial state that does not fit, a slope
+whose grid would take 1.6 GB). Each gives exit status 1 with one line on stderr, or a
+short result with counted warnings, never a traceback."""
 from __future__ import annotations
 
 import io
@@ -43,8 +47,9 @@ FEET = ("LF", "RF", "LH", "RH")
 WRENCH_TOPICS = tuple(f"/starleth/{f}_foot/wrench" for f in FEET)
 SPAN_S = 2_000_000_000                       # two messages this far apart [s]
 PERIOD_NS = 2_500_000
-MEMORY_LIMIT = 4 << 30                       # the children's address space [bytes]
+MEMORY_LIMIT_KIB = 1_000_000                 # the children's address space (ulimit -v)
 TiB = 1 << 40
+GiB3 = 3 << 30
 #: NaN, infinite and absurd values (and a good one)
 BAD_VALUES = (math.nan, math.inf, -math.inf, 1e300, -1.7e308, 0.0)
 PROGS = {"view": view.PROG, "analysis": analysis.PROG, "replay": "starleth-replay"}
@@ -52,12 +57,9 @@ PROGS = {"view": view.PROG, "analysis": analysis.PROG, "replay": "starleth-repla
 
 # -- running the tools in a child with bounded memory -----------------------------------------
 DRIVER = r"""
-import contextlib, io, json, resource, sys, traceback
-limit = int(sys.argv[1])
-resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-import importlib
+import contextlib, importlib, io, json, sys, traceback
 out = []
-for tool, argv in json.loads(sys.argv[2]):
+for tool, argv in json.loads(sys.argv[1]):
     mod = importlib.import_module("starleth_sim.tools." + tool)
     o, e = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(o), contextlib.redirect_stderr(e):
@@ -74,10 +76,11 @@ print(json.dumps(out))
 
 
 def run_tools(*cases, timeout=600):
-    """[(tool, argv)] run by their main() in one child process limited to MEMORY_LIMIT of
-    address space: [{'rc', 'out', 'err'}]."""
-    p = subprocess.run([sys.executable, "-c", DRIVER, str(MEMORY_LIMIT),
-                        json.dumps([(t, [str(a) for a in argv]) for t, argv in cases])],
+    """[(tool, argv)] run by their main() in one child process whose address space is
+    limited to MEMORY_LIMIT_KIB (`ulimit -v`): [{'rc', 'out', 'err'}]."""
+    cases = json.dumps([(t, [str(a) for a in argv]) for t, argv in cases])
+    p = subprocess.run(["bash", "-c", f'ulimit -v {MEMORY_LIMIT_KIB} && exec "$0" -c "$1" "$2"',
+                        sys.executable, DRIVER, cases],
                        capture_output=True, text=True, timeout=timeout)
     assert p.returncode == 0, p.stderr[-3000:]
     return json.loads(p.stdout.strip().splitlines()[-1])
@@ -344,6 +347,36 @@ def lz4_claiming(records, claimed):
     return _chunk(records, "lz4", compressed=bytes(frame))
 
 
+def zstd_zeros(n):
+    """A zstd frame of n zero bytes (records of opcode 0 and length 0, which readers skip)
+    whose frame header says n: 98 KB for 3 GiB, made in about a second."""
+    import zstandard
+    out = io.BytesIO()
+    zeros = bytes(1 << 24)
+    with zstandard.ZstdCompressor().stream_writer(out, closefd=False, size=n) as w:
+        for start in range(0, n, len(zeros)):
+            w.write(zeros[:min(len(zeros), n - start)])
+    return out.getvalue()
+
+
+def honest_3gib(frame):
+    """A zstd chunk of 3 GiB of records (frame: zstd_zeros(3 GiB)) that says so."""
+    return _chunk(b"", "zstd", uncompressed_size=GiB3, compressed=frame)
+
+
+def under_declared_3gib(frame):
+    """The same chunk whose header says 4 MiB: its data decompresses to more."""
+    return _chunk(b"", "zstd", uncompressed_size=4 << 20, compressed=frame)
+
+
+def slope_config(md, **slope):
+    """The physics configuration of the replay metadata `md` with a slope terrain."""
+    import yaml
+    cfg = yaml.safe_load(md["physics_config"])
+    cfg["terrain"]["slope"] = dict({"angle": 10.0}, **slope)
+    return yaml.safe_dump(cfg, sort_keys=False)
+
+
 # -- replay metadata ----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def replay_md():
@@ -456,7 +489,8 @@ def test_windowed_rate_is_bounded():
 
 def test_chunk_records_hold_what_the_data_decompresses_to():
     """decompress_chunk: the records of good zstd and lz4 chunks; a chunk claiming 1 TiB
-    (chunk header, or lz4 frame header) is a ValueError, not an allocation."""
+    (chunk header, or lz4 frame header) or more than its data holds is a ValueError, not an
+    allocation."""
     from mcap.records import Chunk
     recs = state_records(0, 3)
     import lz4.frame
@@ -468,10 +502,14 @@ def test_chunk_records_hold_what_the_data_decompresses_to():
         assert bagmod.decompress_chunk(c) == recs
         assert len(list(bagmod.chunk_records(c))) == 6
     frame = zstandard.ZstdCompressor(write_content_size=False).compress(recs)
-    c = Chunk(compression="zstd", data=frame, message_start_time=0, message_end_time=0,
-              uncompressed_crc=0, uncompressed_size=TiB)
-    with pytest.raises(ValueError, match="decompresses to"):
-        bagmod.decompress_chunk(c)
+    for claimed, match in ((TiB, "declares 1099511627776 bytes of records, more than this "
+                                 "reader takes"),
+                           (2 * len(recs), f"decompresses to {len(recs)} bytes, its header "
+                                           f"says {2 * len(recs)}")):
+        c = Chunk(compression="zstd", data=frame, message_start_time=0, message_end_time=0,
+                  uncompressed_crc=0, uncompressed_size=claimed)
+        with pytest.raises(ValueError, match=match):
+            bagmod.decompress_chunk(c)
     forged = lz4_claiming(recs, TiB)
     f = io.BytesIO(bytes(forged))
     f.seek(9)
@@ -481,9 +519,36 @@ def test_chunk_records_hold_what_the_data_decompresses_to():
         bagmod.decompress_chunk(c)
 
 
+def test_records_and_what_is_kept_are_bounded(tmp_path, monkeypatch):
+    """A record longer than MAX_RECORD_BYTES is damage (salvage: read up to it); metadata
+    and attachments beyond MAX_KEPT_BYTES in all are left out with one warning naming
+    them (the bounds made small here: the same code as at 64 MiB)."""
+    rec = recorder(tmp_path / "b.mcap", metadata={"physics_config": "x" * 3000})
+    for k in range(3):
+        rec.add_metadata(f"extra{k}", {"data": "y" * 3000})
+    write_state(rec, stamp(0), 0)
+    write_state(rec, stamp(0, PERIOD_NS), PERIOD_NS)
+    rec.add_attachment("big.bin", "application/octet-stream", b"z" * 20_000)
+    rec.close()
+    monkeypatch.setattr(bagmod, "MAX_KEPT_BYTES", 7000)
+    warnings = []
+    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True,
+                               on_warning=warnings.append)
+    assert set(bag.metadata) == {"starleth_sim", "extra0"} and not bag.attachments
+    assert bag.kept_bytes <= 7000 and bag.counts["/joint_states"] == 2
+    assert len(warnings) == 1 and "4 metadata record(s) or attachment(s) left out " \
+        "('extra1', 'extra2', 'big.bin', 'rosbag2'): more than 7000 bytes of them" in warnings[0]
+    monkeypatch.setattr(bagmod, "MAX_RECORD_BYTES", 10_000)
+    with pytest.raises(bagmod.BagError, match="ATTACHMENT record has length 20"):
+        bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True)
+    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True, salvage=True,
+                               on_warning=warnings.append)
+    assert bag.truncated and any("ATTACHMENT record has length 20" in w for w in warnings)
+
+
 # -- the tools on crafted bags --------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory):
+def bags(tmp_path_factory, zeros_3gib):
     d = tmp_path_factory.mktemp("crafted")
     recs_ok = state_records(0, 4)
     return {
@@ -496,7 +561,15 @@ def bags(tmp_path_factory):
                                                     zstd_claiming(state_records(4, 4), TiB)]),
         "lz4_1tib": raw_bag(d / "lz4_1tib.mcap", [_chunk(recs_ok),
                                                   lz4_claiming(state_records(4, 4), TiB)]),
+        "zstd_3gib": raw_bag(d / "zstd_3gib.mcap", [_chunk(recs_ok), honest_3gib(zeros_3gib)]),
+        "zstd_3gib_under": raw_bag(d / "zstd_3gib_under.mcap",
+                                   [_chunk(recs_ok), under_declared_3gib(zeros_3gib)]),
     }
+
+
+@pytest.fixture(scope="module")
+def zeros_3gib():
+    return zstd_zeros(GiB3)
 
 
 def page_data(path):
@@ -541,13 +614,15 @@ def test_view_times(bags, tmp_path):
     assert "4 frames" in r["out"]
 
 
-@pytest.mark.parametrize("case", ["zstd_1tib", "lz4_1tib"])
+@pytest.mark.parametrize("case", ["zstd_1tib", "lz4_1tib", "zstd_3gib", "zstd_3gib_under"])
 def test_view_forged_chunk(bags, tmp_path, case):
-    """A compressed chunk claiming 1 TiB: one line (was an attempt to allocate it); with
-    --salvage, the page of the chunk before it."""
+    """A compressed chunk claiming 1 TiB (was an attempt to allocate it), truthfully
+    declaring 3 GiB (was 6.4 GB and over a minute), or declaring 4 MiB of its 3 GiB: one
+    line; with --salvage, the page of the chunk before it."""
     r, s = run_tools(("view", [bags[case], "-o", tmp_path / "p.html"]),
                      ("view", [bags[case], "-o", tmp_path / "s.html", "--salvage"]))
-    assert_one_line_error(r, "view", "corrupt MCAP file", "compressed chunk")
+    assert_one_line_error(r, "view", "corrupt MCAP file", "compressed chunk",
+                          *CHUNK_WORDS.get(case, ()))
     err = assert_ok(s, "view")
     assert "of 4 samples" in s["out"] and "reading stopped" in err
 
@@ -572,6 +647,19 @@ def test_view_billion_laughs_ground(tmp_path):
     r, = run_tools(("view", [tmp_path / "laughs.mcap", "-o", tmp_path / "p.html"]))
     assert_ok(r, "view")
     assert page_data(tmp_path / "p.html")["ground"]["normal"] == [0.0, 0.0, 1.0]
+
+
+def test_view_slope_beyond_the_grid_bound(replay_md, tmp_path):
+    """A recorded slope whose grid would be 10003 x 20001 points (1.6 GB; the view took
+    1.67 GB): not drawn, with a warning naming the bound; the page of the motion."""
+    md, names = replay_md
+    bag = replay_bag(tmp_path / "b.mcap", md, names,
+                     physics_config=slope_config(md, length=1e-4))
+    r, = run_tools(("view", [bag, "-o", tmp_path / "p.html"]))
+    err = assert_ok(r, "view")
+    assert "the recorded terrain is not valid, not drawn: terrain.slope: its heightfield " \
+           "would be 10003 x 20001 points" in err, err
+    assert "at most 1024 a side" in err and "4 samples" in r["out"]
 
 
 def test_analyze_span(bags, tmp_path):
@@ -619,10 +707,18 @@ def test_analyze_times(bags, tmp_path):
     assert "2 message(s) on /joint_states could not be read (log or publish time" in err
 
 
-@pytest.mark.parametrize("case", ["zstd_1tib", "lz4_1tib"])
+@pytest.mark.parametrize("case", ["zstd_1tib", "lz4_1tib", "zstd_3gib", "zstd_3gib_under"])
 def test_analyze_forged_chunk(bags, tmp_path, case):
     r, = run_tools(("analysis", [bags[case], "--out", tmp_path]))
-    assert_one_line_error(r, "analysis", "corrupt MCAP file", "compressed chunk")
+    assert_one_line_error(r, "analysis", "corrupt MCAP file", "compressed chunk",
+                          *CHUNK_WORDS.get(case, ()))
+
+
+#: what the error line says of a chunk of 3 GiB
+CHUNK_WORDS = {"zstd_3gib": ("declares 3221225472 bytes of records, more than this reader "
+                             "takes (64 MiB)",),
+               "zstd_3gib_under": ("decompresses to more than 5242880 bytes, its header says "
+                                   "4194304",)}
 
 
 def _ragged(path, md, names):
@@ -673,6 +769,15 @@ REPLAY_CASES = {
                         ("no applied torque for step 1 -> 2",)),
     "zstd_1tib": (lambda d, md, names: raw_bag(d / "b.mcap", [
         zstd_claiming(state_records(0, 4), TiB)]), ("compressed chunk",)),
+    "zstd_3gib": (lambda d, md, names: raw_bag(d / "b.mcap", [
+        _chunk(state_records(0, 4)), honest_3gib(zstd_zeros(GiB3))]), CHUNK_WORDS["zstd_3gib"]),
+    "slope": (lambda d, md, names: replay_bag(
+        d / "b.mcap", md, names, physics_config=slope_config(md, length=1e-4)),
+        ("terrain.slope: its heightfield would be 10003 x 20001 points", "at most 1024")),
+    "slope_in_range": (lambda d, md, names: replay_bag(
+        d / "b.mcap", md, names, physics_config=slope_config(md, length=100, top=100,
+                                                            width=100)),
+        ("terrain.slope: its heightfield would be 6001 x 2001 points",)),
 }
 
 
@@ -681,8 +786,9 @@ def test_replay(replay_md, tmp_path, case):
     """(a) Two states 2e9 s apart (also with a 2e9 s control period recorded); (b) garbage;
     (c) a sequence length of 0xFFFFFFF0; NaN torques; ragged joint states; a zero or
     unreadable control period; joint names that are not JSON; a YAML billion-laughs
-    configuration; an initial state that does not fit; a chunk claiming 1 TiB: one line
-    each."""
+    configuration; an initial state that does not fit; a chunk claiming 1 TiB or truthfully
+    declaring 3 GiB; a slope whose grid would be 4.8 GB (was a MemoryError at 3.2 GB) or
+    6001 x 2001 points: one line each."""
     make, expect = REPLAY_CASES[case]
     md, names = replay_md
     r, = run_tools(("replay", [make(tmp_path, md, names), "--no-plots"]))

@@ -243,3 +243,56 @@ def test_a_client_offering_either_subprotocol_name_is_served(subprotocol):
     assert len(got.messages["/chatter"]) >= 5
     assert all(m == payload for _, m in got.messages["/chatter"])
     assert live.front.legacy_clients == (2 if subprotocol == "foxglove.websocket.v1" else 0)
+
+
+def test_a_clients_malformed_frames_are_throttled_warnings_cut_short(capfd):
+    """100 malformed frames of 1 MiB from a client (the SDK quotes each whole in its log
+    message: they went to stderr, 105 MB in 2.5 s): warnings on the node's logger, throttled
+    per SDK component, each cut to MAX_LOGGED_CHARS; nothing of them on stderr. The server
+    serves on afterwards, and stopping it hands the SDK's logging back."""
+    import asyncio
+    import json
+    import logging
+    import websockets
+    from starleth_sim.ros.live_view import MAX_LOGGED_CHARS, SUBPROTOCOL, LiveView
+
+    class Log:
+        def __init__(self):
+            self.lines = {"info": [], "warning": [], "error": []}
+
+        def __getattr__(self, level):
+            return self.lines[level].append
+
+    log = Log()
+    live = LiveView.open("127.0.0.1", 0, [], log, throttle_period=60.0)
+    assert live is not None, log.lines
+    problems = live.problems
+    frame = json.dumps({"op": "subscribe", "subscriptions": "a" * (1 << 20)})
+
+    async def flood():
+        async with websockets.connect(f"ws://127.0.0.1:{live.port}", max_size=None,
+                                      subprotocols=[SUBPROTOCOL], close_timeout=0.2) as ws:
+            for _ in range(100):
+                await ws.send(frame)
+                await ws.send(b"\xff" + b"b" * 1000)          # an unknown binary opcode
+            for _ in range(200):                   # until the server has read them
+                if problems.throttle.counts.get("live_view", 0) >= target[0]:
+                    break
+                await asyncio.sleep(0.05)
+
+    target = [200]
+    try:
+        asyncio.run(flood())
+        assert 1 <= len(log.lines["warning"]) <= 2, log.lines["warning"]
+        target[0] = 400
+        asyncio.run(flood())                       # a second client: served, throttled
+    finally:
+        live.stop()
+    warnings = log.lines["warning"]
+    assert problems.throttle.counts["live_view"] >= 400, problems.throttle.counts
+    assert 1 <= len(warnings) <= 2, warnings
+    assert "live_view: Invalid message from 127.0.0.1:" in warnings[0]
+    assert all(len(w) <= MAX_LOGGED_CHARS + 40 for w in warnings), [len(w) for w in warnings]
+    assert "(1048" in warnings[0]            # the length of the message it was cut from
+    assert len(capfd.readouterr().err) < 2000
+    assert logging.getLogger("foxglove").propagate and not logging.getLogger("foxglove").handlers

@@ -574,3 +574,37 @@ def test_open_recorder_is_a_process_else_a_thread_of_this_one(tmp_path, monkeypa
     rec.close()
     with pytest.raises(RecordingError, match=r"^/proc/x.mcap: "):
         open_recorder(StorageOptions(uri="/proc/x.mcap"), warn=warnings.append)
+
+
+@pytest.mark.parametrize("under", ["x.mcap", "sub/x.mcap", "bag_dir"])
+def test_a_recording_under_a_file_says_that_the_file_is_not_a_directory(tmp_path, under):
+    """record:= under a path whose parent (or an ancestor) is a regular file: one line that
+    names that file as not a directory (was '[Errno 17] File exists'), from sim_node's
+    recorder (a writer process), a split one and the file writer alike."""
+    from starleth_sim.ros.recording import RecordingError, StorageOptions, open_recorder
+    blocker = tmp_path / "runs"
+    blocker.write_text("a file")
+    split = {"max_bagfile_size": 1 << 20} if under == "bag_dir" else {}
+    uri = str(blocker / under)
+    with pytest.raises(RecordingError) as e:
+        open_recorder(StorageOptions(uri=uri, **split))
+    assert str(e.value).startswith(f"{uri}: [Errno ")
+    assert str(e.value).endswith(f": {blocker} is a file, not a directory"), str(e.value)
+    with pytest.raises(RecordingError, match=f"{blocker} is a file, not a directory$"):
+        McapRecorder(uri)
+
+
+@pytest.mark.parametrize("err,words", [
+    (28, "No space left on device: no space left where it is written ({d}): free some or "
+         "record elsewhere"),
+    (30, "Read-only file system: {d} is on a read-only file system"),
+    (13, "Permission denied: {d} is not writable"),
+    (27, "File too large: the file reached the file-size limit of this process (ulimit -f: "),
+    (122, "Disk quota exceeded: the disk quota where it is written ({d}) is used up"),
+    (5, "Input/output error: the disk reported an I/O error"),
+    (11, "Resource temporarily unavailable"),
+])
+def test_a_failed_recording_says_the_cause_a_user_can_act_on(tmp_path, err, words):
+    from starleth_sim.ros.recording.mcap_sink import failure_cause
+    cause = failure_cause(OSError(err, os.strerror(err)), str(tmp_path / "x.mcap"))
+    assert cause.startswith(f"[Errno {err}] " + words.format(d=tmp_path)), cause

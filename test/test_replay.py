@@ -158,6 +158,102 @@ def test_truncated_bag_gives_one_line(recorded, tmp_path, capsys):
     assert len(err) == 1 and "truncated" in err[0]
 
 
+#: a child process: the messages of a recording (argv[1]) written again in their order by an
+#: McapRecorder (one chunk per message) to argv[2] until the applied torque of state argv[3],
+#: which a file-size limit (RLIMIT_FSIZE, SIGXFSZ ignored: as `ulimit -f` and sim_node) set
+#: just before it makes fail with EFBIG: the recorder closes the file at the last whole
+#: chunk, the state's joint states in it and its applied torque not
+CUT_WRITER = r"""
+import os, resource, signal, sys
+from mcap.reader import make_reader
+from starleth_sim.ros.recording import McapRecorder, RecordingError, register_msg_text
+from starleth_sim.ros.tf import TF_MSG_TEXT, TF_TYPE
+register_msg_text(TF_TYPE, TF_MSG_TEXT)          # (as sim_node: tf2_msgs may be missing)
+src, dst, k_cut = sys.argv[1], sys.argv[2], int(sys.argv[3])
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+rec = McapRecorder(dst, chunk_size=1)
+with open(src, "rb") as f:
+    reader = make_reader(f)
+    md = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    period = int(md["starleth_sim"]["stamp_period_ns"])
+    rec.add_metadata("starleth_sim", md["starleth_sim"])
+    f.seek(0)
+    for schema, channel, m in make_reader(f).iter_messages(log_time_order=False):
+        rec.add_topic(channel.topic, schema.name)
+        if channel.topic.endswith("applied_torque") and m.log_time == k_cut * period:
+            _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (os.path.getsize(dst) + 250, hard))
+        try:
+            rec.write(channel.topic, m.data, m.log_time, m.publish_time)
+        except RecordingError as e:
+            print(e)
+            break
+"""
+K_CUT = 150
+
+
+@pytest.fixture(scope="module")
+def cut_recording(recorded):
+    """The recording cut by a file-size limit within the messages of state K_CUT (its
+    joint states written, its applied torque not); and the same file as its writer left it
+    without the ending the recorder added (a writer killed, a file truncated)."""
+    import subprocess
+    import sys
+    from starleth_sim.ros.recording.mcap_sink import ending
+    from starleth_sim.tools.bag import read_messages
+    mcap, tmp = recorded
+    cut = tmp / "cut.mcap"
+    p = subprocess.run([sys.executable, "-c", CUT_WRITER, mcap, str(cut), str(K_CUT)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "[Errno 27] File too large" in p.stdout, p.stdout + p.stderr
+    bag = read_messages(str(cut), lambda t, ty: True, decode=False)
+    fault = bag.metadata["starleth_recording_fault"]
+    assert fault["cause"].startswith("[Errno 27] File too large: the file reached the "
+                                     "file-size limit of this process (ulimit -f: "), fault
+    # what today's recorder leaves: the joint states of K_CUT, no applied torque for it
+    assert bag.counts["/joint_states"] == K_CUT + 1
+    assert bag.counts["/starleth/applied_torque"] == K_CUT - 1
+    data = cut.read_bytes()
+    tail = ending(fault)
+    assert data.endswith(tail)
+    unended = tmp / "unended.mcap"
+    unended.write_bytes(data[:-len(tail)])
+    return cut, unended, fault["cause"]
+
+
+@pytest.mark.parametrize("case", ["file_size_limit", "killed_writer", "truncated"])
+def test_a_recording_cut_by_a_failure_replays_its_complete_steps(recorded, cut_recording,
+                                                                 tmp_path, case, capsys):
+    """A recording its recorder closed after a failure replays its complete steps bit for
+    bit (they are those of the whole recording), and says how many states it left out and
+    why: cut by a file-size limit (the recorder's fault note), its writer killed (closed by
+    recording.repair, as sim_node does) or truncated (read with --salvage)."""
+    from starleth_sim.ros.recording import repair
+    cut, unended, cause = cut_recording
+    path, args = str(cut), []
+    if case == "killed_writer":
+        path = str(tmp_path / "killed.mcap")
+        shutil.copy(unended, path)
+        cause = "the recording process ended (killed by signal 9)"
+        assert repair(path, {"cause": cause}) == "repaired"
+    elif case == "truncated":
+        path, args, cause = str(unended), ["--salvage"], "the file is truncated"
+    out = tmp_path / "r.json"
+    assert replay.main([path, "--json", str(out), *args]) == 0
+    cap = capsys.readouterr()
+    assert f"bit-identical: all {K_CUT - 1} steps" in cap.out, cap.out + cap.err
+    warning = [ln for ln in cap.err.splitlines() if "the recording was cut" in ln]
+    assert len(warning) == 1, cap.err
+    assert f"cut ({cause}): replaying its {K_CUT - 1} complete steps; left out the last 1 " \
+           f"state(s) (from t = {K_CUT * 0.0025:.4f} s: no applied torques" in warning[0]
+    doc = json.loads(out.read_text())
+    assert doc["bit_identical"] and doc["steps"] == K_CUT - 1 and doc["recording_cut"] == cause
+    whole = replay_recording.load_recording(recorded[0])
+    part = replay_recording.load_recording(path, salvage=bool(args))
+    for q, a in part.states.items():          # the states of the whole recording
+        assert np.array_equal(a, whole.states[q][:K_CUT], equal_nan=True), q
+
+
 # a 1 cm plate under the LF foot (yawed) and rough ground (+-6 mm) under the hind feet
 TERRAIN = ("{boxes: [{centre: [0.252, 0.185, 0.005], size: [0.2, 0.2, 0.01], yaw: 0.3}], "
            "rough: {amplitude: 0.006, wavelength: 0.35, size: 1.4, seed: 2, "

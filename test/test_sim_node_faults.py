@@ -18,6 +18,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from starleth_interface.ros_helpers import service_qos  # noqa: E402
 from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
 
 DOMAIN_RANGE = (120, 20)      # first, span (conftest._free_ros_domain)
@@ -41,12 +42,12 @@ def _sim(tmp_path, tag, **params):
 def test_paused_it_still_reports_and_answers_a_hundred_concurrent_calls(ros, tmp_path):
     """Paused, /starleth/solver still comes about once a second with the interface status
     'paused' (a monitor tells a paused simulator from a dead one) and sim time stands
-    still. Then 100 callers (one client each) call ~/reset at once: every call is answered
-    (the services keep SERVICE_QUEUE requests and responses; with rclpy's default depth of
-    10 about 11 were), and the node counts 100 resets. The clients keep 100 responses each:
-    with Fast DDS every client of a service also receives the responses to the others, so a
-    process with many concurrent callers gives its clients a depth of at least their number
-    (with the default 10, about 40 of 100 arrive)."""
+    still. Then 100 callers (one client each) call ~/reset at once, then ~/step, then
+    ~/pause: every call is answered (the services keep SERVICE_QUEUE requests and
+    responses; with rclpy's default depth of 10 about 11 were), and the node counts 100
+    resets. The clients are made with service_qos (SERVICE_QUEUE deep): with Fast DDS every
+    client of a service also receives the responses to the others, so a client of the
+    default depth 10 loses its own (33, 15 and 21 of 100 arrive)."""
     sim = _sim(tmp_path, "sim", mode="realtime", start_paused=True)
     got = []
 
@@ -57,24 +58,26 @@ def test_paused_it_still_reports_and_answers_a_hundred_concurrent_calls(ros, tmp
 
     sub = ros.node.create_subscription(DiagnosticArray, "/starleth/solver", on_diag,
                                        QoSProfile(depth=50))
-    qos = QoSProfile(depth=100)
-    clients = [ros.node.create_client(Trigger, "/sim_node/reset", qos_profile=qos)
-               for _ in range(100)]
+    calls = (("reset", Trigger, Trigger.Request()), ("step", Trigger, Trigger.Request()),
+             ("pause", SetBool, SetBool.Request(data=True)))
+    clients = [[ros.node.create_client(typ, f"/sim_node/{name}", qos_profile=service_qos())
+                for _ in range(100)] for name, typ, _ in calls]
     try:
         assert ros.spin_until(lambda: len(got) >= 1, START_TIMEOUT, [sim]), sim.log()
         ros.spin_for(3.2)
         assert 3 <= len(got) <= 6, len(got)
         assert all(m == "paused" and v["paused"] == "True" and v["sim_time"] == "0.0"
                    for m, v in got)
-        assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients), 30, [sim])
-        futures = [c.call_async(Trigger.Request()) for c in clients]
-        assert ros.spin_until(lambda: all(f.done() for f in futures), 60, [sim]), \
-            f"{sum(f.done() for f in futures)} of 100 answered"
-        assert all(f.result().success for f in futures)
+        for (name, _, request), cs in zip(calls, clients):
+            assert ros.spin_until(lambda: all(c.service_is_ready() for c in cs), 30, [sim])
+            futures = [c.call_async(request) for c in cs]
+            assert ros.spin_until(lambda: all(f.done() for f in futures), 60, [sim]), \
+                f"~/{name}: {sum(f.done() for f in futures)} of 100 answered"
+            assert all(f.result().success for f in futures), name
         assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=False)).success
     finally:
         ros.node.destroy_subscription(sub)
-        for c in clients:
+        for c in (c for cs in clients for c in cs):
             ros.node.destroy_client(c)
         code = sim.stop()
     assert code == 0

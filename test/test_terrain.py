@@ -376,6 +376,70 @@ def test_bad_terrain_is_one_line_naming_the_field(terrain, message):
     assert "\n" not in str(e.value)
 
 
+@pytest.mark.parametrize("slope,message", [
+    ({"length": 1e-4}, "would be 10003 x 20001 points (cell 0.0001 m = length / 1); at most "
+                       "1024 a side: 2 x length + top and width must be <= 0.1023 m"),
+    ({"length": 100, "top": 100, "width": 100},
+     "would be 6001 x 2001 points (cell 0.05 m = length / 2000); at most 1024 a side: "
+     "2 x length + top and width must be <= 51.15 m"),
+    ({"length": 2, "width": 51.2}, "would be 101 x 1025 points"),
+])
+def test_a_slope_beyond_the_grid_bound_is_refused_before_it_is_made(slope, message):
+    """The slope's grid follows from its length, top and width at a cell of about
+    SLOPE_CELL; beyond MAX_GRID points a side it is refused on load (a 1e-4 m ramp asked
+    for 4.8 GB), as a given heightfield is."""
+    with pytest.raises(ConfigError) as e:
+        packed(slope=dict({"angle": 10}, **slope))
+    assert str(e.value).startswith("terrain.slope: its heightfield " + message), str(e.value)
+    assert "\n" not in str(e.value)
+
+
+def test_the_slopes_grid_is_the_shape_it_is_checked_at():
+    """slope_shape (the check) and slope_grid (the heights) agree, for random slopes and at
+    the bound: the largest slope accepted has MAX_GRID points a side."""
+    from starleth_sim.physics.terrain import MAX_GRID, slope_grid, slope_shape
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        s = {"angle": 10.0, "length": float(rng.uniform(0.01, 20)), "top":
+             float(rng.uniform(0, 10)), "width": float(rng.uniform(0.01, 20)), "start": 0.0,
+             "mu": None}
+        n, cell, n_top, ny = slope_shape(s)
+        _, c, heights, _ = slope_grid(s)
+        assert heights.shape == (2 * n + n_top + 1, ny) and c == cell
+    t = TerrainConfig(slope={"angle": 10, "length": 1.0, "top": 49.15, "width": 51.15})
+    t.validate("terrain")
+    assert t.grid()[2].shape == (MAX_GRID, MAX_GRID)
+
+
+def test_rough_ground_needs_two_grid_points_per_wavelength():
+    """On at most MAX_GRID points a side, rough ground of more than 511.5 wavelengths a side
+    would alias its waves: refused; at the bound it has 1024 points a side."""
+    ok = packed(rough={"amplitude": 0.01, "wavelength": 4.0 / 511.5, "size": 4.0})
+    assert (ok[1], ok[2]) == (1024, 1024)
+    with pytest.raises(ConfigError, match=r"terrain.rough: size / wavelength must be <= "
+                                          r"511.5 \(at least 2 of its 1024 grid points a side "
+                                          r"per wavelength\), got 4 / 0.0078"):
+        packed(rough={"amplitude": 0.01, "wavelength": 4.0 / 512, "size": 4.0})
+
+
+def test_the_boxes_bins_are_bounded_and_still_find_every_box():
+    """Boxes that span many bins (5 plates of 1000 m: 1.3 million (bin, box) entries; 10 000
+    of them were 2.6e9) get larger bins: at most MAX_BIN_ITEMS entries, and the contact
+    query still meets the plates and a small box on them at the exact gap."""
+    from starleth_sim.physics.terrain import MAX_BIN_ITEMS
+    plates = [{"centre": [0.0, 0.0, 0.005 * k], "size": [1000.0, 1000.0, 0.01 * k]}
+              for k in range(1, 6)]
+    small = {"centre": [3.0, 4.0, 0.05], "size": [0.2, 0.2, 0.1]}
+    p = packed(boxes=plates + [small])
+    assert 0 < p[13] <= MAX_BIN_ITEMS and p[10] > 1000.0 / 512      # fewer, larger bins
+    sim = body_sim(sphere_urdf(R, 1.0), boxes=plates + [small])
+    for x, y, top in ((3.0, 4.0, 0.1), (-400.0, 300.0, 0.05), (0.0, 0.0, 0.05)):
+        q = sim.q
+        q[:3] = [x, y, top + R + 0.03]
+        sim.reset(q)
+        assert sim.gaps()[0] == pytest.approx(0.03, abs=1e-12), (x, y)
+
+
 def test_bad_terrain_file_on_the_command_line_exits_2_with_one_line(tmp_path):
     data = load_preset("HmJ").to_dict()
     data["terrain"] = {"stairs": {"rise": -0.04, "run": 0.3, "count": 3}}

@@ -6,6 +6,8 @@ kernel), so both paths apply the same torques bit for bit.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from . import kernels as _kernels
 
 #: ``saturate_torque(tau, limit, qd, qd_limit, out) -> bool``: the torques the motors apply:
@@ -20,3 +22,21 @@ saturate_torque = _kernels.saturate_torque
 
 class NonFiniteTorque(ValueError):
     """The joint torques of a step have a non-finite entry; nothing was done."""
+
+
+def real_array(value, what: str, ndims=(1,)) -> np.ndarray:
+    """`value` as a float64 array (contiguous) of one of `ndims` dimensions; a ValueError
+    naming `what` and what was given where it is not real numbers (complex, bool, text,
+    objects, ragged lists) or has another number of dimensions: a (3, 4) array is not 12
+    torques, and a complex torque is not its real part."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):      # ragged nested lists
+        a = None
+    if a is None or a.dtype.kind not in "fiu":
+        got = "a ragged list" if a is None else f"{a.dtype} values"
+        raise ValueError(f"{what} must be real numbers, got {got}")
+    if a.ndim not in ndims:
+        want = " or ".join({0: "a number", 1: "a vector", 2: "a matrix"}[n] for n in ndims)
+        raise ValueError(f"{what} must be {want}, got an array of shape {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float64)

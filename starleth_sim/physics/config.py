@@ -55,15 +55,19 @@ rough                          m, count [1, 100]; angle     slopes up to 45°; a
                                (0, 45]°, length (0, 100] m; to 0.5 m (physics/terrain.py)
                                amplitude (0, 0.5] m,
                                wavelength (0, 100] m
+                               slope and rough grids <=     a heightfield's bound (the
+                               1024 points a side; rough:   slope's grid is checked before
+                               size/wavelength <= 511.5     it is made); 2 points per wave
 paper                          names: finite numbers or     figures for reports only
                                strings
 =============================  ===========================  ================================
 
 YAML files are read with :func:`load_yaml_file` (and text with :func:`load_yaml_text`), the
 project's one loader of configuration YAML (presets, physics_overrides, sim_node's
-parameter file, sweep specs, initial states): a key given twice in one mapping, a file
-that is not UTF-8 text (e.g. binary) or larger than :data:`MAX_CONFIG_BYTES` is a
-ConfigError naming the file (and the key and its lines).
+parameter file, sweep specs, initial states, the configuration a recording holds): a key
+given twice in one mapping, a file that is not UTF-8 text (e.g. binary), a text larger than
+:data:`MAX_CONFIG_BYTES` or one whose aliases expand it beyond its size is a ConfigError
+naming the file (and the key and its lines).
 """
 from __future__ import annotations
 
@@ -149,16 +153,42 @@ def _yaml_problem(e: yaml.YAMLError) -> str:
 
 
 def load_yaml_text(text: str, source: str):
-    """The YAML document `text` (safe types only); ConfigError naming `source` if it is not
-    valid YAML or repeats a key in a mapping."""
+    """The YAML document `text` (safe types only); ConfigError naming `source` if it is
+    longer than MAX_CONFIG_BYTES, not valid YAML, repeats a key in a mapping, or if its
+    aliases expand it beyond its size (:func:`_check_expansion`)."""
+    if len(text) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{source}: {len(text)} characters of YAML, more than a "
+                          f"configuration has ({MAX_CONFIG_BYTES // 2 ** 20} MiB)")
     try:
-        return yaml.load(text, Loader=UniqueKeyLoader)
+        data = yaml.load(text, Loader=UniqueKeyLoader)
     except DuplicateKeyError as e:
         raise ConfigError(f"{source}: {e.problem}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: not valid YAML: {_yaml_problem(e)}") from None
     except RecursionError:
         raise ConfigError(f"{source}: not valid YAML: nested too deeply") from None
+    _check_expansion(data, len(text), source)
+    return data
+
+
+def _check_expansion(data, characters: int, source: str):
+    """ConfigError where the aliases of a YAML document of `characters` characters expand it
+    to more values than it has characters: a few hundred bytes of nested aliases make a
+    list of a billion numbers, which a check (or numpy) would then walk. Without aliases a
+    document has fewer values than characters; the walk stops at that bound."""
+    budget = 2 * characters + 16
+    stack = [data]
+    while stack:
+        x = stack.pop()
+        budget -= 1
+        if budget < 0:
+            raise ConfigError(f"{source}: its YAML aliases expand it far beyond its "
+                              f"{characters} characters")
+        if isinstance(x, dict):
+            stack.extend(x.keys())
+            stack.extend(x.values())
+        elif isinstance(x, (list, tuple)):
+            stack.extend(x)
 
 
 def load_yaml_file(path: str, source: str | None = None):

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels as _kernels
-from .actuator import NonFiniteTorque, saturate_torque
+from .actuator import NonFiniteTorque, real_array, saturate_torque
 from .kernel_layouts import IMPEDANCE_COMMAND
 
 #: the command's fields, in the order of the packed layout (kernel_layouts.IMPEDANCE_COMMAND)
@@ -92,11 +92,7 @@ class ImpedanceCommand:
         arrays = {}
         for name in FIELDS:
             value = np.nan if given[name] is None else given[name]
-            try:
-                a = np.array(value, dtype=np.float64).reshape(-1)
-            except (TypeError, ValueError):
-                raise ValueError(f"ImpedanceCommand: {name} must be numbers, got "
-                                 f"{value!r}") from None
+            a = real_array(value, f"ImpedanceCommand: {name}", (0, 1)).reshape(-1)
             if a.shape[0] == 1:
                 a = np.repeat(a, n)
             if a.shape[0] != n:
@@ -159,7 +155,7 @@ def replay_rows(torques, n, joint_names, implicit):
     for every step), or x 2 nj (explicit torques, then the implicit dampers' kd ≥ 0, nonzero
     only where `implicit`). ValueError naming the joints on a wrong shape or value."""
     nj = len(joint_names)
-    a = np.array(torques, dtype=np.float64)
+    a = real_array(torques, "step_applied: torques", (1, 2)).copy()
     if a.ndim == 1:
         a = np.tile(a, (n, 1))
     if a.shape not in ((n, nj), (n, 2 * nj)):

@@ -29,7 +29,7 @@ from time import perf_counter
 
 import numpy as np
 
-from .actuator import NonFiniteTorque, saturate_torque
+from .actuator import NonFiniteTorque, real_array, saturate_torque
 from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, rest_on_ground
 from .coordinates import make_coordinates
@@ -39,16 +39,17 @@ from .description import (RobotDescription, starleth_description, leg_angles_for
                           urdf_path)
 from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, ImpedanceCommand,
                         replay_rows)
-from .state import SimState
+from .state import SimState, finite_time
 from .stepper import MoreauStepper, SimulationError, PHASES
 from .tree_step import report_size, report_views
-from .wrenches import ExternalWrenches
+from .wrenches import MAX_TIMED_WRENCHES, ExternalWrenches
 
 log = logging.getLogger("starleth_sim")
 
 
 #: float64 (numpy's built-in dtypes are singletons: `is` is the cheap test)
 _FLOAT64 = np.dtype(np.float64)
+
 
 class Simulator:
     """One simulated robot (or body) on a ground plane."""
@@ -140,17 +141,19 @@ class Simulator:
         """Set the state (default: `default_state()` at rest). With minimal=True, q and u are
         given in minimal coordinates (19/18 for StarlETH) and converted to this simulator's
         coordinate set."""
+        t = finite_time(t, "reset: t")
         if minimal:
             if q is None:
                 raise ValueError("reset(minimal=True) needs q")
-            q_min = np.array(q, dtype=float)
-            u_min = np.zeros(self.description.model.nv) if u is None else np.array(u, float)
+            q_min = real_array(q, "reset: q")
+            u_min = np.zeros(self.description.model.nv) if u is None else \
+                real_array(u, "reset: u")
             if q_min.shape != (self.description.model.nq,) or \
                     u_min.shape != (self.description.model.nv,):
                 raise ValueError("reset(minimal=True): q and u must be minimal coordinates")
             q, u = self.coords.from_minimal(q_min, u_min)
-        q = self.default_state() if q is None else np.array(q, dtype=float)
-        u = np.zeros(self.coords.nv) if u is None else np.array(u, dtype=float)
+        q = self.default_state() if q is None else real_array(q, "reset: q").copy()
+        u = np.zeros(self.coords.nv) if u is None else real_array(u, "reset: u").copy()
         if q.shape != (self.coords.nq,) or u.shape != (self.coords.nv,):
             raise ValueError(f"reset: q must have {self.coords.nq} and u {self.coords.nv} "
                              f"entries, got {q.shape} and {u.shape}")
@@ -158,7 +161,7 @@ class Simulator:
             raise ValueError("reset: q and u must be finite")
         for iq in self.coords.root_q:
             q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
-        self.state = self.stepper.initial_state(q, u, float(t))
+        self.state = self.stepper.initial_state(q, u, t)
         self.stepper.frames[:, 10] = 0.0     # (no slot holds a surface yet)
         self._state_version += 1
         self._tau = np.zeros(self.n_joints)
@@ -353,7 +356,12 @@ class Simulator:
         duration = self.control_period if duration is None else float(duration)
         if not (duration > 0 and np.isfinite(duration)):
             raise ValueError("duration must be positive")
-        self.state.pending_wrenches.append([link, f, m, duration])
+        pending = self.state.pending_wrenches
+        if len(pending) >= MAX_TIMED_WRENCHES:
+            raise ValueError(f"apply_wrench: {len(pending)} timed wrenches are pending, the "
+                             f"most (MAX_TIMED_WRENCHES {MAX_TIMED_WRENCHES}): each acts in "
+                             "every physics step until it ends")
+        pending.append([link, f, m, duration])
 
     def set_persistent_wrench(self, link: str, force, torque=(0.0, 0.0, 0.0)):
         """Apply a wrench on `link` at every step until cleared (a zero wrench clears it)."""
@@ -372,7 +380,7 @@ class Simulator:
         # (the kernels are compiled for contiguous float64 vectors: anything else is
         # copied into one, rather than compiled for again)
         a = tau if type(tau) is np.ndarray and tau.dtype is _FLOAT64 and tau.ndim == 1 \
-            and tau.flags.c_contiguous else np.ascontiguousarray(tau, dtype=float).reshape(-1)
+            and tau.flags.c_contiguous else real_array(tau, "tau")
         if a.shape[0] != self.n_joints:
             raise ValueError(f"tau must have {self.n_joints} entries (joint order "
                              f"{', '.join(self.joint_names)}), got {a.shape[0]}")

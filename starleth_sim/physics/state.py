@@ -24,6 +24,7 @@ What is what:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -109,3 +110,18 @@ class SimState:
             a = getattr(self, name)
             if a is not None:
                 a[...] = getattr(other, name)
+
+
+def finite_time(t, what: str = "t") -> float:
+    """A state's time t [s] as a float; ValueError naming it (`what`) where it is not a
+    finite real number (a NaN time would stay NaN at every later step)."""
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, float, np.integer,
+                                                              np.floating)):
+        raise ValueError(f"{what} must be a number of seconds, got {t!r:.60}")
+    try:
+        x = float(t)
+    except OverflowError:            # an integer beyond the floats
+        x = math.inf
+    if not math.isfinite(x):
+        raise ValueError(f"{what} must be finite, got {x!r}")
+    return x

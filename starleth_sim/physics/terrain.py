@@ -67,6 +67,9 @@ BOX_REACH = 0.1
 #: the side of the bins of the boxes [m], and their most per side
 BIN_SIZE = 0.25
 MAX_BINS = 512
+#: the most (bin, box) memberships packed (8 MiB of floats): where boxes that span many bins
+#: would make more, the bins are made larger (10 000 boxes of 1000 m were 2.6e9 entries)
+MAX_BIN_ITEMS = 1 << 20
 #: the floats per packed box (csrc/terrain.c BOX_STRIDE)
 BOX_STRIDE = 11
 MAX_BOXES = 10_000
@@ -76,6 +79,10 @@ MAX_GRID = 1024
 MAX_EXTENT = 1000.0                 # m: positions and sizes
 MAX_MU = 10.0
 ROUGH_WAVES = 8
+#: the rough generator's grid points per wavelength (fewer where MAX_GRID a side does not
+#: hold them), and the fewest it accepts (2: the sampling limit; below, the waves alias)
+ROUGH_POINTS_PER_WAVE = 8
+ROUGH_MIN_POINTS_PER_WAVE = 2
 SLOPE_CELL = 0.05                   # m: the slope generator's target cell size
 
 
@@ -234,7 +241,31 @@ def _generator(name, g):
     if name == "rough":
         out["centre"] = _vector("rough.centre", g.get("centre", [0.0, 0.0]), 2)
     out["mu"] = _mu(f"{name}.mu", g.get("mu"))
+    _GRID_CHECKS.get(name, lambda s: None)(out)
     return out
+
+
+def _check_slope_grid(s):
+    """The slope's grid fits MAX_GRID points a side (checked before it is made)."""
+    n, cell, n_top, ny = slope_shape(s)
+    nx = 2 * n + n_top + 1
+    if nx > MAX_GRID or ny > MAX_GRID:
+        most = (MAX_GRID - 1) * cell
+        raise ConfigError(f"slope: its heightfield would be {nx} x {ny} points (cell "
+                          f"{cell:.4g} m = length / {n}); at most {MAX_GRID} a side: "
+                          f"2 x length + top and width must be <= {most:.4g} m at this cell")
+
+
+def _check_rough_grid(s):
+    """The rough ground's grid holds its waves (at most MAX_GRID points a side)."""
+    most = (MAX_GRID - 1) / ROUGH_MIN_POINTS_PER_WAVE
+    if s["size"] / s["wavelength"] > most:
+        raise ConfigError(f"rough: size / wavelength must be <= {most:g} (at least "
+                          f"{ROUGH_MIN_POINTS_PER_WAVE} of its {MAX_GRID} grid points a side "
+                          f"per wavelength), got {s['size']:g} / {s['wavelength']:g}")
+
+
+_GRID_CHECKS = {"slope": _check_slope_grid, "rough": _check_rough_grid}
 
 
 @dataclass
@@ -320,15 +351,20 @@ def _plain(d):
                                    for k, v in d.items()}
 
 
-def slope_grid(s, ground_height=0.0):
-    """The slope generator's heightfield: (origin, cell, heights, mu)."""
+def slope_shape(s):
+    """(cells of a ramp n, cell [m], cells of the top, points across) of a slope: the ramp
+    in cells of about SLOPE_CELL, its grid 2 n + top cells + 1 points long."""
     n = max(1, round(s["length"] / SLOPE_CELL))
     cell = s["length"] / n
-    n_top = math.ceil(s["top"] / cell)
+    return n, cell, math.ceil(s["top"] / cell), max(2, math.ceil(s["width"] / cell) + 1)
+
+
+def slope_grid(s, ground_height=0.0):
+    """The slope generator's heightfield: (origin, cell, heights, mu)."""
+    n, cell, n_top, ny = slope_shape(s)
     rise = math.tan(math.radians(s["angle"]))
     up = np.arange(n + 1) * cell * rise
     profile = np.concatenate([up, np.full(n_top, up[-1]), up[::-1][1:]])
-    ny = max(2, math.ceil(s["width"] / cell) + 1)
     heights = np.repeat(profile[:, None], ny, axis=1) + ground_height
     return [s["start"], -0.5 * (ny - 1) * cell], cell, heights, s["mu"]
 
@@ -336,7 +372,7 @@ def slope_grid(s, ground_height=0.0):
 def rough_grid(s, ground_height=0.0):
     """The rough generator's heightfield: (origin, cell, heights, mu)."""
     lam, size = s["wavelength"], s["size"]
-    n = max(2, min(MAX_GRID, math.ceil(8 * size / lam) + 1))
+    n = max(2, min(MAX_GRID, math.ceil(ROUGH_POINTS_PER_WAVE * size / lam) + 1))
     cell = size / (n - 1)
     rng = np.random.default_rng(s["seed"])
     direction = rng.uniform(0.0, 2 * math.pi, ROUGH_WAVES)
@@ -393,14 +429,19 @@ def _bins(boxes, header):
     x0, y0 = lo.min(axis=0)
     extent = max(hi[:, 0].max() - x0, hi[:, 1].max() - y0)
     size = max(BIN_SIZE, extent / MAX_BINS)
-    nbx = max(1, math.ceil((hi[:, 0].max() - x0) / size))
-    nby = max(1, math.ceil((hi[:, 1].max() - y0) / size))
+    while True:     # (larger bins where the boxes would make more than MAX_BIN_ITEMS)
+        nbx = max(1, math.ceil((hi[:, 0].max() - x0) / size))
+        nby = max(1, math.ceil((hi[:, 1].max() - y0) / size))
+        first = np.floor((lo - (x0, y0)) / size).astype(int)
+        last = np.floor((hi - (x0, y0)) / size).astype(int)
+        first, last = np.maximum(first, 0), np.minimum(last, (nbx - 1, nby - 1))
+        if np.prod(last - first + 1, axis=1).sum() <= MAX_BIN_ITEMS:
+            break
+        size *= 2.0
     members = [[] for _ in range(nbx * nby)]
-    for k in range(len(boxes)):
-        i0, j0 = np.floor((lo[k] - (x0, y0)) / size).astype(int)
-        i1, j1 = np.floor((hi[k] - (x0, y0)) / size).astype(int)
-        for i in range(max(i0, 0), min(i1, nbx - 1) + 1):
-            for j in range(max(j0, 0), min(j1, nby - 1) + 1):
+    for k, ((i0, j0), (i1, j1)) in enumerate(zip(first.tolist(), last.tolist())):
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
                 members[i * nby + j].append(k)
     starts = np.cumsum([0] + [len(m) for m in members])
     header[8:14] = [x0, y0, size, nbx, nby, starts[-1]]

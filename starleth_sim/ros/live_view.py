@@ -13,11 +13,21 @@ module imports ``foxglove`` only in :meth:`LiveView.open`); a front of it
 (:mod:`.live_view_front`) takes the connections, so that clients offering either name of the
 protocol's subprotocol connect. What is served and the URLs to open: doc/sim_node.md, "Live
 view".
+
+The server's problems with a client (a malformed frame, a subscription to an unknown
+channel: the SDK logs them through Python ``logging``, under ``foxglove``) go to the node's
+logger as warnings (:class:`ClientProblemLog`), throttled like every other warning of the
+node, each cut to MAX_LOGGED_CHARS: the SDK's message quotes the client's frame, and a
+frame may be up to 16 MiB (the SDK's limit on a client's message, which it does not let a
+caller lower).
 """
 from __future__ import annotations
 
+import logging
 import socket
 import threading
+
+from starleth_interface.ros_helpers import ThrottledLog
 
 from .live_view_front import LEGACY_SUBPROTOCOL, SUBPROTOCOL, SubprotocolFront
 from .recording import message_definition, type_name
@@ -51,6 +61,47 @@ def live_view_lines(host: str, port: int):
                   for viewer, url in viewer_urls(host, port).items()]
 
 
+#: the characters of an SDK log message kept (it may quote a client's whole frame)
+MAX_LOGGED_CHARS = 300
+#: the Python logger the SDK logs through (its children: foxglove.websocket...)
+SDK_LOGGER = "foxglove"
+
+
+def cut(text: str, n: int = MAX_LOGGED_CHARS) -> str:
+    """text cut to n characters, saying how long it was."""
+    return text if len(text) <= n else f"{text[:n]}... ({len(text)} characters)"
+
+
+class ClientProblemLog(logging.Handler):
+    """The SDK's log records (from the server's threads) to `warn(message)`, the node's
+    warning: throttled per SDK component (at most one line per `period` s each, the next
+    one counting those suppressed), each cut to MAX_LOGGED_CHARS."""
+
+    def __init__(self, warn, period: float):
+        super().__init__(logging.WARNING)
+        self.throttle = ThrottledLog(warn, period)
+        self._lock = threading.Lock()
+
+    def emit(self, record):
+        try:
+            text = cut(record.getMessage())
+        except Exception:    # a record whose arguments do not format
+            text = cut(str(record.msg))
+        with self._lock:
+            self.throttle("live_view", f"live_view: {text}", record.name)
+
+    def install(self):
+        """Take the SDK's log records (not also to the root logger's handlers)."""
+        sdk = logging.getLogger(SDK_LOGGER)
+        sdk.addHandler(self)
+        sdk.propagate = False
+
+    def remove(self):
+        sdk = logging.getLogger(SDK_LOGGER)
+        sdk.removeHandler(self)
+        sdk.propagate = not any(isinstance(h, ClientProblemLog) for h in sdk.handlers)
+
+
 class _Listener:
     """The SDK's ServerListener: which topics have subscribers, and the latched messages
     again for a new subscriber (called from the server's thread)."""
@@ -69,8 +120,12 @@ class LiveView:
     """A running Foxglove WebSocket server (made by :meth:`open`): one channel per topic,
     ``log`` sends CDR bytes to the clients that subscribe to the topic."""
 
-    def __init__(self, foxglove, host, port, name):
+    def __init__(self, foxglove, host, port, name, problems=None):
         self._fox = foxglove
+        #: the SDK's problems with clients to the node's log (ClientProblemLog), or None
+        self.problems = problems
+        if problems is not None:
+            problems.install()
         self.context = foxglove.Context()
         self.channels = {}         # topic -> the SDK's channel
         self.latched = {}          # topic -> (bytes, stamp_ns) of the last latched message
@@ -92,25 +147,32 @@ class LiveView:
             self.front = SubprotocolFront(host, port, self.server.port)
         except OSError:
             self.server.stop()
+            if problems is not None:
+                problems.remove()
             raise
         self.host, self.port = host, self.front.port
 
     @classmethod
-    def open(cls, host, port, topics, log, name="sim_node", every=1):
+    def open(cls, host, port, topics, log, name="sim_node", every=1, throttle_period=2.0):
         """The live view serving `topics` ([(resolved topic, message type, latched)]) on
         host:port every `every` steps, or None after one error line on `log` (foxglove-sdk
-        not installed, the port in use, ...): the simulation goes on without it."""
+        not installed, the port in use, ...): the simulation goes on without it. Its
+        problems with clients are warnings on `log`, at most one per `throttle_period` s
+        and SDK component."""
         try:
             import foxglove   # optional dependency: requirements-live.txt
         except ImportError:
             log.error(f"live_view: foxglove-sdk is not installed; {INSTALL_HINT}. The "
                       "simulation goes on without the live view.")
             return None
+        problems = ClientProblemLog(log.warning, throttle_period)
         try:
-            live = cls(foxglove, host, port, name)
+            live = cls(foxglove, host, port, name, problems)
         except Exception as e:    # the SDK raises RuntimeError (FoxgloveError ...)
-            log.error(f"live_view: cannot serve on {host}:{port}: {e}. The simulation goes "
-                      "on without the live view (choose another live_view_port).")
+            problems.remove()
+            log.error(f"live_view: cannot serve on {host}:{port}: {cut(str(e))}. The "
+                      "simulation goes on without the live view (choose another "
+                      "live_view_port).")
             return None
         live.every = max(1, int(every))
         for topic, typ, latched in topics:
@@ -171,3 +233,6 @@ class LiveView:
             self.front.stop()
             self.server.stop()
             self.server = None
+        if self.problems is not None:
+            self.problems.remove()
+            self.problems = None

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from starleth_interface.ros_helpers import service_qos
+
 
 def _profile(depth, reliability=ReliabilityPolicy.RELIABLE,
              durability=DurabilityPolicy.VOLATILE) -> QoSProfile:
@@ -25,8 +27,7 @@ COMMAND_QOS = _profile(10)
 #: /tf
 TF_QOS = _profile(100)
 
-#: requests (and responses) a service keeps while they wait to be served
-SERVICE_QUEUE = 1000
 #: the services: requests and responses kept until served (100 callers at once are all
-#: answered; the default depth of 10 loses the rest, and callers wait forever)
-SERVICE_QOS = _profile(SERVICE_QUEUE)
+#: answered; the default depth of 10 loses the rest, and callers wait forever); their
+#: clients need the same depth (starleth_interface.ros_helpers.service_qos)
+SERVICE_QOS = service_qos()

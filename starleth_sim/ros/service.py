@@ -2,7 +2,7 @@
 stepping (:class:`SimService`). :mod:`.sim_node` is the rclpy plumbing around it."""
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 
 import numpy as np
 
@@ -397,7 +397,7 @@ class SimService:
                           "the last valid command", which)
         order = [self.joint_index[n] for n in names]
         if len(set(order)) != len(order):
-            dup = ", ".join(sorted({n for n in names if names.count(n) > 1}))
+            dup = ", ".join(sorted(n for n, c in Counter(names).items() if c > 1))
             return None, ("duplicate_joint", f"rejected joint command on {topic}: duplicate "
                           f"joint name(s) {dup}; keeping the last valid command", dup)
         if len(order) != self.n:

@@ -242,7 +242,8 @@ class SimNode:
         self.output.live = LiveView.open(
             s.live_view_host, s.live_view_port, topics, self.log,
             name=self.node.get_fully_qualified_name(),
-            every=steps_between(s.live_view_rate, self.sim.control_period) or 1)
+            every=steps_between(s.live_view_rate, self.sim.control_period) or 1,
+            throttle_period=s.warn_throttle_period)
 
     # -- callbacks -------------------------------------------------------------------------
     def _log_warning(self, message):

@@ -5,10 +5,14 @@ metadata; damaged or truncated files raise :class:`BagError` with one clear line
 ``starleth-view`` and ``starleth-demo`` read bags through :func:`stream_bag` /
 :func:`read_messages`.
 
-What the file claims never sizes an allocation: a record's length is bounded by the file's
-size, a compressed chunk is decompressed in pieces up to what its data holds (the size its
-header or its frame claims is checked, not allocated), and a message whose log or publish
-time is beyond int64 is counted as unreadable."""
+What the file claims never sizes an allocation, and what it holds is bounded before it is
+read: a record's length by the file's size and by MAX_RECORD_BYTES; a compressed chunk's
+uncompressed size (as its header declares it, and as its data decompresses, in pieces) by
+its header and by MAX_RECORD_BYTES, checked before anything is decompressed; the metadata
+and attachments kept by MAX_KEPT_BYTES in all (what is beyond is left out with a warning);
+a message whose log or publish time is beyond int64 is counted as unreadable. YAML from a
+bag is read by :func:`~starleth_sim.physics.config.load_yaml_text` (bounded in size and in
+what its aliases expand to)."""
 from __future__ import annotations
 
 import glob
@@ -34,6 +38,15 @@ MAX_TIME_NS = 2 ** 63 - 1
 #: a compressed chunk is decompressed in pieces of this size, so that what is held is what
 #: the chunk's data decompresses to, never the size its header (or the frame's) claims
 DECOMPRESS_PIECE = 1 << 20
+#: the largest record read, and the largest chunk decompressed (its declared and its actual
+#: size) [bytes]: 256 times the recorder's chunks (recording.DEFAULT_CHUNK_SIZE), more than
+#: its largest message (a heightfield's configuration, 11 MiB); a zstd chunk of 98 KB that
+#: truthfully declares 3 GiB is refused before it is decompressed
+MAX_RECORD_BYTES = 64 * 1024 * 1024
+#: the metadata and attachments kept from a bag, in all [bytes]: a bag of sim_node holds a
+#: few hundred kB of them (up to 2 x 11 MiB with a 1024 x 1024 heightfield); further ones
+#: are left out with a warning (many records of distinct names could each be kept)
+MAX_KEPT_BYTES = 64 * 1024 * 1024
 
 
 class BagError(Exception):
@@ -83,6 +96,8 @@ class BagMessages:
         self.truncated = False  # salvage: reading stopped at damage
         self.total = 0          # messages of every topic
         self.decode_errors = {}  # topic -> [count, first error]
+        self.kept_bytes = 0     # of the metadata and attachments kept (MAX_KEPT_BYTES)
+        self.left_out = []      # the names of metadata and attachments left out
 
 
 def check_mcap_file(path: str, salvage: bool = False) -> tuple:
@@ -120,7 +135,7 @@ def mcap_records(f, path: str, size: int, complete: bool, salvage: bool, state: 
     or with salvage warns (on_warning, default warn), sets state['truncated'] and stops.
     state['messages'] counts the Message records read."""
     records = iter(StreamReader(f, validate_crcs=True, emit_chunks=True,
-                                record_size_limit=size + 64).records)
+                                record_size_limit=min(size + 64, MAX_RECORD_BYTES)).records)
     state.setdefault("messages", 0)
     inner = None                  # the records of the chunk being read
     while True:
@@ -160,6 +175,10 @@ def decompress_chunk(chunk) -> bytes:
     plus one piece; mcap's own reader allocates the size the header or the compressed
     frame claims, 745 GiB for a forged one) and CRC-checked. Raises ValueError."""
     size, comp, data = chunk.uncompressed_size, chunk.compression, chunk.data
+    if size > MAX_RECORD_BYTES:
+        raise ValueError(f"{comp + '-compressed' if comp else 'uncompressed'} chunk declares "
+                         f"{size} bytes of records, more than this reader takes "
+                         f"({MAX_RECORD_BYTES >> 20} MiB)")
     if comp == "":
         out = bytes(data)
     elif comp in ("zstd", "lz4"):
@@ -279,11 +298,23 @@ def _stream_file(path: str, bag: BagMessages, on_channel, salvage: bool, on_warn
                 handle = on_channel(rec.topic, type_name,
                                     lambda: _decoder(factory, rec, schema, path, on_warning))
                 handlers[rec.id] = (rec.topic, handle)
-            elif isinstance(rec, Metadata):
-                bag.metadata.setdefault(rec.name, dict(rec.metadata))
-            elif isinstance(rec, Attachment):
-                bag.attachments.setdefault(rec.name, bytes(rec.data))
+            elif isinstance(rec, Metadata) and rec.name not in bag.metadata:
+                if _keep(bag, rec.name, sum(len(k) + len(v) for k, v in rec.metadata.items())):
+                    bag.metadata[rec.name] = dict(rec.metadata)
+            elif isinstance(rec, Attachment) and rec.name not in bag.attachments:
+                if _keep(bag, rec.name, len(rec.data)):
+                    bag.attachments[rec.name] = bytes(rec.data)
     bag.truncated |= bool(state.get("truncated"))
+
+
+def _keep(bag, name, size) -> bool:
+    """Whether a metadata record or attachment of `size` bytes fits in what is kept
+    (MAX_KEPT_BYTES); else its name is noted in bag.left_out."""
+    if bag.kept_bytes + size > MAX_KEPT_BYTES:
+        bag.left_out.append(name)
+        return False
+    bag.kept_bytes += size
+    return True
 
 
 def stream_bag(path: str, on_channel, salvage: bool = False, on_warning=None) -> BagMessages:
@@ -298,6 +329,11 @@ def stream_bag(path: str, on_channel, salvage: bool = False, on_warning=None) ->
     bag.files = bag_files(path)
     for fpath in bag.files:
         _stream_file(fpath, bag, on_channel, salvage, on_warning)
+    if bag.left_out:
+        names = ", ".join(repr(n[:60]) for n in bag.left_out[:5])
+        on_warning(f"{path}: {len(bag.left_out)} metadata record(s) or attachment(s) left out "
+                   f"({names}{', ...' if len(bag.left_out) > 5 else ''}): more than "
+                   f"{MAX_KEPT_BYTES} bytes of them in all")
     return bag
 
 

@@ -34,6 +34,8 @@ import time
 
 import numpy as np
 
+from starleth_interface.ros_helpers import service_qos
+
 from .foxglove_layout import shipped_layout_path
 from ..ros.discovery import keep_discovery_local, local_discovery_env
 from .bench_round_trips import spin_until
@@ -59,7 +61,8 @@ class _Pause:
     def __init__(self, node, ex, name):
         from std_srvs.srv import SetBool
         self.node, self.ex, self.SetBool = node, ex, SetBool
-        self.client = node.create_client(SetBool, f"/{name}/sim_node/pause")
+        self.client = node.create_client(SetBool, f"/{name}/sim_node/pause",
+                                         qos_profile=service_qos())
         if not spin_until(ex, self.client.service_is_ready, 180):
             raise RuntimeError(f"bench_live: /{name}/sim_node/pause did not appear")
 

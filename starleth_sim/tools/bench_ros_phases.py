@@ -9,6 +9,8 @@ import time
 
 import numpy as np
 
+from starleth_interface.ros_helpers import service_qos
+
 from .bench_controllers import EchoController
 from .bench_loop_figures import bare_figures, lockstep_figures, process_cpu_ns
 from .bench_round_trips import PingPong, spin_until
@@ -17,7 +19,7 @@ from .bench_round_trips import PingPong, spin_until
 def _pause_client(node, ex):
     """sim_node's ~/pause service (std_srvs/SetBool), once it is up (2 min at most)."""
     from std_srvs.srv import SetBool
-    pause = node.create_client(SetBool, "/sim_node/pause")
+    pause = node.create_client(SetBool, "/sim_node/pause", qos_profile=service_qos())
     if not spin_until(ex, pause.service_is_ready, 120):
         raise RuntimeError("bench: sim_node's ~/pause service did not appear")
     return pause

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from starleth_interface.compile_notice import Deadline
+from starleth_interface.ros_helpers import service_qos
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
                                        TOPIC_SOLVER, resolve)
 
@@ -265,8 +266,8 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
         node.create_subscription(Clock, "/clock", on_clock,
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         cmd_pub = node.create_publisher(Twist, "/cmd_vel", QoSProfile(depth=10))
-        trot_cli = node.create_client(SetBool, "/controller_node/trot")
-        pause_cli = node.create_client(SetBool, "/sim_node/pause")
+        trot_cli = node.create_client(SetBool, "/controller_node/trot", qos_profile=service_qos())
+        pause_cli = node.create_client(SetBool, "/sim_node/pause", qos_profile=service_qos())
 
         # both nodes up (in any order: sim_node re-sends its first state until the
         # controller answers it), then the first steps on /clock; the time-out counts

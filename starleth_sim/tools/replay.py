@@ -37,6 +37,11 @@ robot follows the torques of a state it is no longer in: the runs diverge (the r
 fall); the output says from when (base more than ``--diverge-position`` from the recorded
 path, or a joint more than ``--diverge-angle`` from its recorded angle).
 
+A recording its recorder closed after a failure (a file-size limit, a full disk, its writer
+process killed: the bag's ``starleth_recording_fault`` metadata), or a truncated one read
+with ``--salvage``, ends within the messages of its last step: its complete steps are
+replayed, and a warning says how many states were left out and why.
+
 A bag without the metadata (not recorded by sim_node), a truncated or damaged one
 (``--salvage`` reads up to the damage), one whose joint states skip steps, or whose
 metadata or messages are not what sim_node writes (a control period that is not a positive
@@ -189,7 +194,7 @@ def run(argv=None) -> int:
     print(f"replay with the recorded configuration ({rep.wall:.2f} s):")
     for line in format_comparison(rec, rep, c):
         print(line)
-    doc = {"bag": a.bag, "steps": rec.steps, "config": rec_cfg.name,
+    doc = {"bag": a.bag, "steps": rec.steps, "recording_cut": rec.cut, "config": rec_cfg.name,
            "package_version": rec.package_version,
            "bit_identical": c.identical, "first_difference_step": c.first_step,
            "first_difference": c.first_quantities, "max_abs_difference": c.max_abs,

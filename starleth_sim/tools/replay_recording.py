@@ -10,9 +10,8 @@ import sys
 from dataclasses import dataclass, field
 
 import numpy as np
-import yaml
 
-from ..physics.config import PhysicsConfig
+from ..physics.config import PhysicsConfig, load_yaml_text
 from ..physics.description import LEGS
 from ..ros.parameters import frame_name_problem
 from .bag import BagError, read_messages
@@ -59,6 +58,8 @@ class Recording:
     #: sim_node's tf_frame_prefix: a wrench's frame may name its link with it
     frame_prefix: str = ""
     summary: dict = field(default_factory=dict)    # sim_node's closing summary, if any
+    #: why the recording ends early (cut_cause: a failed write, a truncated file), or None
+    cut: str | None = None
 
     @property
     def steps(self) -> int:
@@ -66,7 +67,7 @@ class Recording:
 
     def config(self):
         what = f"{self.path}: physics_config"
-        return PhysicsConfig.from_dict(bounded_yaml(self.config_yaml, what), source=what)
+        return PhysicsConfig.from_dict(load_yaml_text(self.config_yaml, what), source=what)
 
 
 def shortened(text: str, n: int = 300) -> str:
@@ -77,31 +78,6 @@ def shortened(text: str, n: int = 300) -> str:
 def _short(value, n=60) -> str:
     """repr(value), cut to about n characters."""
     return shortened(repr(value), n)
-
-
-def bounded_yaml(text: str, what: str):
-    """YAML text from a bag, loaded; a ReplayError where it is not YAML or where its aliases
-    expand it beyond its size (a few hundred bytes of nested aliases make a billion-element
-    list, which the configuration's checks would then walk)."""
-    try:
-        data = yaml.safe_load(text)
-    except (yaml.YAMLError, RecursionError, ValueError) as e:
-        raise ReplayError(f"{what}: not valid YAML ({type(e).__name__}: "
-                          f"{shortened(str(e), 200)})") from None
-    budget = 2 * len(text) + 16          # nodes: fewer than characters without aliases
-    stack = [data]
-    while stack:
-        x = stack.pop()
-        budget -= 1
-        if budget < 0:
-            raise ReplayError(f"{what}: its YAML aliases expand it far beyond its "
-                              f"{len(text)} characters")
-        if isinstance(x, dict):
-            stack.extend(x.keys())
-            stack.extend(x.values())
-        elif isinstance(x, (list, tuple)):
-            stack.extend(x)
-    return data
 
 
 def _json(md, key, path):
@@ -123,6 +99,110 @@ def _metadata(bag, path):
                           "(record:=...), so its physics configuration and initial state "
                           "are unknown")
     return md
+
+
+def _topics(md, probe):
+    """The namespace, the state topics {joints, base, foot: topic}, the wrench input topics
+    {topic: persistent} and the applied torque topic (or None) of a recording."""
+    ns = md.get("namespace", "")
+    ns = "" if ns in ("", "/") else ns
+    topics = {
+        "joints": md.get("joint_states_topic") or resolve("joint_states", ns),
+        "base": md.get("base_state_topic") or resolve("starleth/base_state", ns),
+        **{f: resolve(foot_wrench_topic(f"{f}_foot"), ns) for f in FEET}}
+    wrench_topics = {md.get("wrench_topic"): False, md.get("wrench_persistent_topic"): True}
+    wrench_topics.pop(None, None)
+    if not wrench_topics:   # bags of before the topic names were recorded
+        for t in probe.types:
+            if t.endswith("/wrench/persistent"):
+                wrench_topics[t] = True
+            elif t.endswith("/wrench") and "/starleth/" not in t:
+                wrench_topics[t] = False
+    return ns, topics, wrench_topics, md.get("applied_torque_topic")
+
+
+def _control_period(md, path):
+    """(control period [s], stamp period [ns]) of the metadata; ReplayError where they are
+    not positive numbers."""
+    try:
+        control_period = float(md["control_period"])
+        period_ns = int(md.get("stamp_period_ns") or round(control_period * 1e9))
+    except (ValueError, TypeError, OverflowError):
+        period_ns, control_period = 0, math.nan
+    if period_ns <= 0 or not (math.isfinite(control_period) and control_period > 0):
+        raise ReplayError(f"{path}: the recorded control period is not a positive number "
+                          f"(control_period {_short(md['control_period'])}, stamp_period_ns "
+                          f"{_short(md.get('stamp_period_ns'))})")
+    return control_period, period_ns
+
+
+def _by_step(rows_, period_ns, path, topic, what):
+    """{step k: message} of the messages of `topic` (header stamp k * period_ns); a
+    ReplayError where a stamp is not on the grid or a step is missing between others."""
+    rows = {}
+    for _, m in rows_:
+        s = m.header.stamp
+        ns_ = s.sec * 1_000_000_000 + s.nanosec
+        k, r = divmod(ns_, period_ns)
+        if r:
+            raise ReplayError(f"{path}: {topic}: stamp {ns_} ns is not a multiple of the "
+                              f"control period ({period_ns} ns)")
+        rows.setdefault(k, m)       # a re-sent state has the same stamp and values
+    if not rows:
+        return rows
+    ks = sorted(rows)
+    if ks[0] != 0 or ks[-1] != len(ks) - 1:
+        gap = next((a + 1 for a, b in zip([-1] + ks, ks) if b != a + 1), ks[-1])
+        raise ReplayError(f"{path}: {what} of step {gap} (t = {gap * period_ns * 1e-9:.4f} s) "
+                          "is missing from the recording: cannot replay it")
+    return rows
+
+
+def cut_cause(bag) -> str | None:
+    """Why a recording ends early, or None: the fault its recorder wrote when a write
+    failed (a file-size limit, a full disk) or when its writer process ended (the
+    'starleth_recording_fault' metadata: recording.mcap_sink), or a truncated file read
+    with --salvage."""
+    fault = bag.metadata.get("starleth_recording_fault")
+    if fault is not None:
+        return shortened(str(fault.get("cause", "a write failed")), 200)
+    return "the file is truncated" if bag.truncated else None
+
+
+def _complete_states(path, states, applied_steps, cut, period_ns):
+    """The states to replay, of `states` ({what: states recorded}, each 0..count - 1) and
+    `applied_steps` (the first step k without an applied torque for k - 1 -> k, or None
+    without the topic): the fewest of them. A recording cut by a failure (`cut`) ends
+    within a step's messages, which come one topic after another: its last states may lack
+    some; they are left out, and a warning says how many and why. A complete recording
+    whose joint and base states differ in number is compared over the first ones."""
+    counts = dict(states)
+    if cut is not None and applied_steps is not None:
+        counts["applied torques"] = applied_steps
+    n = min(counts.values())
+    if cut is not None:
+        left = max(counts.values()) - n
+        short = ", ".join(what for what, c in counts.items() if c == n)
+        warn(f"{path}: the recording was cut ({cut}): replaying its {max(n - 1, 0)} complete "
+             f"steps" + (f"; left out the last {left} state(s) (from t = "
+                         f"{n * period_ns * 1e-9:.4f} s: no {short} for them)" if left else ""))
+    elif states["joint states"] != states["base states"]:
+        warn(f"{path}: {states['joint states']} joint states but {states['base states']} "
+             f"base states; comparing the first {n}")
+    if n < 2:
+        raise ReplayError(f"{path}: fewer than two recorded states: nothing to replay")
+    return n
+
+
+def _first_missing_step(rows, period_ns):
+    """The first step k >= 1 without a message of log time t_k in rows (None: no rows)."""
+    if not rows:
+        return None
+    have = {int(log_ns) // period_ns for log_ns, _ in rows}
+    k = 1
+    while k in have:
+        k += 1
+    return k
 
 
 def _frame_prefix(md, path) -> str:
@@ -148,67 +228,56 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     # it is refused before its messages are decoded
     probe = read_messages(path, lambda t, ty: False, salvage=salvage, on_warning=warn)
     md = _metadata(probe, path)
-    ns = md.get("namespace", "")
-    ns = "" if ns in ("", "/") else ns
-    topics = {
-        "joints": md.get("joint_states_topic") or resolve("joint_states", ns),
-        "base": md.get("base_state_topic") or resolve("starleth/base_state", ns),
-        **{f: resolve(foot_wrench_topic(f"{f}_foot"), ns) for f in FEET}}
-    wrench_topics = {md.get("wrench_topic"): False, md.get("wrench_persistent_topic"): True}
-    wrench_topics.pop(None, None)
-    if not wrench_topics:   # bags of before the topic names were recorded
-        for t in probe.types:
-            if t.endswith("/wrench/persistent"):
-                wrench_topics[t] = True
-            elif t.endswith("/wrench") and "/starleth/" not in t:
-                wrench_topics[t] = False
-    applied_topic = md.get("applied_torque_topic")
+    ns, topics, wrench_topics, applied_topic = _topics(md, probe)
     wanted = set(topics.values()) | set(wrench_topics) | {applied_topic}
     bag = read_messages(path, lambda t, ty: t in wanted, salvage=salvage, on_warning=warn)
     for key in ("joints", "base"):
         if not bag.messages.get(topics[key]):
             raise ReplayError(f"{path}: no messages on {topics[key]}: nothing to replay")
-    try:
-        control_period = float(md["control_period"])
-        period_ns = int(md.get("stamp_period_ns") or round(control_period * 1e9))
-    except (ValueError, TypeError, OverflowError):
-        period_ns, control_period = 0, math.nan
-    if period_ns <= 0 or not (math.isfinite(control_period) and control_period > 0):
-        raise ReplayError(f"{path}: the recorded control period is not a positive number "
-                          f"(control_period {_short(md['control_period'])}, stamp_period_ns "
-                          f"{_short(md.get('stamp_period_ns'))})")
+    control_period, period_ns = _control_period(md, path)
     joint_names = _json(md, "joint_names", path)
     if not (isinstance(joint_names, list) and all(isinstance(n, str) for n in joint_names)):
         raise ReplayError(f"{path}: the recorded joint_names is not a list of names "
                           f"({_short(md['joint_names'])})")
+    rows = {key: _by_step(bag.messages.get(topic, ()), period_ns, path, topic, what)
+            for key, topic, what in (
+                ("joints", topics["joints"], "/joint_states"),
+                ("base", topics["base"], "the base state"),
+                *((f, topics[f], f"the {f} foot wrench") for f in FEET))}
+    cut = cut_cause(bag)
+    counted = {"joint states": len(rows["joints"]), "base states": len(rows["base"])}
+    if cut is not None:
+        counted.update({f"{f} foot wrenches": len(rows[f]) for f in FEET if rows[f]})
+    applied_rows = bag.messages.get(applied_topic, ())
+    n = _complete_states(path, counted, _first_missing_step(applied_rows, period_ns), cut,
+                         period_ns)
+    states, effort = _states(path, rows, n, joint_names)
+    applied, replay = _applied_torques(applied_rows, period_ns, n, len(joint_names), path,
+                                       applied_topic)
+    summary = {}
+    for k, val in bag.metadata.get("starleth_sim_summary", {}).items():
+        try:
+            summary[k] = json.loads(val)
+        except (ValueError, RecursionError):
+            summary[k] = val
+    initial = _json(md, "initial_state", path)
+    if not isinstance(initial, dict):
+        raise ReplayError(f"{path}: the recorded initial_state is not a JSON object "
+                          f"({_short(md['initial_state'])})")
+    return Recording(path=path, config_yaml=md["physics_config"], initial=initial,
+                     joint_names=joint_names, control_period=control_period,
+                     period_ns=period_ns, namespace=ns,
+                     package_version=md.get("package_version", "unknown"), states=states,
+                     effort=effort, applied=applied, replay=replay,
+                     wrenches=_wrenches(bag, wrench_topics, period_ns), summary=summary,
+                     cut=cut, frame_prefix=_frame_prefix(md, path))
 
-    def by_step(topic, what):
-        rows = {}
-        for _, m in bag.messages.get(topic, ()):
-            s = m.header.stamp
-            ns_ = s.sec * 1_000_000_000 + s.nanosec
-            k, r = divmod(ns_, period_ns)
-            if r:
-                raise ReplayError(f"{path}: {topic}: stamp {ns_} ns is not a multiple of the "
-                                  f"control period ({period_ns} ns)")
-            rows.setdefault(k, m)       # a re-sent state has the same stamp and values
-        if not rows:
-            return rows
-        ks = sorted(rows)
-        if ks[0] != 0 or ks[-1] != len(ks) - 1:
-            gap = next((a + 1 for a, b in zip([-1] + ks, ks) if b != a + 1), ks[-1])
-            raise ReplayError(f"{path}: {what} of step {gap} (t = {gap * period_ns * 1e-9:.4f} s) "
-                              "is missing from the recording: cannot replay it")
-        return rows
 
-    js = by_step(topics["joints"], "/joint_states")
-    base = by_step(topics["base"], "the base state")
-    n = min(len(js), len(base))
-    if len(js) != len(base):
-        warn(f"{path}: {len(js)} joint states but {len(base)} base states; comparing the "
-             f"first {n}")
-    if n < 2:
-        raise ReplayError(f"{path}: fewer than two recorded states: nothing to replay")
+def _states(path, rows, n, joint_names):
+    """(the recorded states {quantity: (n, width)}, the /joint_states effort (n, joints)) of
+    the first n steps of `rows` ({joints, base, foot: {k: message}}); ReplayError where the
+    joint states do not fit the joints or hold a torque that is not finite."""
+    js, base = rows["joints"], rows["base"]
     names = list(js[0].name)
     if names != joint_names:
         raise ReplayError(f"{path}: /joint_states names {_short(names, 400)} differ from the "
@@ -242,14 +311,17 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
                   base_linear_velocity=np.array(v), base_angular_velocity=np.array(w))
     forces = np.full((n, 3 * len(FEET)), np.nan)
     for i, f in enumerate(FEET):
-        rows = by_step(topics[f], f"the {f} foot wrench")
-        for k, m in rows.items():
+        for k, m in rows[f].items():
             if k < n:
                 fm = m.wrench.force
                 forces[k, 3 * i:3 * i + 3] = (fm.x, fm.y, fm.z)
     states["foot_forces"] = forces
-    applied, replay = _applied_torques(bag.messages.get(applied_topic, ()), period_ns, n,
-                                       len(joint_names), path, applied_topic)
+    return states, effort
+
+
+def _wrenches(bag, wrench_topics, period_ns):
+    """{k: [(link, force, torque, persistent)]}: the external wrenches taken after state k,
+    in the order they were taken."""
     wrenches = {}
     for topic, persistent in wrench_topics.items():
         for log_ns, m in bag.messages.get(topic, ()):
@@ -259,24 +331,7 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
                 (log_ns, m.header.frame_id, (f.x, f.y, f.z), (t.x, t.y, t.z), persistent))
     for k in wrenches:   # in the order they were taken
         wrenches[k] = [w_[1:] for w_ in sorted(wrenches[k], key=lambda x: x[0])]
-    summary = {}
-    for k, val in bag.metadata.get("starleth_sim_summary", {}).items():
-        try:
-            summary[k] = json.loads(val)
-        except (ValueError, RecursionError):
-            summary[k] = val
-    initial = _json(md, "initial_state", path)
-    if not isinstance(initial, dict):
-        raise ReplayError(f"{path}: the recorded initial_state is not a JSON object "
-                          f"({_short(md['initial_state'])})")
-    if bag.truncated:
-        warn(f"{path}: truncated: replaying the {n - 1} steps before the damage")
-    return Recording(path=path, config_yaml=md["physics_config"], initial=initial,
-                     joint_names=joint_names, control_period=control_period,
-                     period_ns=period_ns, namespace=ns,
-                     package_version=md.get("package_version", "unknown"), states=states,
-                     effort=effort, applied=applied, replay=replay, wrenches=wrenches,
-                     summary=summary, frame_prefix=_frame_prefix(md, path))
+    return wrenches
 
 
 def _applied_torques(rows, period_ns, n, n_joints, path, topic):

@@ -11,9 +11,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
-import yaml
 
-from ..physics.config_checks import ConfigError
+from ..physics.config import ConfigError, load_yaml_text
 from ..physics.description import LEGS, urdf_path
 from ..physics.terrain import TerrainConfig
 from ..ros.tf import base_link
@@ -192,12 +191,18 @@ def _urdf_from_bag(bag, topics: dict, path: str):
         return f.read(), "package urdf/starleth.urdf (none in the bag)"
 
 
+def _recorded_config(bag, path):
+    """The recording's physics configuration (sim_node's 'starleth_sim' metadata) as YAML
+    data (load_yaml_text: bounded), or None; ConfigError where it cannot be read."""
+    text = bag.metadata.get("starleth_sim", {}).get("physics_config")
+    return load_yaml_text(text, f"{path}: physics_config") if text else None
+
+
 def _ground_from_metadata(bag):
     """(height, unit normal) of the ground from the recording's physics configuration
     (sim_node's 'starleth_sim' metadata), else the default flat ground z = 0."""
-    text = bag.metadata.get("starleth_sim", {}).get("physics_config")
     try:
-        ground = (yaml.safe_load(text) or {}).get("ground", {}) if text else {}
+        ground = (_recorded_config(bag, "") or {}).get("ground", {})
         normal = ground.get("normal", (0.0, 0.0, 1.0))
         # three numbers, checked before numpy walks it (YAML aliases can nest a list
         # a billion elements deep in a few hundred bytes)
@@ -208,8 +213,7 @@ def _ground_from_metadata(bag):
         h = float(ground.get("height", 0.0))
         if np.linalg.norm(n) < 1e-9 or not np.all(np.isfinite(n)) or not math.isfinite(h):
             raise ValueError("bad ground")
-    except (ValueError, TypeError, AttributeError, OverflowError, RecursionError,
-            yaml.YAMLError):
+    except (ValueError, TypeError, AttributeError, OverflowError, RecursionError):
         return 0.0, (0.0, 0.0, 1.0)
     n = n / np.linalg.norm(n)
     return h, tuple(float(x) for x in n)
@@ -218,10 +222,10 @@ def _ground_from_metadata(bag):
 def terrain_from_metadata(bag, path):
     """The recording's terrain (its physics configuration's `terrain` section, validated),
     or None: none recorded, or one that is not valid (with a warning: not drawn)."""
-    text = bag.metadata.get("starleth_sim", {}).get("physics_config")
     try:
-        data = yaml.safe_load(text) if text else None
-    except (yaml.YAMLError, RecursionError):
+        data = _recorded_config(bag, path)
+    except ConfigError as e:
+        warn(f"{e}; no terrain drawn")
         return None
     section = data.get("terrain") if isinstance(data, dict) else None
     if not section:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 
 from .interface import StorageOptions
-from .mcap_sink import RecordingError
+from .mcap_sink import RecordingError, failure_cause
 from .mcap_writer import McapRecorder
 from .process_writer import ProcessRecorder
 from .queued_writer import QueuedRecorder
@@ -41,5 +41,5 @@ def open_recorder(options: StorageOptions, *, on_failure=None, warn=None):
     try:
         file_recorder = open_file_recorder(options)
     except OSError as e:
-        raise RecordingError(f"{options.uri}: {e.strerror or e}") from None
+        raise RecordingError(f"{options.uri}: {failure_cause(e, options.uri)}") from None
     return QueuedRecorder(file_recorder, on_failure=on_failure)

@@ -21,7 +21,9 @@ the tools read it with ``--salvage``.
 """
 from __future__ import annotations
 
+import errno
 import os
+import resource
 import struct
 
 from mcap.opcode import Opcode
@@ -36,11 +38,56 @@ class RecordingError(OSError):
     message names the file, the cause and how to read what was written."""
 
 
-def failure_cause(error) -> str:
-    """An OSError as the cause of a failed recording: '[Errno 28] No space left on device'."""
-    if isinstance(error, OSError) and error.errno is not None:
-        return f"[Errno {error.errno}] {error.strerror}"
-    return str(error) or type(error).__name__
+def failure_cause(error, path: str | None = None) -> str:
+    """An OSError as the cause of a failed recording, with what a user can do about it where
+    it is known (`path`: the file or bag directory written): '[Errno 28] No space left on
+    device: no space left where it is written (/data): free some or record elsewhere',
+    '[Errno 17] File exists: /home/me/runs is a file, not a directory'."""
+    if not (isinstance(error, OSError) and error.errno is not None):
+        return str(error) or type(error).__name__
+    cause = f"[Errno {error.errno}] {error.strerror}"
+    hint = _hint(error.errno, path) if path else None
+    return f"{cause}: {hint}" if hint else cause
+
+
+def _hint(err: int, path: str) -> str | None:
+    """What stops writing `path`, in a user's words, for the errno `err` (None: no more
+    to say than its text)."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if err in (errno.ENOTDIR, errno.EEXIST):
+        blocker = _file_in_the_way(path)
+        return None if blocker is None else f"{blocker} is a file, not a directory"
+    if err in (errno.EACCES, errno.EPERM):
+        missing = folder
+        while not os.path.exists(missing) and os.path.dirname(missing) != missing:
+            missing = os.path.dirname(missing)
+        return f"{missing} is not writable"
+    if err == errno.ENOENT:
+        return f"no file can be made in {folder}" if os.path.isdir(folder) else \
+            f"{folder} does not exist and cannot be made"
+    return {errno.ENOSPC: f"no space left where it is written ({folder}): free some or "
+                          "record elsewhere",
+            errno.EDQUOT: f"the disk quota where it is written ({folder}) is used up",
+            errno.EROFS: f"{folder} is on a read-only file system",
+            errno.EFBIG: "the file reached the file-size limit of this process (ulimit -f: "
+                         f"{_file_size_limit()})",
+            errno.EISDIR: f"{path} is a directory",
+            errno.EIO: "the disk reported an I/O error"}.get(err)
+
+
+def _file_in_the_way(path: str) -> str | None:
+    """The first of path's folders that is a file (makedirs then fails), or None."""
+    parts = os.path.abspath(path).split(os.sep)
+    for i in range(2, len(parts)):
+        head = os.sep.join(parts[:i])
+        if os.path.exists(head) and not os.path.isdir(head):
+            return head
+    return None
+
+
+def _file_size_limit() -> str:
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return "unlimited" if soft == resource.RLIM_INFINITY else f"{soft} bytes"
 
 
 class FileSink:

@@ -74,20 +74,22 @@ class McapRecorder(Recorder):
         if compression not in comp:
             raise ValueError(f"compression must be one of {sorted(comp)}, got {compression!r}")
         self.path = str(path)
-        d = os.path.dirname(os.path.abspath(self.path))
-        os.makedirs(d, exist_ok=True)
+        try:
+            os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+            self._file = FileSink(self.path)
+        except OSError as e:
+            raise RecordingError(f"{self.path}: {failure_cause(e, self.path)}") from None
         self.failure = None            # why the recording stopped early (RecordingError)
         self.messages_on_disk = 0      # messages in chunks that reached the file
         self.dropped = 0               # none: a write is in the file's buffers or raises
         self.close_note = ""
         self._disk_counts = {}         # topic -> messages in chunks that reached the file
-        self._file = FileSink(self.path)
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp[compression])
         try:
             self._writer.start(profile="ros2", library=library)
         except OSError as e:
             self._file.close()
-            raise RecordingError(f"{self.path}: {failure_cause(e)}") from None
+            raise RecordingError(f"{self.path}: {failure_cause(e, self.path)}") from None
         self._compression = "" if compression == "none" else compression
         self._lock = threading.Lock()
         self._schemas: dict[str, int] = {}
@@ -243,7 +245,7 @@ class McapRecorder(Recorder):
         (data_end: the end of the data section, when the failure came after it), mark the
         recorder failed and closed, raise RecordingError (the caller holds the lock)."""
         self._closed = True
-        cause = failure_cause(error)
+        cause = failure_cause(error, self.path)
         end = self._file.good_end if data_end is None else data_end
         complete = close_damaged(self._file.fd, end, {"cause": cause,
                                                        "messages": str(self.messages_on_disk)})

@@ -92,7 +92,8 @@ def main():
             return
         except Exception as e:
             if op == "open" and isinstance(e, OSError):   # one line: file and cause
-                e = RecordingError(f"{args[0].uri}: {failure_cause(e)}" if e.errno is not None
+                e = RecordingError(f"{args[0].uri}: {failure_cause(e, args[0].uri)}"
+                                   if e.errno is not None
                                    else str(e))           # (a message naming the file)
             answer(False, e)
     if rec is not None:
