@@ -203,7 +203,7 @@ def test_a_client_offering_either_subprotocol_name_is_served(subprotocol):
         def info(self, m):
             self.line = m
 
-        error = info
+        error = warning = info
 
     log = Log()
     live = LiveView.open("127.0.0.1", free_port(), [("/chatter", "std_msgs/msg/String", False)],
