@@ -89,8 +89,10 @@ class GroundSearch:
             return t0
         c = (t - t0) / p.gait_period - np.asarray(phase_offsets)
         cycle = np.floor(c)
-        ends = self.in_swing & ((cycle > swing_cycle) | (c - cycle >= 1.0 - p.duty_factor))
-        wait = ends & ~np.asarray(grounded)
+        ends = (cycle > swing_cycle) | (c - cycle >= 1.0 - p.duty_factor)
+        # a waiting leg waits on whatever the round-off of the held clock (t − t₀ at the
+        # swing's end, or a hair before it)
+        wait = self.in_swing & (ends | self.waiting) & ~np.asarray(grounded)
         for k in np.flatnonzero(wait):
             if not self.waiting[k]:                # its swing has just ended: a new search
                 if self.held_swing[k] == swing_cycle[k]:
