@@ -412,7 +412,7 @@ class StarlethController:
         if offsets[1] != key:      # the array made again only when the parameter changed
             offsets = self._phase_offsets = (np.array(key, dtype=float), key)
         # a swing ending without ground contact holds the clock (step_down.py)
-        self._t0 = self._search.hold_clock(p, trotting, x.t, x.dt, self._t0, offsets[0],
+        self._t0 = self._search.hold_clock(p, trotting, x.t, x.dt, self._t0, key,
                                            self._swing_cycle, x.grounded, self._contact[:, 2],
                                            self._foothold_z)
         ns, lift = K.leg_states(bool(trotting), x.t, self._t0, p.gait_period, offsets[0],
@@ -489,7 +489,7 @@ class StarlethController:
         cy, sy = x.cy, x.sy
         # while the gait waits for a foot searching the ground, the trunk waits too: held over
         # its support feet (stand gains, no velocity command), the velocity integral kept
-        walking = trotting and not self._search.waiting.any()
+        walking = trotting and not self._search.holding
         kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = \
             self._gains_trot if walking else self._gains_stand
         ns = len(support)

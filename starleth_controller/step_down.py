@@ -59,18 +59,21 @@ class GroundSearch:
     (t − t₀), `mark_waiting` right after, `targets` once the ground estimate is current."""
 
     def __init__(self):
-        self.waiting = np.zeros(4, dtype=bool)     # legs the gait clock waits for
-        self.in_swing = np.zeros(4, dtype=bool)    # planned swing at the last call
-        self.held_swing = np.full(4, -2)           # the swing (cycle) the clock last waited for
-        self.since = np.full(4, np.nan)            # each search's start [s]
-        self.expected_z = np.zeros(4)              # the ground height it expects [m]
-        self.offset = np.zeros(4)                  # its start below that height [m]
+        # per leg, Python lists (read on every trotting call: cheaper than numpy items)
+        self.waiting = [False] * 4                 # legs the gait clock waits for
+        self.holding = False                       # ... any
+        self.in_swing = [False] * 4                # planned swing at the last call
+        self.held_swing = [-2] * 4                 # the swing (cycle) the clock last waited for
+        self.since = [math.nan] * 4                # each search's start [s]
+        self.expected_z = [0.0] * 4                # the ground height it expects [m]
+        self.offset = [0.0] * 4                    # its start below that height [m]
 
     def reset(self):
-        self.waiting[:] = False
-        self.in_swing[:] = False
-        self.held_swing[:] = -2
-        self.since[:] = np.nan
+        self.holding = False
+        self.waiting = [False] * 4
+        self.in_swing = [False] * 4
+        self.held_swing = [-2] * 4
+        self.since = [math.nan] * 4
 
     # -- the gait's wait ---------------------------------------------------------------------
     def hold_clock(self, p, trotting, t, dt, t0, phase_offsets, swing_cycle, grounded,
@@ -79,31 +82,34 @@ class GroundSearch:
         last call) while a leg whose planned swing the clock would now end has no contact
         and has not searched as deep as it may (`_searched`), once per swing (a foot that
         touches and loses its contact again searches while the gait goes on); contact_z:
-        the feet's contact points' heights, foothold_z: the heights their swings
-        expected."""
+        the feet's contact points' heights, foothold_z: the heights their swings expected.
+        Scalar code: it runs on every trotting call, on four legs."""
         if not trotting:
-            self.waiting[:] = False
-            self.held_swing[:] = -2
+            if self.holding or self.held_swing != [-2] * 4:
+                self.reset()
             return t0
         if dt <= 0.0:
             return t0
-        c = (t - t0) / p.gait_period - np.asarray(phase_offsets)
-        cycle = np.floor(c)
-        ends = (cycle > swing_cycle) | (c - cycle >= 1.0 - p.duty_factor)
-        # a waiting leg waits on whatever the round-off of the held clock (t − t₀ at the
-        # swing's end, or a hair before it)
-        wait = self.in_swing & (ends | self.waiting) & ~np.asarray(grounded)
-        for k in np.flatnonzero(wait):
-            if not self.waiting[k]:                # its swing has just ended: a new search
-                if self.held_swing[k] == swing_cycle[k]:
-                    wait[k] = False                # the clock waited for this swing once
-                    continue
-                self.held_swing[k] = swing_cycle[k]
-                self._begin(k, t, foothold_z[k], contact_z[k], p.touchdown_depth)
-            elif self._searched(p, k, t, contact_z[k]):
-                wait[k] = False                    # as deep as it may: the gait goes on
-        self.waiting[:] = wait
-        return t0 + dt if wait.any() else t0
+        period, stance = p.gait_period, 1.0 - p.duty_factor
+        self.holding = False
+        for k in range(4):
+            waits = self.in_swing[k] and not grounded[k]
+            if waits and not self.waiting[k]:
+                c = (t - t0) / period - phase_offsets[k]
+                cycle = math.floor(c)
+                # the swing ends now: a new search, unless the clock waited for it once
+                waits = (cycle > swing_cycle[k] or c - cycle >= stance) and \
+                    self.held_swing[k] != swing_cycle[k]
+                if waits:
+                    self.held_swing[k] = swing_cycle[k]
+                    self._begin(k, t, foothold_z[k], contact_z[k], p.touchdown_depth)
+            elif waits:
+                # waiting (whatever the round-off of the held clock: t − t₀ at the swing's
+                # end or a hair before it), until searched as deep as it may
+                waits = not self._searched(p, k, t, contact_z[k])
+            self.waiting[k] = waits
+            self.holding |= waits
+        return t0 + dt if self.holding else t0
 
     def _searched(self, p, k, t, contact_z):
         """Leg k has searched as deep as it may: its contact point within REACHED of
@@ -117,11 +123,13 @@ class GroundSearch:
         """After the legs' states are taken from the clock: which legs are in a planned swing
         (for the next call), and the legs the clock waits for (in their swing by the held
         clock) searching: LOST_CONTACT, outside the swing, lost since their swing's end."""
-        np.less(swing_phase, 1.0, out=self.in_swing)
-        for k in np.flatnonzero(self.waiting):
-            states[k] = _LOST_CONTACT
-            swing_phase[k] = 1.0
-            lost_since[k] = self.since[k]
+        self.in_swing = (swing_phase < 1.0).tolist()
+        if self.holding:
+            for k in range(4):
+                if self.waiting[k]:
+                    states[k] = _LOST_CONTACT
+                    swing_phase[k] = 1.0
+                    lost_since[k] = self.since[k]
 
     # -- the searching feet --------------------------------------------------------------------
     def _begin(self, k, t, expected_z, contact_z, touchdown_depth):

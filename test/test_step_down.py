@@ -82,11 +82,11 @@ def test_the_gait_waits_for_a_foot_that_finds_no_ground():
     assert g.run_to(half - DT, swing_pair) == [SWING, SUPPORT, SUPPORT, SWING]
     states = g.run_to(half + 0.06, [False, True, True, True])       # RH lands, LF does not
     assert states == [LOST_CONTACT, SUPPORT, SUPPORT, SUPPORT]
-    assert g.search.waiting.tolist() == [True, False, False, False]
+    assert g.search.waiting == [True, False, False, False]
     assert g.lost_since[0] == pytest.approx(half, abs=DT)
     assert g.t0 == pytest.approx(0.06 + DT, abs=1e-9)              # the clock stood still
     states = g.step([True, True, True, True])                      # LF finds the ground
-    assert not g.search.waiting.any()
+    assert not g.search.holding
     assert states == [SUPPORT, SWING, SWING, SUPPORT]              # and the trot goes on
     assert g.t0 == pytest.approx(0.06 + DT, abs=1e-9)
 
@@ -114,7 +114,7 @@ def test_the_gait_waits_once_per_swing_and_at_most_the_search_time():
     assert g.search.waiting[0]
     g.step([True, True, True, True])                     # ... touches ...
     g.step([False, True, True, True])                    # ... and loses it again
-    assert not g.search.waiting.any() and g.states[0] == LOST_CONTACT
+    assert not g.search.holding and g.states[0] == LOST_CONTACT
     assert g.states[1] == SWING
 
     g = Gait(p)
@@ -122,7 +122,7 @@ def test_the_gait_waits_once_per_swing_and_at_most_the_search_time():
     g.contact_z[0] = -p.step_down_depth + REACHED        # foothold_z 0: searched
     g.step([False, True, True, True])
     g.step([False, True, True, True])
-    assert not g.search.waiting.any() and g.states[1] == SWING
+    assert not g.search.holding and g.states[1] == SWING
 
 
 def test_standing_or_on_flat_ground_the_clock_never_waits():
@@ -135,7 +135,7 @@ def test_standing_or_on_flat_ground_the_clock_never_waits():
     for _ in range(int(2 * p.gait_period / DT)):
         swing = g.phase < 1.0
         g.step(~swing | (g.phase > 0.9))                 # each foot lands late in its swing
-        assert not g.search.waiting.any()
+        assert not g.search.holding
     assert g.t0 == 0.0
 
 
