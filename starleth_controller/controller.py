@@ -3,7 +3,8 @@
 
 No ROS: ``StarlethController.update(state, command) -> 12 joint torques``; the per-call
 arithmetic of the steps below runs in numba kernels (kernels.py) that keep the order of
-operations of the formulas written here (results bit for bit those of plain Python).
+operations of the formulas written here (results bit for bit those of plain Python); the
+search for the ground of a foot without contact is plain Python (step_down.py).
 
 Structure (one call = one control period):
 
@@ -13,9 +14,12 @@ Structure (one call = one control period):
 2. Gait pattern (trot): a clock with period T; diagonal pairs LF+RH and RF+LH half a cycle
    apart, duty factor 0.5. Each leg's plan (swing/stance, phase) is combined with its contact
    flag as in loco's LimbCoordinatorDynamicGait: planned stance + ground contact = support leg;
-   planned stance without contact = lost contact (leg lowered to find the ground); planned
-   swing with contact after 60 % of the swing = early touch-down (support leg); planned swing
-   with contact before that = late lift-off / bump (the swing goes on).
+   planned stance without contact = lost contact (the foot searches the ground below where
+   it expected it: step_down.py); planned swing with contact after 60 % of the swing = early
+   touch-down (support leg); planned swing with contact before that = late lift-off / bump
+   (the swing goes on). A swing that ends without contact holds the clock while its foot
+   searches (a step down: the other pair stays in support, the trunk waits and is lowered
+   as far as the leg needs to reach).
 3. Support legs (torque mode): virtual model control of the trunk (PD on position, velocity
    and orientation in the heading frame, velocity feed-forward, gravity feed-forward of the
    whole robot) gives a desired wrench about the centre of mass, which a QP distributes onto
@@ -30,8 +34,10 @@ Structure (one call = one control period):
 
 Additions of ours to loco's scheme (each a parameter, documented in ControllerParams):
 joint-torque rows in the force QP, a velocity integral in the trotting VMC, a yaw P gain,
-default footholds shifted towards the knees, and a "fallen" mode (beyond 0.8 rad of tilt the
-controller stops balancing and holds a compact posture; it stands again once upright).
+default footholds shifted towards the knees, the ground plane of the feet's last footholds
+(ground_plane.py), the gait's wait for a foot searching the ground (step_down.py), and a
+"fallen" mode (beyond 0.8 rad of tilt the controller stops balancing and holds a compact
+posture; it stands again once upright).
 """
 from __future__ import annotations
 
@@ -54,7 +60,7 @@ _clip = getattr(np, "_core", np.core).umath.clip
 # leg states (per control period)
 SUPPORT = 0          # stance, on the ground: torque mode from VMC + QP
 SWING = 1            # swing (also late lift-off / bumped): joint PD on the swing trajectory
-LOST_CONTACT = 2     # planned stance (or standing) without ground contact: lowered to search
+LOST_CONTACT = 2     # planned stance (or standing) without ground contact: searches it
 STATE_NAMES = ("support", "swing", "lost_contact")
 
 
@@ -483,8 +489,10 @@ class StarlethController:
             F = k_p e + k_d (v* − v) + k_ff v* (+ velocity integral when trotting) + m g e_z,
             M = k_p,rot e_R + k_d,rot (ω* − ω) + k_ff,rot ω*,
         e: horizontal offset of the trunk from the centre of the support feet (all feet when
-        fewer than 2 (trot) / 3 (stand) support) and height error, clipped; e_R: rotation
-        vector of R_z(ψ*) Rᵀ, clipped."""
+        fewer than 2 (trot) / 3 (stand) support) and height error (to the trunk's height
+        reference, _search_ground), clipped; e_R: rotation vector of R_z(ψ*) Rᵀ, clipped.
+        While the gait waits for a searching foot, the stand's law with v* = 0 (the velocity
+        integral kept for the trot that follows)."""
         p = self.params
         cy, sy = x.cy, x.sy
         # while the gait waits for a foot searching the ground, the trunk waits too: held over
