@@ -3,7 +3,8 @@
 
 No ROS: ``StarlethController.update(state, command) -> 12 joint torques``; the per-call
 arithmetic of the steps below runs in numba kernels (kernels.py) that keep the order of
-operations of the formulas written here (results bit for bit those of plain Python).
+operations of the formulas written here (results bit for bit those of plain Python); the
+search for the ground of a foot without contact is plain Python (step_down.py).
 
 Structure (one call = one control period):
 
@@ -13,9 +14,12 @@ Structure (one call = one control period):
 2. Gait pattern (trot): a clock with period T; diagonal pairs LF+RH and RF+LH half a cycle
    apart, duty factor 0.5. Each leg's plan (swing/stance, phase) is combined with its contact
    flag as in loco's LimbCoordinatorDynamicGait: planned stance + ground contact = support leg;
-   planned stance without contact = lost contact (leg lowered to find the ground); planned
-   swing with contact after 60 % of the swing = early touch-down (support leg); planned swing
-   with contact before that = late lift-off / bump (the swing goes on).
+   planned stance without contact = lost contact (the foot searches the ground below where
+   it expected it: step_down.py); planned swing with contact after 60 % of the swing = early
+   touch-down (support leg); planned swing with contact before that = late lift-off / bump
+   (the swing goes on). A swing that ends without contact holds the clock while its foot
+   searches (a step down: the other pair stays in support, the trunk waits and is lowered
+   as far as the leg needs to reach).
 3. Support legs (torque mode): virtual model control of the trunk (PD on position, velocity
    and orientation in the heading frame, velocity feed-forward, gravity feed-forward of the
    whole robot) gives a desired wrench about the centre of mass, which a QP distributes onto
@@ -30,8 +34,10 @@ Structure (one call = one control period):
 
 Additions of ours to loco's scheme (each a parameter, documented in ControllerParams):
 joint-torque rows in the force QP, a velocity integral in the trotting VMC, a yaw P gain,
-default footholds shifted towards the knees, and a "fallen" mode (beyond 0.8 rad of tilt the
-controller stops balancing and holds a compact posture; it stands again once upright).
+default footholds shifted towards the knees, the ground plane of the feet's last footholds
+(ground_plane.py), the gait's wait for a foot searching the ground (step_down.py), and a
+"fallen" mode (beyond 0.8 rad of tilt the controller stops balancing and holds a compact
+posture; it stands again once upright).
 """
 from __future__ import annotations
 
@@ -46,6 +52,7 @@ from .ground_plane import update_plane
 from .force_distribution import ContactForceDistribution
 from .inputs import MODES, Command, ControllerParams, RobotState, VMCGains
 from .model import RobotModel
+from .step_down import GroundSearch
 
 #: the ufunc behind np.clip / ndarray.clip (the same values, without their Python wrapper)
 _clip = getattr(np, "_core", np.core).umath.clip
@@ -53,7 +60,7 @@ _clip = getattr(np, "_core", np.core).umath.clip
 # leg states (per control period)
 SUPPORT = 0          # stance, on the ground: torque mode from VMC + QP
 SWING = 1            # swing (also late lift-off / bumped): joint PD on the swing trajectory
-LOST_CONTACT = 2     # planned stance (or standing) without ground contact: lowered to search
+LOST_CONTACT = 2     # planned stance (or standing) without ground contact: searches it
 STATE_NAMES = ("support", "swing", "lost_contact")
 
 
@@ -108,6 +115,8 @@ class StarlethController:
         self._Jf = np.zeros((4, 3, 3))
         self._Jc = np.zeros((4, 3, 3))
         self._e, self._vh, self._vd = np.zeros(3), np.zeros(3), np.zeros(3)
+        self._no_velocity = np.zeros(2)      # the trunk's velocity command while it waits
+        self._f_kept = np.zeros(2)           # (vmc_force clears it: the integral is kept)
         self._eh, self._wh, self._wd = np.zeros(3), np.zeros(3), np.zeros(3)
         self._b = np.zeros(6)
         self._rh = {n: np.zeros((n, 3)) for n in range(1, 5)}
@@ -123,6 +132,9 @@ class StarlethController:
         self._phase_offsets = (None, None)   # (array, the parameter it was made from)
         self._mass_g = m.mass * m.gravity
         self._q_nominal = m.nominal_joint_positions(p.height)
+        self._search = GroundSearch()
+        self._hips = np.zeros((4, 3))              # the hips in the world (while searching)
+        self._search_target = np.zeros((4, 4))     # searching feet's targets and rates
         self.reset()
 
     @staticmethod
@@ -153,6 +165,8 @@ class StarlethController:
         self._stood = np.zeros((4, 3))       # where each foot last stood (contact point)
         self._plane = np.zeros(3)            # ground plane z = a + g_x x + g_y y (world)
         self._lost_since = np.full(4, np.nan)
+        self._search.reset()
+        self._trunk_reference = 0.0          # the trunk's height reference (world z)
         self.leg_state = [SUPPORT] * 4
         self.desired_forces = np.zeros((4, 3))   # ground on robot, world [N]
         self.info = {}
@@ -328,12 +342,14 @@ class StarlethController:
     # -- 2. gait pattern -------------------------------------------------------------------
     def _gait_pattern(self, x: _Sample):
         """Step 2: the mode and the trot clock, the ramped velocity command and desired
-        heading, each leg's state (self.leg_state) and swing phase, and the ground height
-        under the support feet. Returns (trotting, support legs)."""
+        heading, each leg's state (self.leg_state) and swing phase, the ground height under
+        the support feet, and where the legs without contact search the ground, with the
+        trunk's height reference. Returns (trotting, support legs)."""
         trotting = self._switch_mode(x.t)
         self._ramp_command(x.dt, x.yaw, trotting)
         support = self._leg_states(x, trotting)
         self._estimate_ground(support)
+        self._search_ground(x, trotting)
         return trotting, support
 
     def _switch_mode(self, t):
@@ -401,10 +417,15 @@ class StarlethController:
         offsets, key = self._phase_offsets, tuple(p.phase_offsets)
         if offsets[1] != key:      # the array made again only when the parameter changed
             offsets = self._phase_offsets = (np.array(key, dtype=float), key)
+        # a swing ending without ground contact holds the clock (step_down.py)
+        self._t0 = self._search.hold_clock(p, trotting, x.t, x.dt, self._t0, key,
+                                           self._swing_cycle, x.grounded, self._contact[:, 2],
+                                           self._foothold_z)
         ns, lift = K.leg_states(bool(trotting), x.t, self._t0, p.gait_period, offsets[0],
                                 p.duty_factor, p.early_touchdown_phase, x.grounded,
                                 self._swing_phase, self._swing_cycle, self._leg_state_arr,
                                 self._lost_since, self._support_idx)
+        self._search.mark_waiting(self._leg_state_arr, self._swing_phase, self._lost_since)
         if lift:
             # lift-off of a new swing: remember where the foot starts (heading frame,
             # relative to the hip)
@@ -428,6 +449,25 @@ class StarlethController:
                                          len(support))
         update_plane(self._contact, self._support_idx, len(support), self._stood, self._plane)
 
+    def _search_ground(self, x: _Sample, trotting):
+        """The trunk's height reference, its ground + height (trot_height while trotting,
+        when set); while legs have lost their contact, their targets searching the ground
+        below the foothold (trotting) or the hip (standing), and the reference lowered as
+        far as a trotting search needs (step_down.py)."""
+        p = self.params
+        reference = self._ground + (p.trot_height if trotting and p.trot_height else p.height)
+        if LOST_CONTACT in self.leg_state:
+            hips, R, pb, hip = self._hips, x.R, x.pb, self.model.hip
+            for k in range(4):       # pb + R hip_k, summed as the kernels do
+                for i in range(3):
+                    hips[k, i] = pb[i] + (R[i, 0] * hip[k, 0] + R[i, 1] * hip[k, 1]
+                                          + R[i, 2] * hip[k, 2])
+            reference = self._search.targets(
+                p, trotting, x.t, self.leg_state, self._lost_since, self._foothold,
+                self._foothold_z, self._ground, self._contact[:, 2], hips, self._geo, x.cy,
+                x.sy, float(pb[2]), reference, self._search_target)
+        self._trunk_reference = reference
+
     # -- 3. support legs -------------------------------------------------------------------
     def _support_leg_torques(self, x: _Sample, trotting, support, gleg, com):
         """Step 3: clears the torques τ and desired forces, then for the support legs the
@@ -449,21 +489,28 @@ class StarlethController:
             F = k_p e + k_d (v* − v) + k_ff v* (+ velocity integral when trotting) + m g e_z,
             M = k_p,rot e_R + k_d,rot (ω* − ω) + k_ff,rot ω*,
         e: horizontal offset of the trunk from the centre of the support feet (all feet when
-        fewer than 2 (trot) / 3 (stand) support) and height error, clipped; e_R: rotation
-        vector of R_z(ψ*) Rᵀ, clipped."""
+        fewer than 2 (trot) / 3 (stand) support) and height error (to the trunk's height
+        reference, _search_ground), clipped; e_R: rotation vector of R_z(ψ*) Rᵀ, clipped.
+        While the gait waits for a searching foot, the stand's law with v* = 0 (the velocity
+        integral kept for the trot that follows)."""
         p = self.params
         cy, sy = x.cy, x.sy
+        # while the gait waits for a foot searching the ground, the trunk waits too: held over
+        # its support feet (stand gains, no velocity command), the velocity integral kept
+        walking = trotting and not self._search.holding
         kp_t, kd_t, kff_t, kp_r, kd_r, kff_r = \
-            self._gains_trot if trotting else self._gains_stand
+            self._gains_trot if walking else self._gains_stand
         ns = len(support)
-        ref = self._support_idx if ns >= (2 if trotting else 3) else self._all_legs
-        nr = ns if ns >= (2 if trotting else 3) else 4
+        ref = self._support_idx if ns >= (2 if walking else 3) else self._all_legs
+        nr = ns if ns >= (2 if walking else 3) else 4
         b = self._b
         K.vmc_force(ref, nr, self._contact, x.pb, x.vb, cy, sy,
-                    self._ground + (p.trot_height if trotting and p.trot_height else p.height)
-                    - x.pb[2], p.max_position_error, self._v_cmd, kp_t, kd_t, kff_t,
-                    bool(trotting and p.velocity_ki), p.velocity_ki, p.velocity_integral_max,
-                    x.dt, self._f_int, self._mass_g, self._e, self._vh, self._vd, b)
+                    self._trunk_reference - x.pb[2], p.max_position_error,
+                    self._v_cmd if walking or not trotting else self._no_velocity, kp_t, kd_t,
+                    kff_t, bool(walking and p.velocity_ki), p.velocity_ki,
+                    p.velocity_integral_max, x.dt,
+                    self._f_int if walking or not trotting else self._f_kept, self._mass_g,
+                    self._e, self._vh, self._vd, b)
         # orientation error (rotation vector of R_des Rᵀ, world) in the heading frame
         Rd = self._Rd
         cd, sd = math.cos(self._yaw_des), math.sin(self._yaw_des)   # R_des = R_z(ψ*)
@@ -491,23 +538,23 @@ class StarlethController:
         """Step 4: the legs not in support (swing, lost contact, in the air while standing)
         follow a foot target by analytic IK and joint PD with gravity feed-forward into τ
         (kernels.position_controlled_torques): a swing leg from its lift-off offset to the
-        inverted-pendulum foothold (kernels.swing_target), a leg that lost its contact
-        lowered to find the ground (kernels.lowering_target)."""
+        inverted-pendulum foothold (kernels.swing_target), a leg that lost its contact its
+        target searching the ground (_search_ground)."""
         m = self.model
         K.position_controlled_torques(
-            self._leg_state_arr, trotting, x.t, self._swing_phase, self._r_liftoff,
-            self._lost_since, self._foothold, self._swing_parameters(), m.foot_radius,
-            self._ground, self._v_cmd, self._w_cmd, x.pb, x.R, x.vb, x.ww, x.cy, x.sy,
-            self._Jf, x.qj, x.dqj, gleg, self._kp3, self._kd3, m.hip, self._geo, self._target,
-            self._vtarget, self._tau, self._liftoff_z, self._plane, self._foothold_z)
+            self._leg_state_arr, self._swing_phase, self._r_liftoff, self._foothold,
+            self._swing_parameters(), m.foot_radius, self._ground, self._v_cmd, self._w_cmd,
+            x.pb, x.R, x.vb, x.ww, x.cy, x.sy, self._Jf, x.qj, x.dqj, gleg, self._kp3,
+            self._kd3, m.hip, self._geo, self._target, self._vtarget, self._tau,
+            self._liftoff_z, self._plane, self._foothold_z, self._search_target)
 
     def _swing_parameters(self):
-        """The parameters of kernels.swing_target / lowering_target as one array (layout
-        kernels.SW_*), read from self.params on every call (they may be changed)."""
+        """The parameters of kernels.swing_target as one array (layout kernels.SW_*), read
+        from self.params on every call (they may be changed)."""
         p = self.params
         key = (p.gait_period, p.duty_factor, p.step_feedback, p.step_max, p.step_interp_end,
-               p.swing_height, p.touchdown_depth, self.model.gravity, p.lost_contact_speed,
-               p.lost_contact_depth, p.step_down_speed, tuple(p.foothold_offset_x))
+               p.swing_height, p.touchdown_depth, self.model.gravity,
+               tuple(p.foothold_offset_x))
         P = self._swing_p
         if key != self._swing_key:       # written only when a parameter changed
             P[:K.SW_OFFSET_X] = key[:K.SW_OFFSET_X]

@@ -8,8 +8,8 @@ z = a + g_x x + g_y y (world) through the four footholds gives the height expect
 new foothold (slopes clipped to ±MAX_SLOPE; flat at the mean height when the footholds are
 nearly collinear). On flat ground the plane is the ground; on a slope it is the slope; on
 stairs it is the mean incline under the feet, and a foot that meets a higher tread than
-expected touches down early, one that finds none is lowered (the leg states of
-kernels.leg_states). numba kernels like kernels.py (fastmath off)."""
+expected touches down early (the leg states of kernels.leg_states), one that finds none
+searches it further down (step_down.py). numba kernels like kernels.py (fastmath off)."""
 from __future__ import annotations
 
 import numba as nb

@@ -102,11 +102,18 @@ class ControllerParams:
     # swing / position-controlled legs: HAA, HFE, KFE
     joint_kp: tuple = (70.0, 70.0, 26.0)
     joint_kd: tuple = (3.1, 3.2, 0.2)
-    lost_contact_speed: float = 0.2      # lowering rate of a leg searching the ground [m/s]
-    lost_contact_depth: float = 0.06     # at most this far below the ground [m]
-    #: lowering rate of a trotting leg that found no ground at the end of its swing (a step
-    #: down: the stance of its pair is short, the foot must find the ground quickly) [m/s]
+    # a leg without the contact it should have searches the ground (step_down.py)
+    lost_contact_speed: float = 0.2      # standing: its lowering rate [m/s]
+    lost_contact_depth: float = 0.06     # standing: at most this far below the ground [m]
+    #: trotting: the lowering rate of a foot that found no ground at the end of its swing
+    #: (a step down; the gait clock waits for it) [m/s]
     step_down_speed: float = 1.0
+    #: trotting: at most this far below the height the ground plane expected at its foothold
+    #: (a ledge of up to about this height is stepped down) [m]
+    step_down_depth: float = 0.18
+    #: a searching foot stays within this share of the stretched leg's length (l1 + l2) from
+    #: its HFE joint; the trunk is lowered for a search that needs more
+    leg_reach: float = 0.98
     contact_force_threshold: float = 5.0  # grounded from forces when no flags are given [N]
     # falls: beyond this tilt the controller gives up balancing and holds a compact posture
     fall_tilt: float = 0.8               # [rad]

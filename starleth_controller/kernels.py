@@ -456,7 +456,7 @@ def ground_estimate(ground, contact, support, ns):
 
 #: layout of the swing parameters (controller.py: _swing_parameters)
 (SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
- SW_LOST_SPEED, SW_LOST_DEPTH, SW_STEP_DOWN_SPEED, SW_OFFSET_X) = range(12)   # OFFSET_X: 4
+ SW_OFFSET_X) = range(9)   # OFFSET_X: 4
 
 
 @_jit
@@ -514,53 +514,34 @@ def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, r
 
 
 @_jit
-def lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius, foothold,
-                    target, vt, foothold_z):
-    """Leg k without the contact it should have: the foot at the last foothold (trotting)
-    or under the hip (hx, hy), lowered at lost_contact_speed (trotting: step_down_speed)
-    from touchdown_depth to at
-    most lost_contact_depth below the ground (trotting: the foothold's expected height
-    foothold_z[k]) since contact was lost; zero velocity."""
-    speed = P[SW_LOST_SPEED]
-    if trotting:
-        target[0], target[1] = foothold[k, 0], foothold[k, 1]
-        ground = foothold_z[k]
-        speed = P[SW_STEP_DOWN_SPEED]
-    else:
-        target[0], target[1] = hx, hy
-    depth = P[SW_DEPTH] + speed * (t - lost_since[k])
-    depth = depth if not (P[SW_LOST_DEPTH] < depth) else P[SW_LOST_DEPTH]   # min(d, max)
-    target[2] = ground + foot_radius[k] - depth
-    vt[0] = 0.0
-    vt[1] = 0.0
-    vt[2] = 0.0
-
-
-@_jit
-def position_controlled_torques(states, trotting, t, swing_phase, r_liftoff, lost_since,
-                                foothold, P, foot_radius, ground, v_cmd, w_cmd, pb, R, vb, ww,
-                                cy, sy, Jf, qj, dqj, gleg, kp, kd, hip, geo, target, vt, tau,
-                                liftoff_z, plane, foothold_z):
+def position_controlled_torques(states, swing_phase, r_liftoff, foothold, P, foot_radius,
+                                ground, v_cmd, w_cmd, pb, R, vb, ww, cy, sy, Jf, qj, dqj, gleg,
+                                kp, kd, hip, geo, target, vt, tau, liftoff_z, plane,
+                                foothold_z, searching):
     """The legs not in support (states: 0 support, 1 swing, 2 lost contact) follow a foot
-    target (swing_target / lowering_target; liftoff_z: the legs' lift-off heights, plane:
-    the ground plane, foothold_z: the footholds' expected heights) by analytic IK and
-    joint PD with gravity feed-forward (foot_position_control) into τ."""
+    target by analytic IK and joint PD with gravity feed-forward (foot_position_control)
+    into τ: a swing leg swing_target's (liftoff_z: the legs' lift-off heights, plane: the
+    ground plane, foothold_z: the footholds' expected heights), a leg that lost contact its
+    row of `searching` (x, y, z, ż: the foot-centre targets of step_down.GroundSearch)."""
     for k in range(4):
         st = states[k]
         if st == 0:
             continue
-        hx0, hy0, hz0 = hip[k, 0], hip[k, 1], hip[k, 2]
-        rhx_w = R[0, 0] * hx0 + R[0, 1] * hy0 + R[0, 2] * hz0     # trunk→hip, world
-        rhy_w = R[1, 0] * hx0 + R[1, 1] * hy0 + R[1, 2] * hz0
-        rhz_w = R[2, 0] * hx0 + R[2, 1] * hy0 + R[2, 2] * hz0
-        hx, hy, hz = pb[0] + rhx_w, pb[1] + rhy_w, pb[2] + rhz_w
         if st == 1:
+            hx0, hy0, hz0 = hip[k, 0], hip[k, 1], hip[k, 2]
+            rhx_w = R[0, 0] * hx0 + R[0, 1] * hy0 + R[0, 2] * hz0     # trunk→hip, world
+            rhy_w = R[1, 0] * hx0 + R[1, 1] * hy0 + R[1, 2] * hz0
+            rhz_w = R[2, 0] * hx0 + R[2, 1] * hy0 + R[2, 2] * hz0
+            hx, hy, hz = pb[0] + rhx_w, pb[1] + rhy_w, pb[2] + rhz_w
             swing_target(k, swing_phase[k], r_liftoff[k, 0], r_liftoff[k, 1], vb, ww, cy, sy,
                          v_cmd[0], v_cmd[1], w_cmd, ground, rhx_w, rhy_w, rhz_w, hx, hy, hz,
                          P, foot_radius, target, vt, foothold, liftoff_z[k], plane,
                          foothold_z)
         else:
-            lowering_target(k, t, lost_since, trotting, hx, hy, ground, P, foot_radius,
-                            foothold, target, vt, foothold_z)
+            for i in range(3):
+                target[i] = searching[k, i]
+            vt[0] = 0.0
+            vt[1] = 0.0
+            vt[2] = searching[k, 3]
         foot_position_control(k, target, vt, pb, R, vb, ww, Jf, qj, dqj, gleg, kp, kd, hip,
                               geo, tau)

@@ -1,13 +1,16 @@
-"""The controller trots over terrain (issue #37, item 4), headless: controller + Simulator
-in one process, physics HmJ (hard contacts). The controller knows nothing of the terrain: it
-takes the ground from where its feet stood (starleth_controller/ground_plane.py), and a
-foot's contact from its force (> contact_force_threshold, as controller_node does). One run
-per course of starleth_sim/tools/demo_terrain.py (the courses of ``starleth-demo
---terrain``): 1 s standing, then 9 s of trot at 0.3 m/s; the trunk must cross the course
-(up and down the 10° slope, over the 4 cm step, up the 3 stairs of 4 cm, over ±1.5 cm rough
-ground) without falling, and no hard contact may end a step more than 0.1 mm inside a
-surface, a foot in a concave corner (a tread and its riser) included: it has a contact on
-each (doc/physics.md, "Terrain")."""
+"""The controller trots over terrain, headless: controller + Simulator in one process, physics
+HmJ (hard contacts). The controller knows nothing of the terrain: it takes the ground from
+where its feet stood (starleth_controller/ground_plane.py), a foot's contact from its force
+(> contact_force_threshold, as controller_node does), and searches the ground with a foot
+that finds none (starleth_controller/step_down.py). One run per course of
+starleth_sim/tools/demo_terrain.py (the courses of ``starleth-demo --terrain``): 1 s
+standing, then a trot at 0.3 m/s long enough to cross the course (its end x / 0.3 m/s +
+TROT_MARGIN); the trunk must cross it (up and down the 10° slope, over the 4 cm step, up
+the shipped 3 stairs of 4 cm and 12 cm down off their landing, 12 cm down off a ledge, over
+±1.5 cm rough ground) without falling, its clearance (the base's height above the terrain
+under it) never below MIN_CLEARANCE, and no hard contact may end a step more than 0.1 mm
+inside a surface, a foot in a concave corner (a tread and its riser) included: it has a
+contact on each (doc/physics.md, "Terrain")."""
 from __future__ import annotations
 
 import math
@@ -17,7 +20,9 @@ import pytest
 
 from starleth_sim import Simulator
 from starleth_sim.physics.description import urdf_path
-from starleth_sim.tools.demo_terrain import COURSES, course_end, course_overrides, course_terrain
+from starleth_sim.physics.terrain import pack_terrain, terrain_height
+from starleth_sim.tools.demo_terrain import (COURSES, PAST_EDGE, course_end, course_overrides,
+                                             course_terrain)
 
 from starleth_controller import LEGS, Command, RobotState, StarlethController
 from starleth_controller import kernels as K
@@ -28,6 +33,10 @@ FEET = tuple(f"{leg}_foot" for leg in LEGS)
 MAX_PENETRATION = 1e-4
 #: a foot is in a corner when its sphere comes this close to two surfaces [m]
 CORNER = 5e-4
+#: the lowest the base may come above the terrain under it while trotting [m]
+MIN_CLEARANCE = 0.3
+#: the trot lasts the time the course takes at the commanded speed, and this much more [s]
+TROT_MARGIN = 2.0
 
 
 def surface_gaps(c, r, boxes):
@@ -41,14 +50,26 @@ def surface_gaps(c, r, boxes):
     return sorted(g)
 
 
-def trot_over(course, stand=1.0, trot=9.0, speed=0.3):
-    sim = Simulator.from_preset("HmJ", **course_terrain(course))
+def clearance(sim, packed):
+    """The base's height above the terrain under it (the ground plane, a box's top or the
+    heightfield, whichever is highest there; `packed`: the terrain packed with the ground's
+    height)."""
+    x, y, z = sim.base_state()["position"]
+    return z - max(terrain_height(packed, x, y), sim.config.ground.height)
+
+
+def trot_over(terrain, end, stand=1.0, speed=0.3):
+    """The record of `stand` s standing, then trotting at `speed` until the trunk should have
+    passed x = `end` (+ TROT_MARGIN) on HmJ with the terrain fields `terrain`."""
+    trot = end / speed + TROT_MARGIN
+    sim = Simulator.from_preset("HmJ", **terrain)
+    packed = pack_terrain(sim.config.terrain, sim.config.ground.height)
     ctrl = StarlethController(urdf_path())
     feet = [sim.contact_names.index(f) for f in FEET]
     boxes = sim.config.terrain.all_boxes()
     assert all(b["yaw"] == 0.0 for b in boxes)
-    rec = {"x": [], "z": [], "tilt": [], "pen": [], "corner_pen": [0.0], "fallen": False,
-           "qp_ok": True, "tau_ok": True}
+    rec = {"x": [], "clearance": [], "tilt": [], "pen": [], "corner_pen": [0.0],
+           "fallen": False, "qp_ok": True, "tau_ok": True}
     m = ctrl.model
     R, centre, contact = np.zeros((3, 3)), np.zeros((4, 3)), np.zeros((4, 3))
     Jf, Jc = np.zeros((4, 3, 3)), np.zeros((4, 3, 3))
@@ -67,7 +88,7 @@ def trot_over(course, stand=1.0, trot=9.0, speed=0.3):
         x, y, z, w = sim.base_state()["orientation_xyzw"]
         rec["tilt"].append(math.acos(min(1.0, 1.0 - 2.0 * (x * x + y * y))))
         rec["x"].append(sim.base_state()["position"][0])
-        rec["z"].append(sim.base_state()["position"][2])
+        rec["clearance"].append(clearance(sim, packed))
         gaps = sim.gaps()
         if boxes:     # the feet in a concave corner (sphere centres from the kinematics),
             # from an independent gap computation (numpy, not csrc/terrain.c)
@@ -83,23 +104,45 @@ def trot_over(course, stand=1.0, trot=9.0, speed=0.3):
     return rec
 
 
+def check_crossed(name, rec, end):
+    """The run `rec` crossed up to x = `end` without falling, tilting beyond 0.2 rad, the
+    trunk coming lower than MIN_CLEARANCE above the terrain or a contact deeper than
+    MAX_PENETRATION inside a surface (a foot in a corner included)."""
+    x, tilt, pen, cpen = rec["x"][-1], max(rec["tilt"]), max(rec["pen"]), max(rec["corner_pen"])
+    low = int(np.argmin(rec["clearance"]))
+    print(f"\n[{name}] x {x:.2f} m, tilt max {tilt:.3f} rad, trunk clearance min "
+          f"{rec['clearance'][low]:.3f} m (at x {rec['x'][low]:.2f} m), penetration max "
+          f"{pen * 1e3:.3f} mm (a foot in a corner: {len(rec['corner_pen']) - 1} steps, "
+          f"{cpen * 1e3:.3f} mm)")
+    assert not rec["fallen"], f"{name}: the controller fell"
+    assert rec["qp_ok"] and rec["tau_ok"], f"{name}: QP failure or torque out of range"
+    assert tilt < 0.2, f"{name}: tilt reached {tilt:.3f} rad"
+    assert rec["clearance"][low] > MIN_CLEARANCE, \
+        f"{name}: trunk down to {rec['clearance'][low]:.3f} m above the terrain"
+    assert x > end, f"{name}: trunk at x = {x:.2f} m, not across"
+    assert pen <= MAX_PENETRATION, f"{name}: a contact {pen * 1e3:.3f} mm inside a surface"
+    assert cpen <= MAX_PENETRATION, f"{name}: a foot {cpen * 1e3:.3f} mm inside a " \
+        "surface in a concave corner"
+
+
 @pytest.mark.parametrize("course", list(COURSES))
 def test_controller_trots_over_terrain(course):
-    rec = trot_over(course)
-    x, tilt, pen, cpen = rec["x"][-1], max(rec["tilt"]), max(rec["pen"]), max(rec["corner_pen"])
-    print(f"\n[{course}] x {x:.2f} m, tilt max {tilt:.3f} rad, trunk height min "
-          f"{min(rec['z']):.3f} m, penetration max {pen * 1e3:.3f} mm (a foot in a corner: "
-          f"{len(rec['corner_pen']) - 1} steps, {cpen * 1e3:.3f} mm)")
-    assert not rec["fallen"], f"{course}: the controller fell"
-    assert rec["qp_ok"] and rec["tau_ok"], f"{course}: QP failure or torque out of range"
-    assert tilt < 0.2, f"{course}: tilt reached {tilt:.3f} rad"
-    assert min(rec["z"]) > 0.33, f"{course}: trunk down to {min(rec['z']):.3f} m"
-    assert x > course_end(course), f"{course}: trunk at x = {x:.2f} m, not across"
-    assert pen <= MAX_PENETRATION, f"{course}: a contact {pen * 1e3:.3f} mm inside a surface"
-    assert cpen <= MAX_PENETRATION, f"{course}: a foot {cpen * 1e3:.3f} mm inside a " \
-        "surface in a concave corner"
+    rec = trot_over(course_terrain(course), course_end(course))
+    check_crossed(course, rec, course_end(course))
     if course in ("step", "stairs"):    # the feet do meet the corners there
         assert len(rec["corner_pen"]) > 10, f"{course}: no foot in a corner"
+
+
+@pytest.mark.parametrize("edge", [0.5, 0.53, 0.56, 0.59])
+def test_steps_down_a_ledge_met_at_any_phase_of_the_trot(edge):
+    """The ledge course (12 cm down) with its edge 0.5 to 0.59 m ahead: the feet meet it at
+    phases of the trot a quarter of a half cycle apart (the trunk covers about 0.12 m per
+    half cycle at 0.3 m/s), front and hind feet alike."""
+    terrain = course_terrain("ledge")
+    box = terrain["boxes"][0]
+    box["centre"][0] += edge - (box["centre"][0] + 0.5 * box["size"][0])
+    end = edge + PAST_EDGE
+    check_crossed(f"ledge at {edge} m", trot_over(terrain, end), end)
 
 
 def test_ground_plane_is_the_plane_through_the_footholds():

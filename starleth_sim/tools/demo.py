@@ -23,7 +23,7 @@ throughout), real-time factor (sim time / wall time), solver iterations, message
 Exit status 0 when the run is complete and the robot trotted without falling (at least 4 m
 in 18 s at 0.3 m/s), non-zero with a message otherwise.
 
-``--terrain step|stairs|slope|rough``: the same on a terrain course (tools/demo_terrain.py,
+``--terrain step|stairs|ledge|slope|rough``: the same on a terrain course (tools/demo_terrain.py,
 recorded to ``runs/demo_<name>.mcap``); the trunk must also cross the course.
 ``--live [PORT]``: sim_node also serves the live view (port 8765), whose URLs are printed.
 ``starleth-demo --drop``: the headless drop test (no ROS): StarlETH falls from 0.1 m onto
