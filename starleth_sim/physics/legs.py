@@ -26,14 +26,13 @@ import numpy as np
 import pinocchio as pin
 
 from .config_checks import ConfigError
+from .urdf import revolute_axis
 
 #: the knee directions of the standing posture (module docstring): sign of the knee angle
 #: about +y (behind the hip-to-foot line: negative)
 KNEE_SIGNS = {"backward": -1.0, "forward": 1.0}
 _ON_AXIS = 1e-6       # m: a hip this close to the base's x or y axis takes its foot's side
 _PARALLEL = 1e-9      # 1 - |cos| of two axes taken as parallel
-_REVOLUTE = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0),
-             "JointModelRZ": (0.0, 0.0, 1.0)}
 
 
 @dataclass(frozen=True)
@@ -74,14 +73,8 @@ class Leg:
     plane: PitchPlane | None
 
 
-def _axis(model, j) -> np.ndarray:
-    jm = model.joints[j]
-    name = jm.shortname()
-    if name in _REVOLUTE:
-        return np.array(_REVOLUTE[name])
-    if name == "JointModelRevoluteUnaligned":
-        return np.asarray(jm.extract().axis, dtype=float)
-    return None
+def _axis(model, j) -> np.ndarray | None:
+    return revolute_axis(model.joints[j])
 
 
 def _chains(model):

@@ -190,6 +190,22 @@ def checked_model(urdf_xml: str, source: str) -> tuple[ET.Element, pin.Model]:
     return root, model
 
 
+_ALIGNED_AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0),
+                 "JointModelRZ": (0.0, 0.0, 1.0)}
+
+
+def revolute_axis(jm) -> np.ndarray | None:
+    """The axis (in its joint frame) of a revolute pinocchio joint model: RX, RY, RZ, or
+    RevoluteUnaligned (a URDF axis not along x, y or z, or along -x: ANYmal C); None for any
+    other joint."""
+    name = jm.shortname()
+    if name in _ALIGNED_AXES:
+        return np.array(_ALIGNED_AXES[name])
+    if name == "JointModelRevoluteUnaligned":
+        return np.asarray(jm.extract().axis, dtype=float)
+    return None
+
+
 def document_joint_order(root: ET.Element) -> tuple:
     """The names of the URDF's moving (non-fixed) joints in document order: the public
     joint order of every interface (torques, joint states)."""

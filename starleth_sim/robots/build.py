@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import fnmatch
 import os
+from dataclasses import replace
 
 import numpy as np
 import pinocchio as pin
@@ -34,14 +35,25 @@ def _link_elements(root):
     return {link.get("name"): link for link in root.findall("link")}
 
 
+def _spheres(link, model, source) -> list:
+    """A link's URDF sphere collisions as contact points; an unnamed one alone on its link
+    is named after the link (a foot: 'LF_FOOT', not 'LF_FOOT_1')."""
+    colls = link.findall("collision")
+    points = [p for k in range(len(colls))
+              for p in collision_points(link, k, model, source, ("sphere",))]
+    unnamed = [c for c in colls if c.find("geometry/sphere") is not None and not c.get("name")]
+    if len(points) == 1 and unnamed:
+        points = [replace(points[0], name=link.get("name"))]
+    return points
+
+
 def _feet(spec: RobotSpec, root, model, source, joint_names) -> list:
     """The foot contact points, in the legs' order when every foot ends a leg."""
     links = _link_elements(root)
     feet = spec.feet
     where = f"{spec.label}: feet"
     if feet.links is None:       # found on the legs among the URDF's spheres
-        spheres = [p for link in links.values() for k in range(len(link.findall("collision")))
-                   for p in collision_points(link, k, model, source, ("sphere",))]
+        spheres = [p for link in links.values() for p in _spheres(link, model, source)]
         legs = find_legs(model, joint_names, spheres)
         return [next(p for p in spheres if p.name == leg.foot) for leg in legs]
     points = []
@@ -52,8 +64,7 @@ def _feet(spec: RobotSpec, root, model, source, joint_names) -> list:
                                        frame.placement * pin.SE3(np.eye(3), np.array(feet.at)),
                                        feet.radius, f"{where}.radius"))
             continue
-        found = [p for k in range(len(links[name].findall("collision")))
-                 for p in collision_points(links[name], k, model, source, ("sphere",))]
+        found = _spheres(links[name], model, source)
         if len(found) != 1:
             raise ConfigError(f"{where}.links: link '{name}' has {len(found) or 'no'} <sphere> "
                               "collision(s): give feet.radius (and feet.at)")
