@@ -15,8 +15,8 @@ becomes spheres:
   its centre (the sphere bulges beyond the flat face);
 - ``<mesh>``: never (no mesh is read); a robot spec says which spheres or box stand for it.
 
-A sphere's radius must be below terrain.BOX_REACH (0.1 m): beyond it the gaps to the
-terrain's boxes are no longer exact.
+A robot's spheres (check_terrain_reach) must be smaller than terrain.BOX_REACH (0.1 m):
+beyond it the gaps to the terrain's boxes are no longer exact.
 """
 from __future__ import annotations
 
@@ -46,10 +46,18 @@ class ContactPointSpec:
 
 
 def checked_radius(radius: float, where: str) -> float:
-    if not 0.0 < radius < BOX_REACH:
-        raise ConfigError(f"{where}: a contact sphere's radius must be > 0 and < "
-                          f"{BOX_REACH:g} m (terrain.BOX_REACH), got {radius:g}")
+    if not radius > 0.0:
+        raise ConfigError(f"{where}: a contact sphere's radius must be > 0, got {radius:g}")
     return float(radius)
+
+
+def check_terrain_reach(points, where: str):
+    """A robot's contact spheres are smaller than terrain.BOX_REACH (0.1 m), within which
+    the gaps to the terrain's boxes are exact (a test body on flat ground may be larger)."""
+    for p in points:
+        if not p.radius < BOX_REACH:
+            raise ConfigError(f"{where}: contact '{p.name}' (link '{p.link}'): its radius "
+                              f"{p.radius:g} m must be < {BOX_REACH:g} m (terrain.BOX_REACH)")
 
 
 def sphere_point(name, link, joint, placement: pin.SE3, radius, where) -> ContactPointSpec:

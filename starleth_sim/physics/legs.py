@@ -169,7 +169,8 @@ def pitch_leg_angles(plane: PitchPlane, height: float, knee: float):
     hip pitch joint, its lowest point on the ground, with the base level at `height` and
     the hip roll at 0; knee: -1 backward, +1 forward (module docstring). ValueError when
     out of reach."""
-    (hx, hz), (tx, tz), (sx, sz) = plane.hfe, plane.thigh, plane.shank
+    hz = plane.hfe[1]
+    (tx, tz), (sx, sz) = plane.thigh, plane.shank
     l1 = np.sqrt(tx * tx + tz * tz)
     l2 = np.sqrt(sx * sx + sz * sz)
     dz = height + hz - plane.radius     # hip pitch joint to foot centre, vertically

@@ -135,10 +135,11 @@ class Simulator:
         but a new one must reach activation_gap), and a compliant contact closes when
         g_N(q^M) ≤ 0."""
         c = self.coords
-        q = c.neutral()
         d = self.description
         if d.standing_height is not None and d.legs:
             q = c.make_state([0.0, 0.0, d.standing_height], [0, 0, 0, 1], d.standing_joints())
+        else:   # (the minimal neutral configuration: a cut forest's bodies where they belong)
+            q = c.make_state([0.0, 0.0, 0.0], [0, 0, 0, 1])
         if c.n_contacts:
             rest_on_ground(c, self.stepper.ground, q, self.REST_OVERLAP)
         return q

@@ -108,6 +108,11 @@ def check_tree(root: ET.Element, source: str) -> str:
             raise ConfigError(f"{where}: closed loop: link '{child}' is already the child of "
                               f"joint '{parent_of[child][0]}' (a URDF is a tree)")
         parent_of[child] = (name, parent)
+        urdf_origin(joint, where)
+        limit = joint.find("limit")
+        for k in ("lower", "upper", "effort", "velocity"):
+            if limit is not None and limit.get(k) is not None:
+                numbers(limit.get(k), 1, f"{where} <limit {k}>")
         if kind == "revolute":
             axis = joint.find("axis")
             a = numbers(axis.get("xyz"), 3, f"{where} <axis xyz>") if axis is not None \
@@ -134,8 +139,11 @@ def check_tree(root: ET.Element, source: str) -> str:
 
 def check_inertials(root: ET.Element, source: str):
     """No negative or non-finite mass on any link (whether a zero mass matters is known once
-    fixed links are merged: check_bodies)."""
+    fixed links are merged: check_bodies), every <origin> of a link readable."""
     for link in root.findall("link"):
+        for part in ("inertial", "visual", "collision"):
+            for k, elem in enumerate(link.findall(part)):
+                urdf_origin(elem, f"{source}: link '{link.get('name')}' <{part}> {k}")
         mass = link.find("inertial/mass")
         if mass is None:
             continue

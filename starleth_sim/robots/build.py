@@ -14,7 +14,8 @@ import pinocchio as pin
 
 from ..physics.config import PhysicsConfig
 from ..physics.config_checks import ConfigError
-from ..physics.contact_points import box_corners, collision_points, link_frame, sphere_point
+from ..physics.contact_points import (box_corners, check_terrain_reach, collision_points,
+                                      link_frame, sphere_point)
 from ..physics.description import RobotDescription
 from ..physics.legs import find_legs
 from ..physics.urdf import checked_model, document_joint_order
@@ -130,6 +131,7 @@ def description_from_spec(spec: RobotSpec) -> RobotDescription:
     contacts = list(feet)
     for entry in spec.contacts:
         contacts += _entry_points(entry, root, model, source, spec.label)
+    check_terrain_reach(contacts, source)
     seen = set()
     for c in contacts:
         if c.name in seen:

@@ -54,8 +54,18 @@ def resolve(robot: str) -> tuple[str, str]:
     return "spec", path
 
 
-@lru_cache(maxsize=None)
-def _spec_at(path: str) -> RobotSpec:
+def _stamp(path: str):
+    """What a cached read of a file is keyed by, besides its path (an edited file is read
+    again)."""
+    try:
+        st = os.stat(path)
+        return st.st_mtime_ns, st.st_size
+    except OSError:
+        return None
+
+
+@lru_cache(maxsize=64)
+def _spec_at(path: str, stamp) -> RobotSpec:
     return read_spec(path)
 
 
@@ -65,7 +75,8 @@ def load_robot(robot: str) -> RobotSpec:
     kind, path = resolve(robot)
     if kind != "spec":
         raise ConfigError(f"robot: '{robot}' is a URDF, not a robot spec")
-    return _spec_at(os.path.abspath(path))
+    path = os.path.abspath(path)
+    return _spec_at(path, _stamp(path))
 
 
 def urdf_file(spec: RobotSpec) -> str:
@@ -98,8 +109,13 @@ def package_dirs(spec: RobotSpec) -> list[str]:
     return [str(importlib.metadata.distribution(src.distribution).locate_file(src.packages))]
 
 
-@lru_cache(maxsize=64)
 def read_text(path: str) -> str:
+    """A file's text (cached until it changes); ConfigError naming it when unreadable."""
+    return _text_at(path, _stamp(path))
+
+
+@lru_cache(maxsize=64)
+def _text_at(path: str, stamp) -> str:
     try:
         with open(path, encoding="utf-8") as f:
             return f.read()
