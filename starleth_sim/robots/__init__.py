@@ -8,9 +8,10 @@ descriptions built from them.
 """
 from .build import (config_with_robot, description_from_spec, robot_description,
                     starleth_description)
-from .library import INSTALL_HINT, available_robots, load_robot, package_dirs, urdf_file
+from .library import (INSTALL_HINT, available_robots, load_robot, package_dirs, robot_urdf,
+                      urdf_file)
 from .spec import RobotSpec
 
 __all__ = ["available_robots", "load_robot", "robot_description", "description_from_spec",
-           "starleth_description", "config_with_robot", "urdf_file", "package_dirs",
+           "starleth_description", "config_with_robot", "urdf_file", "robot_urdf", "package_dirs",
            "RobotSpec", "INSTALL_HINT"]

@@ -99,6 +99,12 @@ def urdf_file(spec: RobotSpec) -> str:
     return os.path.normpath(path)
 
 
+def robot_urdf(robot: str) -> str:
+    """The URDF file a `robot` value stands for (its spec's, or the URDF path itself)."""
+    kind, path = resolve(robot)
+    return path if kind == "urdf" else urdf_file(load_robot(path))
+
+
 def package_dirs(spec: RobotSpec) -> list[str]:
     """The roots of the URDF's package:// URIs (meshes), where the spec gives one."""
     src = spec.urdf
