@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 LIVE_PORT ?= 8765
 
-.PHONY: venv test demo bench eval ray browser-test constraints clean distclean
+.PHONY: venv robots test demo bench eval ray browser-test constraints clean distclean
 
 venv: $(STAMP)
 
@@ -52,6 +52,17 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requiremen
 	$(PIP) install -e . --no-deps; \
 	touch $@
 
+# The robot library's URDFs beyond StarlETH (requirements-robots.txt: example-robot-data,
+# about 415 MB installed), for the robots of robots/*.yaml (Simulator.from_preset(...,
+# robot="go1")) and their tests; `make test` installs them, `make venv` and `make demo` do not.
+ROBOTS_STAMP := $(VENV)/.robots-installed
+robots: $(ROBOTS_STAMP)
+
+$(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
+	@echo "robots: installing requirements-robots.txt (example-robot-data)"
+	@$(PIP) install -c constraints.txt -r requirements-robots.txt
+	@touch $@
+
 # Per-run ROS_DOMAIN_ID (10..99) so concurrent runs on one host do not cross-talk.
 # First the kernels ready (starleth-precompile: the C physics kernels, built with the venv,
 # and the controller's and the ROS codec's numba kernels into numba's on-disk cache, about
@@ -64,7 +75,7 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requiremen
 # 100). All three passes run; the target fails with the first failing pass's status (a pytest
 # pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
 # in one pass alone).
-test: venv
+test: venv robots
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
 	echo "pass 1: 2 workers: the ROS node tests one by one beside the CPU-bound tests"; \
@@ -128,7 +139,7 @@ constraints:
 	$(PYTHON) -m venv $$tmp/venv; \
 	$$tmp/venv/bin/python -m pip -q --disable-pip-version-check --no-input install \
 	  -r requirements-ros.txt -r requirements.txt -r requirements-test.txt -r requirements-live.txt \
-	  -r requirements-interfaces.txt; \
+	  -r requirements-interfaces.txt -r requirements-robots.txt; \
 	{ echo "# Exact versions the test suite passed with (Python $$($$tmp/venv/bin/python -c 'import sys; print("%d.%d" % sys.version_info[:2])'), $$(date +%Y-%m-%d)); make installs with"; \
 	  echo "# -c constraints.txt. Refresh on purpose with \`make constraints\` (a fresh venv from the"; \
 	  echo "# requirements files without constraints), then run \`make test\` and commit both."; \

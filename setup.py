@@ -52,6 +52,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/urdf', glob('urdf/*.urdf') + glob('urdf/*.xml')),
+        ('share/' + package_name + '/robots', glob('robots/*.yaml')),   # the robot library
         ('share/' + package_name + '/config', glob('config/*.yaml')),   # ros2_control
         ('share/' + package_name + '/msg_configs', glob('msg_configs/*.yaml')),
         ('share/' + package_name + '/msg_configs/terrain', glob('msg_configs/terrain/*.yaml')),

@@ -9,7 +9,7 @@ from starleth_sim import Simulator, available_presets, load_preset
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.posture import PostureHold
 
-TIGHT = dict(tol_rel=1e-12, tol_abs=1e-12, max_iterations=20000)
+from coordinate_checks import TIGHT, compare_three, replay, rotation_angle
 
 
 def test_all_table1_presets_exist_with_the_papers_parameters():
@@ -51,52 +51,6 @@ def test_maximal_mass_matrix_is_constant_and_block_diagonal():
     np.testing.assert_allclose(M1, np.diag(np.diag(M1)))   # principal CoM frames
     assert np.trace(M1[:3, :3]) / 3 == pytest.approx(17.1)
     assert sum(M1[v, v] for v in c.root_v) == pytest.approx(sim.description.total_mass)
-
-
-def replay(preset, q_min, u_min, torques, **overrides):
-    """Open loop: the torques as given (ideal torque sources, velocity_limit "ignore": the
-    open-loop robot falls and flails its legs beyond the motors' speed limit, where the
-    derating would feed each set's own O(Δt) velocities back into the torques)."""
-    overrides.setdefault("velocity_limit", "ignore")
-    sim = Simulator.from_preset(preset, **TIGHT, **overrides)
-    sim.reset(q_min, u_min, minimal=True)
-    for tau in torques:
-        sim.step(tau)
-        assert sim.diagnostics.converged
-    b = sim.base_state()
-    return sim, np.concatenate([sim.joint_positions(), b["position"]]), b["orientation_xyzw"]
-
-
-def rotation_angle(qa, qb):
-    """Angle [rad] of the rotation between two orientations (quaternions, either sign)."""
-    c = min(1.0, abs(float(np.dot(qa, qb))) / (np.linalg.norm(qa) * np.linalg.norm(qb)))
-    return 2.0 * np.arccos(c)
-
-
-def compare_three(q_min, u_min, torques, native_tol):
-    """Same initial state, same torque history (zero-order hold per control period), three
-    coordinate sets. The scheme is first order, so each set's error is C Δt with a constant
-    that depends on the coordinates; the sets agree in the limit Δt -> 0, shown by Richardson
-    extrapolation 2 x(Δt/8) - x(Δt/4) (to 1e-4 rad / m, the issue's bound). At the native
-    Δt = 2.5 ms they agree within `native_tol`."""
-    x, quat = {}, {}
-    for preset in ("HmJ", "HEJD", "HMJD"):
-        for spc in (1, 4, 8):
-            sim, x[preset, spc], quat[preset, spc] = replay(preset, q_min, u_min, torques,
-                                                            steps_per_control=spc)
-    for preset in ("HEJD", "HMJD"):
-        ext = 2 * x[preset, 8] - x[preset, 4]
-        ext_ref = 2 * x["HmJ", 8] - x["HmJ", 4]
-        np.testing.assert_allclose(ext, ext_ref, atol=1e-4, err_msg=preset)
-        q_ext = 2 * quat[preset, 8] - quat[preset, 4]        # same extrapolation (q ≈ q')
-        q_ext_ref = 2 * quat["HmJ", 8] - quat["HmJ", 4]
-        assert rotation_angle(q_ext, q_ext_ref) < 1e-4, preset
-        # first order: the difference at Δt/8 is ~1/8 of the one at Δt
-        d1 = np.abs(x[preset, 1] - x["HmJ", 1]).max()
-        d8 = np.abs(x[preset, 8] - x["HmJ", 8]).max()
-        assert d1 < native_tol[preset], (preset, d1)
-        assert d8 < d1 / 4 or d1 < 1e-9, (preset, d1, d8)
-    return sim
 
 
 def test_three_coordinate_sets_agree_in_free_fall_with_joint_motion():

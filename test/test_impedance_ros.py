@@ -32,7 +32,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
-from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
+from starleth_sim.robots import load_robot  # noqa: E402
 from starleth_sim.physics.simulator import Simulator  # noqa: E402
 from starleth_sim.ros.parameters import Settings  # noqa: E402
 from starleth_sim.ros.service import SimService  # noqa: E402
@@ -40,6 +40,8 @@ from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
 from starleth_sim.ros.qos import COMMAND_QOS, STATE_QOS  # noqa: E402
 from starleth_sim.tools.replay_recording import load_recording  # noqa: E402
 from starleth_sim.tools.replay_resimulation import compare_exact, resimulate  # noqa: E402
+
+STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (229, 4)        # first, span (conftest._free_ros_domain)

@@ -94,6 +94,9 @@ def test_executables_and_share(prefix):
     share = prefix / "share" / "starleth_sim"
     assert (share / "package.xml").is_file()
     assert (share / "urdf" / "starleth.urdf").is_file()
+    # the robot library: every spec, StarlETH's naming its URDF relative to it
+    assert sorted(p.name for p in (share / "robots").glob("*.yaml")) == \
+        sorted(os.listdir(os.path.join(ROOT, "robots")))
     assert (share / "launch" / "starleth.launch.xml").is_file()
     assert (share / "foxglove" / "starleth_layout.json").is_file()
     # the ros2_control path: its launch file finds the controllers in share/config

@@ -21,9 +21,11 @@ from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
+from starleth_sim.robots import load_robot  # noqa: E402
 from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
 from starleth_sim.tools.bag import read_messages  # noqa: E402
+
+STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 
 DOMAIN_RANGE = (180, 20)       # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 180 + os.getpid() % 20

@@ -122,7 +122,7 @@ FEET_ORDER = ("LF", "RF", "LH", "RH")      # the public joint order
 
 
 def total_mass():
-    from starleth_sim.physics.description import starleth_description
+    from starleth_sim.robots import starleth_description
     return starleth_description().total_mass
 
 

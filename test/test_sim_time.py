@@ -33,8 +33,10 @@ from rcl_interfaces.srv import SetParameters  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
-from starleth_sim.physics.description import STARLETH_STANDING_HEIGHT  # noqa: E402
+from starleth_sim.robots import load_robot  # noqa: E402
 from starleth_sim.tools import analysis, foxglove_layout, replay, view  # noqa: E402
+
+STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (200, 20)       # first, span (conftest._free_ros_domain)

@@ -14,7 +14,7 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
 from tf_trees import world_poses  # noqa: E402
-from starleth_sim.physics.description import starleth_description  # noqa: E402
+from starleth_sim.robots import starleth_description  # noqa: E402
 
 DOMAIN_RANGE = (199, 30)      # first, span
 DOMAIN_ID = 199 + os.getpid() % 30  # conftest._free_ros_domain: a free one of the range

@@ -380,7 +380,9 @@ class ActuatorConfig:
 class PhysicsConfig:
     name: str = "custom"
     description: str = ""
-    robot: str = "starleth.urdf"   # a file in urdf/, or an absolute path
+    #: the robot: a library name (robots/<name>.yaml: starleth, go1, ...), the path of a robot
+    #: spec or of a URDF; starleth.urdf (the presets' and older recordings') is starleth
+    robot: str = "starleth.urdf"
     coordinates: str = "minimal"   # minimal | extended | maximal
     contact_model: str = "hard"    # hard | compliant
     control_rate: float = 400.0    # [Hz]; sim.step() advances 1/control_rate
@@ -409,8 +411,9 @@ class PhysicsConfig:
         p = source
         if not isinstance(self.name, str) or not self.name:
             raise ConfigError(f"{p}: name: expected a non-empty string, got {self.name!r}")
-        if not isinstance(self.robot, str):
-            raise ConfigError(f"{p}: robot: expected a file name, got {self.robot!r}")
+        if not isinstance(self.robot, str) or not self.robot:
+            raise ConfigError(f"{p}: robot: expected a robot name or a path, got "
+                              f"{self.robot!r}")
         if not isinstance(self.description, str):
             raise ConfigError(f"{p}: description: expected a string, got "
                               f"{self.description!r}")

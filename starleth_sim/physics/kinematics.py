@@ -39,12 +39,8 @@ import pinocchio as pin
 
 from .kernels import (JT_FREEFLYER, JT_REVOLUTE, contact_kinematics, contact_points,  # noqa: F401
                       forward_kinematics, point_jacobian, quat_xyzw_to_rot)
+from .urdf import revolute_axis
 
-_REVOLUTE_AXES = {
-    "JointModelRX": (1.0, 0.0, 0.0),
-    "JointModelRY": (0.0, 1.0, 0.0),
-    "JointModelRZ": (0.0, 0.0, 1.0),
-}
 
 
 class KinematicTree:
@@ -71,12 +67,9 @@ class KinematicTree:
                 if model.parents[j] != 0:
                     raise ValueError("a free-flyer joint is only supported at the root")
                 self.jtype[j] = JT_FREEFLYER
-            elif name in _REVOLUTE_AXES:
+            elif revolute_axis(jm) is not None:
                 self.jtype[j] = JT_REVOLUTE
-                self.axis[j] = _REVOLUTE_AXES[name]
-            elif name == "JointModelRevoluteUnaligned":
-                self.jtype[j] = JT_REVOLUTE
-                self.axis[j] = np.asarray(jm.extract().axis, dtype=float)
+                self.axis[j] = revolute_axis(jm)
             else:
                 raise ValueError(f"joint '{model.names[j]}' has unsupported type {name}; "
                                  "supported: free-flyer root and revolute joints")

@@ -2,8 +2,9 @@
 
     from starleth_sim import Simulator
     sim = Simulator.from_preset("HmJ")           # or "Cm", "HmS", a YAML path; **overrides
+    sim = Simulator.from_preset("HmJ", robot="go1")   # a robot of the library (robots/)
     sim.reset()                                   # standing on the ground
-    sim.step(tau)                                 # one control period (1/400 s), 12 torques
+    sim.step(tau)                                 # one control period (1/400 s), n torques
     sim.step(ImpedanceCommand.create(sim.joint_names, position=q_star, kp=80.0, kd=2.0))
     sim.q, sim.u, sim.t, sim.contacts, sim.diagnostics
     snap = sim.snapshot(); ...; sim.restore(snap) # back to a saved state
@@ -13,7 +14,8 @@ wrenches); the model and settings (description, config, persistent wrenches) and
 workspace (the stepper's arrays, the reports of the last step) are not part of it, see
 :mod:`starleth_sim.physics.state`.
 
-Torques are in the public joint order LF/RF/LH/RH x HAA/HFE/KFE and saturated at the
+Torques are in the public joint order (the URDF's document order of its moving joints,
+StarlETH's LF/RF/LH/RH x HAA/HFE/KFE: ``sim.joint_names``) and saturated at the
 URDF effort limits; beyond the URDF velocity limit v a torque that drives its joint faster
 is derated linearly to zero at 2v (the torque actually applied is ``applied_torque``). A
 joint impedance command (:mod:`starleth_sim.physics.impedance`) is evaluated at every
@@ -35,14 +37,14 @@ from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, r
 from .coordinates import make_coordinates
 from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_diagnostics,
                           one_step_diagnostics)
-from .description import (RobotDescription, starleth_description, leg_angles_for_height,
-                          urdf_path)
+from .description import RobotDescription
 from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, ImpedanceCommand,
                         replay_rows)
 from .state import SimState, finite_time
 from .stepper import MoreauStepper, SimulationError, PHASES
 from .tree_step import report_size, report_views
 from .wrenches import MAX_TIMED_WRENCHES, ExternalWrenches
+from ..robots import config_with_robot, robot_description
 
 log = logging.getLogger("starleth_sim")
 
@@ -60,8 +62,7 @@ class Simulator:
                  profile: bool = False):
         self.config = config
         if description is None:
-            path = config.robot if config.robot.startswith("/") else urdf_path(config.robot)
-            description = starleth_description(path)
+            description = robot_description(config.robot)
         self.description = description
         self.coords = make_coordinates(config.coordinates, description,
                                        second_surfaces=not config.terrain.is_flat)
@@ -110,16 +111,24 @@ class Simulator:
     # -- construction ---------------------------------------------------------------------
     @classmethod
     def from_preset(cls, name: str = "HmJ", description: RobotDescription | None = None,
-                    profile: bool = False, **overrides) -> "Simulator":
+                    profile: bool = False, robot: str | None = None,
+                    **overrides) -> "Simulator":
+        """A simulator of a preset (a name or a YAML path) for `robot` (a library name, a
+        spec or URDF path; default: the preset's), with the robot spec's physics overrides,
+        then `overrides` (flat or dotted field names)."""
         cfg = load_preset(name)
+        if robot is not None:
+            cfg = config_with_robot(cfg, robot)
         if overrides:
             cfg = cfg.with_overrides(**overrides)
         return cls(cfg, description=description, profile=profile)
 
     # -- state ----------------------------------------------------------------------------
     def default_state(self):
-        """StarlETH: standing posture at its nominal height, feet on the ground. Any other
-        body: neutral configuration resting with its lowest contact point on the ground.
+        """A robot with legs and a standing height: the standing posture (hip rolls at 0,
+        each foot below its hip pitch joint at the standing height: physics/legs.py), feet
+        on the ground. Any other body: the neutral configuration resting with its lowest
+        contact point on the ground.
         Resting means a 1 nm overlap (g_N = −1e-9 m at q), so that round-off cannot leave a
         touching contact open: a hard contact enters the active set when g_N(q^M) ≤
         contact.activation_gap (0 in the presets; with contact.activation "hysteresis" a
@@ -127,12 +136,11 @@ class Simulator:
         but a new one must reach activation_gap), and a compliant contact closes when
         g_N(q^M) ≤ 0."""
         c = self.coords
-        q = c.neutral()
         d = self.description
-        if d.standing_height is not None and self.n_joints == 12:
-            hfe, kfe = leg_angles_for_height(d.standing_height, d)
-            joints = np.array([0.0, hfe, kfe] * 2 + [0.0, -hfe, -kfe] * 2)
-            q = c.make_state([0.0, 0.0, d.standing_height], [0, 0, 0, 1], joints)
+        if d.standing_height is not None and d.legs:
+            q = c.make_state([0.0, 0.0, d.standing_height], [0, 0, 0, 1], d.standing_joints())
+        else:   # (the minimal neutral configuration: a cut forest's bodies where they belong)
+            q = c.make_state([0.0, 0.0, 0.0], [0, 0, 0, 1])
         if c.n_contacts:
             rest_on_ground(c, self.stepper.ground, q, self.REST_OVERLAP)
         return q

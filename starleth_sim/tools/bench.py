@@ -30,11 +30,11 @@ import numpy as np
 
 from ..physics.config import PRESETS as DEFAULT_PRESETS   # the paper's Table 1
 from ..physics.config import ConfigError, load_preset
-from ..physics.description import urdf_path
 from ..physics.impedance import ImpedanceCommand
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..physics.stepper import PHASES, StepperStats
+from ..robots import robot_urdf
 from .bench_terrain import print_terrain_rounds
 from .bench_timing import timed_steps
 
@@ -111,16 +111,16 @@ FORCE_TOLERANCE = 0.02      # |Σ F_N − m g| / (m g) of each simulator, standi
 
 
 def mujoco_model(robot: str, dt: float, mu: float):
-    """MuJoCo's model of the robot's URDF (a preset's `robot`): the URDF compiled by
-    MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials only), a free
-    joint on the base, a ground plane at z = 0, Δt, Newton solver, elliptic friction cones,
-    μ on every geom; the robot's geoms collide with the ground only (as the simulator's
-    contact points). Returns (mujoco, model); mujoco is None if not installed."""
+    """MuJoCo's model of the robot's URDF (a preset's `robot`: robots.robot_urdf): the URDF
+    compiled by MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials
+    only), a free joint on the base, a ground plane at z = 0, Δt, Newton solver, elliptic
+    friction cones, μ on every geom; the robot's geoms collide with the ground only (as the
+    simulator's contact points). Returns (mujoco, model); mujoco is None if not installed."""
     try:
         import mujoco
     except ImportError:
         return None, None
-    spec = mujoco.MjSpec.from_file(robot if robot.startswith("/") else urdf_path(robot))
+    spec = mujoco.MjSpec.from_file(robot_urdf(robot))
     # the URDF's inertials only: by default MuJoCo gives a link without one (the feet) the
     # mass of its collision geoms at 1000 kg/m³ (+65 g per foot sphere)
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE

@@ -11,7 +11,8 @@ import zlib
 import numpy as np
 import pinocchio as pin
 
-from ..physics.description import RobotDescription, urdf_origin
+from ..physics.description import RobotDescription
+from ..physics.urdf import urdf_origin
 from .view_recording import FEET, Recording, warn
 
 #: colours (0xRRGGBB): a distinctive orange robot, green arrows, grey ground, blue-grey sky

@@ -1,11 +1,16 @@
 """Generalized coordinates of a robot described as a *forest* of floating trees, cut from
 one kinematic tree at a chosen set of revolute joints (paper Eqn. 19-22, Table 1):
 
-* minimal  - no cut: one tree on a free-flyer root (19 coordinates, 18 DOF);
-* extended - the legs cut free at the HAA joints: trunk + 4 floating legs (hip body + HFE +
-             KFE), 38 DOF, 20 bilateral constraints;
-* maximal  - every joint cut: 13 free bodies, each with its frame at its centre of mass so
-             that its mass matrix diag(m I, Θ) is constant, 78 DOF, 60 bilateral constraints.
+* minimal  - no cut: one tree on a free-flyer root (a 12-joint quadruped: 19 coordinates,
+             18 DOF);
+* extended - the subtrees of the root cut free at their first joints (a quadruped: trunk + 4
+             floating legs, 38 DOF, 20 bilateral constraints);
+* maximal  - every joint cut: one free body per body (a quadruped: 13), each with its frame at
+             its centre of mass so that its mass matrix diag(m I, Θ) is constant (78 DOF, 60
+             bilateral constraints).
+
+Any tree of revolute joints (axes along x, y, z or unaligned: pin's RX, RY, RZ and
+RevoluteUnaligned) on a free-flyer root.
 
 Every tree root is a free body with the paper's coordinates (Eqn. 21):
     q_root = [I_r (3), quaternion (x, y, z, w)],   u_root = [I_v (3), B_ω (3)]
@@ -36,9 +41,18 @@ from ..kernels import (add_at, angular_jacobian, cut_joint_torques, cut_joints, 
                        rigid_body_forces, to_pin_velocity, tree_dynamics)
 from ..kinematics import KinematicTree, contact_kinematics, forward_kinematics, point_jacobian
 from ..rigid_body import BodyInertias
+from ..urdf import revolute_axis
 
-_JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
-                "JointModelRZ": pin.JointModelRZ}
+_ALIGNED = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
+            "JointModelRZ": pin.JointModelRZ}
+
+
+def copy_revolute(jm):
+    """A new pin joint model of the same revolute type and axis (for the forest)."""
+    name = jm.shortname()
+    if name in _ALIGNED:
+        return _ALIGNED[name]()
+    return pin.JointModelRevoluteUnaligned(revolute_axis(jm))
 
 
 # --------------------------------------------------------------------------------------------
@@ -71,11 +85,11 @@ _JOINT_TYPES = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModel
 # --------------------------------------------------------------------------------------------
 def _checked_cut(src, cut):
     """The source joint ids of the joints to cut (names or ids), sorted, after checking that
-    each is an axis-aligned revolute joint and that the model has a free-flyer root."""
+    each is a revolute joint and that the model has a free-flyer root."""
     cut_ids = sorted(src.getJointId(n) if isinstance(n, str) else int(n) for n in cut)
     for j in cut_ids:
-        if src.joints[j].shortname() not in _JOINT_TYPES:
-            raise ValueError(f"only axis-aligned revolute joints can be cut, not "
+        if revolute_axis(src.joints[j]) is None:
+            raise ValueError(f"only revolute joints can be cut, not "
                              f"'{src.names[j]}' ({src.joints[j].shortname()})")
     if src.joints[1].shortname() != "JointModelFreeFlyer":
         raise ValueError("the robot model needs a free-flyer root")
@@ -141,7 +155,7 @@ class ForestCoordinates:
             self.joint_map[root] = (fj, offset)
             for j in members[1:]:
                 pf, poff = self.joint_map[src.parents[j]]
-                jm = _JOINT_TYPES[src.joints[j].shortname()]()
+                jm = copy_revolute(src.joints[j])
                 fjj = forest.addJoint(pf, jm, poff.inverse() * src.jointPlacements[j],
                                       src.names[j])
                 forest.appendBodyToJoint(fjj, src.inertias[j], pin.SE3.Identity())
@@ -191,8 +205,7 @@ class ForestCoordinates:
         self.b1_P, self.b2_P = np.zeros((ncut, 3)), np.zeros((ncut, 3))
         self.b1_C = np.zeros((ncut, 3))
         for k, c in enumerate(cut_ids):
-            a = {"JointModelRX": np.array([1.0, 0, 0]), "JointModelRY": np.array([0, 1.0, 0]),
-                 "JointModelRZ": np.array([0, 0, 1.0])}[src.joints[c].shortname()]
+            a = revolute_axis(src.joints[c])
             b1 = np.array([0, 1.0, 0]) if abs(a[1]) < 0.9 else np.array([0, 0, 1.0])
             b1 = b1 - a * (a @ b1)
             b1 /= np.linalg.norm(b1)

@@ -2,7 +2,7 @@
 instances of :class:`~starleth_sim.physics.coordinates.forest.ForestCoordinates`:
 
 * minimal:  the kinematic tree on a free-flyer root, no bilateral constraints;
-* extended: the subtrees hanging from the root (StarlETH: the legs, at the HAA joints) cut
+* extended: the subtrees hanging from the root (a quadruped's legs, at the HAA joints) cut
             free and re-attached by 5 bilateral constraints each;
 * maximal:  every joint cut, each body a free rigid body with its frame at its centre of
             mass (constant mass matrix), 5 bilateral constraints per joint.
@@ -39,11 +39,9 @@ def make_coordinates(name: str, desc: RobotDescription,
                      second_surfaces: bool = False) -> ForestCoordinates:
     """The coordinate set `name` of `desc`; with second_surfaces (a terrain), two contact
     slots per contact sphere (ForestCoordinates.add_second_surface_slots)."""
-    try:
-        coords = COORDINATE_SETS[name](desc)
-    except KeyError:
-        raise ValueError(f"unknown coordinates '{name}' (known: {sorted(COORDINATE_SETS)})") \
-            from None
+    if name not in COORDINATE_SETS:
+        raise ValueError(f"unknown coordinates '{name}' (known: {sorted(COORDINATE_SETS)})")
+    coords = COORDINATE_SETS[name](desc)
     if second_surfaces:
         coords.add_second_surface_slots()
     return coords

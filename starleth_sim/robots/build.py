@@ -1,0 +1,173 @@
+"""A RobotDescription from a robot spec: its URDF (checked, physics/urdf.py), the contact
+points the spec chooses (feet first, in the legs' order, then the spec's contacts in their
+order, each entry's links in URDF document order), the limits it overrides, and its
+standing height (checked by solving the standing posture). And the description and the
+physics configuration of a `robot` value (a library name, a spec path or a URDF path)."""
+from __future__ import annotations
+
+import fnmatch
+import os
+from dataclasses import replace
+
+import numpy as np
+import pinocchio as pin
+
+from ..physics.config import PhysicsConfig
+from ..physics.config_checks import ConfigError
+from ..physics.contact_points import (box_corners, check_terrain_reach, collision_points,
+                                      link_frame, sphere_point)
+from ..physics.description import RobotDescription
+from ..physics.legs import find_legs
+from ..physics.urdf import checked_model, document_joint_order
+from .library import load_robot, read_text, resolve, urdf_file
+from .spec import MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec
+
+
+def _match(patterns, names, where, what="link"):
+    """The names (in their order) matching any of the patterns (names or globs); each
+    pattern must match one."""
+    for p in patterns:
+        if not fnmatch.filter(names, p):
+            raise ConfigError(f"{where}: '{p}' matches no {what} of the URDF")
+    return [n for n in names if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+
+
+def _link_elements(root):
+    return {link.get("name"): link for link in root.findall("link")}
+
+
+def _spheres(link, model, source) -> list:
+    """A link's URDF sphere collisions as contact points; an unnamed one alone on its link
+    is named after the link (a foot: 'LF_FOOT', not 'LF_FOOT_1')."""
+    colls = link.findall("collision")
+    points = [p for k in range(len(colls))
+              for p in collision_points(link, k, model, source, ("sphere",))]
+    unnamed = [c for c in colls if c.find("geometry/sphere") is not None and not c.get("name")]
+    if len(points) == 1 and unnamed:
+        points = [replace(points[0], name=link.get("name"))]
+    return points
+
+
+def _feet(spec: RobotSpec, root, model, source, joint_names) -> list:
+    """The foot contact points, in the legs' order when every foot ends a leg."""
+    links = _link_elements(root)
+    feet = spec.feet
+    where = f"{spec.label}: feet"
+    if feet.links is None:       # found on the legs among the URDF's spheres
+        spheres = [p for link in links.values() for p in _spheres(link, model, source)]
+        legs = find_legs(model, joint_names, spheres)
+        return [next(p for p in spheres if p.name == leg.foot) for leg in legs]
+    points = []
+    for name in _match(feet.links, list(links), f"{where}.links"):
+        if feet.radius is not None:
+            frame = link_frame(model, name, where)
+            points.append(sphere_point(name, name, frame.parentJoint,
+                                       frame.placement * pin.SE3(np.eye(3), np.array(feet.at)),
+                                       feet.radius, f"{where}.radius"))
+            continue
+        found = _spheres(links[name], model, source)
+        if len(found) != 1:
+            raise ConfigError(f"{where}.links: link '{name}' has {len(found) or 'no'} <sphere> "
+                              "collision(s): give feet.radius (and feet.at)")
+        points += found
+    legs = find_legs(model, joint_names, points, {p.name for p in points})
+    if {leg.foot for leg in legs} == {p.name for p in points}:
+        points = [next(p for p in points if p.name == leg.foot) for leg in legs]
+    return points
+
+
+def _entry_points(entry: ContactEntry, root, model, source, label) -> list:
+    links = _link_elements(root)
+    where = f"{label}: {entry.where}"
+    points = []
+    for name in _match(entry.links, list(links), f"{where}.links"):
+        frame = link_frame(model, name, where)
+        j, tag = frame.parentJoint, f"{name}_{entry.name}" if entry.name else name
+        if entry.urdf:
+            got = [p for k in range(len(links[name].findall("collision")))
+                   for p in collision_points(links[name], k, model, source, entry.urdf)]
+            if not got:
+                raise ConfigError(f"{where}.urdf: link '{name}' has no "
+                                  f"{'/'.join(f'<{k}>' for k in entry.urdf)} collision")
+            points += got
+        elif entry.spheres:
+            for k, s in enumerate(entry.spheres):
+                at = frame.placement * pin.SE3(np.eye(3), np.array(s.at))
+                points.append(sphere_point(tag if len(entry.spheres) == 1 else f"{tag}{k}",
+                                           name, j, at, s.radius, f"{where}.spheres[{k}]"))
+        else:
+            b = entry.box
+            at = frame.placement * pin.SE3(pin.rpy.rpyToMatrix(*b.rpy), np.array(b.at))
+            points += box_corners(tag if entry.name else f"{name}_box", name, j, at, b.size)
+    return points
+
+
+def _limits(spec: RobotSpec, desc: RobotDescription):
+    """The spec's effort and velocity limits over the URDF's; each joint's must then be a
+    real one (not a placeholder)."""
+    names = list(desc.joint_names)
+    for kind, table, cap, unit in (("effort", spec.effort, MAX_EFFORT, "N m"),
+                                   ("velocity", spec.velocity, MAX_VELOCITY, "rad/s")):
+        limit = getattr(desc, f"{kind}_limit")
+        for pattern, value in table.items():
+            for n in _match([pattern], names, f"{spec.label}: limits.{kind}", "moving joint"):
+                limit[names.index(n)] = value
+        for n, x in zip(names, limit):
+            if not 0 < x < cap:
+                why = f"a placeholder (>= {cap:g})" if x >= cap else "not positive"
+                raise ConfigError(f"{desc.source}: joint '{n}': its {kind} limit {x:g} {unit} "
+                                  f"is {why}: give limits.{kind} in {spec.label}")
+
+
+def description_from_spec(spec: RobotSpec) -> RobotDescription:
+    """The description of a robot spec (module docstring); ConfigError naming the spec or
+    the URDF and the field or element."""
+    path = urdf_file(spec)
+    source = f"{os.path.basename(path)} ({spec.label})"
+    xml = read_text(path)
+    root, model = checked_model(xml, source)
+    joint_names = document_joint_order(root)
+    feet = _feet(spec, root, model, source, joint_names)
+    contacts = list(feet)
+    for entry in spec.contacts:
+        contacts += _entry_points(entry, root, model, source, spec.label)
+    check_terrain_reach(contacts, source)
+    seen = set()
+    for c in contacts:
+        if c.name in seen:
+            raise ConfigError(f"{spec.label}: contacts: two contact points named '{c.name}'")
+        seen.add(c.name)
+    desc = RobotDescription.from_model(spec.name, xml, model, contacts, source, joint_names,
+                                       tuple(p.name for p in feet),
+                                       standing_height=spec.standing_height, knees=spec.knees)
+    _limits(spec, desc)
+    if spec.standing_height is not None:
+        try:
+            desc.standing_joints()
+        except ValueError as e:
+            raise ConfigError(f"{spec.label}: standing: {e}") from None
+    return desc
+
+
+def robot_description(robot: str = "starleth") -> RobotDescription:
+    """The description a `robot` value names: a library name or a spec path (through its
+    spec), or a URDF path (no spec: RobotDescription.from_urdf_xml's rules)."""
+    kind, path = resolve(robot)
+    if kind == "urdf":
+        name = os.path.splitext(os.path.basename(path))[0]
+        return RobotDescription.from_urdf_xml(read_text(path), name=name, source=path)
+    return description_from_spec(load_robot(path))
+
+
+def starleth_description() -> RobotDescription:
+    """StarlETH, the paper's robot (robots/starleth.yaml)."""
+    return robot_description("starleth")
+
+
+def config_with_robot(config: PhysicsConfig, robot: str) -> PhysicsConfig:
+    """A copy of `config` for `robot`: its `robot` field, and the spec's physics overrides
+    (a robot's own values over the preset's: Solo12's compliant contact)."""
+    kind, _ = resolve(robot)
+    physics = load_robot(robot).physics if kind == "spec" else {}
+    return config.with_overrides(robot=robot, **physics)
+
