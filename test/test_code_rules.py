@@ -22,7 +22,9 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
-MAX_LINES = 600
+#: a module has one job; at this size it is time to look for a second one in it (not to
+#: squeeze it: blank lines and docstrings count like code)
+MAX_LINES = 700
 
 # top-level names a function may import locally: optional dependencies (setup.py's extras
 # included: pyarrow for starleth-sweep's parquet, foxglove and websockets for the live view)
@@ -426,7 +428,7 @@ def test_self_check_docstring():
         ("starleth_sim/c.py", 1, "module-docstring")], _report(found)
 
 
-def test_c_sources_at_most_600_lines():
+def test_c_sources_at_most_max_lines():
     """The C kernels (``starleth_sim/physics/csrc``) follow the modules' size rule too."""
     csrc = os.path.join(ROOT, "starleth_sim", "physics", "csrc")
     sources = [f for f in os.listdir(csrc) if f.endswith((".c", ".h"))]
