@@ -112,8 +112,9 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
     """The timer controller example, as written, beside `sim_node --ros-args -p
     default_kp:=300.0` (realtime, the default): sim time runs before it starts, so its timer
     fires; sim_node receives its first command within 1 s of sim time after the node's
-    publisher is discovered (3 s after the node appears: DDS discovery), and the robot trots in place (each diagonal pair alone on the ground over a
-    third of the time, the other pair in the air; the trunk above 0.37 m)."""
+    publisher is discovered (3 s after the node appears: DDS discovery), and the robot trots
+    in place (each diagonal pair alone on the ground over a third of the time, the other pair
+    in the air; the trunk above 0.37 m)."""
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
                       default_kp=300.0, record=str(tmp_path / "timer.mcap"))
     clock = SimClock(ros)
@@ -157,7 +158,6 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
     assert z[later].min() > 0.37
 
 
-@pytest.mark.serial   # a realtime node
 def test_robot_holds_its_posture_for_a_minute_without_controller(ros, tmp_path):
     """sim_node in realtime mode with no controller for 60 s of sim time (real_time_factor
     20): the drives hold the initial posture, the trunk within 2 cm of its standing height
@@ -224,7 +224,6 @@ def test_late_controller_takes_over_without_a_jump(ros, tmp_path):
     assert jump <= hold_error + 0.002
 
 
-@pytest.mark.serial   # a realtime node
 def test_first_command_start_keeps_the_clock_at_zero(ros, tmp_path):
     """realtime_start:=first_command: without a controller the initial state is re-sent
     stamped 0, /clock stays at 0 and the robot does not move."""
