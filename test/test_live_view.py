@@ -246,10 +246,11 @@ def test_a_client_offering_either_subprotocol_name_is_served(subprotocol):
 
 
 def test_a_clients_malformed_frames_are_throttled_warnings_cut_short(capfd):
-    """100 malformed frames of 1 MiB from a client (the SDK quotes each whole in its log
-    message: they went to stderr, 105 MB in 2.5 s): warnings on the node's logger, throttled
-    per SDK component, each cut to MAX_LOGGED_CHARS; nothing of them on stderr. The server
-    serves on afterwards, and stopping it hands the SDK's logging back."""
+    """100 malformed frames of 60 kB from a client (under the front's limit; the SDK quotes
+    each whole in its log message: frames of 1 MiB went to stderr, 105 MB in 2.5 s):
+    warnings on the node's logger, throttled per SDK component, each cut to
+    MAX_LOGGED_CHARS; nothing of them on stderr. The server serves on afterwards, and
+    stopping it hands the SDK's logging back."""
     import asyncio
     import json
     import logging
@@ -267,7 +268,7 @@ def test_a_clients_malformed_frames_are_throttled_warnings_cut_short(capfd):
     live = LiveView.open("127.0.0.1", 0, [], log, throttle_period=60.0)
     assert live is not None, log.lines
     problems = live.problems
-    frame = json.dumps({"op": "subscribe", "subscriptions": "a" * (1 << 20)})
+    frame = json.dumps({"op": "subscribe", "subscriptions": "a" * 60_000})
 
     async def flood():
         async with websockets.connect(f"ws://127.0.0.1:{live.port}", max_size=None,
@@ -293,6 +294,71 @@ def test_a_clients_malformed_frames_are_throttled_warnings_cut_short(capfd):
     assert 1 <= len(warnings) <= 2, warnings
     assert "live_view: Invalid message from 127.0.0.1:" in warnings[0]
     assert all(len(w) <= MAX_LOGGED_CHARS + 40 for w in warnings), [len(w) for w in warnings]
-    assert "(1048" in warnings[0]            # the length of the message it was cut from
+    assert f"({len(frame) // 1000}" in warnings[0]   # the length of the message it was cut from
     assert len(capfd.readouterr().err) < 2000
     assert logging.getLogger("foxglove").propagate and not logging.getLogger("foxglove").handlers
+
+
+def test_a_client_message_over_the_limit_disconnects_that_client():
+    """A client message over MAX_CLIENT_MESSAGE (64 KiB, in one frame or in fragments; the
+    SDK itself takes up to 16 MiB) closes that client's connection before the SDK reads it,
+    with one warning on the node's log; another client is served afterwards. The frame
+    reader of the limit follows RFC 6455's lengths (7-bit, 16-bit, 64-bit, fragments)."""
+    import asyncio
+    import struct
+
+    import websockets
+    from starleth_sim.ros.live_view import SUBPROTOCOL, LiveView
+    from starleth_sim.ros.live_view_front import MAX_CLIENT_MESSAGE, ClientMessageLimit
+
+    def frame(payload_size, fin=True, opcode=1):
+        head = bytes([(0x80 if fin else 0) | opcode])
+        if payload_size < 126:
+            head += bytes([0x80 | payload_size])
+        elif payload_size < 1 << 16:
+            head += bytes([0x80 | 126]) + struct.pack(">H", payload_size)
+        else:
+            head += bytes([0x80 | 127]) + struct.pack(">Q", payload_size)
+        return head + b"mask" + b"x" * payload_size
+
+    limit = ClientMessageLimit(1000)
+    stream = frame(100) + frame(999) + frame(600, fin=False) + frame(400, opcode=0)
+    assert all(limit.feed(stream[i:i + 7]) for i in range(0, len(stream), 7))   # in pieces
+    assert ClientMessageLimit(1000).feed(frame(1001)[:10]) is False    # head alone suffices
+    fragments = frame(600, fin=False) + frame(401, opcode=0)
+    assert ClientMessageLimit(1000).feed(fragments) is False
+    assert ClientMessageLimit(1 << 40).feed(frame(70_000)) is True     # a 64-bit length
+
+    class Log:
+        def __init__(self):
+            self.lines = {"info": [], "warning": [], "error": []}
+
+        def __getattr__(self, level):
+            return self.lines[level].append
+
+    log = Log()
+    live = LiveView.open("127.0.0.1", 0, [("/chatter", "std_msgs/msg/String", False)], log)
+    url = f"ws://127.0.0.1:{live.port}"
+
+    async def oversized():
+        async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None,
+                                      close_timeout=0.5) as ws:
+            await ws.recv()                                        # serverInfo
+            try:
+                await ws.send("a" * (MAX_CLIENT_MESSAGE + 1))
+                await asyncio.wait_for(ws.recv(), 5.0)
+                await asyncio.wait_for(ws.recv(), 5.0)
+            except websockets.exceptions.ConnectionClosed:
+                return True
+            return False
+
+    try:
+        closed = asyncio.run(oversized())
+        got = collect(url, ["/chatter"], seconds=3.0, until=lambda lg: "/chatter" in
+                      lg.channels)
+    finally:
+        live.stop()
+    assert closed and live.front.oversized_clients == 1
+    assert [w for w in log.lines["warning"] if f"over {MAX_CLIENT_MESSAGE} bytes" in w], \
+        log.lines
+    assert "/chatter" in got.channels

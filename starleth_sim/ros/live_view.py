@@ -17,9 +17,9 @@ view".
 The server's problems with a client (a malformed frame, a subscription to an unknown
 channel: the SDK logs them through Python ``logging``, under ``foxglove``) go to the node's
 logger as warnings (:class:`ClientProblemLog`), throttled like every other warning of the
-node, each cut to MAX_LOGGED_CHARS: the SDK's message quotes the client's frame, and a
-frame may be up to 16 MiB (the SDK's limit on a client's message, which it does not let a
-caller lower).
+node, each cut to MAX_LOGGED_CHARS: the SDK's message quotes the client's frame. The front
+bounds a client's message (live_view_front.MAX_CLIENT_MESSAGE, 64 KiB), far below the SDK's
+own 16 MiB, which it does not let a caller lower.
 """
 from __future__ import annotations
 
