@@ -161,7 +161,8 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
 def test_robot_holds_its_posture_for_a_minute_without_controller(ros, tmp_path):
     """sim_node in realtime mode with no controller for 60 s of sim time (real_time_factor
     50, as fast as it goes): the drives hold the initial posture, the trunk within 2 cm of
-    its standing height throughout; the log says so once, and /starleth/solver reports holding_initial_posture."""
+    its standing height throughout; the log says so once, and /starleth/solver reports
+    holding_initial_posture."""
     from diagnostic_msgs.msg import DiagnosticArray
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
                       real_time_factor=50.0, record=str(tmp_path / "hold.mcap"),
