@@ -27,6 +27,16 @@ DOMAIN_ID = 229 + os.getpid() % 4
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+class LinesLog:
+    """A node's logger for the live view alone: the lines of each level."""
+
+    def __init__(self):
+        self.lines = {"info": [], "warning": [], "error": []}
+
+    def __getattr__(self, level):
+        return self.lines[level].append
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -199,17 +209,11 @@ def test_a_client_offering_either_subprotocol_name_is_served(subprotocol):
     import websockets.sync.client as ws_client
     from starleth_sim.ros.live_view import LiveView
 
-    class Log:
-        def info(self, m):
-            self.line = m
-
-        error = warning = info
-
-    log = Log()
+    log = LinesLog()
     live = LiveView.open("127.0.0.1", free_port(), [("/chatter", "std_msgs/msg/String", False)],
                          log)
-    assert live is not None, log.line
-    assert "foxglove.websocket.v1" in log.line
+    assert live is not None, log.lines
+    assert "foxglove.websocket.v1" in log.lines["info"][-1]
     backend_port = live.server.port
     payload = b"\x00\x01\x00\x00\x06\x00\x00\x00hello\x00"      # CDR of String "hello"
     stop = threading.Event()
@@ -257,14 +261,7 @@ def test_a_clients_malformed_frames_are_throttled_warnings_cut_short(capfd):
     import websockets
     from starleth_sim.ros.live_view import MAX_LOGGED_CHARS, SUBPROTOCOL, LiveView
 
-    class Log:
-        def __init__(self):
-            self.lines = {"info": [], "warning": [], "error": []}
-
-        def __getattr__(self, level):
-            return self.lines[level].append
-
-    log = Log()
+    log = LinesLog()
     live = LiveView.open("127.0.0.1", 0, [], log, throttle_period=60.0)
     assert live is not None, log.lines
     problems = live.problems
@@ -329,14 +326,7 @@ def test_a_client_message_over_the_limit_disconnects_that_client():
     assert ClientMessageLimit(1000).feed(fragments) is False
     assert ClientMessageLimit(1 << 40).feed(frame(70_000)) is True     # a 64-bit length
 
-    class Log:
-        def __init__(self):
-            self.lines = {"info": [], "warning": [], "error": []}
-
-        def __getattr__(self, level):
-            return self.lines[level].append
-
-    log = Log()
+    log = LinesLog()
     live = LiveView.open("127.0.0.1", 0, [("/chatter", "std_msgs/msg/String", False)], log)
     url = f"ws://127.0.0.1:{live.port}"
 

@@ -8,21 +8,18 @@ late takes over without a jump; realtime_start first_command still waits with th
 Nodes run as child processes on an isolated ROS_DOMAIN_ID; every wait is bounded and every
 child is stopped in a finally. The figures are read from sim_node's recording."""
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from controller_examples import controllers_page_blocks  # noqa: E402
+from controller_examples import controllers_page_blocks, start_script, stop_script  # noqa: E402,E501
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from starleth_sim.robots import load_robot  # noqa: E402
-from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
 from starleth_sim.tools.bag import read_messages  # noqa: E402
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
@@ -63,26 +60,6 @@ class SimClock:
         self.ros.node.destroy_subscription(self.sub)
 
 
-def start_script(code, path, name):
-    """`code` run as a script with no arguments (as a user runs an example of the docs)."""
-    script = path / f"{name}.py"
-    script.write_text(code)
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED="1")
-    log = open(path / f"{name}.log", "w")
-    return subprocess.Popen([sys.executable, str(script)], stdin=subprocess.DEVNULL,
-                            stdout=log, stderr=subprocess.STDOUT, env=env), log
-
-
-def stop_script(proc, log):
-    proc.send_signal(2)
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(10)
-    log.close()
-
-
 def recorded(path):
     """From a sim_node recording: the states' times t [s] and base heights z [m], the foot
     normal forces (len(t), 4) [N], and the sim times [s] of the commands received (any
@@ -121,7 +98,7 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
     ctl = None
     try:
         clock.wait_for(0.5, [sim])                       # the clock runs with no controller
-        ctl, log = start_script(timer_controller(), tmp_path, "timer_controller")
+        ctl, log = start_script(timer_controller(), tmp_path, "timer_controller", DOMAIN_ID)
         assert ros.spin_until(lambda: "trot_in_place" in ros.node.get_node_names(),
                               START_TIMEOUT, procs=[sim]), (tmp_path / "timer_controller.log"
                                                             ).read_text()
@@ -259,7 +236,7 @@ def test_timer_controller_in_lockstep_gets_a_hint(ros, tmp_path):
                       mode="lockstep")
     ctl = None
     try:
-        ctl, log = start_script(timer_controller(), tmp_path, "timer_controller")
+        ctl, log = start_script(timer_controller(), tmp_path, "timer_controller", DOMAIN_ID)
         assert ros.spin_until(lambda: "belongs in realtime" in sim.log() or
                               "run sim_node with mode:=realtime" in sim.log(),
                               START_TIMEOUT, procs=[sim]), sim.log()[-3000:]
