@@ -29,8 +29,8 @@ def quoted(names, most=5, longest=64) -> str:
     return ", ".join(out)
 
 
-#: the hint of a lockstep node whose commands answer no state (SimService._answers_no_state)
-#: or that waits long for its first answer (sim_loops)
+#: the hint of a lockstep node whose commands answer no state (SimService._answers_no_state;
+#: sim_loops has its own for a node that waits long for its first answer)
 TIMER_CONTROLLER_HINT = (
     "lockstep: the commands arriving answer no state. In lockstep each command answers the "
     "state it was sent for (a JointState stamped with that state's stamp, sent from the "
@@ -102,7 +102,7 @@ class SimService:
         # clock runs from the start
         self.started = start in ("hold", "immediately")
         #: realtime_start hold: until the first valid command (and after each reset) the
-        #: joints hold the initial posture (hold_command); cleared by a valid command
+        #: joints hold the initial posture (_start_hold); cleared by a valid command
         self.hold_at_start = start == "hold"
         self.holding = False
         self.hold_position = None            # the initial joint angles q* of the hold
