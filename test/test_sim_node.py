@@ -410,6 +410,12 @@ class TestRealtime:
         from starleth_sim.physics.description import urdf_path
         with open(urdf_path(), "rb") as f:
             assert att["starleth.urdf"] == f.read()
+        # the robot rebuilds from the recording alone: its URDF and its spec as loaded
+        from starleth_sim.robots import recorded_description, robot_description
+        assert md["starleth_sim"]["robot"] == "starleth"
+        recorded = recorded_description(att["starleth.urdf"].decode(),
+                                        att["starleth.robot.yaml"].decode(), "starleth")
+        assert recorded.contact_names() == robot_description("starleth").contact_names()
         assert {"physics_config.yaml", "initial_state.json", "sim_node_parameters.yaml"} <= set(att)
         import yaml
         bag = yaml.safe_load(md["rosbag2"]["serialized_metadata"])

@@ -6,12 +6,13 @@ descriptions built from them.
     desc = robot_description("go1")        # a library name, a spec path or a URDF path
     Simulator.from_preset("HmJ", robot="go1")
 """
-from .build import (config_with_robot, description_from_spec, robot_description,
-                    starleth_description)
+from .build import (config_with_robot, description_from_spec, recorded_description,
+                    robot_description, spec_text, starleth_description)
 from .library import (INSTALL_HINT, available_robots, load_robot, package_dirs, robot_urdf,
                       urdf_file)
 from .spec import RobotSpec
 
 __all__ = ["available_robots", "load_robot", "robot_description", "description_from_spec",
+           "recorded_description", "spec_text",
            "starleth_description", "config_with_robot", "urdf_file", "robot_urdf", "package_dirs",
            "RobotSpec", "INSTALL_HINT"]

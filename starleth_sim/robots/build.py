@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pinocchio as pin
 
-from ..physics.config import PhysicsConfig
+from ..physics.config import PhysicsConfig, load_yaml_text
 from ..physics.config_checks import ConfigError
 from ..physics.contact_points import (box_corners, check_terrain_reach, collision_points,
                                       link_frame, sphere_point)
@@ -20,7 +20,7 @@ from ..physics.description import RobotDescription
 from ..physics.legs import find_legs
 from ..physics.urdf import checked_model, document_joint_order
 from .library import load_robot, read_text, resolve, urdf_file
-from .spec import MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec
+from .spec import MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec, spec_from_dict
 
 
 def _match(patterns, names, where, what="link"):
@@ -119,12 +119,17 @@ def _limits(spec: RobotSpec, desc: RobotDescription):
                                   f"is {why}: give limits.{kind} in {spec.label}")
 
 
-def description_from_spec(spec: RobotSpec) -> RobotDescription:
+def description_from_spec(spec: RobotSpec, urdf_xml: str | None = None,
+                          urdf_name: str | None = None) -> RobotDescription:
     """The description of a robot spec (module docstring); ConfigError naming the spec or
-    the URDF and the field or element."""
-    path = urdf_file(spec)
-    source = f"{os.path.basename(path)} ({spec.label})"
-    xml = read_text(path)
+    the URDF and the field or element. `urdf_xml` (named `urdf_name` in messages) stands for
+    the spec's URDF file: a recording's copy."""
+    if urdf_xml is None:
+        path = urdf_file(spec)
+        xml, urdf_name = read_text(path), os.path.basename(path)
+    else:
+        xml, urdf_name = urdf_xml, urdf_name or f"{spec.name}.urdf"
+    source = f"{urdf_name} ({spec.label})"
     root, model = checked_model(xml, source)
     joint_names = document_joint_order(root)
     feet = _feet(spec, root, model, source, joint_names)
@@ -157,6 +162,24 @@ def robot_description(robot: str = "starleth") -> RobotDescription:
         name = os.path.splitext(os.path.basename(path))[0]
         return RobotDescription.from_urdf_xml(read_text(path), name=name, source=path)
     return description_from_spec(load_robot(path))
+
+
+def spec_text(robot: str) -> str | None:
+    """The YAML text of the spec a `robot` value names (None for a URDF path): what a
+    recording keeps so that it rebuilds the robot without the library."""
+    kind, path = resolve(robot)
+    return read_text(os.path.abspath(path)) if kind == "spec" else None
+
+
+def recorded_description(urdf_xml: str, spec_yaml: str | None, name: str,
+                         where: str = "recording") -> RobotDescription:
+    """The description of a recorded robot: its URDF text and its spec's YAML text (None: a
+    robot from a URDF alone); ConfigError naming `where` and the field."""
+    if spec_yaml is None:
+        return RobotDescription.from_urdf_xml(urdf_xml, name=name, source=f"{where}: {name}.urdf")
+    spec = spec_from_dict(load_yaml_text(spec_yaml, f"{where}: {name}.robot.yaml"),
+                          f"{name}.robot.yaml")
+    return description_from_spec(spec, urdf_xml=urdf_xml, urdf_name=f"{name}.urdf")
 
 
 def starleth_description() -> RobotDescription:

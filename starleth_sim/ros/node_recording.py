@@ -12,6 +12,7 @@ from importlib.metadata import version
 import yaml
 
 from ..physics.config import ConfigError
+from ..robots import load_robot, spec_text
 from .recording import RecordingError, StorageOptions, open_recorder
 from .state_io import initial_state_record
 from .tf import TF_TYPE
@@ -23,6 +24,17 @@ def package_version() -> str:
         return version("starleth_sim")
     except Exception:   # not installed (run from a source tree)
         return "unknown"
+
+
+def robot_spec_text(sim) -> str | None:
+    """The YAML text of the robot spec `sim` was built from (None: a robot from a URDF, or a
+    description given to the simulator directly)."""
+    try:
+        if load_robot(sim.config.robot).name == sim.description.name:
+            return spec_text(sim.config.robot)
+    except ConfigError:
+        pass
+    return None
 
 
 def make_recorder(path, settings, on_failure, log):
@@ -58,6 +70,7 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
     for topic, qos in tf_topics.values():
         rec.add_topic(topic, TF_TYPE, qos)
     cfg_yaml = yaml.safe_dump(sim.config.to_dict(), sort_keys=False)
+    spec = robot_spec_text(sim)
     init = initial_state_record(sim, service.q0, service.u0, initial_state_spec)
     params = asdict(settings)
     rec.add_metadata("starleth_sim", {
@@ -66,7 +79,10 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
         "control_period": repr(sim.control_period),
         "stamp_period_ns": str(service.period_ns),
         "namespace": namespace,
-        "urdf_attachment": "starleth.urdf",
+        # the robot: its URDF and its spec as loaded (starleth_sim.robots.recorded_description)
+        "robot": sim.description.name,
+        "urdf_attachment": f"{sim.description.name}.urdf",
+        "robot_spec_attachment": f"{sim.description.name}.robot.yaml" if spec else "",
         # for starleth-replay: what re-runs this recording open loop, bit for bit
         "package_version": package_version(),
         "joint_states_topic": pubs["joint_states"][1],
@@ -82,7 +98,10 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
                   "torque applied over step k -> k+1 (joint order joint_names); "
                   "inputs (commands, wrenches): log time t_k = the stamp of the state "
                   "after which they were taken: a wrench acts from step k -> k+1"})
-    rec.add_attachment("starleth.urdf", "application/xml", sim.description.urdf_xml)
+    rec.add_attachment(f"{sim.description.name}.urdf", "application/xml",
+                       sim.description.urdf_xml)
+    if spec:
+        rec.add_attachment(f"{sim.description.name}.robot.yaml", "application/yaml", spec)
     rec.add_attachment("physics_config.yaml", "application/yaml", cfg_yaml)
     rec.add_attachment("initial_state.json", "application/json", json.dumps(init, indent=1))
     rec.add_attachment("sim_node_parameters.yaml", "application/yaml",

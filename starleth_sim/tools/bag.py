@@ -365,3 +365,19 @@ def read_messages(path: str, select, salvage: bool = False, decode: bool = True,
     for topic, (n, err) in bag.decode_errors.items():
         on_warning(f"{path}: {n} message(s) on {topic} could not be read ({err})")
     return bag
+
+
+def recorded_robot(bag: BagMessages, path: str):
+    """(name, URDF text, spec YAML text or None) of the robot sim_node recorded (its
+    'starleth_sim' metadata names the attachments), or None for a bag without them (bags of
+    other recorders, and those recorded before the robot was recorded: StarlETH)."""
+    meta = bag.metadata.get("starleth_sim", {})
+    name = meta.get("robot")
+    urdf = bag.attachments.get(meta.get("urdf_attachment", ""))
+    if not name or urdf is None:
+        return None
+    spec = bag.attachments.get(meta.get("robot_spec_attachment") or "")
+    try:
+        return name, urdf.decode("utf-8"), spec.decode("utf-8") if spec is not None else None
+    except UnicodeDecodeError:
+        raise BagError(f"{path}: the recorded robot '{name}' is not UTF-8 text") from None
