@@ -163,7 +163,7 @@ def test_page_is_self_contained_with_expected_frames(drop):
     assert "/world/robots/base/base" in paths              # frame base, visual base
     assert "/world/robots/LF_SHANK/LF_FOOT" in paths       # the foot, merged into the shank
     assert sum(p.startswith("/world/robots/") for p in paths) == 17
-    assert {f"/world/forces/{f}/shaft" for f in FEET} <= set(paths)
+    assert {f"/world/forces/{f}_foot/shaft" for f in FEET} <= set(paths)
     assert "/world/ground" in paths
 
 

@@ -89,7 +89,7 @@ def read_robots(bag_paths, namespaces=None, salvage=False) -> list:
                 raise
             warn(f"{e}; not drawn")
             continue
-        robots += [(rec, load_description(rec.urdf, rec.urdf_source)) for rec in recs]
+        robots += [(rec, load_description(rec)) for rec in recs]
     if namespaces is not None:
         found = {rec.namespace for rec, _ in robots}
         missing = [n or "/" for n in map(normalised_namespace, namespaces) if n not in found]

@@ -4,12 +4,14 @@ previous one), the bodies' world poses by forward kinematics, and the foot force
 from __future__ import annotations
 
 import math
+import xml.etree.ElementTree as ET
 
 import numpy as np
 import pinocchio as pin
 
 from ..physics.description import RobotDescription
-from .view_recording import FEET, Recording, Series, ViewError, warn
+from ..robots import recorded_description
+from .view_recording import Recording, Series, ViewError, attach_feet, warn
 
 #: the largest magnitude of a recorded position [m], joint angle [rad] or force [N] drawn;
 #: a sample beyond it (or NaN, infinite) is garbage: the previous value is drawn instead
@@ -54,12 +56,21 @@ def select_frames(t_ns: np.ndarray, fps: float) -> np.ndarray:
     return np.flatnonzero(shown)
 
 
-def load_description(urdf: str, source: str) -> RobotDescription:
-    """The project's free-flyer model of a URDF (RobotDescription.from_urdf_xml)."""
+def load_description(rec: Recording) -> RobotDescription:
+    """The project's free-flyer model of a recording's robot: from its URDF and spec
+    (robots.recorded_description: the recorded robot, no library needed), or from its URDF
+    alone (RobotDescription.from_urdf_xml); its feet's wrench series attached to `rec`."""
     try:
-        return RobotDescription.from_urdf_xml(urdf, name="robot")
+        if rec.spec is not None:
+            desc = recorded_description(rec.urdf, rec.spec, rec.robot, where=rec.path)
+        else:
+            name = rec.robot or ET.fromstring(rec.urdf).get("name") or "robot"
+            desc = RobotDescription.from_urdf_xml(rec.urdf, name=name)
     except Exception as e:   # pin's parser and the contact reader raise several kinds
-        raise ViewError(f"the URDF ({source}) cannot be used: {type(e).__name__}: {e}") from None
+        raise ViewError(f"the URDF ({rec.urdf_source}) cannot be used: "
+                        f"{type(e).__name__}: {e}") from None
+    attach_feet(rec, desc.foot_names)
+    return desc
 
 
 def _joint_indices(desc: RobotDescription):
@@ -163,23 +174,20 @@ def body_poses(desc: RobotDescription, q: np.ndarray, joint_ids):
 
 
 def contact_arrows(rec: Recording, desc: RobotDescription, frames, placements, force_scale):
-    """(N, 4, 6) arrows (origin xyz, vector xyz [m]) per frame and foot: from the foot
-    contact point (centre of the foot's contact sphere minus its radius along the ground
-    normal) along force * force_scale; zeros for a foot without force messages, and no
+    """(N, feet, 6) arrows (origin xyz, vector xyz [m]) per frame and foot (desc.foot_names):
+    from the foot contact point (centre of the foot's contact sphere minus its radius along
+    the ground normal) along force * force_scale; zeros for a foot without force messages, and no
     arrow (a zero vector, with a warning) for a force that is NaN, infinite or beyond
     MAX_VALUE."""
-    arrows = np.zeros((frames.size, len(FEET), 6))
+    arrows = np.zeros((frames.size, len(desc.foot_names), 6))
     normal = np.asarray(rec.ground_normal)
     contacts = {c.name: c for c in desc.contacts}
     t_frames = rec.joints.t_ns[frames]
     unusable = {}                                 # topic -> indices of such messages
-    for f, foot in enumerate(FEET):
-        spec = contacts.get(f"{foot}_foot")
+    for f, foot in enumerate(desc.foot_names):
+        spec = contacts.get(foot)
         series = rec.wrenches.get(foot)
         if series is None:
-            continue
-        if spec is None:
-            warn(f"{rec.path}: the URDF has no contact '{foot}_foot'; no {foot} force arrow")
             continue
         for row, i in enumerate(series.latest(t_frames)):
             centre = placements[row][spec.joint].act(spec.local)

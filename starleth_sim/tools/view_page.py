@@ -13,8 +13,10 @@ import numpy as np
 
 from ..physics.description import RobotDescription
 from .view_frames import body_poses, configurations, contact_arrows, select_frames
-from .view_recording import FEET, PROG, Recording, ViewError
-from .view_scene import ARROW_HEAD, CAMERA_OFFSET, body_frames, robot_visuals, scene_commands
+from .view_recording import PROG, Recording, ViewError
+from ..robots.meshes import spec_package_roots
+from .view_scene import (ARROW_HEAD, CAMERA_OFFSET, PAGE_TRIANGLES, body_frames, robot_visuals,
+                         scene_commands)
 
 FORMAT = "starleth-view/2"
 #: decimals of the numbers in the page: positions/arrows [m], quaternions, times [s]
@@ -80,13 +82,18 @@ def page_times(recs, fps: float) -> np.ndarray:
     return np.unique(np.concatenate(times))
 
 
-def _robot_data(rec: Recording, desc: RobotDescription, name: str, t_ns, force_scale):
+def _robot_data(rec: Recording, desc: RobotDescription, name: str, t_ns, force_scale,
+                triangles: int):
     """One robot's part of the page at the frame times t_ns (its latest joint state at or
     before each, its first before it): its poses and arrows, what they come from; and its
-    part of the scene: (rec, visuals, {pin joint: frame name}, name)."""
+    part of the scene: (rec, visuals, {pin joint: frame name}, name), its meshes within
+    `triangles` (their package:// roots from its spec, relative paths from the bag's
+    directory)."""
     samples = rec.joints.latest(t_ns)
     q = configurations(rec, desc, samples)
-    visuals = robot_visuals(desc, name)
+    meshes = (spec_package_roots(rec.spec, rec.robot),
+              os.path.dirname(os.path.abspath(rec.path)))
+    visuals = robot_visuals(desc, name, meshes, triangles)
     joint_ids = sorted({j for j, _, _ in visuals} | {1})   # 1: the free-flyer (trunk)
     poses, placements = body_poses(desc, q, joint_ids)
     arrows = contact_arrows(rec, desc, samples, placements, force_scale)
@@ -108,7 +115,8 @@ def _robot_data(rec: Recording, desc: RobotDescription, name: str, t_ns, force_s
         "subsampling": f"1 in {step} samples" if step > 1 else "every sample",
         "bodies": [desc.model.names[j] for j in joint_ids], "tf_frames": frames,
         "trunk": joint_ids.index(1), "poses": (poses.reshape(-1) + 0.0).tolist(),
-        "has_force": [foot in rec.wrenches for foot in FEET],
+        "robot": desc.name, "feet": list(desc.foot_names),
+        "has_force": [foot in rec.wrenches for foot in desc.foot_names],
         "arrows": _rounded(arrows, POSITION_DECIMALS), "urdf_source": rec.urdf_source,
     }
     scene = (rec, visuals, dict(zip(joint_ids, frames)), name)
@@ -124,13 +132,15 @@ def replay_data(robots, fps: float, force_scale: float):
     t_ns = page_times(recs, fps)
     t0 = min(min(r.joints.t_ns[0], r.base.t_ns[0]) for r in recs)
     t = (t_ns - t0) * 1e-9
-    parts = [_robot_data(rec, desc, name, t_ns, force_scale) for rec, desc, name in robots]
+    triangles = PAGE_TRIANGLES // len(robots)
+    parts = [_robot_data(rec, desc, name, t_ns, force_scale, triangles)
+             for rec, desc, name in robots]
     sources = list(dict.fromkeys(p[0]["source"] for p in parts))
     data = {
         "format": FORMAT, "source": ", ".join(sources), "frames": int(t_ns.size), "fps": fps,
         "samples": sum(p[0]["samples"] for p in parts), "duration": round(float(t[-1]), 4),
         "t0_ns": int(t0), "t": _rounded(t, TIME_DECIMALS),     # t: seconds after t0_ns
-        "robots": [p[0] for p in parts], "feet": list(FEET), "force_scale": force_scale,
+        "robots": [p[0] for p in parts], "force_scale": force_scale,
         "arrow_head": ARROW_HEAD,
         "rounding": {"position": 10.0 ** -POSITION_DECIMALS,
                      "quaternion": 10.0 ** -QUATERNION_DECIMALS,
@@ -197,7 +207,8 @@ def render_html(data: dict, scene: list) -> str:
     """The self-contained page: meshcat's viewer, the data, the player."""
     js, notices = meshcat_bundle()
     fills = {
-        "TITLE": html.escape(f"StarlETH replay: {data['source']}"),
+        "TITLE": html.escape(f"{', '.join(dict.fromkeys(r['robot'] for r in data['robots']))} "
+                             f"replay: {data['source']}"),
         "INFO": _info_html(*_info_lines(data)),
         "LAST": str(data["frames"] - 1),
         "MESHCAT": (f"/*! meshcat's viewer (meshcat {_meshcat_version()}, "

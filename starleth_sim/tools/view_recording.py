@@ -1,34 +1,34 @@
 """The recorded runs ``starleth-view`` replays: the joint states, base state and foot wrenches
 of each robot of a bag (kept as CDR bytes, sorted by stamp, decoded only where shown), with
-the URDF, the frame prefix and the ground it was recorded with; the tool's warnings and its
-error."""
+the robot (URDF and spec), the frame prefix and the ground it was recorded with; the tool's
+warnings and its error."""
 from __future__ import annotations
 
 import math
 import struct
 import sys
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..physics.config import ConfigError, load_yaml_text
-from ..physics.description import LEGS, urdf_path
+from ..physics.description import urdf_path
 from ..physics.terrain import TerrainConfig
 from ..ros.tf import base_link
-from .bag import read_messages
+from .bag import read_messages, recorded_robot
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
                                        TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of)
 
 PROG = "starleth-view"
-FEET = LEGS
 
 #: kind -> (relative topic name, message type)
 TOPICS = {"joints": (TOPIC_JOINT_STATES, "sensor_msgs/msg/JointState"),
           "base": (TOPIC_BASE_STATE, "nav_msgs/msg/Odometry"),
-          "description": (TOPIC_ROBOT_DESCRIPTION, "std_msgs/msg/String"),
-          **{foot: (foot_wrench_topic(f"{foot}_foot"),
-                    "geometry_msgs/msg/WrenchStamped") for foot in FEET}}
+          "description": (TOPIC_ROBOT_DESCRIPTION, "std_msgs/msg/String")}
+WRENCH_TYPE = "geometry_msgs/msg/WrenchStamped"
+#: what a foot's wrench topic has before and after the foot (foot_wrench_topic)
+_WRENCH_HEAD, _WRENCH_TAIL = foot_wrench_topic("\0").split("\0")
 
 
 class ViewError(Exception):
@@ -46,17 +46,30 @@ def warn(message: str) -> None:
 def match_topic(topic: str):
     """(kind, namespace) of a bag topic that is one of TOPICS under some namespace
     ('/joint_states' -> ('joints', ''), '/robot1/starleth/base_state' -> ('base', '/robot1')),
-    or None."""
+    or a foot's wrench topic ('/robot1/starleth/FL_foot/wrench' -> ('starleth/FL_foot/wrench',
+    '/robot1'): its kind is its relative name, which foot_wrench_topic gives a foot), or
+    None."""
     for kind, (rel, _) in TOPICS.items():
         ns = namespace_of(topic, rel)
         if ns is not None:
             return kind, ns
+    head = topic.rfind("/" + _WRENCH_HEAD)
+    if head >= 0 and topic.endswith(_WRENCH_TAIL) and topic.startswith("/"):
+        rel = topic[head + 1:]
+        middle = rel[len(_WRENCH_HEAD):len(rel) - len(_WRENCH_TAIL)]
+        if middle and "/" not in middle:
+            return rel, topic[:head]
     return None
+
+
+def topic_type(kind: str) -> str:
+    """The message type of a kind of topic (match_topic)."""
+    return TOPICS[kind][1] if kind in TOPICS else WRENCH_TYPE
 
 
 def _select(topic: str, type_name: str) -> bool:
     m = match_topic(topic)
-    return m is not None and TOPICS[m[0]][1] == type_name
+    return m is not None and topic_type(m[0]) == type_name
 
 
 def cdr_stamp_ns(data) -> int:
@@ -115,9 +128,15 @@ class Recording:
     namespace: str
     joints: Series
     base: Series
-    wrenches: dict                 # foot -> Series (feet without messages left out)
+    #: {relative topic (starleth/FL_foot/wrench): Series} of the foot wrench topics
+    wrench_topics: dict
     urdf: str
     urdf_source: str
+    #: the recorded robot's name and its spec's YAML text (None: a URDF alone)
+    robot: str = ""
+    spec: str | None = None
+    #: {foot contact name: Series} of the robot's feet with force messages (attach_feet)
+    wrenches: dict = field(default_factory=dict)
     ground_height: float = 0.0
     ground_normal: tuple = (0.0, 0.0, 1.0)
     truncated: bool = False
@@ -171,24 +190,33 @@ def _choose_namespaces(found: dict, requested, path: str, bag) -> list:
 
 
 def _urdf_from_bag(bag, topics: dict, path: str):
-    """(URDF text, where it came from): the namespace's robot_description topic, the
-    starleth.urdf attachment (sim_node's recorder), another .urdf attachment, or the
-    package's URDF."""
+    """(URDF text, where it came from, robot name, spec YAML text or None): the namespace's
+    robot_description topic, the robot sim_node recorded (its URDF and spec attachments,
+    bag.recorded_robot; its spec goes with a topic's URDF that is the same), the
+    starleth.urdf attachment (older recordings), another .urdf attachment, or the package's
+    URDF."""
+    robot = recorded_robot(bag, path)
     topic = topics.get("description")
     if topic and bag.messages.get(topic):
         try:
-            return bag.decoders[topic](bag.messages[topic][0][1]).data, f"topic {topic}"
+            text = bag.decoders[topic](bag.messages[topic][0][1]).data
+            same = robot is not None and robot[1] == text
+            return (text, f"topic {topic}", robot[0] if same else "",
+                    robot[2] if same else None)
         except Exception as e:   # a damaged message: try the attachments
             warn(f"{path}: cannot decode {topic} ({e}); using another URDF")
+    if robot is not None:
+        name = bag.metadata["starleth_sim"]["urdf_attachment"]
+        return robot[1], f"attachment {name}", robot[0], robot[2]
     names = sorted(bag.attachments, key=lambda n: (n != "starleth.urdf", n))
     for name in names:
         if name.endswith(".urdf"):
             try:
-                return bag.attachments[name].decode("utf-8"), f"attachment {name}"
+                return bag.attachments[name].decode("utf-8"), f"attachment {name}", "", None
             except UnicodeDecodeError:
                 continue
     with open(urdf_path()) as f:
-        return f.read(), "package urdf/starleth.urdf (none in the bag)"
+        return f.read(), "package urdf/starleth.urdf (none in the bag)", "", None
 
 
 def _recorded_config(bag, path):
@@ -268,7 +296,7 @@ def read_recordings(path: str, namespaces=None, salvage: bool = False) -> list:
             found.setdefault(m[1], {})[m[0]] = topic
         elif m is not None:
             warn(f"{path}: topic {topic} has type {bag.types[topic] or '(no schema)'}, "
-                 f"expected {TOPICS[m[0]][1]}; ignored")
+                 f"expected {topic_type(m[0])}; ignored")
     ground = _ground_from_metadata(bag)
     terrain = terrain_from_metadata(bag, path)
     return [_robot(bag, path, ns, found[ns], ground, terrain)
@@ -277,16 +305,14 @@ def read_recordings(path: str, namespaces=None, salvage: bool = False) -> list:
 
 def _robot(bag, path, ns, topics, ground, terrain) -> Recording:
     """The Recording of the robot under `ns` (its topics: {kind: topic})."""
-    urdf, source = _urdf_from_bag(bag, topics, path)
+    urdf, source, robot, spec = _urdf_from_bag(bag, topics, path)
+    wrench_topics = {kind: Series.from_bag(bag, topic) for kind, topic in topics.items()
+                     if kind not in TOPICS and bag.messages.get(topic)}
     rec = Recording(path=path, namespace=ns, joints=Series.from_bag(bag, topics["joints"]),
-                    base=Series.from_bag(bag, topics["base"]), wrenches={}, urdf=urdf,
-                    urdf_source=source, truncated=bag.truncated, terrain=terrain)
+                    base=Series.from_bag(bag, topics["base"]), wrench_topics=wrench_topics,
+                    urdf=urdf, urdf_source=source, robot=robot, spec=spec,
+                    truncated=bag.truncated, terrain=terrain)
     rec.ground_height, rec.ground_normal = ground
-    for foot in FEET:
-        if topics.get(foot) and bag.messages.get(topics[foot]):
-            rec.wrenches[foot] = Series.from_bag(bag, topics[foot])
-        else:
-            warn(f"{path}: no messages on {ns}/{TOPICS[foot][0]}; no {foot} force arrow")
     for series in (rec.joints, rec.base):
         if not len(series):
             n = bag.counts.get(series.topic, 0)
@@ -295,3 +321,17 @@ def _robot(bag, path, ns, topics, ground, terrain) -> Recording:
     rec.frame_prefix = frame_prefix(rec)
     return rec
 
+
+
+def attach_feet(rec: Recording, foot_names) -> None:
+    """rec.wrenches: the wrench series of the robot's feet (foot contact names, in their
+    order) on their topics (foot_wrench_topic), with a warning for each foot without
+    messages."""
+    rec.wrenches = {}
+    for foot in foot_names:
+        series = rec.wrench_topics.get(foot_wrench_topic(foot))
+        if series is not None:
+            rec.wrenches[foot] = series
+        else:
+            warn(f"{rec.path}: no messages on {rec.namespace}/{foot_wrench_topic(foot)}; "
+                 f"no {foot} force arrow")

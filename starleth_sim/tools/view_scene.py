@@ -1,5 +1,6 @@
 """The 3D scene of a ``starleth-view`` page as meshcat commands: the robot's URDF visuals as
-three.js objects, the checkerboard ground, the force arrows, the background and the camera."""
+three.js objects (its meshes within the page's triangle budget), the checkerboard ground, the
+force arrows, the background and the camera."""
 from __future__ import annotations
 
 import base64
@@ -13,7 +14,8 @@ import pinocchio as pin
 
 from ..physics.description import RobotDescription
 from ..physics.urdf import urdf_origin
-from .view_recording import FEET, Recording, warn
+from ..robots.meshes import MeshError, read_mesh, resolve_mesh, simplified
+from .view_recording import Recording, warn
 
 #: colours (0xRRGGBB): a distinctive orange robot, green arrows, grey ground, blue-grey sky
 ROBOT_COLOR = 0xF07818      # boxes (the trunk)
@@ -30,6 +32,11 @@ SKY_TOP, SKY_BOTTOM = (0.84, 0.89, 0.95), (0.62, 0.69, 0.78)
 CAMERA_OFFSET = (0.9, -1.35, 0.42)
 ARROW_HEAD = 0.05           # length of an arrow's cone [m]
 ARROW_RADIUS = 0.011        # of its shaft [m] (the cone: 2.5 times that)
+#: the mesh triangles a page holds, all robots together (about 30 bytes each in the page):
+#: the meshes of a robot with more are simplified, each to its share
+PAGE_TRIANGLES = 60_000
+#: a mesh keeps at least this many triangles
+MIN_MESH_TRIANGLES = 12
 
 
 def _matrix(M4) -> list:
@@ -71,32 +78,150 @@ def _visual_geometry(geom):
     return None
 
 
-def robot_visuals(desc: RobotDescription, robot: str = ""):
+def _color(vis, materials: dict, default: int) -> int:
+    """The colour of a <visual>: its <material>'s rgba, or that of the URDF's material of
+    that name, else `default`."""
+    mat = vis.find("material")
+    color = mat.find("color") if mat is not None else None
+    rgba = color.get("rgba") if color is not None else materials.get(
+        mat.get("name") if mat is not None else None)
+    try:
+        r, g, b = (min(255, max(0, round(float(x) * 255))) for x in rgba.split()[:3])
+    except (AttributeError, ValueError, TypeError):
+        return default
+    return (r << 16) | (g << 8) | b
+
+
+def _inertia_box(link):
+    """(three.js box, its 4x4 pose in the link frame) of the box with the link's mass and
+    inertia (its principal axes at its <inertial> origin), or None."""
+    inertial = link.find("inertial")
+    try:
+        m = float(inertial.find("mass").get("value"))
+        i = inertial.find("inertia")
+        inertia = np.array([[float(i.get(a, 0)) for a in row] for row in
+                            (("ixx", "ixy", "ixz"), ("ixy", "iyy", "iyz"),
+                             ("ixz", "iyz", "izz"))])
+        moments, axes = np.linalg.eigh(inertia)
+    except (AttributeError, TypeError, ValueError, np.linalg.LinAlgError):
+        return None
+    if not (m > 0 and np.all(np.isfinite(moments))):
+        return None
+    total = moments.sum()
+    size = [math.sqrt(max(6.0 * (total - 2 * mk) / m, 1e-6)) for mk in moments]
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    M = urdf_origin(inertial).homogeneous @ np.block([[axes, np.zeros((3, 1))],
+                                                       [np.zeros((1, 3)), np.ones((1, 1))]])
+    return {"type": "BoxGeometry", "width": size[0], "height": size[1], "depth": size[2]}, M
+
+
+def _fallback_shapes(link) -> list:
+    """[(geometry, 4x4 pose in the link frame, colour)] drawn for a link whose mesh cannot
+    be read: its collision primitives, else its inertia box."""
+    out = []
+    for coll in link.findall("collision"):
+        try:
+            shape = _visual_geometry(coll.find("geometry"))
+        except (TypeError, ValueError, AttributeError):
+            shape = None
+        if shape is not None:
+            geometry, intrinsic, color = shape
+            out.append((geometry, urdf_origin(coll).homogeneous @ intrinsic, color))
+    box = None if out else _inertia_box(link)
+    return out or ([(box[0], box[1], ROBOT_COLOR)] if box else [])
+
+
+def _mesh_file(geom, meshes):
+    """(path, scale) of a <mesh> geometry's file; MeshError naming it where it is not there."""
+    mesh = geom.find("mesh")
+    scale = tuple(float(x) for x in (mesh.get("scale") or "1 1 1").split())
+    if len(scale) != 3:
+        raise MeshError(f"mesh {mesh.get('filename')}: scale must be three numbers")
+    return resolve_mesh(mesh.get("filename") or "", *meshes), scale
+
+
+def _link_shapes(link, meshes, materials, failed) -> list:
+    """[(k, geometry or ('mesh', path, scale), 4x4 pose in the link frame, colour)] of a
+    link's visuals; a mesh that cannot be read: its fallback shapes, noted in `failed`
+    ({message: [links]})."""
+    out = []
+    for k, vis in enumerate(link.findall("visual")):
+        geom = vis.find("geometry")
+        origin = urdf_origin(vis).homogeneous
+        if geom is not None and geom.find("mesh") is not None:
+            try:
+                if meshes is None:
+                    raise MeshError(f"mesh {geom.find('mesh').get('filename')}: not drawn")
+                path, scale = _mesh_file(geom, meshes)
+                read_mesh(path, scale)
+            except (MeshError, ValueError) as e:
+                failed.setdefault(str(e), []).append(link.get("name"))
+                out += [(k, g, M, c) for g, M, c in _fallback_shapes(link)]
+                continue
+            out.append((k, ("mesh", path, scale), origin, _color(vis, materials, ROBOT_COLOR)))
+            continue
+        try:
+            shape = _visual_geometry(geom) if geom is not None else None
+        except (TypeError, ValueError, AttributeError):   # missing/odd attributes
+            shape = None
+        if shape is None:
+            warn(f"link {link.get('name')}: visual {k} is not a box, sphere, cylinder or "
+                 "mesh; not drawn")
+            continue
+        geometry, intrinsic, color = shape
+        out.append((k, geometry, origin @ intrinsic, _color(vis, materials, color)))
+    return out
+
+
+def _mesh_geometry(path, scale, max_triangles) -> dict:
+    """A three.js BufferGeometry of a mesh file, simplified to max_triangles."""
+    v, t = simplified(*read_mesh(path, scale), max_triangles)
+    return {"type": "BufferGeometry", "data": {
+        "attributes": {"position": {"itemSize": 3, "type": "Float32Array",
+                                    "array": (np.round(v.ravel(), 5) + 0.0).tolist(),
+                                    "normalized": False}},
+        "index": {"type": "Uint32Array", "array": t.ravel().tolist()}}}
+
+
+def robot_visuals(desc: RobotDescription, robot: str = "", meshes=None,
+                  triangles: int = PAGE_TRIANGLES):
     """[(pin joint id, visual name, three.js object)] of the URDF's <visual> elements, each
     placed in the frame of the joint that moves it (fixed joints merged by pin); `robot`
-    (the robot's frame prefix) keeps the objects' ids apart from another robot's."""
+    (the robot's frame prefix) keeps the objects' ids apart from another robot's. Meshes
+    (meshes: (package roots, directory of relative paths), None: not drawn) within
+    `triangles` in all: each simplified to its share (its triangles' fraction of the
+    whole); one that cannot be read: one warning naming it, the link's collision
+    primitives (else its inertia box) drawn instead."""
     model = desc.model
-    out = []
-    for link in ET.fromstring(desc.urdf_xml).findall("link"):
+    root = ET.fromstring(desc.urdf_xml)
+    materials = {m.get("name"): m.find("color").get("rgba") for m in root.findall("material")
+                 if m.find("color") is not None}
+    failed, items = {}, []
+    for link in root.findall("link"):
         lname = link.get("name")
-        for k, vis in enumerate(link.findall("visual")):
-            geom = vis.find("geometry")
-            try:
-                shape = _visual_geometry(geom) if geom is not None else None
-            except (TypeError, ValueError, AttributeError):   # missing/odd attributes
-                shape = None
-            if shape is None:
-                warn(f"link {lname}: visual {k} is not a box, sphere or cylinder; not drawn")
-                continue
-            if not model.existFrame(lname):
-                continue
-            frame = model.frames[model.getFrameId(lname)]
-            placement = frame.placement * urdf_origin(vis)
-            geometry, intrinsic, color = shape
-            name = f"{lname}_{k}" if len(link.findall("visual")) > 1 else lname
-            obj = _mesh(f"robots/{robot}{name}", name, geometry, color,
-                        pin.SE3(placement).homogeneous @ intrinsic)
-            out.append((int(frame.parentJoint), name, obj))
+        shapes = _link_shapes(link, meshes, materials, failed)
+        if not model.existFrame(lname):
+            continue
+        frame = model.frames[model.getFrameId(lname)]
+        several = len(shapes) > 1
+        for n, (k, geometry, M, color) in enumerate(shapes):
+            name = f"{lname}_{n}" if several else lname
+            items.append((int(frame.parentJoint), name, geometry,
+                          pin.SE3(frame.placement).homogeneous @ M, color))
+    for message, links in failed.items():
+        warn(f"{message}; drawn as primitives (link {', '.join(dict.fromkeys(links))})")
+    sizes = [len(read_mesh(*g[1:])[1]) for _, _, g, _, _ in items if isinstance(g, tuple)]
+    share = min(1.0, triangles / sum(sizes)) if sizes else 1.0
+    out = []
+    for joint, name, geometry, M, color in items:
+        extra = {}
+        if isinstance(geometry, tuple):
+            n = len(read_mesh(*geometry[1:])[1])
+            geometry = _mesh_geometry(*geometry[1:], max(MIN_MESH_TRIANGLES, int(share * n)))
+            extra = {"flatShading": True}
+        out.append((joint, name, _mesh(f"robots/{robot}{name}", name, geometry, color, M,
+                                       **extra)))
     return out
 
 
@@ -234,15 +359,13 @@ def scene_commands(ground: Recording, robots, trunk_xy) -> list:
 
 def _arrow_objects(rec: Recording, robot: str) -> list:
     """The force arrows of a robot (`robot`: its frame prefix), a shaft and a head per foot
-    with force messages, under /world/forces/<robot><foot>."""
+    with force messages (its foot contact name), under /world/forces/<robot><foot>."""
     cmds = []
     shaft = np.eye(4)
     shaft[1, 3] = 0.5                                      # unit cylinder from y=0 to y=1
     head = np.eye(4)
     head[1, 3] = ARROW_HEAD / 2                            # cone from y=0 to the tip
-    for foot in FEET:
-        if foot not in rec.wrenches:
-            continue
+    for foot in rec.wrenches:
         path = f"forces/{robot}{foot}"
         cmds.append({"type": "set_object", "path": f"/world/{path}/shaft",
                      "object": _mesh(f"{path}/shaft", f"{robot}{foot} force", {
