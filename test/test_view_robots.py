@@ -166,3 +166,29 @@ def test_a_recorded_robot_is_drawn_without_the_library_packages(tmp_path, capsys
     r = data["robots"][0]
     assert math.isclose(r["poses"][r["trunk"] * 7 + 2], robot_or_skip("go1").standing_height,
                         abs_tol=1e-4)
+
+
+def test_the_foxglove_layout_of_go1_follows_its_base_and_plots_its_feet(tmp_path, capsys):
+    """starleth-layout --robot go1: the camera on Go1's root link, one force path per Go1
+    foot (its topic as the simulator names it); everything else as shipped; StarlETH's
+    layout unchanged; an unknown robot: one line, exit 2."""
+    from starleth_sim.tools import foxglove_layout
+    go1 = robot_or_skip("go1")
+    shipped = json.load(open(foxglove_layout.shipped_layout_path()))
+    out = tmp_path / "go1.json"
+    assert foxglove_layout.main(["--robot", "go1", "-o", str(out)]) == 0
+    layout = json.loads(out.read_text())
+    three_d = layout["configById"]["3D!starleth"]
+    assert three_d["followTf"] == base_link(go1.urdf_xml)
+    forces = layout["configById"]["Plot!footforces"]["paths"]
+    assert [p["value"] for p in forces] == [f"/{foot_wrench_topic(f)}.wrench.force.z"
+                                            for f in go1.foot_names]
+    assert [p["label"] for p in forces] == list(go1.foot_names)
+    for key in ("Plot!solver", "layout"):
+        assert layout.get(key, layout["configById"].get(key)) == \
+            shipped.get(key, shipped["configById"].get(key))
+    assert foxglove_layout.robot_layout(shipped, "starleth") == shipped
+    with pytest.raises(SystemExit) as e:
+        foxglove_layout.main(["--robot", "no_such_robot"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "unknown robot 'no_such_robot'" in err.splitlines()[-1]

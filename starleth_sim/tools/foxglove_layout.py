@@ -5,6 +5,7 @@ topics and frames rewritten.
     starleth-layout robot1 -o robot1_layout.json            # one robot under /robot1
     starleth-layout robot1 robot2 -o two_robots.json        # both in one layout
     starleth-layout robot1 --frame-prefix r1_ -o r1.json    # a prefix of its own
+    starleth-layout --robot go1 -o go1_layout.json          # another robot (any namespace)
 
 Each robot's frames carry the prefix the launch file gives it (``namespace:=robot1``:
 ``robot1/base``, ...; ``--frame-prefix`` for a robot started otherwise). In the layout:
@@ -17,9 +18,16 @@ Each robot's frames carry the prefix the launch file gives it (``namespace:=robo
 * the plots: each path once per robot, under its namespace, labelled with it when there
   are several.
 
-Without a namespace it writes the shipped layout as it is. A namespace that is not a ROS
-namespace, a prefix that is not a frame prefix, or a shipped layout with a panel of a kind
-not handled here: one line on stderr, exit status 2 (bad arguments) or 1.
+``--robot NAME`` (a library name or the path of a robot spec or URDF; default: StarlETH,
+the shipped layout's robot): the camera follows that robot's base (its URDF's root link) and
+the foot force plot has one path per foot of the robot (its foot contact names, their
+topics foot_wrench_topic(foot)), in place of the shipped robot's feet; the robots under the
+namespaces are all that robot.
+
+Without a namespace and a robot it writes the shipped layout as it is. A namespace that is
+not a ROS namespace, a prefix that is not a frame prefix, a robot that is not there or
+cannot be read, or a shipped layout with a panel of a kind not handled here: one line on
+stderr, exit status 2 (bad arguments) or 1.
 """
 from __future__ import annotations
 
@@ -30,12 +38,18 @@ import os
 import re
 import sys
 
-from starleth_interface.topics import TOPIC_ROBOT_DESCRIPTION, normalize_namespace, resolve
+from starleth_interface.topics import (TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic,
+                                       normalize_namespace, resolve)
+from ..physics.config_checks import ConfigError
 from ..physics.description import package_share_dir
+from ..robots import robot_description
 from ..ros.parameters import frame_name_problem, namespace_frame_prefix
+from ..ros.tf import base_link
 from .console import run_console_script
 
 PROG = "starleth-layout"
+#: the robot the shipped layout shows (its followed frame and its feet's force plot)
+SHIPPED_ROBOT = "starleth"
 #: the URDF layer of Foxglove's and Lichtblick's 3D panel
 URDF_LAYER = "foxglove.Urdf"
 #: a ROS namespace: names of letters, digits and underscores (not starting with a digit)
@@ -127,6 +141,39 @@ def _plot(panel: dict, robots_: list) -> dict:
 PANELS = {"3D": _three_d, "Plot": _plot}
 
 
+def _foot_paths(paths: list, shipped_feet, feet) -> list:
+    """A plot's paths with those on the shipped robot's foot wrench topics replaced, at the
+    first of them, by one per foot of `feet` (the same fields, labelled with the foot)."""
+    topics = {"/" + foot_wrench_topic(f) for f in shipped_feet}
+    out, done = [], False
+    for path in paths:
+        topic, dot, fields = path["value"].partition(".")
+        if topic not in topics:
+            out.append(path)
+        elif not done:
+            done = True
+            out += [dict(copy.deepcopy(path), value="/" + foot_wrench_topic(f) + dot + fields,
+                         label=f) for f in feet]
+    return out
+
+
+def robot_layout(layout: dict, robot: str) -> dict:
+    """The layout `layout` (the shipped robot's) for the robot `robot` names (a library name,
+    a spec or URDF path): its base followed, its feet's forces plotted. ConfigError naming
+    what is wrong with the robot."""
+    if robot == SHIPPED_ROBOT:
+        return layout
+    shipped, desc = robot_description(SHIPPED_ROBOT), robot_description(robot)
+    shipped_base, base = base_link(shipped.urdf_xml), base_link(desc.urdf_xml)
+    out = copy.deepcopy(layout)
+    for key, panel in out.get("configById", {}).items():
+        if panel.get("followTf") == shipped_base:
+            panel["followTf"] = base
+        if "paths" in panel:
+            panel["paths"] = _foot_paths(panel["paths"], shipped.foot_names, desc.foot_names)
+    return out
+
+
 def namespaced_layout(layout: dict, robots_: list) -> dict:
     """The layout `layout` (the shipped one: a root robot's) for `robots_` ([(namespace,
     frame prefix)], robots()). LayoutError for a panel kind not handled here."""
@@ -158,6 +205,10 @@ def build_parser():
                          "launch file's (default: the namespace and '/': robot1/)")
     ap.add_argument("-o", "--output", metavar="LAYOUT.json",
                     help="the file to write (default: standard output)")
+    ap.add_argument("--robot", default=SHIPPED_ROBOT, metavar="NAME",
+                    help="the robot: a library name (go1, anymal_c, ...) or the path of a "
+                         "robot spec or URDF; its base followed, its feet's forces plotted "
+                         f"(default: {SHIPPED_ROBOT}, the shipped layout's)")
     ap.add_argument("--layout", metavar="LAYOUT.json",
                     help="the layout to rewrite (default: the shipped one, "
                          "foxglove/starleth_layout.json)")
@@ -177,11 +228,15 @@ def run(argv=None) -> int:
             layout = json.load(f)
     except ValueError as e:
         raise LayoutError(f"{path}: not a JSON layout ({e})") from None
+    try:
+        layout = robot_layout(layout, a.robot)
+    except ConfigError as e:
+        ap.error(str(e))
     text = json.dumps(namespaced_layout(layout, robots_), indent=2, ensure_ascii=False) + "\n"
     if a.output:
         with open(a.output, "w", encoding="utf-8") as f:
             f.write(text)
-        print(f"wrote {a.output}: the layout of "
+        print(f"wrote {a.output}: the layout of {a.robot} robots: "
               + ", ".join(f"{ns or '/'} (frames {prefix or 'unprefixed'})"
                           for ns, prefix in robots_), file=sys.stderr)
     else:
