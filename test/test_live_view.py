@@ -352,3 +352,54 @@ def test_a_client_message_over_the_limit_disconnects_that_client():
     assert [w for w in log.lines["warning"] if f"over {MAX_CLIENT_MESSAGE} bytes" in w], \
         log.lines
     assert "/chatter" in got.channels
+
+
+def fetch_asset(ws, uri: str, request_id: int):
+    """(status, error message, data) of the server's fetchAsset response (binary opcode 4:
+    request id u32, status u8 (0 ok), error length u32, error, data; little-endian)."""
+    import json
+    import struct
+    ws.send(json.dumps({"op": "fetchAsset", "uri": uri, "requestId": request_id}))
+    while True:
+        frame = ws.recv(timeout=10)
+        if isinstance(frame, bytes) and frame[0] == 4:
+            rid, status, n = struct.unpack_from("<IBI", frame, 1)
+            assert rid == request_id
+            return status, frame[10:10 + n].decode(), frame[10 + n:]
+
+
+def test_live_view_serves_the_robots_meshes_and_nothing_else():
+    """A Go1's live view (a LiveView with its MeshAssets, no node) advertises the assets
+    capability and answers fetchAsset for a mesh its URDF names with that file's bytes
+    (package:// under the spec's roots); a file it does not name, an error."""
+    import json
+
+    import websockets.sync.client as ws_client
+    from starleth_sim.robots import robot_description
+    from starleth_sim.robots.meshes import mesh_filenames
+    from starleth_sim.ros.live_view import LiveView, MeshAssets
+    try:
+        go1 = robot_description("go1")
+    except Exception as e:   # example-robot-data not installed: make robots
+        pytest.skip(str(e))
+    assets = MeshAssets.of_robot("go1", go1.urdf_xml)
+    uri = "package://example-robot-data/robots/go1_description/meshes/calf.dae"
+    assert uri in mesh_filenames(go1.urdf_xml) and set(assets.files) == \
+        set(mesh_filenames(go1.urdf_xml)) and not assets.missing
+    log = LinesLog()
+    live = LiveView.open("127.0.0.1", free_port(), [], log, assets=assets)
+    assert live is not None, log.lines
+    try:
+        with ws_client.connect(f"ws://127.0.0.1:{live.port}", open_timeout=10,
+                               subprotocols=["foxglove.sdk.v1"], max_size=None) as ws:
+            info = json.loads(ws.recv(timeout=10))
+            assert info["op"] == "serverInfo" and "assets" in info["capabilities"]
+            status, error, data = fetch_asset(ws, uri, 7)
+            assert status == 0 and error == ""
+            assert data == open(assets.files[uri], "rb").read()
+            other = uri.replace("calf.dae", "../../go1_description/urdf/go1.urdf")
+            assert fetch_asset(ws, other, 8)[0] == 1
+            assert fetch_asset(ws, "file:///etc/passwd", 9)[0] == 1
+    finally:
+        live.stop()
+    assert not log.lines["warning"] and not log.lines["error"], log.lines

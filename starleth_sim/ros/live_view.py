@@ -14,6 +14,11 @@ module imports ``foxglove`` only in :meth:`LiveView.open`); a front of it
 protocol's subprotocol connect. What is served and the URLs to open: doc/sim_node.md, "Live
 view".
 
+A robot's meshes (the files its URDF's ``<mesh filename>`` name: package:// URIs under its
+spec's package roots or ROS's ament index) are served to the client's URDF layer through the
+protocol's fetchAsset (the SDK's ``asset_handler``; :class:`MeshAssets`): only those URIs,
+each a mesh file of at most robots.meshes.MAX_MESH_BYTES.
+
 The server's problems with a client (a malformed frame, a subscription to an unknown
 channel: the SDK logs them through Python ``logging``, under ``foxglove``) go to the node's
 logger as warnings (:class:`ClientProblemLog`), throttled like every other warning of the
@@ -24,11 +29,13 @@ own 16 MiB, which it does not let a caller lower.
 from __future__ import annotations
 
 import logging
+import os
 import socket
 import threading
 
 from starleth_interface.ros_helpers import ThrottledLog
 
+from ..robots.meshes import MAX_MESH_BYTES, MESH_SUFFIXES, MeshError, mesh_filenames, resolve_mesh
 from .live_view_front import LEGACY_SUBPROTOCOL, SUBPROTOCOL, SubprotocolFront
 from .recording import message_definition, type_name
 
@@ -102,6 +109,42 @@ class ClientProblemLog(logging.Handler):
         sdk.propagate = not any(isinstance(h, ClientProblemLog) for h in sdk.handlers)
 
 
+class MeshAssets:
+    """The asset handler of the live view (the SDK's ``asset_handler``: URI -> bytes or
+    None): the mesh files a URDF names, each under its URI as the URDF writes it, read when
+    asked; any other URI, a file grown over MAX_MESH_BYTES or gone: None."""
+
+    def __init__(self, urdf_xml: str, roots=(), base_dir: str | None = None):
+        #: URI -> file; the URIs whose files are not there (warned about once by open())
+        self.files, self.missing = {}, []
+        for uri in mesh_filenames(urdf_xml):
+            try:
+                path = resolve_mesh(uri, roots, base_dir)
+            except MeshError:
+                self.missing.append(uri)
+                continue
+            if path.lower().endswith(MESH_SUFFIXES):
+                self.files[uri] = path
+
+    @classmethod
+    def of_robot(cls, robot: str, urdf_xml: str):
+        """The assets of a `robot` value (a library name, a spec or URDF path): package://
+        under its spec's roots, relative paths from its URDF's directory."""
+        from ..robots import load_robot, package_dirs, robot_urdf, spec_text
+        roots = package_dirs(load_robot(robot)) if spec_text(robot) is not None else []
+        return cls(urdf_xml, roots, os.path.dirname(robot_urdf(robot)))
+
+    def __call__(self, uri: str) -> bytes | None:
+        path = self.files.get(uri)
+        try:
+            if path is None or os.path.getsize(path) > MAX_MESH_BYTES:
+                return None
+            with open(path, "rb") as f:
+                return f.read(MAX_MESH_BYTES + 1)[:MAX_MESH_BYTES]
+        except OSError:
+            return None
+
+
 class _Listener:
     """The SDK's ServerListener: which topics have subscribers, and the latched messages
     again for a new subscriber (called from the server's thread)."""
@@ -120,7 +163,7 @@ class LiveView:
     """A running Foxglove WebSocket server (made by :meth:`open`): one channel per topic,
     ``log`` sends CDR bytes to the clients that subscribe to the topic."""
 
-    def __init__(self, foxglove, host, port, name, problems=None):
+    def __init__(self, foxglove, host, port, name, problems=None, assets=None):
         self._fox = foxglove
         #: the SDK's problems with clients to the node's log (ClientProblemLog), or None
         self.problems = problems
@@ -142,7 +185,7 @@ class LiveView:
         # (which lets in the clients offering the older subprotocol name too)
         self.server = foxglove.start_server(name=name, host="127.0.0.1", port=0,
                                             server_listener=_Listener(self),
-                                            context=self.context)
+                                            asset_handler=assets, context=self.context)
         try:
             self.front = SubprotocolFront(host, port, self.server.port)
         except OSError:
@@ -153,12 +196,14 @@ class LiveView:
         self.host, self.port = host, self.front.port
 
     @classmethod
-    def open(cls, host, port, topics, log, name="sim_node", every=1, throttle_period=2.0):
+    def open(cls, host, port, topics, log, name="sim_node", every=1, throttle_period=2.0,
+             assets: MeshAssets | None = None):
         """The live view serving `topics` ([(resolved topic, message type, latched)]) on
-        host:port every `every` steps, or None after one error line on `log` (foxglove-sdk
-        not installed, the port in use, ...): the simulation goes on without it. Its
-        problems with clients are warnings on `log`, at most one per `throttle_period` s
-        and SDK component."""
+        host:port every `every` steps, and the robot's meshes `assets`, or None after one
+        error line on `log` (foxglove-sdk not installed, the port in use, ...): the
+        simulation goes on without it. Its problems with clients are warnings on `log`, at
+        most one per `throttle_period` s and SDK component; meshes that are not there, one
+        warning."""
         try:
             import foxglove   # optional dependency: requirements-live.txt
         except ImportError:
@@ -167,13 +212,16 @@ class LiveView:
             return None
         problems = ClientProblemLog(log.warning, throttle_period)
         try:
-            live = cls(foxglove, host, port, name, problems)
+            live = cls(foxglove, host, port, name, problems, assets)
         except Exception as e:    # the SDK raises RuntimeError (FoxgloveError ...)
             problems.remove()
             log.error(f"live_view: cannot serve on {host}:{port}: {cut(str(e))}. The "
                       "simulation goes on without the live view (choose another "
                       "live_view_port).")
             return None
+        if assets is not None and assets.missing:
+            log.warning(f"live view: the URDF's mesh(es) {', '.join(assets.missing)} are not "
+                        "on this machine; Foxglove draws those links without them")
         live.every = max(1, int(every))
         for topic, typ, latched in topics:
             live.add_topic(topic, typ, latched)

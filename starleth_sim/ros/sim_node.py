@@ -44,7 +44,7 @@ from starleth_interface.topics import (TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS,
 from ..physics.config import ConfigError
 from ..physics.simulator import Simulator
 from .cdr import CommandDecoder
-from .live_view import LiveView
+from .live_view import LiveView, MeshAssets
 from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
                          load_default_parameters, namespace_frame_prefix)
@@ -243,7 +243,8 @@ class SimNode:
             s.live_view_host, s.live_view_port, topics, self.log,
             name=self.node.get_fully_qualified_name(),
             every=steps_between(s.live_view_rate, self.sim.control_period) or 1,
-            throttle_period=s.warn_throttle_period)
+            throttle_period=s.warn_throttle_period,
+            assets=MeshAssets.of_robot(self.sim.config.robot, self.sim.description.urdf_xml))
 
     # -- callbacks -------------------------------------------------------------------------
     def _log_warning(self, message):
