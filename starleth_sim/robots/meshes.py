@@ -10,6 +10,7 @@ import os
 import xml.etree.ElementTree as ET
 from functools import lru_cache
 
+import coal    # pinocchio's collision library; its mesh loader is assimp
 import numpy as np
 
 from ..physics.config import load_yaml_text
@@ -88,7 +89,6 @@ def _read_mesh(path: str, scale: tuple):
     if size > MAX_MESH_BYTES:
         raise MeshError(f"mesh {path}: {size / 2**20:.0f} MiB, over the "
                         f"{MAX_MESH_BYTES / 2**20:.0f} MiB read")
-    import coal    # pinocchio's collision library; its loader is assimp
     try:
         model = coal.MeshLoader().load(path, np.array(scale))
     except Exception as e:   # assimp's refusals come as RuntimeError with several lines

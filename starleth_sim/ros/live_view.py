@@ -35,6 +35,7 @@ import threading
 
 from starleth_interface.ros_helpers import ThrottledLog
 
+from ..robots import load_robot, package_dirs, robot_urdf, spec_text
 from ..robots.meshes import MAX_MESH_BYTES, MESH_SUFFIXES, MeshError, mesh_filenames, resolve_mesh
 from .live_view_front import LEGACY_SUBPROTOCOL, SUBPROTOCOL, SubprotocolFront
 from .recording import message_definition, type_name
@@ -130,7 +131,6 @@ class MeshAssets:
     def of_robot(cls, robot: str, urdf_xml: str):
         """The assets of a `robot` value (a library name, a spec or URDF path): package://
         under its spec's roots, relative paths from its URDF's directory."""
-        from ..robots import load_robot, package_dirs, robot_urdf, spec_text
         roots = package_dirs(load_robot(robot)) if spec_text(robot) is not None else []
         return cls(urdf_xml, roots, os.path.dirname(robot_urdf(robot)))
 

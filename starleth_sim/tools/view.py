@@ -17,17 +17,21 @@ both work), for every robot of every bag (``--namespace``: those under the names
 named), all in one scene on one time line (their stamps), each robot's bodies named by their
 frames on /tf (``robot1/base``: the prefix its base state's child frame has):
 
-* the robot's URDF visuals (boxes, spheres, cylinders), from the bag's ``robot_description``
-  topic, else its ``starleth.urdf`` attachment (``sim_node``'s recorder), else the package's
-  ``urdf/starleth.urdf``;
+* the robot the bag recorded (``sim_node``'s 'starleth_sim' metadata: its URDF and spec
+  attachments, robots.recorded_description), else the URDF of its ``robot_description``
+  topic, of a .urdf attachment, or the package's ``urdf/starleth.urdf``: its URDF visuals
+  (boxes, spheres, cylinders, and meshes: STL, DAE, OBJ, at most
+  view_scene.PAGE_TRIANGLES triangles in a page, larger ones simplified; a mesh that cannot
+  be read: one warning, the link's collision primitives); the page's title names it;
 * link poses from Pinocchio forward kinematics of a free-flyer model of that URDF, at the
   recorded ``joint_states`` (sensor_msgs/JointState, positions by joint name) and
   ``starleth/base_state`` (nav_msgs/Odometry: pose of the base in the world);
 * the ground plane, a 0.5 m checkerboard (height and normal from the recording's physics
   configuration, if any);
 * contact forces as arrows from the foot contact points (sphere centre minus radius along
-  the ground normal), ``starleth/{LF,RF,LH,RH}_foot/wrench`` (geometry_msgs/WrenchStamped,
-  force in the world frame), scaled by ``--force-scale`` [m/N].
+  the ground normal), ``starleth/<foot>/wrench`` for each of the robot's feet
+  (geometry_msgs/WrenchStamped, force in the world frame), scaled by ``--force-scale``
+  [m/N].
 
 Frames: one every 1/fps s of sim time (header stamps) from the first joint state, each the
 latest recorded sample at or before that time (sample and hold, no interpolation), plus the
@@ -154,11 +158,12 @@ def write_html(bag_path, out_path: str | None = None, fps: float = DEFAULT_FPS,
 def build_parser():
     ap = argparse.ArgumentParser(
         prog=PROG,
-        description="Replay recorded StarlETH runs (MCAP bags) in 3D in the browser: writes "
+        description="Replay recorded runs (MCAP bags) in 3D in the browser: writes "
         "one self-contained HTML file (meshcat's three.js viewer and the data inlined; no "
         "server, no network). Every robot of the bags (several: side by side in one scene, "
-        "on one time line) from its bag's URDF, poses from Pinocchio forward kinematics of "
-        "the recorded joint_states and starleth/base_state, the ground, and the foot "
+        "on one time line) from its bag's robot (URDF, spec, meshes), poses from Pinocchio "
+        "forward kinematics of the recorded joint_states and starleth/base_state, the "
+        "ground, and the foot "
         "contact forces as arrows; play/pause, scrub, speed, camera following the trunk(s).",
         epilog=f"Subsampling: one frame every 1/FPS s of sim time, each the latest recorded "
         f"sample at or before it (no interpolation), plus the last sample. Rounding: "
