@@ -32,7 +32,7 @@ SKY_TOP, SKY_BOTTOM = (0.84, 0.89, 0.95), (0.62, 0.69, 0.78)
 CAMERA_OFFSET = (0.9, -1.35, 0.42)
 ARROW_HEAD = 0.05           # length of an arrow's cone [m]
 ARROW_RADIUS = 0.011        # of its shaft [m] (the cone: 2.5 times that)
-#: the mesh triangles a page holds, all robots together (about 30 bytes each in the page):
+#: the mesh triangles a page holds, all robots together (20-30 bytes each in the page):
 #: the meshes of a robot with more are simplified, each to its share
 PAGE_TRIANGLES = 60_000
 #: a mesh keeps at least this many triangles
@@ -201,9 +201,9 @@ def robot_visuals(desc: RobotDescription, robot: str = "", meshes=None,
     for link in root.findall("link"):
         lname = link.get("name")
         shapes = _link_shapes(link, meshes, materials, failed)
-        if not model.existFrame(lname):
+        if not model.existFrame(lname, pin.FrameType.BODY):
             continue
-        frame = model.frames[model.getFrameId(lname)]
+        frame = model.frames[model.getFrameId(lname, pin.FrameType.BODY)]
         several = len(shapes) > 1
         for n, (k, geometry, M, color) in enumerate(shapes):
             name = f"{lname}_{n}" if several else lname
