@@ -91,7 +91,8 @@ def mesh_triangles(scene) -> list:
     return out
 
 
-@pytest.mark.parametrize("robot", ["go1", "go2"])
+# go2: meshes only; anymal_c: a link and a joint of one name
+@pytest.mark.parametrize("robot", ["go1", "go2", "anymal_c"])
 def test_a_robot_bag_is_drawn_with_its_meshes_within_the_budget(robot, tmp_path, capsys):
     desc = write_robot_bag(tmp_path / "run.mcap", robot)
     assert view.main([str(tmp_path / "run.mcap")]) == 0
