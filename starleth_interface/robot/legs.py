@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from .config_checks import ConfigError
+from ..config_checks import ConfigError
 from .urdf import revolute_axis
 
 #: the knee directions of the standing posture (module docstring): sign of the knee angle
