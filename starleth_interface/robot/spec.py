@@ -252,6 +252,16 @@ def match_names(patterns, names, where, what="link"):
     return [n for n in names if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
 
 
+def override_limits(spec: RobotSpec, joint_names, kind: str, limit) -> None:
+    """The spec's `kind` ('effort' or 'velocity') limits written over `limit` (an array in
+    the order of `joint_names`), each glob onto the joints it matches; ConfigError naming
+    the spec where a glob matches no joint."""
+    names = list(joint_names)
+    for pattern, value in getattr(spec, kind).items():
+        for n in match_names([pattern], names, f"{spec.label}: limits.{kind}", "moving joint"):
+            limit[names.index(n)] = value
+
+
 def read_spec(path: str) -> RobotSpec:
     """The robot spec of a YAML file (project's YAML loader: duplicate keys, size)."""
     return spec_from_dict(load_yaml_file(path, os.path.basename(path)), path)

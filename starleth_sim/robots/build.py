@@ -17,7 +17,8 @@ from starleth_interface.robot.contact_points import (box_corners, check_terrain_
 from starleth_interface.robot.feet import foot_points, link_elements
 from starleth_interface.robot.library import load_robot, read_text, resolve, urdf_file
 from starleth_interface.robot.spec import (MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec,
-                                           mapping, match_names, spec_from_dict)
+                                           mapping, match_names, override_limits,
+                                           spec_from_dict)
 from starleth_interface.robot.urdf import checked_model, document_joint_order
 from starleth_interface.yaml_files import load_yaml_text
 
@@ -55,12 +56,9 @@ def _limits(spec: RobotSpec, desc: RobotDescription):
     """The spec's effort and velocity limits over the URDF's; each joint's must then be a
     real one (not a placeholder)."""
     names = list(desc.joint_names)
-    for kind, table, cap, unit in (("effort", spec.effort, MAX_EFFORT, "N m"),
-                                   ("velocity", spec.velocity, MAX_VELOCITY, "rad/s")):
+    for kind, cap, unit in (("effort", MAX_EFFORT, "N m"), ("velocity", MAX_VELOCITY, "rad/s")):
         limit = getattr(desc, f"{kind}_limit")
-        for pattern, value in table.items():
-            for n in match_names([pattern], names, f"{spec.label}: limits.{kind}", "moving joint"):
-                limit[names.index(n)] = value
+        override_limits(spec, names, kind, limit)
         for n, x in zip(names, limit):
             if not 0 < x < cap:
                 why = f"a placeholder (>= {cap:g})" if x >= cap else "not positive"
