@@ -131,8 +131,9 @@ class StarlethController:
         self._support_idx = np.zeros(4, dtype=np.int64)   # the support legs, first ns
         self._all_legs = np.arange(4, dtype=np.int64)
         self._leg_state_arr = np.zeros(4, dtype=np.int64)  # leg_state as an array
-        self._swing_p = np.zeros(K.SW_OFFSET_Y + 4)
-        self._swing_p[K.SW_OFFSET_Y:] = m.geometry[:, 6]    # footholds at the legs' d_y
+        self._swing_p = np.zeros(K.SW_STANCE_Y + 4)
+        self._swing_p[K.SW_STANCE_X:K.SW_STANCE_Y] = m.geometry[:, 5]   # the legs' o_x
+        self._swing_p[K.SW_STANCE_Y:] = m.geometry[:, 6]                 # and d_y
         self._swing_key = None
         self._phase_offsets = (None, None)   # (array, the parameter it was made from)
         self._mass_g = m.mass * m.gravity
@@ -575,7 +576,7 @@ class StarlethController:
         P = self._swing_p
         if key != self._swing_key:       # written only when a parameter changed
             P[:K.SW_OFFSET_X] = key[:K.SW_OFFSET_X]
-            P[K.SW_OFFSET_X:K.SW_OFFSET_Y] = p.foothold_offset_x
+            P[K.SW_OFFSET_X:K.SW_STANCE_X] = p.foothold_offset_x
             self._swing_key = key
         return P
 

@@ -475,8 +475,10 @@ def ground_estimate(ground, contact, support, ns):
 
 #: layout of the swing parameters (controller.py: _swing_parameters)
 (SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
- SW_OFFSET_X) = range(9)   # OFFSET_X: 4 values, then OFFSET_Y: 4 (the legs' lateral offsets)
-SW_OFFSET_Y = SW_OFFSET_X + 4
+ SW_OFFSET_X) = range(9)   # OFFSET_X: 4 values; then the legs' stance points relative to
+# their hips (the model's o_x, d_y: below the hip pitch joint, at the leg's lateral offset)
+SW_STANCE_X = SW_OFFSET_X + 4
+SW_STANCE_Y = SW_STANCE_X + 4
 
 
 @_jit
@@ -512,10 +514,10 @@ def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, r
     dy = 0.5 * vdy * Tst + P[SW_FEEDBACK] * (vy - vdy) * sq
     dx = -step_max if -step_max > dx else dx     # Python's min(max(d, -step_max), step_max)
     dx = step_max if step_max < dx else dx
-    dx = dx + P[SW_OFFSET_X + k]
+    dx = dx + P[SW_OFFSET_X + k] + P[SW_STANCE_X + k]
     dy = -step_max if -step_max > dy else dy
     dy = step_max if step_max < dy else dy
-    dy = dy + P[SW_OFFSET_Y + k]
+    dy = dy + P[SW_STANCE_Y + k]
     sig, dsig = smoothstep(sp / interp_end)
     ox = r0x + sig * (dx - r0x)
     oy = r0y + sig * (dy - r0y)

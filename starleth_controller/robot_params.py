@@ -6,7 +6,8 @@ by the scaling rule (starleth_interface.robot.scaling: dynamic similarity with g
     lengths [m] λ · speeds [m/s] √λ · times [s] √λ · accelerations [m/s²] 1
     angular accelerations [rad/s²] 1/λ · forces [N] μ · force gains [N/m] μ/λ, [N s/m] μ/√λ
     moment gains [N m/rad] μλ, [N m s/rad] μλ^1.5 · joint gains likewise (μλ, μλ^1.5)
-    angles, shares, weights: unchanged
+    the force QP's weights: of its moment rows 1/λ² (a moment is a force times a length),
+    of its force rows unchanged; angles and shares unchanged
 
 The trunk height is the robot's standing height (its spec's) less StarlETH's margin, scaled:
 0.41 m · h_stand / 0.415 m (a URDF without a spec: 0.41 m · λ). The gait's phases and
@@ -78,6 +79,8 @@ def params_for_robot(model, base: ControllerParams | None = None) -> ControllerP
         height=base.height * ratio,
         trot_height=None if base.trot_height is None else base.trot_height * ratio,
         max_yaw_acceleration=base.max_yaw_acceleration / lam,
+        wrench_weights=tuple(base.wrench_weights[:3])
+        + tuple(w / (lam * lam) for w in base.wrench_weights[3:]),
         velocity_ki=base.velocity_ki * mu / lam,
         trot_gains=_scaled_gains(base.trot_gains, s),
         stand_gains=_scaled_gains(base.stand_gains, s),

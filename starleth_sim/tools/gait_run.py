@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from starleth_controller import Command, RobotState, StarlethController
-from starleth_controller.robot_params import TROT_SPEED, trot_speed
+from starleth_controller.robot_params import trot_speed
 
 from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
