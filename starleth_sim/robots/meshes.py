@@ -13,10 +13,10 @@ from functools import lru_cache
 import coal    # pinocchio's collision library; its mesh loader is assimp
 import numpy as np
 
-from ..physics.config import load_yaml_text
-from ..physics.config_checks import ConfigError
-from .library import package_dirs
-from .spec import spec_from_dict
+from starleth_interface.config_checks import ConfigError
+from starleth_interface.robot.library import package_dirs
+from starleth_interface.robot.spec import spec_from_dict
+from starleth_interface.yaml_files import load_yaml_text
 
 #: the mesh formats drawn (coal's assimp loader reads them)
 MESH_SUFFIXES = (".stl", ".dae", ".obj")

@@ -38,10 +38,10 @@ import os
 import re
 import sys
 
+from starleth_interface.config_checks import ConfigError
+from starleth_interface.package_data import package_share_dir
 from starleth_interface.topics import (TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic,
                                        normalize_namespace, resolve)
-from ..physics.config_checks import ConfigError
-from ..physics.description import package_share_dir
 from ..robots import robot_description
 from ..ros.parameters import frame_name_problem, namespace_frame_prefix
 from ..ros.tf import base_link

@@ -13,7 +13,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..physics.description import RobotDescription
-from ..physics.urdf import urdf_origin
+from starleth_interface.robot.urdf import urdf_origin
 from ..robots.meshes import MeshError, read_mesh, resolve_mesh, simplified
 from .view_recording import Recording, warn
 
