@@ -17,7 +17,7 @@ from ..physics.simulator import Simulator
 from ..ros.parameters import Settings
 from ..ros.service import SimService
 from ..ros.state_io import public_state, quat_to_matrix
-from .replay_recording import (FEET, QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
+from .replay_recording import (QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
                                shortened, warn)
 
 
@@ -40,11 +40,11 @@ def _body_twist(quat, v_world):
     return quat_to_matrix(*quat).T @ v_world
 
 
-def _snapshot(sim):
+def _snapshot(sim, feet):
     pub = public_state(sim)
     quat = [float(x) for x in pub["base_orientation"]]
     cs = {c.name: c for c in sim.contacts}
-    forces = np.concatenate([cs[f"{f}_foot"].force for f in FEET]).astype(float)
+    forces = np.concatenate([cs[f].force for f in feet]).astype(float)
     return {"joint_positions": pub["joint_positions"],
             "joint_velocities": pub["joint_velocities"],
             "base_position": pub["base_position"],
@@ -56,9 +56,10 @@ def _snapshot(sim):
 
 def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     """Run the recorded torques and wrenches through `config` (default: the recorded one)
-    from the recorded initial state, with sim_node's own calls (SimService)."""
+    from the recorded initial state, with sim_node's own calls (SimService), on the recorded
+    robot (rec.description: the bag's URDF and spec, whatever `config` names)."""
     own = config is None
-    cfg = rec.config() if own else config
+    cfg = rec.config() if own else config.with_overrides(robot=rec.description.name)
     if abs(cfg.control_period - rec.control_period) > 1e-12:
         raise ReplayError(f"{cfg.name}: control period {cfg.control_period * 1e3:g} ms, the "
                           f"recording's is {rec.control_period * 1e3:g} ms: the torque stream "
@@ -66,7 +67,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     if own:   # the recorded torques are the applied ones: derating them again would differ
         cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
     try:
-        sim = Simulator(cfg)
+        sim = Simulator(cfg, description=rec.description)
     except ConfigError:
         raise
     except Exception as e:   # the robot's URDF (a path in the recorded configuration)
@@ -101,7 +102,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
                         f"period, the recording's applied torques have {rec.applied.shape[1]}: "
                         "replaying the torques of /joint_states")
     out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in QUANTITIES}
-    first = _snapshot(sim)
+    first = _snapshot(sim, rec.feet)
     for q in QUANTITIES:
         out[q][0] = first[q]
     its = np.zeros(n)
@@ -117,7 +118,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
             error = warnings[-1] if warnings else f"the physics failed at step {k}"
             break
         its[k] = d.iterations
-        snap = _snapshot(sim)
+        snap = _snapshot(sim, rec.feet)
         for q in QUANTITIES:
             out[q][k + 1] = snap[q]
     else:
