@@ -17,8 +17,13 @@ from ..physics.simulator import Simulator
 from ..ros.parameters import Settings
 from ..ros.service import SimService
 from ..ros.state_io import public_state, quat_to_matrix
+from .falls import fall_height
 from .replay_recording import (QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
                                shortened, warn)
+
+
+#: a replayed StarlETH has fallen with its base below this [m] (falls.fall_height)
+FALL_HEIGHT = 0.3
 
 
 @dataclass
@@ -169,7 +174,8 @@ def divergence(rec: Recording, rep: Replay, position=0.01, angle=0.05) -> dict:
     """Where an open-loop replay leaves the recorded run: the first time the base is more
     than `position` [m] from its recorded position or a joint more than `angle` [rad] from
     its recorded angle; with the largest differences, the final ones and whether the
-    replayed robot fell (base below 0.3 m or tilted more than 60°)."""
+    replayed robot fell (base below FALL_HEIGHT, scaled to the robot's standing height, or
+    tilted more than 60°)."""
     n = rep.steps
     dp = np.linalg.norm(rec.states["base_position"][:n + 1] - rep.states["base_position"][:n + 1],
                         axis=1)
@@ -179,7 +185,7 @@ def divergence(rec: Recording, rep: Replay, position=0.01, angle=0.05) -> dict:
     o = rep.states["base_orientation"][:n + 1]
     tilt = np.degrees(np.arccos(np.clip(1 - 2 * (o[:, 0] ** 2 + o[:, 1] ** 2), -1, 1)))
     z = rep.states["base_position"][:n + 1, 2]
-    fallen = np.flatnonzero((z < 0.3) | (tilt > 60.0))
+    fallen = np.flatnonzero((z < fall_height(rec.description, FALL_HEIGHT)) | (tilt > 60.0))
     fz_rec = rec.states["foot_forces"][:n + 1, 2::3]
     fz_rep = rep.states["foot_forces"][:n + 1, 2::3]
     return {"steps": n, "diverges_at": float(off[0] * rec.control_period) if off.size else None,
