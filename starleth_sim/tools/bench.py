@@ -11,12 +11,18 @@ physics step inside the kernels) beside the torque step of the same PD hold (the
 computed in Python once per control step), on the given presets (default HmJ Cm), in
 interleaved rounds in one process: µs per control step (median of the rounds) and the ratio.
 
-``--vs-mujoco``: the same robot (``urdf/starleth.urdf`` compiled by MuJoCo, free base joint,
-ground plane, Δt = 2.5 ms, Newton solver, elliptic cones, μ as in the preset) standing under
-the same joint PD hold from the same standing state, beside `Simulator` on the given presets
+``--robot NAME|all``: the robot (a library name, a spec or URDF path; `all`: each robot of
+the library in turn; default the presets', StarlETH), held by the PD hold scaled to it
+(``PostureHold.for_robot``).
+
+``--vs-mujoco``: the same robot (its URDF compiled by MuJoCo, free base joint, our contact
+points as its only collision spheres, ground plane, Δt = 2.5 ms, Newton solver, elliptic
+cones, μ as in the preset: :func:`mujoco_model`) standing under the same joint PD hold from
+the same standing state, beside `Simulator` on the given presets
 (default HmJ HmS Cm), in interleaved rounds of physics steps in one process: steps/s per
 preset (median of the rounds) and the ratio to MuJoCo, plus a check that both simulate the
-same thing (total normal force ≈ weight, base heights within a few mm). mujoco is an
+same thing (total normal force ≈ weight, base heights within a few mm); with several robots,
+a table per robot (doc/performance.md). mujoco is an
 optional benchmark dependency (``requirements-bench.txt``, installed by ``make bench``).
 """
 from __future__ import annotations
