@@ -132,4 +132,6 @@ def test_analyze_labels_a_go1_bag_with_its_feet_and_joints(go1_bag, tmp_path):
     S = json.loads(out.read_text())["runs"][0]
     assert S["robot"] == "go1" and S["feet_order"] == list(go1.foot_names)
     assert list(S["joints"]["max_abs"]) == list(go1.joint_names)
+    # the weight of the recorded robot (its 1 kg heavier trunk), not the library's
+    assert S["mass"] == pytest.approx(go1.total_mass + 1.0, rel=1e-12)
     assert analysis.main([go1_bag, "--no-plots", "--foot", "LF"]) == 1   # not a Go1 foot

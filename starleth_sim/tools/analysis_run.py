@@ -230,6 +230,7 @@ class Run:
         robot = self._recorded_robot(bag)
         #: the recorded robot's name (None: a bag without it), its feet (their contact
         #: names, in the robot's order; else in the order of the bag's wrench topics)
+        self.description = robot
         self.robot = robot.name if robot is not None else None
         ordered = list(robot.foot_names) if robot is not None else []
         self.feet = tuple(ordered + [f for f in col.wrench if f not in ordered])
@@ -353,7 +354,7 @@ class Run:
         run.path, run.label = "", label
         run.truncated, run.files, run.file_size, run.messages = False, [], 0, 0
         run.counts, run.types, run.metadata, run.urdf = {}, {}, {}, None
-        run.robot, run.ignored_joints, run.topics = None, [], {}
+        run.robot, run.description, run.ignored_joints, run.topics = None, None, [], {}
         run.namespace, run.topic_names, run.missing = "", {}, []
         run.base_frames, run.joint_names, run.window = base_frames, list(joint_names), (None, None)
         run.feet = tuple(feet)

@@ -152,10 +152,15 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
         S["sim_time"] = {"start": t_start, "end": t_end, "duration": t_end - t_start,
                          "t0_stamp": run.t0_ns * 1e-9, "control_period": run.control_period}
     S["control_steps"] = int(run.series("joints")["t"].size)
-    urdf, mass_source = run.urdf, "the bag's URDF"
-    if urdf is None:
-        urdf, mass_source = package_urdf(), "the package URDF (none in the bag)"
-    mass, limits = urdf_info(urdf)
+    desc = run.description
+    if desc is not None:      # the recorded robot: its spec's limits over the URDF's
+        mass, mass_source = desc.total_mass, f"the bag's robot ({desc.name})"
+        limits = dict(zip(desc.joint_names, np.ravel(desc.effort_limit).tolist()))
+    else:
+        urdf, mass_source = run.urdf, "the bag's URDF"
+        if urdf is None:
+            urdf, mass_source = package_urdf(), "the package URDF (none in the bag)"
+        mass, limits = urdf_info(urdf)
     S.update(_contact_summary(run, threshold, min_phase))
     if mass:
         S["mass"], S["weight"], S["mass_source"] = mass, mass * G, mass_source
