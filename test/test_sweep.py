@@ -52,7 +52,7 @@ seeds: [0, 1]
 
 def test_robots_run_the_scenarios_scaled_to_their_size(tmp_path):
     """StarlETH's numbers for a Go1 (legs of thigh 0.213 m + calf 0.213 m, URDF): speeds
-    x √λ, forces x μ, push durations x √λ (physics/scaling.py)."""
+    x √λ, forces x μ, push durations x √λ (the scaling rule)."""
     from starleth_sim.physics.config import ConfigError
     from starleth_sim.robots import load_robot, robot_description, urdf_file
     try:

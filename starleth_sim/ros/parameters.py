@@ -18,8 +18,9 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             ROS_PARAMETERS, ParameterSpec, parameter_defaults,
                                             render_parameters_yaml, unknown_parameters_text,
                                             with_parameter_table)
-from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
-from ..physics.description import package_share_dir
+from ..physics.config import ConfigError
+from starleth_interface.package_data import package_share_dir
+from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
 from .command_delay import MAX_COMMAND_DELAY
 from .ros2_control_description import INTERFACES, parse_command_interfaces
 

@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..physics.config import ConfigError, PhysicsConfig, load_yaml_text
+from ..physics.config import ConfigError, PhysicsConfig
 from ..physics.description import RobotDescription
 from ..robots import recorded_description, robot_description
+from starleth_interface.yaml_files import load_yaml_text
 from ..ros.parameters import frame_name_problem
 from .bag import BagError, read_messages, recorded_robot
 from starleth_interface.topics import foot_wrench_topic, resolve

@@ -33,10 +33,10 @@ The spec (YAML, validated on load; a bad field is reported with the file and fie
       base_velocity: 0.05             # m/s, world linear velocity of the base
 
 The scenarios' numbers are StarlETH's; each robot runs them scaled by the one rule of
-``physics/scaling.py`` (λ its leg length, μ its mass relative to StarlETH's): trot speeds and
-the base velocity perturbation x √λ, push forces x μ and push durations x √λ (an impulse x
-μ √λ); the table has the values used, with λ and μ. A run "fell" below FALL_HEIGHT scaled
-to the robot's standing height (:mod:`.falls`).
+``starleth_interface/robot/scaling.py`` (λ its leg length, μ its mass relative to
+StarlETH's): trot speeds and the base velocity perturbation x √λ, push forces x μ and push
+durations x √λ (an impulse x μ √λ); the table has the values used, with λ and μ. A run
+"fell" below FALL_HEIGHT scaled to the robot's standing height (:mod:`.falls`).
 
 Every run is one task (:func:`run_one` of a :class:`RunSpec`); results stream back as
 they finish (a progress bar with ETA on stderr) and the table is in grid order whatever the
@@ -65,9 +65,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..physics.config import ConfigError, load_preset, load_yaml_file
-from ..physics.scaling import robot_scale
+from ..physics.config import ConfigError, load_preset
 from ..robots import available_robots, config_with_robot, robot_description
+from starleth_interface.robot.scaling import robot_scale
+from starleth_interface.yaml_files import load_yaml_file
 from ..ros.state_io import minimal_state, public_state
 from .falls import fall_height
 from .gait_run import run_gait
@@ -134,7 +135,7 @@ class RunSpec:
     seed: int = 0
     perturbation: tuple = ()        # ((field, std), ...), scaled to the robot
     robot: str | None = None        # None: the preset's (StarlETH)
-    scale: tuple = (1.0, 1.0)       # (λ, μ) of the robot (physics/scaling.py)
+    scale: tuple = (1.0, 1.0)       # (λ, μ) of the robot (the scaling rule)
 
 
 @dataclass
@@ -314,7 +315,7 @@ def load_spec(path: str) -> Sweep:
                          f"the {MAX_RUNS} runs a sweep may have")
     runs = []
     for robot, desc in robots.items():
-        rs = robot_scale(desc) if desc is not None else None
+        rs = robot_scale(desc.legs, desc.total_mass) if desc is not None else None
         scale = (rs.length, rs.mass) if rs else (1.0, 1.0)
         for p, c, sc0, seed in itertools.product(presets, combos, scenarios, seeds):
             sc, pert = scaled(sc0, pert_t, scale)
