@@ -80,6 +80,24 @@ perturbation: {base_velocity: 0.02, joint_angles: 0.01}
     assert dict(by["starleth", "push"].perturbation)["base_velocity"] == 0.02
 
 
+def test_a_go1_run_of_a_sweep_stands_under_its_own_controller(tmp_path):
+    """robot: go1 runs the Go1 (run_gait(robot=)): it stands at its own height, below its
+    spec's standing height and above the fall height scaled to it (0.2 m x 0.274 / 0.415)."""
+    from starleth_sim.physics.config import ConfigError
+    from starleth_sim.robots import load_robot, robot_description, urdf_file
+    from starleth_sim.tools.falls import fall_height
+    try:
+        urdf_file(load_robot("go1"))
+    except ConfigError as e:
+        pytest.skip(str(e))
+    s = sweep.load_spec(_spec(tmp_path, "robot: go1\npresets: [HmJ]\n"
+                                        "scenarios: [{kind: stand, seconds: 0.3}]\n"))
+    row = sweep.run_one(s.runs[0])
+    desc = robot_description("go1")
+    assert row["robot"] == "go1" and row["completed"] and not row["fell"]
+    assert fall_height(desc, sweep.FALL_HEIGHT) < row["min_height"] <= desc.standing_height
+
+
 def test_fall_height_scales_with_the_standing_height():
     from types import SimpleNamespace
     from starleth_sim.tools.falls import fall_height
