@@ -25,12 +25,14 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from starleth_sim import Simulator  # noqa: E402
+from starleth_sim.physics.description import STARLETH_JOINT_NAMES  # noqa: E402
+from starleth_sim.robots import robot_description, spec_text  # noqa: E402
 from starleth_sim.tools import analysis, analysis_plots, analysis_run, bag  # noqa: E402
 from starleth_sim.physics.posture import PostureHold  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 
 PERIOD_NS = 2_500_000
-FEET = ("LF", "RF", "LH", "RH")
+FEET = ("LF_foot", "RF_foot", "LH_foot", "RH_foot")
 WALL0 = 1_700_000_000_000_000_000
 PLOTS = ("contact_forces", "gait", "base_trajectory", "joint_torques", "solver_iterations",
          "real_time_factor")
@@ -38,7 +40,7 @@ SOLVER_KEYS = ("iterations", "max_iterations_step", "converged", "status", "resi
                "active_contacts", "retried", "step_time", "physics_steps", "nonconverged_steps")
 ALL_TOPICS = {"/clock": Clock, "/joint_states": JointState, "/starleth/base_state": Odometry,
               "/starleth/solver": DiagnosticArray, "/robot_description": String,
-              **{f"/starleth/{f}_foot/wrench": WrenchStamped for f in FEET}}
+              **{f"/starleth/{f}/wrench": WrenchStamped for f in FEET}}
 
 
 # -- writing bags like sim_node ---------------------------------------------------------------
@@ -57,14 +59,21 @@ class BagWriter:
     """Writes the state topics the way sim_node does: one message per topic per control
     step, stamp = log time = k * 2.5 ms (publish time = a fake wall clock if wall_rtf)."""
 
-    def __init__(self, path, skip=(), wall_rtf=None, urdf=None):
+    def __init__(self, path, skip=(), wall_rtf=None, urdf=None, robot=None):
+        """robot: a library name whose URDF and spec are recorded as sim_node does."""
         self.rec = McapRecorder(str(path))
         self.skip, self.wall_rtf = set(skip), wall_rtf
         for topic, typ in ALL_TOPICS.items():
             if topic not in self.skip:
                 self.rec.add_topic(topic, typ)
-        self.rec.add_metadata("starleth_sim", {"control_period": "0.0025",
-                                               "stamp_period_ns": str(PERIOD_NS)})
+        md = {"control_period": "0.0025", "stamp_period_ns": str(PERIOD_NS)}
+        if robot:
+            md.update(robot=robot, urdf_attachment=f"{robot}.urdf",
+                      robot_spec_attachment=f"{robot}.robot.yaml")
+            self.rec.add_attachment(f"{robot}.urdf", "application/xml",
+                                    robot_description(robot).urdf_xml)
+            self.rec.add_attachment(f"{robot}.robot.yaml", "application/yaml", spec_text(robot))
+        self.rec.add_metadata("starleth_sim", md)
         if urdf and "/robot_description" not in self.skip:
             self.write("/robot_description", String(data=urdf), 0)
 
@@ -143,7 +152,8 @@ def run_sim(path, preset="HmJ", steps=400, controller="posture", drop=0.0, skip=
         def torque(k):
             cmd = Command("stand") if k < stand_steps else Command("trot", forward=forward)
             return ctrl.update(RobotState.from_simulator(sim), cmd)
-    w = BagWriter(path, skip=skip, wall_rtf=wall_rtf, urdf=sim.description.urdf_xml)
+    w = BagWriter(path, skip=skip, wall_rtf=wall_rtf, urdf=sim.description.urdf_xml,
+                  robot="starleth")
     ref = {"iterations": [], "v_xy": [], "mass": sim.description.total_mass}
     for k in range(steps + 1):
         if k:
@@ -221,7 +231,7 @@ def test_numbers_match_an_independent_reader(stand_bag, tmp_path):
             else:
                 fz.append(m.wrench.force.z)
     S = doc["runs"][0]
-    assert S["feet"]["LF"]["mean_normal_force"] == pytest.approx(np.mean(fz), rel=1e-12)
+    assert S["feet"]["LF_foot"]["mean_normal_force"] == pytest.approx(np.mean(fz), rel=1e-12)
     assert S["solver"]["iterations_mean"] == pytest.approx(np.mean(its), rel=1e-12)
 
 
@@ -236,14 +246,14 @@ def test_trot_gait_speed_and_wall_clock(tmp_path):
     S = doc["runs"][0]
     td = {f: S["feet"][f]["touchdowns"] for f in FEET}
     assert all(2 <= n <= 4 for n in td.values()), td       # 2 s of trot at 1.25 Hz
-    assert abs(td["LF"] - td["RH"]) <= 1 and abs(td["RF"] - td["LH"]) <= 1
+    assert abs(td["LF_foot"] - td["RH_foot"]) <= 1 and abs(td["RF_foot"] - td["LH_foot"]) <= 1
     for f in FEET:
         assert 0.4 < S["feet"][f]["stance_fraction"] < 0.9
     # diagonal pairs: LF and RH stance overlap almost entirely, LF and RF much less
     r = analysis_run.Run(str(path), "trot")
-    t, lf = r.normal_force("LF")
-    _, rh = r.normal_force("RH")
-    _, rf = r.normal_force("RF")
+    t, lf = r.normal_force("LF_foot")
+    _, rh = r.normal_force("RH_foot")
+    _, rf = r.normal_force("RF_foot")
     trot = t > 0.7
     same = np.mean((lf[trot] > 5) == (rh[trot] > 5))
     other = np.mean((lf[trot] > 5) == (rf[trot] > 5))
@@ -288,7 +298,7 @@ def test_gait_counting_on_a_square_wave(tmp_path):
     """Synthetic LF force: 0.1 s swing, then 5 x (0.3 s stance with a 5 ms bounce just after
     touchdown, 0.2 s swing). 5 touchdowns; 10 when short phases are kept (--min-phase 0)."""
     path = tmp_path / "square.mcap"
-    w = BagWriter(path, skip=set(ALL_TOPICS) - {f"/starleth/{f}_foot/wrench" for f in FEET})
+    w = BagWriter(path, skip=set(ALL_TOPICS) - {f"/starleth/{f}/wrench" for f in FEET})
     n = 40 + 5 * 200
     fz = np.zeros(n)
     for i in range(5):
@@ -299,18 +309,18 @@ def test_gait_counting_on_a_square_wave(tmp_path):
         for foot in FEET:
             m = WrenchStamped()
             m.header.stamp, m.header.frame_id = stamp(k), "world"
-            m.wrench.force.z = float(fz[k]) if foot == "LF" else 50.0
-            w.write(f"/starleth/{foot}_foot/wrench", m, k)
+            m.wrench.force.z = float(fz[k]) if foot == "LF_foot" else 50.0
+            w.write(f"/starleth/{foot}/wrench", m, k)
     w.close()
     rc, out, doc = analyse(tmp_path, [path])
     assert rc == 0
-    lf = doc["runs"][0]["feet"]["LF"]
+    lf = doc["runs"][0]["feet"]["LF_foot"]
     assert lf["touchdowns"] == 5 and lf["stance_phases"] == 5
     assert lf["stance_fraction"] == pytest.approx(5 * 120 / n)
-    assert doc["runs"][0]["feet"]["RF"]["touchdowns"] == 0
+    assert doc["runs"][0]["feet"]["RF_foot"]["touchdowns"] == 0
     assert (out / "gait.png").exists() and (out / "contact_forces.png").exists()
     rc, _, doc = analyse(tmp_path, [path], "--no-plots", "--min-phase", "0", name="raw")
-    assert doc["runs"][0]["feet"]["LF"]["touchdowns"] == 10
+    assert doc["runs"][0]["feet"]["LF_foot"]["touchdowns"] == 10
 
 
 def test_two_bag_overlay(tmp_path):
@@ -321,14 +331,14 @@ def test_two_bag_overlay(tmp_path):
     rc, out, doc = analyse(tmp_path, [soft, hard], "--label", "compliant", "hard contact")
     assert rc == 0
     assert [S["label"] for S in doc["runs"]] == ["compliant", "hard contact"]
-    for name in PLOTS + ("normal_force_LF",):
+    for name in PLOTS + ("normal_force_LF_foot",):
         assert (out / f"{name}.png").stat().st_size > 10_000, name
     # both runs in the plots' legends; every plot has axis labels with units, a title, a legend
     opts = analysis.build_parser().parse_args([str(soft), str(hard)])
-    opts.foot_given, opts.foot = False, "LF"
+    opts.foot_given, opts.foot = False, "LF_foot"
     runs = [analysis_run.Run(str(soft), "compliant"), analysis_run.Run(str(hard), "hard contact")]
     figs = analysis_plots.make_figures(runs, opts)
-    assert set(figs) == set(PLOTS) | {"normal_force_LF"}
+    assert set(figs) == set(PLOTS) | {"normal_force_LF_foot"}
     try:
         for name, fig in figs.items():
             for ax in fig.axes:
@@ -347,8 +357,9 @@ def test_two_bag_overlay(tmp_path):
             plt.close(fig)
     # the runs differ (compliant penetration vs hard contact): both touch down once at ~0.1 s
     for S in doc["runs"]:
-        assert S["feet"]["LF"]["touchdowns"] >= 1 and S["feet"]["LF"]["max_normal_force"] > 100
-    assert doc["runs"][0]["feet"]["LF"] != doc["runs"][1]["feet"]["LF"]
+        lf = S["feet"]["LF_foot"]
+        assert lf["touchdowns"] >= 1 and lf["max_normal_force"] > 100
+    assert doc["runs"][0]["feet"]["LF_foot"] != doc["runs"][1]["feet"]["LF_foot"]
 
 
 def test_time_window(stand_bag, tmp_path, capsys):
@@ -371,12 +382,13 @@ def test_missing_topic_warns_and_plots_the_rest(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "/starleth/solver" in err and "/starleth/RH_foot/wrench" in err
     assert "warning" in err
-    assert doc["runs"][0]["missing_topics"] == ["/starleth/RH_foot/wrench", "/starleth/solver"]
+    assert sorted(doc["runs"][0]["missing_topics"]) == ["/starleth/RH_foot/wrench",
+                                                        "/starleth/solver"]
     for name in ("contact_forces", "gait", "base_trajectory", "joint_torques"):
         assert (out / f"{name}.png").stat().st_size > 10_000
     assert not (out / "solver_iterations.png").exists()
     assert not (out / "real_time_factor.png").exists()   # no wall clock, no step_time
-    assert set(doc["runs"][0]["feet"]) == {"LF", "RF", "LH"}
+    assert set(doc["runs"][0]["feet"]) == {"LF_foot", "RF_foot", "LH_foot"}
 
 
 def test_bag_without_our_topics_fails(tmp_path, capsys):
@@ -471,7 +483,7 @@ def test_joint_states_by_name(tmp_path):
     """A user's /joint_states: other order, an extra joint; efforts are matched by name."""
     path = tmp_path / "js.mcap"
     w = BagWriter(path, skip=set(ALL_TOPICS) - {"/joint_states"})
-    names = list(reversed(analysis_run.JOINTS)) + ["sensor_joint"]
+    names = list(reversed(STARLETH_JOINT_NAMES)) + ["sensor_joint"]
     for k in range(20):
         js = JointState(name=names, effort=[float(i + 1) for i in range(len(names))])
         js.header.stamp = stamp(k)
@@ -481,5 +493,6 @@ def test_joint_states_by_name(tmp_path):
     assert rc == 0
     J = doc["runs"][0]["joints"]
     assert J["max_abs"]["RH_KFE"] == 1.0 and J["max_abs"]["LF_HAA"] == 12.0
-    assert J["ignored_joints"] == ["sensor_joint"]
+    # (no robot recorded: the joints are those /joint_states names)
+    assert J["max_abs"]["sensor_joint"] == 13.0 and "ignored_joints" not in J
     assert (out / "joint_torques.png").exists()

@@ -12,7 +12,7 @@ from starleth_sim.tools import bench
 def test_mujoco_model_is_our_robot_and_stands_like_ours():
     mujoco = pytest.importorskip("mujoco")
     ours = bench.SimulatorStanding("HmJ")
-    _, model = bench.mujoco_model(ours.sim.config.robot, 2.5e-3, 0.8)
+    _, model = bench.mujoco_model(ours.sim.description, 2.5e-3, 0.8)
     assert model.nv == ours.sim.coords.nv == 18
     assert model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
@@ -56,3 +56,38 @@ def test_impedance_prints_both_steps_side_by_side(capsys):
     for r in rows:      # µs per control step, and their ratio
         torque, imp, ratio = (float(x) for x in r[2:])
         assert torque > 0 and imp > 0 and ratio == pytest.approx(imp / torque, abs=0.01)
+
+
+def test_mujoco_model_of_another_robot_is_ours_reduced_to_our_contacts():
+    """Go1 from its URDF: MuJoCo's model has its mass, its degrees of freedom and our
+    contact points as its only collision geometry (the URDF's meshes, cylinders and boxes
+    dropped), and stands on its four feet like ours."""
+    mujoco = pytest.importorskip("mujoco")
+    from starleth_sim.physics.config import ConfigError
+    from starleth_sim.robots import load_robot, urdf_file
+    try:
+        urdf_file(load_robot("go1"))
+    except ConfigError as e:
+        pytest.skip(str(e))
+    ours = bench.SimulatorStanding("HmJ", "go1")
+    desc = ours.sim.description
+    _, model = bench.mujoco_model(desc, 2.5e-3, 0.8)
+    assert model.nv == ours.sim.coords.nv == 6 + len(desc.joint_names)
+    assert np.sum(model.body_mass) == pytest.approx(desc.total_mass, rel=1e-6)
+    spheres = model.geom_type == mujoco.mjtGeom.mjGEOM_SPHERE
+    assert spheres.sum() == len(desc.contacts) == model.ngeom - 1      # and the ground
+    radii = sorted(max(c.radius, bench.CORNER_RADIUS) for c in desc.contacts)
+    assert sorted(model.geom_size[spheres, 0]) == pytest.approx(radii)
+    mj = bench.MujocoStanding(mujoco, model, ours.sim)
+    mj.run(3000)
+    ours.run(3000)
+    for r in (mj, ours):
+        assert r.normal_force() / r.weight == pytest.approx(1.0, abs=bench.FORCE_TOLERANCE)
+    assert mj.data.ncon == 4                                  # the feet only
+    assert 0.0 < ours.height() - mj.height() < bench.HEIGHT_TOLERANCE
+
+
+def test_bad_robot_gives_one_line(capsys):
+    assert bench.main(["--vs-mujoco", "--robot", "no_such_robot", "HmJ"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no_such_robot" in err[0]

@@ -50,7 +50,68 @@ seeds: [0, 1]
     assert {r.seed for r in s.runs} == {0, 1}
 
 
+def test_robots_run_the_scenarios_scaled_to_their_size(tmp_path):
+    """StarlETH's numbers for a Go1 (legs of thigh 0.213 m + calf 0.213 m, URDF): speeds
+    x √λ, forces x μ, push durations x √λ (the scaling rule)."""
+    from starleth_sim.physics.config import ConfigError
+    from starleth_sim.robots import load_robot, robot_description, urdf_file
+    try:
+        urdf_file(load_robot("go1"))
+    except ConfigError as e:
+        pytest.skip(str(e))
+    s = sweep.load_spec(_spec(tmp_path, """robots: [starleth, go1]
+presets: [HmJ]
+scenarios:
+  - {kind: trot, speed: 0.3}
+  - {kind: push, magnitude: 500, duration: 0.1}
+perturbation: {base_velocity: 0.02, joint_angles: 0.01}
+"""))
+    by = {(r.robot, r.scenario.kind): r for r in s.runs}
+    assert len(s.runs) == 4 and by["starleth", "trot"].scenario.speed == 0.3
+    lam, mu = by["go1", "trot"].scale
+    assert lam == pytest.approx((0.213 + 0.213) / 0.435, rel=1e-3)
+    assert mu == pytest.approx(robot_description("go1").total_mass / 26.82, rel=1e-5)
+    assert by["go1", "trot"].scenario.speed == pytest.approx(0.3 * lam ** 0.5, rel=1e-12)
+    push = by["go1", "push"]
+    assert push.scenario.magnitude == pytest.approx(500 * mu, rel=1e-12)
+    assert push.scenario.duration == pytest.approx(0.1 * lam ** 0.5, rel=1e-12)
+    assert dict(push.perturbation) == pytest.approx({"base_velocity": 0.02 * lam ** 0.5,
+                                                     "joint_angles": 0.01})
+    assert dict(by["starleth", "push"].perturbation)["base_velocity"] == 0.02
+
+
+def test_a_go1_run_of_a_sweep_stands_under_its_own_controller(tmp_path):
+    """robot: go1 runs the Go1 (run_gait(robot=)): it stands at its own height, below its
+    spec's standing height and above the fall height scaled to it (0.2 m x 0.274 / 0.415)."""
+    from starleth_sim.physics.config import ConfigError
+    from starleth_sim.robots import load_robot, robot_description, urdf_file
+    from starleth_sim.tools.falls import fall_height
+    try:
+        urdf_file(load_robot("go1"))
+    except ConfigError as e:
+        pytest.skip(str(e))
+    s = sweep.load_spec(_spec(tmp_path, "robot: go1\npresets: [HmJ]\n"
+                                        "scenarios: [{kind: stand, seconds: 0.3}]\n"))
+    row = sweep.run_one(s.runs[0])
+    desc = robot_description("go1")
+    assert row["robot"] == "go1" and row["completed"] and not row["fell"]
+    assert fall_height(desc, sweep.FALL_HEIGHT) < row["min_height"] <= desc.standing_height
+
+
+def test_fall_height_scales_with_the_standing_height():
+    from types import SimpleNamespace
+    from starleth_sim.tools.falls import fall_height
+    assert fall_height(SimpleNamespace(standing_height=0.415), 0.2) == 0.2
+    assert fall_height(SimpleNamespace(standing_height=0.2075), 0.2) == pytest.approx(0.1)
+    assert fall_height(SimpleNamespace(standing_height=None), 0.2) == 0.2
+
+
 @pytest.mark.parametrize("text, words", [
+    ("robots: [starleth, nope]\npresets: [HmJ]\nscenarios: [{kind: stand}]\n",
+     ("spec.yaml", "robots[1]", "nope")),
+    ("robot: starleth\nrobots: [go1]\npresets: [HmJ]\nscenarios: [{kind: stand}]\n",
+     ("spec.yaml", "robot, robots")),
+    ("robot: [go1]\npresets: [HmJ]\nscenarios: [{kind: stand}]\n", ("spec.yaml", "robot:")),
     ("presets: [HmJ]\nscenarios: [{kind: jump}]\n", ("spec.yaml", "scenarios[0].kind")),
     ("presets: [HmJ]\nscenarios: [{kind: stand, seconds: -1}]\n", ("scenarios[0].seconds",)),
     ("presets: [HmJ]\noverrides: {alpha: [2.5]}\nscenarios: [{kind: stand}]\n",

@@ -61,7 +61,8 @@ import sys
 import time
 
 from .analysis_plots import PLOTS, save_figures
-from .analysis_run import FEET, PROG, TOPICS, AnalysisError, Run, warn
+from .analysis_plots import feet_of
+from .analysis_run import PROG, AnalysisError, Run, warn
 from .analysis_summary import format_summary, jsonable, summarise
 from .console import run_console_script
 
@@ -104,9 +105,11 @@ def build_parser():
     ap.add_argument("--tmin", type=float, metavar="S",
                     help="analyse from this time [s] (time since the first message)")
     ap.add_argument("--tmax", type=float, metavar="S", help="analyse up to this time [s]")
-    ap.add_argument("--foot", choices=FEET, default=None,
-                    help="foot of the single-foot normal force plot (default LF; drawn when "
-                         "comparing bags or when given)")
+    ap.add_argument("--foot", default=None, metavar="NAME",
+                    help="foot of the single-foot normal force plot: a foot contact name of "
+                         "the bag's robot, or its start if that names one foot (LF for "
+                         "LF_foot; default: the first foot; drawn when comparing bags or "
+                         "when given)")
     ap.add_argument("--twist-frame", choices=("auto", "child", "parent"), default="auto",
                     help="frame of the Odometry twist: child (REP 105, sim_node), parent "
                          "(world), auto: child unless child_frame_id is empty or the parent")
@@ -118,6 +121,21 @@ def build_parser():
     ap.add_argument("--salvage", action="store_true",
                     help="read a truncated/damaged bag up to the damage instead of failing")
     return ap
+
+
+def _chosen_foot(name, runs):
+    """The foot of --foot among the runs' feet (a contact name, or the start of exactly
+    one); the first foot without --foot; AnalysisError naming the feet otherwise."""
+    feet = feet_of(runs)
+    if name is None:
+        return feet[0] if feet else None
+    if name in feet:
+        return name
+    starts = [f for f in feet if f.startswith(name)]
+    if len(starts) == 1:
+        return starts[0]
+    raise AnalysisError(f"--foot {name}: not a foot of the bag's robot (its feet: "
+                        f"{', '.join(feet) or 'none recorded'})")
 
 
 def run(argv=None) -> int:
@@ -132,24 +150,24 @@ def run(argv=None) -> int:
     if a.tmin is not None and a.tmax is not None and a.tmax <= a.tmin:
         ap.error("--tmax must be greater than --tmin")
     a.foot_given = a.foot is not None
-    a.foot = a.foot or "LF"
     t_start = time.perf_counter()
     runs = []
     for path, label in zip(a.bags, _labels(a.bags, a.label)):
         r = Run(path, label, salvage=a.salvage)
-        if len(r.missing) == len(TOPICS):
+        if len(r.missing) == len(r.topics):
             topics = ", ".join(sorted(r.counts)) or "none"
             raise AnalysisError(f"{path}: none of the StarlETH topics ("
                                 f"{', '.join(r.topic_names.values())}) has messages; the bag's "
                                 f"topics: {topics}")
         relative = {name: rel for rel, name in r.topic_names.items()}
         for t in r.missing:
-            kind, typ, lost = TOPICS[relative[t]]
+            kind, typ, lost = r.topics[relative[t]]
             have = "no messages on" if t in r.counts else "no topic"
             warn(f"{path}: {have} {t} ({typ}); skipping {lost}")
         r.apply_window(a.tmin, a.tmax)
         runs.append(r)
     t_read = time.perf_counter() - t_start
+    a.foot = _chosen_foot(a.foot, runs)
     empty = [r for r in runs if not any(s["t"].size for s in r.series_by_key.values())]
     if len(empty) == len(runs) and a.tmin is None and a.tmax is None:
         raise AnalysisError(f"{', '.join(r.path for r in runs)}: none of the messages on the "

@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 
-from .analysis_run import FEET, JOINTS, AnalysisError
+from .analysis_run import AnalysisError
 from .analysis_summary import horizontal_velocity, real_time_factor, stance_intervals
 
 PLOTS = ("contact_forces", "gait", "base_trajectory", "joint_torques", "solver_iterations",
@@ -70,19 +70,34 @@ def window_suffix(runs):
     return f" ({a} .. {b})"
 
 
+def feet_of(runs) -> list:
+    """The feet of the runs (each run's in its robot's order), the first run's first."""
+    feet = []
+    for r in runs:
+        feet += [f for f in r.feet if f not in feet]
+    return feet
+
+
+def _has_foot(r, foot):
+    return foot in r.feet and r.has("wrench", foot)
+
+
 def plot_contact_forces(plt, runs, opts):
-    have = [r for r in runs if any(r.has("wrench", f) for f in FEET)]
+    feet = feet_of(runs)
+    have = [r for r in runs if any(_has_foot(r, f) for f in feet)]
     if not have:
         return None
-    fig, axes = plt.subplots(2, 2, figsize=(12, 7), sharex=True, squeeze=False)
-    for ax, foot in zip(axes.flat, FEET):
+    cols = 2 if len(feet) <= 4 else 3
+    fig, axes = plt.subplots(-(-len(feet) // cols), cols, figsize=(12, 7), sharex=True,
+                             squeeze=False)
+    for ax, foot in zip(axes.flat, feet):
         for i, r in enumerate(runs):
-            if r.has("wrench", foot):
+            if _has_foot(r, foot):
                 t, fz = r.normal_force(foot)
                 ax.plot(t, fz, color=run_color(i), lw=0.9, label=r.label)
         ax.axhline(opts.threshold, color="0.4", ls=":", lw=0.8,
                    label=f"contact threshold {opts.threshold:g} N")
-        finish_axes(ax, "time [s]", "normal force F_z [N]", f"{foot} foot")
+        finish_axes(ax, "time [s]", "normal force F_z [N]", foot)
     fig.suptitle("Contact normal force per foot (world z)" + window_suffix(runs))
     fig.tight_layout()
     return fig
@@ -90,34 +105,35 @@ def plot_contact_forces(plt, runs, opts):
 
 def plot_single_foot(plt, runs, opts):
     foot = opts.foot
-    have = [r for r in runs if r.has("wrench", foot)]
+    have = [r for r in runs if _has_foot(r, foot)]
     if not have:
         return None
     fig, ax = plt.subplots(figsize=(9, 4.5))
     for i, r in enumerate(runs):
-        if r.has("wrench", foot):
+        if _has_foot(r, foot):
             t, fz = r.normal_force(foot)
             ax.plot(t, fz, color=run_color(i), lw=1.0, label=r.label)
     finish_axes(ax, "time [s]", "normal force F_z [N]",
-            f"{foot} foot normal force" + window_suffix(runs))
+            f"{foot} normal force" + window_suffix(runs))
     fig.tight_layout()
     return fig
 
 
 def plot_gait(plt, runs, opts):
     from matplotlib.patches import Patch
-    have = [r for r in runs if any(r.has("wrench", f) for f in FEET)]
+    feet = feet_of(runs)
+    have = [r for r in runs if any(_has_foot(r, f) for f in feet)]
     if not have:
         return None
     n = len(runs)
-    fig, ax = plt.subplots(figsize=(12, 1.2 + 0.5 * 4 * max(n, 1) + 0.6))
+    fig, ax = plt.subplots(figsize=(12, 1.2 + 0.5 * len(feet) * max(n, 1) + 0.6))
     ticks, labels = [], []
     row_h = 1.0 / n
-    for k, foot in enumerate(FEET):
-        y0 = (len(FEET) - 1 - k)
+    for k, foot in enumerate(feet):
+        y0 = (len(feet) - 1 - k)
         for i, r in enumerate(runs):
             y = y0 + (n - 1 - i) * row_h
-            if r.has("wrench", foot):
+            if _has_foot(r, foot):
                 t, fz = r.normal_force(foot)
                 iv, _ = stance_intervals(t, fz, opts.threshold, opts.min_phase)
                 ax.broken_barh([(a, b - a) for a, b in iv], (y + 0.1 * row_h, 0.8 * row_h),
@@ -128,9 +144,9 @@ def plot_gait(plt, runs, opts):
         labels.append(foot)
     ax.set_yticks(ticks)
     ax.set_yticklabels(labels)
-    ax.set_ylim(0, len(FEET))
-    tmins = [float(r.normal_force(f)[0][0]) for r in have for f in FEET if r.has("wrench", f)]
-    tmaxs = [float(r.normal_force(f)[0][-1]) for r in have for f in FEET if r.has("wrench", f)]
+    ax.set_ylim(0, len(feet))
+    tmins = [float(r.normal_force(f)[0][0]) for r in have for f in feet if _has_foot(r, f)]
+    tmaxs = [float(r.normal_force(f)[0][-1]) for r in have for f in feet if _has_foot(r, f)]
     ax.set_xlim(min(tmins), max(tmaxs) + 1e-9)
     handles = [Patch(color=run_color(i), label=f"{r.label}: stance") for i, r in enumerate(runs)]
     ax.legend(handles=handles, fontsize="small", loc="upper right")
@@ -175,17 +191,23 @@ def plot_joint_torques(plt, runs, opts):
     have = [r for r in runs if r.has("joints")]
     if not have:
         return None
-    fig, axes = plt.subplots(4, 3, figsize=(14, 10), sharex=True, squeeze=False)
-    for j, name in enumerate(JOINTS):
+    names = []
+    for r in have:
+        names += [n for n in r.joint_names if n not in names]
+    rows = -(-len(names) // 3)
+    fig, axes = plt.subplots(rows, 3, figsize=(14, 2.5 * rows), sharex=True, squeeze=False)
+    for j, name in enumerate(names):
         ax = axes[j // 3][j % 3]
-        for i, r in enumerate(runs):
-            if r.has("joints"):
+        for i, r in enumerate(have):
+            if name in r.joint_names:
                 s = r.series("joints")
-                e = s["data"][:, j]
+                e = s["data"][:, r.joint_names.index(name)]
                 if np.isfinite(e).any():
-                    ax.plot(s["t"], e, color=run_color(i), lw=0.7, label=r.label)
-        finish_axes(ax, "time [s]" if j >= 9 else "", "torque [N m]", name)
-        if j < 9:
+                    ax.plot(s["t"], e, color=run_color(runs.index(r)), lw=0.7,
+                            label=r.label)
+        last = j >= len(names) - 3
+        finish_axes(ax, "time [s]" if last else "", "torque [N m]", name)
+        if not last:
             ax.set_xlabel("time [s]", fontsize="x-small")
     fig.suptitle("Joint torques (/joint_states effort)" + window_suffix(runs))
     fig.tight_layout()
@@ -235,8 +257,7 @@ def plot_rtf(plt, runs, opts):
     # windows: --rtf-window, but at least 10 per run for short runs, at most
     # MAX_RTF_WINDOWS for long ones
     span = max((float(r.series(*k)["t"][-1] - r.series(*k)["t"][0])
-                for _, r, _ in data for k in (("joints", None), ("wrench", "LF"),
-                                              ("base", None), ("solver", None))
+                for _, r, _ in data for k in r.timed_series()
                 if r.series(*k)["t"].size > 1), default=0.0)
     window = min(opts.rtf_window, span / 10) if span > 0 else opts.rtf_window
     window = rtf_window(span, window)

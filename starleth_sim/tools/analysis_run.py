@@ -12,32 +12,28 @@ import time
 
 import numpy as np
 
-from ..physics.description import LEGS, STARLETH_JOINT_NAMES
-from .bag import BagError, stream_bag
+from ..physics.config import ConfigError
+from ..robots import recorded_description
+from .bag import BagError, recorded_robot, stream_bag
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
                                        TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, foot_wrench_topic,
                                        namespace_of, resolve)
 
 PROG = "starleth-analyze"
-FEET = LEGS
-JOINTS = STARLETH_JOINT_NAMES
+#: a foot's wrench topic is FOOT_TOPIC[0] + its contact name + FOOT_TOPIC[1] (the rule of
+#: starleth_interface.topics.foot_wrench_topic)
+FOOT_TOPIC = tuple(foot_wrench_topic("\0").split("\0"))
+FOOT_WRENCH = ("geometry_msgs/msg/WrenchStamped", "the contact force and gait plots")
 
-
-def wrench_topic(foot: str) -> str:
-    """The wrench topic of foot 'LF', 'RF', 'LH' or 'RH'."""
-    return foot_wrench_topic(f"{foot}_foot")
-
-
-# topic -> (kind, expected type, what is lost without it)
-TOPICS = {wrench_topic(f): (("wrench", f), "geometry_msgs/msg/WrenchStamped",
-                            f"the {f} contact force and gait plots") for f in FEET}
-TOPICS.update({
+# topic -> (kind, expected type, what is lost without it); the feet's wrench topics are
+# found by FOOT_TOPIC
+TOPICS = {
     TOPIC_BASE_STATE: (("base", None), "nav_msgs/msg/Odometry", "the base trajectory plot"),
     TOPIC_JOINT_STATES: (("joints", None), "sensor_msgs/msg/JointState",
                          "the joint torque plot"),
     TOPIC_SOLVER: (("solver", None), "diagnostic_msgs/msg/DiagnosticArray",
                    "the solver iteration plot and the compute real-time factor"),
-})
+}
 OPTIONAL_TOPICS = {TOPIC_ROBOT_DESCRIPTION: "std_msgs/msg/String"}
 
 #: the largest magnitude of a recorded force [N], position [m], velocity, joint torque [N m]
@@ -59,12 +55,13 @@ class _Collector:
 
     def __init__(self, path: str):
         self.path = path
-        self.wrench = {f: [] for f in FEET}          # (stamp, log, pub, fx, fy, fz)
+        self.wrench = {}                             # foot -> [(stamp, log, pub, fx, fy, fz)]
         self.base = []                               # (stamp, log, pub, p3, q4, v3, w3)
         self.base_frames = None                      # (frame_id, child_frame_id)
         self.joint_stamps = []                       # (stamp, log, pub)
-        self.joint_effort = []                       # rows in JOINT order (NaN if absent)
+        self.joint_effort = []                       # rows in joint_names order (NaN if absent)
         self.joint_names = None                      # names as first seen
+        self.ignored_joints = []                     # names of later messages not among them
         self.solver = []                             # (stamp, log, pub, it, conv, res, st, mx, ac)
         self.urdf = None                             # from robot_description
         self.namespace = None                        # of the first StarlETH topic seen
@@ -73,7 +70,9 @@ class _Collector:
         """stream_bag's channel callback: a handler for the StarlETH topics of the run's
         namespace with the expected type, None for the rest."""
         rel = self.relative_topic(topic)
-        if rel in TOPICS:
+        if isinstance(rel, tuple):                   # a foot's wrench
+            kind, expected = rel, FOOT_WRENCH[0]
+        elif rel in TOPICS:
             kind, expected, _ = TOPICS[rel]
         elif rel in OPTIONAL_TOPICS:
             kind, expected = ("description", None), OPTIONAL_TOPICS[rel]
@@ -84,12 +83,24 @@ class _Collector:
                  f"expected {expected}; ignored")
             return None
         decode = make_decoder()
-        return None if decode is None else _make_handler(kind, self, decode)
+        if decode is None:
+            return None
+        if kind[0] == "wrench":
+            self.wrench.setdefault(kind[1], [])
+        return _make_handler(kind, self, decode)
 
     def relative_topic(self, topic: str):
-        """The relative StarlETH name (a key of TOPICS or OPTIONAL_TOPICS) of a topic of the
-        bag, in the run's namespace (that of the first such topic: a bag of one robot under
-        /robot1 reads like one at the root), or None."""
+        """The relative StarlETH name (a key of TOPICS or OPTIONAL_TOPICS, or ('wrench',
+        foot) for a foot's wrench topic) of a topic of the bag, in the run's namespace (that
+        of the first such topic: a bag of one robot under /robot1 reads like one at the
+        root), or None."""
+        head, tail = FOOT_TOPIC
+        at = topic.rfind("/" + head)
+        if at >= 0 and topic.endswith(tail) and len(topic) > at + 1 + len(head) + len(tail):
+            ns, foot = topic[:at], topic[at + 1 + len(head):len(topic) - len(tail)]
+            if self.namespace is None:
+                self.namespace = ns
+            return ("wrench", foot) if ns == self.namespace else None
         for rel in (*TOPICS, *OPTIONAL_TOPICS):
             ns = namespace_of(topic, rel)
             if ns is None:
@@ -134,26 +145,29 @@ def _make_handler(kind, col: _Collector, decode):
             rows.append((_stamp(msg), m.log_time, m.publish_time,
                          p.x, p.y, p.z, q.x, q.y, q.z, q.w, v.x, v.y, v.z, w.x, w.y, w.z))
     elif what == "joints":
-        state = {"names": None, "index": None, "identity": False}
-        nan_row = [math.nan] * len(JOINTS)
-        order = {n: i for i, n in enumerate(JOINTS)}
+        # the columns: the joints of the first message, by name
+        state = {"names": None, "index": None, "identity": False, "order": None}
 
         def handle(m):
             msg = decode(m.data)
             names = msg.name
             if names != state["names"]:
-                state["names"] = list(names)
-                state["index"] = [order.get(n, -1) for n in names]
-                state["identity"] = state["index"] == list(range(len(JOINTS)))
                 if col.joint_names is None:
                     col.joint_names = list(names)
+                    state["order"] = {n: i for i, n in enumerate(names)}
+                    state["nan_row"] = [math.nan] * len(names)
+                state["names"] = list(names)
+                state["index"] = [state["order"].get(n, -1) for n in names]
+                col.ignored_joints += [n for n in names if n not in state["order"]
+                                       and n not in col.ignored_joints]
+                state["identity"] = state["index"] == list(range(len(col.joint_names)))
             col.joint_stamps.append((_stamp(msg), m.log_time, m.publish_time))
             eff = msg.effort
             idx = state["index"]
             if state["identity"] and len(eff) == len(idx):
                 col.joint_effort.append(list(eff))
                 return
-            row = list(nan_row)
+            row = list(state["nan_row"])
             if len(eff) == len(idx):
                 for i, e in zip(idx, eff):
                     if i >= 0:
@@ -213,10 +227,22 @@ class Run:
                         pass
         for topic, (n, err) in bag.decode_errors.items():
             warn(f"{path}: {n} message(s) on {topic} could not be read ({err})")
+        robot = self._recorded_robot(bag)
+        #: the recorded robot's name (None: a bag without it), its feet (their contact
+        #: names, in the robot's order; else in the order of the bag's wrench topics)
+        self.description = robot
+        self.robot = robot.name if robot is not None else None
+        ordered = list(robot.foot_names) if robot is not None else []
+        self.feet = tuple(ordered + [f for f in col.wrench if f not in ordered])
+        #: the relative topics read: TOPICS and the feet's wrench topics
+        self.topics = dict(TOPICS)
+        self.topics.update({foot_wrench_topic(f): (("wrench", f), FOOT_WRENCH[0],
+                                                   f"the {f} {FOOT_WRENCH[1]}")
+                            for f in self.feet})
         #: the namespace of the StarlETH topics ('' at the root, '/robot1') and their names
         self.namespace = col.namespace or ""
-        self.topic_names = {rel: resolve(rel, self.namespace) for rel in TOPICS}
-        self.missing = [self.topic_names[t] for t in TOPICS
+        self.topic_names = {rel: resolve(rel, self.namespace) for rel in self.topics}
+        self.missing = [self.topic_names[t] for t in self.topics
                         if not self.counts.get(self.topic_names[t])]
 
         def arr(rows, width):
@@ -225,7 +251,7 @@ class Run:
             except (ValueError, TypeError, OverflowError) as e:
                 raise AnalysisError(f"{path}: messages whose fields are not numbers (the "
                                     f"bag's schema is not the ROS one?): {e}") from None
-            return a.reshape(-1, width)
+            return a.reshape(len(rows), width)
 
         # raw (stamp ns, log ns, pub ns) per series; int64 for exact comparisons
         def times(rows):
@@ -240,12 +266,15 @@ class Run:
             return stamp, a[:, 1], a[:, 2]
 
         series = {}
-        for foot in FEET:
-            rows = col.wrench[foot]
+        for foot in self.feet:
+            rows = col.wrench.get(foot, [])
             series[("wrench", foot)] = (times(rows), arr([r[3:] for r in rows], 3))
         series[("base", None)] = (times(col.base), arr([r[3:] for r in col.base], 13))
-        series[("joints", None)] = (times(col.joint_stamps),
-                                    arr(col.joint_effort, len(JOINTS)))
+        self.joint_names, self.ignored_joints = col.joint_names or [], col.ignored_joints
+        effort = arr(col.joint_effort, len(self.joint_names))
+        if robot is not None and self.joint_names != list(robot.joint_names):
+            effort = self._in_robot_order(effort, list(robot.joint_names))
+        series[("joints", None)] = (times(col.joint_stamps), effort)
         series[("solver", None)] = (times(col.solver), arr([r[3:] for r in col.solver], 6))
         series = self._drop_unusable(series)
         firsts = [s[0][0].min() for s in series.values() if s[0][0].size]
@@ -260,15 +289,37 @@ class Run:
             self.series_by_key[key] = {"stamp": stamp, "log": log, "pub": pub, "data": data,
                                  "t": (stamp - self.t0_ns) * 1e-9}
         self.base_frames = col.base_frames or ("", "")
-        self.joint_names = col.joint_names
         self.window = (None, None)
+
+    def _recorded_robot(self, bag):
+        """The robot the bag recorded (bag.recorded_robot: no library needed), or None (a
+        bag of another recorder; a warning where its description cannot be built)."""
+        try:
+            robot = recorded_robot(bag, self.path)
+            return None if robot is None else recorded_description(
+                robot[1], robot[2], robot[0], where=self.path)
+        except (BagError, ConfigError) as e:
+            warn(f"{e}; feet and joints as the bag's topics give them")
+            return None
+
+    def _in_robot_order(self, effort, names):
+        """The effort columns in the robot's joint order `names` (NaN for a joint the
+        messages lack); the joints the robot lacks are ignored."""
+        col = {n: i for i, n in enumerate(self.joint_names)}
+        out = np.full((effort.shape[0], len(names)), np.nan)
+        for j, n in enumerate(names):
+            if n in col:
+                out[:, j] = effort[:, col[n]]
+        self.ignored_joints += [n for n in self.joint_names if n not in names]
+        self.joint_names = names
+        return out
 
     def _drop_unusable(self, series: dict) -> dict:
         """series without the garbage a bag may hold, with a counted warning per topic: a
         wrench or base state holding a NaN, an infinite value or one beyond MAX_VALUE is
         left out; in joint efforts and solver values (where NaN means 'not recorded') an
         infinite or absurd value becomes NaN (the solver's residual is kept as recorded)."""
-        rel = {kind: name for name, (kind, _, _) in TOPICS.items()}
+        rel = {kind: name for name, (kind, _, _) in self.topics.items()}
         out = {}
         for key, ((stamp, log, pub), data) in series.items():
             with np.errstate(invalid="ignore"):
@@ -294,17 +345,19 @@ class Run:
 
     @classmethod
     def from_arrays(cls, label, t, base=None, wrench=None, effort=None,
-                    base_frames=("world", "base")):
+                    base_frames=("world", "base"), feet=(), joint_names=()):
         """A run made from arrays instead of a bag (e.g. a re-simulation, starleth-replay),
         for the plots: t [s] per row; base rows (position 3, quaternion x y z w, linear
-        twist 3, angular twist 3), wrench {foot: rows (f_x, f_y, f_z)}, effort rows in
-        JOINTS order; missing ones are empty series."""
+        twist 3, angular twist 3), wrench {foot: rows (f_x, f_y, f_z)} of the `feet`,
+        effort rows in `joint_names` order; missing ones are empty series."""
         run = cls.__new__(cls)
         run.path, run.label = "", label
         run.truncated, run.files, run.file_size, run.messages = False, [], 0, 0
         run.counts, run.types, run.metadata, run.urdf = {}, {}, {}, None
+        run.robot, run.description, run.ignored_joints, run.topics = None, None, [], {}
         run.namespace, run.topic_names, run.missing = "", {}, []
-        run.base_frames, run.joint_names, run.window = base_frames, list(JOINTS), (None, None)
+        run.base_frames, run.joint_names, run.window = base_frames, list(joint_names), (None, None)
+        run.feet = tuple(feet)
         run.t0_ns, run.read_seconds = 0, 0.0
         t = np.asarray(t, dtype=float)
         stamp = np.round(t * 1e9).astype(np.int64)
@@ -316,9 +369,9 @@ class Run:
                         "t": np.zeros(0)}
             return {"stamp": stamp, "log": stamp, "pub": stamp,
                     "data": np.asarray(data, dtype=float).reshape(len(t), width), "t": t}
-        run.series_by_key = {("wrench", f): entry((wrench or {}).get(f), 3) for f in FEET}
+        run.series_by_key = {("wrench", f): entry((wrench or {}).get(f), 3) for f in feet}
         run.series_by_key[("base", None)] = entry(base, 13)
-        run.series_by_key[("joints", None)] = entry(effort, len(JOINTS))
+        run.series_by_key[("joints", None)] = entry(effort, len(joint_names))
         run.series_by_key[("solver", None)] = entry(None, 6)
         return run
 
@@ -347,6 +400,12 @@ class Run:
         s = self.series("wrench", foot)
         return s["t"], s["data"][:, 2]
 
+    def timed_series(self) -> tuple:
+        """The keys of the series whose stamps give the run's clock, most regular first:
+        the joints, the first foot's wrench, the base, the solver."""
+        return (("joints", None), *(("wrench", f) for f in self.feet[:1]), ("base", None),
+                ("solver", None))
+
     @property
     def control_period(self):
         """Control period [s]: from the recording's metadata, else the stamps' median step."""
@@ -354,7 +413,7 @@ class Run:
         cp = float_or_nan(md.get("control_period"))
         if math.isfinite(cp) and cp > 0:
             return cp
-        for key in (("joints", None), ("wrench", "LF"), ("base", None), ("solver", None)):
+        for key in self.timed_series():
             t = self.series_by_key[key]["t"]
             if t.size > 1:
                 d = np.diff(t)

@@ -10,7 +10,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..physics.description import urdf_path
-from .analysis_run import FEET, JOINTS, Run, float_or_nan
+from .analysis_run import Run, float_or_nan
 
 G = 9.81
 
@@ -103,7 +103,7 @@ def real_time_factor(run: Run) -> dict:
     """What the bag says about sim time vs wall time (see the module docstring)."""
     out = {"source": None, "value": None}
     ref = None
-    for key in (("joints", None), ("wrench", "LF"), ("base", None), ("solver", None)):
+    for key in run.timed_series():
         s = run.series_by_key[key]
         if s["t"].size > 1:
             ref = s
@@ -142,6 +142,7 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
     """The numbers of the text summary (also written by --json)."""
     S = {"label": run.label, "path": run.path, "file_size": run.file_size,
          "messages": run.messages, "read_seconds": round(run.read_seconds, 3),
+         "robot": run.robot, "feet_order": list(run.feet),
          "truncated": run.truncated, "missing_topics": list(run.missing),
          "topics": {n: run.counts.get(n, 0) for n in run.topic_names.values()},
          "window": list(run.window)}
@@ -151,10 +152,15 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
         S["sim_time"] = {"start": t_start, "end": t_end, "duration": t_end - t_start,
                          "t0_stamp": run.t0_ns * 1e-9, "control_period": run.control_period}
     S["control_steps"] = int(run.series("joints")["t"].size)
-    urdf, mass_source = run.urdf, "the bag's URDF"
-    if urdf is None:
-        urdf, mass_source = package_urdf(), "the package URDF (none in the bag)"
-    mass, limits = urdf_info(urdf)
+    desc = run.description
+    if desc is not None:      # the recorded robot: its spec's limits over the URDF's
+        mass, mass_source = desc.total_mass, f"the bag's robot ({desc.name})"
+        limits = dict(zip(desc.joint_names, np.ravel(desc.effort_limit).tolist()))
+    else:
+        urdf, mass_source = run.urdf, "the bag's URDF"
+        if urdf is None:
+            urdf, mass_source = package_urdf(), "the package URDF (none in the bag)"
+        mass, limits = urdf_info(urdf)
     S.update(_contact_summary(run, threshold, min_phase))
     if mass:
         S["mass"], S["weight"], S["mass_source"] = mass, mass * G, mass_source
@@ -172,7 +178,7 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
 def _contact_summary(run: Run, threshold, min_phase) -> dict:
     """Per foot: normal force, stance fraction, touchdowns; the total mean normal force."""
     feet, total = {}, 0.0
-    for foot in FEET:
+    for foot in run.feet:
         if not run.has("wrench", foot):
             continue
         t, fz = run.normal_force(foot)
@@ -209,6 +215,7 @@ def _base_summary(run: Run, twist_frame) -> dict:
 def _joint_summary(run: Run, limits) -> dict:
     """Joint torques: max |τ| and RMS per joint and overall, time at the effort limit."""
     e = run.series("joints")["data"]
+    JOINTS = run.joint_names
     with np.errstate(invalid="ignore"):
         absmax = np.nanmax(np.abs(e), axis=0) if np.isfinite(e).any() else \
             np.full(len(JOINTS), np.nan)
@@ -226,10 +233,8 @@ def _joint_summary(run: Run, limits) -> dict:
             sat = (np.abs(e) >= lim * (1 - 1e-6)) & fin
         J["at_effort_limit_fraction"] = float(sat.sum() / max(fin.sum(), 1))
         J["effort_limit"] = float(lim.max())
-    if run.joint_names is not None:
-        unknown = [n for n in run.joint_names if n not in JOINTS]
-        if unknown:
-            J["ignored_joints"] = unknown
+    if run.ignored_joints:
+        J["ignored_joints"] = list(run.ignored_joints)
     return J
 
 

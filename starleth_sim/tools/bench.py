@@ -11,12 +11,18 @@ physics step inside the kernels) beside the torque step of the same PD hold (the
 computed in Python once per control step), on the given presets (default HmJ Cm), in
 interleaved rounds in one process: µs per control step (median of the rounds) and the ratio.
 
-``--vs-mujoco``: the same robot (``urdf/starleth.urdf`` compiled by MuJoCo, free base joint,
-ground plane, Δt = 2.5 ms, Newton solver, elliptic cones, μ as in the preset) standing under
-the same joint PD hold from the same standing state, beside `Simulator` on the given presets
+``--robot NAME|all``: the robot (a library name, a spec or URDF path; `all`: each robot of
+the library in turn; default the presets', StarlETH), held by the PD hold scaled to it
+(``PostureHold.for_robot``).
+
+``--vs-mujoco``: the same robot (its URDF compiled by MuJoCo, free base joint, our contact
+points as its only collision spheres, ground plane, Δt = 2.5 ms, Newton solver, elliptic
+cones, μ as in the preset: :func:`mujoco_model`) standing under the same joint PD hold from
+the same standing state, beside `Simulator` on the given presets
 (default HmJ HmS Cm), in interleaved rounds of physics steps in one process: steps/s per
 preset (median of the rounds) and the ratio to MuJoCo, plus a check that both simulate the
-same thing (total normal force ≈ weight, base heights within a few mm). mujoco is an
+same thing (total normal force ≈ weight, base heights within a few mm); with several robots,
+a table per robot (doc/performance.md). mujoco is an
 optional benchmark dependency (``requirements-bench.txt``, installed by ``make bench``).
 """
 from __future__ import annotations
@@ -24,6 +30,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,18 +41,18 @@ from ..physics.impedance import ImpedanceCommand
 from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 from ..physics.stepper import PHASES, StepperStats
-from ..robots import robot_urdf
+from ..robots import available_robots, robot_description
 from .bench_terrain import print_terrain_rounds
 from .bench_timing import timed_steps
 
 
-def measure(preset: str, seconds: float, repeats: int = 3):
+def measure(preset: str, seconds: float, repeats: int = 3, robot: str | None = None):
     """(steps/s samples, rtf samples, mean prox iterations per step) for `seconds` of
-    simulated standing, repeated."""
+    simulated standing of `robot` (default: the preset's), repeated."""
     rates, rtfs, iters = [], [], []
     for _ in range(repeats):
-        sim = Simulator.from_preset(preset)
-        hold = PostureHold(sim.joint_positions())
+        sim = Simulator.from_preset(preset, robot=robot)
+        hold = PostureHold.for_robot(sim.description, sim.joint_positions())
         n = int(round(seconds / sim.control_period))
         sim.step(hold.torque(sim))  # warm-up (first calls, caches)
         wall, it = timed_steps(sim, n, hold)
@@ -56,10 +63,10 @@ def measure(preset: str, seconds: float, repeats: int = 3):
     return np.array(rates), np.array(rtfs), float(np.mean(iters))
 
 
-def breakdown(preset: str, seconds: float):
+def breakdown(preset: str, seconds: float, robot: str | None = None):
     """Mean time per physics step and phase [µs] (profiled run, includes timer overhead)."""
-    sim = Simulator.from_preset(preset, profile=True)
-    hold = PostureHold(sim.joint_positions())
+    sim = Simulator.from_preset(preset, profile=True, robot=robot)
+    hold = PostureHold.for_robot(sim.description, sim.joint_positions())
     for _ in range(20):  # warm-up: first calls of the profiled path load compiled code
         sim.step(hold.torque(sim))
     sim.reset()
@@ -110,28 +117,76 @@ HEIGHT_TOLERANCE = 5e-3     # base heights of the two simulators after the round
 FORCE_TOLERANCE = 0.02      # |Σ F_N − m g| / (m g) of each simulator, standing still
 
 
-def mujoco_model(robot: str, dt: float, mu: float):
-    """MuJoCo's model of the robot's URDF (a preset's `robot`: robots.robot_urdf): the URDF
-    compiled by MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials
-    only), a free joint on the base, a ground plane at z = 0, Δt, Newton solver, elliptic
-    friction cones, μ on every geom; the robot's geoms collide with the ground only (as the
-    simulator's contact points). Returns (mujoco, model); mujoco is None if not installed."""
+#: the radius MuJoCo gives a contact point of radius 0 (a box corner) [m]: a sphere needs one
+CORNER_RADIUS = 1e-3
+
+
+#: the least principal moment of inertia MuJoCo is given [kg m²]: its compiler refuses a
+#: singular inertia (Go1's 1 mg placeholder base link has every entry 1e-6)
+MIN_INERTIA = 1e-9
+INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+
+
+def _positive_inertia(inertia) -> None:
+    """An <inertia> element whose matrix is not positive definite, made so (eigenvalues at
+    least MIN_INERTIA): a negligible change to a placeholder link."""
+    xx, xy, xz, yy, yz, zz = (float(inertia.get(k, 0.0)) for k in INERTIA_KEYS)
+    m = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    w, v = np.linalg.eigh(m)
+    if w.min() >= MIN_INERTIA:
+        return
+    m = (v * np.maximum(w, MIN_INERTIA)) @ v.T
+    for k, x in zip(INERTIA_KEYS, (m[0, 0], m[0, 1], m[0, 2], m[1, 1], m[1, 2], m[2, 2])):
+        inertia.set(k, repr(float(x)))
+
+
+def bare_urdf(urdf_xml: str) -> str:
+    """The URDF without its visual and collision elements (MuJoCo would load their meshes,
+    and collide with all of them): the kinematic tree and the inertials (singular ones made
+    positive definite)."""
+    root = ET.fromstring(urdf_xml)
+    for link in root.iter("link"):
+        for tag in ("visual", "collision"):
+            for e in link.findall(tag):
+                link.remove(e)
+        inertia = link.find("inertial/inertia")
+        if inertia is not None:
+            _positive_inertia(inertia)
+    return ET.tostring(root, encoding="unicode")
+
+
+def mujoco_model(desc, dt: float, mu: float):
+    """MuJoCo's model of a robot (a RobotDescription) from the same URDF: the tree compiled
+    by MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials only), a
+    free joint on the root body, and as collision geometry our contact points only (a
+    sphere per point, in the body of its joint; box corners CORNER_RADIUS), colliding with
+    a ground plane at z = 0; Δt, Newton solver, elliptic friction cones, μ on every geom.
+    Returns (mujoco, model); mujoco is None if not installed."""
     try:
         import mujoco
     except ImportError:
         return None, None
-    spec = mujoco.MjSpec.from_file(robot_urdf(robot))
+    spec = mujoco.MjSpec.from_string(bare_urdf(desc.urdf_xml))
     # the URDF's inertials only: by default MuJoCo gives a link without one (the feet) the
-    # mass of its collision geoms at 1000 kg/m³ (+65 g per foot sphere)
+    # mass of its collision geoms at 1000 kg/m³
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
-    spec.body("base").add_freejoint()
+    spec.compiler.balanceinertia = True      # the triangle inequality, as pinocchio does not
+    root = spec.worldbody.first_body()
+    root.add_freejoint()
+    names = desc.model.names
+    for c in desc.contacts:
+        body = root if desc.model.joints[c.joint].nq == 7 else spec.joint(names[c.joint]).parent
+        g = body.add_geom()
+        g.type = mujoco.mjtGeom.mjGEOM_SPHERE
+        g.size = [max(c.radius, CORNER_RADIUS), 0.0, 0.0]
+        g.pos = np.asarray(c.local, dtype=float)
+        g.contype, g.conaffinity = 1, 0
     ground = spec.worldbody.add_geom()
     ground.type = mujoco.mjtGeom.mjGEOM_PLANE
     ground.size = [0.0, 0.0, 1.0]
+    ground.contype, ground.conaffinity = 0, 1
     for g in spec.geoms:
         g.friction = [mu, 0.005, 0.0001]
-        g.contype, g.conaffinity = (0, 1) if g is ground or g.type == \
-            mujoco.mjtGeom.mjGEOM_PLANE else (1, 0)
     spec.option.timestep = dt
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
@@ -155,7 +210,7 @@ class MujocoStanding:
         self.data.qpos[3:7] = (w, x, y, z)
         self.data.qpos[self.qadr] = sim.joint_positions()
         mujoco.mj_forward(model, self.data)
-        self.hold = PostureHold(sim.joint_positions())
+        self.hold = PostureHold.for_robot(sim.description, sim.joint_positions())
         self.limit = np.asarray(sim.description.effort_limit, dtype=float).reshape(-1)
         self.weight = float(np.sum(model.body_mass)) * float(-model.opt.gravity[2])
 
@@ -184,11 +239,12 @@ class MujocoStanding:
 
 
 class SimulatorStanding:
-    """A preset's Simulator under the PD hold from its standing state."""
+    """A preset's Simulator (for `robot`, default the preset's) under the PD hold from its
+    standing state."""
 
-    def __init__(self, preset: str):
-        self.sim = Simulator.from_preset(preset)
-        self.hold = PostureHold(self.sim.joint_positions())
+    def __init__(self, preset: str, robot: str | None = None):
+        self.sim = Simulator.from_preset(preset, robot=robot)
+        self.hold = PostureHold.for_robot(self.sim.description, self.sim.joint_positions())
         self.per_control = self.sim.config.steps_per_control
         d = self.sim.description
         self.weight = float(sum(i.mass for i in d.model.inertias)) * \
@@ -235,6 +291,7 @@ class VsMujocoRow:
 class VsMujoco:
     """The side-by-side run (`measure_vs_mujoco`)."""
 
+    robot: str
     mujoco_version: str
     timestep: float
     mu: float
@@ -247,21 +304,24 @@ class VsMujoco:
         return row.median / self.rows[0].median
 
     def header(self) -> str:
-        return (f"StarlETH standing under the joint PD hold: MuJoCo {self.mujoco_version} "
-                f"(URDF compiled by MuJoCo, free base, Δt = {self.timestep * 1e3:g} ms, Newton, "
-                f"elliptic cones, μ = {self.mu:g}) beside Simulator; {self.rounds} interleaved "
-                f"rounds of {self.steps} physics steps; Python {sys.version.split()[0]}")
+        return (f"{self.robot} standing under the joint PD hold: MuJoCo {self.mujoco_version} "
+                f"(URDF compiled by MuJoCo, free base, our contact points as spheres, Δt = "
+                f"{self.timestep * 1e3:g} ms, Newton, elliptic cones, μ = {self.mu:g}) beside "
+                f"Simulator; {self.rounds} interleaved rounds of {self.steps} physics steps; "
+                f"Python {sys.version.split()[0]}")
 
     def like_with_like(self) -> str:
         return ("yes (total normal force = weight, base heights within "
                 f"{HEIGHT_TOLERANCE * 1e3:g} mm)" if not self.problems else "NO (see above)")
 
 
-def measure_vs_mujoco(presets, rounds: int, steps: int) -> VsMujoco | None:
-    """The side-by-side comparison (module docstring); None if mujoco is missing."""
-    runners = {p: SimulatorStanding(p) for p in presets}
+def measure_vs_mujoco(presets, rounds: int, steps: int, robot: str | None = None
+                      ) -> VsMujoco | None:
+    """The side-by-side comparison (module docstring) for `robot` (default: the presets');
+    None if mujoco is missing."""
+    runners = {p: SimulatorStanding(p, robot) for p in presets}
     first = next(iter(runners.values())).sim
-    mujoco, model = mujoco_model(first.config.robot, 2.5e-3, first.config.ground.mu)
+    mujoco, model = mujoco_model(first.description, 2.5e-3, first.config.ground.mu)
     if mujoco is None:
         return None
     mj = MujocoStanding(mujoco, model, first)
@@ -285,18 +345,11 @@ def measure_vs_mujoco(presets, rounds: int, steps: int) -> VsMujoco | None:
         if r is not mj and abs(row.height - mj.height()) > HEIGHT_TOLERANCE:
             problems.append(f"{n}: base height {row.height * 1e3:.2f} mm differs from MuJoCo's "
                             f"by more than {HEIGHT_TOLERANCE * 1e3:g} mm")
-    return VsMujoco(mujoco.__version__, float(model.opt.timestep),
+    return VsMujoco(first.description.name, mujoco.__version__, float(model.opt.timestep),
                     float(model.geom_friction[0, 0]), rounds, steps, rows, problems)
 
 
-def vs_mujoco(presets, rounds: int, steps: int) -> int:
-    """Prints the side-by-side comparison; exit status 0, 1 if the two do not simulate the
-    same thing, 2 if mujoco is missing."""
-    result = measure_vs_mujoco(presets, rounds, steps)
-    if result is None:
-        print("starleth-bench --vs-mujoco: mujoco is not installed (it is an optional "
-              "benchmark dependency: pip install -r requirements-bench.txt, or make bench)")
-        return 2
+def print_vs_mujoco(result: VsMujoco) -> None:
     print(result.header())
     print(f"{'':8s} {'Δt [ms]':>7s} {'steps/s (median)':>17s} {'min':>8s} {'max':>8s} "
           f"{'ratio':>6s} {'Σ F_N / mg':>10s} {'base z [mm]':>11s}")
@@ -307,7 +360,52 @@ def vs_mujoco(presets, rounds: int, steps: int) -> int:
     for problem in result.problems:
         print("  " + problem)
     print("like with like: " + result.like_with_like())
-    return 0 if not result.problems else 1
+
+
+def robots_table(results) -> list:
+    """The per-robot table (doc/performance.md): steps/s of MuJoCo and of each preset, the
+    ratio, and our base height minus MuJoCo's."""
+    presets = [row.name for row in results[0].rows[1:]]
+    lines = ["| robot | MuJoCo steps/s | " + " | ".join(f"{p} steps/s (ratio)" for p in presets)
+             + " | base z ours − MuJoCo [mm] | like with like |",
+             "|---" * (len(presets) + 4) + "|"]
+    for r in results:
+        mj = r.rows[0]
+        cells = [f"{row.median:,.0f} ({r.ratio(row):.2f})" for row in r.rows[1:]]
+        dz = ", ".join(f"{(row.height - mj.height) * 1e3:+.2f}" for row in r.rows[1:])
+        lines.append(f"| {r.robot} | {mj.median:,.0f} | " + " | ".join(cells) +
+                     f" | {dz} | {'yes' if not r.problems else 'NO'} |")
+    return lines
+
+
+def vs_mujoco(presets, rounds: int, steps: int, robots=(None,)) -> int:
+    """Prints the side-by-side comparison per robot (and the per-robot table for several);
+    exit status 0, 1 if the two do not simulate the same thing, 2 if mujoco is missing."""
+    results = []
+    for robot in robots:
+        result = measure_vs_mujoco(presets, rounds, steps, robot)
+        if result is None:
+            print("starleth-bench --vs-mujoco: mujoco is not installed (it is an optional "
+                  "benchmark dependency: pip install -r requirements-bench.txt, or make bench)")
+            return 2
+        print_vs_mujoco(result)
+        results.append(result)
+    if len(results) > 1:
+        print()
+        for line in robots_table(results):
+            print(line)
+    return 0 if not any(r.problems for r in results) else 1
+
+
+def _robots(value) -> list:
+    """The robots of --robot (a name or path, or `all`: the library); ConfigError naming a
+    bad one."""
+    if value is None:
+        return [None]
+    names = list(available_robots()) if value == "all" else [value]
+    for n in names:
+        robot_description(n)       # checked: one line naming the file and field
+    return names
 
 
 def main(argv=None):
@@ -315,6 +413,9 @@ def main(argv=None):
     ap.add_argument("presets", nargs="*", default=None,
                     help=f"configurations (default: all of Table 1; with --vs-mujoco "
                          f"{' '.join(VS_MUJOCO_PRESETS)})")
+    ap.add_argument("--robot", default=None, metavar="NAME|all",
+                    help="the robot (a library name, a spec or URDF path, or `all`: every "
+                         "robot of the library; default: the presets', StarlETH)")
     ap.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--vs-mujoco", action="store_true",
@@ -337,8 +438,10 @@ def main(argv=None):
                             if args.impedance else DEFAULT_PRESETS)
     try:
         configs = {p: load_preset(p) for p in args.presets}
+        robots = _robots(args.robot)
     except ConfigError as e:
-        ap.error(str(e))
+        print(f"starleth-bench: error: {e}", file=sys.stderr)
+        return 2
     if args.terrain:
         if args.rounds is not None and args.rounds < 1:
             ap.error("--rounds must be positive")
@@ -347,32 +450,40 @@ def main(argv=None):
         args.rounds = 5 if args.rounds is None else args.rounds
         if args.rounds < 1 or args.steps < 1:
             ap.error("--rounds and --steps must be positive")
-        return vs_mujoco(args.presets, args.rounds, args.steps)
+        return vs_mujoco(args.presets, args.rounds, args.steps, robots)
     if args.impedance:
         args.rounds = 5 if args.rounds is None else args.rounds
         if args.rounds < 1 or args.steps < 1:
             ap.error("--rounds and --steps must be positive")
         return impedance(args.presets, args.rounds, args.steps)
 
-    print(f"StarlETH standing under a joint PD hold, {args.seconds:g} s simulated x "
+    for robot in robots:
+        table(args, configs, robot)
+    return 0
+
+
+def table(args, configs, robot):
+    """The speed table (beside the paper's) and the per-phase breakdown of one robot."""
+    name = robot or "StarlETH"
+    print(f"{name} standing under a joint PD hold, {args.seconds:g} s simulated x "
           f"{args.repeats} runs per configuration; Python {sys.version.split()[0]}")
     print(f"{'config':7s} {'steps/s':>16s} {'paper':>7s} {'ratio':>6s} {'RTF':>7s} "
           f"{'paper':>6s} {'iter/step':>9s}")
     for p in args.presets:
         cfg = configs[p]
-        rates, rtfs, it = measure(p, args.seconds, args.repeats)
-        paper = cfg.paper.get("steps_per_second")
-        prtf = cfg.paper.get("realtime_factor")
+        rates, rtfs, it = measure(p, args.seconds, args.repeats, robot)
+        paper = cfg.paper.get("steps_per_second") if robot in (None, "starleth") else None
+        prtf = cfg.paper.get("realtime_factor") if paper else None
         ratio = rates.mean() / paper if paper else float("nan")
         print(f"{p:7s} {rates.mean():9.0f} ± {rates.std():4.0f} {paper or '-':>7} "
               f"{ratio:6.2f} {rtfs.mean():7.1f} {prtf or '-':>6} {it:9.2f}", flush=True)
-    print("\nPer-step time by phase (Fig. 7), µs, profiled run:")
+    print(f"\nPer-step time by phase (Fig. 7), µs, profiled run ({name}):")
     print(f"{'config':7s} " + " ".join(f"{k:>9s}" for k in PHASES) + f" {'total':>9s}")
     for p in args.presets:
-        b = breakdown(p, min(args.seconds, 2.0))
+        b = breakdown(p, min(args.seconds, 2.0), robot)
         print(f"{p:7s} " + " ".join(f"{b[k]:9.2f}" for k in PHASES) +
               f" {sum(b.values()):9.2f}")
-    return 0
+    print()
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import numpy as np
 from ..physics.config import load_preset
 from ..physics.description import RobotDescription, sphere_urdf
 from ..physics.simulator import Simulator
+from .falls import fall_height
 from .gait_run import GAIT_PERIOD, STAND_BEFORE_TROT, run_gait
 
 #: iteration cap of the α sweep: a run "converges" if no step needs more (slow convergence at
@@ -81,12 +82,21 @@ def task_fig7(preset, seconds):
     return dict(kind="fig7", preset=preset, phases_us=r["phases_us"], error=r["error"])
 
 
+#: the trunk height [m] below which a Fig. 6 run has fallen (StarlETH's: falls.fall_height)
+FIG6_FALL_HEIGHT = 0.3
+
+
 def task_fig6(preset, gait, alpha, seconds):
+    kept = {}
+
+    def keep(sim):
+        kept["sim"] = sim
     r = run_gait(preset, gait, seconds, alpha=alpha, fallback_alpha_factor=0.0,
                  max_iterations=FIG6_MAX_ITERATIONS, stand_time=0.2,
-                 stop_on_nonconvergence=True)
+                 stop_on_nonconvergence=True, perturb=keep)
     it = np.asarray(r["iterations"], dtype=float)
-    ok = r["error"] is None and r["nonconverged"] == 0 and r["min_height"] > 0.3
+    ok = r["error"] is None and r["nonconverged"] == 0 and \
+        r["min_height"] > fall_height(kept["sim"].description, FIG6_FALL_HEIGHT)
     return dict(kind="fig6", preset=preset, gait=gait, alpha=alpha,
                 mean_iterations=float(it.mean()) if len(it) else float("nan"),
                 converged=ok, nonconverged=r["nonconverged"], error=r["error"])

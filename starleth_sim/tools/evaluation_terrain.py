@@ -24,6 +24,7 @@ import numpy as np
 
 from ..physics.config import PRESETS as TABLE1
 from ..physics.terrain import pack_terrain, terrain_height
+from .falls import fall_height
 from .gait_run import run_gait
 from .task_pool import execute
 
@@ -40,7 +41,8 @@ TERRAINS = {
     "rough": {"rough": {"amplitude": 0.015, "wavelength": 0.4, "seed": 1, "size": 4.0}},
 }
 #: fell: the trunk tilted more than this [rad] at some step, or it ended lower than
-#: FALL_HEIGHT above the terrain under it (standing: 0.41 m)
+#: FALL_HEIGHT above the terrain under it (StarlETH's, standing at 0.415 m; scaled to the
+#: robot's standing height: falls.fall_height)
 FALL_TILT = math.radians(30.0)
 FALL_HEIGHT = 0.25
 
@@ -61,7 +63,8 @@ def task_terrain(preset, terrain, seconds):
     pen = np.asarray(r["foot_penetration"])
     return dict(kind="terrain", preset=preset, terrain=terrain, seconds=seconds,
                 steps=r["steps"], error=r["error"], nonfinite=r["nonfinite"],
-                fell=bool(r["error"] or r["max_tilt"] > FALL_TILT or z - ground < FALL_HEIGHT),
+                fell=bool(r["error"] or r["max_tilt"] > FALL_TILT
+                          or z - ground < fall_height(sim.description, FALL_HEIGHT)),
                 max_tilt_deg=math.degrees(r["max_tilt"]), height=float(z - ground),
                 penetration_max_mm=float(1e3 * pen.max()) if hard and len(pen) else None,
                 penetration_mean_mm=float(1e3 * pen.mean()) if hard and len(pen) else None,

@@ -15,6 +15,7 @@ from starleth_controller.robot_params import trot_speed
 
 from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
+from ..ros.tf import base_link
 
 STAND_BEFORE_TROT = 1.0  # s
 GAIT_PERIOD = 0.8      # s (1.25 Hz)
@@ -53,7 +54,7 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
         cmd = Command(mode="trot" if trot else "stand", forward=speed if trot else 0.0)
         tau = ctrl.update(RobotState.from_simulator(sim), cmd)
         if push is not None and k == int(round(push[0] / sim.control_period)):
-            sim.apply_wrench("base", push[1], duration=push[2])
+            sim.apply_wrench(base_link(sim.description.urdf_xml), push[1], duration=push[2])
         t0 = time.perf_counter()
         try:
             d = sim.step(tau)

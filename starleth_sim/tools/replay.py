@@ -65,35 +65,39 @@ import numpy as np
 from ..physics.config import ConfigError, load_preset
 from .analysis_plots import (finish_axes, load_pyplot, plot_base, plot_contact_forces, run_color,
                              window_suffix)
-from .analysis_run import JOINTS, Run
+from .analysis_run import Run
 from .bag import BagError
 from .console import run_console_script
-from .replay_recording import FEET, PROG, Recording, ReplayError, load_recording, warn
+from .replay_recording import PROG, Recording, ReplayError, load_recording, warn
 from .replay_resimulation import Comparison, Replay, compare_exact, divergence, resimulate
 
 
 # =========================================================================================
 # plots (starleth-analyze's, on runs built from arrays)
 # =========================================================================================
-def _as_run(label, states, control_period):
+def _as_run(label, states, rec):
     n = states["joint_positions"].shape[0]
-    t = np.arange(n) * control_period
+    t = np.arange(n) * rec.control_period
     base = np.hstack([states["base_position"], states["base_orientation"],
                       states["base_linear_velocity"], states["base_angular_velocity"]])
-    wrench = {f: states["foot_forces"][:, 3 * i:3 * i + 3] for i, f in enumerate(FEET)}
-    run = Run.from_arrays(label, t, base=base, wrench=wrench, base_frames=("world", "base"))
+    wrench = {f: states["foot_forces"][:, 3 * i:3 * i + 3] for i, f in enumerate(rec.feet)}
+    run = Run.from_arrays(label, t, base=base, wrench=wrench, base_frames=("world", "base"),
+                          feet=rec.feet, joint_names=rec.joint_names)
     run.joint_positions = states["joint_positions"]
     return run
 
 
 def plot_joint_angles(plt, runs, opts):
-    fig, axes = plt.subplots(4, 3, figsize=(14, 10), sharex=True, squeeze=False)
-    for j, name in enumerate(JOINTS):
+    names = runs[0].joint_names
+    rows = -(-len(names) // 3)
+    fig, axes = plt.subplots(rows, 3, figsize=(14, 2.5 * rows), sharex=True, squeeze=False)
+    for j, name in enumerate(names):
         ax = axes[j // 3][j % 3]
         for i, r in enumerate(runs):
             t = r.series("base")["t"]
             ax.plot(t, r.joint_positions[:, j], color=run_color(i), lw=0.8, label=r.label)
-        finish_axes(ax, "time [s]" if j >= 9 else "", "angle [rad]", name, legend=j == 0)
+        finish_axes(ax, "time [s]" if j >= len(names) - 3 else "", "angle [rad]", name,
+                    legend=j == 0)
     fig.suptitle("Joint angles" + window_suffix(runs))
     fig.tight_layout()
     return fig
@@ -103,8 +107,8 @@ def write_overlays(rec: Recording, replays, out_dir, dpi=110) -> list:
     """contact_forces.png, base_trajectory.png (starleth-analyze's plots) and
     joint_angles.png: the recording and the replays overlaid."""
     plt = load_pyplot()
-    runs = [_as_run("recorded", rec.states, rec.control_period)]
-    runs += [_as_run(r.label, r.states, rec.control_period) for r in replays]
+    runs = [_as_run("recorded", rec.states, rec)]
+    runs += [_as_run(r.label, r.states, rec) for r in replays]
     opts = argparse.Namespace(threshold=5.0, twist_frame="child", min_phase=0.02)
     os.makedirs(out_dir, exist_ok=True)
     written = []
@@ -182,7 +186,8 @@ def run(argv=None) -> int:
     except ConfigError as e:
         raise ReplayError(str(e)) from None
     print(f"== {a.bag}: {rec.steps} steps of {rec.control_period * 1e3:g} ms "
-          f"({rec.steps * rec.control_period:.3f} s), physics {rec_cfg.name}, recorded by "
+          f"({rec.steps * rec.control_period:.3f} s), robot {rec.description.name}, physics "
+          f"{rec_cfg.name}, recorded by "
           f"starleth_sim {rec.package_version}; {sum(map(len, rec.wrenches.values()))} external "
           f"wrench(es); read in {time.perf_counter() - t0:.2f} s ==")
     resets = rec.summary.get("resets", 0)

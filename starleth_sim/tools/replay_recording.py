@@ -11,15 +11,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..physics.config import PhysicsConfig
+from ..physics.config import ConfigError, PhysicsConfig
+from ..physics.description import RobotDescription
+from ..robots import recorded_description, robot_description
 from starleth_interface.yaml_files import load_yaml_text
-from ..physics.description import LEGS
 from ..ros.parameters import frame_name_problem
-from .bag import BagError, read_messages
+from .bag import BagError, read_messages, recorded_robot
 from starleth_interface.topics import foot_wrench_topic, resolve
 
 PROG = "starleth-replay"
-FEET = LEGS
 #: the quantities compared step by step, as the recording holds them
 QUANTITIES = ("joint_positions", "joint_velocities", "base_position", "base_orientation",
               "base_linear_velocity", "base_angular_velocity", "foot_forces")
@@ -41,6 +41,9 @@ class Recording:
 
     path: str
     config_yaml: str
+    #: the robot as recorded (its URDF and spec from the bag; StarlETH's of the library for
+    #: bags of before the robot was recorded)
+    description: RobotDescription
     initial: dict                  # the recorded initial_state.json
     joint_names: list
     control_period: float
@@ -65,6 +68,11 @@ class Recording:
     @property
     def steps(self) -> int:
         return self.effort.shape[0] - 1
+
+    @property
+    def feet(self) -> tuple:
+        """The foot contact names of the recorded robot, in its order."""
+        return self.description.foot_names
 
     def config(self):
         what = f"{self.path}: physics_config"
@@ -102,15 +110,16 @@ def _metadata(bag, path):
     return md
 
 
-def _topics(md, probe):
-    """The namespace, the state topics {joints, base, foot: topic}, the wrench input topics
+def _topics(md, probe, feet):
+    """The namespace, the state topics {joints, base, foot: topic} (`feet`: the robot's foot
+    contact names), the wrench input topics
     {topic: persistent} and the applied torque topic (or None) of a recording."""
     ns = md.get("namespace", "")
     ns = "" if ns in ("", "/") else ns
     topics = {
         "joints": md.get("joint_states_topic") or resolve("joint_states", ns),
         "base": md.get("base_state_topic") or resolve("starleth/base_state", ns),
-        **{f: resolve(foot_wrench_topic(f"{f}_foot"), ns) for f in FEET}}
+        **{f: resolve(foot_wrench_topic(f), ns) for f in feet}}
     wrench_topics = {md.get("wrench_topic"): False, md.get("wrench_persistent_topic"): True}
     wrench_topics.pop(None, None)
     if not wrench_topics:   # bags of before the topic names were recorded
@@ -223,13 +232,31 @@ def _frame_prefix(md, path) -> str:
     return prefix
 
 
+def _description(probe, path, config_yaml) -> RobotDescription:
+    """The recorded robot (its URDF and spec attachments: no library needed); for a bag
+    without them, the robot its physics configuration names (StarlETH)."""
+    robot = recorded_robot(probe, path)
+    try:
+        if robot is not None:
+            name, urdf, spec = robot
+            return recorded_description(urdf, spec, name, where=path)
+        what = f"{path}: physics_config"
+        return robot_description(
+            PhysicsConfig.from_dict(load_yaml_text(config_yaml, what), source=what).robot)
+    except ConfigError as e:
+        raise ReplayError(str(e)) from None
+
+
 def load_recording(path: str, salvage: bool = False) -> Recording:
-    """Read the metadata, the states, the applied torques and the wrenches of a bag."""
+    """Read the metadata, the robot, the states, the applied torques and the wrenches of a
+    bag."""
     # the metadata comes first (sim_node writes it when the recording opens); a bag without
     # it is refused before its messages are decoded
     probe = read_messages(path, lambda t, ty: False, salvage=salvage, on_warning=warn)
     md = _metadata(probe, path)
-    ns, topics, wrench_topics, applied_topic = _topics(md, probe)
+    desc = _description(probe, path, md["physics_config"])
+    feet = desc.foot_names
+    ns, topics, wrench_topics, applied_topic = _topics(md, probe, feet)
     wanted = set(topics.values()) | set(wrench_topics) | {applied_topic}
     bag = read_messages(path, lambda t, ty: t in wanted, salvage=salvage, on_warning=warn)
     for key in ("joints", "base"):
@@ -244,15 +271,15 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
             for key, topic, what in (
                 ("joints", topics["joints"], "/joint_states"),
                 ("base", topics["base"], "the base state"),
-                *((f, topics[f], f"the {f} foot wrench") for f in FEET))}
+                *((f, topics[f], f"the {f} wrench") for f in feet))}
     cut = cut_cause(bag)
     counted = {"joint states": len(rows["joints"]), "base states": len(rows["base"])}
     if cut is not None:
-        counted.update({f"{f} foot wrenches": len(rows[f]) for f in FEET if rows[f]})
+        counted.update({f"{f} wrenches": len(rows[f]) for f in feet if rows[f]})
     applied_rows = bag.messages.get(applied_topic, ())
     n = _complete_states(path, counted, _first_missing_step(applied_rows, period_ns), cut,
                          period_ns)
-    states, effort = _states(path, rows, n, joint_names)
+    states, effort = _states(path, rows, n, joint_names, feet)
     applied, replay = _applied_torques(applied_rows, period_ns, n, len(joint_names), path,
                                        applied_topic)
     summary = {}
@@ -265,7 +292,8 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     if not isinstance(initial, dict):
         raise ReplayError(f"{path}: the recorded initial_state is not a JSON object "
                           f"({_short(md['initial_state'])})")
-    return Recording(path=path, config_yaml=md["physics_config"], initial=initial,
+    return Recording(path=path, config_yaml=md["physics_config"], description=desc,
+                     initial=initial,
                      joint_names=joint_names, control_period=control_period,
                      period_ns=period_ns, namespace=ns,
                      package_version=md.get("package_version", "unknown"), states=states,
@@ -274,7 +302,7 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
                      cut=cut, frame_prefix=_frame_prefix(md, path))
 
 
-def _states(path, rows, n, joint_names):
+def _states(path, rows, n, joint_names, feet):
     """(the recorded states {quantity: (n, width)}, the /joint_states effort (n, joints)) of
     the first n steps of `rows` ({joints, base, foot: {k: message}}); ReplayError where the
     joint states do not fit the joints or hold a torque that is not finite."""
@@ -310,8 +338,8 @@ def _states(path, rows, n, joint_names):
         w.append((ta.x, ta.y, ta.z))
     states.update(base_position=np.array(p), base_orientation=np.array(o),
                   base_linear_velocity=np.array(v), base_angular_velocity=np.array(w))
-    forces = np.full((n, 3 * len(FEET)), np.nan)
-    for i, f in enumerate(FEET):
+    forces = np.full((n, 3 * len(feet)), np.nan)
+    for i, f in enumerate(feet):
         for k, m in rows[f].items():
             if k < n:
                 fm = m.wrench.force

@@ -17,8 +17,13 @@ from ..physics.simulator import Simulator
 from ..ros.parameters import Settings
 from ..ros.service import SimService
 from ..ros.state_io import public_state, quat_to_matrix
-from .replay_recording import (FEET, QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
+from .falls import fall_height
+from .replay_recording import (QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
                                shortened, warn)
+
+
+#: a replayed StarlETH has fallen with its base below this [m] (falls.fall_height)
+FALL_HEIGHT = 0.3
 
 
 @dataclass
@@ -40,11 +45,11 @@ def _body_twist(quat, v_world):
     return quat_to_matrix(*quat).T @ v_world
 
 
-def _snapshot(sim):
+def _snapshot(sim, feet):
     pub = public_state(sim)
     quat = [float(x) for x in pub["base_orientation"]]
     cs = {c.name: c for c in sim.contacts}
-    forces = np.concatenate([cs[f"{f}_foot"].force for f in FEET]).astype(float)
+    forces = np.concatenate([cs[f].force for f in feet]).astype(float)
     return {"joint_positions": pub["joint_positions"],
             "joint_velocities": pub["joint_velocities"],
             "base_position": pub["base_position"],
@@ -56,9 +61,10 @@ def _snapshot(sim):
 
 def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     """Run the recorded torques and wrenches through `config` (default: the recorded one)
-    from the recorded initial state, with sim_node's own calls (SimService)."""
+    from the recorded initial state, with sim_node's own calls (SimService), on the recorded
+    robot (rec.description: the bag's URDF and spec, whatever `config` names)."""
     own = config is None
-    cfg = rec.config() if own else config
+    cfg = rec.config() if own else config.with_overrides(robot=rec.description.name)
     if abs(cfg.control_period - rec.control_period) > 1e-12:
         raise ReplayError(f"{cfg.name}: control period {cfg.control_period * 1e3:g} ms, the "
                           f"recording's is {rec.control_period * 1e3:g} ms: the torque stream "
@@ -66,7 +72,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     if own:   # the recorded torques are the applied ones: derating them again would differ
         cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
     try:
-        sim = Simulator(cfg)
+        sim = Simulator(cfg, description=rec.description)
     except ConfigError:
         raise
     except Exception as e:   # the robot's URDF (a path in the recorded configuration)
@@ -101,7 +107,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
                         f"period, the recording's applied torques have {rec.applied.shape[1]}: "
                         "replaying the torques of /joint_states")
     out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in QUANTITIES}
-    first = _snapshot(sim)
+    first = _snapshot(sim, rec.feet)
     for q in QUANTITIES:
         out[q][0] = first[q]
     its = np.zeros(n)
@@ -117,7 +123,7 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
             error = warnings[-1] if warnings else f"the physics failed at step {k}"
             break
         its[k] = d.iterations
-        snap = _snapshot(sim)
+        snap = _snapshot(sim, rec.feet)
         for q in QUANTITIES:
             out[q][k + 1] = snap[q]
     else:
@@ -168,7 +174,8 @@ def divergence(rec: Recording, rep: Replay, position=0.01, angle=0.05) -> dict:
     """Where an open-loop replay leaves the recorded run: the first time the base is more
     than `position` [m] from its recorded position or a joint more than `angle` [rad] from
     its recorded angle; with the largest differences, the final ones and whether the
-    replayed robot fell (base below 0.3 m or tilted more than 60°)."""
+    replayed robot fell (base below FALL_HEIGHT, scaled to the robot's standing height, or
+    tilted more than 60°)."""
     n = rep.steps
     dp = np.linalg.norm(rec.states["base_position"][:n + 1] - rep.states["base_position"][:n + 1],
                         axis=1)
@@ -178,7 +185,7 @@ def divergence(rec: Recording, rep: Replay, position=0.01, angle=0.05) -> dict:
     o = rep.states["base_orientation"][:n + 1]
     tilt = np.degrees(np.arccos(np.clip(1 - 2 * (o[:, 0] ** 2 + o[:, 1] ** 2), -1, 1)))
     z = rep.states["base_position"][:n + 1, 2]
-    fallen = np.flatnonzero((z < 0.3) | (tilt > 60.0))
+    fallen = np.flatnonzero((z < fall_height(rec.description, FALL_HEIGHT)) | (tilt > 60.0))
     fz_rec = rec.states["foot_forces"][:n + 1, 2::3]
     fz_rep = rep.states["foot_forces"][:n + 1, 2::3]
     return {"steps": n, "diverges_at": float(off[0] * rec.control_period) if off.size else None,

@@ -10,6 +10,8 @@ on Ray, with one results table and summary plots.
 The spec (YAML, validated on load; a bad field is reported with the file and field):
 
     name: push_recovery
+    robots: [starleth, go1]           # optional: library names or paths, or `all`; or
+                                      # robot: go1 (default: the presets' robot, StarlETH)
     presets: [HmJ, Cm]                # preset names (msg_configs/) or YAML paths
     overrides:                        # physics overrides, each a list: the grid is their product
       alpha: [0.4, 0.6]               # any key Simulator.from_preset(**overrides) takes
@@ -29,6 +31,12 @@ The spec (YAML, validated on load; a bad field is reported with the file and fie
     perturbation:                     # standard deviations of the initial perturbation
       joint_angles: 0.02              # rad, every joint
       base_velocity: 0.05             # m/s, world linear velocity of the base
+
+The scenarios' numbers are StarlETH's; each robot runs them scaled by the one rule of
+``starleth_interface/robot/scaling.py`` (λ its leg length, μ its mass relative to
+StarlETH's): trot speeds and the base velocity perturbation x √λ, push forces x μ and push
+durations x √λ (an impulse x μ √λ); the table has the values used, with λ and μ. A run
+"fell" below FALL_HEIGHT scaled to the robot's standing height (:mod:`.falls`).
 
 Every run is one task (:func:`run_one` of a :class:`RunSpec`); results stream back as
 they finish (a progress bar with ETA on stderr) and the table is in grid order whatever the
@@ -53,13 +61,16 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..physics.config import ConfigError, load_preset
+from ..robots import available_robots, config_with_robot, robot_description
+from starleth_interface.robot.scaling import robot_scale
 from starleth_interface.yaml_files import load_yaml_file
 from ..ros.state_io import minimal_state, public_state
+from .falls import fall_height
 from .gait_run import run_gait
 from .task_pool import SweepError, execute
 
@@ -81,9 +92,11 @@ SEED_RANGE = (0, 2 ** 32 - 1)
 PERTURBATION_RANGES = {"joint_angles": (0.0, 1.0), "base_velocity": (0.0, 10.0)}
 #: the most runs a spec may expand into (presets x overrides x scenarios x seeds)
 MAX_RUNS = 100_000
-SPEC_FIELDS = ("name", "presets", "overrides", "scenarios", "seeds", "perturbation")
+SPEC_FIELDS = ("name", "robot", "robots", "presets", "overrides", "scenarios", "seeds",
+               "perturbation")
 PERTURBATION_FIELDS = ("joint_angles", "base_velocity")
 #: a run "fell" when the trunk tilted more than this [rad] or sank below FALL_HEIGHT [m]
+#: (StarlETH's; scaled to the robot's standing height: falls.fall_height)
 FALL_TILT, FALL_HEIGHT = 1.0, 0.2
 #: columns that are wall-clock measurements (they differ between any two executions)
 TIMING_COLUMNS = ("wall_s", "steps_per_s")
@@ -120,7 +133,9 @@ class RunSpec:
     overrides: tuple                # ((key, value), ...)
     scenario: Scenario
     seed: int = 0
-    perturbation: tuple = ()        # ((field, std), ...)
+    perturbation: tuple = ()        # ((field, std), ...), scaled to the robot
+    robot: str | None = None        # None: the preset's (StarlETH)
+    scale: tuple = (1.0, 1.0)       # (λ, μ) of the robot (the scaling rule)
 
 
 @dataclass
@@ -195,6 +210,46 @@ def _scenarios(src, items, runs_per_scenario=1):
     return out
 
 
+def _robots(src, data) -> dict:
+    """The spec's robots {name: description}: {None: None} (the presets' robot) without
+    `robot` / `robots`; each one checked by building its description (SweepError naming the
+    file and field)."""
+    if "robot" in data and "robots" in data:
+        raise SweepError(f"{src}: robot, robots: give one of them")
+    key = "robot" if "robot" in data else "robots"
+    value = data.get(key)
+    if value is None:
+        return {None: None}
+    if key == "robots" and value == "all":
+        value = list(available_robots())
+    names = [value] if key == "robot" else value
+    if not isinstance(names, list) or not names or \
+            not all(isinstance(n, str) and n for n in names):
+        what = "a robot name or path" if key == "robot" else "a list of robot names or `all`"
+        raise SweepError(f"{src}: {key}: expected {what}, got {value!r}")
+    out = {}
+    for i, n in enumerate(names):
+        try:
+            out[n] = robot_description(n)
+        except ConfigError as e:
+            raise SweepError(f"{src}: {key}{'' if key == 'robot' else f'[{i}]'}: "
+                             f"{e}") from None
+    return out
+
+
+def scaled(sc: Scenario, pert: tuple, scale: tuple):
+    """The scenario and perturbation (StarlETH's numbers) for a robot of scale (λ, μ):
+    speeds and velocities x √λ, forces x μ, push durations x √λ."""
+    length, mass = scale
+    if (length, mass) == (1.0, 1.0):
+        return sc, pert
+    t = math.sqrt(length)
+    sc = replace(sc, speed=sc.speed * t, magnitude=sc.magnitude * mass,
+                 duration=sc.duration * t)
+    pert = tuple((k, v * t if k == "base_velocity" else v) for k, v in pert)
+    return sc, pert
+
+
 def load_spec(path: str) -> Sweep:
     """Read and validate a sweep spec; expand it into the runs of the grid (presets x
     overrides x scenarios x seeds, in that nesting order)."""
@@ -235,9 +290,10 @@ def load_spec(path: str) -> Sweep:
         raise SweepError(f"{src}: presets x overrides: {len(presets) * n_combos} combinations, "
                          f"more than the {MAX_RUNS} runs a sweep may have")
     combos = [tuple(zip(ov_keys, c)) for c in itertools.product(*(ov_grid[k] for k in ov_keys))]
-    for p in presets:              # every preset with every override combination, checked
+    robots = _robots(src, data)
+    for p, robot in itertools.product(presets, robots):   # each with every override, checked
         try:
-            cfg = load_preset(p)
+            cfg = load_preset(p) if robot is None else config_with_robot(load_preset(p), robot)
             for c in combos:
                 cfg.with_overrides(**dict(c))
         except ConfigError as e:
@@ -254,12 +310,16 @@ def load_spec(path: str) -> Sweep:
             raise SweepError(f"{src}: perturbation.{k}: expected one number >= 0")
         _num_list(f"{src}: perturbation.{k}", v, bounds=(*PERTURBATION_RANGES[k], False))
     pert_t = tuple((k, float(pert[k])) for k in PERTURBATION_FIELDS if k in pert)
+    if len(robots) * len(presets) * n_combos * len(scenarios) * len(seeds) > MAX_RUNS:
+        raise SweepError(f"{src}: robots x presets x overrides x scenarios x seeds: more than "
+                         f"the {MAX_RUNS} runs a sweep may have")
     runs = []
-    for p in presets:
-        for c in combos:
-            for sc in scenarios:
-                for seed in seeds:
-                    runs.append(RunSpec(len(runs), p, c, sc, seed, pert_t))
+    for robot, desc in robots.items():
+        rs = robot_scale(desc.legs, desc.total_mass) if desc is not None else None
+        scale = (rs.length, rs.mass) if rs else (1.0, 1.0)
+        for p, c, sc0, seed in itertools.product(presets, combos, scenarios, seeds):
+            sc, pert = scaled(sc0, pert_t, scale)
+            runs.append(RunSpec(len(runs), p, c, sc, seed, pert, robot, scale))
     name = str(name or os.path.splitext(src)[0])
     return Sweep(name=name, runs=runs, override_keys=ov_keys, source=path)
 
@@ -293,13 +353,21 @@ def run_one(spec: RunSpec) -> dict:
     if sc.kind == "push":
         push = (sc.at, tuple(sc.magnitude * x for x in sc.direction), sc.duration)
     gait = "trot" if sc.kind == "trot" else "stand"
+    perturb, kept = _perturbation(spec.seed, spec.perturbation), {}
+
+    def start(sim):
+        kept["sim"] = sim
+        if perturb is not None:
+            perturb(sim)
+    robot = {} if spec.robot is None else {"robot": spec.robot}
     t0 = time.perf_counter()
     r = run_gait(spec.preset, gait, sc.seconds, push=push, stand_time=sc.stand_time,
-                 speed=sc.speed, perturb=_perturbation(spec.seed, spec.perturbation),
-                 **dict(spec.overrides))
+                 speed=sc.speed, perturb=start, **robot, **dict(spec.overrides))
     wall = time.perf_counter() - t0
     it = np.asarray(r["iterations"], dtype=float) / r["steps_per_control"]
-    row = {"index": spec.index, "preset": spec.preset}
+    desc = kept["sim"].description
+    row = {"index": spec.index, "robot": desc.name, "lambda": spec.scale[0],
+           "mu": spec.scale[1], "preset": spec.preset}
     row.update({k: v for k, v in spec.overrides})
     row.update(scenario=sc.kind, seconds=sc.seconds,
                speed=sc.speed if sc.kind == "trot" else None,
@@ -308,7 +376,8 @@ def run_one(spec: RunSpec) -> dict:
                if sc.kind == "push" else None,
                seed=spec.seed, steps=r["steps"], completed=r["error"] is None,
                error=r["error"] or "",
-               fell=bool(r["max_tilt"] > FALL_TILT or r["min_height"] < FALL_HEIGHT),
+               fell=bool(r["max_tilt"] > FALL_TILT
+                         or r["min_height"] < fall_height(desc, FALL_HEIGHT)),
                max_tilt_deg=math.degrees(r["max_tilt"]), min_height=r["min_height"],
                distance_x=r["distance"],
                mean_iterations=float(it.mean()) if it.size else 0.0,
@@ -358,12 +427,20 @@ def write_table(rows, out_dir) -> list:
     return written + [os.path.join(out_dir, "results.parquet")]
 
 
+def config_label(r, rows) -> str:
+    """A row's preset, after its robot where the rows hold several robots."""
+    several = len({x.get("robot") for x in rows}) > 1
+    return f"{r['robot']} {r['preset']}" if several else r["preset"]
+
+
 def push_fall_curves(rows) -> dict:
-    """{preset: [(magnitude, fraction of runs that fell)]} over the push runs."""
+    """{preset (robot and preset): [(magnitude, fraction of runs that fell)]} over the push
+    runs."""
     out = {}
     for r in rows:
         if r["scenario"] == "push":
-            out.setdefault(r["preset"], {}).setdefault(r["push_magnitude"], []).append(r["fell"])
+            out.setdefault(config_label(r, rows), {}).setdefault(
+                r["push_magnitude"], []).append(r["fell"])
     return {p: sorted((m, float(np.mean(v))) for m, v in d.items()) for p, d in out.items()}
 
 
@@ -401,10 +478,11 @@ def make_plots(rows, sweep: Sweep, out_dir) -> list:
         if len(vals) < 2:
             continue
         fig, ax = plt.subplots(figsize=(7, 4))
-        groups = sorted({(r["preset"], r["scenario"]) for r in rows})
+        groups = sorted({(config_label(r, rows), r["scenario"]) for r in rows})
         for i, (p, s) in enumerate(groups):
             pts = [(v, np.mean([r["mean_iterations"] for r in rows if r[key] == v and
-                                r["preset"] == p and r["scenario"] == s and r["completed"]
+                                config_label(r, rows) == p and r["scenario"] == s
+                                and r["completed"]
                                 and not r["nonconverged"]] or [np.nan])) for v in vals]
             ax.plot(*zip(*pts), marker="o", color=f"C{i % 10}", label=f"{p}, {s}")
         ax.set_xlabel(key)
