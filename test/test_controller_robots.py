@@ -96,3 +96,25 @@ def test_a_robot_without_four_3_joint_legs_is_refused_in_one_line(tmp_path):
     message = str(e.value)
     assert "\n" not in message and "ankle.urdf" in message
     assert "13 moving joints, 3 3-joint legs" in message
+
+
+def figures(name):
+    """The row of doc/performance.md's table of a robot: λ, μ, trot speed, commanded and
+    covered distance, the trunk height standing (reference, and the base's at the end of the
+    stand) and the lowest during the trot."""
+    model = RobotModel(robot=name)
+    stand = run_gait("HmJ", "stand", STAND, robot=name)
+    run = run_gait("HmJ", "trot", STAND + TROT, stand_time=STAND, robot=name)
+    commanded = run["speed"] * TROT
+    return (f"| {name} | {model.mass:.2f} | {model.scale.length:g} | {model.scale.mass:g} | "
+            f"{params_for_robot(model).height:.3f} | {stand['min_height']:.3f} | "
+            f"{run['speed']:.3f} | {commanded:.3f} | {run['distance']:.3f} | "
+            f"{run['distance'] / commanded:.2f} | {run['min_height']:.3f} |")
+
+
+if __name__ == "__main__":     # the table of doc/performance.md
+    print("| robot | mass [kg] | λ | μ | trunk height [m] | lowest standing [m] | trot "
+          "[m/s] | commanded [m] | covered [m] | ratio | lowest trotting [m] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for robot in ROBOTS:
+        print(figures(robot), flush=True)
