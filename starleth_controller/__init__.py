@@ -1,4 +1,6 @@
-"""StarlETH locomotion controller (pure Python, no ROS) and its ROS 2 node.
+"""The stand / trot locomotion controller, after StarlETH's (pure Python, no ROS), for any
+robot of four 3-joint legs (its model from the robot's URDF and spec, its gains scaled to
+the robot: model.py, robot_params.py), and its ROS 2 node.
 
 The pure controller (``StarlethController``) follows Gehring et al., ICRA 2013 ("Control of
 dynamic gaits for a quadrupedal robot") and its open-source descendant loco: virtual model
@@ -6,7 +8,7 @@ control of the trunk distributed onto the support feet by a QP (ProxQP), inverte
 foot placement and joint-space swing-leg control. Modes ``stand`` and ``trot``.
 
     from starleth_controller import StarlethController, RobotState, Command
-    ctrl = StarlethController(urdf_path)            # URDF path or XML text
+    ctrl = StarlethController(robot="go1")          # a library name, a spec or URDF path
     tau = ctrl.update(RobotState.from_simulator(sim), Command("trot", forward=0.3))
 """
 from .controller import StarlethController, SUPPORT, SWING, LOST_CONTACT

@@ -88,8 +88,8 @@ class StarlethController:
     forces, QP status, ...)."""
 
     def __init__(self, urdf: str | None = None, params: ControllerParams | None = None,
-                 robot: str | None = None):
-        self.model = RobotModel(urdf, robot)
+                 robot: str | None = None, model: RobotModel | None = None):
+        self.model = model or RobotModel(urdf, robot)
         #: default: StarlETH's parameters scaled to the robot (robot_params.py)
         self.params = params or params_for_robot(self.model)
         p = self.params

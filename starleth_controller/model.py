@@ -23,6 +23,7 @@ Conventions
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pinocchio as pin
@@ -49,7 +50,7 @@ GEOMETRY = ("l0", "l1", "l2", "foot_radius", "knee_sign", "o_x", "d_y", "alpha",
 
 def default_urdf_path() -> str:
     """The StarlETH URDF (the package data's urdf/starleth.urdf)."""
-    return f"{package_share_dir()}/urdf/starleth.urdf"
+    return os.path.join(package_share_dir(), "urdf", "starleth.urdf")
 
 
 class NotAQuadruped(ValueError):
@@ -65,7 +66,7 @@ def _robot_source(robot: str | None, urdf: str | None):
             return read_text(path), None, path
         spec = load_robot(path)
         path = urdf_file(spec)
-        return read_text(path), spec, f"{path.rsplit('/', 1)[-1]} ({spec.label})"
+        return read_text(path), spec, f"{os.path.basename(path)} ({spec.label})"
     if urdf.lstrip().startswith("<"):
         return urdf, None, "URDF text"
     return read_text(urdf), None, urdf
@@ -108,8 +109,7 @@ class RobotModel:
         self.iv = np.array([m.joints[j].idx_v for j in ids])
         #: per leg: the 3 pin velocity columns of its joints (HAA, HFE, KFE)
         self.leg_iv = [self.iv[3 * k:3 * k + 3].copy() for k in range(4)]
-        effort = np.array(m.effortLimit)[[m.joints[j].idx_v for j in
-                                          (m.getJointId(n) for n in names)]].copy()
+        effort = np.array([m.effortLimit[m.joints[m.getJointId(n)].idx_v] for n in names])
         if spec is not None:
             override_limits(spec, names, "effort", effort)
         self.effort_limit = effort[order].copy()

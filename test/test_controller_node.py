@@ -287,11 +287,12 @@ class FakeRobot:
     """Publishes one control step's state (joint state, base state, four foot wrenches) with
     a given stamp, and collects the /joint_commands answers by stamp."""
 
-    def __init__(self, node, ns=""):
+    def __init__(self, node, ns="", joints=JOINTS, wrench_topics=WRENCH_TOPICS):
         qos = QoSProfile(depth=10)
+        self.joints = list(joints)
         self.pub_js = node.create_publisher(JointState, ns + "/joint_states", qos)
         self.pub_odom = node.create_publisher(Odometry, ns + "/starleth/base_state", qos)
-        self.pub_w = [node.create_publisher(WrenchStamped, ns + t, qos) for t in WRENCH_TOPICS]
+        self.pub_w = [node.create_publisher(WrenchStamped, ns + t, qos) for t in wrench_topics]
         self.pub_bundle = node.create_publisher(Float64MultiArray, ns + "/starleth/state_bundle",
                                                 qos)
         self.answers = {}
@@ -320,7 +321,7 @@ class FakeRobot:
             return
         js = JointState()
         js.header.stamp = stamp
-        js.name = list(JOINTS if names is None else names)
+        js.name = list(self.joints if names is None else names)
         qq = self.q if q is None else np.asarray(q, dtype=float)
         js.position = [float(x) for x in qq]
         js.velocity = [0.0] * len(qq) if velocity is None else [float(x) for x in velocity]
@@ -351,6 +352,31 @@ class FakeRobot:
             f.x, f.y, f.z = ((0.0, 0.0, float(fz)) if np.ndim(fz) == 0
                              else (float(x) for x in fz[k]))
             p.publish(w)
+
+
+def test_controller_node_drives_another_robot_by_its_names(tmp_path):
+    """-p robot:=go1: Go1's joint names (its URDF's order) in and out, its feet's wrench
+    topics (starleth/<foot contact>/wrench), an answer within its effort limits."""
+    from starleth_controller import RobotModel
+    model = RobotModel(robot="go1")
+    ctrl = Proc("starleth_controller.controller_node", str(tmp_path / "ctrl.log"),
+                robot="go1")
+    ros = RosTestNode(DOMAIN_ID, "fake_go1")
+    try:
+        robot = FakeRobot(ros.node, joints=model.public_joint_names,
+                          wrench_topics=[f"/starleth/{f}/wrench" for f in model.foot_names])
+        robot.q = model.nominal_joint_positions(model.standing_height)
+        assert ros.spin_until(robot.matched, START_TIMEOUT, [ctrl]), ctrl.log()
+        ros.spin_for(0.2)
+        robot.publish(PERIOD_NS, z=model.standing_height, fz=model.mass * 9.81 / 4)
+        assert ros.spin_until(lambda: PERIOD_NS in robot.answers, 5.0, [ctrl]), ctrl.log()
+        a = robot.answers[PERIOD_NS]
+        assert tuple(a.name) == model.public_joint_names and a.name[0] == "FR_hip_joint"
+        assert np.all(np.isfinite(a.effort))
+        assert np.all(np.abs(a.effort) <= model.effort_limit + 1e-9)
+    finally:
+        ros.close()
+        ctrl.stop()
 
 
 def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):

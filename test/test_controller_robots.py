@@ -1,7 +1,8 @@
 """The controller on every robot of the library, headless (Simulator + StarlethController, HmJ):
 it stands 2 s at its trunk height (the scaled one of robot_params.py) and then trots at
 0.3 m/s · √λ for 4 s, covering at least 0.8 x the commanded distance without a fall; its
-leg kinematics are Pinocchio's; a robot that is not four 3-joint legs is refused in one line.
+leg kinematics are Pinocchio's; a robot that is not four 3-joint legs is refused in one line;
+the foot wrench topics are ROS names for any foot name.
 Figures (per robot): doc/performance.md."""
 import numpy as np
 import pinocchio as pin
@@ -10,6 +11,8 @@ import pytest
 from starleth_controller import RobotModel
 from starleth_controller import kernels as K
 from starleth_controller.model import NotAQuadruped
+from starleth_controller.node_parameters import default_wrench_topics
+from starleth_interface.topics import foot_wrench_topic
 from starleth_controller.robot_params import params_for_robot
 from starleth_sim import ConfigError
 from starleth_sim.physics.description import urdf_path
@@ -96,3 +99,37 @@ def test_a_robot_without_four_3_joint_legs_is_refused_in_one_line(tmp_path):
     message = str(e.value)
     assert "\n" not in message and "ankle.urdf" in message
     assert "13 moving joints, 3 3-joint legs" in message
+
+
+@pytest.mark.parametrize("foot, token", [("LF_foot", "LF_foot"), ("foot.1", "foot_1"),
+                                         ("3rd leg", "_3rd_leg"), ("FL--FOOT", "FL_FOOT")])
+def test_foot_wrench_topics_are_ros_names_for_any_foot_name(foot, token):
+    """controller_node's default wrench topics (sim_node's rule) from any URDF name: a valid
+    ROS topic name (rclpy's check), the name itself where it is one."""
+    from rclpy.validate_topic_name import validate_topic_name
+    topic = foot_wrench_topic(foot)
+    assert topic == f"starleth/{token}/wrench"
+    validate_topic_name(topic)
+    assert default_wrench_topics([foot]) == [topic]
+
+
+def figures(name):
+    """The row of doc/performance.md's table of a robot: λ, μ, trot speed, commanded and
+    covered distance, the trunk height standing (reference, and the base's at the end of the
+    stand) and the lowest during the trot."""
+    model = RobotModel(robot=name)
+    stand = run_gait("HmJ", "stand", STAND, robot=name)
+    run = run_gait("HmJ", "trot", STAND + TROT, stand_time=STAND, robot=name)
+    commanded = run["speed"] * TROT
+    return (f"| {name} | {model.mass:.2f} | {model.scale.length:g} | {model.scale.mass:g} | "
+            f"{params_for_robot(model).height:.3f} | {stand['min_height']:.3f} | "
+            f"{run['speed']:.3f} | {commanded:.3f} | {run['distance']:.3f} | "
+            f"{run['distance'] / commanded:.2f} | {run['min_height']:.3f} |")
+
+
+if __name__ == "__main__":     # the table of doc/performance.md
+    print("| robot | mass [kg] | λ | μ | trunk height [m] | lowest standing [m] | trot "
+          "[m/s] | commanded [m] | covered [m] | ratio | lowest trotting [m] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for robot in ROBOTS:
+        print(figures(robot), flush=True)
