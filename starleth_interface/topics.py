@@ -43,10 +43,27 @@ def topic_token(name: str) -> str:
     return "_" + token if not token or token[0].isdigit() else token
 
 
+#: a foot's wrench topic: _FOOT_WRENCH[0] + the foot's topic token + _FOOT_WRENCH[1]
+_FOOT_WRENCH = ("starleth/", "/wrench")
+
+
 def foot_wrench_topic(foot: str) -> str:
     """starleth/<foot>/wrench for a foot contact name such as 'LF_foot' (any URDF name: its
     topic_token)."""
-    return f"starleth/{topic_token(foot)}/wrench"
+    return _FOOT_WRENCH[0] + topic_token(foot) + _FOOT_WRENCH[1]
+
+
+def split_foot_wrench_topic(topic: str) -> tuple[str, str] | None:
+    """(namespace, foot token) of an absolute foot wrench topic
+    ('/robot1/starleth/FL_foot/wrench' -> ('/robot1', 'FL_foot')), else None."""
+    head, tail = _FOOT_WRENCH
+    at = topic.rfind("/" + head)
+    if at < 0 or not topic.startswith("/") or not topic.endswith(tail):
+        return None
+    foot = topic[at + 1 + len(head):len(topic) - len(tail)]
+    if not foot or "/" in foot:
+        return None
+    return topic[:at], foot
 
 
 def normalize_namespace(namespace: str | None) -> str:

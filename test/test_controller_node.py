@@ -217,7 +217,7 @@ def test_demo_trots_and_records_the_whole_run(tmp_path):
     run = json.loads((tmp_path / "a.json").read_text())["runs"][0]
     assert run["base"]["distance"] == pytest.approx(r.trot_distance, abs=0.05)
     # 1.25 Hz over DEMO_TROT s
-    assert 1.0 * DEMO_TROT <= run["feet"]["LF"]["touchdowns"] <= 1.45 * DEMO_TROT
+    assert 1.0 * DEMO_TROT <= run["feet"]["LF_foot"]["touchdowns"] <= 1.45 * DEMO_TROT
 
 
 # -----------------------------------------------------------------------------------------

@@ -17,16 +17,13 @@ from ..robots import recorded_description
 from .bag import BagError, recorded_robot, stream_bag
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
                                        TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, foot_wrench_topic,
-                                       namespace_of, resolve)
+                                       namespace_of, resolve, split_foot_wrench_topic)
 
 PROG = "starleth-analyze"
-#: a foot's wrench topic is FOOT_TOPIC[0] + its contact name + FOOT_TOPIC[1] (the rule of
-#: starleth_interface.topics.foot_wrench_topic)
-FOOT_TOPIC = tuple(foot_wrench_topic("\0").split("\0"))
 FOOT_WRENCH = ("geometry_msgs/msg/WrenchStamped", "the contact force and gait plots")
 
 # topic -> (kind, expected type, what is lost without it); the feet's wrench topics are
-# found by FOOT_TOPIC
+# found by starleth_interface.topics.split_foot_wrench_topic
 TOPICS = {
     TOPIC_BASE_STATE: (("base", None), "nav_msgs/msg/Odometry", "the base trajectory plot"),
     TOPIC_JOINT_STATES: (("joints", None), "sensor_msgs/msg/JointState",
@@ -94,10 +91,9 @@ class _Collector:
         foot) for a foot's wrench topic) of a topic of the bag, in the run's namespace (that
         of the first such topic: a bag of one robot under /robot1 reads like one at the
         root), or None."""
-        head, tail = FOOT_TOPIC
-        at = topic.rfind("/" + head)
-        if at >= 0 and topic.endswith(tail) and len(topic) > at + 1 + len(head) + len(tail):
-            ns, foot = topic[:at], topic[at + 1 + len(head):len(topic) - len(tail)]
+        wrench = split_foot_wrench_topic(topic)
+        if wrench is not None:
+            ns, foot = wrench
             if self.namespace is None:
                 self.namespace = ns
             return ("wrench", foot) if ns == self.namespace else None

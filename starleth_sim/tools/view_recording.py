@@ -19,7 +19,8 @@ from ..physics.terrain import TerrainConfig
 from ..ros.tf import base_link
 from .bag import read_messages, recorded_robot
 from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
-                                       TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of)
+                                       TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of,
+                                       split_foot_wrench_topic)
 
 PROG = "starleth-view"
 
@@ -28,8 +29,6 @@ TOPICS = {"joints": (TOPIC_JOINT_STATES, "sensor_msgs/msg/JointState"),
           "base": (TOPIC_BASE_STATE, "nav_msgs/msg/Odometry"),
           "description": (TOPIC_ROBOT_DESCRIPTION, "std_msgs/msg/String")}
 WRENCH_TYPE = "geometry_msgs/msg/WrenchStamped"
-#: what a foot's wrench topic has before and after the foot (foot_wrench_topic)
-_WRENCH_HEAD, _WRENCH_TAIL = foot_wrench_topic("\0").split("\0")
 
 
 class ViewError(Exception):
@@ -54,12 +53,10 @@ def match_topic(topic: str):
         ns = namespace_of(topic, rel)
         if ns is not None:
             return kind, ns
-    head = topic.rfind("/" + _WRENCH_HEAD)
-    if head >= 0 and topic.endswith(_WRENCH_TAIL) and topic.startswith("/"):
-        rel = topic[head + 1:]
-        middle = rel[len(_WRENCH_HEAD):len(rel) - len(_WRENCH_TAIL)]
-        if middle and "/" not in middle:
-            return rel, topic[:head]
+    foot = split_foot_wrench_topic(topic)
+    if foot is not None:
+        ns, token = foot
+        return foot_wrench_topic(token), ns
     return None
 
 
