@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import pinocchio as pin
@@ -52,6 +53,7 @@ from .ground_plane import update_plane
 from .force_distribution import ContactForceDistribution
 from .inputs import MODES, Command, ControllerParams, RobotState, VMCGains
 from .model import RobotModel
+from .robot_params import params_for_robot
 from .step_down import GroundSearch
 
 #: the ufunc behind np.clip / ndarray.clip (the same values, without their Python wrapper)
@@ -85,9 +87,11 @@ class StarlethController:
     public order; ``info`` holds the figures of the last call (leg states, desired contact
     forces, QP status, ...)."""
 
-    def __init__(self, urdf: str | None = None, params: ControllerParams | None = None):
-        self.params = params or ControllerParams()
-        self.model = RobotModel(urdf)
+    def __init__(self, urdf: str | None = None, params: ControllerParams | None = None,
+                 robot: str | None = None, model: RobotModel | None = None):
+        self.model = model or RobotModel(urdf, robot)
+        #: default: StarlETH's parameters scaled to the robot (robot_params.py)
+        self.params = params or params_for_robot(self.model)
         p = self.params
         self.cfd = ContactForceDistribution(mu=p.mu, min_normal_force=p.min_normal_force,
                                             weights=p.wrench_weights,
@@ -101,7 +105,7 @@ class StarlethController:
         self._kd3 = np.asarray(p.joint_kd, dtype=float)
         self._lim = m.effort_limit.copy()
         self._neg_lim = -self._lim            # lower saturation bound (not negated per call)
-        self._geo = np.column_stack((m.l0, m.l1, m.l2, m.foot_radius, m.knee_sign))
+        self._geo = m.geometry
         self._gains_trot = self._gain_arrays(p.trot_gains)
         self._gains_stand = self._gain_arrays(p.stand_gains)
         # work arrays (no per-call allocation where it is easy)
@@ -127,7 +131,9 @@ class StarlethController:
         self._support_idx = np.zeros(4, dtype=np.int64)   # the support legs, first ns
         self._all_legs = np.arange(4, dtype=np.int64)
         self._leg_state_arr = np.zeros(4, dtype=np.int64)  # leg_state as an array
-        self._swing_p = np.zeros(K.SW_OFFSET_X + 4)
+        self._swing_p = np.zeros(K.SW_STANCE_Y + 4)
+        self._swing_p[K.SW_STANCE_X:K.SW_STANCE_Y] = m.geometry[:, 5]   # the legs' o_x
+        self._swing_p[K.SW_STANCE_Y:] = m.geometry[:, 6]                 # and d_y
         self._swing_key = None
         self._phase_offsets = (None, None)   # (array, the parameter it was made from)
         self._mass_g = m.mass * m.gravity
@@ -206,7 +212,19 @@ class StarlethController:
 
     # ------------------------------------------------------------------------------------
     def update(self, s: RobotState, command: Command | None = None) -> np.ndarray:
-        """One control period: the 12 joint torques (public order, saturated).
+        """One control period: the 12 joint torques (public order, saturated); joints in
+        the public order, feet in the model's (its legs')."""
+        order = self.model.joint_order
+        if order is None:
+            return self._update(s, command)
+        s = replace(s, joint_positions=np.asarray(s.joint_positions)[order],
+                    joint_velocities=np.asarray(s.joint_velocities)[order])
+        tau = np.empty(12)
+        tau[order] = self._update(s, command)
+        return tau
+
+    def _update(self, s: RobotState, command: Command | None) -> np.ndarray:
+        """One control period in the controller's joint order (leg by leg).
 
         After taking the command, advancing the clock and reading the state (zero torque for
         a non-finite state, the fallen posture after a fall: _fallen_torques), the five steps
@@ -558,7 +576,7 @@ class StarlethController:
         P = self._swing_p
         if key != self._swing_key:       # written only when a parameter changed
             P[:K.SW_OFFSET_X] = key[:K.SW_OFFSET_X]
-            P[K.SW_OFFSET_X:] = p.foothold_offset_x
+            P[K.SW_OFFSET_X:K.SW_STANCE_X] = p.foothold_offset_x
             self._swing_key = key
         return P
 

@@ -2,7 +2,12 @@
 ROS 2 topics. A thin adapter: no control law in here.
 
     ros2 run starleth_sim controller_node
-    python -m starleth_controller.controller_node --ros-args -p mode:=trot
+    python -m starleth_controller.controller_node --ros-args -p mode:=trot -p robot:=go1
+
+The robot (``robot``: a library name, a robot spec or a URDF path; default starleth) gives
+the model, the joint names and order, the feet and the gains scaled to its size
+(doc/controllers.md). A robot that is not four 3-joint roll-pitch-pitch legs (or a bad
+description) ends the node at start with one line and exit status 2.
 
 Subscribed (topic names are the defaults, relative: ``--ros-args -r __ns:=/robot1`` puts
 them under /robot1, beside that robot's sim_node; remap them for another robot):
@@ -11,7 +16,9 @@ them under /robot1, beside that robot's sim_node; remap them for another robot):
                                                                       in one message
     joint_states                         sensor_msgs/JointState       by name: position, velocity
     starleth/base_state                  nav_msgs/Odometry            ground-truth base state
-    starleth/{LF,RF,LH,RH}_foot/wrench   geometry_msgs/WrenchStamped  contact: |force| > threshold
+    starleth/<foot>/wrench               geometry_msgs/WrenchStamped  contact: |force| > thr. μ;
+                                                                      <foot>: each foot contact's
+                                                                      name (topics.topic_token)
     cmd_vel                              geometry_msgs/Twist          linear.x, linear.y, angular.z
     robot_description                    std_msgs/String              with robot_description:=true
 
@@ -94,6 +101,7 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
 from starleth_interface import state_bundle
+from starleth_interface.config_checks import ConfigError
 from starleth_interface.msg_cdr import (ODOM_FIELDS, WRENCH_FIELDS, JointStateCdr,
                                        JointStateReader, StampedReader)
 from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, UnknownParameterError,
@@ -102,9 +110,10 @@ from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, UnknownPa
                                             route_python_logging, service_qos,
                                             set_cpu_scheduling, shutdown_ros)
 from .controller import StarlethController
-from .inputs import Command, ControllerParams
-from .model import JOINT_NAMES, default_urdf_path
-from .node_parameters import PARAMETERS, PARAMETERS_BY_NAME, check_parameters
+from .inputs import Command
+from .model import NotAQuadruped, RobotModel
+from .node_parameters import (PARAMETERS, PARAMETERS_BY_NAME, check_parameters,
+                              default_wrench_topics)
 from .side_inputs import SideInputs
 from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
 from .warmup import compile_kernels
@@ -167,20 +176,26 @@ class ControllerNode(Node):
         self.pub_array = (self.create_publisher(Float64MultiArray, p["effort_array_topic"],
                                                 cmd_qos) if p["effort_array_topic"] else None)
         self._cmd_msg = JointState()
-        self._cmd_msg.name = list(JOINT_NAMES)
-        # commands go out as CDR bytes patched into a template (None: as message objects)
-        self._cmd_cdr = JointStateCdr.create(JOINT_NAMES, ("effort",))
+        self._cmd_cdr = None
+        self._threshold = float(p["contact_force_threshold"])   # StarlETH's; times μ
+        self._joint_names = self._foot_names = ()
         self._js_reader = JointStateReader()
         self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
         self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
         self.timing = None                # a CycleTimes, set by benchmarks
         self._array_msg = Float64MultiArray()
 
-        # the kernels before the first state (a first run after an install compiles them)
+        # the robot (a bad one: one line, before anything compiles), then the kernels before
+        # the first state (a first run after an install compiles them)
+        model = None if p["robot_description"] else self._robot_model(p)
         compile_kernels(self.log.info, self._assembler.threshold)
 
-        # the model
+        # the model (its joint names, feet and size: the command template, the wrench topics)
+        wrench_topics = p["foot_wrench_topics"]
         if p["robot_description"]:
+            if not wrench_topics:
+                wrench_topics = default_wrench_topics(
+                    self._robot_model(dict(p, urdf="")).foot_names)
             latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                  history=HistoryPolicy.KEEP_LAST)
@@ -188,13 +203,10 @@ class ControllerNode(Node):
                                                             self._on_description, latched)
             self.log.info(f"waiting for {self.sub_description.topic_name}")
         else:
-            try:
-                urdf = p["urdf"] or default_urdf_path()
-            except FileNotFoundError as e:
-                raise ValueError(str(e)) from None
-            if not self._make_controller(urdf, urdf if not urdf.lstrip().startswith("<")
-                                         else "the urdf parameter (XML)"):
-                raise ValueError(f"urdf: cannot build the controller model from {urdf[:200]!r}")
+            what = ("the urdf parameter (XML)" if p["urdf"].lstrip().startswith("<")
+                    else p["urdf"] or f"robot {p['robot']}")
+            self._use_controller(StarlethController(model=model), what)
+            wrench_topics = wrench_topics or default_wrench_topics(self._foot_names)
 
         # subscriptions
         rel = (ReliabilityPolicy.BEST_EFFORT if p["state_reliability"] == "best_effort"
@@ -214,7 +226,7 @@ class ControllerNode(Node):
                                                    self._on_joint_states_cdr, state_qos,
                                                    raw=True)
             self._side = SideInputs(self, state_qos, p["base_state_topic"],
-                                    p["foot_wrench_topics"], self._on_base_state_cdr,
+                                    wrench_topics, self._on_base_state_cdr,
                                     self._on_wrench_cdr, self._joint_state_waiting)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
@@ -267,7 +279,9 @@ class ControllerNode(Node):
                 self._mode = prm.value
                 self.log.info(f"mode -> {prm.value}")
             elif prm.name == "contact_force_threshold":
-                self._assembler.threshold = float(prm.value)
+                self._threshold = float(prm.value)
+                if self.controller is not None:
+                    self._assembler.threshold = self._threshold * self.controller.model.scale.mass
             elif prm.name == "max_linear_speed":
                 self._max_v = float(prm.value)
             elif prm.name == "max_yaw_rate":
@@ -288,15 +302,38 @@ class ControllerNode(Node):
         return response
 
     # -- model -----------------------------------------------------------------------------
-    def _make_controller(self, urdf, what):
+    @staticmethod
+    def _robot_model(p):
+        """The RobotModel of the `urdf` parameter, else of the `robot` parameter; ValueError
+        in one line for a bad description or one that is not four 3-joint legs."""
         try:
-            ctrl = StarlethController(urdf, ControllerParams(
-                contact_force_threshold=self._assembler.threshold))
+            return RobotModel(urdf=p["urdf"]) if p["urdf"] else RobotModel(robot=p["robot"])
+        except (ConfigError, NotAQuadruped, OSError) as e:
+            raise ValueError(str(e)) from None
+
+    def _use_controller(self, ctrl, what):
+        """Drive `ctrl`: its robot's joint names (commands, joint states by name), feet and
+        contact threshold (times μ)."""
+        m = ctrl.model
+        self.controller = ctrl
+        self._joint_names, self._foot_names = m.public_joint_names, m.foot_names
+        self._assembler = StateAssembler(self._threshold * m.scale.mass,
+                                         self._assembler.twist_in_child, self._joint_names)
+        self._cmd_msg.name = list(self._joint_names)
+        # commands go out as CDR bytes patched into a template (None: as message objects)
+        self._cmd_cdr = JointStateCdr.create(self._joint_names, ("effort",))
+        self.log.info(f"controller model from {what}: {m.mass:.2f} kg, legs "
+                      f"{m.leg_length:.3f} m (scale λ {m.scale.length:g}, μ {m.scale.mass:g})")
+
+    def _make_controller(self, urdf, what):
+        """The controller of a robot_description's URDF; False (logged) when it cannot be
+        built: the node keeps running and answers nothing."""
+        try:
+            ctrl = StarlethController(urdf=urdf)
         except Exception as e:  # a bad URDF: keep running, answer nothing
             self.log.error(f"cannot build the controller model from {what}: {e}")
             return False
-        self.controller = ctrl
-        self.log.info(f"controller model from {what}: {ctrl.model.mass:.2f} kg")
+        self._use_controller(ctrl, what)
         return True
 
     def _on_description(self, msg):
@@ -320,7 +357,7 @@ class ControllerNode(Node):
 
     def _drop_incomplete(self, stamp, slot):
         self.counters["dropped_incomplete"] += 1
-        missing = ", ".join(slot.missing())
+        missing = ", ".join(slot.missing(self._foot_names or ("foot",) * 4))
         self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
                    f"(missing: {missing})", missing)
 
@@ -348,7 +385,7 @@ class ControllerNode(Node):
         if self._answered_before(stamp):
             return
         s = StateSlot()
-        s.js = (sec, nsec, state_bundle.JOINT_NAMES, v[state_bundle.SLICES["q"]],
+        s.js = (sec, nsec, self._joint_names, v[state_bundle.SLICES["q"]],
                 v[state_bundle.SLICES["u"]])
         s.odom = v[state_bundle.BASE]
         s.wrench = v[state_bundle.SLICES["force"]].reshape(4, 3)

@@ -21,8 +21,9 @@ class Command:
 
 @dataclass
 class RobotState:
-    """What the controller reads. Joint arrays in the public order LF/RF/LH/RH x
-    HAA/HFE/KFE; legs in the order LF, RF, LH, RH."""
+    """What the controller reads. Joint arrays in the public order (the URDF's; StarlETH:
+    LF/RF/LH/RH x HAA/HFE/KFE); feet in the order of the legs (RobotModel.foot_names;
+    StarlETH: LF, RF, LH, RH)."""
     t: float
     joint_positions: np.ndarray
     joint_velocities: np.ndarray
@@ -34,9 +35,11 @@ class RobotState:
     foot_force: np.ndarray | None = None     # (4, 3) force of the ground on the feet [N]
 
     @classmethod
-    def from_simulator(cls, sim, feet=("LF_foot", "RF_foot", "LH_foot", "RH_foot")):
+    def from_simulator(cls, sim, feet=None):
         """From any object with the starleth_sim public API (t, joint_positions(),
-        joint_velocities(), base_state(), contacts)."""
+        joint_velocities(), base_state(), contacts, description.foot_names: the default
+        `feet`)."""
+        feet = sim.description.foot_names if feet is None else feet
         b = sim.base_state()
         contacts = {c.name: c for c in sim.contacts}
         flags = np.array([contacts[f].active for f in feet], dtype=bool)

@@ -4,9 +4,12 @@ model, the force QP's inputs and the swing legs, which Python would spend most o
 interpreting). fastmath stays off and each formula keeps the operation order (and Python's
 min / max semantics) of the code it replaced: the torques are bit-identical.
 
-Leg geometry arrays (one row per leg LF, RF, LH, RH): ``hip`` (4, 3) HAA position in the base
-frame, ``geo`` (4, 5) = l0 (HAA→HFE, vertical), l1 (thigh), l2 (shank to the foot centre),
-foot radius, knee sign (−1 front, +1 hind).
+Leg geometry arrays (one row per leg, model.py): ``hip`` (4, 3) HAA position in the base
+frame, ``geo`` (4, 12) = l0 (HAA→HFE, vertical), l1 (thigh), l2 (shank to the foot centre),
+foot radius, knee sign (−1 backward, +1 forward), o_x (HAA→HFE along x), d_y (the lateral
+offset HAA→foot), α and γ (the thigh's angle from −z and the shank's from the thigh), the
+signs of the roll axis along x and of the pitch axes along y (model.py's docstring). A
+StarlETH leg (zero offsets and angles, signs +1) keeps the arithmetic of its own formulas.
 """
 from __future__ import annotations
 
@@ -16,6 +19,9 @@ import numba as nb
 import numpy as np
 
 from .ground_plane import plane_height, smoothstep, swing_height
+
+# the columns of geo (model.GEOMETRY)
+_L0, _L1, _L2, _RAD, _KNEE, _OX, _DY, _ALPHA, _GAMMA, _ROLL, _S1, _S2 = range(12)
 
 _jit = nb.njit(cache=True, fastmath=False, nogil=True)
 
@@ -146,38 +152,41 @@ def node_state(position, velocity, perm, odom, forces, threshold, q, dq, pb, qua
 def leg_kinematics(qj, R, pb, hip, geo, centre, contact, Jf, Jc):
     """Foot sphere centres and contact points (world), and the world-frame translational
     Jacobians of the centre (Jf) and of the lowest point of the sphere (Jc) w.r.t. the leg's
-    three joints, base fixed. Analytic for the StarlETH leg (HAA about x, HFE/KFE about y)."""
+    three joints, base fixed. Analytic for a roll-pitch-pitch leg (module docstring)."""
     Jb = np.empty((3, 3))
     Jw = np.empty((3, 3))
     for k in range(4):
-        a = qj[3 * k]
-        h = qj[3 * k + 1]
-        kf = qj[3 * k + 2]
-        l0, l1, l2, rad = geo[k, 0], geo[k, 1], geo[k, 2], geo[k, 3]
+        rho, s1g, s2g = geo[k, _ROLL], geo[k, _S1], geo[k, _S2]
+        a = rho * qj[3 * k]
+        h = s1g * qj[3 * k + 1] + geo[k, _ALPHA]
+        kf = s2g * qj[3 * k + 2] + geo[k, _GAMMA]
+        l0, l1, l2, rad = geo[k, _L0], geo[k, _L1], geo[k, _L2], geo[k, _RAD]
+        dy = geo[k, _DY]
         ca, sa = math.cos(a), math.sin(a)
         s1, c1 = math.sin(h), math.cos(h)
         s12, c12 = math.sin(h + kf), math.cos(h + kf)
         xp = -l1 * s1 - l2 * s12
         zf = -l0 - l1 * c1 - l2 * c12
-        rb0 = hip[k, 0] + xp
-        rb1 = hip[k, 1] - sa * zf
-        rb2 = hip[k, 2] + ca * zf
+        rb0 = hip[k, 0] + (geo[k, _OX] + xp)
+        rb1 = hip[k, 1] + (ca * dy - sa * zf)
+        rb2 = hip[k, 2] + (sa * dy + ca * zf)
         # base-frame Jacobian columns: d/dHAA, d/dHFE, d/dKFE
         dxh = -l1 * c1 - l2 * c12
         dzh = l1 * s1 + l2 * s12
         dxk = -l2 * c12
         dzk = l2 * s12
-        Jb[0, 0], Jb[1, 0], Jb[2, 0] = 0.0, -ca * zf, -sa * zf
-        Jb[0, 1], Jb[1, 1], Jb[2, 1] = dxh, -sa * dzh, ca * dzh
-        Jb[0, 2], Jb[1, 2], Jb[2, 2] = dxk, -sa * dzk, ca * dzk
-        # joint axes in the base frame: x for HAA, R_x(a) y for HFE and KFE
+        Jb[0, 0], Jb[1, 0], Jb[2, 0] = 0.0, rho * (-sa * dy - ca * zf), rho * (ca * dy - sa * zf)
+        Jb[0, 1], Jb[1, 1], Jb[2, 1] = s1g * dxh, s1g * (-sa * dzh), s1g * (ca * dzh)
+        Jb[0, 2], Jb[1, 2], Jb[2, 2] = s2g * dxk, s2g * (-sa * dzk), s2g * (ca * dzk)
+        # joint axes in the base frame: ρ x for HAA, σ R_x(a) y for HFE and KFE
         for i in range(3):
             centre[k, i] = pb[i] + R[i, 0] * rb0 + R[i, 1] * rb1 + R[i, 2] * rb2
             for j in range(3):
                 Jf[k, i, j] = R[i, 0] * Jb[0, j] + R[i, 1] * Jb[1, j] + R[i, 2] * Jb[2, j]
-            Jw[i, 0] = R[i, 0]
-            Jw[i, 1] = R[i, 1] * ca + R[i, 2] * sa
-            Jw[i, 2] = Jw[i, 1]
+            Jw[i, 0] = rho * R[i, 0]
+            y_axis = R[i, 1] * ca + R[i, 2] * sa
+            Jw[i, 1] = s1g * y_axis
+            Jw[i, 2] = s2g * y_axis
         contact[k, 0] = centre[k, 0]
         contact[k, 1] = centre[k, 1]
         contact[k, 2] = centre[k, 2] - rad
@@ -191,13 +200,19 @@ def leg_kinematics(qj, R, pb, hip, geo, centre, contact, Jf, Jc):
 @_jit
 def leg_ik(k, r0, r1, r2, hip, geo, out):
     """HAA, HFE, KFE putting the foot centre of leg k at r (base frame); out-of-reach targets
-    are pulled onto the workspace boundary."""
-    l0, l1, l2, ks = geo[k, 0], geo[k, 1], geo[k, 2], geo[k, 4]
-    x = r0 - hip[k, 0]
+    are pulled onto the workspace boundary. The roll turns the leg's plane (at the lateral
+    offset d_y) through the target; in it, the planar two-link solution of the knee
+    direction geo[k, 4]."""
+    l0, l1, l2, ks = geo[k, _L0], geo[k, _L1], geo[k, _L2], geo[k, _KNEE]
+    dy = geo[k, _DY]
+    x = r0 - hip[k, 0] - geo[k, _OX]
     y = r1 - hip[k, 1]
     z = r2 - hip[k, 2]
-    out[0] = math.atan2(y, -z)
-    zp = -math.sqrt(y * y + z * z) + l0
+    rr = y * y + z * z - dy * dy
+    rr = 0.0 if rr < 0.0 else rr
+    zl = -math.sqrt(rr)
+    out[0] = geo[k, _ROLL] * (math.atan2(y, -z) - math.atan2(dy, -zl))
+    zp = zl + l0
     d = math.sqrt(x * x + zp * zp)
     dmax = 0.995 * (l1 + l2)
     dmin = 1.02 * abs(l1 - l2) + 1e-3
@@ -210,18 +225,22 @@ def leg_ik(k, r0, r1, r2, hip, geo, out):
     c = (d * d - l1 * l1 - l2 * l2) / (2.0 * l1 * l2)
     c = min(1.0, max(-1.0, c))
     kfe = ks * math.acos(c)
-    out[1] = math.atan2(-x, -zp) - math.atan2(l2 * math.sin(kfe), l1 + l2 * math.cos(kfe))
-    out[2] = kfe
+    hfe = math.atan2(-x, -zp) - math.atan2(l2 * math.sin(kfe), l1 + l2 * math.cos(kfe))
+    out[1] = geo[k, _S1] * (hfe - geo[k, _ALPHA])
+    out[2] = geo[k, _S2] * (kfe - geo[k, _GAMMA])
 
 
 @_jit
 def leg_fk(k, q0, q1, q2, hip, geo, out):
-    l0, l1, l2 = geo[k, 0], geo[k, 1], geo[k, 2]
-    xp = -l1 * math.sin(q1) - l2 * math.sin(q1 + q2)
-    zf = -l0 - l1 * math.cos(q1) - l2 * math.cos(q1 + q2)
-    out[0] = hip[k, 0] + xp
-    out[1] = hip[k, 1] - math.sin(q0) * zf
-    out[2] = hip[k, 2] + math.cos(q0) * zf
+    l0, l1, l2, dy = geo[k, _L0], geo[k, _L1], geo[k, _L2], geo[k, _DY]
+    a = geo[k, _ROLL] * q0
+    h = geo[k, _S1] * q1 + geo[k, _ALPHA]
+    kf = geo[k, _S2] * q2 + geo[k, _GAMMA]
+    xp = -l1 * math.sin(h) - l2 * math.sin(h + kf)
+    zf = -l0 - l1 * math.cos(h) - l2 * math.cos(h + kf)
+    out[0] = hip[k, 0] + (geo[k, _OX] + xp)
+    out[1] = hip[k, 1] + (math.cos(a) * dy - math.sin(a) * zf)
+    out[2] = hip[k, 2] + (math.sin(a) * dy + math.cos(a) * zf)
 
 
 @_jit
@@ -456,7 +475,10 @@ def ground_estimate(ground, contact, support, ns):
 
 #: layout of the swing parameters (controller.py: _swing_parameters)
 (SW_T, SW_DUTY, SW_FEEDBACK, SW_MAX, SW_INTERP_END, SW_HEIGHT, SW_DEPTH, SW_GRAVITY,
- SW_OFFSET_X) = range(9)   # OFFSET_X: 4
+ SW_OFFSET_X) = range(9)   # OFFSET_X: 4 values; then the legs' stance points relative to
+# their hips (the model's o_x, d_y: below the hip pitch joint, at the leg's lateral offset)
+SW_STANCE_X = SW_OFFSET_X + 4
+SW_STANCE_Y = SW_STANCE_X + 4
 
 
 @_jit
@@ -492,9 +514,10 @@ def swing_target(k, sp, r0x, r0y, vb, ww, cy, sy, vcx, vcy, wc, ground, rhx_w, r
     dy = 0.5 * vdy * Tst + P[SW_FEEDBACK] * (vy - vdy) * sq
     dx = -step_max if -step_max > dx else dx     # Python's min(max(d, -step_max), step_max)
     dx = step_max if step_max < dx else dx
-    dx = dx + P[SW_OFFSET_X + k]
+    dx = dx + P[SW_OFFSET_X + k] + P[SW_STANCE_X + k]
     dy = -step_max if -step_max > dy else dy
     dy = step_max if step_max < dy else dy
+    dy = dy + P[SW_STANCE_Y + k]
     sig, dsig = smoothstep(sp / interp_end)
     ox = r0x + sig * (dx - r0x)
     oy = r0y + sig * (dy - r0y)

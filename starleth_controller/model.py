@@ -1,151 +1,183 @@
-"""The controller's own robot model: a Pinocchio model built from the URDF, the public
-joint order, the feet, and the analytic leg inverse kinematics.
+"""The controller's own robot model: a Pinocchio model built from the robot's URDF (and its
+robot spec, through starleth_interface.robot: feet, effort limits, standing height), the legs
+found from the kinematic tree, and the analytic leg kinematics of roll-pitch-pitch legs.
 
-Nothing here imports the simulator: the model comes from a URDF (path or XML text), so the
-same controller drives any simulator or robot that speaks the same interfaces.
+Nothing here imports the simulator: the model comes from a robot of the library, a robot
+spec, or a URDF (path or XML text), so the same controller drives any simulator or robot
+that speaks the same interfaces.
 
 Conventions
 -----------
-* Public joint order (torques, joint states): LF/RF/LH/RH x HAA/HFE/KFE.
-* Legs (contact flags, feet): LF, RF, LH, RH.
-* A leg of StarlETH: HAA about the trunk x axis at the hip, HFE about y a distance l0 below
-  the HAA axis, KFE about y a distance l1 below the HFE, the foot sphere centre l2 below the
-  KFE. Front knees point backwards (KFE < 0), hind knees forwards (KFE > 0).
+* Legs in the order of their first joint in the URDF's joint order (StarlETH: LF, RF, LH,
+  RH); the controller's joint order is leg by leg, hip roll, hip pitch, knee
+  (``joint_order``: their places in the public order; None when it is the public order).
+* A leg (starleth_interface.robot.legs): a hip roll joint about ±x at ``hip``, then two pitch
+  joints about ±y. At the neutral configuration, in the base frame: HAA→HFE offset
+  (o_x, ·, −l0), thigh and shank (HFE→KFE, KFE→foot sphere centre) in the x-z plane at the
+  angles α and α + γ from −z, l1 and l2 long, and a lateral offset d_y (HAA→foot, summed)
+  that the roll carries. The leg is then StarlETH's planar leg with the hip pitch angle
+  σ₁ q_HFE + α and the knee angle σ₂ q_KFE + γ (σ: the signs of the pitch axes along +y,
+  ρ: of the roll axis along +x); StarlETH's own (α = γ = o_x = d_y = 0, signs +1) is the
+  same arithmetic as before, bit for bit.
 """
 from __future__ import annotations
 
-import os
-import xml.etree.ElementTree as ET
+import math
 
 import numpy as np
 import pinocchio as pin
 
+from starleth_interface.package_data import package_share_dir
+from starleth_interface.robot.contact_points import urdf_contact_points
+from starleth_interface.robot.feet import foot_points
+from starleth_interface.robot.legs import KNEE_SIGNS, find_legs, knee_sign
+from starleth_interface.robot.library import load_robot, read_text, resolve, urdf_file
+from starleth_interface.robot.scaling import robot_scale
+from starleth_interface.robot.spec import override_limits
+from starleth_interface.robot.urdf import checked_model, document_joint_order
+
 from . import kernels as K
 
+#: StarlETH's legs and joint names (its URDF's), for what still names them
 LEGS = ("LF", "RF", "LH", "RH")
 JOINTS_PER_LEG = ("HAA", "HFE", "KFE")
 JOINT_NAMES = tuple(f"{leg}_{j}" for leg in LEGS for j in JOINTS_PER_LEG)
+#: the columns of ``RobotModel.geometry`` (kernels.py)
+GEOMETRY = ("l0", "l1", "l2", "foot_radius", "knee_sign", "o_x", "d_y", "alpha", "gamma",
+            "roll_sign", "hfe_sign", "kfe_sign")
 
 
 def default_urdf_path() -> str:
-    """The StarlETH URDF: the colcon install's share/starleth_sim/urdf, else the source tree
-    next to this package."""
-    try:  # installed by colcon
-        # deferred: a ROS package, absent where ROS is missing (the model needs no ROS)
-        from ament_index_python.packages import get_package_share_directory
-        p = os.path.join(get_package_share_directory("starleth_sim"), "urdf", "starleth.urdf")
-        if os.path.exists(p):
-            return p
-    except Exception:
-        pass
-    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    p = os.path.join(here, "urdf", "starleth.urdf")
-    if os.path.exists(p):
-        return p
-    raise FileNotFoundError("cannot find starleth.urdf; pass the URDF to the controller")
+    """The StarlETH URDF (the package data's urdf/starleth.urdf)."""
+    return f"{package_share_dir()}/urdf/starleth.urdf"
 
 
-def _read_urdf(urdf: str | None) -> str:
+class NotAQuadruped(ValueError):
+    """The robot is not a four-legged tree of 3-joint roll-pitch-pitch legs."""
+
+
+def _robot_source(robot: str | None, urdf: str | None):
+    """(URDF text, robot spec or None, source for messages) of a `robot` value (library
+    name, spec path, URDF path) or a `urdf` (path or XML text)."""
     if urdf is None:
-        urdf = default_urdf_path()
+        kind, path = resolve(robot or "starleth")
+        if kind == "urdf":
+            return read_text(path), None, path
+        spec = load_robot(path)
+        path = urdf_file(spec)
+        return read_text(path), spec, f"{path.rsplit('/', 1)[-1]} ({spec.label})"
     if urdf.lstrip().startswith("<"):
-        return urdf
-    with open(urdf) as f:
-        return f.read()
+        return urdf, None, "URDF text"
+    return read_text(urdf), None, urdf
 
 
-def _foot_radius(xml: str, leg: str) -> float:
-    """Radius of the <sphere> collision of the foot link (0 without one)."""
-    root = ET.fromstring(xml)
-    for link in root.findall("link"):
-        if link.get("name", "").upper() != f"{leg}_FOOT":
-            continue
-        for coll in link.findall("collision"):
-            sph = coll.find("geometry/sphere")
-            if sph is not None:
-                return float(sph.get("radius"))
-    return 0.0
+def _turn(u, v) -> float:
+    """The angle about +y turning the x-z vector u onto v's direction (+0.0 when parallel)."""
+    return math.atan2(u[1] * v[0] - u[0] * v[1], u[0] * v[0] + u[1] * v[1]) + 0.0
 
 
 class RobotModel:
-    """Pinocchio model of the robot plus the per-leg data the controller needs."""
+    """Pinocchio model of the robot plus the per-leg data the controller needs. `robot`: a
+    library name, a robot spec or a URDF path; or `urdf`: a URDF path or XML text (no spec).
+    starleth_interface's ConfigError for a bad description, NotAQuadruped for one the
+    controller cannot drive."""
 
-    def __init__(self, urdf: str | None = None):
-        xml = _read_urdf(urdf)
+    def __init__(self, urdf: str | None = None, robot: str | None = None):
+        xml, spec, source = _robot_source(robot, urdf)
         self.urdf_xml = xml
-        m = pin.buildModelFromXML(xml, pin.JointModelFreeFlyer())
+        root, m = checked_model(xml, source)
         self.model = m
         self.data = m.createData()
         self.nq, self.nv = m.nq, m.nv
-        for n in JOINT_NAMES:
-            if not m.existJointName(n):
-                raise ValueError(f"joint '{n}' is not in the URDF")
-        ids = [m.getJointId(n) for n in JOINT_NAMES]
-        #: q / v index (pin layout) of each public joint
+        names = document_joint_order(root)
+        if spec is not None:
+            feet = foot_points(spec, root, m, source, names)
+            legs = find_legs(m, names, feet, {f.name for f in feet})
+        else:
+            feet = urdf_contact_points(root, m, source)
+            legs = find_legs(m, names, feet)
+        self._check_legs(legs, names, source)
+        self.legs = legs
+        self.public_joint_names = tuple(names)
+        order = [j for leg in legs for j in leg.joints]
+        #: the public index of each controller joint (None: the same order)
+        self.joint_order = None if order == list(range(12)) else np.array(order)
+        ids = [m.getJointId(names[i]) for i in order]
+        #: q / v index (pin layout) of each joint (controller order)
         self.iq = np.array([m.joints[j].idx_q for j in ids])
         self.iv = np.array([m.joints[j].idx_v for j in ids])
         #: per leg: the 3 pin velocity columns of its joints (HAA, HFE, KFE)
         self.leg_iv = [self.iv[3 * k:3 * k + 3].copy() for k in range(4)]
-        self.effort_limit = np.array(m.effortLimit)[self.iv].copy()
+        effort = np.array(m.effortLimit)[[m.joints[j].idx_v for j in
+                                          (m.getJointId(n) for n in names)]].copy()
+        if spec is not None:
+            override_limits(spec, names, "effort", effort)
+        self.effort_limit = effort[order].copy()
         self.mass = float(sum(i.mass for i in m.inertias))
         self.gravity = float(np.linalg.norm(m.gravity.linear))
+        self.scale = robot_scale(legs, self.mass)
+        self.standing_height = spec.standing_height if spec is not None else None
+        self.knees = spec.knees if spec is not None else "auto"
+        by_name = {f.name: f for f in feet}
+        self.foot_names = tuple(leg.foot for leg in legs)
+        self.foot_link = tuple(by_name[n].link for n in self.foot_names)
+        self.foot_frame = [m.getFrameId(link, pin.FrameType.BODY) for link in self.foot_link]
+        self.foot_joint = [m.getJointId(leg.joint_names[2]) for leg in legs]
+        self.foot_local = [by_name[n].local.copy() for n in self.foot_names]
+        self._leg_geometry(legs, by_name)
 
-        # feet and leg geometry
-        self.foot_frame = []
-        self.foot_joint = []
-        self.foot_local = []
-        self.foot_radius = np.zeros(4)
-        self.hip = np.zeros((4, 3))       # HAA joint position in the base frame
-        self.l0 = np.zeros(4)              # HAA axis to HFE axis (vertical)
-        self.l1 = np.zeros(4)              # thigh: HFE to KFE
-        self.l2 = np.zeros(4)              # shank: KFE to foot sphere centre
-        self.knee_sign = np.zeros(4)       # sign of KFE in the nominal posture
-        for k, leg in enumerate(LEGS):
-            fname = f"{leg}_FOOT"
-            if not m.existFrame(fname):
-                raise ValueError(f"frame '{fname}' is not in the URDF")
-            fid = m.getFrameId(fname)
-            fr = m.frames[fid]
-            kfe = m.getJointId(f"{leg}_KFE")
-            if fr.parentJoint != kfe:
-                raise ValueError(f"{fname} must be rigidly attached to {leg}_KFE")
-            self.foot_frame.append(fid)
-            self.foot_joint.append(kfe)
-            self.foot_local.append(fr.placement.translation.copy())
-            self.foot_radius[k] = _foot_radius(xml, leg)
-            self.hip[k] = m.jointPlacements[m.getJointId(f"{leg}_HAA")].translation
-            self.l0[k] = -m.jointPlacements[m.getJointId(f"{leg}_HFE")].translation[2]
-            self.l1[k] = -m.jointPlacements[kfe].translation[2]
-            self.l2[k] = -fr.placement.translation[2]
-            self.knee_sign[k] = -1.0 if leg[1] == "F" else 1.0
+    @staticmethod
+    def _check_legs(legs, names, source):
+        """NotAQuadruped unless 12 joints make 4 legs, one at each corner, of a hip roll
+        (about ±x) and two pitch joints (about ±y)."""
+        why = None
+        if len(names) != 12 or len(legs) != 4:
+            why = f"{len(names)} moving joints, {len(legs)} 3-joint legs with a foot"
+        elif legs[0].fore is None:
+            why = "its legs are not one at each corner"
+        else:
+            bad = [leg for leg in legs if leg.plane is None or leg.roll == 0.0]
+            if bad:
+                why = (f"leg {'/'.join(bad[0].joint_names)} is not a roll-pitch-pitch leg "
+                       "(hip roll about x, hip and knee pitch about y)")
+        if why:
+            raise NotAQuadruped(f"{source}: not a four-legged robot of 3-joint legs the "
+                                f"controller drives: {why}")
+
+    def _leg_geometry(self, legs, feet):
+        """hip (4, 3) and the geometry rows (4, len(GEOMETRY)) of the module docstring."""
+        m, data = self.model, self.data
+        pin.forwardKinematics(m, data, pin.neutral(m))
+        self.hip = np.array([leg.hip for leg in legs])
+        geo = np.zeros((4, len(GEOMETRY)))
+        for k, leg in enumerate(legs):
+            haa, hfe, kfe = (m.getJointId(n) for n in leg.joint_names)
+            o = data.oMi[haa].rotation @ m.jointPlacements[hfe].translation
+            t = data.oMi[hfe].rotation @ m.jointPlacements[kfe].translation
+            s = data.oMi[kfe].rotation @ feet[leg.foot].local
+            l1 = abs(t[2]) if t[0] == 0.0 else math.hypot(t[0], t[2])
+            l2 = abs(s[2]) if s[0] == 0.0 else math.hypot(s[0], s[2])
+            sign = self._knee_sign(leg, geo[k, 0] + l1 + l2)
+            geo[k] = (-o[2], l1, l2, feet[leg.foot].radius, sign, o[0], o[1] + t[1] + s[1],
+                      math.atan2(-t[0], -t[2]) + 0.0, _turn((t[0], t[2]), (s[0], s[2])),
+                      leg.roll, leg.plane.signs[0], leg.plane.signs[1])
+        self.geometry = geo
+        self.l0, self.l1, self.l2 = geo[:, 0], geo[:, 1], geo[:, 2]
+        self.foot_radius, self.knee_sign = geo[:, 3], geo[:, 4]
         self.leg_length = float(np.mean(self.l0 + self.l1 + self.l2))
-        self._check_leg_structure()
 
-    def _check_leg_structure(self):
-        """The analytic kinematics assume StarlETH's legs: HAA about x at the hip, HFE and KFE
-        about y, each link offset straight down (-z) with no rotation."""
-        m = self.model
-        for leg in LEGS:
-            for j, kind in zip(JOINTS_PER_LEG, ("JointModelRX", "JointModelRY", "JointModelRY")):
-                jid = m.getJointId(f"{leg}_{j}")
-                if m.joints[jid].shortname() != kind:
-                    raise ValueError(f"{leg}_{j}: expected a revolute joint about "
-                                     f"{kind[-1].lower()}, got {m.joints[jid].shortname()}")
-                M = m.jointPlacements[jid]
-                if abs(M.rotation - np.eye(3)).max() > 1e-9 or \
-                        (j != "HAA" and abs(M.translation[:2]).max() > 1e-9):
-                    raise ValueError(f"{leg}_{j}: the leg links must be offset along -z only, "
-                                     "without rotation")
-            fr = m.frames[m.getFrameId(f"{leg}_FOOT")].placement
-            if abs(fr.translation[:2]).max() > 1e-9:
-                raise ValueError(f"{leg}_FOOT: the foot must lie on the shank's -z axis")
+    def _knee_sign(self, leg, reach):
+        """The knee direction of a leg's standing posture (legs.knee_sign): the spec's at its
+        standing height; without a spec the one within the joint limits at 3/4 of the leg's
+        reach, else the common one (front knees backward, hind knees forward)."""
+        if self.standing_height is not None:
+            return knee_sign(leg, self.knees, self.standing_height)
+        try:
+            return knee_sign(leg, "auto", 0.75 * reach)
+        except ValueError:
+            return KNEE_SIGNS["backward"] if leg.fore else KNEE_SIGNS["forward"]
 
     # -- analytic leg kinematics (the kernels' code, for callers and tests) ---------------
-    @property
-    def geometry(self):
-        """(4, 5): l0, l1, l2, foot radius, knee sign per leg (the kernels' layout)."""
-        return np.column_stack((self.l0, self.l1, self.l2, self.foot_radius, self.knee_sign))
-
     def leg_ik(self, k: int, r):
         """Joint angles (HAA, HFE, KFE) that put the foot sphere centre of leg k at `r`
         (base frame). Out-of-reach targets are pulled onto the workspace boundary."""
@@ -160,11 +192,14 @@ class RobotModel:
         return out
 
     def nominal_joint_positions(self, height: float):
-        """Public-order joint angles with every foot straight below its hip, the trunk level
-        at `height` above flat ground."""
+        """Joint angles (controller order) with every foot straight below its hip pitch
+        joint (hip roll at 0), the trunk level at `height` above flat ground."""
         out = np.zeros(12)
         for k in range(4):
             r = self.hip[k].copy()
+            r[0] += self.geometry[k, 5]
+            r[1] += self.geometry[k, 6]
             r[2] = -(height - self.foot_radius[k])
             out[3 * k:3 * k + 3] = self.leg_ik(k, r)
         return out
+

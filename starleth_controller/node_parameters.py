@@ -9,9 +9,12 @@ from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
                                        TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
                                        foot_wrench_topic)
 from .inputs import MODES, ControllerParams
-from .model import LEGS
 
-DEFAULT_WRENCH_TOPICS = tuple(foot_wrench_topic(f"{leg}_foot") for leg in LEGS)
+
+def default_wrench_topics(foot_names) -> list:
+    """The foot wrench topics of a robot's feet (its foot contact names, the robot's foot
+    order): the simulator's names (topics.foot_wrench_topic)."""
+    return [foot_wrench_topic(f) for f in foot_names]
 
 
 P = ParameterSpec
@@ -22,8 +25,11 @@ P = ParameterSpec
 PARAMETERS = (
     P("mode", str, "stand", "stand | trot; settable at runtime (also through the ~/trot "
       "service)", read_only=False, choices=MODES),
-    P("urdf", str, "", "URDF path or XML text for the controller's model; empty = the "
-      "package's starleth.urdf"),
+    P("robot", str, "starleth", "the robot: a library name (robots/<name>.yaml: starleth, go1, "
+      "...), a robot spec or a URDF path; its URDF and spec give the controller's model, "
+      "feet and scaled gains (doc/controllers.md)"),
+    P("urdf", str, "", "URDF path or XML text for the controller's model instead of `robot` "
+      "(no spec: feet found on the legs, gains scaled by its size); empty = `robot`"),
     P("robot_description", bool, False, "true: build the model from the robot_description "
       "topic (transient local) instead of `urdf`"),
     P("joint_commands_topic", str, TOPIC_JOINT_COMMANDS, "sensor_msgs/JointState command "
@@ -37,14 +43,15 @@ PARAMETERS = (
       "bundle input (sim_node's; layout in starleth_interface.state_bundle)"),
     P("joint_states_topic", str, TOPIC_JOINT_STATES, "sensor_msgs/JointState input"),
     P("base_state_topic", str, TOPIC_BASE_STATE, "nav_msgs/Odometry input (ground truth)"),
-    P("foot_wrench_topics", list, list(DEFAULT_WRENCH_TOPICS), "geometry_msgs/WrenchStamped "
-      "inputs, feet in the order LF, RF, LH, RH"),
+    P("foot_wrench_topics", list, [], "geometry_msgs/WrenchStamped inputs, one per foot in "
+      "the robot's foot order (its legs'); empty = starleth/<foot contact name>/wrench of "
+      "each foot, sim_node's names"),
     P("cmd_vel_topic", str, "cmd_vel", "geometry_msgs/Twist velocity command"),
     P("twist_frame", str, "child", "frame of the Odometry twist's linear velocity: child "
       "(base, REP 105) | parent (world)", choices=("child", "parent")),
     P("contact_force_threshold", float, ControllerParams.contact_force_threshold,
-      "a foot is in contact when |force| exceeds this "
-      "[N]", read_only=False, minimum=0.0, maximum=1000.0),
+      "a foot is in contact when |force| exceeds this times μ, the robot's mass over "
+      "StarlETH's (doc/controllers.md) [N]", read_only=False, minimum=0.0, maximum=1000.0),
     P("max_linear_speed", float, 0.6, "clip of |(linear.x, linear.y)| of /cmd_vel [m/s]",
       read_only=False, minimum=0.0, maximum=10.0),
     P("max_yaw_rate", float, 1.0, "clip of |angular.z| of /cmd_vel [rad/s]", read_only=False,
@@ -72,8 +79,9 @@ def check_parameters(p) -> None:
         except ValueError as e:
             errors.append(str(e))
     topics = p["foot_wrench_topics"]
-    if not errors and (len(topics) != 4 or not all(isinstance(t, str) and t for t in topics)):
-        errors.append(f"parameter foot_wrench_topics: expected 4 topic names (LF, RF, LH, "
-                      f"RH), got {topics!r}")
+    if not errors and topics and (len(topics) != 4 or
+                                  not all(isinstance(t, str) and t for t in topics)):
+        errors.append(f"parameter foot_wrench_topics: expected 4 topic names (the robot's "
+                      f"feet in its legs' order) or none, got {topics!r}")
     if errors:
         raise ValueError("; ".join(errors))

@@ -17,7 +17,7 @@ import numpy as np
 
 from .inputs import RobotState
 from .kernels import node_state, squared_norm4
-from .model import JOINT_NAMES, LEGS
+from .model import JOINT_NAMES
 
 
 class StateSlot:
@@ -33,10 +33,10 @@ class StateSlot:
         self.wrench = [None, None, None, None]
         self.n = 0
 
-    def missing(self) -> list:
-        """The names of the messages not in the slot."""
+    def missing(self, feet) -> list:
+        """The names of the messages not in the slot (`feet`: the feet's names)."""
         return [name for name, m in (("joint state", self.js), ("base state", self.odom),
-                                     *zip((f"{leg} wrench" for leg in LEGS), self.wrench))
+                                     *zip((f"{foot} wrench" for foot in feet), self.wrench))
                 if m is None]
 
 
@@ -77,9 +77,11 @@ class StateAssembler:
     """The RobotState of a complete StateSlot (``robot_state``): joint positions and velocities
     in the public order (`permutation` of the names as received, cached), contact where
     |force| > `threshold` [N], the twist's linear velocity turned into the world frame when
-    `twist_in_child` (the base frame, REP 105)."""
+    `twist_in_child` (the base frame, REP 105); `joint_names`: the public order (the
+    robot's, default StarlETH's)."""
 
-    def __init__(self, threshold: float, twist_in_child: bool):
+    def __init__(self, threshold: float, twist_in_child: bool, joint_names=JOINT_NAMES):
+        self.joint_names = tuple(joint_names)
         self.threshold = threshold
         self.twist_in_child = twist_in_child
         self._perm_cache = {}             # tuple(names) -> index array (public order)
@@ -92,16 +94,16 @@ class StateAssembler:
         key = tuple(names)
         perm = self._perm_cache.get(key)
         if perm is None:
-            if key == JOINT_NAMES:
+            if key == self.joint_names:
                 perm = slice(None)
             else:
                 index = {n: i for i, n in enumerate(key)}
                 if len(index) != len(key):
                     return None, "duplicate joint names"
-                missing = [n for n in JOINT_NAMES if n not in index]
+                missing = [n for n in self.joint_names if n not in index]
                 if missing:
                     return None, f"missing joints {', '.join(missing)}"
-                perm = np.array([index[n] for n in JOINT_NAMES])
+                perm = np.array([index[n] for n in self.joint_names])
             if len(self._perm_cache) < 8:
                 self._perm_cache[key] = perm
         return perm, None

@@ -8,6 +8,7 @@ goes into its namespace by a remap (``-r /clock:=clock``, as the launch file doe
 robots in one domain do not share one sim time. ``~/...`` names are private to the node
 (``/robot1/sim_node/wrench``).
 """
+import re
 
 TOPIC_CLOCK = "/clock"
 TOPIC_JOINT_STATES = "joint_states"
@@ -34,9 +35,18 @@ TOPIC_WRENCH = "~/wrench"
 TOPIC_WRENCH_PERSISTENT = "~/wrench/persistent"
 
 
+def topic_token(name: str) -> str:
+    """`name` as one token of a ROS topic name: every character other than a letter, a digit
+    or '_' becomes '_', repeated '_' one, and a leading digit gets a '_' before it
+    ('LF_foot' stays, 'foot.1' -> 'foot_1', '3rd leg' -> '_3rd_leg')."""
+    token = re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9_]", "_", name))
+    return "_" + token if not token or token[0].isdigit() else token
+
+
 def foot_wrench_topic(foot: str) -> str:
-    """starleth/<foot>/wrench for a foot contact name such as 'LF_foot'."""
-    return f"starleth/{foot}/wrench"
+    """starleth/<foot>/wrench for a foot contact name such as 'LF_foot' (any URDF name: its
+    topic_token)."""
+    return f"starleth/{topic_token(foot)}/wrench"
 
 
 def normalize_namespace(namespace: str | None) -> str:

@@ -9,7 +9,9 @@ import yaml
 
 from starleth_sim import ConfigError, Simulator, available_presets, load_preset
 from starleth_sim.physics import config as config_mod
-from starleth_sim.physics.config import PRESETS, load_yaml_file, load_yaml_text
+from starleth_interface import yaml_files
+from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
+from starleth_sim.physics.config import PRESETS
 from starleth_sim.ros.parameters import (SIM_NODE_PARAMETERS, Settings,
                                          load_default_parameters, render_yaml)
 from starleth_sim.ros.state_io import read_state_spec
@@ -233,7 +235,7 @@ def test_other_unreadable_files_name_the_file(tmp_path):
         load_preset(preset_file(tmp_path, "[" * 100_000, "deep.yaml"))
     big = tmp_path / "big.yaml"
     with open(big, "wb") as f:
-        f.truncate(config_mod.MAX_CONFIG_BYTES + 1)
+        f.truncate(yaml_files.MAX_CONFIG_BYTES + 1)
     with pytest.raises(ConfigError, match=r"big\.yaml: larger than 16 MiB"):
         load_yaml_file(str(big))
 

@@ -110,7 +110,7 @@ def test_executables_and_share(prefix):
 
 def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     """Run from outside the source tree: data comes from share/ via the ament index."""
-    code = ("import starleth_sim, starleth_sim.physics.description as d;"
+    code = ("import starleth_sim, starleth_interface.package_data as d;"
             "from starleth_sim.ros.parameters import load_default_parameters,"
             " default_settings_file;"
             "print(starleth_sim.__file__); print(d.package_share_dir());"

@@ -20,7 +20,7 @@ from coordinate_checks import TIGHT, compare_three
 from starleth_sim import PRESETS, ConfigError, Simulator
 from starleth_sim.physics.description import STARLETH_FEET, STARLETH_JOINT_NAMES, urdf_path
 from starleth_sim.physics.posture import DEFAULT_KD, DEFAULT_KP, PostureHold
-from starleth_sim.physics.scaling import robot_scale
+from starleth_interface.robot.scaling import robot_scale
 from starleth_sim.robots import (available_robots, load_robot, robot_description,
                                  starleth_description, urdf_file)
 
@@ -119,7 +119,8 @@ def test_starleth_from_its_spec_equals_the_old_description_field_by_field():
 def test_starleth_posture_hold_for_the_robot_keeps_its_gains():
     desc = starleth_description()
     hold = PostureHold.for_robot(desc, np.zeros(12))
-    assert robot_scale(desc).length == 1.0 and robot_scale(desc).mass == 1.0
+    assert robot_scale(desc.legs, desc.total_mass).length == 1.0 and \
+        robot_scale(desc.legs, desc.total_mass).mass == 1.0
     assert hold.kp.tobytes() == np.tile(DEFAULT_KP, 4).tobytes()
     assert hold.kd.tobytes() == np.tile(DEFAULT_KD, 4).tobytes()
 
@@ -271,7 +272,7 @@ def test_the_hold_scales_by_dynamic_similarity(tmp_path):
     settles to StarlETH's joint errors (a static equilibrium: the gravity torques scale as
     μλ, as the stiffness does) with its base sagging twice as far."""
     big = robot_description(scaled_starleth(tmp_path, 2.0, 8.0))
-    scale = robot_scale(big)
+    scale = robot_scale(big.legs, big.total_mass)
     assert (scale.length, scale.mass) == (2.0, 8.0)
     hold = PostureHold.for_robot(big, np.zeros(12))
     np.testing.assert_allclose(hold.kp, np.tile(DEFAULT_KP, 4) * 16.0, rtol=1e-12)

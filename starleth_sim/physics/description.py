@@ -3,8 +3,9 @@ order, its contact points, its legs and its standing height; and generic test bo
 (sphere, box).
 
 A description is built from a URDF (:meth:`RobotDescription.from_urdf_xml`: the checks of
-:mod:`~starleth_sim.physics.urdf`, contact points of :mod:`~starleth_sim.physics.contact_points`,
-legs of :mod:`~starleth_sim.physics.legs`), usually through a robot spec of the robot library
+:mod:`starleth_interface.robot.urdf`, contact points of
+:mod:`starleth_interface.robot.contact_points`, legs of :mod:`starleth_interface.robot.legs`),
+usually through a robot spec of the robot library
 (``starleth_sim.robots``), which chooses the contacts, the feet, the standing height and the
 limits the URDF lacks. Without a spec every sphere, box and cylinder collision of the URDF is
 a contact (a mesh is refused) and the feet are found on the legs.
@@ -20,12 +21,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from .config_checks import ConfigError
-from .contact_points import ContactPointSpec, urdf_contact_points
-from .legs import find_legs, standing_joint_positions
-from .urdf import checked_model, document_joint_order
+from starleth_interface.config_checks import ConfigError
+from starleth_interface.package_data import package_share_dir
+from starleth_interface.robot.contact_points import urdf_contact_points
+from starleth_interface.robot.legs import find_legs, standing_joint_positions
+from starleth_interface.robot.urdf import checked_model, document_joint_order
 
-__all__ = ["ContactPointSpec", "RobotDescription", "package_share_dir", "urdf_path",
+__all__ = ["RobotDescription", "urdf_path",
            "leg_angles_for_height", "sphere_urdf", "box_urdf"]
 
 #: StarlETH's names, for the layers that do not take them from the description yet (the
@@ -34,21 +36,6 @@ LEGS = ("LF", "RF", "LH", "RH")
 JOINTS_PER_LEG = ("HAA", "HFE", "KFE")
 STARLETH_JOINT_NAMES = tuple(f"{leg}_{j}" for leg in LEGS for j in JOINTS_PER_LEG)
 STARLETH_FEET = tuple(f"{leg}_foot" for leg in LEGS)
-
-
-def package_share_dir() -> str:
-    """Directory holding `urdf/`, `robots/` and `msg_configs/`: the source tree, or the colcon
-    install's share/starleth_sim when running from an install."""
-    here = os.path.dirname(os.path.abspath(__file__))          # starleth_sim/physics
-    src = os.path.dirname(os.path.dirname(here))
-    if os.path.isdir(os.path.join(src, "urdf")) and os.path.isdir(os.path.join(src, "msg_configs")):
-        return src
-    try:  # installed by colcon
-        from ament_index_python.packages import get_package_share_directory
-        return get_package_share_directory("starleth_sim")
-    except Exception:  # pragma: no cover - only without a source tree and without ament
-        pass
-    raise FileNotFoundError("cannot find the starleth_sim data directory (urdf/, msg_configs/)")
 
 
 def urdf_path(name: str = "starleth.urdf") -> str:
@@ -80,10 +67,10 @@ class RobotDescription:
     def from_urdf_xml(cls, urdf_xml: str, name: str = "robot", joint_names=None,
                       source: str | None = None, contacts=None, foot_names=None, **kw):
         """The description of a URDF text (ConfigError naming `source` and the element when
-        the simulator cannot use it: physics/urdf.py). joint_names: the public joint order
-        (default: the URDF's document order of its moving joints); contacts: the contact
+        the simulator cannot use it: starleth_interface/robot/urdf.py). joint_names: the public
+        joint order (default: the URDF's document order of its moving joints); contacts: the contact
         points (default: every sphere, box and cylinder collision); foot_names: the feet
-        among them (default: found on the legs, physics/legs.py)."""
+        among them (default: found on the legs, starleth_interface/robot/legs.py)."""
         source = source or f"URDF of '{name}'"
         root, model = checked_model(urdf_xml, source)
         if contacts is None:

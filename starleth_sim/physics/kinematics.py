@@ -37,10 +37,10 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from starleth_interface.robot.urdf import revolute_axis
+
 from .kernels import (JT_FREEFLYER, JT_REVOLUTE, contact_kinematics, contact_points,  # noqa: F401
                       forward_kinematics, point_jacobian, quat_xyzw_to_rot)
-from .urdf import revolute_axis
-
 
 
 class KinematicTree:

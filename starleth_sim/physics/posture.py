@@ -2,16 +2,16 @@
 and the standing tests (the locomotion controller lives in ``starleth_controller``).
 
 Gains are per joint of a leg (HAA, HFE, KFE), tuned on StarlETH; :meth:`PostureHold.for_robot`
-scales them to another robot by dynamic similarity (physics/scaling.py: K_p by μλ, K_d by
-μλ^1.5), StarlETH's own unchanged. The derivative gains are bounded by the 400 Hz zero-order
-hold: a free shank (I ≈ 3.5e-3 kg m² about the KFE) needs k_d T / I < 2, so KFE k_d = 0.5
-N m s/rad (T = 2.5 ms); the scaled k_d T / I grows as 1/√λ only (I scales as μλ²).
+scales them to another robot by dynamic similarity (starleth_interface.robot.scaling: K_p by
+μλ, K_d by μλ^1.5), StarlETH's own unchanged. The derivative gains are bounded by the 400 Hz
+zero-order hold: a free shank (I ≈ 3.5e-3 kg m² about the KFE) needs k_d T / I < 2, so KFE
+k_d = 0.5 N m s/rad (T = 2.5 ms); the scaled k_d T / I grows as 1/√λ only (I scales as μλ²).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .scaling import robot_scale
+from starleth_interface.robot.scaling import robot_scale
 
 DEFAULT_KP = (300.0, 300.0, 300.0)  # HAA, HFE, KFE [N m/rad]
 DEFAULT_KD = (3.0, 3.0, 0.5)        # [N m s/rad]
@@ -33,7 +33,7 @@ class PostureHold:
         """The hold of a robot (a RobotDescription): each leg joint gets the gains of its
         place in the leg (hip roll, hip pitch, knee), any other joint the hip pitch's, all
         scaled to the robot (module docstring)."""
-        scale = robot_scale(desc)
+        scale = robot_scale(desc.legs, desc.total_mass)
         n = len(desc.joint_names)
         role = np.ones(n, dtype=int)
         for leg in desc.legs:

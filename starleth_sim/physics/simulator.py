@@ -126,9 +126,9 @@ class Simulator:
     # -- state ----------------------------------------------------------------------------
     def default_state(self):
         """A robot with legs and a standing height: the standing posture (hip rolls at 0,
-        each foot below its hip pitch joint at the standing height: physics/legs.py), feet
-        on the ground. Any other body: the neutral configuration resting with its lowest
-        contact point on the ground.
+        each foot below its hip pitch joint at the standing height:
+        starleth_interface/robot/legs.py), feet on the ground. Any other body: the neutral
+        configuration resting with its lowest contact point on the ground.
         Resting means a 1 nm overlap (g_N = −1e-9 m at q), so that round-off cannot leave a
         touching contact open: a hard contact enters the active set when g_N(q^M) ≤
         contact.activation_gap (0 in the presets; with contact.activation "hysteresis" a

@@ -44,7 +44,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config_checks import ConfigError, check_int, check_number, short_repr
+from starleth_interface.config_checks import (ConfigError, check_int, check_number,
+                                              short_repr)
+from starleth_interface.robot.contact_points import BOX_REACH
 
 #: the floats of the packed terrain's header (csrc/terrain.c TERRAIN_HEADER), and the index
 #: of its flag: the contacts have a second surface each (every terrain that is not flat)
@@ -60,10 +62,10 @@ TOP = 15
 SECOND_SURFACE_ANGLE = 20.0         # degrees
 SECOND_SURFACE_REACH = 0.1
 SECOND_SURFACE_NONE = 1000.0
-#: a box is tested for the contacts whose centre lies within this of its bounds in x and y
-#: [m]: the gap to a box farther away is > BOX_REACH − r, and such a gap is the plane's or
-#: another surface's (a contact only needs exact gaps near its surfaces)
-BOX_REACH = 0.1
+#: BOX_REACH (starleth_interface.robot.contact_points, with the bound it puts on a contact
+#: sphere's radius): a box is tested for the contacts whose centre lies within it of its
+#: bounds in x and y [m]: the gap to a box farther away is > BOX_REACH − r, and such a gap
+#: is the plane's or another surface's (a contact only needs exact gaps near its surfaces)
 #: the side of the bins of the boxes [m], and their most per side
 BIN_SIZE = 0.25
 MAX_BINS = 512

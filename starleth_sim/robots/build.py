@@ -5,82 +5,32 @@ standing height (checked by solving the standing posture). And the description a
 physics configuration of a `robot` value (a library name, a spec path or a URDF path)."""
 from __future__ import annotations
 
-import fnmatch
 import os
-from dataclasses import replace
+from dataclasses import fields, is_dataclass
 
 import numpy as np
 import pinocchio as pin
 
-from ..physics.config import PhysicsConfig, load_yaml_text
-from ..physics.config_checks import ConfigError
-from ..physics.contact_points import (box_corners, check_terrain_reach, collision_points,
-                                      link_frame, sphere_point)
+from starleth_interface.config_checks import ConfigError
+from starleth_interface.robot.contact_points import (box_corners, check_terrain_reach,
+                                                     collision_points, link_frame, sphere_point)
+from starleth_interface.robot.feet import foot_points, link_elements
+from starleth_interface.robot.library import load_robot, read_text, resolve, urdf_file
+from starleth_interface.robot.spec import (MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec,
+                                           mapping, match_names, override_limits,
+                                           spec_from_dict)
+from starleth_interface.robot.urdf import checked_model, document_joint_order
+from starleth_interface.yaml_files import load_yaml_text
+
+from ..physics.config import PhysicsConfig
 from ..physics.description import RobotDescription
-from ..physics.legs import find_legs
-from ..physics.urdf import checked_model, document_joint_order
-from .library import load_robot, read_text, resolve, urdf_file
-from .spec import MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec, spec_from_dict
-
-
-def _match(patterns, names, where, what="link"):
-    """The names (in their order) matching any of the patterns (names or globs); each
-    pattern must match one."""
-    for p in patterns:
-        if not fnmatch.filter(names, p):
-            raise ConfigError(f"{where}: '{p}' matches no {what} of the URDF")
-    return [n for n in names if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
-
-
-def _link_elements(root):
-    return {link.get("name"): link for link in root.findall("link")}
-
-
-def _spheres(link, model, source) -> list:
-    """A link's URDF sphere collisions as contact points; an unnamed one alone on its link
-    is named after the link (a foot: 'LF_FOOT', not 'LF_FOOT_1')."""
-    colls = link.findall("collision")
-    points = [p for k in range(len(colls))
-              for p in collision_points(link, k, model, source, ("sphere",))]
-    unnamed = [c for c in colls if c.find("geometry/sphere") is not None and not c.get("name")]
-    if len(points) == 1 and unnamed:
-        points = [replace(points[0], name=link.get("name"))]
-    return points
-
-
-def _feet(spec: RobotSpec, root, model, source, joint_names) -> list:
-    """The foot contact points, in the legs' order when every foot ends a leg."""
-    links = _link_elements(root)
-    feet = spec.feet
-    where = f"{spec.label}: feet"
-    if feet.links is None:       # found on the legs among the URDF's spheres
-        spheres = [p for link in links.values() for p in _spheres(link, model, source)]
-        legs = find_legs(model, joint_names, spheres)
-        return [next(p for p in spheres if p.name == leg.foot) for leg in legs]
-    points = []
-    for name in _match(feet.links, list(links), f"{where}.links"):
-        if feet.radius is not None:
-            frame = link_frame(model, name, where)
-            points.append(sphere_point(name, name, frame.parentJoint,
-                                       frame.placement * pin.SE3(np.eye(3), np.array(feet.at)),
-                                       feet.radius, f"{where}.radius"))
-            continue
-        found = _spheres(links[name], model, source)
-        if len(found) != 1:
-            raise ConfigError(f"{where}.links: link '{name}' has {len(found) or 'no'} <sphere> "
-                              "collision(s): give feet.radius (and feet.at)")
-        points += found
-    legs = find_legs(model, joint_names, points, {p.name for p in points})
-    if {leg.foot for leg in legs} == {p.name for p in points}:
-        points = [next(p for p in points if p.name == leg.foot) for leg in legs]
-    return points
 
 
 def _entry_points(entry: ContactEntry, root, model, source, label) -> list:
-    links = _link_elements(root)
+    links = link_elements(root)
     where = f"{label}: {entry.where}"
     points = []
-    for name in _match(entry.links, list(links), f"{where}.links"):
+    for name in match_names(entry.links, list(links), f"{where}.links"):
         frame = link_frame(model, name, where)
         j, tag = frame.parentJoint, f"{name}_{entry.name}" if entry.name else name
         if entry.urdf:
@@ -106,12 +56,9 @@ def _limits(spec: RobotSpec, desc: RobotDescription):
     """The spec's effort and velocity limits over the URDF's; each joint's must then be a
     real one (not a placeholder)."""
     names = list(desc.joint_names)
-    for kind, table, cap, unit in (("effort", spec.effort, MAX_EFFORT, "N m"),
-                                   ("velocity", spec.velocity, MAX_VELOCITY, "rad/s")):
+    for kind, cap, unit in (("effort", MAX_EFFORT, "N m"), ("velocity", MAX_VELOCITY, "rad/s")):
         limit = getattr(desc, f"{kind}_limit")
-        for pattern, value in table.items():
-            for n in _match([pattern], names, f"{spec.label}: limits.{kind}", "moving joint"):
-                limit[names.index(n)] = value
+        override_limits(spec, names, kind, limit)
         for n, x in zip(names, limit):
             if not 0 < x < cap:
                 why = f"a placeholder (>= {cap:g})" if x >= cap else "not positive"
@@ -132,7 +79,7 @@ def description_from_spec(spec: RobotSpec, urdf_xml: str | None = None,
     source = f"{urdf_name} ({spec.label})"
     root, model = checked_model(xml, source)
     joint_names = document_joint_order(root)
-    feet = _feet(spec, root, model, source, joint_names)
+    feet = foot_points(spec, root, model, source, joint_names)
     contacts = list(feet)
     for entry in spec.contacts:
         contacts += _entry_points(entry, root, model, source, spec.label)
@@ -191,6 +138,24 @@ def config_with_robot(config: PhysicsConfig, robot: str) -> PhysicsConfig:
     """A copy of `config` for `robot`: its `robot` field, and the spec's physics overrides
     (a robot's own values over the preset's: Solo12's compliant contact)."""
     kind, _ = resolve(robot)
-    physics = load_robot(robot).physics if kind == "spec" else {}
+    physics = physics_overrides(load_robot(robot)) if kind == "spec" else {}
     return config.with_overrides(robot=robot, **physics)
+
+
+def physics_overrides(spec: RobotSpec) -> dict:
+    """A spec's `physics:` overrides as dotted names (section.field), checked by applying them
+    to the default config; ConfigError naming the spec and the field."""
+    where = f"{spec.label}: physics"
+    default = PhysicsConfig()
+    sections = tuple(f.name for f in fields(default) if is_dataclass(getattr(default, f.name)))
+    dotted = {}
+    for section, values in mapping(where, spec.physics, sections).items():
+        names = tuple(f.name for f in fields(getattr(default, section)))
+        for k, x in mapping(f"{where}.{section}", values, names).items():
+            dotted[f"{section}.{k}"] = x
+    try:
+        default.with_overrides(**dotted)
+    except ConfigError as e:     # "<config name> (with overrides): <field>: <rule>"
+        raise ConfigError(f"{where}.{str(e).split(': ', 1)[-1]}") from None
+    return dotted
 

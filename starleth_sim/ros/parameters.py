@@ -18,9 +18,10 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             ROS_PARAMETERS, ParameterSpec, parameter_defaults,
                                             render_parameters_yaml, unknown_parameters_text,
                                             with_parameter_table)
-from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
-from ..physics.description import package_share_dir
-from ..physics.scaling import robot_scale
+from ..physics.config import ConfigError
+from starleth_interface.package_data import package_share_dir
+from starleth_interface.robot.scaling import robot_scale
+from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
 from .command_delay import MAX_COMMAND_DELAY
 from .ros2_control_description import INTERFACES, parse_command_interfaces
 
@@ -313,7 +314,7 @@ def robot_default_gains(description, unset) -> dict:
     the settings file) for the robot of `description`: the schema's StarlETH values scaled
     by the robot's size and mass (physics/scaling.py: kp by mu lambda, kd by mu lambda^1.5),
     so that a hold of the standing posture sags as little as StarlETH's."""
-    scale = robot_scale(description)
+    scale = robot_scale(description.legs, description.total_mass)
     factor = {"default_kp": scale.stiffness, "default_kd": scale.damping}
     return {name: GAIN_PARAMETERS[name].default * factor[name] for name in unset}
 

@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 
-from ..physics.config import ConfigError, load_yaml_file, load_yaml_text
+from ..physics.config import ConfigError
+from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
 from ..physics.kinematics import quat_xyzw_to_rot
 from ..physics.simulator import Simulator
 

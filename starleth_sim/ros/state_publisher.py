@@ -20,8 +20,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr,
                                        JointStateCdr)
-from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
-from starleth_interface.state_bundle import StateBundleCdr
+from starleth_interface.state_bundle import BundleLayout, StateBundleCdr
 from starleth_interface.topics import (TOPIC_APPLIED_TORQUE, TOPIC_BASE_STATE, TOPIC_CLOCK,
                                        TOPIC_IMU,
                                        TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER,
@@ -90,11 +89,10 @@ class StatePublisher:
         i.header.frame_id = base
         self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
         self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
-        # the state bundle (starleth_interface.state_bundle): only for the robot whose
-        # joints and feet are in the bundle's order
-        self.bundle_cdr = (StateBundleCdr.create()
-                           if tuple(sim.joint_names) == BUNDLE_JOINT_NAMES
-                           and self._feet_first else None)
+        # the state bundle (starleth_interface.state_bundle) of the robot's joints and feet
+        # (the feet the first contact points, as every description has them)
+        self.bundle_cdr = (StateBundleCdr.create(BundleLayout(sim.n_joints, len(self.feet)))
+                           if self._feet_first else None)
 
     def _make_publishers(self):
         add = self.output.add

@@ -11,7 +11,7 @@ uncompressed size (as its header declares it, and as its data decompresses, in p
 its header and by MAX_RECORD_BYTES, checked before anything is decompressed; the metadata
 and attachments kept by MAX_KEPT_BYTES in all (what is beyond is left out with a warning);
 a message whose log or publish time is beyond int64 is counted as unreadable. YAML from a
-bag is read by :func:`~starleth_sim.physics.config.load_yaml_text` (bounded in size and in
+bag is read by :func:`~starleth_interface.yaml_files.load_yaml_text` (bounded in size and in
 what its aliases expand to)."""
 from __future__ import annotations
 

@@ -31,7 +31,7 @@ import re
 import sys
 
 from starleth_interface.topics import TOPIC_ROBOT_DESCRIPTION, normalize_namespace, resolve
-from ..physics.description import package_share_dir
+from starleth_interface.package_data import package_share_dir
 from ..ros.parameters import frame_name_problem, namespace_frame_prefix
 from .console import run_console_script
 

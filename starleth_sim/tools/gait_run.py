@@ -11,29 +11,33 @@ import time
 import numpy as np
 
 from starleth_controller import Command, RobotState, StarlethController
+from starleth_controller.robot_params import trot_speed
 
-from ..physics.description import urdf_path
 from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
 
-TROT_SPEED = 0.3       # m/s
 STAND_BEFORE_TROT = 1.0  # s
 GAIT_PERIOD = 0.8      # s (1.25 Hz)
 
 
 def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
-             stand_time=STAND_BEFORE_TROT, stop_on_nonconvergence=False, speed=TROT_SPEED,
-             perturb=None, **overrides):
+             stand_time=STAND_BEFORE_TROT, stop_on_nonconvergence=False, speed=None,
+             perturb=None, robot="starleth", **overrides):
     """Stand (and trot at `speed` after `stand_time` s if gait == 'trot') for `seconds`;
+    `robot` (a library name, a spec or URDF path) under the controller with its parameters
+    scaled to it, speed default 0.3 m/s · √λ (robot_params.trot_speed);
     push = (time [s], force (world) [N], duration [s]) on the base; perturb(sim) may change
     the initial state. Returns per-step wall times of sim.step, iterations, and the
     measurements of the report. The one headless run of starleth-eval and starleth-sweep."""
-    sim = Simulator.from_preset(preset, profile=profile, **overrides)
+    sim = Simulator.from_preset(preset, profile=profile, robot=robot, **overrides)
     if perturb is not None:
         perturb(sim)
-    ctrl = StarlethController(urdf_path())
+    ctrl = StarlethController(robot=robot)
+    speed = trot_speed(ctrl.model.scale) if speed is None else speed
     n = int(round(seconds / sim.control_period))
     feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
+    foot_names = set(sim.description.foot_names)
+    x0 = float(sim.base_state()["position"][0])
     wall = np.zeros(n)
     iters = np.zeros(n, dtype=np.int64)
     lf_force, lf_t = [], []
@@ -74,7 +78,7 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
             lf_force.append(float(sim.contacts[feet[0]].force[2]))
         if push is not None:
             for c in sim.contacts:
-                if c.active and not c.name.endswith("_foot"):
+                if c.active and c.name not in foot_names:
                     knee_trunk.add(c.name)
         if k % 10 == 0:
             act = np.array([sim.contacts[i].active for i in feet])
@@ -89,7 +93,8 @@ def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
                wall=wall[:k_done].tolist(), iterations=iters[:k_done].tolist(),
                nonconverged=int(sim.diagnostics.nonconverged_steps),
                min_height=min_height, max_tilt=max_tilt, knee_trunk_contacts=sorted(knee_trunk),
-               distance=float(sim.base_state()["position"][0]),
+               distance=float(sim.base_state()["position"][0]) - x0, speed=speed,
+               robot=robot,
                control_period=sim.control_period,
                steps_per_control=sim.config.steps_per_control,
                foot_gap=foot_gap, drift_t=drift_t, drift_g=drift_g,

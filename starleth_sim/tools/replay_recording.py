@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..physics.config import PhysicsConfig, load_yaml_text
+from ..physics.config import PhysicsConfig
+from starleth_interface.yaml_files import load_yaml_text
 from ..physics.description import LEGS
 from ..ros.parameters import frame_name_problem
 from .bag import BagError, read_messages

@@ -57,7 +57,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..physics.config import ConfigError, load_preset, load_yaml_file
+from ..physics.config import ConfigError, load_preset
+from starleth_interface.yaml_files import load_yaml_file
 from ..ros.state_io import minimal_state, public_state
 from .gait_run import run_gait
 from .task_pool import SweepError, execute

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..physics.config import ConfigError, load_yaml_text
+from ..physics.config import ConfigError
+from starleth_interface.yaml_files import load_yaml_text
 from ..physics.description import LEGS, urdf_path
 from ..physics.terrain import TerrainConfig
 from ..ros.tf import base_link

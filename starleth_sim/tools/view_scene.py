@@ -12,7 +12,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..physics.description import RobotDescription
-from ..physics.urdf import urdf_origin
+from starleth_interface.robot.urdf import urdf_origin
 from .view_recording import FEET, Recording, warn
 
 #: colours (0xRRGGBB): a distinctive orange robot, green arrows, grey ground, blue-grey sky

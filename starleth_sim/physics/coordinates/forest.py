@@ -34,6 +34,8 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from starleth_interface.robot.urdf import revolute_axis
+
 from ..description import RobotDescription
 from ..kernels import (add_at, angular_jacobian, cut_joint_torques, cut_joints,  # noqa: F401
                        from_pin_dynamics, gather_joint_values, integrate_forest,
@@ -41,7 +43,6 @@ from ..kernels import (add_at, angular_jacobian, cut_joint_torques, cut_joints, 
                        rigid_body_forces, to_pin_velocity, tree_dynamics)
 from ..kinematics import KinematicTree, contact_kinematics, forward_kinematics, point_jacobian
 from ..rigid_body import BodyInertias
-from ..urdf import revolute_axis
 
 _ALIGNED = {"JointModelRX": pin.JointModelRX, "JointModelRY": pin.JointModelRY,
             "JointModelRZ": pin.JointModelRZ}

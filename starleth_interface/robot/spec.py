@@ -23,12 +23,13 @@ on load; every refusal is one line naming the file and the field, e.g.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, fields, is_dataclass
+import fnmatch
+from dataclasses import dataclass, field
 
-from ..physics.config import PhysicsConfig, load_yaml_file
-from ..physics.config_checks import ConfigError, check_number, check_str, short_repr
-from ..physics.legs import check_knees
-from ..physics.terrain import BOX_REACH
+from ..config_checks import ConfigError, check_number, check_str, short_repr
+from ..yaml_files import load_yaml_file
+from .contact_points import BOX_REACH
+from .legs import check_knees
 
 #: limits at or above these are a URDF's placeholders (Solo12's 1000 N m, 1000 rad/s): the
 #: spec must give real ones
@@ -90,7 +91,8 @@ class RobotSpec:
     knees: str | dict = "auto"
     effort: dict = field(default_factory=dict)
     velocity: dict = field(default_factory=dict)
-    #: the preset overrides of this robot, as dotted names (contact.stiffness_normal: 3000)
+    #: the preset overrides of this robot, as written ({contact: {stiffness_normal: 3000}});
+    #: the simulator checks them (starleth_sim.robots.build.physics_overrides)
     physics: dict = field(default_factory=dict)
 
     @property
@@ -99,7 +101,9 @@ class RobotSpec:
         return os.path.basename(self.file)
 
 
-def _mapping(where, v, known, required=()):
+def mapping(where, v, known, required=()):
+    """The mapping `v` of the fields `known` (and the `required` ones); ConfigError naming
+    `where` and the field."""
     if not isinstance(v, dict):
         raise ConfigError(f"{where}: expected a mapping, got {short_repr(v)}")
     for k in v:
@@ -138,7 +142,7 @@ def _radius(where, v):
 
 
 def _urdf(where, v):
-    v = _mapping(where, v, ("path", "distribution", "packages"), ("path",))
+    v = mapping(where, v, ("path", "distribution", "packages"), ("path",))
     return UrdfSource(path=check_str(f"{where}.path", v["path"]),
                       distribution=None if v.get("distribution") is None
                       else check_str(f"{where}.distribution", v["distribution"]),
@@ -147,7 +151,7 @@ def _urdf(where, v):
 
 
 def _feet(where, v):
-    v = _mapping(where, v, ("links", "radius", "at"))
+    v = mapping(where, v, ("links", "radius", "at"))
     links = _names(f"{where}.links", v["links"]) if "links" in v else None
     radius = _radius(f"{where}.radius", v["radius"]) if "radius" in v else None
     if radius is not None and links is None:
@@ -158,7 +162,7 @@ def _feet(where, v):
 
 
 def _contact(where, v):
-    v = _mapping(where, v, ("links", "name", "urdf", "spheres", "box"), ("links",))
+    v = mapping(where, v, ("links", "name", "urdf", "spheres", "box"), ("links",))
     given = [k for k in ("urdf", "spheres", "box") if k in v]
     if len(given) != 1:
         raise ConfigError(f"{where}: give exactly one of urdf, spheres, box (got "
@@ -179,11 +183,11 @@ def _contact(where, v):
         spheres = []
         for i, s in enumerate(_list(f"{where}.spheres", v["spheres"])):
             w = f"{where}.spheres[{i}]"
-            s = _mapping(w, s, ("at", "radius"), ("radius",))
+            s = mapping(w, s, ("at", "radius"), ("radius",))
             spheres.append(Sphere(_vector(f"{w}.at", s.get("at", [0.0, 0.0, 0.0])),
                                   _radius(f"{w}.radius", s["radius"])))
         return ContactEntry(links, where, name, spheres=tuple(spheres))
-    b = _mapping(f"{where}.box", v["box"], ("size", "at", "rpy"), ("size",))
+    b = mapping(f"{where}.box", v["box"], ("size", "at", "rpy"), ("size",))
     box = Box(_vector(f"{where}.box.size", b["size"], 0.0, MAX_SIZE, lo_open=True),
               _vector(f"{where}.box.at", b.get("at", [0.0, 0.0, 0.0])),
               _vector(f"{where}.box.rpy", b.get("rpy", [0.0, 0.0, 0.0]), -7.0, 7.0))
@@ -191,11 +195,11 @@ def _contact(where, v):
 
 
 def _limits(where, v):
-    v = _mapping(where, v, ("effort", "velocity"))
+    v = mapping(where, v, ("effort", "velocity"))
     out = {}
     for kind, hi in (("effort", MAX_EFFORT), ("velocity", MAX_VELOCITY)):
         m = v.get(kind) or {}
-        _mapping(f"{where}.{kind}", m, tuple(m))
+        mapping(f"{where}.{kind}", m, tuple(m))
         out[kind] = {check_str(f"{where}.{kind}: a joint name", k):
                      check_number(f"{where}.{kind}.{k}", x, 0.0, hi, lo_open=True, hi_open=True)
                      for k, x in m.items()}
@@ -203,24 +207,12 @@ def _limits(where, v):
 
 
 def _physics(where, v):
-    """The overrides as dotted names (section.field), checked by applying them to the
-    default config."""
-    default = PhysicsConfig()
-    sections = tuple(f.name for f in fields(default) if is_dataclass(getattr(default, f.name)))
-    dotted = {}
-    for section, values in _mapping(where, v, sections).items():
-        names = tuple(f.name for f in fields(getattr(default, section)))
-        for k, x in _mapping(f"{where}.{section}", values, names).items():
-            dotted[f"{section}.{k}"] = x
-    try:
-        default.with_overrides(**dotted)
-    except ConfigError as e:     # "<config name> (with overrides): <field>: <rule>"
-        raise ConfigError(f"{where}.{str(e).split(': ', 1)[-1]}") from None
-    return dotted
+    """The physics overrides as written: a mapping (the simulator checks its fields)."""
+    return dict(mapping(where, v, tuple(v) if isinstance(v, dict) else ()))
 
 
 def _standing(where, v):
-    v = _mapping(where, v, ("height", "knees"), ("height",))
+    v = mapping(where, v, ("height", "knees"), ("height",))
     return (check_number(f"{where}.height", v["height"], 0.0, MAX_SIZE, lo_open=True),
             check_knees(v.get("knees", "auto"), f"{where}.knees"))
 
@@ -231,7 +223,7 @@ def spec_from_dict(data, file: str) -> RobotSpec:
     label = os.path.basename(file)
     known = ("name", "description", "urdf", "feet", "contacts", "standing", "limits", "physics")
     try:
-        d = _mapping("spec", data, known, ("name", "urdf"))
+        d = mapping("spec", data, known, ("name", "urdf"))
         name = check_str("name", d["name"])
         if not name or not all(c.isalnum() or c in "_-" for c in name):
             raise ConfigError(f"name: letters, digits, '_' and '-' only, got {short_repr(name)}")
@@ -249,6 +241,25 @@ def spec_from_dict(data, file: str) -> RobotSpec:
             physics=_physics("physics", d["physics"]) if "physics" in d else {})
     except ConfigError as e:
         raise ConfigError(f"{label}: {str(e).removeprefix('spec: ')}") from None
+
+
+def match_names(patterns, names, where, what="link"):
+    """The names (in their order) matching any of the patterns (names or globs) of a spec
+    field `where`; each pattern must match one."""
+    for p in patterns:
+        if not fnmatch.filter(names, p):
+            raise ConfigError(f"{where}: '{p}' matches no {what} of the URDF")
+    return [n for n in names if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+
+
+def override_limits(spec: RobotSpec, joint_names, kind: str, limit) -> None:
+    """The spec's `kind` ('effort' or 'velocity') limits written over `limit` (an array in
+    the order of `joint_names`), each glob onto the joints it matches; ConfigError naming
+    the spec where a glob matches no joint."""
+    names = list(joint_names)
+    for pattern, value in getattr(spec, kind).items():
+        for n in match_names([pattern], names, f"{spec.label}: limits.{kind}", "moving joint"):
+            limit[names.index(n)] = value
 
 
 def read_spec(path: str) -> RobotSpec:

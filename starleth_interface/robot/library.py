@@ -9,8 +9,8 @@ import importlib.metadata
 import os
 from functools import lru_cache
 
-from ..physics.config_checks import ConfigError
-from ..physics.description import package_share_dir
+from ..config_checks import ConfigError
+from ..package_data import package_share_dir
 from .spec import RobotSpec, read_spec
 
 #: names kept for what recorded configurations and the presets say

@@ -47,8 +47,8 @@ class RobotScale:
         return self.mass * self.length * self.time
 
 
-def robot_scale(desc) -> RobotScale:
-    """The RobotScale of a RobotDescription."""
-    lengths = [leg.plane.length for leg in desc.legs if leg.plane is not None]
+def robot_scale(legs, total_mass: float) -> RobotScale:
+    """The RobotScale of a robot: its legs (legs.find_legs) and its total mass [kg]."""
+    lengths = [leg.plane.length for leg in legs if leg.plane is not None]
     length = sum(lengths) / len(lengths) / REFERENCE_LEG_LENGTH if lengths else 1.0
-    return RobotScale(length=_rounded(length), mass=_rounded(desc.total_mass / REFERENCE_MASS))
+    return RobotScale(length=_rounded(length), mass=_rounded(total_mass / REFERENCE_MASS))

@@ -26,7 +26,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pinocchio as pin
 
-from .config_checks import ConfigError
+from ..config_checks import ConfigError
 
 #: the joint types the simulator moves (fixed joints merge their child into the parent body)
 SUPPORTED_JOINTS = ("revolute", "fixed")

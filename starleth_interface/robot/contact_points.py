@@ -15,8 +15,9 @@ becomes spheres:
   its centre (the sphere bulges beyond the flat face);
 - ``<mesh>``: never (no mesh is read); a robot spec says which spheres or box stand for it.
 
-A robot's spheres (check_terrain_reach) must be smaller than terrain.BOX_REACH (0.1 m):
-beyond it the gaps to the terrain's boxes are no longer exact.
+A robot's spheres (check_terrain_reach) must be smaller than BOX_REACH (0.1 m, the reach
+of the simulator's terrain boxes: starleth_sim.physics.terrain): beyond it the gaps to the
+terrain's boxes are no longer exact.
 """
 from __future__ import annotations
 
@@ -25,12 +26,15 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from .config_checks import ConfigError
-from .terrain import BOX_REACH
+from ..config_checks import ConfigError
 from .urdf import numbers, urdf_origin
 
 #: the URDF collision geometries that become contact points (module docstring)
 CONTACT_GEOMETRIES = ("sphere", "box", "cylinder", "capsule")
+#: [m] a contact sphere's radius is below this: the simulator's terrain tests a box for the
+#: contacts whose centre lies within it (starleth_sim.physics.terrain), so that the gaps to
+#: the terrain are exact for every sphere of a robot
+BOX_REACH = 0.1
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from .config_checks import ConfigError
+from ..config_checks import ConfigError
 from .urdf import revolute_axis
 
 #: the knee directions of the standing posture (module docstring): sign of the knee angle
@@ -194,7 +194,7 @@ def _within(plane, angles) -> bool:
     return all(lo <= x <= hi for x, (lo, hi) in zip(angles, plane.limits))
 
 
-def _knee_sign(leg: Leg, knees, height) -> float:
+def knee_sign(leg: Leg, knees, height) -> float:
     """The knee direction of a leg: from `knees` ('backward', 'forward', {'front': ...,
     'hind': ...}), or with 'auto' the one solution within the joint limits."""
     if isinstance(knees, dict):
@@ -222,7 +222,7 @@ def standing_joint_positions(legs, n_joints: int, height: float, knees="auto") -
         if leg.plane is None:
             raise ValueError(f"leg {'/'.join(leg.joint_names)}: not a roll-pitch-pitch leg "
                              "(its 2nd and 3rd joint axes are not along the base's y axis)")
-        sign = _knee_sign(leg, knees, height)
+        sign = knee_sign(leg, knees, height)
         hfe, kfe = pitch_leg_angles(leg.plane, height, sign)
         if not _within(leg.plane, (hfe, kfe)):
             raise ValueError(f"leg {'/'.join(leg.joint_names)}: the standing posture "
