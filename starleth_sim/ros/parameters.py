@@ -118,7 +118,7 @@ SIM_NODE_PARAMETERS = (
       'Overrides of physics fields, a YAML mapping in a string, e.g. {mu: 0.0, alpha: 0.4}. '
       "On the command line quote it twice, so that ROS reads a string and not a mapping: "
       "-p \"physics_overrides:='{control_rate: 1000.0, mu: 0.5}'\"; in a parameter file: "
-      "physics_overrides: '{mu: 0.0}'. The robot is the robot parameter's, not a field here."),
+      "physics_overrides: '{mu: 0.0}'. The robot is set by the robot parameter, not here."),
     P("mode", str, "realtime",
       "realtime: a wall-clock loop at 400 Hz x real_time_factor, zero-order hold of the "
       "latest valid command. lockstep: publish the state of step k, wait for the command "
