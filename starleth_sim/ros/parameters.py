@@ -88,17 +88,20 @@ def frame_name_problem(name: str, empty_ok: bool = False) -> str:
 
 @dataclass(frozen=True)
 class FrameSpec(ParameterSpec):
-    """A TF frame name, or with `prefix` the start of one (may be empty)."""
+    """A TF frame name (with `empty_ok` or empty), or with `prefix` the start of one (may be
+    empty)."""
 
     prefix: bool = False
+    empty_ok: bool = False
 
     def range_text(self) -> str:
-        return ("empty, or the start of a frame name" if self.prefix else "a frame name") + \
+        return ("empty, or the start of a frame name" if self.prefix else
+                "empty, or a frame name" if self.empty_ok else "a frame name") + \
             ": not starting with '/', no white space"
 
     def check(self, value):
         super().check(value)
-        problem = frame_name_problem(value, empty_ok=self.prefix)
+        problem = frame_name_problem(value, empty_ok=self.prefix or self.empty_ok)
         if problem:
             raise ValueError(f"parameter {self.name}: {problem}, got {value!r}")
 
@@ -195,7 +198,7 @@ SIM_NODE_PARAMETERS = (
     FrameSpec("base_frame", str, "",
       "The base link: the root link of the URDF (the floating base; checked at start), the "
       "child frame of the odometry, the frame of the IMU; tf_frame_prefix is put before it. "
-      "Empty (the default): the URDF's root link (StarlETH's: base).", prefix=True),
+      "Empty (the default): the URDF's root link (StarlETH's: base).", empty_ok=True),
     P("publish_clock", bool, True,
       "Publish the sim time on /clock. Several robots in one ROS domain: remap it into each "
       "robot's namespace (--ros-args -r /clock:=clock on both nodes, as the launch file "
