@@ -229,7 +229,7 @@ SIM_NODE_PARAMETERS = (
              "for every joint or one per joint in joint order; settable at run time (ros2 "
              "param set). At most 1e5 (StarlETH's torques saturate at 20 N m: 0.2 mrad of "
              "error). Not set: 80 for StarlETH, for another robot 80 x mu lambda (its mass and "
-             "leg length over StarlETH's: physics/scaling.py).",
+             "leg length over StarlETH's: starleth_interface/robot/scaling.py).",
              maximum=1e5),
     GainSpec("default_kd", float, 2.0,
              "Damping kd [N m s/rad] of joint velocity targets (qd* = 0 with a position "
@@ -315,8 +315,8 @@ def _validate(self) -> "Settings":
 def robot_default_gains(description, unset) -> dict:
     """The gains of `unset` (names among default_kp, default_kd: those neither given nor in
     the settings file) for the robot of `description`: the schema's StarlETH values scaled
-    by the robot's size and mass (physics/scaling.py: kp by mu lambda, kd by mu lambda^1.5),
-    so that a hold of the standing posture sags as little as StarlETH's."""
+    by the robot's size and mass (starleth_interface.robot.scaling: kp by mu lambda, kd by
+    mu lambda^1.5), so that a hold of the standing posture sags as little as StarlETH's."""
     scale = robot_scale(description.legs, description.total_mass)
     factor = {"default_kp": scale.stiffness, "default_kd": scale.damping}
     return {name: GAIN_PARAMETERS[name].default * factor[name] for name in unset}
