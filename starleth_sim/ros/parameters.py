@@ -316,7 +316,7 @@ def robot_default_gains(description, unset) -> dict:
     """The gains of `unset` (names among default_kp, default_kd: those neither given nor in
     the settings file) for the robot of `description`: the schema's StarlETH values scaled
     by the robot's size and mass (starleth_interface.robot.scaling: kp by mu lambda, kd by
-    mu lambda^1.5), so that a hold of the standing posture sags as little as StarlETH's."""
+    mu lambda^1.5: dynamic similarity; its sag per robot: doc/performance.md)."""
     scale = robot_scale(description.legs, description.total_mass)
     factor = {"default_kp": scale.stiffness, "default_kd": scale.damping}
     return {name: GAIN_PARAMETERS[name].default * factor[name] for name in unset}
