@@ -471,7 +471,8 @@ def main_composed(args=None):
     namespace, parameters); the controller, named ``controller_node`` in the same
     namespace, takes its parameters from ``--controller-param NAME:=VALUE`` options given
     before them, e.g. ``sim_node_composed --controller-param mode:=trot --ros-args -p
-    record:=run.mcap``. Exit status as ``sim_node``'s."""
+    record:=run.mcap``; its robot is sim_node's unless one is given. Exit status as
+    ``sim_node``'s."""
     argv = list(sys.argv if args is None else args)
     try:
         argv, ctl_params = _split_controller_params(argv)
@@ -511,6 +512,8 @@ def main(args=None, controller_params=None):
             # the controller follows the clock sim_node publishes (/clock remapped, e.g.
             # into the namespace, applies to both nodes, as it would in two processes)
             clock = sim_node.node.resolve_topic_name(TOPIC_CLOCK)
+            # the robot simulated, unless --controller-param robot:= says otherwise
+            controller_params = {"robot": sim_node.settings.robot, **controller_params}
             try:
                 ctl = holder["controller"] = ControllerNode(
                     context=sim_node.context, parameter_overrides=controller_params,
