@@ -28,7 +28,8 @@ def starleth_hmj():
 # no longer reach the scheduler, hence the scheduler here.)
 ROS_MODULES = {
     "test_compile_notice", "test_controller_node", "test_impedance_ros", "test_live_view",
-    "test_realtime_start", "test_recording_faults", "test_replay", "test_ros2_control",
+    "test_realtime_start", "test_recording_faults", "test_replay", "test_robot_nodes",
+    "test_ros2_control",
     "test_ros_conventions", "test_sim_node", "test_sim_node_faults", "test_sim_time",
     "test_strict_inputs", "test_tf", "test_tf_publishing",
 }

@@ -133,7 +133,7 @@ def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
 
 
 #: sim seconds of trot in the demo test: make demo (CI runs it before the tests) checks the
-#: full 18 s and >= 4 m; here the same checks scaled to a shorter trot
+#: full 18 s and >= 0.8x the commanded distance; here the same checks on a shorter trot
 DEMO_TROT = 8.0
 
 
@@ -151,8 +151,8 @@ def test_demo_trots_and_records_the_whole_run(tmp_path):
     # the cycle rate beside the bare round-trip rate measured just before (issue 13)
     assert r.bare_round_trips > 0 and r.cycles_per_s > 0, report
     assert f"x the bare rclpy round-trip rate {r.bare_round_trips:.0f}/s" in report
-    # the issue's acceptance, >= 4 m in 18 s of trot, scaled to DEMO_TROT; no fall
-    assert r.required_distance == pytest.approx(4.0 * DEMO_TROT / 18.0)
+    # the issue's acceptance, >= 0.8x the commanded distance; no fall
+    assert r.required_distance == pytest.approx(0.8 * 0.3 * DEMO_TROT)
     assert r.trot_distance >= r.required_distance, report
     assert r.t_end - r.t_trot >= DEMO_TROT - 1e-6, report
     assert r.min_height > 0.3, report

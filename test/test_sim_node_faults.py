@@ -171,3 +171,19 @@ def test_a_bad_terrain_is_one_line_and_exit_2(tmp_path, how):
     err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
     assert len(err) == 1 and all(w in err[0] for w in want), out.stderr
     assert "Traceback" not in out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("args, want", [
+    (["-p", "robot:=no_such_robot"], ["parameter robot", "'no_such_robot'", "go1"]),
+    (["-p", "physics_overrides:='{robot: go1}'"], ["physics_overrides", "robot:=go1"])])
+def test_a_bad_robot_is_one_line_and_exit_2(args, want):
+    """A robot the library does not have, or a robot inside physics_overrides (the robot
+    parameter's place): exit 2 and one line naming the parameter, without a traceback."""
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID))
+    out = subprocess.run([sys.executable, "-m", "starleth_sim.ros.sim_node", "--ros-args",
+                          *args], capture_output=True, text=True, timeout=180, env=env,
+                         stdin=subprocess.DEVNULL)
+    assert out.returncode == 2, out.stdout + out.stderr
+    err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
+    assert len(err) == 1 and all(w in err[0] for w in want), out.stderr
+    assert "Traceback" not in out.stdout + out.stderr

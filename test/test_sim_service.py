@@ -497,3 +497,32 @@ def test_a_command_of_a_hundred_thousand_names_is_refused_at_once(sim):
         assert not ok and "duplicate joint name(s) " in why and len(why) < 400, why
     assert why.split("duplicate joint name(s) ")[1].startswith(", ".join(sorted(sim.joint_names)))
     assert svc.counters["commands_rejected"] == 2
+
+
+def test_the_hold_gains_are_starleths_scaled_to_the_robot():
+    """default_kp, default_kd left unset: StarlETH's 80 and 2 as they are for StarlETH; for
+    Go1 80 mu lambda and 2 mu lambda^1.5, mu its mass and lambda its mean leg length (hip
+    pitch to knee to foot centre, from the model's placements) over StarlETH's."""
+    import pinocchio as pin
+    from starleth_sim.robots import robot_description
+    from starleth_sim.ros.parameters import robot_default_gains
+    both = ("default_kp", "default_kd")
+    assert robot_default_gains(robot_description("starleth"), both) == \
+        {"default_kp": 80.0, "default_kd": 2.0}
+    try:
+        go1 = robot_description("go1")
+    except ConfigError as e:
+        pytest.skip(str(e))
+    model = go1.model
+    lengths = []
+    for leg in go1.legs:
+        kfe = model.getJointId(leg.joint_names[2])
+        foot = model.frames[model.getFrameId(leg.foot, pin.FrameType.BODY)]
+        lengths.append(np.linalg.norm(model.jointPlacements[kfe].translation[[0, 2]])
+                       + np.linalg.norm(foot.placement.translation))
+    lam, mu = np.mean(lengths) / 0.435, go1.total_mass / 26.82
+    gains = robot_default_gains(go1, ["default_kp"])
+    assert list(gains) == ["default_kp"]
+    assert gains["default_kp"] == pytest.approx(80.0 * mu * lam, rel=1e-4)
+    assert robot_default_gains(go1, ["default_kd"])["default_kd"] == \
+        pytest.approx(2.0 * mu * lam ** 1.5, rel=1e-4)

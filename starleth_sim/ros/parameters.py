@@ -20,6 +20,7 @@ from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP,
                                             with_parameter_table)
 from ..physics.config import ConfigError
 from starleth_interface.package_data import package_share_dir
+from starleth_interface.robot.scaling import robot_scale
 from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
 from .command_delay import MAX_COMMAND_DELAY
 from .ros2_control_description import INTERFACES, parse_command_interfaces
@@ -87,22 +88,31 @@ def frame_name_problem(name: str, empty_ok: bool = False) -> str:
 
 @dataclass(frozen=True)
 class FrameSpec(ParameterSpec):
-    """A TF frame name, or with `prefix` the start of one (may be empty)."""
+    """A TF frame name (with `empty_ok` or empty), or with `prefix` the start of one (may be
+    empty)."""
 
     prefix: bool = False
+    empty_ok: bool = False
 
     def range_text(self) -> str:
-        return ("empty, or the start of a frame name" if self.prefix else "a frame name") + \
+        return ("empty, or the start of a frame name" if self.prefix else
+                "empty, or a frame name" if self.empty_ok else "a frame name") + \
             ": not starting with '/', no white space"
 
     def check(self, value):
         super().check(value)
-        problem = frame_name_problem(value, empty_ok=self.prefix)
+        problem = frame_name_problem(value, empty_ok=self.prefix or self.empty_ok)
         if problem:
             raise ValueError(f"parameter {self.name}: {problem}, got {value!r}")
 
 
 SIM_NODE_PARAMETERS = (
+    P("robot", str, "starleth",
+      "The robot: a name of the robot library (robots/*.yaml: starleth, anymal_b, anymal_c, "
+      "go1, go2, a1, solo12, hyq, b1; all but starleth need `make robots`), the path of a "
+      "robot spec .yaml, or the path of a URDF (its sphere, box and cylinder collisions are "
+      "the contacts, its legs found from the tree). Joint, link and foot names on every "
+      "topic are the URDF's."),
     P("physics", str, "HmJ",
       "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
       "HmS, HEJD, HEJP, HESD, HESP, HMJD, HMJP, HMSD, HMSP) or the path of a preset YAML "
@@ -111,7 +121,7 @@ SIM_NODE_PARAMETERS = (
       'Overrides of physics fields, a YAML mapping in a string, e.g. {mu: 0.0, alpha: 0.4}. '
       "On the command line quote it twice, so that ROS reads a string and not a mapping: "
       "-p \"physics_overrides:='{control_rate: 1000.0, mu: 0.5}'\"; in a parameter file: "
-      "physics_overrides: '{mu: 0.0}'."),
+      "physics_overrides: '{mu: 0.0}'. The robot is set by the robot parameter, not here."),
     P("mode", str, "realtime",
       "realtime: a wall-clock loop at 400 Hz x real_time_factor, zero-order hold of the "
       "latest valid command. lockstep: publish the state of step k, wait for the command "
@@ -185,9 +195,10 @@ SIM_NODE_PARAMETERS = (
     FrameSpec("world_frame", str, "world",
       "Frame id of the world (the parent of the base pose), shared by every robot: "
       "tf_frame_prefix is not put before it."),
-    FrameSpec("base_frame", str, "base",
+    FrameSpec("base_frame", str, "",
       "The base link: the root link of the URDF (the floating base; checked at start), the "
-      "child frame of the odometry, the frame of the IMU; tf_frame_prefix is put before it."),
+      "child frame of the odometry, the frame of the IMU; tf_frame_prefix is put before it. "
+      "Empty (the default): the URDF's root link (StarlETH's: base).", empty_ok=True),
     P("publish_clock", bool, True,
       "Publish the sim time on /clock. Several robots in one ROS domain: remap it into each "
       "robot's namespace (--ros-args -r /clock:=clock on both nodes, as the launch file "
@@ -215,13 +226,16 @@ SIM_NODE_PARAMETERS = (
              "Stiffness kp [N m/rad] of joint position targets: a JointState on "
              "joint_commands with positions, and joint_group_position_controller/commands; "
              "tau = tau_ff + kp (q* - q) + kd (qd* - qd) at every physics step. One number "
-             "for every joint or 12 in joint order; settable at run time (ros2 param set). At "
-             "most 1e5 (the joints' torques saturate at 20 N m: 0.2 mrad of error).",
+             "for every joint or one per joint in joint order; settable at run time (ros2 "
+             "param set). At most 1e5 (StarlETH's torques saturate at 20 N m: 0.2 mrad of "
+             "error). Not set: 80 for StarlETH, for another robot 80 x mu lambda (its mass and "
+             "leg length over StarlETH's: starleth_interface/robot/scaling.py).",
              maximum=1e5),
     GainSpec("default_kd", float, 2.0,
              "Damping kd [N m s/rad] of joint velocity targets (qd* = 0 with a position "
              "target and no velocity), as default_kp; also the gain of "
-             "joint_group_velocity_controller/commands. At most 1e3.", maximum=1e3),
+             "joint_group_velocity_controller/commands. At most 1e3. Not set: 2 for StarlETH, "
+             "for another robot 2 x mu lambda^1.5.", maximum=1e3),
     P("command_delay", float, 0.0,
       "Latency of every command, seconds of sim time (a controller's transport and loop "
       "latency on the robot, as Isaac Lab's DelayedPDActuator models it): a command "
@@ -285,6 +299,9 @@ def _validate(self) -> "Settings":
         except ValueError as e:
             raise ConfigError(str(e)) from None
         setattr(self, p.name, value)
+    if "robot" in self.physics_override_dict():
+        raise ConfigError("parameter physics_overrides: 'robot' is not set here: use the "
+                          "robot parameter (-p robot:=go1)")
     if self.mode == "realtime" and self.real_time_factor == 0.0:
         raise ConfigError("parameter real_time_factor: 0 (as fast as possible) is only legal "
                           "in lockstep mode; realtime mode needs a factor > 0")
@@ -293,6 +310,16 @@ def _validate(self) -> "Settings":
                           " needs realtime mode (its commands answer no state: they carry "
                           "the time they were sent and come every control cycle)")
     return self
+
+
+def robot_default_gains(description, unset) -> dict:
+    """The gains of `unset` (names among default_kp, default_kd: those neither given nor in
+    the settings file) for the robot of `description`: the schema's StarlETH values scaled
+    by the robot's size and mass (starleth_interface.robot.scaling: kp by mu lambda, kd by
+    mu lambda^1.5: dynamic similarity; its sag per robot: doc/performance.md)."""
+    scale = robot_scale(description.legs, description.total_mass)
+    factor = {"default_kp": scale.stiffness, "default_kd": scale.damping}
+    return {name: GAIN_PARAMETERS[name].default * factor[name] for name in unset}
 
 
 def namespace_frame_prefix(namespace: str) -> str:

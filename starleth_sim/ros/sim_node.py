@@ -35,19 +35,20 @@ from starleth_interface.compile_notice import CompileNotice
 from starleth_interface.ros_helpers import (StopSignals, UnknownParameterError,
                                             capture_python_warnings, check_parameter_names,
                                             declare_parameters, init_ros, make_executor,
-                                            route_python_logging, set_cpu_scheduling,
-                                            shutdown_ros)
+                                            parameter_override_names, route_python_logging,
+                                            set_cpu_scheduling, shutdown_ros)
 from starleth_interface.topics import (TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS,
                                        TOPIC_JOINT_COMMANDS, TOPIC_POSITION_COMMANDS,
                                        TOPIC_VELOCITY_COMMANDS, TOPIC_WRENCH,
                                        TOPIC_WRENCH_PERSISTENT)
-from ..physics.config import ConfigError
+from ..physics.config import ConfigError, load_preset
 from ..physics.simulator import Simulator
+from ..robots import config_with_robot
 from .cdr import CommandDecoder
 from .live_view import LiveView, MeshAssets
 from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
-                         load_default_parameters, namespace_frame_prefix)
+                         load_default_parameters, namespace_frame_prefix, robot_default_gains)
 from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .period_stats import PeriodStats
 from .service import SimService
@@ -86,9 +87,9 @@ class SimNode:
         self._unroute_logging = route_python_logging(self.log, ("starleth_sim",
                                                                 "starleth_interface"))
         s = self.settings
-        overrides = s.physics_override_dict()
-        self.sim = sim = Simulator.from_preset(s.physics, **overrides)
+        self.sim = sim = self._make_simulator()
         self._check_frames()
+        self._scale_default_gains(defaults)
         q0, u0, init_desc = parse_initial_state(s.initial_state, sim)
         self.initial_state_desc = init_desc
         # two call sites: rclpy refuses one call site that logs at two severities
@@ -144,6 +145,32 @@ class SimNode:
         self.publisher.timing = value
 
     # -- setup -----------------------------------------------------------------------------
+    def _make_simulator(self) -> Simulator:
+        """The simulator of the physics preset for the robot parameter's robot (a bad
+        robot: ConfigError naming the parameter)."""
+        s = self.settings
+        try:
+            config = config_with_robot(load_preset(s.physics), s.robot)
+        except ConfigError as e:
+            text = str(e)
+            raise ConfigError(f"parameter {text}" if text.startswith("robot: ") else
+                              f"parameter robot: {text}") from None
+        config = config.with_overrides(**s.physics_override_dict())
+        return Simulator(config)
+
+    def _scale_default_gains(self, defaults):
+        """default_kp and default_kd, where neither given nor set in the settings file, are
+        StarlETH's scaled to the robot (parameters.robot_default_gains); the node's
+        parameters then say the values in use."""
+        given = set(parameter_override_names(self.node))
+        unset = [name for name, spec in GAIN_PARAMETERS.items()
+                 if name not in given and defaults[name] == spec.default]
+        gains = robot_default_gains(self.sim.description, unset)
+        if gains:
+            for name, value in gains.items():
+                setattr(self.settings, name, value)
+            self.node.set_parameters([Parameter(k, value=v) for k, v in gains.items()])
+
     def _check_frames(self):
         """base_frame must name the URDF's root link (the odometry's child frame is that
         link's frame on /tf); a namespaced node without tf_frame_prefix is told how to keep
@@ -151,6 +178,8 @@ class SimNode:
         as robot_state_publisher does not: the frame names stay what the user set)."""
         s = self.settings
         root = base_link(self.sim.description.urdf_xml)
+        if not s.base_frame:
+            s.base_frame = root
         if s.base_frame != root:
             raise ConfigError(f"parameter base_frame: {s.base_frame!r} is not the root link "
                               f"of the robot's URDF ({root!r}), whose frame on /tf is the "
@@ -443,7 +472,8 @@ def main_composed(args=None):
     namespace, parameters); the controller, named ``controller_node`` in the same
     namespace, takes its parameters from ``--controller-param NAME:=VALUE`` options given
     before them, e.g. ``sim_node_composed --controller-param mode:=trot --ros-args -p
-    record:=run.mcap``. Exit status as ``sim_node``'s."""
+    record:=run.mcap``; its robot is sim_node's unless one is given. Exit status as
+    ``sim_node``'s."""
     argv = list(sys.argv if args is None else args)
     try:
         argv, ctl_params = _split_controller_params(argv)
@@ -483,6 +513,8 @@ def main(args=None, controller_params=None):
             # the controller follows the clock sim_node publishes (/clock remapped, e.g.
             # into the namespace, applies to both nodes, as it would in two processes)
             clock = sim_node.node.resolve_topic_name(TOPIC_CLOCK)
+            # the robot simulated, unless --controller-param robot:= says otherwise
+            controller_params = {"robot": sim_node.settings.robot, **controller_params}
             try:
                 ctl = holder["controller"] = ControllerNode(
                     context=sim_node.context, parameter_overrides=controller_params,

@@ -10,7 +10,6 @@ import numpy as np
 
 from ..physics.config import ConfigError
 from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
-from ..physics.description import STARLETH_FEET
 from ..physics.kinematics import quat_xyzw_to_rot
 from ..physics.simulator import Simulator
 
@@ -229,11 +228,11 @@ def joint_values(sim: Simulator):
 def state_bundle_bytes(bundle_cdr, sec, nsec, base, joints, forces) -> bytes:
     """The state bundle (starleth_interface.state_bundle, through `bundle_cdr`, a
     StateBundleCdr) of one step from base_values, joint_values and the contact forces
-    F = Λ/Δt (Simulator.contact_forces(): the feet first): the floats of the public state
-    topics, bit for bit."""
+    F = Λ/Δt of the feet (the first rows of Simulator.contact_forces(), one per foot of the
+    description): the floats of the public state topics, bit for bit."""
     p, quat, _, w, _, v_body = base
     return bundle_cdr.build(sec, nsec, *joints, (*p, *quat), (*v_body, *w),
-                            forces[:len(STARLETH_FEET)].reshape(-1))
+                            forces.reshape(-1))
 
 
 class ImuEstimate:

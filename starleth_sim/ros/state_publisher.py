@@ -20,13 +20,11 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr,
                                        JointStateCdr)
-from starleth_interface.state_bundle import JOINT_NAMES as BUNDLE_JOINT_NAMES
-from starleth_interface.state_bundle import StateBundleCdr
+from starleth_interface.state_bundle import BundleLayout, StateBundleCdr
 from starleth_interface.topics import (TOPIC_APPLIED_TORQUE, TOPIC_BASE_STATE, TOPIC_CLOCK,
                                        TOPIC_IMU,
                                        TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER,
                                        TOPIC_STATE_BUNDLE, foot_wrench_topic)
-from ..physics.description import STARLETH_FEET as FEET
 from .qos import CLOCK_QOS, LATCHED_QOS, STATE_QOS
 from .ros2_control_description import (parse_command_interfaces, simulator_section,
                                        with_ros2_control)
@@ -48,15 +46,16 @@ class StatePublisher:
     :class:`~starleth_interface.cycle_times.CycleTimes`, benchmarks only) times each
     part."""
 
-    #: the topics a controller waits for before it answers a state
-    STATE_TOPICS = ("joint_states", "base_state", *FEET, "state_bundle")
-
     def __init__(self, node, sim, settings, service, output, diagnostics, imu, log):
         self.sim, self.settings, self.service = sim, settings, service
         self.output, self.diagnostics, self.imu = output, diagnostics, imu
         self.recording = output.recording
         self.timing = None           # a CycleTimes, set by benchmarks
-        self._feet_first = tuple(sim.contact_names[:len(FEET)]) == tuple(FEET)
+        #: the robot's feet (contact names, the description's order): a wrench topic each
+        self.feet = feet = tuple(sim.description.foot_names)
+        #: the topics a controller waits for before it answers a state
+        self.state_topics = ("joint_states", "base_state", *feet, "state_bundle")
+        self._feet_first = tuple(sim.contact_names[:len(feet)]) == feet
         self._make_templates()
         self._make_publishers()
         self.visualisation = Visualisation(node, sim, settings, service, output, log)
@@ -68,7 +67,7 @@ class StatePublisher:
         self.js_msg.name = list(sim.joint_names)
         self._js_cdr = JointStateCdr.create(list(sim.joint_names))
         self.wrench_msgs = {}
-        for foot in FEET:
+        for foot in self.feet:
             m = WrenchStamped()
             m.header.frame_id = s.world_frame
             self.wrench_msgs[foot] = m
@@ -90,18 +89,17 @@ class StatePublisher:
         i.header.frame_id = base
         self._imu_cdr = FixedCdr.create(i, IMU_FIELDS)
         self._clock_cdr = FixedCdr.create(Clock(), (), stamp="clock")
-        # the state bundle (starleth_interface.state_bundle): only for the robot whose
-        # joints and feet are in the bundle's order
-        self.bundle_cdr = (StateBundleCdr.create()
-                           if tuple(sim.joint_names) == BUNDLE_JOINT_NAMES
-                           and self._feet_first else None)
+        # the state bundle (starleth_interface.state_bundle) of the robot's joints and feet
+        # (the feet the first contact points, as every description has them)
+        self.bundle_cdr = (StateBundleCdr.create(BundleLayout(sim.n_joints, len(self.feet)))
+                           if self._feet_first else None)
 
     def _make_publishers(self):
         add = self.output.add
         if self.settings.publish_clock:
             add("clock", Clock, TOPIC_CLOCK, CLOCK_QOS)
         add("joint_states", JointState, TOPIC_JOINT_STATES, STATE_QOS)
-        for foot in FEET:
+        for foot in self.feet:
             add(foot, WrenchStamped, foot_wrench_topic(foot), STATE_QOS)
         add("base_state", Odometry, TOPIC_BASE_STATE, STATE_QOS)
         add("imu", Imu, TOPIC_IMU, STATE_QOS)
@@ -143,7 +141,7 @@ class StatePublisher:
         # base state, then /joint_states, the message a controller answers on
         # (controller_node takes the others when it arrives: one wake-up of its executor
         # per state), then the others
-        feet = [f for f in FEET if wanted(f, record)]
+        feet = [f for f in self.feet if wanted(f, record)]
         if feet:
             self._publish_foot_wrenches(sec, nsec, feet, record, forces)
         want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
@@ -192,9 +190,9 @@ class StatePublisher:
         self.publish_state(record=False)
 
     def state_subscriber_count(self) -> int:
-        """The subscribers of the topics a controller waits for (STATE_TOPICS), now."""
+        """The subscribers of the topics a controller waits for (state_topics), now."""
         pubs = self.output.pubs
-        return sum(pubs[k][0].get_subscription_count() for k in self.STATE_TOPICS
+        return sum(pubs[k][0].get_subscription_count() for k in self.state_topics
                    if k in pubs)
 
     def clock_subscriber_count(self) -> int:
@@ -225,10 +223,11 @@ class StatePublisher:
         return out.counts.get("state_bundle", 0) > 0 or out.live_wants("state_bundle")
 
     def publish_bundle(self, sec, nsec, base, joints, forces):
-        """starleth/state_bundle: the values of joint_states, base_state and the four foot
+        """starleth/state_bundle: the values of joint_states, base_state and the foot
         wrenches of this step in one Float64MultiArray (state_io.state_bundle_bytes)."""
         p, topic, _, _ = self.output.pubs["state_bundle"]
-        data = state_bundle_bytes(self.bundle_cdr, sec, nsec, base, joints, forces)
+        data = state_bundle_bytes(self.bundle_cdr, sec, nsec, base, joints,
+                                  forces[:len(self.feet)])
         p.publish(data)
         if self.output.live_wants("state_bundle"):
             self.output.live.log(topic, data, self.service.stamp_ns)
@@ -263,11 +262,11 @@ class StatePublisher:
         if cdr is not None and self._feet_first:
             if forces is None:
                 forces = self.sim.contact_forces()
-            for name, f in zip(FEET, forces[:len(FEET)].tolist()):
+            for name, f in zip(self.feet, forces[:len(self.feet)].tolist()):
                 if name in feet:
                     self.output.emit_cdr(name, cdr.build(sec, nsec, f), record)
             return
-        for c in self.sim.contacts[:len(FEET)]:
+        for c in self.sim.contacts:
             if c.name not in feet:
                 continue
             m = self.wrench_msgs[c.name]

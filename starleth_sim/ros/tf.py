@@ -88,9 +88,10 @@ class FrameTree:
         links = {self.root} | {e.child for e in edges}
         self._frame_id = {}
         for link in links:
-            if not model.existFrame(link):
+            # (a link's body frame: a joint may have the link's name, as ANYmal C's do)
+            if not model.existFrame(link, pin.FrameType.BODY):
                 raise ValueError(f"link '{link}' is not a frame of the model")
-            self._frame_id[link] = model.getFrameId(link)
+            self._frame_id[link] = model.getFrameId(link, pin.FrameType.BODY)
 
     def frame_name(self, link: str | None) -> str:
         return self.world_frame if link is None else self.prefix + link

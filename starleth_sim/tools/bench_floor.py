@@ -66,7 +66,7 @@ def bundle_bytes(bundle_cdr, sim, stamp_ns):
     (a StateBundleCdr)."""
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
     return state_bundle_bytes(bundle_cdr, sec, nsec, base_values(sim), joint_values(sim),
-                              sim.contact_forces())
+                              sim.contact_forces()[:len(sim.description.foot_names)])
 
 
 class FloorSim:

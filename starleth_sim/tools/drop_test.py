@@ -1,8 +1,8 @@
-"""``starleth-demo --drop``: the headless drop test (no ROS). StarlETH falls from `height` onto
-flat ground under a joint PD posture hold (physics.posture.PostureHold), settles, and a
-summary is printed: speed, trunk height, peak impact, per-foot normal force (their sum
-against the weight), solver iterations. Exit status 0 when the feet carry the weight to 1 %
-and every step converged."""
+"""``starleth-demo --drop``: the headless drop test (no ROS). StarlETH (or ``--robot``)
+falls from `height` onto flat ground under a joint PD posture hold (physics.posture.PostureHold),
+settles, and a summary is printed: speed, trunk height, peak impact, per-foot normal force
+(their sum against the weight), solver iterations. Exit status 0 when the feet carry the
+weight to 1 % and every step converged."""
 from __future__ import annotations
 
 import time
@@ -13,8 +13,8 @@ from ..physics.posture import PostureHold
 from ..physics.simulator import Simulator
 
 
-def drop_test(preset="HmJ", height=0.1, seconds=5.0):
-    sim = Simulator.from_preset(preset)
+def drop_test(preset="HmJ", height=0.1, seconds=5.0, robot="starleth"):
+    sim = Simulator.from_preset(preset, robot=robot)
     q = sim.q
     q[2] += height
     sim.reset(q)
@@ -32,10 +32,11 @@ def drop_test(preset="HmJ", height=0.1, seconds=5.0):
 
 
 def drop_main(args) -> int:
-    sim, iters, wall, n, peak = drop_test(args.preset, args.height, args.seconds)
+    sim, iters, wall, n, peak = drop_test(args.preset, args.height, args.seconds, args.robot)
     steps = n * sim.config.steps_per_control
     weight = sim.description.total_mass * 9.81
-    print(f"StarlETH drop test: {args.preset}, dropped from {args.height:g} m, "
+    label = "StarlETH" if args.robot == "starleth" else args.robot
+    print(f"{label} drop test: {args.preset}, dropped from {args.height:g} m, "
           f"{args.seconds:g} s simulated, joint PD posture hold")
     print(f"  speed          {steps / wall:8.0f} physics steps/s, real-time factor "
           f"{n * sim.control_period / wall:.1f}")

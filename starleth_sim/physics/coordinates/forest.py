@@ -423,9 +423,9 @@ class ForestCoordinates:
 
     def _link_point(self, frame):
         src = self.src
-        if not src.existFrame(frame):
+        if not src.existFrame(frame, pin.FrameType.BODY):   # (a joint may share its name)
             raise ValueError(f"unknown link '{frame}'")
-        f = src.frames[src.getFrameId(frame)]
+        f = src.frames[src.getFrameId(frame, pin.FrameType.BODY)]
         fj, off = self.joint_map[f.parentJoint] if f.parentJoint in self.joint_map else (None, None)
         if fj is None:  # frame on the universe
             raise ValueError(f"link '{frame}' is not part of the robot")
