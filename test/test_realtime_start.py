@@ -88,7 +88,7 @@ def timer_controller():
 def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
     """The timer controller example, as written, beside `sim_node --ros-args -p
     default_kp:=300.0` (realtime, the default): sim time runs before it starts, so its timer
-    fires; sim_node receives its first command within 1 s of sim time after the node's
+    fires; sim_node receives its first command within 2 s of sim time after the node's
     publisher is discovered (3 s after the node appears: DDS discovery), and the robot trots
     in place (each diagonal pair alone on the ground over a third of the time, the other pair
     in the air; the trunk above 0.37 m)."""
@@ -126,9 +126,11 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
           f"{commands[0]:.3f} s, {len(commands)} commands (every {rate * 1e3:.1f} ms of sim "
           f"time); diagonal pairs alone {pair_a:.2f} / {pair_b:.2f} of the time; trunk "
           f"{z[later].min():.3f} to {z[later].max():.3f} m")
-    # from the start (the clock ran before it): within 1 s of its publisher being known on
-    # the network, and of the node itself within Fast DDS's announcement period (3 s)
-    assert t_appeared > 0.5 and commands[0] - t_discovered <= 1.0
+    # from the start (the clock ran before it): within 2 s of its publisher being known on
+    # the network (1 s on an idle machine; its subscriptions still have to discover /clock and
+    # the state on 2 loaded cores), and of the node itself within Fast DDS's announcement
+    # period (3 s)
+    assert t_appeared > 0.5 and commands[0] - t_discovered <= 2.0
     assert commands[0] - t_appeared <= 3.0
     assert rate == pytest.approx(0.02, rel=0.1)         # 50 Hz of sim time
     assert pair_a > 0.33 and pair_b > 0.33

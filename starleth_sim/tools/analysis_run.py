@@ -150,8 +150,9 @@ def _make_handler(kind, col: _Collector, decode):
             if names != state["names"]:
                 if col.joint_names is None:
                     col.joint_names = list(names)
-                    state["order"] = {n: i for i, n in enumerate(names)}
-                    state["nan_row"] = [math.nan] * len(names)
+                if state["order"] is None:      # (a split bag's later file: the first's names)
+                    state["order"] = {n: i for i, n in enumerate(col.joint_names)}
+                    state["nan_row"] = [math.nan] * len(col.joint_names)
                 state["names"] = list(names)
                 state["index"] = [state["order"].get(n, -1) for n in names]
                 col.ignored_joints += [n for n in names if n not in state["order"]
