@@ -35,7 +35,7 @@ PIP_ONLY = {
     "mcap": "pip `mcap`: no rosdep key",
     "mcap_ros2": "pip `mcap-ros2-support`: no rosdep key",
     "meshcat": "pip: starleth-view only, no rosdep key",
-    "coal": "pip `coal`, installed with the `pin` wheel (its collision library): the meshes' loader",
+    "coal": "pip `coal`, installed with the `pin` wheel: the loader of the view's meshes",
     "lz4": "optional (bag compression in tools/bag.py), pip",
     "zstandard": "optional (bag compression in tools/bag.py), pip",
     "pyarrow": "optional extra `parquet` (starleth-sweep)",
