@@ -14,22 +14,12 @@ from starleth_controller.model import NotAQuadruped
 from starleth_controller.node_parameters import default_wrench_topics
 from starleth_interface.topics import foot_wrench_topic
 from starleth_controller.robot_params import params_for_robot
-from starleth_sim import ConfigError
-from starleth_sim.physics.description import urdf_path
-from starleth_sim.robots import available_robots, load_robot, urdf_file
+from starleth_sim.robots import available_robots
 from starleth_sim.tools.gait_run import run_gait
+from robot_cases import ankle_urdf, needs_data
 
 ROBOTS = available_robots()
 STAND, TROT = 2.0, 4.0       # s
-
-
-def needs_data(name):
-    """Skips (with the one-line reason, which says `make robots`) when the robot's URDF is
-    missing."""
-    try:
-        urdf_file(load_robot(name))
-    except ConfigError as e:
-        pytest.skip(str(e))
 
 
 @pytest.mark.parametrize("name", ROBOTS)
@@ -84,16 +74,7 @@ def test_leg_kinematics_are_pinocchios(name):
 def test_a_robot_without_four_3_joint_legs_is_refused_in_one_line(tmp_path):
     """StarlETH with an ankle on one leg (13 joints, 3 legs of 3 joints): one line naming
     the file and why."""
-    with open(urdf_path()) as f:
-        urdf = f.read()
-    ankle = urdf.replace('<joint name="LF_FOOT_FIXED" type="fixed">',
-                         '<joint name="LF_ANKLE" type="revolute"><axis xyz="0 1 0"/>'
-                         '<limit lower="-1" upper="1" effort="5" velocity="10"/>')
-    ankle = ankle.replace('<link name="LF_FOOT">', '<link name="LF_FOOT"><inertial><mass '
-                          'value="0.05"/><inertia ixx="1e-3" ixy="0" ixz="0" iyy="1e-3" '
-                          'iyz="0" izz="1e-3"/></inertial>')
-    path = tmp_path / "ankle.urdf"
-    path.write_text(ankle)
+    path = ankle_urdf(tmp_path)
     with pytest.raises(NotAQuadruped) as e:
         RobotModel(robot=str(path))
     message = str(e.value)

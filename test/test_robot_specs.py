@@ -9,6 +9,7 @@ from starleth_sim import ConfigError, Simulator
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.impedance import ImpedanceCommand
 from starleth_sim.robots import INSTALL_HINT, robot_description
+from robot_cases import ankle_urdf
 
 with open(urdf_path()) as _f:
     STARLETH_URDF = _f.read()
@@ -184,14 +185,7 @@ def test_a_robot_without_four_3_joint_legs_still_simulates(tmp_path):
     """StarlETH with an ankle joint on one leg (13 joints; that leg is no 3-joint chain, so
     the legs' sides are unknown): it rests in its neutral posture and steps under torques
     and impedance commands, its joints in the URDF's document order."""
-    ankle = STARLETH_URDF.replace('<joint name="LF_FOOT_FIXED" type="fixed">',
-                                  '<joint name="LF_ANKLE" type="revolute"><axis xyz="0 1 0"/>'
-                                  '<limit lower="-1" upper="1" effort="5" velocity="10"/>')
-    ankle = ankle.replace('<link name="LF_FOOT">', '<link name="LF_FOOT"><inertial><mass '
-                          'value="0.05"/><inertia ixx="1e-3" ixy="0" ixz="0" iyy="1e-3" iyz="0"'
-                          ' izz="1e-3"/></inertial>')
-    path = tmp_path / "ankle.urdf"
-    path.write_text(ankle)
+    path = ankle_urdf(tmp_path)
     for preset in ("HmJ", "HEJD", "HMSP"):
         sim = Simulator.from_preset(preset, robot=str(path))
         assert sim.joint_names[:4] == ("LF_HAA", "LF_HFE", "LF_KFE", "LF_ANKLE")

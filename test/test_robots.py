@@ -17,25 +17,17 @@ import pinocchio as pin
 import pytest
 
 from coordinate_checks import TIGHT, compare_three
-from starleth_sim import PRESETS, ConfigError, Simulator
+from robot_cases import needs_data
+from starleth_sim import PRESETS, Simulator
 from starleth_sim.physics.description import STARLETH_FEET, STARLETH_JOINT_NAMES, urdf_path
 from starleth_sim.physics.posture import DEFAULT_KD, DEFAULT_KP, PostureHold
 from starleth_interface.robot.scaling import robot_scale
 from starleth_sim.robots import (available_robots, load_robot, robot_description,
-                                 starleth_description, urdf_file)
+                                 starleth_description)
 
 ROBOTS = available_robots()
 G = 9.81
 OLD_STANDING_HEIGHT = 0.415
-
-
-def needs_data(name):
-    """Skips (with the one-line reason, which says `make robots`) when the robot's URDF is
-    missing."""
-    try:
-        urdf_file(load_robot(name))
-    except ConfigError as e:
-        pytest.skip(str(e))
 
 
 def test_the_library_holds_starleth_and_the_example_robot_data_quadrupeds():

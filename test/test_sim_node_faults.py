@@ -150,6 +150,19 @@ def test_a_recording_that_cannot_be_written_is_one_line_and_exit_2(tmp_path):
     assert "recording in this process" not in out.stdout + out.stderr
 
 
+def assert_one_line_exit_2(args, want):
+    """sim_node --ros-args *args exits 2 with one line (beside [INFO] lines) holding every
+    string of `want`, and no traceback."""
+    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID))
+    out = subprocess.run([sys.executable, "-m", "starleth_sim.ros.sim_node", "--ros-args",
+                          *args], capture_output=True, text=True, timeout=180, env=env,
+                         stdin=subprocess.DEVNULL)
+    assert out.returncode == 2, out.stdout + out.stderr
+    err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
+    assert len(err) == 1 and all(w in err[0] for w in want), out.stderr
+    assert "Traceback" not in out.stdout + out.stderr
+
+
 @pytest.mark.parametrize("how", ["file", "overrides"])
 def test_a_bad_terrain_is_one_line_and_exit_2(tmp_path, how):
     """A terrain that is not valid, in a physics file (-p physics:=FILE) or in
@@ -163,14 +176,7 @@ def test_a_bad_terrain_is_one_line_and_exit_2(tmp_path, how):
     else:
         args = ["-p", "physics_overrides:='{boxes: [{centre: [0, 0], size: [1, 1, 1]}]}'"]
         want = ["with overrides", "terrain.boxes[0].centre", "3 numbers"]
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID))
-    out = subprocess.run([sys.executable, "-m", "starleth_sim.ros.sim_node", "--ros-args",
-                          *args], capture_output=True, text=True, timeout=180, env=env,
-                         stdin=subprocess.DEVNULL)
-    assert out.returncode == 2, out.stdout + out.stderr
-    err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
-    assert len(err) == 1 and all(w in err[0] for w in want), out.stderr
-    assert "Traceback" not in out.stdout + out.stderr
+    assert_one_line_exit_2(args, want)
 
 
 @pytest.mark.parametrize("args, want", [
@@ -179,11 +185,4 @@ def test_a_bad_terrain_is_one_line_and_exit_2(tmp_path, how):
 def test_a_bad_robot_is_one_line_and_exit_2(args, want):
     """A robot the library does not have, or a robot inside physics_overrides (the robot
     parameter's place): exit 2 and one line naming the parameter, without a traceback."""
-    env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(DOMAIN_ID))
-    out = subprocess.run([sys.executable, "-m", "starleth_sim.ros.sim_node", "--ros-args",
-                          *args], capture_output=True, text=True, timeout=180, env=env,
-                         stdin=subprocess.DEVNULL)
-    assert out.returncode == 2, out.stdout + out.stderr
-    err = [x for x in out.stderr.splitlines() if x.strip() and not x.startswith("[INFO]")]
-    assert len(err) == 1 and all(w in err[0] for w in want), out.stderr
-    assert "Traceback" not in out.stdout + out.stderr
+    assert_one_line_exit_2(args, want)

@@ -20,6 +20,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from ros_test_nodes import NodeProcess  # noqa: E402
+from robot_cases import ankle_urdf  # noqa: E402
 from starleth_interface.ros_helpers import (RosLogHandler, UnknownParameterError,  # noqa: E402
                                             check_parameter_names, declare_parameters,
                                             route_python_logging)
@@ -60,17 +61,7 @@ def test_an_unknown_parameter_is_one_line_and_exit_2(module, args, line):
 def test_a_robot_the_controller_cannot_drive_is_one_line_and_exit_2(tmp_path):
     """controller_node -p robot:=... with a robot that is not four 3-joint legs (StarlETH with
     an ankle on one leg: 13 joints, 3 legs), or that is not in the library."""
-    from starleth_sim.physics.description import urdf_path
-    with open(urdf_path()) as f:
-        urdf = f.read()
-    ankle = urdf.replace('<joint name="LF_FOOT_FIXED" type="fixed">',
-                         '<joint name="LF_ANKLE" type="revolute"><axis xyz="0 1 0"/>'
-                         '<limit lower="-1" upper="1" effort="5" velocity="10"/>')
-    ankle = ankle.replace('<link name="LF_FOOT">', '<link name="LF_FOOT"><inertial><mass '
-                          'value="0.05"/><inertia ixx="1e-3" ixy="0" ixz="0" iyy="1e-3" '
-                          'iyz="0" izz="1e-3"/></inertial>')
-    path = tmp_path / "ankle.urdf"
-    path.write_text(ankle)
+    path = ankle_urdf(tmp_path)
     rc, out = run_node("starleth_controller.controller_node", "-p", f"robot:={path}")
     assert (rc, out.strip()) == (2, f"controller_node: configuration error: {path}: not a "
                                     "four-legged robot of 3-joint legs the controller drives: "
