@@ -3,7 +3,8 @@
 over two topics): generated from the robot's joints, with sim_node's own topics, so that
 ``ros2_control_node`` can load it from the ``robot_description`` sim_node publishes
 (parameter ``ros2_control_command_interfaces``), or a bringup of the user's own can paste
-it (``urdf/starleth_ros2_control.xml``, generated with the defaults:
+it (``urdf/starleth_ros2_control.xml``, generated with the defaults; another robot's with
+``--robot NAME``, a library name or a spec or URDF path):
 
     python -m starleth_sim.ros.ros2_control_description > urdf/starleth_ros2_control.xml
 
@@ -108,6 +109,9 @@ def main(argv=None) -> int:
                     "robot in the initial state sim_node starts from.")
     ap.add_argument("--command-interfaces", default=",".join(DEFAULT_COMMAND_INTERFACES),
                     help="comma-separated subset of position, velocity, effort")
+    ap.add_argument("--robot", default=None,
+                    help="a library robot name, or the path of a robot spec .yaml or a URDF "
+                         "(default: the physics preset's, StarlETH)")
     ap.add_argument("--physics", default="HmJ", help="physics preset (or YAML path)")
     ap.add_argument("--initial-state", default="standing",
                     help="as sim_node's initial_state parameter")
@@ -118,7 +122,7 @@ def main(argv=None) -> int:
         interfaces = parse_command_interfaces(args.command_interfaces, "--command-interfaces")
         if not interfaces:
             raise ConfigError("--command-interfaces: at least one is needed")
-        sim = Simulator.from_preset(args.physics)
+        sim = Simulator.from_preset(args.physics, robot=args.robot)
         q0, u0, _ = parse_initial_state(args.initial_state, sim)
         sim.reset(q0, u0)
     except ConfigError as e:
