@@ -142,6 +142,30 @@ def test_section_names_the_urdf_joints_with_interfaces_sim_node_serves(standing)
     assert "sum_wrapped_joint_states" not in params        # sim_node's angles are not wrapped
 
 
+@pytest.mark.parametrize("robot", ["starleth", "go1", "solo12"])
+def test_section_limits_are_the_urdf_limits(robot):
+    """Each command interface's min and max: the position range of the joint's URDF
+    <limit> tag (read here from the file), velocity and effort symmetric about 0 at the
+    limits sim_node's robot has (its spec's over the URDF's: Solo12's URDF says 1000 rad/s,
+    its spec 83.8); the initial position within its range."""
+    sim = Simulator.from_preset("HmJ", robot=robot)
+    sim.reset(*parse_initial_state("standing", sim)[:2])
+    info = section_info(rcd.simulator_section(sim))
+    tags = {j.get("name"): j.find("limit") for j in ET.parse(robot_urdf(robot)).getroot()
+            .findall("joint") if j.get("type") == "revolute"}
+    desc = sim.description
+    for j, joint in enumerate(info.joints):
+        bounds = {c.name: (float(c.min), float(c.max)) for c in joint.command_interfaces}
+        tag = tags[joint.name]
+        assert bounds["position"] == (float(tag.get("lower")), float(tag.get("upper")))
+        lo, hi = bounds["position"]
+        assert lo <= float(joint.state_interfaces[0].initial_value) <= hi
+        for itf, limit in (("velocity", desc.velocity_limit), ("effort", desc.effort_limit)):
+            assert bounds[itf] == (-limit[j], limit[j]) and limit[j] > 0
+            if robot == "starleth":         # its URDF has every limit, its spec none
+                assert limit[j] == float(tag.get(itf)), (joint.name, itf)
+
+
 def test_description_with_section_loads_as_before(standing):
     """A URDF with the section is the same robot for every reader of robot_description
     here: the simulator's description, the controller's model, the bag summary."""
