@@ -7,7 +7,8 @@ STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 LIVE_PORT ?= 8765
 
-.PHONY: venv test-deps robots test demo bench eval ray browser-test constraints clean distclean
+.PHONY: venv test-deps robots test demo bench eval ray browser-test constraints ros2-control-configs \
+        clean distclean
 
 venv: $(STAMP)
 
@@ -156,6 +157,13 @@ constraints:
 	  echo "# requirements files without constraints), then run \`make test\` and commit both."; \
 	  $$tmp/venv/bin/python -m pip freeze --disable-pip-version-check; } > constraints.txt; \
 	rm -rf $$tmp; echo "constraints.txt refreshed: run make test, then commit it"
+
+# Regenerate config/<robot>_controllers.yaml (ros2_control controllers) of every library robot
+# from its URDF (test/test_ros2_control_files.py checks they are up to date).
+ros2-control-configs: venv robots
+	@set -e; for r in $$($(VPY) -c 'from starleth_sim.robots import available_robots as a; print(*a())'); do \
+	  $(VPY) -m starleth_sim.ros.ros2_control_controllers --robot $$r > config/$${r}_controllers.yaml; \
+	  echo "config/$${r}_controllers.yaml"; done
 
 clean:
 	rm -rf build install log *.egg-info .pytest_cache .ruff_cache

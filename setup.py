@@ -97,6 +97,7 @@ setup(
             'starleth-replay = starleth_sim.tools.replay:main',
             'starleth-sweep = starleth_sim.tools.sweep:main',
             'starleth-precompile = starleth_sim.tools.precompile:main',
+            'starleth-ros2-controllers = starleth_sim.ros.ros2_control_controllers:main',
         ],
     },
 )

@@ -53,6 +53,8 @@ COMMANDED_FIELDS = ("position", "velocity", "effort")      # what write() puts i
 class InterfaceInfo:
     name: str
     initial_value: str = ""
+    min: str = ""
+    max: str = ""
 
 
 @dataclass
@@ -77,7 +79,9 @@ def _params(elem) -> dict:
 
 
 def _interface(elem) -> InterfaceInfo:
-    return InterfaceInfo(elem.get("name"), _params(elem).get("initial_value", ""))
+    params = _params(elem)
+    return InterfaceInfo(elem.get("name"), params.get("initial_value", ""),
+                         params.get("min", ""), params.get("max", ""))
 
 
 def parse_ros2_control(urdf_xml: str) -> list:

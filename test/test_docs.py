@@ -171,7 +171,7 @@ def references():
             first = line.split()[0] if line.split() else ""
             if first in ("sim_node", "controller_node", "sim_node_composed"):
                 refs.append((page, "script", first))
-            for m in re.finditer(r"(?<![\w/-])(starleth-[a-z][a-z-]*[a-z])", line):
+            for m in re.finditer(r"(?<![\w/-])(starleth-[a-z][a-z0-9-]*[a-z0-9])", line):
                 refs.append((page, "script", m.group(1)))
             for m in re.finditer(r"\b((?:%s)(?:\.\w+)+)" % "|".join(PACKAGES), line):
                 refs.append((page, "dotted", m.group(1)))

@@ -3,9 +3,12 @@ here): the <ros2_control> section (urdf/starleth_ros2_control.xml, and sim_node'
 robot_description with ros2_control_command_interfaces) names exactly the URDF's actuated
 joints with interfaces sim_node serves; what TopicBasedSystem sends for each choice of
 command interfaces is a command sim_node takes, with the meaning the docs give it;
-config/starleth_controllers.yaml names real Jazzy controller types and parameters, and only
-joints and interfaces of the section; launch/starleth_ros2_control.launch.xml starts only
-sim_node and ros2_control's programs, with parameters and spawner options they have.
+config/<robot>_controllers.yaml, generated for every library robot, names real Jazzy
+controller types and parameters, exactly the robot's URDF's actuated joints and interfaces of
+its section; launch/starleth_ros2_control.launch.xml starts only sim_node and ros2_control's
+programs, with parameters and spawner options they have, and the robot's controllers file;
+for Go1 a forward controller of that file drives the hardware of Go1's section, and sim_node
+takes what it sends.
 test_ros2_control.py runs the whole path with ROS nodes."""
 import io
 import os
@@ -22,8 +25,9 @@ pytest.importorskip("rclpy")
 from rclpy.time import Time  # noqa: E402
 
 from launch_file import ROS2_CONTROL_LAUNCH_FILE, launch_arguments, launch_nodes  # noqa: E402
-from ros2_control_stand_in import (HardwareInfo, TopicBasedSystem,  # noqa: E402
-                                   parse_ros2_control, spawner_arguments)
+from ros2_control_stand_in import (ForwardCommandController, HardwareInfo,  # noqa: E402
+                                   TopicBasedSystem, parse_ros2_control, spawner_arguments)
+from std_msgs.msg import Float64MultiArray  # noqa: E402
 from starleth_controller.model import RobotModel  # noqa: E402
 from starleth_interface.ros_helpers import ROS_PARAMETERS  # noqa: E402
 from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS,  # noqa: E402
@@ -32,6 +36,8 @@ from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMAN
 from starleth_sim.physics.config import ConfigError  # noqa: E402
 from starleth_sim.physics.description import RobotDescription, urdf_path  # noqa: E402
 from starleth_sim.physics.simulator import Simulator  # noqa: E402
+from starleth_sim.robots import available_robots, robot_urdf  # noqa: E402
+from starleth_sim.ros import ros2_control_controllers as rcc  # noqa: E402
 from starleth_sim.ros import ros2_control_description as rcd  # noqa: E402
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings  # noqa: E402
 from starleth_sim.ros.service import SimService  # noqa: E402
@@ -40,7 +46,8 @@ from starleth_sim.tools.analysis_summary import urdf_info  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SECTION_FILE = os.path.join(ROOT, "urdf", "starleth_ros2_control.xml")
-CONTROLLERS_FILE = os.path.join(ROOT, "config", "starleth_controllers.yaml")
+CONFIG_DIR = os.path.join(ROOT, "config")
+ROBOTS = available_robots()
 # What ROS 2 Jazzy's ros2_control has (controller_manager's, forward_command_controller's,
 # joint_state_broadcaster's and joint_trajectory_controller's parameter definitions and
 # plugin descriptions, ros2_control 4.x / ros2_controllers 4.x): the types and parameter
@@ -81,9 +88,10 @@ def flat_keys(d, prefix=""):
             yield f"{prefix}{k}"
 
 
-def urdf_actuated_joints():
-    """The names of the URDF's joints that move (not fixed), in document order."""
-    root = ET.parse(urdf_path()).getroot()
+def urdf_actuated_joints(path=None):
+    """The names of the URDF's joints that move (not fixed), in document order (default:
+    StarlETH's URDF)."""
+    root = ET.parse(path or urdf_path()).getroot()
     return [j.get("name") for j in root.findall("joint") if j.get("type") != "fixed"]
 
 
@@ -132,6 +140,30 @@ def test_section_names_the_urdf_joints_with_interfaces_sim_node_serves(standing)
     assert params["joint_states_topic"] == TOPIC_JOINT_STATES
     assert float(params["trigger_joint_command_threshold"]) < 0
     assert "sum_wrapped_joint_states" not in params        # sim_node's angles are not wrapped
+
+
+@pytest.mark.parametrize("robot", ["starleth", "go1", "solo12"])
+def test_section_limits_are_the_urdf_limits(robot):
+    """Each command interface's min and max: the position range of the joint's URDF
+    <limit> tag (read here from the file), velocity and effort symmetric about 0 at the
+    limits sim_node's robot has (its spec's over the URDF's: Solo12's URDF says 1000 rad/s,
+    its spec 83.8); the initial position within its range."""
+    sim = Simulator.from_preset("HmJ", robot=robot)
+    sim.reset(*parse_initial_state("standing", sim)[:2])
+    info = section_info(rcd.simulator_section(sim))
+    tags = {j.get("name"): j.find("limit") for j in ET.parse(robot_urdf(robot)).getroot()
+            .findall("joint") if j.get("type") == "revolute"}
+    desc = sim.description
+    for j, joint in enumerate(info.joints):
+        bounds = {c.name: (float(c.min), float(c.max)) for c in joint.command_interfaces}
+        tag = tags[joint.name]
+        assert bounds["position"] == (float(tag.get("lower")), float(tag.get("upper")))
+        lo, hi = bounds["position"]
+        assert lo <= float(joint.state_interfaces[0].initial_value) <= hi
+        for itf, limit in (("velocity", desc.velocity_limit), ("effort", desc.effort_limit)):
+            assert bounds[itf] == (-limit[j], limit[j]) and limit[j] > 0
+            if robot == "starleth":         # its URDF has every limit, its spec none
+                assert limit[j] == float(tag.get(itf)), (joint.name, itf)
 
 
 def test_description_with_section_loads_as_before(standing):
@@ -252,19 +284,49 @@ def test_the_parameter_is_checked():
         Settings(mode="lockstep", ros2_control_command_interfaces="position").validate()
 
 
-def controllers():
-    with open(CONTROLLERS_FILE) as f:
+def controllers_file(robot="starleth"):
+    return os.path.join(CONFIG_DIR, f"{robot}_controllers.yaml")
+
+
+def controllers(robot="starleth"):
+    with open(controllers_file(robot)) as f:
         return yaml.safe_load(f)
 
 
-def test_controllers_file_names_real_types_parameters_joints_and_interfaces(standing):
-    """Every controller: a Jazzy type, its parameters among that type's, its joints those
-    of the section, the interfaces it claims declared there (the JTC's a legal set); the
-    manager's loop at sim_node's control rate; no controller on a topic sim_node serves
-    itself; the broadcaster off sim_node's joint_states."""
-    config = controllers()
+def test_shipped_controllers_files_are_generated():
+    """config/ holds a controllers file for every library robot, and each is the
+    generator's output for that robot."""
+    shipped = sorted(f[:-len("_controllers.yaml")] for f in os.listdir(CONFIG_DIR)
+                     if f.endswith("_controllers.yaml"))
+    assert shipped == ROBOTS
+    for robot in ROBOTS:
+        out = io.StringIO()
+        with redirect_stdout(out):
+            assert rcc.main(["--robot", robot]) == 0
+        with open(controllers_file(robot)) as f:
+            assert f.read() == out.getvalue(), f"regenerate: make ros2-control-configs ({robot})"
+
+
+@pytest.mark.parametrize("tool", [rcc.main, rcd.main])
+@pytest.mark.parametrize("robot", ["go7", "robots/nowhere.urdf"])
+def test_a_bad_robot_is_one_line(tool, robot, capsys):
+    """Both generators: an unknown robot is one line naming the field, exit status 2."""
+    assert tool(["--robot", robot]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("\n") == 1 and out.err.startswith("error: robot: ")
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_controllers_file_names_real_types_parameters_joints_and_interfaces(robot):
+    """Every controller: a Jazzy type, its parameters among that type's, its joints exactly
+    the actuated joints of the robot's URDF (read here from the file) as the section of
+    sim_node's robot_description names them, the interfaces it claims declared there (the
+    JTC's a legal set); the manager's loop at sim_node's control rate; no controller on a
+    topic sim_node serves itself; the broadcaster off sim_node's joint_states."""
+    sim = Simulator.from_preset("HmJ", robot=robot)
+    config = controllers(robot)
     manager = config["/**/controller_manager"]["ros__parameters"]
-    assert manager["update_rate"] == round(1.0 / standing.control_period) == 400
+    assert manager["update_rate"] == round(1.0 / sim.control_period)
     names = {k for k, v in manager.items() if isinstance(v, dict)}
     assert set(flat_keys(manager)) - {f"{n}.type" for n in names} <= \
         CONTROLLER_MANAGER_PARAMETERS
@@ -272,8 +334,8 @@ def test_controllers_file_names_real_types_parameters_joints_and_interfaces(stan
     own_topics = {t.split("/")[0] for t in (TOPIC_EFFORT_COMMANDS, TOPIC_POSITION_COMMANDS,
                                             TOPIC_VELOCITY_COMMANDS)}
     assert not names & own_topics
-    with open(SECTION_FILE) as f:
-        info = section_info(f.read())
+    info = section_info(rcd.simulator_section(sim))
+    assert [j.name for j in info.joints] == urdf_actuated_joints(robot_urdf(robot))
     declared = {j.name: {c.name for c in j.command_interfaces} for j in info.joints}
     states = {j.name: {s.name for s in j.state_interfaces} for j in info.joints}
     for name in names:
@@ -283,7 +345,7 @@ def test_controllers_file_names_real_types_parameters_joints_and_interfaces(stan
                 for k in flat_keys(params)}
         assert keys <= CONTROLLER_PARAMETERS[kind], (name, keys - CONTROLLER_PARAMETERS[kind])
         joints = params.get("joints", [])
-        assert joints in ([], [j.name for j in info.joints]), name
+        assert joints in ([], list(declared)), name
         claimed = [params["interface_name"]] if "interface_name" in params else \
             params.get("command_interfaces", [])
         assert all(set(claimed) <= declared[j] for j in joints), name
@@ -306,7 +368,8 @@ def sim_node_parameters(ros_args):
 @pytest.mark.parametrize("arguments", [{}, {"namespace": "robot1"},
                                        {"controller": "forward_position_controller"},
                                        {"controller": "forward_effort_controller",
-                                        "command_interfaces": "position,effort"}])
+                                        "command_interfaces": "position,effort"},
+                                       {"robot": "go1"}])
 def test_launch_file_starts_sim_node_and_ros2_control(arguments):
     """sim_node in realtime with the section, its parameters real and legal;
     ros2_control_node with the controllers file on sim time; the spawner with options it
@@ -326,21 +389,59 @@ def test_launch_file_starts_sim_node_and_ros2_control(arguments):
     assert set(sim_node_parameters(cm)) <= CONTROLLER_MANAGER_PARAMETERS
     assert sim_node_parameters(cm)["use_sim_time"] is True
     params_file = cm[cm.index("--params-file") + 1]
-    assert os.path.samefile(params_file, CONTROLLERS_FILE)
+    robot = arguments.get("robot", "starleth")
+    assert sim["robot"] == robot
+    assert os.path.samefile(params_file, controllers_file(robot))
     for node in nodes.values():
         assert "/clock:=clock" in node["ros_args"] or node["exec"] == "spawner"
     spawner = spawner_arguments(nodes["spawner"]["args"])
     assert spawner.param_file == [params_file] and not spawner.inactive
-    manager = controllers()["/**/controller_manager"]["ros__parameters"]
+    manager = controllers(robot)["/**/controller_manager"]["ros__parameters"]
     assert spawner.controller_names[0] == "joint_state_broadcaster"
     assert spawner.controller_names[1] == arguments.get("controller",
                                                         "joint_trajectory_controller")
     assert all(n in manager for n in spawner.controller_names)
     # the controller's interfaces are in the section
-    params = controllers()[f"/**/{spawner.controller_names[1]}"]["ros__parameters"]
+    params = controllers(robot)[f"/**/{spawner.controller_names[1]}"]["ros__parameters"]
     claimed = [params["interface_name"]] if "interface_name" in params else \
         params["command_interfaces"]
     assert set(claimed) <= set(settings.ros2_control_command_interfaces.split(","))
     assert launch_arguments(ROS2_CONTROL_LAUNCH_FILE)["command_interfaces"] == \
         ",".join(rcd.DEFAULT_COMMAND_INTERFACES)
 
+
+
+def test_go1_forward_position_controller_drives_sim_node_through_the_hardware():
+    """The stand-in path for Go1, without nodes: the launch file with robot:=go1 gives
+    sim_node the robot and ros2_control_node Go1's controllers file; the hardware of the
+    section sim_node publishes for Go1 and forward_position_controller configured from that
+    file: after a command on the controller's topic and one cycle, the hardware sends every
+    Go1 joint (its URDF's) with the commanded positions, which sim_node takes as targets."""
+    launch = launch_nodes(ROS2_CONTROL_LAUNCH_FILE, robot="go1",
+                          controller="forward_position_controller")
+    args = sim_node_parameters(next(n for n in launch if n["exec"] == "sim_node")["ros_args"])
+    sim = Simulator.from_preset(args["physics"], robot=args["robot"])
+    q0, u0, _ = parse_initial_state("standing", sim)
+    sim.reset(q0, u0)
+    service = SimService(sim, Settings(mode="realtime", robot=args["robot"]), q0, u0)
+    cm = next(n for n in launch if n["exec"] == "ros2_control_node")["ros_args"]
+    with open(cm[cm.index("--params-file") + 1]) as f:
+        config = yaml.safe_load(f)
+    interfaces = rcd.parse_command_interfaces(args["ros2_control_command_interfaces"])
+    node = StubNode()
+    hardware = TopicBasedSystem(node, section_info(rcd.simulator_section(sim, interfaces)))
+    controller = ForwardCommandController(
+        node, "forward_position_controller",
+        config["/**/forward_position_controller"]["ros__parameters"], hardware)
+    target = sim.joint_positions() + np.random.default_rng(1).uniform(-0.1, 0.1, sim.n_joints)
+    controller._on_command(Float64MultiArray(data=[float(v) for v in target]))
+    controller.update()
+    assert hardware.write()
+    (msg,) = node.sent
+    assert list(msg.name) == urdf_actuated_joints(robot_urdf("go1")) == list(sim.joint_names)
+    ok, why = service.submit_joint_command(msg.name, msg.effort, None, position=msg.position,
+                                           velocity=msg.velocity)
+    assert ok, why
+    np.testing.assert_array_equal(service.command.position, target)
+    np.testing.assert_array_equal(service.command.velocity, 0.0)
+    np.testing.assert_array_equal(service.command.effort, 0.0)

@@ -3,7 +3,8 @@
 over two topics): generated from the robot's joints, with sim_node's own topics, so that
 ``ros2_control_node`` can load it from the ``robot_description`` sim_node publishes
 (parameter ``ros2_control_command_interfaces``), or a bringup of the user's own can paste
-it (``urdf/starleth_ros2_control.xml``, generated with the defaults:
+it (``urdf/starleth_ros2_control.xml``, generated with the defaults; another robot's with
+``--robot NAME``, a library name or a spec or URDF path):
 
     python -m starleth_sim.ros.ros2_control_description > urdf/starleth_ros2_control.xml
 
@@ -18,6 +19,7 @@ controller writes, the hardware asks sim_node to hold the initial posture. ROS-f
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from xml.sax.saxutils import quoteattr
 
@@ -52,7 +54,7 @@ def parse_command_interfaces(text: str, what="parameter ros2_control_command_int
 
 
 def ros2_control_section(name: str, joint_names, initial_positions,
-                         command_interfaces=DEFAULT_COMMAND_INTERFACES) -> str:
+                         command_interfaces=DEFAULT_COMMAND_INTERFACES, limits=None) -> str:
     """The <ros2_control> element (text, indented for the end of a URDF) of system `name`
     with hardware TopicBasedSystem: every joint in `joint_names` with `command_interfaces`
     and the state interfaces position, velocity and effort. Initial values: the position
@@ -60,7 +62,10 @@ def ros2_control_section(name: str, joint_names, initial_positions,
     commands 0, i.e. sim_node's hold of the initial posture (TopicBasedSystem starts its
     commands from the state interfaces' initial values; ros2_control's own handles, as its
     successor joint_state_topic_hardware_interface uses them, from the command interfaces',
-    else NaN)."""
+    else NaN). `limits`: per joint {interface: (min, max)} (joint_limits), each command
+    interface's min and max params where given (ros2_control's joint limiter takes them
+    with the URDF's <limit> tags, which lack the limits a robot spec adds)."""
+    limits = limits or [{}] * len(joint_names)
     if not command_interfaces:
         raise ValueError("a ros2_control section needs at least one command interface")
     params = "".join(f"\n      <param name={quoteattr(k)}>{v}</param>"
@@ -69,10 +74,11 @@ def ros2_control_section(name: str, joint_names, initial_positions,
              "    <hardware>",
              f"      <plugin>{HARDWARE_PLUGIN}</plugin>{params}",
              "    </hardware>"]
-    for joint, q0 in zip(joint_names, initial_positions, strict=True):
+    for joint, q0, bounds in zip(joint_names, initial_positions, limits, strict=True):
         initial = {"position": float(q0), "velocity": 0.0, "effort": 0.0}
         lines.append(f"    <joint name={quoteattr(joint)}>")
-        lines += [_interface("command", i, initial[i]) for i in command_interfaces]
+        lines += [_interface("command", i, initial[i], bounds.get(i))
+                  for i in command_interfaces]
         lines.append(_interface("state", "position", initial["position"]))
         lines += [f"      <state_interface name=\"{i}\"/>" for i in INTERFACES[1:]]
         lines.append("    </joint>")
@@ -80,9 +86,29 @@ def ros2_control_section(name: str, joint_names, initial_positions,
     return "\n".join(lines) + "\n"
 
 
-def _interface(kind, name, initial_value) -> str:
+def _interface(kind, name, initial_value, bounds=None) -> str:
+    params = "".join(f"<param name=\"{k}\">{float(v)!r}</param>"
+                     for k, v in zip(("min", "max"), bounds or ()))
     return (f"      <{kind}_interface name=\"{name}\"><param name=\"initial_value\">"
-            f"{initial_value!r}</param></{kind}_interface>")
+            f"{initial_value!r}</param>{params}</{kind}_interface>")
+
+
+def joint_limits(desc) -> list:
+    """Per joint of description `desc` {interface: (min, max)}: its position range, and
+    its velocity and effort bounds (symmetric), each where finite and set (a bound of 0 is
+    a URDF's "no limit")."""
+    out = []
+    for j in range(len(desc.joint_names)):
+        bounds = {}
+        lo, hi = float(desc.position_lower[j]), float(desc.position_upper[j])
+        if math.isfinite(lo) and math.isfinite(hi) and lo < hi:
+            bounds["position"] = (lo, hi)
+        for itf, limit in (("velocity", desc.velocity_limit), ("effort", desc.effort_limit)):
+            v = float(limit[j])
+            if math.isfinite(v) and v > 0:
+                bounds[itf] = (-v, v)
+        out.append(bounds)
+    return out
 
 
 def with_ros2_control(urdf_xml: str, section: str) -> str:
@@ -95,9 +121,11 @@ def with_ros2_control(urdf_xml: str, section: str) -> str:
 
 def simulator_section(sim, command_interfaces=DEFAULT_COMMAND_INTERFACES) -> str:
     """The section of simulator `sim` in its current state: its robot's joints, named after
-    its robot, the initial values its current joint positions."""
+    its robot, the initial values its current joint positions, the command limits its
+    description's (URDF and spec)."""
     return ros2_control_section(sim.description.name, sim.joint_names,
-                                sim.joint_positions(), command_interfaces)
+                                sim.joint_positions(), command_interfaces,
+                                joint_limits(sim.description))
 
 
 def main(argv=None) -> int:
@@ -108,6 +136,9 @@ def main(argv=None) -> int:
                     "robot in the initial state sim_node starts from.")
     ap.add_argument("--command-interfaces", default=",".join(DEFAULT_COMMAND_INTERFACES),
                     help="comma-separated subset of position, velocity, effort")
+    ap.add_argument("--robot", default=None,
+                    help="a library robot name, or the path of a robot spec .yaml or a URDF "
+                         "(default: the physics preset's, StarlETH)")
     ap.add_argument("--physics", default="HmJ", help="physics preset (or YAML path)")
     ap.add_argument("--initial-state", default="standing",
                     help="as sim_node's initial_state parameter")
@@ -118,7 +149,7 @@ def main(argv=None) -> int:
         interfaces = parse_command_interfaces(args.command_interfaces, "--command-interfaces")
         if not interfaces:
             raise ConfigError("--command-interfaces: at least one is needed")
-        sim = Simulator.from_preset(args.physics)
+        sim = Simulator.from_preset(args.physics, robot=args.robot)
         q0, u0, _ = parse_initial_state(args.initial_state, sim)
         sim.reset(q0, u0)
     except ConfigError as e:
