@@ -21,8 +21,10 @@ cones, μ as in the preset: :func:`mujoco_model`) standing under the same joint 
 the same standing state, beside `Simulator` on the given presets
 (default HmJ HmS Cm), in interleaved rounds of physics steps in one process: steps/s per
 preset (median of the rounds) and the ratio to MuJoCo, plus a check that both simulate the
-same thing (total normal force ≈ weight, base heights within a few mm); with several robots,
-a table per robot (doc/performance.md). mujoco is an
+same thing: total normal force ≈ weight, and against MuJoCo run again with its feet sticking
+(noslip; its default friction is regularised and lets standing feet creep) the base height
+above the feet's contact depth within 2 mm; with several robots, a table per robot
+(doc/performance.md). mujoco is an
 optional benchmark dependency (``requirements-bench.txt``, installed by ``make bench``).
 """
 from __future__ import annotations
