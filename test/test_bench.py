@@ -1,6 +1,7 @@
 """starleth-bench --vs-mujoco: MuJoCo on the same URDF is the same robot doing the same
-thing (a cross-check of mass, geometry and contact against an independent simulator), and
-a missing mujoco is said plainly. Speed is the bench's business, not a test's."""
+thing (a cross-check of mass, geometry and contact against an independent simulator: with
+its feet sticking, the same posture above its soft contacts' sink), and a missing mujoco is
+said plainly. Speed is the bench's business, not a test's."""
 import builtins
 
 import numpy as np
@@ -9,23 +10,40 @@ import pytest
 from starleth_sim.tools import bench
 
 
+def _stand(runner, steps):
+    """Settles `runner`, stands it `steps` more physics steps; how far its loaded feet
+    moved meanwhile [m]."""
+    runner.run(bench.SETTLE_STEPS)
+    start = runner.contact_points()
+    runner.run(steps)
+    return bench.creep(runner, start)
+
+
 def test_mujoco_model_is_our_robot_and_stands_like_ours():
     mujoco = pytest.importorskip("mujoco")
     ours = bench.SimulatorStanding("HmJ")
     _, model = bench.mujoco_model(ours.sim.description, 2.5e-3, 0.8)
+    _, stick = bench.mujoco_model(ours.sim.description, 2.5e-3, 0.8, bench.NOSLIP_ITERATIONS)
     assert model.nv == ours.sim.coords.nv == 18
     assert model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
+    assert (model.opt.noslip_iterations, stick.opt.noslip_iterations) == \
+        (0, bench.NOSLIP_ITERATIONS)
     # the same mass, from the same URDF read by two parsers
     assert np.sum(model.body_mass) == pytest.approx(ours.sim.description.total_mass, rel=1e-9)
-    mj = bench.MujocoStanding(mujoco, model, ours.sim)
+    soft = bench.MujocoStanding(mujoco, model, ours.sim)
+    mj = bench.MujocoStanding(mujoco, stick, ours.sim)
     assert mj.weight == pytest.approx(ours.weight, rel=1e-3)
-    mj.run(400)
-    ours.run(400)
+    # MuJoCo's regularised friction lets standing feet creep; its noslip pass and our
+    # Coulomb law stick
+    creep = [_stand(r, 2000) for r in (soft, mj, ours)]
+    assert creep[0] > bench.CREEP_TOLERANCE > max(creep[1:])
     for r in (mj, ours):
         assert r.normal_force() / r.weight == pytest.approx(1.0, abs=bench.FORCE_TOLERANCE)
-    # MuJoCo's soft contacts sink a few mm more than our hard ones
-    assert 0.0 < ours.height() - mj.height() < bench.HEIGHT_TOLERANCE
+    # MuJoCo's soft contacts sink, our hard ones do not: the base is lower by the sink, the
+    # posture above the feet is the same
+    assert ours.sink() == pytest.approx(0.0, abs=1e-5) and mj.sink() > 1e-4
+    assert ours.height() - mj.height() == pytest.approx(mj.sink(), abs=bench.HEIGHT_TOLERANCE)
 
 
 def test_vs_mujoco_prints_the_table_and_the_check(capsys):
@@ -78,13 +96,13 @@ def test_mujoco_model_of_another_robot_is_ours_reduced_to_our_contacts():
     assert spheres.sum() == len(desc.contacts) == model.ngeom - 1      # and the ground
     radii = sorted(max(c.radius, bench.CORNER_RADIUS) for c in desc.contacts)
     assert sorted(model.geom_size[spheres, 0]) == pytest.approx(radii)
-    mj = bench.MujocoStanding(mujoco, model, ours.sim)
-    mj.run(3000)
-    ours.run(3000)
+    _, stick = bench.mujoco_model(desc, 2.5e-3, 0.8, bench.NOSLIP_ITERATIONS)
+    mj = bench.MujocoStanding(mujoco, stick, ours.sim)
     for r in (mj, ours):
+        assert _stand(r, 2600) < bench.CREEP_TOLERANCE
         assert r.normal_force() / r.weight == pytest.approx(1.0, abs=bench.FORCE_TOLERANCE)
-    assert mj.data.ncon == 4                                  # the feet only
-    assert 0.0 < ours.height() - mj.height() < bench.HEIGHT_TOLERANCE
+    assert mj.data.ncon == 4 and mj.loaded().sum() == 4       # the feet only
+    assert ours.height() - mj.height() == pytest.approx(mj.sink(), abs=bench.HEIGHT_TOLERANCE)
 
 
 def test_bad_robot_gives_one_line(capsys):

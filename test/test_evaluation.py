@@ -49,7 +49,8 @@ def test_quick_evaluation_results_are_measurements(quick_report):
     # the side-by-side speed run (mujoco is a test requirement): the same thing simulated
     speed = [r for r in results if r["kind"] == "vs_mujoco"]
     assert len(speed) == 1 and not speed[0]["missing"]
-    assert [row["name"] for row in speed[0]["rows"]] == ["MuJoCo", "HmJ", "HmS", "Cm"]
+    assert [row["name"] for row in speed[0]["rows"]] == ["MuJoCo", "MuJoCo noslip", "HmJ", "HmS",
+                                                         "Cm"]
     assert speed[0]["problems"] == []
     for row in speed[0]["rows"]:
         assert row["median"] > 100 and abs(row["normal_force_ratio"] - 1.0) < 0.02

@@ -21,8 +21,10 @@ cones, μ as in the preset: :func:`mujoco_model`) standing under the same joint 
 the same standing state, beside `Simulator` on the given presets
 (default HmJ HmS Cm), in interleaved rounds of physics steps in one process: steps/s per
 preset (median of the rounds) and the ratio to MuJoCo, plus a check that both simulate the
-same thing (total normal force ≈ weight, base heights within a few mm); with several robots,
-a table per robot (doc/performance.md). mujoco is an
+same thing: total normal force ≈ weight, and against MuJoCo run again with its feet sticking
+(noslip; its default friction is regularised and lets standing feet creep) the base height
+above the feet's contact depth within 2 mm; with several robots, a table per robot
+(doc/performance.md). mujoco is an
 optional benchmark dependency (``requirements-bench.txt``, installed by ``make bench``).
 """
 from __future__ import annotations
@@ -111,10 +113,19 @@ def impedance(presets, rounds: int, steps: int) -> int:
     return 0
 
 
-#: --vs-mujoco: the presets compared by default, and the like-with-like tolerances
+#: --vs-mujoco: the presets compared by default, and the like-with-like tolerances. The
+#: heights compared are each base's height above its feet's contact depth (base z + sink):
+#: the two contact laws sink differently (hard: 0, Cm and MuJoCo: a few mm), the legs'
+#: posture under the same PD hold must agree; 2 mm: a link length or mass off by a few %
+#: (measured residual ≤ 0.6 mm, Cm's compliant feet)
 VS_MUJOCO_PRESETS = ("HmJ", "HmS", "Cm")
-HEIGHT_TOLERANCE = 5e-3     # base heights of the two simulators after the rounds [m]
+HEIGHT_TOLERANCE = 2e-3     # base heights above the feet, against MuJoCo's stick-matched [m]
+CREEP_TOLERANCE = 1e-3      # how far MuJoCo noslip's loaded feet move over the rounds [m]
 FORCE_TOLERANCE = 0.02      # |Σ F_N − m g| / (m g) of each simulator, standing still
+#: MuJoCo's noslip solver iterations for the stick-matched model (its regularised friction
+#: lets standing feet creep; the noslip pass removes that slip, as our Coulomb law sticks)
+NOSLIP_ITERATIONS = 10
+SETTLE_STEPS = 400          # physics steps before the rounds (the start's transient)
 
 
 #: the radius MuJoCo gives a contact point of radius 0 (a box corner) [m]: a sphere needs one
@@ -155,12 +166,13 @@ def bare_urdf(urdf_xml: str) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-def mujoco_model(desc, dt: float, mu: float):
+def mujoco_model(desc, dt: float, mu: float, noslip_iterations: int = 0):
     """MuJoCo's model of a robot (a RobotDescription) from the same URDF: the tree compiled
     by MuJoCo (fixed joints fused, masses and inertias from the URDF's inertials only), a
     free joint on the root body, and as collision geometry our contact points only (a
     sphere per point, in the body of its joint; box corners CORNER_RADIUS), colliding with
-    a ground plane at z = 0; Δt, Newton solver, elliptic friction cones, μ on every geom.
+    a ground plane at z = 0; Δt, Newton solver, elliptic friction cones, μ on every geom,
+    MuJoCo's default soft contact (solref, solimp) and `noslip_iterations`.
     Returns (mujoco, model); mujoco is None if not installed."""
     try:
         import mujoco
@@ -190,6 +202,7 @@ def mujoco_model(desc, dt: float, mu: float):
     spec.option.timestep = dt
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.noslip_iterations = noslip_iterations
     return mujoco, spec.compile()
 
 
@@ -213,6 +226,8 @@ class MujocoStanding:
         self.hold = PostureHold.for_robot(sim.description, sim.joint_positions())
         self.limit = np.asarray(sim.description.effort_limit, dtype=float).reshape(-1)
         self.weight = float(np.sum(model.body_mass)) * float(-model.opt.gravity[2])
+        self.dt = float(model.opt.timestep)
+        self.spheres = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_SPHERE)
 
     def run(self, steps: int) -> float:
         """`steps` physics steps with the PD law (effort-limited) each step; wall time [s]."""
@@ -224,6 +239,9 @@ class MujocoStanding:
             d.qfrc_applied[vadr] = np.clip(tau, -limit, limit)
             mj.mj_step(m, d)
         return time.perf_counter() - t0
+
+    def physics_steps(self, steps: int) -> int:
+        return steps
 
     def normal_force(self) -> float:
         """Σ F_N over the contacts (mj_contactForce, contact frame: normal first) [N]."""
@@ -237,6 +255,22 @@ class MujocoStanding:
     def height(self) -> float:
         return float(self.data.qpos[2])
 
+    def contact_points(self):
+        """The contact spheres' centres (world; over a flat ground their contact points'
+        horizontal position) [m]."""
+        return self.data.geom_xpos[self.spheres].copy()
+
+    def loaded(self):
+        """Per contact sphere: touching the ground."""
+        d = self.data
+        touching = {int(g) for i in range(d.ncon) for g in d.contact.geom[i]}
+        return np.isin(self.spheres, list(touching))
+
+    def sink(self) -> float:
+        """Mean penetration of the contacts [m]."""
+        d = self.data
+        return -float(np.mean(d.contact.dist[:d.ncon])) if d.ncon else 0.0
+
 
 class SimulatorStanding:
     """A preset's Simulator (for `robot`, default the preset's) under the PD hold from its
@@ -246,6 +280,7 @@ class SimulatorStanding:
         self.sim = Simulator.from_preset(preset, robot=robot)
         self.hold = PostureHold.for_robot(self.sim.description, self.sim.joint_positions())
         self.per_control = self.sim.config.steps_per_control
+        self.dt = self.sim.dt
         d = self.sim.description
         self.weight = float(sum(i.mass for i in d.model.inertias)) * \
             float(np.linalg.norm(d.model.gravity.linear))
@@ -271,16 +306,40 @@ class SimulatorStanding:
     def height(self) -> float:
         return float(self.sim.base_state()["position"][2])
 
+    def contact_points(self):
+        return self.sim.contact_points()
+
+    def loaded(self):
+        return self.sim.contact_states() != 0
+
+    def sink(self) -> float:
+        """Mean penetration of the loaded contacts [m]."""
+        loaded = self.loaded()
+        return -float(np.mean(self.sim.gaps()[loaded])) if loaded.any() else 0.0
+
+
+def creep(runner, start) -> float:
+    """The farthest a loaded contact point moved horizontally from `start` [m]."""
+    moved = np.linalg.norm((runner.contact_points() - start)[:, :2], axis=1)[runner.loaded()]
+    return float(moved.max()) if moved.size else 0.0
+
 
 @dataclass
 class VsMujocoRow:
     """One simulator of the side-by-side run."""
 
-    name: str                  # "MuJoCo" or a preset
+    name: str                  # "MuJoCo", "MuJoCo noslip" or a preset
     dt: float                  # physics step [s]
     rates: list                # steps/s per round
     normal_force_ratio: float  # Σ F_N / mg at the end
     height: float              # base height at the end [m]
+    sink: float                # mean penetration of the loaded contacts at the end [m]
+    creep: float               # farthest a loaded contact moved over the rounds [m]
+
+    @property
+    def above_feet(self) -> float:
+        """The base's height above its feet's contact depth [m]: the legs' posture."""
+        return self.height + self.sink
 
     @property
     def median(self) -> float:
@@ -297,22 +356,31 @@ class VsMujoco:
     mu: float
     rounds: int
     steps: int
-    rows: list                 # VsMujocoRow, MuJoCo first
+    rows: list                 # VsMujocoRow: MuJoCo, MuJoCo noslip, the presets
     problems: list             # what is not like with like (empty: the same thing simulated)
 
     def ratio(self, row: VsMujocoRow) -> float:
+        """steps/s against MuJoCo with its default contact settings."""
         return row.median / self.rows[0].median
+
+    @property
+    def reference(self) -> VsMujocoRow:
+        """MuJoCo with its feet sticking (noslip): the height and creep reference."""
+        return self.rows[1]
 
     def header(self) -> str:
         return (f"{self.robot} standing under the joint PD hold: MuJoCo {self.mujoco_version} "
                 f"(URDF compiled by MuJoCo, free base, our contact points as spheres, Δt = "
-                f"{self.timestep * 1e3:g} ms, Newton, elliptic cones, μ = {self.mu:g}) beside "
-                f"Simulator; {self.rounds} interleaved rounds of {self.steps} physics steps; "
-                f"Python {sys.version.split()[0]}")
+                f"{self.timestep * 1e3:g} ms, Newton, elliptic cones, μ = {self.mu:g}; "
+                f"default contact, and with {NOSLIP_ITERATIONS} noslip iterations) beside "
+                f"Simulator; {SETTLE_STEPS} steps to settle, then {self.rounds} interleaved "
+                f"rounds of {self.steps} physics steps; Python {sys.version.split()[0]}")
 
     def like_with_like(self) -> str:
-        return ("yes (total normal force = weight, base heights within "
-                f"{HEIGHT_TOLERANCE * 1e3:g} mm)" if not self.problems else "NO (see above)")
+        return (f"yes (total normal force = weight, MuJoCo noslip's feet stick (creep < "
+                f"{CREEP_TOLERANCE * 1e3:g} mm), base heights above the feet within "
+                f"{HEIGHT_TOLERANCE * 1e3:g} mm of MuJoCo noslip's)"
+                if not self.problems else "NO (see above)")
 
 
 def measure_vs_mujoco(presets, rounds: int, steps: int, robot: str | None = None
@@ -321,60 +389,85 @@ def measure_vs_mujoco(presets, rounds: int, steps: int, robot: str | None = None
     None if mujoco is missing."""
     runners = {p: SimulatorStanding(p, robot) for p in presets}
     first = next(iter(runners.values())).sim
-    mujoco, model = mujoco_model(first.description, 2.5e-3, first.config.ground.mu)
+    desc, mu = first.description, first.config.ground.mu
+    mujoco, model = mujoco_model(desc, 2.5e-3, mu)
     if mujoco is None:
         return None
-    mj = MujocoStanding(mujoco, model, first)
-    runners = {"MuJoCo": mj, **runners}
-    for r in runners.values():   # warm-up (first calls, caches)
-        r.run(50)
+    _, stick = mujoco_model(desc, 2.5e-3, mu, NOSLIP_ITERATIONS)
+    runners = {"MuJoCo": MujocoStanding(mujoco, model, first),
+               "MuJoCo noslip": MujocoStanding(mujoco, stick, first), **runners}
+    start = {}
+    for n, r in runners.items():   # settle (and warm up: first calls, caches)
+        r.run(SETTLE_STEPS)
+        start[n] = r.contact_points()
     rates = {n: [] for n in runners}
     for _ in range(rounds):
         for n, r in runners.items():
             wall = r.run(steps)
-            done = steps if r is mj else r.physics_steps(steps)
-            rates[n].append(done / wall)
-    rows, problems = [], []
-    for n, r in runners.items():
-        row = VsMujocoRow(n, model.opt.timestep if r is mj else r.sim.dt, rates[n],
-                          r.normal_force() / r.weight, r.height())
-        rows.append(row)
+            rates[n].append(r.physics_steps(steps) / wall)
+    rows = [VsMujocoRow(n, r.dt, rates[n], r.normal_force() / r.weight, r.height(), r.sink(),
+                        creep(r, start[n])) for n, r in runners.items()]
+    return VsMujoco(desc.name, mujoco.__version__, float(model.opt.timestep),
+                    float(model.geom_friction[0, 0]), rounds, steps, rows, _problems(rows))
+
+
+def _problems(rows) -> list:
+    """What is not like with like: a total normal force off the weight; MuJoCo noslip's
+    feet creeping (the reference must stick as our hard contacts do; Cm's compliant feet
+    may creep); a preset's base height above its feet off MuJoCo noslip's."""
+    problems, ref = [], rows[1]
+    for row in rows:
         if abs(row.normal_force_ratio - 1.0) > FORCE_TOLERANCE:
-            problems.append(f"{n}: total normal force {row.normal_force_ratio:.4f} mg, not the "
-                            f"weight (±{FORCE_TOLERANCE:g})")
-        if r is not mj and abs(row.height - mj.height()) > HEIGHT_TOLERANCE:
-            problems.append(f"{n}: base height {row.height * 1e3:.2f} mm differs from MuJoCo's "
-                            f"by more than {HEIGHT_TOLERANCE * 1e3:g} mm")
-    return VsMujoco(first.description.name, mujoco.__version__, float(model.opt.timestep),
-                    float(model.geom_friction[0, 0]), rounds, steps, rows, problems)
+            problems.append(f"{row.name}: total normal force {row.normal_force_ratio:.4f} mg, "
+                            f"not the weight (±{FORCE_TOLERANCE:g})")
+    if ref.creep > CREEP_TOLERANCE:
+        problems.append(f"{ref.name}: a loaded foot moved {ref.creep * 1e3:.2f} mm while "
+                        f"standing (more than {CREEP_TOLERANCE * 1e3:g} mm)")
+    for row in rows[2:]:
+        if abs(row.above_feet - ref.above_feet) > HEIGHT_TOLERANCE:
+            problems.append(f"{row.name}: base height above the feet "
+                            f"{row.above_feet * 1e3:.2f} mm differs from {ref.name}'s "
+                            f"{ref.above_feet * 1e3:.2f} mm by more than "
+                            f"{HEIGHT_TOLERANCE * 1e3:g} mm")
+    return problems
 
 
 def print_vs_mujoco(result: VsMujoco) -> None:
+    """The rows: steps/s, the ratio to MuJoCo (default contact), Σ F_N / mg, base z, the
+    feet's sink, base z above the feet, the feet's creep over the rounds."""
     print(result.header())
-    print(f"{'':8s} {'Δt [ms]':>7s} {'steps/s (median)':>17s} {'min':>8s} {'max':>8s} "
-          f"{'ratio':>6s} {'Σ F_N / mg':>10s} {'base z [mm]':>11s}")
+    print(f"{'':13s} {'Δt [ms]':>7s} {'steps/s (median)':>17s} {'min':>8s} {'max':>8s} "
+          f"{'ratio':>6s} {'Σ F_N / mg':>10s} {'base z [mm]':>11s} {'sink':>5s} "
+          f"{'z above feet':>12s} {'creep':>6s}")
     for row in result.rows:
-        print(f"{row.name:8s} {row.dt * 1e3:7.3g} {row.median:17.0f} {min(row.rates):8.0f} "
+        print(f"{row.name:13s} {row.dt * 1e3:7.3g} {row.median:17.0f} {min(row.rates):8.0f} "
               f"{max(row.rates):8.0f} {result.ratio(row):6.2f} {row.normal_force_ratio:10.4f} "
-              f"{row.height * 1e3:11.2f}")
+              f"{row.height * 1e3:11.2f} {row.sink * 1e3:5.2f} {row.above_feet * 1e3:12.2f} "
+              f"{row.creep * 1e3:6.2f}")
     for problem in result.problems:
         print("  " + problem)
     print("like with like: " + result.like_with_like())
 
 
 def robots_table(results) -> list:
-    """The per-robot table (doc/performance.md): steps/s of MuJoCo and of each preset, the
-    ratio, and our base height minus MuJoCo's."""
-    presets = [row.name for row in results[0].rows[1:]]
-    lines = ["| robot | MuJoCo steps/s | " + " | ".join(f"{p} steps/s (ratio)" for p in presets)
-             + " | base z ours − MuJoCo [mm] | like with like |",
-             "|---" * (len(presets) + 4) + "|"]
+    """The per-robot table (doc/performance.md): steps/s of MuJoCo (default contact, then
+    noslip) and of each preset with its ratios to both, our base height above the feet minus
+    MuJoCo noslip's, the feet's creep, the check."""
+    presets = [row.name for row in results[0].rows[2:]]
+    lines = ["| robot | MuJoCo steps/s | MuJoCo noslip steps/s (ratio) | " +
+             " | ".join(f"{p} steps/s (ratio to MuJoCo / noslip)" for p in presets) +
+             " | base z above feet, ours − noslip [mm] | feet creep [mm] (MuJoCo, noslip, "
+             + ", ".join(presets) + ") | like with like |",
+             "|---" * (len(presets) + 6) + "|"]
     for r in results:
-        mj = r.rows[0]
-        cells = [f"{row.median:,.0f} ({r.ratio(row):.2f})" for row in r.rows[1:]]
-        dz = ", ".join(f"{(row.height - mj.height) * 1e3:+.2f}" for row in r.rows[1:])
-        lines.append(f"| {r.robot} | {mj.median:,.0f} | " + " | ".join(cells) +
-                     f" | {dz} | {'yes' if not r.problems else 'NO'} |")
+        mj, ref = r.rows[0], r.reference
+        cells = [f"{row.median:,.0f} ({r.ratio(row):.2f} / {row.median / ref.median:.2f})"
+                 for row in r.rows[2:]]
+        dz = ", ".join(f"{(row.above_feet - ref.above_feet) * 1e3:+.2f}" for row in r.rows[2:])
+        creeps = ", ".join(f"{row.creep * 1e3:.2f}" for row in r.rows)
+        lines.append(f"| {r.robot} | {mj.median:,.0f} | {ref.median:,.0f} ({r.ratio(ref):.2f}) | "
+                     + " | ".join(cells) + f" | {dz} | {creeps} | "
+                     f"{'yes' if not r.problems else 'NO'} |")
     return lines
 
 
