@@ -20,7 +20,7 @@ from starleth_interface.robot.library import package_dirs
 from starleth_interface.robot.spec import spec_from_dict
 from starleth_interface.yaml_files import load_yaml_text
 
-#: the mesh formats drawn (coal's assimp loader reads them)
+#: the mesh formats drawn (STL, OBJ: coal's assimp loader; DAE: .collada)
 MESH_SUFFIXES = (".stl", ".dae", ".obj")
 #: the largest mesh file read or served [bytes]
 MAX_MESH_BYTES = 64 * 1024 * 1024
