@@ -177,7 +177,7 @@ def _info_lines(data: dict) -> tuple:
     shown = [f"{data['duration']:.2f} s · {data['frames']} frames at {data['fps']:g} fps"
              + (f", {len(robots)} robots" if several else "") + ":"]
     shown += [_robot_line(r, several) for r in robots]
-    shown.append(f"green arrows: foot contact forces, {scale:g} m/N (1 m = {1 / scale:g} N)")
+    shown.append(f"green arrows: foot contact forces, {scale:g} m/N (1 m = {1 / scale:.4g} N)")
     urdfs = "; ".join(f"{r['name'] or 'robot'}: {r['urdf_source']}" if several else
                       r["urdf_source"] for r in robots)
     more = [
