@@ -79,3 +79,14 @@ def test_go2_multi_material_meshes_span_their_collision_mesh(link):
     assert np.all(centres.max(0) > hi - 0.3 * (hi - lo))
     edges = np.linalg.norm(v[t] - v[np.roll(t, 1, axis=1)], axis=2)
     assert edges.max() < 0.5 * np.linalg.norm(hi - lo)
+
+
+@pytest.mark.parametrize("text", ["<COLLADA><library_geometries>", DAE.replace("0 1 2", "0 1 7"),
+                                  DAE.replace("<p>0 1 2 3</p>", "").replace("0 0 1 0 2 0", "")])
+def test_a_dae_that_cannot_be_drawn_is_a_mesh_error_naming_it(tmp_path, text):
+    """Not XML, an index past its vertices, no triangles: MeshError naming the file."""
+    from starleth_sim.robots.meshes import MeshError
+    path = tmp_path / "bad.dae"
+    path.write_text(text)
+    with pytest.raises(MeshError, match=r"mesh .*bad\.dae: cannot be read"):
+        read_mesh(str(path))
