@@ -21,6 +21,7 @@ from geometry_msgs.msg import WrenchStamped  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
+from starleth_interface.robot.scaling import robot_scale  # noqa: E402
 from starleth_interface.topics import foot_wrench_topic  # noqa: E402
 from starleth_sim.robots import (load_robot, package_dirs, robot_description,  # noqa: E402
                                  spec_text, urdf_file)
@@ -108,6 +109,14 @@ def test_a_robot_bag_is_drawn_with_its_meshes_within_the_budget(robot, tmp_path,
     visuals = re.findall(r"<visual>.*?</visual>", desc.urdf_xml, re.S)
     assert len(meshes) == sum("<mesh" in v for v in visuals) > 0
     assert sum(n for _, n in meshes) <= view_scene.PAGE_TRIANGLES
+    # sized to the robot: its weight's arrow as long against its legs as StarlETH's, the
+    # camera as far against them (λ, μ: leg length and mass over StarlETH's)
+    s = robot_scale(desc.legs, desc.total_mass)
+    starleth = robot_description("starleth")
+    assert desc.total_mass * data["force_scale"] / s.length == pytest.approx(
+        starleth.total_mass * view.DEFAULT_FORCE_SCALE, rel=0.05)
+    assert data["camera"]["offset"] == pytest.approx(
+        [s.length * c for c in view_scene.CAMERA_OFFSET])
     # the arrows: the recorded forces times the scale, from each foot in the URDF's order
     arrows = np.array(r["arrows"]).reshape(-1, len(desc.foot_names), 6)
     assert arrows[0, :, 5] == pytest.approx([10.0 * (f + 1) * data["force_scale"]

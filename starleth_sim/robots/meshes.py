@@ -1,8 +1,9 @@
 """A robot's mesh files: the ones its URDF names (``<mesh filename=...>``), where they are
 (``package://`` URIs under the spec's package roots, else ROS's ament index; ``file://`` and
-relative paths from the URDF's directory), read as triangles (coal's loader, assimp: STL,
-DAE, OBJ) and simplified to a triangle budget (vertex clustering: vertices snapped to a grid,
-the triangles that collapse dropped; the grid coarsened until the mesh fits)."""
+relative paths from the URDF's directory), read as triangles (STL, OBJ: coal's loader,
+assimp; DAE: .collada) and simplified to a triangle budget (vertex clustering: vertices
+snapped to a grid, the triangles that collapse dropped; the grid coarsened until the mesh
+fits)."""
 from __future__ import annotations
 
 import math
@@ -13,12 +14,13 @@ from functools import lru_cache
 import coal    # pinocchio's collision library; its mesh loader is assimp
 import numpy as np
 
+from .collada import ColladaError, read_collada
 from starleth_interface.config_checks import ConfigError
 from starleth_interface.robot.library import package_dirs
 from starleth_interface.robot.spec import spec_from_dict
 from starleth_interface.yaml_files import load_yaml_text
 
-#: the mesh formats drawn (coal's assimp loader reads them)
+#: the mesh formats drawn (STL, OBJ: coal's assimp loader; DAE: .collada)
 MESH_SUFFIXES = (".stl", ".dae", ".obj")
 #: the largest mesh file read or served [bytes]
 MAX_MESH_BYTES = 64 * 1024 * 1024
@@ -89,6 +91,21 @@ def _read_mesh(path: str, scale: tuple):
     if size > MAX_MESH_BYTES:
         raise MeshError(f"mesh {path}: {size / 2**20:.0f} MiB, over the "
                         f"{MAX_MESH_BYTES / 2**20:.0f} MiB read")
+    if path.lower().endswith(".dae"):
+        try:
+            vertices, triangles = read_collada(path)
+        except (ColladaError, ET.ParseError, OSError, ValueError) as e:
+            raise MeshError(f"mesh {path}: cannot be read ({str(e)[:200]})") from None
+        vertices = vertices * np.asarray(scale)
+    else:
+        vertices, triangles = _read_with_coal(path, scale)
+    if not triangles.size or not np.all(np.isfinite(vertices)):
+        raise MeshError(f"mesh {path}: no triangles with finite vertices")
+    return vertices, triangles
+
+
+def _read_with_coal(path: str, scale: tuple):
+    """(vertices, triangles) of an STL or OBJ file, scaled, read with coal's loader."""
     try:
         model = coal.MeshLoader().load(path, np.array(scale))
     except Exception as e:   # assimp's refusals come as RuntimeError with several lines
@@ -97,10 +114,7 @@ def _read_mesh(path: str, scale: tuple):
         raise MeshError(f"mesh {path}: cannot be read ({reason[:200]})") from None
     vertices = np.asarray(model.vertices(), dtype=float).reshape(-1, 3)
     tris = [model.tri_indices(i) for i in range(model.num_tris)]
-    triangles = np.array([[t[0], t[1], t[2]] for t in tris], dtype=np.int64).reshape(-1, 3)
-    if not triangles.size or not np.all(np.isfinite(vertices)):
-        raise MeshError(f"mesh {path}: no triangles with finite vertices")
-    return vertices, triangles
+    return vertices, np.array([[t[0], t[1], t[2]] for t in tris], dtype=np.int64).reshape(-1, 3)
 
 
 def simplified(vertices, triangles, max_triangles: int):

@@ -66,12 +66,21 @@ from .bag import BagError
 from .console import run_console_script
 from .view_frames import load_description
 from .view_page import ROUNDING_TEXT, render_html, replay_data
+from .view_scene import page_scale
 from .view_recording import (PROG, NamespaceNotFound, ViewError, normalised_namespace,
                              read_recordings, warn)
 
 DEFAULT_FPS = 50.0
-#: arrow length per newton of contact force [m/N]: 1 m = 500 N
+#: arrow length per newton of contact force [m/N]: 1 m = 500 N, for StarlETH; a page of
+#: other robots: times λ/μ of the largest (view_scene.page_scale), to 2 digits, so that
+#: standing forces draw arrows of the same length relative to the legs
 DEFAULT_FORCE_SCALE = 0.002
+
+
+def default_force_scale(descs) -> float:
+    """The default force scale of a page of these robots' descriptions [m/N]."""
+    s = page_scale(descs)
+    return float(f"{DEFAULT_FORCE_SCALE * s.length / s.mass:.2g}")
 
 
 def default_output(bag_path: str) -> str:
@@ -120,7 +129,7 @@ def robot_names(recs) -> list:
 
 
 def write_html(bag_path, out_path: str | None = None, fps: float = DEFAULT_FPS,
-               force_scale: float = DEFAULT_FORCE_SCALE, namespace=None,
+               force_scale: float | None = None, namespace=None,
                salvage: bool = False) -> dict:
     """Write the replay page of a bag, or of several in one scene (bag_path: a path or a
     list of them; namespace: a namespace or a list of them, None: every robot). Returns
@@ -129,8 +138,8 @@ def write_html(bag_path, out_path: str | None = None, fps: float = DEFAULT_FPS,
     or ViewError (nothing to replay, bad options, unusable URDF)."""
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise ViewError(f"fps must be a positive number, got {fps!r}")
-    if not (isinstance(force_scale, (int, float)) and math.isfinite(force_scale)
-            and force_scale > 0):
+    if force_scale is not None and not (isinstance(force_scale, (int, float))
+                                        and math.isfinite(force_scale) and force_scale > 0):
         raise ViewError(f"force scale must be a positive number [m/N], got {force_scale!r}")
     t_start = time.perf_counter()
     paths = [bag_path] if isinstance(bag_path, (str, os.PathLike)) else list(bag_path)
@@ -138,6 +147,8 @@ def write_html(bag_path, out_path: str | None = None, fps: float = DEFAULT_FPS,
     namespaces = [namespace] if isinstance(namespace, str) else namespace
     robots = read_robots(paths, namespaces, salvage)
     names = robot_names([rec for rec, _ in robots])
+    if force_scale is None:
+        force_scale = default_force_scale([desc for _, desc in robots])
     data, scene = replay_data([(rec, desc, name) for (rec, desc), name in zip(robots, names)],
                               float(fps), float(force_scale))
     page = render_html(data, scene)
@@ -179,9 +190,11 @@ def build_parser():
     ap.add_argument("--fps", type=float, default=DEFAULT_FPS,
                     help=f"frames per second of sim time kept in the page (default "
                          f"{DEFAULT_FPS:g}; at or above the recording's rate: every sample)")
-    ap.add_argument("--force-scale", type=float, default=DEFAULT_FORCE_SCALE, metavar="M_PER_N",
+    ap.add_argument("--force-scale", type=float, metavar="M_PER_N",
                     help=f"arrow length per newton of contact force [m/N] (default "
-                         f"{DEFAULT_FORCE_SCALE:g}: 1 m = {1 / DEFAULT_FORCE_SCALE:g} N)")
+                         f"{DEFAULT_FORCE_SCALE:g} for StarlETH: 1 m = "
+                         f"{1 / DEFAULT_FORCE_SCALE:g} N; another robot: times its leg "
+                         "length over its mass, both relative to StarlETH's)")
     ap.add_argument("--namespace", metavar="NS", action="append",
                     help="draw the robot under this namespace (e.g. /robot1; repeat it for "
                          "several; default: every robot of the bags)")
@@ -195,7 +208,7 @@ def run(argv=None) -> int:
     a = ap.parse_args(argv)
     if not (math.isfinite(a.fps) and a.fps > 0):
         ap.error("--fps must be a positive number")
-    if not (math.isfinite(a.force_scale) and a.force_scale > 0):
+    if a.force_scale is not None and not (math.isfinite(a.force_scale) and a.force_scale > 0):
         ap.error("--force-scale must be a positive number [m/N]")
     info = write_html(a.bag, a.output, fps=a.fps, force_scale=a.force_scale,
                       namespace=a.namespace, salvage=a.salvage)

@@ -15,8 +15,8 @@ from ..physics.description import RobotDescription
 from .view_frames import body_poses, configurations, contact_arrows, select_frames
 from .view_recording import PROG, Recording, ViewError
 from ..robots.meshes import spec_package_roots
-from .view_scene import (ARROW_HEAD, CAMERA_OFFSET, PAGE_TRIANGLES, body_frames, robot_visuals,
-                         scene_commands)
+from .view_scene import (ARROW_HEAD, CAMERA_OFFSET, PAGE_TRIANGLES, body_frames, page_scale,
+                         robot_visuals, scene_commands)
 
 FORMAT = "starleth-view/2"
 #: decimals of the numbers in the page: positions/arrows [m], quaternions, times [s]
@@ -127,8 +127,10 @@ def replay_data(robots, fps: float, force_scale: float):
     """The page's data for `robots` ([(Recording, RobotDescription, name)], name: the
     prefix of its frames in the page): the frame times, each robot's body poses and force
     arrows and what they mean; and the scene commands (the ground of the first robot's
-    recording)."""
+    recording); the camera's distance and the arrows' size scaled to the largest robot
+    (view_scene.page_scale)."""
     recs = [r for r, _, _ in robots]
+    size = page_scale([desc for _, desc, _ in robots]).length
     t_ns = page_times(recs, fps)
     t0 = min(min(r.joints.t_ns[0], r.base.t_ns[0]) for r in recs)
     t = (t_ns - t0) * 1e-9
@@ -141,15 +143,16 @@ def replay_data(robots, fps: float, force_scale: float):
         "samples": sum(p[0]["samples"] for p in parts), "duration": round(float(t[-1]), 4),
         "t0_ns": int(t0), "t": _rounded(t, TIME_DECIMALS),     # t: seconds after t0_ns
         "robots": [p[0] for p in parts], "force_scale": force_scale,
-        "arrow_head": ARROW_HEAD,
+        "arrow_head": size * ARROW_HEAD,
         "rounding": {"position": 10.0 ** -POSITION_DECIMALS,
                      "quaternion": 10.0 ** -QUATERNION_DECIMALS,
                      "time": 10.0 ** -TIME_DECIMALS},
-        "camera": {"offset": list(CAMERA_OFFSET), "height_window": CAMERA_HEIGHT_WINDOW},
+        "camera": {"offset": [size * c for c in CAMERA_OFFSET],
+                   "height_window": CAMERA_HEIGHT_WINDOW},
         "ground": {"height": recs[0].ground_height, "normal": list(recs[0].ground_normal)},
     }
     trunk_xy = np.concatenate([p[2] for p in parts])
-    scene = scene_commands(recs[0], [p[1] for p in parts], trunk_xy)
+    scene = scene_commands(recs[0], [p[1] for p in parts], trunk_xy, size)
     return data, scene
 
 
@@ -174,7 +177,7 @@ def _info_lines(data: dict) -> tuple:
     shown = [f"{data['duration']:.2f} s · {data['frames']} frames at {data['fps']:g} fps"
              + (f", {len(robots)} robots" if several else "") + ":"]
     shown += [_robot_line(r, several) for r in robots]
-    shown.append(f"green arrows: foot contact forces, {scale:g} m/N (1 m = {1 / scale:g} N)")
+    shown.append(f"green arrows: foot contact forces, {scale:g} m/N (1 m = {1 / scale:.4g} N)")
     urdfs = "; ".join(f"{r['name'] or 'robot'}: {r['urdf_source']}" if several else
                       r["urdf_source"] for r in robots)
     more = [

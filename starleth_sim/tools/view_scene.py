@@ -13,6 +13,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..physics.description import RobotDescription
+from starleth_interface.robot.scaling import RobotScale, robot_scale
 from starleth_interface.robot.urdf import urdf_origin
 from ..robots.meshes import MeshError, read_mesh, resolve_mesh, simplified
 from .view_recording import Recording, warn
@@ -28,15 +29,22 @@ TERRAIN_COLOR = 0x9A9A8E    # boxes and heightfield (lit, a little darker than t
 #: a heightfield is drawn with at most this many points a side (every k-th point)
 TERRAIN_DRAWN_POINTS = 128
 SKY_TOP, SKY_BOTTOM = (0.84, 0.89, 0.95), (0.62, 0.69, 0.78)
-#: camera position relative to the followed trunk point, world axes [m]
+#: camera position relative to the followed trunk point, world axes [m], for StarlETH (times
+#: λ, page_scale, for a page of other robots)
 CAMERA_OFFSET = (0.9, -1.35, 0.42)
-ARROW_HEAD = 0.05           # length of an arrow's cone [m]
+ARROW_HEAD = 0.05           # length of an arrow's cone [m] (times λ as the camera offset)
 ARROW_RADIUS = 0.011        # of its shaft [m] (the cone: 2.5 times that)
 #: the mesh triangles a page holds, all robots together (20-30 bytes each in the page):
 #: the meshes of a robot with more are simplified, each to its share
 PAGE_TRIANGLES = 60_000
 #: a mesh keeps at least this many triangles
 MIN_MESH_TRIANGLES = 12
+
+
+def page_scale(descs) -> RobotScale:
+    """The scale of a page's camera distance and arrows: the RobotScale (λ, μ vs StarlETH)
+    of its largest robot (the longest legs)."""
+    return max((robot_scale(d.legs, d.total_mass) for d in descs), key=lambda s: s.length)
 
 
 def _matrix(M4) -> list:
@@ -318,12 +326,13 @@ def body_frames(desc: RobotDescription, joint_ids, prefix: str) -> list:
     return out
 
 
-def scene_commands(ground: Recording, robots, trunk_xy) -> list:
+def scene_commands(ground: Recording, robots, trunk_xy, scale: float = 1.0) -> list:
     """meshcat commands that build the scene: background, a checkerboard ground plane (in
     place of meshcat's grid) and the terrain of `ground` (a Recording), for each robot
     (robots: [(Recording, visuals, {pin joint id: frame name}, name)]) its visuals under
     /world/robots/<frame> (its bodies' frames as on /tf: robot1/base, ...) and its force
-    arrows under /world/forces/<name><foot>, the camera. The page follows the trunks (their
+    arrows under /world/forces/<name><foot>, the camera; `scale` (λ of page_scale) scales
+    the camera's distance and the arrows' thickness. The page follows the trunks (their
     mean point) by moving /world so that it stays at the origin, which meshcat's orbit
     controls turn the camera around."""
     lo, hi = trunk_xy.min(axis=0), trunk_xy.max(axis=0)
@@ -348,33 +357,36 @@ def scene_commands(ground: Recording, robots, trunk_xy) -> list:
         for joint, name, obj in visuals:
             cmds.append({"type": "set_object", "path": f"/world/robots/{frames[joint]}/{name}",
                          "object": obj})
-        cmds += _arrow_objects(rec, robot)
+        cmds += _arrow_objects(rec, robot, scale)
     # the camera's position relative to the point it orbits (the origin), given in the
     # Y-up frame of /Cameras/default/rotated: (x, z, -y) of the world
-    ox, oy, oz = CAMERA_OFFSET
+    ox, oy, oz = (scale * c for c in CAMERA_OFFSET)
     cmds.append({"type": "set_property", "path": "/Cameras/default/rotated/<object>",
                  "property": "position", "value": [ox, oz, -oy]})
     return cmds
 
 
-def _arrow_objects(rec: Recording, robot: str) -> list:
+def _arrow_objects(rec: Recording, robot: str, size: float) -> list:
     """The force arrows of a robot (`robot`: its frame prefix), a shaft and a head per foot
-    with force messages (its foot contact name), under /world/forces/<robot><foot>."""
+    with force messages (its foot contact name), under /world/forces/<robot><foot>; their
+    head and radius times `size`."""
     cmds = []
     shaft = np.eye(4)
     shaft[1, 3] = 0.5                                      # unit cylinder from y=0 to y=1
     head = np.eye(4)
-    head[1, 3] = ARROW_HEAD / 2                            # cone from y=0 to the tip
+    head[1, 3] = size * ARROW_HEAD / 2                     # cone from y=0 to the tip
+    radius = size * ARROW_RADIUS
     for foot in rec.wrenches:
         path = f"forces/{robot}{foot}"
         cmds.append({"type": "set_object", "path": f"/world/{path}/shaft",
                      "object": _mesh(f"{path}/shaft", f"{robot}{foot} force", {
-                         "type": "CylinderGeometry", "radiusTop": ARROW_RADIUS,
-                         "radiusBottom": ARROW_RADIUS, "height": 1.0, "radialSegments": 12},
+                         "type": "CylinderGeometry", "radiusTop": radius,
+                         "radiusBottom": radius, "height": 1.0, "radialSegments": 12},
                          ARROW_COLOR, shaft)})
         cmds.append({"type": "set_object", "path": f"/world/{path}/head",
                      "object": _mesh(f"{path}/head", f"{robot}{foot} force head", {
-                         "type": "ConeGeometry", "radius": 2.5 * ARROW_RADIUS, "height": ARROW_HEAD,
+                         "type": "ConeGeometry", "radius": 2.5 * radius,
+                         "height": size * ARROW_HEAD,
                          "radialSegments": 12}, ARROW_COLOR, head)})
     return cmds
 
