@@ -73,6 +73,20 @@ def urdf_origin(elem, where: str = "URDF") -> pin.SE3:
 def check_tree(root: ET.Element, source: str) -> str:
     """Checks the links and joints form one tree of supported joints (module docstring);
     returns the root link's name."""
+    links = _link_names(root, source)
+    parent_of, seen = {}, set()
+    for joint in root.findall("joint"):
+        name, parent, child = _checked_joint(joint, links, seen, source)
+        if child in parent_of:
+            raise ConfigError(f"{source}: joint '{name}': closed loop: link '{child}' is "
+                              f"already the child of joint '{parent_of[child][0]}' (a URDF is "
+                              "a tree)")
+        parent_of[child] = (name, parent)
+    return _root_of(links, parent_of, source)
+
+
+def _link_names(root, source):
+    """The <link> names, in order: each named, once; at least one."""
     links = []
     for link in root.findall("link"):
         name = link.get("name")
@@ -83,42 +97,47 @@ def check_tree(root: ET.Element, source: str) -> str:
         links.append(name)
     if not links:
         raise ConfigError(f"{source}: the URDF has no <link>")
-    parent_of, seen = {}, set()
-    for joint in root.findall("joint"):
-        name, kind = joint.get("name"), joint.get("type")
-        where = f"{source}: joint '{name}'"
-        if not name:
-            raise ConfigError(f"{source}: a <joint> without a name")
-        if name in seen:
-            raise ConfigError(f"{where}: defined twice")
-        seen.add(name)
-        if kind not in SUPPORTED_JOINTS:
-            what = f"type '{kind}'" if kind in URDF_JOINT_TYPES else f"unknown type {kind!r}"
-            raise ConfigError(f"{where}: {what} is not supported (revolute and fixed joints "
-                              "only)")
-        ends = []
-        for end in ("parent", "child"):
-            e = joint.find(end)
-            link = e.get("link") if e is not None else None
-            if link not in links:
-                raise ConfigError(f"{where}: its {end} link {link!r} is not a link of the URDF")
-            ends.append(link)
-        parent, child = ends
-        if child in parent_of:
-            raise ConfigError(f"{where}: closed loop: link '{child}' is already the child of "
-                              f"joint '{parent_of[child][0]}' (a URDF is a tree)")
-        parent_of[child] = (name, parent)
-        urdf_origin(joint, where)
-        limit = joint.find("limit")
-        for k in ("lower", "upper", "effort", "velocity"):
-            if limit is not None and limit.get(k) is not None:
-                numbers(limit.get(k), 1, f"{where} <limit {k}>")
-        if kind == "revolute":
-            axis = joint.find("axis")
-            a = numbers(axis.get("xyz"), 3, f"{where} <axis xyz>") if axis is not None \
-                else np.array([1.0, 0.0, 0.0])
-            if not np.linalg.norm(a) > 1e-9:
-                raise ConfigError(f"{where}: <axis xyz>: a zero axis")
+    return links
+
+
+def _checked_joint(joint, links, seen, source):
+    """(name, parent link, child link) of a <joint> whose name is new (added to `seen`),
+    type supported, ends links of the URDF, origin, limits and axis well formed."""
+    name, kind = joint.get("name"), joint.get("type")
+    where = f"{source}: joint '{name}'"
+    if not name:
+        raise ConfigError(f"{source}: a <joint> without a name")
+    if name in seen:
+        raise ConfigError(f"{where}: defined twice")
+    seen.add(name)
+    if kind not in SUPPORTED_JOINTS:
+        what = f"type '{kind}'" if kind in URDF_JOINT_TYPES else f"unknown type {kind!r}"
+        raise ConfigError(f"{where}: {what} is not supported (revolute and fixed joints "
+                          "only)")
+    ends = []
+    for end in ("parent", "child"):
+        e = joint.find(end)
+        link = e.get("link") if e is not None else None
+        if link not in links:
+            raise ConfigError(f"{where}: its {end} link {link!r} is not a link of the URDF")
+        ends.append(link)
+    urdf_origin(joint, where)
+    limit = joint.find("limit")
+    for k in ("lower", "upper", "effort", "velocity"):
+        if limit is not None and limit.get(k) is not None:
+            numbers(limit.get(k), 1, f"{where} <limit {k}>")
+    if kind == "revolute":
+        axis = joint.find("axis")
+        a = numbers(axis.get("xyz"), 3, f"{where} <axis xyz>") if axis is not None \
+            else np.array([1.0, 0.0, 0.0])
+        if not np.linalg.norm(a) > 1e-9:
+            raise ConfigError(f"{where}: <axis xyz>: a zero axis")
+    return name, ends[0], ends[1]
+
+
+def _root_of(links, parent_of, source):
+    """The one root link of the tree {child: (joint, parent)}; a second root or a loop that
+    does not reach the root is refused."""
     roots = [link for link in links if link not in parent_of]
     if not roots:
         raise ConfigError(f"{source}: closed loop: every link is the child of a joint (a URDF "

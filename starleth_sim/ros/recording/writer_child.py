@@ -33,71 +33,98 @@ def main():
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the parent closes the recording
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     background_scheduling()
-    inp, out = sys.stdin.buffer, sys.stdout.buffer
-    rec, names = None, []
+    server = _WriterServer(sys.stdin.buffer, sys.stdout.buffer)
+    while server.serve_one():
+        pass
+    if server.rec is not None and not server.finished:
+        try:
+            server.rec.close()
+        except RecordingError:
+            pass
 
-    def answer(ok, value):
+
+class _WriterServer:
+    """One recording served over a pipe: `serve_one` reads and answers one request or
+    message batch."""
+
+    def __init__(self, inp, out):
+        self.inp, self.out = inp, out
+        #: finished: the file closed on request, or a failure answered (nothing to close)
+        self.rec, self.names, self.finished = None, [], False
+
+    def answer(self, ok, value):
         data = pickle.dumps((ok, value))
-        out.write(len(data).to_bytes(4, "little") + data)
-        out.flush()
+        self.out.write(len(data).to_bytes(4, "little") + data)
+        self.out.flush()
 
-    while True:
-        h = inp.read(5)
+    def serve_one(self) -> bool:
+        """Reads one frame (kind byte, size, payload) and handles it; False once the input
+        ended, the file was closed on request or a write failed (answered)."""
+        h = self.inp.read(5)
         if len(h) < 5:
-            break
+            return False
         kind, size = h[:1], int.from_bytes(h[1:], "little")
-        payload = inp.read(size)
+        payload = self.inp.read(size)
         if len(payload) < size:
-            break
+            return False
         if kind == MESSAGES:
-            o = 0
-            try:
-                while o < size:
-                    i, t, n = MESSAGE_HEAD.unpack_from(payload, o)
-                    o += MESSAGE_HEAD.size
-                    rec.write(names[i], payload[o:o + n], t)
-                    o += n
-            except RecordingError as e:
-                answer(False, e)
-                return
-            continue
-        request = pickle.loads(payload)
+            return self.write_messages(payload)
+        return self.handle(pickle.loads(payload))
+
+    def write_messages(self, payload) -> bool:
+        """A batch of (topic index, stamp, CDR bytes) messages into the file."""
+        o = 0
+        try:
+            while o < len(payload):
+                i, t, n = MESSAGE_HEAD.unpack_from(payload, o)
+                o += MESSAGE_HEAD.size
+                self.rec.write(self.names[i], payload[o:o + n], t)
+                o += n
+        except RecordingError as e:
+            self.finished = True
+            self.answer(False, e)
+            return False
+        return True
+
+    def handle(self, request) -> bool:
+        """One request (op, *args), answered (True, value) or (False, error)."""
         op, args = request[0], request[1:]
         try:
-            if op == "open":
-                rec = open_file_recorder(args[0])
-                value = None
-            elif op == "add_topic":
-                topic, typ, qos, type_hash, fallback_text = args
-                if fallback_text is not None:
-                    register_msg_text(typ, fallback_text)
-                value = rec.add_topic(topic, typ, qos, type_hash)
-                if topic not in names:
-                    names.append(topic)
-            elif op == "close":
-                rec.close(metadata=args[0])
-                answer(True, rec.message_count)
-                return
-            elif op == "add_metadata":
-                value = rec.add_metadata(*args)
-            elif op == "add_attachment":
-                value = rec.add_attachment(*args)
-            elif op == "counts":
-                value = rec.counts()
-            else:
-                raise ValueError(f"the recording process has no request {op!r}")
-            answer(True, value)
+            if op == "close":
+                self.rec.close(metadata=args[0])
+                self.finished = True
+                self.answer(True, self.rec.message_count)
+                return False
+            self.answer(True, self.request_value(op, args))
         except RecordingError as e:
-            answer(False, e)
-            return
+            self.finished = True
+            self.answer(False, e)
+            return False
         except Exception as e:
             if op == "open" and isinstance(e, OSError):   # one line: file and cause
                 e = RecordingError(f"{args[0].uri}: {failure_cause(e, args[0].uri)}"
                                    if e.errno is not None
                                    else str(e))           # (a message naming the file)
-            answer(False, e)
-    if rec is not None:
-        try:
-            rec.close()
-        except RecordingError:
-            pass
+            self.answer(False, e)
+        return True
+
+    def request_value(self, op, args):
+        """The answer's value of a request other than 'close'."""
+        if op == "open":
+            self.rec = open_file_recorder(args[0])
+            return None
+        if op == "add_topic":
+            topic, typ, qos, type_hash, fallback_text = args
+            if fallback_text is not None:
+                register_msg_text(typ, fallback_text)
+            value = self.rec.add_topic(topic, typ, qos, type_hash)
+            if topic not in self.names:
+                self.names.append(topic)
+            return value
+        if op == "add_metadata":
+            return self.rec.add_metadata(*args)
+        if op == "add_attachment":
+            return self.rec.add_attachment(*args)
+        if op == "counts":
+            return self.rec.counts()
+        raise ValueError(f"the recording process has no request {op!r}")
