@@ -200,43 +200,52 @@ class SimLoops:
                               f"{svc.stamp_ns * 1e-9:.4f} s")
                 next_tick = clock() + period
                 ps.restart()
-            # wait in the executor (commands, services) until shortly before the tick,
-            # then spin on the clock; behind the wall clock, still take once what has
-            # arrived (else a loop that stays behind would never see a command)
-            spun = False
-            while True:
-                remaining = next_tick - clock()
-                if remaining <= margin or not self.running():
-                    break
-                self._spin(executor, min(remaining - margin, 0.05))
-                spun = True
-                if svc.paused:
-                    break
-            if not spun:
-                self._spin(executor, 0.0)
-            if svc.paused or not self.running():
+            if not self._wait_for_tick(executor, next_tick, margin):
                 continue
-            while clock() < next_tick:
-                pass
-            t = clock()
-            ps.tick(t)
+            ps.tick(clock())
             if svc.step() is not None:
                 self.publisher.publish_state()
             if svc.holding is not holding:
                 holding = self._report_hold(holding)
             if svc.k % 400 == 0:
                 self.diagnostics.update_period_summary()
-            next_tick += period
-            lag = clock() - next_tick
-            if lag > 0.0:
-                # behind the wall clock: the next ticks follow at once until caught up; too
-                # far behind (the host cannot keep up), drop the missed ticks and say so
-                if lag > self.MAX_CATCH_UP:
-                    ps.overruns += 1
-                    svc.warnings.warn("overrun", f"realtime loop overrun: {lag * 1e3:.1f} ms "
-                                      "behind the wall clock; skipping ahead "
-                                      f"({ps.overruns} overruns so far)")
-                    next_tick = clock() + period
+            next_tick = self._next_tick(next_tick + period, period)
+
+    def _wait_for_tick(self, executor, next_tick, margin) -> bool:
+        """Waits in the executor (commands, services) until shortly before the tick, then
+        spins on the clock; behind the wall clock, still takes once what has arrived (else a
+        loop that stays behind would never see a command). False: paused or stopping."""
+        clock, svc = time.perf_counter, self.service
+        spun = False
+        while True:
+            remaining = next_tick - clock()
+            if remaining <= margin or not self.running():
+                break
+            self._spin(executor, min(remaining - margin, 0.05))
+            spun = True
+            if svc.paused:
+                break
+        if not spun:
+            self._spin(executor, 0.0)
+        if svc.paused or not self.running():
+            return False
+        while clock() < next_tick:
+            pass
+        return True
+
+    def _next_tick(self, next_tick, period):
+        """The next tick's time: `next_tick`, or, too far behind the wall clock (the host
+        cannot keep up), one period from now with the missed ticks dropped and said (behind
+        by less, the next ticks follow at once until caught up)."""
+        lag = time.perf_counter() - next_tick
+        if lag > self.MAX_CATCH_UP:
+            ps = self.period_stats
+            ps.overruns += 1
+            self.service.warnings.warn("overrun", f"realtime loop overrun: {lag * 1e3:.1f} ms "
+                                       "behind the wall clock; skipping ahead "
+                                       f"({ps.overruns} overruns so far)")
+            return time.perf_counter() + period
+        return next_tick
 
     def _run_lockstep(self, executor):
         svc, s = self.service, self.settings

@@ -149,13 +149,7 @@ class StatePublisher:
             base = base_values(self.sim)
         if want_odom:
             self._publish_odometry(sec, nsec, base, record)
-        if first:   # state 0: the exact count
-            send = (out.subscription_count("joint_states") > 0
-                    or (record and self.recording.recorder is not None)
-                    or out.live_wants("joint_states"))
-        else:
-            send = wanted("joint_states", record)
-        if send:
+        if self._joint_states_wanted(first, record):
             self._publish_joint_states(
                 sec, nsec, record, joints if joints is not None else joint_values(self.sim))
         if timing is not None and not bundle:
@@ -170,6 +164,23 @@ class StatePublisher:
             self._publish_applied_torque(record)
         if timing is not None:
             timing.row[3] = time.perf_counter()
+        self._after_state(record)
+
+    def _joint_states_wanted(self, first, record) -> bool:
+        """Whether /joint_states goes out: state 0 on the exact subscriber count, later on
+        TopicOutput.wanted's."""
+        out = self.output
+        if first:
+            return (out.subscription_count("joint_states") > 0
+                    or (record and self.recording.recorder is not None)
+                    or out.live_wants("joint_states"))
+        return out.wanted("joint_states", record)
+
+    def _after_state(self, record):
+        """After a state's topics: the next step prepared, /tf and the markers, the
+        recording's step (a re-send: /tf again only), the timing row, the counts, the live
+        view's messages of this step at once."""
+        svc, out, timing = self.service, self.output, self.timing
         if record:
             self._prepare_next_step()
             self.visualisation.publish()
@@ -180,7 +191,7 @@ class StatePublisher:
             timing.row[4] = time.perf_counter()
             timing.commit(svc.stamp_ns)
         out.update_counts()
-        if out.live is not None:     # the live view's messages of this step, all at once
+        if out.live is not None:
             out.live.flush()
 
     def republish_state(self):
