@@ -115,6 +115,8 @@ def _stop(proc, log_path, timeout=20):
 # parent
 # -----------------------------------------------------------------------------------------
 def parent_main(args):
+    """The benchmark's parent: this process is the controller side; sim_node runs as a
+    child, first in lockstep (beside a bare loop), then in realtime."""
     import rclpy
     from rclpy.node import Node
     results = {"domain_id": args.domain_id, "controller_executor": args.executor,
@@ -129,80 +131,9 @@ def parent_main(args):
     tmp = tempfile.mkdtemp(prefix="starleth_bench_")
     try:
         if args.lockstep_seconds > 0:
-            log_path = os.path.join(tmp, "lockstep.log")
-            real = args.controller == "real"
-            kind = ("composed" if args.composed else "real") if real else "echo"
-            timing = os.path.join(tmp, "timing.npz") if real else ""
-            ctl, windows = None, []
-            if kind == "real":
-                ctl = make_bench_controller(ctx, timing=True,
-                                            params=node_parameters(args.controller_param))
-                ex.add_node(ctl)
-            with open(log_path, "w") as log:
-                proc = _spawn(args, "lockstep", 0.0, True, log, args.record, timing)
-                try:
-                    bare, lock = lockstep_beside_bare(node, ex, args.lockstep_seconds,
-                                                      args.bare_seconds, args.rounds,
-                                                      controller=kind, windows=windows,
-                                                      ctl=ctl, sim_pid=proc.pid)
-                except Exception:
-                    print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
-                    raise
-                finally:
-                    summary, text = _stop(proc, log_path)
-            if real:
-                tm = np.load(timing) if os.path.exists(timing) else \
-                    {"sim_stamp": None, "sim_t": None}
-                if ctl is not None:
-                    tmg = getattr(ctl, "timing", None)
-                    ct, cs = ((tmg.t[:tmg.n], tmg.stamp[:tmg.n]) if tmg is not None
-                              else (np.zeros((0, 4)), np.zeros(0, np.int64)))
-                    results["controller_summary"] = ctl.summary()
-                    ex.remove_node(ctl)
-                    ctl.destroy_node()
-                else:
-                    ct, cs = tm["ctl_t"], tm["ctl_stamp"]
-                lock = real_loop_figures(windows, tm["sim_stamp"], tm["sim_t"], cs, ct, bare)
-                for r, p in enumerate(lock["rounds"]):
-                    print(f"  round {r + 1}: lockstep {p['lockstep_cycles_per_s']:.0f}/s, "
-                          f"ratio {p['ratio']:.2f}", flush=True)
-            results["controller"] = kind
-            results["bare"], results["lockstep"] = bare, lock
-            lock["node_summary"] = summary
-            print_rates(bare, lock, "lockstep control cycles",
-                        f"; goal >= {0.4 if real else 0.75}), sim/wall "
-                        f"{lock['sim_time_per_wall']:.2f} [{kind} controller"
-                        f"{', recording' if args.record else ''}]")
-            if real:
-                b = lock["breakdown_median_ms"]
-                print("per cycle (medians, ms; " + str(lock["breakdown_cycles"]) + " cycles): "
-                      + ", ".join(f"{k} {v:.3f}" for k, v in b.items() if v is not None),
-                      flush=True)
-                if "cpu_per_cycle_ms" in lock:
-                    print("CPU time per cycle (ms, all threads): " + ", ".join(
-                        f"{k} {v:.3f}" for k, v in lock["cpu_per_cycle_ms"].items()),
-                        flush=True)
+            _lockstep_phase(args, ctx, node, ex, tmp, results)
         if args.realtime_seconds > 0:
-            log_path = os.path.join(tmp, "realtime.log")
-            with open(log_path, "w") as log:
-                proc = _spawn(args, "realtime", 1.0, False, log)
-                try:
-                    results["realtime"] = controller_phase(node, ex, args.realtime_seconds)
-                except Exception:
-                    print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
-                    raise
-                finally:
-                    summary, text = _stop(proc, log_path)
-            results["realtime"]["node_summary"] = summary
-            if summary:
-                print(f"realtime: node tick period error p50 "
-                      f"{summary.get('period_error_p50_ms', float('nan')):.4f} ms, p99 "
-                      f"{summary.get('period_error_p99_ms', float('nan')):.4f} ms (goal < 0.25), "
-                      f"max {summary.get('period_error_max_ms', float('nan')):.3f} ms, overruns "
-                      f"{summary.get('overruns')}", flush=True)
-            rr = results["realtime"]
-            print(f"realtime: /joint_states received {rr['states_per_s']:.1f}/s, "
-                  f"inter-arrival error p99 {rr['interarrival_error_p99_ms']:.3f} ms", flush=True)
+            _realtime_phase(args, node, ex, tmp, results)
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
@@ -211,6 +142,93 @@ def parent_main(args):
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
     return results
+
+
+def _run_child(args, mode, rtf, lockstep, tmp, run, *spawn_args):
+    """sim_node as a child in `mode` while `run()` measures; its log printed if `run`
+    fails. Returns (run's result, the node's summary)."""
+    log_path = os.path.join(tmp, f"{mode}.log")
+    with open(log_path, "w") as log:
+        proc = _spawn(args, mode, rtf, lockstep, log, *spawn_args)
+        try:
+            result = run(proc)
+        except Exception:
+            print(_stop(proc, log_path)[1][-3000:], file=sys.stderr)
+            raise
+        finally:
+            summary, _ = _stop(proc, log_path)
+    return result, summary
+
+
+def _lockstep_phase(args, ctx, node, ex, tmp, results):
+    """Lockstep control cycles beside the bare loop, with an echo, real or composed
+    controller; with the real one, the per-cycle breakdown from both sides' timings."""
+    real = args.controller == "real"
+    kind = ("composed" if args.composed else "real") if real else "echo"
+    timing = os.path.join(tmp, "timing.npz") if real else ""
+    ctl, windows = None, []
+    if kind == "real":
+        ctl = make_bench_controller(ctx, timing=True,
+                                    params=node_parameters(args.controller_param))
+        ex.add_node(ctl)
+    (bare, lock), summary = _run_child(
+        args, "lockstep", 0.0, True, tmp,
+        lambda proc: lockstep_beside_bare(node, ex, args.lockstep_seconds, args.bare_seconds,
+                                          args.rounds, controller=kind, windows=windows,
+                                          ctl=ctl, sim_pid=proc.pid),
+        args.record, timing)
+    if real:
+        lock = _real_controller_figures(ex, ctl, timing, windows, bare, results)
+    results["controller"] = kind
+    results["bare"], results["lockstep"] = bare, lock
+    lock["node_summary"] = summary
+    print_rates(bare, lock, "lockstep control cycles",
+                f"; goal >= {0.4 if real else 0.75}), sim/wall "
+                f"{lock['sim_time_per_wall']:.2f} [{kind} controller"
+                f"{', recording' if args.record else ''}]")
+    if real:
+        b = lock["breakdown_median_ms"]
+        print("per cycle (medians, ms; " + str(lock["breakdown_cycles"]) + " cycles): "
+              + ", ".join(f"{k} {v:.3f}" for k, v in b.items() if v is not None), flush=True)
+        if "cpu_per_cycle_ms" in lock:
+            print("CPU time per cycle (ms, all threads): " + ", ".join(
+                f"{k} {v:.3f}" for k, v in lock["cpu_per_cycle_ms"].items()), flush=True)
+
+
+def _real_controller_figures(ex, ctl, timing, windows, bare, results):
+    """The lockstep figures of a real controller from the sim's and the controller's
+    timing rows (in this process, or the composed child's file); printed per round."""
+    tm = np.load(timing) if os.path.exists(timing) else {"sim_stamp": None, "sim_t": None}
+    if ctl is not None:
+        tmg = getattr(ctl, "timing", None)
+        ct, cs = ((tmg.t[:tmg.n], tmg.stamp[:tmg.n]) if tmg is not None
+                  else (np.zeros((0, 4)), np.zeros(0, np.int64)))
+        results["controller_summary"] = ctl.summary()
+        ex.remove_node(ctl)
+        ctl.destroy_node()
+    else:
+        ct, cs = tm["ctl_t"], tm["ctl_stamp"]
+    lock = real_loop_figures(windows, tm["sim_stamp"], tm["sim_t"], cs, ct, bare)
+    for r, p in enumerate(lock["rounds"]):
+        print(f"  round {r + 1}: lockstep {p['lockstep_cycles_per_s']:.0f}/s, "
+              f"ratio {p['ratio']:.2f}", flush=True)
+    return lock
+
+
+def _realtime_phase(args, node, ex, tmp, results):
+    """sim_node in realtime: its tick period error and the /joint_states arrivals here."""
+    rr, summary = _run_child(args, "realtime", 1.0, False, tmp,
+                             lambda proc: controller_phase(node, ex, args.realtime_seconds))
+    results["realtime"] = rr
+    rr["node_summary"] = summary
+    if summary:
+        print(f"realtime: node tick period error p50 "
+              f"{summary.get('period_error_p50_ms', float('nan')):.4f} ms, p99 "
+              f"{summary.get('period_error_p99_ms', float('nan')):.4f} ms (goal < 0.25), "
+              f"max {summary.get('period_error_max_ms', float('nan')):.3f} ms, overruns "
+              f"{summary.get('overruns')}", flush=True)
+    print(f"realtime: /joint_states received {rr['states_per_s']:.1f}/s, "
+          f"inter-arrival error p99 {rr['interarrival_error_p99_ms']:.3f} ms", flush=True)
 
 
 def main(argv=None):
