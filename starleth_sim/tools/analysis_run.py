@@ -121,80 +121,148 @@ def float_or_nan(s):
 
 
 def _make_handler(kind, col: _Collector, decode):
+    """The message handler of a topic of `kind` (('wrench', foot), ('base', None), ...):
+    decodes each message and appends its row to the collector."""
     what, foot = kind
-    if what == "wrench":
-        rows = col.wrench[foot]
-
-        def handle(m):
-            msg = decode(m.data)
-            f = msg.wrench.force
-            rows.append((_stamp(msg), m.log_time, m.publish_time, f.x, f.y, f.z))
-    elif what == "base":
-        rows = col.base
-
-        def handle(m):
-            msg = decode(m.data)
-            if col.base_frames is None:
-                col.base_frames = (msg.header.frame_id, msg.child_frame_id)
-            p, q = msg.pose.pose.position, msg.pose.pose.orientation
-            v, w = msg.twist.twist.linear, msg.twist.twist.angular
-            rows.append((_stamp(msg), m.log_time, m.publish_time,
-                         p.x, p.y, p.z, q.x, q.y, q.z, q.w, v.x, v.y, v.z, w.x, w.y, w.z))
-    elif what == "joints":
-        # the columns: the joints of the first message, by name
-        state = {"names": None, "index": None, "identity": False, "order": None}
-
-        def handle(m):
-            msg = decode(m.data)
-            names = msg.name
-            if names != state["names"]:
-                if col.joint_names is None:
-                    col.joint_names = list(names)
-                if state["order"] is None:      # (a split bag's later file: the first's names)
-                    state["order"] = {n: i for i, n in enumerate(col.joint_names)}
-                    state["nan_row"] = [math.nan] * len(col.joint_names)
-                state["names"] = list(names)
-                state["index"] = [state["order"].get(n, -1) for n in names]
-                col.ignored_joints += [n for n in names if n not in state["order"]
-                                       and n not in col.ignored_joints]
-                state["identity"] = state["index"] == list(range(len(col.joint_names)))
-            col.joint_stamps.append((_stamp(msg), m.log_time, m.publish_time))
-            eff = msg.effort
-            idx = state["index"]
-            if state["identity"] and len(eff) == len(idx):
-                col.joint_effort.append(list(eff))
-                return
-            row = list(state["nan_row"])
-            if len(eff) == len(idx):
-                for i, e in zip(idx, eff):
-                    if i >= 0:
-                        row[i] = e
-            col.joint_effort.append(row)
-    elif what == "solver":
-        rows = col.solver
-
-        def handle(m):
-            msg = decode(m.data)
-            for st in msg.status:
-                kv = {v.key: v.value for v in st.values}
-                if "iterations" not in kv:
-                    continue
-                conv = kv.get("converged")
-                rows.append((_stamp(msg), m.log_time, m.publish_time,
-                             float_or_nan(kv["iterations"]),
-                             math.nan if conv is None else float(conv.strip().lower() in
-                                                                 ("true", "1", "yes")),
-                             float_or_nan(kv.get("residual")), float_or_nan(kv.get("step_time")),
-                             float_or_nan(kv.get("max_iterations_step")),
-                             float_or_nan(kv.get("active_contacts"))))
-                return
-    elif what == "description":
-        def handle(m):
-            if col.urdf is None:
-                col.urdf = decode(m.data).data
-    else:  # pragma: no cover
+    if what not in _HANDLERS:  # pragma: no cover
         raise ValueError(kind)
+    return _HANDLERS[what](col, decode, foot)
+
+
+def _wrench_handler(col, decode, foot):
+    rows = col.wrench[foot]
+
+    def handle(m):
+        msg = decode(m.data)
+        f = msg.wrench.force
+        rows.append((_stamp(msg), m.log_time, m.publish_time, f.x, f.y, f.z))
     return handle
+
+
+def _base_handler(col, decode, _foot):
+    rows = col.base
+
+    def handle(m):
+        msg = decode(m.data)
+        if col.base_frames is None:
+            col.base_frames = (msg.header.frame_id, msg.child_frame_id)
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        v, w = msg.twist.twist.linear, msg.twist.twist.angular
+        rows.append((_stamp(msg), m.log_time, m.publish_time,
+                     p.x, p.y, p.z, q.x, q.y, q.z, q.w, v.x, v.y, v.z, w.x, w.y, w.z))
+    return handle
+
+
+def _joints_handler(col, decode, _foot):
+    """/joint_states: the efforts in the columns of the first message's joints, by name
+    (NaN where a message lacks one; joints not among them listed as ignored)."""
+    state = {"names": None, "index": None, "identity": False, "order": None}
+
+    def new_names(names):
+        if col.joint_names is None:
+            col.joint_names = list(names)
+        if state["order"] is None:      # (a split bag's later file: the first's names)
+            state["order"] = {n: i for i, n in enumerate(col.joint_names)}
+            state["nan_row"] = [math.nan] * len(col.joint_names)
+        state["names"] = list(names)
+        state["index"] = [state["order"].get(n, -1) for n in names]
+        col.ignored_joints += [n for n in names if n not in state["order"]
+                               and n not in col.ignored_joints]
+        state["identity"] = state["index"] == list(range(len(col.joint_names)))
+
+    def handle(m):
+        msg = decode(m.data)
+        if msg.name != state["names"]:
+            new_names(msg.name)
+        col.joint_stamps.append((_stamp(msg), m.log_time, m.publish_time))
+        eff = msg.effort
+        idx = state["index"]
+        if state["identity"] and len(eff) == len(idx):
+            col.joint_effort.append(list(eff))
+            return
+        row = list(state["nan_row"])
+        if len(eff) == len(idx):
+            for i, e in zip(idx, eff):
+                if i >= 0:
+                    row[i] = e
+        col.joint_effort.append(row)
+    return handle
+
+
+def _solver_handler(col, decode, _foot):
+    rows = col.solver
+
+    def handle(m):
+        msg = decode(m.data)
+        for st in msg.status:
+            kv = {v.key: v.value for v in st.values}
+            if "iterations" not in kv:
+                continue
+            conv = kv.get("converged")
+            rows.append((_stamp(msg), m.log_time, m.publish_time,
+                         float_or_nan(kv["iterations"]),
+                         math.nan if conv is None else float(conv.strip().lower() in
+                                                             ("true", "1", "yes")),
+                         float_or_nan(kv.get("residual")), float_or_nan(kv.get("step_time")),
+                         float_or_nan(kv.get("max_iterations_step")),
+                         float_or_nan(kv.get("active_contacts"))))
+            return
+    return handle
+
+
+def _description_handler(col, decode, _foot):
+    def handle(m):
+        if col.urdf is None:
+            col.urdf = decode(m.data).data
+    return handle
+
+
+_HANDLERS = {"wrench": _wrench_handler, "base": _base_handler, "joints": _joints_handler,
+             "solver": _solver_handler, "description": _description_handler}
+
+
+def _attached_urdf(bag):
+    """The URDF attached to the recording (sim_node's carry it so), or None."""
+    for name, data in bag.attachments.items():
+        if name.endswith(".urdf"):
+            try:
+                return data.decode("utf-8")
+            except UnicodeDecodeError:
+                pass
+    return None
+
+
+def _rows(path, rows, width):
+    """`rows` as a (n, width) float array."""
+    try:
+        a = np.array(rows, dtype=float) if rows else np.zeros((0, width))
+    except (ValueError, TypeError, OverflowError) as e:
+        raise AnalysisError(f"{path}: messages whose fields are not numbers (the "
+                            f"bag's schema is not the ROS one?): {e}") from None
+    return a.reshape(len(rows), width)
+
+
+def _times(rows, path):
+    """The raw (stamp, log, pub) nanoseconds of `rows`, int64 for exact comparisons; the
+    log time stands for the stamp of unstamped messages."""
+    try:
+        a = np.array([r[:3] for r in rows], dtype=np.int64).reshape(-1, 3)
+    except (ValueError, TypeError, OverflowError) as e:
+        raise AnalysisError(f"{path}: message stamps that are not int64 "
+                            f"nanoseconds: {e}") from None
+    stamp = a[:, 0]
+    if stamp.size and not stamp.any():
+        stamp = a[:, 1].copy()
+    return stamp, a[:, 1], a[:, 2]
+
+
+def _in_stamp_order(times, data, t0_ns):
+    """A series' dict, its rows sorted by stamp (stable), t in s from t0_ns."""
+    stamp, log, pub = times
+    order = np.argsort(stamp, kind="stable")
+    if not np.all(order == np.arange(order.size)):
+        stamp, log, pub, data = stamp[order], log[order], pub[order], data[order]
+    return {"stamp": stamp, "log": log, "pub": pub, "data": data, "t": (stamp - t0_ns) * 1e-9}
 
 
 class Run:
@@ -213,15 +281,7 @@ class Run:
         self.counts = dict(bag.counts)
         self.types = dict(bag.types)
         self.metadata = bag.metadata
-        self.urdf = col.urdf
-        if self.urdf is None:        # sim_node's recordings carry it as an attachment
-            for name, data in bag.attachments.items():
-                if name.endswith(".urdf"):
-                    try:
-                        self.urdf = data.decode("utf-8")
-                        break
-                    except UnicodeDecodeError:
-                        pass
+        self.urdf = col.urdf if col.urdf is not None else _attached_urdf(bag)
         for topic, (n, err) in bag.decode_errors.items():
             warn(f"{path}: {n} message(s) on {topic} could not be read ({err})")
         robot = self._recorded_robot(bag)
@@ -241,52 +301,34 @@ class Run:
         self.topic_names = {rel: resolve(rel, self.namespace) for rel in self.topics}
         self.missing = [self.topic_names[t] for t in self.topics
                         if not self.counts.get(self.topic_names[t])]
-
-        def arr(rows, width):
-            try:
-                a = np.array(rows, dtype=float) if rows else np.zeros((0, width))
-            except (ValueError, TypeError, OverflowError) as e:
-                raise AnalysisError(f"{path}: messages whose fields are not numbers (the "
-                                    f"bag's schema is not the ROS one?): {e}") from None
-            return a.reshape(len(rows), width)
-
-        # raw (stamp ns, log ns, pub ns) per series; int64 for exact comparisons
-        def times(rows):
-            try:
-                a = np.array([r[:3] for r in rows], dtype=np.int64).reshape(-1, 3)
-            except (ValueError, TypeError, OverflowError) as e:
-                raise AnalysisError(f"{path}: message stamps that are not int64 "
-                                    f"nanoseconds: {e}") from None
-            stamp = a[:, 0]
-            if stamp.size and not stamp.any():   # unstamped messages: use the log time
-                stamp = a[:, 1].copy()
-            return stamp, a[:, 1], a[:, 2]
-
-        series = {}
-        for foot in self.feet:
-            rows = col.wrench.get(foot, [])
-            series[("wrench", foot)] = (times(rows), arr([r[3:] for r in rows], 3))
-        series[("base", None)] = (times(col.base), arr([r[3:] for r in col.base], 13))
         self.joint_names, self.ignored_joints = col.joint_names or [], col.ignored_joints
-        effort = arr(col.joint_effort, len(self.joint_names))
-        if robot is not None and self.joint_names != list(robot.joint_names):
-            effort = self._in_robot_order(effort, list(robot.joint_names))
-        series[("joints", None)] = (times(col.joint_stamps), effort)
-        series[("solver", None)] = (times(col.solver), arr([r[3:] for r in col.solver], 6))
-        series = self._drop_unusable(series)
+        series = self._drop_unusable(self._series(col, robot))
         firsts = [s[0][0].min() for s in series.values() if s[0][0].size]
         self.t0_ns = int(min(firsts)) if firsts else 0
         #: (kind, foot) -> {t [s], stamp/log/pub [ns], data rows}: 'wrench' per foot,
         #: ('base', None), ('joints', None), ('solver', None)
-        self.series_by_key = {}
-        for key, ((stamp, log, pub), data) in series.items():
-            order = np.argsort(stamp, kind="stable")
-            if not np.all(order == np.arange(order.size)):
-                stamp, log, pub, data = stamp[order], log[order], pub[order], data[order]
-            self.series_by_key[key] = {"stamp": stamp, "log": log, "pub": pub, "data": data,
-                                 "t": (stamp - self.t0_ns) * 1e-9}
+        self.series_by_key = {key: _in_stamp_order(times, data, self.t0_ns)
+                              for key, (times, data) in series.items()}
         self.base_frames = col.base_frames or ("", "")
         self.window = (None, None)
+
+    def _series(self, col, robot):
+        """{key: ((stamp, log, pub) [ns], data rows)} of the collected messages, the
+        efforts in the robot's joint order."""
+        path = self.path
+        series = {}
+        for foot in self.feet:
+            rows = col.wrench.get(foot, [])
+            series[("wrench", foot)] = (_times(rows, path), _rows(path, [r[3:] for r in rows], 3))
+        series[("base", None)] = (_times(col.base, path),
+                                  _rows(path, [r[3:] for r in col.base], 13))
+        effort = _rows(path, col.joint_effort, len(self.joint_names))
+        if robot is not None and self.joint_names != list(robot.joint_names):
+            effort = self._in_robot_order(effort, list(robot.joint_names))
+        series[("joints", None)] = (_times(col.joint_stamps, path), effort)
+        series[("solver", None)] = (_times(col.solver, path),
+                                    _rows(path, [r[3:] for r in col.solver], 6))
+        return series
 
     def _recorded_robot(self, bag):
         """The robot the bag recorded (bag.recorded_robot: no library needed), or None (a
