@@ -64,48 +64,11 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     from the recorded initial state, with sim_node's own calls (SimService), on the recorded
     robot (rec.description: the bag's URDF and spec, whatever `config` names)."""
     own = config is None
-    cfg = rec.config() if own else config.with_overrides(robot=rec.description.name)
-    if abs(cfg.control_period - rec.control_period) > 1e-12:
-        raise ReplayError(f"{cfg.name}: control period {cfg.control_period * 1e3:g} ms, the "
-                          f"recording's is {rec.control_period * 1e3:g} ms: the torque stream "
-                          "does not fit (override control_rate)")
-    if own:   # the recorded torques are the applied ones: derating them again would differ
-        cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
-    try:
-        sim = Simulator(cfg, description=rec.description)
-    except ConfigError:
-        raise
-    except Exception as e:   # the robot's URDF (a path in the recorded configuration)
-        raise ReplayError(f"{cfg.name}: no simulator of this configuration: "
-                          f"{type(e).__name__}: {shortened(str(e))}") from None
-    init = rec.initial
+    sim, cfg = _replay_simulator(rec, config)
     warnings = []
-    try:
-        if init.get("coordinates") == cfg.coordinates and "q" in init:
-            q0, u0 = np.array(init["q"], dtype=float), np.array(init["u"], dtype=float)
-        else:   # another set of coordinates: through the minimal ones
-            sim.reset(init["q_minimal"], init["u_minimal"], minimal=True)
-            q0, u0 = sim.q, sim.u
-        # the longest throttle period sim_node's parameter allows: one warning per problem
-        # (and sim_node's frame prefix: a wrench may name its link by its frame)
-        settings = Settings(mode="lockstep", warn_throttle_period=3600.0,
-                            tf_frame_prefix=rec.frame_prefix)
-        svc = SimService(sim, settings, q0, u0, warn=warnings.append)
-    except (ValueError, TypeError, KeyError, IndexError) as e:
-        raise ReplayError(f"{rec.path}: the recorded initial_state does not fit "
-                          f"{cfg.name}: {type(e).__name__}: {shortened(str(e))}") from None
+    svc = _replay_service(rec, sim, cfg, warnings)
     n = rec.steps if steps is None else min(steps, rec.steps)
-    # the applied torque of each physics step where the bag has it (an impedance run: the
-    # torque changes within a control period) and it fits this configuration
-    applied = rec.applied if rec.applied is not None and \
-        rec.applied.shape[1] == cfg.steps_per_control else None
-    # (with the implicit dampers' replay rows where this simulator has implicit dampers)
-    if applied is not None and rec.replay is not None and sim.stepper.implicit_dampers:
-        applied = rec.replay
-    if rec.applied is not None and applied is None:
-        warn(f"{cfg.name}: {cfg.steps_per_control} physics steps per control "
-                        f"period, the recording's applied torques have {rec.applied.shape[1]}: "
-                        "replaying the torques of /joint_states")
+    applied = _applied_torques(rec, sim, cfg)
     out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in QUANTITIES}
     first = _snapshot(sim, rec.feet)
     for q in QUANTITIES:
@@ -133,6 +96,63 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
                   config_name=cfg.name, states={q: a[:done + 1] for q, a in out.items()},
                   steps=done, requested=n, error=error, wall=time.perf_counter() - t0,
                   iterations=its[:done])
+
+
+def _replay_simulator(rec, config):
+    """(Simulator, config) of the replay: `config` (None: the recorded one, its torques
+    not derated again) on the recorded robot, at the recording's control period."""
+    own = config is None
+    cfg = rec.config() if own else config.with_overrides(robot=rec.description.name)
+    if abs(cfg.control_period - rec.control_period) > 1e-12:
+        raise ReplayError(f"{cfg.name}: control period {cfg.control_period * 1e3:g} ms, the "
+                          f"recording's is {rec.control_period * 1e3:g} ms: the torque stream "
+                          "does not fit (override control_rate)")
+    if own:   # the recorded torques are the applied ones: derating them again would differ
+        cfg = cfg.with_overrides(**{"actuator.velocity_limit": "ignore"})
+    try:
+        return Simulator(cfg, description=rec.description), cfg
+    except ConfigError:
+        raise
+    except Exception as e:   # the robot's URDF (a path in the recorded configuration)
+        raise ReplayError(f"{cfg.name}: no simulator of this configuration: "
+                          f"{type(e).__name__}: {shortened(str(e))}") from None
+
+
+def _replay_service(rec, sim, cfg, warnings):
+    """sim_node's SimService over `sim` from the recorded initial state (through the
+    minimal coordinates where the recording's set is another); its warnings to
+    `warnings`, one per problem."""
+    init = rec.initial
+    try:
+        if init.get("coordinates") == cfg.coordinates and "q" in init:
+            q0, u0 = np.array(init["q"], dtype=float), np.array(init["u"], dtype=float)
+        else:
+            sim.reset(init["q_minimal"], init["u_minimal"], minimal=True)
+            q0, u0 = sim.q, sim.u
+        # the longest throttle period sim_node's parameter allows (and sim_node's frame
+        # prefix: a wrench may name its link by its frame)
+        settings = Settings(mode="lockstep", warn_throttle_period=3600.0,
+                            tf_frame_prefix=rec.frame_prefix)
+        return SimService(sim, settings, q0, u0, warn=warnings.append)
+    except (ValueError, TypeError, KeyError, IndexError) as e:
+        raise ReplayError(f"{rec.path}: the recorded initial_state does not fit "
+                          f"{cfg.name}: {type(e).__name__}: {shortened(str(e))}") from None
+
+
+def _applied_torques(rec, sim, cfg):
+    """The applied torque of each physics step where the bag has it (an impedance run: the
+    torque changes within a control period) and it fits this configuration, with the
+    implicit dampers' replay rows where this simulator has implicit dampers; None: the
+    torques of /joint_states (said where the bag's rows do not fit)."""
+    applied = rec.applied if rec.applied is not None and \
+        rec.applied.shape[1] == cfg.steps_per_control else None
+    if applied is not None and rec.replay is not None and sim.stepper.implicit_dampers:
+        applied = rec.replay
+    if rec.applied is not None and applied is None:
+        warn(f"{cfg.name}: {cfg.steps_per_control} physics steps per control "
+             f"period, the recording's applied torques have {rec.applied.shape[1]}: "
+             "replaying the torques of /joint_states")
+    return applied
 
 
 @dataclass
