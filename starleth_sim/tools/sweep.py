@@ -264,15 +264,51 @@ def load_spec(path: str) -> Sweep:
     if unknown:
         raise SweepError(f"{src}: unknown field(s) {sorted(unknown)} (known: "
                          f"{', '.join(SPEC_FIELDS)})")
+    presets = _presets(src, data)
+    name = data.get("name")
+    if name is not None and not isinstance(name, (str, int)):
+        raise SweepError(f"{src}: name: expected a string")
+    ov_keys, combos = _override_combos(src, data, len(presets))
+    robots = _robots(src, data)
+    for p, robot in itertools.product(presets, robots):   # each with every override, checked
+        try:
+            cfg = load_preset(p) if robot is None else config_with_robot(load_preset(p), robot)
+            for c in combos:
+                cfg.with_overrides(**dict(c))
+        except ConfigError as e:
+            raise SweepError(f"{src}: presets/overrides: {e}") from None
+    seeds = _num_list(f"{src}: seeds", data.get("seeds", [0]), integer=True,
+                      bounds=(*SEED_RANGE, False))
+    scenarios = _scenarios(src, data.get("scenarios"), len(presets) * len(combos) * len(seeds))
+    pert_t = _perturbation_spec(src, data)
+    if len(robots) * len(presets) * len(combos) * len(scenarios) * len(seeds) > MAX_RUNS:
+        raise SweepError(f"{src}: robots x presets x overrides x scenarios x seeds: more than "
+                         f"the {MAX_RUNS} runs a sweep may have")
+    runs = []
+    for robot, desc in robots.items():
+        rs = robot_scale(desc.legs, desc.total_mass) if desc is not None else None
+        scale = (rs.length, rs.mass) if rs else (1.0, 1.0)
+        for p, c, sc0, seed in itertools.product(presets, combos, scenarios, seeds):
+            sc, pert = scaled(sc0, pert_t, scale)
+            runs.append(RunSpec(len(runs), p, c, sc, seed, pert, robot, scale))
+    name = str(name or os.path.splitext(src)[0])
+    return Sweep(name=name, runs=runs, override_keys=ov_keys, source=path)
+
+
+def _presets(src, data):
+    """The spec's `presets`: a name or a non-empty list of names."""
     presets = data.get("presets")
     if isinstance(presets, str):
         presets = [presets]
     if not isinstance(presets, list) or not presets or \
             not all(isinstance(p, str) for p in presets):
         raise SweepError(f"{src}: presets: expected a non-empty list of preset names")
-    name = data.get("name")
-    if name is not None and not isinstance(name, (str, int)):
-        raise SweepError(f"{src}: name: expected a string")
+    return presets
+
+
+def _override_combos(src, data, n_presets):
+    """(the override fields, every combination of their values as ((field, value), ...)):
+    the spec's `overrides`, field: value or [values]; at most MAX_RUNS with the presets."""
     overrides = data.get("overrides") or {}
     if not isinstance(overrides, dict):
         raise SweepError(f"{src}: overrides: expected a mapping of field: [values]")
@@ -286,21 +322,15 @@ def load_spec(path: str) -> Sweep:
         ov_grid[k] = vals
     ov_keys = list(ov_grid)
     n_combos = math.prod(len(v) for v in ov_grid.values())
-    if len(presets) * n_combos > MAX_RUNS:
-        raise SweepError(f"{src}: presets x overrides: {len(presets) * n_combos} combinations, "
+    if n_presets * n_combos > MAX_RUNS:
+        raise SweepError(f"{src}: presets x overrides: {n_presets * n_combos} combinations, "
                          f"more than the {MAX_RUNS} runs a sweep may have")
-    combos = [tuple(zip(ov_keys, c)) for c in itertools.product(*(ov_grid[k] for k in ov_keys))]
-    robots = _robots(src, data)
-    for p, robot in itertools.product(presets, robots):   # each with every override, checked
-        try:
-            cfg = load_preset(p) if robot is None else config_with_robot(load_preset(p), robot)
-            for c in combos:
-                cfg.with_overrides(**dict(c))
-        except ConfigError as e:
-            raise SweepError(f"{src}: presets/overrides: {e}") from None
-    seeds = _num_list(f"{src}: seeds", data.get("seeds", [0]), integer=True,
-                      bounds=(*SEED_RANGE, False))
-    scenarios = _scenarios(src, data.get("scenarios"), len(presets) * n_combos * len(seeds))
+    return ov_keys, [tuple(zip(ov_keys, c))
+                     for c in itertools.product(*(ov_grid[k] for k in ov_keys))]
+
+
+def _perturbation_spec(src, data):
+    """The spec's `perturbation` as ((field, value), ...) in PERTURBATION_FIELDS order."""
     pert = data.get("perturbation") or {}
     if not isinstance(pert, dict) or set(pert) - set(PERTURBATION_FIELDS):
         raise SweepError(f"{src}: perturbation: expected a mapping with "
@@ -309,19 +339,7 @@ def load_spec(path: str) -> Sweep:
         if isinstance(v, list):
             raise SweepError(f"{src}: perturbation.{k}: expected one number >= 0")
         _num_list(f"{src}: perturbation.{k}", v, bounds=(*PERTURBATION_RANGES[k], False))
-    pert_t = tuple((k, float(pert[k])) for k in PERTURBATION_FIELDS if k in pert)
-    if len(robots) * len(presets) * n_combos * len(scenarios) * len(seeds) > MAX_RUNS:
-        raise SweepError(f"{src}: robots x presets x overrides x scenarios x seeds: more than "
-                         f"the {MAX_RUNS} runs a sweep may have")
-    runs = []
-    for robot, desc in robots.items():
-        rs = robot_scale(desc.legs, desc.total_mass) if desc is not None else None
-        scale = (rs.length, rs.mass) if rs else (1.0, 1.0)
-        for p, c, sc0, seed in itertools.product(presets, combos, scenarios, seeds):
-            sc, pert = scaled(sc0, pert_t, scale)
-            runs.append(RunSpec(len(runs), p, c, sc, seed, pert, robot, scale))
-    name = str(name or os.path.splitext(src)[0])
-    return Sweep(name=name, runs=runs, override_keys=ov_keys, source=path)
+    return tuple((k, float(pert[k])) for k in PERTURBATION_FIELDS if k in pert)
 
 
 # =========================================================================================
