@@ -287,6 +287,7 @@ def _f(x, fmt=".2f", none="n/a"):
 
 
 def format_summary(S: dict) -> str:
+    """The summary `S` (summarise's) as the text starleth-analyze prints."""
     L = []
     mb = S["file_size"] / 1e6
     L.append(f"== {S['label']}: {S['path']} ({mb:.1f} MB, {S['messages']} messages"
@@ -301,39 +302,7 @@ def format_summary(S: dict) -> str:
                  f"({st['duration']:.3f} s; {S['control_steps']} joint states{rate})")
     if S["missing_topics"]:
         L.append(f"  missing topics    {', '.join(S['missing_topics'])}")
-    if "feet" in S:
-        L.append(f"  contact           normal force F_z [N], stance = F_z > "
-                 f"{S['contact_threshold']:g} N")
-        for foot, d in S["feet"].items():
-            L.append(f"    {foot}   mean {d['mean_normal_force']:7.1f}   max "
-                     f"{d['max_normal_force']:7.1f}   stance {100 * d['stance_fraction']:5.1f} %"
-                     f"   touchdowns {d['touchdowns']}")
-        tot = S.get("total_mean_normal_force")
-        if tot is not None:
-            line = f"    sum of means {tot:.1f} N"
-            if S.get("weight"):
-                line += (f" = {100 * tot / S['weight']:.1f} % of the weight "
-                         f"({S['mass']:.2f} kg x {G} m/s^2 = {S['weight']:.1f} N, "
-                         f"{S['mass_source']})")
-            L.append(line)
-    b = S.get("base")
-    if b:
-        L.append(f"  base              start ({b['start'][0]:.2f}, {b['start'][1]:.2f}, "
-                 f"{b['start'][2]:.3f}) m, end ({b['end'][0]:.2f}, {b['end'][1]:.2f}, "
-                 f"{b['end'][2]:.3f}) m")
-        L.append(f"                    distance {b['distance']:.2f} m (path {b['path_length']:.2f}"
-                 f" m), mean speed {b['mean_speed_displacement']:.3f} m/s by displacement, "
-                 f"{b['mean_speed']:.3f} m/s by twist (max {b['max_speed']:.3f})")
-        L.append(f"                    height {b['height_min']:.3f} .. {b['height_max']:.3f} m"
-                 f" (mean {b['height_mean']:.3f}); twist frame: {b['twist_frame']}")
-    j = S.get("joints")
-    if j and "max_abs_overall" in j:
-        line = (f"  joint torques     max |tau| {j['max_abs_overall']:.2f} N m "
-                f"({j['max_abs_joint']}), RMS {j['rms_overall']:.2f} N m")
-        if "at_effort_limit_fraction" in j:
-            line += (f"; at the effort limit ({j['effort_limit']:g} N m) "
-                     f"{100 * j['at_effort_limit_fraction']:.2f} % of samples")
-        L.append(line)
+    L += _contact_lines(S) + _base_lines(S.get("base")) + _joint_lines(S.get("joints"))
     s = S.get("solver")
     if s:
         L.append(f"  solver            iterations per control step mean "
@@ -341,21 +310,66 @@ def format_summary(S: dict) -> str:
                  f" p95 {_f(s['iterations_p95'], '.0f')}, max {_f(s['iterations_max'], '.0f')};"
                  f" not converged {s['nonconverged']} of {s['steps']}; max residual "
                  f"{_f(s['residual_max'], '.2e')}")
-    r = S["real_time_factor"]
-    parts = []
+    L.append(_real_time_line(S["real_time_factor"]))
+    return "\n".join(L)
+
+
+def _contact_lines(S):
+    if "feet" not in S:
+        return []
+    L = [f"  contact           normal force F_z [N], stance = F_z > "
+         f"{S['contact_threshold']:g} N"]
+    for foot, d in S["feet"].items():
+        L.append(f"    {foot}   mean {d['mean_normal_force']:7.1f}   max "
+                 f"{d['max_normal_force']:7.1f}   stance {100 * d['stance_fraction']:5.1f} %"
+                 f"   touchdowns {d['touchdowns']}")
+    tot = S.get("total_mean_normal_force")
+    if tot is not None:
+        line = f"    sum of means {tot:.1f} N"
+        if S.get("weight"):
+            line += (f" = {100 * tot / S['weight']:.1f} % of the weight "
+                     f"({S['mass']:.2f} kg x {G} m/s^2 = {S['weight']:.1f} N, "
+                     f"{S['mass_source']})")
+        L.append(line)
+    return L
+
+
+def _base_lines(b):
+    if not b:
+        return []
+    return [f"  base              start ({b['start'][0]:.2f}, {b['start'][1]:.2f}, "
+            f"{b['start'][2]:.3f}) m, end ({b['end'][0]:.2f}, {b['end'][1]:.2f}, "
+            f"{b['end'][2]:.3f}) m",
+            f"                    distance {b['distance']:.2f} m (path {b['path_length']:.2f}"
+            f" m), mean speed {b['mean_speed_displacement']:.3f} m/s by displacement, "
+            f"{b['mean_speed']:.3f} m/s by twist (max {b['max_speed']:.3f})",
+            f"                    height {b['height_min']:.3f} .. {b['height_max']:.3f} m"
+            f" (mean {b['height_mean']:.3f}); twist frame: {b['twist_frame']}"]
+
+
+def _joint_lines(j):
+    if not j or "max_abs_overall" not in j:
+        return []
+    line = (f"  joint torques     max |tau| {j['max_abs_overall']:.2f} N m "
+            f"({j['max_abs_joint']}), RMS {j['rms_overall']:.2f} N m")
+    if "at_effort_limit_fraction" in j:
+        line += (f"; at the effort limit ({j['effort_limit']:g} N m) "
+                 f"{100 * j['at_effort_limit_fraction']:.2f} % of samples")
+    return [line]
+
+
+def _real_time_line(r):
     if r["source"]:
-        parts.append(f"{r['value']:.2f} (sim time / wall time, wall = message {r['source']})")
+        parts = [f"{r['value']:.2f} (sim time / wall time, wall = message {r['source']})"]
     else:
-        parts.append("no wall clock in the bag (message times = sim stamps)")
+        parts = ["no wall clock in the bag (message times = sim stamps)"]
     if "compute" in r:
         parts.append(f"physics compute only {r['compute']:.1f} (solver step_time mean "
                      f"{r['mean_step_time'] * 1e3:.3f} ms, max {r['max_step_time'] * 1e3:.2f} ms)")
     if "loop" in r:
         parts.append(f"realtime loop {r['loop']:.3f} (mean period "
                      f"{r['loop_period_mean_ms']:.3f} ms)")
-    L.append("  real-time factor  " + "; ".join(parts))
-    return "\n".join(L)
-
+    return "  real-time factor  " + "; ".join(parts)
 
 
 def jsonable(x):

@@ -204,32 +204,7 @@ def run(argv=None) -> int:
            "bit_identical": c.identical, "first_difference_step": c.first_step,
            "first_difference": c.first_quantities, "max_abs_difference": c.max_abs,
            "presets": {}}
-    replays = []
-    if configs:
-        print("open-loop replays through other configurations: the recorded run was closed "
-              "loop (its controller reacted to the recorded physics); the same torques "
-              "applied open loop to other physics make the runs diverge, and the robot may "
-              "fall. Divergence: base more than "
-              f"{a.diverge_position:g} m off the recorded path or a joint more than "
-              f"{a.diverge_angle:g} rad off its recorded angle.")
-        rows = []
-        for cfg in configs:
-            r = resimulate(rec, cfg, label=cfg.name, steps=a.steps)
-            replays.append(r)
-            dv = divergence(rec, r, a.diverge_position, a.diverge_angle)
-            doc["presets"][cfg.name] = dv
-            rows.append((cfg.name, dv))
-            tail = f"; stopped: {r.error}" if r.error else ""
-            print(f"  {cfg.name:8s} diverges {_fmt_t(dv['diverges_at'])}, falls "
-                  f"{_fmt_t(dv['fell_at'])} ({r.steps} steps in {r.wall:.2f} s{tail})")
-        print("\n| config | diverges at | falls at | base Δ max / final [m] | joint Δ max / RMS "
-              "[rad] | foot F_z Δ RMS [N] | iterations / step |")
-        print("|---|---|---|---|---|---|---|")
-        for name, dv in rows:
-            print(f"| {name} | {_fmt_t(dv['diverges_at'])} | {_fmt_t(dv['fell_at'])} | "
-                  f"{dv['base_max_m']:.4f} / {dv['base_final_m']:.4f} | "
-                  f"{dv['joint_max_rad']:.4f} / {dv['joint_rms_rad']:.4f} | "
-                  f"{dv['foot_force_rms_n']:.2f} | {dv['iterations_mean']:.1f} |")
+    replays = _open_loop_replays(rec, configs, a, doc) if configs else []
     if configs and not a.no_plots:
         base = a.bag.rstrip("/")
         out = a.out or (os.path.splitext(base)[0] if base.endswith(".mcap") else base) + "_replay"
@@ -240,6 +215,36 @@ def run(argv=None) -> int:
         with open(a.json, "w") as f:
             json.dump(doc, f, indent=1)
     return 0 if c.identical else 3
+
+
+def _open_loop_replays(rec, configs, a, doc) -> list:
+    """The recorded torques through each of `configs`, open loop: where each diverges from
+    the recording and falls, printed and into doc["presets"]; the replays."""
+    print("open-loop replays through other configurations: the recorded run was closed "
+          "loop (its controller reacted to the recorded physics); the same torques "
+          "applied open loop to other physics make the runs diverge, and the robot may "
+          "fall. Divergence: base more than "
+          f"{a.diverge_position:g} m off the recorded path or a joint more than "
+          f"{a.diverge_angle:g} rad off its recorded angle.")
+    replays, rows = [], []
+    for cfg in configs:
+        r = resimulate(rec, cfg, label=cfg.name, steps=a.steps)
+        replays.append(r)
+        dv = divergence(rec, r, a.diverge_position, a.diverge_angle)
+        doc["presets"][cfg.name] = dv
+        rows.append((cfg.name, dv))
+        tail = f"; stopped: {r.error}" if r.error else ""
+        print(f"  {cfg.name:8s} diverges {_fmt_t(dv['diverges_at'])}, falls "
+              f"{_fmt_t(dv['fell_at'])} ({r.steps} steps in {r.wall:.2f} s{tail})")
+    print("\n| config | diverges at | falls at | base Δ max / final [m] | joint Δ max / RMS "
+          "[rad] | foot F_z Δ RMS [N] | iterations / step |")
+    print("|---|---|---|---|---|---|---|")
+    for name, dv in rows:
+        print(f"| {name} | {_fmt_t(dv['diverges_at'])} | {_fmt_t(dv['fell_at'])} | "
+              f"{dv['base_max_m']:.4f} / {dv['base_final_m']:.4f} | "
+              f"{dv['joint_max_rad']:.4f} / {dv['joint_rms_rad']:.4f} | "
+              f"{dv['foot_force_rms_n']:.2f} | {dv['iterations_mean']:.1f} |")
+    return replays
 
 
 def main(argv=None) -> int:
