@@ -141,42 +141,13 @@ def _chosen_foot(name, runs):
 def run(argv=None) -> int:
     ap = build_parser()
     a = ap.parse_args(argv)
-    if a.label and len(a.label) != len(a.bags):
-        ap.error(f"--label: {len(a.label)} label(s) for {len(a.bags)} bag(s)")
-    if a.threshold < 0 or not math.isfinite(a.threshold):
-        ap.error("--threshold must be a finite number >= 0")
-    if a.min_phase < 0 or a.rtf_window <= 0:
-        ap.error("--min-phase must be >= 0 and --rtf-window > 0")
-    if a.tmin is not None and a.tmax is not None and a.tmax <= a.tmin:
-        ap.error("--tmax must be greater than --tmin")
-    a.foot_given = a.foot is not None
+    _check_arguments(ap, a)
     t_start = time.perf_counter()
-    runs = []
-    for path, label in zip(a.bags, _labels(a.bags, a.label)):
-        r = Run(path, label, salvage=a.salvage)
-        if len(r.missing) == len(r.topics):
-            topics = ", ".join(sorted(r.counts)) or "none"
-            raise AnalysisError(f"{path}: none of the StarlETH topics ("
-                                f"{', '.join(r.topic_names.values())}) has messages; the bag's "
-                                f"topics: {topics}")
-        relative = {name: rel for rel, name in r.topic_names.items()}
-        for t in r.missing:
-            kind, typ, lost = r.topics[relative[t]]
-            have = "no messages on" if t in r.counts else "no topic"
-            warn(f"{path}: {have} {t} ({typ}); skipping {lost}")
-        r.apply_window(a.tmin, a.tmax)
-        runs.append(r)
+    runs = [_read_run(path, label, a.salvage, a.tmin, a.tmax)
+            for path, label in zip(a.bags, _labels(a.bags, a.label))]
     t_read = time.perf_counter() - t_start
     a.foot = _chosen_foot(a.foot, runs)
-    empty = [r for r in runs if not any(s["t"].size for s in r.series_by_key.values())]
-    if len(empty) == len(runs) and a.tmin is None and a.tmax is None:
-        raise AnalysisError(f"{', '.join(r.path for r in runs)}: none of the messages on the "
-                            "StarlETH topics could be read (see the warnings above)")
-    if len(empty) == len(runs):
-        lo = "the start" if a.tmin is None else f"{a.tmin:g} s"
-        hi = "the end" if a.tmax is None else f"{a.tmax:g} s"
-        raise AnalysisError(f"no messages between {lo} and {hi} (--tmin/--tmax: time since "
-                            "the first message of each bag)")
+    empty = _empty_runs(runs, a.tmin, a.tmax)
     summaries = [summarise(r, a.threshold, a.min_phase, a.twist_frame) for r in runs]
     for r in empty:
         warn(f"{r.path}: no messages between --tmin and --tmax")
@@ -201,6 +172,51 @@ def run(argv=None) -> int:
         with open(a.json, "w") as f:
             json.dump(jsonable(doc), f, indent=1)
     return 0
+
+
+def _check_arguments(ap, a):
+    """The flags' values checked (argparse's error: usage and exit 2)."""
+    if a.label and len(a.label) != len(a.bags):
+        ap.error(f"--label: {len(a.label)} label(s) for {len(a.bags)} bag(s)")
+    if a.threshold < 0 or not math.isfinite(a.threshold):
+        ap.error("--threshold must be a finite number >= 0")
+    if a.min_phase < 0 or a.rtf_window <= 0:
+        ap.error("--min-phase must be >= 0 and --rtf-window > 0")
+    if a.tmin is not None and a.tmax is not None and a.tmax <= a.tmin:
+        ap.error("--tmax must be greater than --tmin")
+    a.foot_given = a.foot is not None
+
+
+def _read_run(path, label, salvage, tmin, tmax) -> Run:
+    """One bag read, its missing topics said, its window applied; a bag without any of
+    the StarlETH topics is an AnalysisError."""
+    r = Run(path, label, salvage=salvage)
+    if len(r.missing) == len(r.topics):
+        topics = ", ".join(sorted(r.counts)) or "none"
+        raise AnalysisError(f"{path}: none of the StarlETH topics ("
+                            f"{', '.join(r.topic_names.values())}) has messages; the bag's "
+                            f"topics: {topics}")
+    relative = {name: rel for rel, name in r.topic_names.items()}
+    for t in r.missing:
+        kind, typ, lost = r.topics[relative[t]]
+        have = "no messages on" if t in r.counts else "no topic"
+        warn(f"{path}: {have} {t} ({typ}); skipping {lost}")
+    r.apply_window(tmin, tmax)
+    return r
+
+
+def _empty_runs(runs, tmin, tmax) -> list:
+    """The runs with no message in the window; all of them is an AnalysisError."""
+    empty = [r for r in runs if not any(s["t"].size for s in r.series_by_key.values())]
+    if len(empty) == len(runs) and tmin is None and tmax is None:
+        raise AnalysisError(f"{', '.join(r.path for r in runs)}: none of the messages on the "
+                            "StarlETH topics could be read (see the warnings above)")
+    if len(empty) == len(runs):
+        lo = "the start" if tmin is None else f"{tmin:g} s"
+        hi = "the end" if tmax is None else f"{tmax:g} s"
+        raise AnalysisError(f"no messages between {lo} and {hi} (--tmin/--tmax: time since "
+                            "the first message of each bag)")
+    return empty
 
 
 def main(argv=None) -> int:
