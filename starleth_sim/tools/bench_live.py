@@ -128,21 +128,8 @@ def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=Fals
     node = Node("bench_live", context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    cycles = {"live_off": [], "live_on": []}     # wall time per step, us
-    cpu = {"live_off": [], "live_on": []}        # CPU time of the sim process per step, us
     try:
-        pauses = {n: _Pause(node, ex, n) for n in procs}
-        for n in pauses:                      # warm-up: the controller's first answers
-            _run_for(pauses[n], warmup, procs[n].pid)
-        for r in range(rounds):
-            order = ("live_off", "live_on") if r % 2 == 0 else ("live_on", "live_off")
-            for n in order:
-                wall, steps, c = _run_for(pauses[n], seconds, procs[n].pid)
-                cycles[n].append(wall / max(steps, 1) * 1e6)
-                cpu[n].append(c / max(steps, 1) * 1e6)
-            print(f"  round {r + 1:2d}: cycle {cycles['live_off'][-1]:7.1f} us without the "
-                  f"live view, {cycles['live_on'][-1]:7.1f} us with it; CPU per cycle "
-                  f"{cpu['live_off'][-1]:6.1f} / {cpu['live_on'][-1]:6.1f} us", flush=True)
+        cycles, cpu = _interleaved_rounds(node, ex, procs, rounds, seconds, warmup)
     finally:
         stop.set()
         for p in procs.values():
@@ -155,6 +142,33 @@ def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=Fals
         rclpy.try_shutdown(context=ctx)
         for f in logs.values():
             f.close()
+    result = _print_figures(cycles, cpu, rounds, seconds, topics, client.get("log"))
+    result["logs"] = tmp
+    return result
+
+
+def _interleaved_rounds(node, ex, procs, rounds, seconds, warmup):
+    """Each sim_node run `seconds` a round, in alternating order: ({name: wall time per
+    step [µs] per round}, {name: the sim process's CPU time per step [µs] per round})."""
+    cycles = {"live_off": [], "live_on": []}
+    cpu = {"live_off": [], "live_on": []}
+    pauses = {n: _Pause(node, ex, n) for n in procs}
+    for n in pauses:                      # warm-up: the controller's first answers
+        _run_for(pauses[n], warmup, procs[n].pid)
+    for r in range(rounds):
+        order = ("live_off", "live_on") if r % 2 == 0 else ("live_on", "live_off")
+        for n in order:
+            wall, steps, c = _run_for(pauses[n], seconds, procs[n].pid)
+            cycles[n].append(wall / max(steps, 1) * 1e6)
+            cpu[n].append(c / max(steps, 1) * 1e6)
+        print(f"  round {r + 1:2d}: cycle {cycles['live_off'][-1]:7.1f} us without the "
+              f"live view, {cycles['live_on'][-1]:7.1f} us with it; CPU per cycle "
+              f"{cpu['live_off'][-1]:6.1f} / {cpu['live_on'][-1]:6.1f} us", flush=True)
+    return cycles, cpu
+
+
+def _print_figures(cycles, cpu, rounds, seconds, topics, log) -> dict:
+    """The medians printed and returned."""
     off, on = (float(np.median(cycles[n])) for n in ("live_off", "live_on"))
     pair = float(np.median(np.array(cycles["live_on"]) / np.array(cycles["live_off"])))
     cpu_off, cpu_on = (float(np.median(cpu[n])) for n in ("live_off", "live_on"))
@@ -164,13 +178,12 @@ def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=Fals
           f"the live view, {on:.1f} us with it and {who}; median ratio of a round's pair "
           f"{(pair - 1) * 100:+.1f} % (goal <= 10 %); CPU time of the sim process per cycle "
           f"{cpu_off:.1f} us / {cpu_on:.1f} us ({(cpu_on / cpu_off - 1) * 100:+.1f} %)")
-    log = client.get("log")
     if log is not None:
         n = sum(len(m) for m in log.messages.values())
         print(f"the client received {n} messages on {len(log.messages)} of "
               f"{len(log.channels)} topics")
     return {"cycle_us_off": off, "cycle_us_on": on, "pair_ratio": pair, "rounds": cycles,
-            "cpu_us_off": cpu_off, "cpu_us_on": cpu_on, "logs": tmp}
+            "cpu_us_off": cpu_off, "cpu_us_on": cpu_on}
 
 
 def main(argv=None):
