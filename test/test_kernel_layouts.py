@@ -66,7 +66,7 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
 
     def step(floats):
         report = np.empty(report_size(nc, na))
-        r = kernels.tree_step_hard(True, s.q, s.u, np.full(na, 3.0), np.zeros(0),
+        r = kernels.tree_step_hard(0, True, s.q, s.u, np.full(na, 3.0), np.zeros(0),
                                    s.last_impulse.copy(), s.last_active.copy(),
                                    s.last_bilateral.copy(), report, np.empty(nc, dtype=bool),
                                    np.empty_like(s.q), np.empty_like(s.u), floats,
@@ -96,13 +96,11 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
 def test_pack_writes_each_field_where_the_layout_says(preset):
     sim = Simulator.from_preset(preset)
     st = sim.stepper
-    if not st._one_kernel:
-        pytest.skip("no one-kernel step")
     floats, ints, support, workspace = st._tree_model
     c = st.coords
     sizes = {"nj": c.tree.parent.shape[0], "nc": c.n_contacts, "na": c.joint_v.shape[0],
-             "nv": c.nv, "nt": st.ground.terrain.shape[0]}
-    assert list(ints[:5]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt")]
+             "nv": c.nv, "nt": st.ground.terrain.shape[0], "nq": c.nq}
+    assert list(ints[:6]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt", "nq")]
     for name, array in (("floats", floats), ("ints", ints), ("support", support)):
         assert array.shape[0] == length(TREE_STEP_MODEL, name, sizes)
     f = buffer_views(TREE_STEP_MODEL, "floats", floats, sizes)
@@ -116,7 +114,7 @@ def test_pack_writes_each_field_where_the_layout_says(preset):
     assert np.array_equal(i["dof_parent"], c.tree.dof_parent)
     w = buffer_views(TREE_STEP_MODEL, "workspace", workspace, sizes)
     assert np.shares_memory(w["L"], st.L) and w["L"].shape == st.L.shape
-    if st._forest_kernel:
+    if st._forest:
         cf, ci, cw = st._cut_model
         constant = int(bool(c.constant_mass_matrix))
         csizes = {"ncut": c.n_cut, "constant": constant,
@@ -139,7 +137,7 @@ def test_the_report_follows_its_layout_and_the_kernel_writes_it_there():
     report = np.full(report_size(nc, na), np.nan)
     active = np.zeros(nc, dtype=bool)
     tau = np.linspace(-1.0, 1.0, na)
-    r = sim.stepper.step_in_one_kernel(sim.state, tau, report, active)
+    r = sim.stepper.step(sim.state, tau, report, active)
     assert isinstance(r, kernels.TreeStepResult) and r.outcome == kernels.TREE_STEP_OK
     impulse, gap, position, applied, explicit, damper = report_views(report, nc, na)
     assert np.isfinite(report).all()

@@ -210,9 +210,15 @@ def _bilateral_problem(preset="HMJD", steps=60):
     hold = PostureHold(sim.joint_positions())
     for _ in range(steps):
         sim.step(hold.torque(sim))
-    st = sim.stepper
-    st.prepare(sim.state)
-    problem = st._prepared[6]
+    st, c, s = sim.stepper, sim.coords, sim.state
+    qM = c.integrate(s.q, s.u, 0.5 * st.dt)
+    M, h = c.dynamics(qM, s.u, np.zeros(12)) if not c.constant_mass_matrix else (c.M_const, 0)
+    c.contact_kinematics(qM, st.ground, st.gap, st.position, st.Wt_all)
+    WtB, gB = c.bilateral(qM)
+    bB = gB * (sim.config.bilateral.stabilization / st.dt)
+    problem = prepare_hard_contacts(
+        st.settings, M, s.u, st.gap, st.Wt_all, WtB, bB, st.eps, c.tree.dof_parent, True,
+        np.zeros((c.nv, c.nv)), s.last_impulse, s.last_active, None)
     return problem.arrays()["G"], 3 * problem.n_active, problem.arrays()
 
 

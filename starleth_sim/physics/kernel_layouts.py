@@ -248,6 +248,7 @@ TREE_STEP_MODEL = Layout(
          _header("na", "na", "actuated joints"),
          _header("nv", "tree.nv", "velocities"),
          _header("nt", "ground.n_terrain", "the packed terrain's floats"),
+         _header("nq", "nq", "positions (q)"),
          Field("parent", "nj", "tree.parent", "each joint's parent"),
          Field("jtype", "nj", "tree.jtype", "each joint's type (JT_*)"),
          Field("idx_q", "nj", "tree.idx_q", "each joint's first entry of q"),
@@ -273,6 +274,11 @@ TREE_STEP_MODEL = Layout(
          Field("u_corr", "nv", "u_corr", "Δu_p of the post-step projection"),
          Field("frames", "11 * nc", "ground.frames",
                "each contact's surface frame (n, t1, t2), μ and surface at q^M", ("nc", "11")),
+         Field("qM", "nq", "qM", "q^M (Eqn. 6), kept for the step when prepared ahead"),
+         Field("M", "nv * nv", "M", "M at q^M (a constant M: unused)", ("nv", "nv")),
+         Field("h", "nv", "h", "h at (q^M, u^S) without τ and f_ext"),
+         Field("timings", "5", "timings",
+               "the Fig. 7 phases' cumulative times when profiling (PHASES order) [s]"),
      ), exact=False)))
 
 CUT_MODEL = Layout(

@@ -49,7 +49,7 @@ from .kernel_layouts import (CUT_MODEL, STEP_REPORT, TREE_STEP_MODEL, describe, 
                              length, offsets)
 from .kernels import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,  # noqa: F401
                       TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TREE_STEP_OK,
-                      TreeStepResult, forest_step_hard, tree_step_compliant, tree_step_hard)
+                      TreeStepResult, forest_step, tree_step_compliant, tree_step_hard)
 
 _DTYPES = {"float64": np.float64, "int64": np.int64, "bool": np.bool_}
 
@@ -95,16 +95,16 @@ class TreeStepModel(NamedTuple):
 
     @staticmethod
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
-             velocity_limit, joint_q):
+             velocity_limit, joint_q, nq):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
         GroundPlane, ε, the torque limits (see actuator.saturate_torque) and the actuated
         joints' entries of u and q (joint_v, joint_q: the impedance law reads q and u
-        there); returns the record and the workspace's views (gap, position, Wt_all, L,
-        u_free, u_corr, frames), which the stepper keeps as its own arrays."""
+        there) and nq; returns the record and the workspace's views (gap, position, Wt_all,
+        L, u_free, u_corr, frames, timings), which the stepper keeps as its own arrays."""
         (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
          inertia, gravity, c_joint, c_local, c_radius) = model
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
-                 "nv": nv, "nt": ground.terrain.shape[0]}
+                 "nv": nv, "nt": ground.terrain.shape[0], "nq": nq}
         values = dict(
             settings=[float(v) for v in settings], law=[float(v) for v in law], axis=axis,
             pl_R=pl_R, pl_p=pl_p, oR=oR, op=op, mass=mass, lever=lever, inertia=inertia,
@@ -122,7 +122,7 @@ class TreeStepModel(NamedTuple):
                               np.ascontiguousarray(pack_buffer(L, "support", values, sizes)),
                               workspace),
                 tuple(views[name] for name in ("gap", "position", "Wt_all", "L", "u_free",
-                                               "u_corr", "frames")))
+                                               "u_corr", "frames", "timings")))
 
 
 TreeStepModel.__doc__ = TreeStepModel.__doc__.rstrip(" ") + describe(TREE_STEP_MODEL)

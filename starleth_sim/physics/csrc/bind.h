@@ -158,7 +158,7 @@ FN(complete_hard_contacts);
 FN(solve_hard_contacts);
 FN(tree_step_hard);
 FN(tree_step_compliant);
-FN(forest_step_hard);
+FN(forest_step);
 FN(scratch_arena_stats);
 
 /* the ContactProblem type (bind_step.c) */

@@ -307,6 +307,8 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     x->is_active = v[8].p;
     x->qE = v[9].p;
     x->uE = v[10].p;
+    if (!need(m->ints[TREE_STEP_MODEL_NQ] == x->nq, fn, "q does not match the model's nq"))
+        return 0;
     /* q: nq ≥ every idx_q + its joint's coordinates (checked by the model's own sizes) */
     for (i64 j = 1; j < t.tree.nj; j++) {
         i64 wq = t.tree.jtype[j] == JT_FREEFLYER ? 7 : 1;
@@ -348,92 +350,105 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     {"floats", F64W}, {"ints", I64}, {"support", BOOL}, {"workspace", F64W}
 
 FN(tree_step_hard) {
-    static const spec_t spec[] = {{"torque_mode", INT}, STEP_ARRAYS, MODEL_BUFFERS};
-    val_t v[16];
-    held_t h = {.n = 0};
-    volatile int failed = 0;
-    packed_model_t m;
-    step_arrays_t x;
-    if (!PARSE("tree_step_hard", spec, 16, v, &h) || !packed_of(&v[12], &m) ||
-        !step_arrays_of("tree_step_hard", &v[1], &m, v[0].i, &x))
-        FAIL;
-    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
-    arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, &x, &m, a));
-    release(&h);
-    if (failed) return PyErr_NoMemory();
-    return tree_step_result_to_py(&r);
-}
-
-FN(tree_step_compliant) {
-    static const spec_t spec[] = {{"torque_mode", INT}, {"q", F64}, {"u", F64}, {"tau", F64},
-                                  {"f_ext", F64}, {"closed", BOOLW}, {"slip", BOOLW},
-                                  {"anchor", F64W}, {"lam", F64W}, {"report", F64W},
-                                  {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W},
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, STEP_ARRAYS,
                                   MODEL_BUFFERS};
     val_t v[17];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m;
     step_arrays_t x;
-    if (!PARSE("tree_step_compliant", spec, 17, v, &h) || !packed_of(&v[13], &m)) FAIL;
-    /* the step arrays in tree_step_hard's order: lam and closed stand in for the warm-start
-     * memory (of the same lengths), which a compliant step has none of */
-    val_t w[11] = {v[1], v[2], v[3], v[4], v[8], v[5], v[8], v[9], v[10], v[11], v[12]};
-    w[6].len = 0;
-    if (!step_arrays_of("tree_step_compliant", w, &m, v[0].i, &x)) FAIL;
-    i64 nc = m.ints[TREE_STEP_MODEL_NC];
-    if (
-        !need(v[5].len == nc && v[6].len == nc && v[7].len == 3 * nc && v[8].len == 3 * nc,
-              "tree_step_compliant", "closed, slip, anchor and lam must match the contacts"))
+    if (!PARSE("tree_step_hard", spec, 17, v, &h) || !packed_of(&v[13], &m) ||
+        !step_arrays_of("tree_step_hard", &v[2], &m, v[1].i, &x))
         FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = tree_step_compliant((int)v[0].i, &x, v[5].p, v[6].p, v[7].p, v[8].p, &m, a));
+    RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, (int)v[1].i, &x, &m, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);
 }
 
-FN(forest_step_hard) {
-    static const spec_t spec[] = {{"q", F64},           {"u", F64},
-                                  {"applied_tau", F64}, {"f_ext", F64},
-                                  {"factor", FLAG},     {"last_impulse", F64W},
-                                  {"last_active", BOOLW}, {"last_bilateral", F64W},
-                                  {"report", F64W},     {"is_active", BOOLW},
-                                  {"qE", F64W},         {"uE", F64W},
-                                  {"angle_E", F64W},    {"rate_E", F64W},
-                                  MODEL_BUFFERS,        {"cut_floats", F64},
-                                  {"cut_ints", I64},    {"cut_workspace", F64W}};
-    val_t v[21];
+/* the compliant contact state: v = closed, slip, anchor, lam (nc, nc, 3 nc, 3 nc) */
+static int compliant_of(const char *fn, const val_t *v, i64 nc, compliant_state_t *cs) {
+    if (!need(v[0].len == nc && v[1].len == nc && v[2].len == 3 * nc && v[3].len == 3 * nc, fn,
+              "closed, slip, anchor and lam must match the contacts"))
+        return 0;
+    cs->closed = v[0].p;
+    cs->slip = v[1].p;
+    cs->anchor = v[2].p;
+    cs->lam = v[3].p;
+    return 1;
+}
+
+#define COMPLIANT_ARRAYS                                                                      \
+    {"closed", BOOLW}, {"slip", BOOLW}, {"anchor", F64W}, {"lam", F64W}
+
+FN(tree_step_compliant) {
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"q", F64},
+                                  {"u", F64}, {"tau", F64}, {"f_ext", F64}, COMPLIANT_ARRAYS,
+                                  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
+                                  {"uE", F64W}, MODEL_BUFFERS};
+    val_t v[18];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    packed_model_t m;
+    step_arrays_t x;
+    compliant_state_t cs;
+    if (!PARSE("tree_step_compliant", spec, 18, v, &h) || !packed_of(&v[14], &m)) FAIL;
+    /* the step arrays in tree_step_hard's order: lam and closed stand in for the warm-start
+     * memory (of the same lengths), which a compliant step has none of */
+    val_t w[11] = {v[2], v[3], v[4], v[5], v[9], v[6], v[9], v[10], v[11], v[12], v[13]};
+    w[6].len = 0;
+    if (!step_arrays_of("tree_step_compliant", w, &m, v[1].i, &x) ||
+        !compliant_of("tree_step_compliant", &v[6], m.ints[TREE_STEP_MODEL_NC], &cs))
+        FAIL;
+    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN_NOGIL(a, failed, r = tree_step_compliant((int)v[0].i, (int)v[1].i, &x, &cs, &m, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return tree_step_result_to_py(&r);
+}
+
+/* the CutModel's buffers (floats, ints, workspace), checked against the TreeStepModel */
+static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_t *c) {
+    c->floats = v[0].p;
+    c->n_floats = v[0].len;
+    c->ints = v[1].p;
+    c->n_ints = v[1].len;
+    c->support = NULL;
+    c->n_support = 0;
+    c->workspace = v[2].p;
+    c->n_workspace = v[2].len;
+    const char *bad = check_cut_model(c, m->ints[TREE_STEP_MODEL_NA], nv);
+    if (bad) PyErr_Format(PyExc_ValueError, "forest_step: %s", bad);
+    return bad == NULL;
+}
+
+FN(forest_step) {
+    static const spec_t spec[] = {{"options", INT}, STEP_ARRAYS, COMPLIANT_ARRAYS,
+                                  {"angle_E", F64W}, {"rate_E", F64W}, MODEL_BUFFERS,
+                                  {"cut_floats", F64}, {"cut_ints", I64},
+                                  {"cut_workspace", F64W}};
+    val_t v[25];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m, c;
     step_arrays_t x;
-    if (!PARSE("forest_step_hard", spec, 21, v, &h) || !packed_of(&v[14], &m)) FAIL;
-    val_t w[11] = {v[0], v[1], v[2], v[3], v[5], v[6], v[7], v[8], v[9], v[10], v[11]};
-    if (!step_arrays_of("forest_step_hard", w, &m, TORQUE_AS_GIVEN, &x)) FAIL;
-    c.floats = v[18].p;
-    c.n_floats = v[18].len;
-    c.ints = v[19].p;
-    c.n_ints = v[19].len;
-    c.support = NULL;
-    c.n_support = 0;
-    c.workspace = v[20].p;
-    c.n_workspace = v[20].len;
-    const char *bad = check_cut_model(&c, m.ints[TREE_STEP_MODEL_NA], x.nv);
-    if (bad) {
-        release(&h);
-        PyErr_Format(PyExc_ValueError, "forest_step_hard: %s", bad);
-        return NULL;
-    }
+    compliant_state_t cs = {NULL, NULL, NULL, NULL};
+    if (!PARSE("forest_step", spec, 25, v, &h) || !packed_of(&v[18], &m) ||
+        !step_arrays_of("forest_step", &v[1], &m, TORQUE_AS_GIVEN, &x) ||
+        !cut_of(&v[22], &m, x.nv, &c))
+        FAIL;
+    if ((v[0].i & STEP_COMPLIANT) && !compliant_of("forest_step", &v[12], m.ints[TREE_STEP_MODEL_NC], &cs)) FAIL;
     i64 ncut = c.ints[CUT_MODEL_NCUT];
-    if (!need(x.nb == 5 * ncut && v[12].len == ncut && v[13].len == ncut, "forest_step_hard",
+    if (!need(x.nb == 5 * ncut && v[16].len == ncut && v[17].len == ncut, "forest_step",
               "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints"))
         FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = forest_step_hard(&x, (int)v[4].i, v[12].p, v[13].p, &m, &c, a));
+    RUN_NOGIL(a, failed,
+              r = forest_step((int)v[0].i, &x, &cs, v[16].p, v[17].p, &m, &c, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);

@@ -59,9 +59,9 @@ static PyMethodDef methods[] = {
     DEF(complete_hard_contacts, "complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings) -> CompletionResult."),
     DEF(solve_hard_contacts, "solve_hard_contacts(...) -> HardContactsResult."),
     DEF(impedance_torque, "impedance_torque(command, q, qd, out): the joint impedance law."),
-    DEF(tree_step_hard, "tree_step_hard(torque_mode, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(tree_step_compliant, "tree_step_compliant(torque_mode, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(forest_step_hard, "forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> TreeStepResult."),
+    DEF(tree_step_hard, "tree_step_hard(options, torque_mode, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
+    DEF(tree_step_compliant, "tree_step_compliant(options, torque_mode, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
+    DEF(forest_step, "forest_step(options, q, u, applied_tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, closed, slip, anchor, lam, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> TreeStepResult."),
     DEF(scratch_arena_stats, "scratch_arena_stats() -> (misses, capacity [bytes], bytes the last call wanted) of this thread's scratch arena."),
     {NULL, NULL, 0, NULL}};
 
@@ -98,6 +98,9 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         {"TREE_STEP_NONFINITE_TORQUE", TREE_STEP_NONFINITE_TORQUE},
         {"TORQUE_AS_GIVEN", TORQUE_AS_GIVEN}, {"TORQUE_SATURATED", TORQUE_SATURATED},
         {"TORQUE_IMPEDANCE", TORQUE_IMPEDANCE}, {"TORQUE_REPLAY", TORQUE_REPLAY},
+        {"STEP_PROFILE", STEP_PROFILE}, {"STEP_PREPARE", STEP_PREPARE},
+        {"STEP_PREPARED", STEP_PREPARED}, {"STEP_COMPLIANT", STEP_COMPLIANT},
+        {"STEP_KEEP_FACTOR", STEP_KEEP_FACTOR},
     };
     static const struct {
         const char *name;

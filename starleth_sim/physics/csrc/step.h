@@ -92,13 +92,32 @@ typedef struct {
 const char *check_tree_model(const packed_model_t *m, i64 nv);
 const char *check_cut_model(const packed_model_t *cut, i64 na, i64 nv);
 
-tree_step_result_t tree_step_hard(int torque_mode, const step_arrays_t *x,
+/* the options of a step (tree_step_hard, tree_step_compliant, forest_step): STEP_PROFILE adds
+ * the Fig. 7 phases' times to the workspace's timings; STEP_PREPARE does only the
+ * torque-independent midpoint (q^M, M, h without τ, the contact and bilateral kinematics,
+ * into the workspace), STEP_PREPARED the rest of a step so prepared; STEP_COMPLIANT: a cut
+ * forest's compliant contacts; STEP_KEEP_FACTOR: reuse a constant M's factor in L */
+enum {
+    STEP_PROFILE = 1,
+    STEP_PREPARE = 2,
+    STEP_PREPARED = 4,
+    STEP_COMPLIANT = 8,
+    STEP_KEEP_FACTOR = 16
+};
+
+/* the compliant contacts' state (nc flags, nc x 3 anchors and forces Λ) */
+typedef struct {
+    u8 *closed, *slip;
+    double *anchor, *lam;
+} compliant_state_t;
+
+tree_step_result_t tree_step_hard(int options, int torque_mode, const step_arrays_t *x,
                                   const packed_model_t *m, arena_t *a);
-tree_step_result_t tree_step_compliant(int torque_mode, const step_arrays_t *x, u8 *closed,
-                                       u8 *slip, double *anchor, double *lam,
-                                       const packed_model_t *m, arena_t *a);
-tree_step_result_t forest_step_hard(const step_arrays_t *x, int factor, double *angle_E,
-                                    double *rate_E, const packed_model_t *m,
-                                    const packed_model_t *cut, arena_t *a);
+tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_arrays_t *x,
+                                       const compliant_state_t *cs, const packed_model_t *m,
+                                       arena_t *a);
+tree_step_result_t forest_step(int options, const step_arrays_t *x,
+                               const compliant_state_t *cs, double *angle_E, double *rate_E,
+                               const packed_model_t *m, const packed_model_t *cut, arena_t *a);
 
 #endif
