@@ -382,14 +382,11 @@ _SET_FIELDS = (
 
 TREE_STEP_RESULT = Result(
     "TreeStepResult", "tree_step_result_t",
-    "What a one-kernel step did (tree_step_hard, tree_step_compliant, forest_step_hard).",
+    "What a step did (tree_step_hard, tree_step_compliant, forest_step).",
     (Number("outcome", "i64", "TREE_STEP_*"),) + _SET_FIELDS + _SOLVE_FIELDS)
-HARD_CONTACTS_RESULT = Result(
-    "HardContactsResult", "hard_contacts_result_t",
-    "What solve_hard_contacts did (ok False: M or G_B not positive definite, nothing done).",
-    (Number("ok", "bool", "M (and G_B) positive definite"),) + _SET_FIELDS + _SOLVE_FIELDS)
 COMPLETION_RESULT = Result(
     "CompletionResult", "complete_result_t",
-    "What complete_hard_contacts did.", _SOLVE_FIELDS)
+    "What complete_problem (step.c) did: the solve of a prepared contact problem.",
+    _SOLVE_FIELDS)
 
-RESULTS = (TREE_STEP_RESULT, HARD_CONTACTS_RESULT, COMPLETION_RESULT)
+RESULTS = (TREE_STEP_RESULT, COMPLETION_RESULT)

@@ -224,26 +224,6 @@ int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat) {
     return 1;
 }
 
-int get_law(PyObject *o, const char *fn, compliant_law_t *law) {
-    PyObject *seq = PySequence_Fast(o, "law must be a sequence");
-    if (!seq) return 0;
-    double f[COMPLIANT_LAW_LENGTH];
-    int ok = PySequence_Fast_GET_SIZE(seq) == COMPLIANT_LAW_LENGTH;
-    for (int k = 0; ok && k < COMPLIANT_LAW_LENGTH; k++) {
-        f[k] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(seq, k));
-        if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
-    }
-    Py_DECREF(seq);
-    if (!ok) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_ValueError, "%s: law must be the %d numbers of a CompliantLaw", fn,
-                     COMPLIANT_LAW_LENGTH);
-        return 0;
-    }
-    compliant_law_from_fields(f, law);
-    return 1;
-}
-
 /* The tree's arrays (kinematics.KinematicTree); sizes from parent / jtype (nj) */
 int tree_of(const char *fn, const val_t *parent, const val_t *jtype, const val_t *axis,
             const val_t *pl_R, const val_t *pl_p, const val_t *idx_q, const val_t *idx_v,

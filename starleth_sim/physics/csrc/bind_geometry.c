@@ -530,40 +530,6 @@ FN(cut_joint_torques) {
 /* ---------------------------------------------------------------------------------------
  * contact, actuator
  * ------------------------------------------------------------------------------------- */
-FN(compliant_contact_forces) {
-    static const spec_t spec[] = {{"law", OBJ},      {"gap", F64},     {"position", F64},
-                                  {"Wt", F64},       {"u", F64},       {"closed", BOOLW},
-                                  {"slip", BOOLW},   {"anchor", F64W}, {"frames", F64},
-                                  {"lam", F64W}};
-    val_t v[10];
-    held_t h = {.n = 0};
-    compliant_law_t law;
-    if (!PARSE("compliant_contact_forces", spec, 10, v, &h) || !get_law(v[0].o, "compliant_contact_forces", &law)) FAIL;
-    i64 nc = v[1].len, nv = v[4].len;
-    if (!need(v[2].len == 3 * nc && v[3].len == 3 * nc * nv && v[5].len == nc && v[6].len == nc &&
-                  v[7].len == 3 * nc && v[8].len == FRAME_STRIDE * nc && v[9].len == 3 * nc,
-              "compliant_contact_forces", "sizes do not match the contacts"))
-        FAIL;
-    compliant_contact_forces(&law, nc, nv, v[1].p, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p,
-                             v[8].p, v[9].p);
-    release(&h);
-    Py_RETURN_NONE;
-}
-
-FN(generalized_contact_force) {
-    static const spec_t spec[] = {{"Wt", F64}, {"lam", F64}, {"out", F64W}};
-    val_t v[3];
-    held_t h = {.n = 0};
-    if (!PARSE("generalized_contact_force", spec, 3, v, &h)) FAIL;
-    i64 nc = v[1].len / 3, nv = v[2].len;
-    if (!need(v[1].len == 3 * nc && v[0].len == 3 * nc * nv, "generalized_contact_force",
-              "sizes do not match"))
-        FAIL;
-    generalized_contact_force(v[0].p, v[1].p, nc, nv, v[2].p);
-    release(&h);
-    Py_RETURN_NONE;
-}
-
 FN(saturate_torque) {
     static const spec_t spec[] = {
         {"tau", F64}, {"limit", F64}, {"qd", F64}, {"qd_limit", F64}, {"out", F64W}};
