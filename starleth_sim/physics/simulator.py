@@ -461,17 +461,16 @@ class Simulator:
         t_wall = perf_counter()
         state, stepper = self.state, self.stepper
         buffers = self._report_buffers[self._next_report]
-        wrenches = not self._wrenches.none_to_apply(state)
-        before = state.copy(share_qu=True) \
-            if len(buffers) > 1 or state.pending_wrenches else None
-        per_step = torques.ndim == 2
+        wrenches = self._wrenches
+        force = None if wrenches.none_to_apply(state) else wrenches.generalized_force
+        one = self._one_physics_step
+        before = None if one and not state.pending_wrenches else state.copy(share_qu=True)
         try:
             figures = []
-            for i, (report, active, views) in enumerate(buffers):
-                f_ext = self._wrenches.generalized_force(state, stepper.dt) if wrenches \
-                    else None
-                figures.append(stepper.step(state, torques[i] if per_step else torques,
-                                            report, active, f_ext, mode))
+            for report, active, views in buffers:
+                tau = torques if torques.ndim == 1 else torques[len(figures)]
+                figures.append(stepper.step(state, tau, report, active, None if force is None
+                                            else force(state, stepper.dt), mode))
                 if mode == TORQUE_SATURATED:    # (saturated once per period)
                     torques, mode = views[3], TORQUE_AS_GIVEN
         except NonFiniteTorque:
@@ -485,13 +484,14 @@ class Simulator:
                 self.restore(before)
             raise
         self._next_report ^= 1
-        impulse = buffers[0][2][0]
-        for _, _, views in buffers[1:]:    # in step order (the sum's round-off depends on it)
-            impulse = impulse + views[0]
-        _, active, (_, gap, position, _, _, _) = buffers[-1]
+        _, active, (impulse, gap, position, _, _, _) = buffers[-1]
+        if not one:
+            impulse = buffers[0][2][0]
+            for _, _, views in buffers[1:]:     # in step order (the sum's round-off)
+                impulse = impulse + views[0]
         wall = perf_counter() - t_wall
         d = one_step_diagnostics(self.diagnostics, figures[0], wall) \
-            if len(figures) == 1 and not stepper.profile else \
+            if one and not stepper.profile else \
             control_step_diagnostics(self.diagnostics, figures, wall, self._timings())
         self._command = command
         self._applied_steps = None      # (in the current report buffers)

@@ -52,6 +52,8 @@ from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
                         TreeStepResult, forest_step, report_size, report_views,
                         tree_step_compliant, tree_step_hard)
 
+_empty = np.empty
+
 
 class SimulationError(RuntimeError):
     """The step could not be completed (non-finite solver output or state); the state was
@@ -119,7 +121,14 @@ class MoreauStepper:
         #: μ and surface at q^M, the surface being memory)
         (self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr,
          self.frames, self._timings) = views
-        self._options = STEP_PROFILE if profile else 0
+        self._options = 0
+        self._no_compliant = (np.zeros(0, dtype=np.bool_),) * 2 + (self._no_force,) * 2
+        #: tau's length per torque mode of the tree kernels (an impedance command's: checked
+        #: by the kernel)
+        self._n_tau = {TORQUE_AS_GIVEN: na, TORQUE_SATURATED: na, TORQUE_REPLAY: 2 * na}
+        self._unprofiled = self._forest_step if self._forest else \
+            self._tree_hard if self.hard else self._tree_compliant
+        self._kernel = self._profiled if profile else self._unprofiled
         if self._forest:
             self._cut_model = tuple(CutModel.pack(coords, config.bilateral.stabilization
                                                   / self.dt))
@@ -186,8 +195,9 @@ class MoreauStepper:
         place in between); the result is the same bit for bit either way. A lockstep node
         calls this after publishing a state, while the controller works on its answer."""
         self._prepared = None
-        self._call(state, STEP_PREPARE, TORQUE_AS_GIVEN, self._no_torque, self._no_force,
-                   *self._spare, np.empty_like(state.q), np.empty_like(state.u))
+        self._kernel(self._options | STEP_PREPARE, TORQUE_AS_GIVEN, state, self._no_torque,
+                     self._no_force, *self._spare, _empty(state.q.shape[0]),
+                     _empty(state.u.shape[0]))
         self._prepared = (state.q, state.u)
 
     def step(self, state: SimState, tau, report, is_active, f_ext=None,
@@ -203,62 +213,65 @@ class MoreauStepper:
         applied and explicit torques, the dampers) and the active flags; returns the
         kernel's TreeStepResult. A NonFiniteTorque or SimulationError leaves the state as it
         was."""
+        q, u = state.q, state.u
         p = self._prepared
-        self._prepared = None
-        options = STEP_PREPARED if p is not None and p[0] is state.q and p[1] is state.u \
-            else 0
+        options = self._options
+        if p is not None:
+            self._prepared = None
+            if p[0] is q and p[1] is u:
+                options |= STEP_PREPARED
         if tau is None or tau.shape[0] == 0:
             tau, mode = self._no_torque, TORQUE_AS_GIVEN
         if self._forest:
-            tau, mode = self._forest_torques(tau, state.q, state.u, mode), TORQUE_AS_GIVEN
-        else:
-            self._check_torques(tau, mode)
-        qE = np.empty(state.q.shape[0])
-        uE = np.empty(state.u.shape[0])
-        r = self._call(state, options, mode, tau, self._no_force if f_ext is None else f_ext,
-                       report, is_active, qE, uE)
-        self._count(r)
+            tau, mode = self._forest_torques(tau, q, u, mode), TORQUE_AS_GIVEN
+        elif mode != TORQUE_IMPEDANCE and tau.shape[0] != self._n_tau[mode]:
+            raise ValueError(f"tau must have {self._n_tau[mode]} entries, got {tau.shape[0]}")
+        qE = _empty(q.shape[0])
+        uE = _empty(u.shape[0])
+        r = self._kernel(options, mode, state, tau, self._no_force if f_ext is None else f_ext,
+                         report, is_active, qE, uE)
+        if r.outcome or r.retried or r.status or r.projection_status >= 0 or \
+                not self._factored:
+            self._count(r)
+        self.stats.steps += 1
         state.q, state.u = qE, uE
         if self._forest:
             self.coords.cut_motion_written(qE, uE)
         return r
 
-    def _call(self, state, options, mode, tau, f_ext, report, is_active, qE, uE):
-        """The kernel of this coordinate family with `options` (plus the stepper's own)."""
-        options |= self._options
-        q, u = state.q, state.u
-        if self._forest:
-            if self.constant_M_factored():
-                options |= STEP_KEEP_FACTOR
-            memory = (state.last_impulse, state.last_active) if self.hard else self._no_memory
-            compliant = (state.closed, state.slip, state.anchor, state.lam_compliant) \
-                if not self.hard else (np.zeros(0, dtype=np.bool_),) * 2 + (self._no_force,) * 2
-            r = forest_step(options, q, u, tau, f_ext, *memory, state.last_bilateral, report,
-                            is_active, qE, uE, *compliant, *self._cut_motion,
-                            *self._tree_model, *self._cut_model)
-        elif self.hard:
-            r = tree_step_hard(options, mode, q, u, tau, f_ext, state.last_impulse,
-                               state.last_active, state.last_bilateral, report, is_active, qE,
-                               uE, *self._tree_model)
+    def _tree_hard(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
+        """tree_step_hard of `state`."""
+        return tree_step_hard(options, mode, state.q, state.u, tau, f_ext, state.last_impulse,
+                              state.last_active, state.last_bilateral, report, is_active, qE,
+                              uE, *self._tree_model)
+
+    def _tree_compliant(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
+        """tree_step_compliant of `state`."""
+        return tree_step_compliant(options, mode, state.q, state.u, tau, f_ext, state.closed,
+                                   state.slip, state.anchor, state.lam_compliant, report,
+                                   is_active, qE, uE, *self._tree_model)
+
+    def _forest_step(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
+        """forest_step of `state` (tau: the applied torques; mode is not read)."""
+        if self._factored and self.coords.constant_mass_matrix:
+            options |= STEP_KEEP_FACTOR     # (L holds the factor of a constant M)
+        if self.hard:
+            memory = (state.last_impulse, state.last_active)
+            compliant = self._no_compliant
         else:
-            r = tree_step_compliant(options, mode, q, u, tau, f_ext, state.closed, state.slip,
-                                    state.anchor, state.lam_compliant, report, is_active, qE,
-                                    uE, *self._tree_model)
-        if options & STEP_PROFILE:      # (the stats may be replaced: see StepperStats)
-            self.stats.timings += self._timings
-            self._timings[:] = 0.0
+            memory = self._no_memory
+            compliant = (state.closed, state.slip, state.anchor, state.lam_compliant)
+        return forest_step(options, state.q, state.u, tau, f_ext, *memory,
+                           state.last_bilateral, report, is_active, qE, uE, *compliant,
+                           *self._cut_motion, *self._tree_model, *self._cut_model)
+
+    def _profiled(self, options, *args):
+        """The kernel with STEP_PROFILE, its phase times moved into stats.timings (the stats
+        may be replaced: see StepperStats)."""
+        r = self._unprofiled(options | STEP_PROFILE, *args)
+        self.stats.timings += self._timings
+        self._timings[:] = 0.0
         return r
-
-    def constant_M_factored(self) -> bool:
-        """L holds the factor of a constant M (a forest's kernel then reuses it)."""
-        return self._factored and self.coords.constant_mass_matrix
-
-    def _check_torques(self, tau, mode):
-        """ValueError if a tree kernel's tau has the wrong length for `mode`."""
-        na = self._no_torque.shape[0]
-        n = {TORQUE_REPLAY: 2 * na, TORQUE_IMPEDANCE: tau.shape[0]}.get(mode, na)
-        if tau.shape[0] != n:
-            raise ValueError(f"tau must have {n} entries, got {tau.shape[0]}")
 
     def _forest_torques(self, tau, q, u, mode):
         """The applied torques of a cut forest's step (its dampers stay explicit): the law of
@@ -285,8 +298,9 @@ class MoreauStepper:
         return applied
 
     def _count(self, r):
-        """The stats of a kernel's result; NonFiniteTorque or SimulationError on a failed
-        step (the kernel left the state as it was)."""
+        """The stats of a kernel's result that did more than converge (and the first's);
+        NonFiniteTorque or SimulationError on a failed step (the kernel left the state as
+        it was)."""
         outcome = r.outcome
         if outcome == TREE_STEP_NONFINITE_TORQUE:
             raise NonFiniteTorque("tau has non-finite entries")
@@ -303,7 +317,6 @@ class MoreauStepper:
                                   "state left unchanged")
         if outcome == TREE_STEP_NONFINITE_STATE:
             raise SimulationError("non-finite state after the step; state left unchanged")
-        st.steps += 1
 
     def torques_of_command(self, tau, q, u):
         """The applied torques of an impedance command at (q, u) of a cut forest
