@@ -30,13 +30,21 @@ def upper_snake(name: str) -> str:
 
 
 def _c_record(r, L) -> list[str]:
-    """A record's length and decoder (its fields from floats)."""
-    lines = [f"/* {r.name} (kernel_layouts): {len(r.fields)} numbers as floats */",
-             f"#define {upper_snake(r.name)}_LENGTH {len(r.fields)}",
+    """A record's length and decoder (its fields from floats; a nested record's by its own
+    decoder, into the same struct)."""
+    lines = [f"/* {r.name} (kernel_layouts): {r.length} numbers as floats */",
+             f"#define {upper_snake(r.name)}_LENGTH {r.length}",
              f"static inline void {r.c_decoder}(const double *f, {r.c_struct} *out) {{"]
-    for k, f in enumerate(r.fields):
+    k = 0
+    for f in r.fields:
+        if isinstance(f, L.Nested):
+            assert f.record.c_struct == r.c_struct, f"{r.name}.{f.name}: another C struct"
+            lines.append(f"    {f.record.c_decoder}(f + {k}, out); /* {f.doc} */")
+            k += f.record.length
+            continue
         value = {"double": f"f[{k}]", "i64": f"(i64)f[{k}]", "bool": f"f[{k}] != 0.0"}[f.kind]
         lines.append(f"    out->{f.name} = {value}; /* {f.doc} */")
+        k += 1
     return lines + ["}", ""]
 
 

@@ -38,13 +38,36 @@ class Number(NamedTuple):
     default: float | None = None    # a record's default (the last fields only)
 
 
+class Nested(NamedTuple):
+    """A record inside a record (its fields travel first, in its own order); the C struct
+    is the outer record's, which the inner decoder fills too."""
+
+    name: str
+    record: "Record"
+    doc: str
+    default: None = None
+    kind: str = "record"
+
+
 class Record(NamedTuple):
     """Named numbers that travel as floats (a Python NamedTuple, a C struct)."""
 
     name: str           # the Python record
     c_struct: str       # the C struct (core.h) its decoder fills
     c_decoder: str      # the generated C function: (const double *f, c_struct *out)
-    fields: tuple
+    fields: tuple       # Number, or Nested: a record inside it
+
+    @property
+    def length(self) -> int:
+        """The number of floats it travels as (a nested record's all)."""
+        return sum(f.record.length if isinstance(f, Nested) else 1 for f in self.fields)
+
+    def flatten(self, values) -> list:
+        """The floats of a record's values (a nested record's in place, in order)."""
+        out = []
+        for f, v in zip(self.fields, values):
+            out += f.record.flatten(v) if isinstance(f, Nested) else [float(v)]
+        return out
 
     def named_tuple(self, doc: str, module: str):
         """The Python record: a named tuple of the fields, its docstring `doc` followed by
@@ -52,8 +75,9 @@ class Record(NamedTuple):
         defaults = [f.default for f in self.fields if f.default is not None]
         cls = collections.namedtuple(self.name, [f.name for f in self.fields],
                                      defaults=defaults or None, module=module)
+        kinds = {'double': 'float', 'i64': 'int', 'bool': 'bool'}
         cls.__doc__ = doc + "\n\nFields (kernel_layouts):\n\n" + "\n".join(
-            f"- {f.name} ({ {'double': 'float', 'i64': 'int', 'bool': 'bool'}[f.kind]}): "
+            f"- {f.name} ({f.record.name if isinstance(f, Nested) else kinds[f.kind]}): "
             f"{f.doc}" for f in self.fields)
         return cls
 
@@ -104,7 +128,7 @@ HEADER_KINDS = ("header", "flag")
 def field_size(f: Field) -> str:
     """A field's size expression (a record's: its number of fields; a header entry's: 1)."""
     if f.kind == "record":
-        return str(len(f.record.fields))
+        return str(f.record.length)
     return "1" if f.kind in HEADER_KINDS else f.size
 
 
@@ -147,32 +171,6 @@ def describe(layout: Layout, indent: str = "    ") -> str:
 
 # -- the records -------------------------------------------------------------------------
 
-STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
-    Number("activation_gap", "double", "g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]"),
-    Number("mu", "double", "μ, Coulomb friction coefficient of the ground"),
-    Number("alpha", "double", "α, prox relaxation: r = α / diag(G) (< 0: adaptive, prox.py)"),
-    Number("tol_rel", "double", "T_rel"),
-    Number("tol_abs", "double", "T_abs [N s]"),
-    Number("fallback_alpha_factor", "double",
-           "a non-converged solve is retried once with α·this (0: no)"),
-    Number("opening_gap", "double",
-           "hysteresis: a loaded contact stays in I while g_N ≤ this [m]"),
-    Number("dt", "double", "Δt [s]"),
-    Number("beta_velocity", "double", "β_N of the velocity-level penetration correction (or 0)"),
-    Number("beta_projection", "double",
-           "β_N of the post-step projection (or 0: no projection)"),
-    Number("jacobian_gap", "double", "W of a contact is computed while g_N(q^M) ≤ this [m]"),
-    Number("projection_tolerance", "double", "the projection runs below g_N^E = −this [m]"),
-    Number("form", "i64", "prox.FORM_DELASSUS | prox.FORM_VELOCITY"),
-    Number("scheme", "i64", "prox.SCHEME_JOR | prox.SCHEME_SOR"),
-    Number("max_iterations", "i64", "prox iteration cap"),
-    Number("criterion", "i64", "prox.CRITERION_IMPULSE | prox.CRITERION_ENERGY"),
-    Number("warm_start", "bool", "Λ^0 = the last step's Λ of the contacts that stay in I"),
-    Number("bilateral_direct", "bool", "Λ_B by Eqn. 20 (else prox rows, Eqn. 19)"),
-    Number("hysteresis", "bool",
-           'contact.activation "hysteresis" (else the gap test alone)'),
-))
-
 PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields", (
     Number("form", "i64", "FORM_DELASSUS (Eqn. 12-16) | FORM_VELOCITY (Eqn. 17-19)"),
     Number("scheme", "i64", "SCHEME_JOR | SCHEME_SOR"),
@@ -183,6 +181,25 @@ PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields"
     Number("bilateral_direct", "bool",
            "Λ_B by Eqn. 20 after each sweep (else prox rows, Eqn. 19)"),
     Number("alpha", "double", "α > 0: r as given; < 0 (ALPHA_AUTO): adaptive α", 0.5),
+))
+
+STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
+    Nested("prox", PROX_SETTINGS, "the prox solver's settings (a ProxSettings)"),
+    Number("activation_gap", "double", "g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]"),
+    Number("mu", "double", "μ, Coulomb friction coefficient of the ground"),
+    Number("fallback_alpha_factor", "double",
+           "a non-converged solve is retried once with α·this (0: no)"),
+    Number("opening_gap", "double",
+           "hysteresis: a loaded contact stays in I while g_N ≤ this [m]"),
+    Number("dt", "double", "Δt [s]"),
+    Number("beta_velocity", "double", "β_N of the velocity-level penetration correction (or 0)"),
+    Number("beta_projection", "double",
+           "β_N of the post-step projection (or 0: no projection)"),
+    Number("jacobian_gap", "double", "W of a contact is computed while g_N(q^M) ≤ this [m]"),
+    Number("projection_tolerance", "double", "the projection runs below g_N^E = −this [m]"),
+    Number("warm_start", "bool", "Λ^0 = the last step's Λ of the contacts that stay in I"),
+    Number("hysteresis", "bool",
+           'contact.activation "hysteresis" (else the gap test alone)'),
 ))
 
 COMPLIANT_LAW = Record("CompliantLaw", "compliant_law_t", "compliant_law_from_fields", (
@@ -352,7 +369,7 @@ IMPEDANCE_COMMAND = Layout(
     )),))
 
 LAYOUTS = (TREE_STEP_MODEL, CUT_MODEL, STEP_REPORT, IMPEDANCE_COMMAND)
-RECORDS = (STEP_SETTINGS, PROX_SETTINGS, COMPLIANT_LAW)
+RECORDS = (PROX_SETTINGS, STEP_SETTINGS, COMPLIANT_LAW)   # (a nested record first)
 
 
 # -- the named results -------------------------------------------------------------------

@@ -30,7 +30,7 @@ record. Dense problems just have full patterns (:func:`dense_problem_patterns`).
 
 Settings: the kernels read form, scheme, T_rel, T_abs, the iteration cap, the termination
 criterion and the bilateral method from one typed record `s` with the fields of
-`ProxSettings` (the stepper passes its `StepSettings`, which has them all).
+`ProxSettings` (the stepper passes its `StepSettings`, which holds one: `prox`).
 
 Adaptive α (``solver.alpha: auto``, the settings' α = ALPHA_AUTO < 0): the paper's α must
 be tuned per configuration (Fig. 6; too large diverges). With α < 0 the kernels choose it
@@ -121,7 +121,7 @@ class Patterns(NamedTuple):
 
 
 #: The settings the prox kernels read, in the order kernel_layouts.PROX_SETTINGS declares
-#: (the kernels read a StepSettings too)
+#: (a StepSettings holds one, its field `prox`)
 ProxSettings = PROX_SETTINGS.named_tuple(
     "The settings the prox kernels read (any sequence of these numbers in this order will "
     "do).", __name__)

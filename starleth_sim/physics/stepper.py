@@ -156,18 +156,19 @@ class MoreauStepper:
         #: active, or be predicted to end the step below the ground (projection)
         jacobian_gap = max(activation_gap, c.opening_gap if hysteresis else 0.0,
                            PROJECTION_LOOKAHEAD if beta_projection > 0 else 0.0)
-        return StepSettings(
-            activation_gap=float(activation_gap), mu=float(config.ground.mu),
-            alpha=prox.alpha_setting(s.alpha),      # solver.alpha: auto -> prox.ALPHA_AUTO
+        solver = prox.ProxSettings(
+            form=int(prox.FORMS[s.form]), scheme=int(prox.SCHEMES[s.scheme]),
             tol_rel=float(s.tol_rel), tol_abs=float(s.tol_abs),
+            max_iterations=int(s.max_iterations), criterion=int(prox.CRITERIA[s.criterion]),
+            bilateral_direct=config.bilateral.method == "direct",
+            alpha=prox.alpha_setting(s.alpha))      # solver.alpha: auto -> prox.ALPHA_AUTO
+        return StepSettings(
+            prox=solver, activation_gap=float(activation_gap), mu=float(config.ground.mu),
             fallback_alpha_factor=float(s.fallback_alpha_factor),
             opening_gap=float(c.opening_gap), dt=float(config.dt),
             beta_velocity=float(beta_velocity), beta_projection=float(beta_projection),
             jacobian_gap=float(jacobian_gap),
-            projection_tolerance=float(PROJECTION_TOLERANCE), form=int(prox.FORMS[s.form]),
-            scheme=int(prox.SCHEMES[s.scheme]), max_iterations=int(s.max_iterations),
-            criterion=int(prox.CRITERIA[s.criterion]), warm_start=bool(s.warm_start),
-            bilateral_direct=config.bilateral.method == "direct",
+            projection_tolerance=float(PROJECTION_TOLERANCE), warm_start=bool(s.warm_start),
             hysteresis=bool(hysteresis))
 
     @staticmethod

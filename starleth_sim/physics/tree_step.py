@@ -45,8 +45,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kernel_layouts import (CUT_MODEL, STEP_REPORT, TREE_STEP_MODEL, describe, evaluate,
-                             length, offsets)
+from .kernel_layouts import (CUT_MODEL, STEP_REPORT, STEP_SETTINGS, TREE_STEP_MODEL, describe,
+                             evaluate, length, offsets)
 from .kernels import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,  # noqa: F401
                       TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TREE_STEP_OK,
                       TreeStepResult, forest_step, tree_step_compliant, tree_step_hard)
@@ -106,7 +106,7 @@ class TreeStepModel(NamedTuple):
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
                  "nv": nv, "nt": ground.terrain.shape[0], "nq": nq}
         values = dict(
-            settings=[float(v) for v in settings], law=[float(v) for v in law], axis=axis,
+            settings=STEP_SETTINGS.flatten(settings), law=[float(v) for v in law], axis=axis,
             pl_R=pl_R, pl_p=pl_p, oR=oR, op=op, mass=mass, lever=lever, inertia=inertia,
             gravity=gravity, c_local=c_local, c_radius=c_radius, ground_n=ground.n,
             ground_t1=ground.t1, ground_t2=ground.t2, ground_offset=[ground.offset],

@@ -158,19 +158,34 @@ PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ss
 }
 
 /* The settings: a StepSettings or a prox.ProxSettings (their fields: kernel_layouts) */
-int get_settings(PyObject *o, const char *fn, settings_t *s) {
+/* flatten_numbers: the numbers of a sequence into f (a nested sequence's in place, in
+ * order), at most cap; their count, or -1 if an item is neither a number nor a sequence */
+static Py_ssize_t flatten_numbers(PyObject *o, double *f, Py_ssize_t cap) {
     PyObject *seq = PySequence_Fast(o, "settings must be a sequence");
-    if (!seq) return 0;
-    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    if (!seq) return -1;
+    Py_ssize_t n = 0, len = PySequence_Fast_GET_SIZE(seq);
     PyObject **it = PySequence_Fast_ITEMS(seq);
-    double f[STEP_SETTINGS_LENGTH];
-    int ok = n == STEP_SETTINGS_LENGTH || n == PROX_SETTINGS_LENGTH;
-    for (Py_ssize_t k = 0; ok && k < n; k++) {
-        f[k] = PyFloat_AsDouble(it[k]);
-        if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
+    for (Py_ssize_t k = 0; n >= 0 && k < len; k++) {
+        if (PyTuple_Check(it[k]) || PyList_Check(it[k])) {
+            Py_ssize_t m = flatten_numbers(it[k], f + n, cap - n);
+            n = m < 0 ? -1 : n + m;
+        } else if (n < cap) {
+            f[n] = PyFloat_AsDouble(it[k]);
+            n = f[n] == -1.0 && PyErr_Occurred() ? -1 : n + 1;
+        } else {
+            n = cap + 1; /* (too many: the caller refuses) */
+            break;
+        }
     }
     Py_DECREF(seq);
-    if (!ok) {
+    return n;
+}
+
+/* A StepSettings (with its ProxSettings inside) or a ProxSettings, as numbers */
+int get_settings(PyObject *o, const char *fn, settings_t *s) {
+    double f[STEP_SETTINGS_LENGTH + 1];
+    Py_ssize_t n = flatten_numbers(o, f, STEP_SETTINGS_LENGTH + 1);
+    if (n != STEP_SETTINGS_LENGTH && n != PROX_SETTINGS_LENGTH) {
         PyErr_Clear();
         PyErr_Format(PyExc_ValueError,
                      "%s: settings must be the %d numbers of a StepSettings or the %d of a "
