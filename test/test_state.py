@@ -244,12 +244,14 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
 
     def step(tree, cut=None):
         if preset == "HmJ":
-            return tree_step_hard(0, False, s.q, s.u, np.zeros(12), np.zeros(0),
-                                  s.last_impulse, s.last_active, s.last_bilateral, *out, *tree)
+            return tree_step_hard(0, False, (s.q, s.u, s.last_impulse, s.last_active,
+                                             s.last_bilateral), np.zeros(12), np.zeros(0),
+                                  out, tuple(tree))
         no_compliant = (np.zeros(0, dtype=bool),) * 2 + (np.zeros(0),) * 2
-        return forest_step(0, s.q, s.u, np.zeros(12), np.zeros(0), s.last_impulse,
-                           s.last_active, s.last_bilateral, *out, *no_compliant,
-                           *st.coords.cut_motion_buffers(), *tree, *(cut or st._cut_model))
+        return forest_step(0, (s.q, s.u, s.last_impulse, s.last_active, s.last_bilateral,
+                               *no_compliant), np.zeros(12), np.zeros(0),
+                           (*out, *st.coords.cut_motion_buffers()), tuple(tree),
+                           tuple(cut or st._cut_model))
     q0 = s.q.copy()
     for k in (0, 1, 3):                 # floats, ints, workspace
         for change in (lambda a: a[:-1], lambda a: np.concatenate([a, a[:1]])):

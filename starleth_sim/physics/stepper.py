@@ -242,15 +242,15 @@ class MoreauStepper:
 
     def _tree_hard(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
         """tree_step_hard of `state`."""
-        return tree_step_hard(options, mode, state.q, state.u, tau, f_ext, state.last_impulse,
-                              state.last_active, state.last_bilateral, report, is_active, qE,
-                              uE, *self._tree_model)
+        return tree_step_hard(options, mode, (state.q, state.u, state.last_impulse,
+                                              state.last_active, state.last_bilateral),
+                              tau, f_ext, (report, is_active, qE, uE), self._tree_model)
 
     def _tree_compliant(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
         """tree_step_compliant of `state`."""
-        return tree_step_compliant(options, mode, state.q, state.u, tau, f_ext, state.closed,
-                                   state.slip, state.anchor, state.lam_compliant, report,
-                                   is_active, qE, uE, *self._tree_model)
+        return tree_step_compliant(options, mode, (state.q, state.u, state.closed, state.slip,
+                                                   state.anchor, state.lam_compliant),
+                                   tau, f_ext, (report, is_active, qE, uE), self._tree_model)
 
     def _forest_step(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
         """forest_step of `state` (tau: the applied torques; mode is not read)."""
@@ -262,9 +262,10 @@ class MoreauStepper:
         else:
             memory = self._no_memory
             compliant = (state.closed, state.slip, state.anchor, state.lam_compliant)
-        return forest_step(options, state.q, state.u, tau, f_ext, *memory,
-                           state.last_bilateral, report, is_active, qE, uE, *compliant,
-                           *self._cut_motion, *self._tree_model, *self._cut_model)
+        return forest_step(options, (state.q, state.u, *memory, state.last_bilateral,
+                                     *compliant), tau, f_ext,
+                           (report, is_active, qE, uE, *self._cut_motion), self._tree_model,
+                           self._cut_model)
 
     def _profiled(self, options, *args):
         """The kernel with STEP_PROFILE, its phase times moved into stats.timings (the stats

@@ -62,58 +62,85 @@ int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h
     return 1;
 }
 
-/* Parses the positional arguments args[0:nargs] by spec (the first n_required required, the
- * others keep the defaults the caller put into vals). */
-int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
-          int n_spec, int n_required, val_t *vals, held_t *h) {
-    if (nargs < n_required || nargs > n_spec) {
-        PyErr_Format(PyExc_TypeError, "%s takes %d%s arguments (%zd given)", fn, n_required,
-                     n_required == n_spec ? "" : " or more", nargs);
+/* parse_one: one argument o by its spec entry into v */
+static int parse_one(PyObject *o, const spec_t *sp, const char *fn, val_t *v, held_t *h) {
+    const char *name = sp->name;
+    switch (sp->kind) {
+    case FLOAT:
+        v->f = PyFloat_AsDouble(o);
+        if (v->f == -1.0 && PyErr_Occurred()) {
+            PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
+            return 0;
+        }
+        return 1;
+    case INT: {
+        PyObject *idx = PyNumber_Index(o);
+        if (!idx) {
+            PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
+            return 0;
+        }
+        v->i = PyLong_AsLongLong(idx);
+        Py_DECREF(idx);
+        return !(v->i == -1 && PyErr_Occurred());
+    }
+    case FLAG: {
+        int t = PyObject_IsTrue(o);
+        if (t < 0) return 0;
+        v->i = t;
+        return 1;
+    }
+    case OBJ:
+        v->o = o;
+        return 1;
+    case F64N:
+        if (o == Py_None) {
+            v->p = NULL;
+            v->len = 0;
+            return 1;
+        }
+        if (!get_array(o, F64N, fn, name, h, v)) return 0;
+        if (v->len == 0) v->p = NULL;
+        return 1;
+    default:
+        return get_array(o, sp->kind, fn, name, h, v);
+    }
+}
+
+/* parse_group: a GROUP argument (a tuple of sp->n items, parsed by the n entries after sp) */
+static int parse_group(PyObject *o, const spec_t *sp, const char *fn, val_t *vals, held_t *h) {
+    if (!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != sp->n) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a tuple of %d arrays", fn, sp->name,
+                     sp->n);
         return 0;
     }
+    for (int j = 0; j < sp->n; j++)
+        if (!parse_one(PyTuple_GET_ITEM(o, j), &sp[1 + j], fn, &vals[j], h)) return 0;
+    return 1;
+}
+
+/* Parses the positional arguments args[0:nargs] by spec (the first n_required required, the
+ * others keep the defaults the caller put into vals). A GROUP entry takes one argument, a
+ * tuple, whose items the entries after it parse: vals has one entry per non-GROUP entry, in
+ * spec order (a record's arrays, like a C struct passed by pointer). */
+int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
+          int n_spec, int n_required, val_t *vals, held_t *h) {
+    int n_args = 0;
+    for (int si = 0; si < n_spec; si += spec[si].kind == GROUP ? 1 + spec[si].n : 1) n_args++;
+    if (nargs < n_required || nargs > n_args) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d%s arguments (%zd given)", fn, n_required,
+                     n_required == n_args ? "" : " or more", nargs);
+        return 0;
+    }
+    int si = 0, vi = 0;
     for (Py_ssize_t k = 0; k < nargs; k++) {
-        PyObject *o = args[k];
-        val_t *v = &vals[k];
-        const char *name = spec[k].name;
-        switch (spec[k].kind) {
-        case FLOAT:
-            v->f = PyFloat_AsDouble(o);
-            if (v->f == -1.0 && PyErr_Occurred()) {
-                PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
-                return 0;
-            }
-            break;
-        case INT: {
-            PyObject *idx = PyNumber_Index(o);
-            if (!idx) {
-                PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
-                return 0;
-            }
-            v->i = PyLong_AsLongLong(idx);
-            Py_DECREF(idx);
-            if (v->i == -1 && PyErr_Occurred()) return 0;
-            break;
-        }
-        case FLAG: {
-            int t = PyObject_IsTrue(o);
-            if (t < 0) return 0;
-            v->i = t;
-            break;
-        }
-        case OBJ:
-            v->o = o;
-            break;
-        case F64N:
-            if (o == Py_None) {
-                v->p = NULL;
-                v->len = 0;
-                break;
-            }
-            if (!get_array(o, F64N, fn, name, h, v)) return 0;
-            if (v->len == 0) v->p = NULL;
-            break;
-        default:
-            if (!get_array(o, spec[k].kind, fn, name, h, v)) return 0;
+        if (spec[si].kind == GROUP) {
+            if (!parse_group(args[k], &spec[si], fn, &vals[vi], h)) return 0;
+            vi += spec[si].n;
+            si += 1 + spec[si].n;
+        } else {
+            if (!parse_one(args[k], &spec[si], fn, &vals[vi], h)) return 0;
+            vi++;
+            si++;
         }
     }
     return 1;

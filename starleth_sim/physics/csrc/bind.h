@@ -23,11 +23,13 @@ enum {
     FLAG = 9,     /* truth value */
     OBJ = 10,     /* any object, as it is */
     F64N = 11,    /* float64 array or None (read and written; NULL when None or empty) */
+    GROUP = 12,   /* a tuple of the n arguments whose entries follow */
 };
 
 typedef struct {
     const char *name;
     int kind;
+    int n; /* GROUP: the number of entries after it that parse its items */
 } spec_t;
 
 typedef struct {

@@ -255,24 +255,28 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     return 1;
 }
 
-#define STEP_ARRAYS                                                                           \
-    {"q", F64}, {"u", F64}, {"tau", F64}, {"f_ext", F64}, {"last_impulse", F64W},             \
-        {"last_active", BOOLW}, {"last_bilateral", F64W}, {"report", F64W},                  \
-        {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
+#define STEP_OUT                                                                              \
+    {"out", GROUP, 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
 #define MODEL_BUFFERS                                                                         \
-    {"floats", F64W}, {"ints", I64}, {"support", BOOL}, {"workspace", F64W}
+    {"model", GROUP, 4}, {"floats", F64W}, {"ints", I64}, {"support", BOOL},                  \
+        {"workspace", F64W}
 
+/* tree_step_hard(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
+ * last_impulse, last_active, last_bilateral), out = (report, is_active, qE, uE), model =
+ * the TreeStepModel's buffers */
 FN(tree_step_hard) {
-    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, STEP_ARRAYS,
-                                  MODEL_BUFFERS};
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP, 5},
+                                  {"q", F64}, {"u", F64}, {"last_impulse", F64W},
+                                  {"last_active", BOOLW}, {"last_bilateral", F64W},
+                                  {"tau", F64}, {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
     val_t v[17];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m;
     step_arrays_t x;
-    if (!PARSE("tree_step_hard", spec, 17, v, &h) || !packed_of(&v[13], &m) ||
-        !step_arrays_of("tree_step_hard", &v[2], &m, v[1].i, &x))
-        FAIL;
+    if (!PARSE("tree_step_hard", spec, 7, v, &h) || !packed_of(&v[13], &m)) FAIL;
+    val_t w[11] = {v[2], v[3], v[7], v[8], v[4], v[5], v[6], v[9], v[10], v[11], v[12]};
+    if (!step_arrays_of("tree_step_hard", w, &m, v[1].i, &x)) FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
     RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, (int)v[1].i, &x, &m, a));
@@ -296,24 +300,25 @@ static int compliant_of(const char *fn, const val_t *v, i64 nc, compliant_state_
 #define COMPLIANT_ARRAYS                                                                      \
     {"closed", BOOLW}, {"slip", BOOLW}, {"anchor", F64W}, {"lam", F64W}
 
+/* tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
+ * closed, slip, anchor, lam), out and model as tree_step_hard's */
 FN(tree_step_compliant) {
-    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"q", F64},
-                                  {"u", F64}, {"tau", F64}, {"f_ext", F64}, COMPLIANT_ARRAYS,
-                                  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
-                                  {"uE", F64W}, MODEL_BUFFERS};
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP, 6},
+                                  {"q", F64}, {"u", F64}, COMPLIANT_ARRAYS, {"tau", F64},
+                                  {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
     val_t v[18];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m;
     step_arrays_t x;
     compliant_state_t cs;
-    if (!PARSE("tree_step_compliant", spec, 18, v, &h) || !packed_of(&v[14], &m)) FAIL;
+    if (!PARSE("tree_step_compliant", spec, 7, v, &h) || !packed_of(&v[14], &m)) FAIL;
     /* the step arrays in tree_step_hard's order: lam and closed stand in for the warm-start
      * memory (of the same lengths), which a compliant step has none of */
-    val_t w[11] = {v[2], v[3], v[4], v[5], v[9], v[6], v[9], v[10], v[11], v[12], v[13]};
+    val_t w[11] = {v[2], v[3], v[8], v[9], v[7], v[4], v[7], v[10], v[11], v[12], v[13]};
     w[6].len = 0;
     if (!step_arrays_of("tree_step_compliant", w, &m, v[1].i, &x) ||
-        !compliant_of("tree_step_compliant", &v[6], m.ints[TREE_STEP_MODEL_NC], &cs))
+        !compliant_of("tree_step_compliant", &v[4], m.ints[TREE_STEP_MODEL_NC], &cs))
         FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
@@ -338,22 +343,32 @@ static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_
     return bad == NULL;
 }
 
+/* forest_step(options, state, tau, f_ext, out, model, cut): state = (q, u, last_impulse,
+ * last_active, last_bilateral, closed, slip, anchor, lam: the compliant arrays read with
+ * STEP_COMPLIANT only), out = (report, is_active, qE, uE, angle_E, rate_E), model the
+ * TreeStepModel's buffers, cut the CutModel's */
 FN(forest_step) {
-    static const spec_t spec[] = {{"options", INT}, STEP_ARRAYS, COMPLIANT_ARRAYS,
-                                  {"angle_E", F64W}, {"rate_E", F64W}, MODEL_BUFFERS,
-                                  {"cut_floats", F64}, {"cut_ints", I64},
-                                  {"cut_workspace", F64W}};
+    static const spec_t spec[] = {
+        {"options", INT},   {"state", GROUP, 9}, {"q", F64}, {"u", F64},
+        {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W},
+        COMPLIANT_ARRAYS,   {"tau", F64},     {"f_ext", F64},
+        {"out", GROUP, 6},  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
+        {"uE", F64W},       {"angle_E", F64W}, {"rate_E", F64W}, MODEL_BUFFERS,
+        {"cut", GROUP, 3},  {"cut_floats", F64}, {"cut_ints", I64}, {"cut_workspace", F64W}};
     val_t v[25];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m, c;
     step_arrays_t x;
     compliant_state_t cs = {NULL, NULL, NULL, NULL};
-    if (!PARSE("forest_step", spec, 25, v, &h) || !packed_of(&v[18], &m) ||
-        !step_arrays_of("forest_step", &v[1], &m, TORQUE_AS_GIVEN, &x) ||
+    if (!PARSE("forest_step", spec, 7, v, &h) || !packed_of(&v[18], &m)) FAIL;
+    val_t w[11] = {v[1], v[2], v[10], v[11], v[3], v[4], v[5], v[12], v[13], v[14], v[15]};
+    if (!step_arrays_of("forest_step", w, &m, TORQUE_AS_GIVEN, &x) ||
         !cut_of(&v[22], &m, x.nv, &c))
         FAIL;
-    if ((v[0].i & STEP_COMPLIANT) && !compliant_of("forest_step", &v[12], m.ints[TREE_STEP_MODEL_NC], &cs)) FAIL;
+    if ((v[0].i & STEP_COMPLIANT) &&
+        !compliant_of("forest_step", &v[6], m.ints[TREE_STEP_MODEL_NC], &cs))
+        FAIL;
     i64 ncut = c.ints[CUT_MODEL_NCUT];
     if (!need(x.nb == 5 * ncut && v[16].len == ncut && v[17].len == ncut, "forest_step",
               "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints"))

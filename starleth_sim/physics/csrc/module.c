@@ -53,9 +53,9 @@ static PyMethodDef methods[] = {
     DEF(constraint_velocity, "constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx, c)."),
     DEF(prepare_hard_contacts, "prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active, timings, frames=None, problem=None) -> ContactProblem."),
     DEF(impedance_torque, "impedance_torque(command, q, qd, out): the joint impedance law."),
-    DEF(tree_step_hard, "tree_step_hard(options, torque_mode, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(tree_step_compliant, "tree_step_compliant(options, torque_mode, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(forest_step, "forest_step(options, q, u, applied_tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, closed, slip, anchor, lam, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> TreeStepResult."),
+    DEF(tree_step_hard, "tree_step_hard(options, torque_mode, state, tau, f_ext, out, model) -> TreeStepResult: state (q, u, last_impulse, last_active, last_bilateral), out (report, is_active, qE, uE), model (floats, ints, support, workspace)."),
+    DEF(tree_step_compliant, "tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model) -> TreeStepResult: state (q, u, closed, slip, anchor, lam)."),
+    DEF(forest_step, "forest_step(options, state, tau, f_ext, out, model, cut) -> TreeStepResult: state (q, u, last_impulse, last_active, last_bilateral, closed, slip, anchor, lam), out (report, is_active, qE, uE, angle_E, rate_E), cut (cut_floats, cut_ints, cut_workspace)."),
     DEF(scratch_arena_stats, "scratch_arena_stats() -> (misses, capacity [bytes], bytes the last call wanted) of this thread's scratch arena."),
     {NULL, NULL, 0, NULL}};
 
