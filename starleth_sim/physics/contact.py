@@ -50,6 +50,8 @@ class GroundPlane:
         object.__setattr__(self, "t1", t1)
         object.__setattr__(self, "t2", t2)
         object.__setattr__(self, "offset", float(n[2] * self.height))
+        #: the ground as the kernels take it: (n, t1, t2, offset, packed terrain)
+        object.__setattr__(self, "kernel_args", (n, t1, t2, self.offset, packed))
         frame = np.vstack([n, t1, t2])
         frame.setflags(write=False)      # made once: a ROS node reads it every step
         object.__setattr__(self, "_frame", frame)

@@ -101,8 +101,8 @@ class TreeStepModel(NamedTuple):
         joints' entries of u and q (joint_v, joint_q: the impedance law reads q and u
         there) and nq; returns the record and the workspace's views (gap, position, Wt_all,
         L, u_free, u_corr, frames, timings), which the stepper keeps as its own arrays."""
-        (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
-         inertia, gravity, c_joint, c_local, c_radius) = model
+        ((parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support), (oR, op),
+         (mass, lever, inertia, gravity), (c_joint, c_local, c_radius)) = model
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
                  "nv": nv, "nt": ground.terrain.shape[0], "nq": nq}
         values = dict(

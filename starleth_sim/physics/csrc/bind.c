@@ -106,42 +106,59 @@ static int parse_one(PyObject *o, const spec_t *sp, const char *fn, val_t *v, he
     }
 }
 
-/* parse_group: a GROUP argument (a tuple of sp->n items, parsed by the n entries after sp) */
-static int parse_group(PyObject *o, const spec_t *sp, const char *fn, val_t *vals, held_t *h) {
+/* span: the spec entries (*ns) and vals (*nv) an entry covers (a GROUP: its items', which
+ * may be groups themselves) */
+static void span(const spec_t *sp, int *ns, int *nv) {
+    *ns = 1;
+    *nv = sp->kind == GROUP ? 0 : 1;
+    if (sp->kind != GROUP) return;
+    for (int j = 0; j < sp->n; j++) {
+        int a, b;
+        span(sp + *ns, &a, &b);
+        *ns += a;
+        *nv += b;
+    }
+}
+
+/* parse_entry: one argument by its spec entry: a GROUP is a tuple of sp->n items, parsed by
+ * the entries after it (nested groups: nested tuples) */
+static int parse_entry(PyObject *o, const spec_t *sp, const char *fn, val_t *vals, held_t *h) {
+    if (sp->kind != GROUP) return parse_one(o, sp, fn, vals, h);
     if (!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != sp->n) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a tuple of %d arrays", fn, sp->name,
-                     sp->n);
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a tuple of %d items", fn, sp->name, sp->n);
         return 0;
     }
-    for (int j = 0; j < sp->n; j++)
-        if (!parse_one(PyTuple_GET_ITEM(o, j), &sp[1 + j], fn, &vals[j], h)) return 0;
+    const spec_t *item = sp + 1;
+    for (int j = 0; j < sp->n; j++) {
+        int a, b;
+        if (!parse_entry(PyTuple_GET_ITEM(o, j), item, fn, vals, h)) return 0;
+        span(item, &a, &b);
+        item += a;
+        vals += b;
+    }
     return 1;
 }
 
 /* Parses the positional arguments args[0:nargs] by spec (the first n_required required, the
  * others keep the defaults the caller put into vals). A GROUP entry takes one argument, a
  * tuple, whose items the entries after it parse: vals has one entry per non-GROUP entry, in
- * spec order (a record's arrays, like a C struct passed by pointer). */
+ * spec order (a model's arrays grouped like the C structs passed by pointer). */
 int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
           int n_spec, int n_required, val_t *vals, held_t *h) {
     int n_args = 0;
-    for (int si = 0; si < n_spec; si += spec[si].kind == GROUP ? 1 + spec[si].n : 1) n_args++;
+    for (int si = 0, a, b; si < n_spec; si += a, n_args++) span(&spec[si], &a, &b);
     if (nargs < n_required || nargs > n_args) {
         PyErr_Format(PyExc_TypeError, "%s takes %d%s arguments (%zd given)", fn, n_required,
                      n_required == n_args ? "" : " or more", nargs);
         return 0;
     }
-    int si = 0, vi = 0;
+    const spec_t *sp = spec;
     for (Py_ssize_t k = 0; k < nargs; k++) {
-        if (spec[si].kind == GROUP) {
-            if (!parse_group(args[k], &spec[si], fn, &vals[vi], h)) return 0;
-            vi += spec[si].n;
-            si += 1 + spec[si].n;
-        } else {
-            if (!parse_one(args[k], &spec[si], fn, &vals[vi], h)) return 0;
-            vi++;
-            si++;
-        }
+        int a, b;
+        if (!parse_entry(args[k], sp, fn, vals, h)) return 0;
+        span(sp, &a, &b);
+        sp += a;
+        vals += b;
     }
     return 1;
 }

@@ -127,7 +127,6 @@ FN(quat_rot);
 FN(forward_kinematics);
 FN(point_jacobian);
 FN(angular_jacobian);
-FN(contact_points);
 FN(contact_kinematics);
 FN(integrate_forest);
 FN(to_pin_velocity);
