@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .kernel_layouts import COMPLIANT_LAW
+from .kernels.layouts import COMPLIANT_LAW
 from .terrain import TOP, pack_terrain
 
 
@@ -63,7 +63,7 @@ class GroundPlane:
 
 
 #: The parameters of the compliant contact law (Alg. 1), in the order
-#: kernel_layouts.COMPLIANT_LAW declares
+#: kernels.layouts.COMPLIANT_LAW declares
 CompliantLaw = COMPLIANT_LAW.named_tuple(
     "The parameters of the compliant contact law (Alg. 1).", __name__)
 

@@ -40,9 +40,9 @@ import numpy as np
 
 from . import kernels as _kernels
 from .actuator import NonFiniteTorque, real_array, saturate_torque
-from .kernel_layouts import IMPEDANCE_COMMAND
+from .kernels.layouts import IMPEDANCE_COMMAND
 
-#: the command's fields, in the order of the packed layout (kernel_layouts.IMPEDANCE_COMMAND)
+#: the command's fields, in the order of the packed layout (kernels.layouts.IMPEDANCE_COMMAND)
 FIELDS = tuple(f.name for f in IMPEDANCE_COMMAND.buffers[0].fields)
 #: the gains: finite and ≥ 0
 GAINS = ("kp", "kd")

@@ -66,7 +66,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kernel_layouts import PROX_SETTINGS
+from .kernels.layouts import PROX_SETTINGS
 from .kernels import (  # noqa: F401  (the constants are the kernels' own)
     ALPHA_AUTO, AUTO_GUARD, AUTO_MAX_STEP, AUTO_POWER_ITERATIONS, AUTO_SOR_BILATERAL_OMEGA,
     CRITERION_ENERGY, CRITERION_IMPULSE, DELASSUS_ENVELOPE_ROWS, FORM_DELASSUS, FORM_VELOCITY,
@@ -120,7 +120,7 @@ class Patterns(NamedTuple):
     lb_first: np.ndarray
 
 
-#: The settings the prox kernels read, in the order kernel_layouts.PROX_SETTINGS declares
+#: The settings the prox kernels read, in the order kernels.layouts.PROX_SETTINGS declares
 #: (a StepSettings holds one, its field `prox`)
 ProxSettings = PROX_SETTINGS.named_tuple(
     "The settings the prox kernels read (any sequence of these numbers in this order will "

@@ -1,6 +1,6 @@
 """Mass matrix M and forces h of a forest of floating trees in the paper's coordinates
 (composite-rigid-body algorithm and recursive Newton-Euler, Featherstone 2008, in the world
-frame; C kernel ``mass_matrix_and_forces`` in ``csrc/dynamics.c``).
+frame; C kernel ``mass_matrix_and_forces`` in ``csrc/rigid_body.c``).
 
 Why not Pinocchio on the hot path: ``pin.crba`` and ``pin.nonLinearEffects`` take their
 Python arguments and return numpy copies (≈1.5 µs each, measured), and their free-flyer

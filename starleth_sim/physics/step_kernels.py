@@ -1,15 +1,15 @@
 """The records and constants of Moreau's midpoint step (Gehring et al. 2014, Eqn. 6-8) that
-the stepper and the kernels share, and the contact-problem kernels of ``csrc/step.c`` that a
+the stepper and the kernels share, and the contact-problem kernels of ``csrc/step_kernels.c`` that a
 test calls alone.
 
 Names as the paper's symbols: M, h, W, G = W^T M^{-1} W, Λ, ξ, r, α. The settings reach the
 kernels as one record, `StepSettings` (a plain tuple of its fields will do), declared in
-:mod:`starleth_sim.physics.kernel_layouts` with the kernels' results. The step itself is one
+:mod:`starleth_sim.physics.kernels.layouts` with the kernels' results. The step itself is one
 kernel call (:mod:`starleth_sim.physics.tree_step`, through
 :class:`starleth_sim.physics.stepper.MoreauStepper`); profiled (STEP_PROFILE), it adds the
 time of each Fig. 7 phase to a `timings` array of five floats in the order `PHASES`.
 
-The phases of the step, as ``csrc/step.c`` writes them: phase "M^-1" (the factor of M into
+The phases of the step, as ``csrc/step_kernels.c`` writes them: phase "M^-1" (the factor of M into
 L; the active set I = {i | g_N,i(q^M) ≤ activation_gap}, with hysteresis also the contacts
 loaded in the last step while g_N,i ≤ opening_gap; W^T = [W_U^T of the active contacts;
 W_B^T], M^{-1}W and b = [ε W_U^T u^S + gap terms; b_B] with ε_i = diag(ε_N,i, ε_T,i, ε_T,i)
@@ -34,7 +34,7 @@ dense linear algebra and Pinocchio's solver (test_solvers; the step does not cal
 """
 from __future__ import annotations
 
-from .kernel_layouts import STEP_SETTINGS
+from .kernels.layouts import STEP_SETTINGS
 from .kernels import (ContactProblem, constraint_velocity, free_velocity,  # noqa: F401
                       prepare_hard_contacts)
 from .kernels import (PHASE_G, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_PROX,  # noqa: F401
@@ -46,7 +46,7 @@ PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")
 
 #: The settings of one step as the kernels read them (built once per stepper from the
 #: PhysicsConfig, see `MoreauStepper._step_settings`), in the order
-#: kernel_layouts.STEP_SETTINGS declares
+#: kernels.layouts.STEP_SETTINGS declares
 StepSettings = STEP_SETTINGS.named_tuple(
     "The settings of one step as the kernels read them (a plain tuple of the same numbers "
     "will do).", __name__)

@@ -21,7 +21,7 @@ h without τ, the contact and bilateral kinematics, into the kernel's workspace;
 STEP_PREPARED the rest of a step so prepared, STEP_PROFILE adds the time of each Fig. 7
 phase (`PHASES`) to the workspace's timings. The joint torques reach the kernel as a mode
 (impedance.TORQUE_*): as given, saturated, an impedance command (its law at the state, the
-dampers implicit in the tree kernels: M~ = M + Δt K_d, in ``one_step.c``) or a replay.
+dampers implicit in the tree kernels: M~ = M + Δt K_d, in ``tree_step.c``) or a replay.
 
 Model, state and workspace (see :mod:`starleth_sim.physics.state`): the stepper holds the
 model side (coordinate set, ground, `StepSettings`, ε per contact, packed once) and the

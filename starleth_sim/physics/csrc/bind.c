@@ -201,7 +201,7 @@ PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ss
     return Py_BuildValue("(NN)", a, b);
 }
 
-/* The settings: a StepSettings or a prox.ProxSettings (their fields: kernel_layouts) */
+/* The settings: a StepSettings or a prox.ProxSettings (their fields: kernels.layouts) */
 /* flatten_numbers: the numbers of a sequence into f (a nested sequence's in place, in
  * order), at most cap; their count, or -1 if an item is neither a number nor a sequence */
 static Py_ssize_t flatten_numbers(PyObject *o, double *f, Py_ssize_t cap) {

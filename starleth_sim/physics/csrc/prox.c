@@ -1,5 +1,5 @@
 /* The prox iterations (prox.py, Gehring et al. 2014, Eqn. 12-20): JOR and SOR on ξ = GΛ + c
- * (Delassus form; G from delassus.c) or in the velocity (G never formed), the direct bilateral
+ * (Delassus form; G from prox_delassus.c) or in the velocity (G never formed), the direct bilateral
  * method (Eqn. 20), the energy criterion; the adaptive α's steps: prox_alpha.c (prox.h).
  * Layouts: Wt m x nv, MinvW nv x m, G m x m, M nv x nv, LB nb_LB x nb_LB (row-major). */
 #include "prox.h"

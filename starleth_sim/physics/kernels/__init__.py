@@ -1,9 +1,11 @@
-"""The physics kernels: the C extension module ``starleth_sim.physics._kernels`` (sources in
-``csrc/``), loaded here.
+"""The physics kernels: the C extension module ``starleth_sim.physics.kernels._kernels``
+(sources in ``starleth_sim/physics/csrc/``), loaded here; the build (`build`), the declared
+layouts of the packed buffers (`layouts`) and the C header generated from them (`codegen`)
+are this package's modules.
 
 An installed package (pip, colcon) holds the module its ``setup.py`` built. A source checkout
 builds it on first use, and again whenever the sources changed since it was built (their
-digest is kept beside the module: `kernel_build`), so an edit never runs stale machine code;
+digest is kept beside the module: `kernels.build`), so an edit never runs stale machine code;
 the build takes a few seconds and says so on stderr. Processes that start together (two
 nodes, test workers) build it once: the first takes a lock, the others wait for it and load
 its result.
@@ -20,7 +22,7 @@ import os
 import sys
 import time
 
-from . import kernel_build
+from . import build as kernel_build
 
 
 def _read(path: str) -> str | None:
@@ -94,7 +96,8 @@ def _load():
         return importlib.import_module(__package__ + "." + kernel_build.MODULE)
     except ImportError as e:
         raise ImportError(
-            f"the physics kernels (starleth_sim.physics.{kernel_build.MODULE}) are not built: "
+            f"the physics kernels (starleth_sim.physics.kernels.{kernel_build.MODULE}) are not "
+            "built: "
             f"{e}. In a source checkout they build on first import (needs a C compiler and "
             "Python's headers); an installed package builds them in setup.py") from e
 

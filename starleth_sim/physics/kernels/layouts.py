@@ -1,7 +1,7 @@
 """The packed layouts the one-kernel steps read and the records the kernels return, declared
-once: :mod:`~starleth_sim.physics.kernel_codegen` generates the C side from these
+once: :mod:`~starleth_sim.physics.kernels.codegen` generates the C side from these
 declarations (`c_header`: the structs, the unpacking of every buffer and the named results,
-into the header ``kernel_layouts.h`` that `kernel_build` writes for the build), and
+into the header ``kernel_layouts.h`` that `kernels.build` writes for the build), and
 :mod:`starleth_sim.physics.tree_step` packs the buffers by them.
 
 A layout is a list of buffers (float64, int64 or bool arrays), each an ordered list of fields.
@@ -15,7 +15,7 @@ aggregates of `Layout.members`, types of ``csrc/core.h``), so that the compiler 
 names; a `view` field becomes a pointer into the buffer, a `value` its one number, a
 `record` its fields (`Record`, e.g. the 19 numbers of a StepSettings).
 
-Standard library only: `kernel_build`, which setup.py loads before anything is installed,
+Standard library only: `kernels.build`, which setup.py loads before anything is installed,
 loads this file by its path.
 """
 from __future__ import annotations
@@ -76,7 +76,7 @@ class Record(NamedTuple):
         cls = collections.namedtuple(self.name, [f.name for f in self.fields],
                                      defaults=defaults or None, module=module)
         kinds = {'double': 'float', 'i64': 'int', 'bool': 'bool'}
-        cls.__doc__ = doc + "\n\nFields (kernel_layouts):\n\n" + "\n".join(
+        cls.__doc__ = doc + "\n\nFields (kernels.layouts):\n\n" + "\n".join(
             f"- {f.name} ({f.record.name if isinstance(f, Nested) else kinds[f.kind]}): "
             f"{f.doc}" for f in self.fields)
         return cls
@@ -403,7 +403,7 @@ TREE_STEP_RESULT = Result(
     (Number("outcome", "i64", "TREE_STEP_*"),) + _SET_FIELDS + _SOLVE_FIELDS)
 COMPLETION_RESULT = Result(
     "CompletionResult", "complete_result_t",
-    "What complete_problem (step.c) did: the solve of a prepared contact problem.",
+    "What complete_problem (step_kernels.c) did: the solve of a prepared contact problem.",
     _SOLVE_FIELDS)
 
 RESULTS = (TREE_STEP_RESULT, COMPLETION_RESULT)

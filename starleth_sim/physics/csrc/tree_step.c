@@ -3,7 +3,7 @@
  * coordinates). The same phases, in the same order, as the phase-by-phase path (so the same
  * result bit for bit); a failing step leaves the state as it was. The model travels in the
  * packed buffers of tree_step.TreeStepModel and CutModel, unpacked by the code that the build
- * generates from their declaration (kernel_layouts.py: tree_model_t, unpack_tree_model, ...). */
+ * generates from their declaration (kernels.layouts.py: tree_model_t, unpack_tree_model, ...). */
 #include "step.h"
 
 #include <string.h>
