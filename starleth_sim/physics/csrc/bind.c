@@ -106,13 +106,13 @@ static int parse_one(PyObject *o, const spec_t *sp, const char *fn, val_t *v, he
     }
 }
 
-/* span: the spec entries (*ns) and vals (*nv) an entry covers (a GROUP: its items', which
- * may be groups themselves) */
+/* span: the spec entries (*ns) and vals (*nv) an entry covers (a GROUP + n: its n items',
+ * which may be groups themselves) */
 static void span(const spec_t *sp, int *ns, int *nv) {
     *ns = 1;
-    *nv = sp->kind == GROUP ? 0 : 1;
-    if (sp->kind != GROUP) return;
-    for (int j = 0; j < sp->n; j++) {
+    *nv = sp->kind >= GROUP ? 0 : 1;
+    if (sp->kind < GROUP) return;
+    for (int j = 0; j < sp->kind - GROUP; j++) {
         int a, b;
         span(sp + *ns, &a, &b);
         *ns += a;
@@ -120,16 +120,17 @@ static void span(const spec_t *sp, int *ns, int *nv) {
     }
 }
 
-/* parse_entry: one argument by its spec entry: a GROUP is a tuple of sp->n items, parsed by
+/* parse_entry: one argument by its spec entry: a GROUP + n is a tuple of n items, parsed by
  * the entries after it (nested groups: nested tuples) */
 static int parse_entry(PyObject *o, const spec_t *sp, const char *fn, val_t *vals, held_t *h) {
-    if (sp->kind != GROUP) return parse_one(o, sp, fn, vals, h);
-    if (!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != sp->n) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a tuple of %d items", fn, sp->name, sp->n);
+    if (sp->kind < GROUP) return parse_one(o, sp, fn, vals, h);
+    int n = sp->kind - GROUP;
+    if (!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != n) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a tuple of %d items", fn, sp->name, n);
         return 0;
     }
     const spec_t *item = sp + 1;
-    for (int j = 0; j < sp->n; j++) {
+    for (int j = 0; j < n; j++) {
         int a, b;
         if (!parse_entry(PyTuple_GET_ITEM(o, j), item, fn, vals, h)) return 0;
         span(item, &a, &b);

@@ -23,13 +23,12 @@ enum {
     FLAG = 9,     /* truth value */
     OBJ = 10,     /* any object, as it is */
     F64N = 11,    /* float64 array or None (read and written; NULL when None or empty) */
-    GROUP = 12,   /* a tuple of the n arguments whose entries follow */
+    GROUP = 100,  /* GROUP + n: a tuple of n items, parsed by the n entries that follow */
 };
 
 typedef struct {
     const char *name;
     int kind;
-    int n; /* GROUP: the number of entries after it that parse its items */
 } spec_t;
 
 typedef struct {

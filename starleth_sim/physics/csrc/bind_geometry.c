@@ -4,15 +4,15 @@
 /* the model's arrays as the bindings take them: tuples grouped like the C structs (tree_t,
  * frames_t, inertias_t, contact_points_t, ground_t) */
 #define TREE_ARRAYS                                                                           \
-    {"tree", GROUP, 8}, {"parent", I64}, {"jtype", I64}, {"axis", F64}, {"pl_R", F64},        \
+    {"tree", GROUP + 8}, {"parent", I64}, {"jtype", I64}, {"axis", F64}, {"pl_R", F64},        \
         {"pl_p", F64}, {"idx_q", I64}, {"idx_v", I64}, {"support", BOOL}
-#define FRAME_ARRAYS {"frames", GROUP, 2}, {"oR", F64W}, {"op", F64W}
+#define FRAME_ARRAYS {"frames", GROUP + 2}, {"oR", F64W}, {"op", F64W}
 #define INERTIA_ARRAYS                                                                        \
-    {"inertias", GROUP, 4}, {"mass", F64}, {"lever", F64}, {"inertia", F64}, {"gravity", F64}
+    {"inertias", GROUP + 4}, {"mass", F64}, {"lever", F64}, {"inertia", F64}, {"gravity", F64}
 #define CONTACT_ARRAYS                                                                        \
-    {"contacts", GROUP, 3}, {"c_joint", I64}, {"c_local", F64}, {"c_radius", F64}
+    {"contacts", GROUP + 3}, {"c_joint", I64}, {"c_local", F64}, {"c_radius", F64}
 #define GROUND_ARRAYS                                                                         \
-    {"ground", GROUP, 5}, {"normal", F64}, {"tangent1", F64}, {"tangent2", F64},              \
+    {"ground", GROUP + 5}, {"normal", F64}, {"tangent1", F64}, {"tangent2", F64},              \
         {"ground_offset", FLOAT}, {"terrain", F64}
 
 /* ---------------------------------------------------------------------------------------
@@ -264,8 +264,8 @@ static int contact_outputs(const char *fn, const val_t *gap, const val_t *positi
  * (gap, position, Wt) */
 FN(contact_kinematics) {
     static const spec_t spec[] = {
-        {"q", F64}, {"model", GROUP, 3}, TREE_ARRAYS, FRAME_ARRAYS, CONTACT_ARRAYS,
-        GROUND_ARRAYS, {"jacobian_gap", FLOAT}, {"out", GROUP, 3}, {"gap", F64W},
+        {"q", F64}, {"model", GROUP + 3}, TREE_ARRAYS, FRAME_ARRAYS, CONTACT_ARRAYS,
+        GROUND_ARRAYS, {"jacobian_gap", FLOAT}, {"out", GROUP + 3}, {"gap", F64W},
         {"position", F64W}, {"Wt", F64W}, {"frames", F64N}};
     val_t v[24];
     v[23].p = NULL; /* (frames is optional) */
@@ -349,8 +349,8 @@ static int inertias_of(const char *fn, const val_t *mass, const val_t *lever,
 /* tree_dynamics(q, u, model, out): model = (tree, (oR, op), (mass, lever, inertia,
  * gravity)), out = (M, h) */
 FN(tree_dynamics) {
-    static const spec_t spec[] = {{"q", F64}, {"u", F64}, {"model", GROUP, 3}, TREE_ARRAYS,
-                                  FRAME_ARRAYS, INERTIA_ARRAYS, {"out", GROUP, 2},
+    static const spec_t spec[] = {{"q", F64}, {"u", F64}, {"model", GROUP + 3}, TREE_ARRAYS,
+                                  FRAME_ARRAYS, INERTIA_ARRAYS, {"out", GROUP + 2},
                                   {"M", F64W}, {"h", F64W}};
     val_t v[18];
     held_t h = {.n = 0};
@@ -374,9 +374,9 @@ FN(tree_dynamics) {
  * (n, t1, t2, offset, terrain), out = (qM, M, h, gap, position, Wt) */
 FN(midpoint_dynamics) {
     static const spec_t spec[] = {
-        {"q", F64}, {"u", F64}, {"half_dt", FLOAT}, {"model", GROUP, 4}, TREE_ARRAYS,
+        {"q", F64}, {"u", F64}, {"half_dt", FLOAT}, {"model", GROUP + 4}, TREE_ARRAYS,
         FRAME_ARRAYS, INERTIA_ARRAYS, CONTACT_ARRAYS, GROUND_ARRAYS, {"jacobian_gap", FLOAT},
-        {"out", GROUP, 6}, {"qM", F64W}, {"M", F64W}, {"h", F64W}, {"gap", F64W},
+        {"out", GROUP + 6}, {"qM", F64W}, {"M", F64W}, {"h", F64W}, {"gap", F64W},
         {"position", F64W}, {"Wt", F64W}, {"frames", F64N}};
     val_t v[33];
     v[32].p = NULL; /* (frames is optional) */
@@ -457,10 +457,10 @@ static int cuts_of(const char *fn, const val_t *P, const val_t *C, const val_t *
  * p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C), out = (Wt_B, g_B, angle, rate, axis_world) */
 FN(cut_joints) {
     static const spec_t spec[] = {
-        {"q", F64}, {"u", F64}, {"model", GROUP, 2}, TREE_ARRAYS, FRAME_ARRAYS,
-        {"cuts", GROUP, 9}, {"cut_P", I64}, {"cut_C", I64}, {"p_P", F64}, {"p_C", F64},
+        {"q", F64}, {"u", F64}, {"model", GROUP + 2}, TREE_ARRAYS, FRAME_ARRAYS,
+        {"cuts", GROUP + 9}, {"cut_P", I64}, {"cut_C", I64}, {"p_P", F64}, {"p_C", F64},
         {"a_P", F64}, {"b1_P", F64}, {"b2_P", F64}, {"a_C", F64}, {"b1_C", F64},
-        {"out", GROUP, 5}, {"Wt_B", F64W}, {"g_B", F64W}, {"angle", F64W}, {"rate", F64W},
+        {"out", GROUP + 5}, {"Wt_B", F64W}, {"g_B", F64W}, {"angle", F64W}, {"rate", F64W},
         {"axis_world", F64W}, {"do_fk", FLAG}};
     val_t v[27];
     held_t h = {.n = 0};

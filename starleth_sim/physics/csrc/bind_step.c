@@ -256,16 +256,16 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
 }
 
 #define STEP_OUT                                                                              \
-    {"out", GROUP, 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
+    {"out", GROUP + 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
 #define MODEL_BUFFERS                                                                         \
-    {"model", GROUP, 4}, {"floats", F64W}, {"ints", I64}, {"support", BOOL},                  \
+    {"model", GROUP + 4}, {"floats", F64W}, {"ints", I64}, {"support", BOOL},                  \
         {"workspace", F64W}
 
 /* tree_step_hard(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
  * last_impulse, last_active, last_bilateral), out = (report, is_active, qE, uE), model =
  * the TreeStepModel's buffers */
 FN(tree_step_hard) {
-    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP, 5},
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP + 5},
                                   {"q", F64}, {"u", F64}, {"last_impulse", F64W},
                                   {"last_active", BOOLW}, {"last_bilateral", F64W},
                                   {"tau", F64}, {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
@@ -303,7 +303,7 @@ static int compliant_of(const char *fn, const val_t *v, i64 nc, compliant_state_
 /* tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
  * closed, slip, anchor, lam), out and model as tree_step_hard's */
 FN(tree_step_compliant) {
-    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP, 6},
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP + 6},
                                   {"q", F64}, {"u", F64}, COMPLIANT_ARRAYS, {"tau", F64},
                                   {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
     val_t v[18];
@@ -349,12 +349,12 @@ static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_
  * TreeStepModel's buffers, cut the CutModel's */
 FN(forest_step) {
     static const spec_t spec[] = {
-        {"options", INT},   {"state", GROUP, 9}, {"q", F64}, {"u", F64},
+        {"options", INT},   {"state", GROUP + 9}, {"q", F64}, {"u", F64},
         {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W},
         COMPLIANT_ARRAYS,   {"tau", F64},     {"f_ext", F64},
-        {"out", GROUP, 6},  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
+        {"out", GROUP + 6},  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
         {"uE", F64W},       {"angle_E", F64W}, {"rate_E", F64W}, MODEL_BUFFERS,
-        {"cut", GROUP, 3},  {"cut_floats", F64}, {"cut_ints", I64}, {"cut_workspace", F64W}};
+        {"cut", GROUP + 3},  {"cut_floats", F64}, {"cut_ints", I64}, {"cut_workspace", F64W}};
     val_t v[25];
     held_t h = {.n = 0};
     volatile int failed = 0;

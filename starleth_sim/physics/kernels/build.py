@@ -55,7 +55,7 @@ OBJECTS = ".kernel_objects"
 #: without reassociation only independent entries are computed side by side.
 ARCH = os.environ.get("STARLETH_KERNEL_ARCH", "native")
 FLAGS = ("-std=gnu11", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fPIC",
-         "-fvisibility=hidden", "-Wall") + ((f"-march={ARCH}",) if ARCH else ())
+         "-fvisibility=hidden", "-Wall", "-Wextra") + ((f"-march={ARCH}",) if ARCH else ())
 
 
 #: the generated header, in the build's include directory
