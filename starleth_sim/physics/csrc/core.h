@@ -2,7 +2,7 @@
  * (Gehring et al. 2014, Eqn. 6-8), the prox solvers (Eqn. 12-20), the compliant contact law
  * (Alg. 1), the rigid-body algorithms and the kinematics of a forest of floating trees.
  *
- * Built at install time into the extension module starleth_sim.physics._kernels (module.c
+ * Built at install time into the extension module starleth_sim.physics.kernels (module.c
  * and bind*.c hold its Python bindings; starleth_sim/physics/kernels/__init__.py loads it and rebuilds
  * it when these sources changed). The Python modules of starleth_sim.physics describe each
  * algorithm; the functions here have the names of the Python functions they implement.

@@ -1,4 +1,4 @@
-/* starleth_sim.physics._kernels: the Python bindings of the C kernels.
+/* starleth_sim.physics.kernels: the Python bindings of the C kernels.
  *
  * Each function takes the arguments of the Python function of the same name that
  * starleth_sim.physics documents (numpy arrays, C-contiguous, of float64, int64 or bool,

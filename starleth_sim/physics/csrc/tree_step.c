@@ -43,7 +43,7 @@ void impedance_torque(const impedance_command_t *c, const double *q, const doubl
     }
 }
 
-/* _applied_torque: the torques the motors apply for tau (torque_mode TORQUE_*: as given,
+/* applied_torque: the torques the motors apply for tau (torque_mode TORQUE_*: as given,
  * saturate_torque at the joint rates of u, the impedance law of the command tau at (q, u)
  * saturated, or a replay) into the report's explicit_torque, and the kd of the implicit
  * dampers into its damper: with an impedance command, the joints with a damper term whose
@@ -80,7 +80,7 @@ static int applied_torque(int torque_mode, const double *tau, i64 n, const doubl
     return 1;
 }
 
-/* _damped: M~ = M + Δt K_d (K_d: the dampers on the actuated joints' diagonal entries) into
+/* damped: M~ = M + Δt K_d (K_d: the dampers on the actuated joints' diagonal entries) into
  * Md, from M; 0 if no joint has an implicit damper (Md then unused) */
 static int damped(const double *M, const tree_model_t *t, const double *damper, i64 nv,
                   double *Md) {
@@ -95,7 +95,7 @@ static int damped(const double *M, const tree_model_t *t, const double *damper, 
     return 1;
 }
 
-/* _implicit_torques: the applied torques after the step: τ = τ_explicit − kd (q̇^E − q̇^S) on
+/* implicit_torques: the applied torques after the step: τ = τ_explicit − kd (q̇^E − q̇^S) on
  * the implicitly damped joints (the law at q̇^E), τ_explicit on the others. With check (an
  * impedance command): a damped joint whose τ would be saturated at q̇^E loses its damper
  * (and keeps its explicit torque, the law at u^S, unsaturated there); 1 if one did. */

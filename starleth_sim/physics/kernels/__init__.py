@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import fcntl
 import importlib
+import importlib.util
 import os
 import sys
 import time
@@ -86,7 +87,26 @@ def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = 
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
+#: names a module built with the sanitizers to load instead (`make sanitize`: built there by
+#: ``kernels/build.py --sanitize``, run with the sanitizers' runtime preloaded)
+SANITIZED = "STARLETH_KERNELS_SANITIZED"
+
+
+def _load_sanitized(path: str):
+    """The module at `path` (a sanitizer build), as this package's _kernels."""
+    if not os.path.exists(path):
+        raise ImportError(f"${SANITIZED}: no module {path} (make sanitize builds it)")
+    name = __package__ + "." + kernel_build.MODULE
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sys.modules[name] = module
+    return module
+
+
 def _load():
+    if os.environ.get(SANITIZED):
+        return _load_sanitized(os.environ[SANITIZED])
     try:
         ensure_built()
     except kernel_build.BuildError as e:
