@@ -112,16 +112,7 @@ class MoreauStepper:
         effort, velocity = (np.full(na, np.inf), np.full(na, np.inf)) \
             if torque_limits is None else torque_limits
         self._effort_limit, self._velocity_limit = effort, velocity
-        pack, views = TreeStepModel.pack(self.settings, self.compliant_law,
-                                         coords.midpoint_model(), self.ground, self.eps,
-                                         coords.joint_v, coords.tree.dof_parent, self.nv,
-                                         effort, velocity, coords.joint_q, coords.nq)
-        self._tree_model = tuple(pack)
-        #: the workspace's views (contact.FRAME_STRIDE frames: each contact's (n, t1, t2),
-        #: μ and surface at q^M, the surface being memory)
-        (self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr,
-         self.frames, self._timings) = views
-        self._options = 0
+        self._pack_model(coords, config)
         self._no_compliant = (np.zeros(0, dtype=np.bool_),) * 2 + (self._no_force,) * 2
         #: tau's length per torque mode of the tree kernels (an impedance command's: checked
         #: by the kernel)
@@ -129,6 +120,25 @@ class MoreauStepper:
         self._unprofiled = self._forest_step if self._forest else \
             self._tree_hard if self.hard else self._tree_compliant
         self._kernel = self._profiled if profile else self._unprofiled
+        self._factored = False      # L holds the factor of a constant M
+        self._prepared = None       # the (q, u) of the step prepared ahead (`prepare`)
+        #: report buffers for `prepare` (the kernel checks their lengths; nothing is written)
+        self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
+
+    def _pack_model(self, coords, config):
+        """The kernels' model packed once (TreeStepModel, and a forest's CutModel) and the
+        workspace's views: g_N, contact points, W^T, the factor L, u_free, Δu_p, the
+        contact.FRAME_STRIDE frames (each contact's (n, t1, t2), μ and surface at q^M, the
+        surface being memory) and the phases' timings."""
+        pack, views = TreeStepModel.pack(self.settings, self.compliant_law,
+                                         coords.midpoint_model(), self.ground, self.eps,
+                                         coords.joint_v, coords.tree.dof_parent, self.nv,
+                                         self._effort_limit, self._velocity_limit,
+                                         coords.joint_q, coords.nq)
+        self._tree_model = tuple(pack)
+        (self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr,
+         self.frames, self._timings) = views
+        self._options = 0
         if self._forest:
             self._cut_model = tuple(CutModel.pack(coords, config.bilateral.stabilization
                                                   / self.dt))
@@ -138,10 +148,6 @@ class MoreauStepper:
                 self._options |= STEP_COMPLIANT
                 #: a compliant forest's warm-start memory (never active: stays zero)
                 self._no_memory = (np.zeros((self.nc, 3)), np.zeros(self.nc, dtype=np.bool_))
-        self._factored = False      # L holds the factor of a constant M
-        self._prepared = None       # the (q, u) of the step prepared ahead (`prepare`)
-        #: report buffers for `prepare` (the kernel checks their lengths; nothing is written)
-        self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
 
     def _step_settings(self, config) -> StepSettings:
         """The kernels' settings of `config` (StepSettings)."""

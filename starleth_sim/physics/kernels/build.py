@@ -157,6 +157,20 @@ def c_header() -> str:
     return _load_by_path("codegen.py").c_header(_load_by_path("layouts.py"))
 
 
+def _link(link, objects, out_path):
+    """The objects linked into the module out_path (replaced atomically)."""
+    fd, tmp_out = tempfile.mkstemp(prefix=".build-", suffix=SUFFIX,
+                                   dir=os.path.dirname(os.path.abspath(out_path)))
+    os.close(fd)
+    try:
+        _run(link + ["-shared", "-fPIC"] + objects + ["-lm", "-o", tmp_out])
+        os.chmod(tmp_out, 0o755)
+        os.replace(tmp_out, out_path)
+    finally:
+        if os.path.exists(tmp_out):
+            os.remove(tmp_out)
+
+
 def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=None,
           object_cache: str | None = None, extra_flags: tuple = ()) -> float:
     """Compiles the kernels into the extension module file out_path (replaced atomically,
@@ -207,15 +221,7 @@ def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=Non
                 path = os.path.join(object_cache, name)
                 if name.endswith(".o") and path not in keep:
                     os.remove(path)
-        fd, tmp_out = tempfile.mkstemp(prefix=".build-", suffix=SUFFIX, dir=out_dir)
-        os.close(fd)
-        try:
-            _run(link + ["-shared", "-fPIC"] + objects + ["-lm", "-o", tmp_out])
-            os.chmod(tmp_out, 0o755)
-            os.replace(tmp_out, out_path)
-        finally:
-            if os.path.exists(tmp_out):
-                os.remove(tmp_out)
+        _link(link, objects, out_path)
     digest_file = out_path + DIGEST_SUFFIX
     part = f"{digest_file}.{os.getpid()}.tmp"
     with open(part, "w") as f:
