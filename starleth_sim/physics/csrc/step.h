@@ -36,16 +36,6 @@ void contact_problem(const settings_t *s, const double *M, const double *uS, i64
                      const i64 *dof_parent, int factor, double *L, const double *last_impulse,
                      const u8 *last_active, double *timings, arena_t *a, problem_t *p);
 
-/* The torque-dependent rest of the hard-contact solve (complete_problem); impulse: nc x 3,
- * is_active: nc, last_bilateral: nb (Λ_B: warm start in, solution out). */
-complete_result_t complete_problem(const settings_t *s, const problem_t *p, const double *h,
-                                   const double *uS, const double *M, const i64 *dof_parent,
-                                   const double *L, const double *gap, i64 nc,
-                                   const double *Wt_all, double *last_impulse,
-                                   u8 *last_active, double *last_bilateral, i64 nb,
-                                   double *impulse, u8 *is_active, double *u_free, double *u,
-                                   double *u_corr, int remember, double *timings, arena_t *a);
-
 /* The warm-start memory of a finished step */
 void remember_contacts(const u8 *is_active, const double *impulse, i64 nc, u8 *last_active,
                        double *last_impulse);
@@ -86,6 +76,12 @@ typedef struct {
     u8 *is_active;          /* nc */
     double *qE, *uE;
 } step_arrays_t;
+
+/* The torque-dependent rest of the hard-contact solve of the prepared problem p: the model
+ * and workspace t, the state and outputs x, Λ_B into bilateral_E (warm start in) */
+complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
+                                   const tree_model_t *t, const step_arrays_t *x,
+                                   double *bilateral_E, double *timings, arena_t *a);
 
 /* Checks a packed TreeStepModel (and CutModel) against the sizes it claims; NULL if it is
  * consistent, else a message. */

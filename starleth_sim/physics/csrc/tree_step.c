@@ -166,10 +166,7 @@ static void complete_step(const problem_t *p, const double *h, const double *M,
     i64 nc = t->contacts.nc;
     double *impulse = x->report.impulse;
     for (i64 k = 0; k < x->nb; k++) bilateral_E[k] = x->last_bilateral[k];
-    complete_result_t c = complete_problem(&t->s, p, h, x->u, M, t->dof_parent, t->L, t->gap,
-                                           nc, t->Wt_all, x->last_impulse, x->last_active,
-                                           bilateral_E, x->nb, impulse, x->is_active, t->u_free,
-                                           x->uE, t->u_corr, 0, timings, a);
+    complete_result_t c = complete_problem(p, h, M, t, x, bilateral_E, timings, a);
     double t0 = kclock(timings);
     i64 outcome = TREE_STEP_OK;
     if (c.status == STATUS_NONFINITE) {
