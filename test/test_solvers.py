@@ -34,8 +34,9 @@ def robot_problem(u_scale, seed, mu=0.8):
         activation_gap=0.0, hysteresis=False, opening_gap=0.0, beta_velocity=0.0,
         prox=st.settings.prox._replace(form=prox.FORM_DELASSUS, bilateral_direct=False))
     problem = prepare_hard_contacts(
-        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
-        sim.coords.tree.dof_parent, True, L, np.zeros((nc, 3)), np.zeros(nc, dtype=bool), None)
+        paper, (M, u), (st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps),
+        (sim.coords.tree.dof_parent, True, L), (np.zeros((nc, 3)), np.zeros(nc, dtype=bool)),
+        None)
     arrays = problem.arrays()
     active, Wt, MinvW, bvec, G = (arrays[k] for k in ("active", "Wt", "MinvW", "b", "G"))
     assert problem.ok and len(active) == 4 and problem.n_active == 4
@@ -67,9 +68,9 @@ def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
         beta_velocity=0.0, beta_projection=0.0, jacobian_gap=0.0, projection_tolerance=0.0,
         warm_start=False, hysteresis=False)
     it, status, res = prox.prox_solve(
-        settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]), p["Wt"],
-        p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"], p["na"], p["mu"], r, lam,
-        np.zeros((0, 0)), p["M"], u)
+        settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]),
+        (p["Wt"], p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"]), (p["na"], p["mu"], r),
+        lam, (np.zeros((0, 0)), p["M"]), u)
     return lam, u, it, status
 
 
@@ -218,8 +219,9 @@ def _bilateral_problem(preset="HMJD", steps=60):
     WtB, gB = c.bilateral(qM)
     bB = gB * (sim.config.bilateral.stabilization / st.dt)
     problem = prepare_hard_contacts(
-        st.settings, M, s.u, st.gap, st.Wt_all, WtB, bB, st.eps, c.tree.dof_parent, True,
-        np.zeros((c.nv, c.nv)), s.last_impulse, s.last_active, None)
+        st.settings, (M, s.u), (st.gap, st.Wt_all, WtB, bB, st.eps),
+        (c.tree.dof_parent, True, np.zeros((c.nv, c.nv))), (s.last_impulse, s.last_active),
+        None)
     return problem.arrays()["G"], 3 * problem.n_active, problem.arrays()
 
 

@@ -79,7 +79,7 @@ FORMS = {"delassus": FORM_DELASSUS, "velocity": FORM_VELOCITY}
 CRITERIA = {"impulse": CRITERION_IMPULSE, "energy": CRITERION_ENERGY}
 
 # The kernels (csrc/prox.c):
-#   prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u)
+#   prox_solve(s, pat, (Wt, MinvW, u_free, bvec, G, c), (nc, mu, r), lam, (LB, M), u)
 #       -> (iterations, status, residual): one prox solve with the scheme and form of the
 #       settings `s` (a StepSettings or ProxSettings). Problem: W^T (Wt, m x nv), M^{-1}W
 #       (MinvW, nv x m), u_free = u^S + M^{-1} h Δt, b, G = W^T M^{-1} W and c = W^T u_free + b

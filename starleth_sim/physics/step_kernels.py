@@ -25,8 +25,9 @@ so that q^E = q^M ⊕ ½Δt (u^E + Δu_p) loses the fraction β_N of every penet
 The kernels a test calls alone, as an independent cross-check of the step's phases against
 dense linear algebra and Pinocchio's solver (test_solvers; the step does not call them):
 
-- ``prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L,
-  last_impulse, last_active, timings, frames=None, problem=None) -> ContactProblem``: phases
+- ``prepare_hard_contacts(settings, (M, uS), (gap, Wt_all, WtB, bB, eps), (dof_parent,
+  factor, L), (last_impulse, last_active), timings, frames=None, problem=None) ->
+  ContactProblem``: phases
   "M^-1" and "G" of a contact problem, with the nonzero patterns of W^T, M^{-1}W and G (a
   `ContactProblem`: the kernels' own object, `ContactProblem.arrays()` copies its arrays).
 - ``free_velocity(h, dt, uS, dof_parent, L, u_free)`` and ``constraint_velocity(Wt, u_free,

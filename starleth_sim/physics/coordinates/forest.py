@@ -80,7 +80,8 @@ def copy_revolute(jm):
 #       were made with);
 #   gather_joint_values(x, index, cut_values, cut_index, out): the joints' φ (x = q) or φ̇
 #       (x = u) in the public order;
-#   cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h):
+#   cut_joint_torques(tau_cut, (cut_P, cut_C, axis_world), (jtype, axis, idx_v, support), oR,
+#       h):
 #       h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the cut joints' actuators.
 
 
@@ -392,8 +393,8 @@ class ForestCoordinates:
             self._kinematics_for_cuts(q, u)
         _, axis_world, oR = self._torque_map
         t = self.tree
-        cut_joint_torques(self._tau_cut, self.cut_P, self.cut_C, axis_world,
-                          t.jtype, t.axis, t.idx_v, t.support, oR, h)
+        cut_joint_torques(self._tau_cut, (self.cut_P, self.cut_C, axis_world),
+                          (t.jtype, t.axis, t.idx_v, t.support), oR, h)
 
     def bilateral(self, q, u=None):
         """(W_Bᵀ (n_B x nv), g_B (n_B)) at q; arrays are reused between calls. The stepper

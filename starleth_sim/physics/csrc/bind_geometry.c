@@ -497,16 +497,16 @@ FN(gather_joint_values) {
 }
 
 FN(cut_joint_torques) {
-    static const spec_t spec[] = {{"tau_cut", F64}, {"cut_P", I64},  {"cut_C", I64},
-                                  {"axis_world", F64}, {"jtype", I64}, {"axis", F64},
-                                  {"idx_v", I64},   {"support", BOOL}, {"oR", F64},
-                                  {"h", F64W}};
+    static const spec_t spec[] = {{"tau_cut", F64},  {"cuts", GROUP + 3}, {"cut_P", I64},
+                                  {"cut_C", I64},    {"axis_world", F64}, {"tree", GROUP + 4},
+                                  {"jtype", I64},    {"axis", F64},      {"idx_v", I64},
+                                  {"support", BOOL}, {"oR", F64},        {"h", F64W}};
     val_t v[10];
     held_t h = {.n = 0};
     volatile int failed = 0;
     tree_t t;
     cuts_t c;
-    if (!PARSE("cut_joint_torques", spec, 10, v, &h)) FAIL;
+    if (!PARSE("cut_joint_torques", spec, 5, v, &h)) FAIL;
     i64 nv = v[9].len;
     const val_t *arrs[1] = {&v[3]};
     if (!tree_of("cut_joint_torques", NULL, &v[4], &v[5], NULL, NULL, NULL, &v[6], &v[7], nv, &t) ||

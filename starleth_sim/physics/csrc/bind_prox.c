@@ -108,17 +108,18 @@ FN(auto_spectral_scale) {
 }
 
 FN(prox_solve) {
-    static const spec_t spec[] = {{"s", OBJ},      {"pat", OBJ}, {"Wt", F64},   {"MinvW", F64},
-                                  {"u_free", F64}, {"bvec", F64}, {"G", F64},   {"c", F64},
-                                  {"nc", INT},     {"mu", F64},  {"r", F64},    {"lam", F64W},
-                                  {"LB", F64},     {"M", F64},   {"u", F64W}};
+    static const spec_t spec[] = {
+        {"s", OBJ},     {"pat", OBJ}, {"problem", GROUP + 6}, {"Wt", F64}, {"MinvW", F64},
+        {"u_free", F64}, {"bvec", F64}, {"G", F64}, {"c", F64}, {"contacts", GROUP + 3},
+        {"nc", INT},    {"mu", F64},  {"r", F64}, {"lam", F64W}, {"direct", GROUP + 2},
+        {"LB", F64},    {"M", F64},   {"u", F64W}};
     val_t v[15];
     held_t h = {.n = 0};
     volatile int failed = 0;
     settings_t s;
     patterns_t pat;
     i64 m, nv;
-    if (!PARSE("prox_solve", spec, 15, v, &h) || !get_settings(v[0].o, "prox_solve", &s) ||
+    if (!PARSE("prox_solve", spec, 7, v, &h) || !get_settings(v[0].o, "prox_solve", &s) ||
         !get_patterns(v[1].o, "prox_solve", &h, &pat) ||
         !problem_sizes("prox_solve", &v[2], &v[3], &v[6], &s, &m, &nv))
         FAIL;

@@ -130,10 +130,11 @@ static int contact_problem_sizes(const char *fn, const val_t *M, const val_t *uS
 
 FN(prepare_hard_contacts) {
     static const spec_t spec[] = {
-        {"settings", OBJ}, {"M", F64},          {"uS", F64},          {"gap", F64},
-        {"Wt_all", F64},   {"WtB", F64},        {"bB", F64},          {"eps", F64},
-        {"dof_parent", I64}, {"factor", FLAG},  {"L", F64W},          {"last_impulse", F64},
-        {"last_active", BOOL}, {"timings", F64N}, {"frames", F64N}, {"problem", OBJ}};
+        {"settings", OBJ},  {"state", GROUP + 2}, {"M", F64}, {"uS", F64},
+        {"rows", GROUP + 5}, {"gap", F64}, {"Wt_all", F64}, {"WtB", F64}, {"bB", F64},
+        {"eps", F64},       {"factor", GROUP + 3}, {"dof_parent", I64}, {"factor", FLAG},
+        {"L", F64W},        {"memory", GROUP + 2}, {"last_impulse", F64}, {"last_active", BOOL},
+        {"timings", F64N},  {"frames", F64N},    {"problem", OBJ}};
     val_t v[16];
     v[14].p = NULL; /* (frames and problem are optional) */
     v[14].len = 0;
@@ -142,7 +143,7 @@ FN(prepare_hard_contacts) {
     volatile int failed = 0;
     settings_t s;
     i64 nv, nc, nb;
-    if (!PARSE("prepare_hard_contacts", spec, 14, v, &h) ||
+    if (!PARSE("prepare_hard_contacts", spec, 6, v, &h) ||
         !get_settings(v[0].o, "prepare_hard_contacts", &s) ||
         !contact_problem_sizes("prepare_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
                                &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb) ||
