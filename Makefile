@@ -7,8 +7,8 @@ STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 LIVE_PORT ?= 8765
 
-.PHONY: venv test-deps robots test demo bench eval ray browser-test constraints ros2-control-configs \
-        clean distclean
+.PHONY: venv test-deps robots test sanitize demo bench eval ray browser-test constraints \
+        ros2-control-configs clean distclean
 
 venv: $(STAMP)
 
@@ -164,6 +164,25 @@ ros2-control-configs: venv robots
 	@set -e; for r in $$($(VPY) -c 'from starleth_sim.robots import available_robots as a; print(*a())'); do \
 	  $(VPY) -m starleth_sim.ros.ros2_control_controllers --robot $$r > config/$${r}_controllers.yaml; \
 	  echo "config/$${r}_controllers.yaml"; done
+
+# The physics kernels built with AddressSanitizer and UndefinedBehaviorSanitizer into
+# build/sanitize/ (not the package's own module; kernels/build.py --sanitize), then the physics
+# tests with that module ($$STARLETH_KERNELS_SANITIZED) and the sanitizers' runtimes preloaded
+# (Python is not instrumented: leaks are not checked; an error or undefined behaviour fails).
+SANITIZE_DIR := build/sanitize
+SANITIZE_TESTS := test_bitexact test_adaptive_alpha test_coordinates test_hard_contacts \
+        test_impedance test_impedance_commands test_kernel_layouts test_kinematics_dynamics \
+        test_physics_analytic test_physics_robot test_solvers test_state test_step_down \
+        test_terrain test_terrain_walk
+sanitize: venv test-deps robots
+	@so=$(SANITIZE_DIR)/_kernels$$($(VPY) -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))'); \
+	$(VPY) starleth_sim/physics/kernels/build.py --sanitize $$so || exit 2; \
+	cc=$${CC:-cc}; \
+	STARLETH_KERNELS_SANITIZED=$$PWD/$$so \
+	LD_PRELOAD="$$($$cc -print-file-name=libasan.so) $$($$cc -print-file-name=libubsan.so)" \
+	ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
+	$(VPY) -m pytest -q -p no:cacheprovider $(addprefix test/,$(addsuffix .py,$(SANITIZE_TESTS))) \
+	  $(PYTEST_ARGS)
 
 clean:
 	rm -rf build install log *.egg-info .pytest_cache .ruff_cache

@@ -10,9 +10,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def _kernel_build():
-    """starleth_sim/physics/kernel_build.py, loaded by path (the package is not installed
+    """starleth_sim/physics/kernels/build.py, loaded by path (the package is not installed
     yet; the module uses the standard library only)."""
-    path = os.path.join(HERE, package_name, 'physics', 'kernel_build.py')
+    path = os.path.join(HERE, package_name, 'physics', 'kernels', 'build.py')
     spec = importlib.util.spec_from_file_location('_starleth_kernel_build', path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -20,8 +20,8 @@ def _kernel_build():
 
 
 class BuildKernels(build_ext):
-    """Builds the physics kernels (C) with kernel_build: the flags that keep their results
-    bit for bit, the same build as a source checkout's."""
+    """Builds the physics kernels (C) with starleth_sim.physics.kernels.build: the flags
+    that keep their results bit for bit, the same build as a source checkout's."""
 
     def build_extension(self, ext):
         kb = _kernel_build()
@@ -37,7 +37,7 @@ class BuildKernels(build_ext):
                 g.write(f.read())
 
 
-KERNELS = Extension('starleth_sim.physics._kernels',
+KERNELS = Extension('starleth_sim.physics.kernels._kernels',
                     sources=sorted(glob('starleth_sim/physics/csrc/*.c')),
                     depends=sorted(glob('starleth_sim/physics/csrc/*.h')))
 

@@ -93,7 +93,7 @@ def platform_fingerprint():
     """What bit-for-bit results depend on besides our code: the architecture, the C library
     (libm's sin, cos, atan2 in the kernels) and the numeric libraries' versions. Not the
     CPU's vector instructions: the kernels are compiled without contraction or reassociation
-    (kernel_build), so the same bits with SSE2, AVX2 or AVX-512 (the references recorded on
+    (kernels.build), so the same bits with SSE2, AVX2 or AVX-512 (the references recorded on
     an AVX2 machine match on an AVX-512 one)."""
     import platform
     import pinocchio

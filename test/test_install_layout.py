@@ -163,7 +163,7 @@ def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_pat
     machine code, and an unchanged checkout builds nothing."""
     import io
     import shutil
-    from starleth_sim.physics import kernel_build
+    from starleth_sim.physics.kernels import build as kernel_build
     from starleth_sim.physics.kernels import ensure_built
     csrc = tmp_path / "csrc"
     shutil.copytree(kernel_build.CSRC, csrc)
@@ -179,12 +179,12 @@ def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_pat
         return {p.name.rsplit("-", 1)[0]: p.name for p in objects.glob("*.o")}
     first = compiled()
     assert sorted(first) == sorted(p[:-2] for p in os.listdir(csrc) if p.endswith(".c"))
-    with open(csrc / "step.c", "a") as f:                       # an edit of one source:
+    with open(csrc / "step_kernels.c", "a") as f:               # an edit of one source:
         f.write("\n/* edited */\n")                            # it alone compiles again
     assert ensure_built(out, str(csrc), module)
     assert os.stat(module).st_mtime_ns != stamp
     second = compiled()
-    assert [k for k in first if first[k] != second[k]] == ["step"]
+    assert [k for k in first if first[k] != second[k]] == ["step_kernels"]
     assert len(list(objects.glob("*.o"))) == len(first)         # the old object removed
     assert not ensure_built(out, str(csrc), module)
     with open(csrc / "core.h", "a") as f:                       # a header: every source

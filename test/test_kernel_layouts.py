@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 
 from starleth_sim import Simulator
-from starleth_sim.physics import kernel_build, kernel_codegen, kernel_layouts, kernels
+from starleth_sim.physics import kernels
+from starleth_sim.physics.kernels import build as kernel_build
+from starleth_sim.physics.kernels import codegen as kernel_codegen
+from starleth_sim.physics.kernels import layouts as kernel_layouts
 from starleth_sim.physics.contact import CompliantLaw
-from starleth_sim.physics.kernel_layouts import (CUT_MODEL, HEADER_KINDS, LAYOUTS, RECORDS,
+from starleth_sim.physics.kernels.layouts import (CUT_MODEL, HEADER_KINDS, LAYOUTS, RECORDS,
                                                  RESULTS, STEP_REPORT, TREE_STEP_MODEL,
                                                  field_size, length, offsets)
 from starleth_sim.physics.prox import ProxSettings
@@ -50,7 +53,7 @@ def test_the_python_records_and_results_have_the_declared_fields():
         assert all(isinstance(getattr(t, f.name), types.MemberDescriptorType)
                    for f in r.fields)
     for r in RECORDS:
-        assert f"#define {kernel_codegen.upper_snake(r.name)}_LENGTH {len(r.fields)}" in \
+        assert f"#define {kernel_codegen.upper_snake(r.name)}_LENGTH {r.length}" in \
             kernel_build.c_header()
 
 
@@ -66,11 +69,11 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
 
     def step(floats):
         report = np.empty(report_size(nc, na))
-        r = kernels.tree_step_hard(True, s.q, s.u, np.full(na, 3.0), np.zeros(0),
-                                   s.last_impulse.copy(), s.last_active.copy(),
-                                   s.last_bilateral.copy(), report, np.empty(nc, dtype=bool),
-                                   np.empty_like(s.q), np.empty_like(s.u), floats,
-                                   *st._tree_model[1:])
+        r = kernels.tree_step_hard(0, True, (s.q, s.u, s.last_impulse.copy(),
+                                             s.last_active.copy(), s.last_bilateral.copy()),
+                                   np.full(na, 3.0), np.zeros(0),
+                                   (report, np.empty(nc, dtype=bool), np.empty_like(s.q),
+                                    np.empty_like(s.u)), (floats, *st._tree_model[1:]))
         assert r.outcome == kernels.TREE_STEP_OK
         return report_views(report, nc, na)
     floats = st._tree_model[0]
@@ -96,17 +99,15 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
 def test_pack_writes_each_field_where_the_layout_says(preset):
     sim = Simulator.from_preset(preset)
     st = sim.stepper
-    if not st._one_kernel:
-        pytest.skip("no one-kernel step")
     floats, ints, support, workspace = st._tree_model
     c = st.coords
     sizes = {"nj": c.tree.parent.shape[0], "nc": c.n_contacts, "na": c.joint_v.shape[0],
-             "nv": c.nv, "nt": st.ground.terrain.shape[0]}
-    assert list(ints[:5]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt")]
+             "nv": c.nv, "nt": st.ground.terrain.shape[0], "nq": c.nq}
+    assert list(ints[:6]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt", "nq")]
     for name, array in (("floats", floats), ("ints", ints), ("support", support)):
         assert array.shape[0] == length(TREE_STEP_MODEL, name, sizes)
     f = buffer_views(TREE_STEP_MODEL, "floats", floats, sizes)
-    assert tuple(f["settings"]) == tuple(float(v) for v in st.settings)
+    assert list(f["settings"]) == kernel_layouts.STEP_SETTINGS.flatten(st.settings)
     assert tuple(f["law"]) == tuple(st.compliant_law)
     assert np.array_equal(f["eps"], st.eps)
     assert np.array_equal(f["ground_n"], st.ground.n) and f["ground_offset"][0] == \
@@ -116,7 +117,7 @@ def test_pack_writes_each_field_where_the_layout_says(preset):
     assert np.array_equal(i["dof_parent"], c.tree.dof_parent)
     w = buffer_views(TREE_STEP_MODEL, "workspace", workspace, sizes)
     assert np.shares_memory(w["L"], st.L) and w["L"].shape == st.L.shape
-    if st._forest_kernel:
+    if st._forest:
         cf, ci, cw = st._cut_model
         constant = int(bool(c.constant_mass_matrix))
         csizes = {"ncut": c.n_cut, "constant": constant,
@@ -139,7 +140,7 @@ def test_the_report_follows_its_layout_and_the_kernel_writes_it_there():
     report = np.full(report_size(nc, na), np.nan)
     active = np.zeros(nc, dtype=bool)
     tau = np.linspace(-1.0, 1.0, na)
-    r = sim.stepper.step_in_one_kernel(sim.state, tau, report, active)
+    r = sim.stepper.step(sim.state, tau, report, active)
     assert isinstance(r, kernels.TreeStepResult) and r.outcome == kernels.TREE_STEP_OK
     impulse, gap, position, applied, explicit, damper = report_views(report, nc, na)
     assert np.isfinite(report).all()

@@ -105,28 +105,6 @@ def test_prepared_step_gives_the_same_trajectory_bit_for_bit(preset):
     assert np.abs(runs[0][2]).sum() > 0     # the feet were in contact
 
 
-def test_next_step_in_one_kernel_says_when_preparing_does_not_pay():
-    """sim_node prepares the next step only when Simulator.next_step_in_one_kernel() is
-    False: True for a plain step, False once the step is prepared (the step then runs
-    phase by phase), with a pending push or a persistent wrench, and True again after them;
-    the answer never changes the trajectory (the same states either way)."""
-    sim = Simulator.from_preset("HmJ")
-    hold = PostureHold(sim.joint_positions())
-    assert sim.next_step_in_one_kernel()
-    sim.prepare()
-    assert not sim.next_step_in_one_kernel()       # prepared: the rest runs phase by phase
-    sim.step(hold.torque(sim))
-    assert sim.next_step_in_one_kernel()
-    sim.apply_wrench("base", [20.0, 0.0, 0.0])
-    assert not sim.next_step_in_one_kernel()       # a push: the phase-by-phase step
-    sim.step(hold.torque(sim))
-    assert sim.next_step_in_one_kernel()
-    sim.set_persistent_wrench("base", [0.0, 5.0, 0.0])
-    assert not sim.next_step_in_one_kernel()
-    sim.set_persistent_wrench("base", [0.0, 0.0, 0.0])   # cleared
-    assert sim.next_step_in_one_kernel()
-
-
 def test_contact_arrays_equal_the_contact_records():
     """Simulator.contact_points(), contact_forces() and contact_states() (what sim_node's
     contact markers read every few steps) give the values of the ContactInfo records of

@@ -51,7 +51,7 @@ def test_cold_compiles_into_an_empty_cache_and_leaves_the_one_in_use(tmp_path, m
     """--cold: every unit into a temporary NUMBA_CACHE_DIR and build directory (removed
     after), each unit's seconds and the total printed; the cache of the environment and the
     built physics module are left as they were."""
-    from starleth_sim.physics import kernel_build
+    from starleth_sim.physics.kernels import build as kernel_build
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     module = kernel_build.inplace_path()
     before = os.stat(module).st_mtime_ns if os.path.exists(module) else None

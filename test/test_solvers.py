@@ -30,12 +30,13 @@ def robot_problem(u_scale, seed, mu=0.8):
     nc = sim.coords.n_contacts
     # the paper's active set and law (no hysteresis; no gap terms as every active g_N < 0),
     # the Delassus form with G formed
-    paper = st.settings._replace(activation_gap=0.0, hysteresis=False, opening_gap=0.0,
-                                 beta_velocity=0.0, form=prox.FORM_DELASSUS,
-                                 bilateral_direct=False)
+    paper = st.settings._replace(
+        activation_gap=0.0, hysteresis=False, opening_gap=0.0, beta_velocity=0.0,
+        prox=st.settings.prox._replace(form=prox.FORM_DELASSUS, bilateral_direct=False))
     problem = prepare_hard_contacts(
-        paper, M, u, st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps,
-        sim.coords.tree.dof_parent, True, L, np.zeros((nc, 3)), np.zeros(nc, dtype=bool), None)
+        paper, (M, u), (st.gap, st.Wt_all, np.zeros((0, nv)), np.zeros(0), eps),
+        (sim.coords.tree.dof_parent, True, L), (np.zeros((nc, 3)), np.zeros(nc, dtype=bool)),
+        None)
     arrays = problem.arrays()
     active, Wt, MinvW, bvec, G = (arrays[k] for k in ("active", "Wt", "MinvW", "b", "G"))
     assert problem.ok and len(active) == 4 and problem.n_active == 4
@@ -57,18 +58,19 @@ def solve(p, form, scheme, alpha=0.5, tol=1e-13, max_iter=200000, criterion=0):
     prox.prox_parameters(np.diag(p["G"]).copy(), p["na"], alpha, r)
     lam = np.zeros(m)
     u = np.empty(p["M"].shape[0])
-    # the stepper's record (prox_solve reads its ProxSettings fields): the same numba type
-    # as in a step, so the prox kernels are compiled once for the suite, not twice
+    # the stepper's record, its ProxSettings inside (prox_solve reads those fields)
     settings = StepSettings(
-        activation_gap=0.0, mu=0.0, alpha=float(alpha), tol_rel=0.0, tol_abs=float(tol),
-        fallback_alpha_factor=0.0, opening_gap=0.0, dt=0.0, beta_velocity=0.0,
-        beta_projection=0.0, jacobian_gap=0.0, projection_tolerance=0.0,
-        form=prox.FORMS[form], scheme=prox.SCHEMES[scheme], max_iterations=int(max_iter),
-        criterion=int(criterion), warm_start=False, bilateral_direct=False, hysteresis=False)
+        prox=prox.ProxSettings(
+            form=prox.FORMS[form], scheme=prox.SCHEMES[scheme], tol_rel=0.0, tol_abs=float(tol),
+            max_iterations=int(max_iter), criterion=int(criterion), bilateral_direct=False,
+            alpha=float(alpha)),
+        activation_gap=0.0, mu=0.0, fallback_alpha_factor=0.0, opening_gap=0.0, dt=0.0,
+        beta_velocity=0.0, beta_projection=0.0, jacobian_gap=0.0, projection_tolerance=0.0,
+        warm_start=False, hysteresis=False)
     it, status, res = prox.prox_solve(
-        settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]), p["Wt"],
-        p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"], p["na"], p["mu"], r, lam,
-        np.zeros((0, 0)), p["M"], u)
+        settings, prox.dense_problem_patterns(p["Wt"], p["MinvW"], p["G"]),
+        (p["Wt"], p["MinvW"], p["u_free"], p["bvec"], p["G"], p["c"]), (p["na"], p["mu"], r),
+        lam, (np.zeros((0, 0)), p["M"]), u)
     return lam, u, it, status
 
 
@@ -210,9 +212,16 @@ def _bilateral_problem(preset="HMJD", steps=60):
     hold = PostureHold(sim.joint_positions())
     for _ in range(steps):
         sim.step(hold.torque(sim))
-    st = sim.stepper
-    st.prepare(sim.state)
-    problem = st._prepared[6]
+    st, c, s = sim.stepper, sim.coords, sim.state
+    qM = c.integrate(s.q, s.u, 0.5 * st.dt)
+    M, h = c.dynamics(qM, s.u, np.zeros(12)) if not c.constant_mass_matrix else (c.M_const, 0)
+    c.contact_kinematics(qM, st.ground, st.gap, st.position, st.Wt_all)
+    WtB, gB = c.bilateral(qM)
+    bB = gB * (sim.config.bilateral.stabilization / st.dt)
+    problem = prepare_hard_contacts(
+        st.settings, (M, s.u), (st.gap, st.Wt_all, WtB, bB, st.eps),
+        (c.tree.dof_parent, True, np.zeros((c.nv, c.nv))), (s.last_impulse, s.last_active),
+        None)
     return problem.arrays()["G"], 3 * problem.n_active, problem.arrays()
 
 

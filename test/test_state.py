@@ -1,6 +1,6 @@
 """The simulation state (starleth_sim.physics.state.SimState): a snapshot is a deep copy,
 restoring one replays the same steps bit for bit, and a SimulationError rolls the state
-back; the profiled step (per-phase timings) runs the same code path as the plain one."""
+back; the profiled and the prepared step (options of the one kernel) are the plain step."""
 import numpy as np
 import pytest
 
@@ -47,15 +47,13 @@ def contact_memory(state):
     return [a.copy() for a in arrays if a is not None]
 
 
-# HmJ, Cm, HEJD and HMSD step in one kernel (no rollback copy: the kernel must leave the
-# state as it was; HMSD with its constant M), HEJD profiled phase by phase (the Simulator
-# restores its copy)
+# every step is one kernel call, which must leave the state as it was (HmJ, Cm, HEJD, HMSD
+# with its constant M, and profiled)
 @pytest.mark.parametrize("preset, profile", [("HmJ", False), ("Cm", False), ("HEJD", False),
                                              ("HMSD", False), ("HEJD", True)])
 @pytest.mark.parametrize("poison", ["nan velocity", "overflowing joint rate in the air"])
 def test_failed_step_restores_the_state(preset, profile, poison):
     sim = Simulator.from_preset(preset, profile=profile)
-    assert sim.stepper.step_is_transactional(sim.state) is not profile
     q_stand = sim.joint_positions().copy()
     run(sim, q_stand, 10)
     before = sim.snapshot()
@@ -83,7 +81,7 @@ def test_failed_step_restores_the_state(preset, profile, poison):
 
 def test_a_failure_in_a_later_physics_step_of_the_period_undoes_the_earlier_ones():
     """Cm steps twice per control period, each physics step in its own kernel call
-    (Simulator._kernel_steps): when the second fails, the first is undone as well, and the
+    (Simulator._control_period): when the second fails, the first is undone as well, and the
     reports stay those of the last period."""
     sim = Simulator.from_preset("Cm")
     assert sim.config.steps_per_control == 2
@@ -93,7 +91,7 @@ def test_a_failure_in_a_later_physics_step_of_the_period_undoes_the_earlier_ones
     memory = contact_memory(before)
     impulses = [c.impulse.copy() for c in sim.contacts]
     stepper = sim.stepper
-    kernel_step = stepper.step_in_one_kernel
+    kernel_step = stepper.step
     moved = []
 
     def second_fails(*args, **kwargs):
@@ -103,7 +101,7 @@ def test_a_failure_in_a_later_physics_step_of_the_period_undoes_the_earlier_ones
         moved.append(not np.array_equal(sim.state.q, before.q))
         return out
 
-    stepper.step_in_one_kernel = second_fails
+    stepper.step = second_fails
     with pytest.raises(SimulationError, match="injected"):
         sim.step(pd(sim, q_stand))
     assert moved == [True]              # the first physics step had changed the state
@@ -115,7 +113,7 @@ def test_a_failure_in_a_later_physics_step_of_the_period_undoes_the_earlier_ones
     for c, want in zip(sim.contacts, impulses):
         np.testing.assert_array_equal(c.impulse, want)
     # and it steps on as a simulator restored to that state does
-    del stepper.step_in_one_kernel
+    del stepper.step
     other = Simulator.from_preset("Cm")
     other.restore(before)
     np.testing.assert_array_equal(run(sim, q_stand, 5), run(other, q_stand, 5))
@@ -140,24 +138,25 @@ def test_profiled_step_is_the_same_step(preset):
 
 
 @pytest.mark.parametrize("preset", ["HmJ", "Cm"])
-def test_stepper_one_kernel_step_without_torques_is_a_zero_torque_step(preset):
-    """MoreauStepper.step given no torques (None or an empty vector, as the phase-by-phase
-    step accepts) steps like zero torques in the one-kernel path; a vector of the wrong
-    length is refused before anything is done."""
-    from starleth_sim import Simulator
+def test_stepper_step_without_torques_is_a_zero_torque_step(preset):
+    """MoreauStepper.step given no torques (None or an empty vector) steps like zero
+    torques; a vector of the wrong length is refused before anything is done."""
+    from starleth_sim.physics.tree_step import report_size
     ref = Simulator.from_preset(preset)
     ref.step(np.zeros(12))
+    nc = ref.stepper.nc
+    buffers = (np.empty(report_size(nc, 12)), np.empty(nc, dtype=np.bool_))
     for tau in (None, np.zeros(0)):
         sim = Simulator.from_preset(preset)
         st = sim.stepper
         for _ in range(sim.config.steps_per_control):
-            st.step(sim.state, tau)
+            st.step(sim.state, tau, *buffers)
         assert sim.state.q.tobytes() == ref.state.q.tobytes()
         assert sim.state.u.tobytes() == ref.state.u.tobytes()
     sim = Simulator.from_preset(preset)
     q = sim.state.q
     with pytest.raises(ValueError, match="12 entries"):
-        sim.stepper.step(sim.state, np.zeros(13))
+        sim.stepper.step(sim.state, np.zeros(13), *buffers)
     assert sim.state.q is q
 
 
@@ -165,20 +164,20 @@ BILATERAL_PRESETS = ("HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HM
 
 
 @pytest.mark.parametrize("preset", BILATERAL_PRESETS)
-def test_one_kernel_step_of_a_cut_forest_is_the_phase_by_phase_step(preset):
-    """The extended and maximal coordinates step in one kernel (tree_step.forest_step_hard:
-    the cut joints' bilateral constraints, M of the trees or constant) with the same result
-    bit for bit as the phase-by-phase path (a profiled Simulator): q, u, Λ and the applied
-    torques over a walking-like PD (the feet lift and land), a timed push (f_ext: the kernel
-    with the wrench's force) and a torque beyond the effort limits (saturated)."""
+def test_prepared_and_profiled_steps_of_a_cut_forest_are_the_plain_step(preset):
+    """The extended and maximal coordinates step in one kernel (tree_step.forest_step: the
+    cut joints' bilateral constraints, M of the trees or constant); prepared ahead
+    (STEP_PREPARE, then STEP_PREPARED) and profiled (STEP_PROFILE) it gives the same result
+    bit for bit: q, u, Λ and the applied torques over a walking-like PD (the feet lift and
+    land), a timed push (f_ext: the kernel with the wrench's force) and a torque beyond the
+    effort limits (saturated)."""
     plain = Simulator.from_preset(preset)
     phased = Simulator.from_preset(preset, profile=True)
-    assert plain.stepper.step_is_transactional(plain.state)
-    assert not phased.stepper.step_is_transactional(phased.state)
     q_stand = plain.joint_positions().copy()
     lift = np.tile([0.0, 0.5, -1.0], 4) * np.repeat([1, -1, -1, 1], 3)   # diagonal pairs
     n_active = set()
     for k in range(160):
+        phased.prepare()
         for sim in (plain, phased):
             if k == 60:
                 sim.apply_wrench("base", (0.0, 150.0, 0.0), duration=0.02)
@@ -236,7 +235,7 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
     """The one-kernel steps read their model from packed buffers (tree_step.TreeStepModel,
     CutModel): a buffer one entry short or long, for the sizes its header claims, is a
     clear ValueError before anything is read or written."""
-    from starleth_sim.physics.tree_step import forest_step_hard, tree_step_hard
+    from starleth_sim.physics.tree_step import forest_step, tree_step_hard
     sim = Simulator.from_preset(preset)
     st, s = sim.stepper, sim.state
     model = list(st._tree_model)
@@ -245,11 +244,14 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
 
     def step(tree, cut=None):
         if preset == "HmJ":
-            return tree_step_hard(False, s.q, s.u, np.zeros(12), np.zeros(0), s.last_impulse,
-                                  s.last_active, s.last_bilateral, *out, *tree)
-        return forest_step_hard(s.q, s.u, np.zeros(12), np.zeros(0), True, s.last_impulse,
-                                s.last_active, s.last_bilateral, *out,
-                                *st.coords.cut_motion_buffers(), *tree, *(cut or st._cut_model))
+            return tree_step_hard(0, False, (s.q, s.u, s.last_impulse, s.last_active,
+                                             s.last_bilateral), np.zeros(12), np.zeros(0),
+                                  out, tuple(tree))
+        no_compliant = (np.zeros(0, dtype=bool),) * 2 + (np.zeros(0),) * 2
+        return forest_step(0, (s.q, s.u, s.last_impulse, s.last_active, s.last_bilateral,
+                               *no_compliant), np.zeros(12), np.zeros(0),
+                           (*out, *st.coords.cut_motion_buffers()), tuple(tree),
+                           tuple(cut or st._cut_model))
     q0 = s.q.copy()
     for k in (0, 1, 3):                 # floats, ints, workspace
         for change in (lambda a: a[:-1], lambda a: np.concatenate([a, a[:1]])):
@@ -266,3 +268,21 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
                 step(model, bad)
     assert np.array_equal(s.q, q0)
     step(model)                         # the packed model as it is: one step
+
+
+@pytest.mark.parametrize("coordinates", ["extended", "maximal"])
+def test_compliant_contacts_in_a_cut_forest_stand_as_in_the_minimal_coordinates(coordinates):
+    """forest_step with compliant contacts (Alg. 1 plus the prox solve of the cut joints'
+    bilateral constraints): a PD-held robot stands as in the minimal coordinates (the same
+    base height to 10 µm, the same vertical contact force to 0.1 N after 0.25 s)."""
+    runs = []
+    for coords in ("minimal", coordinates):
+        extra = {} if coords == "minimal" else {"bilateral.method": "direct"}
+        sim = Simulator.from_preset("Cm", coordinates=coords, **extra)
+        q0 = sim.joint_positions().copy()
+        for _ in range(100):
+            sim.step(100.0 * (q0 - sim.joint_positions()) - 2.0 * sim.joint_velocities())
+        runs.append((sim.q[2], sum(np.asarray(c.impulse)[2] for c in sim.contacts)
+                     / sim.control_period))
+    (z0, f0), (z1, f1) = runs
+    assert f0 > 200.0 and abs(f1 - f0) < 0.1 and abs(z1 - z0) < 1e-5

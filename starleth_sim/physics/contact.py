@@ -11,8 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import kernels as _kernels
-from .kernel_layouts import COMPLIANT_LAW
+from .kernels.layouts import COMPLIANT_LAW
 from .terrain import TOP, pack_terrain
 
 
@@ -51,6 +50,8 @@ class GroundPlane:
         object.__setattr__(self, "t1", t1)
         object.__setattr__(self, "t2", t2)
         object.__setattr__(self, "offset", float(n[2] * self.height))
+        #: the ground as the kernels take it: (n, t1, t2, offset, packed terrain)
+        object.__setattr__(self, "kernel_args", (n, t1, t2, self.offset, packed))
         frame = np.vstack([n, t1, t2])
         frame.setflags(write=False)      # made once: a ROS node reads it every step
         object.__setattr__(self, "_frame", frame)
@@ -62,33 +63,29 @@ class GroundPlane:
 
 
 #: The parameters of the compliant contact law (Alg. 1), in the order
-#: kernel_layouts.COMPLIANT_LAW declares
+#: kernels.layouts.COMPLIANT_LAW declares
 CompliantLaw = COMPLIANT_LAW.named_tuple(
     "The parameters of the compliant contact law (Alg. 1).", __name__)
 
 
-#: The compliant contact law of Alg. 1 for all contact points, at (q^M, u^S):
-#: ``compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, frames,
-#: lam)`` with the fields of a `CompliantLaw` (a plain tuple will do). Each closed
-#: contact (g_N ≤ 0) is a spring-damper between its current point P and the point P0
-#: (`anchor`) where it was first detected or last re-anchored:
-#:     λ_N = max(−c_N g_N − d_N γ_N, 0)
-#:     stick: λ_T = −c_T g_T − d_T γ_T, g_T = tangential part of P − P0; if ‖λ_T‖ ≥ μλ_N it
-#:            becomes λ_T = −μλ_N γ_T/‖γ_T‖ and the contact slips;
-#:     slip:  λ_T = −μλ_N γ_T/‖γ_T‖; it sticks again (P0 reset to P) once ‖γ_T‖ ≈ 0 or the
-#:            force the re-anchored spring-damper would give, −d_T γ_T, is inside the cone.
-#: Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
-#: in each contact's frame (n, t1, t2), `frames` (nc x FRAME_STRIDE) holding that frame and
-#: its μ per contact (written by the contact kinematics: the plane's, or the terrain
-#: surface's); the
-#: state arrays are updated in place.
-#: ``generalized_contact_force(Wt, lam, out)``: out += Σ_i W_i λ_i (W_i = Wt[i]^T), the
-#: compliant forces' contribution to h.
-compliant_contact_forces = _kernels.compliant_contact_forces
+# The compliant contact law of Alg. 1 for all contact points, at (q^M, u^S), is written once,
+# in C (csrc/contact.c: compliant_contact_forces, which the step kernels call with the
+# fields of a `CompliantLaw`). Each closed contact (g_N ≤ 0) is a spring-damper between its
+# current point P and the point P0 (`anchor`) where it was first detected or last re-anchored:
+#     λ_N = max(−c_N g_N − d_N γ_N, 0)
+#     stick: λ_T = −c_T g_T − d_T γ_T, g_T = tangential part of P − P0; if ‖λ_T‖ ≥ μλ_N it
+#            becomes λ_T = −μλ_N γ_T/‖γ_T‖ and the contact slips;
+#     slip:  λ_T = −μλ_N γ_T/‖γ_T‖; it sticks again (P0 reset to P) once ‖γ_T‖ ≈ 0 or the
+#            force the re-anchored spring-damper would give, −d_T γ_T, is inside the cone.
+# Opening contacts (g_N > 0) forget their anchor. `lam` (nc x 3) receives (λ_N, λ_T1, λ_T2)
+# in each contact's frame (n, t1, t2), `frames` (nc x FRAME_STRIDE) holding that frame and
+# its μ per contact (written by the contact kinematics: the plane's, or the terrain
+# surface's); the state arrays are updated in place. generalized_contact_force then adds Σ_i W_i λ_i
+# (W_i = Wt[i]^T), the compliant forces' contribution, to h.
+
 #: the entries per contact of a frames array (csrc/core.h): n (3), t1 (3), t2 (3), μ and the
 #: surface (0 none or not known, 1 the plane, 2 the heightfield, 3 + k box k)
 FRAME_STRIDE = 11
-generalized_contact_force = _kernels.generalized_contact_force
 
 
 #: contact states: no normal force, inside the friction cone, on its boundary

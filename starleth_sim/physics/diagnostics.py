@@ -45,7 +45,7 @@ class Diagnostics:
 def one_step_diagnostics(prev: Diagnostics, r, step_time: float) -> Diagnostics:
     """The Diagnostics of a control period of one physics step, whose figures are r's (a
     TreeStepResult), continuing the cumulative counts of prev. (Made on every step: written
-    for speed, ≈1 µs of a 28 µs step.)"""
+    for speed; figures in doc/performance.md.)"""
     iterations, status, residual, opened = r.iterations, r.status, r.residual, r.opened
     converged = status == _CONVERGED
     return Diagnostics(

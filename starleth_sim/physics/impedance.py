@@ -40,9 +40,9 @@ import numpy as np
 
 from . import kernels as _kernels
 from .actuator import NonFiniteTorque, real_array, saturate_torque
-from .kernel_layouts import IMPEDANCE_COMMAND
+from .kernels.layouts import IMPEDANCE_COMMAND
 
-#: the command's fields, in the order of the packed layout (kernel_layouts.IMPEDANCE_COMMAND)
+#: the command's fields, in the order of the packed layout (kernels.layouts.IMPEDANCE_COMMAND)
 FIELDS = tuple(f.name for f in IMPEDANCE_COMMAND.buffers[0].fields)
 #: the gains: finite and ≥ 0
 GAINS = ("kp", "kd")
@@ -127,27 +127,20 @@ class ImpedanceCommand:
         return out
 
 
-def command_torques(tau, q, u, mode, coords, effort_limit, velocity_limit, implicit):
-    """(explicit torques, kd of the implicit dampers) of a step's command at (q, u) of the
-    coordinate set `coords`: mode TORQUE_IMPEDANCE, tau an ImpedanceCommand's packed buffer:
-    its law, saturated (actuator.saturate_torque at the same rates by the limits), a joint's
-    damper implicit where `implicit` (the coordinate set allows it), the joint has a damper
-    term and its law is not saturated: what the tree kernels compute inside, by the same C
-    functions (bit for bit); mode TORQUE_REPLAY, tau's two halves (the explicit torques,
-    then kd). NonFiniteTorque if the law overflows."""
+def command_torques(tau, q, u, coords, effort_limit, velocity_limit):
+    """The applied torques of an ImpedanceCommand's packed buffer `tau` at (q, u) of the
+    coordinate set `coords` (a cut forest: a cut joint's φ and φ̇ come from its
+    kinematics): the law (impedance_torque, the kernels' own), saturated
+    (actuator.saturate_torque at the same rates by the limits). NonFiniteTorque if the law
+    overflows. (The tree kernels evaluate the law inside, with their implicit dampers.)"""
     na = coords.joint_v.shape[0]
-    if mode == TORQUE_REPLAY:
-        return tau[:na].copy(), tau[na:].copy()
     qd = coords.joint_velocities(q, u)
     law = np.empty(na)
     impedance_torque(tau, coords.joint_positions(q, u), qd, law)
     applied = np.empty(na)
     if not saturate_torque(law, effort_limit, qd, velocity_limit, applied):
         raise NonFiniteTorque("the impedance law gave non-finite torques")
-    kd, velocity = tau[3 * na:4 * na], tau[na:2 * na]
-    damper = np.where(~np.isnan(velocity) & (kd > 0.0) & (applied == law), kd, 0.0) \
-        if implicit else np.zeros(na)
-    return applied, damper
+    return applied
 
 
 def replay_rows(torques, n, joint_names, implicit):

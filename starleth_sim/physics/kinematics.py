@@ -1,8 +1,8 @@
 """Contact-point kinematics of a Pinocchio kinematic tree (C kernels, ``csrc/kinematics.c``).
 
 Why not pin's frame API on the hot path: reading ``data.oMf[i].translation`` from Python
-costs about 1.2 µs per frame (measured), i.e. ~20 µs per step for the 16 contact points
-of StarlETH, more than CRBA and RNEA together. The tree below is extracted once from the
+costs per frame, and over the 16 contact points of StarlETH more than CRBA and RNEA
+together (doc/performance.md). The tree below is extracted once from the
 ``pinocchio.Model`` (parents, joint placements, joint types and axes) and evaluated in one
 kernel call; ``test/test_kinematics_dynamics.py`` checks positions and Jacobians against
 ``pin.framesForwardKinematics`` / ``pin.getFrameJacobian`` to 1e-12.
@@ -12,7 +12,7 @@ Conventions (the paper's minimal set, Eqn. 21, with Pinocchio's quaternion stora
     u = [I_v_B (3, trunk linear velocity in the *inertial* frame), B_ω_IB (3), joint rates]
 The Jacobians returned here map u to velocities in the world frame.
 
-The kernels (arrays of `KinematicTree.args`):
+The kernels (the arrays of `KinematicTree`):
 
 - ``forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)``: world
   placements (oR[j], op[j]) of all joint frames, oM_j = oM_parent · placement_j · M_j(q).
@@ -20,15 +20,15 @@ The kernels (arrays of `KinematicTree.args`):
   Jacobian of the world velocity of the material point at world position p attached to
   joint frame j (forward_kinematics first); only the supporting joints' columns are
   written, the others zeroed first unless `zero` is False.
-- ``contact_points(parent, jtype, axis, idx_v, support, oR, op, c_joint, c_local, c_radius,
-  normal, tangent1, tangent2, ground_offset, jacobian_gap, gap, position, Wt)``: contact
-  point i is a sphere of radius c_radius[i] centred at c_local[i] in the frame of joint
-  c_joint[i] (radius 0: a point). Against the plane {x | n·x = ground_offset}:
-  g_N,i = n·c_i − ground_offset − r_i, P_i = c_i − r_i n (the closest point) and
-  Wt[i] = [n, t1, t2]^T J_P,i (3 x nv), W_{U,i}^T of Eqn. (1), so that γ_i = Wt[i] u; Wt[i]
-  is computed only for contacts with g_N,i ≤ jacobian_gap (the others' rows are left as
-  they were).
-- ``contact_kinematics(q, ...)``: forward_kinematics, then contact_points.
+- ``contact_kinematics(q, (tree, frames, contacts), ground, jacobian_gap, (gap, position,
+  Wt), surface_frames=None)``: forward_kinematics, then the contact points (tree, frames:
+  `KinematicTree.args`; contacts: (c_joint, c_local, c_radius); ground:
+  contact.GroundPlane.kernel_args): contact point i is a sphere of radius c_radius[i]
+  centred at c_local[i] in the frame of joint c_joint[i] (radius 0: a point). Against the
+  plane {x | n·x = ground_offset}: g_N,i = n·c_i − ground_offset − r_i, P_i = c_i − r_i n
+  (the closest point) and Wt[i] = [n, t1, t2]^T J_P,i (3 x nv), W_{U,i}^T of Eqn. (1), so
+  that γ_i = Wt[i] u; Wt[i] is computed only for contacts with g_N,i ≤ jacobian_gap (the
+  others' rows are left as they were).
 - ``quat_xyzw_to_rot(x, y, z, w, R)``: the rotation matrix of a unit quaternion (Pinocchio
   order) into R.
 """
@@ -39,7 +39,7 @@ import pinocchio as pin
 
 from starleth_interface.robot.urdf import revolute_axis
 
-from .kernels import (JT_FREEFLYER, JT_REVOLUTE, contact_kinematics, contact_points,  # noqa: F401
+from .kernels import (JT_FREEFLYER, JT_REVOLUTE, contact_kinematics,  # noqa: F401
                       forward_kinematics, point_jacobian, quat_xyzw_to_rot)
 
 
@@ -95,5 +95,8 @@ class KinematicTree:
         self.op = np.zeros((nj, 3))
 
     def args(self):
-        return (self.parent, self.jtype, self.axis, self.pl_R, self.pl_p, self.idx_q,
-                self.idx_v, self.support, self.oR, self.op)
+        """The tree and its kinematics' scratch as the kernels take them: ((parent, jtype,
+        axis, pl_R, pl_p, idx_q, idx_v, support), (oR, op)), like the C tree_t and
+        frames_t."""
+        return ((self.parent, self.jtype, self.axis, self.pl_R, self.pl_p, self.idx_q,
+                 self.idx_v, self.support), (self.oR, self.op))

@@ -3,9 +3,8 @@ of M (Featherstone's, with the sparsity of the kinematic tree) and its solves, a
 factor with the envelope of its matrix (G_BB of the direct bilateral method).
 
 The matrices here are small (M is 18 x 18 for the minimal coordinates), where a call into
-numpy/LAPACK costs more in overhead (5-6 µs for np.linalg.cholesky, measured) than the
-arithmetic. Only the upper triangle of the symmetric input is read, matching what
-``pin.crba`` fills.
+numpy/LAPACK costs more in overhead than the arithmetic (doc/performance.md). Only the upper
+triangle of the symmetric input is read, matching what ``pin.crba`` fills.
 
 Featherstone's LTDL (Rigid Body Dynamics Algorithms, 2008, §6.3-6.5): with the velocities
 numbered parents first, dof_parent[k] < k is the dof that k hangs from (−1 at a root); row k
@@ -32,7 +31,7 @@ The kernels:
   with its envelope: row i of L is zero left of first[i], the first nonzero column of row i
   of A's lower triangle (Cholesky keeps fill-in inside the envelope), so every sum runs over
   the same nonzero terms, in the same order, as the dense loops would: the dense result bit
-  for bit (G_BB of the maximal coordinates: 822 of 1,830 entries, factor 22 -> 10 µs). L
+  for bit (G_BB of the maximal coordinates: 822 of its 1,830 entries in the envelope). L
   must come in zeroed; `first` receives the envelope.
 - ``cholesky_solve_vec(L, first, b)``: (L Lᵀ) x = b in place.
 - ``envelope_columns(first) -> (ptr, idx)``: the envelope by columns, for

@@ -30,7 +30,7 @@ record. Dense problems just have full patterns (:func:`dense_problem_patterns`).
 
 Settings: the kernels read form, scheme, T_rel, T_abs, the iteration cap, the termination
 criterion and the bilateral method from one typed record `s` with the fields of
-`ProxSettings` (the stepper passes its `StepSettings`, which has them all).
+`ProxSettings` (the stepper passes its `StepSettings`, which holds one: `prox`).
 
 Adaptive α (``solver.alpha: auto``, the settings' α = ALPHA_AUTO < 0): the paper's α must
 be tuned per configuration (Fig. 6; too large diverges). With α < 0 the kernels choose it
@@ -66,7 +66,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kernel_layouts import PROX_SETTINGS
+from .kernels.layouts import PROX_SETTINGS
 from .kernels import (  # noqa: F401  (the constants are the kernels' own)
     ALPHA_AUTO, AUTO_GUARD, AUTO_MAX_STEP, AUTO_POWER_ITERATIONS, AUTO_SOR_BILATERAL_OMEGA,
     CRITERION_ENERGY, CRITERION_IMPULSE, DELASSUS_ENVELOPE_ROWS, FORM_DELASSUS, FORM_VELOCITY,
@@ -79,7 +79,7 @@ FORMS = {"delassus": FORM_DELASSUS, "velocity": FORM_VELOCITY}
 CRITERIA = {"impulse": CRITERION_IMPULSE, "energy": CRITERION_ENERGY}
 
 # The kernels (csrc/prox.c):
-#   prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u)
+#   prox_solve(s, pat, (Wt, MinvW, u_free, bvec, G, c), (nc, mu, r), lam, (LB, M), u)
 #       -> (iterations, status, residual): one prox solve with the scheme and form of the
 #       settings `s` (a StepSettings or ProxSettings). Problem: W^T (Wt, m x nv), M^{-1}W
 #       (MinvW, nv x m), u_free = u^S + M^{-1} h Δt, b, G = W^T M^{-1} W and c = W^T u_free + b
@@ -120,8 +120,8 @@ class Patterns(NamedTuple):
     lb_first: np.ndarray
 
 
-#: The settings the prox kernels read, in the order kernel_layouts.PROX_SETTINGS declares
-#: (the kernels read a StepSettings too)
+#: The settings the prox kernels read, in the order kernels.layouts.PROX_SETTINGS declares
+#: (a StepSettings holds one, its field `prox`)
 ProxSettings = PROX_SETTINGS.named_tuple(
     "The settings the prox kernels read (any sequence of these numbers in this order will "
     "do).", __name__)

@@ -1,14 +1,14 @@
 """Mass matrix M and forces h of a forest of floating trees in the paper's coordinates
 (composite-rigid-body algorithm and recursive Newton-Euler, Featherstone 2008, in the world
-frame; C kernel ``mass_matrix_and_forces`` in ``csrc/dynamics.c``).
+frame; C kernel ``mass_matrix_and_forces`` in ``csrc/rigid_body.c``).
 
 Why not Pinocchio on the hot path: ``pin.crba`` and ``pin.nonLinearEffects`` take their
-Python arguments and return numpy copies (≈1.5 µs each, measured), and their free-flyer
-convention (linear velocity in the body frame) needs a transform of M and h afterwards
-(`coordinates.forest.from_pin_dynamics`); here the step's midpoint quantities come from one
-kernel call that shares the forward kinematics with the contact kinematics
-(`coordinates.forest.midpoint_dynamics`). ``test/test_kinematics_dynamics.py`` checks M
-and h against Pinocchio (CRBA, RNEA, ABA) on the minimal tree and the extended forest (the
+Python arguments and return numpy copies (a cost per call: doc/performance.md), and their
+free-flyer convention (linear velocity in the body frame) needs a transform of M and h
+afterwards (`coordinates.forest.from_pin_dynamics`); here the step's midpoint quantities
+come from one kernel call that shares the forward kinematics with the contact kinematics
+(`coordinates.forest.midpoint_dynamics`). ``test/test_kinematics_dynamics.py`` checks M and
+h against Pinocchio (CRBA, RNEA, ABA) on the minimal tree and the extended forest (the
 maximal set has a constant M and needs neither).
 
 Conventions: spatial vectors are Plücker coordinates in the world frame at the world origin,

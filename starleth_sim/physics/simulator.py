@@ -31,15 +31,15 @@ from time import perf_counter
 
 import numpy as np
 
-from .actuator import NonFiniteTorque, real_array, saturate_torque
+from .actuator import NonFiniteTorque, real_array
 from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, rest_on_ground
 from .coordinates import make_coordinates
 from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_diagnostics,
                           one_step_diagnostics)
 from .description import RobotDescription
-from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, ImpedanceCommand,
-                        replay_rows)
+from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, TORQUE_SATURATED,
+                        ImpedanceCommand, replay_rows)
 from .state import SimState, finite_time
 from .stepper import MoreauStepper, SimulationError, PHASES
 from .tree_step import report_size, report_views
@@ -399,36 +399,12 @@ class Simulator:
         bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
         return ValueError(f"tau has non-finite entries for {', '.join(bad)}")
 
-    def _validated_torque(self, tau):
-        """The applied torques for tau (actuator.saturate_torque at the current joint
-        rates); ValueError on a wrong length or non-finite entries."""
-        a = self._torque_array(tau)
-        out = np.empty(self.n_joints)
-        if not saturate_torque(a, self._effort_limit, self._joint_velocities(),
-                               self._velocity_limit, out):
-            raise self._non_finite_torque(a)
-        return out
-
     def prepare(self):
         """Do now the part of the next step that does not depend on the torques (q^M, M, h,
-        the contact and bilateral kinematics, the factor of M, M^{-1}W and G; see
-        MoreauStepper.prepare), e.g. while a controller computes its answer to the current
-        state: the next `step` then only does the rest. Optional, and the next step gives
-        the same result with or without it."""
+        the contact and bilateral kinematics; see MoreauStepper.prepare), e.g. while a
+        controller computes its answer to the current state: the next `step` then only does
+        the rest. Optional, and the next step gives the same result with or without it."""
         self.stepper.prepare(self.state)
-
-    def next_step_in_one_kernel(self) -> bool:
-        """Whether the next `step`, as things stand (no wrench to apply, not profiling,
-        nothing prepared), runs each physics step in one kernel call. Such a step is faster
-        than the rest a step does after `prepare` (its phases one by one), so preparing it
-        ahead does not pay (HmJ trotting: 27 µs against 41 µs after a 34 µs prepare)."""
-        return (self.stepper.step_is_transactional(self.state)
-                and self._no_wrench_to_apply(self.state))
-
-    def _no_wrench_to_apply(self, state) -> bool:
-        """Neither a timed nor a persistent wrench acts in the next step (with none, `step`
-        runs each physics step in one kernel when the stepper allows it)."""
-        return self._wrenches.none_to_apply(state)
 
     def step(self, tau=None):
         """Advance one control period with joint torques `tau` (zero-order hold), or with
@@ -440,45 +416,9 @@ class Simulator:
             if tau.joint_names != self.joint_names:
                 raise ValueError("ImpedanceCommand: made for the joints "
                                  f"{', '.join(tau.joint_names)}, not {', '.join(self.joint_names)}")
-            return self._step_per_physics_step(tau.packed, tau, TORQUE_IMPEDANCE)
-        t_wall = perf_counter()
-        state = self.state
-        stepper = self.stepper
-        # a physics step in one kernel call (not prepared ahead, not profiling) leaves the
-        # state as it was when it fails; with no wrench, every step of the period is one
-        one_kernel = stepper.step_is_transactional(state)
-        in_kernels = one_kernel and self._no_wrench_to_apply(state)
-        if in_kernels and self._one_physics_step:
-            # the common case: one kernel call that also saturates τ; it writes its reports
-            # into the spare report buffer, which then becomes the current one
-            a = self._torque_array(tau)
-            report, active, (impulse, gap, position, tau, _, _) = \
-                self._report_buffers[self._next_report][0]
-            try:
-                r = stepper.step_in_one_kernel(state, a, report, active)
-            except NonFiniteTorque:
-                raise self._non_finite_torque(a) from None
-            self._next_report ^= 1
-            asked = a
-            d = one_step_diagnostics(self.diagnostics, r, perf_counter() - t_wall)
-        elif in_kernels:
-            # several physics steps, each in one kernel call, τ saturated once per period
-            tau = self._validated_torque(asked := self._torque_array(tau))
-            figures, impulse, active, gap, position = self._kernel_steps(state, tau)
-            d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
-                                         self._timings())
-        else:
-            tau = self._validated_torque(asked := self._torque_array(tau))
-            # (a one-step period without timed wrenches to count down needs no rollback copy)
-            transactional = self._one_physics_step and not state.pending_wrenches and one_kernel
-            results = self._physics_steps(state, tau, self.config.steps_per_control,
-                                          rollback=not transactional)
-            impulse, active, gap, position = self._period_reports(results)
-            d = control_step_diagnostics(self.diagnostics, results, perf_counter() - t_wall,
-                                         self._timings())
-        self._command = asked.copy()
-        self._applied_steps = tau
-        return self._step_done(d, tau, impulse, active, gap, position)
+            return self._control_period(tau.packed, tau, TORQUE_IMPEDANCE)
+        a = self._torque_array(tau)
+        return self._control_period(a, a.copy(), TORQUE_SATURATED)
 
     def _step_done(self, d, tau, impulse, active, gap, position):
         """The end of a control step: t, the reports, the diagnostics and their log."""
@@ -491,16 +431,6 @@ class Simulator:
         self._position = position
         self.diagnostics = d
         return self._log_step(d, self.state.t)
-
-    @staticmethod
-    def _period_reports(results):
-        """(Λ summed over the period, and the last step's active flags, g_N and contact
-        points) of the StepResults of a control period's physics steps."""
-        impulse = results[0].impulse
-        for r in results[1:]:      # in step order (the sum's round-off depends on it)
-            impulse = impulse + r.impulse
-        last = results[-1]
-        return impulse, last.active, last.gap, last.position
 
     def _timings(self):
         """Diagnostics.timings: the cumulative phase times when profiling."""
@@ -516,91 +446,53 @@ class Simulator:
         n_joints, or n_joints for every step). ValueError on a wrong shape or value."""
         a = replay_rows(torques, self.config.steps_per_control, self.joint_names,
                         self.stepper.implicit_dampers)
-        return self._step_per_physics_step(a, a, TORQUE_REPLAY if a.shape[1] > self.n_joints
-                                           else TORQUE_AS_GIVEN)
+        return self._control_period(a, a, TORQUE_REPLAY if a.shape[1] > self.n_joints
+                                    else TORQUE_AS_GIVEN)
 
-    def _step_per_physics_step(self, torques, command, mode):
-        """A control period whose torques change from physics step to physics step: an
-        impedance command's law (mode TORQUE_IMPEDANCE, torques: its packed buffer) at each
-        step's start state, or applied torques (one row per step; TORQUE_REPLAY: with the
-        implicit dampers) as given."""
+    def _control_period(self, torques, command, mode):
+        """The physics steps of a control period, each one MoreauStepper.step (one kernel
+        call) with the torques of `mode`: tau saturated once, at the period's start state
+        (TORQUE_SATURATED; the later steps apply the first one's torques as given), an
+        impedance command's law at each step's start state (TORQUE_IMPEDANCE), or rows,
+        torques[i] at step i (TORQUE_AS_GIVEN, TORQUE_REPLAY); the wrenches' generalized
+        force at each. The reports are written into the spare set of report buffers, which
+        then becomes the current one. On a SimulationError the state is restored from a
+        copy taken before (one step alone fails leaving it as it was)."""
         t_wall = perf_counter()
-        state = self.state
-        if self.stepper.step_is_transactional(state) and self._no_wrench_to_apply(state):
-            figures, impulse, active, gap, position = self._kernel_steps(state, torques, mode)
-            applied = None      # (in the current report buffers)
-            tau = self._report_buffers[self._next_report ^ 1][0][2][3]
-        else:
-            out = ([], [])
-            figures = self._physics_steps(state, None, self.config.steps_per_control, True,
-                                          torques, mode, out)
-            impulse, active, gap, position = self._period_reports(figures)
-            tau, applied = out[0][0], (np.array(out[0]), np.array(out[1]))
-        d = control_step_diagnostics(self.diagnostics, figures, perf_counter() - t_wall,
-                                     self._timings())
-        self._command = command
-        self._applied_steps = applied
-        return self._step_done(d, tau, impulse, active, gap, position)
-
-    def _kernel_steps(self, state, tau, mode=None):
-        """The physics steps of a control period, each in one kernel call with the applied
-        torques tau (saturated: MoreauStepper.step_in_one_kernel; a mode TORQUE_*: tau an
-        impedance command's packed buffer, or rows, tau[i] at step i), their reports written
-        into the spare set of report buffers, which then becomes the current one; the same
-        arithmetic as _physics_steps' (bit for bit). On a SimulationError the state is
-        restored from a copy taken before (one step alone fails leaving it as it was).
-        Returns (the steps' TreeStepResults, Λ summed over the period, and the last step's
-        active flags, g_N and contact points)."""
-        stepper = self.stepper
+        state, stepper = self.state, self.stepper
         buffers = self._report_buffers[self._next_report]
-        before = state.copy(share_qu=True) if len(buffers) > 1 else state
+        wrenches = self._wrenches
+        force = None if wrenches.none_to_apply(state) else wrenches.generalized_force
+        one = self._one_physics_step
+        before = None if one and not state.pending_wrenches else state.copy(share_qu=True)
         try:
-            per_step = mode in (TORQUE_AS_GIVEN, TORQUE_REPLAY)
-            figures = [stepper.step_in_one_kernel(state, tau[i] if per_step else tau, report,
-                                                  active, saturate=False,
-                                                  impedance=mode == TORQUE_IMPEDANCE,
-                                                  replay=mode == TORQUE_REPLAY)
-                       for i, (report, active, _) in enumerate(buffers)]
+            figures = []
+            for report, active, views in buffers:
+                tau = torques if torques.ndim == 1 else torques[len(figures)]
+                figures.append(stepper.step(state, tau, report, active, None if force is None
+                                            else force(state, stepper.dt), mode))
+                if mode == TORQUE_SATURATED:    # (saturated once per period)
+                    torques, mode = views[3], TORQUE_AS_GIVEN
         except NonFiniteTorque:
-            self.restore(before)
-            raise ValueError("the impedance law gave non-finite torques") from None
-        except SimulationError:
-            self.restore(before)
-            raise
-        self._next_report ^= 1
-        impulse = buffers[0][2][0]
-        for _, _, views in buffers[1:]:    # in step order (as _physics_steps' callers)
-            impulse = impulse + views[0]
-        _, active, (_, gap, position, _, _, _) = buffers[-1]
-        return figures, impulse, active, gap, position
-
-    def _physics_steps(self, state, tau, n, rollback, commands=None, mode=None, out=None):
-        """The n physics steps of a control period through MoreauStepper.step, with the
-        wrenches and the torques tau, or the commands of `mode` (an impedance command's
-        buffer, or row i at step i; their applied torques and replay rows appended to
-        `out`); their StepResults. On a SimulationError the state is restored from a copy
-        taken before (with rollback; the stepper never writes into q and u)."""
-        stepper = self.stepper
-        dt = stepper.dt
-        before = state.copy(share_qu=True) if rollback else None
-        wrenches = not self._wrenches.none_to_apply(state)
-        force = self._wrenches.generalized_force
-        try:
-            if commands is None:
-                return [stepper.step(state, tau, force(state, dt) if wrenches
-                                     else None) for _ in range(n)]
-            results = []
-            for i in range(n):
-                c = commands if mode == TORQUE_IMPEDANCE else commands[i]
-                results.append(stepper.step(state, c, force(state, dt) if wrenches else None,
-                                            mode))
-                out[0].append(stepper.last_torques[0].copy())
-                out[1].append(np.concatenate(stepper.last_torques[1:]))
-            return results
-        except NonFiniteTorque:
-            self.restore(before)
-            raise ValueError("the impedance law gave non-finite torques") from None
+            if before is not None:
+                self.restore(before)
+            if mode == TORQUE_IMPEDANCE:
+                raise ValueError("the impedance law gave non-finite torques") from None
+            raise self._non_finite_torque(torques) from None
         except SimulationError:
             if before is not None:
                 self.restore(before)
             raise
+        self._next_report ^= 1
+        _, active, (impulse, gap, position, _, _, _) = buffers[-1]
+        if not one:
+            impulse = buffers[0][2][0]
+            for _, _, views in buffers[1:]:     # in step order (the sum's round-off)
+                impulse = impulse + views[0]
+        wall = perf_counter() - t_wall
+        d = one_step_diagnostics(self.diagnostics, figures[0], wall) \
+            if one and not stepper.profile else \
+            control_step_diagnostics(self.diagnostics, figures, wall, self._timings())
+        self._command = command
+        self._applied_steps = None      # (in the current report buffers)
+        return self._step_done(d, buffers[0][2][3], impulse, active, gap, position)

@@ -3,13 +3,13 @@ prepared ahead and is not profiled): tree_step_hard / tree_step_compliant for co
 without bilateral constraints whose M depends on q (the minimal coordinates), forest_step_hard
 for hard contacts in a cut forest (the extended and maximal coordinates: bilateral
 constraints of the cut joints, M of the trees or constant). C kernels in
-``csrc/one_step.c``.
+``csrc/tree_step.c``.
 
 They run the same phases, in the same order, as the phase-by-phase path of
 :mod:`starleth_sim.physics.step_kernels` (so the same result bit for bit) and save what lies
 between them: the calls from Python and the Python around them. The model, ground and
 workspace arrays travel packed in four buffers (`TreeStepModel`, and `CutModel` for the cut
-joints), laid out as :mod:`starleth_sim.physics.kernel_layouts` declares (the kernels unpack
+joints), laid out as :mod:`starleth_sim.physics.kernels.layouts` declares (the kernels unpack
 them by the C code the build generates from the same declaration). A failing step leaves the
 state as it was; the kernels release the GIL.
 
@@ -45,17 +45,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kernel_layouts import (CUT_MODEL, STEP_REPORT, TREE_STEP_MODEL, describe, evaluate,
-                             length, offsets)
+from .kernels.layouts import (CUT_MODEL, STEP_REPORT, STEP_SETTINGS, TREE_STEP_MODEL, describe,
+                             evaluate, length, offsets)
 from .kernels import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,  # noqa: F401
                       TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TREE_STEP_OK,
-                      TreeStepResult, forest_step_hard, tree_step_compliant, tree_step_hard)
+                      TreeStepResult, forest_step, tree_step_compliant, tree_step_hard)
 
 _DTYPES = {"float64": np.float64, "int64": np.int64, "bool": np.bool_}
 
 
 def pack_buffer(layout, buffer, values, sizes):
-    """One buffer of a layout (kernel_layouts), its fields in the declared order: values maps
+    """One buffer of a layout (kernels.layouts), its fields in the declared order: values maps
     each field's name to its array (a record field: the record's fields; header fields come
     from `sizes`). A ValueError names a field whose size is not the declared one."""
     dtype = _DTYPES[layout.buffer(buffer).dtype]
@@ -84,7 +84,7 @@ class TreeStepModel(NamedTuple):
     tree_step_compliant) packed into four buffers, so that a call from Python passes four
     arrays instead of some thirty. The packing is pure layout: the kernels compute exactly
     what the phase-by-phase path computes, and check the buffers' lengths against the sizes
-    in their header on every call. The layout (kernel_layouts.TREE_STEP_MODEL):
+    in their header on every call. The layout (kernels.layouts.TREE_STEP_MODEL):
 
     """
 
@@ -95,18 +95,18 @@ class TreeStepModel(NamedTuple):
 
     @staticmethod
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
-             velocity_limit, joint_q):
+             velocity_limit, joint_q, nq):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
         GroundPlane, ε, the torque limits (see actuator.saturate_torque) and the actuated
         joints' entries of u and q (joint_v, joint_q: the impedance law reads q and u
-        there); returns the record and the workspace's views (gap, position, Wt_all, L,
-        u_free, u_corr, frames), which the stepper keeps as its own arrays."""
-        (parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support, oR, op, mass, lever,
-         inertia, gravity, c_joint, c_local, c_radius) = model
+        there) and nq; returns the record and the workspace's views (gap, position, Wt_all,
+        L, u_free, u_corr, frames, timings), which the stepper keeps as its own arrays."""
+        ((parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support), (oR, op),
+         (mass, lever, inertia, gravity), (c_joint, c_local, c_radius)) = model
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
-                 "nv": nv, "nt": ground.terrain.shape[0]}
+                 "nv": nv, "nt": ground.terrain.shape[0], "nq": nq}
         values = dict(
-            settings=[float(v) for v in settings], law=[float(v) for v in law], axis=axis,
+            settings=STEP_SETTINGS.flatten(settings), law=[float(v) for v in law], axis=axis,
             pl_R=pl_R, pl_p=pl_p, oR=oR, op=op, mass=mass, lever=lever, inertia=inertia,
             gravity=gravity, c_local=c_local, c_radius=c_radius, ground_n=ground.n,
             ground_t1=ground.t1, ground_t2=ground.t2, ground_offset=[ground.offset],
@@ -122,7 +122,7 @@ class TreeStepModel(NamedTuple):
                               np.ascontiguousarray(pack_buffer(L, "support", values, sizes)),
                               workspace),
                 tuple(views[name] for name in ("gap", "position", "Wt_all", "L", "u_free",
-                                               "u_corr", "frames")))
+                                               "u_corr", "frames", "timings")))
 
 
 TreeStepModel.__doc__ = TreeStepModel.__doc__.rstrip(" ") + describe(TREE_STEP_MODEL)
@@ -136,7 +136,7 @@ def report_size(nc, na):
 def report_views(report, nc, na):
     """The views of a one-kernel step's report buffer (float64, report_size(nc, na)):
     (Λ (nc x 3, contact frame), g_N at q^M (nc), contact points at q^M (nc x 3), the
-    applied torques (na)), the fields of kernel_layouts.STEP_REPORT in order: what the step
+    applied torques (na)), the fields of kernels.layouts.STEP_REPORT in order: what the step
     reports, written by the kernel in one buffer so that a caller allocates nothing per
     step."""
     return tuple(buffer_views(STEP_REPORT, "report", report, {"nc": nc, "na": na}).values())
@@ -146,7 +146,7 @@ class CutModel(NamedTuple):
     """What forest_step_hard needs beyond the TreeStepModel: the cut joints, the actuators'
     place (tree joint or cut joint), a constant M and its free bodies, and the workspace of
     the bilateral constraints, packed like TreeStepModel (na and nv: the TreeStepModel's).
-    The layout (kernel_layouts.CUT_MODEL):
+    The layout (kernels.layouts.CUT_MODEL):
 
     """
 

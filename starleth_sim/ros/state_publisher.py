@@ -332,12 +332,10 @@ class StatePublisher:
 
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the
-        torque-independent part of the next step meanwhile (Simulator.prepare), which takes
-        it off the lockstep critical path (command in -> step -> state out), unless the next
-        step runs in one kernel call (the common case: no wrench), which is faster than the
-        rest of a prepared step. The result of the step is the same with or without it."""
-        if self.sim.next_step_in_one_kernel():
-            return
+        torque-independent part of the next step meanwhile (Simulator.prepare: the
+        midpoint, q^M, M, h and the kinematics), which takes it off the lockstep critical
+        path (command in -> step -> state out). The result of the step is the same with or
+        without it."""
         try:
             self.sim.prepare()
         except Exception as e:   # pragma: no cover - the step redoes it and reports

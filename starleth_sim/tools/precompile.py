@@ -30,7 +30,8 @@ import sys
 import tempfile
 import time
 
-from ..physics import kernel_build, kernels
+from ..physics import kernels
+from ..physics.kernels import build as kernel_build
 
 #: (unit, rough cold seconds on a 2-core machine), the longest first
 UNITS = (("controller", 10.0), ("ros-codec", 3.0), ("physics", 4.0))

@@ -64,22 +64,24 @@ def copy_revolute(jm):
 #   to_pin_velocity / from_pin_dynamics: Pinocchio's free-flyer convention and the
 #       transform of its M and h into ours (the cross-check of rigid_body in
 #       test/test_kinematics_dynamics.py);
-#   tree_dynamics(q, u, <tree>, mass, lever, inertia, gravity, M, h): M and h at (q, u);
-#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, n, t1, t2, offset, jacobian_gap,
-#       qM, M, h, gap, position, Wt, terrain, frames): what a step needs at its midpoint,
+#   tree_dynamics(q, u, (<tree>, <frames>, <inertias>), (M, h)): M and h at (q, u);
+#   midpoint_dynamics(q, u, half_dt, <midpoint_model>, <ground>, jacobian_gap,
+#       (qM, M, h, gap, position, Wt), frames): what a step needs at its midpoint,
 #       over one forward kinematics: q^M = q ⊕ ½Δt F(q) u (Eqn. 6), M and h at (q^M, u^S),
 #       the contacts' g_N, positions, W^T and surface frames (with μ) at q^M;
 #   add_at(h, idx, values): h[idx[k]] += values[k];
 #   rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h): h = [m g; −ω × Θ ω]
 #       per free body (frames at the CoM, inertial linear velocity);
 #   angular_jacobian(j, jtype, axis, idx_v, support, oR, out, zero=True);
-#   cut_joints(q, u, <tree>, cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C, Wt_B, g_B,
-#       angle, rate, axis_world, do_fk): for every cut joint the 5 rows of W_Bᵀ, g_B, φ, φ̇
-#       and the hinge axis in the world; only the columns of the velocities the two bodies
-#       depend on are written (Wt_B's others stay the zeros they were made with);
+#   cut_joints(q, u, (<tree>, <frames>), (cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C,
+#       b1_C), (Wt_B, g_B, angle, rate, axis_world), do_fk): for every cut joint the 5 rows
+#       of W_Bᵀ, g_B, φ, φ̇ and the hinge axis in the world; only the columns of the
+#       velocities the two bodies depend on are written (Wt_B's others stay the zeros they
+#       were made with);
 #   gather_joint_values(x, index, cut_values, cut_index, out): the joints' φ (x = q) or φ̇
 #       (x = u) in the public order;
-#   cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h):
+#   cut_joint_torques(tau_cut, (cut_P, cut_C, axis_world), (jtype, axis, idx_v, support), oR,
+#       h):
 #       h += J_ω,Cᵀ (τ a) − J_ω,Pᵀ (τ a) for the cut joints' actuators.
 
 
@@ -324,11 +326,9 @@ class ForestCoordinates:
         self._cut_q = q  # W_B and g_B below belong to this configuration (see bilateral)
         self._cut_state_at = (q, u)
         t = self.tree
-        cut_joints(q, u, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
-                   t.support, t.oR, t.op, self.cut_P, self.cut_C, self.p_P, self.p_C,
-                   self.a_P, self.b1_P, self.b2_P, self.a_C, self.b1_C, self._WtB, self._gB,
-                   self._angle,
-                   self._rate, self._axis_world, True)
+        cut_joints(q, u, t.args(), (self.cut_P, self.cut_C, self.p_P, self.p_C, self.a_P,
+                                    self.b1_P, self.b2_P, self.a_C, self.b1_C),
+                   (self._WtB, self._gB, self._angle, self._rate, self._axis_world), True)
         # what add_joint_torques needs of these kinematics, as copies: the tree buffers
         # (t.oR) are shared with every other kinematics call (contacts, pushes, ...)
         self._torque_map = (q, self._axis_world.copy(), t.oR.copy())
@@ -344,9 +344,7 @@ class ForestCoordinates:
         else:
             M = np.empty((self.nv, self.nv))
             h = np.empty(self.nv)
-            t = self.tree
-            tree_dynamics(q, u, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
-                          t.oR, t.op, *self.inertias.args(), M, h)
+            tree_dynamics(q, u, (*self.tree.args(), self.inertias.args()), (M, h))
         if tau is not None and tau.shape[0]:
             self.add_joint_torques(q, u, tau, h)
         return M, h
@@ -363,21 +361,19 @@ class ForestCoordinates:
         qM = np.empty_like(q)
         M = np.empty((self.nv, self.nv))
         h = np.empty(self.nv)
-        midpoint_dynamics(q, u, 0.5 * dt, *self.midpoint_model(), ground.n, ground.t1,
-                          ground.t2, ground.offset, jacobian_gap, qM, M, h, gap, position, Wt,
-                          ground.terrain, frames)
+        midpoint_dynamics(q, u, 0.5 * dt, self.midpoint_model(), ground.kernel_args,
+                          jacobian_gap, (qM, M, h, gap, position, Wt), frames)
         return qM, M, h
 
     def midpoint_model(self):
-        """The model's arrays in midpoint_dynamics' order (parent … c_radius), gathered once
-        (attribute look-ups cost per step). Its second, sixth and seventh entries are the
-        tree's jtype, idx_q and idx_v."""
+        """The model as midpoint_dynamics takes it, gathered once: (tree, frames, inertias,
+        contacts), the tree's and its scratch's arrays as `KinematicTree.args`, the
+        inertias' (mass, lever, inertia, gravity), the contacts' (c_joint, c_local,
+        c_radius)."""
         model = self._midpoint_model
         if model is None:
-            t = self.tree
-            model = self._midpoint_model = (
-                t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v, t.support, t.oR,
-                t.op, *self.inertias.args(), self.c_joint, self.c_local, self.c_radius)
+            model = self._midpoint_model = (*self.tree.args(), self.inertias.args(),
+                                            (self.c_joint, self.c_local, self.c_radius))
         return model
 
     def add_joint_torques(self, q, u, tau, h):
@@ -397,8 +393,8 @@ class ForestCoordinates:
             self._kinematics_for_cuts(q, u)
         _, axis_world, oR = self._torque_map
         t = self.tree
-        cut_joint_torques(self._tau_cut, self.cut_P, self.cut_C, axis_world,
-                          t.jtype, t.axis, t.idx_v, t.support, oR, h)
+        cut_joint_torques(self._tau_cut, (self.cut_P, self.cut_C, axis_world),
+                          (t.jtype, t.axis, t.idx_v, t.support), oR, h)
 
     def bilateral(self, q, u=None):
         """(W_Bᵀ (n_B x nv), g_B (n_B)) at q; arrays are reused between calls. The stepper
@@ -415,11 +411,8 @@ class ForestCoordinates:
         of those with g_N ≤ jacobian_gap, against the ground plane and its terrain (a
         contact.GroundPlane); frames (nc x 11, optional): each contact's surface frame
         (n, t1, t2) and μ."""
-        t = self.tree
-        contact_kinematics(q, t.parent, t.jtype, t.axis, t.pl_R, t.pl_p, t.idx_q, t.idx_v,
-                           t.support, t.oR, t.op, self.c_joint, self.c_local, self.c_radius,
-                           ground.n, ground.t1, ground.t2, ground.offset, jacobian_gap, gap,
-                           position, Wt, ground.terrain, frames)
+        contact_kinematics(q, (*self.tree.args(), (self.c_joint, self.c_local, self.c_radius)),
+                           ground.kernel_args, jacobian_gap, (gap, position, Wt), frames)
 
     def _link_point(self, frame):
         src = self.src

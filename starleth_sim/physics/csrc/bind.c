@@ -62,59 +62,104 @@ int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h
     return 1;
 }
 
-/* Parses the positional arguments args[0:nargs] by spec (the first n_required required, the
- * others keep the defaults the caller put into vals). */
-int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
-          int n_spec, int n_required, val_t *vals, held_t *h) {
-    if (nargs < n_required || nargs > n_spec) {
-        PyErr_Format(PyExc_TypeError, "%s takes %d%s arguments (%zd given)", fn, n_required,
-                     n_required == n_spec ? "" : " or more", nargs);
+/* parse_one: one argument o by its spec entry into v */
+static int parse_one(PyObject *o, const spec_t *sp, const char *fn, val_t *v, held_t *h) {
+    const char *name = sp->name;
+    switch (sp->kind) {
+    case FLOAT:
+        v->f = PyFloat_AsDouble(o);
+        if (v->f == -1.0 && PyErr_Occurred()) {
+            PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
+            return 0;
+        }
+        return 1;
+    case INT: {
+        PyObject *idx = PyNumber_Index(o);
+        if (!idx) {
+            PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
+            return 0;
+        }
+        v->i = PyLong_AsLongLong(idx);
+        Py_DECREF(idx);
+        return !(v->i == -1 && PyErr_Occurred());
+    }
+    case FLAG: {
+        int t = PyObject_IsTrue(o);
+        if (t < 0) return 0;
+        v->i = t;
+        return 1;
+    }
+    case OBJ:
+        v->o = o;
+        return 1;
+    case F64N:
+        if (o == Py_None) {
+            v->p = NULL;
+            v->len = 0;
+            return 1;
+        }
+        if (!get_array(o, F64N, fn, name, h, v)) return 0;
+        if (v->len == 0) v->p = NULL;
+        return 1;
+    default:
+        return get_array(o, sp->kind, fn, name, h, v);
+    }
+}
+
+/* span: the spec entries (*ns) and vals (*nv) an entry covers (a GROUP + n: its n items',
+ * which may be groups themselves) */
+static void span(const spec_t *sp, int *ns, int *nv) {
+    *ns = 1;
+    *nv = sp->kind >= GROUP ? 0 : 1;
+    if (sp->kind < GROUP) return;
+    for (int j = 0; j < sp->kind - GROUP; j++) {
+        int a, b;
+        span(sp + *ns, &a, &b);
+        *ns += a;
+        *nv += b;
+    }
+}
+
+/* parse_entry: one argument by its spec entry: a GROUP + n is a tuple of n items, parsed by
+ * the entries after it (nested groups: nested tuples) */
+static int parse_entry(PyObject *o, const spec_t *sp, const char *fn, val_t *vals, held_t *h) {
+    if (sp->kind < GROUP) return parse_one(o, sp, fn, vals, h);
+    int n = sp->kind - GROUP;
+    if (!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != n) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a tuple of %d items", fn, sp->name, n);
         return 0;
     }
+    const spec_t *item = sp + 1;
+    for (int j = 0; j < n; j++) {
+        int a, b;
+        if (!parse_entry(PyTuple_GET_ITEM(o, j), item, fn, vals, h)) return 0;
+        span(item, &a, &b);
+        item += a;
+        vals += b;
+    }
+    return 1;
+}
+
+/* Parses the positional arguments args[0:nargs] by spec (the first n_required required, the
+ * others keep the defaults the caller put into vals). A GROUP entry takes one argument, a
+ * tuple, whose items the entries after it parse: vals has one entry per non-GROUP entry, in
+ * spec order (a model's arrays grouped like the C structs passed by pointer). */
+int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
+          int n_spec, int n_required, val_t *vals, held_t *h) {
+    int n_args = 0;
+    for (int si = 0, a, b; si < n_spec; si += a, n_args++) span(&spec[si], &a, &b);
+    if (nargs < n_required || nargs > n_args) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d%s arguments (%zd given)", fn, n_required,
+                     n_required == n_args ? "" : " or more", nargs);
+        return 0;
+    }
+    const spec_t *sp = spec;
     for (Py_ssize_t k = 0; k < nargs; k++) {
-        PyObject *o = args[k];
-        val_t *v = &vals[k];
-        const char *name = spec[k].name;
-        switch (spec[k].kind) {
-        case FLOAT:
-            v->f = PyFloat_AsDouble(o);
-            if (v->f == -1.0 && PyErr_Occurred()) {
-                PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
-                return 0;
-            }
-            break;
-        case INT: {
-            PyObject *idx = PyNumber_Index(o);
-            if (!idx) {
-                PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
-                return 0;
-            }
-            v->i = PyLong_AsLongLong(idx);
-            Py_DECREF(idx);
-            if (v->i == -1 && PyErr_Occurred()) return 0;
-            break;
-        }
-        case FLAG: {
-            int t = PyObject_IsTrue(o);
-            if (t < 0) return 0;
-            v->i = t;
-            break;
-        }
-        case OBJ:
-            v->o = o;
-            break;
-        case F64N:
-            if (o == Py_None) {
-                v->p = NULL;
-                v->len = 0;
-                break;
-            }
-            if (!get_array(o, F64N, fn, name, h, v)) return 0;
-            if (v->len == 0) v->p = NULL;
-            break;
-        default:
-            if (!get_array(o, spec[k].kind, fn, name, h, v)) return 0;
-        }
+        int a, b;
+        if (!parse_entry(args[k], sp, fn, vals, h)) return 0;
+        span(sp, &a, &b);
+        sp += a;
+        vals += b;
     }
     return 1;
 }
@@ -157,20 +202,35 @@ PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ss
     return Py_BuildValue("(NN)", a, b);
 }
 
-/* The settings: a StepSettings or a prox.ProxSettings (their fields: kernel_layouts) */
-int get_settings(PyObject *o, const char *fn, settings_t *s) {
+/* The settings: a StepSettings or a prox.ProxSettings (their fields: kernels.layouts) */
+/* flatten_numbers: the numbers of a sequence into f (a nested sequence's in place, in
+ * order), at most cap; their count, or -1 if an item is neither a number nor a sequence */
+static Py_ssize_t flatten_numbers(PyObject *o, double *f, Py_ssize_t cap) {
     PyObject *seq = PySequence_Fast(o, "settings must be a sequence");
-    if (!seq) return 0;
-    Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
+    if (!seq) return -1;
+    Py_ssize_t n = 0, len = PySequence_Fast_GET_SIZE(seq);
     PyObject **it = PySequence_Fast_ITEMS(seq);
-    double f[STEP_SETTINGS_LENGTH];
-    int ok = n == STEP_SETTINGS_LENGTH || n == PROX_SETTINGS_LENGTH;
-    for (Py_ssize_t k = 0; ok && k < n; k++) {
-        f[k] = PyFloat_AsDouble(it[k]);
-        if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
+    for (Py_ssize_t k = 0; n >= 0 && k < len; k++) {
+        if (PyTuple_Check(it[k]) || PyList_Check(it[k])) {
+            Py_ssize_t m = flatten_numbers(it[k], f + n, cap - n);
+            n = m < 0 ? -1 : n + m;
+        } else if (n < cap) {
+            f[n] = PyFloat_AsDouble(it[k]);
+            n = f[n] == -1.0 && PyErr_Occurred() ? -1 : n + 1;
+        } else {
+            n = cap + 1; /* (too many: the caller refuses) */
+            break;
+        }
     }
     Py_DECREF(seq);
-    if (!ok) {
+    return n;
+}
+
+/* A StepSettings (with its ProxSettings inside) or a ProxSettings, as numbers */
+int get_settings(PyObject *o, const char *fn, settings_t *s) {
+    double f[STEP_SETTINGS_LENGTH + 1];
+    Py_ssize_t n = flatten_numbers(o, f, STEP_SETTINGS_LENGTH + 1);
+    if (n != STEP_SETTINGS_LENGTH && n != PROX_SETTINGS_LENGTH) {
         PyErr_Clear();
         PyErr_Format(PyExc_ValueError,
                      "%s: settings must be the %d numbers of a StepSettings or the %d of a "
@@ -221,26 +281,6 @@ int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat) {
     pat->gp_idx = p[5];
     pat->lb_first = p[6];
     pat->n_lb = n_lb;
-    return 1;
-}
-
-int get_law(PyObject *o, const char *fn, compliant_law_t *law) {
-    PyObject *seq = PySequence_Fast(o, "law must be a sequence");
-    if (!seq) return 0;
-    double f[COMPLIANT_LAW_LENGTH];
-    int ok = PySequence_Fast_GET_SIZE(seq) == COMPLIANT_LAW_LENGTH;
-    for (int k = 0; ok && k < COMPLIANT_LAW_LENGTH; k++) {
-        f[k] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(seq, k));
-        if (f[k] == -1.0 && PyErr_Occurred()) ok = 0;
-    }
-    Py_DECREF(seq);
-    if (!ok) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_ValueError, "%s: law must be the %d numbers of a CompliantLaw", fn,
-                     COMPLIANT_LAW_LENGTH);
-        return 0;
-    }
-    compliant_law_from_fields(f, law);
     return 1;
 }
 

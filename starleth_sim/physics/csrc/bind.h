@@ -23,6 +23,7 @@ enum {
     FLAG = 9,     /* truth value */
     OBJ = 10,     /* any object, as it is */
     F64N = 11,    /* float64 array or None (read and written; NULL when None or empty) */
+    GROUP = 100,  /* GROUP + n: a tuple of n items, parsed by the n entries that follow */
 };
 
 typedef struct {
@@ -106,7 +107,6 @@ PyObject *reshaped(PyObject *arr, Py_ssize_t r, Py_ssize_t c);
 PyObject *pair_of_arrays(const i64 *ptr, Py_ssize_t n_ptr, const i64 *idx, Py_ssize_t n_idx);
 int get_settings(PyObject *o, const char *fn, settings_t *s);
 int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat);
-int get_law(PyObject *o, const char *fn, compliant_law_t *law);
 int tree_of(const char *fn, const val_t *parent, const val_t *jtype, const val_t *axis,
             const val_t *pl_R, const val_t *pl_p, const val_t *idx_q, const val_t *idx_v,
             const val_t *support, i64 nv, tree_t *t);
@@ -126,7 +126,6 @@ FN(quat_rot);
 FN(forward_kinematics);
 FN(point_jacobian);
 FN(angular_jacobian);
-FN(contact_points);
 FN(contact_kinematics);
 FN(integrate_forest);
 FN(to_pin_velocity);
@@ -138,8 +137,6 @@ FN(rigid_body_forces);
 FN(cut_joints);
 FN(gather_joint_values);
 FN(cut_joint_torques);
-FN(compliant_contact_forces);
-FN(generalized_contact_force);
 FN(saturate_torque);
 FN(impedance_torque);
 FN(row_pattern);
@@ -151,14 +148,10 @@ FN(auto_spectral_scale);
 FN(prox_solve);
 FN(free_velocity);
 FN(constraint_velocity);
-FN(solve_compliant);
-FN(end_of_step);
 FN(prepare_hard_contacts);
-FN(complete_hard_contacts);
-FN(solve_hard_contacts);
 FN(tree_step_hard);
 FN(tree_step_compliant);
-FN(forest_step_hard);
+FN(forest_step);
 FN(scratch_arena_stats);
 
 /* the ContactProblem type (bind_step.c) */

@@ -1,6 +1,20 @@
 /* Bindings of the linear algebra, kinematics, dynamics, forest and contact kernels. */
 #include "bind.h"
 
+/* the model's arrays as the bindings take them: tuples grouped like the C structs (tree_t,
+ * frames_t, inertias_t, contact_points_t, ground_t) */
+#define TREE_ARRAYS                                                                           \
+    {"tree", GROUP + 8}, {"parent", I64}, {"jtype", I64}, {"axis", F64}, {"pl_R", F64},        \
+        {"pl_p", F64}, {"idx_q", I64}, {"idx_v", I64}, {"support", BOOL}
+#define FRAME_ARRAYS {"frames", GROUP + 2}, {"oR", F64W}, {"op", F64W}
+#define INERTIA_ARRAYS                                                                        \
+    {"inertias", GROUP + 4}, {"mass", F64}, {"lever", F64}, {"inertia", F64}, {"gravity", F64}
+#define CONTACT_ARRAYS                                                                        \
+    {"contacts", GROUP + 3}, {"c_joint", I64}, {"c_local", F64}, {"c_radius", F64}
+#define GROUND_ARRAYS                                                                         \
+    {"ground", GROUP + 5}, {"normal", F64}, {"tangent1", F64}, {"tangent2", F64},              \
+        {"ground_offset", FLOAT}, {"terrain", F64}
+
 /* ---------------------------------------------------------------------------------------
  * linalg
  * ------------------------------------------------------------------------------------- */
@@ -244,55 +258,32 @@ static int contact_outputs(const char *fn, const val_t *gap, const val_t *positi
                 "gap (nc), position (nc x 3) and Wt (nc x 3 x nv) do not match the contacts");
 }
 
-FN(contact_points) {
-    static const spec_t spec[] = {
-        {"parent", I64},   {"jtype", I64},       {"axis", F64},      {"idx_v", I64},
-        {"support", BOOL}, {"oR", F64},          {"op", F64},        {"c_joint", I64},
-        {"c_local", F64},  {"c_radius", F64},    {"normal", F64},    {"tangent1", F64},
-        {"tangent2", F64}, {"ground_offset", FLOAT}, {"jacobian_gap", FLOAT}, {"gap", F64W},
-        {"position", F64W}, {"Wt", F64W}, {"terrain", F64}, {"frames", F64N}};
-    val_t v[20];
-    held_t h = {.n = 0};
-    tree_t t;
-    frames_t f;
-    contact_points_t c;
-    ground_t g;
-    if (!PARSE("contact_points", spec, 20, v, &h)) FAIL;
-    i64 nv = v[17].nd == 3 ? v[17].shape[2] : 0;
-    if (!tree_of("contact_points", &v[0], &v[1], &v[2], NULL, NULL, NULL, &v[3], &v[4], nv, &t) ||
-        !frames_of("contact_points", &v[5], &v[6], t.nj, &f) ||
-        !contacts_of("contact_points", &v[7], &v[8], &v[9], &c) ||
-        !ground_of("contact_points", &v[10], &v[11], &v[12], v[13].f, &v[18], &v[19], c.nc, &g) ||
-        !contact_outputs("contact_points", &v[15], &v[16], &v[17], c.nc, nv))
-        FAIL;
-    contact_points(&t, &f, &c, &g, v[14].f, v[15].p, v[16].p, v[17].p);
-    release(&h);
-    Py_RETURN_NONE;
-}
 
+/* contact_kinematics(q, model, ground, jacobian_gap, out, frames=None): model = (tree,
+ * (oR, op), (c_joint, c_local, c_radius)), ground = (n, t1, t2, offset, terrain), out =
+ * (gap, position, Wt) */
 FN(contact_kinematics) {
     static const spec_t spec[] = {
-        {"q", F64},        {"parent", I64},     {"jtype", I64},     {"axis", F64},
-        {"pl_R", F64},     {"pl_p", F64},       {"idx_q", I64},     {"idx_v", I64},
-        {"support", BOOL}, {"oR", F64W},        {"op", F64W},       {"c_joint", I64},
-        {"c_local", F64},  {"c_radius", F64},   {"normal", F64},    {"tangent1", F64},
-        {"tangent2", F64}, {"ground_offset", FLOAT}, {"jacobian_gap", FLOAT}, {"gap", F64W},
-        {"position", F64W}, {"Wt", F64W}, {"terrain", F64}, {"frames", F64N}};
+        {"q", F64}, {"model", GROUP + 3}, TREE_ARRAYS, FRAME_ARRAYS, CONTACT_ARRAYS,
+        GROUND_ARRAYS, {"jacobian_gap", FLOAT}, {"out", GROUP + 3}, {"gap", F64W},
+        {"position", F64W}, {"Wt", F64W}, {"frames", F64N}};
     val_t v[24];
+    v[23].p = NULL; /* (frames is optional) */
+    v[23].len = 0;
     held_t h = {.n = 0};
     tree_t t;
     frames_t f;
     contact_points_t c;
     ground_t g;
-    if (!PARSE("contact_kinematics", spec, 24, v, &h)) FAIL;
-    i64 nv = v[21].nd == 3 ? v[21].shape[2] : 0;
+    if (!PARSE("contact_kinematics", spec, 5, v, &h)) FAIL;
+    i64 nv = v[22].nd == 3 ? v[22].shape[2] : 0;
     if (!tree_of("contact_kinematics", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], nv, &t) ||
         !frames_of("contact_kinematics", &v[9], &v[10], t.nj, &f) ||
         !contacts_of("contact_kinematics", &v[11], &v[12], &v[13], &c) ||
-        !ground_of("contact_kinematics", &v[14], &v[15], &v[16], v[17].f, &v[22], &v[23], c.nc, &g) ||
-        !contact_outputs("contact_kinematics", &v[19], &v[20], &v[21], c.nc, nv))
+        !ground_of("contact_kinematics", &v[14], &v[15], &v[16], v[17].f, &v[18], &v[23], c.nc, &g) ||
+        !contact_outputs("contact_kinematics", &v[20], &v[21], &v[22], c.nc, nv))
         FAIL;
-    contact_kinematics(v[0].p, &t, &f, &c, &g, v[18].f, v[19].p, v[20].p, v[21].p);
+    contact_kinematics(v[0].p, &t, &f, &c, &g, v[19].f, v[20].p, v[21].p, v[22].p);
     release(&h);
     Py_RETURN_NONE;
 }
@@ -355,60 +346,60 @@ static int inertias_of(const char *fn, const val_t *mass, const val_t *lever,
     return 1;
 }
 
+/* tree_dynamics(q, u, model, out): model = (tree, (oR, op), (mass, lever, inertia,
+ * gravity)), out = (M, h) */
 FN(tree_dynamics) {
-    static const spec_t spec[] = {
-        {"q", F64},      {"u", F64},      {"parent", I64},  {"jtype", I64},  {"axis", F64},
-        {"pl_R", F64},   {"pl_p", F64},   {"idx_q", I64},   {"idx_v", I64},  {"oR", F64W},
-        {"op", F64W},    {"mass", F64},   {"lever", F64},   {"inertia", F64}, {"gravity", F64},
-        {"M", F64W},     {"h", F64W}};
-    val_t v[17];
+    static const spec_t spec[] = {{"q", F64}, {"u", F64}, {"model", GROUP + 3}, TREE_ARRAYS,
+                                  FRAME_ARRAYS, INERTIA_ARRAYS, {"out", GROUP + 2},
+                                  {"M", F64W}, {"h", F64W}};
+    val_t v[18];
     held_t h = {.n = 0};
     tree_t t;
     frames_t f;
     inertias_t b;
-    if (!PARSE("tree_dynamics", spec, 17, v, &h)) FAIL;
+    if (!PARSE("tree_dynamics", spec, 4, v, &h)) FAIL;
     i64 nv = v[1].len;
     if (!tree_of("tree_dynamics", &v[2], &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], NULL, nv, &t) ||
-        !frames_of("tree_dynamics", &v[9], &v[10], t.nj, &f) ||
-        !inertias_of("tree_dynamics", &v[11], &v[12], &v[13], &v[14], t.nj, &b) ||
-        !need(v[15].len == nv * nv && v[16].len == nv, "tree_dynamics", "M must be nv x nv, h nv"))
+        !frames_of("tree_dynamics", &v[10], &v[11], t.nj, &f) ||
+        !inertias_of("tree_dynamics", &v[12], &v[13], &v[14], &v[15], t.nj, &b) ||
+        !need(v[16].len == nv * nv && v[17].len == nv, "tree_dynamics", "M must be nv x nv, h nv"))
         FAIL;
-    tree_dynamics(v[0].p, v[1].p, &t, &f, &b, v[15].p, v[16].p);
+    tree_dynamics(v[0].p, v[1].p, &t, &f, &b, v[16].p, v[17].p);
     release(&h);
     Py_RETURN_NONE;
 }
 
+/* midpoint_dynamics(q, u, half_dt, model, ground, jacobian_gap, out, frames=None): model =
+ * (tree, (oR, op), (mass, lever, inertia, gravity), (c_joint, c_local, c_radius)), ground =
+ * (n, t1, t2, offset, terrain), out = (qM, M, h, gap, position, Wt) */
 FN(midpoint_dynamics) {
     static const spec_t spec[] = {
-        {"q", F64},         {"u", F64},        {"half_dt", FLOAT}, {"parent", I64},
-        {"jtype", I64},     {"axis", F64},     {"pl_R", F64},      {"pl_p", F64},
-        {"idx_q", I64},     {"idx_v", I64},    {"support", BOOL},  {"oR", F64W},
-        {"op", F64W},       {"mass", F64},     {"lever", F64},     {"inertia", F64},
-        {"gravity", F64},   {"c_joint", I64},  {"c_local", F64},   {"c_radius", F64},
-        {"normal", F64},    {"tangent1", F64}, {"tangent2", F64},  {"ground_offset", FLOAT},
-        {"jacobian_gap", FLOAT}, {"qM", F64W}, {"M", F64W},        {"h", F64W},
-        {"gap", F64W},      {"position", F64W}, {"Wt", F64W},      {"terrain", F64},
-        {"frames", F64N}};
+        {"q", F64}, {"u", F64}, {"half_dt", FLOAT}, {"model", GROUP + 4}, TREE_ARRAYS,
+        FRAME_ARRAYS, INERTIA_ARRAYS, CONTACT_ARRAYS, GROUND_ARRAYS, {"jacobian_gap", FLOAT},
+        {"out", GROUP + 6}, {"qM", F64W}, {"M", F64W}, {"h", F64W}, {"gap", F64W},
+        {"position", F64W}, {"Wt", F64W}, {"frames", F64N}};
     val_t v[33];
+    v[32].p = NULL; /* (frames is optional) */
+    v[32].len = 0;
     held_t h = {.n = 0};
     tree_t t;
     frames_t f;
     inertias_t b;
     contact_points_t c;
     ground_t g;
-    if (!PARSE("midpoint_dynamics", spec, 33, v, &h)) FAIL;
+    if (!PARSE("midpoint_dynamics", spec, 7, v, &h)) FAIL;
     i64 nv = v[1].len;
     if (!tree_of("midpoint_dynamics", &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], &v[9], &v[10], nv, &t) ||
         !frames_of("midpoint_dynamics", &v[11], &v[12], t.nj, &f) ||
         !inertias_of("midpoint_dynamics", &v[13], &v[14], &v[15], &v[16], t.nj, &b) ||
         !contacts_of("midpoint_dynamics", &v[17], &v[18], &v[19], &c) ||
-        !ground_of("midpoint_dynamics", &v[20], &v[21], &v[22], v[23].f, &v[31], &v[32], c.nc, &g) ||
-        !need(v[25].len == v[0].len && v[26].len == nv * nv && v[27].len == nv,
+        !ground_of("midpoint_dynamics", &v[20], &v[21], &v[22], v[23].f, &v[24], &v[32], c.nc, &g) ||
+        !need(v[26].len == v[0].len && v[27].len == nv * nv && v[28].len == nv,
               "midpoint_dynamics", "qM, M and h do not match q and u") ||
-        !contact_outputs("midpoint_dynamics", &v[28], &v[29], &v[30], c.nc, nv))
+        !contact_outputs("midpoint_dynamics", &v[29], &v[30], &v[31], c.nc, nv))
         FAIL;
-    midpoint_dynamics(v[0].p, v[1].p, v[2].f, &t, &f, &b, &c, &g, v[24].f, v[25].p, v[26].p,
-                      v[27].p, v[28].p, v[29].p, v[30].p);
+    midpoint_dynamics(v[0].p, v[1].p, v[2].f, &t, &f, &b, &c, &g, v[25].f, v[26].p, v[27].p,
+                      v[28].p, v[29].p, v[30].p, v[31].p);
     release(&h);
     Py_RETURN_NONE;
 }
@@ -462,13 +453,14 @@ static int cuts_of(const char *fn, const val_t *P, const val_t *C, const val_t *
     return 1;
 }
 
+/* cut_joints(q, u, model, cuts, out, do_fk): model = (tree, (oR, op)), cuts = (cut_P, cut_C,
+ * p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C), out = (Wt_B, g_B, angle, rate, axis_world) */
 FN(cut_joints) {
     static const spec_t spec[] = {
-        {"q", F64},       {"u", F64},        {"parent", I64},  {"jtype", I64},  {"axis", F64},
-        {"pl_R", F64},    {"pl_p", F64},     {"idx_q", I64},   {"idx_v", I64},  {"support", BOOL},
-        {"oR", F64W},     {"op", F64W},      {"cut_P", I64},   {"cut_C", I64},  {"p_P", F64},
-        {"p_C", F64},     {"a_P", F64},      {"b1_P", F64},    {"b2_P", F64},   {"a_C", F64},
-        {"b1_C", F64},    {"Wt_B", F64W},    {"g_B", F64W},    {"angle", F64W}, {"rate", F64W},
+        {"q", F64}, {"u", F64}, {"model", GROUP + 2}, TREE_ARRAYS, FRAME_ARRAYS,
+        {"cuts", GROUP + 9}, {"cut_P", I64}, {"cut_C", I64}, {"p_P", F64}, {"p_C", F64},
+        {"a_P", F64}, {"b1_P", F64}, {"b2_P", F64}, {"a_C", F64}, {"b1_C", F64},
+        {"out", GROUP + 5}, {"Wt_B", F64W}, {"g_B", F64W}, {"angle", F64W}, {"rate", F64W},
         {"axis_world", F64W}, {"do_fk", FLAG}};
     val_t v[27];
     held_t h = {.n = 0};
@@ -476,7 +468,7 @@ FN(cut_joints) {
     tree_t t;
     frames_t f;
     cuts_t c;
-    if (!PARSE("cut_joints", spec, 27, v, &h)) FAIL;
+    if (!PARSE("cut_joints", spec, 6, v, &h)) FAIL;
     i64 nv = v[1].len;
     const val_t *arrs[7] = {&v[14], &v[15], &v[16], &v[17], &v[18], &v[19], &v[20]};
     if (!tree_of("cut_joints", &v[2], &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], &v[9], nv, &t) ||
@@ -505,16 +497,16 @@ FN(gather_joint_values) {
 }
 
 FN(cut_joint_torques) {
-    static const spec_t spec[] = {{"tau_cut", F64}, {"cut_P", I64},  {"cut_C", I64},
-                                  {"axis_world", F64}, {"jtype", I64}, {"axis", F64},
-                                  {"idx_v", I64},   {"support", BOOL}, {"oR", F64},
-                                  {"h", F64W}};
+    static const spec_t spec[] = {{"tau_cut", F64},  {"cuts", GROUP + 3}, {"cut_P", I64},
+                                  {"cut_C", I64},    {"axis_world", F64}, {"tree", GROUP + 4},
+                                  {"jtype", I64},    {"axis", F64},      {"idx_v", I64},
+                                  {"support", BOOL}, {"oR", F64},        {"h", F64W}};
     val_t v[10];
     held_t h = {.n = 0};
     volatile int failed = 0;
     tree_t t;
     cuts_t c;
-    if (!PARSE("cut_joint_torques", spec, 10, v, &h)) FAIL;
+    if (!PARSE("cut_joint_torques", spec, 5, v, &h)) FAIL;
     i64 nv = v[9].len;
     const val_t *arrs[1] = {&v[3]};
     if (!tree_of("cut_joint_torques", NULL, &v[4], &v[5], NULL, NULL, NULL, &v[6], &v[7], nv, &t) ||
@@ -530,40 +522,6 @@ FN(cut_joint_torques) {
 /* ---------------------------------------------------------------------------------------
  * contact, actuator
  * ------------------------------------------------------------------------------------- */
-FN(compliant_contact_forces) {
-    static const spec_t spec[] = {{"law", OBJ},      {"gap", F64},     {"position", F64},
-                                  {"Wt", F64},       {"u", F64},       {"closed", BOOLW},
-                                  {"slip", BOOLW},   {"anchor", F64W}, {"frames", F64},
-                                  {"lam", F64W}};
-    val_t v[10];
-    held_t h = {.n = 0};
-    compliant_law_t law;
-    if (!PARSE("compliant_contact_forces", spec, 10, v, &h) || !get_law(v[0].o, "compliant_contact_forces", &law)) FAIL;
-    i64 nc = v[1].len, nv = v[4].len;
-    if (!need(v[2].len == 3 * nc && v[3].len == 3 * nc * nv && v[5].len == nc && v[6].len == nc &&
-                  v[7].len == 3 * nc && v[8].len == FRAME_STRIDE * nc && v[9].len == 3 * nc,
-              "compliant_contact_forces", "sizes do not match the contacts"))
-        FAIL;
-    compliant_contact_forces(&law, nc, nv, v[1].p, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p,
-                             v[8].p, v[9].p);
-    release(&h);
-    Py_RETURN_NONE;
-}
-
-FN(generalized_contact_force) {
-    static const spec_t spec[] = {{"Wt", F64}, {"lam", F64}, {"out", F64W}};
-    val_t v[3];
-    held_t h = {.n = 0};
-    if (!PARSE("generalized_contact_force", spec, 3, v, &h)) FAIL;
-    i64 nc = v[1].len / 3, nv = v[2].len;
-    if (!need(v[1].len == 3 * nc && v[0].len == 3 * nc * nv, "generalized_contact_force",
-              "sizes do not match"))
-        FAIL;
-    generalized_contact_force(v[0].p, v[1].p, nc, nv, v[2].p);
-    release(&h);
-    Py_RETURN_NONE;
-}
-
 FN(saturate_torque) {
     static const spec_t spec[] = {
         {"tau", F64}, {"limit", F64}, {"qd", F64}, {"qd_limit", F64}, {"out", F64W}};

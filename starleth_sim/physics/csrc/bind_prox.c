@@ -108,17 +108,18 @@ FN(auto_spectral_scale) {
 }
 
 FN(prox_solve) {
-    static const spec_t spec[] = {{"s", OBJ},      {"pat", OBJ}, {"Wt", F64},   {"MinvW", F64},
-                                  {"u_free", F64}, {"bvec", F64}, {"G", F64},   {"c", F64},
-                                  {"nc", INT},     {"mu", F64},  {"r", F64},    {"lam", F64W},
-                                  {"LB", F64},     {"M", F64},   {"u", F64W}};
+    static const spec_t spec[] = {
+        {"s", OBJ},     {"pat", OBJ}, {"problem", GROUP + 6}, {"Wt", F64}, {"MinvW", F64},
+        {"u_free", F64}, {"bvec", F64}, {"G", F64}, {"c", F64}, {"contacts", GROUP + 3},
+        {"nc", INT},    {"mu", F64},  {"r", F64}, {"lam", F64W}, {"direct", GROUP + 2},
+        {"LB", F64},    {"M", F64},   {"u", F64W}};
     val_t v[15];
     held_t h = {.n = 0};
     volatile int failed = 0;
     settings_t s;
     patterns_t pat;
     i64 m, nv;
-    if (!PARSE("prox_solve", spec, 15, v, &h) || !get_settings(v[0].o, "prox_solve", &s) ||
+    if (!PARSE("prox_solve", spec, 7, v, &h) || !get_settings(v[0].o, "prox_solve", &s) ||
         !get_patterns(v[1].o, "prox_solve", &h, &pat) ||
         !problem_sizes("prox_solve", &v[2], &v[3], &v[6], &s, &m, &nv))
         FAIL;
@@ -173,48 +174,3 @@ FN(constraint_velocity) {
     Py_RETURN_NONE;
 }
 
-FN(solve_compliant) {
-    static const spec_t spec[] = {
-        {"law", OBJ},      {"M", F64},        {"h", F64W},      {"uS", F64},     {"dt", FLOAT},
-        {"gap", F64},      {"position", F64}, {"Wt_all", F64},  {"closed", BOOLW}, {"slip", BOOLW},
-        {"anchor", F64W},  {"frames", F64},   {"lam", F64W},    {"dof_parent", I64},
-        {"factor", FLAG},  {"L", F64W},       {"u_free", F64W}, {"timings", F64N}};
-    val_t v[18];
-    held_t h = {.n = 0};
-    compliant_law_t law;
-    if (!PARSE("solve_compliant", spec, 18, v, &h) || !get_law(v[0].o, "solve_compliant", &law)) FAIL;
-    i64 nv = v[3].len, nc = v[5].len;
-    if (!need(v[1].len == nv * nv && v[2].len == nv && v[6].len == 3 * nc &&
-                  v[7].len == 3 * nc * nv && v[8].len == nc && v[9].len == nc &&
-                  v[10].len == 3 * nc && v[11].len == FRAME_STRIDE * nc && v[12].len == 3 * nc &&
-                  v[13].len == nv && v[15].len == nv * nv && v[16].len == nv &&
-                  (!v[17].p || v[17].len >= 5),
-              "solve_compliant", "sizes do not match"))
-        FAIL;
-    int ok = solve_compliant(&law, v[1].p, v[2].p, v[3].p, nv, v[4].f, nc, v[5].p, v[6].p, v[7].p,
-                             v[8].p, v[9].p, v[10].p, v[11].p, v[12].p, v[13].p,
-                             (int)v[14].i, v[15].p, v[16].p, v[17].p);
-    release(&h);
-    return PyBool_FromLong(ok);
-}
-
-FN(end_of_step) {
-    static const spec_t spec[] = {{"qM", F64},   {"uE", F64},      {"u_corr", F64},
-                                  {"projected", FLAG}, {"half_dt", FLOAT}, {"jtype", I64},
-                                  {"idx_q", I64}, {"idx_v", I64},  {"qE", F64W}};
-    val_t v[9];
-    held_t h = {.n = 0};
-    volatile int failed = 0;
-    tree_t t;
-    if (!PARSE("end_of_step", spec, 9, v, &h)) FAIL;
-    i64 nv = v[1].len;
-    if (!tree_of("end_of_step", NULL, &v[5], NULL, NULL, NULL, &v[6], &v[7], NULL, nv, &t) ||
-        !need(v[2].len == nv && v[8].len == v[0].len, "end_of_step", "sizes do not match"))
-        FAIL;
-    int ok = 0;
-    arena_t *a = scratch_arena();
-    RUN(a, failed, ok = end_of_step(v[0].p, v[1].p, v[2].p, (int)v[3].i, v[4].f, &t, v[0].len, v[8].p, a));
-    release(&h);
-    if (failed) return PyErr_NoMemory();
-    return PyBool_FromLong(ok);
-}

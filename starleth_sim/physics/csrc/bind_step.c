@@ -130,10 +130,11 @@ static int contact_problem_sizes(const char *fn, const val_t *M, const val_t *uS
 
 FN(prepare_hard_contacts) {
     static const spec_t spec[] = {
-        {"settings", OBJ}, {"M", F64},          {"uS", F64},          {"gap", F64},
-        {"Wt_all", F64},   {"WtB", F64},        {"bB", F64},          {"eps", F64},
-        {"dof_parent", I64}, {"factor", FLAG},  {"L", F64W},          {"last_impulse", F64},
-        {"last_active", BOOL}, {"timings", F64N}, {"frames", F64N}, {"problem", OBJ}};
+        {"settings", OBJ},  {"state", GROUP + 2}, {"M", F64}, {"uS", F64},
+        {"rows", GROUP + 5}, {"gap", F64}, {"Wt_all", F64}, {"WtB", F64}, {"bB", F64},
+        {"eps", F64},       {"factor", GROUP + 3}, {"dof_parent", I64}, {"factor", FLAG},
+        {"L", F64W},        {"memory", GROUP + 2}, {"last_impulse", F64}, {"last_active", BOOL},
+        {"timings", F64N},  {"frames", F64N},    {"problem", OBJ}};
     val_t v[16];
     v[14].p = NULL; /* (frames and problem are optional) */
     v[14].len = 0;
@@ -142,7 +143,7 @@ FN(prepare_hard_contacts) {
     volatile int failed = 0;
     settings_t s;
     i64 nv, nc, nb;
-    if (!PARSE("prepare_hard_contacts", spec, 14, v, &h) ||
+    if (!PARSE("prepare_hard_contacts", spec, 6, v, &h) ||
         !get_settings(v[0].o, "prepare_hard_contacts", &s) ||
         !contact_problem_sizes("prepare_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
                                &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb) ||
@@ -175,93 +176,6 @@ FN(prepare_hard_contacts) {
     pr->nv = nv;
     pr->nb = nb;
     return (PyObject *)pr;
-}
-
-FN(complete_hard_contacts) {
-    static const spec_t spec[] = {
-        {"settings", OBJ},    {"problem", OBJ},      {"h", F64},          {"uS", F64},
-        {"M", F64},           {"dof_parent", I64},   {"L", F64},          {"gap", F64},
-        {"Wt_all", F64},      {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W},
-        {"impulse", F64W},    {"is_active", BOOLW},  {"u_free", F64W},    {"u", F64W},
-        {"u_corr", F64W},     {"timings", F64N}};
-    val_t v[18];
-    held_t h = {.n = 0};
-    settings_t s;
-    if (!PARSE("complete_hard_contacts", spec, 18, v, &h) ||
-        !get_settings(v[0].o, "complete_hard_contacts", &s))
-        FAIL;
-    if (!Py_IS_TYPE(v[1].o, &ProblemType) || !((ProblemObject *)v[1].o)->filled ||
-        !((ProblemObject *)v[1].o)->p.ok) {
-        release(&h);
-        PyErr_SetString(PyExc_ValueError,
-                        "complete_hard_contacts: problem must be a ContactProblem prepared with ok");
-        return NULL;
-    }
-    ProblemObject *pr = (ProblemObject *)v[1].o;
-    i64 nv = pr->nv, nc = pr->nc, nb = pr->nb;
-    if (!need(v[2].len == nv && v[3].len == nv && v[4].len == nv * nv && v[5].len == nv &&
-                  v[6].len == nv * nv && v[7].len == nc && v[8].len == 3 * nc * nv &&
-                  v[9].len == 3 * nc && v[10].len == nc && v[11].len == nb &&
-                  v[12].len == 3 * nc && v[13].len == nc && v[14].len == nv && v[15].len == nv &&
-                  v[16].len == nv && (!v[17].p || v[17].len >= 5),
-              "complete_hard_contacts", "the arrays do not match the prepared problem"))
-        FAIL;
-    /* the solve's work in the scratch arena: the problem stays as prepared */
-    volatile int failed = 0;
-    complete_result_t r = {0, 0, 0.0, 0, 0, -1};
-    arena_t *a = scratch_arena();
-    RUN(a, failed, r = complete_problem(&s, &pr->p, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p, nc,
-                                        v[8].p, v[9].p, v[10].p, v[11].p, nb, v[12].p, v[13].p,
-                                        v[14].p, v[15].p, v[16].p, 1, v[17].p, a));
-    release(&h);
-    if (failed) return PyErr_NoMemory();
-    return complete_result_to_py(&r);
-}
-
-FN(solve_hard_contacts) {
-    static const spec_t spec[] = {
-        {"settings", OBJ},   {"M", F64},           {"uS", F64},          {"gap", F64},
-        {"Wt_all", F64},     {"WtB", F64},         {"bB", F64},          {"eps", F64},
-        {"dof_parent", I64}, {"factor", FLAG},     {"L", F64W},          {"h", F64},
-        {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W}, {"impulse", F64W},
-        {"is_active", BOOLW}, {"u_free", F64W},    {"u", F64W},          {"u_corr", F64W},
-        {"timings", F64N},   {"frames", F64N}};
-    val_t v[22];
-    v[21].p = NULL; /* (frames is optional) */
-    v[21].len = 0;
-    held_t h = {.n = 0};
-    volatile int failed = 0;
-    settings_t s;
-    i64 nv, nc, nb;
-    if (!PARSE("solve_hard_contacts", spec, 21, v, &h) ||
-        !get_settings(v[0].o, "solve_hard_contacts", &s) ||
-        !contact_problem_sizes("solve_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
-                               &v[7], &v[8], &v[10], &v[12], &v[13], &v[20], &nv, &nc, &nb) ||
-        !need(v[11].len == nv && v[14].len == nb && v[15].len == 3 * nc && v[16].len == nc &&
-                  v[17].len == nv && v[18].len == nv && v[19].len == nv &&
-                  (!v[21].p || v[21].len == FRAME_STRIDE * nc),
-              "solve_hard_contacts", "the arrays do not match the problem"))
-        FAIL;
-    problem_t p = {0};
-    complete_result_t r = {0, STATUS_CONVERGED, 0.0, 0, 0, -1};
-    arena_t *a = scratch_arena();
-    RUN(a, failed, {
-        contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p, v[7].p,
-                        v[21].p, v[8].p, (int)v[9].i, v[10].p, v[12].p, v[13].p, v[20].p, a, &p);
-        if (p.ok)
-            r = complete_problem(&s, &p, v[11].p, v[2].p, v[1].p, v[8].p, v[10].p, v[3].p, nc,
-                                 v[4].p, v[12].p, v[13].p, v[14].p, nb, v[15].p, v[16].p,
-                                 v[17].p, v[18].p, v[19].p, 1, v[20].p, a);
-    });
-    release(&h);
-    if (failed) return PyErr_NoMemory();
-    hard_contacts_result_t out = {0, 0, 0, 0, STATUS_CONVERGED, 0.0, 0, 0, -1};
-    if (p.ok) {
-        hard_contacts_result_t done = {1, p.na, p.opened, r.iterations, r.status, r.residual,
-                                       r.retried, r.projection_iterations, r.projection_status};
-        out = done;
-    }
-    return hard_contacts_result_to_py(&out);
 }
 
 /* ---------------------------------------------------------------------------------------
@@ -307,6 +221,8 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     x->is_active = v[8].p;
     x->qE = v[9].p;
     x->uE = v[10].p;
+    if (!need(m->ints[TREE_STEP_MODEL_NQ] == x->nq, fn, "q does not match the model's nq"))
+        return 0;
     /* q: nq ≥ every idx_q + its joint's coordinates (checked by the model's own sizes) */
     for (i64 j = 1; j < t.tree.nj; j++) {
         i64 wq = t.tree.jtype[j] == JT_FREEFLYER ? 7 : 1;
@@ -340,100 +256,128 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     return 1;
 }
 
-#define STEP_ARRAYS                                                                           \
-    {"q", F64}, {"u", F64}, {"tau", F64}, {"f_ext", F64}, {"last_impulse", F64W},             \
-        {"last_active", BOOLW}, {"last_bilateral", F64W}, {"report", F64W},                  \
-        {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
+#define STEP_OUT                                                                              \
+    {"out", GROUP + 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
 #define MODEL_BUFFERS                                                                         \
-    {"floats", F64W}, {"ints", I64}, {"support", BOOL}, {"workspace", F64W}
+    {"model", GROUP + 4}, {"floats", F64W}, {"ints", I64}, {"support", BOOL},                  \
+        {"workspace", F64W}
 
+/* tree_step_hard(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
+ * last_impulse, last_active, last_bilateral), out = (report, is_active, qE, uE), model =
+ * the TreeStepModel's buffers */
 FN(tree_step_hard) {
-    static const spec_t spec[] = {{"torque_mode", INT}, STEP_ARRAYS, MODEL_BUFFERS};
-    val_t v[16];
-    held_t h = {.n = 0};
-    volatile int failed = 0;
-    packed_model_t m;
-    step_arrays_t x;
-    if (!PARSE("tree_step_hard", spec, 16, v, &h) || !packed_of(&v[12], &m) ||
-        !step_arrays_of("tree_step_hard", &v[1], &m, v[0].i, &x))
-        FAIL;
-    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
-    arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, &x, &m, a));
-    release(&h);
-    if (failed) return PyErr_NoMemory();
-    return tree_step_result_to_py(&r);
-}
-
-FN(tree_step_compliant) {
-    static const spec_t spec[] = {{"torque_mode", INT}, {"q", F64}, {"u", F64}, {"tau", F64},
-                                  {"f_ext", F64}, {"closed", BOOLW}, {"slip", BOOLW},
-                                  {"anchor", F64W}, {"lam", F64W}, {"report", F64W},
-                                  {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W},
-                                  MODEL_BUFFERS};
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP + 5},
+                                  {"q", F64}, {"u", F64}, {"last_impulse", F64W},
+                                  {"last_active", BOOLW}, {"last_bilateral", F64W},
+                                  {"tau", F64}, {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
     val_t v[17];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m;
     step_arrays_t x;
-    if (!PARSE("tree_step_compliant", spec, 17, v, &h) || !packed_of(&v[13], &m)) FAIL;
-    /* the step arrays in tree_step_hard's order: lam and closed stand in for the warm-start
-     * memory (of the same lengths), which a compliant step has none of */
-    val_t w[11] = {v[1], v[2], v[3], v[4], v[8], v[5], v[8], v[9], v[10], v[11], v[12]};
-    w[6].len = 0;
-    if (!step_arrays_of("tree_step_compliant", w, &m, v[0].i, &x)) FAIL;
-    i64 nc = m.ints[TREE_STEP_MODEL_NC];
-    if (
-        !need(v[5].len == nc && v[6].len == nc && v[7].len == 3 * nc && v[8].len == 3 * nc,
-              "tree_step_compliant", "closed, slip, anchor and lam must match the contacts"))
-        FAIL;
+    if (!PARSE("tree_step_hard", spec, 7, v, &h) || !packed_of(&v[13], &m)) FAIL;
+    val_t w[11] = {v[2], v[3], v[7], v[8], v[4], v[5], v[6], v[9], v[10], v[11], v[12]};
+    if (!step_arrays_of("tree_step_hard", w, &m, v[1].i, &x)) FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = tree_step_compliant((int)v[0].i, &x, v[5].p, v[6].p, v[7].p, v[8].p, &m, a));
+    RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, (int)v[1].i, &x, &m, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);
 }
 
-FN(forest_step_hard) {
-    static const spec_t spec[] = {{"q", F64},           {"u", F64},
-                                  {"applied_tau", F64}, {"f_ext", F64},
-                                  {"factor", FLAG},     {"last_impulse", F64W},
-                                  {"last_active", BOOLW}, {"last_bilateral", F64W},
-                                  {"report", F64W},     {"is_active", BOOLW},
-                                  {"qE", F64W},         {"uE", F64W},
-                                  {"angle_E", F64W},    {"rate_E", F64W},
-                                  MODEL_BUFFERS,        {"cut_floats", F64},
-                                  {"cut_ints", I64},    {"cut_workspace", F64W}};
-    val_t v[21];
+/* the compliant contact state: v = closed, slip, anchor, lam (nc, nc, 3 nc, 3 nc) */
+static int compliant_of(const char *fn, const val_t *v, i64 nc, compliant_state_t *cs) {
+    if (!need(v[0].len == nc && v[1].len == nc && v[2].len == 3 * nc && v[3].len == 3 * nc, fn,
+              "closed, slip, anchor and lam must match the contacts"))
+        return 0;
+    cs->closed = v[0].p;
+    cs->slip = v[1].p;
+    cs->anchor = v[2].p;
+    cs->lam = v[3].p;
+    return 1;
+}
+
+#define COMPLIANT_ARRAYS                                                                      \
+    {"closed", BOOLW}, {"slip", BOOLW}, {"anchor", F64W}, {"lam", F64W}
+
+/* tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
+ * closed, slip, anchor, lam), out and model as tree_step_hard's */
+FN(tree_step_compliant) {
+    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP + 6},
+                                  {"q", F64}, {"u", F64}, COMPLIANT_ARRAYS, {"tau", F64},
+                                  {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
+    val_t v[18];
+    held_t h = {.n = 0};
+    volatile int failed = 0;
+    packed_model_t m;
+    step_arrays_t x;
+    compliant_state_t cs;
+    if (!PARSE("tree_step_compliant", spec, 7, v, &h) || !packed_of(&v[14], &m)) FAIL;
+    /* the step arrays in tree_step_hard's order: lam and closed stand in for the warm-start
+     * memory (of the same lengths), which a compliant step has none of */
+    val_t w[11] = {v[2], v[3], v[8], v[9], v[7], v[4], v[7], v[10], v[11], v[12], v[13]};
+    w[6].len = 0;
+    if (!step_arrays_of("tree_step_compliant", w, &m, v[1].i, &x) ||
+        !compliant_of("tree_step_compliant", &v[4], m.ints[TREE_STEP_MODEL_NC], &cs))
+        FAIL;
+    tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
+    arena_t *a = scratch_arena();
+    RUN_NOGIL(a, failed, r = tree_step_compliant((int)v[0].i, (int)v[1].i, &x, &cs, &m, a));
+    release(&h);
+    if (failed) return PyErr_NoMemory();
+    return tree_step_result_to_py(&r);
+}
+
+/* the CutModel's buffers (floats, ints, workspace), checked against the TreeStepModel */
+static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_t *c) {
+    c->floats = v[0].p;
+    c->n_floats = v[0].len;
+    c->ints = v[1].p;
+    c->n_ints = v[1].len;
+    c->support = NULL;
+    c->n_support = 0;
+    c->workspace = v[2].p;
+    c->n_workspace = v[2].len;
+    const char *bad = check_cut_model(c, m->ints[TREE_STEP_MODEL_NA], nv);
+    if (bad) PyErr_Format(PyExc_ValueError, "forest_step: %s", bad);
+    return bad == NULL;
+}
+
+/* forest_step(options, state, tau, f_ext, out, model, cut): state = (q, u, last_impulse,
+ * last_active, last_bilateral, closed, slip, anchor, lam: the compliant arrays read with
+ * STEP_COMPLIANT only), out = (report, is_active, qE, uE, angle_E, rate_E), model the
+ * TreeStepModel's buffers, cut the CutModel's */
+FN(forest_step) {
+    static const spec_t spec[] = {
+        {"options", INT},   {"state", GROUP + 9}, {"q", F64}, {"u", F64},
+        {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W},
+        COMPLIANT_ARRAYS,   {"tau", F64},     {"f_ext", F64},
+        {"out", GROUP + 6},  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
+        {"uE", F64W},       {"angle_E", F64W}, {"rate_E", F64W}, MODEL_BUFFERS,
+        {"cut", GROUP + 3},  {"cut_floats", F64}, {"cut_ints", I64}, {"cut_workspace", F64W}};
+    val_t v[25];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m, c;
     step_arrays_t x;
-    if (!PARSE("forest_step_hard", spec, 21, v, &h) || !packed_of(&v[14], &m)) FAIL;
-    val_t w[11] = {v[0], v[1], v[2], v[3], v[5], v[6], v[7], v[8], v[9], v[10], v[11]};
-    if (!step_arrays_of("forest_step_hard", w, &m, TORQUE_AS_GIVEN, &x)) FAIL;
-    c.floats = v[18].p;
-    c.n_floats = v[18].len;
-    c.ints = v[19].p;
-    c.n_ints = v[19].len;
-    c.support = NULL;
-    c.n_support = 0;
-    c.workspace = v[20].p;
-    c.n_workspace = v[20].len;
-    const char *bad = check_cut_model(&c, m.ints[TREE_STEP_MODEL_NA], x.nv);
-    if (bad) {
-        release(&h);
-        PyErr_Format(PyExc_ValueError, "forest_step_hard: %s", bad);
-        return NULL;
-    }
+    compliant_state_t cs = {NULL, NULL, NULL, NULL};
+    if (!PARSE("forest_step", spec, 7, v, &h) || !packed_of(&v[18], &m)) FAIL;
+    val_t w[11] = {v[1], v[2], v[10], v[11], v[3], v[4], v[5], v[12], v[13], v[14], v[15]};
+    if (!step_arrays_of("forest_step", w, &m, TORQUE_AS_GIVEN, &x) ||
+        !cut_of(&v[22], &m, x.nv, &c))
+        FAIL;
+    if ((v[0].i & STEP_COMPLIANT) &&
+        !compliant_of("forest_step", &v[6], m.ints[TREE_STEP_MODEL_NC], &cs))
+        FAIL;
     i64 ncut = c.ints[CUT_MODEL_NCUT];
-    if (!need(x.nb == 5 * ncut && v[12].len == ncut && v[13].len == ncut, "forest_step_hard",
+    if (!need(x.nb == 5 * ncut && v[16].len == ncut && v[17].len == ncut, "forest_step",
               "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints"))
         FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = forest_step_hard(&x, (int)v[4].i, v[12].p, v[13].p, &m, &c, a));
+    RUN_NOGIL(a, failed,
+              r = forest_step((int)v[0].i, &x, &cs, v[16].p, v[17].p, &m, &c, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);

@@ -2,8 +2,8 @@
  * (Gehring et al. 2014, Eqn. 6-8), the prox solvers (Eqn. 12-20), the compliant contact law
  * (Alg. 1), the rigid-body algorithms and the kinematics of a forest of floating trees.
  *
- * Built at install time into the extension module starleth_sim.physics._kernels (module.c
- * and bind*.c hold its Python bindings; starleth_sim/physics/kernels.py loads it and rebuilds
+ * Built at install time into the extension module starleth_sim.physics.kernels (module.c
+ * and bind*.c hold its Python bindings; starleth_sim/physics/kernels/__init__.py loads it and rebuilds
  * it when these sources changed). The Python modules of starleth_sim.physics describe each
  * algorithm; the functions here have the names of the Python functions they implement.
  *
@@ -256,7 +256,7 @@ double terrain_contact(const ground_t *g, const double *c, double r, double *out
                        double *second, double *second_gap);
 
 /* ---------------------------------------------------------------------------------------
- * dynamics.c (rigid_body.py)
+ * rigid_body.c (rigid_body.py)
  * ------------------------------------------------------------------------------------- */
 void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
                             const inertias_t *b, double *M, double *h);
@@ -308,9 +308,9 @@ int saturate_torque(const double *tau, const double *limit, const double *qd,
                     const double *qd_limit, double *out, i64 n);
 
 /* ---------------------------------------------------------------------------------------
- * delassus.c, prox.c and prox_alpha.c (prox.py)
+ * prox_delassus.c, prox.c and prox_alpha.c (prox.py)
  * ------------------------------------------------------------------------------------- */
-/* delassus.c: r (m) from diag(G) (m) for nc contacts */
+/* prox_delassus.c: r (m) from diag(G) (m) for nc contacts */
 void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r);
 /* the pattern of the rows of A (m x n) / of its columns, from the arena */
 void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);

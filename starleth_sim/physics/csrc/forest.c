@@ -37,7 +37,7 @@ void integrate_forest(const double *q, const double *u, double dt, const tree_t 
     }
 }
 
-/* _quat_rot: R (3 x 3), the rotation of the root whose coordinates start at q[iq]. */
+/* quat_rot: R (3 x 3), the rotation of the root whose coordinates start at q[iq]. */
 void quat_rot(const double *q, i64 iq, double *R) {
     quat_xyzw_to_rot(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], R);
 }
@@ -167,12 +167,12 @@ void angular_jacobian(i64 j, const tree_t *t, const double *oR, double *out, int
     }
 }
 
-/* _rotate: out = R v */
+/* rotate: out = R v */
 static inline void rotate(const double *R, const double *v, double *out) {
     for (int r = 0; r < 3; r++) out[r] = R[r * 3 + 0] * v[0] + R[r * 3 + 1] * v[1] + R[r * 3 + 2] * v[2];
 }
 
-/* _cut_columns: the dofs of the joints that support body P or body C, ascending, into cols;
+/* cut_columns: the dofs of the joints that support body P or body C, ascending, into cols;
  * returns their number. */
 static i64 cut_columns(i64 P, i64 C, const tree_t *t, i64 *cols) {
     i64 n = 0, nj = t->nj;
@@ -186,13 +186,13 @@ static i64 cut_columns(i64 P, i64 C, const tree_t *t, i64 *cols) {
     return n;
 }
 
-/* _zero_columns: J[:, cols[:n]] = 0 (J: 3 x nv) */
+/* zero_columns: J[:, cols[:n]] = 0 (J: 3 x nv) */
 static inline void zero_columns(double *J, i64 nv, const i64 *cols, i64 n) {
     for (int r = 0; r < 3; r++)
         for (i64 p = 0; p < n; p++) J[r * nv + cols[p]] = 0.0;
 }
 
-/* _hinge_axes: the hinge axis a and P's perpendiculars b1, b2 in the world. */
+/* hinge_axes: the hinge axis a and P's perpendiculars b1, b2 in the world. */
 static inline void hinge_axes(const double *oR_P, const double *a_P, const double *b1_P,
                               const double *b2_P, double *aw, double *b1, double *b2) {
     rotate(oR_P, a_P, aw);
@@ -200,7 +200,7 @@ static inline void hinge_axes(const double *oR_P, const double *a_P, const doubl
     rotate(oR_P, b2_P, b2);
 }
 
-/* _angle_and_rate: φ, the rotation of C's b1 about the hinge axis aw seen in P's (b1, b2)
+/* angle_and_rate: φ, the rotation of C's b1 about the hinge axis aw seen in P's (b1, b2)
  * basis, and φ̇ = aw·(ω_C − ω_P) over the columns cols (n) of the angular Jacobians JP, JC
  * (t: scratch). */
 static inline void angle_and_rate(const double *oR_C, const double *b1_C, const double *aw,
@@ -230,7 +230,7 @@ void cut_joints(const double *q, const double *u, const tree_t *t, const frames_
     if (do_fk) forward_kinematics(q, t, f);
     i64 nv = t->nv;
     const double *oR = f->oR, *op = f->op;
-    /* _cut_scratch */
+    /* the scratch: the two bodies' Jacobians, then the vectors below */
     double *buf = arena_f(a, 6 * nv + 21);
     double *JP = buf, *JC = buf + 3 * nv, *v = buf + 6 * nv;
     double *aw = v, *b1 = v + 3, *b2 = v + 6, *tv = v + 9, *xP = v + 12, *xC = v + 15,

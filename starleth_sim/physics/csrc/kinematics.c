@@ -32,7 +32,7 @@ static void axis_angle_to_rot(const double *a, double theta, double *R) {
     R[8] = t * z * z + c;
 }
 
-/* _matmul3: out = A B for 3 x 3 matrices. */
+/* matmul3: out = A B for 3 x 3 matrices. */
 static void matmul3(const double *A, const double *B, double *out) {
     for (int r = 0; r < 3; r++)
         for (int c = 0; c < 3; c++)

@@ -37,7 +37,7 @@ int cholesky_upper_input(const double *A, i64 nA, i64 o, double *L, i64 *first) 
     return 1;
 }
 
-/* _cholesky_forward: L y = b in place, by rows within the envelope `first`. */
+/* cholesky_forward: L y = b in place, by rows within the envelope `first`. */
 static void cholesky_forward(const double *L, i64 n, const i64 *first, double *b) {
     for (i64 i = 0; i < n; i++) {
         double s = b[i];
@@ -141,7 +141,7 @@ void ltdl_solve_vec(const double *L, i64 n, const i64 *dof_parent, double *b) {
     }
 }
 
-/* _ltdl_solve_tree_cols: ltdl_solve_cols for the tree of dofs o..e-1 and the columns cols
+/* ltdl_solve_tree_cols: ltdl_solve_cols for the tree of dofs o..e-1 and the columns cols
  * (nc) of B (n x m). With every column: both passes along rows, the L^T pass without skipping
  * zeros; else the L^T pass skips the zero entries (_ltdl_transpose_pass_cols). */
 static void ltdl_solve_tree_cols(const double *L, const i64 *dof_parent, double *B, i64 n,
@@ -171,7 +171,7 @@ static void ltdl_solve_tree_cols(const double *L, const i64 *dof_parent, double 
         }
         return;
     }
-    /* _ltdl_transpose_pass_cols */
+    /* the transposed pass (Lᵀ), column by column */
     for (i64 k = e - 1; k >= o; k--) {
         for (i64 p = 0; p < nc; p++) {
             i64 c = cols[p];
@@ -220,7 +220,7 @@ void ltdl_solve_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i
     }
 }
 
-/* _ltdl_solve_tree_block: _ltdl_solve_tree_cols for the tree of dofs o..e-1 and the columns
+/* ltdl_solve_tree_block: ltdl_solve_tree_cols for the tree of dofs o..e-1 and the columns
  * cols (nct) of B, on a contiguous copy X ((e - o) x nct, in block); the L^T pass leaves an
  * entry as it is where the row below is zero. */
 static void ltdl_solve_tree_block(const double *L, const i64 *dof_parent, double *B, i64 n,

@@ -1,4 +1,4 @@
-/* starleth_sim.physics._kernels: the Python bindings of the C kernels.
+/* starleth_sim.physics.kernels: the Python bindings of the C kernels.
  *
  * Each function takes the arguments of the Python function of the same name that
  * starleth_sim.physics documents (numpy arrays, C-contiguous, of float64, int64 or bool,
@@ -29,20 +29,17 @@ static PyMethodDef methods[] = {
     DEF(forward_kinematics, "forward_kinematics(q, parent, jtype, axis, pl_R, pl_p, idx_q, oR, op)."),
     DEF(point_jacobian, "point_jacobian(j, p, jtype, axis, idx_v, support, oR, op, out, zero=True)."),
     DEF(angular_jacobian, "angular_jacobian(j, jtype, axis, idx_v, support, oR, out, zero=True)."),
-    DEF(contact_points, "contact_points(...): kinematics.contact_points."),
-    DEF(contact_kinematics, "contact_kinematics(...): kinematics.contact_kinematics."),
+    DEF(contact_kinematics, "contact_kinematics(q, model, ground, jacobian_gap, out, frames=None): model (tree, frames, contacts), ground (n, t1, t2, offset, terrain), out (gap, position, Wt)."),
     DEF(integrate_forest, "integrate_forest(q, u, dt, jtype, idx_q, idx_v, out)."),
     DEF(to_pin_velocity, "to_pin_velocity(q, u, roots, root_q, root_v, Rs, u_pin)."),
     DEF(from_pin_dynamics, "from_pin_dynamics(M_pin, h_pin, Rs, root_v, u_pin, M, h)."),
-    DEF(tree_dynamics, "tree_dynamics(...): M and h at (q, u)."),
-    DEF(midpoint_dynamics, "midpoint_dynamics(...): q^M, M, h and the contacts at q^M."),
+    DEF(tree_dynamics, "tree_dynamics(q, u, model, out): model (tree, frames, inertias), out (M, h)."),
+    DEF(midpoint_dynamics, "midpoint_dynamics(q, u, half_dt, model, ground, jacobian_gap, out, frames=None): model (tree, frames, inertias, contacts), out (qM, M, h, gap, position, Wt)."),
     DEF(add_at, "add_at(h, idx, values): h[idx[k]] += values[k]."),
     DEF(rigid_body_forces, "rigid_body_forces(q, u, root_q, root_v, mass, inertia, gravity, h)."),
-    DEF(cut_joints, "cut_joints(...): W_B^T, g_B, φ, φ̇ and the hinge axes of the cut joints."),
+    DEF(cut_joints, "cut_joints(q, u, model, cuts, out, do_fk): model (tree, frames), cuts (cut_P, cut_C, p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C), out (Wt_B, g_B, angle, rate, axis_world)."),
     DEF(gather_joint_values, "gather_joint_values(x, index, cut_values, cut_index, out)."),
-    DEF(cut_joint_torques, "cut_joint_torques(tau_cut, cut_P, cut_C, axis_world, jtype, axis, idx_v, support, oR, h)."),
-    DEF(compliant_contact_forces, "compliant_contact_forces(law, gap, position, Wt, u, closed, slip, anchor, frames, lam)."),
-    DEF(generalized_contact_force, "generalized_contact_force(Wt, lam, out): out += Σ W_i λ_i."),
+    DEF(cut_joint_torques, "cut_joint_torques(tau_cut, (cut_P, cut_C, axis_world), (jtype, axis, idx_v, support), oR, h)."),
     DEF(saturate_torque, "saturate_torque(tau, limit, qd, qd_limit, out) -> bool."),
     DEF(row_pattern, "row_pattern(A) -> (ptr, idx)."),
     DEF(col_pattern, "col_pattern(A) -> (ptr, idx)."),
@@ -50,18 +47,14 @@ static PyMethodDef methods[] = {
     DEF(delassus, "delassus(Wt, MinvW, G, wp_ptr, wp_idx, mp_ptr, mp_idx): G = W^T M^{-1} W."),
     DEF(delassus_diagonal, "delassus_diagonal(Wt, MinvW, d, wp_ptr, wp_idx)."),
     DEF(auto_spectral_scale, "auto_spectral_scale(s, G, Wt, MinvW, pat, nc, r) -> float."),
-    DEF(prox_solve, "prox_solve(s, pat, Wt, MinvW, u_free, bvec, G, c, nc, mu, r, lam, LB, M, u) -> (iterations, status, residual)."),
+    DEF(prox_solve, "prox_solve(s, pat, (Wt, MinvW, u_free, bvec, G, c), (nc, mu, r), lam, (LB, M), u) -> (iterations, status, residual)."),
     DEF(free_velocity, "free_velocity(h, dt, uS, dof_parent, L, u_free)."),
     DEF(constraint_velocity, "constraint_velocity(Wt, u_free, bvec, wp_ptr, wp_idx, c)."),
-    DEF(solve_compliant, "solve_compliant(law, M, h, uS, dt, gap, position, Wt_all, closed, slip, anchor, frames, lam, dof_parent, factor, L, u_free, timings) -> bool."),
-    DEF(end_of_step, "end_of_step(qM, uE, u_corr, projected, half_dt, jtype, idx_q, idx_v, qE) -> bool."),
-    DEF(prepare_hard_contacts, "prepare_hard_contacts(settings, M, uS, gap, Wt_all, WtB, bB, eps, dof_parent, factor, L, last_impulse, last_active, timings, frames=None, problem=None) -> ContactProblem."),
-    DEF(complete_hard_contacts, "complete_hard_contacts(settings, problem, h, uS, M, dof_parent, L, gap, Wt_all, last_impulse, last_active, last_bilateral, impulse, is_active, u_free, u, u_corr, timings) -> CompletionResult."),
-    DEF(solve_hard_contacts, "solve_hard_contacts(...) -> HardContactsResult."),
+    DEF(prepare_hard_contacts, "prepare_hard_contacts(settings, (M, uS), (gap, Wt_all, WtB, bB, eps), (dof_parent, factor, L), (last_impulse, last_active), timings, frames=None, problem=None) -> ContactProblem."),
     DEF(impedance_torque, "impedance_torque(command, q, qd, out): the joint impedance law."),
-    DEF(tree_step_hard, "tree_step_hard(torque_mode, q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(tree_step_compliant, "tree_step_compliant(torque_mode, q, u, tau, f_ext, closed, slip, anchor, lam, report, is_active, qE, uE, floats, ints, support, workspace) -> TreeStepResult."),
-    DEF(forest_step_hard, "forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active, last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints, support, workspace, cut_floats, cut_ints, cut_workspace) -> TreeStepResult."),
+    DEF(tree_step_hard, "tree_step_hard(options, torque_mode, state, tau, f_ext, out, model) -> TreeStepResult: state (q, u, last_impulse, last_active, last_bilateral), out (report, is_active, qE, uE), model (floats, ints, support, workspace)."),
+    DEF(tree_step_compliant, "tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model) -> TreeStepResult: state (q, u, closed, slip, anchor, lam)."),
+    DEF(forest_step, "forest_step(options, state, tau, f_ext, out, model, cut) -> TreeStepResult: state (q, u, last_impulse, last_active, last_bilateral, closed, slip, anchor, lam), out (report, is_active, qE, uE, angle_E, rate_E), cut (cut_floats, cut_ints, cut_workspace)."),
     DEF(scratch_arena_stats, "scratch_arena_stats() -> (misses, capacity [bytes], bytes the last call wanted) of this thread's scratch arena."),
     {NULL, NULL, 0, NULL}};
 
@@ -98,6 +91,9 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         {"TREE_STEP_NONFINITE_TORQUE", TREE_STEP_NONFINITE_TORQUE},
         {"TORQUE_AS_GIVEN", TORQUE_AS_GIVEN}, {"TORQUE_SATURATED", TORQUE_SATURATED},
         {"TORQUE_IMPEDANCE", TORQUE_IMPEDANCE}, {"TORQUE_REPLAY", TORQUE_REPLAY},
+        {"STEP_PROFILE", STEP_PROFILE}, {"STEP_PREPARE", STEP_PREPARE},
+        {"STEP_PREPARED", STEP_PREPARED}, {"STEP_COMPLIANT", STEP_COMPLIANT},
+        {"STEP_KEEP_FACTOR", STEP_KEEP_FACTOR},
     };
     static const struct {
         const char *name;

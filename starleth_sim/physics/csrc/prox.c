@@ -1,5 +1,5 @@
 /* The prox iterations (prox.py, Gehring et al. 2014, Eqn. 12-20): JOR and SOR on ξ = GΛ + c
- * (Delassus form; G from delassus.c) or in the velocity (G never formed), the direct bilateral
+ * (Delassus form; G from prox_delassus.c) or in the velocity (G never formed), the direct bilateral
  * method (Eqn. 20), the energy criterion; the adaptive α's steps: prox_alpha.c (prox.h).
  * Layouts: Wt m x nv, MinvW nv x m, G m x m, M nv x nv, LB nb_LB x nb_LB (row-major). */
 #include "prox.h"
@@ -27,7 +27,7 @@ static inline void prox_disc(double x1, double x2, double radius, double *o1, do
     *o2 = x2 * s;
 }
 
-/* _project_contact: prox of one contact's rows (out may be lam: all reads before writes) */
+/* project_contact: prox of one contact's rows (out may be lam: all reads before writes) */
 static inline void project_contact(const double *lam, i64 b, double xi0, double xi1,
                                    double xi2, const double *r, double mu_i, double *out) {
     double ln = prox_normal(lam[b] - r[b] * xi0);
@@ -38,7 +38,7 @@ static inline void project_contact(const double *lam, i64 b, double xi0, double 
     out[b + 2] = t2;
 }
 
-/* _kinetic_energy: ½ uᵀ M u */
+/* kinetic_energy: ½ uᵀ M u */
 static double kinetic_energy(const double *M, const double *u, i64 nv) {
     double s = 0.0;
     for (i64 i = 0; i < nv; i++) {
@@ -49,7 +49,7 @@ static double kinetic_energy(const double *M, const double *u, i64 nv) {
     return 0.5 * s;
 }
 
-/* _add_impulse_columns: u += M^{-1} W[:, :ncols] Λ[:ncols] */
+/* add_impulse_columns: u += M^{-1} W[:, :ncols] Λ[:ncols] */
 static void add_impulse_columns(const double *MinvW, i64 m, const double *lam, double *u,
                                 const i64 *mp_ptr, const i64 *mp_idx, i64 ncols) {
     for (i64 l = 0; l < ncols; l++) {
@@ -62,7 +62,7 @@ static void add_impulse_columns(const double *MinvW, i64 m, const double *lam, d
     }
 }
 
-/* _velocity_from_impulses: u = u_free + M^{-1} W Λ (Eqn. 17) */
+/* velocity_from_impulses: u = u_free + M^{-1} W Λ (Eqn. 17) */
 static void velocity_from_impulses(const double *u_free, const double *MinvW, i64 nv, i64 m,
                                    const double *lam, double *u, const i64 *mp_ptr,
                                    const i64 *mp_idx) {
@@ -70,7 +70,7 @@ static void velocity_from_impulses(const double *u_free, const double *MinvW, i6
     add_impulse_columns(MinvW, m, lam, u, mp_ptr, mp_idx, m);
 }
 
-/* _bilateral_direct_delassus: Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) (Eqn. 20), with L_B's
+/* bilateral_direct_delassus: Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) (Eqn. 20), with L_B's
  * envelope columns (col_ptr, col_idx) and the right-hand side's buffer rhs */
 static void bilateral_direct_delassus(const double *G, const double *c, i64 m, i64 nc,
                                       const double *LB, i64 nb_LB, double *lam,
@@ -92,7 +92,7 @@ static void bilateral_direct_delassus(const double *G, const double *c, i64 m, i
     for (i64 a = 0; a < nb_; a++) lam[o + a] = rhs[a];
 }
 
-/* _bilateral_direct_velocity: Λ_B = −G_BB^{-1} W_B^T (u_free + M^{-1} W_U Λ_U) (Eqn. 20);
+/* bilateral_direct_velocity: Λ_B = −G_BB^{-1} W_B^T (u_free + M^{-1} W_U Λ_U) (Eqn. 20);
  * uu (nv) and rhs (m − 3nc) are the caller's work buffers (the Python's copy / np.empty) */
 static void bilateral_direct_velocity(const double *Wt, const double *MinvW,
                                       const double *u_free, i64 m, i64 nv, i64 nc,
@@ -114,14 +114,14 @@ static void bilateral_direct_velocity(const double *Wt, const double *MinvW,
     for (i64 a = 0; a < nb_; a++) lam[o + a] = rhs[a];
 }
 
-/* (ok, res, finite) of _check / _row_check */
+/* (ok, res, finite) of check / row_check */
 typedef struct {
     int ok;
     double res;
     int finite;
 } check_t;
 
-/* _row_check: one row's test |ΔΛ| ≤ |Λ_old| tol_rel + tol_abs, carried on in c */
+/* row_check: one row's test |ΔΛ| ≤ |Λ_old| tol_rel + tol_abs, carried on in c */
 static inline void row_check(double old, double new_, check_t *c, double tol_rel,
                              double tol_abs) {
     double d = fabs(new_ - old);
@@ -130,7 +130,7 @@ static inline void row_check(double old, double new_, check_t *c, double tol_rel
     if (d > fabs(old) * tol_rel + tol_abs) c->ok = 0;
 }
 
-/* _check: (converged by the impulse criterion, max |ΔΛ|, all finite) */
+/* check: (converged by the impulse criterion, max |ΔΛ|, all finite) */
 static check_t check(const double *lam_old, const double *lam, i64 n, double tol_rel,
                      double tol_abs) {
     check_t c = {1, 0.0, 1};
@@ -138,7 +138,7 @@ static check_t check(const double *lam_old, const double *lam, i64 n, double tol
     return c;
 }
 
-/* _delassus_apply: ξ_a = c_a + Σ_l G_al Λ_l (a < n), column by column over each column's
+/* delassus_apply: ξ_a = c_a + Σ_l G_al Λ_l (a < n), column by column over each column's
  * envelope (its zeros inside included, as the Python) */
 static void delassus_apply(const double *G, const double *c, i64 m, const double *lam,
                            double *xi, const i64 *gp_ptr, const i64 *gp_idx, i64 n) {
@@ -154,7 +154,7 @@ static void delassus_apply(const double *G, const double *c, i64 m, const double
     }
 }
 
-/* _jor_project: a JOR update of Λ into new (Λ_B kept with the direct method) */
+/* jor_project: a JOR update of Λ into new (Λ_B kept with the direct method) */
 static void jor_project(const double *lam, const double *xi, const double *r,
                         const double *mu, i64 nc, i64 m, int bilateral_direct, double *new_) {
     for (i64 i = 0; i < nc; i++) {
@@ -164,7 +164,7 @@ static void jor_project(const double *lam, const double *xi, const double *r,
     for (i64 l = 3 * nc; l < m; l++) new_[l] = bilateral_direct ? lam[l] : lam[l] - r[l] * xi[l];
 }
 
-/* _jor_update_in_place: fixed-α JOR update (bilateral prox rows) in place, with _check */
+/* jor_update_in_place: fixed-α JOR update (bilateral prox rows) in place, with check */
 static check_t jor_update_in_place(double *lam, const double *xi, const double *r,
                                    const double *mu, i64 nc, i64 m, double tol_rel,
                                    double tol_abs) {
@@ -261,7 +261,7 @@ typedef struct {
     arena_t *ar;
 } delassus_t;
 
-/* _jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
+/* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
 static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu;
@@ -318,7 +318,7 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     return result(max_iter, STATUS_MAX_ITER, res);
 }
 
-/* _sor_prox_delassus: SOR on ξ = GΛ + c, work buffer old (m: Λ of the last sweep) */
+/* sor_prox_delassus: SOR on ξ = GΛ + c, work buffer old (m: Λ of the last sweep) */
 static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu;
@@ -385,7 +385,7 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
     return result(max_iter, STATUS_MAX_ITER, res);
 }
 
-/* _envelope_columns: L_B's envelope by columns (nd > 0 bilateral rows), else empty */
+/* envelope_columns: L_B's envelope by columns (nd > 0 bilateral rows), else empty */
 static void envelope_columns_of(const patterns_t *pat, i64 nd, arena_t *ar, i64 **ptr,
                                 i64 **idx) {
     if (nd > 0) {
@@ -433,7 +433,7 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
     dop_t D = {s->form, Wt, Wt, MinvW, pat, m, nv};
     auto_t w = auto_setup(s, &D, nc, r, lam, ar);
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
-    /* _bilateral_direct_velocity's copy of u_free and rhs, allocated once */
+    /* bilateral_direct_velocity's copy of u_free and rhs, allocated once */
     double *uu = NULL, *rhs = NULL;
     if (bilateral_direct) {
         uu = arena_f(ar, nv);

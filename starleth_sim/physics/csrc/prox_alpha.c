@@ -3,7 +3,7 @@
  * other sweep, the divergence guard and the restart from Λ^0 (prox.h: what prox.c calls). */
 #include "prox.h"
 
-/* _delassus_entry: G_al from G or W_a^T (M^{-1}W)_l */
+/* delassus_entry: G_al from G or W_a^T (M^{-1}W)_l */
 static double delassus_entry(const dop_t *D, i64 a, i64 l) {
     if (D->form == FORM_DELASSUS) return D->G[a * D->m + l];
     double s = 0.0;
@@ -14,7 +14,7 @@ static double delassus_entry(const dop_t *D, i64 a, i64 l) {
     return s;
 }
 
-/* _scaled_apply: y = S x, S = R^{1/2} G R^{1/2} on the first n rows (sq = r^{1/2}) */
+/* scaled_apply: y = S x, S = R^{1/2} G R^{1/2} on the first n rows (sq = r^{1/2}) */
 static void scaled_apply(const dop_t *D, const double *sq, const double *x, double *y, i64 n,
                          double *tmp) {
     const patterns_t *pat = D->pat;
@@ -49,7 +49,7 @@ static void scaled_apply(const dop_t *D, const double *sq, const double *x, doub
     }
 }
 
-/* _power_lambda_max: λ_max of a symmetric PSD 3x3 S3 by power iteration */
+/* power_lambda_max: λ_max of a symmetric PSD 3x3 S3 by power iteration */
 static double power_lambda_max(const double *S3, i64 n_power) {
     double x0 = 1.0, x1 = 0.9, x2 = 0.8;
     double lam = 0.0;
@@ -133,7 +133,7 @@ static double auto_spectral_parameters(const settings_t *s, const dop_t *D, i64 
     return f;
 }
 
-/* _clamp_step: θ = p/q clamped to [1, AUTO_MAX_STEP]; 1 when p = 0 or q ≤ 0 */
+/* clamp_step: θ = p/q clamped to [1, AUTO_MAX_STEP]; 1 when p = 0 or q ≤ 0 */
 static double clamp_step(double p_, double q) {
     if (p_ == 0.0 || !(q > 0.0)) return 1.0;
     double theta = p_ / q;
@@ -187,7 +187,7 @@ static double auto_step_factor(const settings_t *s, const dop_t *D, const double
     return clamp_step(p_, q);
 }
 
-/* _auto_guard: tracks the smallest increment (hist[0]); AUTO_GUARD times it ends the long
+/* auto_guard: tracks the smallest increment (hist[0]); AUTO_GUARD times it ends the long
  * steps (hist[1] = 1). Whether long steps may follow. */
 static int auto_guard(double res, double *hist) {
     if (hist[1] != 1.0) {
@@ -199,7 +199,7 @@ static int auto_guard(double res, double *hist) {
     return hist[1] != 1.0;
 }
 
-/* _auto_restart: after a non-finite sweep, Λ back to Λ^0 and rk back to rs */
+/* auto_restart: after a non-finite sweep, Λ back to Λ^0 and rk back to rs */
 void auto_restart(double *hist, double *lam, const double *lam0, double *rk,
                   const double *rs, i64 m) {
     hist[1] = 1.0;
@@ -207,7 +207,7 @@ void auto_restart(double *hist, double *lam, const double *lam0, double *rk,
     for (i64 l = 0; l < m; l++) rk[l] = rs[l];
 }
 
-/* _auto_jor_save: rk = rs; after even sweeps d and ξ^k saved for the next long step */
+/* auto_jor_save: rk = rs; after even sweeps d and ξ^k saved for the next long step */
 int auto_jor_save(i64 k, const double *old, const double *new_, const double *xi,
                   double res, const double *rs, double *rk, double *hist,
                   double *dsave, double *xsave, i64 m) {
@@ -220,7 +220,7 @@ int auto_jor_save(i64 k, const double *old, const double *new_, const double *xi
     return 1;
 }
 
-/* _auto_jor_long_step: rk = rs θ from the saved d and Gd = ξ − ξ_saved */
+/* auto_jor_long_step: rk = rs θ from the saved d and Gd = ξ − ξ_saved */
 void auto_jor_long_step(const settings_t *s, i64 nc, const double *xi,
                         const double *rs, double *rk, const double *dsave,
                         const double *xsave, i64 m) {
@@ -233,7 +233,7 @@ void auto_jor_long_step(const settings_t *s, i64 nc, const double *xi,
     for (i64 l = 0; l < n; l++) rk[l] = rs[l] * theta;
 }
 
-/* _auto_next: rk of the sweep after sweep k: BB step after even sweeps, else rs */
+/* auto_next: rk of the sweep after sweep k: BB step after even sweeps, else rs */
 void auto_next(const settings_t *s, const dop_t *D, i64 nc, i64 k, const double *old,
                const double *new_, double res, const double *rs, double *rk,
                double *hist, double *tmp1, double *tmp2) {
@@ -245,7 +245,7 @@ void auto_next(const settings_t *s, const dop_t *D, i64 nc, i64 k, const double 
     for (i64 l = 0; l < n; l++) rk[l] = rs[l] * theta;
 }
 
-/* _auto_setup: with a fixed α, rk and rs are r itself (no copies, never written); adaptive:
+/* auto_setup: with a fixed α, rk and rs are r itself (no copies, never written); adaptive:
  * rk a copy of the spectral step rs, Λ^0, hist = [inf, 0, rs/r] and work arrays */
 auto_t auto_setup(const settings_t *s, const dop_t *D, i64 nc, const double *r,
                   const double *lam, arena_t *ar) {

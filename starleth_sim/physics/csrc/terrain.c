@@ -44,7 +44,7 @@ double terrain_plane_mu(const ground_t *g) {
     return g->n_terrain >= TERRAIN_HEADER ? g->terrain[7] : 0.0;
 }
 
-/* _tangents: (n, t1, t2, μ) into out; t1 the projection of the world x axis (y if n is
+/* frame_of: (n, t1, t2, μ) into out; t1 the projection of the world x axis (y if n is
  * nearly parallel to x) onto the tangent plane, t2 = n × t1 (contact.tangent_basis) */
 static void frame_of(const double *n, double mu, double *out) {
     double rx = 1.0, ry = 0.0;
@@ -80,7 +80,7 @@ static double plane_gap(const ground_t *g, const double *c, double r) {
  * the heightfield, box k */
 static double surface_code(i64 id) { return id == -1 ? 1.0 : id == -2 ? 2.0 : 3.0 + (double)id; }
 
-/* _box_distance: the signed distance of c to box b (negative inside) and the outward unit
+/* box_distance: the signed distance of c to box b (negative inside) and the outward unit
  * normal at the closest point (inside: of the nearest face) */
 static double box_distance(const double *b, const double *c, double *n) {
     double dx = c[0] - b[0], dy = c[1] - b[1], dz = c[2] - b[2];
@@ -122,7 +122,7 @@ static double box_distance(const double *b, const double *c, double *n) {
     return d;
 }
 
-/* _heightfield: whether (c_x, c_y) lies over the grid; then h there (bilinear in the cell)
+/* heightfield: whether (c_x, c_y) lies over the grid; then h there (bilinear in the cell)
  * and the unit normal of the cell's surface at that point */
 static int heightfield(const double *hdr, const double *hs, const double *c, double *h,
                        double *n) {

@@ -32,7 +32,7 @@ void col_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx
     strided_row_pattern(A, n, m, 1, n, a, ptr, idx);
 }
 
-/* _row_envelopes: first / one past the last nonzero column of each row k of M^{-1}W (nv
+/* row_envelopes: first / one past the last nonzero column of each row k of M^{-1}W (nv
  * rows, n columns), from its column pattern */
 static void row_envelopes(const i64 *mp_ptr, const i64 *mp_idx, i64 nv, i64 n, arena_t *a,
                           i64 **first_out, i64 **end_out) {
@@ -52,7 +52,7 @@ static void row_envelopes(const i64 *mp_ptr, const i64 *mp_idx, i64 nv, i64 n, a
     *end_out = end;
 }
 
-/* _delassus_rows: G = W^T M^{-1} W row by row (upper part, then mirrored) */
+/* delassus_rows: G = W^T M^{-1} W row by row (upper part, then mirrored) */
 static void delassus_rows(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv,
                           const i64 *wp_ptr, const i64 *wp_idx) {
     for (i64 a = 0; a < m; a++) {

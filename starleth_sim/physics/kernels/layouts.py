@@ -1,7 +1,7 @@
 """The packed layouts the one-kernel steps read and the records the kernels return, declared
-once: :mod:`~starleth_sim.physics.kernel_codegen` generates the C side from these
+once: :mod:`~starleth_sim.physics.kernels.codegen` generates the C side from these
 declarations (`c_header`: the structs, the unpacking of every buffer and the named results,
-into the header ``kernel_layouts.h`` that `kernel_build` writes for the build), and
+into the header ``kernel_layouts.h`` that `kernels.build` writes for the build), and
 :mod:`starleth_sim.physics.tree_step` packs the buffers by them.
 
 A layout is a list of buffers (float64, int64 or bool arrays), each an ordered list of fields.
@@ -15,7 +15,7 @@ aggregates of `Layout.members`, types of ``csrc/core.h``), so that the compiler 
 names; a `view` field becomes a pointer into the buffer, a `value` its one number, a
 `record` its fields (`Record`, e.g. the 19 numbers of a StepSettings).
 
-Standard library only: `kernel_build`, which setup.py loads before anything is installed,
+Standard library only: `kernels.build`, which setup.py loads before anything is installed,
 loads this file by its path.
 """
 from __future__ import annotations
@@ -38,13 +38,36 @@ class Number(NamedTuple):
     default: float | None = None    # a record's default (the last fields only)
 
 
+class Nested(NamedTuple):
+    """A record inside a record (its fields travel first, in its own order); the C struct
+    is the outer record's, which the inner decoder fills too."""
+
+    name: str
+    record: "Record"
+    doc: str
+    default: None = None
+    kind: str = "record"
+
+
 class Record(NamedTuple):
     """Named numbers that travel as floats (a Python NamedTuple, a C struct)."""
 
     name: str           # the Python record
     c_struct: str       # the C struct (core.h) its decoder fills
     c_decoder: str      # the generated C function: (const double *f, c_struct *out)
-    fields: tuple
+    fields: tuple       # Number, or Nested: a record inside it
+
+    @property
+    def length(self) -> int:
+        """The number of floats it travels as (a nested record's all)."""
+        return sum(f.record.length if isinstance(f, Nested) else 1 for f in self.fields)
+
+    def flatten(self, values) -> list:
+        """The floats of a record's values (a nested record's in place, in order)."""
+        out = []
+        for f, v in zip(self.fields, values):
+            out += f.record.flatten(v) if isinstance(f, Nested) else [float(v)]
+        return out
 
     def named_tuple(self, doc: str, module: str):
         """The Python record: a named tuple of the fields, its docstring `doc` followed by
@@ -52,8 +75,9 @@ class Record(NamedTuple):
         defaults = [f.default for f in self.fields if f.default is not None]
         cls = collections.namedtuple(self.name, [f.name for f in self.fields],
                                      defaults=defaults or None, module=module)
-        cls.__doc__ = doc + "\n\nFields (kernel_layouts):\n\n" + "\n".join(
-            f"- {f.name} ({ {'double': 'float', 'i64': 'int', 'bool': 'bool'}[f.kind]}): "
+        kinds = {'double': 'float', 'i64': 'int', 'bool': 'bool'}
+        cls.__doc__ = doc + "\n\nFields (kernels.layouts):\n\n" + "\n".join(
+            f"- {f.name} ({f.record.name if isinstance(f, Nested) else kinds[f.kind]}): "
             f"{f.doc}" for f in self.fields)
         return cls
 
@@ -104,7 +128,7 @@ HEADER_KINDS = ("header", "flag")
 def field_size(f: Field) -> str:
     """A field's size expression (a record's: its number of fields; a header entry's: 1)."""
     if f.kind == "record":
-        return str(len(f.record.fields))
+        return str(f.record.length)
     return "1" if f.kind in HEADER_KINDS else f.size
 
 
@@ -147,32 +171,6 @@ def describe(layout: Layout, indent: str = "    ") -> str:
 
 # -- the records -------------------------------------------------------------------------
 
-STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
-    Number("activation_gap", "double", "g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]"),
-    Number("mu", "double", "μ, Coulomb friction coefficient of the ground"),
-    Number("alpha", "double", "α, prox relaxation: r = α / diag(G) (< 0: adaptive, prox.py)"),
-    Number("tol_rel", "double", "T_rel"),
-    Number("tol_abs", "double", "T_abs [N s]"),
-    Number("fallback_alpha_factor", "double",
-           "a non-converged solve is retried once with α·this (0: no)"),
-    Number("opening_gap", "double",
-           "hysteresis: a loaded contact stays in I while g_N ≤ this [m]"),
-    Number("dt", "double", "Δt [s]"),
-    Number("beta_velocity", "double", "β_N of the velocity-level penetration correction (or 0)"),
-    Number("beta_projection", "double",
-           "β_N of the post-step projection (or 0: no projection)"),
-    Number("jacobian_gap", "double", "W of a contact is computed while g_N(q^M) ≤ this [m]"),
-    Number("projection_tolerance", "double", "the projection runs below g_N^E = −this [m]"),
-    Number("form", "i64", "prox.FORM_DELASSUS | prox.FORM_VELOCITY"),
-    Number("scheme", "i64", "prox.SCHEME_JOR | prox.SCHEME_SOR"),
-    Number("max_iterations", "i64", "prox iteration cap"),
-    Number("criterion", "i64", "prox.CRITERION_IMPULSE | prox.CRITERION_ENERGY"),
-    Number("warm_start", "bool", "Λ^0 = the last step's Λ of the contacts that stay in I"),
-    Number("bilateral_direct", "bool", "Λ_B by Eqn. 20 (else prox rows, Eqn. 19)"),
-    Number("hysteresis", "bool",
-           'contact.activation "hysteresis" (else the gap test alone)'),
-))
-
 PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields", (
     Number("form", "i64", "FORM_DELASSUS (Eqn. 12-16) | FORM_VELOCITY (Eqn. 17-19)"),
     Number("scheme", "i64", "SCHEME_JOR | SCHEME_SOR"),
@@ -183,6 +181,25 @@ PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields"
     Number("bilateral_direct", "bool",
            "Λ_B by Eqn. 20 after each sweep (else prox rows, Eqn. 19)"),
     Number("alpha", "double", "α > 0: r as given; < 0 (ALPHA_AUTO): adaptive α", 0.5),
+))
+
+STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
+    Nested("prox", PROX_SETTINGS, "the prox solver's settings (a ProxSettings)"),
+    Number("activation_gap", "double", "g_act: I = {i | g_N,i(q^M) ≤ g_act} [m]"),
+    Number("mu", "double", "μ, Coulomb friction coefficient of the ground"),
+    Number("fallback_alpha_factor", "double",
+           "a non-converged solve is retried once with α·this (0: no)"),
+    Number("opening_gap", "double",
+           "hysteresis: a loaded contact stays in I while g_N ≤ this [m]"),
+    Number("dt", "double", "Δt [s]"),
+    Number("beta_velocity", "double", "β_N of the velocity-level penetration correction (or 0)"),
+    Number("beta_projection", "double",
+           "β_N of the post-step projection (or 0: no projection)"),
+    Number("jacobian_gap", "double", "W of a contact is computed while g_N(q^M) ≤ this [m]"),
+    Number("projection_tolerance", "double", "the projection runs below g_N^E = −this [m]"),
+    Number("warm_start", "bool", "Λ^0 = the last step's Λ of the contacts that stay in I"),
+    Number("hysteresis", "bool",
+           'contact.activation "hysteresis" (else the gap test alone)'),
 ))
 
 COMPLIANT_LAW = Record("CompliantLaw", "compliant_law_t", "compliant_law_from_fields", (
@@ -248,6 +265,7 @@ TREE_STEP_MODEL = Layout(
          _header("na", "na", "actuated joints"),
          _header("nv", "tree.nv", "velocities"),
          _header("nt", "ground.n_terrain", "the packed terrain's floats"),
+         _header("nq", "nq", "positions (q)"),
          Field("parent", "nj", "tree.parent", "each joint's parent"),
          Field("jtype", "nj", "tree.jtype", "each joint's type (JT_*)"),
          Field("idx_q", "nj", "tree.idx_q", "each joint's first entry of q"),
@@ -273,6 +291,11 @@ TREE_STEP_MODEL = Layout(
          Field("u_corr", "nv", "u_corr", "Δu_p of the post-step projection"),
          Field("frames", "11 * nc", "ground.frames",
                "each contact's surface frame (n, t1, t2), μ and surface at q^M", ("nc", "11")),
+         Field("qM", "nq", "qM", "q^M (Eqn. 6), kept for the step when prepared ahead"),
+         Field("M", "nv * nv", "M", "M at q^M (a constant M: unused)", ("nv", "nv")),
+         Field("h", "nv", "h", "h at (q^M, u^S) without τ and f_ext"),
+         Field("timings", "5", "timings",
+               "the Fig. 7 phases' cumulative times when profiling (PHASES order) [s]"),
      ), exact=False)))
 
 CUT_MODEL = Layout(
@@ -346,7 +369,7 @@ IMPEDANCE_COMMAND = Layout(
     )),))
 
 LAYOUTS = (TREE_STEP_MODEL, CUT_MODEL, STEP_REPORT, IMPEDANCE_COMMAND)
-RECORDS = (STEP_SETTINGS, PROX_SETTINGS, COMPLIANT_LAW)
+RECORDS = (PROX_SETTINGS, STEP_SETTINGS, COMPLIANT_LAW)   # (a nested record first)
 
 
 # -- the named results -------------------------------------------------------------------
@@ -376,14 +399,11 @@ _SET_FIELDS = (
 
 TREE_STEP_RESULT = Result(
     "TreeStepResult", "tree_step_result_t",
-    "What a one-kernel step did (tree_step_hard, tree_step_compliant, forest_step_hard).",
+    "What a step did (tree_step_hard, tree_step_compliant, forest_step).",
     (Number("outcome", "i64", "TREE_STEP_*"),) + _SET_FIELDS + _SOLVE_FIELDS)
-HARD_CONTACTS_RESULT = Result(
-    "HardContactsResult", "hard_contacts_result_t",
-    "What solve_hard_contacts did (ok False: M or G_B not positive definite, nothing done).",
-    (Number("ok", "bool", "M (and G_B) positive definite"),) + _SET_FIELDS + _SOLVE_FIELDS)
 COMPLETION_RESULT = Result(
     "CompletionResult", "complete_result_t",
-    "What complete_hard_contacts did.", _SOLVE_FIELDS)
+    "What complete_problem (step_kernels.c) did: the solve of a prepared contact problem.",
+    _SOLVE_FIELDS)
 
-RESULTS = (TREE_STEP_RESULT, HARD_CONTACTS_RESULT, COMPLETION_RESULT)
+RESULTS = (TREE_STEP_RESULT, COMPLETION_RESULT)

@@ -1,9 +1,11 @@
-"""The physics kernels: the C extension module ``starleth_sim.physics._kernels`` (sources in
-``csrc/``), loaded here.
+"""The physics kernels: the C extension module ``starleth_sim.physics.kernels._kernels``
+(sources in ``starleth_sim/physics/csrc/``), loaded here; the build (`build`), the declared
+layouts of the packed buffers (`layouts`) and the C header generated from them (`codegen`)
+are this package's modules.
 
 An installed package (pip, colcon) holds the module its ``setup.py`` built. A source checkout
 builds it on first use, and again whenever the sources changed since it was built (their
-digest is kept beside the module: `kernel_build`), so an edit never runs stale machine code;
+digest is kept beside the module: `kernels.build`), so an edit never runs stale machine code;
 the build takes a few seconds and says so on stderr. Processes that start together (two
 nodes, test workers) build it once: the first takes a lock, the others wait for it and load
 its result.
@@ -16,11 +18,12 @@ from __future__ import annotations
 
 import fcntl
 import importlib
+import importlib.util
 import os
 import sys
 import time
 
-from . import kernel_build
+from . import build as kernel_build
 
 
 def _read(path: str) -> str | None:
@@ -84,7 +87,26 @@ def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = 
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
+#: names a module built with the sanitizers to load instead (`make sanitize`: built there by
+#: ``kernels/build.py --sanitize``, run with the sanitizers' runtime preloaded)
+SANITIZED = "STARLETH_KERNELS_SANITIZED"
+
+
+def _load_sanitized(path: str):
+    """The module at `path` (a sanitizer build), as this package's _kernels."""
+    if not os.path.exists(path):
+        raise ImportError(f"${SANITIZED}: no module {path} (make sanitize builds it)")
+    name = __package__ + "." + kernel_build.MODULE
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sys.modules[name] = module
+    return module
+
+
 def _load():
+    if os.environ.get(SANITIZED):
+        return _load_sanitized(os.environ[SANITIZED])
     try:
         ensure_built()
     except kernel_build.BuildError as e:
@@ -94,7 +116,8 @@ def _load():
         return importlib.import_module(__package__ + "." + kernel_build.MODULE)
     except ImportError as e:
         raise ImportError(
-            f"the physics kernels (starleth_sim.physics.{kernel_build.MODULE}) are not built: "
+            f"the physics kernels (starleth_sim.physics.kernels.{kernel_build.MODULE}) are not "
+            "built: "
             f"{e}. In a source checkout they build on first import (needs a C compiler and "
             "Python's headers); an installed package builds them in setup.py") from e
 

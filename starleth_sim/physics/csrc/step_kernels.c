@@ -457,40 +457,44 @@ void remember_contacts(const u8 *is_active, const double *impulse, i64 nc, u8 *l
     }
 }
 
-/* complete_problem: u_free (phase "M^-1"), c (phase "G"), the prox iteration and the
- * post-step projection (phase "prox") */
-complete_result_t complete_problem(const settings_t *s, const problem_t *p, const double *h,
-                                   const double *uS, const double *M, const i64 *dof_parent,
-                                   const double *L, const double *gap, i64 nc,
-                                   const double *Wt_all, double *last_impulse,
-                                   u8 *last_active, double *last_bilateral, i64 nb,
-                                   double *impulse, u8 *is_active, double *u_free, double *u,
-                                   double *u_corr, int remember, double *timings, arena_t *a) {
-    (void)nb;
-    i64 nv = p->nv;
-    double t = kclock(timings);
-    free_velocity(h, s->dt, uS, nv, dof_parent, L, u_free);
-    t = klap(timings, PHASE_M_INVERSE, t);
+/* no_contact_impulses: Λ and the active flags of every contact zeroed */
+static void no_contact_impulses(i64 nc, double *impulse, u8 *is_active) {
     for (i64 i = 0; i < nc; i++) {
         is_active[i] = 0;
         impulse[3 * i] = 0.0;
         impulse[3 * i + 1] = 0.0;
         impulse[3 * i + 2] = 0.0;
     }
-    const i64 *active = p->active;
+}
+
+/* complete_problem: u_free (phase "M^-1"), c (phase "G"), the prox iteration and the
+ * post-step projection (phase "prox") of the prepared problem p with h and M (M or M~): the
+ * model and workspace t, the state x (its u^S, warm-start memory; Λ into its report, u^E
+ * into uE), Λ_B into bilateral_E (which comes in with the warm start) */
+complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
+                                   const tree_model_t *t, const step_arrays_t *x,
+                                   double *bilateral_E, double *timings, arena_t *a) {
+    const settings_t *s = &t->s;
+    i64 nv = p->nv, nc = t->contacts.nc;
+    double *impulse = x->report.impulse, *u = x->uE;
+    double t0 = kclock(timings);
+    free_velocity(h, s->dt, x->u, nv, t->dof_parent, t->L, t->u_free);
+    t0 = klap(timings, PHASE_M_INVERSE, t0);
+    no_contact_impulses(nc, impulse, x->is_active);
     i64 na = p->na, o = 3 * na;
     complete_result_t res = {0, STATUS_CONVERGED, 0.0, 0, 0, -1};
-    for (i64 k = 0; k < nv; k++) u_corr[k] = 0.0;
+    for (i64 k = 0; k < nv; k++) t->u_corr[k] = 0.0;
     if (p->m == 0) {
-        memcpy(u, u_free, (size_t)nv * sizeof(double));
+        memcpy(u, t->u_free, (size_t)nv * sizeof(double));
     } else {
         double *uE, *lam;
-        t = phase_prox(s, p, u_free, M, last_impulse, last_active, last_bilateral, timings, t,
-                       a, &uE, &lam, &res.iterations, &res.status, &res.residual, &res.retried);
+        t0 = phase_prox(s, p, t->u_free, M, x->last_impulse, x->last_active, bilateral_E,
+                        timings, t0, a, &uE, &lam, &res.iterations, &res.status,
+                        &res.residual, &res.retried);
         memcpy(u, uE, (size_t)nv * sizeof(double));
         for (i64 r = 0; r < na; r++) {
-            i64 i = active[r];
-            is_active[i] = 1;
+            i64 i = p->active[r];
+            x->is_active[i] = 1;
             for (i64 k = 0; k < 3; k++) impulse[3 * i + k] = lam[3 * r + k];
         }
         int finite = 1;
@@ -498,18 +502,16 @@ complete_result_t complete_problem(const settings_t *s, const problem_t *p, cons
             if (!isfinite(u[k])) finite = 0;
         if (!finite) res.status = STATUS_NONFINITE;
         if (res.status != STATUS_NONFINITE)
-            for (i64 r = 0; r < p->m - o; r++) last_bilateral[r] = lam[o + r];
-        t = klap(timings, PHASE_PROX, t);
+            for (i64 r = 0; r < p->m - o; r++) bilateral_E[r] = lam[o + r];
+        t0 = klap(timings, PHASE_PROX, t0);
     }
     if (res.status != STATUS_NONFINITE && s->beta_projection > 0.0) {
-        t = kclock(timings);
-        res.projection_iterations = phase_projection(s, p, is_active, gap, nc, Wt_all,
-                                                     dof_parent, L, M, u, u_corr, a,
+        t0 = kclock(timings);
+        res.projection_iterations = phase_projection(s, p, x->is_active, t->gap, nc, t->Wt_all,
+                                                     t->dof_parent, t->L, M, u, t->u_corr, a,
                                                      &res.projection_status);
-        klap(timings, PHASE_PROX, t);
+        klap(timings, PHASE_PROX, t0);
     }
-    if (remember && res.status != STATUS_NONFINITE)
-        remember_contacts(is_active, impulse, nc, last_active, last_impulse);
     return res;
 }
 

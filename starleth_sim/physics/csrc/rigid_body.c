@@ -4,7 +4,7 @@
  * force [n_O; f]. */
 #include "core.h"
 
-/* _cross: (a0, a1, a2) x (b0, b1, b2) into o */
+/* cross3: (a0, a1, a2) x (b0, b1, b2) into o */
 static inline void cross3(double a0, double a1, double a2, double b0, double b1, double b2,
                           double *o) {
     o[0] = a1 * b2 - a2 * b1;
