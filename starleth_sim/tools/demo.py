@@ -440,8 +440,8 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
     rclpy round trips for that long, the reference of the lockstep cycle rate.
     precompile_first: make the kernels ready first (starleth-precompile, with its progress
     line), so that the nodes start with them built. terrain: a course of demo_terrain.py
-    ("" flat). startup_timeout counts silence: the
-    nodes' build lines (compile_notice.shows_compiling) restart it. live_port > 0: the live view's port.
+    ("" flat). startup_timeout counts silence: the nodes' build lines
+    (compile_notice.shows_compiling) restart it. live_port > 0: the live view's port.
     robot: given to both nodes; speed None: the robot's trot speed (DemoRobot); a bad
     robot: ConfigError."""
     figures = DemoRobot.of(robot)
