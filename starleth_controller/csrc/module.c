@@ -34,6 +34,19 @@ fail:                                                                           
     args_release(&A);                                                                       \
     return NULL
 
+/* The first n entries of the leg list `legs` (the last array taken) are legs 0-3, n in
+ * lo..min(4, its length); 0 with a ValueError naming `what` otherwise. */
+static int legs_ok(args_t *a, const i64 *legs, i64 n, i64 lo, const char *what) {
+    i64 len = a->v[a->n - 1].len / 8;
+    int ok = n >= lo && n <= len && n <= 4;
+    for (i64 j = 0; ok && j < n; j++) ok = legs[j] >= 0 && legs[j] < 4;
+    if (!ok)
+        PyErr_Format(PyExc_ValueError, "%s: %lld legs of %s asked (%lld to %lld), each 0-3",
+                     a->fn, (long long)n, what, (long long)lo, (long long)(len < 4 ? len : 4));
+    return ok;
+}
+#define LEGS(legs, n, lo) if (!legs_ok(&A, legs, n, lo, #legs)) goto fail
+
 FN(quat_to_rot) {
     BEGIN(quat_to_rot, 5);
     DOUBLE(0, qx); DOUBLE(1, qy); DOUBLE(2, qz); DOUBLE(3, qw);
@@ -160,8 +173,7 @@ FN(leg_states) {
 FN(ground_estimate) {
     BEGIN(ground_estimate, 4);
     DOUBLE(0, ground); IN_F(1, contact, 12); IN_I(2, support, 0); INT(3, ns);
-    RANGE(ns >= 0 && ns <= A.v[A.n - 1].len / 8, "ns exceeds support");
-    for (i64 j = 0; j < ns; j++) RANGE(support[j] >= 0 && support[j] < 4, "support: legs 0-3");
+    LEGS(support, ns, 0);
     double g = ground_estimate(ground, contact, support, ns);
     DONE(PyFloat_FromDouble(g));
 }
@@ -169,8 +181,7 @@ FN(ground_estimate) {
 FN(update_plane) {
     BEGIN(update_plane, 5);
     IN_F(0, contact, 12); IN_I(1, support, 0); INT(2, ns);
-    RANGE(ns >= 0 && ns <= A.v[A.n - 1].len / 8, "ns exceeds support");
-    for (i64 j = 0; j < ns; j++) RANGE(support[j] >= 0 && support[j] < 4, "support: legs 0-3");
+    LEGS(support, ns, 0);
     OUT_F(3, footholds, 12); OUT_F(4, plane, 3);
     update_plane(contact, support, ns, footholds, plane);
     DONE(Py_NewRef(Py_None));
@@ -179,8 +190,7 @@ FN(update_plane) {
 FN(vmc_force) {
     BEGIN(vmc_force, 23);
     IN_I(0, ref, 0); INT(1, nr);
-    RANGE(nr > 0 && nr <= A.v[A.n - 1].len / 8, "nr must be in 1..len(ref)");
-    for (i64 j = 0; j < nr; j++) RANGE(ref[j] >= 0 && ref[j] < 4, "ref: legs 0-3");
+    LEGS(ref, nr, 1);
     IN_F(2, contact, 12); IN_F(3, pb, 3); IN_F(4, vb, 3); DOUBLE(5, cy); DOUBLE(6, sy);
     DOUBLE(7, z_error); DOUBLE(8, max_err); IN_F(9, v_cmd, 2); IN_F(10, kp, 3);
     IN_F(11, kd, 3); IN_F(12, kff, 3); FLAG(13, integrate); DOUBLE(14, ki); DOUBLE(15, lim);
@@ -203,8 +213,7 @@ FN(vmc_moment) {
 FN(heading_qp_inputs) {
     BEGIN(heading_qp_inputs, 11);
     IN_I(0, support, 0); INT(1, ns);
-    RANGE(ns >= 0 && ns <= A.v[A.n - 1].len / 8 && ns <= 4, "ns exceeds support");
-    for (i64 j = 0; j < ns; j++) RANGE(support[j] >= 0 && support[j] < 4, "support: legs 0-3");
+    LEGS(support, ns, 0);
     IN_F(2, contact, 12); IN_F(3, com, 3); IN_F(4, Jc, 36); IN_F(5, gleg, 12);
     DOUBLE(6, cy); DOUBLE(7, sy); OUT_F(8, rh, 3 * ns); OUT_F(9, Jh, 9 * ns);
     OUT_F(10, gh, 3 * ns);
@@ -215,8 +224,7 @@ FN(heading_qp_inputs) {
 FN(support_torques) {
     BEGIN(support_torques, 9);
     IN_I(0, support, 0); INT(1, ns);
-    RANGE(ns >= 0 && ns <= A.v[A.n - 1].len / 8 && ns <= 4, "ns exceeds support");
-    for (i64 j = 0; j < ns; j++) RANGE(support[j] >= 0 && support[j] < 4, "support: legs 0-3");
+    LEGS(support, ns, 0);
     IN_F(2, fh, 3 * ns); DOUBLE(3, cy); DOUBLE(4, sy); IN_F(5, Jc, 36); IN_F(6, gleg, 12);
     OUT_F(7, fdes, 12); OUT_F(8, tau, 12);
     support_torques(support, ns, fh, cy, sy, Jc, gleg, fdes, tau);
