@@ -1,8 +1,8 @@
 """Builds the small C extension modules outside the physics: the controller's kernels
 (``starleth_controller._kernels``, sources in starleth_controller/csrc) and sim_node's
 command decoder (``starleth_sim.ros._cdr``, starleth_sim/ros/csrc), with the flags of the
-physics kernels (starleth_sim/physics/kernel_build.py; test_install_layout checks they are
-the same): no flag may change a floating-point result (``-ffp-contract=off``, no
+physics kernels (starleth_sim/physics/kernel_build.py; test_install_layout checks that they
+generate code alike): no flag may change a floating-point result (``-ffp-contract=off``, no
 ``-ffast-math``), so the results are those of the Python arithmetic they implement.
 
 One build for every way the packages are installed: ``setup.py`` builds each `Extension`
@@ -35,7 +35,7 @@ SUFFIX = sysconfig.get_config_var("EXT_SUFFIX") or ".so"
 DIGEST_SUFFIX = ".digest"
 ARCH = os.environ.get("STARLETH_KERNEL_ARCH", "native")
 FLAGS = ("-std=gnu11", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fPIC",
-         "-fvisibility=hidden", "-Wall") + ((f"-march={ARCH}",) if ARCH else ())
+         "-fvisibility=hidden", "-Wall", "-Wextra") + ((f"-march={ARCH}",) if ARCH else ())
 
 
 class BuildError(RuntimeError):
