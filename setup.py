@@ -67,12 +67,13 @@ class BuildKernels(build_ext):
 KERNELS = Extension('starleth_sim.physics._kernels',
                     sources=sorted(glob('starleth_sim/physics/csrc/*.c')),
                     depends=sorted(glob('starleth_sim/physics/csrc/*.h')))
-#: the controller's kernels and sim_node's command parsers (starleth_interface.c_extension)
+#: the controller's kernels and sim_node's command parsers (starleth_interface.c_extension:
+#: the sources in csrc/ of the module's package)
 SMALL_EXTENSIONS = [
     Extension(module, sources=sorted(glob(f'{csrc}/*.c')),
               depends=sorted(glob(f'{csrc}/*.h') + glob('starleth_interface/csrc/*.h')))
-    for module, csrc in (('starleth_controller._kernels', 'starleth_controller/csrc'),
-                         ('starleth_sim.ros._cdr', 'starleth_sim/ros/csrc'))]
+    for module in _c_extension().EXTENSIONS
+    for csrc in [module.rpartition('.')[0].replace('.', '/') + '/csrc']]
 
 setup(
     name=package_name,

@@ -23,12 +23,8 @@ The swing parameters (controller._swing_parameters) are laid out as ``SW_*``.
 """
 from __future__ import annotations
 
-import os
-
 from starleth_interface import c_extension
 
-_kernels = c_extension.load(__package__ + "._kernels",
-                            os.path.join(os.path.dirname(os.path.abspath(__file__)), "csrc"),
-                            "the controller's kernels")
+_kernels = c_extension.load(__package__ + "._kernels")
 globals().update({name: getattr(_kernels, name) for name in dir(_kernels)
                   if not name.startswith("__")})

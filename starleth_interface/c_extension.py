@@ -20,6 +20,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import importlib
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -34,6 +35,9 @@ SHARED_INCLUDE = os.path.join(HERE, "csrc")
 SUFFIX = sysconfig.get_config_var("EXT_SUFFIX") or ".so"
 DIGEST_SUFFIX = ".digest"
 ARCH = os.environ.get("STARLETH_KERNEL_ARCH", "native")
+#: the extensions built here: module -> what it is (its sources: csrc/ in its package)
+EXTENSIONS = {"starleth_controller._kernels": "the controller's kernels",
+              "starleth_sim.ros._cdr": "sim_node's command parsers"}
 FLAGS = ("-std=gnu11", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fPIC",
          "-fvisibility=hidden", "-Wall", "-Wextra") + ((f"-march={ARCH}",) if ARCH else ())
 
@@ -60,6 +64,19 @@ def python_include() -> str:
         raise BuildError(f"Python.h not found in {inc}: install Python's headers (e.g. `sudo "
                          f"apt install python{sys.version_info[0]}.{sys.version_info[1]}-dev`)")
     return inc
+
+
+def csrc_of(module: str) -> str:
+    """The sources' directory of the extension `module`: csrc/ in its package (found
+    without importing the package)."""
+    spec = importlib.util.find_spec(module.rpartition(".")[0])
+    return os.path.join(spec.submodule_search_locations[0], "csrc")
+
+
+def module_path(module: str) -> str:
+    """Where a source checkout keeps the built `module`: in its package."""
+    return os.path.join(os.path.dirname(csrc_of(module)),
+                        module.rpartition(".")[2] + SUFFIX)
 
 
 def sources(csrc: str) -> list[str]:
@@ -147,14 +164,12 @@ def ensure_built(csrc: str, path: str, what: str, stream=None) -> bool:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def load(module: str, csrc: str, what: str):
-    """The extension module `module` (a dotted name whose package directory holds it), built
-    first from csrc where that is a source checkout's (ensure_built). Raises ImportError
-    with the reason."""
-    package, _, name = module.rpartition(".")
-    path = os.path.join(os.path.dirname(csrc), name + SUFFIX)
+def load(module: str):
+    """The extension `module` (of EXTENSIONS), built first where its package is a source
+    checkout's (ensure_built). Raises ImportError with the reason."""
+    what = EXTENSIONS[module]
     try:
-        ensure_built(csrc, path, what)
+        ensure_built(csrc_of(module), module_path(module), what)
     except BuildError as e:
         raise ImportError(f"{what} (C) could not be built: {e}") from None
     try:

@@ -36,8 +36,8 @@ def test_a_unit_builds_a_module_that_loads_with_its_functions(tmp_path):
     for unit, functions in (("controller", ("leg_kinematics", "position_controlled_torques")),
                             ("ros-codec", ("parse_joint_command", "parse_effort_array"))):
         P.compile_unit(unit, str(tmp_path))
-        module, csrc, _ = P.EXTENSIONS[unit]
-        name = module.rpartition(".")[2]
+        module = P.MODULES[unit]
+        csrc, name = c_extension.csrc_of(module), module.rpartition(".")[2]
         path = tmp_path / (name + c_extension.SUFFIX)
         assert (tmp_path / (path.name + c_extension.DIGEST_SUFFIX)).read_text().strip() == \
             c_extension.source_digest(csrc)
@@ -51,9 +51,8 @@ def test_cold_builds_every_unit_and_leaves_the_modules_in_use(capsys):
     """--cold: every unit into a temporary build directory (removed after), each unit's
     seconds and the total printed; the modules in use are left as they were."""
     from starleth_sim.physics import kernel_build
-    in_use = [kernel_build.inplace_path()] + [
-        os.path.join(os.path.dirname(csrc), module.rpartition(".")[2] + c_extension.SUFFIX)
-        for module, csrc, _ in P.EXTENSIONS.values()]
+    in_use = [kernel_build.inplace_path()] + [c_extension.module_path(m)
+                                              for m in P.MODULES.values()]
     before = [os.stat(m).st_mtime_ns if os.path.exists(m) else None for m in in_use]
     assert P.main(["--cold"]) == 0
     out = capsys.readouterr().out

@@ -24,15 +24,11 @@ source checkout). ROS-free: numpy and the parsers only.
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from starleth_interface import c_extension
 
-_cdr = c_extension.load(__package__ + "._cdr",
-                        os.path.join(os.path.dirname(os.path.abspath(__file__)), "csrc"),
-                        "sim_node's command parsers")
+_cdr = c_extension.load(__package__ + "._cdr")
 OK, FALLBACK = _cdr.OK, _cdr.FALLBACK
 #: parse_joint_command(buf, names, names_ptr, effort) -> (status, sec, nanosec): a
 #: sensor_msgs/JointState command in CDR bytes, OK when the names are exactly `names`

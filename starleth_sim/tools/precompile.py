@@ -35,14 +35,8 @@ from ..physics import kernel_build, kernels
 #: (unit, rough cold seconds on a 2-core machine), the longest first
 UNITS = (("physics", 2.0), ("controller", 0.7), ("ros-codec", 0.3))
 ESTIMATE = dict(UNITS)
-#: the C extensions outside the physics: unit -> (module, its csrc, what it is)
-_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-EXTENSIONS = {
-    "controller": ("starleth_controller._kernels",
-                   os.path.join(_ROOT, "starleth_controller", "csrc"), "the controller's kernels"),
-    "ros-codec": ("starleth_sim.ros._cdr", os.path.join(_ROOT, "starleth_sim", "ros", "csrc"),
-                  "sim_node's command parsers"),
-}
+#: the units of the C extensions outside the physics (c_extension.EXTENSIONS)
+MODULES = {"controller": "starleth_controller._kernels", "ros-codec": "starleth_sim.ros._cdr"}
 
 
 def compile_unit(unit: str, cold_dir: str | None = None) -> None:
@@ -54,13 +48,13 @@ def compile_unit(unit: str, cold_dir: str | None = None) -> None:
             kernel_build.build(os.path.join(cold_dir, kernel_build.MODULE + kernel_build.SUFFIX))
         else:
             kernels.ensure_built()      # (the import above built a stale checkout's module)
-    elif unit in EXTENSIONS:
-        module, csrc, what = EXTENSIONS[unit]
-        name = module.rpartition(".")[2] + c_extension.SUFFIX
+    elif unit in MODULES:
+        module = MODULES[unit]
+        csrc, path = c_extension.csrc_of(module), c_extension.module_path(module)
         if cold_dir is not None:
-            c_extension.build(csrc, os.path.join(cold_dir, name))
+            c_extension.build(csrc, os.path.join(cold_dir, os.path.basename(path)))
         else:
-            c_extension.ensure_built(csrc, os.path.join(os.path.dirname(csrc), name), what,
+            c_extension.ensure_built(csrc, path, c_extension.EXTENSIONS[module],
                                      stream=io.StringIO())
     else:
         raise ValueError(f"unknown unit {unit!r}: one of {', '.join(u for u, _ in UNITS)}")
