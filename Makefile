@@ -76,10 +76,9 @@ $(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
 	@touch $@
 
 # Per-run ROS_DOMAIN_ID (10..99) so concurrent runs on one host do not cross-talk.
-# First the kernels ready (starleth-precompile: the C physics kernels, built with the venv,
-# and the controller's and the ROS codec's numba kernels into numba's on-disk cache, about
-# 15 s the first time, then a second or two): else both pytest workers would compile the same
-# kernels side by side. Then two passes (test/conftest.py says which test goes where):
+# First the kernels ready (starleth-precompile: the three C extensions of a source checkout,
+# the physics kernels, the controller's kernels and sim_node's command parsers, a few seconds
+# the first time, then nothing): else both pytest workers would wait for the same build. Then two passes (test/conftest.py says which test goes where):
 # pass 1 on two pytest-xdist workers, one running the tests that start ROS nodes one after
 # another while the other runs the CPU-bound tests file by file; pass 2, the tests marked
 # serial (rates, deadlines, latencies, a browser), one at a time with nothing beside them.
@@ -116,8 +115,8 @@ demo: venv
 	fi
 
 # starleth-bench, then the side-by-side comparison with MuJoCo (requirements-bench.txt, an
-# optional dependency installed here only), then what a first run compiles, from an empty
-# cache (starleth-precompile --cold: each unit's seconds and the total)
+# optional dependency installed here only), then what a fresh clone's first run builds
+# (starleth-precompile --cold: each unit's seconds and the total)
 bench: venv
 	$(PIP) install -r requirements-bench.txt
 	$(VENV)/bin/starleth-bench

@@ -19,11 +19,25 @@ def _kernel_build():
     return module
 
 
+def _c_extension():
+    """starleth_interface/c_extension.py (the build of the controller's kernels and of
+    sim_node's command parsers), loaded by path like the physics' kernels/build.py."""
+    path = os.path.join(HERE, 'starleth_interface', 'c_extension.py')
+    spec = importlib.util.spec_from_file_location('_starleth_c_extension', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 class BuildKernels(build_ext):
-    """Builds the physics kernels (C) with starleth_sim.physics.kernels.build: the flags
-    that keep their results bit for bit, the same build as a source checkout's."""
+    """Builds the C extensions: the physics kernels with starleth_sim.physics.kernels.build, the controller's
+    kernels and sim_node's command parsers with starleth_interface/c_extension.py (the same
+    flags, which keep the results bit for bit); the same builds as a source checkout's."""
 
     def build_extension(self, ext):
+        if ext.name != KERNELS.name:
+            self._build_small(ext)
+            return
         kb = _kernel_build()
         out = self.get_ext_fullpath(ext.name)
         seconds = kb.build(out)
@@ -37,15 +51,35 @@ class BuildKernels(build_ext):
                 g.write(f.read())
 
 
+    def _build_small(self, ext):
+        ce = _c_extension()
+        out = self.get_ext_fullpath(ext.name)
+        csrc = os.path.join(HERE, os.path.dirname(ext.sources[0]))
+        seconds = ce.build(csrc, out)
+        print(f'built {ext.name} ({out}) in {seconds:.1f} s')
+        if getattr(self, 'editable_mode', False) and not self.inplace:
+            # (the module's digest beside its in-place copy: c_extension.load sees it current)
+            target = os.path.join(os.path.dirname(csrc), os.path.basename(out))
+            with open(out + ce.DIGEST_SUFFIX) as f, open(target + ce.DIGEST_SUFFIX, 'w') as g:
+                g.write(f.read())
+
+
 KERNELS = Extension('starleth_sim.physics.kernels._kernels',
                     sources=sorted(glob('starleth_sim/physics/csrc/*.c')),
                     depends=sorted(glob('starleth_sim/physics/csrc/*.h')))
+#: the controller's kernels and sim_node's command parsers (starleth_interface.c_extension:
+#: the sources in csrc/ of the module's package)
+SMALL_EXTENSIONS = [
+    Extension(module, sources=sorted(glob(f'{csrc}/*.c')),
+              depends=sorted(glob(f'{csrc}/*.h') + glob('starleth_interface/csrc/*.h')))
+    for module in _c_extension().EXTENSIONS
+    for csrc in [module.rpartition('.')[0].replace('.', '/') + '/csrc']]
 
 setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    ext_modules=[KERNELS],
+    ext_modules=[KERNELS, *SMALL_EXTENSIONS],
     cmdclass={'build_ext': BuildKernels},
     package_data={package_name: ['tools/view_page.html']},   # starleth-view's page template
     data_files=[
@@ -65,7 +99,6 @@ setup(
         'numpy',
         'pyyaml',
         'pin',
-        'numba',        # the controller's and the ROS codec's kernels (the physics is C)
         'mcap',
         'mcap-ros2-support',
         'matplotlib',

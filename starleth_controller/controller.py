@@ -2,7 +2,7 @@
 ("Control of dynamic gaits for a quadrupedal robot") and its open-source descendant loco.
 
 No ROS: ``StarlethController.update(state, command) -> 12 joint torques``; the per-call
-arithmetic of the steps below runs in numba kernels (kernels.py) that keep the order of
+arithmetic of the steps below runs in C kernels (kernels.py: csrc/) that keep the order of
 operations of the formulas written here (results bit for bit those of plain Python); the
 search for the ground of a foot without contact is plain Python (step_down.py).
 
@@ -35,7 +35,7 @@ Structure (one call = one control period):
 Additions of ours to loco's scheme (each a parameter, documented in ControllerParams):
 joint-torque rows in the force QP, a velocity integral in the trotting VMC, a yaw P gain,
 default footholds shifted towards the knees, the ground plane of the feet's last footholds
-(ground_plane.py), the gait's wait for a foot searching the ground (step_down.py), and a
+(csrc/ground_plane.c), the gait's wait for a foot searching the ground (step_down.py), and a
 "fallen" mode (beyond 0.8 rad of tilt the controller stops balancing and holds a compact
 posture; it stands again once upright).
 """
@@ -49,7 +49,6 @@ import numpy as np
 import pinocchio as pin
 
 from . import kernels as K
-from .ground_plane import update_plane
 from .force_distribution import ContactForceDistribution
 from .inputs import MODES, Command, ControllerParams, RobotState, VMCGains
 from .model import RobotModel
@@ -462,10 +461,10 @@ class StarlethController:
         """The ground under the trunk: low-pass (0.05 per call) of the mean height of the
         support feet's contact points (kernels.ground_estimate), the reference of the trunk
         height; and the ground plane through where each foot last stood (the support feet's
-        contact points, ground_plane.update_plane), the height expected under a foothold."""
+        contact points, kernels.update_plane), the height expected under a foothold."""
         self._ground = K.ground_estimate(self._ground, self._contact, self._support_idx,
                                          len(support))
-        update_plane(self._contact, self._support_idx, len(support), self._stood, self._plane)
+        K.update_plane(self._contact, self._support_idx, len(support), self._stood, self._plane)
 
     def _search_ground(self, x: _Sample, trotting):
         """The trunk's height reference, its ground + height (trot_height while trotting,
@@ -556,7 +555,7 @@ class StarlethController:
         """Step 4: the legs not in support (swing, lost contact, in the air while standing)
         follow a foot target by analytic IK and joint PD with gravity feed-forward into τ
         (kernels.position_controlled_torques): a swing leg from its lift-off offset to the
-        inverted-pendulum foothold (kernels.swing_target), a leg that lost its contact its
+        inverted-pendulum foothold (csrc/kernels.c: swing_target), a leg that lost its contact its
         target searching the ground (_search_ground)."""
         m = self.model
         K.position_controlled_torques(

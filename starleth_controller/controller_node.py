@@ -116,7 +116,6 @@ from .node_parameters import (PARAMETERS, PARAMETERS_BY_NAME, check_parameters,
                               default_wrench_topics)
 from .side_inputs import SideInputs
 from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
-from .warmup import compile_kernels
 
 _sum = np.add.reduce     # = ndarray.sum, without its wrapper (a finite sum: all finite)
 
@@ -185,10 +184,8 @@ class ControllerNode(Node):
         self.timing = None                # a CycleTimes, set by benchmarks
         self._array_msg = Float64MultiArray()
 
-        # the robot (a bad one: one line, before anything compiles), then the kernels before
-        # the first state (a first run after an install compiles them)
+        # the robot (a bad one: one line)
         model = None if p["robot_description"] else self._robot_model(p)
-        compile_kernels(self.log.info, self._assembler.threshold)
 
         # the model (its joint names, feet and size: the command template, the wrench topics)
         wrench_topics = p["foot_wrench_topics"]
@@ -587,7 +584,7 @@ def main(args=None):
         except ValueError as e:
             print(f"controller_node: configuration error: {e}", file=sys.stderr)
             return 2
-        capture_python_warnings(node.log)   # numpy's, numba's warnings: the node's log
+        capture_python_warnings(node.log)   # numpy's warnings: the node's log
         executor, kind = make_executor(node.executor_kind, node.context)
         executor.add_node(node)
         node.log.info(f"executor: {kind}; ready")

@@ -3,7 +3,7 @@ slot of a stamp (``StateSlot``: joint state, base state and foot forces as they 
 the ``RobotState`` read from a complete one (``StateAssembler``).
 
 The common case (12 finite joints, finite values below 1e100, a quaternion of squared norm
-in (0.5, 2)) is read by one numba kernel (``kernels.node_state``) into fresh arrays; anything
+in (0.5, 2)) is read by one C kernel (``kernels.node_state``) into fresh arrays; anything
 else is checked value by value with the same arithmetic, which gives the reason of a
 rejection: a message with NaN/inf values, missing joints or wrong array sizes is never
 passed on to the controller. No rclpy.

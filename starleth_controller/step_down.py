@@ -10,7 +10,7 @@ below the expected height, never beyond the leg's reach (the HFE-to-foot distanc
 leg_reach of the stretched leg):
 
 - trotting, above the foothold its swing aimed at, below the height the ground plane
-  expected there (ground_plane.py), at step_down_speed to step_down_depth;
+  expected there (csrc/ground_plane.c), at step_down_speed to step_down_depth;
 - standing, under its hip, below the trunk's ground, at lost_contact_speed to
   lost_contact_depth.
 

@@ -24,7 +24,7 @@ a uint32 length (with the terminating NUL) + bytes, aligned to 4 relative to byt
 sequences a uint32 count, then the elements aligned to their size; padding bytes are not
 zeroed, so only the fields are compared, never the padding.
 
-rclpy only (no numba): shared by sim_node and controller_node.
+rclpy only (no compiled code): shared by sim_node and controller_node.
 """
 from __future__ import annotations
 

@@ -396,7 +396,7 @@ def route_python_logging(ros_logger, names=("starleth_sim", "starleth_controller
 
 
 def capture_python_warnings(ros_logger):
-    """Python ``warnings`` (numpy's, numba's...) of this process through the rclpy
+    """Python ``warnings`` (numpy's, pinocchio's...) of this process through the rclpy
     `ros_logger` instead of bare lines on stderr (``logging.captureWarnings``: process-wide,
     for a node's console script)."""
     logging.captureWarnings(True)

@@ -91,8 +91,8 @@ class RosTestNode:
 
     def spin_until(self, cond, timeout, procs=(), step=0.01):
         """Spin until cond() (True) or timeout (False); a dead process of procs fails. The
-        timeout counts silence: a compile line in the log of one of procs (CompileNotice, a
-        first run compiling kernels) restarts it."""
+        timeout counts silence: a build line in the log of one of procs (a source checkout
+        building its C kernels: compile_notice.shows_compiling) restarts it."""
         deadline = Deadline(timeout, [p.log_path for p in procs])
         while True:
             if cond():

@@ -10,7 +10,10 @@ separately (it ends the run).
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -503,3 +506,79 @@ def test_controller_does_not_import_the_simulator():
             "assert not any(m.startswith('starleth_sim') for m in sys.modules), "
             "[m for m in sys.modules if m.startswith('starleth_sim')]")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# -- the torques pinned bit for bit (the C kernels gave the numba kernels' torques) --------
+TORQUES_REFERENCE = os.path.join(os.path.dirname(__file__), "data", "controller_torques.json")
+
+
+def ledge_torques():
+    """SHA-256 of the controller's torques and desired forces (float64 bytes, chained) over
+    1 s of stand and 5 s of trot off the ledge course (HmJ): support legs (the QP), swing
+    legs (IK, the damped foot-velocity solve) and feet searching the ground below the ledge;
+    and how many calls had each leg state."""
+    from starleth_sim.tools.demo_terrain import course_terrain
+    sim = Simulator.from_preset("HmJ", **course_terrain("ledge"))
+    ctrl = StarlethController(urdf_path())
+    h = hashlib.sha256()
+    seen = {"support": 0, "swing": 0, "lost_contact": 0}
+    for _ in range(6 * RATE):
+        st = RobotState.from_simulator(sim)
+        st.foot_contact = None                  # contact from the forces, as the node does
+        tau = ctrl.update(st, Command("stand") if sim.t < 1.0 else Command("trot", forward=0.3))
+        h.update(tau.tobytes())
+        h.update(ctrl.desired_forces.tobytes())
+        for name in ctrl.info["leg_state"]:
+            seen[name] += 1
+        sim.step(tau)
+    return h.hexdigest(), seen
+
+
+def test_the_controller_torques_are_unchanged_bit_for_bit():
+    """The torques of a trot off the ledge, pinned (test/data/controller_torques.json,
+    recorded when the C kernels replaced the numba kernels and gave their torques on 23,200
+    closed-loop calls): on the reference platform (test_bitexact.platform_fingerprint, and
+    the same proxsuite) bit for bit; elsewhere only the leg states are compared."""
+    import proxsuite
+    from test_bitexact import platform_fingerprint
+    with open(TORQUES_REFERENCE) as f:
+        ref = json.load(f)
+    digest, seen = ledge_torques()
+    assert all(seen.values()), seen            # every leg state was exercised
+    if platform_fingerprint() == ref["platform"] and proxsuite.__version__ == ref["proxsuite"]:
+        assert digest == ref["digest"], "the controller's torques changed"
+    else:
+        print(f"bit-for-bit check skipped: platform {platform_fingerprint()}")
+
+
+def test_the_kernels_refuse_arrays_of_the_wrong_size_in_one_line():
+    """A binding given an array too small for what it writes: a ValueError naming the
+    function and the argument, nothing written out of bounds."""
+    m = RobotModel(urdf_path())
+    with pytest.raises(ValueError, match="leg_kinematics: Jc has 9 items, 36 needed"):
+        K.leg_kinematics(np.zeros(12), np.eye(3), np.zeros(3), m.hip, m.geometry,
+                         np.zeros((4, 3)), np.zeros((4, 3)), np.zeros((4, 3, 3)),
+                         np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="read_state: R must be a C-contiguous, writable"):
+        K.read_state(np.zeros(12), np.zeros(12), np.zeros(3), np.array([0, 0, 0, 1.0]),
+                     np.zeros(3), np.zeros(3), np.zeros(4), np.eye(3)[:, :2].T)
+
+
+def main(argv):
+    """python test/test_controller.py --write-torques: records TORQUES_REFERENCE."""
+    if argv != ["--write-torques"]:
+        print(main.__doc__)
+        return 2
+    import proxsuite
+    from test_bitexact import platform_fingerprint
+    digest, seen = ledge_torques()
+    with open(TORQUES_REFERENCE, "w") as f:
+        json.dump({"platform": platform_fingerprint(), "proxsuite": proxsuite.__version__,
+                   "digest": digest, "leg_states": seen}, f, indent=1)
+        f.write("\n")
+    print(f"wrote {TORQUES_REFERENCE}: {digest[:12]} {seen}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

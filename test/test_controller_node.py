@@ -40,7 +40,6 @@ from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
-from starleth_interface.compile_notice import SLOW_COMPILE_ENV  # noqa: E402
 from starleth_interface.state_bundle import LABEL, StateBundleCdr  # noqa: E402
 from starleth_sim.physics.simulator import Simulator  # noqa: E402
 from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
@@ -104,32 +103,6 @@ def test_a_service_call_whose_response_is_lost_is_sent_again():
     with pytest.raises(DemoError, match="timeout"):
         _call(Executor(), never, "go", 0.2, [], "pause", retry_every=0.05)
     assert 3 <= len(never.requests) <= 5
-
-
-@pytest.mark.serial   # deadlines
-def test_start_up_timeouts_count_silence_not_compilation(tmp_path, monkeypatch):
-    """A first run on a slow machine, stood in for by STARLETH_TEST_SLOW_COMPILE (every
-    compile block of the nodes 8 s longer) with a start-up time-out of 5 s: the nodes say
-    they compile (CompileNotice: at once, again while it lasts, and how long it took), the
-    demo shows their compile lines and counts its time-out from the last one, and the run
-    goes through."""
-    monkeypatch.setenv(SLOW_COMPILE_ENV, "8")
-    lines = []
-    r = run_demo(stand=0.5, trot=0.0, speed=0.0, physics="HmJ", record=str(tmp_path / "d.mcap"),
-                 domain_id=DOMAIN_ID, echo=lines.append, startup_timeout=5.0,
-                 run_timeout=120.0, bare_seconds=0.0, precompile_first=False)
-    report = "\n".join(lines)
-    assert r.exit_codes == {"controller_node": 0, "sim_node": 0}, report
-    assert r.joint_states > 0 and r.complete, report
-    assert any("compiling" in line for line in lines), report      # the demo showed them
-    for node, what in (("controller_node", "the controller's kernels"),
-                       ("sim_node", "sim_node's command parsers")):
-        with open(r.logs[node]) as f:
-            log = f.read()
-        assert f"compiling {what} (numba" in log, log
-        assert f"still compiling {what}: " in log, log
-        took = float(log.split(f"{what}: compiled in ")[1].split(" s")[0])
-        assert took >= 8.0, log
 
 
 #: sim seconds of trot in the demo test: make demo (CI runs it before the tests) checks the

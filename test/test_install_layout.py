@@ -211,3 +211,30 @@ def test_the_installed_package_steps_with_its_built_kernels(prefix, tmp_path):
     assert not os.path.exists(os.path.join(os.path.dirname(kernels), "csrc"))
     assert 0.3 < float(z) < 0.5
     assert "building the physics kernels" not in r.stderr
+
+
+def test_the_installed_controller_kernels_and_command_parsers_load_their_built_modules(
+        prefix, tmp_path):
+    """setup.py builds the controller's kernels and sim_node's command parsers (C) into the
+    install too; the installed package loads them without building anything."""
+    code = ("import starleth_controller.kernels as k, starleth_sim.ros.cdr as c;"
+            "print(k._kernels.__file__); print(c._cdr.__file__);"
+            "print(c.CommandDecoder(['a']).effort_array(bytes(16))[0])")
+    r = _run_installed(prefix, tmp_path, code)
+    controller, parsers, ok = r.stdout.split()
+    assert controller.startswith(str(prefix)) and parsers.startswith(str(prefix))
+    assert ok == "False"        # 16 zero bytes: not a command, decoded as such
+    assert "compiling" not in r.stderr
+
+
+def test_the_small_extensions_build_with_the_physics_flags():
+    """starleth_interface.c_extension (the controller, the command parsers) compiles with
+    kernel_build's code-generation flags (warnings aside): no contraction, no reassociation,
+    the same target."""
+    from starleth_interface import c_extension
+    from starleth_sim.physics.kernels import build as kernel_build
+
+    def code_flags(flags):
+        return [f for f in flags if not f.startswith("-W")]
+    assert code_flags(c_extension.FLAGS) == code_flags(kernel_build.FLAGS)
+    assert c_extension.ARCH == kernel_build.ARCH

@@ -31,7 +31,6 @@ ROS_LIBRARIES = {"rclpy", "rcl_interfaces", "ament_index_python"}
 #: declared in package.xml: their rosdep keys are missing or not uniform across platforms
 PIP_ONLY = {
     "pinocchio": "pip wheel `pin` (the ROS package is built differently per distribution)",
-    "numba": "pip: no python3-numba key on every platform rosdep supports",
     "mcap": "pip `mcap`: no rosdep key",
     "mcap_ros2": "pip `mcap-ros2-support`: no rosdep key",
     "meshcat": "pip: starleth-view only, no rosdep key",

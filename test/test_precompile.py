@@ -1,13 +1,14 @@
-"""starleth-precompile (tools/precompile.py): makes the kernels ready in parallel processes
-(the C physics kernels, the controller's and the ROS codec's numba kernels into numba's
-on-disk cache), so that processes started later only load them; --cold measures a first run
-without touching the caches in use; a progress line says what compiles."""
-import glob
+"""starleth-precompile (tools/precompile.py): makes the C extensions ready side by side (the
+physics kernels, the controller's kernels, sim_node's command parsers), so that processes
+started later only load them; --cold measures a fresh clone's build without touching the
+modules in use; a progress line says what builds."""
+import importlib.util
 import io
 import os
 
 import pytest
 
+from starleth_interface import c_extension
 from starleth_sim.tools import precompile as P
 
 
@@ -29,72 +30,65 @@ def test_every_unit_is_known_and_the_command_line_rejects_the_rest(capsys):
     assert e.value.code == 2 and "--jobs must be at least 1" in capsys.readouterr().err
 
 
-def test_worker_processes_write_the_cache_that_later_processes_load(tmp_path, monkeypatch):
-    """The workers are fresh interpreters (spawn): they compile into the cache directory of
-    the environment (here an empty NUMBA_CACHE_DIR, read by each worker's numba at import),
-    and each unit is reported, with a line as it starts (not a terminal)."""
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    out = io.StringIO()
-    wall, failed = P.precompile(jobs=2, units=["ros-codec", "physics"], stream=out)
-    assert failed == [] and wall > 0
-    lines = out.getvalue().splitlines()
-    assert sorted(line.split()[0] for line in lines if "compiling" not in line) == \
-        ["physics", "ros-codec"]
-    assert sum("compiling" in line for line in lines) == 2
-    for kernel in ("parse_joint_command", "parse_effort_array"):
-        assert glob.glob(str(tmp_path / "**" / f"cdr.{kernel}-*.nbi"), recursive=True), kernel
-        assert glob.glob(str(tmp_path / "**" / f"cdr.{kernel}-*.nbc"), recursive=True), kernel
+def test_a_unit_builds_a_module_that_loads_with_its_functions(tmp_path):
+    """compile_unit into a directory (--cold's): the module file and its digest, and the
+    module loads with the functions its Python side uses."""
+    for unit, functions in (("controller", ("leg_kinematics", "position_controlled_torques")),
+                            ("ros-codec", ("parse_joint_command", "parse_effort_array"))):
+        P.compile_unit(unit, str(tmp_path))
+        module = P.MODULES[unit]
+        csrc, name = c_extension.csrc_of(module), module.rpartition(".")[2]
+        path = tmp_path / (name + c_extension.SUFFIX)
+        assert (tmp_path / (path.name + c_extension.DIGEST_SUFFIX)).read_text().strip() == \
+            c_extension.source_digest(csrc)
+        spec = importlib.util.spec_from_file_location(name, path)
+        loaded = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(loaded)
+        assert all(callable(getattr(loaded, f)) for f in functions), unit
 
 
-def test_cold_compiles_into_an_empty_cache_and_leaves_the_one_in_use(tmp_path, monkeypatch,
-                                                                     capsys):
-    """--cold: every unit into a temporary NUMBA_CACHE_DIR and build directory (removed
-    after), each unit's seconds and the total printed; the cache of the environment and the
-    built physics module are left as they were."""
+def test_cold_builds_every_unit_and_leaves_the_modules_in_use(capsys):
+    """--cold: every unit into a temporary build directory (removed after), each unit's
+    seconds and the total printed; the modules in use are left as they were."""
     from starleth_sim.physics.kernels import build as kernel_build
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    module = kernel_build.inplace_path()
-    before = os.stat(module).st_mtime_ns if os.path.exists(module) else None
-    assert P.main(["--cold", "ros-codec", "physics"]) == 0
+    in_use = [kernel_build.inplace_path()] + [c_extension.module_path(m)
+                                              for m in P.MODULES.values()]
+    before = [os.stat(m).st_mtime_ns if os.path.exists(m) else None for m in in_use]
+    assert P.main(["--cold"]) == 0
     out = capsys.readouterr().out
     assert "cold compilation" in out and "total" in out
-    for unit in ("ros-codec", "physics"):
+    for unit, _ in P.UNITS:
         assert any(line.split()[:1] == [unit] and line.rstrip().endswith(" s")
                    for line in out.splitlines()), (unit, out)
-    assert os.listdir(tmp_path) == []           # the real cache: untouched
-    after = os.stat(module).st_mtime_ns if os.path.exists(module) else None
-    assert after == before
-    assert os.environ["NUMBA_CACHE_DIR"] == str(tmp_path)
+    assert [os.stat(m).st_mtime_ns if os.path.exists(m) else None for m in in_use] == before
 
 
 def test_the_progress_line_says_what_compiles_and_for_how_long():
     """On a terminal: one line rewritten in place ("compiling kernels: <unit> <s> s (<s> of
     about <s> s)"), each finished unit on a line of its own; the estimate is the longest
-    processing time first over the processes."""
+    processing time first over the jobs."""
     out = Terminal()
-    prog = P.Progress(out, ["controller", "ros-codec", "physics"], jobs=2)
-    assert prog.estimate == max(P.ESTIMATE["controller"],
-                                P.ESTIMATE["ros-codec"] + P.ESTIMATE["physics"])
+    prog = P.Progress(out, ["physics", "controller", "ros-codec"], jobs=2)
+    assert prog.estimate == max(P.ESTIMATE["physics"],
+                                P.ESTIMATE["controller"] + P.ESTIMATE["ros-codec"])
     prog.begin()
     text = out.getvalue()
-    assert "\rcompiling kernels: controller 0 s, ros-codec 0 s" in text.replace("\033[K", "")
-    prog.done("ros-codec", 2.5, None)
-    prog.done("controller", 9.0, None)
-    prog.done("physics", 3.0, "BuildError: no C compiler")
+    assert "\rcompiling kernels: physics 0 s, controller 0 s" in text.replace("\033[K", "")
+    prog.done("controller", 0.7, None)
+    prog.done("physics", 2.5, None)
+    prog.done("ros-codec", 3.0, "BuildError: no C compiler")
     prog.end()
     text = out.getvalue().replace("\033[K", "")
-    assert "physics 0 s" in text                # started when ros-codec finished
-    assert "  controller     9.0 s" in text and "FAILED: BuildError: no C compiler" in text
+    assert "ros-codec 0 s" in text              # started when controller finished
+    assert "  physics        2.5 s" in text and "FAILED: BuildError: no C compiler" in text
 
 
-def test_a_failing_unit_is_reported_and_fails_the_command(tmp_path, monkeypatch, capsys):
-    """No C compiler (CC names one that fails): the physics unit reports the build error,
-    the other units still run, and the command exits with status 1 (make test goes on to
-    the tests, which then say what is wrong)."""
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+def test_a_failing_unit_is_reported_and_fails_the_command(monkeypatch, capsys):
+    """No C compiler (CC names one that fails): each unit reports the build error and the
+    command exits with status 1 (make test goes on to the tests, which then say what is
+    wrong)."""
     monkeypatch.setenv("CC", "false")
-    assert P.main(["--cold", "--jobs", "1", "physics", "ros-codec"]) == 1
+    assert P.main(["--cold", "--jobs", "1", "ros-codec", "controller"]) == 1
     out = capsys.readouterr()
-    assert "physics" in out.out and "FAILED: BuildError" in out.out
-    assert "ros-codec" in out.out
-    assert "1 unit(s) failed" in out.err and "physics" in out.err
+    assert out.out.count("FAILED: BuildError") == 2
+    assert "2 unit(s) failed" in out.err and "ros-codec" in out.err

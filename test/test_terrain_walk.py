@@ -1,6 +1,6 @@
 """The controller trots over terrain, headless: controller + Simulator in one process, physics
 HmJ (hard contacts). The controller knows nothing of the terrain: it takes the ground from
-where its feet stood (starleth_controller/ground_plane.py), a foot's contact from its force
+where its feet stood (starleth_controller/csrc/ground_plane.c), a foot's contact from its force
 (> contact_force_threshold, as controller_node does), and searches the ground with a foot
 that finds none (starleth_controller/step_down.py). One run per course of
 starleth_sim/tools/demo_terrain.py (the courses of ``starleth-demo --terrain``): 1 s
@@ -26,7 +26,7 @@ from starleth_sim.tools.demo_terrain import (COURSES, PAST_EDGE, course_end, cou
 
 from starleth_controller import LEGS, Command, RobotState, StarlethController
 from starleth_controller import kernels as K
-from starleth_controller.ground_plane import update_plane
+
 
 FEET = tuple(f"{leg}_foot" for leg in LEGS)
 #: the deepest a hard contact may be inside a surface at a step's end [m]
@@ -152,22 +152,22 @@ def test_ground_plane_is_the_plane_through_the_footholds():
     xy = np.array([[0.3, 0.2], [0.3, -0.2], [-0.3, 0.2], [-0.3, -0.2]]) + [1.0, 0.5]
     contact = np.column_stack((xy, a + gx * xy[:, 0] + gy * xy[:, 1]))
     stood, plane = np.zeros((4, 3)), np.zeros(3)
-    update_plane(contact, np.arange(4), 4, stood, plane)
+    K.update_plane(contact, np.arange(4), 4, stood, plane)
     np.testing.assert_allclose(plane, [a, gx, gy], atol=1e-12)
     np.testing.assert_array_equal(stood, contact)
     # two legs in support: only their footholds move
     moved = contact + [0.1, 0.0, 0.02]
-    update_plane(moved, np.array([0, 3]), 2, stood, plane)
+    K.update_plane(moved, np.array([0, 3]), 2, stood, plane)
     np.testing.assert_array_equal(stood[[1, 2]], contact[[1, 2]])
     np.testing.assert_array_equal(stood[[0, 3]], moved[[0, 3]])
     # collinear: flat at the mean height
     line = np.array([[0.0, 0, 0.1], [0.2, 0, 0.2], [0.4, 0, 0.3], [0.6, 0, 0.4]])
-    update_plane(line, np.arange(4), 4, stood, plane)
+    K.update_plane(line, np.arange(4), 4, stood, plane)
     np.testing.assert_allclose(plane, [0.25, 0.0, 0.0], atol=1e-12)
     # steeper than MAX_SLOPE: clipped
     steep = contact.copy()
     steep[:, 2] = 2.0 * xy[:, 0]
-    update_plane(steep, np.arange(4), 4, stood, plane)
+    K.update_plane(steep, np.arange(4), 4, stood, plane)
     assert plane[1] == pytest.approx(0.5) and plane[2] == pytest.approx(0.0, abs=1e-12)
 
 

@@ -31,7 +31,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.compile_notice import CompileNotice
 from starleth_interface.ros_helpers import (StopSignals, UnknownParameterError,
                                             capture_python_warnings, check_parameter_names,
                                             declare_parameters, init_ros, make_executor,
@@ -98,9 +97,7 @@ class SimNode:
         self.context = node.context
         self.period_stats = PeriodStats(sim.control_period / max(s.real_time_factor, 1e-12))
         self.imu = ImuEstimate(self._model_gravity(), sim.control_period)
-        # (numba: compiled on a first run after an install, else loaded from its cache)
-        with CompileNotice("sim_node's command parsers", self.log.info, estimate=3.0):
-            self.decoder = CommandDecoder(sim.joint_names)
+        self.decoder = CommandDecoder(sim.joint_names)
         self.recording = NodeRecording(self.service.warnings.warn, self.log)
         self.output = TopicOutput(node, self.service, self.recording)
         self.diagnostics = SolverDiagnostics(sim, s, self.service, self.period_stats,
@@ -502,7 +499,7 @@ def main(args=None, controller_params=None):
         except (ConfigError, ValueError, OSError) as e:
             print(f"sim_node: configuration error: {e}", file=sys.stderr)
             return 2
-        capture_python_warnings(sim_node.log)   # numpy's, numba's warnings: the node's log
+        capture_python_warnings(sim_node.log)   # numpy's warnings: the node's log
         if signals.requested:
             sim_node.request_stop()
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)

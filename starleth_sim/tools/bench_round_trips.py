@@ -23,7 +23,7 @@ from ..ros.discovery import keep_discovery_local, local_discovery_env
 PING, PONG = "/starleth_bench/ping", "/starleth_bench/pong"
 
 #: the log of the benchmark's child process running now (``bench_ros`` sets it when it
-#: starts one): its compile lines (CompileNotice) restart :func:`spin_until`'s time-outs
+#: starts one): its build lines (compile_notice) restart :func:`spin_until`'s time-outs
 CHILD_LOGS: list = []
 
 
@@ -37,7 +37,7 @@ def add_pong(node):
 
 def spin_until(ex, cond, timeout):
     """Spins until cond() (True) or `timeout` s of silence (False): the child's compile
-    lines (CompileNotice, in CHILD_LOGS) restart the time-out."""
+    lines (compile_notice.shows_compiling, in CHILD_LOGS) restart the time-out."""
     deadline = Deadline(timeout, CHILD_LOGS)
     while not cond():
         if deadline.expired():

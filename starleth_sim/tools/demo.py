@@ -9,10 +9,10 @@ host only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the environment sets i
 * ``controller_node`` (starleth_controller), started right after it: sim_node re-sends its
   first state until the controller answers, so the start order does not matter.
 
-First the kernels are made ready (``starleth-precompile``: a first run after an install
-compiles the controller's numba kernels, about 10 s, with a progress line), so that the
-nodes start from the cache; a node that compiles anyway says so in its log, and the
-start-up time-out counts only silence.
+First the kernels are made ready (``starleth-precompile``: a source checkout builds its C
+extensions when they are missing or out of date, a few seconds, with a progress line), so
+that the nodes start with them built; a node that builds one anyway says so in its log,
+and the start-up time-out counts only silence.
 
 This process drives the run over ROS: it publishes /cmd_vel (0.3 m/s forward for StarlETH,
 0.3 m/s · √λ for a robot of λ times its leg length: starleth_controller.robot_params;
@@ -300,7 +300,7 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
 
         # both nodes up (in any order: sim_node re-sends its first state until the
         # controller answers it), then the first steps on /clock; the time-out counts
-        # silence: a node that says it is compiling (CompileNotice) makes progress
+        # silence: a node that says it is building its kernels makes progress
         deadline = Deadline(startup_timeout, [p.log_path for p in procs])
         shown = ""
         while not (trot_cli.service_is_ready() and cmd_pub.get_subscription_count() > 0
@@ -439,9 +439,9 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
     mode, ``sim_node --composed``) instead of two. bare_seconds > 0: first measure bare
     rclpy round trips for that long, the reference of the lockstep cycle rate.
     precompile_first: make the kernels ready first (starleth-precompile, with its progress
-    line), so that the nodes start from the cache. terrain: a course of demo_terrain.py
-    ("" flat). startup_timeout counts silence: the
-    nodes' compile lines (CompileNotice) restart it. live_port > 0: the live view's port.
+    line), so that the nodes start with them built. terrain: a course of demo_terrain.py
+    ("" flat). startup_timeout counts silence: the nodes' build lines
+    (compile_notice.shows_compiling) restart it. live_port > 0: the live view's port.
     robot: given to both nodes; speed None: the robot's trot speed (DemoRobot); a bad
     robot: ConfigError."""
     figures = DemoRobot.of(robot)

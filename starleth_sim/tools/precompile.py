@@ -1,65 +1,68 @@
 """``starleth-precompile``: makes every kernel ready before the first run needs it, and
-measures what a cold start costs (``--cold``).
+measures what a fresh clone's first run costs (``--cold``).
 
-Three units, each in a process of its own (``--jobs``, default 2):
+Three units, the C extension modules, built side by side (``--jobs``, default 2):
 
-* ``physics``: the C physics kernels (``starleth_sim.physics.kernels``). A source checkout
-  builds them when they are missing or their sources changed (a few seconds); an installed
-  package has them from its build. With ``--cold`` they are built again into a temporary
-  directory, which times a full build without touching the one in use.
-* ``controller``: the controller's numba kernels, by controller_node's own start-up
-  (``starleth_controller.warmup.compile_kernels``: the controller on synthetic states, the state
-  reader), into numba's on-disk cache.
-* ``ros-codec``: sim_node's command parsers (numba, ``ros.cdr.CommandDecoder``).
+* ``physics``: the physics kernels (``starleth_sim.physics.kernels``, kernel_build);
+* ``controller``: the controller's kernels (``starleth_controller._kernels``);
+* ``ros-codec``: sim_node's command parsers (``starleth_sim.ros._cdr``);
 
-A unit whose code is ready takes a fraction of a second, so running the tool again is cheap.
-``--cold`` compiles the numba units into an empty, temporary ``NUMBA_CACHE_DIR`` (the real
-cache is left as it is) and prints each unit's seconds and the total: the figures of a
-first run on a fresh clone.
+the last two built by starleth_interface.c_extension with the physics kernels' flags. A
+source checkout builds a module when it is missing or its sources changed (a unit whose
+module is current takes a fraction of a second); an installed package has them from its
+build. ``--cold`` builds every unit again into a temporary directory, which times a full
+build without touching the modules in use, and prints each unit's seconds and the total:
+the figures of a first run on a fresh clone.
 
-While units compile, one line (rewritten in place on a terminal; a line per unit started and
+While units build, one line (rewritten in place on a terminal; a line per unit started and
 finished otherwise) says which, for how long, and about how long they take.
 """
 from __future__ import annotations
 
 import argparse
-import multiprocessing
+import io
 import os
 import shutil
 import sys
 import tempfile
 import time
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
+from starleth_interface import c_extension
 
 from ..physics import kernels
 from ..physics.kernels import build as kernel_build
 
 #: (unit, rough cold seconds on a 2-core machine), the longest first
-UNITS = (("controller", 10.0), ("ros-codec", 3.0), ("physics", 4.0))
+UNITS = (("physics", 2.0), ("controller", 0.7), ("ros-codec", 0.3))
 ESTIMATE = dict(UNITS)
+#: the units of the C extensions outside the physics (c_extension.EXTENSIONS)
+MODULES = {"controller": "starleth_controller._kernels", "ros-codec": "starleth_sim.ros._cdr"}
 
 
 def compile_unit(unit: str, cold_dir: str | None = None) -> None:
-    """Makes the kernels of `unit` ready (see the module docstring); cold_dir: build the C
-    kernels there (``physics`` with --cold)."""
+    """Makes the module of `unit` ready (see the module docstring); cold_dir: build it there
+    instead (--cold). Raises ValueError for an unknown unit, BuildError when the build
+    fails."""
     if unit == "physics":
         if cold_dir is not None:
             kernel_build.build(os.path.join(cold_dir, kernel_build.MODULE + kernel_build.SUFFIX))
         else:
             kernels.ensure_built()      # (the import above built a stale checkout's module)
-    elif unit == "controller":
-        from starleth_controller.warmup import (  # deferred: numba, in this unit's worker only
-            compile_kernels)
-        compile_kernels(log=lambda *_: None)
-    elif unit == "ros-codec":
-        from ..ros.cdr import CommandDecoder  # deferred: numba, in this unit's worker only
-        CommandDecoder(["joint"])          # compiles its parsers on construction
+    elif unit in MODULES:
+        module = MODULES[unit]
+        csrc, path = c_extension.csrc_of(module), c_extension.module_path(module)
+        if cold_dir is not None:
+            c_extension.build(csrc, os.path.join(cold_dir, os.path.basename(path)))
+        else:
+            c_extension.ensure_built(csrc, path, c_extension.EXTENSIONS[module],
+                                     stream=io.StringIO())
     else:
         raise ValueError(f"unknown unit {unit!r}: one of {', '.join(u for u, _ in UNITS)}")
 
 
-def _try_unit(args) -> tuple[str, float, str | None]:
-    """compile_unit in a worker: (unit, wall seconds, None or the error)."""
-    unit, cold_dir = args
+def _try_unit(unit: str, cold_dir: str | None) -> tuple[str, float, str | None]:
+    """compile_unit: (unit, wall seconds, None or the error)."""
     t0 = time.perf_counter()
     error = None
     try:
@@ -131,43 +134,33 @@ class Progress:
 
 def precompile(jobs: int | None = None, units=None, stream=None, cold: bool = False
                ) -> tuple[float, list]:
-    """Makes the kernels of `units` (default: all) ready in `jobs` processes (default 2),
-    printing each unit's time to `stream` (default stdout) and the progress line; cold: into
-    an empty NUMBA_CACHE_DIR and a temporary build directory (removed afterwards). Returns
-    (wall time [s], the [(unit, error)] of the units that failed)."""
+    """Makes the modules of `units` (default: all) ready, `jobs` at a time (default 2; the
+    builds run in compiler processes), printing each unit's time to `stream` (default
+    stdout) and the progress line; cold: into a temporary directory (removed afterwards).
+    Returns (wall time [s], the [(unit, error)] of the units that failed)."""
     stream = sys.stdout if stream is None else stream
     units = [u for u, _ in UNITS] if units is None else list(units)
     jobs = max(1, min(jobs or 2, len(units)))
     t0 = time.perf_counter()
     failed = []
     tmp = tempfile.mkdtemp(prefix="starleth-cold-") if cold else None
-    saved = os.environ.get("NUMBA_CACHE_DIR")
     try:
-        if cold:        # (spawned workers inherit the environment)
-            os.environ["NUMBA_CACHE_DIR"] = os.path.join(tmp, "numba")
         progress = Progress(stream, units, jobs)
         progress.begin()
-        ctx = multiprocessing.get_context("spawn")  # fresh interpreters: no forked numba state
-        with ctx.Pool(jobs) as pool:
-            results = pool.imap_unordered(_try_unit, [(u, tmp) for u in units])
-            while True:
-                try:
-                    unit, seconds, error = results.next(timeout=0.25)
-                except multiprocessing.TimeoutError:
+        with ThreadPoolExecutor(jobs) as pool:
+            pending = {pool.submit(_try_unit, u, tmp) for u in units}
+            while pending:
+                finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
+                if not finished:
                     progress.tick()
-                    continue
-                except StopIteration:
-                    break
-                progress.done(unit, seconds, error)
-                if error:
-                    failed.append((unit, error))
+                for f in finished:
+                    unit, seconds, error = f.result()
+                    progress.done(unit, seconds, error)
+                    if error:
+                        failed.append((unit, error))
         progress.end()
     finally:
         if cold:
-            if saved is None:
-                os.environ.pop("NUMBA_CACHE_DIR", None)
-            else:
-                os.environ["NUMBA_CACHE_DIR"] = saved
             shutil.rmtree(tmp, ignore_errors=True)
     return time.perf_counter() - t0, failed
 
@@ -177,9 +170,9 @@ def main(argv=None):
                                  description=__doc__.split("\n\n")[0].strip("`: "))
     ap.add_argument("--jobs", type=int, default=None, help="processes (default 2)")
     ap.add_argument("--cold", action="store_true",
-                    help="measure a first run: compile every unit into an empty numba cache "
-                         "and a temporary build directory (the real ones are not touched) "
-                         "and print each unit's seconds and the total")
+                    help="measure a first run: build every unit into a temporary directory "
+                         "(the modules in use are not touched) and print each unit's seconds "
+                         "and the total")
     ap.add_argument("units", nargs="*",
                     help="units (default: all): " + ", ".join(u for u, _ in UNITS))
     args = ap.parse_args(argv)
@@ -189,8 +182,8 @@ def main(argv=None):
         ap.error(f"unknown unit(s) {', '.join(bad)}; known: {', '.join(sorted(known))}")
     if args.jobs is not None and args.jobs < 1:
         ap.error("--jobs must be at least 1")
-    what = "cold compilation (an empty cache)" if args.cold else "kernels ready"
-    print(f"starleth-precompile: {what}, {args.jobs or 2} processes", flush=True)
+    what = "cold compilation (a fresh build)" if args.cold else "kernels ready"
+    print(f"starleth-precompile: {what}, {args.jobs or 2} at a time", flush=True)
     wall, failed = precompile(args.jobs, args.units or None, cold=args.cold)
     if failed:
         print(f"{len(failed)} unit(s) failed in {wall:.1f} s: "

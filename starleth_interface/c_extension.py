@@ -1,0 +1,200 @@
+"""Builds the small C extension modules outside the physics: the controller's kernels
+(``starleth_controller._kernels``, sources in starleth_controller/csrc) and sim_node's
+command decoder (``starleth_sim.ros._cdr``, starleth_sim/ros/csrc), with the flags of the
+physics kernels (starleth_sim/physics/kernels/build.py; test_install_layout checks that they
+generate code alike): no flag may change a floating-point result (``-ffp-contract=off``, no
+``-ffast-math``), so the results are those of the Python arithmetic they implement.
+
+One build for every way the packages are installed: ``setup.py`` builds each `Extension`
+(pip, colcon), and in a source checkout `load` builds the module on first use and again
+whenever its sources changed (their digest, with the flags, is kept beside the module), so
+an edit never runs stale machine code; a build takes a fraction of a second. Each module is
+one compiler call over its few sources, with ``starleth_interface/csrc`` (py_args.h, the
+argument helpers) on the include path.
+
+Standard library only: setup.py loads this file by its path, and the controller imports
+nothing of starleth_sim.
+"""
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import importlib
+import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+#: the shared headers (py_args.h)
+SHARED_INCLUDE = os.path.join(HERE, "csrc")
+SUFFIX = sysconfig.get_config_var("EXT_SUFFIX") or ".so"
+DIGEST_SUFFIX = ".digest"
+ARCH = os.environ.get("STARLETH_KERNEL_ARCH", "native")
+#: the extensions built here: module -> what it is (its sources: csrc/ in its package)
+EXTENSIONS = {"starleth_controller._kernels": "the controller's kernels",
+              "starleth_sim.ros._cdr": "sim_node's command parsers"}
+FLAGS = ("-std=gnu11", "-O3", "-ffp-contract=off", "-fno-math-errno", "-fPIC",
+         "-fvisibility=hidden", "-Wall", "-Wextra") + ((f"-march={ARCH}",) if ARCH else ())
+
+
+class BuildError(RuntimeError):
+    """The C compiler failed (its output is in the message) or was not found."""
+
+
+def compiler() -> list[str]:
+    """The C compiler command: $CC, else Python's own (sysconfig), else cc."""
+    cmd = (os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc").split()
+    if shutil.which(cmd[0]) is None:
+        for alt in ("cc", "gcc", "clang"):
+            if shutil.which(alt):
+                return [alt]
+        raise BuildError("no C compiler found (install gcc, e.g. `sudo apt install gcc`, or "
+                         "set CC)")
+    return cmd
+
+
+def python_include() -> str:
+    inc = sysconfig.get_paths()["include"]
+    if not os.path.exists(os.path.join(inc, "Python.h")):
+        raise BuildError(f"Python.h not found in {inc}: install Python's headers (e.g. `sudo "
+                         f"apt install python{sys.version_info[0]}.{sys.version_info[1]}-dev`)")
+    return inc
+
+
+def csrc_of(module: str) -> str:
+    """The sources' directory of the extension `module`: csrc/ in its package (found
+    without importing the package)."""
+    spec = importlib.util.find_spec(module.rpartition(".")[0])
+    return os.path.join(spec.submodule_search_locations[0], "csrc")
+
+
+def module_path(module: str) -> str:
+    """Where a source checkout keeps the built `module`: in its package."""
+    return os.path.join(os.path.dirname(csrc_of(module)),
+                        module.rpartition(".")[2] + SUFFIX)
+
+
+def sources(csrc: str) -> list[str]:
+    """The C sources (.c) of a module's directory, sorted."""
+    return sorted(os.path.join(csrc, f) for f in os.listdir(csrc) if f.endswith(".c"))
+
+
+def source_digest(csrc: str) -> str:
+    """SHA-256 over the module's sources and headers, the shared headers, the flags and the
+    Python ABI."""
+    h = hashlib.sha256()
+    h.update(" ".join(FLAGS).encode() + SUFFIX.encode())
+    for d in (csrc, SHARED_INCLUDE):
+        for name in sorted(os.listdir(d)):
+            if name.endswith((".c", ".h")):
+                with open(os.path.join(d, name), "rb") as f:
+                    h.update(name.encode() + b"\0" + f.read())
+    return h.hexdigest()
+
+
+def build(csrc: str, out_path: str) -> float:
+    """Compiles the sources of csrc into the extension module file out_path (replaced
+    atomically, with its digest beside it); returns the wall time [s]. Raises BuildError."""
+    t0 = time.perf_counter()
+    cmd = compiler()
+    digest = source_digest(csrc)
+    out_dir = os.path.dirname(os.path.abspath(out_path))
+    os.makedirs(out_dir, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".build-", suffix=SUFFIX, dir=out_dir)
+    os.close(fd)
+    try:
+        full = cmd + list(FLAGS) + ["-I" + csrc, "-I" + SHARED_INCLUDE, "-I" + python_include(),
+                                    "-shared"] + sources(csrc) + ["-lm", "-o", tmp]
+        p = subprocess.run(full, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        if p.returncode != 0:
+            raise BuildError(f"{' '.join(full)}\n{p.stdout}")
+        os.chmod(tmp, 0o755)
+        os.replace(tmp, out_path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    part = f"{out_path}{DIGEST_SUFFIX}.{os.getpid()}.tmp"
+    with open(part, "w") as f:
+        f.write(digest + "\n")
+    os.replace(part, out_path + DIGEST_SUFFIX)
+    return time.perf_counter() - t0
+
+
+def _read(path: str) -> str | None:
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return None
+
+
+def ensure_built(csrc: str, path: str, what: str, stream=None) -> bool:
+    """In a source checkout (csrc exists), builds the module at `path` when it is missing or
+    its sources changed, under a lock shared by concurrent processes, saying so on `stream`
+    (default stderr; `what` names it); True if it built it. Raises BuildError."""
+    if not os.path.isdir(csrc):
+        return False        # an installed package: setup.py built the module
+    digest = source_digest(csrc)
+    if os.path.exists(path) and _read(path + DIGEST_SUFFIX) == digest:
+        return False
+    stream = sys.stderr if stream is None else stream
+    try:
+        lock = open(path + ".lock", "a")
+    except OSError as e:
+        raise BuildError(f"{what} in {os.path.dirname(path)} "
+                         f"{'are out of date' if os.path.exists(path) else 'are not built'} "
+                         f"and cannot be built there ({e.strerror}): build the package "
+                         "again where it is writable") from None
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if os.path.exists(path) and _read(path + DIGEST_SUFFIX) == digest:
+                return False        # another process built it while this one waited
+            print(f"compiling {what} (C, once per change of their sources)", file=stream,
+                  flush=True)
+            seconds = build(csrc, path)
+            print(f"{what}: compiled in {seconds:.1f} s", file=stream, flush=True)
+            return True
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def load(module: str):
+    """The extension `module` (of EXTENSIONS), built first where its package is a source
+    checkout's (ensure_built). Raises ImportError with the reason."""
+    what = EXTENSIONS[module]
+    try:
+        ensure_built(csrc_of(module), module_path(module), what)
+    except BuildError as e:
+        raise ImportError(f"{what} (C) could not be built: {e}") from None
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise ImportError(f"{what} ({module}) are not built: {e}. In a source checkout they "
+                          "build on first import (needs a C compiler and Python's headers); "
+                          "an installed package builds them in setup.py") from e
+
+
+def main(argv=None) -> int:
+    """python starleth_interface/c_extension.py CSRC OUT: builds one module, printing the
+    time."""
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 2:
+        print(main.__doc__, file=sys.stderr)
+        return 2
+    try:
+        seconds = build(argv[0], argv[1])
+    except BuildError as e:
+        print(f"c_extension: FAILED: {e}", file=sys.stderr)
+        return 1
+    print(f"c_extension: {argv[1]} in {seconds:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
