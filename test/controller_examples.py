@@ -13,7 +13,7 @@ from nav_msgs.msg import Odometry
 from std_srvs.srv import SetBool
 
 from ros_test_nodes import NodeProcess
-from starleth_sim.ros.discovery import local_discovery_env
+from starleth_sim.tools.common.discovery import local_discovery_env
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)

@@ -15,8 +15,8 @@ from rclpy.node import Node
 
 from starleth_interface.compile_notice import Deadline
 from starleth_interface.ros_helpers import service_qos
-from starleth_sim.ros.child_process import start_child_as_node
-from starleth_sim.ros.discovery import keep_discovery_local, local_discovery_env
+from starleth_sim.tools.common.child_process import start_child_as_node
+from starleth_sim.tools.common.discovery import keep_discovery_local, local_discovery_env
 
 keep_discovery_local()     # the test nodes (this process) and every child: this host only
 

@@ -139,7 +139,7 @@ def test_auto_trots_in_fewer_iterations_than_the_best_fixed_alpha(preset, best_f
     """Standing 0.2 s then trotting 0.8 s (one gait cycle), controller in the loop, no
     fallback: every step converges, in fewer mean iterations than the best fixed α of the
     Fig. 6 sweep (eval/report.md) of the configuration."""
-    from starleth_sim.tools.evaluation_tasks import task_fig6
+    from starleth_sim.tools.evaluation.tasks import task_fig6
     auto = task_fig6(preset, "trot", "auto", 1.0)
     fixed = task_fig6(preset, "trot", best_fixed, 1.0)
     assert auto["converged"] and auto["nonconverged"] == 0 and auto["error"] is None

@@ -1,5 +1,5 @@
-"""starleth-analyze (starleth_sim.tools.analysis) on bags written with McapRecorder from real
-simulator runs (no ROS graph): plots, summary numbers, overlays, missing topics and damaged
+"""starleth-analyze (starleth_sim.tools.analysis.analysis) on bags written with McapRecorder from
+real simulator runs (no ROS graph): plots, summary numbers, overlays, missing topics and damaged
 files. A few seconds in all."""
 from __future__ import annotations
 
@@ -27,7 +27,10 @@ from std_msgs.msg import String  # noqa: E402
 from starleth_sim import Simulator  # noqa: E402
 from starleth_sim.physics.description import STARLETH_JOINT_NAMES  # noqa: E402
 from starleth_sim.robots import robot_description, spec_text  # noqa: E402
-from starleth_sim.tools import analysis, analysis_plots, analysis_run, bag  # noqa: E402
+from starleth_sim.tools.analysis import analysis  # noqa: E402
+from starleth_sim.tools.analysis import plots as analysis_plots
+from starleth_sim.tools.analysis import run as analysis_run
+from starleth_sim.tools.common import bag
 from starleth_sim.physics.posture import PostureHold  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 
@@ -458,13 +461,13 @@ def test_console_script_exit_status(tmp_path):
     """The command line: a clear one-line error, exit status 1, no traceback."""
     noise = tmp_path / "noise.mcap"
     noise.write_bytes(os.urandom(20_000))
-    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.analysis", str(noise)],
+    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.analysis.analysis", str(noise)],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 1
     assert "Traceback" not in p.stderr and "not an MCAP file" in p.stderr
     assert p.stderr.strip().count("\n") == 0
-    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.analysis", str(noise), str(noise),
-                        "--label", "one"], capture_output=True, text=True, timeout=120)
+    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.analysis.analysis", str(noise),
+                        str(noise), "--label", "one"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "--label" in p.stderr
 
 

@@ -7,7 +7,7 @@ import builtins
 import numpy as np
 import pytest
 
-from starleth_sim.tools import bench
+from starleth_sim.tools.bench import bench
 
 
 def _stand(runner, steps):

@@ -31,8 +31,8 @@ def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
     from starleth_controller.controller_node import ControllerNode
     from starleth_sim.ros.sim_node import SimNode
     from starleth_sim.ros.state_io import base_values, joint_values
-    from starleth_sim.tools.bench_floor import FloorController, bundle_bytes
-    from starleth_sim.tools.bench_controllers import TROT_AT, TROT_SPEED
+    from starleth_sim.tools.bench.floor import FloorController, bundle_bytes
+    from starleth_sim.tools.bench.controllers import TROT_AT, TROT_SPEED
     sim_node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep"})
     ctl_node = ControllerNode(context=ctx, parameter_overrides={"mode": "stand"})
     helper = rclpy.create_node("floor_test", context=ctx)
@@ -75,7 +75,7 @@ def test_floor_loop_runs_over_dds_one_answer_per_state(ctx):
     """The floor's two sides on one executor: every state is answered once, in order
     (no command rejected, the stamps one period apart), and the robot trots."""
     from starleth_interface.ros_helpers import make_executor
-    from starleth_sim.tools.bench_floor import FloorController, FloorSim
+    from starleth_sim.tools.bench.floor import FloorController, FloorSim
     node = rclpy.create_node("floor_loop_test", context=ctx)
     ex, _ = make_executor("events", ctx)
     ex.add_node(node)

@@ -1,4 +1,4 @@
-"""The node processes the demo and the tests start (starleth_sim.ros.child_process): a stop
+"""The node processes the demo and the tests start (starleth_sim.tools.common.child_process): a stop
 signal is obeyed from the child's first instruction even where the parent runs with SIGINT
 ignored (a background job of a shell without job control), and a child whose parent is
 killed is ended, not orphaned."""
@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from starleth_sim.ros.child_process import start_child_as_node
+from starleth_sim.tools.common.child_process import start_child_as_node
 
 # the child: report when it is running, then sleep; a SIGINT ends it with KeyboardInterrupt
 SLEEPER = "import sys, time; print('up', flush=True); time.sleep(60)"
@@ -53,7 +53,7 @@ def alive(pid) -> bool:
 def test_a_child_whose_parent_is_killed_is_ended():
     parent = textwrap.dedent(f"""
         import subprocess, sys, time
-        from starleth_sim.ros.child_process import start_child_as_node
+        from starleth_sim.tools.common.child_process import start_child_as_node
         c = subprocess.Popen([sys.executable, "-c", {SLEEPER!r}], stdout=subprocess.DEVNULL,
                              preexec_fn=start_child_as_node())
         print(c.pid, flush=True)
@@ -74,7 +74,7 @@ def test_a_child_whose_parent_is_killed_is_ended():
 def test_stop_child_interrupts_and_kills_one_that_does_not_stop():
     """stop_child: a child that obeys SIGINT ends with its own status; one that ignores it is
     killed after the time-out (None)."""
-    from starleth_sim.ros.child_process import stop_child
+    from starleth_sim.tools.common.child_process import stop_child
     ignoring = "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); " \
                "print('up', flush=True); time.sleep(60)"
     obeying = subprocess.Popen([sys.executable, "-c", SLEEPER], stdout=subprocess.PIPE,

@@ -276,7 +276,7 @@ def test_physics_core_does_not_import_ros():
             " starleth_sim.physics.stepper;"
             "import starleth_sim.ros.parameters, starleth_sim.ros.service,"
             " starleth_sim.ros.state_io;"
-            "import starleth_sim.tools.bag, starleth_interface.topics,"
+            "import starleth_sim.tools.common.bag, starleth_interface.topics,"
             " starleth_interface.ros_helpers;"
             "from starleth_sim import Simulator; Simulator.from_preset('HmJ').step();"
             "bad=[m for m in sys.modules if m.split('.')[0] in ('rclpy','rosidl_runtime_py')];"

@@ -15,7 +15,7 @@ from starleth_sim.physics.config import PRESETS
 from starleth_sim.ros.parameters import (SIM_NODE_PARAMETERS, Settings,
                                          load_default_parameters, render_yaml)
 from starleth_sim.ros.state_io import read_state_spec
-from starleth_sim.tools import sweep
+from starleth_sim.tools.sweep import sweep
 from starleth_interface.ros_helpers import ParameterSpec
 
 BINARY = bytes(range(256)) * 4          # not UTF-8, NUL bytes: an image, a bag, ...

@@ -2,8 +2,8 @@
 ROS_DOMAIN_ID (one per test module and process). Every child process is stopped in a
 finally; every wait is bounded.
 
-* the demo (starleth_sim.tools.demo.run_demo: sim_node in lockstep + controller_node, 2 s stand,
-  18 s trot at 0.3 m/s, recorded): >= 4 m, no fall, the bag holds every control step;
+* the demo (starleth_sim.tools.demo.demo.run_demo: sim_node in lockstep + controller_node, 2 s
+  stand, 18 s trot at 0.3 m/s, recorded): >= 4 m, no fall, the bag holds every control step;
 * swap-in: a trivial PD posture controller written here against the topics alone (no
   starleth_controller) keeps StarlETH standing through sim_node;
 * controller_node ignores bad input (NaN, wrong sizes) without dying, answers good input
@@ -44,8 +44,8 @@ from starleth_interface.compile_notice import SLOW_COMPILE_ENV  # noqa: E402
 from starleth_interface.state_bundle import LABEL, StateBundleCdr  # noqa: E402
 from starleth_sim.physics.simulator import Simulator  # noqa: E402
 from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
-from starleth_sim.tools import analysis  # noqa: E402
-from starleth_sim.tools.demo import DemoError, _call, print_summary, run_demo  # noqa: E402
+from starleth_sim.tools.analysis import analysis  # noqa: E402
+from starleth_sim.tools.demo.demo import DemoError, _call, print_summary, run_demo  # noqa: E402
 
 # one ROS domain per test module and process (test_sim_node uses 50..89)
 DOMAIN_RANGE = (10, 40)       # first, span

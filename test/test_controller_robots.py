@@ -15,7 +15,7 @@ from starleth_controller.node_parameters import default_wrench_topics
 from starleth_interface.topics import foot_wrench_topic
 from starleth_controller.robot_params import params_for_robot
 from starleth_sim.robots import available_robots
-from starleth_sim.tools.gait_run import run_gait
+from starleth_sim.tools.common.gait_run import run_gait
 from robot_cases import ankle_urdf, needs_data
 
 ROBOTS = available_robots()

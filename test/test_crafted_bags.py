@@ -41,7 +41,11 @@ from sensor_msgs.msg import JointState  # noqa: E402
 
 from starleth_sim.physics.description import STARLETH_JOINT_NAMES as JOINTS  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder, message_definition  # noqa: E402
-from starleth_sim.tools import analysis, analysis_plots, bag as bagmod, view, view_frames  # noqa: E402
+from starleth_sim.tools.analysis import analysis  # noqa: E402
+from starleth_sim.tools.analysis import plots as analysis_plots
+from starleth_sim.tools.common import bag as bagmod
+from starleth_sim.tools.view import view
+from starleth_sim.tools.view import frames as view_frames
 
 FEET = ("LF", "RF", "LH", "RH")
 WRENCH_TOPICS = tuple(f"/starleth/{f}_foot/wrench" for f in FEET)
@@ -60,7 +64,7 @@ DRIVER = r"""
 import contextlib, importlib, io, json, sys, traceback
 out = []
 for tool, argv in json.loads(sys.argv[1]):
-    mod = importlib.import_module("starleth_sim.tools." + tool)
+    mod = importlib.import_module(f"starleth_sim.tools.{tool}.{tool}")
     o, e = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(o), contextlib.redirect_stderr(e):
         try:

@@ -253,7 +253,7 @@ def test_a_stale_name_is_found():
                    tops, names)
     assert problem("README.md", "dotted", "starleth_sim.ros.nodes.tf", scripts, targets,
                    tops, names)
-    assert problem("README.md", "dotted", "starleth_sim.tools.view.no_such_function",
+    assert problem("README.md", "dotted", "starleth_sim.tools.view.view.no_such_function",
                    scripts, targets, tops, names)
     assert problem("README.md", "path", "starleth_sim/ros/nodes/tf.py", scripts, targets,
                    tops, names)

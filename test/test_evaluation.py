@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from starleth_sim.tools import evaluation
+from starleth_sim.tools.evaluation import evaluation
 
 
 @pytest.fixture(scope="module")
@@ -67,10 +67,10 @@ def test_quick_evaluation_results_are_measurements(quick_report):
 
 
 def test_terrain_section_alone_updates_an_existing_report(tmp_path):
-    """python -m starleth_sim.tools.evaluation_terrain: the Terrain section of a report is put
+    """python -m starleth_sim.tools.evaluation.terrain: the Terrain section of a report is put
     before the speed beside MuJoCo, then replaced in place (the rest kept, byte for byte),
     and results.json's terrain records with it."""
-    from starleth_sim.tools.evaluation_terrain import update_report
+    from starleth_sim.tools.evaluation.terrain import update_report
     head, tail = "# R\n\n## Robustness\n\n| a |\n", "\n## Speed beside MuJoCo\n\n| b |\n"
     (tmp_path / "report.md").write_text(head + tail)
     (tmp_path / "results.json").write_text(json.dumps([{"kind": "table1"}]))

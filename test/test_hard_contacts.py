@@ -7,7 +7,7 @@ import pytest
 from starleth_controller import Command, RobotState, StarlethController
 from starleth_sim import ConfigError, Simulator, load_preset
 from starleth_sim.physics.description import RobotDescription, sphere_urdf, urdf_path
-from starleth_sim.tools.evaluation_tasks import ball_drop, pd_sag
+from starleth_sim.tools.evaluation.tasks import ball_drop, pd_sag
 from starleth_sim.physics.stepper import PROJECTION_TOLERANCE
 
 HARD = ["HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP"]

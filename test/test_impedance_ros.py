@@ -38,8 +38,8 @@ from starleth_sim.ros.parameters import Settings  # noqa: E402
 from starleth_sim.ros.service import SimService  # noqa: E402
 from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
 from starleth_sim.ros.qos import COMMAND_QOS, STATE_QOS  # noqa: E402
-from starleth_sim.tools.replay_recording import load_recording  # noqa: E402
-from starleth_sim.tools.replay_resimulation import compare_exact, resimulate  # noqa: E402
+from starleth_sim.tools.replay.recording import load_recording  # noqa: E402
+from starleth_sim.tools.replay.resimulation import compare_exact, resimulate  # noqa: E402
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 

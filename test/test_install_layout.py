@@ -119,7 +119,7 @@ def test_installed_package_finds_its_share_directory(prefix, tmp_path):
     mod, share, yaml_path, physics = r.stdout.split()
     assert mod.startswith(str(prefix))
     # starleth-view's page template is package data
-    assert os.path.isfile(os.path.join(os.path.dirname(mod), "tools", "view_page.html"))
+    assert os.path.isfile(os.path.join(os.path.dirname(mod), "tools", "view", "page.html"))
     assert os.path.realpath(share) == os.path.realpath(prefix / "share" / "starleth_sim")
     assert yaml_path.startswith(share) and physics == "HmJ"
 

@@ -1,5 +1,5 @@
 """sim_node's live view (issue #35): a client of the Foxglove WebSocket protocol
-(starleth_sim.tools.live_log) subscribes to /tf and joint_states of a running sim_node
+(starleth_sim.tools.view.live_log) subscribes to /tf and joint_states of a running sim_node
 (lockstep, with controller_node in its process, recording) and decodes what it receives with
 the schemas the server advertises to the same values as the recording holds at the same
 stamps; the live view off imports no foxglove; without foxglove-sdk, or with the port in
@@ -20,7 +20,7 @@ from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from ros_test_nodes import NodeProcess  # noqa: E402
 
-from starleth_sim.tools.live_log import collect  # noqa: E402
+from starleth_sim.tools.view.live_log import collect  # noqa: E402
 
 DOMAIN_RANGE = (229, 4)       # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 229 + os.getpid() % 4

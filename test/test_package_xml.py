@@ -36,13 +36,13 @@ PIP_ONLY = {
     "mcap_ros2": "pip `mcap-ros2-support`: no rosdep key",
     "meshcat": "pip: starleth-view only, no rosdep key",
     "coal": "pip `coal`, installed with the `pin` wheel: the loader of the view's meshes",
-    "lz4": "optional (bag compression in tools/bag.py), pip",
-    "zstandard": "optional (bag compression in tools/bag.py), pip",
+    "lz4": "optional (bag compression in tools/common/bag.py), pip",
+    "zstandard": "optional (bag compression in tools/common/bag.py), pip",
     "pyarrow": "optional extra `parquet` (starleth-sweep)",
     "ray": "optional extra `ray` (starleth-sweep / starleth-eval --ray)",
     "mujoco": "optional: starleth-bench's comparison only",
     "foxglove": "optional extra `live` (foxglove-sdk: sim_node's live_view), pip only",
-    "websockets": "optional extra `live` (starleth_sim.tools.live_log, a protocol client)",
+    "websockets": "optional extra `live` (starleth_sim.tools.view.live_log, a protocol client)",
 }
 
 #: the packages each element of the launch file needs: the XML front end (launch_xml) and the

@@ -20,7 +20,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from starleth_sim.robots import load_robot  # noqa: E402
-from starleth_sim.tools.bag import read_messages  # noqa: E402
+from starleth_sim.tools.common.bag import read_messages  # noqa: E402
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 

@@ -29,7 +29,7 @@ from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from starleth_sim.ros.recording.mcap_sink import RecordingError, repair  # noqa: E402
 from starleth_sim.ros.recording import (McapRecorder, ProcessRecorder,  # noqa: E402
                                         QueuedRecorder, SplitRecorder)
-from starleth_sim.tools.bag import read_messages  # noqa: E402
+from starleth_sim.tools.common.bag import read_messages  # noqa: E402
 
 DOMAIN_RANGE = (100, 20)      # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 100 + os.getpid() % 20

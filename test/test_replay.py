@@ -19,8 +19,10 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.tools import replay, replay_recording, replay_resimulation  # noqa: E402
-from starleth_sim.tools.bench_controllers import EchoController  # noqa: E402
+from starleth_sim.tools.replay import replay  # noqa: E402
+from starleth_sim.tools.replay import recording as replay_recording  # noqa: E402
+from starleth_sim.tools.replay import resimulation as replay_resimulation  # noqa: E402
+from starleth_sim.tools.bench.controllers import EchoController  # noqa: E402
 
 # test_sim_node 50..89, controller tests 10..49, conventions 90..98, tf 199..228
 DOMAIN_RANGE = (140, 40)      # first, span
@@ -200,7 +202,7 @@ def cut_recording(recorded):
     import subprocess
     import sys
     from starleth_sim.ros.recording.mcap_sink import ending
-    from starleth_sim.tools.bag import read_messages
+    from starleth_sim.tools.common.bag import read_messages
     mcap, tmp = recorded
     cut = tmp / "cut.mcap"
     p = subprocess.run([sys.executable, "-c", CUT_WRITER, mcap, str(cut), str(K_CUT)],
@@ -266,7 +268,7 @@ def test_lockstep_run_on_a_terrain_and_its_replay_are_bit_identical(tmp_path):
     recorded contact markers: LF on the plate, the hind feet on the rough ground), and
     starleth-replay re-simulates it bit for bit."""
     from starleth_sim.physics.terrain import pack_terrain, terrain_height
-    from starleth_sim.tools.bag import read_messages
+    from starleth_sim.tools.common.bag import read_messages
     ros = RosTestNode(DOMAIN_ID, "replay_terrain_test", events=True)
     ctl = EchoController(ros.node)
     mcap = str(tmp_path / "terrain.mcap")

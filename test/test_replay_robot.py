@@ -21,8 +21,9 @@ from starleth_sim.robots import build  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 from starleth_sim.ros.service import SimService  # noqa: E402
 from starleth_sim.ros.state_io import initial_state_record  # noqa: E402
-from starleth_sim.tools import replay, replay_recording  # noqa: E402
-from starleth_sim.tools.replay_resimulation import _snapshot  # noqa: E402
+from starleth_sim.tools.replay import replay  # noqa: E402
+from starleth_sim.tools.replay import recording as replay_recording
+from starleth_sim.tools.replay.resimulation import _snapshot  # noqa: E402
 
 STEPS = 60
 
@@ -118,13 +119,13 @@ def test_the_recorded_urdf_is_the_one_replayed(go1_bag, monkeypatch):
     assert rec.feet == robots.robot_description("go1").foot_names
     assert rec.description.total_mass == pytest.approx(
         robots.robot_description("go1").total_mass + 1.0)
-    from starleth_sim.tools.replay_resimulation import compare_exact, resimulate
+    from starleth_sim.tools.replay.resimulation import compare_exact, resimulate
     rec.description = robots.robot_description("go1")
     assert not compare_exact(rec, resimulate(rec)).identical
 
 
 def test_analyze_labels_a_go1_bag_with_its_feet_and_joints(go1_bag, tmp_path):
-    from starleth_sim.tools import analysis
+    from starleth_sim.tools.analysis import analysis
     go1 = robots.robot_description("go1")
     out = tmp_path / "summary.json"
     assert analysis.main([go1_bag, "--no-plots", "--json", str(out),

@@ -42,7 +42,7 @@ from starleth_sim.ros import ros2_control_description as rcd  # noqa: E402
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings  # noqa: E402
 from starleth_sim.ros.service import SimService  # noqa: E402
 from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
-from starleth_sim.tools.analysis_summary import urdf_info  # noqa: E402
+from starleth_sim.tools.analysis.summary import urdf_info  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SECTION_FILE = os.path.join(ROOT, "urdf", "starleth_ros2_control.xml")

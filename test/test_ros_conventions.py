@@ -23,7 +23,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
-from starleth_sim.tools import analysis_run  # noqa: E402
+from starleth_sim.tools.analysis import run as analysis_run  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (90, 9)        # first, span; test_sim_node: 50..89, controller tests 10..49
@@ -336,7 +336,7 @@ def test_launch_file_prefixes_the_frames_with_the_namespace():
 def test_sim_node_splits_long_recordings_into_a_bag_directory(ros, tmp_path):
     """record_max_duration: a rosbag2 bag directory of numbered files, each complete on its
     own, a metadata.yaml listing them, and starleth-analyze reads it as one run."""
-    from starleth_sim.tools.bench_controllers import EchoController
+    from starleth_sim.tools.bench.controllers import EchoController
     bag = tmp_path / "split"
     sim = None
     ctl = EchoController(ros.node)
@@ -388,8 +388,8 @@ def _environ(pid, timeout=10.0):
 def test_children_discover_on_this_host_only_unless_the_user_chose(tmp_path, monkeypatch):
     """The demo's, the benchmark's and the tests' child processes run with
     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the user set a range."""
-    from starleth_sim.tools.demo import NodeProcess as DemoNodeProcess
-    from starleth_sim.ros.discovery import local_discovery_env
+    from starleth_sim.tools.demo.demo import NodeProcess as DemoNodeProcess
+    from starleth_sim.tools.common.discovery import local_discovery_env
     assert local_discovery_env({})["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     assert local_discovery_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})[
         "ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"

@@ -24,7 +24,7 @@ from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import Trigger, SetBool  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.tools.bench_controllers import EchoController  # noqa: E402
+from starleth_sim.tools.bench.controllers import EchoController  # noqa: E402
 
 # one ROS domain per test module and process (other modules use other ranges)
 DOMAIN_RANGE = (50, 40)       # first, span

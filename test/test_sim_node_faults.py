@@ -19,7 +19,7 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from starleth_interface.ros_helpers import service_qos  # noqa: E402
-from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
+from starleth_sim.tools.common.discovery import local_discovery_env  # noqa: E402
 
 DOMAIN_RANGE = (120, 20)      # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 120 + os.getpid() % 20

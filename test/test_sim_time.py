@@ -34,7 +34,10 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
 from starleth_sim.robots import load_robot  # noqa: E402
-from starleth_sim.tools import analysis, foxglove_layout, replay, view  # noqa: E402
+from starleth_sim.tools.analysis import analysis  # noqa: E402
+from starleth_sim.tools.view import foxglove_layout  # noqa: E402
+from starleth_sim.tools.replay import replay  # noqa: E402
+from starleth_sim.tools.view import view  # noqa: E402
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 

@@ -25,7 +25,7 @@ from starleth_interface.ros_helpers import (RosLogHandler, UnknownParameterError
                                             check_parameter_names, declare_parameters,
                                             route_python_logging)
 from starleth_controller.node_parameters import PARAMETERS  # noqa: E402
-from starleth_sim.ros.discovery import local_discovery_env  # noqa: E402
+from starleth_sim.tools.common.discovery import local_discovery_env  # noqa: E402
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -5,7 +5,7 @@ import csv
 
 import pytest
 
-from starleth_sim.tools import sweep
+from starleth_sim.tools.sweep import sweep
 
 TINY = """\
 name: tiny
@@ -85,7 +85,7 @@ def test_a_go1_run_of_a_sweep_stands_under_its_own_controller(tmp_path):
     spec's standing height and above the fall height scaled to it (0.2 m x 0.274 / 0.415)."""
     from starleth_sim.physics.config import ConfigError
     from starleth_sim.robots import load_robot, robot_description, urdf_file
-    from starleth_sim.tools.falls import fall_height
+    from starleth_sim.tools.common.falls import fall_height
     try:
         urdf_file(load_robot("go1"))
     except ConfigError as e:
@@ -100,7 +100,7 @@ def test_a_go1_run_of_a_sweep_stands_under_its_own_controller(tmp_path):
 
 def test_fall_height_scales_with_the_standing_height():
     from types import SimpleNamespace
-    from starleth_sim.tools.falls import fall_height
+    from starleth_sim.tools.common.falls import fall_height
     assert fall_height(SimpleNamespace(standing_height=0.415), 0.2) == 0.2
     assert fall_height(SimpleNamespace(standing_height=0.2075), 0.2) == pytest.approx(0.1)
     assert fall_height(SimpleNamespace(standing_height=None), 0.2) == 0.2

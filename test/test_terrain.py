@@ -15,9 +15,9 @@ from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_
 from starleth_sim.physics.posture import PostureHold
 from starleth_sim.physics.terrain import (SECOND_SURFACE_NONE, TERRAIN_HEADER, TerrainConfig,
                                          pack_terrain, terrain_height)
-from starleth_sim.tools.bench_terrain import terrain_rounds, terrains
-from starleth_sim.tools.view_recording import terrain_from_metadata
-from starleth_sim.tools.view_scene import terrain_objects
+from starleth_sim.tools.bench.terrain import terrain_rounds, terrains
+from starleth_sim.tools.view.recording import terrain_from_metadata
+from starleth_sim.tools.view.scene import terrain_objects
 
 R = 0.1    # the test sphere's radius [m]
 #: the corner tests' sphere: a box's gap is exact within terrain.BOX_REACH (0.1 m) − r of it
@@ -445,7 +445,7 @@ def test_bad_terrain_file_on_the_command_line_exits_2_with_one_line(tmp_path):
     data["terrain"] = {"stairs": {"rise": -0.04, "run": 0.3, "count": 3}}
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(data))
-    r = subprocess.run([sys.executable, "-m", "starleth_sim.tools.bench", str(path)],
+    r = subprocess.run([sys.executable, "-m", "starleth_sim.tools.bench.bench", str(path)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     last = r.stderr.strip().splitlines()[-1]

@@ -3,7 +3,7 @@ HmJ (hard contacts). The controller knows nothing of the terrain: it takes the g
 where its feet stood (starleth_controller/ground_plane.py), a foot's contact from its force
 (> contact_force_threshold, as controller_node does), and searches the ground with a foot
 that finds none (starleth_controller/step_down.py). One run per course of
-starleth_sim/tools/demo_terrain.py (the courses of ``starleth-demo --terrain``): 1 s
+starleth_sim/tools/demo/terrain.py (the courses of ``starleth-demo --terrain``): 1 s
 standing, then a trot at 0.3 m/s long enough to cross the course (its end x / 0.3 m/s +
 TROT_MARGIN); the trunk must cross it (up and down the 10° slope, over the 4 cm step, up
 the shipped 3 stairs of 4 cm and 12 cm down off their landing, 12 cm down off a ledge, over
@@ -21,7 +21,7 @@ import pytest
 from starleth_sim import Simulator
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.terrain import pack_terrain, terrain_height
-from starleth_sim.tools.demo_terrain import (COURSES, PAST_EDGE, course_end, course_overrides,
+from starleth_sim.tools.demo.terrain import (COURSES, PAST_EDGE, course_end, course_overrides,
                                              course_terrain)
 
 from starleth_controller import LEGS, Command, RobotState, StarlethController

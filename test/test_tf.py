@@ -193,7 +193,7 @@ def test_foxglove_layout_shows_what_sim_node_records(recorded):
     without a namespace gives it as it is."""
     import json
     from layout_checks import check_layout
-    from starleth_sim.tools import foxglove_layout
+    from starleth_sim.tools.view import foxglove_layout
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     layout = json.load(open(os.path.join(root, "foxglove", "starleth_layout.json")))
     node, msgs = recorded
@@ -211,7 +211,7 @@ def test_starleth_layout_refuses_what_is_not_a_namespace_or_a_prefix(tmp_path, c
     """Bad arguments: one usage line and exit 2; a layout with a panel it cannot rewrite:
     one line and exit 1."""
     import json
-    from starleth_sim.tools import foxglove_layout
+    from starleth_sim.tools.view import foxglove_layout
     for args, words in ((["robot 1"], "not a ROS namespace"),
                         (["robot1", "/robot1"], "named twice"),
                         (["robot1", "--frame-prefix", "/r1/"], "must not start with '/'"),

@@ -207,7 +207,7 @@ def test_live_view_serves_tf_before_any_command(waiting_sim):
     sim, params = waiting_sim
     if "live_view_port" not in params:
         pytest.skip("foxglove-sdk is not installed (requirements-live.txt): no live view")
-    from starleth_sim.tools.live_log import collect
+    from starleth_sim.tools.view.live_log import collect
     log = collect(f"ws://127.0.0.1:{params['live_view_port']}",
                   ["/tf", "/tf_static", "/joint_states"], seconds=30.0, connect_timeout=60.0,
                   until=lambda lg: len(lg.messages.get("/tf", [])) >= 3)

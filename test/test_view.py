@@ -1,4 +1,4 @@
-"""starleth-view (starleth_sim.tools.view): the self-contained HTML replay of a recorded run.
+"""starleth-view (starleth_sim.tools.view.view): the self-contained HTML replay of a recorded run.
 
 Bags are written like sim_node writes them (test_analysis.run_sim: a headless Simulator run
 recorded with McapRecorder), here a drop from 15 cm; plus small synthetic bags under ROS
@@ -29,7 +29,8 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from starleth_sim.tools import view, view_page  # noqa: E402
+from starleth_sim.tools.view import view  # noqa: E402
+from starleth_sim.tools.view import page as view_page
 from starleth_sim.physics.description import (STARLETH_JOINT_NAMES, RobotDescription,  # noqa: E402
                                       urdf_path)
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
@@ -326,7 +327,7 @@ def test_bad_bags_exit_1_with_one_line(drop, tmp_path, capsys):
     assert rc == 0 and "starleth-view: warning:" in err and "reading stopped" in err
     assert page_json((tmp_path / "cut.html").read_text(), "replay-data")["frames"] == 26
     # the console script: one line on stderr, exit status 1
-    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.view", str(noise)],
+    p = subprocess.run([sys.executable, "-m", "starleth_sim.tools.view.view", str(noise)],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 1 and p.stderr.count("\n") == 1 and "not an MCAP" in p.stderr
 

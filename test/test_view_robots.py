@@ -28,7 +28,8 @@ from starleth_sim.robots import (load_robot, package_dirs, robot_description,  #
 from starleth_sim.robots.meshes import read_mesh, resolve_mesh, simplified  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 from starleth_sim.ros.tf import base_link  # noqa: E402
-from starleth_sim.tools import view, view_scene  # noqa: E402
+from starleth_sim.tools.view import view  # noqa: E402
+from starleth_sim.tools.view import scene as view_scene
 from test_analysis import stamp  # noqa: E402
 
 
@@ -164,7 +165,7 @@ def test_a_recorded_robot_is_drawn_without_the_library_packages(tmp_path, capsys
     (its primitives) and named."""
     robot_or_skip("go1")
     write_robot_bag(tmp_path / "run.mcap", "go1")
-    monkeypatch.setattr("starleth_sim.tools.view_page.spec_package_roots",
+    monkeypatch.setattr("starleth_sim.tools.view.page.spec_package_roots",
                         lambda spec, name: [str(tmp_path)])
     monkeypatch.setattr("starleth_sim.robots.meshes._package_share", lambda package: None)
     assert view.main([str(tmp_path / "run.mcap")]) == 0
@@ -182,7 +183,7 @@ def test_the_foxglove_layout_of_go1_follows_its_base_and_plots_its_feet(tmp_path
     """starleth-layout --robot go1: the camera on Go1's root link, one force path per Go1
     foot (its topic as the simulator names it); everything else as shipped; StarlETH's
     layout unchanged; an unknown robot: one line, exit 2."""
-    from starleth_sim.tools import foxglove_layout
+    from starleth_sim.tools.view import foxglove_layout
     go1 = robot_or_skip("go1")
     shipped = json.load(open(foxglove_layout.shipped_layout_path()))
     out = tmp_path / "go1.json"

@@ -1,0 +1,110 @@
+"""One headless run with the controller in the loop (Simulator + StarlethController in one
+process, no ROS): stand, or stand then trot, optionally pushed or perturbed, with the
+measurements of starleth-eval's report. The one run of ``starleth-eval``'s tasks and of
+``starleth-sweep``'s grid.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from starleth_controller import Command, RobotState, StarlethController
+from starleth_controller.robot_params import trot_speed
+
+from ...physics.simulator import Simulator
+from ...physics.stepper import SimulationError
+from ...ros.tf import base_link
+
+STAND_BEFORE_TROT = 1.0  # s
+GAIT_PERIOD = 0.8      # s (1.25 Hz)
+
+
+def run_gait(preset, gait, seconds, profile=False, record_lf=False, push=None,
+             stand_time=STAND_BEFORE_TROT, stop_on_nonconvergence=False, speed=None,
+             perturb=None, robot="starleth", **overrides):
+    """Stand (and trot at `speed` after `stand_time` s if gait == 'trot') for `seconds`;
+    `robot` (a library name, a spec or URDF path) under the controller with its parameters
+    scaled to it, speed default 0.3 m/s · √λ (robot_params.trot_speed);
+    push = (time [s], force (world) [N], duration [s]) on the base; perturb(sim) may change
+    the initial state. Returns per-step wall times of sim.step, iterations, and the
+    measurements of the report. The one headless run of starleth-eval and starleth-sweep."""
+    sim = Simulator.from_preset(preset, profile=profile, robot=robot, **overrides)
+    if perturb is not None:
+        perturb(sim)
+    ctrl = StarlethController(robot=robot)
+    speed = trot_speed(ctrl.model.scale) if speed is None else speed
+    n = int(round(seconds / sim.control_period))
+    feet = [sim.contact_names.index(f) for f in sim.description.foot_names]
+    foot_names = set(sim.description.foot_names)
+    x0 = float(sim.base_state()["position"][0])
+    wall = np.zeros(n)
+    iters = np.zeros(n, dtype=np.int64)
+    lf_force, lf_t = [], []
+    foot_gap, drift_t, drift_g = [], [], []
+    foot_penetration = np.zeros(n)   # deepest foot below the ground after each step [m]
+    min_height, max_tilt = 1.0, 0.0
+    knee_trunk = set()
+    error = None
+    nonfinite = False
+    k_done = 0
+    for k in range(n):
+        trot = gait == "trot" and k * sim.control_period >= stand_time
+        cmd = Command(mode="trot" if trot else "stand", forward=speed if trot else 0.0)
+        tau = ctrl.update(RobotState.from_simulator(sim), cmd)
+        if push is not None and k == int(round(push[0] / sim.control_period)):
+            sim.apply_wrench(base_link(sim.description.urdf_xml), push[1], duration=push[2])
+        t0 = time.perf_counter()
+        try:
+            d = sim.step(tau)
+        except SimulationError as e:  # reported, the run ends here
+            error = str(e)
+            nonfinite = "non-finite" in error
+            break
+        wall[k] = time.perf_counter() - t0
+        iters[k] = d.iterations
+        k_done = k + 1
+        if stop_on_nonconvergence and not d.converged:
+            break
+        gaps = sim.gaps()[feet]
+        foot_penetration[k] = max(0.0, -float(gaps.min()))
+        b = sim.base_state()
+        min_height = min(min_height, float(b["position"][2]))
+        x, y, z, w = b["orientation_xyzw"]
+        tilt = math.acos(max(-1.0, min(1.0, 1 - 2 * (x * x + y * y))))
+        max_tilt = max(max_tilt, tilt)
+        if record_lf:
+            lf_t.append(sim.t)
+            lf_force.append(float(sim.contacts[feet[0]].force[2]))
+        if push is not None:
+            for c in sim.contacts:
+                if c.active and c.name not in foot_names:
+                    knee_trunk.add(c.name)
+        if k % 10 == 0:
+            act = np.array([sim.contacts[i].active for i in feet])
+            if act.any():
+                foot_gap.append((sim.t, float(gaps[act].mean()), float(gaps[act].min())))
+            if sim.coords.n_bilateral:
+                drift_t.append(sim.t)
+                drift_g.append(float(np.abs(sim.bilateral_violation()).max()))
+    out = dict(preset=preset, gait=gait, seconds=seconds, steps=k_done,
+               physics_steps=k_done * sim.config.steps_per_control, error=error,
+               nonfinite=nonfinite or not np.all(np.isfinite(sim.q)),
+               wall=wall[:k_done].tolist(), iterations=iters[:k_done].tolist(),
+               nonconverged=int(sim.diagnostics.nonconverged_steps),
+               min_height=min_height, max_tilt=max_tilt, knee_trunk_contacts=sorted(knee_trunk),
+               distance=float(sim.base_state()["position"][0]) - x0, speed=speed,
+               robot=robot,
+               control_period=sim.control_period,
+               steps_per_control=sim.config.steps_per_control,
+               foot_gap=foot_gap, drift_t=drift_t, drift_g=drift_g,
+               foot_penetration=foot_penetration[:k_done].tolist(),
+               loaded_contacts_opened=int(sim.diagnostics.loaded_contacts_opened_total),
+               projections=int(sim.stepper.stats.projections))
+    if record_lf:
+        out["lf_t"], out["lf_force"] = lf_t, lf_force
+    if profile:
+        st = sim.stepper.stats
+        out["phases_us"] = (1e6 * st.timings / max(st.steps, 1)).tolist()
+    return out
