@@ -131,7 +131,7 @@ eval: venv
 ray: venv
 	$(PIP) install -c constraints.txt -e '.[ray]'
 
-# starleth-view's HTML in a real browser (test/test_view.py -k browser): installs Debian's
+# starleth-view's HTML in a real browser (test/tools/test_view.py -k browser): installs Debian's
 # chromium with apt when it is missing (sudo when not root, non-interactive), then runs only
 # the browser tests; they render the replay with SwiftShader (no GPU, no display needed).
 browser-test: venv
@@ -142,7 +142,7 @@ browser-test: venv
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q; \
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
 	fi
-	$(VPY) -m pytest -q test/test_view.py -k browser -rs $(PYTEST_ARGS)
+	$(VPY) -m pytest -q test/tools/test_view.py -k browser -rs $(PYTEST_ARGS)
 
 # Refresh constraints.txt on purpose: the newest versions the requirements resolve to, in a
 # throw-away venv (then run `make test` with them and commit constraints.txt).
@@ -159,7 +159,7 @@ constraints:
 	rm -rf $$tmp; echo "constraints.txt refreshed: run make test, then commit it"
 
 # Regenerate config/<robot>_controllers.yaml (ros2_control controllers) of every library robot
-# from its URDF (test/test_ros2_control_files.py checks they are up to date).
+# from its URDF (test/ros/test_ros2_control_files.py checks they are up to date).
 ros2-control-configs: venv robots
 	@set -e; for r in $$($(VPY) -c 'from starleth_sim.robots import available_robots as a; print(*a())'); do \
 	  $(VPY) -m starleth_sim.ros.ros2_control_controllers --robot $$r > config/$${r}_controllers.yaml; \

@@ -3,8 +3,14 @@ import sys
 
 import pytest
 
-# make helper modules in test/ (e.g. pin_pgs_reference) importable
-sys.path.insert(0, os.path.dirname(__file__))
+# The tests live in one folder per layer (physics, controller, ros, tools, rules), their
+# shared helpers in support/ (robot_cases, ros_test_nodes, repo_root, ...). Every folder goes
+# on sys.path, so that a helper, or a test module another one borrows from (test_bitexact's
+# reference states, test_analysis's runs), is imported by its name from any folder.
+HERE = os.path.dirname(os.path.abspath(__file__))
+for _folder in sorted(os.listdir(HERE)):
+    if os.path.isdir(os.path.join(HERE, _folder)) and not _folder.startswith(("_", ".")):
+        sys.path.insert(0, os.path.join(HERE, _folder))
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,7 @@ it (``urdf/starleth_ros2_control.xml``, generated with the defaults; another rob
 
     python -m starleth_sim.ros.ros2_control_description > urdf/starleth_ros2_control.xml
 
-test/test_ros2_control_files.py checks that the file is up to date).
+test/ros/test_ros2_control_files.py checks that the file is up to date).
 
 What the hardware does with the section (doc/sim_node.md, "ros2_control controllers"):
 every control cycle it publishes one JointState naming every joint of the section, with one

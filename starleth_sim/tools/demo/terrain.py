@@ -1,5 +1,5 @@
 """The terrain courses of ``starleth-demo --terrain NAME`` and of the headless walking tests
-(test/test_terrain_walk.py): each a ``terrain:`` section of the physics configuration,
+(test/controller/test_terrain_walk.py): each a ``terrain:`` section of the physics configuration,
 placed ahead of the robot (which starts at x = 0 heading +x), and the x its trunk must pass
 to have crossed it (the hind feet beyond the course's last edge).
 

@@ -15,7 +15,7 @@ from std_srvs.srv import SetBool
 from ros_test_nodes import NodeProcess
 from starleth_sim.tools.common.discovery import local_discovery_env
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)
 
 

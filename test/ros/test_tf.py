@@ -13,6 +13,7 @@ from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
+from repo_root import ROOT  # noqa: E402
 from tf_trees import world_poses  # noqa: E402
 from starleth_sim.robots import starleth_description  # noqa: E402
 
@@ -194,7 +195,7 @@ def test_foxglove_layout_shows_what_sim_node_records(recorded):
     import json
     from layout_checks import check_layout
     from starleth_sim.tools.view import foxglove_layout
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = ROOT
     layout = json.load(open(os.path.join(root, "foxglove", "starleth_layout.json")))
     node, msgs = recorded
     three_d = layout["configById"]["3D!starleth"]

@@ -43,7 +43,6 @@ from starleth_sim.tools.replay.resimulation import compare_exact, resimulate  # 
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (229, 4)        # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 229 + os.getpid() % 4
 START_TIMEOUT = 120.0

@@ -39,7 +39,7 @@ import re
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 GENERATED = {"runs", "build", "install", "log"}
 #: files the C kernels' build writes into its build directory, not kept in the repository

@@ -52,7 +52,7 @@ Notes on Pinocchio 4.1's PGS (read from the shipped headers
     irrelevant: the solver only queries each constraint's size and its
     friction cone; the Delassus matrix is taken from DelassusOperatorDense.
 
-Run ``python test/pin_pgs_reference.py`` for the self-checks.
+Run ``python test/support/pin_pgs_reference.py`` for the self-checks.
 """
 
 import warnings

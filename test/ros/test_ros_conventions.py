@@ -25,7 +25,7 @@ from std_srvs.srv import SetBool  # noqa: E402
 
 from starleth_sim.tools.analysis import run as analysis_run  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT  # noqa: E402
 DOMAIN_RANGE = (90, 9)        # first, span; test_sim_node: 50..89, controller tests 10..49
 DOMAIN_ID = 90 + os.getpid() % 9    # conftest._free_ros_domain: a free one of the range
 START_TIMEOUT = 120.0

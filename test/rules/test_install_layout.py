@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 COLCON = os.path.join(os.path.dirname(sys.executable), "colcon")
 
 

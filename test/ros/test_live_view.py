@@ -24,7 +24,7 @@ from starleth_sim.tools.view.live_log import collect  # noqa: E402
 
 DOMAIN_RANGE = (229, 4)       # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 229 + os.getpid() % 4
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT  # noqa: E402
 
 
 class LinesLog:

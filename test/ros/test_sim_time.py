@@ -41,7 +41,6 @@ from starleth_sim.tools.view import view  # noqa: E402
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DOMAIN_RANGE = (200, 20)       # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 200 + os.getpid() % 20
 START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)

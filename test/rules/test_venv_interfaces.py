@@ -9,7 +9,7 @@ import shutil
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 SCRIPT = os.path.join(ROOT, "venv_interfaces", "generate.py")
 
 

@@ -28,7 +28,7 @@ from starleth_controller.node_parameters import PARAMETERS  # noqa: E402
 from starleth_sim.tools.common.discovery import local_discovery_env  # noqa: E402
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT  # noqa: E402
 DOMAIN_RANGE = (160, 20)      # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 160 + os.getpid() % 20
 

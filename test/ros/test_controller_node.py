@@ -23,6 +23,7 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
 from rclpy.parameter import Parameter  # noqa: E402
+from repo_root import ROOT  # noqa: E402
 from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
 from test_bitexact import DEMO_STEPS, demo_states, load_reference  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
@@ -634,6 +635,6 @@ print("ok")
 """
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        timeout=60, env=dict(os.environ, PYTHONPATH=os.pathsep.join(
-                           [os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                           [ROOT,
                             os.environ.get("PYTHONPATH", "")])))
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]

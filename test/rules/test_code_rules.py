@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 #: a module has one job; at this size it is time to look for a second one in it (not to
 #: squeeze it: blank lines and docstrings count like code)

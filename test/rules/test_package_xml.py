@@ -15,7 +15,7 @@ import yaml
 
 from starleth_sim.ros.ros2_control_description import HARDWARE_PLUGIN
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 LAUNCH_FILES = sorted(glob.glob(os.path.join(ROOT, "launch", "*.launch.xml")))
 CONTROLLER_FILES = sorted(glob.glob(os.path.join(ROOT, "config", "*.yaml")))

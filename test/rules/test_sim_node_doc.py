@@ -7,8 +7,9 @@ import re
 
 from starleth_interface.ros_helpers import ROS_TYPE_NAMES, parameter_table_row
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS
+from repo_root import ROOT
 
-DOC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "doc",
+DOC = os.path.join(ROOT, "doc",
                    "sim_node.md")
 
 

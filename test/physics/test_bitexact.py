@@ -1,6 +1,6 @@
 """No behaviour change across refactors: the states of 300 steps of every preset of Table 1
 under a trotting joint PD law (diagonal leg pairs swing at 1.25 Hz, a push on the base at
-0.2 s) are pinned bit for bit (test/data/bitexact_reference.json). Cm, HmJ, HEJD and HMSD
+0.2 s) are pinned bit for bit (test/physics/data/bitexact_reference.json). Cm, HmJ, HEJD and HMSD
 carry digests recorded before the redesign of issue #15; when the kernels moved from numba
 to C (issue #32) the new kernels gave the numba kernels' digests on all 11 presets, on one
 machine, and those of the other 7 were added then.
@@ -15,10 +15,10 @@ Each step's (q, u, Λ of every contact) is hashed (SHA-256 of the float64 bytes,
 the full state is stored every 50 steps so a failure says when and by how much it differs.
 A change that is meant to alter the numbers regenerates the file on purpose:
 
-    .venv/bin/python test/test_bitexact.py --write
+    .venv/bin/python test/physics/test_bitexact.py --write
 
 The demo's first 2 s (sim_node + controller_node over ROS, lockstep, standing) are pinned in
-test/test_controller_node.py against the states stored here every 50 steps (`demo_states`),
+test/ros/test_controller_node.py against the states stored here every 50 steps (`demo_states`),
 to 1e-7.
 """
 import hashlib

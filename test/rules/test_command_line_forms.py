@@ -20,7 +20,7 @@ from starleth_interface.ros_helpers import init_ros  # noqa: E402
 from starleth_sim import Simulator  # noqa: E402
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT  # noqa: E402
 PAGES = ["README.md", *sorted(os.path.relpath(p, ROOT) for p in
                               glob.glob(os.path.join(ROOT, "doc", "*.md"))),
          "launch/starleth.launch.xml"]

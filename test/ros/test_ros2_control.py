@@ -1,7 +1,7 @@
 """ros2_control controllers against sim_node through topic_based_ros2_control, in realtime
 mode, as launch/starleth_ros2_control.launch.xml starts them: sim_node with its
 parameters there, and a stand-in for its ros2_control_node and spawner
-(test/ros2_control_stand_in.py: the hardware TopicBasedSystem, the sim-time control loop
+(test/support/ros2_control_stand_in.py: the hardware TopicBasedSystem, the sim-time control loop
 and a forward_command_controller, as their sources do it) that loads the <ros2_control>
 section from the robot_description sim_node publishes and the controllers of the parameter
 file the launch file gives (config/starleth_controllers.yaml: update rate, the forward

@@ -44,7 +44,7 @@ from starleth_sim.ros.service import SimService  # noqa: E402
 from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
 from starleth_sim.tools.analysis.summary import urdf_info  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from repo_root import ROOT
 SECTION_FILE = os.path.join(ROOT, "urdf", "starleth_ros2_control.xml")
 CONFIG_DIR = os.path.join(ROOT, "config")
 ROBOTS = available_robots()
