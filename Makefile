@@ -83,6 +83,8 @@ $(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
 # pass 1 on two pytest-xdist workers, one running the tests that start ROS nodes one after
 # another while the other runs the CPU-bound tests file by file; pass 2, the tests marked
 # serial (rates, deadlines, latencies, a browser), one at a time with nothing beside them.
+# Both list what they skipped, with the reason (-rs: an optional package or program missing);
+# a missing rclpy is no skip but an error (test/conftest.py; STARLETH_ALLOW_NO_ROS=1 allows it).
 # Then ruff over the tree (ruff.toml: pycodestyle errors and warnings, pyflakes; line length
 # 100). All three passes run; the target fails with the first failing pass's status (a pytest
 # pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
@@ -91,10 +93,10 @@ test: venv test-deps robots
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
 	echo "pass 1: 2 workers: the ROS node tests one by one beside the CPU-bound tests"; \
-	$(VPY) -m pytest -q -n 2 --ros-apart -m "not serial" test \
+	$(VPY) -m pytest -q -rs -n 2 --ros-apart -m "not serial" test \
 	  $(PYTEST_ARGS); a=$$?; \
 	echo "pass 2: tests marked serial (rates, deadlines), one at a time"; \
-	$(VPY) -m pytest -q -m serial test $(PYTEST_ARGS); b=$$?; \
+	$(VPY) -m pytest -q -rs -m serial test $(PYTEST_ARGS); b=$$?; \
 	echo "pass 3: ruff check (ruff.toml)"; \
 	$(VENV)/bin/ruff check .; c=$$?; \
 	if [ $$a = 5 ] && [ $$b = 0 ]; then a=0; fi; \
