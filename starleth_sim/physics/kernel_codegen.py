@@ -29,7 +29,7 @@ def upper_snake(name: str) -> str:
     return out
 
 
-def _c_record(r, L) -> list[str]:
+def _c_record(r) -> list[str]:
     """A record's length and decoder (its fields from floats)."""
     lines = [f"/* {r.name} (kernel_layouts): {len(r.fields)} numbers as floats */",
              f"#define {upper_snake(r.name)}_LENGTH {len(r.fields)}",
@@ -223,7 +223,7 @@ def c_header(L) -> str:
              "#ifndef STARLETH_KERNEL_LAYOUTS_H", "#define STARLETH_KERNEL_LAYOUTS_H", "",
              '#include "core.h"', ""]
     for r in L.RECORDS:
-        lines += _c_record(r, L)
+        lines += _c_record(r)
     for r in L.RESULTS:
         lines += _c_result_struct(r, L)
     lines += _c_packed_buffers(L)

@@ -95,7 +95,7 @@ def touchdowns(t, contact, min_air=0.1):
     out = []
     last_contact = None
     air_start = None
-    for ti, c in zip(t, contact):
+    for ti, c in zip(t, contact, strict=True):
         if c:
             if air_start is not None and ti - air_start >= min_air:
                 out.append(ti)
@@ -244,9 +244,10 @@ def test_push_over_while_standing(preset):
     rec = r.run(Command("stand"), 4.0, push=((0.0, 600.0, 0.0), 0.1))
     closed = rec["all_contacts"].any(axis=0)
     names = r.sim.contact_names
-    knees = [n for n, c in zip(names, closed) if c and n.endswith("_knee")]
-    trunk = [n for n, c in zip(names, closed) if c and n.startswith("trunk")]
-    assert knees and trunk, f"{preset}: closed contacts {[n for n, c in zip(names, closed) if c]}"
+    knees = [n for n, c in zip(names, closed, strict=True) if c and n.endswith("_knee")]
+    trunk = [n for n, c in zip(names, closed, strict=True) if c and n.startswith("trunk")]
+    assert knees and trunk, \
+        f"{preset}: closed contacts {[n for n, c in zip(names, closed, strict=True) if c]}"
     assert rec["tau_ok"].all()
     assert np.all(np.isfinite(rec["pos"])) and np.all(np.isfinite(r.sim.q)) \
         and np.all(np.isfinite(r.sim.u))

@@ -39,7 +39,7 @@ def test_a_block_that_loads_from_the_cache_says_nothing_however_long():
     assert lines == [] and not notice.announced
 
 
-def test_numba_compiling_in_the_block_is_said(tmp_path, monkeypatch):
+def test_numba_compiling_in_the_block_is_said():
     """A numba function compiled in the block (no cache: a new function) is announced."""
     import numba
     lines = []
