@@ -51,7 +51,7 @@ class CompileNotice:
         compiling = self._compiling
 
         class Listener(event.Listener):
-            def on_start(self, ev):
+            def on_start(self, _event):
                 compiling.set()
 
             def on_end(self, ev):

@@ -78,7 +78,7 @@ def _require_rclpy():
     except ImportError as e:
         raise pytest.UsageError(
             f"rclpy cannot be imported ({e}): the ROS tests would be skipped. Install ROS 2's "
-            f"Python packages (`make venv`), or set {ALLOW_NO_ROS}=1 to run without them.")
+            f"Python packages (`make venv`), or set {ALLOW_NO_ROS}=1 to run without them.") from e
 
 
 def _module_of(nodeid: str) -> str:
@@ -100,7 +100,7 @@ def pytest_xdist_make_scheduler(config, log):
     return RosApartScheduling(config, log)
 
 
-def pytest_collection_modifyitems(config, items):
+def pytest_collection_modifyitems(items):
     def rank(item):
         mod = _module_of(item.nodeid)
         if mod in ROS_MODULES:
@@ -131,5 +131,6 @@ def _free_ros_domain(request):
                           {getattr(item, "module", None) for item in request.session.items}
                           if hasattr(m, "DOMAIN_RANGE")}
         spans = sorted(s for s in spans if s not in _DOMAINS)
-        _DOMAINS.update(zip(spans, free_domains([domain_candidates(*s) for s in spans])))
+        _DOMAINS.update(zip(spans, free_domains([domain_candidates(*s) for s in spans]),
+                            strict=True))
     request.module.DOMAIN_ID = _DOMAINS[span]

@@ -88,7 +88,7 @@ def ros2_control_section(name: str, joint_names, initial_positions,
 
 def _interface(kind, name, initial_value, bounds=None) -> str:
     params = "".join(f"<param name=\"{k}\">{float(v)!r}</param>"
-                     for k, v in zip(("min", "max"), bounds or ()))
+                     for k, v in zip(("min", "max"), bounds or (), strict=False))
     return (f"      <{kind}_interface name=\"{name}\"><param name=\"initial_value\">"
             f"{initial_value!r}</param>{params}</{kind}_interface>")
 

@@ -193,7 +193,7 @@ def test_rejected_torque_keeps_the_last_steps_reports(preset):
     np.testing.assert_array_equal(before[0], np.full(12, 20.0))
     np.testing.assert_array_equal(sim.contact_forces(), before[1])
     assert sim.diagnostics is before[3]
-    for c, (active, gap, state, position) in zip(sim.contacts, before[4]):
+    for c, (active, gap, state, position) in zip(sim.contacts, before[4], strict=True):
         assert (c.active, c.gap, c.state) == (active, gap, state)
         np.testing.assert_array_equal(c.position, position)
     sim.step(np.full(12, -1.0))     # the next step reports its own torques and forces

@@ -244,7 +244,7 @@ def test_contact_forces_are_the_contacts_forces(preset):
         sim.step(np.zeros(sim.n_joints))
         forces = sim.contact_forces()
         assert forces.shape == (len(sim.contact_names), 3)
-        for f, c in zip(forces, sim.contacts):
+        for f, c in zip(forces, sim.contacts, strict=True):
             assert f.tobytes() == c.force.tobytes(), (k, c.name)
         loaded += int(np.sum(forces[:, 2] > 0))
     assert loaded > 100

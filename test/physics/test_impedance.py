@@ -73,7 +73,7 @@ def test_the_torque_of_every_physics_step_of_cm_is_the_law_with_an_implicit_damp
         assert per_step.shape == (2, 12) and replay.shape == (2, 24)
         assert np.array_equal(sim.applied_torque, per_step[0])
         assert sim.last_command is cmd
-        for row, rec in zip(per_step, replay):
+        for row, rec in zip(per_step, replay, strict=True):
             q, qd = twin.joint_positions(), twin.joint_velocities()
             law = formula(cmd, q, qd)
             explicit = saturated(sim, law, qd)

@@ -43,7 +43,7 @@ def test_ball_inelastic_rests_with_weight_impulse_and_no_drift():
     m = 2.0
     sim = body_sim(sphere_urdf(0.1, m), restitution_normal=0.0, tol_rel=1e-12, tol_abs=1e-14)
     z0 = sim.q[2]
-    for k in range(2000):
+    for _k in range(2000):
         d = sim.step()
         lam = sim.contacts[0].impulse
         assert lam[2] == pytest.approx(m * G * sim.dt, rel=1e-6)
@@ -53,7 +53,10 @@ def test_ball_inelastic_rests_with_weight_impulse_and_no_drift():
     assert np.linalg.norm(sim.u) < 1e-9
 
 
-def incline_sim(mu, scheme, alpha, theta=np.deg2rad(30.0)):
+INCLINE = np.deg2rad(30.0)      # incline_sim's slope
+
+
+def incline_sim(mu, scheme, alpha, theta=INCLINE):
     normal = (-np.sin(theta), 0.0, np.cos(theta))
     sim = body_sim(box_urdf((0.2, 0.2, 0.2), 1.0), normal=normal, mu=mu, scheme=scheme,
                    alpha=alpha, tol_rel=1e-8, tol_abs=1e-10)

@@ -100,7 +100,7 @@ def test_prepared_step_gives_the_same_trajectory_bit_for_bit(preset):
             sim.step(tau)
         runs.append((sim.q, sim.u, np.array([c.impulse for c in sim.contacts]),
                      np.array([c.position for c in sim.contacts])))
-    for a, b in zip(*runs):
+    for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
     assert np.abs(runs[0][2]).sum() > 0     # the feet were in contact
 

@@ -89,7 +89,7 @@ def test_starleth_from_its_spec_equals_the_old_description_field_by_field():
     old = old_contacts(xml, model)
     assert [(c.name, c.link, c.joint, c.radius) for c in desc.contacts] == \
         [(n, link, j, r) for n, link, j, _, r in old]
-    for c, o in zip(desc.contacts, old):
+    for c, o in zip(desc.contacts, old, strict=True):
         assert c.local.tobytes() == o[3].tobytes(), c.name
     ids = [model.getJointId(n) for n in STARLETH_JOINT_NAMES]
     iv = [model.joints[j].idx_v for j in ids]

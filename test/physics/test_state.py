@@ -77,7 +77,7 @@ def test_failed_step_restores_the_state(preset, profile, poison):
     np.testing.assert_array_equal(sim.state.q, poisoned.q)
     np.testing.assert_array_equal(sim.state.u, poisoned.u)
     assert sim.t == before.t
-    for got, want in zip(contact_memory(sim.state), memory):
+    for got, want in zip(contact_memory(sim.state), memory, strict=True):
         np.testing.assert_array_equal(got, want)
 
 
@@ -110,9 +110,9 @@ def test_a_failure_in_a_later_physics_step_of_the_period_undoes_the_earlier_ones
     np.testing.assert_array_equal(sim.state.q, before.q)
     np.testing.assert_array_equal(sim.state.u, before.u)
     assert sim.t == before.t
-    for got, want in zip(contact_memory(sim.state), memory):
+    for got, want in zip(contact_memory(sim.state), memory, strict=True):
         np.testing.assert_array_equal(got, want)
-    for c, want in zip(sim.contacts, impulses):
+    for c, want in zip(sim.contacts, impulses, strict=True):
         np.testing.assert_array_equal(c.impulse, want)
     # and it steps on as a simulator restored to that state does
     del stepper.step_in_one_kernel
@@ -190,7 +190,7 @@ def test_one_kernel_step_of_a_cut_forest_is_the_phase_by_phase_step(preset):
         assert plain.q.tobytes() == phased.q.tobytes(), k
         assert plain.u.tobytes() == phased.u.tobytes(), k
         assert plain.applied_torque.tobytes() == phased.applied_torque.tobytes(), k
-        for a, b in zip(plain.contacts, phased.contacts):
+        for a, b in zip(plain.contacts, phased.contacts, strict=True):
             assert np.asarray(a.impulse).tobytes() == np.asarray(b.impulse).tobytes(), k
         if k == 100:
             assert 0 < plain.applied_torque[1] < 1e4

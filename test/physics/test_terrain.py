@@ -133,7 +133,7 @@ def test_sphere_on_a_slope_terrain_is_the_sphere_on_the_inclined_plane():
         results.append(runs[0])
     g, t = 9.81, 0.3
     for traj, a in zip(results, (5 / 7 * g * math.sin(theta),
-                                 g * (math.sin(theta) - 0.05 * math.cos(theta)))):
+                                 g * (math.sin(theta) - 0.05 * math.cos(theta))), strict=True):
         travelled = np.linalg.norm(traj[-1, :3] - traj[0, :3])
         assert travelled == pytest.approx(0.5 * a * t ** 2, rel=0.02)
 
@@ -231,7 +231,7 @@ def test_every_step_path_gives_the_same_terrain_run_bit_for_bit(preset, terrain)
             impulses.append(sim.contact_impulses())
         runs.append((sim.q, sim.u, np.array(impulses), sim.stepper.frames.copy()))
     for other in runs[1:]:
-        for a, b in zip(runs[0], other):
+        for a, b in zip(runs[0], other, strict=True):
             np.testing.assert_array_equal(a, b)
     assert np.abs(runs[0][2]).sum() > 0       # on the terrain
 

@@ -170,7 +170,7 @@ def test_demo_trots_and_records_the_whole_run(tmp_path):
         c = conns["/joint_states"]
         first = last = None
         early_js = []
-        for _, ts, raw in reader.messages(connections=[c]):
+        for _, _ts, raw in reader.messages(connections=[c]):
             m = reader.deserialize(raw, c.msgtype)
             first = m if first is None else first
             last = m
@@ -178,7 +178,7 @@ def test_demo_trots_and_records_the_whole_run(tmp_path):
                 early_js.append(m)
         cb = conns["/starleth/base_state"]
         early_bs = []
-        for _, ts, raw in reader.messages(connections=[cb]):
+        for _, _ts, raw in reader.messages(connections=[cb]):
             if len(early_bs) < DEMO_STEPS:
                 early_bs.append(reader.deserialize(raw, cb.msgtype))
         n_base = cb.msgcount
@@ -491,7 +491,7 @@ def test_state_bundle_gives_the_public_topics_answers_and_rejects_bad_bundles(tm
             a._publish_rest(_stamp(ns), z, quat, forces, twist)
             a.publish(ns, q=q, velocity=dq, only="js")
             b.publish_bundle(ns, q, dq, z, quat, twist, forces)
-            assert ros.spin_until(lambda: ns in a.answers and ns in b.answers, 3.0,
+            assert ros.spin_until(lambda ns=ns: ns in a.answers and ns in b.answers, 3.0,
                                   [topics, bundle]), (k, topics.log()[-1500:], bundle.log())
             got, want = np.asarray(b.answers[ns].effort), np.asarray(a.answers[ns].effort)
             assert got.tobytes() == want.tobytes(), (k, got - want)

@@ -95,7 +95,7 @@ def test_live_view_serves_tf_and_joint_states_as_recorded(live_run):
             got, want = decode(payload), recorded[topic][t]
             if topic == "/tf":
                 assert len(got.transforms) == len(want.transforms) == 13
-                for a, b in zip(got.transforms, want.transforms):
+                for a, b in zip(got.transforms, want.transforms, strict=True):
                     assert (a.header.frame_id, a.child_frame_id) == \
                         (b.header.frame_id, b.child_frame_id)
                     assert a.header.stamp.sec * 10 ** 9 + a.header.stamp.nanosec == t

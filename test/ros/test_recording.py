@@ -1,5 +1,6 @@
 """McapRecorder (starleth_sim.ros.recording): the rosbag2 MCAP layout, read back with independent
 readers (rosbags, mcap_ros2). No ROS graph, no processes: fast."""
+import itertools
 import json
 import os
 import sys
@@ -94,12 +95,12 @@ def _record(path, n=5, close=True):
     msgs = _sample_messages()
     topics = [f"/t{i}" for i in range(len(msgs))]
     qos = QoSProfile(depth=10)
-    for t, m in zip(topics, msgs):
+    for t, m in zip(topics, msgs, strict=True):
         rec.add_topic(t, type(m), qos)
     rec.add_metadata("starleth_sim", {"physics_config": "name: HmJ\n", "n": 3})
     rec.add_attachment("robot.urdf", "application/xml", "<robot/>")
     for k in range(n):
-        for i, (t, m) in enumerate(zip(topics, msgs)):
+        for i, (t, m) in enumerate(zip(topics, msgs, strict=True)):
             data = serialize_message(m) if i % 2 else m   # bytes and message objects
             assert rec.write(t, data, 1_000_000_000 + k * 2_500_000)
     if close:
@@ -115,7 +116,7 @@ def test_rosbags_reads_the_file(tmp_path):
     with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = {c.topic: c for c in reader.connections}
         assert set(conns) == set(topics)
-        for t, m in zip(topics, msgs):
+        for t, m in zip(topics, msgs, strict=True):
             c = conns[t]
             assert c.msgtype == type_name(type(m))
             assert c.msgcount == 5
@@ -133,7 +134,7 @@ def test_rosbags_reads_the_file(tmp_path):
                 assert msg.status[0].values[0].value == "12"
         for t in topics:
             ts = seen[t]
-            assert len(ts) == 5 and all(b > a for a, b in zip(ts, ts[1:]))
+            assert len(ts) == 5 and all(b > a for a, b in itertools.pairwise(ts))
 
 
 def test_rosbags_parses_embedded_definitions(tmp_path):
@@ -166,7 +167,7 @@ def test_mcap_ros2_decodes_and_metadata(tmp_path):
         for c in summary.channels.values():
             assert "offered_qos_profiles" in c.metadata
         n = 0
-        for schema, channel, message, decoded in reader.iter_decoded_messages():
+        for schema, _channel, _message, decoded in reader.iter_decoded_messages():
             n += 1
             if schema.name == "nav_msgs/msg/Odometry":
                 assert decoded.child_frame_id == "base"
@@ -198,7 +199,7 @@ def test_close_is_idempotent_and_write_after_close_is_ignored(tmp_path):
         assert make_reader(f).get_summary().statistics.message_count == 1
 
 
-def test_generated_schema_is_decodable(tmp_path):
+def test_generated_schema_is_decodable():
     """Types without a .msg file get a generated definition; it must decode the same CDR."""
     from mcap_ros2.decoder import DecoderFactory
     from mcap.records import Schema
@@ -310,7 +311,7 @@ def test_queued_and_process_recorders_keep_every_message_in_order(tmp_path, kind
         for f in files:
             with open(f, "rb") as fh:
                 reader = make_reader(fh)
-                for schema, channel, msg in reader.iter_messages(log_time_order=False):
+                for _schema, channel, msg in reader.iter_messages(log_time_order=False):
                     if channel.topic == "/a":
                         from rclpy.serialization import deserialize_message
                         forces.append(deserialize_message(msg.data, WrenchStamped).wrench.force.z)
@@ -339,7 +340,7 @@ def test_fixed_cdr_templates_give_rclpys_bytes():
     cases = [(WrenchStamped, WRENCH_FIELDS, ("world",)), (Odometry, ODOM_FIELDS, ("world", "base")),
              (Imu, IMU_FIELDS, ("base",))]
     for typ, fields, frames in cases:
-        def fresh():
+        def fresh(typ=typ, frames=frames):
             m = typ()
             m.header.frame_id = frames[0]
             if len(frames) > 1:
@@ -352,7 +353,7 @@ def test_fixed_cdr_templates_give_rclpys_bytes():
             sec, nsec = int(rng.integers(0, 2 ** 31)), int(rng.integers(0, 10 ** 9))
             m = fresh()
             m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
-            for f, v in zip(fields, vals):
+            for f, v in zip(fields, vals, strict=True):
                 _set(m, f, v)
             data = cdr.build(sec, nsec, vals)
             # the same message, the same size (bytes may differ in padding only, which
@@ -377,7 +378,7 @@ def test_readers_decode_rclpys_bytes_and_fall_back_on_anything_else():
             o.header.frame_id, o.child_frame_id = frame, child
             o.header.stamp.sec, o.header.stamp.nanosec = 3, 7
             vals = _values(rng, len(ODOM_FIELDS))
-            for f, v in zip(ODOM_FIELDS, vals):
+            for f, v in zip(ODOM_FIELDS, vals, strict=True):
                 _set(o, f, v)
             o.pose.covariance = rng.normal(size=36).tolist()      # ignored, skipped over
             assert ro.decode(serialize_message(o)) == (3, 7, vals)
@@ -438,7 +439,7 @@ def test_diagnostic_array_writer_gives_rclpys_message():
             msg.status.append(DiagnosticStatus(
                 level=level if isinstance(level, bytes) else bytes([level]), name=name,
                 message=message, hardware_id=hw,
-                values=[KeyValue(key=k, value=v) for k, v in zip(keys, values)]))
+                values=[KeyValue(key=k, value=v) for k, v in zip(keys, values, strict=True)]))
         data = cdr.build(5, 123, statuses)
         # the same message (bytes differ only in padding, which rclpy does not zero)
         assert deserialize_message(data, DiagnosticArray) == msg

@@ -7,6 +7,7 @@ a complete bag up to the last message written. Below that, the recorders themsel
 failed write closes the file as a complete MCAP file every reader reads; a writer that is
 behind never makes the caller wait; metadata.yaml costs O(1) per split; close keeps to its
 time limit."""
+import itertools
 import os
 import resource
 import shutil
@@ -53,7 +54,7 @@ def _readers_agree(path):
         n_mcap = sum(1 for _ in make_reader(f).iter_messages())
     with AnyReader([Path(path)]) as r:
         n_rosbags = sum(1 for _ in r.messages())
-    bag = read_messages(str(path), lambda t, ty: True, decode=False)
+    bag = read_messages(str(path), lambda _topic, _type: True, decode=False)
     n_ours = sum(len(v) for v in bag.messages.values())
     assert n_mcap == n_rosbags == n_ours, (n_mcap, n_rosbags, n_ours)
     return n_mcap, bag
@@ -275,7 +276,7 @@ class _Watch:
             ros.node.create_subscription(DiagnosticArray, "/starleth/solver", self._diag,
                                          QoSProfile(depth=100))]
 
-    def _js(self, msg):
+    def _js(self, _msg):
         self.joint_states += 1
 
     def _diag(self, msg):
@@ -318,7 +319,7 @@ def _check_bag_after_failure(path, log, copy=None):
     n, bag = _readers_agree(copy or path)
     stamps = [t for t, _ in bag.messages["/joint_states"]]
     assert len(stamps) > 40
-    assert all(b - a == PERIOD_NS for a, b in zip(stamps, stamps[1:])), "a gap in the bag"
+    assert all(b - a == PERIOD_NS for a, b in itertools.pairwise(stamps)), "a gap in the bag"
     assert "Traceback" not in log
 
 

@@ -236,7 +236,7 @@ def check_commands(hardware, loop, summary):
     names = [j.name for j in hardware.info.joints]
     sent = hardware.published
     assert loop.writes == loop.cycles == len(sent)
-    for stamp, msg in sent:
+    for _stamp, msg in sent:
         assert list(msg.name) == names
         assert len(msg.position) == len(msg.velocity) == len(msg.effort) == len(names)
     stamps = np.array([s for s, _ in sent])

@@ -11,6 +11,7 @@ for Go1 a forward controller of that file drives the hardware of Go1's section, 
 takes what it sends.
 test_ros2_control.py runs the whole path with ROS nodes."""
 import io
+import itertools
 import os
 import xml.etree.ElementTree as ET
 from contextlib import redirect_stdout
@@ -358,7 +359,7 @@ def test_controllers_file_names_real_types_parameters_joints_and_interfaces(robo
 def sim_node_parameters(ros_args):
     """{name: value} of the -p arguments, each value read as YAML (as rcl reads it)."""
     out = {}
-    for flag, arg in zip(ros_args, ros_args[1:]):
+    for flag, arg in itertools.pairwise(ros_args):
         if flag == "-p":
             name, value = arg.split(":=", 1)
             out[name] = yaml.safe_load(value)

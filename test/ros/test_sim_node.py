@@ -2,6 +2,7 @@
 (`python -m starleth_sim.ros.sim_node --ros-args -p ...`) on an isolated ROS_DOMAIN_ID and
 is driven from a test node in this process. Every child process is stopped in a fixture
 teardown or a finally; every wait is bounded."""
+import itertools
 import json
 import os
 import signal
@@ -163,7 +164,8 @@ class TestRealtime:
     """One realtime node for these tests, in order: graph, rate, bad input, services, and
     finally SIGINT and the recording it leaves."""
 
-    def test_topics_types_and_services(self, ros, rt):
+    @pytest.mark.usefixtures("rt")
+    def test_topics_types_and_services(self, ros):
         node = ros.node
 
         def graph_ok():
@@ -218,7 +220,8 @@ class TestRealtime:
                 c.close()
 
 
-    def test_realtime_rate_400hz(self, ros, rt):
+    @pytest.mark.usefixtures("rt")
+    def test_realtime_rate_400hz(self, ros):
         # a deep queue and no garbage collection in this (test) process during the window:
         # a pause here must not lose messages that the node did publish
         col = Collector(ros, JointState, "/joint_states", QoSProfile(depth=4000))
@@ -312,7 +315,7 @@ class TestRealtime:
             # the last valid command is kept: applied as 1.5 N m, derated on a joint that
             # started the step beyond its velocity limit (10 rad/s) moving in the torque's
             # direction (to zero at 20 rad/s)
-            for prev, m in zip(col.msgs[n_before - 1:], col.msgs[n_before:]):
+            for prev, m in itertools.pairwise(col.msgs[n_before - 1:]):
                 v = np.array(prev.velocity)
                 expect = np.where(v > 10.0, 1.5 * np.clip(2.0 - v / 10.0, 0.0, 1.0), 1.5)
                 assert np.allclose(expect, m.effort), (m.effort, prev.velocity)
@@ -350,7 +353,7 @@ class TestRealtime:
             for i in (1, 2):
                 r = ros.call(Trigger, "/sim_node/step", Trigger.Request())
                 assert r.success, r.message
-                assert ros.spin_until(lambda: len(col.msgs) == n + i, 5)
+                assert ros.spin_until(lambda i=i: len(col.msgs) == n + i, 5)
                 assert stamp_ns(col.msgs[-1]) == last + i * PERIOD_NS
             r = ros.call(Trigger, "/sim_node/reset", Trigger.Request())
             assert r.success
@@ -635,7 +638,7 @@ def test_contact_markers_cdr_equals_the_message_objects():
             contacts = node.sim.contacts
             spheres = [m for m in back.markers if m.ns == "contacts"]
             arrows = [m for m in back.markers if m.ns == "contact_forces"]
-            for c, sphere, arrow in zip(contacts, spheres, arrows):
+            for c, sphere, arrow in zip(contacts, spheres, arrows, strict=True):
                 pos = sphere.pose.position
                 assert (pos.x, pos.y, pos.z) == tuple(float(x) for x in c.position)
                 col = MARKER_COLOURS[c.state]

@@ -68,10 +68,11 @@ def test_paused_it_still_reports_and_answers_a_hundred_concurrent_calls(ros, tmp
         assert 3 <= len(got) <= 6, len(got)
         assert all(m == "paused" and v["paused"] == "True" and v["sim_time"] == "0.0"
                    for m, v in got)
-        for (name, _, request), cs in zip(calls, clients):
-            assert ros.spin_until(lambda: all(c.service_is_ready() for c in cs), 30, [sim])
+        for (name, _, request), cs in zip(calls, clients, strict=True):
+            assert ros.spin_until(lambda cs=cs: all(c.service_is_ready() for c in cs), 30, [sim])
             futures = [c.call_async(request) for c in cs]
-            assert ros.spin_until(lambda: all(f.done() for f in futures), 60, [sim]), \
+            assert ros.spin_until(lambda futures=futures: all(f.done() for f in futures), 60,
+                                  [sim]), \
                 f"~/{name}: {sum(f.done() for f in futures)} of 100 answered"
             assert all(f.result().success for f in futures), name
         assert ros.call(SetBool, "/sim_node/pause", SetBool.Request(data=False)).success
@@ -95,7 +96,7 @@ def test_sigint_ends_the_node_within_two_seconds_whatever_is_queued(ros, tmp_pat
                record=str(path))
     count = [0]
     sub = ros.node.create_subscription(JointState, "/joint_states",
-                                       lambda m: count.__setitem__(0, count[0] + 1),
+                                       lambda _msg: count.__setitem__(0, count[0] + 1),
                                        QoSProfile(depth=100))
     writer = None
     try:
@@ -131,7 +132,7 @@ def test_sigint_ends_the_node_within_two_seconds_whatever_is_queued(ros, tmp_pat
         assert reader.get_summary() is not None and n > 1000
 
 
-def test_a_recording_that_cannot_be_written_is_one_line_and_exit_2(tmp_path):
+def test_a_recording_that_cannot_be_written_is_one_line_and_exit_2():
     """record:=/dev/full: sim_node exits with 2 and one line naming the file and the cause,
     without a traceback and without first trying in-process; /proc/x.mcap (no file can be
     made there) is refused the same way by the recorder."""

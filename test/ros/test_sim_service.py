@@ -270,7 +270,7 @@ def test_hold_sags_as_the_joint_stiffness_predicts(sim):
     pin.computeJointJacobians(model, data, q)
     forces = sim.contact_forces()
     sag = []
-    for i, foot in enumerate(desc.foot_names):
+    for foot in desc.foot_names:
         c = next(c for c in desc.contacts if c.name == foot)
         jac = pin.getJointJacobian(model, data, c.joint, pin.LOCAL_WORLD_ALIGNED)
         r = data.oMi[c.joint].rotation @ c.local
@@ -384,7 +384,7 @@ def test_physics_failure_pauses_and_reset_recovers(sim, monkeypatch):
     svc, warns = make(sim)
     real_step = sim.step
 
-    def failing(tau=None):
+    def failing(_tau=None):
         raise SimulationError("non-finite state after the step")
 
     monkeypatch.setattr(sim, "step", failing)

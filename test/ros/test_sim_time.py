@@ -362,7 +362,7 @@ def test_analyze_and_replay_read_the_namespaced_prefixed_bags(two_robots, tmp_pa
     assert analysis.main([bags["robot1"], bags["robot2"], "--no-plots", "--json",
                           str(out)]) == 0
     runs = json.loads(out.read_text())["runs"]
-    for ns, run in zip(ROBOTS, runs):
+    for ns, run in zip(ROBOTS, runs, strict=True):
         base = run["base"]
         assert base["frames"] == ["world", f"{ns}/base"] and base["twist_frame"] == "child"
         assert base["height_mean"] == pytest.approx(STARLETH_STANDING_HEIGHT, abs=0.01)

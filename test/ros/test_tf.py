@@ -35,7 +35,7 @@ def test_tf_message_cdr_is_what_rosbags_serialises():
             transform=T["geometry_msgs/msg/Transform"](
                 translation=T["geometry_msgs/msg/Vector3"](x=x[0], y=x[1], z=x[2]),
                 rotation=T["geometry_msgs/msg/Quaternion"](x=x[3], y=x[4], z=x[5], w=x[6])))
-        for (p, c), x in zip(frames, poses)])
+        for (p, c), x in zip(frames, poses, strict=True)])
     ref = bytes(ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
     assert data == ref
     back = ts.deserialize_cdr(data, "tf2_msgs/msg/TFMessage")
@@ -131,7 +131,7 @@ def test_recorded_transforms_agree_with_pinocchio_forward_kinematics(recorded):
         q = np.zeros(model.nq)
         p, o = base.pose.pose.position, base.pose.pose.orientation
         q[:7] = [p.x, p.y, p.z, o.x, o.y, o.z, o.w]
-        for name, angle in zip(js.name, js.position):
+        for name, angle in zip(js.name, js.position, strict=True):
             q[model.joints[model.getJointId(name)].idx_q] = angle
         pin.framesForwardKinematics(model, data, q)
         world = world_poses(list(tfs) + list(msgs["/tf_static"][0].ros_msg.transforms))
@@ -341,7 +341,7 @@ def test_terrain_is_recorded_once_at_start_as_the_physics_sees_it(terrain_record
     cfg = node.sim.config
     boxes = cfg.terrain.all_boxes(cfg.ground.height)
     assert [b["centre"][0] for b in boxes] == [0.0, 0.7 + 0.15, 0.7 + 0.3 + 0.65]
-    for mk, b in zip(by_ns["boxes"], boxes):
+    for mk, b in zip(by_ns["boxes"], boxes, strict=True):
         assert mk.type == 1
         p, o, sc = mk.pose.position, mk.pose.orientation, mk.scale
         assert [p.x, p.y, p.z] == b["centre"] and [sc.x, sc.y, sc.z] == b["size"]

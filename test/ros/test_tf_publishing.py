@@ -131,7 +131,7 @@ def test_a_tf_message_subscriber_receives_what_the_bag_holds(tmp_path):
     for topic in ("/tf", "/tf_static"):
         got = listener.got[topic]
         assert len(got) == len(recorded[topic]), topic
-        for msg, (log_time, data) in zip(got, recorded[topic]):
+        for msg, (log_time, data) in zip(got, recorded[topic], strict=True):
             assert msg == deserialize_message(data, type(msg)), topic     # every field
             if topic == "/tf":
                 stamp = msg.transforms[0].header.stamp
@@ -245,7 +245,7 @@ def test_without_a_usable_tf2_msgs_one_line_says_tf_is_not_published(monkeypatch
     assert tf_message_type(_Log()) is tf2_msgs_or_skip()      # (skips where it is missing)
     import rclpy.type_support
 
-    def broken(t):
+    def broken(_type):
         raise ImportError("libtf2_msgs__rosidl_typesupport_c.so: cannot open shared object")
     monkeypatch.setattr(rclpy.type_support, "check_for_type_support", broken)
     log = _Log()

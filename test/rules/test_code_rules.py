@@ -134,8 +134,9 @@ def module_imports(name, path, source, modules):
         text = "\n".join(lines[node.lineno - 1:(node.end_lineno or node.lineno)])
         deferred = bool(DEFERRED.search(text))
 
-        def add(module, names=()):
-            imports.append(Import(module, node.lineno, tuple(names), local, runtime, deferred))
+        def add(module, names=(), line=node.lineno, local=local, runtime=runtime,
+                deferred=deferred):
+            imports.append(Import(module, line, tuple(names), local, runtime, deferred))
 
         if isinstance(node, ast.Import):
             for alias in node.names:

@@ -5,6 +5,7 @@ own argument parser (rclpy.init, as `ros2 run` does) and gives a value the node'
 accepts; sim_node's physics_overrides parses to a mapping the physics validates. And the
 form that rcl refuses, a mapping unquoted, gets one line saying how to quote it."""
 import glob
+import itertools
 import os
 import re
 import shlex
@@ -63,7 +64,7 @@ def rules(line):
         words = list(lexer)
     except ValueError:          # an unbalanced quote: the text around cut the line
         return []
-    return [rule for flag, rule in zip(words, words[1:])
+    return [rule for flag, rule in itertools.pairwise(words)
             if flag in ("-p", "--param") and re.match(r"[a-z_]+:=", rule)]
 
 

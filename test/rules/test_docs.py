@@ -101,7 +101,7 @@ def top_level_entries():
 
 def file_names():
     names = set()
-    for dirpath, dirnames, files in os.walk(ROOT):
+    for _dirpath, dirnames, files in os.walk(ROOT):
         dirnames[:] = [d for d in dirnames if not d.startswith(".") and d not in GENERATED]
         names.update(files)
     return names

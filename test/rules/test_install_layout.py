@@ -69,7 +69,7 @@ def test_colcon_never_builds_the_venv_interface_packages(tmp_path):
 
 
 def _site_packages(prefix):
-    for dirpath, dirnames, _ in os.walk(prefix / "lib"):
+    for dirpath, _dirnames, _ in os.walk(prefix / "lib"):
         if os.path.basename(dirpath) == "site-packages":
             return dirpath
     raise AssertionError("no site-packages under the install prefix")

@@ -44,7 +44,7 @@ def test_where_it_cannot_generate_one_line_says_what_is_lost(generate, tmp_path,
     status 1 and one line naming the cause and that /tf is recorded but not published;
     nothing installed, no generator wheel asked for."""
     monkeypatch.setattr(generate, "PREFIX", str(tmp_path))
-    monkeypatch.setattr(generate, "importable", lambda pkg: None)
+    monkeypatch.setattr(generate, "importable", lambda _pkg: None)
     ran = []
     monkeypatch.setattr(generate, "run", lambda *a, **k: ran.append(a))
     assert generate.main([]) == 1
@@ -61,7 +61,7 @@ def test_nothing_to_do_where_a_ros_install_provides_it(generate, tmp_path, monke
     """tf2_msgs importable and not generated here (no digest file in the prefix): left
     alone, with a line saying where it comes from."""
     monkeypatch.setattr(generate, "PREFIX", str(tmp_path))
-    monkeypatch.setattr(generate, "importable", lambda pkg: "/opt/ros/jazzy/lib/tf2_msgs")
+    monkeypatch.setattr(generate, "importable", lambda _pkg: "/opt/ros/jazzy/lib/tf2_msgs")
     monkeypatch.setattr(generate, "generate", lambda *a: pytest.fail("generated"))
     assert generate.main([]) == 0
     assert capsys.readouterr().out == \
@@ -71,9 +71,9 @@ def test_nothing_to_do_where_a_ros_install_provides_it(generate, tmp_path, monke
 def test_generated_earlier_is_up_to_date_until_its_sources_change(generate, tmp_path,
                                                                   monkeypatch, capsys):
     monkeypatch.setattr(generate, "PREFIX", str(tmp_path))
-    monkeypatch.setattr(generate, "importable", lambda pkg: str(tmp_path / "site-packages"))
+    monkeypatch.setattr(generate, "importable", lambda _pkg: str(tmp_path / "site-packages"))
     calls = []
-    monkeypatch.setattr(generate, "generate", lambda pkg, digest: calls.append(digest))
+    monkeypatch.setattr(generate, "generate", lambda _pkg, digest: calls.append(digest))
     marker = tmp_path / "share" / "tf2_msgs" / generate.DIGEST_FILE
     marker.parent.mkdir(parents=True)
     marker.write_text(generate.source_digest("tf2_msgs") + "\n")

@@ -151,7 +151,7 @@ class TopicBasedSystem:
 
     def write(self) -> bool:
         diff = sum(abs(s - c) for s, c in zip(self.states["position"],
-                                              self.commands["position"]))
+                                              self.commands["position"], strict=True))
         if diff <= self.threshold:
             return False
         msg = JointState()
@@ -184,7 +184,7 @@ class ForwardCommandController:
     def update(self):
         command = self.command
         if command is not None:
-            for j, value in zip(self.joints, command):
+            for j, value in zip(self.joints, command, strict=True):
                 self.values[j] = value
 
 

@@ -143,7 +143,7 @@ def nodes_on_domains(domain_ids, wait=1.5):
         return {d: sorted(f"{ns.rstrip('/')}/{n}"
                           for n, ns in p.node.get_node_names_and_namespaces()
                           if not n.startswith("_domain_probe"))
-                for d, p in zip(domain_ids, probes)}
+                for d, p in zip(domain_ids, probes, strict=True)}
     finally:
         for p in probes:
             p.close()

@@ -110,7 +110,7 @@ class BagWriter:
         status = DiagnosticStatus(name="starleth_sim: solver", hardware_id="starleth_sim",
                                   message=str(d.status),
                                   values=[KeyValue(key=key, value=str(v))
-                                          for key, v in zip(SOLVER_KEYS, vals)])
+                                          for key, v in zip(SOLVER_KEYS, vals, strict=True)])
         da = DiagnosticArray(status=[status])
         da.header.stamp = st
         self.write("/starleth/solver", da, k)
@@ -145,7 +145,7 @@ def run_sim(path, preset="HmJ", steps=400, controller="posture", drop=0.0, skip=
     if controller == "posture":
         ph = PostureHold(sim.joint_positions())
 
-        def torque(k):
+        def torque(_k):
             return ph.torque(sim)
     else:
         from starleth_sim.physics.description import urdf_path

@@ -241,7 +241,7 @@ def times_bag(path):
     stamps = [(-2 ** 31, 0), (2 ** 31 - 1, 2 ** 32 - 1), (0, 0), (-2 ** 31, 2 ** 32 - 1),
               (5, 5), (2 ** 31 - 1, 0)]
     logs = [0, 2 ** 63 - 1, 2 ** 64 - 1, 1, 2 ** 63, 7]
-    for (sec, ns), log in zip(stamps, logs):
+    for (sec, ns), log in zip(stamps, logs, strict=True):
         write_state(rec, stamp(sec, ns), log, solver_topic=True)
     rec.close()
     return path
@@ -536,7 +536,7 @@ def test_records_and_what_is_kept_are_bounded(tmp_path, monkeypatch):
     rec.close()
     monkeypatch.setattr(bagmod, "MAX_KEPT_BYTES", 7000)
     warnings = []
-    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True,
+    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda _topic, _type: True,
                                on_warning=warnings.append)
     assert set(bag.metadata) == {"starleth_sim", "extra0"} and not bag.attachments
     assert bag.kept_bytes <= 7000 and bag.counts["/joint_states"] == 2
@@ -544,8 +544,8 @@ def test_records_and_what_is_kept_are_bounded(tmp_path, monkeypatch):
         "('extra1', 'extra2', 'big.bin', 'rosbag2'): more than 7000 bytes of them" in warnings[0]
     monkeypatch.setattr(bagmod, "MAX_RECORD_BYTES", 10_000)
     with pytest.raises(bagmod.BagError, match="ATTACHMENT record has length 20"):
-        bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True)
-    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda t, ty: True, salvage=True,
+        bagmod.read_messages(str(tmp_path / "b.mcap"), lambda _topic, _type: True)
+    bag = bagmod.read_messages(str(tmp_path / "b.mcap"), lambda _topic, _type: True, salvage=True,
                                on_warning=warnings.append)
     assert bag.truncated and any("ATTACHMENT record has length 20" in w for w in warnings)
 
@@ -739,13 +739,13 @@ def _ragged(path, md, names):
 
 #: case -> (the bag, given (tmp_path, metadata, joint names); what the error line says)
 REPLAY_CASES = {
-    "span": (lambda d, md, names: span_bag(d / "b.mcap", metadata=md), ("step 1", "missing")),
-    "span_period": (lambda d, md, names: span_bag(d / "b.mcap", metadata=dict(
+    "span": (lambda d, md, _names: span_bag(d / "b.mcap", metadata=md), ("step 1", "missing")),
+    "span_period": (lambda d, md, _names: span_bag(d / "b.mcap", metadata=dict(
         md, stamp_period_ns=str(SPAN_S * 10 ** 9), control_period=repr(float(SPAN_S)))),
         ("control period",)),
-    "garbage": (lambda d, md, names: garbage_bag(d / "b.mcap", metadata=md),
+    "garbage": (lambda d, md, _names: garbage_bag(d / "b.mcap", metadata=md),
                 ("no messages on /joint_states",)),
-    "huge_sequence": (lambda d, md, names: huge_sequence_bag(d / "b.mcap", metadata=md),
+    "huge_sequence": (lambda d, md, _names: huge_sequence_bag(d / "b.mcap", metadata=md),
                       ("no messages on /joint_states",)),
     "nan_torque": (lambda d, md, names: replay_bag(d / "b.mcap", md, names, value=math.nan),
                    ("effort of step 1", "NaN or infinite")),
@@ -771,9 +771,9 @@ REPLAY_CASES = {
     "applied_missing": (lambda d, md, names: applied_bag(d / "b.mcap", md, names,
                                                          bad="missing"),
                         ("no applied torque for step 1 -> 2",)),
-    "zstd_1tib": (lambda d, md, names: raw_bag(d / "b.mcap", [
+    "zstd_1tib": (lambda d, _md, _names: raw_bag(d / "b.mcap", [
         zstd_claiming(state_records(0, 4), TiB)]), ("compressed chunk",)),
-    "zstd_3gib": (lambda d, md, names: raw_bag(d / "b.mcap", [
+    "zstd_3gib": (lambda d, _md, _names: raw_bag(d / "b.mcap", [
         _chunk(state_records(0, 4)), honest_3gib(zstd_zeros(GiB3))]), CHUNK_WORDS["zstd_3gib"]),
     "slope": (lambda d, md, names: replay_bag(
         d / "b.mcap", md, names, physics_config=slope_config(md, length=1e-4)),
@@ -832,7 +832,7 @@ def test_compressed_bags_read_as_uncompressed_ones(tmp_path, compression):
         for topic, data, log_time in messages:
             rec.write(topic, data, log_time)
         rec.close()
-    got = {c: bagmod.read_messages(str(p), lambda t, ty: True, decode=False)
+    got = {c: bagmod.read_messages(str(p), lambda _topic, _type: True, decode=False)
            for c, p in paths.items()}
     with open(paths[compression], "rb") as f:
         theirs = [(ch.topic, m.log_time, m.data) for _, ch, m in make_reader(f).iter_messages(

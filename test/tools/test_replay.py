@@ -208,7 +208,7 @@ def cut_recording(recorded):
     p = subprocess.run([sys.executable, "-c", CUT_WRITER, mcap, str(cut), str(K_CUT)],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0 and "[Errno 27] File too large" in p.stdout, p.stdout + p.stderr
-    bag = read_messages(str(cut), lambda t, ty: True, decode=False)
+    bag = read_messages(str(cut), lambda _topic, _type: True, decode=False)
     fault = bag.metadata["starleth_recording_fault"]
     assert fault["cause"].startswith("[Errno 27] File too large: the file reached the "
                                      "file-size limit of this process (ulimit -f: "), fault

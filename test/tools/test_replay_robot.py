@@ -88,7 +88,7 @@ def go1_bag(tmp_path_factory):
     sim.reset(svc.q0, svc.u0)
     q_ref = sim.joint_positions().copy()
     _write_state(rec, sim, desc.foot_names, 0)
-    for k in range(1, STEPS + 1):
+    for _k in range(1, STEPS + 1):
         svc.command = 40.0 * (q_ref - sim.joint_positions()) - 1.0 * sim.joint_velocities()
         assert svc.step() is not None
         _write_state(rec, sim, desc.foot_names, svc.stamp_ns)
@@ -113,7 +113,7 @@ def test_a_go1_bag_replays_bit_for_bit_without_the_library(go1_bag, monkeypatch,
     assert fz.sum(axis=1).mean() == pytest.approx(mass * 9.81, rel=0.1)
 
 
-def test_the_recorded_urdf_is_the_one_replayed(go1_bag, monkeypatch):
+def test_the_recorded_urdf_is_the_one_replayed(go1_bag):
     """Replayed on the library's Go1 (a lighter trunk), the run is no longer identical."""
     rec = replay_recording.load_recording(go1_bag)
     assert rec.feet == robots.robot_description("go1").foot_names

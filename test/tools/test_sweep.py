@@ -132,7 +132,7 @@ def _same_table(a, b):
     the controller (ProxQP's portable build, force_distribution) are bit-reproducible across
     processes."""
     assert len(a) == len(b) and a and a[0].keys() == b[0].keys()
-    for ra, rb in zip(a, b):
+    for ra, rb in zip(a, b, strict=True):
         for k in ra:
             if k in sweep.TIMING_COLUMNS:
                 continue

@@ -67,7 +67,7 @@ def recorded(path):
 def configuration(model, js, odom):
     """pin q of a JointState and an Odometry."""
     q = pin.neutral(model)
-    for name, value in zip(js.name, js.position):
+    for name, value in zip(js.name, js.position, strict=True):
         q[model.joints[model.getJointId(name)].idx_q] = value
     p, o = odom.pose.pose.position, odom.pose.pose.orientation
     q[:7] = (p.x, p.y, p.z, o.x, o.y, o.z, o.w)

@@ -166,8 +166,8 @@ def test_a_recorded_robot_is_drawn_without_the_library_packages(tmp_path, capsys
     robot_or_skip("go1")
     write_robot_bag(tmp_path / "run.mcap", "go1")
     monkeypatch.setattr("starleth_sim.tools.view.page.spec_package_roots",
-                        lambda spec, name: [str(tmp_path)])
-    monkeypatch.setattr("starleth_sim.robots.meshes._package_share", lambda package: None)
+                        lambda _spec, _name: [str(tmp_path)])
+    monkeypatch.setattr("starleth_sim.robots.meshes._package_share", lambda _package: None)
     assert view.main([str(tmp_path / "run.mcap")]) == 0
     lines = capsys.readouterr().err.splitlines()
     files = {re.search(r"mesh (\S+):", x).group(1) for x in lines if "warning" in x}

@@ -152,7 +152,7 @@ def run(argv=None) -> int:
     a.foot_given = a.foot is not None
     t_start = time.perf_counter()
     runs = []
-    for path, label in zip(a.bags, _labels(a.bags, a.label)):
+    for path, label in zip(a.bags, _labels(a.bags, a.label), strict=True):
         r = Run(path, label, salvage=a.salvage)
         if len(r.missing) == len(r.topics):
             topics = ", ".join(sorted(r.counts)) or "none"

@@ -90,7 +90,7 @@ def plot_contact_forces(plt, runs, opts):
     cols = 2 if len(feet) <= 4 else 3
     fig, axes = plt.subplots(-(-len(feet) // cols), cols, figsize=(12, 7), sharex=True,
                              squeeze=False)
-    for ax, foot in zip(axes.flat, feet):
+    for ax, foot in zip(axes.flat, feet, strict=False):
         for i, r in enumerate(runs):
             if _has_foot(r, foot):
                 t, fz = r.normal_force(foot)
@@ -187,7 +187,7 @@ def plot_base(plt, runs, opts):
     return fig
 
 
-def plot_joint_torques(plt, runs, opts):
+def plot_joint_torques(plt, runs, _opts):
     have = [r for r in runs if r.has("joints")]
     if not have:
         return None
@@ -198,7 +198,7 @@ def plot_joint_torques(plt, runs, opts):
     fig, axes = plt.subplots(rows, 3, figsize=(14, 2.5 * rows), sharex=True, squeeze=False)
     for j, name in enumerate(names):
         ax = axes[j // 3][j % 3]
-        for i, r in enumerate(have):
+        for r in have:
             if name in r.joint_names:
                 s = r.series("joints")
                 e = s["data"][:, r.joint_names.index(name)]
@@ -214,7 +214,7 @@ def plot_joint_torques(plt, runs, opts):
     return fig
 
 
-def plot_solver(plt, runs, opts):
+def plot_solver(plt, runs, _opts):
     have = [r for r in runs if r.has("solver")]
     if not have:
         return None

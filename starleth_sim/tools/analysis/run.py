@@ -166,7 +166,7 @@ def _make_handler(kind, col: _Collector, decode):
                 return
             row = list(state["nan_row"])
             if len(eff) == len(idx):
-                for i, e in zip(idx, eff):
+                for i, e in zip(idx, eff, strict=True):
                     if i >= 0:
                         row[i] = e
             col.joint_effort.append(row)

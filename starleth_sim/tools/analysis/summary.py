@@ -50,7 +50,7 @@ def stance_intervals(t, fz, threshold=5.0, min_phase=0.02):
     s = np.asarray(fz) > threshold
     d = np.diff(np.concatenate(([0], s.astype(np.int8), [0])))
     starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1
-    iv = [[t[a], t[b] + dt, a] for a, b in zip(starts, ends)]
+    iv = [[t[a], t[b] + dt, a] for a, b in zip(starts, ends, strict=True)]
     merged = []
     for x in iv:
         if merged and x[0] - merged[-1][1] < min_phase - 1e-12:
@@ -155,7 +155,7 @@ def summarise(run: Run, threshold=5.0, min_phase=0.02, twist_frame="auto") -> di
     desc = run.description
     if desc is not None:      # the recorded robot: its spec's limits over the URDF's
         mass, mass_source = desc.total_mass, f"the bag's robot ({desc.name})"
-        limits = dict(zip(desc.joint_names, np.ravel(desc.effort_limit).tolist()))
+        limits = dict(zip(desc.joint_names, np.ravel(desc.effort_limit).tolist(), strict=True))
     else:
         urdf, mass_source = run.urdf, "the bag's URDF"
         if urdf is None:
@@ -220,8 +220,8 @@ def _joint_summary(run: Run, limits) -> dict:
         absmax = np.nanmax(np.abs(e), axis=0) if np.isfinite(e).any() else \
             np.full(len(JOINTS), np.nan)
         rms = np.sqrt(np.nanmean(e * e, axis=0)) if np.isfinite(e).any() else absmax
-    J = {"max_abs": {n: float(x) for n, x in zip(JOINTS, absmax)},
-         "rms": {n: float(x) for n, x in zip(JOINTS, rms)}}
+    J = {"max_abs": {n: float(x) for n, x in zip(JOINTS, absmax, strict=True)},
+         "rms": {n: float(x) for n, x in zip(JOINTS, rms, strict=True)}}
     if np.isfinite(absmax).any():
         i = int(np.nanargmax(absmax))
         J["max_abs_overall"], J["max_abs_joint"] = float(absmax[i]), JOINTS[i]

@@ -77,7 +77,7 @@ def breakdown(preset: str, seconds: float, robot: str | None = None):
     for _ in range(n):
         sim.step(hold.torque(sim))
     steps = sim.stepper.stats.steps
-    return {k: 1e6 * v / steps for k, v in zip(PHASES, sim.stepper.stats.timings)}
+    return {k: 1e6 * v / steps for k, v in zip(PHASES, sim.stepper.stats.timings, strict=True)}
 
 
 #: --impedance: the presets compared by default
@@ -147,7 +147,8 @@ def _positive_inertia(inertia) -> None:
     if w.min() >= MIN_INERTIA:
         return
     m = (v * np.maximum(w, MIN_INERTIA)) @ v.T
-    for k, x in zip(INERTIA_KEYS, (m[0, 0], m[0, 1], m[0, 2], m[1, 1], m[1, 2], m[2, 2])):
+    for k, x in zip(INERTIA_KEYS, (m[0, 0], m[0, 1], m[0, 2], m[1, 1], m[1, 2], m[2, 2]),
+                    strict=True):
         inertia.set(k, repr(float(x)))
 
 

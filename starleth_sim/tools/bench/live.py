@@ -118,7 +118,7 @@ def bench(rounds, seconds, port, domain_id, topics=None, warmup=1.0, record=Fals
 
     def listen():
         client["log"] = collect(f"ws://127.0.0.1:{port}", topics, seconds=1e9,
-                                connect_timeout=180, until=lambda lg: stop.is_set())
+                                connect_timeout=180, until=lambda _log: stop.is_set())
 
     listener = threading.Thread(target=listen, daemon=True)
     if topics != []:

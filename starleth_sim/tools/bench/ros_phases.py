@@ -25,7 +25,7 @@ def _pause_client(node, ex):
     return pause
 
 
-def _set_paused(node, ex, client, paused, timeout=10.0):
+def _set_paused(ex, client, paused, timeout=10.0):
     from std_srvs.srv import SetBool
     fut = client.call_async(SetBool.Request(data=paused))
     if not spin_until(ex, fut.done, timeout) or not fut.result().success:
@@ -52,12 +52,12 @@ def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmu
     for r in range(rounds):
         bare_rate, rtts = pp.measure(bare_seconds / rounds)
         all_rtts += rtts
-        _set_paused(node, ex, pause, False)
+        _set_paused(ex, pause, False)
         t_start = time.perf_counter() + warmup
         t_end = t_start + lockstep_seconds / rounds
         while time.perf_counter() < t_end:
             ex.spin_once(timeout_sec=0.05)
-        _set_paused(node, ex, pause, True)
+        _set_paused(ex, pause, True)
         rt, st = np.array(ctl.recv_times), np.array(ctl.stamps)
         sel = (rt >= t_start) & (rt <= t_end)
         n = int(sel.sum())
@@ -81,11 +81,11 @@ def lockstep_beside_bare(node, ex, lockstep_seconds, bare_seconds, rounds, warmu
 WARMUP_COMMANDS = 200
 
 
-def _warm_up_loop(node, ex, pause, ctl, timeout=60.0):
+def _warm_up_loop(ex, pause, ctl, timeout=60.0):
     """Runs the lockstep loop until the controller `ctl` (in this process) has sent
     WARMUP_COMMANDS commands, then pauses the sim again; in the composed mode (ctl None)
     for one second."""
-    _set_paused(node, ex, pause, False)
+    _set_paused(ex, pause, False)
     if ctl is None:
         spin_until(ex, lambda: False, 1.0)
     else:
@@ -96,19 +96,19 @@ def _warm_up_loop(node, ex, pause, ctl, timeout=60.0):
                   f"{timeout:.0f} s", flush=True)
     # (the sim's process answers once its first cycles are done: in the composed mode the
     # controller's kernels load there then, which once took over 10 s on a loaded machine)
-    _set_paused(node, ex, pause, True, timeout)
+    _set_paused(ex, pause, True, timeout)
 
 
 def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windows,
                  ctl=None, sim_pid=None):
     pause = _pause_client(node, ex)
-    _warm_up_loop(node, ex, pause, ctl)
+    _warm_up_loop(ex, pause, ctl)
     pp = PingPong(node, ex)
     all_rtts = []
     for r in range(rounds):
         bare_rate, rtts = pp.measure(bare_seconds / rounds)
         all_rtts += rtts
-        _set_paused(node, ex, pause, False)
+        _set_paused(ex, pause, False)
         t_start = time.perf_counter() + warmup
         t_end = t_start + lockstep_seconds / rounds
         n0 = cpu0 = None
@@ -121,7 +121,7 @@ def _rounds_real(node, ex, lockstep_seconds, bare_seconds, rounds, warmup, windo
         n = ctl.counters["commands"] - n0 if ctl is not None else None
         t_end = time.perf_counter()
         cpu1 = process_cpu_ns(sim_pid)
-        _set_paused(node, ex, pause, True)
+        _set_paused(ex, pause, True)
         windows.append((t_start, t_end, bare_rate, n,
                         {k: v - cpu0.get(k, 0) for k, v in cpu1.items()}))
         print(f"  round {r + 1}/{rounds}: bare {bare_rate:.0f}/s", flush=True)

@@ -68,9 +68,9 @@ class PingPong:
         for _ in range(50):     # warm-up: the first messages after matching can be slow
             want = self.got + 1
             self.pub.publish(msg)
-            spin_until(ex, lambda: self.got >= want, 2.0)
+            spin_until(ex, lambda want=want: self.got >= want, 2.0)
 
-    def _on_pong(self, msg):
+    def _on_pong(self, _msg):
         self.got += 1
 
     def measure(self, seconds):

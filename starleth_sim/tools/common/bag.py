@@ -15,6 +15,7 @@ bag is read by :func:`~starleth_interface.yaml_files.load_yaml_text` (bounded in
 what its aliases expand to)."""
 from __future__ import annotations
 
+import functools
 import glob
 import io
 import os
@@ -295,8 +296,8 @@ def _stream_file(path: str, bag: BagMessages, on_channel, salvage: bool, on_warn
                 type_name = _norm_type(schema.name) if schema is not None else ""
                 bag.types[rec.topic] = type_name
                 bag.counts.setdefault(rec.topic, 0)
-                handle = on_channel(rec.topic, type_name,
-                                    lambda: _decoder(factory, rec, schema, path, on_warning))
+                handle = on_channel(rec.topic, type_name, functools.partial(
+                    _decoder, factory, rec, schema, path, on_warning))
                 handlers[rec.id] = (rec.topic, handle)
             elif isinstance(rec, Metadata) and rec.name not in bag.metadata:
                 if _keep(bag, rec.name, sum(len(k) + len(v) for k, v in rec.metadata.items())):

@@ -55,7 +55,7 @@ def execute(tasks, jobs=None, ray=None, ray_init=None, show_progress=True, what=
     n = len(tasks)
     results = [None] * n
     t0 = time.time()
-    report = (lambda d: progress(d, n, t0, what=what)) if show_progress else (lambda d: None)
+    report = (lambda d: progress(d, n, t0, what=what)) if show_progress else (lambda _done: None)
     report(0)
     if ray is not None:
         rt = _ray_init(ray, ray_init)

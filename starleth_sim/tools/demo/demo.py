@@ -388,7 +388,7 @@ def read_bag(path, result: DemoResult):
             if st.name.endswith("solver"):
                 its.extend(int(kv.value) for kv in st.values if kv.key == "iterations")
 
-    def on_channel(topic, type_name, make_decoder):
+    def on_channel(topic, _type_name, make_decoder):
         if topic == js:
             return lambda rec: stamps.append(rec.log_time)
         handler = {base: on_base, solver: on_solver}.get(topic)

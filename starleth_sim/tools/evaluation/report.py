@@ -110,7 +110,7 @@ def make_figures(results, out_dir):
         fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
         auto = {(r["preset"], r["gait"]): r for r in f6 if r["alpha"] == "auto"}
         f6 = [r for r in f6 if r["alpha"] != "auto"]
-        for ax, gait in zip(axes, ("stand", "trot")):
+        for ax, gait in zip(axes, ("stand", "trot"), strict=True):
             for i, preset in enumerate(sorted({r["preset"] for r in f6})):
                 rs = sorted((r for r in f6 if r["preset"] == preset and r["gait"] == gait),
                             key=lambda r: r["alpha"])

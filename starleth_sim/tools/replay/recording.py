@@ -4,6 +4,7 @@ step by step (the quantities compared), the applied torques and the external wre
 every check that the bag holds what sim_node writes; the tool's warnings and its error."""
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sys
@@ -162,7 +163,7 @@ def _by_step(rows_, period_ns, path, topic, what):
         return rows
     ks = sorted(rows)
     if ks[0] != 0 or ks[-1] != len(ks) - 1:
-        gap = next((a + 1 for a, b in zip([-1] + ks, ks) if b != a + 1), ks[-1])
+        gap = next((a + 1 for a, b in itertools.pairwise([-1] + ks) if b != a + 1), ks[-1])
         raise ReplayError(f"{path}: {what} of step {gap} (t = {gap * period_ns * 1e-9:.4f} s) "
                           "is missing from the recording: cannot replay it")
     return rows
@@ -252,13 +253,13 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     bag."""
     # the metadata comes first (sim_node writes it when the recording opens); a bag without
     # it is refused before its messages are decoded
-    probe = read_messages(path, lambda t, ty: False, salvage=salvage, on_warning=warn)
+    probe = read_messages(path, lambda _topic, _type: False, salvage=salvage, on_warning=warn)
     md = _metadata(probe, path)
     desc = _description(probe, path, md["physics_config"])
     feet = desc.foot_names
     ns, topics, wrench_topics, applied_topic = _topics(md, probe, feet)
     wanted = set(topics.values()) | set(wrench_topics) | {applied_topic}
-    bag = read_messages(path, lambda t, ty: t in wanted, salvage=salvage, on_warning=warn)
+    bag = read_messages(path, lambda t, _type: t in wanted, salvage=salvage, on_warning=warn)
     for key in ("joints", "base"):
         if not bag.messages.get(topics[key]):
             raise ReplayError(f"{path}: no messages on {topics[key]}: nothing to replay")

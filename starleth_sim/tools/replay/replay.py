@@ -87,7 +87,7 @@ def _as_run(label, states, rec):
     return run
 
 
-def plot_joint_angles(plt, runs, opts):
+def plot_joint_angles(plt, runs, _opts):
     names = runs[0].joint_names
     rows = -(-len(names) // 3)
     fig, axes = plt.subplots(rows, 3, figsize=(14, 2.5 * rows), sharex=True, squeeze=False)

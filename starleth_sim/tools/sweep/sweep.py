@@ -189,7 +189,7 @@ def _scenarios(src, items, runs_per_scenario=1):
         if kind not in SCENARIOS:
             raise SweepError(f"{w}.kind: expected one of {', '.join(SCENARIOS)}, got {kind!r}")
         grid = {}
-        for k, (default, typ) in SCENARIO_FIELDS.items():
+        for k, (_default, typ) in SCENARIO_FIELDS.items():
             if k == "kind" or k not in sc:
                 continue
             if typ == "vec":
@@ -206,7 +206,7 @@ def _scenarios(src, items, runs_per_scenario=1):
             raise SweepError(f"{w}: the sweep would have {n * runs_per_scenario} runs or more, "
                              f"more than {MAX_RUNS}")
         for combo in itertools.product(*(grid[k] for k in keys)):
-            out.append(Scenario(kind=kind, **dict(zip(keys, combo))))
+            out.append(Scenario(kind=kind, **dict(zip(keys, combo, strict=True))))
     return out
 
 
@@ -289,7 +289,8 @@ def load_spec(path: str) -> Sweep:
     if len(presets) * n_combos > MAX_RUNS:
         raise SweepError(f"{src}: presets x overrides: {len(presets) * n_combos} combinations, "
                          f"more than the {MAX_RUNS} runs a sweep may have")
-    combos = [tuple(zip(ov_keys, c)) for c in itertools.product(*(ov_grid[k] for k in ov_keys))]
+    combos = [tuple(zip(ov_keys, c, strict=True))
+              for c in itertools.product(*(ov_grid[k] for k in ov_keys))]
     robots = _robots(src, data)
     for p, robot in itertools.product(presets, robots):   # each with every override, checked
         try:
@@ -458,7 +459,7 @@ def make_plots(rows, sweep: Sweep, out_dir) -> list:
     if any(len(c) > 1 for c in curves.values()):
         fig, ax = plt.subplots(figsize=(7, 4))
         for i, (p, c) in enumerate(sorted(curves.items())):
-            m, frac = zip(*c)
+            m, frac = zip(*c, strict=True)
             lim = first_fall(c)
             ax.plot(m, frac, marker="o", color=f"C{i % 10}",
                     label=f"{p} (falls from {lim:g} N)" if lim is not None else f"{p} (no fall)")
@@ -484,7 +485,7 @@ def make_plots(rows, sweep: Sweep, out_dir) -> list:
                                 config_label(r, rows) == p and r["scenario"] == s
                                 and r["completed"]
                                 and not r["nonconverged"]] or [np.nan])) for v in vals]
-            ax.plot(*zip(*pts), marker="o", color=f"C{i % 10}", label=f"{p}, {s}")
+            ax.plot(*zip(*pts, strict=True), marker="o", color=f"C{i % 10}", label=f"{p}, {s}")
         ax.set_xlabel(key)
         ax.set_ylabel("prox iterations per step (mean)")
         ax.set_yscale("log")

@@ -166,7 +166,7 @@ def robot_layout(layout: dict, robot: str) -> dict:
     shipped, desc = robot_description(SHIPPED_ROBOT), robot_description(robot)
     shipped_base, base = base_link(shipped.urdf_xml), base_link(desc.urdf_xml)
     out = copy.deepcopy(layout)
-    for key, panel in out.get("configById", {}).items():
+    for panel in out.get("configById", {}).values():
         if panel.get("followTf") == shipped_base:
             panel["followTf"] = base
         if "paths" in panel:

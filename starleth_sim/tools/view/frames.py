@@ -120,11 +120,11 @@ def configurations(rec: Recording, desc: RobotDescription, frames: np.ndarray):
     unusable = {}                                 # topic -> indices of such messages
     prev = q[0].copy()
     bases = rec.base.latest(rec.joints.t_ns[frames])
-    for row, (i, b) in enumerate(zip(frames, bases)):
+    for row, (i, b) in enumerate(zip(frames, bases, strict=True)):
         q[row] = prev
         names, positions = _fields(rec.joints, i, lambda m: (list(m.name), list(m.position)))
         if len(positions) == len(names):
-            for name, value in zip(names, positions):
+            for name, value in zip(names, positions, strict=True):
                 slot = index.get(name) if isinstance(name, str) else None
                 if slot is None:
                     continue

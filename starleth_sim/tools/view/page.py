@@ -119,7 +119,7 @@ def _robot_data(rec: Recording, desc: RobotDescription, name: str, t_ns, force_s
         "has_force": [foot in rec.wrenches for foot in desc.foot_names],
         "arrows": _rounded(arrows, POSITION_DECIMALS), "urdf_source": rec.urdf_source,
     }
-    scene = (rec, visuals, dict(zip(joint_ids, frames)), name)
+    scene = (rec, visuals, dict(zip(joint_ids, frames, strict=True)), name)
     return data, scene, poses[:, data["trunk"], :2]
 
 

@@ -213,7 +213,7 @@ def robot_visuals(desc: RobotDescription, robot: str = "", meshes=None,
             continue
         frame = model.frames[model.getFrameId(lname, pin.FrameType.BODY)]
         several = len(shapes) > 1
-        for n, (k, geometry, M, color) in enumerate(shapes):
+        for n, (_k, geometry, M, color) in enumerate(shapes):
             name = f"{lname}_{n}" if several else lname
             items.append((int(frame.parentJoint), name, geometry,
                           pin.SE3(frame.placement).homogeneous @ M, color))

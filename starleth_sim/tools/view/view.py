@@ -149,7 +149,8 @@ def write_html(bag_path, out_path: str | None = None, fps: float = DEFAULT_FPS,
     names = robot_names([rec for rec, _ in robots])
     if force_scale is None:
         force_scale = default_force_scale([desc for _, desc in robots])
-    data, scene = replay_data([(rec, desc, name) for (rec, desc), name in zip(robots, names)],
+    data, scene = replay_data([(rec, desc, name)
+                               for (rec, desc), name in zip(robots, names, strict=True)],
                               float(fps), float(force_scale))
     page = render_html(data, scene)
     out = out_path or default_output(paths[0])
