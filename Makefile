@@ -82,6 +82,8 @@ $(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
 # pass 1 on two pytest-xdist workers, one running the tests that start ROS nodes one after
 # another while the other runs the CPU-bound tests file by file; pass 2, the tests marked
 # serial (rates, deadlines, latencies, a browser), one at a time with nothing beside them.
+# Both list what they skipped, with the reason (-rs: an optional package or program missing);
+# a missing rclpy is no skip but an error (test/conftest.py; STARLETH_ALLOW_NO_ROS=1 allows it).
 # Then ruff over the tree (ruff.toml: pycodestyle errors and warnings, pyflakes; line length
 # 100). All three passes run; the target fails with the first failing pass's status (a pytest
 # pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
@@ -90,10 +92,10 @@ test: venv test-deps robots
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
 	echo "pass 1: 2 workers: the ROS node tests one by one beside the CPU-bound tests"; \
-	$(VPY) -m pytest -q -n 2 --ros-apart -m "not serial" test \
+	$(VPY) -m pytest -q -rs -n 2 --ros-apart -m "not serial" test \
 	  $(PYTEST_ARGS); a=$$?; \
 	echo "pass 2: tests marked serial (rates, deadlines), one at a time"; \
-	$(VPY) -m pytest -q -m serial test $(PYTEST_ARGS); b=$$?; \
+	$(VPY) -m pytest -q -rs -m serial test $(PYTEST_ARGS); b=$$?; \
 	echo "pass 3: ruff check (ruff.toml)"; \
 	$(VENV)/bin/ruff check .; c=$$?; \
 	if [ $$a = 5 ] && [ $$b = 0 ]; then a=0; fi; \
@@ -130,7 +132,7 @@ eval: venv
 ray: venv
 	$(PIP) install -c constraints.txt -e '.[ray]'
 
-# starleth-view's HTML in a real browser (test/test_view.py -k browser): installs Debian's
+# starleth-view's HTML in a real browser (test/tools/test_view.py -k browser): installs Debian's
 # chromium with apt when it is missing (sudo when not root, non-interactive), then runs only
 # the browser tests; they render the replay with SwiftShader (no GPU, no display needed).
 browser-test: venv
@@ -141,7 +143,7 @@ browser-test: venv
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q; \
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
 	fi
-	$(VPY) -m pytest -q test/test_view.py -k browser -rs $(PYTEST_ARGS)
+	$(VPY) -m pytest -q test/tools/test_view.py -k browser -rs $(PYTEST_ARGS)
 
 # Refresh constraints.txt on purpose: the newest versions the requirements resolve to, in a
 # throw-away venv (then run `make test` with them and commit constraints.txt).
@@ -158,7 +160,7 @@ constraints:
 	rm -rf $$tmp; echo "constraints.txt refreshed: run make test, then commit it"
 
 # Regenerate config/<robot>_controllers.yaml (ros2_control controllers) of every library robot
-# from its URDF (test/test_ros2_control_files.py checks they are up to date).
+# from its URDF (test/ros/test_ros2_control_files.py checks they are up to date).
 ros2-control-configs: venv robots
 	@set -e; for r in $$($(VPY) -c 'from starleth_sim.robots import available_robots as a; print(*a())'); do \
 	  $(VPY) -m starleth_sim.ros.ros2_control_controllers --robot $$r > config/$${r}_controllers.yaml; \

@@ -30,9 +30,10 @@ def _c_extension():
 
 
 class BuildKernels(build_ext):
-    """Builds the C extensions: the physics kernels with starleth_sim.physics.kernels.build, the controller's
-    kernels and sim_node's command parsers with starleth_interface/c_extension.py (the same
-    flags, which keep the results bit for bit); the same builds as a source checkout's."""
+    """Builds the C extensions: the physics kernels with starleth_sim/physics/kernels/build.py,
+    the controller's kernels and sim_node's command parsers with
+    starleth_interface/c_extension.py (the same flags, which keep the results bit for bit);
+    the same builds as a source checkout's."""
 
     def build_extension(self, ext):
         if ext.name != KERNELS.name:
@@ -81,7 +82,7 @@ setup(
     packages=find_packages(exclude=['test', 'test.*']),
     ext_modules=[KERNELS, *SMALL_EXTENSIONS],
     cmdclass={'build_ext': BuildKernels},
-    package_data={package_name: ['tools/view_page.html']},   # starleth-view's page template
+    package_data={package_name: ['tools/view/page.html']},   # starleth-view's page template
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -119,16 +120,16 @@ setup(
             'sim_node = starleth_sim.ros.sim_node:main',
             'controller_node = starleth_controller.controller_node:main',
             'sim_node_composed = starleth_sim.ros.sim_node:main_composed',
-            'starleth-bench = starleth_sim.tools.bench:main',
-            'starleth-bench-ros = starleth_sim.tools.bench_ros:main',
-            'starleth-bench-floor = starleth_sim.tools.bench_floor:main',
-            'starleth-demo = starleth_sim.tools.demo:main',
-            'starleth-eval = starleth_sim.tools.evaluation:main',
-            'starleth-analyze = starleth_sim.tools.analysis:main',
-            'starleth-view = starleth_sim.tools.view:main',
-            'starleth-layout = starleth_sim.tools.foxglove_layout:main',
-            'starleth-replay = starleth_sim.tools.replay:main',
-            'starleth-sweep = starleth_sim.tools.sweep:main',
+            'starleth-bench = starleth_sim.tools.bench.bench:main',
+            'starleth-bench-ros = starleth_sim.tools.bench.ros:main',
+            'starleth-bench-floor = starleth_sim.tools.bench.floor:main',
+            'starleth-demo = starleth_sim.tools.demo.demo:main',
+            'starleth-eval = starleth_sim.tools.evaluation.evaluation:main',
+            'starleth-analyze = starleth_sim.tools.analysis.analysis:main',
+            'starleth-view = starleth_sim.tools.view.view:main',
+            'starleth-layout = starleth_sim.tools.view.foxglove_layout:main',
+            'starleth-replay = starleth_sim.tools.replay.replay:main',
+            'starleth-sweep = starleth_sim.tools.sweep.sweep:main',
             'starleth-precompile = starleth_sim.tools.precompile:main',
             'starleth-ros2-controllers = starleth_sim.ros.ros2_control_controllers:main',
         ],

@@ -242,7 +242,7 @@ class StarlethController:
         gleg, com = self._kinematics(x)                                        # 1.
         trotting, support = self._gait_pattern(x)                              # 2.
         b = self._support_leg_torques(x, trotting, support, gleg, com)         # 3.
-        self._position_controlled_leg_torques(x, trotting, gleg)               # 4.
+        self._position_controlled_leg_torques(x, gleg)                         # 4.
         return self._saturate_and_report(x, support, b, com, t_wall)           # 5.
 
     # -- reading the inputs ----------------------------------------------------------------
@@ -551,7 +551,7 @@ class StarlethController:
                           self._tau)
 
     # -- 4. swing legs ---------------------------------------------------------------------
-    def _position_controlled_leg_torques(self, x: _Sample, trotting, gleg):
+    def _position_controlled_leg_torques(self, x: _Sample, gleg):
         """Step 4: the legs not in support (swing, lost contact, in the air while standing)
         follow a foot target by analytic IK and joint PD with gravity feed-forward into τ
         (kernels.position_controlled_torques): a swing leg from its lift-off offset to the

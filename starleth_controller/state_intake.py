@@ -36,7 +36,8 @@ class StateSlot:
     def missing(self, feet) -> list:
         """The names of the messages not in the slot (`feet`: the feet's names)."""
         return [name for name, m in (("joint state", self.js), ("base state", self.odom),
-                                     *zip((f"{foot} wrench" for foot in feet), self.wrench))
+                                     *zip((f"{foot} wrench" for foot in feet), self.wrench,
+                                          strict=True))
                 if m is None]
 
 

@@ -139,7 +139,7 @@ class FixedCdr:
             # round trip with other values
             probe = [(-1.0) ** k * (k + 0.5) / 3.0 for k in range(len(fields))]
             back = deserialize_message(self.build(7, 2_500_000, probe), type(msg))
-            if any(_get(back, f) != v for f, v in zip(fields, probe)):
+            if any(_get(back, f) != v for f, v in zip(fields, probe, strict=True)):
                 return None
             if st is not None:
                 bst = _get(back, stamp)
@@ -181,7 +181,7 @@ class JointStateCdr:
             msg.name = list(names)
             marks = [np.array([_marker(100 * a + i) for i in range(n)])
                      for a in range(len(arrays))]
-            for f, m in zip(arrays, marks):
+            for f, m in zip(arrays, marks, strict=True):
                 setattr(msg, f, m.tolist())
             msg.header.stamp.sec, msg.header.stamp.nanosec = 0x12345678, 0x0ABCDEF1
             raw = serialize_message(msg)
@@ -200,7 +200,7 @@ class JointStateCdr:
             if (list(back.name) != list(names) or back.header.stamp.sec != 7
                     or back.header.stamp.nanosec != 2_500_000
                     or not all(np.array_equal(np.asarray(getattr(back, f)), p) for f, p in
-                               zip(arrays, probe))):
+                               zip(arrays, probe, strict=True))):
                 return None
             return self
         except Exception:  # pragma: no cover - unexpected rmw behaviour: use the slow path
@@ -210,7 +210,7 @@ class JointStateCdr:
         buf = bytearray(self.template)
         _STAMP.pack_into(buf, self.stamp_offset, sec, nsec)
         k = 8 * self.n
-        for off, a in zip(self.offsets, arrays):
+        for off, a in zip(self.offsets, arrays, strict=True):
             buf[off:off + k] = np.ascontiguousarray(a, dtype="<f8").tobytes()
         return bytes(buf)
 
@@ -419,7 +419,7 @@ class DiagnosticArrayCdr:
             append(p + _U32.pack(len(values)))
             o += len(p) + 4
             a = (o - _ORIGIN) % 4
-            for k, v in zip(keys, values):
+            for k, v in zip(keys, values, strict=True):
                 kb, kn, vp = k[a]
                 vb = v.encode("utf-8")
                 n = len(vb) + 1
@@ -498,7 +498,7 @@ class SlotCdr:
             base = (next(_calls) % _PROBE_SERIES) * 2 * _SECOND_PROBES
             indices = [base + k for k in _probe_indices(slots)]
             probes = []
-            for (obj, attr, fmt), k in zip(slots, indices):
+            for (obj, attr, fmt), k in zip(slots, indices, strict=True):
                 if fmt not in "dfiI" or len(fmt) != 1:
                     return None
                 probes.append(_probe(fmt, k))
@@ -512,12 +512,12 @@ class SlotCdr:
             # search of raw alone took for a second occurrence, so that a later SlotCdr of
             # the same layout was refused)
             second = []
-            for (obj, attr, fmt), k in zip(slots, indices):
+            for (obj, attr, fmt), k in zip(slots, indices, strict=True):
                 second.append(_probe(fmt, k + _SECOND_PROBES))
                 setattr(obj, attr, second[-1])
             raw2 = serialize_message(msg)
             offsets = []
-            for (_, _, fmt), v, w in zip(slots, probes, second):
+            for (_, _, fmt), v, w in zip(slots, probes, second, strict=True):
                 o = _slot_offset(raw, raw2, struct.pack("<" + fmt, v), struct.pack("<" + fmt, w))
                 if o < 0:
                     return None
@@ -538,7 +538,7 @@ class SlotCdr:
                       for k, (_, _, fmt) in enumerate(slots)]
             back = deserialize_message(self.build(values), type(msg))
             mine = deserialize_message(raw, type(msg))
-            for (obj, attr, fmt), v in zip(slots, values):
+            for (obj, attr, _fmt), v in zip(slots, values, strict=True):
                 setattr(obj, attr, v)
             # (compared after a trip through CDR: float32 fields hold doubles in Python)
             if back != deserialize_message(serialize_message(msg), type(msg)) or mine == back:

@@ -10,6 +10,7 @@ ROS-free service logic and the tools can use the schemas and ThrottledLog.
 from __future__ import annotations
 
 import difflib
+import itertools
 import logging
 import math
 import os
@@ -426,7 +427,7 @@ def mapping_override_hint(argv) -> str:
     no parameter type: rcl says "Unknown YAML event"), the line saying how to pass it as the
     string a parameter such as physics_overrides takes; "" when there is none."""
     argv = list(argv or ())
-    for flag, rule in zip(argv, argv[1:]):
+    for flag, rule in itertools.pairwise(argv):
         name, sep, value = rule.partition(":=")
         if flag in ("-p", "--param") and sep and value.lstrip().startswith("{"):
             return (f"\n{flag} {rule}: ROS reads a value in braces as a YAML mapping, which no "
@@ -449,7 +450,7 @@ class StopSignals:
     def requested(self) -> bool:
         return self.count > 0
 
-    def _handle(self, signum, frame):
+    def _handle(self, _signum, _frame):
         self.count += 1
         if self.on_stop is not None:
             self.on_stop()

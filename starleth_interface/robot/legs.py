@@ -191,7 +191,7 @@ def pitch_leg_angles(plane: PitchPlane, height: float, knee: float):
 
 
 def _within(plane, angles) -> bool:
-    return all(lo <= x <= hi for x, (lo, hi) in zip(angles, plane.limits))
+    return all(lo <= x <= hi for x, (lo, hi) in zip(angles, plane.limits, strict=True))
 
 
 def knee_sign(leg: Leg, knees, height) -> float:

@@ -65,7 +65,7 @@ def _stamp(path: str):
 
 
 @lru_cache(maxsize=64)
-def _spec_at(path: str, stamp) -> RobotSpec:
+def _spec_at(path: str, _stamp) -> RobotSpec:       # _stamp: part of the cache's key
     return read_spec(path)
 
 
@@ -121,7 +121,7 @@ def read_text(path: str) -> str:
 
 
 @lru_cache(maxsize=64)
-def _text_at(path: str, stamp) -> str:
+def _text_at(path: str, _stamp) -> str:             # _stamp: part of the cache's key
     try:
         with open(path, encoding="utf-8") as f:
             return f.read()

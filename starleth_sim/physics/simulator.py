@@ -436,7 +436,7 @@ class Simulator:
         """Diagnostics.timings: the cumulative phase times when profiling."""
         if not self.stepper.profile:
             return NO_TIMINGS
-        return dict(zip(PHASES, self.stepper.stats.timings.tolist()))
+        return dict(zip(PHASES, self.stepper.stats.timings.tolist(), strict=True))
 
     def step_applied(self, torques):
         """Advance one control period applying recorded torques at its physics steps as

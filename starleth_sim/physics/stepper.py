@@ -258,7 +258,7 @@ class MoreauStepper:
                                                    state.anchor, state.lam_compliant),
                                    tau, f_ext, (report, is_active, qE, uE), self._tree_model)
 
-    def _forest_step(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
+    def _forest_step(self, options, _mode, state, tau, f_ext, report, is_active, qE, uE):
         """forest_step of `state` (tau: the applied torques; mode is not read)."""
         if self._factored and self.coords.constant_mass_matrix:
             options |= STEP_KEEP_FACTOR     # (L holds the factor of a constant M)

@@ -243,7 +243,7 @@ def _generator(name, g):
     if name == "rough":
         out["centre"] = _vector("rough.centre", g.get("centre", [0.0, 0.0]), 2)
     out["mu"] = _mu(f"{name}.mu", g.get("mu"))
-    _GRID_CHECKS.get(name, lambda s: None)(out)
+    _GRID_CHECKS.get(name, lambda _section: None)(out)
     return out
 
 
@@ -382,7 +382,7 @@ def rough_grid(s, ground_height=0.0):
     x = np.arange(n) * cell - 0.5 * size
     X, Y = np.meshgrid(x, x, indexing="ij")
     h = np.zeros((n, n))
-    for d, ph in zip(direction, phase):
+    for d, ph in zip(direction, phase, strict=True):
         h += np.sin(2 * math.pi * (X * math.cos(d) + Y * math.sin(d)) / lam + ph)
     h *= s["amplitude"] / np.abs(h).max()
     edge = np.minimum(np.minimum(X, Y) + 0.5 * size, 0.5 * size - np.maximum(X, Y))
@@ -441,7 +441,7 @@ def _bins(boxes, header):
             break
         size *= 2.0
     members = [[] for _ in range(nbx * nby)]
-    for k, ((i0, j0), (i1, j1)) in enumerate(zip(first.tolist(), last.tolist())):
+    for k, ((i0, j0), (i1, j1)) in enumerate(zip(first.tolist(), last.tolist(), strict=True)):
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
                 members[i * nby + j].append(k)

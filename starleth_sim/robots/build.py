@@ -59,7 +59,7 @@ def _limits(spec: RobotSpec, desc: RobotDescription):
     for kind, cap, unit in (("effort", MAX_EFFORT, "N m"), ("velocity", MAX_VELOCITY, "rad/s")):
         limit = getattr(desc, f"{kind}_limit")
         override_limits(spec, names, kind, limit)
-        for n, x in zip(names, limit):
+        for n, x in zip(names, limit, strict=True):
             if not 0 < x < cap:
                 why = f"a placeholder (>= {cap:g})" if x >= cap else "not positive"
                 raise ConfigError(f"{desc.source}: joint '{n}': its {kind} limit {x:g} {unit} "

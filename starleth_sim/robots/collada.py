@@ -142,6 +142,6 @@ def read_collada(path: str):
         raise ColladaError("no triangles")
     starts = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
     vertices = np.concatenate([v for v, _ in parts]) * meter
-    triangles = np.concatenate([t + s for (_, t), s in zip(parts, starts)])
+    triangles = np.concatenate([t + s for (_, t), s in zip(parts, starts, strict=True)])
     used, triangles = np.unique(triangles, return_inverse=True)   # the vertices drawn
     return vertices[used], triangles.reshape(-1, 3)

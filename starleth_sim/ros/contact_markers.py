@@ -38,7 +38,7 @@ class ContactMarkers:
         Marker = self.Marker
         msg = self.MarkerArray()
         for ns, typ in (("contacts", Marker.SPHERE), ("contact_forces", Marker.ARROW)):
-            for i, name in enumerate(self.sim.contact_names):
+            for i, _name in enumerate(self.sim.contact_names):
                 m = Marker()
                 m.header.frame_id = self.frame
                 m.ns, m.id, m.type, m.action = ns, i, typ, Marker.ADD
@@ -89,7 +89,7 @@ class ContactMarkers:
         positions, forces = sim.contact_points(), sim.contact_forces()
         spheres, arrows = [], []
         for p, f, state, pts in zip(positions.tolist(), forces.tolist(),
-                                    sim.contact_states().tolist(), self._points):
+                                    sim.contact_states().tolist(), self._points, strict=True):
             x, y, z = p
             spheres += (sec, nsec, x, y, z, *colours[state])
             if state == 0:     # open
@@ -102,7 +102,7 @@ class ContactMarkers:
     def fill(self, sec, nsec):
         """The message object ``msg`` filled with :meth:`values` (where no SlotCdr could be
         made)."""
-        for (obj, attr, _), v in zip(self.slots, self.values(sec, nsec)):
+        for (obj, attr, _), v in zip(self.slots, self.values(sec, nsec), strict=True):
             setattr(obj, attr, v)
 
     def publish(self, output, sec, nsec):

@@ -152,10 +152,10 @@ class _Listener:
     def __init__(self, live):
         self.live = live
 
-    def on_subscribe(self, client, channel):
+    def on_subscribe(self, _client, channel):
         self.live.subscribed_changed(channel.topic, +1)
 
-    def on_unsubscribe(self, client, channel):
+    def on_unsubscribe(self, _client, channel):
         self.live.subscribed_changed(channel.topic, -1)
 
 

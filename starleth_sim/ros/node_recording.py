@@ -63,9 +63,9 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
     what re-runs it (starleth-replay) and reads it: the metadata 'starleth_sim' (physics,
     initial state, parameters, topics, stamps) and the attachments (URDF, physics preset,
     initial state, parameter file)."""
-    for key, (p, topic, typ, qos) in pubs.items():
+    for _p, topic, typ, qos in pubs.values():
         rec.add_topic(topic, typ, qos)
-    for key, (sobj, topic, typ, qos) in subs.items():
+    for _sobj, topic, typ, qos in subs.values():
         rec.add_topic(topic, typ, qos)
     for topic, qos in tf_topics.values():
         rec.add_topic(topic, TF_TYPE, qos)

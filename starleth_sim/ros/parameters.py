@@ -5,7 +5,7 @@ parameter's type, default, bounds and description. It feeds the node's
 
     python -m starleth_sim.ros.parameters > msg_configs/sim_node.yaml
 
-(test/test_sim_service.py checks that the file is up to date).
+(test/ros/test_sim_service.py checks that the file is up to date).
 """
 from __future__ import annotations
 

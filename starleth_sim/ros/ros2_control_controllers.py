@@ -7,7 +7,7 @@ written by hand:
     starleth-ros2-controllers --robot go1 > config/go1_controllers.yaml
 
 (``make ros2-control-configs`` regenerates the files of every library robot;
-test/test_ros2_control_files.py checks that they are up to date). Text, not yaml.dump, so
+test/ros/test_ros2_control_files.py checks that they are up to date). Text, not yaml.dump, so
 that the file keeps its comments. ROS-free."""
 from __future__ import annotations
 

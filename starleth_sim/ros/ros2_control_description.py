@@ -8,7 +8,7 @@ it (``urdf/starleth_ros2_control.xml``, generated with the defaults; another rob
 
     python -m starleth_sim.ros.ros2_control_description > urdf/starleth_ros2_control.xml
 
-test/test_ros2_control_files.py checks that the file is up to date).
+test/ros/test_ros2_control_files.py checks that the file is up to date).
 
 What the hardware does with the section (doc/sim_node.md, "ros2_control controllers"):
 every control cycle it publishes one JointState naming every joint of the section, with one
@@ -88,7 +88,7 @@ def ros2_control_section(name: str, joint_names, initial_positions,
 
 def _interface(kind, name, initial_value, bounds=None) -> str:
     params = "".join(f"<param name=\"{k}\">{float(v)!r}</param>"
-                     for k, v in zip(("min", "max"), bounds or ()))
+                     for k, v in zip(("min", "max"), bounds or (), strict=False))
     return (f"      <{kind}_interface name=\"{name}\"><param name=\"initial_value\">"
             f"{initial_value!r}</param>{params}</{kind}_interface>")
 

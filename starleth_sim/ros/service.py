@@ -225,8 +225,8 @@ class SimService:
         if kind == "effort":
             return self._accept(a)
         if kind == "position":
-            return self._accept_impedance(a, 0.0, None, topic)
-        return self._accept_impedance(None, a, None, topic)
+            return self._accept_impedance(a, 0.0, None)
+        return self._accept_impedance(None, a, None)
 
     def submit_joint_command(self, names, efforts, stamp_ns=None, position=(), velocity=()):
         """A JointState command: efforts by joint name (position and velocity empty), or an
@@ -314,9 +314,9 @@ class SimService:
         velocity = fields["velocity"]
         if velocity is None:
             velocity = 0.0 if fields["position"] is not None else None
-        return self._accept_impedance(fields["position"], velocity, fields["effort"], topic)
+        return self._accept_impedance(fields["position"], velocity, fields["effort"])
 
-    def _accept_impedance(self, position, velocity, effort, topic):
+    def _accept_impedance(self, position, velocity, effort):
         """Hold an ImpedanceCommand of these (checked) targets with the current gains."""
         self.counters["impedance_commands"] += 1
         return self._accept(self.impedance_command(position, velocity, effort))

@@ -353,19 +353,19 @@ class SimNode:
             self.log.info(self.service.set_command_delay(delay)[1])
         return SetParametersResult(successful=True)
 
-    def _wrench(self, key, msg, persistent):
+    def _wrench(self, msg, persistent):
         f, m = msg.wrench.force, msg.wrench.torque
         self.service.submit_wrench(msg.header.frame_id, (f.x, f.y, f.z), (m.x, m.y, m.z),
                                    persistent)
 
     def _on_wrench(self, msg):
-        self._wrench("wrench", msg, False)
+        self._wrench(msg, False)
 
     def _on_wrench_persistent(self, msg):
-        self._wrench("wrench_persistent", msg, True)
+        self._wrench(msg, True)
 
     # -- services ------------------------------------------------------------------------
-    def _srv_reset(self, request, response):
+    def _srv_reset(self, _request, response):
         self.service.reset()
         self.imu.restart()
         self.publisher.publish_state()
@@ -389,7 +389,7 @@ class SimNode:
             self.log.info(response.message)
         return response
 
-    def _srv_step(self, request, response):
+    def _srv_step(self, _request, response):
         svc = self.service
         if not svc.paused:
             response.success = False

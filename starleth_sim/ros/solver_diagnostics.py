@@ -104,7 +104,7 @@ class SolverDiagnostics:
         for index, level, message, values in statuses:
             st = objs[index]
             st.level, st.message = level, message
-            for kv, v in zip(st.values, values):
+            for kv, v in zip(st.values, values, strict=True):
                 kv.value = v
         self.diag_msg.status = self._both if len(statuses) > 1 else self._solver_only
 

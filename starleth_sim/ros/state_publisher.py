@@ -273,7 +273,7 @@ class StatePublisher:
         if cdr is not None and self._feet_first:
             if forces is None:
                 forces = self.sim.contact_forces()
-            for name, f in zip(self.feet, forces[:len(self.feet)].tolist()):
+            for name, f in zip(self.feet, forces[:len(self.feet)].tolist(), strict=False):
                 if name in feet:
                     self.output.emit_cdr(name, cdr.build(sec, nsec, f), record)
             return

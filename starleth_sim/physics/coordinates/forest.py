@@ -304,7 +304,7 @@ class ForestCoordinates:
         self.body_inertia = np.array([forest.inertias[int(r)].inertia for r in self.roots])
         self.body_gravity = np.asarray(forest.gravity.linear, dtype=float).copy()
         M = np.zeros((self.nv, self.nv))
-        for i, r in enumerate(self.roots):
+        for i, _r in enumerate(self.roots):
             v = self.root_v[i]
             M[v:v + 3, v:v + 3] = self.body_mass[i] * np.eye(3)
             M[v + 3:v + 6, v + 3:v + 6] = self.body_inertia[i]
@@ -520,7 +520,7 @@ class ForestCoordinates:
         quat = np.asarray(quat_xyzw, dtype=float)
         q_min[3:7] = quat / np.linalg.norm(quat)
         if joints is not None:
-            for n, v in zip(self.desc.joint_names, joints):
+            for n, v in zip(self.desc.joint_names, joints, strict=True):
                 q_min[src.joints[src.getJointId(n)].idx_q] = v
         return self.from_minimal(q_min, np.zeros(src.nv))[0]
 

@@ -211,7 +211,7 @@ def build(out_path: str, csrc: str = CSRC, jobs: int | None = None, progress=Non
             os.replace(part, obj)
 
         with ThreadPoolExecutor(jobs) as pool:
-            for _ in pool.map(compile_one, zip(srcs, objects)):
+            for _ in pool.map(compile_one, zip(srcs, objects, strict=True)):
                 done += 1
                 if progress:
                     progress(done, len(srcs))

@@ -65,7 +65,7 @@ class Record(NamedTuple):
     def flatten(self, values) -> list:
         """The floats of a record's values (a nested record's in place, in order)."""
         out = []
-        for f, v in zip(self.fields, values):
+        for f, v in zip(self.fields, values, strict=True):
             out += f.record.flatten(v) if isinstance(f, Nested) else [float(v)]
         return out
 

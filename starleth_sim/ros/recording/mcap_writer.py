@@ -256,7 +256,7 @@ class McapRecorder(Recorder):
             "the file is cut after the last message written: read it with --salvage"))
         raise RecordingError(self.failure) from None
 
-    def close(self, timeout=None, metadata=None) -> None:
+    def close(self, timeout=None, metadata=None) -> None:  # noqa: ARG002 (Recorder's signature)
         """Add the `metadata` records ({name: data}), write the rosbag2 metadata record and
         the summary, close the file (idempotent; `timeout` is not needed: nothing is
         queued). A failure on the way closes the file as a complete bag up to its last

@@ -324,7 +324,8 @@ class ProcessRecorder(Recorder):
     def counts(self) -> dict:
         return self._call("counts")
 
-    def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> bool:
+    def write(self, topic: str, msg, log_time_ns: int,
+              publish_time_ns: int | None = None) -> bool:  # noqa: ARG002 (Recorder's signature)
         if self._closed:
             return False
         if not isinstance(msg, (bytes, bytearray, memoryview)):

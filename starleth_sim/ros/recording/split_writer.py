@@ -256,7 +256,7 @@ class SplitRecorder(Recorder):
             yaml.safe_dump(data, f, sort_keys=False)
         os.replace(tmp, os.path.join(self.path, "metadata.yaml"))
 
-    def close(self, timeout=None, metadata=None) -> None:
+    def close(self, timeout=None, metadata=None) -> None:  # noqa: ARG002 (Recorder's signature)
         """Add the `metadata` records ({name: data}) to the current file, close it, write
         metadata.yaml (idempotent; `timeout` is not needed: nothing is queued)."""
         with self._lock:

@@ -1,0 +1,1 @@
+"""starleth-analyze: plots and a summary of recorded runs."""

@@ -1,0 +1,618 @@
+"""``starleth-demo`` (``make demo``): the main job.
+
+Default: the trotting demo over ROS 2. Two processes on an isolated ROS_DOMAIN_ID (the
+environment's ROS_DOMAIN_ID if set, else one chosen from the pid), discovering peers on this
+host only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the environment sets it):
+
+* ``sim_node`` (lockstep, as fast as the controller answers, physics HmJ, recording to
+  ``runs/demo.mcap``; started paused, set going once both nodes are up), and
+* ``controller_node`` (starleth_controller), started right after it: sim_node re-sends its
+  first state until the controller answers, so the start order does not matter.
+
+First the kernels are made ready (``starleth-precompile``: a source checkout builds its C
+extensions when they are missing or out of date, a few seconds, with a progress line), so
+that the nodes start with them built; a node that builds one anyway says so in its log,
+and the start-up time-out counts only silence.
+
+This process drives the run over ROS: it publishes /cmd_vel (0.3 m/s forward for StarlETH,
+0.3 m/s · √λ for a robot of λ times its leg length: starleth_controller.robot_params;
+ignored while standing), watches /clock, calls ``/controller_node/trot`` (true) at t = 2 s
+of sim time, and after 18 s of trotting pauses the simulation (``/sim_node/pause``) and stops
+both nodes with SIGINT, so that the recording is finalised. It then reads the bag
+(tools/common/bag.py) and prints a summary: distance travelled, mean speed while trotting, falls
+(base height > 0.3 m throughout for StarlETH, scaled to another robot's standing height),
+real-time factor (sim time / wall time), solver iterations, messages, file. Exit status 0
+when the run is complete and the robot trotted without falling (at least 0.8x the commanded
+distance), non-zero with a message otherwise.
+
+``--robot NAME``: the robot (a library name, a robot spec or URDF path), given to both nodes.
+
+``--terrain step|stairs|ledge|slope|rough``: the same on a terrain course (tools/demo/terrain.py,
+recorded to ``runs/demo_<name>.mcap``); the trunk must also cross the course.
+``--live [PORT]``: sim_node also serves the live view (port 8765), whose URLs are printed.
+``starleth-demo --drop``: the headless drop test (no ROS): StarlETH (or ``--robot``) falls
+from 0.1 m onto flat ground under a joint PD posture hold, settles, and a summary is printed
+(speed, final trunk height, per-foot normal force, solver iterations).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from starleth_controller.robot_params import trot_speed
+from starleth_interface.compile_notice import Deadline
+from starleth_interface.robot.scaling import robot_scale
+from starleth_interface.ros_helpers import service_qos
+from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
+                                       TOPIC_SOLVER, resolve)
+
+from ...physics.config import ConfigError
+from ...robots import robot_description
+from ..common.child_process import start_child_as_node
+from ..common.discovery import keep_discovery_local, local_discovery_env
+from ...ros.live_view import live_view_lines
+from ..common.bag import BagError, stream_bag
+from ..bench.round_trips import measure_bare_round_trips
+from .terrain import COURSES, course_end, course_overrides
+from .drop_test import drop_main
+from ..precompile import precompile
+from ..view.view import ViewError, write_html
+
+PERIOD_NS = 2_500_000            # sim_node's stamp period (400 Hz)
+#: StarlETH's: a base height below FALL_HEIGHT is a fall, from its standing height
+#: REFERENCE_STANDING (robots/starleth.yaml); another robot's in proportion to its own [m]
+FALL_HEIGHT, REFERENCE_STANDING = 0.3, 0.415
+STEPPING = 0.01                  # sim time [s] on /clock that shows the sim is stepping
+#: the issue's acceptance: the trot covers at least this fraction of the commanded distance
+ACCEPT_FRACTION = 0.8
+MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not checked [s]
+
+
+# =========================================================================================
+# trotting demo over ROS 2
+# =========================================================================================
+class DemoError(RuntimeError):
+    """The demo could not run to the end (a node died, a timeout, no bag, ...)."""
+
+
+@dataclass(frozen=True)
+class DemoRobot:
+    """What the demo takes of a robot: its name, trot speed [m/s] and fall height [m]."""
+
+    name: str
+    speed: float
+    fall_height: float
+
+    @classmethod
+    def of(cls, robot: str) -> "DemoRobot":
+        """The demo's figures of `robot` (ConfigError naming it when it cannot be built)."""
+        desc = robot_description(robot)
+        standing = desc.standing_height or REFERENCE_STANDING
+        return cls(robot, trot_speed(robot_scale(desc.legs, desc.total_mass)),
+                   FALL_HEIGHT * standing / REFERENCE_STANDING)
+
+
+def default_domain_id() -> int:
+    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if env:
+        try:
+            return int(env)
+        except ValueError:
+            raise DemoError(f"ROS_DOMAIN_ID={env!r} is not an integer") from None
+    return os.getpid() % 90 + 10
+
+
+class NodeProcess:
+    """A ROS node in a child process (no stdin, output to a log file); stop() always ends
+    it: SIGINT, then SIGTERM, then SIGKILL."""
+
+    def __init__(self, name, module, params, domain_id, log_path, pre_args=()):
+        cmd = [sys.executable, "-m", module, *pre_args, "--ros-args", "-r", f"__node:={name}"]
+        for k, v in params.items():
+            val = f'"{v}"' if isinstance(v, str) else repr(v)
+            cmd += ["-p", f"{k}:={val}"]
+        env = dict(local_discovery_env(), ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1",
+                   RCUTILS_LOGGING_BUFFERED_STREAM="0", RCUTILS_COLORIZED_OUTPUT="0")
+        self.name, self.log_path = name, log_path
+        self._log = open(log_path, "w")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=self._log,
+                                     stderr=subprocess.STDOUT, env=env,
+                                     preexec_fn=start_child_as_node())
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout=30.0):
+        """Returns the exit status (None if it had to be killed)."""
+        p = self.proc
+        killed = False
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0),
+                          (signal.SIGKILL, 5.0)):
+            if p.poll() is not None:
+                break
+            p.send_signal(sig)
+            killed = sig != signal.SIGINT
+            try:
+                p.wait(wait)
+            except subprocess.TimeoutExpired:
+                pass
+        self._log.close()
+        return None if killed else p.returncode
+
+    def log_tail(self, n=15) -> str:
+        try:
+            with open(self.log_path) as f:
+                lines = f.read().splitlines()
+        except OSError:
+            return "(no log)"
+        return "\n".join("    | " + line for line in lines[-n:])
+
+
+@dataclass
+class DemoResult:
+    bag: str
+    domain_id: int
+    physics: str
+    stand: float
+    trot: float
+    speed: float
+    t_trot: float = math.nan             # sim time when the trot was requested [s]
+    t_end: float = math.nan              # last recorded stamp [s]
+    wall: float = math.nan               # wall time of the stepping [s]
+    sim_elapsed: float = math.nan        # sim time over the same interval [s]
+    distance: float = math.nan           # start -> end, horizontal [m]
+    trot_distance: float = math.nan      # over the trot phase, horizontal [m]
+    trot_speed: float = math.nan         # mean speed while trotting [m/s]
+    displacement: tuple = (math.nan, math.nan)
+    min_height: float = math.nan
+    max_height: float = math.nan
+    solver_iterations_mean: float = math.nan
+    solver_iterations_max: int = 0
+    messages: int = 0
+    topic_counts: dict = field(default_factory=dict)
+    joint_states: int = 0
+    steps_expected: int = 0
+    missing_steps: int = 0
+    joint_commands: int = 0
+    bag_bytes: int = 0
+    html: str = ""                       # the 3D replay (starleth-view) of the recording
+    html_frames: int = 0
+    html_bytes: int = 0
+    html_error: str = ""
+    exit_codes: dict = field(default_factory=dict)
+    logs: dict = field(default_factory=dict)
+    in_process: bool = False             # both nodes in one process (sim_node --composed)
+    bare_round_trips: float = math.nan   # bare rclpy round trips / s, measured just before
+    bare_error: str = ""
+    terrain: str = ""                    # the terrain course (demo_terrain.py), "" flat
+    robot: str = "starleth"
+    fall_height: float = FALL_HEIGHT     # a base height below this is a fall [m]
+
+    @property
+    def cycles_per_s(self) -> float:
+        """Lockstep control cycles per wall second (one cycle = one control period)."""
+        return self.sim_elapsed / (PERIOD_NS * 1e-9) / self.wall if self.wall > 0 else math.nan
+
+    @property
+    def rtf(self) -> float:
+        return self.sim_elapsed / self.wall if self.wall > 0 else math.nan
+
+    @property
+    def fell(self) -> bool:
+        return not self.min_height > self.fall_height
+
+    @property
+    def complete(self) -> bool:
+        return self.joint_states > 0 and self.missing_steps == 0
+
+    @property
+    def required_distance(self) -> float:
+        return ACCEPT_FRACTION * self.trot * self.speed
+
+    def problems(self) -> list:
+        p = []
+        for name, rc in self.exit_codes.items():
+            if rc != 0:
+                p.append(f"{name} exited with status {rc}" if rc is not None else
+                         f"{name} did not stop on SIGINT and was killed")
+        if not self.complete:
+            p.append(f"the bag misses {self.missing_steps} of {self.steps_expected} control "
+                     "steps")
+        if self.fell:
+            p.append(f"the robot fell (base height down to {self.min_height:.3f} m)")
+        if self.terrain and not self.displacement[0] > course_end(self.terrain):
+            p.append(f"the trunk did not cross the {self.terrain} course (x "
+                     f"{self.displacement[0]:+.2f} m, needed > {course_end(self.terrain):g} m)")
+        if self.html_error:
+            p.append(f"the 3D replay could not be written: {self.html_error}")
+        if self.trot >= MIN_TROT_CHECKED and not self.trot_distance >= self.required_distance:
+            p.append(f"trotted {self.trot_distance:.2f} m, expected >= "
+                     f"{self.required_distance:.2f} m")
+        return p
+
+
+def _call(ex, client, request, timeout, procs, what, retry_every=1.0):
+    """client's response to request, sent again every retry_every s until one comes (an
+    idempotent request): a service discovered a moment ago may not have matched its
+    response topic yet, and that first request's response is lost."""
+    t_end = time.monotonic() + timeout
+    futures = []
+    while True:
+        futures.append(client.call_async(request))
+        t_next = time.monotonic() + retry_every
+        while time.monotonic() < t_next:
+            for fut in futures:
+                if fut.done():
+                    return fut.result()
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"timeout ({timeout:g} s) waiting for {what}")
+            ex.spin_once(timeout_sec=0.02)
+
+
+def _check_alive(procs):
+    for p in procs:
+        if not p.alive():
+            raise DemoError(f"{p.name} died (exit status {p.proc.returncode}); its log "
+                            f"{p.log_path} ends with:\n{p.log_tail()}")
+
+
+def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
+          run_timeout=300.0):
+    """The ROS side of the demo: wait for both nodes, send /cmd_vel, switch to trot at
+    t = stand, pause the sim at t_trot + trot. Returns (t_trot, t_pause, wall, sim)."""
+    import rclpy
+    import rclpy.executors
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from geometry_msgs.msg import Twist
+    from std_srvs.srv import SetBool
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = None
+    try:
+        node = Node("starleth_demo", context=ctx)
+        ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        clock = {"t": None, "first": None}
+
+        def on_clock(msg):
+            t = msg.clock.sec + msg.clock.nanosec * 1e-9
+            clock["t"] = t
+            if clock["first"] is None and t >= STEPPING:
+                clock["first"] = (t, time.perf_counter())
+
+        node.create_subscription(Clock, "/clock", on_clock,
+                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        cmd_pub = node.create_publisher(Twist, "/cmd_vel", QoSProfile(depth=10))
+        trot_cli = node.create_client(SetBool, "/controller_node/trot", qos_profile=service_qos())
+        pause_cli = node.create_client(SetBool, "/sim_node/pause", qos_profile=service_qos())
+
+        # both nodes up (in any order: sim_node re-sends its first state until the
+        # controller answers it), then the first steps on /clock; the time-out counts
+        # silence: a node that says it is building its kernels makes progress
+        deadline = Deadline(startup_timeout, [p.log_path for p in procs])
+        shown = ""
+        while not (trot_cli.service_is_ready() and cmd_pub.get_subscription_count() > 0
+                   and pause_cli.service_is_ready()):
+            _check_alive(procs)
+            if deadline.expired():
+                raise DemoError(f"the nodes did not come up within {startup_timeout:g} s "
+                                "of their last sign of life")
+            if deadline.watch.last != shown:
+                shown = deadline.watch.last
+                echo(f"  {shown}")
+            ex.spin_once(timeout_sec=0.05)
+        twist = Twist()
+        twist.linear.x = float(speed)
+        cmd_pub.publish(twist)
+        last_cmd = time.monotonic()
+        # sim_node started paused: its clock starts now, not while this process was still
+        # discovering the nodes (a lockstep run at several times real time would otherwise
+        # stand longer than asked)
+        res = _call(ex, pause_cli, SetBool.Request(data=False), 10.0, procs, "/sim_node/pause")
+        echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting); "
+             f"sim_node {res.message}")
+        while clock["first"] is None:
+            _check_alive(procs)
+            if deadline.expired():
+                raise DemoError(f"the simulation did not start stepping within "
+                                f"{startup_timeout:g} s (no /clock beyond t = {STEPPING} s); "
+                                f"see the logs {', '.join(p.log_path for p in procs)}")
+            ex.spin_once(timeout_sec=0.05)
+
+        t_trot = None
+        t_end = time.monotonic() + run_timeout
+        while True:
+            # poll /clock (depth 1: only the latest is kept) at ~200 Hz rather than taking
+            # every message: this process competes for the CPU with the lockstep pair
+            time.sleep(0.005)
+            ex.spin_once(timeout_sec=0.0)
+            _check_alive(procs)
+            if time.monotonic() > t_end:
+                raise DemoError(f"the run did not finish within {run_timeout:g} s (sim time "
+                                f"{clock['t']:.3f} s)")
+            if time.monotonic() - last_cmd > 0.5:    # keep /cmd_vel fresh
+                cmd_pub.publish(twist)
+                last_cmd = time.monotonic()
+            t = clock["t"]
+            if t_trot is None and t >= stand:
+                res = _call(ex, trot_cli, SetBool.Request(data=True), 10.0, procs,
+                            "/controller_node/trot")
+                if not res.success:
+                    raise DemoError(f"/controller_node/trot refused: {res.message}")
+                t_trot = clock["t"]
+                echo(f"  t = {t_trot:.3f} s: trot ({res.message})")
+            elif t_trot is not None and t >= t_trot + trot:
+                res = _call(ex, pause_cli, SetBool.Request(data=True), 10.0, procs,
+                            "/sim_node/pause")
+                wall_end = time.perf_counter()
+                t_pause = clock["t"]
+                echo(f"  t = {t_pause:.3f} s: {res.message}")
+                t0, w0 = clock["first"]
+                return t_trot, t_pause, wall_end - w0, t_pause - t0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def read_bag(path, result: DemoResult):
+    """Fill `result` from the recording: base trajectory, solver iterations, counts."""
+    if not os.path.exists(path):
+        raise DemoError(f"the recording {path} does not exist")
+    result.bag_bytes = os.path.getsize(path)
+    js, base, solver = (resolve(t) for t in (TOPIC_JOINT_STATES, TOPIC_BASE_STATE,
+                                              TOPIC_SOLVER))
+    stamps, t, pos, its = [], [], [], []
+
+    def on_base(rec, decode):
+        p = decode(rec.data).pose.pose.position
+        t.append(rec.log_time * 1e-9)
+        pos.append((p.x, p.y, p.z))
+
+    def on_solver(rec, decode):
+        if rec.log_time == 0:
+            return                # the initial state: no step yet
+        for st in decode(rec.data).status:
+            if st.name.endswith("solver"):
+                its.extend(int(kv.value) for kv in st.values if kv.key == "iterations")
+
+    def on_channel(topic, _type_name, make_decoder):
+        if topic == js:
+            return lambda rec: stamps.append(rec.log_time)
+        handler = {base: on_base, solver: on_solver}.get(topic)
+        decode = make_decoder() if handler else None
+        return None if decode is None else (lambda rec: handler(rec, decode))
+
+    try:
+        bag = stream_bag(path, on_channel)
+    except BagError as e:
+        raise DemoError(f"cannot read the recording: {e}") from None
+    result.topic_counts = dict(bag.counts)
+    result.messages = bag.total
+    for topic in (js, base, solver):
+        if topic not in bag.counts:
+            raise DemoError(f"the recording {path} has no {topic}")
+    stamps = np.array(stamps, dtype=np.int64)
+    result.joint_states = len(stamps)
+    result.joint_commands = result.topic_counts.get(resolve(TOPIC_JOINT_COMMANDS), 0)
+    last = int(stamps.max()) if len(stamps) else 0
+    result.steps_expected = last // PERIOD_NS + 1
+    result.missing_steps = result.steps_expected - len(np.unique(stamps))
+    result.t_end = last * 1e-9
+    t, pos = np.array(t), np.array(pos)
+    if len(t) == 0:
+        raise DemoError(f"the recording {path} holds no base state")
+    result.min_height, result.max_height = float(pos[:, 2].min()), float(pos[:, 2].max())
+    d = pos[-1, :2] - pos[0, :2]
+    result.displacement = (float(d[0]), float(d[1]))
+    result.distance = float(np.hypot(*d))
+    if math.isfinite(result.t_trot):
+        i0 = min(int(np.searchsorted(t, result.t_trot)), len(t) - 1)
+        dt = t[-1] - t[i0]
+        result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
+        result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
+    if its:
+        result.solver_iterations_mean = float(np.mean(its))
+        result.solver_iterations_max = int(np.max(its))
+    return result
+
+
+def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.mcap",
+             domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0,
+             in_process=False, bare_seconds=2.0, precompile_first=True,
+             live_port=0, terrain="", robot="starleth") -> DemoResult:
+    """Run the trotting demo (see the module docstring) and return its figures. Raises
+    DemoError if it could not run to the end; both nodes are always stopped.
+    in_process: sim_node and controller_node in one process on one executor (the composed
+    mode, ``sim_node --composed``) instead of two. bare_seconds > 0: first measure bare
+    rclpy round trips for that long, the reference of the lockstep cycle rate.
+    precompile_first: make the kernels ready first (starleth-precompile, with its progress
+    line), so that the nodes start with them built. terrain: a course of demo_terrain.py
+    ("" flat). startup_timeout counts silence: the nodes' build lines
+    (compile_notice.shows_compiling) restart it. live_port > 0: the live view's port.
+    robot: given to both nodes; speed None: the robot's trot speed (DemoRobot); a bad
+    robot: ConfigError."""
+    figures = DemoRobot.of(robot)
+    speed = figures.speed if speed is None else speed
+    if domain_id is None:
+        domain_id = default_domain_id()
+    if not 0 <= domain_id <= 232:
+        raise DemoError(f"ROS domain id {domain_id} out of range (0..232)")
+    bag = os.path.abspath(record)
+    os.makedirs(os.path.dirname(bag), exist_ok=True)
+    if os.path.exists(bag):
+        os.remove(bag)
+    stem = os.path.splitext(bag)[0]
+    result = DemoResult(bag=bag, domain_id=domain_id, physics=physics, stand=stand, trot=trot,
+                        speed=speed, in_process=in_process, terrain=terrain, robot=robot,
+                        fall_height=figures.fall_height)
+    where = f"{physics}, {terrain}" if terrain else physics
+    label = "StarlETH" if robot == "starleth" else robot
+    echo(f"{label} demo: sim_node ({where}, lockstep) + controller_node over ROS 2 "
+         + ("in one process " if in_process else "") + f"(ROS_DOMAIN_ID={domain_id})")
+    keep_discovery_local()      # this process's own ROS context too
+    if precompile_first:        # the kernels ready (and said so) before the nodes start
+        wall, failed = precompile(stream=sys.stdout)
+        if failed:
+            raise DemoError("the kernels could not be made ready: "
+                            + "; ".join(f"{u}: {e}" for u, e in failed))
+        echo(f"  kernels ready in {wall:.1f} s")
+    if bare_seconds > 0:
+        try:
+            result.bare_round_trips, rtt = measure_bare_round_trips(domain_id, bare_seconds)
+            echo(f"  bare rclpy round trips {result.bare_round_trips:.0f}/s (median "
+                 f"{rtt * 1e3:.3f} ms; the reference for the cycle rate)")
+        except Exception as e:   # the demo runs without its reference
+            result.bare_error = f"{type(e).__name__}: {e}"
+            echo(f"  bare rclpy round trips: not measured ({result.bare_error})")
+    procs = []
+    try:
+        sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
+                      "record": bag, "start_paused": True, "robot": robot}
+        if terrain:
+            sim_params["physics_overrides"] = course_overrides(terrain)
+        if live_port:
+            ok, lines = live_view_lines("127.0.0.1", live_port)
+            sim_params.update(live_view=ok, live_view_port=live_port)
+            echo("\n".join(lines))
+        if in_process:
+            procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
+                                     domain_id, stem + ".sim_node.log",
+                                     pre_args=("--composed", "--controller-param",
+                                               "mode:=stand", "--controller-param",
+                                               f"robot:={robot}")))
+        else:
+            procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
+                                     domain_id, stem + ".sim_node.log"))
+            procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
+                                     {"mode": "stand", "robot": robot}, domain_id,
+                                     stem + ".controller_node.log"))
+        result.logs = {p.name: p.log_path for p in procs}
+        t_trot, t_pause, wall, sim_elapsed = drive(domain_id, stand, trot, speed, procs,
+                                                   echo, startup_timeout, run_timeout)
+        result.t_trot, result.wall, result.sim_elapsed = t_trot, wall, sim_elapsed
+    finally:
+        # the controller first (the sim is paused), then the sim: SIGINT finalises the MCAP
+        for p in sorted(procs, key=lambda p: p.name != "controller_node"):
+            result.exit_codes[p.name] = p.stop()
+    read_bag(bag, result)
+    write_replay(result, stem + ".html")
+    return result
+
+
+def write_replay(result: DemoResult, path: str):
+    """The recording as a self-contained 3D replay page (starleth-view)."""
+    try:
+        info = write_html(result.bag, path)
+    except (BagError, ViewError, OSError) as e:
+        result.html_error = str(e)
+        return
+    result.html, result.html_frames, result.html_bytes = (info["path"], info["frames"],
+                                                          info["bytes"])
+
+
+def print_summary(r: DemoResult, echo=print):
+    echo(f"  stand {r.stand:g} s, then trot {r.trot:g} s at {r.speed:g} m/s "
+         f"(trot requested at t = {r.t_trot:.3f} s; last step t = {r.t_end:.3f} s)")
+    echo(f"  distance travelled   {r.distance:6.2f} m   (x {r.displacement[0]:+.2f}, "
+         f"y {r.displacement[1]:+.2f}); while trotting {r.trot_distance:.2f} m")
+    echo(f"  mean speed (trot)    {r.trot_speed:6.3f} m/s (commanded {r.speed:g})")
+    echo("  falls                " + ("none" if not r.fell else "FELL") +
+         f" (base height {r.min_height:.3f} .. {r.max_height:.3f} m; a fall is < "
+         f"{r.fall_height:.3g} m)")
+    echo(f"  real-time factor     {r.rtf:6.2f}   (lockstep, from /clock: {r.sim_elapsed:.2f} s "
+         f"sim in {r.wall:.2f} s wall)")
+    echo(f"  control cycles       {r.cycles_per_s:6.0f} /s " +
+         (f"({r.cycles_per_s / r.bare_round_trips:.2f}x the bare rclpy round-trip rate "
+          f"{r.bare_round_trips:.0f}/s measured before; "
+          if r.bare_round_trips > 0 else "(") +
+         ("both nodes in one process)" if r.in_process else "two processes)"))
+    echo(f"  solver iterations    {r.solver_iterations_mean:6.1f} per control step on average "
+         f"(max {r.solver_iterations_max})")
+    echo(f"  messages             {r.messages} in the bag; /joint_states {r.joint_states} of "
+         f"{r.steps_expected} steps, /joint_commands {r.joint_commands}")
+    echo(f"  recording            {r.bag} ({r.bag_bytes / 1e6:.1f} MB); logs "
+         + ", ".join(r.logs.values()))
+    if r.html:
+        echo(f"  3D replay            {r.html} ({r.html_frames} frames, "
+             f"{r.html_bytes / 1e6:.1f} MB): open it in a browser")
+    problems = r.problems()
+    if problems:
+        echo("  result: FAILED: " + "; ".join(problems))
+    else:
+        echo("  result: OK (" + (f">= {r.required_distance:.1f} m, " if r.trot >= MIN_TROT_CHECKED
+                                 else "") + "no fall, whole run recorded)")
+    return not problems
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="starleth-demo",
+                                 description="StarlETH trotting demo over ROS 2 (default) or "
+                                             "the headless drop test (--drop).")
+    ap.add_argument("--drop", action="store_true",
+                    help="run the headless drop test instead of the ROS demo")
+    ap.add_argument("--preset", default="HmJ", help="physics configuration (default HmJ)")
+    ap.add_argument("--height", type=float, default=0.1, help="drop test: drop height [m]")
+    ap.add_argument("--seconds", type=float, default=5.0, help="drop test: simulated time [s]")
+    ap.add_argument("--stand", type=float, default=2.0, help="demo: seconds standing first")
+    ap.add_argument("--trot", type=float, default=18.0, help="demo: seconds of trot")
+    ap.add_argument("--speed", type=float, default=None,
+                    help="demo: forward speed [m/s] (default 0.3 m/s x sqrt(lambda), lambda "
+                         "the robot's leg length over StarlETH's: 0.3 for StarlETH)")
+    ap.add_argument("--robot", default="starleth",
+                    help="the robot: a library name (robots/*.yaml), a robot spec or a URDF "
+                         "path (default starleth)")
+    ap.add_argument("--record", default=None,
+                    help="demo: MCAP file (default runs/demo.mcap, runs/demo_<terrain>.mcap)")
+    ap.add_argument("--terrain", choices=tuple(COURSES), default="",
+                    help="demo: trot over this terrain course instead of flat ground")
+    ap.add_argument("--domain-id", type=int, default=None,
+                    help="demo: ROS domain id (default: $ROS_DOMAIN_ID, else from the pid)")
+    ap.add_argument("--in-process", action="store_true",
+                    help="demo: sim_node and controller_node in one process on one executor "
+                         "(sim_node --composed) instead of two processes")
+    ap.add_argument("--bare-seconds", type=float, default=2.0,
+                    help="demo: seconds of bare rclpy round trips measured first, the "
+                         "reference of the cycle rate (0: skip)")
+    ap.add_argument("--live", nargs="?", type=int, const=8765, default=0, metavar="PORT",
+                    help="demo: sim_node serves the Foxglove live view on PORT (8765)")
+    args = ap.parse_args(argv)
+    if args.drop:
+        try:
+            return drop_main(args)
+        except ConfigError as e:
+            print(f"starleth-demo: {e}", file=sys.stderr)
+            return 2
+    try:
+        record = args.record or os.path.join(
+            "runs", f"demo_{args.terrain}.mcap" if args.terrain else "demo.mcap")
+        result = run_demo(args.stand, args.trot, args.speed, args.preset, record,
+                          args.domain_id, in_process=args.in_process,
+                          bare_seconds=args.bare_seconds, live_port=args.live,
+                          terrain=args.terrain, robot=args.robot)
+    except ConfigError as e:         # a bad robot, before any node starts
+        print(f"starleth-demo: {e}", file=sys.stderr)
+        return 2
+    except DemoError as e:
+        print(f"starleth-demo: FAILED: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("starleth-demo: interrupted", file=sys.stderr)
+        return 130
+    return 0 if print_summary(result) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

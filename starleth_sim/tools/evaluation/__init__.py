@@ -1,0 +1,1 @@
+"""starleth-eval: the paper's evaluation, headless, with its tasks and report."""

@@ -1,0 +1,1 @@
+"""starleth-replay: a recorded run re-simulated open loop from its bag."""

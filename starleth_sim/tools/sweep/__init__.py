@@ -1,0 +1,1 @@
+"""starleth-sweep: a grid of headless runs with one results table."""
