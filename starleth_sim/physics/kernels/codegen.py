@@ -231,7 +231,7 @@ def c_header(L) -> str:
              "#ifndef STARLETH_KERNEL_LAYOUTS_H", "#define STARLETH_KERNEL_LAYOUTS_H", "",
              '#include "core.h"', ""]
     for r in L.RECORDS:
-        lines += _c_record(r)
+        lines += _c_record(r, L)
     for r in L.RESULTS:
         lines += _c_result_struct(r, L)
     lines += _c_packed_buffers(L)
