@@ -518,7 +518,7 @@ def ledge_torques():
     1 s of stand and 5 s of trot off the ledge course (HmJ): support legs (the QP), swing
     legs (IK, the damped foot-velocity solve) and feet searching the ground below the ledge;
     and how many calls had each leg state."""
-    from starleth_sim.tools.demo_terrain import course_terrain
+    from starleth_sim.tools.demo.terrain import course_terrain
     sim = Simulator.from_preset("HmJ", **course_terrain("ledge"))
     ctrl = StarlethController(urdf_path())
     h = hashlib.sha256()

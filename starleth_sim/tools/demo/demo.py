@@ -192,7 +192,7 @@ class DemoResult:
     in_process: bool = False             # both nodes in one process (sim_node --composed)
     bare_round_trips: float = math.nan   # bare rclpy round trips / s, measured just before
     bare_error: str = ""
-    terrain: str = ""                    # the terrain course (demo_terrain.py), "" flat
+    terrain: str = ""                    # the terrain course (demo/terrain.py), "" flat
     robot: str = "starleth"
     fall_height: float = FALL_HEIGHT     # a base height below this is a fall [m]
 
@@ -439,7 +439,7 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
     mode, ``sim_node --composed``) instead of two. bare_seconds > 0: first measure bare
     rclpy round trips for that long, the reference of the lockstep cycle rate.
     precompile_first: make the kernels ready first (starleth-precompile, with its progress
-    line), so that the nodes start with them built. terrain: a course of demo_terrain.py
+    line), so that the nodes start with them built. terrain: a course of demo/terrain.py
     ("" flat). startup_timeout counts silence: the nodes' build lines
     (compile_notice.shows_compiling) restart it. live_port > 0: the live view's port.
     robot: given to both nodes; speed None: the robot's trot speed (DemoRobot); a bad
