@@ -153,6 +153,17 @@ class ControllerNode(Node):
             self.log.warning(f"cpu_scheduling {p['cpu_scheduling']}: {err}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
+        self._init_state(p)
+        self._init_publishers(p)
+        wrench_topics = self._init_robot(p)
+        self._init_subscriptions(p, wrench_topics)
+        self.log.info(f"mode {self._mode}; joint commands on "
+                      f"{p['joint_commands_topic'] or '(off)'}"
+                      + (f", effort arrays on {p['effort_array_topic']}"
+                         if p["effort_array_topic"] else ""))
+
+    def _init_state(self, p):
+        """The node's state before any message: the command, counters, the state assembly."""
         self._vel = (0.0, 0.0, 0.0)
         self._vel_time = None
         self.command = Command(self._mode)
@@ -165,8 +176,15 @@ class ControllerNode(Node):
         self._ctrl_mode = None
         self.controller = None
         self._waiting_state = None        # the last state that came before the model
+        self._threshold = float(p["contact_force_threshold"])   # StarlETH's; times μ
+        self._joint_names = self._foot_names = ()
+        self._js_reader = JointStateReader()
+        self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
+        self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
+        self.timing = None                # a CycleTimes, set by benchmarks
 
-        # publishers
+    def _init_publishers(self, p):
+        """The joint command and effort array publishers (an empty topic: none)."""
         cmd_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE,
                              history=HistoryPolicy.KEEP_LAST)
@@ -176,17 +194,12 @@ class ControllerNode(Node):
                                                 cmd_qos) if p["effort_array_topic"] else None)
         self._cmd_msg = JointState()
         self._cmd_cdr = None
-        self._threshold = float(p["contact_force_threshold"])   # StarlETH's; times μ
-        self._joint_names = self._foot_names = ()
-        self._js_reader = JointStateReader()
-        self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
-        self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
-        self.timing = None                # a CycleTimes, set by benchmarks
         self._array_msg = Float64MultiArray()
 
-        # the robot (a bad one: one line)
+    def _init_robot(self, p):
+        """The robot: from its parameters now, or from robot_description when it comes (a
+        bad one: one line); returns the foot wrench topics to read."""
         model = None if p["robot_description"] else self._robot_model(p)
-
         # the model (its joint names, feet and size: the command template, the wrench topics)
         wrench_topics = p["foot_wrench_topics"]
         if p["robot_description"]:
@@ -204,14 +217,15 @@ class ControllerNode(Node):
                     else p["urdf"] or f"robot {p['robot']}")
             self._use_controller(StarlethController(model=model), what)
             wrench_topics = wrench_topics or default_wrench_topics(self._foot_names)
+        return wrench_topics
 
-        # subscriptions
+    def _init_subscriptions(self, p, wrench_topics):
+        """The state topics (taken as CDR bytes: the common case read straight from them,
+        starleth_interface.msg_cdr, anything else deserialised by rclpy), cmd_vel, ~/trot."""
         rel = (ReliabilityPolicy.BEST_EFFORT if p["state_reliability"] == "best_effort"
                else ReliabilityPolicy.RELIABLE)
         state_qos = QoSProfile(depth=10, reliability=rel, durability=DurabilityPolicy.VOLATILE,
                                history=HistoryPolicy.KEEP_LAST)
-        # the state topics are taken as CDR bytes: the common case is read straight from
-        # them (starleth_interface.msg_cdr), anything else deserialised by rclpy
         self.state_input = p["state_input"]
         self._bundled = False     # reading the bundle alone (auto: after the first one)
         self.sub_bundle = (self.create_subscription(
@@ -229,10 +243,6 @@ class ControllerNode(Node):
                                                     QoSProfile(depth=10))
         self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot,
                                             qos_profile=service_qos())
-        self.log.info(f"mode {self._mode}; joint commands on "
-                      f"{p['joint_commands_topic'] or '(off)'}"
-                      + (f", effort arrays on {p['effort_array_topic']}"
-                         if p["effort_array_topic"] else ""))
 
     def destroy_node(self):
         self._unroute_logging()

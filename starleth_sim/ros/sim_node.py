@@ -111,6 +111,12 @@ class SimNode:
         self._setup_subscriptions()
         self._setup_services()
         node.add_on_set_parameters_callback(self._on_set_parameters)
+        self._start_outputs()
+
+    def _start_outputs(self):
+        """The CPU scheduling, the recording and the live view, then the first messages
+        (robot_description, /tf_static, the terrain) and the start line."""
+        s, sim = self.settings, self.sim
         err = set_cpu_scheduling(s.cpu_scheduling)     # before the writer process starts
         if err:
             self.log.warning(f"cpu_scheduling {s.cpu_scheduling}: {err}")

@@ -112,6 +112,9 @@ DEMO_TROT = 8.0
 
 
 def test_demo_trots_and_records_the_whole_run(tmp_path):
+    """starleth-demo's run through the nodes, checked from its summary and its bag (long: one
+    run of the demo, each of its figures checked on it; split, every part would start the nodes
+    and run the demo again)."""
     bag = tmp_path / "demo.mcap"
     lines = []
     r = run_demo(stand=2.0, trot=DEMO_TROT, speed=0.3, physics="HmJ", record=str(bag),
@@ -354,6 +357,9 @@ def test_controller_node_drives_another_robot_by_its_names(tmp_path):
 
 
 def test_controller_node_ignores_bad_input_and_switches_modes(tmp_path):
+    """controller_node beside a fake robot: bad states and commands are rejected with a
+    log line and counted, and the modes switch on their service and parameter (long: one
+    node started once, the inputs sent in turn; split, each part would start it again)."""
     ctrl = Proc("starleth_controller.controller_node", str(tmp_path / "ctrl.log"),
                 warn_throttle_period=0.0)
     ros = RosTestNode(DOMAIN_ID, "fake_robot")
@@ -438,7 +444,8 @@ def test_state_bundle_gives_the_public_topics_answers_and_rejects_bad_bundles(tm
     controller_node reading the public topics answers (the same floats: bit-identical
     torques) over states that vary every step; after the first bundle it no longer
     subscribes to the public topics; a bundle of another layout, truncated bytes or a NaN
-    inside is a logged rejection, and good bundles are answered after it."""
+    inside is a logged rejection, and good bundles are answered after it.
+    (long: two nodes compared state by state over one run)"""
     topics = Proc("starleth_controller.controller_node", str(tmp_path / "topics.log"),
                   namespace="/by_topics", state_input="topics", warn_throttle_period=0.0)
     bundle = Proc("starleth_controller.controller_node", str(tmp_path / "bundle.log"),
@@ -516,7 +523,8 @@ def test_composed_mode_records_every_step_and_matches_the_headless_simulator(tmp
     topics; the bag (written by the recorder's thread) holds every state topic at every
     step, every state's answer, and the joint states are those of the headless Simulator
     driven by the recorded commands, bit for bit: the node's CDR paths (templates, raw
-    decoding, queued recording) change nothing of the lockstep results."""
+    decoding, queued recording) change nothing of the lockstep results.
+    (long: one composed run, its bag checked against the headless Simulator)"""
 
     bag = tmp_path / "composed.mcap"
     # (paced at real time: a watcher in another process keeps up with 400 states/s, not

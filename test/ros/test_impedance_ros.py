@@ -244,7 +244,8 @@ def test_50hz_position_targets_hold_the_stand(ros, tmp_path, preset, mode):
     impedance's (measured in lockstep: HmJ 1.190 / 0.361 mrad, Cm 1.259 / 0.361, ratios
     3.3 and 3.5; realtime, on a 2-core host loaded by other work, 2.8 to 3.8). Without the
     delay the relay equals the law up to the damper's discretisation (printed: errors
-    within 0.2 %)."""
+    within 0.2 %).
+    (long: four phases of one node's run, each compared with the in-process reference)"""
     kd = 2.0
     lockstep = mode == "lockstep"
     bag = tmp_path / "run.mcap"

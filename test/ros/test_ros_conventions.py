@@ -90,7 +90,8 @@ def stop_all(*procs):
 def test_two_namespaced_robots_trot_in_one_domain(ros, tmp_path):
     """sim_node + controller_node under /robot1 and under /robot2, one ROS domain, both in
     lockstep and trotting; each controller answers only its own simulator (no stale or late
-    command, one publisher per command topic); a bag per robot, read as one run each."""
+    command, one publisher per command topic); a bag per robot, read as one run each.
+    (long: two robots' nodes started once, checked together)"""
     procs = {}
     try:
         for i, ns in enumerate(("/robot1", "/robot2")):

@@ -247,6 +247,9 @@ class TestRealtime:
 
 
     def test_bad_input_is_rejected_and_node_keeps_publishing(self, ros, rt):
+        """Each kind of bad input (commands, wrenches, parameters) is rejected with its logged
+        reason and counted, and the node keeps publishing (long: the class's one realtime node
+        fed the inputs in turn; split, each part would wait for the node again)."""
         node = ros.node
         diag = DiagWatcher(ros)
         col = Collector(ros, JointState, "/joint_states")

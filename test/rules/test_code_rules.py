@@ -26,6 +26,10 @@ PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 #: a module has one job; at this size it is time to look for a second one in it (not to
 #: squeeze it: blank lines and docstrings count like code)
 MAX_LINES = 700
+#: a function does one thing: past this many lines it says why in its docstring
+#: (``(long: <reason>)``), else it is split
+MAX_FUNCTION_LINES = 60
+LONG_REASON = re.compile(r"\(long:\s*\S")
 
 # top-level names a function may import locally: optional dependencies (setup.py's extras
 # included: pyarrow for starleth-sweep's parquet, foxglove and websockets for the live view)
@@ -216,57 +220,87 @@ def _cycle_in(component, graph):
     return component
 
 
-def check(modules, max_lines=MAX_LINES):
+def check(modules, max_lines=MAX_LINES, max_function_lines=MAX_FUNCTION_LINES):
     """Every violation of the rules in `modules` ({name: (path, source)}), sorted."""
     violations = []
     graph = {name: set() for name in modules}
     edge_line, local_edges = {}, set()
     for name, (path, source) in sorted(modules.items()):
+        tree = ast.parse(source, filename=path)
         n_lines = len(source.splitlines())
         if n_lines > max_lines:
             violations.append(Violation(path, n_lines, "module-size",
                                         f"{n_lines} lines (at most {max_lines})"))
-        if ast.get_docstring(ast.parse(source, filename=path)) is None:
+        if ast.get_docstring(tree) is None:
             violations.append(Violation(path, 1, "module-docstring",
                                         "no module docstring (what the module is for)"))
+        violations += long_functions(path, tree, max_function_lines)
         for imp in module_imports(name, path, source, modules):
-            top = imp.module.split(".")[0]
-            project = _in_project(imp.module, modules)
             if imp.runtime and imp.module in modules and imp.module != name:
                 graph[name].add(imp.module)
                 if (name, imp.module) not in edge_line or (
                         (name, imp.module) in local_edges and not imp.local):
                     edge_line[name, imp.module] = imp.line
                     (local_edges.add if imp.local else local_edges.discard)((name, imp.module))
-            if project:
-                for n in imp.names:
-                    if is_private(n):
-                        violations.append(Violation(
-                            path, imp.line, "private-import",
-                            f"imports the private name {n} from {imp.module}"))
-                if _private_module_outside(imp.module, name):
-                    violations.append(Violation(
-                        path, imp.line, "private-import",
-                        f"imports the private module {imp.module} from outside its package"))
-            if imp.local and not is_optional(top) and not imp.deferred:
+            violations += _import_violations(name, path, imp, modules)
+    violations += _cycle_violations(modules, graph, edge_line, local_edges)
+    return sorted(violations, key=lambda v: (v.rule, v.path, v.line))
+
+
+def long_functions(path, tree, max_function_lines=MAX_FUNCTION_LINES):
+    """The functions of `tree` longer than `max_function_lines` (the def line to the last)
+    whose docstring does not say why: ``(long: <reason>)``."""
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        n = node.end_lineno - node.lineno + 1
+        if n > max_function_lines and not LONG_REASON.search(ast.get_docstring(node) or ""):
+            found.append(Violation(path, node.lineno, "function-length",
+                                   f"{node.name}: {n} lines (at most {max_function_lines}, "
+                                   "or a reason in its docstring: `(long: <reason>)`)"))
+    return found
+
+
+def _import_violations(name, path, imp, modules):
+    """The violations of one import `imp` of module `name`."""
+    violations = []
+    top = imp.module.split(".")[0]
+    if _in_project(imp.module, modules):
+        for n in imp.names:
+            if is_private(n):
                 violations.append(Violation(
-                    path, imp.line, "local-import",
-                    f"function-local import of {imp.module}: hoist it to the module top, or "
-                    f"mark the line `# deferred: <reason>` (local imports are for optional "
-                    f"dependencies only: {', '.join(sorted(OPTIONAL_IMPORTS))}, ROS)"))
-            if name.startswith("starleth_sim.physics") and (
-                    (is_ros(top) and top not in PHYSICS_ALLOWED_ROS)
-                    or any(imp.module == m or imp.module.startswith(m + ".")
-                           for m in PHYSICS_FORBIDDEN)):
-                violations.append(Violation(path, imp.line, "physics-imports-ros",
-                                            f"starleth_sim.physics imports {imp.module}"))
-            if name.split(".")[0] == "starleth_controller" and top == "starleth_sim":
-                violations.append(Violation(path, imp.line, "controller-imports-sim",
-                                            f"starleth_controller imports {imp.module}"))
-            if name.split(".")[0] == "starleth_interface" and \
-                    top in ("starleth_sim", "starleth_controller"):
-                violations.append(Violation(path, imp.line, "interface-imports-sim",
-                                            f"starleth_interface imports {imp.module}"))
+                    path, imp.line, "private-import",
+                    f"imports the private name {n} from {imp.module}"))
+        if _private_module_outside(imp.module, name):
+            violations.append(Violation(
+                path, imp.line, "private-import",
+                f"imports the private module {imp.module} from outside its package"))
+    if imp.local and not is_optional(top) and not imp.deferred:
+        violations.append(Violation(
+            path, imp.line, "local-import",
+            f"function-local import of {imp.module}: hoist it to the module top, or "
+            f"mark the line `# deferred: <reason>` (local imports are for optional "
+            f"dependencies only: {', '.join(sorted(OPTIONAL_IMPORTS))}, ROS)"))
+    if name.startswith("starleth_sim.physics") and (
+            (is_ros(top) and top not in PHYSICS_ALLOWED_ROS)
+            or any(imp.module == m or imp.module.startswith(m + ".")
+                   for m in PHYSICS_FORBIDDEN)):
+        violations.append(Violation(path, imp.line, "physics-imports-ros",
+                                    f"starleth_sim.physics imports {imp.module}"))
+    if name.split(".")[0] == "starleth_controller" and top == "starleth_sim":
+        violations.append(Violation(path, imp.line, "controller-imports-sim",
+                                    f"starleth_controller imports {imp.module}"))
+    if name.split(".")[0] == "starleth_interface" and \
+            top in ("starleth_sim", "starleth_controller"):
+        violations.append(Violation(path, imp.line, "interface-imports-sim",
+                                    f"starleth_interface imports {imp.module}"))
+    return violations
+
+
+def _cycle_violations(modules, graph, edge_line, local_edges):
+    """One violation per import cycle of `graph`, naming each import of the cycle."""
+    violations = []
     for component in _strongly_connected(graph):
         if len(component) < 2:
             continue
@@ -280,7 +314,7 @@ def check(modules, max_lines=MAX_LINES):
             modules[first[0]][0], edge_line[first], "import-cycle",
             f"import cycle {' -> '.join(cycle + [cycle[0]])} ({chain}); all modules of the "
             f"cycle: {', '.join(component)}"))
-    return sorted(violations, key=lambda v: (v.rule, v.path, v.line))
+    return violations
 
 
 def _report(violations):
@@ -292,8 +326,9 @@ def violations():
     return check(find_modules())
 
 
-RULES = ("module-size", "module-docstring", "import-cycle", "private-import", "local-import",
-         "physics-imports-ros", "controller-imports-sim", "interface-imports-sim")
+RULES = ("module-size", "module-docstring", "function-length", "import-cycle", "private-import",
+         "local-import", "physics-imports-ros", "controller-imports-sim",
+         "interface-imports-sim")
 
 
 @pytest.mark.parametrize("rule", RULES)
@@ -448,3 +483,29 @@ def test_c_sources_at_most_max_lines():
         if n > MAX_LINES:
             long.append(f"starleth_sim/physics/csrc/{name}: {n} lines (at most {MAX_LINES})")
     assert not long, "\n".join(long)
+
+
+def test_self_check_function_length():
+    """A function over the limit is a violation unless its docstring says why."""
+    body = "".join(f"    x{i} = {i}\n" for i in range(8))
+    modules = _synthetic(
+        starleth_sim='"""pkg"""\n',
+        starleth_sim__a=f'"""a"""\n\n\ndef short():\n{body}\n\ndef long_one():\n{body * 2}'
+                        f'\n\ndef long_said():\n    """(long: a table of cases)"""\n{body * 2}')
+    found = [v for v in _check(modules, max_function_lines=10) if v.rule == "function-length"]
+    assert [(v.path, v.line) for v in found] == [("starleth_sim/a.py", 15)], found
+    assert "long_one: 17 lines" in found[0].message
+
+
+def test_test_functions_follow_the_function_length_rule():
+    """The tests and their helpers (test/) keep the function-length rule too."""
+    found = []
+    for dirpath, dirnames, filenames in os.walk(os.path.join(ROOT, "test")):
+        dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+        for filename in sorted(f for f in filenames if f.endswith(".py")):
+            path = os.path.join(dirpath, filename)
+            with open(path, encoding="utf-8") as f:
+                tree = ast.parse(f.read(), filename=path)
+            found += long_functions(os.path.relpath(path, ROOT), tree)
+    assert not found, _report(found)
+

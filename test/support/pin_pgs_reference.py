@@ -147,7 +147,8 @@ def pin_pgs_solve(
     for large mu / PSD G), re-solve from scratch with these smaller
     over_relaxation values in turn until pin converges; () = raw pin behaviour.
     Returns Lambda (our ordering); with return_info=True returns (Lambda, info).
-    """
+    (long: Pinocchio's PGS set up, run and its result converted in one piece: the
+    reference the prox is checked against)"""
     G = np.asarray(G, dtype=float)
     c = np.asarray(c, dtype=float).ravel()
     n = c.size

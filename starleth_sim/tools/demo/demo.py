@@ -270,101 +270,118 @@ def drive(domain_id, stand, trot, speed, procs, echo, startup_timeout=90.0,
     """The ROS side of the demo: wait for both nodes, send /cmd_vel, switch to trot at
     t = stand, pause the sim at t_trot + trot. Returns (t_trot, t_pause, wall, sim)."""
     import rclpy
-    import rclpy.executors
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rosgraph_msgs.msg import Clock
-    from geometry_msgs.msg import Twist
-    from std_srvs.srv import SetBool
-
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
-    node = None
+    driver = None
     try:
-        node = Node("starleth_demo", context=ctx)
-        ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-        clock = {"t": None, "first": None}
+        driver = _DemoDriver(ctx, speed, procs, echo)
+        driver.start(startup_timeout)
+        return driver.run(stand, trot, run_timeout)
+    finally:
+        if driver is not None:
+            driver.node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
 
-        def on_clock(msg):
-            t = msg.clock.sec + msg.clock.nanosec * 1e-9
-            clock["t"] = t
-            if clock["first"] is None and t >= STEPPING:
-                clock["first"] = (t, time.perf_counter())
 
-        node.create_subscription(Clock, "/clock", on_clock,
+class _DemoDriver:
+    """The demo's node: /clock read, /cmd_vel sent, the controller's ~/trot and sim_node's
+    ~/pause called."""
+
+    def __init__(self, ctx, speed, procs, echo):
+        import rclpy.executors
+        from geometry_msgs.msg import Twist
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+        from std_srvs.srv import SetBool
+        self.SetBool, self.procs, self.echo = SetBool, procs, echo
+        self.node = node = Node("starleth_demo", context=ctx)
+        self.ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(node)
+        self.clock = {"t": None, "first": None}
+        node.create_subscription(Clock, "/clock", self._on_clock,
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-        cmd_pub = node.create_publisher(Twist, "/cmd_vel", QoSProfile(depth=10))
-        trot_cli = node.create_client(SetBool, "/controller_node/trot", qos_profile=service_qos())
-        pause_cli = node.create_client(SetBool, "/sim_node/pause", qos_profile=service_qos())
+        self.cmd_pub = node.create_publisher(Twist, "/cmd_vel", QoSProfile(depth=10))
+        self.trot_cli = node.create_client(SetBool, "/controller_node/trot",
+                                           qos_profile=service_qos())
+        self.pause_cli = node.create_client(SetBool, "/sim_node/pause", qos_profile=service_qos())
+        self.twist = Twist()
+        self.twist.linear.x = float(speed)
+        self.last_cmd = None
 
-        # both nodes up (in any order: sim_node re-sends its first state until the
-        # controller answers it), then the first steps on /clock; the time-out counts
-        # silence: a node that says it is building its kernels makes progress
+    def _on_clock(self, msg):
+        t = msg.clock.sec + msg.clock.nanosec * 1e-9
+        self.clock["t"] = t
+        if self.clock["first"] is None and t >= STEPPING:
+            self.clock["first"] = (t, time.perf_counter())
+
+    def _call(self, client, data, name):
+        return _call(self.ex, client, self.SetBool.Request(data=data), 10.0, self.procs, name)
+
+    def start(self, startup_timeout):
+        """Both nodes up (in any order: sim_node re-sends its first state until the
+        controller answers it), /cmd_vel sent, sim_node unpaused, then the first steps on
+        /clock; the time-out counts silence: a node that says it is building its kernels
+        makes progress."""
+        procs = self.procs
         deadline = Deadline(startup_timeout, [p.log_path for p in procs])
         shown = ""
-        while not (trot_cli.service_is_ready() and cmd_pub.get_subscription_count() > 0
-                   and pause_cli.service_is_ready()):
+        while not (self.trot_cli.service_is_ready() and self.cmd_pub.get_subscription_count() > 0
+                   and self.pause_cli.service_is_ready()):
             _check_alive(procs)
             if deadline.expired():
                 raise DemoError(f"the nodes did not come up within {startup_timeout:g} s "
                                 "of their last sign of life")
             if deadline.watch.last != shown:
                 shown = deadline.watch.last
-                echo(f"  {shown}")
-            ex.spin_once(timeout_sec=0.05)
-        twist = Twist()
-        twist.linear.x = float(speed)
-        cmd_pub.publish(twist)
-        last_cmd = time.monotonic()
+                self.echo(f"  {shown}")
+            self.ex.spin_once(timeout_sec=0.05)
+        self.cmd_pub.publish(self.twist)
+        self.last_cmd = time.monotonic()
         # sim_node started paused: its clock starts now, not while this process was still
         # discovering the nodes (a lockstep run at several times real time would otherwise
         # stand longer than asked)
-        res = _call(ex, pause_cli, SetBool.Request(data=False), 10.0, procs, "/sim_node/pause")
-        echo(f"  nodes up; /cmd_vel linear.x = {speed:g} m/s (applies once trotting); "
-             f"sim_node {res.message}")
-        while clock["first"] is None:
+        res = self._call(self.pause_cli, False, "/sim_node/pause")
+        self.echo(f"  nodes up; /cmd_vel linear.x = {self.twist.linear.x:g} m/s (applies once "
+                  f"trotting); sim_node {res.message}")
+        while self.clock["first"] is None:
             _check_alive(procs)
             if deadline.expired():
                 raise DemoError(f"the simulation did not start stepping within "
                                 f"{startup_timeout:g} s (no /clock beyond t = {STEPPING} s); "
                                 f"see the logs {', '.join(p.log_path for p in procs)}")
-            ex.spin_once(timeout_sec=0.05)
+            self.ex.spin_once(timeout_sec=0.05)
 
-        t_trot = None
+    def run(self, stand, trot, run_timeout):
+        """Trot from t = stand, pause at t_trot + trot: (t_trot, t_pause, wall, sim)."""
+        clock, t_trot = self.clock, None
         t_end = time.monotonic() + run_timeout
         while True:
             # poll /clock (depth 1: only the latest is kept) at ~200 Hz rather than taking
             # every message: this process competes for the CPU with the lockstep pair
             time.sleep(0.005)
-            ex.spin_once(timeout_sec=0.0)
-            _check_alive(procs)
+            self.ex.spin_once(timeout_sec=0.0)
+            _check_alive(self.procs)
             if time.monotonic() > t_end:
                 raise DemoError(f"the run did not finish within {run_timeout:g} s (sim time "
                                 f"{clock['t']:.3f} s)")
-            if time.monotonic() - last_cmd > 0.5:    # keep /cmd_vel fresh
-                cmd_pub.publish(twist)
-                last_cmd = time.monotonic()
+            if time.monotonic() - self.last_cmd > 0.5:    # keep /cmd_vel fresh
+                self.cmd_pub.publish(self.twist)
+                self.last_cmd = time.monotonic()
             t = clock["t"]
             if t_trot is None and t >= stand:
-                res = _call(ex, trot_cli, SetBool.Request(data=True), 10.0, procs,
-                            "/controller_node/trot")
+                res = self._call(self.trot_cli, True, "/controller_node/trot")
                 if not res.success:
                     raise DemoError(f"/controller_node/trot refused: {res.message}")
                 t_trot = clock["t"]
-                echo(f"  t = {t_trot:.3f} s: trot ({res.message})")
+                self.echo(f"  t = {t_trot:.3f} s: trot ({res.message})")
             elif t_trot is not None and t >= t_trot + trot:
-                res = _call(ex, pause_cli, SetBool.Request(data=True), 10.0, procs,
-                            "/sim_node/pause")
+                res = self._call(self.pause_cli, True, "/sim_node/pause")
                 wall_end = time.perf_counter()
                 t_pause = clock["t"]
-                echo(f"  t = {t_pause:.3f} s: {res.message}")
+                self.echo(f"  t = {t_pause:.3f} s: {res.message}")
                 t0, w0 = clock["first"]
                 return t_trot, t_pause, wall_end - w0, t_pause - t0
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
 
 
 def read_bag(path, result: DemoResult):
@@ -463,6 +480,26 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
     echo(f"{label} demo: sim_node ({where}, lockstep) + controller_node over ROS 2 "
          + ("in one process " if in_process else "") + f"(ROS_DOMAIN_ID={domain_id})")
     keep_discovery_local()      # this process's own ROS context too
+    _before_the_nodes(result, domain_id, precompile_first, bare_seconds, echo)
+    procs = []
+    try:
+        _start_demo_nodes(result, stem, live_port, echo, procs)
+        result.logs = {p.name: p.log_path for p in procs}
+        t_trot, t_pause, wall, sim_elapsed = drive(domain_id, stand, trot, speed, procs,
+                                                   echo, startup_timeout, run_timeout)
+        result.t_trot, result.wall, result.sim_elapsed = t_trot, wall, sim_elapsed
+    finally:
+        # the controller first (the sim is paused), then the sim: SIGINT finalises the MCAP
+        for p in sorted(procs, key=lambda p: p.name != "controller_node"):
+            result.exit_codes[p.name] = p.stop()
+    read_bag(bag, result)
+    write_replay(result, stem + ".html")
+    return result
+
+
+def _before_the_nodes(result, domain_id, precompile_first, bare_seconds, echo):
+    """The kernels made ready (and said so) before the nodes start; the bare round trips
+    measured (the reference of the cycle rate; the demo runs without it if it fails)."""
     if precompile_first:        # the kernels ready (and said so) before the nodes start
         wall, failed = precompile(stream=sys.stdout)
         if failed:
@@ -477,39 +514,34 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
         except Exception as e:   # the demo runs without its reference
             result.bare_error = f"{type(e).__name__}: {e}"
             echo(f"  bare rclpy round trips: not measured ({result.bare_error})")
-    procs = []
-    try:
-        sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
-                      "record": bag, "start_paused": True, "robot": robot}
-        if terrain:
-            sim_params["physics_overrides"] = course_overrides(terrain)
-        if live_port:
-            ok, lines = live_view_lines("127.0.0.1", live_port)
-            sim_params.update(live_view=ok, live_view_port=live_port)
-            echo("\n".join(lines))
-        if in_process:
-            procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
-                                     domain_id, stem + ".sim_node.log",
-                                     pre_args=("--composed", "--controller-param",
-                                               "mode:=stand", "--controller-param",
-                                               f"robot:={robot}")))
-        else:
-            procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
-                                     domain_id, stem + ".sim_node.log"))
-            procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
-                                     {"mode": "stand", "robot": robot}, domain_id,
-                                     stem + ".controller_node.log"))
-        result.logs = {p.name: p.log_path for p in procs}
-        t_trot, t_pause, wall, sim_elapsed = drive(domain_id, stand, trot, speed, procs,
-                                                   echo, startup_timeout, run_timeout)
-        result.t_trot, result.wall, result.sim_elapsed = t_trot, wall, sim_elapsed
-    finally:
-        # the controller first (the sim is paused), then the sim: SIGINT finalises the MCAP
-        for p in sorted(procs, key=lambda p: p.name != "controller_node"):
-            result.exit_codes[p.name] = p.stop()
-    read_bag(bag, result)
-    write_replay(result, stem + ".html")
-    return result
+
+
+def _start_demo_nodes(result, stem, live_port, echo, procs):
+    """sim_node (lockstep, recording, paused) and controller_node (stand) started for
+    `result`'s run, two processes or one composed, each into `procs` as it starts (the
+    caller stops them)."""
+    physics, robot, domain_id, bag = result.physics, result.robot, result.domain_id, result.bag
+    terrain, in_process = result.terrain, result.in_process
+    sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
+                  "record": bag, "start_paused": True, "robot": robot}
+    if terrain:
+        sim_params["physics_overrides"] = course_overrides(terrain)
+    if live_port:
+        ok, lines = live_view_lines("127.0.0.1", live_port)
+        sim_params.update(live_view=ok, live_view_port=live_port)
+        echo("\n".join(lines))
+    if in_process:
+        procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
+                                 domain_id, stem + ".sim_node.log",
+                                 pre_args=("--composed", "--controller-param",
+                                           "mode:=stand", "--controller-param",
+                                           f"robot:={robot}")))
+    else:
+        procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
+                                 domain_id, stem + ".sim_node.log"))
+        procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
+                                 {"mode": "stand", "robot": robot}, domain_id,
+                                 stem + ".controller_node.log"))
 
 
 def write_replay(result: DemoResult, path: str):
