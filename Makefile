@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 LIVE_PORT ?= 8765
 
-.PHONY: venv test-deps robots test sanitize demo bench eval ray browser-test constraints \
+.PHONY: venv test-deps robots test sanitize sanitizer-libs demo bench eval ray browser-test constraints \
         ros2-control-configs clean distclean
 
 venv: $(STAMP)
@@ -84,10 +84,12 @@ $(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
 # serial (rates, deadlines, latencies, a browser), one at a time with nothing beside them.
 # Both list what they skipped, with the reason (-rs: an optional package or program missing);
 # a missing rclpy is no skip but an error (test/conftest.py; STARLETH_ALLOW_NO_ROS=1 allows it).
-# Then ruff over the tree (ruff.toml: pycodestyle errors and warnings, pyflakes; line length
-# 100). All three passes run; the target fails with the first failing pass's status (a pytest
-# pass's 5, no tests collected, only if neither pass collected any: a -k selection may fall
-# in one pass alone).
+# Then the physics tests that take every kernel path (SANITIZE_QUICK) under AddressSanitizer
+# and UndefinedBehaviorSanitizer (make sanitize runs all of them, about 2 minutes), skipped
+# with a line where the compiler's runtimes are missing. Then ruff over the tree (ruff.toml).
+# All passes run; the target fails with the first failing pass's status (a pytest pass's 5,
+# no tests collected, only if neither pass collected any: a -k selection may fall in one pass
+# alone).
 test: venv test-deps robots
 	@export ROS_DOMAIN_ID=$$(( $$$$ % 90 + 10 )); \
 	$(VPY) -m starleth_sim.tools.precompile --jobs 2 || echo "(precompile failed: the tests compile what they need and say what is wrong)"; \
@@ -96,11 +98,16 @@ test: venv test-deps robots
 	  $(PYTEST_ARGS); a=$$?; \
 	echo "pass 2: tests marked serial (rates, deadlines), one at a time"; \
 	$(VPY) -m pytest -q -rs -m serial test $(PYTEST_ARGS); b=$$?; \
-	echo "pass 3: ruff check (ruff.toml)"; \
+	echo "pass 3: the physics kernels under AddressSanitizer + UBSan (SANITIZE_QUICK; all: make sanitize)"; \
+	if [ -e "$$($${CC:-cc} -print-file-name=libasan.so)" ] && [ -e "$$($${CC:-cc} -print-file-name=libubsan.so)" ]; then \
+	  $(MAKE) --no-print-directory sanitize SANITIZE_TESTS="$(SANITIZE_QUICK)" PYTEST_ARGS=; d=$$?; \
+	else echo "SKIPPED: the compiler's libasan / libubsan are not installed (make sanitizer-libs)"; d=0; fi; \
+	echo "pass 4: ruff check (ruff.toml)"; \
 	$(VENV)/bin/ruff check .; c=$$?; \
 	if [ $$a = 5 ] && [ $$b = 0 ]; then a=0; fi; \
 	if [ $$b = 5 ] && [ $$a = 0 ]; then b=0; fi; \
-	if [ $$a != 0 ]; then exit $$a; fi; if [ $$b != 0 ]; then exit $$b; fi; exit $$c
+	if [ $$a != 0 ]; then exit $$a; fi; if [ $$b != 0 ]; then exit $$b; fi; \
+	if [ $$d != 0 ]; then exit $$d; fi; exit $$c
 
 # The main job: the trotting demo over ROS 2 (starleth-demo; it makes the kernels ready
 # first, with a progress line, then runs sim_node + controller_node and summarises the bag),
@@ -175,6 +182,10 @@ SANITIZE_TESTS := test_bitexact test_adaptive_alpha test_coordinates test_hard_c
         test_impedance test_impedance_commands test_kernel_layouts test_kinematics_dynamics \
         test_physics_analytic test_physics_robot test_solvers test_state test_step_down \
         test_terrain test_terrain_walk
+# the subset `make test` runs under the sanitizers: every preset's step (bitexact), the
+# prepared and profiled steps (state), the solvers, the impedance step, the packed layouts
+SANITIZE_QUICK := test_bitexact test_solvers test_kernel_layouts test_state \
+        test_impedance_commands test_physics_analytic
 sanitize: venv test-deps robots
 	@so=$(SANITIZE_DIR)/_kernels$$($(VPY) -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))'); \
 	$(VPY) starleth_sim/physics/kernels/build.py --sanitize $$so || exit 2; \
@@ -182,8 +193,14 @@ sanitize: venv test-deps robots
 	STARLETH_KERNELS_SANITIZED=$$PWD/$$so \
 	LD_PRELOAD="$$($$cc -print-file-name=libasan.so) $$($$cc -print-file-name=libubsan.so)" \
 	ASAN_OPTIONS=detect_leaks=0:abort_on_error=1 UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
-	$(VPY) -m pytest -q -p no:cacheprovider $(addprefix test/,$(addsuffix .py,$(SANITIZE_TESTS))) \
+	$(VPY) -m pytest -q -p no:cacheprovider $(foreach t,$(SANITIZE_TESTS),$(wildcard test/*/$(t).py)) \
 	  $(PYTEST_ARGS)
+
+# The compiler's sanitizer runtimes (Debian / Ubuntu: libasan and libubsan of the gcc in use)
+sanitizer-libs:
+	@v=$$($${CC:-cc} -dumpversion | cut -d. -f1); \
+	echo "installing libasan / libubsan for gcc $$v (sudo apt-get)"; \
+	sudo apt-get install -y "libgcc-$$v-dev" || sudo apt-get install -y libasan8 libubsan1
 
 clean:
 	rm -rf build install log *.egg-info .pytest_cache .ruff_cache
