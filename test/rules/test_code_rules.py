@@ -42,6 +42,10 @@ PHYSICS_FORBIDDEN = ("starleth_sim.ros", "starleth_interface.ros_helpers")
 # which physics.description asks, guarded, where the data (urdf/, msg_configs/) lives in a
 # colcon install
 PHYSICS_ALLOWED_ROS = {"ament_index_python"}
+# the layers of doc/architecture.md: the ROS-free core (physics with robots) imports nothing
+# of the layers above it; the ROS layer imports nothing of the tools
+CORE = ("starleth_sim.physics", "starleth_sim.robots")
+ABOVE_CORE = ("starleth_sim.ros", "starleth_sim.tools", "starleth_controller")
 DEFERRED = re.compile(r"#\s*deferred:\s*\S")
 
 
@@ -64,6 +68,11 @@ class Import:
     local: bool  # inside a function
     runtime: bool  # runs at all (not under `if TYPE_CHECKING:`)
     deferred: bool  # carries `# deferred: <reason>`
+
+
+def under(module, packages):
+    """Whether `module` is one of `packages` or inside one."""
+    return any(module == p or module.startswith(p + ".") for p in packages)
 
 
 def is_ros(top):
@@ -260,6 +269,13 @@ def check(modules, max_lines=MAX_LINES):
                            for m in PHYSICS_FORBIDDEN)):
                 violations.append(Violation(path, imp.line, "physics-imports-ros",
                                             f"starleth_sim.physics imports {imp.module}"))
+            elif under(name, CORE) and under(imp.module, ABOVE_CORE):
+                violations.append(Violation(path, imp.line, "core-imports-above",
+                                            f"the core module {name} imports {imp.module}, "
+                                            "of a layer above it"))
+            if under(name, ("starleth_sim.ros",)) and under(imp.module, ("starleth_sim.tools",)):
+                violations.append(Violation(path, imp.line, "ros-imports-tools",
+                                            f"the ROS layer's {name} imports {imp.module}"))
             if name.split(".")[0] == "starleth_controller" and top == "starleth_sim":
                 violations.append(Violation(path, imp.line, "controller-imports-sim",
                                             f"starleth_controller imports {imp.module}"))
@@ -293,7 +309,8 @@ def violations():
 
 
 RULES = ("module-size", "module-docstring", "import-cycle", "private-import", "local-import",
-         "physics-imports-ros", "controller-imports-sim", "interface-imports-sim")
+         "physics-imports-ros", "core-imports-above", "ros-imports-tools",
+         "controller-imports-sim", "interface-imports-sim")
 
 
 @pytest.mark.parametrize("rule", RULES)
@@ -416,14 +433,20 @@ def test_self_check_layering_and_size():
         starleth_controller__z='import starleth_sim\n',
         starleth_interface__big='x = 1\n' * 11,
         starleth_interface__robot__s='from starleth_sim.physics import config\n',
+        starleth_sim__robots__r='from starleth_sim.tools.common import bag\n',
+        starleth_sim__physics__v='from starleth_controller import controller\n',
+        starleth_sim__ros__t='from ..tools import precompile\n',
     )
     found = _check(modules, max_lines=10)
     assert [(v.path, v.line, v.rule) for v in found] == [
         ("starleth_controller/z.py", 1, "controller-imports-sim"),
+        ("starleth_sim/physics/v.py", 1, "core-imports-above"),
+        ("starleth_sim/robots/r.py", 1, "core-imports-above"),
         ("starleth_interface/robot/s.py", 1, "interface-imports-sim"),
         ("starleth_interface/big.py", 11, "module-size"),
         ("starleth_sim/physics/x.py", 2, "physics-imports-ros"),
-        ("starleth_sim/physics/y.py", 1, "physics-imports-ros")], _report(found)
+        ("starleth_sim/physics/y.py", 1, "physics-imports-ros"),
+        ("starleth_sim/ros/t.py", 1, "ros-imports-tools")], _report(found)
 
 
 def test_self_check_docstring():
