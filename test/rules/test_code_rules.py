@@ -46,6 +46,11 @@ PHYSICS_FORBIDDEN = ("starleth_sim.ros", "starleth_interface.ros_helpers")
 # which physics.description asks, guarded, where the data (urdf/, msg_configs/) lives in a
 # colcon install
 PHYSICS_ALLOWED_ROS = {"ament_index_python"}
+# the layers of doc/architecture.md: the ROS-free core (physics with robots) imports nothing
+# of the layers above it; the ROS layer imports nothing of the tools
+CORE = ("starleth_sim.physics", "starleth_sim.robots")
+ABOVE_CORE = ("starleth_sim.ros", "starleth_sim.tools", "starleth_controller")
+ROS_LAYER, TOOLS = ("starleth_sim.ros",), ("starleth_sim.tools",)
 DEFERRED = re.compile(r"#\s*deferred:\s*\S")
 
 
@@ -68,6 +73,11 @@ class Import:
     local: bool  # inside a function
     runtime: bool  # runs at all (not under `if TYPE_CHECKING:`)
     deferred: bool  # carries `# deferred: <reason>`
+
+
+def under(module, packages):
+    """Whether `module` is one of `packages` or inside one."""
+    return any(module == p or module.startswith(p + ".") for p in packages)
 
 
 def is_ros(top):
@@ -459,6 +469,45 @@ def test_self_check_layering_and_size():
         ("starleth_interface/big.py", 11, "module-size"),
         ("starleth_sim/physics/x.py", 2, "physics-imports-ros"),
         ("starleth_sim/physics/y.py", 1, "physics-imports-ros")], _report(found)
+
+
+def layer_violations(modules):
+    """The imports that run up the layers of doc/architecture.md: from the core (physics,
+    robots) to the ROS layer, the tools or the controller (core-imports-above), from the ROS
+    layer to the tools (ros-imports-tools)."""
+    found = []
+    for name, (path, source) in sorted(modules.items()):
+        for imp in module_imports(name, path, source, modules):
+            if under(name, CORE) and under(imp.module, ABOVE_CORE):
+                found.append(Violation(path, imp.line, "core-imports-above",
+                                       f"the core module {name} imports {imp.module}, of a "
+                                       "layer above it"))
+            if under(name, ROS_LAYER) and under(imp.module, TOOLS):
+                found.append(Violation(path, imp.line, "ros-imports-tools",
+                                       f"the ROS layer's {name} imports {imp.module}"))
+    return found
+
+
+def test_imports_point_down_the_layers():
+    found = layer_violations(find_modules())
+    assert not found, _report(found)
+
+
+def test_self_check_layers():
+    modules = _synthetic(
+        starleth_sim__robots__r='from starleth_sim.tools.common import bag\n',
+        starleth_sim__physics__v='from starleth_controller import controller\n',
+        starleth_sim__physics__y='def f():\n    from ..ros import sim_node\n    return sim_node\n',
+        starleth_sim__physics__ok='from starleth_interface import topics\n',
+        starleth_sim__ros__t='from ..tools import precompile\n',
+        starleth_sim__ros__ok='from ..physics import config\n',
+        starleth_sim__tools__ok='from starleth_controller import controller\n',
+    )
+    assert [(v.path, v.line, v.rule) for v in layer_violations(modules)] == [
+        ("starleth_sim/physics/v.py", 1, "core-imports-above"),
+        ("starleth_sim/physics/y.py", 2, "core-imports-above"),
+        ("starleth_sim/robots/r.py", 1, "core-imports-above"),
+        ("starleth_sim/ros/t.py", 1, "ros-imports-tools")]
 
 
 def test_self_check_docstring():

@@ -33,6 +33,7 @@ The rule for what counts as a reference (anything else on the pages is prose):
     ``ast``, not imported).
 """
 import ast
+import fnmatch
 import importlib.util
 import os
 import re
@@ -273,3 +274,86 @@ def test_readme_stays_a_page_for_users():
     assert text.count("\n") <= 400, f"README.md has {text.count(chr(10))} lines (at most 400)"
     first_block = text[:text.index("```", text.index("```") + 3)]
     assert "make demo" in first_block and "make test" in first_block
+
+
+# -- doc/architecture.md's Modules: one row per module --------------------------------------
+
+ARCH_PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
+MODULE_SUFFIXES = (".py", ".c", ".h", ".html")
+
+
+def package_modules():
+    """Every module file of the three packages (root-relative paths), the packages'
+    __init__.py left out (they may be listed, need not be)."""
+    found = set()
+    for pkg in ARCH_PACKAGES:
+        for dirpath, dirs, files in os.walk(os.path.join(ROOT, pkg)):
+            dirs[:] = [d for d in dirs if d != "__pycache__"]
+            for name in files:
+                if name.endswith(MODULE_SUFFIXES) and name != "__init__.py":
+                    found.add(os.path.relpath(os.path.join(dirpath, name), ROOT))
+    return found
+
+
+def architecture_rows(text, files):
+    """{file: [the row paths that name it]} and the row paths that name no file, from the
+    Modules tables: a section row ``| **`dir/`** |`` sets the folder its rows' paths lie
+    under; a path names the files under that folder whose path ends with it (``*`` as in
+    fnmatch: ``csrc/bind*.c``)."""
+    named, stale = {}, []
+    base = ""
+    for line in text[text.index("## Modules"):].splitlines():
+        if not line.startswith("| ") or line.startswith("|---"):
+            continue
+        first = line.split(" | ")[0][2:]
+        section = re.fullmatch(r"\*\*`([\w/]+)/`\*\*", first)
+        if section:
+            base = section.group(1) + "/"
+            continue
+        if first.startswith("*") or first == "path":     # a sub-heading row, the header
+            continue
+        for path in re.findall(r"`([^`]+)`", first):
+            hits = [f for f in files if f.startswith(base)
+                    and fnmatch.fnmatch("/" + f, "*/" + path)]
+            if not hits:
+                stale.append(f"{path} (under {base})")
+            for f in hits:
+                named.setdefault(f, []).append(path)
+    return named, stale
+
+
+def test_architecture_lists_every_module_once():
+    """doc/architecture.md's Modules tables name every module of the packages (Python, C,
+    the page template) once, and no file that is not there; the README's Layout points to
+    the page."""
+    with open(os.path.join(ROOT, "README.md")) as f:
+        readme = f.read()
+    assert "(doc/architecture.md)" in readme[readme.index("## Layout"):]
+    with open(os.path.join(ROOT, "doc", "architecture.md")) as f:
+        text = f.read()
+    files = package_modules()
+    inits = {os.path.relpath(os.path.join(d, "__init__.py"), ROOT)
+             for pkg in ARCH_PACKAGES for d, _, fs in os.walk(os.path.join(ROOT, pkg))
+             if "__init__.py" in fs}
+    named, stale = architecture_rows(text, files | inits)
+    missing = sorted(files - set(named))
+    twice = sorted(f for f, paths in named.items() if len(paths) > 1)
+    assert not missing, f"doc/architecture.md Modules does not list {missing}"
+    assert not twice, f"doc/architecture.md Modules lists these more than once: {twice}"
+    assert not stale, f"doc/architecture.md Modules names files that do not exist: {stale}"
+
+
+def test_architecture_rows_self_check():
+    files = {"starleth_sim/physics/a.py", "starleth_sim/physics/csrc/bind_x.c",
+             "starleth_sim/tools/view/recording.py", "starleth_sim/tools/replay/recording.py"}
+    text = ("## Modules\n| path | what |\n|---|---|\n| **`starleth_sim/physics/`** | core |\n"
+            "| `physics/a.py` | a |\n| `csrc/bind*.c`, `physics/gone.py` | b |\n"
+            "| **`starleth_sim/tools/`** | tools |\n| *`tools/view/`* | view |\n"
+            "| `tools/view/recording.py` | r |\n| `recording.py` | both |\n")
+    named, stale = architecture_rows(text, files)
+    assert stale == ["physics/gone.py (under starleth_sim/physics/)"]
+    assert named == {"starleth_sim/physics/a.py": ["physics/a.py"],
+                     "starleth_sim/physics/csrc/bind_x.c": ["csrc/bind*.c"],
+                     "starleth_sim/tools/view/recording.py": ["tools/view/recording.py",
+                                                              "recording.py"],
+                     "starleth_sim/tools/replay/recording.py": ["recording.py"]}

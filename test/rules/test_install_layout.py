@@ -136,27 +136,6 @@ def test_installed_sim_node_runs(prefix, tmp_path):
     assert "parameter mode" in r.stderr
 
 
-def test_architecture_lists_every_module():
-    """doc/architecture.md's Modules table names every module of the packages, Python and C
-    (a newcomer's map), and the README's Layout points to it."""
-    with open(os.path.join(ROOT, "README.md")) as f:
-        readme = f.read()
-    assert "(doc/architecture.md)" in readme[readme.index("## Layout"):]
-    with open(os.path.join(ROOT, "doc", "architecture.md")) as f:
-        text = f.read()
-    layout = text[text.index("## Modules"):]
-    missing = []
-    for pkg in ("starleth_sim", "starleth_controller", "starleth_interface"):
-        for dirpath, _, files in os.walk(os.path.join(ROOT, pkg)):
-            for name in files:
-                if name.endswith((".py", ".html", ".c", ".h")) and name != "__init__.py" \
-                        and not name.startswith("bind") \
-                        and f"{name}`" not in layout:
-                    missing.append(os.path.relpath(os.path.join(dirpath, name), ROOT))
-    assert "`csrc/bind*.c`" in layout and "`csrc/bind.h`" in layout
-    assert not missing, f"doc/architecture.md Modules does not list {missing}"
-
-
 def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_path):
     """A source checkout builds the C kernels on first use and again after any edit of their
     sources (their digest, with the flags, beside the module): an edit never runs stale
