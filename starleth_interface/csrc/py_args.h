@@ -13,6 +13,8 @@
 
 #include <stdint.h>
 
+#include "buffer_format.h"
+
 #define MAX_ARGS 40
 
 typedef struct {
@@ -35,24 +37,6 @@ static int args_init(void) {
 static void args_release(args_t *a) {
     for (int k = 0; k < a->n; k++) PyBuffer_Release(&a->v[k]);
     a->n = 0;
-}
-
-/* 'd' float64, 'q' int64, '?' bool, 'B' uint8 */
-static int format_is(const Py_buffer *b, char type) {
-    const char *f = b->format ? b->format : "B";
-    if (*f == '@' || *f == '=' || *f == '<') f++;
-    if (f[0] == 0 || f[1] != 0) return 0;
-    switch (type) {
-    case 'd': return f[0] == 'd' && b->itemsize == 8;
-    case 'q': return (f[0] == 'l' || f[0] == 'q') && b->itemsize == 8;
-    case '?': return f[0] == '?' && b->itemsize == 1;
-    case 'B': return (f[0] == 'B' || f[0] == 'b' || f[0] == 'c') && b->itemsize == 1;
-    }
-    return 0;
-}
-
-static const char *dtype_of(char type) {
-    return type == 'd' ? "float64" : type == 'q' ? "int64" : type == '?' ? "bool" : "uint8";
 }
 
 /* The data of argument o (`name`) of at least min_len items of `type`; *len (if not NULL)
