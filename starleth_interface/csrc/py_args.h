@@ -26,7 +26,7 @@ typedef struct {
 /* numpy.ascontiguousarray, set by the module's init (args_init) */
 static PyObject *np_ascontiguousarray;
 
-static int args_init(void) {
+static inline int args_init(void) {
     PyObject *np = PyImport_ImportModule("numpy");
     if (!np) return 0;
     np_ascontiguousarray = PyObject_GetAttrString(np, "ascontiguousarray");
@@ -34,15 +34,15 @@ static int args_init(void) {
     return np_ascontiguousarray != NULL;
 }
 
-static void args_release(args_t *a) {
+static inline void args_release(args_t *a) {
     for (int k = 0; k < a->n; k++) PyBuffer_Release(&a->v[k]);
     a->n = 0;
 }
 
 /* The data of argument o (`name`) of at least min_len items of `type`; *len (if not NULL)
  * its number of items. NULL with a ValueError set when it is not such an array. */
-static void *arg_array(args_t *a, PyObject *o, char type, int writable, Py_ssize_t min_len,
-                       const char *name, Py_ssize_t *len) {
+static inline void *arg_array(args_t *a, PyObject *o, char type, int writable,
+                              Py_ssize_t min_len, const char *name, Py_ssize_t *len) {
     if (a->n >= MAX_ARGS) {
         PyErr_Format(PyExc_RuntimeError, "%s: too many arrays", a->fn);
         return NULL;
@@ -85,12 +85,12 @@ static void *arg_array(args_t *a, PyObject *o, char type, int writable, Py_ssize
 }
 
 /* the shape of the last array taken (dimension d; 1 beyond its dimensions) */
-static Py_ssize_t arg_dim(const args_t *a, int d) {
+static inline Py_ssize_t arg_dim(const args_t *a, int d) {
     const Py_buffer *b = &a->v[a->n - 1];
     return d < b->ndim ? b->shape[d] : 1;
 }
 
-static int arg_double(args_t *a, PyObject *o, const char *name, double *out) {
+static inline int arg_double(args_t *a, PyObject *o, const char *name, double *out) {
     *out = PyFloat_AsDouble(o);
     if (*out == -1.0 && PyErr_Occurred()) {
         PyErr_Clear();
@@ -101,7 +101,7 @@ static int arg_double(args_t *a, PyObject *o, const char *name, double *out) {
     return 1;
 }
 
-static int arg_int(args_t *a, PyObject *o, const char *name, int64_t *out) {
+static inline int arg_int(args_t *a, PyObject *o, const char *name, int64_t *out) {
     *out = PyLong_AsLongLong(o);
     if (*out == -1 && PyErr_Occurred()) {
         PyErr_Clear();
@@ -112,7 +112,7 @@ static int arg_int(args_t *a, PyObject *o, const char *name, int64_t *out) {
     return 1;
 }
 
-static int arg_count(args_t *a, Py_ssize_t nargs, Py_ssize_t want) {
+static inline int arg_count(args_t *a, Py_ssize_t nargs, Py_ssize_t want) {
     if (nargs != want) {
         PyErr_Format(PyExc_TypeError, "%s takes %zd arguments (%zd given)", a->fn, want, nargs);
         return 0;
