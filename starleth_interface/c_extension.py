@@ -215,23 +215,3 @@ def load(module: str):
         raise ImportError(f"{what} ({module}) are not built: {e}. In a source checkout they "
                           "build on first import (needs a C compiler and Python's headers); "
                           "an installed package builds them in setup.py") from e
-
-
-def main(argv=None) -> int:
-    """python starleth_interface/c_extension.py CSRC OUT: builds one module, printing the
-    time."""
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 2:
-        print(main.__doc__, file=sys.stderr)
-        return 2
-    try:
-        seconds = build(argv[0], argv[1])
-    except BuildError as e:
-        print(f"c_extension: FAILED: {e}", file=sys.stderr)
-        return 1
-    print(f"c_extension: {argv[1]} in {seconds:.1f} s")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
