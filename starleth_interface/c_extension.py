@@ -201,12 +201,16 @@ def ensure_built(csrc: str, path: str, what: str, stream=None, digest_of=source_
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def load(module: str):
-    """The extension `module` (of EXTENSIONS), built first where its package is a source
-    checkout's (ensure_built). Raises ImportError with the reason."""
-    what = EXTENSIONS[module]
+def load(module: str, what: str | None = None, ensure=None):
+    """The extension `module`, built first where its package is a source checkout's:
+    ensure() (default: `ensure_built` of its csrc/, for a module of EXTENSIONS, which names
+    it; `what` names another). Raises ImportError with the reason."""
+    what = EXTENSIONS[module] if what is None else what
     try:
-        ensure_built(csrc_of(module), module_path(module), what)
+        if ensure is None:
+            ensure_built(csrc_of(module), module_path(module), what)
+        else:
+            ensure()
     except BuildError as e:
         raise ImportError(f"{what} (C) could not be built: {e}") from None
     try:

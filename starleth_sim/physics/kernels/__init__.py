@@ -80,19 +80,8 @@ def _load_sanitized(path: str):
 def _load():
     if os.environ.get(SANITIZED):
         return _load_sanitized(os.environ[SANITIZED])
-    try:
-        ensure_built()
-    except c_extension.BuildError as e:
-        raise ImportError(f"starleth_sim: the physics kernels (C) could not be built: {e}") \
-            from None
-    try:
-        return importlib.import_module(__package__ + "." + kernel_build.MODULE)
-    except ImportError as e:
-        raise ImportError(
-            f"the physics kernels (starleth_sim.physics.kernels.{kernel_build.MODULE}) are not "
-            "built: "
-            f"{e}. In a source checkout they build on first import (needs a C compiler and "
-            "Python's headers); an installed package builds them in setup.py") from e
+    return c_extension.load(__package__ + "." + kernel_build.MODULE, "the physics kernels",
+                            ensure_built)
 
 
 _kernels = _load()
