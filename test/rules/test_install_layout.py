@@ -248,3 +248,22 @@ def test_the_physics_kernels_build_with_the_one_recipe(tmp_path, monkeypatch):
         assert cmd[0] == "stand-in-cc" and cmd[1:1 + len(c_extension.FLAGS)] == \
             list(c_extension.FLAGS)
         assert "-I" + c_extension.SHARED_INCLUDE in cmd
+
+
+def test_an_edit_of_a_shared_header_rebuilds_every_extension(tmp_path, monkeypatch):
+    """The headers the C sides share (starleth_interface/csrc) are part of every module's
+    digest: an edit of one rebuilds the physics kernels and the small extensions alike."""
+    import shutil
+    from starleth_interface import c_extension
+    from starleth_sim.physics.kernels import build as kernel_build
+    shared = tmp_path / "csrc"
+    shutil.copytree(c_extension.SHARED_INCLUDE, shared)
+    monkeypatch.setattr(c_extension, "SHARED_INCLUDE", str(shared))
+
+    def digests():
+        return [kernel_build.source_digest()] + [
+            c_extension.source_digest(c_extension.csrc_of(m)) for m in c_extension.EXTENSIONS]
+    before = digests()
+    with open(shared / "bitexact_math.h", "a") as f:
+        f.write("\n/* edited */\n")
+    assert all(a != b for a, b in zip(before, digests(), strict=True))
