@@ -1,5 +1,7 @@
 import importlib.util
 import os
+import shutil
+import sys
 from glob import glob
 
 from setuptools import Extension, find_packages, setup
@@ -7,23 +9,17 @@ from setuptools.command.build_ext import build_ext
 
 package_name = 'starleth_sim'
 HERE = os.path.dirname(os.path.abspath(__file__))
+# starleth_interface.c_extension (standard library only: the build recipe of every C
+# extension) imported from this source tree, which nothing has installed yet
+sys.path.insert(0, HERE)
+from starleth_interface import c_extension  # noqa: E402
 
 
 def _kernel_build():
-    """starleth_sim/physics/kernels/build.py, loaded by path (the package is not installed
-    yet; the module uses the standard library only)."""
+    """starleth_sim/physics/kernels/build.py, loaded by path (importing it as a module would
+    import starleth_sim, whose requirements are not installed yet)."""
     path = os.path.join(HERE, package_name, 'physics', 'kernels', 'build.py')
     spec = importlib.util.spec_from_file_location('_starleth_kernel_build', path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def _c_extension():
-    """starleth_interface/c_extension.py (the build of the controller's kernels and of
-    sim_node's command parsers), loaded by path like the physics' kernels/build.py."""
-    path = os.path.join(HERE, 'starleth_interface', 'c_extension.py')
-    spec = importlib.util.spec_from_file_location('_starleth_c_extension', path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -32,48 +28,35 @@ def _c_extension():
 class BuildKernels(build_ext):
     """Builds the C extensions: the physics kernels with starleth_sim/physics/kernels/build.py,
     the controller's kernels and sim_node's command parsers with
-    starleth_interface/c_extension.py (the same flags, which keep the results bit for bit);
-    the same builds as a source checkout's."""
+    starleth_interface/c_extension.py (the recipe of both: the flags that keep the results
+    bit for bit); the same builds as a source checkout's."""
 
     def build_extension(self, ext):
-        if ext.name != KERNELS.name:
-            self._build_small(ext)
-            return
-        kb = _kernel_build()
         out = self.get_ext_fullpath(ext.name)
-        seconds = kb.build(out)
+        if ext.name == KERNELS.name:
+            kb = _kernel_build()
+            seconds, inplace = kb.build(out), kb.inplace_path()
+        else:
+            csrc = os.path.join(HERE, os.path.dirname(ext.sources[0]))
+            seconds = c_extension.build(csrc, out)
+            inplace = os.path.join(os.path.dirname(csrc), os.path.basename(out))
         print(f'built {ext.name} ({out}) in {seconds:.1f} s')
         if getattr(self, 'editable_mode', False) and not self.inplace:
             # an editable install copies the module into the source tree: its digest too,
-            # which tells starleth_sim.physics.kernels that the module is current
-            digest = out + kb.DIGEST_SUFFIX
-            target = kb.inplace_path() + kb.DIGEST_SUFFIX
-            with open(digest) as f, open(target, 'w') as g:
-                g.write(f.read())
-
-
-    def _build_small(self, ext):
-        ce = _c_extension()
-        out = self.get_ext_fullpath(ext.name)
-        csrc = os.path.join(HERE, os.path.dirname(ext.sources[0]))
-        seconds = ce.build(csrc, out)
-        print(f'built {ext.name} ({out}) in {seconds:.1f} s')
-        if getattr(self, 'editable_mode', False) and not self.inplace:
-            # (the module's digest beside its in-place copy: c_extension.load sees it current)
-            target = os.path.join(os.path.dirname(csrc), os.path.basename(out))
-            with open(out + ce.DIGEST_SUFFIX) as f, open(target + ce.DIGEST_SUFFIX, 'w') as g:
-                g.write(f.read())
+            # which tells the loader (c_extension.ensure_built) that the module is current
+            shutil.copyfile(out + c_extension.DIGEST_SUFFIX, inplace + c_extension.DIGEST_SUFFIX)
 
 
 KERNELS = Extension('starleth_sim.physics.kernels._kernels',
                     sources=sorted(glob('starleth_sim/physics/csrc/*.c')),
-                    depends=sorted(glob('starleth_sim/physics/csrc/*.h')))
+                    depends=sorted(glob('starleth_sim/physics/csrc/*.h')
+                                   + glob('starleth_interface/csrc/*.h')))
 #: the controller's kernels and sim_node's command parsers (starleth_interface.c_extension:
 #: the sources in csrc/ of the module's package)
 SMALL_EXTENSIONS = [
     Extension(module, sources=sorted(glob(f'{csrc}/*.c')),
               depends=sorted(glob(f'{csrc}/*.h') + glob('starleth_interface/csrc/*.h')))
-    for module in _c_extension().EXTENSIONS
+    for module in c_extension.EXTENSIONS
     for csrc in [module.rpartition('.')[0].replace('.', '/') + '/csrc']]
 
 setup(

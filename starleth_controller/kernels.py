@@ -10,8 +10,8 @@ semantics) of the code it replaced, built without contraction or reassociation: 
 are bit for bit those of that code.
 
 An installed package holds the module its ``setup.py`` built; a source checkout builds it on
-first import, and again whenever the sources changed (starleth_interface.c_extension: the
-physics kernels' flags, a fraction of a second).
+first import, and again whenever the sources changed (starleth_interface.c_extension, the
+build recipe of every C extension: a fraction of a second).
 
 Leg geometry arrays (one row per leg, model.py): ``hip`` (4, 3) HAA position in the base
 frame, ``geo`` (4, 12) = l0 (HAA→HFE, vertical), l1 (thigh), l2 (shank to the foot centre),

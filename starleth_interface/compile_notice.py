@@ -2,8 +2,8 @@
 
 A source checkout builds its C extensions on first use (the physics kernels, the
 controller's kernels, sim_node's command parsers: a few seconds, once per change of their
-sources), and says so in the process's log: "compiling ..." / "building ..." when it starts,
-"... compiled in" / "... built in" when done. A tool that waits for a process to come up
+sources), and says so in the process's log (c_extension.ensure_built): "compiling ..." when
+it starts, "... compiled in" when done. A tool that waits for a process to come up
 (starleth-demo, the node tests) reads those lines from the process's log (`LogWatch`) and
 counts its start-up timeout from the last of them (`Deadline`): a build is progress, not
 silence.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import re
 import time
 
-_MARK = re.compile(r"\b(still )?(compiling|building)\b|\b(compiled|built) in\b")
+_MARK = re.compile(r"\b(still )?compiling\b|\bcompiled in\b")
 
 
 def shows_compiling(text: str) -> bool:

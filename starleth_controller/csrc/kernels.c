@@ -4,22 +4,9 @@
  * they implement (controller.py's docstrings). */
 #include "kernels.h"
 
-/* R of the unit quaternion (x, y, z, w). */
-static void rot_of_unit_quat(double x, double y, double z, double w, double *R) {
-    R[0] = 1 - 2 * (y * y + z * z);
-    R[1] = 2 * (x * y - z * w);
-    R[2] = 2 * (x * z + y * w);
-    R[3] = 2 * (x * y + z * w);
-    R[4] = 1 - 2 * (x * x + z * z);
-    R[5] = 2 * (y * z - x * w);
-    R[6] = 2 * (x * z - y * w);
-    R[7] = 2 * (y * z + x * w);
-    R[8] = 1 - 2 * (x * x + y * y);
-}
-
 void quat_to_rot(double qx, double qy, double qz, double qw, double *R) {
     double n = sqrt(qx * qx + qy * qy + qz * qz + qw * qw);
-    rot_of_unit_quat(qx / n, qy / n, qz / n, qw / n, R);
+    quat_xyzw_to_rot(qx / n, qy / n, qz / n, qw / n, R);
 }
 
 /* |a|² of a 4-vector summed in order, ((a0² + a1²) + a2²) + a3²: the one rounding of the
@@ -96,7 +83,7 @@ int node_state(const double *position, const double *velocity, const i64 *perm, 
         w[i] = odom[10 + i];
     }
     for (int i = 0; i < 4; i++) quat[i] = odom[3 + i] / n;
-    rot_of_unit_quat(quat[0], quat[1], quat[2], quat[3], R);
+    quat_xyzw_to_rot(quat[0], quat[1], quat[2], quat[3], R);
     for (int k = 0; k < 4; k++) {
         double f0 = forces[3 * k], f1 = forces[3 * k + 1], f2 = forces[3 * k + 2];
         contact[k] = sqrt(f0 * f0 + f1 * f1 + f2 * f2) > threshold;

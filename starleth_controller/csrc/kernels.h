@@ -14,11 +14,11 @@
 #include <math.h>
 #include <stdint.h>
 
+/* py_max / py_min (Python's rule), quat_xyzw_to_rot: shared with the physics kernels */
+#include "bitexact_math.h"
+
 typedef int64_t i64;
 typedef uint8_t u8;
-
-static inline double py_max(double a, double b) { return b > a ? b : a; }
-static inline double py_min(double a, double b) { return b < a ? b : a; }
 
 /* the columns of geo (model.GEOMETRY) */
 enum { L0, L1, L2, RAD, KNEE, OX, DY, ALPHA, GAMMA, ROLL, S1, S2, NGEO };

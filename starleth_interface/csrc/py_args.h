@@ -13,6 +13,8 @@
 
 #include <stdint.h>
 
+#include "buffer_format.h"
+
 #define MAX_ARGS 40
 
 typedef struct {
@@ -24,7 +26,7 @@ typedef struct {
 /* numpy.ascontiguousarray, set by the module's init (args_init) */
 static PyObject *np_ascontiguousarray;
 
-static int args_init(void) {
+static inline int args_init(void) {
     PyObject *np = PyImport_ImportModule("numpy");
     if (!np) return 0;
     np_ascontiguousarray = PyObject_GetAttrString(np, "ascontiguousarray");
@@ -32,33 +34,15 @@ static int args_init(void) {
     return np_ascontiguousarray != NULL;
 }
 
-static void args_release(args_t *a) {
+static inline void args_release(args_t *a) {
     for (int k = 0; k < a->n; k++) PyBuffer_Release(&a->v[k]);
     a->n = 0;
 }
 
-/* 'd' float64, 'q' int64, '?' bool, 'B' uint8 */
-static int format_is(const Py_buffer *b, char type) {
-    const char *f = b->format ? b->format : "B";
-    if (*f == '@' || *f == '=' || *f == '<') f++;
-    if (f[0] == 0 || f[1] != 0) return 0;
-    switch (type) {
-    case 'd': return f[0] == 'd' && b->itemsize == 8;
-    case 'q': return (f[0] == 'l' || f[0] == 'q') && b->itemsize == 8;
-    case '?': return f[0] == '?' && b->itemsize == 1;
-    case 'B': return (f[0] == 'B' || f[0] == 'b' || f[0] == 'c') && b->itemsize == 1;
-    }
-    return 0;
-}
-
-static const char *dtype_of(char type) {
-    return type == 'd' ? "float64" : type == 'q' ? "int64" : type == '?' ? "bool" : "uint8";
-}
-
 /* The data of argument o (`name`) of at least min_len items of `type`; *len (if not NULL)
  * its number of items. NULL with a ValueError set when it is not such an array. */
-static void *arg_array(args_t *a, PyObject *o, char type, int writable, Py_ssize_t min_len,
-                       const char *name, Py_ssize_t *len) {
+static inline void *arg_array(args_t *a, PyObject *o, char type, int writable,
+                              Py_ssize_t min_len, const char *name, Py_ssize_t *len) {
     if (a->n >= MAX_ARGS) {
         PyErr_Format(PyExc_RuntimeError, "%s: too many arrays", a->fn);
         return NULL;
@@ -101,12 +85,12 @@ static void *arg_array(args_t *a, PyObject *o, char type, int writable, Py_ssize
 }
 
 /* the shape of the last array taken (dimension d; 1 beyond its dimensions) */
-static Py_ssize_t arg_dim(const args_t *a, int d) {
+static inline Py_ssize_t arg_dim(const args_t *a, int d) {
     const Py_buffer *b = &a->v[a->n - 1];
     return d < b->ndim ? b->shape[d] : 1;
 }
 
-static int arg_double(args_t *a, PyObject *o, const char *name, double *out) {
+static inline int arg_double(args_t *a, PyObject *o, const char *name, double *out) {
     *out = PyFloat_AsDouble(o);
     if (*out == -1.0 && PyErr_Occurred()) {
         PyErr_Clear();
@@ -117,7 +101,7 @@ static int arg_double(args_t *a, PyObject *o, const char *name, double *out) {
     return 1;
 }
 
-static int arg_int(args_t *a, PyObject *o, const char *name, int64_t *out) {
+static inline int arg_int(args_t *a, PyObject *o, const char *name, int64_t *out) {
     *out = PyLong_AsLongLong(o);
     if (*out == -1 && PyErr_Occurred()) {
         PyErr_Clear();
@@ -128,7 +112,7 @@ static int arg_int(args_t *a, PyObject *o, const char *name, int64_t *out) {
     return 1;
 }
 
-static int arg_count(args_t *a, Py_ssize_t nargs, Py_ssize_t want) {
+static inline int arg_count(args_t *a, Py_ssize_t nargs, Py_ssize_t want) {
     if (nargs != want) {
         PyErr_Format(PyExc_TypeError, "%s takes %zd arguments (%zd given)", a->fn, want, nargs);
         return 0;

@@ -7,7 +7,7 @@ Three units, the C extension modules, built side by side (``--jobs``, default 2)
 * ``controller``: the controller's kernels (``starleth_controller._kernels``);
 * ``ros-codec``: sim_node's command parsers (``starleth_sim.ros._cdr``);
 
-the last two built by starleth_interface.c_extension with the physics kernels' flags. A
+the last two built by starleth_interface.c_extension, whose recipe the physics uses too. A
 source checkout builds a module when it is missing or its sources changed (a unit whose
 module is current takes a fraction of a second); an installed package has them from its
 build. ``--cold`` builds every unit again into a temporary directory, which times a full
@@ -46,7 +46,7 @@ def compile_unit(unit: str, cold_dir: str | None = None) -> None:
     fails."""
     if unit == "physics":
         if cold_dir is not None:
-            kernel_build.build(os.path.join(cold_dir, kernel_build.MODULE + kernel_build.SUFFIX))
+            kernel_build.build(kernel_build.inplace_path(cold_dir))
         else:
             kernels.ensure_built()      # (the import above built a stale checkout's module)
     elif unit in MODULES:

@@ -34,8 +34,9 @@ def test_a_build_says_so_in_lines_a_deadline_reads_and_a_current_module_says_not
 
 
 def test_the_physics_build_lines_are_build_lines_and_others_are_not():
-    assert shows_compiling("starleth_sim: building the physics kernels (C, a few seconds)")
-    assert shows_compiling("starleth_sim: physics kernels built in 2.1 s")
+    assert shows_compiling("compiling the physics kernels (C, once per change of their sources)")
+    assert shows_compiling("\rcompiling the physics kernels (C): 3/21 sources, 1 s ")
+    assert shows_compiling("the physics kernels: compiled in 2.1 s")
     assert not shows_compiling("[INFO] [sim_node]: waiting for the robot description")
     assert not shows_compiling("the rebuilding crew")
 

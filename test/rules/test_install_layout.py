@@ -142,14 +142,15 @@ def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_pat
     machine code, and an unchanged checkout builds nothing."""
     import io
     import shutil
+    from starleth_interface import c_extension
     from starleth_sim.physics.kernels import build as kernel_build
     from starleth_sim.physics.kernels import ensure_built
     csrc = tmp_path / "csrc"
     shutil.copytree(kernel_build.CSRC, csrc)
-    module = str(tmp_path / ("_kernels" + kernel_build.SUFFIX))
+    module = kernel_build.inplace_path(str(tmp_path))
     out = io.StringIO()
     assert ensure_built(out, str(csrc), module)                 # missing: built
-    assert "physics kernels built in" in out.getvalue()
+    assert "the physics kernels: compiled in" in out.getvalue()
     assert not ensure_built(out, str(csrc), module)             # unchanged: kept
     stamp = os.stat(module).st_mtime_ns
     objects = tmp_path / kernel_build.OBJECTS
@@ -171,7 +172,7 @@ def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_pat
     assert ensure_built(out, str(csrc), module)
     third = compiled()
     assert all(third[k] != second[k] for k in second)
-    with open(module + kernel_build.DIGEST_SUFFIX, "w") as f:   # built from other sources
+    with open(module + c_extension.DIGEST_SUFFIX, "w") as f:    # built from other sources
         f.write("0" * 64 + "\n")
     assert ensure_built(out, str(csrc), module)
     assert not ensure_built(out, str(tmp_path / "no_csrc"), module)   # an installed package
@@ -189,7 +190,7 @@ def test_the_installed_package_steps_with_its_built_kernels(prefix, tmp_path):
     assert kernels.startswith(str(prefix)) and pkg.startswith(str(prefix))
     assert not os.path.exists(os.path.join(os.path.dirname(kernels), "csrc"))
     assert 0.3 < float(z) < 0.5
-    assert "building the physics kernels" not in r.stderr
+    assert "compiling" not in r.stderr
 
 
 def test_the_installed_controller_kernels_and_command_parsers_load_their_built_modules(
@@ -206,14 +207,42 @@ def test_the_installed_controller_kernels_and_command_parsers_load_their_built_m
     assert "compiling" not in r.stderr
 
 
-def test_the_small_extensions_build_with_the_physics_flags():
-    """starleth_interface.c_extension (the controller, the command parsers) compiles with
-    kernel_build's code-generation flags (warnings aside): no contraction, no reassociation,
-    the same target."""
+def test_the_physics_kernels_build_with_the_one_recipe(tmp_path, monkeypatch):
+    """The physics kernels compile with starleth_interface.c_extension's compiler and flags
+    (the one recipe of every C extension: no contraction, no reassociation) and the shared
+    headers on the include path: every compiler call kernels.build makes, recorded."""
     from starleth_interface import c_extension
     from starleth_sim.physics.kernels import build as kernel_build
+    calls = []
 
-    def code_flags(flags):
-        return [f for f in flags if not f.startswith("-W")]
-    assert code_flags(c_extension.FLAGS) == code_flags(kernel_build.FLAGS)
-    assert c_extension.ARCH == kernel_build.ARCH
+    def run(cmd):           # records the call and writes its output file, empty
+        calls.append(cmd)
+        open(cmd[cmd.index("-o") + 1], "w").close()
+    monkeypatch.setattr(c_extension, "run", run)
+    monkeypatch.setattr(c_extension, "compiler", lambda: ["stand-in-cc"])
+    kernel_build.build(str(tmp_path / "m.so"), jobs=1)
+    compiles = [c for c in calls if "-c" in c]
+    assert len(compiles) == len(c_extension.sources(kernel_build.CSRC))
+    for cmd in compiles:
+        assert cmd[0] == "stand-in-cc" and cmd[1:1 + len(c_extension.FLAGS)] == \
+            list(c_extension.FLAGS)
+        assert "-I" + c_extension.SHARED_INCLUDE in cmd
+
+
+def test_an_edit_of_a_shared_header_rebuilds_every_extension(tmp_path, monkeypatch):
+    """The headers the C sides share (starleth_interface/csrc) are part of every module's
+    digest: an edit of one rebuilds the physics kernels and the small extensions alike."""
+    import shutil
+    from starleth_interface import c_extension
+    from starleth_sim.physics.kernels import build as kernel_build
+    shared = tmp_path / "csrc"
+    shutil.copytree(c_extension.SHARED_INCLUDE, shared)
+    monkeypatch.setattr(c_extension, "SHARED_INCLUDE", str(shared))
+
+    def digests():
+        return [kernel_build.source_digest()] + [
+            c_extension.source_digest(c_extension.csrc_of(m)) for m in c_extension.EXTENSIONS]
+    before = digests()
+    with open(shared / "bitexact_math.h", "a") as f:
+        f.write("\n/* edited */\n")
+    assert all(a != b for a, b in zip(before, digests(), strict=True))

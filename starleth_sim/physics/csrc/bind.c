@@ -3,6 +3,8 @@
  * them; new numpy arrays for the few results that are new. */
 #include "bind.h"
 
+#include "buffer_format.h"
+
 PyObject *np_empty;
 
 void release(held_t *h) {
@@ -10,21 +12,8 @@ void release(held_t *h) {
     h->n = 0;
 }
 
-static int format_ok(const Py_buffer *b, int base) {
-    const char *f = b->format ? b->format : "B";
-    if (*f == '@' || *f == '=' || *f == '<') f++;
-    if (f[0] == 0 || f[1] != 0) return 0;
-    switch (base) {
-    case F64: return f[0] == 'd' && b->itemsize == 8;
-    case I64: return (f[0] == 'l' || f[0] == 'q') && b->itemsize == 8;
-    case BOOL: return f[0] == '?' && b->itemsize == 1;
-    }
-    return 0;
-}
-
-static const char *kind_name(int base) {
-    return base == F64 ? "float64" : base == I64 ? "int64" : "bool";
-}
+/* the item type of a base kind (buffer_format.h) */
+static char type_of(int base) { return base == F64 ? 'd' : base == I64 ? 'q' : '?'; }
 
 /* An array argument into v (its buffer kept in h); 0 with an exception set on error. */
 int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h, val_t *v) {
@@ -42,13 +31,13 @@ int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h
         PyErr_Clear();
         PyErr_Format(PyExc_ValueError,
                      "%s: %s must be a C-contiguous%s numpy array of %s, got %.100s", fn, name,
-                     writable ? ", writeable" : "", kind_name(base), Py_TYPE(o)->tp_name);
+                     writable ? ", writeable" : "", dtype_of(type_of(base)), Py_TYPE(o)->tp_name);
         return 0;
     }
     h->n++;
-    if (!format_ok(b, base)) {
+    if (!format_is(b, type_of(base))) {
         PyErr_Format(PyExc_ValueError, "%s: %s must be an array of %s (format '%s')", fn, name,
-                     kind_name(base), b->format ? b->format : "B");
+                     dtype_of(type_of(base)), b->format ? b->format : "B");
         return 0;
     }
     if (b->ndim > 4) {

@@ -51,36 +51,25 @@ typedef struct {
 #define PARSE(fn, spec, n_required, vals, h)                                                  \
     parse(args, nargs, fn, spec, (int)(sizeof(spec) / sizeof(spec[0])), n_required, vals, h)
 
-/* Runs the code (the macro's last arguments) without the GIL, with the scratch arena `a`
- * reset and its out-of-memory jump set; `failed` becomes 1 when memory ran out. */
-#define RUN_NOGIL(a, failed, ...)                                                             \
+/* Runs the code (the macro's last arguments) with the scratch arena `a` reset and its
+ * out-of-memory jump set; `failed` becomes 1 when memory ran out. nogil: without the GIL
+ * (RUN_NOGIL), else with it held (RUN: short kernels). */
+#define RUN_WITH(a, failed, nogil, ...)                                                       \
     do {                                                                                      \
         jmp_buf jb_;                                                                          \
         arena_reset(a);                                                                       \
         (a)->oom = &jb_;                                                                      \
-        PyThreadState *ts_ = PyEval_SaveThread();                                             \
+        PyThreadState *ts_ = (nogil) ? PyEval_SaveThread() : NULL;                            \
         if (setjmp(jb_) == 0) {                                                               \
             __VA_ARGS__;                                                                      \
         } else {                                                                              \
             failed = 1;                                                                       \
         }                                                                                     \
-        PyEval_RestoreThread(ts_);                                                            \
+        if (ts_) PyEval_RestoreThread(ts_);                                                   \
         (a)->oom = NULL;                                                                      \
     } while (0)
-
-/* the same with the GIL held (short kernels) */
-#define RUN(a, failed, ...)                                                                   \
-    do {                                                                                      \
-        jmp_buf jb_;                                                                          \
-        arena_reset(a);                                                                       \
-        (a)->oom = &jb_;                                                                      \
-        if (setjmp(jb_) == 0) {                                                               \
-            __VA_ARGS__;                                                                      \
-        } else {                                                                              \
-            failed = 1;                                                                       \
-        }                                                                                     \
-        (a)->oom = NULL;                                                                      \
-    } while (0)
+#define RUN_NOGIL(a, failed, ...) RUN_WITH(a, failed, 1, __VA_ARGS__)
+#define RUN(a, failed, ...) RUN_WITH(a, failed, 0, __VA_ARGS__)
 
 #define FN(name)                                                                              \
     PyObject *py_##name(PyObject *self __attribute__((unused)), PyObject *const *args,          \

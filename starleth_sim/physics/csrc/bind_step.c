@@ -203,7 +203,7 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
         PyErr_Format(PyExc_ValueError, "%s: %s", fn, bad);
         return 0;
     }
-    tree_model_t t;
+    tree_model_t t = {0}; /* (zeroed for the compiler: the unpack fills every field) */
     unpack_tree_model(m, &t);
     i64 nc = t.contacts.nc, na = t.na, nv = t.tree.nv;
     x->q = v[0].p;

@@ -29,15 +29,11 @@
 #include <stddef.h>
 #include <stdint.h>
 
+/* py_max / py_min (Python's rule), quat_xyzw_to_rot: shared with the controller's kernels */
+#include "bitexact_math.h"
+
 typedef int64_t i64;
 typedef uint8_t u8;
-
-/* max(a, b) / min(a, b) as Python and numba evaluate them: the second argument only when it
- * is strictly larger / smaller. */
-static inline double py_max(double a, double b) { return b > a ? b : a; }
-static inline double py_min(double a, double b) { return b < a ? b : a; }
-static inline i64 py_maxi(i64 a, i64 b) { return b > a ? b : a; }
-static inline i64 py_mini(i64 a, i64 b) { return b < a ? b : a; }
 
 /* ---------------------------------------------------------------------------------------
  * Arena (arena.c)
@@ -231,7 +227,6 @@ void ltdl_solve_cols_pattern(const double *L, const i64 *dof_parent, double *B, 
 /* ---------------------------------------------------------------------------------------
  * kinematics.c (kinematics.py)
  * ------------------------------------------------------------------------------------- */
-void quat_xyzw_to_rot(double x, double y, double z, double w, double *R);
 void forward_kinematics(const double *q, const tree_t *t, const frames_t *f);
 /* out: 3 x nv; zero: clear it first (else only the supporting joints' columns are written) */
 void point_jacobian(i64 j, const double *p, const tree_t *t, const frames_t *f, double *out,

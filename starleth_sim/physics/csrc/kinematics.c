@@ -2,19 +2,6 @@
  * Jacobians in the world frame, and the contacts' gaps g_N, positions and W^T. */
 #include "core.h"
 
-/* quat_xyzw_to_rot: R (3 x 3) of the unit quaternion (x, y, z, w) (Pinocchio order). */
-void quat_xyzw_to_rot(double x, double y, double z, double w, double *R) {
-    R[0] = 1.0 - 2.0 * (y * y + z * z);
-    R[1] = 2.0 * (x * y - z * w);
-    R[2] = 2.0 * (x * z + y * w);
-    R[3] = 2.0 * (x * y + z * w);
-    R[4] = 1.0 - 2.0 * (x * x + z * z);
-    R[5] = 2.0 * (y * z - x * w);
-    R[6] = 2.0 * (x * z - y * w);
-    R[7] = 2.0 * (y * z + x * w);
-    R[8] = 1.0 - 2.0 * (x * x + y * y);
-}
-
 /* axis_angle_to_rot: R (3 x 3) of the rotation by theta about the unit axis a. */
 static void axis_angle_to_rot(const double *a, double theta, double *R) {
     double c = cos(theta);

@@ -5,10 +5,10 @@ are this package's modules.
 
 An installed package (pip, colcon) holds the module its ``setup.py`` built. A source checkout
 builds it on first use, and again whenever the sources changed since it was built (their
-digest is kept beside the module: `kernels.build`), so an edit never runs stale machine code;
-the build takes a few seconds and says so on stderr. Processes that start together (two
-nodes, test workers) build it once: the first takes a lock, the others wait for it and load
-its result.
+digest is kept beside the module: starleth_interface.c_extension, the build recipe of every C
+extension), so an edit never runs stale machine code; the build takes a few seconds and says
+so on stderr. Processes that start together (two nodes, test workers) build it once: the
+first takes a lock, the others wait for it and load its result.
 
 The modules of :mod:`starleth_sim.physics` import the kernels from here under the names of
 the Python functions that describe them (linalg, kinematics, rigid_body, contact, prox,
@@ -16,22 +16,15 @@ step_kernels, tree_step, coordinates.forest).
 """
 from __future__ import annotations
 
-import fcntl
 import importlib
 import importlib.util
 import os
 import sys
 import time
 
+from starleth_interface import c_extension
+
 from . import build as kernel_build
-
-
-def _read(path: str) -> str | None:
-    try:
-        with open(path) as f:
-            return f.read().strip()
-    except OSError:
-        return None
 
 
 def _progress_line(stream):
@@ -42,49 +35,29 @@ def _progress_line(stream):
 
     def progress(done, total):
         if tty:
-            stream.write(f"\rstarleth_sim: building the physics kernels (C): {done}/{total} "
-                         f"sources, {time.monotonic() - t0:.0f} s ")
+            stream.write(f"\rcompiling the physics kernels (C): {done}/{total} sources, "
+                         f"{time.monotonic() - t0:.0f} s ")
             stream.flush()
     return progress
 
 
 def ensure_built(stream=None, csrc: str = kernel_build.CSRC, path: str | None = None) -> bool:
     """In a source checkout (csrc exists), builds the module (at `path`, default in the
-    package) when it is missing or its sources changed (under a lock shared by concurrent
-    processes); True if it built it. Raises kernel_build.BuildError when it cannot."""
-    if not os.path.isdir(csrc):
-        return False        # an installed package: setup.py built the module
+    package) when it is missing or its sources changed (c_extension.ensure_built: under a
+    lock shared by concurrent processes, saying so on stream, default stderr); True if it
+    built it. Raises c_extension.BuildError when it cannot."""
     stream = sys.stderr if stream is None else stream
     path = kernel_build.inplace_path() if path is None else path
-    digest_file = path + kernel_build.DIGEST_SUFFIX
-    digest = kernel_build.source_digest(csrc)
-    if os.path.exists(path) and _read(digest_file) == digest:
-        return False
-    lock_path = os.path.join(os.path.dirname(path), ".kernel_build.lock")
-    try:
-        lock = open(lock_path, "a")
-    except OSError as e:
-        raise kernel_build.BuildError(
-            f"the physics kernels in {os.path.dirname(path)} are "
-            f"{'out of date' if os.path.exists(path) else 'not built'} and cannot be built "
-            f"there ({e.strerror}): build the package again where it is writable") from None
-    with lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            if os.path.exists(path) and _read(digest_file) == digest:
-                return False        # another process built it while this one waited
-            print("starleth_sim: building the physics kernels (C, a few seconds; once per "
-                  "change of their sources)", file=stream, flush=True)
-            seconds = kernel_build.build(path, csrc, progress=_progress_line(stream),
-                                         object_cache=os.path.join(os.path.dirname(path),
-                                                                   kernel_build.OBJECTS))
-            if hasattr(stream, "isatty") and stream.isatty():
-                stream.write("\r\033[K")
-            print(f"starleth_sim: physics kernels built in {seconds:.1f} s", file=stream,
-                  flush=True)
-            return True
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+
+    def build(csrc, path):
+        seconds = kernel_build.build(path, csrc, progress=_progress_line(stream),
+                                     object_cache=os.path.join(os.path.dirname(path),
+                                                               kernel_build.OBJECTS))
+        if hasattr(stream, "isatty") and stream.isatty():
+            stream.write("\r\033[K")
+        return seconds
+    return c_extension.ensure_built(csrc, path, "the physics kernels", stream,
+                                    digest_of=kernel_build.source_digest, build_module=build)
 
 
 #: names a module built with the sanitizers to load instead (`make sanitize`: built there by
@@ -107,19 +80,8 @@ def _load_sanitized(path: str):
 def _load():
     if os.environ.get(SANITIZED):
         return _load_sanitized(os.environ[SANITIZED])
-    try:
-        ensure_built()
-    except kernel_build.BuildError as e:
-        raise ImportError(f"starleth_sim: the physics kernels (C) could not be built: {e}") \
-            from None
-    try:
-        return importlib.import_module(__package__ + "." + kernel_build.MODULE)
-    except ImportError as e:
-        raise ImportError(
-            f"the physics kernels (starleth_sim.physics.kernels.{kernel_build.MODULE}) are not "
-            "built: "
-            f"{e}. In a source checkout they build on first import (needs a C compiler and "
-            "Python's headers); an installed package builds them in setup.py") from e
+    return c_extension.load(__package__ + "." + kernel_build.MODULE, "the physics kernels",
+                            ensure_built)
 
 
 _kernels = _load()
