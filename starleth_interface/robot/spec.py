@@ -92,7 +92,7 @@ class RobotSpec:
     effort: dict = field(default_factory=dict)
     velocity: dict = field(default_factory=dict)
     #: the preset overrides of this robot, as written ({contact: {stiffness_normal: 3000}});
-    #: the simulator checks them (starleth_sim.robots.build.physics_overrides)
+    #: the simulator checks them (starleth_sim.physics.robot_build.physics_overrides)
     physics: dict = field(default_factory=dict)
 
     @property

@@ -44,7 +44,7 @@ from .state import SimState, finite_time
 from .stepper import MoreauStepper, SimulationError, PHASES
 from .tree_step import report_size, report_views
 from .wrenches import MAX_TIMED_WRENCHES, ExternalWrenches
-from ..robots import config_with_robot, robot_description
+from .robot_build import config_with_robot, robot_description
 
 log = logging.getLogger("starleth_sim")
 

@@ -11,8 +11,9 @@ from starleth_interface.robot.library import (INSTALL_HINT, available_robots, lo
                                               package_dirs, robot_urdf, urdf_file)
 from starleth_interface.robot.spec import RobotSpec
 
-from .build import (config_with_robot, description_from_spec, recorded_description,
-                    robot_description, spec_text, starleth_description)
+from ..physics.robot_build import (config_with_robot, description_from_spec,
+                                   recorded_description, robot_description, spec_text,
+                                   starleth_description)
 
 __all__ = ["available_robots", "load_robot", "robot_description", "description_from_spec",
            "recorded_description", "spec_text",

@@ -49,6 +49,8 @@ PHYSICS_ALLOWED_ROS = {"ament_index_python"}
 # the layers of doc/architecture.md: the ROS-free core (physics with robots) imports nothing
 # of the layers above it; the ROS layer imports nothing of the tools
 CORE = ("starleth_sim.physics", "starleth_sim.robots")
+#: inside the core, the robot library's API stands on the physics, not beside it
+PHYSICS, ROBOT_LIBRARY = ("starleth_sim.physics",), ("starleth_sim.robots",)
 ABOVE_CORE = ("starleth_sim.ros", "starleth_sim.tools", "starleth_controller")
 ROS_LAYER, TOOLS = ("starleth_sim.ros",), ("starleth_sim.tools",)
 DEFERRED = re.compile(r"#\s*deferred:\s*\S")
@@ -473,8 +475,9 @@ def test_self_check_layering_and_size():
 
 def layer_violations(modules):
     """The imports that run up the layers of doc/architecture.md: from the core (physics,
-    robots) to the ROS layer, the tools or the controller (core-imports-above), from the ROS
-    layer to the tools (ros-imports-tools)."""
+    robots) to the ROS layer, the tools or the controller (core-imports-above), from the
+    physics to the robot library's API over it (physics-imports-robots), from the ROS layer
+    to the tools (ros-imports-tools)."""
     found = []
     for name, (path, source) in sorted(modules.items()):
         for imp in module_imports(name, path, source, modules):
@@ -482,6 +485,10 @@ def layer_violations(modules):
                 found.append(Violation(path, imp.line, "core-imports-above",
                                        f"the core module {name} imports {imp.module}, of a "
                                        "layer above it"))
+            if under(name, PHYSICS) and under(imp.module, ROBOT_LIBRARY):
+                found.append(Violation(path, imp.line, "physics-imports-robots",
+                                       f"the physics module {name} imports {imp.module}, the "
+                                       "robot library's API over it"))
             if under(name, ROS_LAYER) and under(imp.module, TOOLS):
                 found.append(Violation(path, imp.line, "ros-imports-tools",
                                        f"the ROS layer's {name} imports {imp.module}"))
@@ -499,11 +506,14 @@ def test_self_check_layers():
         starleth_sim__physics__v='from starleth_controller import controller\n',
         starleth_sim__physics__y='def f():\n    from ..ros import sim_node\n    return sim_node\n',
         starleth_sim__physics__ok='from starleth_interface import topics\n',
+        starleth_sim__physics__u='from ..robots import robot_description\n',
+        starleth_sim__robots__ok='from ..physics import robot_build\n',
         starleth_sim__ros__t='from ..tools import precompile\n',
         starleth_sim__ros__ok='from ..physics import config\n',
         starleth_sim__tools__ok='from starleth_controller import controller\n',
     )
     assert [(v.path, v.line, v.rule) for v in layer_violations(modules)] == [
+        ("starleth_sim/physics/u.py", 1, "physics-imports-robots"),
         ("starleth_sim/physics/v.py", 1, "core-imports-above"),
         ("starleth_sim/physics/y.py", 2, "core-imports-above"),
         ("starleth_sim/robots/r.py", 1, "core-imports-above"),

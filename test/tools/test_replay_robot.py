@@ -17,7 +17,7 @@ from starleth_interface.topics import foot_wrench_topic  # noqa: E402
 from starleth_sim import robots  # noqa: E402
 from starleth_sim.physics.config import ConfigError, load_preset  # noqa: E402
 from starleth_sim.physics.simulator import Simulator  # noqa: E402
-from starleth_sim.robots import build  # noqa: E402
+from starleth_sim.physics import robot_build as build  # noqa: E402
 from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 from starleth_sim.ros.service import SimService  # noqa: E402
 from starleth_sim.ros.state_io import initial_state_record  # noqa: E402

@@ -22,8 +22,8 @@ from starleth_interface.robot.spec import (MAX_EFFORT, MAX_VELOCITY, ContactEntr
 from starleth_interface.robot.urdf import checked_model, document_joint_order
 from starleth_interface.yaml_files import load_yaml_text
 
-from ..physics.config import PhysicsConfig
-from ..physics.description import RobotDescription
+from .config import PhysicsConfig
+from .description import RobotDescription
 
 
 def _entry_points(entry: ContactEntry, root, model, source, label) -> list:
