@@ -1,8 +1,7 @@
 """The joints' actuators: the torque a motor applies for the torque a controller asks.
 
-`saturate_torque` is the one definition, called by `Simulator.step` (general path) and by
-the one-kernel step of :mod:`starleth_sim.physics.tree_step` (which saturates inside its
-kernel), so both paths apply the same torques bit for bit.
+`saturate_torque` (C, ``csrc/contact.c``) is the one definition: the step's kernels apply it
+inside the step, and the impedance law and a cut forest's torques call it from here.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The solver figures of a control step (`Diagnostics`): made from the figures of its physics
-steps (the kernels' TreeStepResult or the stepper's StepResult, which name them alike),
-continuing the cumulative counts of the last control step. No ROS anywhere in here."""
+steps (the kernels' TreeStepResults), continuing the cumulative counts of the last control
+step. No ROS anywhere in here."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -58,8 +58,8 @@ def one_step_diagnostics(prev: Diagnostics, r, step_time: float) -> Diagnostics:
 
 def control_step_diagnostics(prev: Diagnostics, figures, step_time: float,
                              timings=NO_TIMINGS) -> Diagnostics:
-    """The Diagnostics of a control step from its physics steps' figures (TreeStepResults or
-    StepResults: sums and worst cases), continuing the cumulative counts of prev; timings:
+    """The Diagnostics of a control step from its physics steps' figures (TreeStepResults:
+    sums and worst cases), continuing the cumulative counts of prev; timings:
     the cumulative phase times when profiling."""
     iterations = worst = projection_iterations = projections = opened = nonconverged = 0
     residual = 0.0

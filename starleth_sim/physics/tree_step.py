@@ -1,43 +1,32 @@
-"""One whole physics step in one kernel call (`MoreauStepper` uses it for a step that was not
-prepared ahead and is not profiled): tree_step_hard / tree_step_compliant for coordinate sets
-without bilateral constraints whose M depends on q (the minimal coordinates), forest_step_hard
-for hard contacts in a cut forest (the extended and maximal coordinates: bilateral
-constraints of the cut joints, M of the trees or constant). C kernels in
-``csrc/tree_step.c``.
+"""The step's kernels and their packed model: every physics step is one call of one of them
+(`MoreauStepper.step`), C in ``csrc/tree_step.c``:
 
-They run the same phases, in the same order, as the phase-by-phase path of
-:mod:`starleth_sim.physics.step_kernels` (so the same result bit for bit) and save what lies
-between them: the calls from Python and the Python around them. The model, ground and
-workspace arrays travel packed in four buffers (`TreeStepModel`, and `CutModel` for the cut
-joints), laid out as :mod:`starleth_sim.physics.kernels.layouts` declares (the kernels unpack
-them by the C code the build generates from the same declaration). A failing step leaves the
-state as it was; the kernels release the GIL.
+- ``tree_step_hard(options, torque_mode, state, tau, f_ext, out, model)``: a tree without
+  bilateral constraints whose M depends on q (the minimal coordinates), hard contacts. The
+  applied torques (`torque_mode`: as given, saturated by actuator.saturate_torque, the
+  impedance law at the state, or replayed; the implicit joint dampers inside), Eqn. (6):
+  q^M and M, h, W at the midpoint, the contact problem and its prox solution, Eqn. (8):
+  u^E and q^E, the post-step projection. state = (q, u, Λ memory, active memory, Λ_B
+  memory): the warm-start memory is updated only when the step succeeds (TREE_STEP_OK);
+  out = (report, is_active, q^E, u^E): the report buffer (report_views: Λ, g_N and contact
+  points at q^M, the torques) and the active flags.
+- ``tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model)``: the same
+  with the compliant law of Alg. 1 (state = (q, u, closed, slip, anchor, λ)); the report's
+  Λ is the compliant force times Δt, is_active the closed flags (g_N(q^M) ≤ 0).
+- ``forest_step(options, state, tau, f_ext, out, model, cut)``: a cut forest (the extended
+  and maximal coordinates): the bilateral constraints of the cut joints at q^M (W_B, g_B,
+  b_B = (β/Δt) g_B) with the contacts, hard or compliant (STEP_COMPLIANT); tau the applied
+  torques (a cut joint's rate needs the cut-joint kinematics of the state:
+  MoreauStepper._forest_torques); out also receives the cut joints' φ and φ̇ at (q^E, u^E).
 
-The kernels, each returning a `TreeStepResult` (a record with named fields: outcome
-(TREE_STEP_*), n_active (|I|), opened, iterations, status, residual, retried,
-projection_iterations, projection_status):
-
-- ``tree_step_hard(saturate, q, u, tau, f_ext, last_impulse, last_active, last_bilateral,
-  report, is_active, qE, uE, floats, ints, support, workspace)``: the applied torques
-  (actuator.saturate_torque unless `saturate` is False), Eqn. (6) and M, h, W at the
-  midpoint, the contact problem and its solution, Eqn. (8). f_ext: the generalized external
-  force or an empty array. Writes q^E, u^E, the report buffer (Λ, g_N, contact points,
-  applied torques: report_views), the active flags and the workspace; the warm-start
-  memory is updated only when the step succeeds (TREE_STEP_OK), and a non-finite τ
-  (TREE_STEP_NONFINITE_TORQUE) is found before anything is done.
-- ``tree_step_compliant(saturate, q, u, tau, f_ext, closed, slip, anchor, lam, report,
-  is_active, qE, uE, floats, ints, support, workspace)``: the same for compliant contacts
-  (Alg. 1, the CompliantLaw packed in the model): the report's Λ is the compliant force Δt
-  and is_active the closed flags (g_N(q^M) ≤ 0); a failed step leaves the contact state as
-  it was.
-- ``forest_step_hard(q, u, applied_tau, f_ext, factor, last_impulse, last_active,
-  last_bilateral, report, is_active, qE, uE, angle_E, rate_E, floats, ints, support,
-  workspace, cut_floats, cut_ints, cut_workspace)``: tree_step_hard for a cut forest: the
-  bilateral constraints of the cut joints at q^M (W_B^T, g_B, b_B = (β/Δt) g_B), the joint
-  torques (saturated by the caller: a cut joint's rate needs the cut-joint kinematics of
-  the state), the contact and bilateral problem (factor: whether to factor M, False to reuse
-  a constant M's factor in L); Λ_B joins the warm-start memory, and a successful step also
-  writes the cut joints' φ and φ̇ at (q^E, u^E) into angle_E and rate_E.
+`options`: STEP_PREPARE (only the midpoint, into the workspace) then STEP_PREPARED (the rest
+of a step so prepared), STEP_PROFILE (the Fig. 7 phases' times added to the workspace's
+timings), STEP_KEEP_FACTOR (a constant M's factor kept). Each returns a `TreeStepResult`
+(outcome TREE_STEP_*, n_active |I|, opened, iterations, status, residual, retried, the
+projection's iterations and status). A failing step leaves the state as it was; the kernels
+release the GIL. The model (`TreeStepModel`, and `CutModel` for the cut joints) travels
+packed in a few buffers laid out as :mod:`starleth_sim.physics.kernels.layouts` declares;
+the kernels unpack them by the C code the build generates from the same declaration.
 """
 from __future__ import annotations
 
