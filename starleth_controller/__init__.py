@@ -11,10 +11,10 @@ foot placement and joint-space swing-leg control. Modes ``stand`` and ``trot``.
     ctrl = StarlethController(robot="go1")          # a library name, a spec or URDF path
     tau = ctrl.update(RobotState.from_simulator(sim), Command("trot", forward=0.3))
 """
-from .controller import StarlethController, SUPPORT, SWING, LOST_CONTACT
-from .inputs import RobotState, Command, ControllerParams, VMCGains
+from .controller import LOST_CONTACT, SUPPORT, SWING, StarlethController
 from .force_distribution import ContactForceDistribution
-from .model import RobotModel, JOINT_NAMES, LEGS, default_urdf_path
+from .inputs import Command, ControllerParams, RobotState, VMCGains
+from .model import JOINT_NAMES, LEGS, RobotModel, default_urdf_path
 
 __all__ = ["StarlethController", "RobotState", "Command", "ControllerParams", "VMCGains",
            "ContactForceDistribution", "RobotModel", "JOINT_NAMES", "LEGS", "default_urdf_path",

@@ -88,32 +88,45 @@ import sys
 import time
 
 import numpy as np
-
+from geometry_msgs.msg import Twist, WrenchStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
-from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
-from nav_msgs.msg import Odometry
-from geometry_msgs.msg import WrenchStamped, Twist
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
 from starleth_interface import state_bundle
 from starleth_interface.config_checks import ConfigError
-from starleth_interface.msg_cdr import (ODOM_FIELDS, WRENCH_FIELDS, JointStateCdr,
-                                       JointStateReader, StampedReader)
-from starleth_interface.ros_helpers import (StopSignals, ThrottledLog, UnknownParameterError,
-                                            capture_python_warnings, check_parameter_names,
-                                            declare_parameters, init_ros, make_executor,
-                                            route_python_logging, service_qos,
-                                            set_cpu_scheduling, shutdown_ros)
+from starleth_interface.msg_cdr import (
+    ODOM_FIELDS,
+    WRENCH_FIELDS,
+    JointStateCdr,
+    JointStateReader,
+    StampedReader,
+)
+from starleth_interface.ros_helpers import (
+    StopSignals,
+    ThrottledLog,
+    UnknownParameterError,
+    capture_python_warnings,
+    check_parameter_names,
+    declare_parameters,
+    init_ros,
+    make_executor,
+    route_python_logging,
+    service_qos,
+    set_cpu_scheduling,
+    shutdown_ros,
+)
+
 from .controller import StarlethController
 from .inputs import Command
 from .model import NotAQuadruped, RobotModel
-from .node_parameters import (PARAMETERS, PARAMETERS_BY_NAME, check_parameters,
-                              default_wrench_topics)
+from .node_parameters import PARAMETERS, PARAMETERS_BY_NAME, check_parameters, default_wrench_topics
 from .side_inputs import SideInputs
 from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
 

@@ -3,11 +3,20 @@ gives the ``declare_parameter`` descriptors and the checks of the values, at sta
 (``check_parameters``) and when one is set at runtime. No rclpy."""
 from __future__ import annotations
 
-from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
-                                            ParameterSpec)
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS,
-                                       TOPIC_JOINT_STATES, TOPIC_STATE_BUNDLE,
-                                       foot_wrench_topic)
+from starleth_interface.ros_helpers import (
+    CPU_SCHEDULING,
+    CPU_SCHEDULING_HELP,
+    EXECUTORS,
+    ParameterSpec,
+)
+from starleth_interface.topics import (
+    TOPIC_BASE_STATE,
+    TOPIC_JOINT_COMMANDS,
+    TOPIC_JOINT_STATES,
+    TOPIC_STATE_BUNDLE,
+    foot_wrench_topic,
+)
+
 from .inputs import MODES, ControllerParams
 
 

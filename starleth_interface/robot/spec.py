@@ -22,8 +22,8 @@ on load; every refusal is one line naming the file and the field, e.g.
 """
 from __future__ import annotations
 
-import os
 import fnmatch
+import os
 from dataclasses import dataclass, field
 
 from ..config_checks import ConfigError, check_number, check_str, short_repr

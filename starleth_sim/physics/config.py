@@ -70,16 +70,19 @@ from __future__ import annotations
 import copy
 import math
 import os
-from dataclasses import dataclass, field, fields, asdict
+from dataclasses import asdict, dataclass, field, fields
 
-from starleth_interface.config_checks import (ConfigError, check_bool as _bool,
-                                              check_choice as _choice, check_int as _int,
-                                              check_number as _num, check_str as _str,
-                                              fmt_bound as _fmt)
+from starleth_interface.config_checks import ConfigError
+from starleth_interface.config_checks import check_bool as _bool
+from starleth_interface.config_checks import check_choice as _choice
+from starleth_interface.config_checks import check_int as _int
+from starleth_interface.config_checks import check_number as _num
+from starleth_interface.config_checks import check_str as _str
+from starleth_interface.config_checks import fmt_bound as _fmt
 from starleth_interface.package_data import package_share_dir
 from starleth_interface.yaml_files import load_yaml_file
-from .terrain import TerrainConfig
 
+from .terrain import TerrainConfig
 
 # =========================================================================================
 # the ranges (see the table above)

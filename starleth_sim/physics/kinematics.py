@@ -39,8 +39,14 @@ import pinocchio as pin
 
 from starleth_interface.robot.urdf import revolute_axis
 
-from .kernels import (JT_FREEFLYER, JT_REVOLUTE, contact_kinematics,  # noqa: F401
-                      forward_kinematics, point_jacobian, quat_xyzw_to_rot)
+from .kernels import (  # noqa: F401
+    JT_FREEFLYER,
+    JT_REVOLUTE,
+    contact_kinematics,
+    forward_kinematics,
+    point_jacobian,
+    quat_xyzw_to_rot,
+)
 
 
 class KinematicTree:

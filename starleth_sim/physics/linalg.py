@@ -41,9 +41,16 @@ The kernels:
 """
 from __future__ import annotations
 
-from .kernels import (cholesky_solve_envelope, cholesky_solve_vec, cholesky_upper_input,
-                      envelope_columns, ltdl, ltdl_solve_cols, ltdl_solve_cols_pattern,
-                      ltdl_solve_vec)
+from .kernels import (
+                      cholesky_solve_envelope,
+                      cholesky_solve_vec,
+                      cholesky_upper_input,
+                      envelope_columns,
+                      ltdl,
+                      ltdl_solve_cols,
+                      ltdl_solve_cols_pattern,
+                      ltdl_solve_vec,
+)
 
 __all__ = ["cholesky_solve_envelope", "cholesky_solve_vec", "cholesky_upper_input",
            "envelope_columns", "ltdl", "ltdl_solve_cols", "ltdl_solve_cols_pattern",

@@ -66,13 +66,31 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kernels.layouts import PROX_SETTINGS
 from .kernels import (  # noqa: F401  (the constants are the kernels' own)
-    ALPHA_AUTO, AUTO_GUARD, AUTO_MAX_STEP, AUTO_POWER_ITERATIONS, AUTO_SOR_BILATERAL_OMEGA,
-    CRITERION_ENERGY, CRITERION_IMPULSE, DELASSUS_ENVELOPE_ROWS, FORM_DELASSUS, FORM_VELOCITY,
-    SCHEME_JOR, SCHEME_SOR, STATUS_CONVERGED, STATUS_MAX_ITER, STATUS_NONFINITE,
-    auto_spectral_scale, col_pattern, delassus, delassus_diagonal, prox_parameters,
-    prox_solve, row_pattern)
+    ALPHA_AUTO,
+    AUTO_GUARD,
+    AUTO_MAX_STEP,
+    AUTO_POWER_ITERATIONS,
+    AUTO_SOR_BILATERAL_OMEGA,
+    CRITERION_ENERGY,
+    CRITERION_IMPULSE,
+    DELASSUS_ENVELOPE_ROWS,
+    FORM_DELASSUS,
+    FORM_VELOCITY,
+    SCHEME_JOR,
+    SCHEME_SOR,
+    STATUS_CONVERGED,
+    STATUS_MAX_ITER,
+    STATUS_NONFINITE,
+    auto_spectral_scale,
+    col_pattern,
+    delassus,
+    delassus_diagonal,
+    prox_parameters,
+    prox_solve,
+    row_pattern,
+)
+from .kernels.layouts import PROX_SETTINGS
 
 SCHEMES = {"jor": SCHEME_JOR, "sor": SCHEME_SOR}
 FORMS = {"delassus": FORM_DELASSUS, "velocity": FORM_VELOCITY}

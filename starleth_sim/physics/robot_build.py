@@ -12,13 +12,25 @@ import numpy as np
 import pinocchio as pin
 
 from starleth_interface.config_checks import ConfigError
-from starleth_interface.robot.contact_points import (box_corners, check_terrain_reach,
-                                                     collision_points, link_frame, sphere_point)
+from starleth_interface.robot.contact_points import (
+    box_corners,
+    check_terrain_reach,
+    collision_points,
+    link_frame,
+    sphere_point,
+)
 from starleth_interface.robot.feet import foot_points, link_elements
 from starleth_interface.robot.library import load_robot, read_text, resolve, urdf_file
-from starleth_interface.robot.spec import (MAX_EFFORT, MAX_VELOCITY, ContactEntry, RobotSpec,
-                                           mapping, match_names, override_limits,
-                                           spec_from_dict)
+from starleth_interface.robot.spec import (
+    MAX_EFFORT,
+    MAX_VELOCITY,
+    ContactEntry,
+    RobotSpec,
+    mapping,
+    match_names,
+    override_limits,
+    spec_from_dict,
+)
 from starleth_interface.robot.urdf import checked_model, document_joint_order
 from starleth_interface.yaml_files import load_yaml_text
 

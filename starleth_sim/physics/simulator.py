@@ -35,16 +35,27 @@ from .actuator import NonFiniteTorque, real_array
 from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, rest_on_ground
 from .coordinates import make_coordinates
-from .diagnostics import (NO_TIMINGS, Diagnostics, StepWarnings, control_step_diagnostics,
-                          one_step_diagnostics)
 from .description import RobotDescription
-from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, TORQUE_SATURATED,
-                        ImpedanceCommand, replay_rows)
+from .diagnostics import (
+    NO_TIMINGS,
+    Diagnostics,
+    StepWarnings,
+    control_step_diagnostics,
+    one_step_diagnostics,
+)
+from .impedance import (
+    TORQUE_AS_GIVEN,
+    TORQUE_IMPEDANCE,
+    TORQUE_REPLAY,
+    TORQUE_SATURATED,
+    ImpedanceCommand,
+    replay_rows,
+)
+from .robot_build import config_with_robot, robot_description
 from .state import SimState, finite_time
-from .stepper import MoreauStepper, SimulationError, PHASES
+from .stepper import PHASES, MoreauStepper, SimulationError
 from .tree_step import report_size, report_views
 from .wrenches import MAX_TIMED_WRENCHES, ExternalWrenches
-from .robot_build import config_with_robot, robot_description
 
 log = logging.getLogger("starleth_sim")
 

@@ -35,11 +35,18 @@ dense linear algebra and Pinocchio's solver (test_solvers; the step does not cal
 """
 from __future__ import annotations
 
+from .kernels import (  # noqa: F401  # noqa: F401
+                      PHASE_G,
+                      PHASE_M_AND_H,
+                      PHASE_M_INVERSE,
+                      PHASE_PROX,
+                      PHASE_REST,
+                      ContactProblem,
+                      constraint_velocity,
+                      free_velocity,
+                      prepare_hard_contacts,
+)
 from .kernels.layouts import STEP_SETTINGS
-from .kernels import (ContactProblem, constraint_velocity, free_velocity,  # noqa: F401
-                      prepare_hard_contacts)
-from .kernels import (PHASE_G, PHASE_M_AND_H, PHASE_M_INVERSE, PHASE_PROX,  # noqa: F401
-                      PHASE_REST)
 
 #: Fig. 7 phases, and their indices in StepperStats.timings
 PHASES = ("M_and_h", "M_inverse", "G", "prox", "rest")

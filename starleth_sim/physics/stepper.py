@@ -40,17 +40,31 @@ from . import prox
 from .actuator import NonFiniteTorque, saturate_torque
 from .config import ConfigError
 from .contact import CompliantLaw, GroundPlane
-from .impedance import (TORQUE_AS_GIVEN, TORQUE_IMPEDANCE, TORQUE_REPLAY, TORQUE_SATURATED,
-                        command_torques)
-from .kernels import (STEP_COMPLIANT, STEP_KEEP_FACTOR, STEP_PREPARE, STEP_PREPARED,
-                      STEP_PROFILE)
+from .impedance import (
+    TORQUE_AS_GIVEN,
+    TORQUE_IMPEDANCE,
+    TORQUE_REPLAY,
+    TORQUE_SATURATED,
+    command_torques,
+)
+from .kernels import STEP_COMPLIANT, STEP_KEEP_FACTOR, STEP_PREPARE, STEP_PREPARED, STEP_PROFILE
 from .state import SimState
-from .terrain import SECOND_SURFACES, pack_terrain
 from .step_kernels import PHASES, PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings
-from .tree_step import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,
-                        TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, CutModel, TreeStepModel,
-                        TreeStepResult, forest_step, report_size, report_views,
-                        tree_step_compliant, tree_step_hard)
+from .terrain import SECOND_SURFACES, pack_terrain
+from .tree_step import (
+    TREE_STEP_NONFINITE_IMPULSE,
+    TREE_STEP_NONFINITE_STATE,
+    TREE_STEP_NONFINITE_TORQUE,
+    TREE_STEP_NOT_PD,
+    CutModel,
+    TreeStepModel,
+    TreeStepResult,
+    forest_step,
+    report_size,
+    report_views,
+    tree_step_compliant,
+    tree_step_hard,
+)
 
 _empty = np.empty
 

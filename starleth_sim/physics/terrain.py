@@ -44,8 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from starleth_interface.config_checks import (ConfigError, check_int, check_number,
-                                              short_repr)
+from starleth_interface.config_checks import ConfigError, check_int, check_number, short_repr
 from starleth_interface.robot.contact_points import BOX_REACH
 
 #: the floats of the packed terrain's header (csrc/terrain.c TERRAIN_HEADER), and the index

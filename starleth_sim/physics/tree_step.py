@@ -34,11 +34,27 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .kernels.layouts import (CUT_MODEL, STEP_REPORT, STEP_SETTINGS, TREE_STEP_MODEL, describe,
-                             evaluate, length, offsets)
-from .kernels import (TREE_STEP_NONFINITE_IMPULSE, TREE_STEP_NONFINITE_STATE,  # noqa: F401
-                      TREE_STEP_NONFINITE_TORQUE, TREE_STEP_NOT_PD, TREE_STEP_OK,
-                      TreeStepResult, forest_step, tree_step_compliant, tree_step_hard)
+from .kernels import (  # noqa: F401
+    TREE_STEP_NONFINITE_IMPULSE,
+    TREE_STEP_NONFINITE_STATE,
+    TREE_STEP_NONFINITE_TORQUE,
+    TREE_STEP_NOT_PD,
+    TREE_STEP_OK,
+    TreeStepResult,
+    forest_step,
+    tree_step_compliant,
+    tree_step_hard,
+)
+from .kernels.layouts import (
+    CUT_MODEL,
+    STEP_REPORT,
+    STEP_SETTINGS,
+    TREE_STEP_MODEL,
+    describe,
+    evaluate,
+    length,
+    offsets,
+)
 
 _DTYPES = {"float64": np.float64, "int64": np.int64, "bool": np.bool_}
 

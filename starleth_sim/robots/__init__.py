@@ -7,13 +7,24 @@ starleth_interface.robot's (shared with the controllers); the library's API is h
     desc = robot_description("go1")        # a library name, a spec path or a URDF path
     Simulator.from_preset("HmJ", robot="go1")
 """
-from starleth_interface.robot.library import (INSTALL_HINT, available_robots, load_robot,
-                                              package_dirs, robot_urdf, urdf_file)
+from starleth_interface.robot.library import (
+                                              INSTALL_HINT,
+                                              available_robots,
+                                              load_robot,
+                                              package_dirs,
+                                              robot_urdf,
+                                              urdf_file,
+)
 from starleth_interface.robot.spec import RobotSpec
 
-from ..physics.robot_build import (config_with_robot, description_from_spec,
-                                   recorded_description, robot_description, spec_text,
-                                   starleth_description)
+from ..physics.robot_build import (
+                                              config_with_robot,
+                                              description_from_spec,
+                                              recorded_description,
+                                              robot_description,
+                                              spec_text,
+                                              starleth_description,
+)
 
 __all__ = ["available_robots", "load_robot", "robot_description", "description_from_spec",
            "recorded_description", "spec_text",

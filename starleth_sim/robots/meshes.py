@@ -11,14 +11,15 @@ import os
 import xml.etree.ElementTree as ET
 from functools import lru_cache
 
-import coal    # pinocchio's collision library; its mesh loader is assimp
+import coal  # pinocchio's collision library; its mesh loader is assimp
 import numpy as np
 
-from .collada import ColladaError, read_collada
 from starleth_interface.config_checks import ConfigError
 from starleth_interface.robot.library import package_dirs
 from starleth_interface.robot.spec import spec_from_dict
 from starleth_interface.yaml_files import load_yaml_text
+
+from .collada import ColladaError, read_collada
 
 #: the mesh formats drawn (STL, OBJ: coal's assimp loader; DAE: .collada)
 MESH_SUFFIXES = (".stl", ".dae", ".obj")

@@ -5,6 +5,7 @@ per message, as CDR bytes (``msg_cdr.SlotCdr``) or in the message objects."""
 from __future__ import annotations
 
 from starleth_interface.msg_cdr import SlotCdr
+
 from ..physics.simulator import CONTACT_STATES
 
 #: colours (r, g, b, a) of the contact states (ContactInfo.state)

@@ -205,7 +205,7 @@ class LiveView:
         most one per `throttle_period` s and SDK component; meshes that are not there, one
         warning."""
         try:
-            import foxglove   # optional dependency: requirements-live.txt
+            import foxglove  # optional dependency: requirements-live.txt
         except ImportError:
             log.error(f"live_view: foxglove-sdk is not installed; {INSTALL_HINT}. The "
                       "simulation goes on without the live view.")
@@ -234,7 +234,7 @@ class LiveView:
 
     def add_topic(self, topic, typ, latched=False):
         """Advertise `topic` of message type `typ` (an rclpy class or 'pkg/msg/Type')."""
-        from foxglove.channel import Channel   # deferred: foxglove is imported in open()
+        from foxglove.channel import Channel  # deferred: foxglove is imported in open()
         name = type_name(typ)
         schema = self._fox.Schema(name=name, encoding="ros2msg",
                                   data=message_definition(name).encode("utf-8"))

@@ -14,14 +14,22 @@ import os
 import sys
 from dataclasses import dataclass, make_dataclass
 
-from starleth_interface.ros_helpers import (CPU_SCHEDULING, CPU_SCHEDULING_HELP, EXECUTORS,
-                                            ROS_PARAMETERS, ParameterSpec, parameter_defaults,
-                                            render_parameters_yaml, unknown_parameters_text,
-                                            with_parameter_table)
-from ..physics.config import ConfigError
 from starleth_interface.package_data import package_share_dir
 from starleth_interface.robot.scaling import robot_scale
+from starleth_interface.ros_helpers import (
+    CPU_SCHEDULING,
+    CPU_SCHEDULING_HELP,
+    EXECUTORS,
+    ROS_PARAMETERS,
+    ParameterSpec,
+    parameter_defaults,
+    render_parameters_yaml,
+    unknown_parameters_text,
+    with_parameter_table,
+)
 from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
+
+from ..physics.config import ConfigError
 from .command_delay import MAX_COMMAND_DELAY
 from .ros2_control_description import INTERFACES, parse_command_interfaces
 

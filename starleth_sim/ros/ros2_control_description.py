@@ -24,6 +24,7 @@ import sys
 from xml.sax.saxutils import quoteattr
 
 from starleth_interface.topics import TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES
+
 from ..physics.config import ConfigError
 
 #: the joint interfaces sim_node serves: command (JointState fields it reads on
@@ -143,8 +144,8 @@ def main(argv=None) -> int:
     ap.add_argument("--initial-state", default="standing",
                     help="as sim_node's initial_state parameter")
     args = ap.parse_args(argv)
-    from ..physics.simulator import Simulator      # deferred: --help stays quick
-    from .state_io import parse_initial_state       # deferred: --help stays quick
+    from ..physics.simulator import Simulator  # deferred: --help stays quick
+    from .state_io import parse_initial_state  # deferred: --help stays quick
     try:
         interfaces = parse_command_interfaces(args.command_interfaces, "--command-interfaces")
         if not interfaces:

@@ -7,9 +7,15 @@ from collections import Counter, deque
 import numpy as np
 
 from starleth_interface.ros_helpers import ThrottledLog
-from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS,
-                                       TOPIC_POSITION_COMMANDS, TOPIC_VELOCITY_COMMANDS,
-                                       TOPIC_WRENCH, TOPIC_WRENCH_PERSISTENT)
+from starleth_interface.topics import (
+    TOPIC_EFFORT_COMMANDS,
+    TOPIC_JOINT_COMMANDS,
+    TOPIC_POSITION_COMMANDS,
+    TOPIC_VELOCITY_COMMANDS,
+    TOPIC_WRENCH,
+    TOPIC_WRENCH_PERSISTENT,
+)
+
 from ..physics.impedance import FIELDS as IMPEDANCE_FIELDS
 from ..physics.impedance import ImpedanceCommand
 from ..physics.simulator import Simulator

@@ -31,25 +31,46 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
-from starleth_interface.ros_helpers import (StopSignals, UnknownParameterError,
-                                            capture_python_warnings, check_parameter_names,
-                                            declare_parameters, init_ros, make_executor,
-                                            parameter_override_names, route_python_logging,
-                                            set_cpu_scheduling, shutdown_ros)
-from starleth_interface.topics import (TOPIC_CLOCK, TOPIC_EFFORT_COMMANDS,
-                                       TOPIC_JOINT_COMMANDS, TOPIC_POSITION_COMMANDS,
-                                       TOPIC_VELOCITY_COMMANDS, TOPIC_WRENCH,
-                                       TOPIC_WRENCH_PERSISTENT)
+from starleth_interface.ros_helpers import (
+    StopSignals,
+    UnknownParameterError,
+    capture_python_warnings,
+    check_parameter_names,
+    declare_parameters,
+    init_ros,
+    make_executor,
+    parameter_override_names,
+    route_python_logging,
+    set_cpu_scheduling,
+    shutdown_ros,
+)
+from starleth_interface.topics import (
+    TOPIC_CLOCK,
+    TOPIC_EFFORT_COMMANDS,
+    TOPIC_JOINT_COMMANDS,
+    TOPIC_POSITION_COMMANDS,
+    TOPIC_VELOCITY_COMMANDS,
+    TOPIC_WRENCH,
+    TOPIC_WRENCH_PERSISTENT,
+)
+
 from ..physics.config import ConfigError, load_preset
 from ..physics.simulator import Simulator
 from ..robots import config_with_robot
 from .cdr import CommandDecoder
 from .live_view import LiveView, MeshAssets
 from .node_recording import NodeRecording, describe_run, make_recorder
-from .parameters import (COMMAND_DELAY, GAIN_PARAMETERS, SIM_NODE_PARAMETERS, Settings,
-                         load_default_parameters, namespace_frame_prefix, robot_default_gains)
-from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
+from .parameters import (
+    COMMAND_DELAY,
+    GAIN_PARAMETERS,
+    SIM_NODE_PARAMETERS,
+    Settings,
+    load_default_parameters,
+    namespace_frame_prefix,
+    robot_default_gains,
+)
 from .period_stats import PeriodStats
+from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .service import SimService
 from .sim_loops import SimLoops
 from .solver_diagnostics import SolverDiagnostics
@@ -512,7 +533,8 @@ def main(args=None, controller_params=None):
         executor.add_node(sim_node.node)
         if controller_params is not None:
             from starleth_controller.controller_node import (  # deferred: composed mode only
-                ControllerNode)
+                ControllerNode,
+            )
             # the controller follows the clock sim_node publishes (/clock remapped, e.g.
             # into the namespace, applies to both nodes, as it would in two processes)
             clock = sim_node.node.resolve_topic_name(TOPIC_CLOCK)

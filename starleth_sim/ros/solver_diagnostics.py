@@ -9,6 +9,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from starleth_interface.msg_cdr import DiagnosticArrayCdr
+
 from .service import SimService
 
 SOLVER_KEYS = ("iterations", "max_iterations_step", "converged", "status", "residual",

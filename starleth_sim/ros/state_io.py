@@ -8,8 +8,9 @@ import math
 
 import numpy as np
 
-from ..physics.config import ConfigError
 from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
+
+from ..physics.config import ConfigError
 from ..physics.kinematics import quat_xyzw_to_rot
 from ..physics.simulator import Simulator
 

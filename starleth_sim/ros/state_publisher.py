@@ -13,21 +13,33 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
 from nav_msgs.msg import Odometry
+from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
-from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
-from starleth_interface.msg_cdr import (IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr,
-                                       JointStateCdr)
+from starleth_interface.msg_cdr import (
+    IMU_FIELDS,
+    ODOM_FIELDS,
+    WRENCH_FIELDS,
+    FixedCdr,
+    JointStateCdr,
+)
 from starleth_interface.state_bundle import BundleLayout, StateBundleCdr
-from starleth_interface.topics import (TOPIC_APPLIED_TORQUE, TOPIC_BASE_STATE, TOPIC_CLOCK,
-                                       TOPIC_IMU,
-                                       TOPIC_JOINT_STATES, TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER,
-                                       TOPIC_STATE_BUNDLE, foot_wrench_topic)
+from starleth_interface.topics import (
+    TOPIC_APPLIED_TORQUE,
+    TOPIC_BASE_STATE,
+    TOPIC_CLOCK,
+    TOPIC_IMU,
+    TOPIC_JOINT_STATES,
+    TOPIC_ROBOT_DESCRIPTION,
+    TOPIC_SOLVER,
+    TOPIC_STATE_BUNDLE,
+    foot_wrench_topic,
+)
+
 from .qos import CLOCK_QOS, LATCHED_QOS, STATE_QOS
-from .ros2_control_description import (parse_command_interfaces, simulator_section,
-                                       with_ros2_control)
+from .ros2_control_description import parse_command_interfaces, simulator_section, with_ros2_control
 from .state_io import base_values, joint_values, state_bundle_bytes
 from .visualisation import Visualisation
 

@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from starleth_interface.topics import TOPIC_TERRAIN
+
 from .qos import LATCHED_QOS
 
 #: points per side of the heightfield drawn, at most (100: 58 806 vertices, 2.4 MB)

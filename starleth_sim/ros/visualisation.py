@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from starleth_interface.topics import TOPIC_CONTACT_MARKERS, TOPIC_TF, TOPIC_TF_STATIC
+
 from .contact_markers import ContactMarkers
 from .qos import LATCHED_QOS, STATE_QOS, TF_QOS
 from .recording import register_msg_text

@@ -22,12 +22,17 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from starleth_controller import (
+    LEGS,
+    Command,
+    ContactForceDistribution,
+    RobotModel,
+    RobotState,
+    StarlethController,
+)
+from starleth_controller import kernels as K
 from starleth_sim import Simulator
 from starleth_sim.physics.description import urdf_path
-
-from starleth_controller import kernels as K
-from starleth_controller import (Command, ContactForceDistribution,
-                                 RobotModel, RobotState, StarlethController, LEGS)
 
 PRESETS = ("Cm", "HmJ", "HmS")
 H_NOM = 0.41                  # commanded trunk height [m]

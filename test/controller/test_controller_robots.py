@@ -7,16 +7,16 @@ Figures (per robot): doc/performance.md."""
 import numpy as np
 import pinocchio as pin
 import pytest
+from robot_cases import ankle_urdf, needs_data
 
 from starleth_controller import RobotModel
 from starleth_controller import kernels as K
 from starleth_controller.model import NotAQuadruped
 from starleth_controller.node_parameters import default_wrench_topics
-from starleth_interface.topics import foot_wrench_topic
 from starleth_controller.robot_params import params_for_robot
+from starleth_interface.topics import foot_wrench_topic
 from starleth_sim.robots import available_robots
 from starleth_sim.tools.common.gait_run import run_gait
-from robot_cases import ankle_urdf, needs_data
 
 ROBOTS = available_robots()
 STAND, TROT = 2.0, 4.0       # s

@@ -10,11 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from starleth_sim.physics.description import urdf_path
-
 from starleth_controller import LOST_CONTACT, SUPPORT, SWING, ControllerParams, RobotModel
 from starleth_controller import kernels as K
 from starleth_controller.step_down import REACHED, GroundSearch, leg_reach
+from starleth_sim.physics.description import urdf_path
 
 DT = 0.0025                      # control period [s]
 OFFSETS = np.array([0.0, 0.5, 0.5, 0.0])    # LF, RF, LH, RH: LF + RH swing first

@@ -18,15 +18,18 @@ import math
 import numpy as np
 import pytest
 
+from starleth_controller import LEGS, Command, RobotState, StarlethController
+from starleth_controller import kernels as K
 from starleth_sim import Simulator
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.terrain import pack_terrain, terrain_height
-from starleth_sim.tools.demo.terrain import (COURSES, PAST_EDGE, course_end, course_overrides,
-                                             course_terrain)
-
-from starleth_controller import LEGS, Command, RobotState, StarlethController
-from starleth_controller import kernels as K
-
+from starleth_sim.tools.demo.terrain import (
+    COURSES,
+    PAST_EDGE,
+    course_end,
+    course_overrides,
+    course_terrain,
+)
 
 FEET = tuple(f"{leg}_foot" for leg in LEGS)
 #: the deepest a hard contact may be inside a surface at a step's end [m]
@@ -176,7 +179,7 @@ def test_demo_passes_each_course_to_sim_node_as_its_physics_overrides(course):
     """``starleth-demo --terrain`` gives sim_node ``-p physics_overrides:="<value>"``: one
     line without double quotes, which sim_node's settings read back as the course's terrain
     and the simulator builds (the robot resting on it)."""
-    from starleth_sim.ros.parameters import Settings   # deferred: the ROS side's schema
+    from starleth_sim.ros.parameters import Settings  # deferred: the ROS side's schema
 
     value = course_overrides(course)
     assert '"' not in value and "\n" not in value

@@ -3,14 +3,14 @@ iterations, without tuning, and bad values of solver.alpha rejected with file an
 import numpy as np
 import pytest
 import yaml
-
 from pin_pgs_reference import pin_pgs_solve
+from test_physics_analytic import G, body_sim, incline_sim
+from test_solvers import SCHEMES, robot_problem, solve
+
 from starleth_sim import Simulator, load_preset
 from starleth_sim.physics import prox
 from starleth_sim.physics.config import ConfigError
 from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_urdf
-from test_physics_analytic import G, body_sim, incline_sim
-from test_solvers import SCHEMES, robot_problem, solve
 
 
 def test_alpha_auto_is_accepted_and_bad_values_name_file_and_field(tmp_path):

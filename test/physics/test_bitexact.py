@@ -96,6 +96,7 @@ def platform_fingerprint():
     (kernels.build), so the same bits with SSE2, AVX2 or AVX-512 (the references recorded on
     an AVX2 machine match on an AVX-512 one)."""
     import platform
+
     import pinocchio
     return {"machine": platform.machine(), "libc": "-".join(platform.libc_ver()),
             "numpy": np.__version__, "pinocchio": pinocchio.__version__}

@@ -62,6 +62,7 @@ def test_go2_multi_material_meshes_span_their_collision_mesh(link):
     vertices) reach the ends of the link's collision mesh, and no triangle is longer than
     the mesh."""
     import xml.etree.ElementTree as ET
+
     from starleth_sim.robots import load_robot, package_dirs, robot_description
     try:
         desc = robot_description("go2")

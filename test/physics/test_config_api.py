@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import yaml
 
-from starleth_sim.physics.stepper import SimulationError
 from starleth_sim import ConfigError, Simulator, available_presets, load_preset
+from starleth_sim.physics.stepper import SimulationError
 
 
 def test_paper_presets_load_with_table1_parameters():
@@ -244,6 +244,7 @@ def test_push_in_the_air_changes_momentum_by_the_impulse():
         sim.step(np.zeros(12))
     # whole-body horizontal momentum = m v_com; with the joints free, use the CoM velocity
     import pinocchio as pin
+
     from starleth_sim.physics.coordinates.forest import quat_rot
     R = np.zeros((3, 3))
     quat_rot(sim.q, 0, R)

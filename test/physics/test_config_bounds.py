@@ -7,16 +7,20 @@ import math
 import pytest
 import yaml
 
+from starleth_interface import yaml_files
+from starleth_interface.ros_helpers import ParameterSpec
+from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
 from starleth_sim import ConfigError, Simulator, available_presets, load_preset
 from starleth_sim.physics import config as config_mod
-from starleth_interface import yaml_files
-from starleth_interface.yaml_files import load_yaml_file, load_yaml_text
 from starleth_sim.physics.config import PRESETS
-from starleth_sim.ros.parameters import (SIM_NODE_PARAMETERS, Settings,
-                                         load_default_parameters, render_yaml)
+from starleth_sim.ros.parameters import (
+    SIM_NODE_PARAMETERS,
+    Settings,
+    load_default_parameters,
+    render_yaml,
+)
 from starleth_sim.ros.state_io import read_state_spec
 from starleth_sim.tools.sweep import sweep
-from starleth_interface.ros_helpers import ParameterSpec
 
 BINARY = bytes(range(256)) * 4          # not UTF-8, NUL bytes: an image, a bag, ...
 

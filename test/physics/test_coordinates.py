@@ -2,14 +2,13 @@
 constraints kept, prox and direct bilateral solutions equal, all 11 presets stand."""
 import numpy as np
 import pytest
+from coordinate_checks import TIGHT, compare_three, replay, rotation_angle
 
 from starleth_controller import Command, RobotState, StarlethController
 from starleth_sim import PRESETS as TABLE1
 from starleth_sim import Simulator, available_presets, load_preset
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.posture import PostureHold
-
-from coordinate_checks import TIGHT, compare_three, replay, rotation_angle
 
 
 def test_all_table1_presets_exist_with_the_papers_parameters():

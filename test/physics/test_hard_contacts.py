@@ -7,8 +7,8 @@ import pytest
 from starleth_controller import Command, RobotState, StarlethController
 from starleth_sim import ConfigError, Simulator, load_preset
 from starleth_sim.physics.description import RobotDescription, sphere_urdf, urdf_path
-from starleth_sim.tools.evaluation.tasks import ball_drop, pd_sag
 from starleth_sim.physics.stepper import PROJECTION_TOLERANCE
+from starleth_sim.tools.evaluation.tasks import ball_drop, pd_sag
 
 HARD = ["HmJ", "HmS", "HEJD", "HEJP", "HESD", "HESP", "HMJD", "HMJP", "HMSD", "HMSP"]
 #: the paper's rule: the gap test alone (g_N(q^M) ≤ 0), no penetration correction

@@ -9,13 +9,22 @@ import pytest
 
 from starleth_sim import Simulator
 from starleth_sim.physics import kernels
+from starleth_sim.physics.contact import CompliantLaw
 from starleth_sim.physics.kernels import build as kernel_build
 from starleth_sim.physics.kernels import codegen as kernel_codegen
 from starleth_sim.physics.kernels import layouts as kernel_layouts
-from starleth_sim.physics.contact import CompliantLaw
-from starleth_sim.physics.kernels.layouts import (CUT_MODEL, HEADER_KINDS, LAYOUTS, RECORDS,
-                                                 RESULTS, STEP_REPORT, TREE_STEP_MODEL,
-                                                 field_size, length, offsets)
+from starleth_sim.physics.kernels.layouts import (
+    CUT_MODEL,
+    HEADER_KINDS,
+    LAYOUTS,
+    RECORDS,
+    RESULTS,
+    STEP_REPORT,
+    TREE_STEP_MODEL,
+    field_size,
+    length,
+    offsets,
+)
 from starleth_sim.physics.prox import ProxSettings
 from starleth_sim.physics.step_kernels import StepSettings
 from starleth_sim.physics.tree_step import buffer_views, report_size, report_views

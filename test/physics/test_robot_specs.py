@@ -4,12 +4,12 @@ traceback; and what a `robot` may name (a library name, a spec path, a URDF path
 presets' starleth.urdf), the spec's physics overrides, a robot without four 3-joint legs."""
 import numpy as np
 import pytest
+from robot_cases import ankle_urdf
 
 from starleth_sim import ConfigError, Simulator
 from starleth_sim.physics.description import urdf_path
 from starleth_sim.physics.impedance import ImpedanceCommand
 from starleth_sim.robots import INSTALL_HINT, robot_description
-from robot_cases import ankle_urdf
 
 with open(urdf_path()) as _f:
     STARLETH_URDF = _f.read()

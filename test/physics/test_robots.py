@@ -15,15 +15,19 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pinocchio as pin
 import pytest
-
 from coordinate_checks import TIGHT, compare_three
 from robot_cases import needs_data
+
+from starleth_interface.robot.scaling import robot_scale
 from starleth_sim import PRESETS, Simulator
 from starleth_sim.physics.description import STARLETH_FEET, STARLETH_JOINT_NAMES, urdf_path
 from starleth_sim.physics.posture import DEFAULT_KD, DEFAULT_KP, PostureHold
-from starleth_interface.robot.scaling import robot_scale
-from starleth_sim.robots import (available_robots, load_robot, robot_description,
-                                 starleth_description)
+from starleth_sim.robots import (
+    available_robots,
+    load_robot,
+    robot_description,
+    starleth_description,
+)
 
 ROBOTS = available_robots()
 G = 9.81

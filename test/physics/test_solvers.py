@@ -2,12 +2,16 @@
 as each other and as Pinocchio's own PGS solver (pin.PGSConstraintSolver)."""
 import numpy as np
 import pytest
-
 from pin_pgs_reference import check_coulomb_ncp, pin_pgs_solve
+
 from starleth_sim import Simulator
 from starleth_sim.physics import prox
-from starleth_sim.physics.step_kernels import (StepSettings, constraint_velocity, free_velocity,
-                                               prepare_hard_contacts)
+from starleth_sim.physics.step_kernels import (
+    StepSettings,
+    constraint_velocity,
+    free_velocity,
+    prepare_hard_contacts,
+)
 
 SCHEMES = [(f, s) for f in ("delassus", "velocity") for s in ("jor", "sor")]
 
@@ -232,8 +236,12 @@ def test_cholesky_with_the_envelope_is_the_dense_factor_bit_for_bit():
     cholesky_solve_envelope, whose backward pass runs by the envelope's columns), and
     L Lᵀ = G_BB; also on a random SPD matrix with an envelope and on a dense one (with a -0.0 in the
     input, the same values)."""
-    from starleth_sim.physics.linalg import (cholesky_solve_envelope, cholesky_solve_vec,
-                                             cholesky_upper_input, envelope_columns)
+    from starleth_sim.physics.linalg import (
+        cholesky_solve_envelope,
+        cholesky_solve_vec,
+        cholesky_upper_input,
+        envelope_columns,
+    )
     G, o, _ = _bilateral_problem()
     rng = np.random.default_rng(5)
     n = 24

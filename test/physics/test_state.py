@@ -4,7 +4,7 @@ back; the profiled and the prepared step (options of the one kernel) are the pla
 import numpy as np
 import pytest
 
-from starleth_sim import Simulator, SimulationError
+from starleth_sim import SimulationError, Simulator
 
 
 def pd(sim, q_stand):

@@ -13,8 +13,13 @@ from starleth_sim import Simulator, load_preset
 from starleth_sim.physics.config import ConfigError, PhysicsConfig
 from starleth_sim.physics.description import RobotDescription, box_urdf, sphere_urdf
 from starleth_sim.physics.posture import PostureHold
-from starleth_sim.physics.terrain import (SECOND_SURFACE_NONE, TERRAIN_HEADER, TerrainConfig,
-                                         pack_terrain, terrain_height)
+from starleth_sim.physics.terrain import (
+    SECOND_SURFACE_NONE,
+    TERRAIN_HEADER,
+    TerrainConfig,
+    pack_terrain,
+    terrain_height,
+)
 from starleth_sim.tools.bench.terrain import terrain_rounds, terrains
 from starleth_sim.tools.view.recording import terrain_from_metadata
 from starleth_sim.tools.view.scene import terrain_objects

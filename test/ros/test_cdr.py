@@ -9,8 +9,8 @@ from starleth_sim.physics.description import STARLETH_JOINT_NAMES as JOINTS
 from starleth_sim.ros.cdr import CommandDecoder
 
 rclpy_serialization = pytest.importorskip("rclpy.serialization")
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension  # noqa: E402
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 serialize_message = rclpy_serialization.serialize_message
 

@@ -22,30 +22,29 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
-from rclpy.parameter import Parameter  # noqa: E402
-from repo_root import ROOT  # noqa: E402
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from test_bitexact import DEMO_STEPS, demo_states, load_reference  # noqa: E402
-from rclpy.qos import QoSProfile  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
-from rcl_interfaces.srv import SetParameters, GetParameters  # noqa: E402
-from builtin_interfaces.msg import Time  # noqa: E402
-from std_msgs.msg import MultiArrayDimension  # noqa: E402
-from rclpy.serialization import deserialize_message  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from rclpy.qos import ReliabilityPolicy  # noqa: E402
-from rosbags.highlevel import AnyReader  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
-from mcap.reader import make_reader  # noqa: E402
-from starleth_interface.state_bundle import LABEL, StateBundleCdr  # noqa: E402
-from starleth_sim.physics.simulator import Simulator  # noqa: E402
-from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
-from starleth_sim.tools.analysis import analysis  # noqa: E402
-from starleth_sim.tools.demo.demo import DemoError, _call, print_summary, run_demo  # noqa: E402
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import WrenchStamped
+from mcap.reader import make_reader
+from nav_msgs.msg import Odometry
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from repo_root import ROOT
+from ros_test_nodes import NodeProcess, RosTestNode
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_srvs.srv import SetBool
+from test_bitexact import DEMO_STEPS, demo_states, load_reference
+
+from starleth_interface.state_bundle import LABEL, StateBundleCdr
+from starleth_sim.physics.simulator import Simulator
+from starleth_sim.ros.state_io import parse_initial_state
+from starleth_sim.tools.analysis import analysis
+from starleth_sim.tools.demo.demo import DemoError, _call, print_summary, run_demo
 
 # one ROS domain per test module and process (test_sim_node uses 50..89)
 DOMAIN_RANGE = (10, 40)       # first, span

@@ -23,23 +23,24 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from controller_examples import controllers_page_blocks, run_beside_sim_node  # noqa: E402
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-from std_srvs.srv import SetBool, Trigger  # noqa: E402
+from controller_examples import controllers_page_blocks, run_beside_sim_node
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import SetParameters
+from ros_test_nodes import NodeProcess, RosTestNode
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
 
-from starleth_sim.robots import load_robot  # noqa: E402
-from starleth_sim.physics.simulator import Simulator  # noqa: E402
-from starleth_sim.ros.parameters import Settings  # noqa: E402
-from starleth_sim.ros.service import SimService  # noqa: E402
-from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
-from starleth_sim.ros.qos import COMMAND_QOS, STATE_QOS  # noqa: E402
-from starleth_sim.tools.replay.recording import load_recording  # noqa: E402
-from starleth_sim.tools.replay.resimulation import compare_exact, resimulate  # noqa: E402
+from starleth_sim.physics.simulator import Simulator
+from starleth_sim.robots import load_robot
+from starleth_sim.ros.parameters import Settings
+from starleth_sim.ros.qos import COMMAND_QOS, STATE_QOS
+from starleth_sim.ros.service import SimService
+from starleth_sim.ros.state_io import parse_initial_state
+from starleth_sim.tools.replay.recording import load_recording
+from starleth_sim.tools.replay.resimulation import compare_exact, resimulate
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 

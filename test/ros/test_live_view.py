@@ -15,16 +15,16 @@ pytest.importorskip("rclpy")
 pytest.importorskip("foxglove")        # the optional extra: requirements-live.txt
 pytest.importorskip("websockets")
 
-from mcap.records import Schema  # noqa: E402
-from mcap_ros2.decoder import DecoderFactory  # noqa: E402
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from ros_test_nodes import NodeProcess  # noqa: E402
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.reader import read_ros2_messages
+from ros_test_nodes import NodeProcess
 
-from starleth_sim.tools.view.live_log import collect  # noqa: E402
+from starleth_sim.tools.view.live_log import collect
 
 DOMAIN_RANGE = (229, 4)       # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 229 + os.getpid() % 4
-from repo_root import ROOT  # noqa: E402
+from repo_root import ROOT
 
 
 class LinesLog:
@@ -172,6 +172,7 @@ def test_live_view_sends_the_terrain_to_a_client_that_comes_later():
     it went out, decoded with the advertised schema to the markers of the configuration."""
     import rclpy
     from rclpy.serialization import serialize_message
+
     from starleth_sim.ros.sim_node import SimNode
     port = free_port()
     ctx = rclpy.Context()
@@ -207,6 +208,7 @@ def test_a_client_offering_either_subprotocol_name_is_served(subprotocol):
 
     import websockets
     import websockets.sync.client as ws_client
+
     from starleth_sim.ros.live_view import LiveView
 
     log = LinesLog()
@@ -258,7 +260,9 @@ def test_a_clients_malformed_frames_are_throttled_warnings_cut_short(capfd):
     import asyncio
     import json
     import logging
+
     import websockets
+
     from starleth_sim.ros.live_view import MAX_LOGGED_CHARS, SUBPROTOCOL, LiveView
 
     log = LinesLog()
@@ -305,6 +309,7 @@ def test_a_client_message_over_the_limit_disconnects_that_client():
     import struct
 
     import websockets
+
     from starleth_sim.ros.live_view import SUBPROTOCOL, LiveView
     from starleth_sim.ros.live_view_front import MAX_CLIENT_MESSAGE, ClientMessageLimit
 
@@ -375,6 +380,7 @@ def test_live_view_serves_the_robots_meshes_and_nothing_else():
     import json
 
     import websockets.sync.client as ws_client
+
     from starleth_sim.robots import robot_description
     from starleth_sim.robots.meshes import mesh_filenames
     from starleth_sim.ros.live_view import LiveView, MeshAssets

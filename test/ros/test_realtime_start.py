@@ -14,13 +14,13 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from controller_examples import controllers_page_blocks, start_script, stop_script  # noqa: E402,E501
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
+from controller_examples import controllers_page_blocks, start_script, stop_script  # noqa: E501
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_test_nodes import NodeProcess, RosTestNode
+from rosgraph_msgs.msg import Clock
 
-from starleth_sim.robots import load_robot  # noqa: E402
-from starleth_sim.tools.common.bag import read_messages  # noqa: E402
+from starleth_sim.robots import load_robot
+from starleth_sim.tools.common.bag import read_messages
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 

@@ -11,18 +11,24 @@ import yaml
 pytest.importorskip("rclpy")
 rosbags_reader = pytest.importorskip("rosbags.rosbag2")
 
-from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray, String
 
-from starleth_sim.ros.recording import (McapRecorder, message_definition, generated_msg_text,  # noqa: E402
-                                    msg_text, qos_profiles_yaml, type_name, SEPARATOR)
-
-from sensor_msgs.msg import JointState, Imu  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from starleth_sim.ros.recording import (
+    SEPARATOR,
+    McapRecorder,
+    generated_msg_text,
+    message_definition,
+    msg_text,
+    qos_profiles_yaml,
+    type_name,
+)
 
 TYPES = [JointState, Imu, DiagnosticArray, WrenchStamped, Odometry, Clock, Float64MultiArray,
          String]
@@ -140,7 +146,7 @@ def test_rosbags_reads_the_file(tmp_path):
 def test_rosbags_parses_embedded_definitions(tmp_path):
     """The schema text alone (no type store) is enough to decode: rosbags' msg parser."""
     from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
     path = tmp_path / "run.mcap"
     _record(path, n=2)
     store = get_typestore(Stores.EMPTY)
@@ -201,8 +207,8 @@ def test_close_is_idempotent_and_write_after_close_is_ignored(tmp_path):
 
 def test_generated_schema_is_decodable():
     """Types without a .msg file get a generated definition; it must decode the same CDR."""
-    from mcap_ros2.decoder import DecoderFactory
     from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
     text = generated_msg_text("sensor_msgs/msg/JointState")
     # dependencies in the generated text are full 'pkg/Type' names
     full = text
@@ -236,9 +242,10 @@ def test_split_recorder_by_size_gives_complete_files_and_a_rosbag2_directory(tmp
     each file is a complete bag (rosbags reads it alone, with the metadata record and the
     attachment), the directory is a rosbag2 bag (metadata.yaml listing the files) that
     rosbags reads as one bag with every message once and in order."""
-    from starleth_sim.ros.recording import SplitRecorder
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
+    from starleth_sim.ros.recording import SplitRecorder
     path = tmp_path / "run.mcap"            # the .mcap suffix names the directory "run"
     rec = SplitRecorder(str(path), max_size=200_000, chunk_size=32 * 1024)
     rec.add_topic("/joint_states", JointState, QoSProfile(depth=10))
@@ -284,6 +291,7 @@ def test_queued_and_process_recorders_keep_every_message_in_order(tmp_path, kind
     """sim_node's recorders (a writer process; a writer thread where no process can be
     started): every message handed over is in the file(s), in order, after close."""
     from mcap.reader import make_reader
+
     from starleth_sim.ros.recording import ProcessRecorder, QueuedRecorder, SplitRecorder
     n = 3000
     for split in (False, True):
@@ -333,9 +341,8 @@ def test_fixed_cdr_templates_give_rclpys_bytes():
     with the same values (the recorded bags hold the same messages)."""
     import numpy as np
     from rclpy.serialization import deserialize_message
-    from starleth_interface.msg_cdr import FixedCdr
-    from starleth_interface.msg_cdr import IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS
-    from starleth_interface.msg_cdr import _set
+
+    from starleth_interface.msg_cdr import IMU_FIELDS, ODOM_FIELDS, WRENCH_FIELDS, FixedCdr, _set
     rng = np.random.default_rng(1)
     cases = [(WrenchStamped, WRENCH_FIELDS, ("world",)), (Odometry, ODOM_FIELDS, ("world", "base")),
              (Imu, IMU_FIELDS, ("base",))]
@@ -367,8 +374,15 @@ def test_fixed_cdr_templates_give_rclpys_bytes():
 
 def test_readers_decode_rclpys_bytes_and_fall_back_on_anything_else():
     import numpy as np
-    from starleth_interface.msg_cdr import JointStateCdr, JointStateReader, StampedReader, _set
-    from starleth_interface.msg_cdr import ODOM_FIELDS, WRENCH_FIELDS
+
+    from starleth_interface.msg_cdr import (
+        ODOM_FIELDS,
+        WRENCH_FIELDS,
+        JointStateCdr,
+        JointStateReader,
+        StampedReader,
+        _set,
+    )
     rng = np.random.default_rng(2)
     ro = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
     rw = StampedReader(WrenchStamped, WRENCH_FIELDS)
@@ -421,6 +435,7 @@ def test_readers_decode_rclpys_bytes_and_fall_back_on_anything_else():
 def test_diagnostic_array_writer_gives_rclpys_message():
     import numpy as np
     from rclpy.serialization import deserialize_message
+
     from starleth_interface.msg_cdr import DiagnosticArrayCdr
     rng = np.random.default_rng(3)
     layouts = [("starleth_sim: solver", "starleth_sim", [f"k{i}" for i in range(14)]),
@@ -450,6 +465,7 @@ def test_process_recorder_finalises_the_file_when_its_parent_is_gone(tmp_path):
     """The writer process finalises the file when its input ends (the parent killed
     outright, SIGKILL): every message handed over is in a complete file."""
     from rclpy.serialization import deserialize_message
+
     from starleth_sim.ros.recording import ProcessRecorder
     path = tmp_path / "orphan.mcap"
     rec = ProcessRecorder(str(path))
@@ -494,8 +510,8 @@ def test_every_recorder_implements_the_protocol_and_closes_with_metadata(tmp_pat
     """McapRecorder, SplitRecorder, QueuedRecorder and ProcessRecorder are Recorders:
     hand_over, close(timeout, metadata) (the records land in the file), dropped, failure."""
     from mcap.reader import make_reader
-    from starleth_sim.ros.recording import (ProcessRecorder, QueuedRecorder, Recorder,
-                                            SplitRecorder)
+
+    from starleth_sim.ros.recording import ProcessRecorder, QueuedRecorder, Recorder, SplitRecorder
     makers = {"mcap": lambda p: McapRecorder(str(p) + ".mcap"),
               "split": lambda p: SplitRecorder(str(p), max_size=1 << 20),
               "queued": lambda p: QueuedRecorder(McapRecorder(str(p) + ".mcap")),
@@ -552,8 +568,15 @@ def test_open_recorder_is_a_process_else_a_thread_of_this_one(tmp_path, monkeypa
     and a QueuedRecorder over the file's writer; a file that cannot be written: one
     RecordingError naming it, either way."""
     import subprocess
-    from starleth_sim.ros.recording import (ProcessRecorder, QueuedRecorder, RecordingError,
-                                            SplitRecorder, StorageOptions, open_recorder)
+
+    from starleth_sim.ros.recording import (
+        ProcessRecorder,
+        QueuedRecorder,
+        RecordingError,
+        SplitRecorder,
+        StorageOptions,
+        open_recorder,
+    )
     warnings = []
     rec = open_recorder(StorageOptions(uri=str(tmp_path / "p.mcap")), warn=warnings.append)
     assert isinstance(rec, ProcessRecorder) and not warnings

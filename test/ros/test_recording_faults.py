@@ -20,17 +20,16 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.qos import QoSProfile  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import QoSProfile
+from rclpy.serialization import serialize_message
+from ros_test_nodes import NodeProcess, RosTestNode
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
 
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.ros.recording.mcap_sink import RecordingError, repair  # noqa: E402
-from starleth_sim.ros.recording import (McapRecorder, ProcessRecorder,  # noqa: E402
-                                        QueuedRecorder, SplitRecorder)
-from starleth_sim.tools.common.bag import read_messages  # noqa: E402
+from starleth_sim.ros.recording import McapRecorder, ProcessRecorder, QueuedRecorder, SplitRecorder
+from starleth_sim.ros.recording.mcap_sink import RecordingError, repair
+from starleth_sim.tools.common.bag import read_messages
 
 DOMAIN_RANGE = (100, 20)      # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 100 + os.getpid() % 20
@@ -47,9 +46,10 @@ def _clock(k):
 def _readers_agree(path):
     """Messages per topic as the mcap library, rosbags and this package's reader see the
     file (all three must read it without --salvage)."""
+    from pathlib import Path
+
     from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
-    from pathlib import Path
     with open(path, "rb") as f:
         n_mcap = sum(1 for _ in make_reader(f).iter_messages())
     with AnyReader([Path(path)]) as r:

@@ -11,13 +11,17 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from starleth_sim.physics.config import ConfigError  # noqa: E402
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,  # noqa: E402
-                                       foot_wrench_topic, resolve)
-from starleth_sim.robots import recorded_description, robot_description  # noqa: E402
-from starleth_sim.ros.tf import base_link  # noqa: E402
-from starleth_sim.tools.common.bag import read_messages, recorded_robot  # noqa: E402
-from starleth_sim.tools.demo.demo import MIN_TROT_CHECKED, print_summary, run_demo  # noqa: E402
+from starleth_interface.topics import (
+    TOPIC_BASE_STATE,
+    TOPIC_JOINT_STATES,
+    foot_wrench_topic,
+    resolve,
+)
+from starleth_sim.physics.config import ConfigError
+from starleth_sim.robots import recorded_description, robot_description
+from starleth_sim.ros.tf import base_link
+from starleth_sim.tools.common.bag import read_messages, recorded_robot
+from starleth_sim.tools.demo.demo import MIN_TROT_CHECKED, print_summary, run_demo
 
 # shares the controller tests' range (conftest._free_ros_domain: one after another)
 DOMAIN_RANGE = (10, 40)       # first, span

@@ -20,21 +20,26 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray, String  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
+from launch_file import ROS2_CONTROL_LAUNCH_FILE, launch_nodes
+from nav_msgs.msg import Odometry
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from ros2_control_stand_in import (
+    ForwardCommandController,
+    SimTimeControlLoop,
+    TopicBasedSystem,
+    parse_ros2_control,
+    spawner_arguments,
+)
+from ros_test_nodes import NodeProcess, RosTestNode
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import SetBool
 
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from launch_file import ROS2_CONTROL_LAUNCH_FILE, launch_nodes  # noqa: E402
-from ros2_control_stand_in import (ForwardCommandController, SimTimeControlLoop,  # noqa: E402
-                                   TopicBasedSystem, parse_ros2_control, spawner_arguments)
-from starleth_sim.physics.description import leg_angles_for_height  # noqa: E402
-from starleth_sim.physics.simulator import Simulator  # noqa: E402
-from starleth_sim.ros.qos import STATE_QOS  # noqa: E402
-from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
+from starleth_sim.physics.description import leg_angles_for_height
+from starleth_sim.physics.simulator import Simulator
+from starleth_sim.ros.qos import STATE_QOS
+from starleth_sim.ros.state_io import parse_initial_state
 
 DOMAIN_RANGE = (229, 4)        # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 229 + os.getpid() % 4

@@ -23,29 +23,38 @@ import yaml
 
 pytest.importorskip("rclpy")
 
-from rclpy.time import Time  # noqa: E402
-
-from launch_file import ROS2_CONTROL_LAUNCH_FILE, launch_arguments, launch_nodes  # noqa: E402
-from ros2_control_stand_in import (ForwardCommandController, HardwareInfo,  # noqa: E402
-                                   TopicBasedSystem, parse_ros2_control, spawner_arguments)
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-from starleth_controller.model import RobotModel  # noqa: E402
-from starleth_interface.ros_helpers import ROS_PARAMETERS  # noqa: E402
-from starleth_interface.topics import (TOPIC_EFFORT_COMMANDS, TOPIC_JOINT_COMMANDS,  # noqa: E402
-                                       TOPIC_JOINT_STATES, TOPIC_POSITION_COMMANDS,
-                                       TOPIC_VELOCITY_COMMANDS)
-from starleth_sim.physics.config import ConfigError  # noqa: E402
-from starleth_sim.physics.description import RobotDescription, urdf_path  # noqa: E402
-from starleth_sim.physics.simulator import Simulator  # noqa: E402
-from starleth_sim.robots import available_robots, robot_urdf  # noqa: E402
-from starleth_sim.ros import ros2_control_controllers as rcc  # noqa: E402
-from starleth_sim.ros import ros2_control_description as rcd  # noqa: E402
-from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings  # noqa: E402
-from starleth_sim.ros.service import SimService  # noqa: E402
-from starleth_sim.ros.state_io import parse_initial_state  # noqa: E402
-from starleth_sim.tools.analysis.summary import urdf_info  # noqa: E402
-
+from launch_file import ROS2_CONTROL_LAUNCH_FILE, launch_arguments, launch_nodes
+from rclpy.time import Time
 from repo_root import ROOT
+from ros2_control_stand_in import (
+    ForwardCommandController,
+    HardwareInfo,
+    TopicBasedSystem,
+    parse_ros2_control,
+    spawner_arguments,
+)
+from std_msgs.msg import Float64MultiArray
+
+from starleth_controller.model import RobotModel
+from starleth_interface.ros_helpers import ROS_PARAMETERS
+from starleth_interface.topics import (
+    TOPIC_EFFORT_COMMANDS,
+    TOPIC_JOINT_COMMANDS,
+    TOPIC_JOINT_STATES,
+    TOPIC_POSITION_COMMANDS,
+    TOPIC_VELOCITY_COMMANDS,
+)
+from starleth_sim.physics.config import ConfigError
+from starleth_sim.physics.description import RobotDescription, urdf_path
+from starleth_sim.physics.simulator import Simulator
+from starleth_sim.robots import available_robots, robot_urdf
+from starleth_sim.ros import ros2_control_controllers as rcc
+from starleth_sim.ros import ros2_control_description as rcd
+from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings
+from starleth_sim.ros.service import SimService
+from starleth_sim.ros.state_io import parse_initial_state
+from starleth_sim.tools.analysis.summary import urdf_info
+
 SECTION_FILE = os.path.join(ROOT, "urdf", "starleth_ros2_control.xml")
 CONFIG_DIR = os.path.join(ROOT, "config")
 ROBOTS = available_robots()

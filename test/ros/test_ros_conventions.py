@@ -15,17 +15,17 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
-from launch_file import Substitutions, launch_nodes, launch_values  # noqa: E402
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from geometry_msgs.msg import Twist  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
+from geometry_msgs.msg import Twist
+from launch_file import Substitutions, launch_nodes, launch_values
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from repo_root import ROOT
+from ros_test_nodes import NodeProcess, RosTestNode
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool
 
-from starleth_sim.tools.analysis import run as analysis_run  # noqa: E402
+from starleth_sim.tools.analysis import run as analysis_run
 
-from repo_root import ROOT  # noqa: E402
 DOMAIN_RANGE = (90, 9)        # first, span; test_sim_node: 50..89, controller tests 10..49
 DOMAIN_ID = 90 + os.getpid() % 9    # conftest._free_ros_domain: a free one of the range
 START_TIMEOUT = 120.0
@@ -260,6 +260,7 @@ def _declared_parameters(executable):
     """{name: default} of the parameters a node declares (rclpy adds use_sim_time)."""
     if executable == "sim_node":
         from dataclasses import asdict
+
         from starleth_sim.ros.parameters import Settings
         params = asdict(Settings())
     else:
@@ -389,8 +390,8 @@ def _environ(pid, timeout=10.0):
 def test_children_discover_on_this_host_only_unless_the_user_chose(tmp_path, monkeypatch):
     """The demo's, the benchmark's and the tests' child processes run with
     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the user set a range."""
-    from starleth_sim.tools.demo.demo import NodeProcess as DemoNodeProcess
     from starleth_sim.tools.common.discovery import local_discovery_env
+    from starleth_sim.tools.demo.demo import NodeProcess as DemoNodeProcess
     assert local_discovery_env({})["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     assert local_discovery_env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})[
         "ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"

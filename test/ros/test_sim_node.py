@@ -2,11 +2,11 @@
 (`python -m starleth_sim.ros.sim_node --ros-args -p ...`) on an isolated ROS_DOMAIN_ID and
 is driven from a test node in this process. Every child process is stopped in a fixture
 teardown or a finally; every wait is bounded."""
+import gc
 import itertools
 import json
 import os
 import signal
-import gc
 import time
 
 import numpy as np
@@ -15,17 +15,17 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
-from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy  # noqa: E402
-from sensor_msgs.msg import JointState, Imu  # noqa: E402
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from std_msgs.msg import Float64MultiArray, String  # noqa: E402
-from std_srvs.srv import Trigger, SetBool  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from ros_test_nodes import NodeProcess, RosTestNode
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import SetBool, Trigger
 
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.tools.bench.controllers import EchoController  # noqa: E402
+from starleth_sim.tools.bench.controllers import EchoController
 
 # one ROS domain per test module and process (other modules use other ranges)
 DOMAIN_RANGE = (50, 40)       # first, span
@@ -107,9 +107,10 @@ def ros():
 
 def read_mcap(path):
     """{topic: [(log_time, msg)]}, {topic: connection} with rosbags (an independent reader)."""
+    from pathlib import Path
+
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
-    from pathlib import Path
     out, conns = {}, {}
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for c in reader.connections:
@@ -609,6 +610,7 @@ def test_contact_markers_cdr_equals_the_message_objects():
     deleted and keeps its last points, as there)."""
     from rclpy.serialization import deserialize_message, serialize_message
     from visualization_msgs.msg import MarkerArray
+
     from starleth_sim.ros.contact_markers import MARKER_COLOURS
     from starleth_sim.ros.sim_node import SimNode
     ctx = rclpy.Context()

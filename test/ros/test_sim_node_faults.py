@@ -12,14 +12,14 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.qos import QoSProfile  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_srvs.srv import SetBool, Trigger  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import QoSProfile
+from ros_test_nodes import NodeProcess, RosTestNode
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool, Trigger
 
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_interface.ros_helpers import service_qos  # noqa: E402
-from starleth_sim.tools.common.discovery import local_discovery_env  # noqa: E402
+from starleth_interface.ros_helpers import service_qos
+from starleth_sim.tools.common.discovery import local_discovery_env
 
 DOMAIN_RANGE = (120, 20)      # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 120 + os.getpid() % 20

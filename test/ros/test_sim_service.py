@@ -5,8 +5,8 @@ reset during a lockstep exchange, megabyte names). No ROS graph."""
 import numpy as np
 import pytest
 
-from starleth_sim import ConfigError
 from starleth_interface.ros_helpers import ThrottledLog
+from starleth_sim import ConfigError
 from starleth_sim.physics.impedance import ImpedanceCommand
 from starleth_sim.ros.parameters import Settings, load_default_parameters, render_yaml
 from starleth_sim.ros.service import SimService, quoted
@@ -57,6 +57,7 @@ def test_parameter_file_is_generated_from_the_schema():
     """msg_configs/sim_node.yaml is the schema's rendering (regenerate it with
     `python -m starleth_sim.ros.parameters > msg_configs/sim_node.yaml`)."""
     import yaml
+
     from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, default_settings_file
     with open(default_settings_file()) as f:
         text = f.read()
@@ -504,6 +505,7 @@ def test_the_hold_gains_are_starleths_scaled_to_the_robot():
     Go1 80 mu lambda and 2 mu lambda^1.5, mu its mass and lambda its mean leg length (hip
     pitch to knee to foot centre, from the model's placements) over StarlETH's."""
     import pinocchio as pin
+
     from starleth_sim.robots import robot_description
     from starleth_sim.ros.parameters import robot_default_gains
     both = ("default_kp", "default_kd")

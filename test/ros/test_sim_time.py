@@ -19,25 +19,27 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from launch_file import launch_nodes  # noqa: E402
-from layout_checks import check_layout  # noqa: E402
-from tf_trees import tf_tree, world_poses  # noqa: E402
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from controller_examples import (controllers_page_blocks, readme_controller_blocks,  # noqa: E402
-                                 run_beside_sim_node)  # noqa: E402
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rcl_interfaces.msg import ParameterEvent  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
+from controller_examples import (
+    controllers_page_blocks,
+    readme_controller_blocks,
+    run_beside_sim_node,
+)
+from launch_file import launch_nodes
+from layout_checks import check_layout
+from mcap_ros2.reader import read_ros2_messages
+from rcl_interfaces.msg import ParameterEvent
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_test_nodes import NodeProcess, RosTestNode
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool
+from tf_trees import tf_tree, world_poses
 
-from starleth_sim.robots import load_robot  # noqa: E402
-from starleth_sim.tools.analysis import analysis  # noqa: E402
-from starleth_sim.tools.view import foxglove_layout  # noqa: E402
-from starleth_sim.tools.replay import replay  # noqa: E402
-from starleth_sim.tools.view import view  # noqa: E402
+from starleth_sim.robots import load_robot
+from starleth_sim.tools.analysis import analysis
+from starleth_sim.tools.replay import replay
+from starleth_sim.tools.view import foxglove_layout, view
 
 STARLETH_STANDING_HEIGHT = load_robot("starleth").standing_height
 

@@ -14,21 +14,26 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from rcl_interfaces.msg import Parameter as ParameterMsg, ParameterType  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from repo_root import ROOT
+from robot_cases import ankle_urdf
+from ros_test_nodes import NodeProcess
 
-from ros_test_nodes import NodeProcess  # noqa: E402
-from robot_cases import ankle_urdf  # noqa: E402
-from starleth_interface.ros_helpers import (RosLogHandler, UnknownParameterError,  # noqa: E402
-                                            check_parameter_names, declare_parameters,
-                                            route_python_logging)
-from starleth_controller.node_parameters import PARAMETERS  # noqa: E402
-from starleth_sim.tools.common.discovery import local_discovery_env  # noqa: E402
-from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS  # noqa: E402
+from starleth_controller.node_parameters import PARAMETERS
+from starleth_interface.ros_helpers import (
+    RosLogHandler,
+    UnknownParameterError,
+    check_parameter_names,
+    declare_parameters,
+    route_python_logging,
+)
+from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS
+from starleth_sim.tools.common.discovery import local_discovery_env
 
-from repo_root import ROOT  # noqa: E402
 DOMAIN_RANGE = (160, 20)      # first, span (conftest._free_ros_domain)
 DOMAIN_ID = 160 + os.getpid() % 20
 

@@ -9,13 +9,13 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from mcap_ros2.reader import read_ros2_messages
+from repo_root import ROOT
+from rosbags.typesys import Stores, get_typestore
+from tf_trees import world_poses
 
-from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges  # noqa: E402
-from repo_root import ROOT  # noqa: E402
-from tf_trees import world_poses  # noqa: E402
-from starleth_sim.robots import starleth_description  # noqa: E402
+from starleth_sim.robots import starleth_description
+from starleth_sim.ros.tf import FrameTree, TfMessageCdr, urdf_joint_edges
 
 DOMAIN_RANGE = (199, 30)      # first, span
 DOMAIN_ID = 199 + os.getpid() % 30  # conftest._free_ros_domain: a free one of the range
@@ -193,7 +193,9 @@ def test_foxglove_layout_shows_what_sim_node_records(recorded):
     is in a recording and every field path exists on the recorded messages; starleth-layout
     without a namespace gives it as it is."""
     import json
+
     from layout_checks import check_layout
+
     from starleth_sim.tools.view import foxglove_layout
     root = ROOT
     layout = json.load(open(os.path.join(root, "foxglove", "starleth_layout.json")))
@@ -212,6 +214,7 @@ def test_starleth_layout_refuses_what_is_not_a_namespace_or_a_prefix(tmp_path, c
     """Bad arguments: one usage line and exit 2; a layout with a panel it cannot rewrite:
     one line and exit 1."""
     import json
+
     from starleth_sim.tools.view import foxglove_layout
     for args, words in ((["robot 1"], "not a ROS namespace"),
                         (["robot1", "/robot1"], "named twice"),

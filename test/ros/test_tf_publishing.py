@@ -14,10 +14,10 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from mcap.reader import make_reader  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile  # noqa: E402
-from rclpy.serialization import deserialize_message  # noqa: E402
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
+from mcap.reader import make_reader
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from rclpy.serialization import deserialize_message
+from ros_test_nodes import NodeProcess, RosTestNode
 
 DOMAIN_RANGE = (199, 30)      # first, span (conftest._free_ros_domain; shared with test_tf)
 DOMAIN_ID = 199 + os.getpid() % 30

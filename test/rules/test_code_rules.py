@@ -20,8 +20,8 @@ import re
 from dataclasses import dataclass
 
 import pytest
-
 from repo_root import ROOT
+
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 #: a module has one job; at this size it is time to look for a second one in it (not to
 #: squeeze it: blank lines and docstrings count like code)

@@ -14,14 +14,14 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from rclpy.node import Node  # noqa: E402
+from rclpy.node import Node
+from repo_root import ROOT
 
-from starleth_controller.node_parameters import PARAMETERS as CONTROLLER_PARAMETERS  # noqa: E402
-from starleth_interface.ros_helpers import init_ros  # noqa: E402
-from starleth_sim import Simulator  # noqa: E402
-from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings  # noqa: E402
+from starleth_controller.node_parameters import PARAMETERS as CONTROLLER_PARAMETERS
+from starleth_interface.ros_helpers import init_ros
+from starleth_sim import Simulator
+from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS, Settings
 
-from repo_root import ROOT  # noqa: E402
 PAGES = ["README.md", *sorted(os.path.relpath(p, ROOT) for p in
                               glob.glob(os.path.join(ROOT, "doc", "*.md"))),
          "launch/starleth.launch.xml"]

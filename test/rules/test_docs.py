@@ -39,8 +39,8 @@ import os
 import re
 
 import pytest
-
 from repo_root import ROOT
+
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 GENERATED = {"runs", "build", "install", "log"}
 #: files the C kernels' build writes into its build directory, not kept in the repository

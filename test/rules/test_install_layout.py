@@ -12,8 +12,8 @@ import subprocess
 import sys
 
 import pytest
-
 from repo_root import ROOT
+
 COLCON = os.path.join(os.path.dirname(sys.executable), "colcon")
 
 
@@ -142,6 +142,7 @@ def test_the_kernels_are_rebuilt_when_and_only_when_their_sources_change(tmp_pat
     machine code, and an unchanged checkout builds nothing."""
     import io
     import shutil
+
     from starleth_interface import c_extension
     from starleth_sim.physics.kernels import build as kernel_build
     from starleth_sim.physics.kernels import ensure_built
@@ -233,6 +234,7 @@ def test_an_edit_of_a_shared_header_rebuilds_every_extension(tmp_path, monkeypat
     """The headers the C sides share (starleth_interface/csrc) are part of every module's
     digest: an edit of one rebuilds the physics kernels and the small extensions alike."""
     import shutil
+
     from starleth_interface import c_extension
     from starleth_sim.physics.kernels import build as kernel_build
     shared = tmp_path / "csrc"

@@ -12,10 +12,10 @@ import sys
 import xml.etree.ElementTree as ET
 
 import yaml
+from repo_root import ROOT
 
 from starleth_sim.ros.ros2_control_description import HARDWARE_PLUGIN
 
-from repo_root import ROOT
 PACKAGES = ("starleth_sim", "starleth_controller", "starleth_interface")
 LAUNCH_FILES = sorted(glob.glob(os.path.join(ROOT, "launch", "*.launch.xml")))
 CONTROLLER_FILES = sorted(glob.glob(os.path.join(ROOT, "config", "*.yaml")))

@@ -5,9 +5,10 @@ schema lacks."""
 import os
 import re
 
+from repo_root import ROOT
+
 from starleth_interface.ros_helpers import ROS_TYPE_NAMES, parameter_table_row
 from starleth_sim.ros.parameters import SIM_NODE_PARAMETERS
-from repo_root import ROOT
 
 DOC = os.path.join(ROOT, "doc",
                    "sim_node.md")

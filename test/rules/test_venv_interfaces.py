@@ -8,8 +8,8 @@ import os
 import shutil
 
 import pytest
-
 from repo_root import ROOT
+
 SCRIPT = os.path.join(ROOT, "venv_interfaces", "generate.py")
 
 

@@ -10,12 +10,12 @@ import sys
 
 import numpy as np
 from nav_msgs.msg import Odometry
+from repo_root import ROOT
+from ros_test_nodes import NodeProcess
 from std_srvs.srv import SetBool
 
-from ros_test_nodes import NodeProcess
 from starleth_sim.tools.common.discovery import local_discovery_env
 
-from repo_root import ROOT
 START_TIMEOUT = 120.0          # of silence: a node's compile lines restart it (ros_test_nodes)
 
 

@@ -17,6 +17,7 @@ import shlex
 import xml.etree.ElementTree as ET
 
 from repo_root import ROOT
+
 LAUNCH_FILE = os.path.join(ROOT, "launch", "starleth.launch.xml")
 ROS2_CONTROL_LAUNCH_FILE = os.path.join(ROOT, "launch", "starleth_ros2_control.launch.xml")
 NODE_ATTRIBUTES = {"pkg", "exec", "name", "namespace", "output", "args"}

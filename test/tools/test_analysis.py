@@ -16,23 +16,23 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("matplotlib")
 
-from builtin_interfaces.msg import Time  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 
-from starleth_sim import Simulator  # noqa: E402
-from starleth_sim.physics.description import STARLETH_JOINT_NAMES  # noqa: E402
-from starleth_sim.robots import robot_description, spec_text  # noqa: E402
-from starleth_sim.tools.analysis import analysis  # noqa: E402
+from starleth_sim import Simulator
+from starleth_sim.physics.description import STARLETH_JOINT_NAMES
+from starleth_sim.physics.posture import PostureHold
+from starleth_sim.robots import robot_description, spec_text
+from starleth_sim.ros.recording import McapRecorder
+from starleth_sim.tools.analysis import analysis
 from starleth_sim.tools.analysis import plots as analysis_plots
 from starleth_sim.tools.analysis import run as analysis_run
 from starleth_sim.tools.common import bag
-from starleth_sim.physics.posture import PostureHold  # noqa: E402
-from starleth_sim.ros.recording import McapRecorder  # noqa: E402
 
 PERIOD_NS = 2_500_000
 FEET = ("LF_foot", "RF_foot", "LH_foot", "RH_foot")
@@ -148,8 +148,8 @@ def run_sim(path, preset="HmJ", steps=400, controller="posture", drop=0.0, skip=
         def torque(_k):
             return ph.torque(sim)
     else:
-        from starleth_sim.physics.description import urdf_path
         from starleth_controller import Command, RobotState, StarlethController
+        from starleth_sim.physics.description import urdf_path
         ctrl = StarlethController(urdf_path())
 
         def torque(k):

@@ -31,8 +31,8 @@ def test_floor_sends_the_nodes_bytes_and_answers_as_controller_node(ctx):
     from starleth_controller.controller_node import ControllerNode
     from starleth_sim.ros.sim_node import SimNode
     from starleth_sim.ros.state_io import base_values, joint_values
-    from starleth_sim.tools.bench.floor import FloorController, bundle_bytes
     from starleth_sim.tools.bench.controllers import TROT_AT, TROT_SPEED
+    from starleth_sim.tools.bench.floor import FloorController, bundle_bytes
     sim_node = SimNode(context=ctx, parameter_overrides={"mode": "lockstep"})
     ctl_node = ControllerNode(context=ctx, parameter_overrides={"mode": "stand"})
     helper = rclpy.create_node("floor_test", context=ctx)

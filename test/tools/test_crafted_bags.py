@@ -32,20 +32,20 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from builtin_interfaces.msg import Time  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import JointState
 
-from starleth_sim.physics.description import STARLETH_JOINT_NAMES as JOINTS  # noqa: E402
-from starleth_sim.ros.recording import McapRecorder, message_definition  # noqa: E402
-from starleth_sim.tools.analysis import analysis  # noqa: E402
+from starleth_sim.physics.description import STARLETH_JOINT_NAMES as JOINTS
+from starleth_sim.ros.recording import McapRecorder, message_definition
+from starleth_sim.tools.analysis import analysis
 from starleth_sim.tools.analysis import plots as analysis_plots
 from starleth_sim.tools.common import bag as bagmod
-from starleth_sim.tools.view import view
 from starleth_sim.tools.view import frames as view_frames
+from starleth_sim.tools.view import view
 
 FEET = ("LF", "RF", "LH", "RH")
 WRENCH_TOPICS = tuple(f"/starleth/{f}_foot/wrench" for f in FEET)
@@ -387,6 +387,7 @@ def replay_md():
     """The starleth_sim metadata record sim_node writes (physics configuration, initial
     state, joint names, control period) for HmJ, and the joint names."""
     import yaml
+
     from starleth_sim.physics.simulator import Simulator
     from starleth_sim.ros.state_io import initial_state_record
     sim = Simulator.from_preset("HmJ")

@@ -14,15 +14,15 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from rclpy.qos import QoSProfile  # noqa: E402
+from geometry_msgs.msg import WrenchStamped
+from rclpy.qos import QoSProfile
+from ros_test_nodes import NodeProcess, RosTestNode
+from sensor_msgs.msg import JointState
 
-from ros_test_nodes import NodeProcess, RosTestNode  # noqa: E402
-from starleth_sim.tools.replay import replay  # noqa: E402
-from starleth_sim.tools.replay import recording as replay_recording  # noqa: E402
-from starleth_sim.tools.replay import resimulation as replay_resimulation  # noqa: E402
-from starleth_sim.tools.bench.controllers import EchoController  # noqa: E402
+from starleth_sim.tools.bench.controllers import EchoController
+from starleth_sim.tools.replay import recording as replay_recording
+from starleth_sim.tools.replay import replay
+from starleth_sim.tools.replay import resimulation as replay_resimulation
 
 # test_sim_node 50..89, controller tests 10..49, conventions 90..98, tf 199..228
 DOMAIN_RANGE = (140, 40)      # first, span
@@ -135,9 +135,10 @@ def test_open_loop_replay_through_other_configurations(recorded, capsys):
 
 
 def test_bag_without_metadata_gives_one_line(tmp_path, capsys):
-    from starleth_sim.ros.recording import McapRecorder
-    from sensor_msgs.msg import JointState as JS
     from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState as JS
+
+    from starleth_sim.ros.recording import McapRecorder
     path = str(tmp_path / "foreign.mcap")
     rec = McapRecorder(path)
     rec.add_topic("/joint_states", JS)
@@ -201,6 +202,7 @@ def cut_recording(recorded):
     without the ending the recorder added (a writer killed, a file truncated)."""
     import subprocess
     import sys
+
     from starleth_sim.ros.recording.mcap_sink import ending
     from starleth_sim.tools.common.bag import read_messages
     mcap, tmp = recorded

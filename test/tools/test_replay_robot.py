@@ -9,21 +9,21 @@ import yaml
 
 pytest.importorskip("rclpy")
 
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import JointState
 
-from starleth_interface.topics import foot_wrench_topic  # noqa: E402
-from starleth_sim import robots  # noqa: E402
-from starleth_sim.physics.config import ConfigError, load_preset  # noqa: E402
-from starleth_sim.physics.simulator import Simulator  # noqa: E402
-from starleth_sim.physics import robot_build as build  # noqa: E402
-from starleth_sim.ros.recording import McapRecorder  # noqa: E402
-from starleth_sim.ros.service import SimService  # noqa: E402
-from starleth_sim.ros.state_io import initial_state_record  # noqa: E402
-from starleth_sim.tools.replay import replay  # noqa: E402
+from starleth_interface.topics import foot_wrench_topic
+from starleth_sim import robots
+from starleth_sim.physics import robot_build as build
+from starleth_sim.physics.config import ConfigError, load_preset
+from starleth_sim.physics.simulator import Simulator
+from starleth_sim.ros.recording import McapRecorder
+from starleth_sim.ros.service import SimService
+from starleth_sim.ros.state_io import initial_state_record
 from starleth_sim.tools.replay import recording as replay_recording
-from starleth_sim.tools.replay.resimulation import _snapshot  # noqa: E402
+from starleth_sim.tools.replay import replay
+from starleth_sim.tools.replay.resimulation import _snapshot
 
 STEPS = 60
 

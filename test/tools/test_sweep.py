@@ -100,6 +100,7 @@ def test_a_go1_run_of_a_sweep_stands_under_its_own_controller(tmp_path):
 
 def test_fall_height_scales_with_the_standing_height():
     from types import SimpleNamespace
+
     from starleth_sim.tools.common.falls import fall_height
     assert fall_height(SimpleNamespace(standing_height=0.415), 0.2) == 0.2
     assert fall_height(SimpleNamespace(standing_height=0.2075), 0.2) == pytest.approx(0.1)

@@ -22,19 +22,18 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("meshcat")
 
-import pinocchio as pin  # noqa: E402
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
+import pinocchio as pin
+from geometry_msgs.msg import WrenchStamped
+from mcap_ros2.reader import read_ros2_messages
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from test_analysis import run_sim, stamp
 
-from starleth_sim.tools.view import view  # noqa: E402
+from starleth_sim.physics.description import STARLETH_JOINT_NAMES, RobotDescription, urdf_path
+from starleth_sim.ros.recording import McapRecorder
 from starleth_sim.tools.view import page as view_page
-from starleth_sim.physics.description import (STARLETH_JOINT_NAMES, RobotDescription,  # noqa: E402
-                                      urdf_path)
-from starleth_sim.ros.recording import McapRecorder  # noqa: E402
-from test_analysis import run_sim, stamp  # noqa: E402
+from starleth_sim.tools.view import view
 
 FEET = ("LF", "RF", "LH", "RH")
 DROP_STEPS = 200            # 0.5 s at 400 Hz

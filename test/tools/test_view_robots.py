@@ -17,20 +17,19 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("meshcat")
 
-from geometry_msgs.msg import WrenchStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import JointState
+from test_analysis import stamp
 
-from starleth_interface.robot.scaling import robot_scale  # noqa: E402
-from starleth_interface.topics import foot_wrench_topic  # noqa: E402
-from starleth_sim.robots import (load_robot, package_dirs, robot_description,  # noqa: E402
-                                 spec_text, urdf_file)
-from starleth_sim.robots.meshes import read_mesh, resolve_mesh, simplified  # noqa: E402
-from starleth_sim.ros.recording import McapRecorder  # noqa: E402
-from starleth_sim.ros.tf import base_link  # noqa: E402
-from starleth_sim.tools.view import view  # noqa: E402
+from starleth_interface.robot.scaling import robot_scale
+from starleth_interface.topics import foot_wrench_topic
+from starleth_sim.robots import load_robot, package_dirs, robot_description, spec_text, urdf_file
+from starleth_sim.robots.meshes import read_mesh, resolve_mesh, simplified
+from starleth_sim.ros.recording import McapRecorder
+from starleth_sim.ros.tf import base_link
 from starleth_sim.tools.view import scene as view_scene
-from test_analysis import stamp  # noqa: E402
+from starleth_sim.tools.view import view
 
 
 def robot_or_skip(name):

@@ -37,10 +37,20 @@ import pinocchio as pin
 from starleth_interface.robot.urdf import revolute_axis
 
 from ..description import RobotDescription
-from ..kernels import (add_at, angular_jacobian, cut_joint_torques, cut_joints,  # noqa: F401
-                       from_pin_dynamics, gather_joint_values, integrate_forest,
-                       midpoint_dynamics, quat_rot,
-                       rigid_body_forces, to_pin_velocity, tree_dynamics)
+from ..kernels import (  # noqa: F401
+    add_at,
+    angular_jacobian,
+    cut_joint_torques,
+    cut_joints,
+    from_pin_dynamics,
+    gather_joint_values,
+    integrate_forest,
+    midpoint_dynamics,
+    quat_rot,
+    rigid_body_forces,
+    to_pin_velocity,
+    tree_dynamics,
+)
 from ..kinematics import KinematicTree, contact_kinematics, forward_kinematics, point_jacobian
 from ..rigid_body import BodyInertias
 

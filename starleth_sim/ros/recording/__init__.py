@@ -21,8 +21,15 @@ from .mcap_writer import McapRecorder
 from .process_writer import ProcessRecorder
 from .qos import qos_profiles_yaml, qos_to_dict
 from .queued_writer import QueuedRecorder
-from .schemas import (SEPARATOR, generated_msg_text, message_class, message_definition,
-                      msg_text, register_msg_text, type_name)
+from .schemas import (
+                      SEPARATOR,
+                      generated_msg_text,
+                      message_class,
+                      message_definition,
+                      msg_text,
+                      register_msg_text,
+                      type_name,
+)
 from .split_writer import SplitRecorder
 
 __all__ = ["Recorder", "StorageOptions", "open_recorder", "open_file_recorder",

@@ -35,7 +35,7 @@ def enlarge_pipe(fd, size) -> int:
     """Ask for a pipe buffer of `size` bytes (Linux F_SETPIPE_SZ, capped at
     /proc/sys/fs/pipe-max-size); returns the size in effect (0 where it cannot be read)."""
     try:
-        import fcntl     # deferred: not on every platform (then the pipe keeps its size)
+        import fcntl  # deferred: not on every platform (then the pipe keeps its size)
         set_sz = getattr(fcntl, "F_SETPIPE_SZ", 1031)
         get_sz = getattr(fcntl, "F_GETPIPE_SZ", 1032)
         try:

@@ -60,11 +60,10 @@ import os
 import sys
 import time
 
-from .plots import PLOTS, save_figures
-from .plots import feet_of
+from ..common.console import run_console_script
+from .plots import PLOTS, feet_of, save_figures
 from .run import PROG, AnalysisError, Run, warn
 from .summary import format_summary, jsonable, summarise
-from ..common.console import run_console_script
 
 
 def _default_out(paths):

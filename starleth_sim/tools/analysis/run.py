@@ -12,12 +12,20 @@ import time
 
 import numpy as np
 
+from starleth_interface.topics import (
+    TOPIC_BASE_STATE,
+    TOPIC_JOINT_STATES,
+    TOPIC_ROBOT_DESCRIPTION,
+    TOPIC_SOLVER,
+    foot_wrench_topic,
+    namespace_of,
+    resolve,
+    split_foot_wrench_topic,
+)
+
 from ...physics.config import ConfigError
 from ...robots import recorded_description
 from ..common.bag import BagError, recorded_robot, stream_bag
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
-                                       TOPIC_ROBOT_DESCRIPTION, TOPIC_SOLVER, foot_wrench_topic,
-                                       namespace_of, resolve, split_foot_wrench_topic)
 
 PROG = "starleth-analyze"
 FOOT_WRENCH = ("geometry_msgs/msg/WrenchStamped", "the contact force and gait plots")

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...physics.config import PRESETS as DEFAULT_PRESETS   # the paper's Table 1
+from ...physics.config import PRESETS as DEFAULT_PRESETS  # the paper's Table 1
 from ...physics.config import ConfigError, load_preset
 from ...physics.impedance import ImpedanceCommand
 from ...physics.posture import PostureHold

@@ -25,8 +25,8 @@ class EchoController:
 
     def __init__(self, node, kp=None, kd=None, q_ref=None, reply=True,
                  topic="joint_commands"):
-        from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
+        from sensor_msgs.msg import JointState
         self.node = node
         self.kp = np.tile(DEFAULT_KP, 4) if kp is None else kp
         self.kd = np.tile(DEFAULT_KD, 4) if kd is None else kd
@@ -94,6 +94,7 @@ def make_bench_controller(context, timing=False, trot_at=TROT_AT, speed=TROT_SPE
     trots at `speed` from sim time `trot_at` on (checked on every command it sends);
     `params`: more parameter overrides of the node."""
     from rclpy.parameter import Parameter
+
     from starleth_controller import controller_node  # deferred: imports rclpy
     ctl = controller_node.ControllerNode(context=context, parameter_overrides={
         **(params or {}), "mode": "stand"})

@@ -50,8 +50,8 @@ from starleth_interface.state_bundle import JOINT_NAMES, StateBundleCdr
 from ...physics.config import PRESETS
 from ...physics.simulator import Simulator
 from ...ros.cdr import CommandDecoder
-from ..common.discovery import keep_discovery_local, local_discovery_env
 from ...ros.state_io import base_values, joint_values, state_bundle_bytes
+from ..common.discovery import keep_discovery_local, local_discovery_env
 from .controllers import TROT_AT, TROT_SPEED
 from .loop_figures import bare_figures, lockstep_figures, print_rates, process_cpu_ns
 from .round_trips import PingPong, add_pong, spin_until

@@ -36,11 +36,11 @@ import numpy as np
 
 from starleth_interface.ros_helpers import service_qos
 
-from ..view.foxglove_layout import shipped_layout_path
-from ..common.discovery import keep_discovery_local, local_discovery_env
-from .round_trips import spin_until
-from ..view.live_log import collect
 from ..common.child_process import stop_child
+from ..common.discovery import keep_discovery_local, local_discovery_env
+from ..view.foxglove_layout import shipped_layout_path
+from ..view.live_log import collect
+from .round_trips import spin_until
 
 PERIOD_S = 0.0025
 

@@ -37,6 +37,7 @@ def child_main(args):
     import rclpy
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
+
     from starleth_sim.ros.sim_node import SimNode  # deferred: imports rclpy
 
     rclpy.init(args=[], domain_id=args.domain_id,

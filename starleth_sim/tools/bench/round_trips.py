@@ -51,8 +51,8 @@ class PingPong:
     values, like /joint_states) goes out, the next is sent when its echo is back."""
 
     def __init__(self, node, ex, startup=60.0):
-        from sensor_msgs.msg import JointState
         from rclpy.qos import QoSProfile
+        from sensor_msgs.msg import JointState
         self.node, self.ex = node, ex
         self.got = 0
         self.pub = node.create_publisher(JointState, PING, QoSProfile(depth=10))

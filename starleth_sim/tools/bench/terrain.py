@@ -11,7 +11,6 @@ median of its rounds' times per physics step, and the ratio to the plane's.
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from ...physics.config import load_preset

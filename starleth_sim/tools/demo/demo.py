@@ -51,20 +51,25 @@ from starleth_controller.robot_params import trot_speed
 from starleth_interface.compile_notice import Deadline
 from starleth_interface.robot.scaling import robot_scale
 from starleth_interface.ros_helpers import service_qos
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_COMMANDS, TOPIC_JOINT_STATES,
-                                       TOPIC_SOLVER, resolve)
+from starleth_interface.topics import (
+    TOPIC_BASE_STATE,
+    TOPIC_JOINT_COMMANDS,
+    TOPIC_JOINT_STATES,
+    TOPIC_SOLVER,
+    resolve,
+)
 
 from ...physics.config import ConfigError
 from ...robots import robot_description
+from ...ros.live_view import live_view_lines
+from ..bench.round_trips import measure_bare_round_trips
+from ..common.bag import BagError, stream_bag
 from ..common.child_process import start_child_as_node
 from ..common.discovery import keep_discovery_local, local_discovery_env
-from ...ros.live_view import live_view_lines
-from ..common.bag import BagError, stream_bag
-from ..bench.round_trips import measure_bare_round_trips
-from .terrain import COURSES, course_end, course_overrides
-from .drop_test import drop_main
 from ..precompile import precompile
 from ..view.view import ViewError, write_html
+from .drop_test import drop_main
+from .terrain import COURSES, course_end, course_overrides
 
 PERIOD_NS = 2_500_000            # sim_node's stamp period (400 Hz)
 #: StarlETH's: a base height below FALL_HEIGHT is a fall, from its standing height

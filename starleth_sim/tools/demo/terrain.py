@@ -20,8 +20,9 @@ import os
 
 import yaml
 
-from ...physics.config import config_dir
 from starleth_interface.yaml_files import load_yaml_file
+
+from ...physics.config import config_dir
 
 #: the shipped stairs course (a file of msg_configs/), walked as it is
 STAIRS_FILE = "terrain/stairs.yaml"

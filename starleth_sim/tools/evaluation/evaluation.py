@@ -34,14 +34,22 @@ import time
 
 import numpy as np
 
-from ...physics.config import PRESETS as TABLE1   # the paper's Table 1, in its order
+from ...physics.config import PRESETS as TABLE1  # the paper's Table 1, in its order
 from ..bench import bench
-from .report import make_figures, write_report
-from .terrain import terrain_tasks
-from .tasks import (CONTACT_VARIANTS, task_bilateral_drift, task_contact_variant,
-                               task_fig5_damped, task_fig6, task_fig7, task_pushover,
-                               task_table1, task_unilateral_drift)
 from ..common.task_pool import SweepError, execute
+from .report import make_figures, write_report
+from .tasks import (
+    CONTACT_VARIANTS,
+    task_bilateral_drift,
+    task_contact_variant,
+    task_fig5_damped,
+    task_fig6,
+    task_fig7,
+    task_pushover,
+    task_table1,
+    task_unilateral_drift,
+)
+from .terrain import terrain_tasks
 
 FIG6_CONFIGS = TABLE1[1:]      # the hard-contact ones
 

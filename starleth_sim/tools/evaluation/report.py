@@ -10,12 +10,12 @@ import platform
 
 import numpy as np
 
-from ...physics.config import PRESETS as TABLE1   # the paper's Table 1, in its order
+from ...physics.config import PRESETS as TABLE1  # the paper's Table 1, in its order
 from ...physics.config import load_preset
 from ...physics.stepper import PHASES
+from ..common.gait_run import GAIT_PERIOD, STAND_BEFORE_TROT
 from .tasks import CONTACT_VARIANTS, FIG6_MAX_ITERATIONS
 from .terrain import terrain_section
-from ..common.gait_run import GAIT_PERIOD, STAND_BEFORE_TROT
 
 PHASE_LABELS = {"M_and_h": "M and h", "M_inverse": "M⁻¹ (and M⁻¹W)", "G": "G (and G_B⁻¹)",
                 "prox": "u^E (prox)", "rest": "rest"}

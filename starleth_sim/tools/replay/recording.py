@@ -12,13 +12,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from starleth_interface.topics import foot_wrench_topic, resolve
+from starleth_interface.yaml_files import load_yaml_text
+
 from ...physics.config import ConfigError, PhysicsConfig
 from ...physics.description import RobotDescription
 from ...robots import recorded_description, robot_description
-from starleth_interface.yaml_files import load_yaml_text
 from ...ros.parameters import frame_name_problem
 from ..common.bag import BagError, read_messages, recorded_robot
-from starleth_interface.topics import foot_wrench_topic, resolve
 
 PROG = "starleth-replay"
 #: the quantities compared step by step, as the recording holds them

@@ -63,8 +63,14 @@ import time
 import numpy as np
 
 from ...physics.config import ConfigError, load_preset
-from ..analysis.plots import (finish_axes, load_pyplot, plot_base, plot_contact_forces, run_color,
-                             window_suffix)
+from ..analysis.plots import (
+    finish_axes,
+    load_pyplot,
+    plot_base,
+    plot_contact_forces,
+    run_color,
+    window_suffix,
+)
 from ..analysis.run import Run
 from ..common.bag import BagError
 from ..common.console import run_console_script

@@ -18,9 +18,7 @@ from ...ros.parameters import Settings
 from ...ros.service import SimService
 from ...ros.state_io import public_state, quat_to_matrix
 from ..common.falls import fall_height
-from .recording import (QUANTITIES, STATE_QUANTITIES, Recording, ReplayError,
-                               shortened, warn)
-
+from .recording import QUANTITIES, STATE_QUANTITIES, Recording, ReplayError, shortened, warn
 
 #: a replayed StarlETH has fallen with its base below this [m] (falls.fall_height)
 FALL_HEIGHT = 0.3

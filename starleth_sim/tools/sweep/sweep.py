@@ -65,10 +65,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ...physics.config import ConfigError, load_preset
-from ...robots import available_robots, config_with_robot, robot_description
 from starleth_interface.robot.scaling import robot_scale
 from starleth_interface.yaml_files import load_yaml_file
+
+from ...physics.config import ConfigError, load_preset
+from ...robots import available_robots, config_with_robot, robot_description
 from ...ros.state_io import minimal_state, public_state
 from ..common.falls import fall_height
 from ..common.gait_run import run_gait

@@ -40,8 +40,13 @@ import sys
 
 from starleth_interface.config_checks import ConfigError
 from starleth_interface.package_data import package_share_dir
-from starleth_interface.topics import (TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic,
-                                       normalize_namespace, resolve)
+from starleth_interface.topics import (
+    TOPIC_ROBOT_DESCRIPTION,
+    foot_wrench_topic,
+    normalize_namespace,
+    resolve,
+)
+
 from ...robots import robot_description
 from ...ros.parameters import frame_name_problem, namespace_frame_prefix
 from ...ros.tf import base_link

@@ -61,7 +61,7 @@ async def collect_async(url, topics=None, seconds=5.0, until=None, connect_timeo
     advertised one; relative names match any namespace) as soon as they are advertised,
     and collect for `seconds` after the connection (or until ``until(log)`` is true).
     Retries the connection until connect_timeout (a server still starting)."""
-    import websockets   # optional dependency: requirements-live.txt
+    import websockets  # optional dependency: requirements-live.txt
 
     log = LiveLog()
     deadline = time.monotonic() + connect_timeout

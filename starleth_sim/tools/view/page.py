@@ -12,11 +12,18 @@ from importlib.metadata import version
 import numpy as np
 
 from ...physics.description import RobotDescription
+from ...robots.meshes import spec_package_roots
 from .frames import body_poses, configurations, contact_arrows, select_frames
 from .recording import PROG, Recording, ViewError
-from ...robots.meshes import spec_package_roots
-from .scene import (ARROW_HEAD, CAMERA_OFFSET, PAGE_TRIANGLES, body_frames, page_scale,
-                         robot_visuals, scene_commands)
+from .scene import (
+    ARROW_HEAD,
+    CAMERA_OFFSET,
+    PAGE_TRIANGLES,
+    body_frames,
+    page_scale,
+    robot_visuals,
+    scene_commands,
+)
 
 FORMAT = "starleth-view/2"
 #: decimals of the numbers in the page: positions/arrows [m], quaternions, times [s]

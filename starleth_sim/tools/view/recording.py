@@ -12,15 +12,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from starleth_interface.topics import (
+    TOPIC_BASE_STATE,
+    TOPIC_JOINT_STATES,
+    TOPIC_ROBOT_DESCRIPTION,
+    foot_wrench_topic,
+    namespace_of,
+    split_foot_wrench_topic,
+)
 from starleth_interface.yaml_files import load_yaml_text
+
 from ...physics.config import ConfigError
 from ...physics.description import urdf_path
 from ...physics.terrain import TerrainConfig
 from ...ros.tf import base_link
 from ..common.bag import read_messages, recorded_robot
-from starleth_interface.topics import (TOPIC_BASE_STATE, TOPIC_JOINT_STATES,
-                                       TOPIC_ROBOT_DESCRIPTION, foot_wrench_topic, namespace_of,
-                                       split_foot_wrench_topic)
 
 PROG = "starleth-view"
 

@@ -12,9 +12,10 @@ import zlib
 import numpy as np
 import pinocchio as pin
 
-from ...physics.description import RobotDescription
 from starleth_interface.robot.scaling import RobotScale, robot_scale
 from starleth_interface.robot.urdf import urdf_origin
+
+from ...physics.description import RobotDescription
 from ...robots.meshes import MeshError, read_mesh, resolve_mesh, simplified
 from .recording import Recording, warn
 

@@ -66,9 +66,15 @@ from ..common.bag import BagError
 from ..common.console import run_console_script
 from .frames import load_description
 from .page import ROUNDING_TEXT, render_html, replay_data
+from .recording import (
+    PROG,
+    NamespaceNotFound,
+    ViewError,
+    normalised_namespace,
+    read_recordings,
+    warn,
+)
 from .scene import page_scale
-from .recording import (PROG, NamespaceNotFound, ViewError, normalised_namespace,
-                             read_recordings, warn)
 
 DEFAULT_FPS = 50.0
 #: arrow length per newton of contact force [m/N]: 1 m = 500 N, for StarlETH; a page of
