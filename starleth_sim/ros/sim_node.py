@@ -532,9 +532,7 @@ def main(args=None, controller_params=None):
         executor, kind = make_executor(sim_node.settings.executor, sim_node.context)
         executor.add_node(sim_node.node)
         if controller_params is not None:
-            from starleth_controller.controller_node import (  # deferred: composed mode only
-                ControllerNode,
-            )
+            from starleth_controller.controller_node import ControllerNode  # deferred: composed
             # the controller follows the clock sim_node publishes (/clock remapped, e.g.
             # into the namespace, applies to both nodes, as it would in two processes)
             clock = sim_node.node.resolve_topic_name(TOPIC_CLOCK)
