@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 LIVE_PORT ?= 8765
 
-.PHONY: venv test-deps robots test sanitize sanitizer-libs demo bench eval ray browser-test constraints \
+.PHONY: venv test-deps robots test sanitize sanitizer-libs format demo bench eval ray browser-test constraints \
         ros2-control-configs clean distclean
 
 venv: $(STAMP)
@@ -86,7 +86,8 @@ $(ROBOTS_STAMP): $(STAMP) requirements-robots.txt constraints.txt
 # a missing rclpy is no skip but an error (test/conftest.py; STARLETH_ALLOW_NO_ROS=1 allows it).
 # Then the physics tests that take every kernel path (SANITIZE_QUICK) under AddressSanitizer
 # and UndefinedBehaviorSanitizer (make sanitize runs all of them, about 2 minutes), skipped
-# with a line where the compiler's runtimes are missing. Then ruff over the tree (ruff.toml).
+# with a line where the compiler's runtimes are missing. Then ruff over the tree (ruff.toml)
+# and clang-format over the C files (.clang-format).
 # All passes run; the target fails with the first failing pass's status (a pytest pass's 5,
 # no tests collected, only if neither pass collected any: a -k selection may fall in one pass
 # alone).
@@ -102,8 +103,9 @@ test: venv test-deps robots
 	if [ -e "$$($${CC:-cc} -print-file-name=libasan.so)" ] && [ -e "$$($${CC:-cc} -print-file-name=libubsan.so)" ]; then \
 	  $(MAKE) --no-print-directory sanitize SANITIZE_TESTS="$(SANITIZE_QUICK)" PYTEST_ARGS=; d=$$?; \
 	else echo "SKIPPED: the compiler's libasan / libubsan are not installed (make sanitizer-libs)"; d=0; fi; \
-	echo "pass 4: ruff check (ruff.toml)"; \
+	echo "pass 4: ruff check (ruff.toml), the C files' format (.clang-format; make format fixes it)"; \
 	$(VENV)/bin/ruff check .; c=$$?; \
+	$(VENV)/bin/clang-format --dry-run --Werror $(C_FILES) || c=1; \
 	if [ $$a = 5 ] && [ $$b = 0 ]; then a=0; fi; \
 	if [ $$b = 5 ] && [ $$a = 0 ]; then b=0; fi; \
 	if [ $$a != 0 ]; then exit $$a; fi; if [ $$b != 0 ]; then exit $$b; fi; \
@@ -182,6 +184,11 @@ SANITIZE_TESTS := test_bitexact test_adaptive_alpha test_coordinates test_hard_c
         test_impedance test_impedance_commands test_kernel_layouts test_kinematics_dynamics \
         test_physics_analytic test_physics_robot test_solvers test_state test_step_down \
         test_terrain test_terrain_walk
+# Every C file of the tree in the style of .clang-format (make test checks it)
+C_FILES = $(shell git ls-files '*.c' '*.h' 2>/dev/null || find starleth_sim starleth_controller starleth_interface -name '*.[ch]')
+format: test-deps
+	$(VENV)/bin/clang-format -i $(C_FILES)
+
 # the subset `make test` runs under the sanitizers: every preset's step (bitexact), the
 # prepared and profiled steps (state), the solvers, the impedance step, the packed layouts
 SANITIZE_QUICK := test_bitexact test_solvers test_kernel_layouts test_state \

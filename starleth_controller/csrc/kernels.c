@@ -18,7 +18,9 @@ double squared_norm4(const double *a) {
 }
 
 /* x is NaN, inf or >= LARGE in magnitude (left to the callers' numpy checks). */
-static inline int unfit(double x) { return x != x || x - x != 0.0 || fabs(x) >= LARGE; }
+static inline int unfit(double x) {
+    return x != x || x - x != 0.0 || fabs(x) >= LARGE;
+}
 
 /* -1 if a[0:n] holds a NaN or inf, 1 if a value is >= LARGE in magnitude, else 0. */
 static int finite_small(const double *a, i64 n) {
@@ -35,11 +37,11 @@ static int finite_small(const double *a, i64 n) {
  * the inputs, or a quaternion of squared norm < 1e-12), 2 (a value >= LARGE: the caller
  * decides with its numpy sums), else 0 with quat_n = quat / |quat| (squared_norm4) and
  * R = quat_to_rot(quat_n). */
-int read_state(const double *qj, i64 nq, const double *dqj, i64 ndq, const double *pb,
-               i64 npb, const double *quat, i64 nquat, const double *vb, i64 nvb,
-               const double *wb, i64 nwb, double *quat_n, double *R) {
-    int c[6] = {finite_small(qj, nq), finite_small(dqj, ndq), finite_small(pb, npb),
-                finite_small(quat, nquat), finite_small(vb, nvb), finite_small(wb, nwb)};
+int read_state(const double *qj, i64 nq, const double *dqj, i64 ndq, const double *pb, i64 npb,
+               const double *quat, i64 nquat, const double *vb, i64 nvb, const double *wb, i64 nwb,
+               double *quat_n, double *R) {
+    int c[6] = {finite_small(qj, nq),      finite_small(dqj, ndq), finite_small(pb, npb),
+                finite_small(quat, nquat), finite_small(vb, nvb),  finite_small(wb, nwb)};
     int lo = c[0], hi = c[0];
     for (int i = 1; i < 6; i++) {
         lo = c[i] < lo ? c[i] : lo;
@@ -62,9 +64,8 @@ int read_state(const double *qj, i64 nq, const double *dqj, i64 ndq, const doubl
  * threshold per foot (x² + y² + z² in order). 0: done; 1: anything the checks of the numpy
  * code might refuse (a NaN or inf, a value >= LARGE, |quat|² outside (0.5, 2)). */
 int node_state(const double *position, const double *velocity, const i64 *perm, i64 nperm,
-               const double *odom, const double *forces, double threshold, double *q,
-               double *dq, double *pb, double *quat, double *v, double *w, double *R,
-               u8 *contact) {
+               const double *odom, const double *forces, double threshold, double *q, double *dq,
+               double *pb, double *quat, double *v, double *w, double *R, u8 *contact) {
     for (i64 i = 0; i < nperm; i++)
         if (unfit(position[perm[i]]) || unfit(velocity[perm[i]])) return 1;
     if (finite_small(odom, 13) != 0) return 1;
@@ -95,8 +96,7 @@ int node_state(const double *position, const double *velocity, const i64 *perm, 
  * Jacobians of the centre (Jf) and of the lowest point of the sphere (Jc) w.r.t. the leg's
  * three joints, base fixed. Analytic for a roll-pitch-pitch leg (model.py). */
 void leg_kinematics(const double *qj, const double *R, const double *pb, const double *hip,
-                    const double *geo, double *centre, double *contact, double *Jf,
-                    double *Jc) {
+                    const double *geo, double *centre, double *contact, double *Jf, double *Jc) {
     double Jb[9], Jw[9];
     for (int k = 0; k < 4; k++) {
         const double *g = geo + NGEO * k;
@@ -210,7 +210,7 @@ static void damped_solve(const double *J, const double *v, double *y) {
     int piv[3];
     double t;
     for (int j = 0; j < 3; j++) {
-        for (int i = 0; i < j; i++) {           /* the earlier row swaps, on column j */
+        for (int i = 0; i < j; i++) { /* the earlier row swaps, on column j */
             t = a[i][j], a[i][j] = a[piv[i]][j], a[piv[i]][j] = t;
         }
         if (j == 1) {
@@ -220,7 +220,7 @@ static void damped_solve(const double *J, const double *v, double *y) {
             a[1][2] -= a[1][0] * a[0][2];
             a[2][2] -= fma(a[2][1], a[1][2], a[2][0] * a[0][2]);
         }
-        int p = j;                              /* the first of the largest magnitudes */
+        int p = j; /* the first of the largest magnitudes */
         for (int i = j + 1; i < 3; i++)
             if (fabs(a[i][j]) > fabs(a[p][j])) p = i;
         piv[j] = p;
@@ -280,8 +280,8 @@ static void stance_torques(i64 k, const double *f, const double *Jc, const doubl
 }
 
 /* A = [I…; [r_i]×…] (6 x 3n), H = AᵀSA + εI, g = −AᵀSb for the n lever arms rh. */
-void qp_matrices(const double *rh, i64 n, const double *b, const double *S, double eps,
-                 double *A, double *H, double *g) {
+void qp_matrices(const double *rh, i64 n, const double *b, const double *S, double eps, double *A,
+                 double *H, double *g) {
     i64 m = 3 * n;
     for (i64 i = 0; i < n; i++) {
         double x = rh[3 * i], y = rh[3 * i + 1], z = rh[3 * i + 2];
@@ -326,11 +326,11 @@ static inline double clip(double v, double lo, double hi) {
  * from the centre of the nr feet `ref` (horizontal) and z_error (vertical), clipped to
  * ±max_err; F = k_p e + k_d (v* − v) + k_ff v* (+ the velocity integral f_int, clipped to
  * ±lim, when `integrate`, else f_int = 0) + m g e_z. */
-void vmc_force(const i64 *ref, i64 nr, const double *contact, const double *pb,
-               const double *vb, double cy, double sy, double z_error, double max_err,
-               const double *v_cmd, const double *kp, const double *kd, const double *kff,
-               int integrate, double ki, double lim, double dt, double *f_int, double mass_g,
-               double *e, double *vh, double *vd, double *b) {
+void vmc_force(const i64 *ref, i64 nr, const double *contact, const double *pb, const double *vb,
+               double cy, double sy, double z_error, double max_err, const double *v_cmd,
+               const double *kp, const double *kd, const double *kff, int integrate, double ki,
+               double lim, double dt, double *f_int, double mass_g, double *e, double *vh,
+               double *vd, double *b) {
     double rx = 0.0, ry = 0.0;
     for (i64 j = 0; j < nr; j++) rx += contact[3 * ref[j]];
     for (i64 j = 0; j < nr; j++) ry += contact[3 * ref[j] + 1];
@@ -351,8 +351,8 @@ void vmc_force(const i64 *ref, i64 nr, const double *contact, const double *pb,
     if (integrate) {
         for (int a = 0; a < 2; a++) {
             double f = f_int[a] + ki * (vd[a] - vh[a]) * dt;
-            f = f > -lim ? f : -lim;               /* Python's max(-lim, f) */
-            f_int[a] = f < lim ? f : lim;          /* and min(lim, f) */
+            f = f > -lim ? f : -lim;      /* Python's max(-lim, f) */
+            f_int[a] = f < lim ? f : lim; /* and min(lim, f) */
         }
         b[0] += f_int[0];
         b[1] += f_int[1];
@@ -368,8 +368,8 @@ void vmc_force(const i64 *ref, i64 nr, const double *contact, const double *pb,
  * frame, the error clipped to ±max_err; M = k_p e_R + k_d (ω* − ω) + k_ff ω*, ω* = (0, 0,
  * w_cmd). */
 void vmc_moment(const double *er, const double *ww, double cy, double sy, double max_err,
-                double w_cmd, const double *kp, const double *kd, const double *kff,
-                double *eh, double *wh, double *wd, double *b) {
+                double w_cmd, const double *kp, const double *kd, const double *kff, double *eh,
+                double *wh, double *wd, double *b) {
     eh[0] = cy * er[0] + sy * er[1];
     eh[1] = -sy * er[0] + cy * er[1];
     eh[2] = er[2];
@@ -430,9 +430,8 @@ void support_torques(const i64 *support, i64 ns, const double *fh, double cy, do
  * swing_cycle (the cycle of the last lift-off), states and the first ns entries of support;
  * returns ns, and in *lift the lift-off mask (bit k: leg k starts a new swing). */
 i64 leg_states(int trotting, double t, double t0, double T, const double *phase_offsets,
-               double duty_factor, double early_touchdown, const u8 *grounded,
-               double *swing_phase, i64 *swing_cycle, i64 *states, double *lost_since,
-               i64 *support, i64 *lift) {
+               double duty_factor, double early_touchdown, const u8 *grounded, double *swing_phase,
+               i64 *swing_cycle, i64 *states, double *lost_since, i64 *support, i64 *lift) {
     *lift = 0;
     for (int k = 0; k < 4; k++) {
         swing_phase[k] = 1.0;
@@ -456,7 +455,7 @@ i64 leg_states(int trotting, double t, double t0, double T, const double *phase_
     i64 ns = 0;
     for (int k = 0; k < 4; k++) {
         if (states[k] == LEG_LOST_CONTACT) {
-            if (lost_since[k] != lost_since[k]) lost_since[k] = t;     /* NaN: just lost */
+            if (lost_since[k] != lost_since[k]) lost_since[k] = t; /* NaN: just lost */
         } else {
             lost_since[k] = NAN;
         }
@@ -501,11 +500,11 @@ static void swing_target(int k, const double *rw, const double *h, const swing_i
     double vdx = s->v_cmd[0] - s->w_cmd * ry;
     double vdy = s->v_cmd[1] + s->w_cmd * rx;
     double hh = h[2] - s->ground;
-    hh = 0.05 > hh ? 0.05 : hh;                    /* Python's max(h, 0.05) */
+    hh = 0.05 > hh ? 0.05 : hh; /* Python's max(h, 0.05) */
     double sq = sqrt(hh / P[SW_GRAVITY]);
     double dx = 0.5 * vdx * Tst + P[SW_FEEDBACK] * (vx - vdx) * sq;
     double dy = 0.5 * vdy * Tst + P[SW_FEEDBACK] * (vy - vdy) * sq;
-    dx = -step_max > dx ? -step_max : dx;    /* Python's min(max(d, -step_max), step_max) */
+    dx = -step_max > dx ? -step_max : dx; /* Python's min(max(d, -step_max), step_max) */
     dx = step_max < dx ? step_max : dx;
     dx = dx + P[SW_OFFSET_X + k] + P[SW_STANCE_X + k];
     dy = -step_max > dy ? -step_max : dy;
@@ -545,7 +544,7 @@ void position_controlled_torques(const swing_inputs_t *s) {
         if (st == LEG_SWING) {
             const double *hp = s->hip + 3 * k;
             double rw[3], h[3];
-            for (int i = 0; i < 3; i++)                /* trunk→hip, world */
+            for (int i = 0; i < 3; i++) /* trunk→hip, world */
                 rw[i] = R[3 * i] * hp[0] + R[3 * i + 1] * hp[1] + R[3 * i + 2] * hp[2];
             for (int i = 0; i < 3; i++) h[i] = pb[i] + rw[i];
             swing_target(k, rw, h, s, target, vt);

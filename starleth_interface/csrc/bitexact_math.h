@@ -9,10 +9,18 @@
 
 /* max(a, b) / min(a, b) as Python and numba evaluate them: the second argument only when it
  * is strictly larger / smaller (which decides the sign of a zero and what a NaN gives). */
-static inline double py_max(double a, double b) { return b > a ? b : a; }
-static inline double py_min(double a, double b) { return b < a ? b : a; }
-static inline int64_t py_maxi(int64_t a, int64_t b) { return b > a ? b : a; }
-static inline int64_t py_mini(int64_t a, int64_t b) { return b < a ? b : a; }
+static inline double py_max(double a, double b) {
+    return b > a ? b : a;
+}
+static inline double py_min(double a, double b) {
+    return b < a ? b : a;
+}
+static inline int64_t py_maxi(int64_t a, int64_t b) {
+    return b > a ? b : a;
+}
+static inline int64_t py_mini(int64_t a, int64_t b) {
+    return b < a ? b : a;
+}
 
 /* quat_xyzw_to_rot: R (3 x 3, row-major) of the unit quaternion (x, y, z, w) (Pinocchio
  * order). */

@@ -12,10 +12,14 @@ static inline int format_is(const Py_buffer *b, char type) {
     if (*f == '@' || *f == '=' || *f == '<') f++;
     if (f[0] == 0 || f[1] != 0) return 0;
     switch (type) {
-    case 'd': return f[0] == 'd' && b->itemsize == 8;
-    case 'q': return (f[0] == 'l' || f[0] == 'q') && b->itemsize == 8;
-    case '?': return f[0] == '?' && b->itemsize == 1;
-    case 'B': return (f[0] == 'B' || f[0] == 'b' || f[0] == 'c') && b->itemsize == 1;
+        case 'd':
+            return f[0] == 'd' && b->itemsize == 8;
+        case 'q':
+            return (f[0] == 'l' || f[0] == 'q') && b->itemsize == 8;
+        case '?':
+            return f[0] == '?' && b->itemsize == 1;
+        case 'B':
+            return (f[0] == 'B' || f[0] == 'b' || f[0] == 'c') && b->itemsize == 1;
     }
     return 0;
 }

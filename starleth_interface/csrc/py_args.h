@@ -20,7 +20,7 @@
 typedef struct {
     Py_buffer v[MAX_ARGS];
     int n;
-    const char *fn;          /* the function's name, for the messages */
+    const char *fn; /* the function's name, for the messages */
 } args_t;
 
 /* numpy.ascontiguousarray, set by the module's init (args_init) */
@@ -41,8 +41,8 @@ static inline void args_release(args_t *a) {
 
 /* The data of argument o (`name`) of at least min_len items of `type`; *len (if not NULL)
  * its number of items. NULL with a ValueError set when it is not such an array. */
-static inline void *arg_array(args_t *a, PyObject *o, char type, int writable,
-                              Py_ssize_t min_len, const char *name, Py_ssize_t *len) {
+static inline void *arg_array(args_t *a, PyObject *o, char type, int writable, Py_ssize_t min_len,
+                              const char *name, Py_ssize_t *len) {
     if (a->n >= MAX_ARGS) {
         PyErr_Format(PyExc_RuntimeError, "%s: too many arrays", a->fn);
         return NULL;
@@ -55,11 +55,11 @@ static inline void *arg_array(args_t *a, PyObject *o, char type, int writable,
         PyBuffer_Release(b);
         ok = 0;
     }
-    if (!ok && !writable) {       /* an input of another layout or type: converted */
+    if (!ok && !writable) { /* an input of another layout or type: converted */
         PyObject *c = PyObject_CallFunction(np_ascontiguousarray, "Os", o, dtype_of(type));
         if (c) {
             ok = PyObject_GetBuffer(c, b, PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) == 0;
-            Py_DECREF(c);         /* the buffer keeps the array alive */
+            Py_DECREF(c); /* the buffer keeps the array alive */
             if (ok && !format_is(b, type)) {
                 PyBuffer_Release(b);
                 ok = 0;
@@ -68,16 +68,15 @@ static inline void *arg_array(args_t *a, PyObject *o, char type, int writable,
         PyErr_Clear();
     }
     if (!ok) {
-        PyErr_Format(PyExc_ValueError, "%s: %s must be a %snumpy array of %s, got %.100s",
-                     a->fn, name, writable ? "C-contiguous, writable " : "", dtype_of(type),
+        PyErr_Format(PyExc_ValueError, "%s: %s must be a %snumpy array of %s, got %.100s", a->fn,
+                     name, writable ? "C-contiguous, writable " : "", dtype_of(type),
                      Py_TYPE(o)->tp_name);
         return NULL;
     }
     a->n++;
     Py_ssize_t n = b->len / b->itemsize;
     if (n < min_len) {
-        PyErr_Format(PyExc_ValueError, "%s: %s has %zd items, %zd needed", a->fn, name, n,
-                     min_len);
+        PyErr_Format(PyExc_ValueError, "%s: %s has %zd items, %zd needed", a->fn, name, n, min_len);
         return NULL;
     }
     if (len) *len = n;

@@ -15,7 +15,9 @@ struct arena_chunk {
     void *memory; /* as malloc returned it (data is aligned inside) */
 };
 
-static size_t round_up(size_t n) { return (n + ARENA_ALIGN - 1) / ARENA_ALIGN * ARENA_ALIGN; }
+static size_t round_up(size_t n) {
+    return (n + ARENA_ALIGN - 1) / ARENA_ALIGN * ARENA_ALIGN;
+}
 
 static void *aligned_block(size_t n, void **memory) {
     char *p = malloc(n + ARENA_ALIGN);
@@ -90,7 +92,9 @@ void *arena_alloc(arena_t *a, size_t n) {
 
 static _Thread_local arena_t thread_arena;
 
-arena_t *scratch_arena(void) { return &thread_arena; }
+arena_t *scratch_arena(void) {
+    return &thread_arena;
+}
 
 double clock_now(void) {
     struct timespec ts;

@@ -13,7 +13,9 @@ void release(held_t *h) {
 }
 
 /* the item type of a base kind (buffer_format.h) */
-static char type_of(int base) { return base == F64 ? 'd' : base == I64 ? 'q' : '?'; }
+static char type_of(int base) {
+    return base == F64 ? 'd' : base == I64 ? 'q' : '?';
+}
 
 /* An array argument into v (its buffer kept in h); 0 with an exception set on error. */
 int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h, val_t *v) {
@@ -55,43 +57,43 @@ int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h
 static int parse_one(PyObject *o, const spec_t *sp, const char *fn, val_t *v, held_t *h) {
     const char *name = sp->name;
     switch (sp->kind) {
-    case FLOAT:
-        v->f = PyFloat_AsDouble(o);
-        if (v->f == -1.0 && PyErr_Occurred()) {
-            PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
-            return 0;
+        case FLOAT:
+            v->f = PyFloat_AsDouble(o);
+            if (v->f == -1.0 && PyErr_Occurred()) {
+                PyErr_Format(PyExc_TypeError, "%s: %s must be a number", fn, name);
+                return 0;
+            }
+            return 1;
+        case INT: {
+            PyObject *idx = PyNumber_Index(o);
+            if (!idx) {
+                PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
+                return 0;
+            }
+            v->i = PyLong_AsLongLong(idx);
+            Py_DECREF(idx);
+            return !(v->i == -1 && PyErr_Occurred());
         }
-        return 1;
-    case INT: {
-        PyObject *idx = PyNumber_Index(o);
-        if (!idx) {
-            PyErr_Format(PyExc_TypeError, "%s: %s must be an integer", fn, name);
-            return 0;
-        }
-        v->i = PyLong_AsLongLong(idx);
-        Py_DECREF(idx);
-        return !(v->i == -1 && PyErr_Occurred());
-    }
-    case FLAG: {
-        int t = PyObject_IsTrue(o);
-        if (t < 0) return 0;
-        v->i = t;
-        return 1;
-    }
-    case OBJ:
-        v->o = o;
-        return 1;
-    case F64N:
-        if (o == Py_None) {
-            v->p = NULL;
-            v->len = 0;
+        case FLAG: {
+            int t = PyObject_IsTrue(o);
+            if (t < 0) return 0;
+            v->i = t;
             return 1;
         }
-        if (!get_array(o, F64N, fn, name, h, v)) return 0;
-        if (v->len == 0) v->p = NULL;
-        return 1;
-    default:
-        return get_array(o, sp->kind, fn, name, h, v);
+        case OBJ:
+            v->o = o;
+            return 1;
+        case F64N:
+            if (o == Py_None) {
+                v->p = NULL;
+                v->len = 0;
+                return 1;
+            }
+            if (!get_array(o, F64N, fn, name, h, v)) return 0;
+            if (v->len == 0) v->p = NULL;
+            return 1;
+        default:
+            return get_array(o, sp->kind, fn, name, h, v);
     }
 }
 
@@ -133,8 +135,8 @@ static int parse_entry(PyObject *o, const spec_t *sp, const char *fn, val_t *val
  * others keep the defaults the caller put into vals). A GROUP entry takes one argument, a
  * tuple, whose items the entries after it parse: vals has one entry per non-GROUP entry, in
  * spec order (a model's arrays grouped like the C structs passed by pointer). */
-int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
-          int n_spec, int n_required, val_t *vals, held_t *h) {
+int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec, int n_spec,
+          int n_required, val_t *vals, held_t *h) {
     int n_args = 0;
     for (int si = 0, a, b; si < n_spec; si += a, n_args++) span(&spec[si], &a, &b);
     if (nargs < n_required || nargs > n_args) {
@@ -152,7 +154,6 @@ int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t 
     }
     return 1;
 }
-
 
 int need(int ok, const char *fn, const char *what) {
     if (!ok) PyErr_Format(PyExc_ValueError, "%s: %s", fn, what);
@@ -241,7 +242,7 @@ int get_settings(PyObject *o, const char *fn, settings_t *s) {
 
 /* A prox.Patterns (7 arrays of int64) */
 int get_patterns(PyObject *o, const char *fn, held_t *h, patterns_t *pat) {
-    static const char *names[7] = {"wp_ptr", "wp_idx", "mp_ptr", "mp_idx",
+    static const char *names[7] = {"wp_ptr", "wp_idx", "mp_ptr",  "mp_idx",
                                    "gp_ptr", "gp_idx", "lb_first"};
     PyObject *seq = PySequence_Fast(o, "patterns must be a sequence");
     if (!seq) return 0;

@@ -12,18 +12,18 @@
 
 /* The kinds of arguments */
 enum {
-    F64 = 1,      /* float64 array, read */
-    I64 = 2,      /* int64 array, read */
-    BOOL = 3,     /* bool array, read */
-    F64W = 4,     /* float64 array, written */
-    I64W = 5,     /* int64 array, written */
-    BOOLW = 6,    /* bool array, written */
-    FLOAT = 7,    /* a number */
-    INT = 8,      /* an integer */
-    FLAG = 9,     /* truth value */
-    OBJ = 10,     /* any object, as it is */
-    F64N = 11,    /* float64 array or None (read and written; NULL when None or empty) */
-    GROUP = 100,  /* GROUP + n: a tuple of n items, parsed by the n entries that follow */
+    F64 = 1,     /* float64 array, read */
+    I64 = 2,     /* int64 array, read */
+    BOOL = 3,    /* bool array, read */
+    F64W = 4,    /* float64 array, written */
+    I64W = 5,    /* int64 array, written */
+    BOOLW = 6,   /* bool array, written */
+    FLOAT = 7,   /* a number */
+    INT = 8,     /* an integer */
+    FLAG = 9,    /* truth value */
+    OBJ = 10,    /* any object, as it is */
+    F64N = 11,   /* float64 array or None (read and written; NULL when None or empty) */
+    GROUP = 100, /* GROUP + n: a tuple of n items, parsed by the n entries that follow */
 };
 
 typedef struct {
@@ -32,8 +32,8 @@ typedef struct {
 } spec_t;
 
 typedef struct {
-    void *p;         /* data */
-    Py_ssize_t len;  /* number of items */
+    void *p;        /* data */
+    Py_ssize_t len; /* number of items */
     int nd;
     Py_ssize_t shape[4];
     double f;
@@ -48,48 +48,48 @@ typedef struct {
     int n;
 } held_t;
 
-#define PARSE(fn, spec, n_required, vals, h)                                                  \
+#define PARSE(fn, spec, n_required, vals, h) \
     parse(args, nargs, fn, spec, (int)(sizeof(spec) / sizeof(spec[0])), n_required, vals, h)
 
 /* Runs the code (the macro's last arguments) with the scratch arena `a` reset and its
  * out-of-memory jump set; `failed` becomes 1 when memory ran out. nogil: without the GIL
  * (RUN_NOGIL), else with it held (RUN: short kernels). */
-#define RUN_WITH(a, failed, nogil, ...)                                                       \
-    do {                                                                                      \
-        jmp_buf jb_;                                                                          \
-        arena_reset(a);                                                                       \
-        (a)->oom = &jb_;                                                                      \
-        PyThreadState *ts_ = (nogil) ? PyEval_SaveThread() : NULL;                            \
-        if (setjmp(jb_) == 0) {                                                               \
-            __VA_ARGS__;                                                                      \
-        } else {                                                                              \
-            failed = 1;                                                                       \
-        }                                                                                     \
-        if (ts_) PyEval_RestoreThread(ts_);                                                   \
-        (a)->oom = NULL;                                                                      \
+#define RUN_WITH(a, failed, nogil, ...)                            \
+    do {                                                           \
+        jmp_buf jb_;                                               \
+        arena_reset(a);                                            \
+        (a)->oom = &jb_;                                           \
+        PyThreadState *ts_ = (nogil) ? PyEval_SaveThread() : NULL; \
+        if (setjmp(jb_) == 0) {                                    \
+            __VA_ARGS__;                                           \
+        } else {                                                   \
+            failed = 1;                                            \
+        }                                                          \
+        if (ts_) PyEval_RestoreThread(ts_);                        \
+        (a)->oom = NULL;                                           \
     } while (0)
 #define RUN_NOGIL(a, failed, ...) RUN_WITH(a, failed, 1, __VA_ARGS__)
-#define RUN(a, failed, ...) RUN_WITH(a, failed, 0, __VA_ARGS__)
+#define RUN(a, failed, ...)       RUN_WITH(a, failed, 0, __VA_ARGS__)
 
-#define FN(name)                                                                              \
-    PyObject *py_##name(PyObject *self __attribute__((unused)), PyObject *const *args,          \
+#define FN(name)                                                                       \
+    PyObject *py_##name(PyObject *self __attribute__((unused)), PyObject *const *args, \
                         Py_ssize_t nargs)
-#define DONE_NONE                                                                             \
-    release(&h);                                                                              \
-    if (failed) return PyErr_NoMemory();                                                      \
+#define DONE_NONE                        \
+    release(&h);                         \
+    if (failed) return PyErr_NoMemory(); \
     Py_RETURN_NONE
-#define FAIL                                                                                  \
-    do {                                                                                      \
-        release(&h);                                                                          \
-        return NULL;                                                                          \
+#define FAIL         \
+    do {             \
+        release(&h); \
+        return NULL; \
     } while (0)
 
 /* the helpers (bind.c): each returns 0 (NULL) with an exception set on error */
 extern PyObject *np_empty; /* numpy.empty, set by the module's init */
 void release(held_t *h);
 int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h, val_t *v);
-int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec,
-          int n_spec, int n_required, val_t *vals, held_t *h);
+int parse(PyObject *const *args, Py_ssize_t nargs, const char *fn, const spec_t *spec, int n_spec,
+          int n_required, val_t *vals, held_t *h);
 int need(int ok, const char *fn, const char *what);
 PyObject *new_array(const void *data, int base, Py_ssize_t n);
 PyObject *reshaped(PyObject *arr, Py_ssize_t r, Py_ssize_t c);

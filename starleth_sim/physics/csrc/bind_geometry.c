@@ -3,17 +3,28 @@
 
 /* the model's arrays as the bindings take them: tuples grouped like the C structs (tree_t,
  * frames_t, inertias_t, contact_points_t, ground_t) */
-#define TREE_ARRAYS                                                                           \
-    {"tree", GROUP + 8}, {"parent", I64}, {"jtype", I64}, {"axis", F64}, {"pl_R", F64},        \
-        {"pl_p", F64}, {"idx_q", I64}, {"idx_v", I64}, {"support", BOOL}
-#define FRAME_ARRAYS {"frames", GROUP + 2}, {"oR", F64W}, {"op", F64W}
-#define INERTIA_ARRAYS                                                                        \
-    {"inertias", GROUP + 4}, {"mass", F64}, {"lever", F64}, {"inertia", F64}, {"gravity", F64}
-#define CONTACT_ARRAYS                                                                        \
-    {"contacts", GROUP + 3}, {"c_joint", I64}, {"c_local", F64}, {"c_radius", F64}
-#define GROUND_ARRAYS                                                                         \
-    {"ground", GROUP + 5}, {"normal", F64}, {"tangent1", F64}, {"tangent2", F64},              \
-        {"ground_offset", FLOAT}, {"terrain", F64}
+#define TREE_ARRAYS                                                                     \
+    {"tree", GROUP + 8}, {"parent", I64}, {"jtype", I64}, {"axis", F64}, {"pl_R", F64}, \
+        {"pl_p", F64}, {"idx_q", I64}, {"idx_v", I64}, {                                \
+        "support", BOOL                                                                 \
+    }
+#define FRAME_ARRAYS                       \
+    {"frames", GROUP + 2}, {"oR", F64W}, { \
+        "op", F64W                         \
+    }
+#define INERTIA_ARRAYS                                                          \
+    {"inertias", GROUP + 4}, {"mass", F64}, {"lever", F64}, {"inertia", F64}, { \
+        "gravity", F64                                                          \
+    }
+#define CONTACT_ARRAYS                                             \
+    {"contacts", GROUP + 3}, {"c_joint", I64}, {"c_local", F64}, { \
+        "c_radius", F64                                            \
+    }
+#define GROUND_ARRAYS                                                             \
+    {"ground", GROUP + 5}, {"normal", F64}, {"tangent1", F64}, {"tangent2", F64}, \
+        {"ground_offset", FLOAT}, {                                               \
+        "terrain", F64                                                            \
+    }
 
 /* ---------------------------------------------------------------------------------------
  * linalg
@@ -72,7 +83,8 @@ FN(ltdl_solve_cols_pattern) {
     i64 m = v[2].shape[1];
     i64 *ptr = NULL, *idx = NULL;
     arena_t *a = scratch_arena();
-    RUN(a, failed, ltdl_solve_cols_pattern(v[0].p, v[1].p, v[2].p, n, m, v[3].p, v[4].p, a, &ptr, &idx));
+    RUN(a, failed,
+        ltdl_solve_cols_pattern(v[0].p, v[1].p, v[2].p, n, m, v[3].p, v[4].p, a, &ptr, &idx));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return pair_of_arrays(ptr, m + 1, idx, ptr[m]);
@@ -84,8 +96,7 @@ FN(cholesky_upper_input) {
     held_t h = {.n = 0};
     if (!PARSE("cholesky_upper_input", spec, 4, v, &h)) FAIL;
     i64 nA = v[0].nd == 2 ? v[0].shape[0] : 0, n = nA - v[1].i;
-    if (!need(v[0].nd == 2 && v[0].shape[1] == nA && n >= 0 && v[2].len == n * n &&
-                  v[3].len == n,
+    if (!need(v[0].nd == 2 && v[0].shape[1] == nA && n >= 0 && v[2].len == n * n && v[3].len == n,
               "cholesky_upper_input", "A must be square, L (n x n) and first (n) for its block"))
         FAIL;
     int ok = cholesky_upper_input(v[0].p, nA, v[1].i, v[2].p, v[3].p);
@@ -127,8 +138,8 @@ FN(cholesky_solve_envelope) {
     held_t h = {.n = 0};
     if (!PARSE("cholesky_solve_envelope", spec, 5, v, &h)) FAIL;
     i64 n = v[4].len;
-    if (!need(v[0].len == n * n && v[1].len == n && v[2].len == n + 1,
-              "cholesky_solve_envelope", "sizes do not match"))
+    if (!need(v[0].len == n * n && v[1].len == n && v[2].len == n + 1, "cholesky_solve_envelope",
+              "sizes do not match"))
         FAIL;
     cholesky_solve_envelope(v[0].p, n, v[1].p, v[2].p, v[3].p, v[4].p);
     release(&h);
@@ -139,7 +150,8 @@ FN(cholesky_solve_envelope) {
  * kinematics, dynamics, forest
  * ------------------------------------------------------------------------------------- */
 FN(quat_xyzw_to_rot) {
-    static const spec_t spec[] = {{"x", FLOAT}, {"y", FLOAT}, {"z", FLOAT}, {"w", FLOAT}, {"R", F64W}};
+    static const spec_t spec[] = {
+        {"x", FLOAT}, {"y", FLOAT}, {"z", FLOAT}, {"w", FLOAT}, {"R", F64W}};
     val_t v[5];
     held_t h = {.n = 0};
     if (!PARSE("quat_xyzw_to_rot", spec, 5, v, &h)) FAIL;
@@ -171,7 +183,8 @@ FN(forward_kinematics) {
     tree_t t;
     frames_t f;
     if (!PARSE("forward_kinematics", spec, 9, v, &h)) FAIL;
-    if (!tree_of("forward_kinematics", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], NULL, NULL, 0, &t) ||
+    if (!tree_of("forward_kinematics", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], NULL, NULL, 0,
+                 &t) ||
         !frames_of("forward_kinematics", &v[7], &v[8], t.nj, &f))
         FAIL;
     forward_kinematics(v[0].p, &t, &f);
@@ -180,10 +193,9 @@ FN(forward_kinematics) {
 }
 
 FN(point_jacobian) {
-    static const spec_t spec[] = {{"j", INT},     {"p", F64},       {"jtype", I64},
-                                  {"axis", F64},  {"idx_v", I64},   {"support", BOOL},
-                                  {"oR", F64},    {"op", F64},      {"out", F64W},
-                                  {"zero", FLAG}};
+    static const spec_t spec[] = {{"j", INT},     {"p", F64},        {"jtype", I64}, {"axis", F64},
+                                  {"idx_v", I64}, {"support", BOOL}, {"oR", F64},    {"op", F64},
+                                  {"out", F64W},  {"zero", FLAG}};
     val_t v[10];
     v[9].i = 1;
     held_t h = {.n = 0};
@@ -203,9 +215,8 @@ FN(point_jacobian) {
 }
 
 FN(angular_jacobian) {
-    static const spec_t spec[] = {{"j", INT},       {"jtype", I64}, {"axis", F64},
-                                  {"idx_v", I64},   {"support", BOOL}, {"oR", F64},
-                                  {"out", F64W},    {"zero", FLAG}};
+    static const spec_t spec[] = {{"j", INT},        {"jtype", I64}, {"axis", F64}, {"idx_v", I64},
+                                  {"support", BOOL}, {"oR", F64},    {"out", F64W}, {"zero", FLAG}};
     val_t v[8];
     v[7].i = 1;
     held_t h = {.n = 0};
@@ -238,7 +249,8 @@ static int contacts_of(const char *fn, const val_t *c_joint, const val_t *c_loca
 static int ground_of(const char *fn, const val_t *n, const val_t *t1, const val_t *t2,
                      double offset, const val_t *terrain, const val_t *frames, i64 nc,
                      ground_t *g) {
-    if (!need(n->len == 3 && t1->len == 3 && t2->len == 3, fn, "the ground's n, t1, t2 must be 3-vectors") ||
+    if (!need(n->len == 3 && t1->len == 3 && t2->len == 3, fn,
+              "the ground's n, t1, t2 must be 3-vectors") ||
         !need(terrain->len >= 16, fn, "terrain must be a packed terrain (terrain.pack_terrain)") ||
         !need(!frames->p || frames->len == FRAME_STRIDE * nc, fn, "frames must be nc x 11 or None"))
         return 0;
@@ -252,21 +264,28 @@ static int ground_of(const char *fn, const val_t *n, const val_t *t1, const val_
     return 1;
 }
 
-static int contact_outputs(const char *fn, const val_t *gap, const val_t *position,
-                           const val_t *Wt, i64 nc, i64 nv) {
+static int contact_outputs(const char *fn, const val_t *gap, const val_t *position, const val_t *Wt,
+                           i64 nc, i64 nv) {
     return need(gap->len == nc && position->len == 3 * nc && Wt->len == 3 * nc * nv, fn,
                 "gap (nc), position (nc x 3) and Wt (nc x 3 x nv) do not match the contacts");
 }
-
 
 /* contact_kinematics(q, model, ground, jacobian_gap, out, frames=None): model = (tree,
  * (oR, op), (c_joint, c_local, c_radius)), ground = (n, t1, t2, offset, terrain), out =
  * (gap, position, Wt) */
 FN(contact_kinematics) {
-    static const spec_t spec[] = {
-        {"q", F64}, {"model", GROUP + 3}, TREE_ARRAYS, FRAME_ARRAYS, CONTACT_ARRAYS,
-        GROUND_ARRAYS, {"jacobian_gap", FLOAT}, {"out", GROUP + 3}, {"gap", F64W},
-        {"position", F64W}, {"Wt", F64W}, {"frames", F64N}};
+    static const spec_t spec[] = {{"q", F64},
+                                  {"model", GROUP + 3},
+                                  TREE_ARRAYS,
+                                  FRAME_ARRAYS,
+                                  CONTACT_ARRAYS,
+                                  GROUND_ARRAYS,
+                                  {"jacobian_gap", FLOAT},
+                                  {"out", GROUP + 3},
+                                  {"gap", F64W},
+                                  {"position", F64W},
+                                  {"Wt", F64W},
+                                  {"frames", F64N}};
     val_t v[24];
     v[23].p = NULL; /* (frames is optional) */
     v[23].len = 0;
@@ -277,10 +296,12 @@ FN(contact_kinematics) {
     ground_t g;
     if (!PARSE("contact_kinematics", spec, 5, v, &h)) FAIL;
     i64 nv = v[22].nd == 3 ? v[22].shape[2] : 0;
-    if (!tree_of("contact_kinematics", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], nv, &t) ||
+    if (!tree_of("contact_kinematics", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], nv,
+                 &t) ||
         !frames_of("contact_kinematics", &v[9], &v[10], t.nj, &f) ||
         !contacts_of("contact_kinematics", &v[11], &v[12], &v[13], &c) ||
-        !ground_of("contact_kinematics", &v[14], &v[15], &v[16], v[17].f, &v[18], &v[23], c.nc, &g) ||
+        !ground_of("contact_kinematics", &v[14], &v[15], &v[16], v[17].f, &v[18], &v[23], c.nc,
+                   &g) ||
         !contact_outputs("contact_kinematics", &v[20], &v[21], &v[22], c.nc, nv))
         FAIL;
     contact_kinematics(v[0].p, &t, &f, &c, &g, v[19].f, v[20].p, v[21].p, v[22].p);
@@ -295,7 +316,8 @@ FN(integrate_forest) {
     held_t h = {.n = 0};
     tree_t t;
     if (!PARSE("integrate_forest", spec, 7, v, &h)) FAIL;
-    if (!tree_of("integrate_forest", NULL, &v[3], NULL, NULL, NULL, &v[4], &v[5], NULL, v[1].len, &t) ||
+    if (!tree_of("integrate_forest", NULL, &v[3], NULL, NULL, NULL, &v[4], &v[5], NULL, v[1].len,
+                 &t) ||
         !need(v[6].len == v[0].len, "integrate_forest", "out must have q's length"))
         FAIL;
     integrate_forest(v[0].p, v[1].p, v[2].f, &t, v[6].p);
@@ -319,8 +341,8 @@ FN(to_pin_velocity) {
 }
 
 FN(from_pin_dynamics) {
-    static const spec_t spec[] = {{"M_pin", F64},  {"h_pin", F64}, {"Rs", F64}, {"root_v", I64},
-                                  {"u_pin", F64},  {"M", F64W},    {"h", F64W}};
+    static const spec_t spec[] = {{"M_pin", F64}, {"h_pin", F64}, {"Rs", F64}, {"root_v", I64},
+                                  {"u_pin", F64}, {"M", F64W},    {"h", F64W}};
     val_t v[7];
     held_t h = {.n = 0};
     if (!PARSE("from_pin_dynamics", spec, 7, v, &h)) FAIL;
@@ -333,11 +355,11 @@ FN(from_pin_dynamics) {
     Py_RETURN_NONE;
 }
 
-static int inertias_of(const char *fn, const val_t *mass, const val_t *lever,
-                       const val_t *inertia, const val_t *gravity, i64 nj, inertias_t *b) {
-    if (!need(mass->len == nj && lever->len == 3 * nj && inertia->len == 9 * nj &&
-                  gravity->len == 3,
-              fn, "mass, lever, inertia and gravity do not match the joints"))
+static int inertias_of(const char *fn, const val_t *mass, const val_t *lever, const val_t *inertia,
+                       const val_t *gravity, i64 nj, inertias_t *b) {
+    if (!need(
+            mass->len == nj && lever->len == 3 * nj && inertia->len == 9 * nj && gravity->len == 3,
+            fn, "mass, lever, inertia and gravity do not match the joints"))
         return 0;
     b->mass = mass->p;
     b->lever = lever->p;
@@ -349,9 +371,9 @@ static int inertias_of(const char *fn, const val_t *mass, const val_t *lever,
 /* tree_dynamics(q, u, model, out): model = (tree, (oR, op), (mass, lever, inertia,
  * gravity)), out = (M, h) */
 FN(tree_dynamics) {
-    static const spec_t spec[] = {{"q", F64}, {"u", F64}, {"model", GROUP + 3}, TREE_ARRAYS,
-                                  FRAME_ARRAYS, INERTIA_ARRAYS, {"out", GROUP + 2},
-                                  {"M", F64W}, {"h", F64W}};
+    static const spec_t spec[] = {{"q", F64},         {"u", F64},   {"model", GROUP + 3},
+                                  TREE_ARRAYS,        FRAME_ARRAYS, INERTIA_ARRAYS,
+                                  {"out", GROUP + 2}, {"M", F64W},  {"h", F64W}};
     val_t v[18];
     held_t h = {.n = 0};
     tree_t t;
@@ -373,11 +395,15 @@ FN(tree_dynamics) {
  * (tree, (oR, op), (mass, lever, inertia, gravity), (c_joint, c_local, c_radius)), ground =
  * (n, t1, t2, offset, terrain), out = (qM, M, h, gap, position, Wt) */
 FN(midpoint_dynamics) {
-    static const spec_t spec[] = {
-        {"q", F64}, {"u", F64}, {"half_dt", FLOAT}, {"model", GROUP + 4}, TREE_ARRAYS,
-        FRAME_ARRAYS, INERTIA_ARRAYS, CONTACT_ARRAYS, GROUND_ARRAYS, {"jacobian_gap", FLOAT},
-        {"out", GROUP + 6}, {"qM", F64W}, {"M", F64W}, {"h", F64W}, {"gap", F64W},
-        {"position", F64W}, {"Wt", F64W}, {"frames", F64N}};
+    static const spec_t spec[] = {{"q", F64},         {"u", F64},
+                                  {"half_dt", FLOAT}, {"model", GROUP + 4},
+                                  TREE_ARRAYS,        FRAME_ARRAYS,
+                                  INERTIA_ARRAYS,     CONTACT_ARRAYS,
+                                  GROUND_ARRAYS,      {"jacobian_gap", FLOAT},
+                                  {"out", GROUP + 6}, {"qM", F64W},
+                                  {"M", F64W},        {"h", F64W},
+                                  {"gap", F64W},      {"position", F64W},
+                                  {"Wt", F64W},       {"frames", F64N}};
     val_t v[33];
     v[32].p = NULL; /* (frames is optional) */
     v[32].len = 0;
@@ -389,13 +415,15 @@ FN(midpoint_dynamics) {
     ground_t g;
     if (!PARSE("midpoint_dynamics", spec, 7, v, &h)) FAIL;
     i64 nv = v[1].len;
-    if (!tree_of("midpoint_dynamics", &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], &v[9], &v[10], nv, &t) ||
+    if (!tree_of("midpoint_dynamics", &v[3], &v[4], &v[5], &v[6], &v[7], &v[8], &v[9], &v[10], nv,
+                 &t) ||
         !frames_of("midpoint_dynamics", &v[11], &v[12], t.nj, &f) ||
         !inertias_of("midpoint_dynamics", &v[13], &v[14], &v[15], &v[16], t.nj, &b) ||
         !contacts_of("midpoint_dynamics", &v[17], &v[18], &v[19], &c) ||
-        !ground_of("midpoint_dynamics", &v[20], &v[21], &v[22], v[23].f, &v[24], &v[32], c.nc, &g) ||
-        !need(v[26].len == v[0].len && v[27].len == nv * nv && v[28].len == nv,
-              "midpoint_dynamics", "qM, M and h do not match q and u") ||
+        !ground_of("midpoint_dynamics", &v[20], &v[21], &v[22], v[23].f, &v[24], &v[32], c.nc,
+                   &g) ||
+        !need(v[26].len == v[0].len && v[27].len == nv * nv && v[28].len == nv, "midpoint_dynamics",
+              "qM, M and h do not match q and u") ||
         !contact_outputs("midpoint_dynamics", &v[29], &v[30], &v[31], c.nc, nv))
         FAIL;
     midpoint_dynamics(v[0].p, v[1].p, v[2].f, &t, &f, &b, &c, &g, v[25].f, v[26].p, v[27].p,
@@ -423,8 +451,8 @@ FN(add_at) {
 }
 
 FN(rigid_body_forces) {
-    static const spec_t spec[] = {{"q", F64},      {"u", F64},       {"root_q", I64},
-                                  {"root_v", I64}, {"mass", F64},    {"inertia", F64},
+    static const spec_t spec[] = {{"q", F64},       {"u", F64},    {"root_q", I64},
+                                  {"root_v", I64},  {"mass", F64}, {"inertia", F64},
                                   {"gravity", F64}, {"h", F64W}};
     val_t v[8];
     held_t h = {.n = 0};
@@ -457,10 +485,10 @@ static int cuts_of(const char *fn, const val_t *P, const val_t *C, const val_t *
  * p_P, p_C, a_P, b1_P, b2_P, a_C, b1_C), out = (Wt_B, g_B, angle, rate, axis_world) */
 FN(cut_joints) {
     static const spec_t spec[] = {
-        {"q", F64}, {"u", F64}, {"model", GROUP + 2}, TREE_ARRAYS, FRAME_ARRAYS,
-        {"cuts", GROUP + 9}, {"cut_P", I64}, {"cut_C", I64}, {"p_P", F64}, {"p_C", F64},
-        {"a_P", F64}, {"b1_P", F64}, {"b2_P", F64}, {"a_C", F64}, {"b1_C", F64},
-        {"out", GROUP + 5}, {"Wt_B", F64W}, {"g_B", F64W}, {"angle", F64W}, {"rate", F64W},
+        {"q", F64},           {"u", F64},     {"model", GROUP + 2}, TREE_ARRAYS,     FRAME_ARRAYS,
+        {"cuts", GROUP + 9},  {"cut_P", I64}, {"cut_C", I64},       {"p_P", F64},    {"p_C", F64},
+        {"a_P", F64},         {"b1_P", F64},  {"b2_P", F64},        {"a_C", F64},    {"b1_C", F64},
+        {"out", GROUP + 5},   {"Wt_B", F64W}, {"g_B", F64W},        {"angle", F64W}, {"rate", F64W},
         {"axis_world", F64W}, {"do_fk", FLAG}};
     val_t v[27];
     held_t h = {.n = 0};
@@ -479,7 +507,9 @@ FN(cut_joints) {
               "cut_joints", "the outputs do not match the cut joints"))
         FAIL;
     arena_t *a = scratch_arena();
-    RUN(a, failed, cut_joints(v[0].p, v[1].p, &t, &f, &c, v[21].p, v[22].p, v[23].p, v[24].p, v[25].p, (int)v[26].i, a));
+    RUN(a, failed,
+        cut_joints(v[0].p, v[1].p, &t, &f, &c, v[21].p, v[22].p, v[23].p, v[24].p, v[25].p,
+                   (int)v[26].i, a));
     DONE_NONE;
 }
 
@@ -490,7 +520,8 @@ FN(gather_joint_values) {
     held_t h = {.n = 0};
     if (!PARSE("gather_joint_values", spec, 5, v, &h)) FAIL;
     i64 n = v[4].len;
-    if (!need(v[1].len >= n && v[3].len >= n, "gather_joint_values", "index arrays too short")) FAIL;
+    if (!need(v[1].len >= n && v[3].len >= n, "gather_joint_values", "index arrays too short"))
+        FAIL;
     gather_joint_values(v[0].p, v[1].p, v[2].p, v[3].p, n, v[4].p);
     release(&h);
     Py_RETURN_NONE;
@@ -499,8 +530,8 @@ FN(gather_joint_values) {
 FN(cut_joint_torques) {
     static const spec_t spec[] = {{"tau_cut", F64},  {"cuts", GROUP + 3}, {"cut_P", I64},
                                   {"cut_C", I64},    {"axis_world", F64}, {"tree", GROUP + 4},
-                                  {"jtype", I64},    {"axis", F64},      {"idx_v", I64},
-                                  {"support", BOOL}, {"oR", F64},        {"h", F64W}};
+                                  {"jtype", I64},    {"axis", F64},       {"idx_v", I64},
+                                  {"support", BOOL}, {"oR", F64},         {"h", F64W}};
     val_t v[10];
     held_t h = {.n = 0};
     volatile int failed = 0;
@@ -529,8 +560,8 @@ FN(saturate_torque) {
     held_t h = {.n = 0};
     if (!PARSE("saturate_torque", spec, 5, v, &h)) FAIL;
     i64 n = v[0].len;
-    if (!need(v[1].len >= n && v[2].len >= n && v[3].len >= n && v[4].len >= n,
-              "saturate_torque", "limit, qd, qd_limit and out need an entry per torque"))
+    if (!need(v[1].len >= n && v[2].len >= n && v[3].len >= n && v[4].len >= n, "saturate_torque",
+              "limit, qd, qd_limit and out need an entry per torque"))
         FAIL;
     int ok = saturate_torque(v[0].p, v[1].p, v[2].p, v[3].p, v[4].p, n);
     release(&h);

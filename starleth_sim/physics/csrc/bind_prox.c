@@ -24,8 +24,12 @@ static PyObject *pattern_of(PyObject *const *args, Py_ssize_t nargs, int by_colu
     return pair_of_arrays(ptr, n + 1, idx, ptr[n]);
 }
 
-FN(row_pattern) { return pattern_of(args, nargs, 0); }
-FN(col_pattern) { return pattern_of(args, nargs, 1); }
+FN(row_pattern) {
+    return pattern_of(args, nargs, 0);
+}
+FN(col_pattern) {
+    return pattern_of(args, nargs, 1);
+}
 
 FN(prox_parameters) {
     static const spec_t spec[] = {{"Gdiag", F64}, {"nc", INT}, {"alpha", FLOAT}, {"r", F64W}};
@@ -34,14 +38,15 @@ FN(prox_parameters) {
     if (!PARSE("prox_parameters", spec, 4, v, &h)) FAIL;
     i64 m = v[0].len;
     if (!need(v[3].len == m && v[1].i >= 0 && 3 * v[1].i <= m, "prox_parameters",
-              "r must have Gdiag's length and 3 nc rows fit")) FAIL;
+              "r must have Gdiag's length and 3 nc rows fit"))
+        FAIL;
     prox_parameters(v[0].p, m, v[1].i, v[2].f, v[3].p);
     release(&h);
     Py_RETURN_NONE;
 }
 
 FN(delassus) {
-    static const spec_t spec[] = {{"Wt", F64},     {"MinvW", F64},  {"G", F64W},  {"wp_ptr", I64},
+    static const spec_t spec[] = {{"Wt", F64},     {"MinvW", F64},  {"G", F64W},    {"wp_ptr", I64},
                                   {"wp_idx", I64}, {"mp_ptr", I64}, {"mp_idx", I64}};
     val_t v[7];
     held_t h = {.n = 0};
@@ -78,13 +83,12 @@ static int problem_sizes(const char *fn, const val_t *Wt, const val_t *MinvW, co
     if (!need(Wt->nd == 2, fn, "Wt must be 2-d")) return 0;
     *m = Wt->shape[0];
     *nv = Wt->shape[1];
-    return need(MinvW->len == *nv * *m &&
-                    (s->form != FORM_DELASSUS || G->len == *m * *m),
-                fn, "Wt (m x nv), MinvW (nv x m) and G (m x m, Delassus form) do not match");
+    return need(MinvW->len == *nv * *m && (s->form != FORM_DELASSUS || G->len == *m * *m), fn,
+                "Wt (m x nv), MinvW (nv x m) and G (m x m, Delassus form) do not match");
 }
 
 FN(auto_spectral_scale) {
-    static const spec_t spec[] = {{"s", OBJ},  {"G", F64},   {"Wt", F64}, {"MinvW", F64},
+    static const spec_t spec[] = {{"s", OBJ},   {"G", F64},  {"Wt", F64}, {"MinvW", F64},
                                   {"pat", OBJ}, {"nc", INT}, {"r", F64}};
     val_t v[7];
     held_t h = {.n = 0};
@@ -101,18 +105,32 @@ FN(auto_spectral_scale) {
         FAIL;
     double lam = 0.0;
     arena_t *a = scratch_arena();
-    RUN(a, failed, lam = auto_spectral_scale(&s, v[1].p, v[2].p, v[3].p, &pat, m, nv, v[5].i, v[6].p, a));
+    RUN(a, failed,
+        lam = auto_spectral_scale(&s, v[1].p, v[2].p, v[3].p, &pat, m, nv, v[5].i, v[6].p, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return PyFloat_FromDouble(lam);
 }
 
 FN(prox_solve) {
-    static const spec_t spec[] = {
-        {"s", OBJ},     {"pat", OBJ}, {"problem", GROUP + 6}, {"Wt", F64}, {"MinvW", F64},
-        {"u_free", F64}, {"bvec", F64}, {"G", F64}, {"c", F64}, {"contacts", GROUP + 3},
-        {"nc", INT},    {"mu", F64},  {"r", F64}, {"lam", F64W}, {"direct", GROUP + 2},
-        {"LB", F64},    {"M", F64},   {"u", F64W}};
+    static const spec_t spec[] = {{"s", OBJ},
+                                  {"pat", OBJ},
+                                  {"problem", GROUP + 6},
+                                  {"Wt", F64},
+                                  {"MinvW", F64},
+                                  {"u_free", F64},
+                                  {"bvec", F64},
+                                  {"G", F64},
+                                  {"c", F64},
+                                  {"contacts", GROUP + 3},
+                                  {"nc", INT},
+                                  {"mu", F64},
+                                  {"r", F64},
+                                  {"lam", F64W},
+                                  {"direct", GROUP + 2},
+                                  {"LB", F64},
+                                  {"M", F64},
+                                  {"u", F64W}};
     val_t v[15];
     held_t h = {.n = 0};
     volatile int failed = 0;
@@ -125,17 +143,19 @@ FN(prox_solve) {
         FAIL;
     i64 nc = v[8].i;
     i64 nb_LB = v[12].nd == 2 ? v[12].shape[0] : 0;
-    if (!need(nc >= 0 && 3 * nc <= m && v[4].len == nv && v[5].len == m &&
-                  (s.form != FORM_DELASSUS || v[7].len == m) && v[9].len >= nc &&
-                  v[10].len == m && v[11].len == m && v[14].len == nv &&
-                  (s.criterion != CRITERION_ENERGY || v[13].len == nv * nv) &&
-                  (!s.bilateral_direct || m == 3 * nc || (nb_LB == m - 3 * nc && pat.n_lb == nb_LB)),
-              "prox_solve", "the arrays do not match the problem's m rows and nv velocities"))
+    if (!need(
+            nc >= 0 && 3 * nc <= m && v[4].len == nv && v[5].len == m &&
+                (s.form != FORM_DELASSUS || v[7].len == m) && v[9].len >= nc && v[10].len == m &&
+                v[11].len == m && v[14].len == nv &&
+                (s.criterion != CRITERION_ENERGY || v[13].len == nv * nv) &&
+                (!s.bilateral_direct || m == 3 * nc || (nb_LB == m - 3 * nc && pat.n_lb == nb_LB)),
+            "prox_solve", "the arrays do not match the problem's m rows and nv velocities"))
         FAIL;
     prox_result_t res = {0, 0, 0.0};
     arena_t *a = scratch_arena();
-    RUN(a, failed, res = prox_solve(&s, &pat, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p, m, nv, nc,
-                                    v[9].p, v[10].p, v[11].p, v[12].p, nb_LB, v[13].p, v[14].p, a));
+    RUN(a, failed,
+        res = prox_solve(&s, &pat, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p, m, nv, nc,
+                         v[9].p, v[10].p, v[11].p, v[12].p, nb_LB, v[13].p, v[14].p, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return Py_BuildValue("(LLd)", (long long)res.iterations, (long long)res.status, res.residual);
@@ -173,4 +193,3 @@ FN(constraint_velocity) {
     release(&h);
     Py_RETURN_NONE;
 }
-

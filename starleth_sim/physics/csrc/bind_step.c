@@ -12,15 +12,13 @@ typedef struct {
     i64 nc, nv, nb;
 } ProblemObject;
 
-
-
 static void problem_dealloc(ProblemObject *self) {
     arena_free(&self->arena);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
 __attribute__((noinline)) static PyObject *problem_new(PyTypeObject *type, PyObject *args,
-                                                     PyObject *kw) {
+                                                       PyObject *kw) {
     (void)args;
     (void)kw;
     ProblemObject *self = (ProblemObject *)type->tp_alloc(type, 0);
@@ -58,12 +56,16 @@ static PyObject *problem_arrays(ProblemObject *self, PyObject *unused) {
     int g = full && p->G;
     PyObject *d = PyDict_New();
     if (!d) return NULL;
-    struct { const char *k; PyObject *v; } items[] = {
+    struct {
+        const char *k;
+        PyObject *v;
+    } items[] = {
         {"active", new_array(p->active, I64, p->na)},
         {"Wt", reshaped(new_array(p->Wt, F64, m * nv), m, nv)},
         {"MinvW", reshaped(new_array(p->MinvW, F64, nv * m), nv, m)},
         {"b", new_array(p->b, F64, m)},
-        {"G", g ? reshaped(new_array(p->G, F64, m * m), m, m) : reshaped(new_array(NULL, F64, 0), 0, 0)},
+        {"G",
+         g ? reshaped(new_array(p->G, F64, m * m), m, m) : reshaped(new_array(NULL, F64, 0), 0, 0)},
         {"Gdiag", full ? new_array(p->Gdiag, F64, m) : new_array(NULL, F64, 0)},
         {"LB", reshaped(new_array(p->LB, F64, p->nb_LB * p->nb_LB), p->nb_LB, p->nb_LB)},
         {"wp_ptr", new_array(p->pat.wp_ptr, I64, full ? m + 1 : 1)},
@@ -103,8 +105,9 @@ PyTypeObject ProblemType = {
     PyVarObject_HEAD_INIT(NULL, 0).tp_name = "starleth_sim.physics._kernels.ContactProblem",
     .tp_basicsize = sizeof(ProblemObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "A hard-contact problem prepared ahead (prepare_hard_contacts): the active set, "
-              "W^T, M^{-1}W, b, G, L_B and their patterns, in memory of its own.",
+    .tp_doc =
+        "A hard-contact problem prepared ahead (prepare_hard_contacts): the active set, "
+        "W^T, M^{-1}W, b, G, L_B and their patterns, in memory of its own.",
     .tp_new = problem_new,
     .tp_dealloc = (destructor)problem_dealloc,
     .tp_getset = problem_getset,
@@ -112,29 +115,30 @@ PyTypeObject ProblemType = {
 };
 
 /* The sizes shared by the contact-problem kernels */
-static int contact_problem_sizes(const char *fn, const val_t *M, const val_t *uS,
-                                 const val_t *gap, const val_t *Wt_all, const val_t *WtB,
-                                 const val_t *bB, const val_t *eps, const val_t *dof_parent,
-                                 const val_t *L, const val_t *last_impulse,
-                                 const val_t *last_active, const val_t *timings, i64 *nv,
-                                 i64 *nc, i64 *nb) {
+static int contact_problem_sizes(const char *fn, const val_t *M, const val_t *uS, const val_t *gap,
+                                 const val_t *Wt_all, const val_t *WtB, const val_t *bB,
+                                 const val_t *eps, const val_t *dof_parent, const val_t *L,
+                                 const val_t *last_impulse, const val_t *last_active,
+                                 const val_t *timings, i64 *nv, i64 *nc, i64 *nb) {
     *nv = uS->len;
     *nc = gap->len;
     *nb = bB->len;
-    return need(M->len == *nv * *nv && Wt_all->len == 3 * *nc * *nv &&
-                    WtB->len == *nb * *nv && eps->len == 2 * *nc && dof_parent->len == *nv &&
-                    L->len == *nv * *nv && last_impulse->len == 3 * *nc &&
-                    last_active->len == *nc && (!timings->p || timings->len >= 5),
+    return need(M->len == *nv * *nv && Wt_all->len == 3 * *nc * *nv && WtB->len == *nb * *nv &&
+                    eps->len == 2 * *nc && dof_parent->len == *nv && L->len == *nv * *nv &&
+                    last_impulse->len == 3 * *nc && last_active->len == *nc &&
+                    (!timings->p || timings->len >= 5),
                 fn, "the arrays do not match the contacts, bilateral rows and velocities");
 }
 
 FN(prepare_hard_contacts) {
     static const spec_t spec[] = {
-        {"settings", OBJ},  {"state", GROUP + 2}, {"M", F64}, {"uS", F64},
-        {"rows", GROUP + 5}, {"gap", F64}, {"Wt_all", F64}, {"WtB", F64}, {"bB", F64},
-        {"eps", F64},       {"factor", GROUP + 3}, {"dof_parent", I64}, {"factor", FLAG},
-        {"L", F64W},        {"memory", GROUP + 2}, {"last_impulse", F64}, {"last_active", BOOL},
-        {"timings", F64N},  {"frames", F64N},    {"problem", OBJ}};
+        {"settings", OBJ},     {"state", GROUP + 2},  {"M", F64},
+        {"uS", F64},           {"rows", GROUP + 5},   {"gap", F64},
+        {"Wt_all", F64},       {"WtB", F64},          {"bB", F64},
+        {"eps", F64},          {"factor", GROUP + 3}, {"dof_parent", I64},
+        {"factor", FLAG},      {"L", F64W},           {"memory", GROUP + 2},
+        {"last_impulse", F64}, {"last_active", BOOL}, {"timings", F64N},
+        {"frames", F64N},      {"problem", OBJ}};
     val_t v[16];
     v[14].p = NULL; /* (frames and problem are optional) */
     v[14].len = 0;
@@ -147,7 +151,8 @@ FN(prepare_hard_contacts) {
         !get_settings(v[0].o, "prepare_hard_contacts", &s) ||
         !contact_problem_sizes("prepare_hard_contacts", &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
                                &v[7], &v[8], &v[10], &v[11], &v[12], &v[13], &nv, &nc, &nb) ||
-        !need(!v[14].p || v[14].len == FRAME_STRIDE * nc, "prepare_hard_contacts", "frames must be nc x 11"))
+        !need(!v[14].p || v[14].len == FRAME_STRIDE * nc, "prepare_hard_contacts",
+              "frames must be nc x 11"))
         FAIL;
     ProblemObject *pr;
     if (v[15].o == Py_None) {
@@ -163,9 +168,10 @@ FN(prepare_hard_contacts) {
     }
     pr->filled = 0;
     arena_t *a = &pr->arena;
-    RUN(a, failed, contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p,
-                                   v[7].p, v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p,
-                                   v[13].p, a, &pr->p));
+    RUN(a, failed,
+        contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p, v[7].p,
+                        v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, v[13].p, a,
+                        &pr->p));
     release(&h);
     if (failed) {
         Py_DECREF(pr);
@@ -196,8 +202,8 @@ static int packed_of(const val_t *v, packed_model_t *m) {
 /* The step arrays: v = q, u, tau, f_ext, last_impulse, last_active, last_bilateral, report,
  * is_active, qE, uE; checked against the model and the torque mode (TORQUE_*: tau is one
  * torque per joint, or a command of 5 per joint) */
-static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *m,
-                          i64 torque_mode, step_arrays_t *x) {
+static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *m, i64 torque_mode,
+                          step_arrays_t *x) {
     const char *bad = check_tree_model(m, v[1].len);
     if (bad) {
         PyErr_Format(PyExc_ValueError, "%s: %s", fn, bad);
@@ -245,31 +251,45 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
                 return 0;
             }
     i64 n_tau = torque_mode == TORQUE_IMPEDANCE ? impedance_command_length(na)
-                : torque_mode == TORQUE_REPLAY ? 2 * na : na;
-    if (!need(x->n_tau == n_tau && (x->n_f_ext == 0 || x->n_f_ext == nv) &&
-                  v[4].len == 3 * nc && v[5].len == nc && v[7].len == report_length(nc, na) &&
-                  v[8].len == nc && v[9].len == x->nq && v[10].len == nv,
-              fn, "the step's arrays do not match the model (tau: one torque per joint, or 5 "
-                  "per joint for an impedance command, 2 for a replay; f_ext: nv or empty; report: 7 nc + 3 na)"))
+                : torque_mode == TORQUE_REPLAY  ? 2 * na
+                                                : na;
+    if (!need(x->n_tau == n_tau && (x->n_f_ext == 0 || x->n_f_ext == nv) && v[4].len == 3 * nc &&
+                  v[5].len == nc && v[7].len == report_length(nc, na) && v[8].len == nc &&
+                  v[9].len == x->nq && v[10].len == nv,
+              fn,
+              "the step's arrays do not match the model (tau: one torque per joint, or 5 "
+              "per joint for an impedance command, 2 for a replay; f_ext: nv or empty; report: 7 "
+              "nc + 3 na)"))
         return 0;
     report_views(v[7].p, nc, na, &x->report);
     return 1;
 }
 
-#define STEP_OUT                                                                              \
-    {"out", GROUP + 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, {"uE", F64W}
-#define MODEL_BUFFERS                                                                         \
-    {"model", GROUP + 4}, {"floats", F64W}, {"ints", I64}, {"support", BOOL},                  \
-        {"workspace", F64W}
+#define STEP_OUT                                                                \
+    {"out", GROUP + 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, { \
+        "uE", F64W                                                              \
+    }
+#define MODEL_BUFFERS                                                           \
+    {"model", GROUP + 4}, {"floats", F64W}, {"ints", I64}, {"support", BOOL}, { \
+        "workspace", F64W                                                       \
+    }
 
 /* tree_step_hard(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
  * last_impulse, last_active, last_bilateral), out = (report, is_active, qE, uE), model =
  * the TreeStepModel's buffers */
 FN(tree_step_hard) {
-    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP + 5},
-                                  {"q", F64}, {"u", F64}, {"last_impulse", F64W},
-                                  {"last_active", BOOLW}, {"last_bilateral", F64W},
-                                  {"tau", F64}, {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
+    static const spec_t spec[] = {{"options", INT},
+                                  {"torque_mode", INT},
+                                  {"state", GROUP + 5},
+                                  {"q", F64},
+                                  {"u", F64},
+                                  {"last_impulse", F64W},
+                                  {"last_active", BOOLW},
+                                  {"last_bilateral", F64W},
+                                  {"tau", F64},
+                                  {"f_ext", F64},
+                                  STEP_OUT,
+                                  MODEL_BUFFERS};
     val_t v[17];
     held_t h = {.n = 0};
     volatile int failed = 0;
@@ -298,15 +318,17 @@ static int compliant_of(const char *fn, const val_t *v, i64 nc, compliant_state_
     return 1;
 }
 
-#define COMPLIANT_ARRAYS                                                                      \
-    {"closed", BOOLW}, {"slip", BOOLW}, {"anchor", F64W}, {"lam", F64W}
+#define COMPLIANT_ARRAYS                                    \
+    {"closed", BOOLW}, {"slip", BOOLW}, {"anchor", F64W}, { \
+        "lam", F64W                                         \
+    }
 
 /* tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
  * closed, slip, anchor, lam), out and model as tree_step_hard's */
 FN(tree_step_compliant) {
-    static const spec_t spec[] = {{"options", INT}, {"torque_mode", INT}, {"state", GROUP + 6},
-                                  {"q", F64}, {"u", F64}, COMPLIANT_ARRAYS, {"tau", F64},
-                                  {"f_ext", F64}, STEP_OUT, MODEL_BUFFERS};
+    static const spec_t spec[] = {
+        {"options", INT}, {"torque_mode", INT}, {"state", GROUP + 6}, {"q", F64}, {"u", F64},
+        COMPLIANT_ARRAYS, {"tau", F64},         {"f_ext", F64},       STEP_OUT,   MODEL_BUFFERS};
     val_t v[18];
     held_t h = {.n = 0};
     volatile int failed = 0;
@@ -349,13 +371,28 @@ static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_
  * STEP_COMPLIANT only), out = (report, is_active, qE, uE, angle_E, rate_E), model the
  * TreeStepModel's buffers, cut the CutModel's */
 FN(forest_step) {
-    static const spec_t spec[] = {
-        {"options", INT},   {"state", GROUP + 9}, {"q", F64}, {"u", F64},
-        {"last_impulse", F64W}, {"last_active", BOOLW}, {"last_bilateral", F64W},
-        COMPLIANT_ARRAYS,   {"tau", F64},     {"f_ext", F64},
-        {"out", GROUP + 6},  {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W},
-        {"uE", F64W},       {"angle_E", F64W}, {"rate_E", F64W}, MODEL_BUFFERS,
-        {"cut", GROUP + 3},  {"cut_floats", F64}, {"cut_ints", I64}, {"cut_workspace", F64W}};
+    static const spec_t spec[] = {{"options", INT},
+                                  {"state", GROUP + 9},
+                                  {"q", F64},
+                                  {"u", F64},
+                                  {"last_impulse", F64W},
+                                  {"last_active", BOOLW},
+                                  {"last_bilateral", F64W},
+                                  COMPLIANT_ARRAYS,
+                                  {"tau", F64},
+                                  {"f_ext", F64},
+                                  {"out", GROUP + 6},
+                                  {"report", F64W},
+                                  {"is_active", BOOLW},
+                                  {"qE", F64W},
+                                  {"uE", F64W},
+                                  {"angle_E", F64W},
+                                  {"rate_E", F64W},
+                                  MODEL_BUFFERS,
+                                  {"cut", GROUP + 3},
+                                  {"cut_floats", F64},
+                                  {"cut_ints", I64},
+                                  {"cut_workspace", F64W}};
     val_t v[25];
     held_t h = {.n = 0};
     volatile int failed = 0;
@@ -364,8 +401,7 @@ FN(forest_step) {
     compliant_state_t cs = {NULL, NULL, NULL, NULL};
     if (!PARSE("forest_step", spec, 7, v, &h) || !packed_of(&v[18], &m)) FAIL;
     val_t w[11] = {v[1], v[2], v[10], v[11], v[3], v[4], v[5], v[12], v[13], v[14], v[15]};
-    if (!step_arrays_of("forest_step", w, &m, TORQUE_AS_GIVEN, &x) ||
-        !cut_of(&v[22], &m, x.nv, &c))
+    if (!step_arrays_of("forest_step", w, &m, TORQUE_AS_GIVEN, &x) || !cut_of(&v[22], &m, x.nv, &c))
         FAIL;
     if ((v[0].i & STEP_COMPLIANT) &&
         !compliant_of("forest_step", &v[6], m.ints[TREE_STEP_MODEL_NC], &cs))
@@ -376,8 +412,7 @@ FN(forest_step) {
         FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed,
-              r = forest_step((int)v[0].i, &x, &cs, v[16].p, v[17].p, &m, &c, a));
+    RUN_NOGIL(a, failed, r = forest_step((int)v[0].i, &x, &cs, v[16].p, v[17].p, &m, &c, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);

@@ -11,9 +11,8 @@
  * n, t1, t2 and μ: contact_points), lam (nc x 3) receives (λ_N, λ_T1, λ_T2); closed, slip
  * and anchor are updated in place. */
 void compliant_contact_forces(const compliant_law_t *law, i64 nc, i64 nv, const double *gap,
-                              const double *position, const double *Wt, const double *u,
-                              u8 *closed, u8 *slip, double *anchor, const double *frames,
-                              double *lam) {
+                              const double *position, const double *Wt, const double *u, u8 *closed,
+                              u8 *slip, double *anchor, const double *frames, double *lam) {
     (void)law->mu; /* (μ per contact: its surface's, in frames) */
     double c_n = law->c_N, d_n = law->d_N, c_t = law->c_T, d_t = law->d_T;
     double slip_velocity = law->slip_velocity;
@@ -90,8 +89,7 @@ void compliant_contact_forces(const compliant_law_t *law, i64 nc, i64 nv, const 
 
 /* generalized_contact_force: out += Σ_i W_i λ_i (W_i = Wt[i]^T; Wt: nc x 3 x nv, lam: nc x 3,
  * out: nv), skipping contacts with λ_i = 0. */
-void generalized_contact_force(const double *Wt, const double *lam, i64 nc, i64 nv,
-                               double *out) {
+void generalized_contact_force(const double *Wt, const double *lam, i64 nc, i64 nv, double *out) {
     for (i64 i = 0; i < nc; i++) {
         double a = lam[3 * i], b = lam[3 * i + 1], c = lam[3 * i + 2];
         if (a == 0.0 && b == 0.0 && c == 0.0) continue;

@@ -41,13 +41,13 @@ typedef uint8_t u8;
 typedef struct arena_chunk arena_chunk;
 
 typedef struct {
-    char *base;            /* the block requests are carved from */
-    size_t cap;            /* its size [bytes] */
-    size_t used;           /* bytes handed out since the last reset */
-    size_t wanted;         /* bytes asked since the last reset (fitting or not) */
-    arena_chunk *extra;    /* malloc'd blocks of the requests that did not fit */
-    i64 misses;            /* requests that did not fit, since the arena was made */
-    jmp_buf *oom;          /* where arena_alloc jumps when malloc fails (set by the entry) */
+    char *base;         /* the block requests are carved from */
+    size_t cap;         /* its size [bytes] */
+    size_t used;        /* bytes handed out since the last reset */
+    size_t wanted;      /* bytes asked since the last reset (fitting or not) */
+    arena_chunk *extra; /* malloc'd blocks of the requests that did not fit */
+    i64 misses;         /* requests that did not fit, since the arena was made */
+    jmp_buf *oom;       /* where arena_alloc jumps when malloc fails (set by the entry) */
 } arena_t;
 
 void arena_init(arena_t *a, size_t cap);
@@ -74,7 +74,9 @@ arena_t *scratch_arena(void);
 /* Profiling clock (step_kernels' clock / lap): seconds of CLOCK_MONOTONIC. With timings NULL
  * (not profiling) clock returns 0 and lap does nothing. */
 double clock_now(void);
-static inline double kclock(double *timings) { return timings ? clock_now() : 0.0; }
+static inline double kclock(double *timings) {
+    return timings ? clock_now() : 0.0;
+}
 static inline double klap(double *timings, int phase, double since) {
     if (!timings) return 0.0;
     double t = clock_now();
@@ -91,12 +93,12 @@ enum { SCHEME_JOR = 0, SCHEME_SOR = 1 };
 enum { FORM_DELASSUS = 0, FORM_VELOCITY = 1 };
 enum { CRITERION_IMPULSE = 0, CRITERION_ENERGY = 1 };
 enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2 };
-#define ALPHA_AUTO (-1.0)
-#define AUTO_MAX_STEP 1.0e3
-#define AUTO_GUARD 1.0e3
-#define AUTO_POWER_ITERATIONS 16
+#define ALPHA_AUTO               (-1.0)
+#define AUTO_MAX_STEP            1.0e3
+#define AUTO_GUARD               1.0e3
+#define AUTO_POWER_ITERATIONS    16
 #define AUTO_SOR_BILATERAL_OMEGA 1.5
-#define DELASSUS_ENVELOPE_ROWS 24
+#define DELASSUS_ENVELOPE_ROWS   24
 
 /* Fig. 7 phases (step_kernels.PHASES), indices into a profiling `timings` array */
 enum { PHASE_M_AND_H = 0, PHASE_M_INVERSE = 1, PHASE_G = 2, PHASE_PROX = 3, PHASE_REST = 4 };
@@ -104,8 +106,8 @@ enum { PHASE_M_AND_H = 0, PHASE_M_INVERSE = 1, PHASE_G = 2, PHASE_PROX = 3, PHAS
 /* step_kernels.StepSettings (the prox kernels read form, scheme, tol_rel, tol_abs,
  * max_iterations, criterion, bilateral_direct and alpha: prox.ProxSettings) */
 typedef struct {
-    double activation_gap, mu, alpha, tol_rel, tol_abs, fallback_alpha_factor, opening_gap,
-        dt, beta_velocity, beta_projection, jacobian_gap, projection_tolerance;
+    double activation_gap, mu, alpha, tol_rel, tol_abs, fallback_alpha_factor, opening_gap, dt,
+        beta_velocity, beta_projection, jacobian_gap, projection_tolerance;
     i64 form, scheme, max_iterations, criterion;
     int warm_start, bilateral_direct, hysteresis;
 } settings_t;
@@ -177,7 +179,7 @@ typedef struct {
 /* The cut joints of a forest (ForestCoordinates / tree_step.CutModel) */
 typedef struct {
     i64 ncut;
-    const i64 *P, *C;                                   /* ncut each: the bodies */
+    const i64 *P, *C;                                         /* ncut each: the bodies */
     const double *p_P, *p_C, *a_P, *b1_P, *b2_P, *a_C, *b1_C; /* ncut x 3 each */
 } cuts_t;
 
@@ -189,20 +191,20 @@ typedef struct {
 /* step_kernels.ContactProblem: the rows of the active contacts (3 each, normal first) then
  * the bilateral rows; m = 3 na + nb rows, nv velocities. */
 typedef struct {
-    int ok;              /* M (and G_B) positive definite */
-    i64 na;              /* |I| */
-    i64 *active;         /* I, in row order (na) */
+    int ok;      /* M (and G_B) positive definite */
+    i64 na;      /* |I| */
+    i64 *active; /* I, in row order (na) */
     i64 m, nv;
-    double *Wt;          /* m x nv */
-    double *MinvW;       /* nv x m */
-    double *b;           /* m */
-    double *G;           /* m x m in the Delassus form, else unused */
-    double *Gdiag;       /* m */
-    double *LB;          /* nb x nb with the direct bilateral method, else unused */
-    i64 nb_LB;           /* LB's dimension (0: none) */
+    double *Wt;    /* m x nv */
+    double *MinvW; /* nv x m */
+    double *b;     /* m */
+    double *G;     /* m x m in the Delassus form, else unused */
+    double *Gdiag; /* m */
+    double *LB;    /* nb x nb with the direct bilateral method, else unused */
+    i64 nb_LB;     /* LB's dimension (0: none) */
     patterns_t pat;
     i64 opened;
-    const double *mu;     /* nc: each contact's μ (a copy, from the arena; NULL: settings_t.mu) */
+    const double *mu; /* nc: each contact's μ (a copy, from the arena; NULL: settings_t.mu) */
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------
@@ -216,8 +218,7 @@ void cholesky_solve_envelope(const double *L, i64 n, const i64 *first, const i64
 int ltdl(const double *A, i64 n, const i64 *dof_parent, double *L);
 void ltdl_solve_vec(const double *L, i64 n, const i64 *dof_parent, double *b);
 /* B: n x m, solved in place column by column */
-void ltdl_solve_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m,
-                     arena_t *a);
+void ltdl_solve_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m, arena_t *a);
 /* B: n x m with the row pattern of its columns (ptr: m + 1, idx); returns the pattern of the
  * solution's columns (out_ptr: m + 1, out_idx: out_ptr[m] entries) from the arena */
 void ltdl_solve_cols_pattern(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m,
@@ -247,8 +248,8 @@ void contact_kinematics(const double *q, const tree_t *t, const frames_t *f,
 int terrain_is_flat(const ground_t *g);
 int terrain_has_second_surfaces(const ground_t *g);
 double terrain_plane_mu(const ground_t *g);
-double terrain_contact(const ground_t *g, const double *c, double r, double *out,
-                       double *second, double *second_gap);
+double terrain_contact(const ground_t *g, const double *c, double r, double *out, double *second,
+                       double *second_gap);
 
 /* ---------------------------------------------------------------------------------------
  * rigid_body.c (rigid_body.py)
@@ -259,20 +260,18 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
 /* ---------------------------------------------------------------------------------------
  * forest.c (coordinates/forest.py)
  * ------------------------------------------------------------------------------------- */
-void integrate_forest(const double *q, const double *u, double dt, const tree_t *t,
-                      double *out);
+void integrate_forest(const double *q, const double *u, double dt, const tree_t *t, double *out);
 void quat_rot(const double *q, i64 iq, double *R);
 void to_pin_velocity(const double *q, const double *u, i64 nv, i64 n_roots, const i64 *root_q,
                      const i64 *root_v, double *Rs, double *u_pin);
 void from_pin_dynamics(const double *M_pin, const double *h_pin, i64 n, const double *Rs,
-                       i64 n_roots, const i64 *root_v, const double *u_pin, double *M,
-                       double *h);
+                       i64 n_roots, const i64 *root_v, const double *u_pin, double *M, double *h);
 void tree_dynamics(const double *q, const double *u, const tree_t *t, const frames_t *f,
                    const inertias_t *b, double *M, double *h);
 void midpoint_dynamics(const double *q, const double *u, double half_dt, const tree_t *t,
                        const frames_t *f, const inertias_t *b, const contact_points_t *c,
-                       const ground_t *g, double jacobian_gap, double *qM, double *M,
-                       double *h, double *gap, double *position, double *Wt);
+                       const ground_t *g, double jacobian_gap, double *qM, double *M, double *h,
+                       double *gap, double *position, double *Wt);
 void add_at(double *h, const i64 *idx, const double *values, i64 n);
 void rigid_body_forces(const double *q, const double *u, i64 n_roots, const i64 *root_q,
                        const i64 *root_v, const double *mass, const double *inertia,
@@ -294,11 +293,9 @@ void cut_joint_torques(const double *tau_cut, const cuts_t *c, const double *axi
  * contact.c (contact.py, actuator.py)
  * ------------------------------------------------------------------------------------- */
 void compliant_contact_forces(const compliant_law_t *law, i64 nc, i64 nv, const double *gap,
-                              const double *position, const double *Wt, const double *u,
-                              u8 *closed, u8 *slip, double *anchor, const double *frames,
-                              double *lam);
-void generalized_contact_force(const double *Wt, const double *lam, i64 nc, i64 nv,
-                               double *out);
+                              const double *position, const double *Wt, const double *u, u8 *closed,
+                              u8 *slip, double *anchor, const double *frames, double *lam);
+void generalized_contact_force(const double *Wt, const double *lam, i64 nc, i64 nv, double *out);
 int saturate_torque(const double *tau, const double *limit, const double *qd,
                     const double *qd_limit, double *out, i64 n);
 
@@ -311,9 +308,8 @@ void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r
 void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);
 void col_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);
 /* G (m x m) = W^T M^{-1} W; Wt: m x nv, MinvW: nv x m */
-void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv,
-              const i64 *wp_ptr, const i64 *wp_idx, const i64 *mp_ptr, const i64 *mp_idx,
-              arena_t *a);
+void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv, const i64 *wp_ptr,
+              const i64 *wp_idx, const i64 *mp_ptr, const i64 *mp_idx, arena_t *a);
 void delassus_diagonal(const double *Wt, const double *MinvW, double *d, i64 m, i64 nv,
                        const i64 *wp_ptr, const i64 *wp_idx);
 /* prox_alpha.c: auto_spectral_scale (adaptive α): G is m x m (Delassus form), else unused */
@@ -325,8 +321,8 @@ double auto_spectral_scale(const settings_t *s, const double *G, const double *W
  * M nv x nv (energy criterion), u nv (u^E out). */
 prox_result_t prox_solve(const settings_t *s, const patterns_t *pat, const double *Wt,
                          const double *MinvW, const double *u_free, const double *bvec,
-                         const double *G, const double *c, i64 m, i64 nv, i64 nc,
-                         const double *mu, const double *r, double *lam, const double *LB,
-                         i64 nb_LB, const double *M, double *u, arena_t *a);
+                         const double *G, const double *c, i64 m, i64 nv, i64 nc, const double *mu,
+                         const double *r, double *lam, const double *LB, i64 nb_LB, const double *M,
+                         double *u, arena_t *a);
 
 #endif

@@ -6,8 +6,7 @@
 
 /* integrate_forest: out = q ⊕ Δt F(q) u: r ← r + Δt v, P ← P ⊗ exp(Δt ω/2) per root,
  * φ ← φ + Δt φ̇. */
-void integrate_forest(const double *q, const double *u, double dt, const tree_t *t,
-                      double *out) {
+void integrate_forest(const double *q, const double *u, double dt, const tree_t *t, double *out) {
     for (i64 j = 1; j < t->nj; j++) {
         i64 iq = t->idx_q[j];
         i64 iv = t->idx_v[j];
@@ -52,16 +51,15 @@ void to_pin_velocity(const double *q, const double *u, i64 nv, i64 n_roots, cons
         quat_rot(q, root_q[r], R);
         i64 iv = root_v[r];
         for (int a = 0; a < 3; a++)
-            u_pin[iv + a] = R[0 * 3 + a] * u[iv] + R[1 * 3 + a] * u[iv + 1]
-                            + R[2 * 3 + a] * u[iv + 2];
+            u_pin[iv + a] =
+                R[0 * 3 + a] * u[iv] + R[1 * 3 + a] * u[iv + 1] + R[2 * 3 + a] * u[iv + 2];
     }
 }
 
 /* from_pin_dynamics: M = T^T M_pin T, h = T^T (h_pin + Σ_k M_pin[:, v_k] (ω_k × v_k))
  * (M_pin: n x n, upper triangle read). */
 void from_pin_dynamics(const double *M_pin, const double *h_pin, i64 n, const double *Rs,
-                       i64 n_roots, const i64 *root_v, const double *u_pin, double *M,
-                       double *h) {
+                       i64 n_roots, const i64 *root_v, const double *u_pin, double *M, double *h) {
     for (i64 i = 0; i < n; i++) {
         for (i64 j = i; j < n; j++) {
             M[i * n + j] = M_pin[i * n + j];
@@ -85,14 +83,14 @@ void from_pin_dynamics(const double *M_pin, const double *h_pin, i64 n, const do
         const double *R = Rs + 9 * r;
         for (i64 j = 0; j < n; j++) {
             for (int a = 0; a < 3; a++)
-                tmp[a] = R[a * 3 + 0] * M[iv * n + j] + R[a * 3 + 1] * M[(iv + 1) * n + j]
-                         + R[a * 3 + 2] * M[(iv + 2) * n + j];
+                tmp[a] = R[a * 3 + 0] * M[iv * n + j] + R[a * 3 + 1] * M[(iv + 1) * n + j] +
+                         R[a * 3 + 2] * M[(iv + 2) * n + j];
             for (int a = 0; a < 3; a++) M[(iv + a) * n + j] = tmp[a];
         }
         for (i64 i = 0; i < n; i++) {
             for (int a = 0; a < 3; a++)
-                tmp[a] = M[i * n + iv] * R[a * 3 + 0] + M[i * n + iv + 1] * R[a * 3 + 1]
-                         + M[i * n + iv + 2] * R[a * 3 + 2];
+                tmp[a] = M[i * n + iv] * R[a * 3 + 0] + M[i * n + iv + 1] * R[a * 3 + 1] +
+                         M[i * n + iv + 2] * R[a * 3 + 2];
             for (int a = 0; a < 3; a++) M[i * n + iv + a] = tmp[a];
         }
         for (int a = 0; a < 3; a++)
@@ -112,8 +110,8 @@ void tree_dynamics(const double *q, const double *u, const tree_t *t, const fram
  * and the contacts' g_N, positions and W^T at q^M (contact_points). */
 void midpoint_dynamics(const double *q, const double *u, double half_dt, const tree_t *t,
                        const frames_t *f, const inertias_t *b, const contact_points_t *c,
-                       const ground_t *g, double jacobian_gap, double *qM, double *M,
-                       double *h, double *gap, double *position, double *Wt) {
+                       const ground_t *g, double jacobian_gap, double *qM, double *M, double *h,
+                       double *gap, double *position, double *Wt) {
     integrate_forest(q, u, half_dt, t, qM);
     tree_dynamics(qM, u, t, f, b, M, h);
     contact_points(t, f, c, g, jacobian_gap, gap, position, Wt);
@@ -161,15 +159,16 @@ void angular_jacobian(i64 j, const tree_t *t, const double *oR, double *out, int
         } else {
             const double *ax = t->axis + 3 * k;
             for (int r = 0; r < 3; r++)
-                out[r * nv + iv] = R[r * 3 + 0] * ax[0] + R[r * 3 + 1] * ax[1]
-                                   + R[r * 3 + 2] * ax[2];
+                out[r * nv + iv] =
+                    R[r * 3 + 0] * ax[0] + R[r * 3 + 1] * ax[1] + R[r * 3 + 2] * ax[2];
         }
     }
 }
 
 /* rotate: out = R v */
 static inline void rotate(const double *R, const double *v, double *out) {
-    for (int r = 0; r < 3; r++) out[r] = R[r * 3 + 0] * v[0] + R[r * 3 + 1] * v[1] + R[r * 3 + 2] * v[2];
+    for (int r = 0; r < 3; r++)
+        out[r] = R[r * 3 + 0] * v[0] + R[r * 3 + 1] * v[1] + R[r * 3 + 2] * v[2];
 }
 
 /* cut_columns: the dofs of the joints that support body P or body C, ascending, into cols;
@@ -213,9 +212,9 @@ static inline void angle_and_rate(const double *oR_C, const double *b1_C, const 
     double s = 0.0;
     for (i64 p = 0; p < n; p++) {
         i64 c = cols[p];
-        s += (aw[0] * (JC[c] - JP[c]) + aw[1] * (JC[nv + c] - JP[nv + c])
-              + aw[2] * (JC[2 * nv + c] - JP[2 * nv + c]))
-             * u[c];
+        s += (aw[0] * (JC[c] - JP[c]) + aw[1] * (JC[nv + c] - JP[nv + c]) +
+              aw[2] * (JC[2 * nv + c] - JP[2 * nv + c])) *
+             u[c];
     }
     *rate = s;
 }

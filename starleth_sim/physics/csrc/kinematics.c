@@ -23,8 +23,8 @@ static void axis_angle_to_rot(const double *a, double theta, double *R) {
 static void matmul3(const double *A, const double *B, double *out) {
     for (int r = 0; r < 3; r++)
         for (int c = 0; c < 3; c++)
-            out[r * 3 + c] = A[r * 3 + 0] * B[0 * 3 + c] + A[r * 3 + 1] * B[1 * 3 + c]
-                             + A[r * 3 + 2] * B[2 * 3 + c];
+            out[r * 3 + c] = A[r * 3 + 0] * B[0 * 3 + c] + A[r * 3 + 1] * B[1 * 3 + c] +
+                             A[r * 3 + 2] * B[2 * 3 + c];
 }
 
 /* forward_kinematics: world placements (oR[j], op[j]) of all joint frames,
@@ -55,13 +55,13 @@ void forward_kinematics(const double *q, const tree_t *t, const frames_t *f) {
         const double *oRp = oR + 9 * par;
         /* p_local = placement.p + placement.R pq ; op = op_par + oR_par p_local */
         for (int r = 0; r < 3; r++) {
-            double pl = plp[r] + plR[r * 3 + 0] * pq[0] + plR[r * 3 + 1] * pq[1]
-                        + plR[r * 3 + 2] * pq[2];
+            double pl =
+                plp[r] + plR[r * 3 + 0] * pq[0] + plR[r * 3 + 1] * pq[1] + plR[r * 3 + 2] * pq[2];
             tmp[r] = pl;
         }
         for (int r = 0; r < 3; r++)
-            op[3 * j + r] = op[3 * par + r] + oRp[r * 3 + 0] * tmp[0] + oRp[r * 3 + 1] * tmp[1]
-                            + oRp[r * 3 + 2] * tmp[2];
+            op[3 * j + r] = op[3 * par + r] + oRp[r * 3 + 0] * tmp[0] + oRp[r * 3 + 1] * tmp[1] +
+                            oRp[r * 3 + 2] * tmp[2];
         matmul3(plR, Rq, tmp);
         matmul3(oRp, tmp, oR + 9 * j);
     }
@@ -117,8 +117,7 @@ static void contact_slot(const tree_t *t, const frames_t *f, const ground_t *g, 
     for (int k = 0; k < 3; k++) position[3 * i + k] = ci[k] - r * n[k];
     if (gap > jacobian_gap) return;
     point_jacobian(j, position + 3 * i, t, f, J, 1);
-    double *W0 = Wt + (3 * i + 0) * nv, *W1 = Wt + (3 * i + 1) * nv,
-           *W2 = Wt + (3 * i + 2) * nv;
+    double *W0 = Wt + (3 * i + 0) * nv, *W1 = Wt + (3 * i + 1) * nv, *W2 = Wt + (3 * i + 2) * nv;
     for (i64 col = 0; col < nv; col++) {
         W0[col] = n[0] * J[col] + n[1] * J[nv + col] + n[2] * J[2 * nv + col];
         W1[col] = t1[0] * J[col] + t1[1] * J[nv + col] + t1[2] * J[2 * nv + col];
@@ -157,8 +156,8 @@ void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *
         i64 j = c->joint[i];
         const double *R = oR + 9 * j, *loc = c->local + 3 * i;
         for (int k = 0; k < 3; k++)
-            ci[k] = R[k * 3 + 0] * loc[0] + R[k * 3 + 1] * loc[1] + R[k * 3 + 2] * loc[2]
-                    + op[3 * j + k];
+            ci[k] = R[k * 3 + 0] * loc[0] + R[k * 3 + 1] * loc[1] + R[k * 3 + 2] * loc[2] +
+                    op[3 * j + k];
         double r = c->radius[i];
         if (flat) {
             const double *n = g->n;
@@ -179,8 +178,7 @@ void contact_points(const tree_t *t, const frames_t *f, const contact_points_t *
             const double *a = swap ? fr2 : fr, *b = swap ? fr : fr2;
             gap[i] = swap ? g2 : g1;
             gap[ns + i] = swap ? g1 : g2;
-            contact_slot(t, f, g, ns + i, j, ci, r, b, gap[ns + i], jacobian_gap, position,
-                         Wt, J);
+            contact_slot(t, f, g, ns + i, j, ci, r, b, gap[ns + i], jacobian_gap, position, Wt, J);
             contact_slot(t, f, g, i, j, ci, r, a, gap[i], jacobian_gap, position, Wt, J);
             continue;
         }

@@ -144,9 +144,9 @@ void ltdl_solve_vec(const double *L, i64 n, const i64 *dof_parent, double *b) {
 /* ltdl_solve_tree_cols: ltdl_solve_cols for the tree of dofs o..e-1 and the columns cols
  * (nc) of B (n x m). With every column: both passes along rows, the L^T pass without skipping
  * zeros; else the L^T pass skips the zero entries (_ltdl_transpose_pass_cols). */
-static void ltdl_solve_tree_cols(const double *L, const i64 *dof_parent, double *B, i64 n,
-                                 i64 m, i64 o, i64 e, const i64 *cols, i64 nc) {
-    if (nc == m) { /* every column: contiguous rows */
+static void ltdl_solve_tree_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m,
+                                 i64 o, i64 e, const i64 *cols, i64 nc) {
+    if (nc == m) {                         /* every column: contiguous rows */
         for (i64 k = e - 1; k >= o; k--) { /* L^T y = b: leaves to roots */
             const double *row = B + k * m;
             i64 j = dof_parent[k];
@@ -199,8 +199,7 @@ static void ltdl_solve_tree_cols(const double *L, const i64 *dof_parent, double 
 
 /* ltdl_solve_cols: (L^T D L) X = B in place, tree by tree (contiguous dofs starting at a
  * root), each for the columns not zero over its dofs. */
-void ltdl_solve_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m,
-                     arena_t *a) {
+void ltdl_solve_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m, arena_t *a) {
     i64 *cols = arena_i(a, m);
     i64 o = 0;
     while (o < n) {
@@ -223,8 +222,8 @@ void ltdl_solve_cols(const double *L, const i64 *dof_parent, double *B, i64 n, i
 /* ltdl_solve_tree_block: ltdl_solve_tree_cols for the tree of dofs o..e-1 and the columns
  * cols (nct) of B, on a contiguous copy X ((e - o) x nct, in block); the L^T pass leaves an
  * entry as it is where the row below is zero. */
-static void ltdl_solve_tree_block(const double *L, const i64 *dof_parent, double *B, i64 n,
-                                  i64 m, i64 o, i64 e, const i64 *cols, i64 nct, double *X) {
+static void ltdl_solve_tree_block(const double *L, const i64 *dof_parent, double *B, i64 n, i64 m,
+                                  i64 o, i64 e, const i64 *cols, i64 nct, double *X) {
     for (i64 i = 0; i < e - o; i++) {
         const double *Bi = B + (o + i) * m;
         double *Xi = X + i * nct;
@@ -271,7 +270,7 @@ void ltdl_solve_cols_pattern(const double *L, const i64 *dof_parent, double *B, 
                              i64 **out_idx) {
     i64 nnz = py_maxi(ptr[m], 1);
     i64 *work = arena_i(a, 4 * n + 3 + (m + 1) + 2 * nnz);
-    i64 *tree = work;          /* dof -> its tree (trees: contiguous dofs) */
+    i64 *tree = work; /* dof -> its tree (trees: contiguous dofs) */
     i64 *starts = work + n;
     i64 nt = 0;
     for (i64 k = 0; k < n; k++) {
@@ -284,7 +283,7 @@ void ltdl_solve_cols_pattern(const double *L, const i64 *dof_parent, double *B, 
     i64 *ct_idx = work + 2 * n + m + 2;
     i64 *t_count = work + 2 * n + m + 2 + nnz; /* nt + 1 */
     for (i64 t = 0; t <= nt; t++) t_count[t] = 0;
-    i64 *fill = work + 3 * n + m + 3 + nnz;    /* nt */
+    i64 *fill = work + 3 * n + m + 3 + nnz; /* nt */
     i64 *t_cols = work + 4 * n + m + 3 + nnz;
     i64 k = 0;
     for (i64 c = 0; c < m; c++) {

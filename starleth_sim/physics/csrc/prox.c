@@ -7,7 +7,9 @@
 #include <string.h>
 
 /* prox_normal: Λ_N = −prox_{R0−}(−x), projection onto [0, ∞) (NaN gives 0) */
-static inline double prox_normal(double x) { return x > 0.0 ? x : 0.0; }
+static inline double prox_normal(double x) {
+    return x > 0.0 ? x : 0.0;
+}
 
 /* prox_disc: projection of (x1, x2) onto the disc of the given radius */
 static inline void prox_disc(double x1, double x2, double radius, double *o1, double *o2) {
@@ -28,8 +30,8 @@ static inline void prox_disc(double x1, double x2, double radius, double *o1, do
 }
 
 /* project_contact: prox of one contact's rows (out may be lam: all reads before writes) */
-static inline void project_contact(const double *lam, i64 b, double xi0, double xi1,
-                                   double xi2, const double *r, double mu_i, double *out) {
+static inline void project_contact(const double *lam, i64 b, double xi0, double xi1, double xi2,
+                                   const double *r, double mu_i, double *out) {
     double ln = prox_normal(lam[b] - r[b] * xi0);
     double t1, t2;
     prox_disc(lam[b + 1] - r[b + 1] * xi1, lam[b + 2] - r[b + 2] * xi2, mu_i * ln, &t1, &t2);
@@ -73,9 +75,8 @@ static void velocity_from_impulses(const double *u_free, const double *MinvW, i6
 /* bilateral_direct_delassus: Λ_B = −G_BB^{-1} (G_BU Λ_U + c_B) (Eqn. 20), with L_B's
  * envelope columns (col_ptr, col_idx) and the right-hand side's buffer rhs */
 static void bilateral_direct_delassus(const double *G, const double *c, i64 m, i64 nc,
-                                      const double *LB, i64 nb_LB, double *lam,
-                                      const i64 *gp_ptr, const i64 *gp_idx,
-                                      const i64 *lb_first, const i64 *col_ptr,
+                                      const double *LB, i64 nb_LB, double *lam, const i64 *gp_ptr,
+                                      const i64 *gp_idx, const i64 *lb_first, const i64 *col_ptr,
                                       const i64 *col_idx, double *rhs) {
     i64 o = 3 * nc;
     i64 nb_ = m - o;
@@ -94,10 +95,9 @@ static void bilateral_direct_delassus(const double *G, const double *c, i64 m, i
 
 /* bilateral_direct_velocity: Λ_B = −G_BB^{-1} W_B^T (u_free + M^{-1} W_U Λ_U) (Eqn. 20);
  * uu (nv) and rhs (m − 3nc) are the caller's work buffers (the Python's copy / np.empty) */
-static void bilateral_direct_velocity(const double *Wt, const double *MinvW,
-                                      const double *u_free, i64 m, i64 nv, i64 nc,
-                                      const double *LB, i64 nb_LB, double *lam,
-                                      const patterns_t *pat, double *uu, double *rhs) {
+static void bilateral_direct_velocity(const double *Wt, const double *MinvW, const double *u_free,
+                                      i64 m, i64 nv, i64 nc, const double *LB, i64 nb_LB,
+                                      double *lam, const patterns_t *pat, double *uu, double *rhs) {
     i64 o = 3 * nc;
     i64 nb_ = m - o;
     for (i64 k = 0; k < nv; k++) uu[k] = u_free[k];
@@ -122,8 +122,7 @@ typedef struct {
 } check_t;
 
 /* row_check: one row's test |ΔΛ| ≤ |Λ_old| tol_rel + tol_abs, carried on in c */
-static inline void row_check(double old, double new_, check_t *c, double tol_rel,
-                             double tol_abs) {
+static inline void row_check(double old, double new_, check_t *c, double tol_rel, double tol_abs) {
     double d = fabs(new_ - old);
     if (!isfinite(new_)) c->finite = 0;
     if (d > c->res) c->res = d;
@@ -140,8 +139,8 @@ static check_t check(const double *lam_old, const double *lam, i64 n, double tol
 
 /* delassus_apply: ξ_a = c_a + Σ_l G_al Λ_l (a < n), column by column over each column's
  * envelope (its zeros inside included, as the Python) */
-static void delassus_apply(const double *G, const double *c, i64 m, const double *lam,
-                           double *xi, const i64 *gp_ptr, const i64 *gp_idx, i64 n) {
+static void delassus_apply(const double *G, const double *c, i64 m, const double *lam, double *xi,
+                           const i64 *gp_ptr, const i64 *gp_idx, i64 n) {
     for (i64 a = 0; a < n; a++) xi[a] = c[a];
     for (i64 l = 0; l < m; l++) {
         i64 first = gp_ptr[l], last = gp_ptr[l + 1];
@@ -155,8 +154,8 @@ static void delassus_apply(const double *G, const double *c, i64 m, const double
 }
 
 /* jor_project: a JOR update of Λ into new (Λ_B kept with the direct method) */
-static void jor_project(const double *lam, const double *xi, const double *r,
-                        const double *mu, i64 nc, i64 m, int bilateral_direct, double *new_) {
+static void jor_project(const double *lam, const double *xi, const double *r, const double *mu,
+                        i64 nc, i64 m, int bilateral_direct, double *new_) {
     for (i64 i = 0; i < nc; i++) {
         i64 b = 3 * i;
         project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new_);
@@ -165,9 +164,8 @@ static void jor_project(const double *lam, const double *xi, const double *r,
 }
 
 /* jor_update_in_place: fixed-α JOR update (bilateral prox rows) in place, with check */
-static check_t jor_update_in_place(double *lam, const double *xi, const double *r,
-                                   const double *mu, i64 nc, i64 m, double tol_rel,
-                                   double tol_abs) {
+static check_t jor_update_in_place(double *lam, const double *xi, const double *r, const double *mu,
+                                   i64 nc, i64 m, double tol_rel, double tol_abs) {
     check_t c = {1, 0.0, 1};
     for (i64 i = 0; i < nc; i++) {
         i64 b = 3 * i;
@@ -198,8 +196,8 @@ static prox_result_t result(i64 it, i64 status, double res) {
 
 /* The energy criterion: |T^{k+1} − T^k| ≤ |T^k| T_rel + T_abs with T = ½ uᵀMu; T^k in *T_old,
  * replaced by T^{k+1} */
-static int energy_converged(const double *M, const double *u, i64 nv, double *T_old,
-                            double tol_rel, double tol_abs) {
+static int energy_converged(const double *M, const double *u, i64 nv, double *T_old, double tol_rel,
+                            double tol_abs) {
     double T = kinetic_energy(M, u, nv);
     int ok = fabs(T - *T_old) <= fabs(*T_old) * tol_rel + tol_abs;
     *T_old = T;
@@ -253,11 +251,11 @@ typedef struct {
     const settings_t *s;
     const patterns_t *pat;
     const double *G, *c, *mu, *r, *LB;
-    double *lam;        /* Λ: warm start in, solution out */
+    double *lam; /* Λ: warm start in, solution out */
     i64 m, nc, nb_LB;
-    dop_t D;            /* G as the adaptive α reads it */
-    velocity_t v;       /* u^E = u_free + M^{-1}WΛ and its energy */
-    direct_t direct;    /* the direct bilateral method's work */
+    dop_t D;         /* G as the adaptive α reads it */
+    velocity_t v;    /* u^E = u_free + M^{-1}WΛ and its energy */
+    direct_t direct; /* the direct bilateral method's work */
     arena_t *ar;
 } delassus_t;
 
@@ -293,8 +291,8 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
             jor_project(lam, xi, rk, mu, nc, m, bilateral_direct, new_);
             if (bilateral_direct)
                 bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, new_, gp_ptr, gp_idx,
-                                          P->pat->lb_first, P->direct.col_ptr,
-                                          P->direct.col_idx, P->direct.rhs);
+                                          P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
+                                          P->direct.rhs);
             ck = check(lam, new_, m, tol_rel, tol_abs);
             if (autoa) {
                 if (!ck.finite && hist[1] != 1.0) { /* from Λ^0 again, spectral steps */
@@ -304,8 +302,8 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
                     T_old = initial_energy(&P->v, lam, criterion);
                     continue;
                 }
-                long_step = auto_jor_save(k, lam, new_, xi, ck.res, rs, rk, hist, w.dsave,
-                                          w.xsave, m);
+                long_step =
+                    auto_jor_save(k, lam, new_, xi, ck.res, rs, rk, hist, w.dsave, w.xsave, m);
             }
             memcpy(lam, new_, (size_t)m * sizeof(double));
         }
@@ -386,8 +384,7 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
 }
 
 /* envelope_columns: L_B's envelope by columns (nd > 0 bilateral rows), else empty */
-static void envelope_columns_of(const patterns_t *pat, i64 nd, arena_t *ar, i64 **ptr,
-                                i64 **idx) {
+static void envelope_columns_of(const patterns_t *pat, i64 nd, arena_t *ar, i64 **ptr, i64 **idx) {
     if (nd > 0) {
         envelope_columns(pat->lb_first, pat->n_lb, ar, ptr, idx);
         return;
@@ -399,28 +396,37 @@ static void envelope_columns_of(const patterns_t *pat, i64 nd, arena_t *ar, i64 
 /* delassus_prox: JOR or SOR on ξ = GΛ + c with its work buffer from the arena */
 static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_t *pat,
                                    const double *G, const double *c, i64 m, i64 nc,
-                                   const double *mu, const double *r, double *lam,
-                                   const double *LB, i64 nb_LB, const double *M,
-                                   const double *u_free, const double *MinvW, i64 nv,
-                                   double *u, arena_t *ar) {
+                                   const double *mu, const double *r, double *lam, const double *LB,
+                                   i64 nb_LB, const double *M, const double *u_free,
+                                   const double *MinvW, i64 nv, double *u, arena_t *ar) {
     i64 nd = s->bilateral_direct ? m - 3 * nc : 0;
     i64 nw = jor ? 2 * m : m;
     double *work = arena_f(ar, nw + nd);
     i64 *col_ptr, *col_idx;
     envelope_columns_of(pat, nd, ar, &col_ptr, &col_idx);
-    delassus_t P = {s, pat, G, c, mu, r, LB, lam, m, nc, nb_LB,
+    delassus_t P = {s,
+                    pat,
+                    G,
+                    c,
+                    mu,
+                    r,
+                    LB,
+                    lam,
+                    m,
+                    nc,
+                    nb_LB,
                     {s->form, G, G, MinvW, pat, m, nv},
                     {u_free, MinvW, M, pat->mp_ptr, pat->mp_idx, nv, m, u},
-                    {col_ptr, col_idx, work + nw}, ar};
+                    {col_ptr, col_idx, work + nw},
+                    ar};
     return jor ? jor_prox_delassus(&P, work) : sor_prox_delassus(&P, work);
 }
 
 /* jor_prox_velocity: JOR in the end velocity u^k (Eqn. 17-19), G never formed */
-static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pat,
-                                       const double *Wt, const double *MinvW,
-                                       const double *u_free, const double *bvec, i64 m,
-                                       i64 nv, i64 nc, const double *mu, const double *r,
-                                       double *lam, const double *LB, i64 nb_LB,
+static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pat, const double *Wt,
+                                       const double *MinvW, const double *u_free,
+                                       const double *bvec, i64 m, i64 nv, i64 nc, const double *mu,
+                                       const double *r, double *lam, const double *LB, i64 nb_LB,
                                        const double *M, double *u, arena_t *ar) {
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
     i64 max_iter = s->max_iterations, criterion = s->criterion;
@@ -458,8 +464,7 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
         }
         jor_project(lam, xi, rk, mu, nc, m, bilateral_direct, new_);
         if (bilateral_direct)
-            bilateral_direct_velocity(Wt, MinvW, u_free, m, nv, nc, LB, nb_LB, new_, pat, uu,
-                                      rhs);
+            bilateral_direct_velocity(Wt, MinvW, u_free, m, nv, nc, LB, nb_LB, new_, pat, uu, rhs);
         check_t ck = check(lam, new_, m, tol_rel, tol_abs);
         res = ck.res;
         if (autoa) {
@@ -470,8 +475,7 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
                 if (criterion == CRITERION_ENERGY) T_old = kinetic_energy(M, u, nv);
                 continue;
             }
-            long_step = auto_jor_save(k, lam, new_, xi, ck.res, rs, rk, hist, w.dsave,
-                                      w.xsave, m);
+            long_step = auto_jor_save(k, lam, new_, xi, ck.res, rs, rk, hist, w.dsave, w.xsave, m);
         }
         for (i64 l = 0; l < m; l++) {
             double d = new_[l] - lam[l];
@@ -493,11 +497,10 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
 
 /* sor_prox_velocity: SOR in the end velocity, u updated after each contact (Eqn. 18), then
  * the bilateral rows (Eqn. 19, or Eqn. 20 when direct) */
-static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pat,
-                                       const double *Wt, const double *MinvW,
-                                       const double *u_free, const double *bvec, i64 m,
-                                       i64 nv, i64 nc, const double *mu, const double *r,
-                                       double *lam, const double *LB, i64 nb_LB,
+static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pat, const double *Wt,
+                                       const double *MinvW, const double *u_free,
+                                       const double *bvec, i64 m, i64 nv, i64 nc, const double *mu,
+                                       const double *r, double *lam, const double *LB, i64 nb_LB,
                                        const double *M, double *u, arena_t *ar) {
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
     i64 max_iter = s->max_iterations, criterion = s->criterion;
@@ -544,8 +547,8 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
         }
         if (bilateral_direct) {
             if (m > o) {
-                bilateral_direct_velocity(Wt, MinvW, u_free, m, nv, nc, LB, nb_LB, lam, pat,
-                                          uu, rhs);
+                bilateral_direct_velocity(Wt, MinvW, u_free, m, nv, nc, LB, nb_LB, lam, pat, uu,
+                                          rhs);
                 velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
             }
         } else {
@@ -586,15 +589,15 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
 /* prox_solve: one prox solve with the settings' form and scheme */
 prox_result_t prox_solve(const settings_t *s, const patterns_t *pat, const double *Wt,
                          const double *MinvW, const double *u_free, const double *bvec,
-                         const double *G, const double *c, i64 m, i64 nv, i64 nc,
-                         const double *mu, const double *r, double *lam, const double *LB,
-                         i64 nb_LB, const double *M, double *u, arena_t *a) {
+                         const double *G, const double *c, i64 m, i64 nv, i64 nc, const double *mu,
+                         const double *r, double *lam, const double *LB, i64 nb_LB, const double *M,
+                         double *u, arena_t *a) {
     if (s->form == FORM_DELASSUS)
-        return delassus_prox(s->scheme == SCHEME_JOR, s, pat, G, c, m, nc, mu, r, lam, LB,
-                             nb_LB, M, u_free, MinvW, nv, u, a);
+        return delassus_prox(s->scheme == SCHEME_JOR, s, pat, G, c, m, nc, mu, r, lam, LB, nb_LB, M,
+                             u_free, MinvW, nv, u, a);
     if (s->scheme == SCHEME_JOR)
-        return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, lam, LB,
-                                 nb_LB, M, u, a);
-    return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, lam, LB,
-                             nb_LB, M, u, a);
+        return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, lam, LB, nb_LB,
+                                 M, u, a);
+    return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, lam, LB, nb_LB, M,
+                             u, a);
 }

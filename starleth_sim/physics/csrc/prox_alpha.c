@@ -120,8 +120,8 @@ double auto_spectral_scale(const settings_t *s, const double *G, const double *W
 }
 
 /* auto_spectral_parameters: rs = r |α| / λ_max; returns rs / r (1: no estimate) */
-static double auto_spectral_parameters(const settings_t *s, const dop_t *D, i64 nc,
-                                       const double *r, double *rs, arena_t *ar) {
+static double auto_spectral_parameters(const settings_t *s, const dop_t *D, i64 nc, const double *r,
+                                       double *rs, arena_t *ar) {
     i64 m = D->m;
     for (i64 l = 0; l < m; l++) rs[l] = r[l];
     if (m == 0) return 1.0;
@@ -143,8 +143,8 @@ static double clamp_step(double p_, double q) {
 
 /* auto_step_factor: Barzilai-Borwein θ = (dᵀ R_s^{-1} d) / (dᵀ G d), d = new − old */
 static double auto_step_factor(const settings_t *s, const dop_t *D, const double *old,
-                               const double *new_, const double *rs, double *tmp1,
-                               double *tmp2, i64 n) {
+                               const double *new_, const double *rs, double *tmp1, double *tmp2,
+                               i64 n) {
     const patterns_t *pat = D->pat;
     i64 m = D->m, nv = D->nv;
     double p_ = 0.0;
@@ -200,17 +200,16 @@ static int auto_guard(double res, double *hist) {
 }
 
 /* auto_restart: after a non-finite sweep, Λ back to Λ^0 and rk back to rs */
-void auto_restart(double *hist, double *lam, const double *lam0, double *rk,
-                  const double *rs, i64 m) {
+void auto_restart(double *hist, double *lam, const double *lam0, double *rk, const double *rs,
+                  i64 m) {
     hist[1] = 1.0;
     for (i64 l = 0; l < m; l++) lam[l] = lam0[l];
     for (i64 l = 0; l < m; l++) rk[l] = rs[l];
 }
 
 /* auto_jor_save: rk = rs; after even sweeps d and ξ^k saved for the next long step */
-int auto_jor_save(i64 k, const double *old, const double *new_, const double *xi,
-                  double res, const double *rs, double *rk, double *hist,
-                  double *dsave, double *xsave, i64 m) {
+int auto_jor_save(i64 k, const double *old, const double *new_, const double *xi, double res,
+                  const double *rs, double *rk, double *hist, double *dsave, double *xsave, i64 m) {
     for (i64 l = 0; l < m; l++) rk[l] = rs[l];
     if (!auto_guard(res, hist) || k % 2 == 1) return 0;
     for (i64 l = 0; l < m; l++) {
@@ -221,9 +220,8 @@ int auto_jor_save(i64 k, const double *old, const double *new_, const double *xi
 }
 
 /* auto_jor_long_step: rk = rs θ from the saved d and Gd = ξ − ξ_saved */
-void auto_jor_long_step(const settings_t *s, i64 nc, const double *xi,
-                        const double *rs, double *rk, const double *dsave,
-                        const double *xsave, i64 m) {
+void auto_jor_long_step(const settings_t *s, i64 nc, const double *xi, const double *rs, double *rk,
+                        const double *dsave, const double *xsave, i64 m) {
     i64 n = s->bilateral_direct ? 3 * nc : m;
     double p_ = 0.0;
     for (i64 l = 0; l < n; l++) p_ = p_ + dsave[l] * dsave[l] / rs[l];
@@ -235,8 +233,8 @@ void auto_jor_long_step(const settings_t *s, i64 nc, const double *xi,
 
 /* auto_next: rk of the sweep after sweep k: BB step after even sweeps, else rs */
 void auto_next(const settings_t *s, const dop_t *D, i64 nc, i64 k, const double *old,
-               const double *new_, double res, const double *rs, double *rk,
-               double *hist, double *tmp1, double *tmp2) {
+               const double *new_, double res, const double *rs, double *rk, double *hist,
+               double *tmp1, double *tmp2) {
     i64 m = D->m;
     for (i64 l = 0; l < m; l++) rk[l] = rs[l];
     if (!auto_guard(res, hist) || k % 2 == 1) return;
@@ -247,8 +245,8 @@ void auto_next(const settings_t *s, const dop_t *D, i64 nc, i64 k, const double 
 
 /* auto_setup: with a fixed α, rk and rs are r itself (no copies, never written); adaptive:
  * rk a copy of the spectral step rs, Λ^0, hist = [inf, 0, rs/r] and work arrays */
-auto_t auto_setup(const settings_t *s, const dop_t *D, i64 nc, const double *r,
-                  const double *lam, arena_t *ar) {
+auto_t auto_setup(const settings_t *s, const dop_t *D, i64 nc, const double *r, const double *lam,
+                  arena_t *ar) {
     auto_t w;
     if (s->alpha >= 0.0) {
         w.rk = w.rs = (double *)r; /* (aliases r; only the adaptive α writes rk) */

@@ -69,9 +69,8 @@ static void delassus_rows(const double *Wt, const double *MinvW, double *G, i64 
 }
 
 /* delassus: G = W^T M^{-1} W (both triangles); over M^{-1}W's row envelopes for m > 24 */
-void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv,
-              const i64 *wp_ptr, const i64 *wp_idx, const i64 *mp_ptr, const i64 *mp_idx,
-              arena_t *a) {
+void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv, const i64 *wp_ptr,
+              const i64 *wp_idx, const i64 *mp_ptr, const i64 *mp_idx, arena_t *a) {
     if (m <= DELASSUS_ENVELOPE_ROWS) {
         delassus_rows(Wt, MinvW, G, m, nv, wp_ptr, wp_idx);
         return;

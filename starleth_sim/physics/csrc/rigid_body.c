@@ -53,24 +53,24 @@ static void motion_subspace(const tree_t *t, const frames_t *f, double *S) {
 
 /* spatial_inertias: out[j] (6 x 6), body j's spatial inertia in the world frame at the world
  * origin, [[I_c − m [c]x², m [c]x]; [m [c]x^T, m 1]]. scratch: 21 floats. */
-static void spatial_inertias(const tree_t *t, const frames_t *f, const inertias_t *b,
-                             double *out, double *scratch) {
+static void spatial_inertias(const tree_t *t, const frames_t *f, const inertias_t *b, double *out,
+                             double *scratch) {
     const double *oR = f->oR, *op = f->op;
     double *RI = scratch, *Iw = scratch + 9, *c = scratch + 18;
     for (i64 j = 1; j < t->nj; j++) {
         double m = b->mass[j];
         const double *R = oR + 9 * j, *lev = b->lever + 3 * j, *in = b->inertia + 9 * j;
         for (int r = 0; r < 3; r++)
-            c[r] = op[3 * j + r] + R[r * 3 + 0] * lev[0] + R[r * 3 + 1] * lev[1]
-                   + R[r * 3 + 2] * lev[2];
+            c[r] = op[3 * j + r] + R[r * 3 + 0] * lev[0] + R[r * 3 + 1] * lev[1] +
+                   R[r * 3 + 2] * lev[2];
         for (int r = 0; r < 3; r++)
             for (int k = 0; k < 3; k++)
-                RI[r * 3 + k] = R[r * 3 + 0] * in[0 * 3 + k] + R[r * 3 + 1] * in[1 * 3 + k]
-                                + R[r * 3 + 2] * in[2 * 3 + k];
+                RI[r * 3 + k] = R[r * 3 + 0] * in[0 * 3 + k] + R[r * 3 + 1] * in[1 * 3 + k] +
+                                R[r * 3 + 2] * in[2 * 3 + k];
         for (int r = 0; r < 3; r++)
             for (int k = 0; k < 3; k++)
-                Iw[r * 3 + k] = RI[r * 3 + 0] * R[k * 3 + 0] + RI[r * 3 + 1] * R[k * 3 + 1]
-                                + RI[r * 3 + 2] * R[k * 3 + 2];
+                Iw[r * 3 + k] = RI[r * 3 + 0] * R[k * 3 + 0] + RI[r * 3 + 1] * R[k * 3 + 1] +
+                                RI[r * 3 + 2] * R[k * 3 + 2];
         /* −[c]x² = |c|² 1 − c c^T */
         double cc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
         double *I6 = out + 36 * j;
@@ -105,8 +105,8 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
     /* I6, V, A, F, S, vj, hv, f and spatial_inertias' work space in one block; every entry
      * is written before it is read but those of body 0 (the world), zeroed below */
     double scratch[54 * nj + 6 * nv + 39];
-    double *I6 = scratch, *V = scratch + 36 * nj, *A = scratch + 42 * nj,
-           *F = scratch + 48 * nj, *S = scratch + 54 * nj;
+    double *I6 = scratch, *V = scratch + 36 * nj, *A = scratch + 42 * nj, *F = scratch + 48 * nj,
+           *S = scratch + 54 * nj;
     double *vj = S + 6 * nv, *hv = vj + 6, *fv = vj + 12, *work = vj + 18;
     motion_subspace(t, f, S);
     spatial_inertias(t, f, b, I6, work);

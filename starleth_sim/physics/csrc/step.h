@@ -19,12 +19,12 @@ void free_velocity(const double *h, double dt, const double *uS, i64 nv, const i
 int solve_compliant(const compliant_law_t *law, const double *M, double *h, const double *uS,
                     i64 nv, double dt, i64 nc, const double *gap, const double *position,
                     const double *Wt_all, u8 *closed, u8 *slip, double *anchor,
-                    const double *frames, double *lam, const i64 *dof_parent,
-                    int factor, double *L, double *u_free, double *timings);
+                    const double *frames, double *lam, const i64 *dof_parent, int factor, double *L,
+                    double *u_free, double *timings);
 
 /* c = W^T u_free + b (Eqn. 15) */
-void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free,
-                         const double *bvec, const i64 *wp_ptr, const i64 *wp_idx, double *c);
+void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free, const double *bvec,
+                         const i64 *wp_ptr, const i64 *wp_idx, double *c);
 
 /* The torque-independent part of the hard-contact solve (contact_problem): the problem's
  * arrays from the arena. gap, Wt_all: nc contacts; WtB (nb x nv), bB (nb): the bilateral
@@ -61,8 +61,8 @@ enum { TORQUE_AS_GIVEN = 0, TORQUE_SATURATED = 1, TORQUE_IMPEDANCE = 2, TORQUE_R
 
 /* τ = τ_ff + kp (q* − q) + kd (q̇* − q̇) per joint (n), at the joint angles q and rates qd; a
  * NaN target or τ_ff leaves its term out (impedance.impedance_torque) */
-void impedance_torque(const impedance_command_t *c, const double *q, const double *qd,
-                      double *tau, i64 n);
+void impedance_torque(const impedance_command_t *c, const double *q, const double *qd, double *tau,
+                      i64 n);
 
 /* The per-step arrays of a one-kernel step; lengths from the model (nq: q's). */
 typedef struct {
@@ -72,8 +72,8 @@ typedef struct {
     u8 *last_active;        /* nc */
     double *last_bilateral; /* nb */
     i64 nb;
-    report_t report;        /* the report buffer's views */
-    u8 *is_active;          /* nc */
+    report_t report; /* the report buffer's views */
+    u8 *is_active;   /* nc */
     double *qE, *uE;
 } step_arrays_t;
 
@@ -112,8 +112,8 @@ tree_step_result_t tree_step_hard(int options, int torque_mode, const step_array
 tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_arrays_t *x,
                                        const compliant_state_t *cs, const packed_model_t *m,
                                        arena_t *a);
-tree_step_result_t forest_step(int options, const step_arrays_t *x,
-                               const compliant_state_t *cs, double *angle_E, double *rate_E,
-                               const packed_model_t *m, const packed_model_t *cut, arena_t *a);
+tree_step_result_t forest_step(int options, const step_arrays_t *x, const compliant_state_t *cs,
+                               double *angle_E, double *rate_E, const packed_model_t *m,
+                               const packed_model_t *cut, arena_t *a);
 
 #endif

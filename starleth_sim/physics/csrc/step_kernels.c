@@ -18,16 +18,16 @@ void free_velocity(const double *h, double dt, const double *uS, i64 nv, const i
 int solve_compliant(const compliant_law_t *law, const double *M, double *h, const double *uS,
                     i64 nv, double dt, i64 nc, const double *gap, const double *position,
                     const double *Wt_all, u8 *closed, u8 *slip, double *anchor,
-                    const double *frames, double *lam, const i64 *dof_parent,
-                    int factor, double *L, double *u_free, double *timings) {
+                    const double *frames, double *lam, const i64 *dof_parent, int factor, double *L,
+                    double *u_free, double *timings) {
     double t = kclock(timings);
     if (factor) {
         int ok = ltdl(M, nv, dof_parent, L);
         t = klap(timings, PHASE_M_INVERSE, t);
         if (!ok) return 0;
     }
-    compliant_contact_forces(law, nc, nv, gap, position, Wt_all, uS, closed, slip, anchor,
-                             frames, lam);
+    compliant_contact_forces(law, nc, nv, gap, position, Wt_all, uS, closed, slip, anchor, frames,
+                             lam);
     generalized_contact_force(Wt_all, lam, nc, nv, h);
     t = klap(timings, PHASE_REST, t);
     free_velocity(h, dt, uS, nv, dof_parent, L, u_free);
@@ -37,9 +37,8 @@ int solve_compliant(const compliant_law_t *law, const double *M, double *h, cons
 
 /* active_set: I = {i | g_N,i ≤ g_act}, with hysteresis also the contacts loaded in the last
  * step while g_N,i ≤ opening_gap; *opened counts the loaded contacts left out */
-static i64 *active_set(const double *gap, i64 nc, const settings_t *s,
-                       const double *last_impulse, const u8 *last_active, arena_t *a, i64 *na,
-                       i64 *opened) {
+static i64 *active_set(const double *gap, i64 nc, const settings_t *s, const double *last_impulse,
+                       const u8 *last_active, arena_t *a, i64 *na, i64 *opened) {
     i64 *picked = arena_i(a, nc);
     i64 n = 0, op = 0;
     for (i64 i = 0; i < nc; i++) {
@@ -73,10 +72,10 @@ static void empty_patterns(patterns_t *pat, arena_t *a) {
  * active contacts; W_B^T], M^{-1}W, b = [ε W_U^T u^S + gap terms; b_B] and the patterns of
  * W^T's rows and M^{-1}W's columns (G's still empty) into p */
 static void phase_minv(const settings_t *s, const double *M, const double *uS, i64 nv,
-                       const double *gap, i64 nc, const double *Wt_all, const double *WtB,
-                       i64 nb, const double *bB, const double *eps, const i64 *dof_parent,
-                       int factor, double *L, const double *last_impulse,
-                       const u8 *last_active, arena_t *a, problem_t *p) {
+                       const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
+                       const double *bB, const double *eps, const i64 *dof_parent, int factor,
+                       double *L, const double *last_impulse, const u8 *last_active, arena_t *a,
+                       problem_t *p) {
     double dt = s->dt, beta_velocity = s->beta_velocity;
     int ok = 1;
     if (factor) ok = ltdl(M, nv, dof_parent, L);
@@ -120,18 +119,19 @@ static void phase_minv(const settings_t *s, const double *M, const double *uS, i
         for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++)
             MinvW[wp_idx[q] * m + r] = Wt[r * nv + wp_idx[q]];
     if (trees > 2) {
-        ltdl_solve_cols_pattern(L, dof_parent, MinvW, nv, m, wp_ptr, wp_idx, a, &mp_ptr,
-                                &mp_idx);
+        ltdl_solve_cols_pattern(L, dof_parent, MinvW, nv, m, wp_ptr, wp_idx, a, &mp_ptr, &mp_idx);
     } else {
         ltdl_solve_cols(L, dof_parent, MinvW, nv, m, a);
         col_pattern(MinvW, nv, m, a, &mp_ptr, &mp_idx);
     }
     for (i64 r = 0; r < o; r++) {
         double sum = 0.0;
-        for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++) sum += Wt[r * nv + wp_idx[q]] * uS[wp_idx[q]];
+        for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++)
+            sum += Wt[r * nv + wp_idx[q]] * uS[wp_idx[q]];
         bvec[r] = eps[2 * active[r / 3] + (r % 3 == 0 ? 0 : 1)] * sum;
     }
-    for (i64 r = 0; r < na; r++) bvec[3 * r] += normal_law_offset(gap[active[r]], dt, beta_velocity);
+    for (i64 r = 0; r < na; r++)
+        bvec[3 * r] += normal_law_offset(gap[active[r]], dt, beta_velocity);
     for (i64 r = 0; r < nb; r++) bvec[o + r] = bB[r];
     p->pat.wp_ptr = wp_ptr;
     p->pat.wp_idx = wp_idx;
@@ -147,9 +147,9 @@ static void phase_minv(const settings_t *s, const double *M, const double *uS, i
  * the direct bilateral method the Cholesky factor L_B of G_BB; G's pattern and L_B's
  * envelope into *full (from pat). Returns 0 if G_BB is not positive definite. */
 static int phase_delassus(i64 form, i64 nc, int bilateral_direct, const double *Wt,
-                          const double *MinvW, i64 m, i64 nv, const patterns_t *pat,
-                          arena_t *a, double **G_out, double **Gdiag_out, double **LB_out,
-                          i64 *nb_LB, patterns_t *full) {
+                          const double *MinvW, i64 m, i64 nv, const patterns_t *pat, arena_t *a,
+                          double **G_out, double **Gdiag_out, double **LB_out, i64 *nb_LB,
+                          patterns_t *full) {
     i64 o = 3 * nc;
     i64 nb = m - o;
     double *G = NULL, *Gdiag;
@@ -185,7 +185,8 @@ static int phase_delassus(i64 form, i64 nc, int bilateral_direct, const double *
                 for (i64 c = r; c < nb; c++) {
                     double sum = 0.0;
                     for (i64 q = pat->wp_ptr[o + r]; q < pat->wp_ptr[o + r + 1]; q++)
-                        sum += Wt[(o + r) * nv + pat->wp_idx[q]] * MinvW[pat->wp_idx[q] * m + o + c];
+                        sum +=
+                            Wt[(o + r) * nv + pat->wp_idx[q]] * MinvW[pat->wp_idx[q] * m + o + c];
                     W[r * nb + c] = sum;
                     W[c * nb + r] = sum;
                 }
@@ -214,11 +215,12 @@ static int phase_delassus(i64 form, i64 nc, int bilateral_direct, const double *
 }
 
 /* constraint_velocity: c = W^T u_free + b (Eqn. 15) */
-void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free,
-                         const double *bvec, const i64 *wp_ptr, const i64 *wp_idx, double *c) {
+void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free, const double *bvec,
+                         const i64 *wp_ptr, const i64 *wp_idx, double *c) {
     for (i64 r = 0; r < m; r++) {
         double sum = bvec[r];
-        for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++) sum += Wt[r * nv + wp_idx[q]] * u_free[wp_idx[q]];
+        for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++)
+            sum += Wt[r * nv + wp_idx[q]] * u_free[wp_idx[q]];
         c[r] = sum;
     }
 }
@@ -229,8 +231,8 @@ void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free,
 static double phase_prox(const settings_t *s, const problem_t *p, const double *u_free,
                          const double *M, const double *last_impulse, const u8 *last_active,
                          const double *last_bilateral, double *timings, double t, arena_t *a,
-                         double **uE, double **lam_out, i64 *iters, i64 *status,
-                         double *resid, int *retried) {
+                         double **uE, double **lam_out, i64 *iters, i64 *status, double *resid,
+                         int *retried) {
     const i64 *active = p->active;
     double alpha = s->alpha;
     double fallback_factor = s->fallback_alpha_factor;
@@ -250,8 +252,7 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
         }
         for (i64 r_ = 0; r_ < m - o; r_++) lam0[o + r_] = last_bilateral[r_];
     }
-    for (i64 k = 0; k < na; k++)
-        mu_vec[k] = p->mu ? p->mu[active[k]] : s->mu;
+    for (i64 k = 0; k < na; k++) mu_vec[k] = p->mu ? p->mu[active[k]] : s->mu;
     int attempts = fallback_factor > 0.0 ? 2 : 1;
     memcpy(lam, lam0, (size_t)m * sizeof(double));
     i64 it_sum = 0;
@@ -260,8 +261,8 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
     for (int attempt = 0; attempt < attempts; attempt++) {
         prox_parameters(p->Gdiag, m, na, alpha, r);
         memcpy(lam, lam0, (size_t)m * sizeof(double));
-        res = prox_solve(s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec,
-                         r, lam, p->LB, p->nb_LB, M, u, a);
+        res = prox_solve(s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec, r,
+                         lam, p->LB, p->nb_LB, M, u, a);
         it_sum += res.iterations;
         if (res.status == STATUS_CONVERGED) break;
         if (attempt + 1 < attempts) {
@@ -300,9 +301,9 @@ static double predicted_end_gaps(const double *gap, i64 nc, const double *Wt_all
 /* projection_problem: W^T and M^{-1}W of the projection with the contacts `extra` added
  * after the active ones (then the bilateral rows); the contacts in row order into
  * *contacts, the patterns of W^T's rows and M^{-1}W's columns into *pat. Returns the rows. */
-static i64 projection_problem(const problem_t *p, const i64 *extra, i64 ne,
-                              const double *Wt_all, const i64 *dof_parent, const double *L,
-                              arena_t *a, i64 **contacts_out, double **Wp_out, double **Mp_out,
+static i64 projection_problem(const problem_t *p, const i64 *extra, i64 ne, const double *Wt_all,
+                              const i64 *dof_parent, const double *L, arena_t *a,
+                              i64 **contacts_out, double **Wp_out, double **Mp_out,
                               patterns_t *pat) {
     i64 na = p->na, m0 = p->m, nv = p->nv;
     i64 o0 = 3 * na;
@@ -354,15 +355,14 @@ static i64 projection_problem(const problem_t *p, const i64 *extra, i64 ne,
  * "projection"); u_corr receives Δu_p. Returns the iterations, *status the prox status
  * (−1: not needed). */
 static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *is_active,
-                            const double *gap, i64 nc, const double *Wt_all,
-                            const i64 *dof_parent, const double *L, const double *M,
-                            const double *uE, double *u_corr, arena_t *a, i64 *status) {
+                            const double *gap, i64 nc, const double *Wt_all, const i64 *dof_parent,
+                            const double *L, const double *M, const double *uE, double *u_corr,
+                            arena_t *a, i64 *status) {
     double dt = s->dt, beta = s->beta_projection, tolerance = s->projection_tolerance;
     i64 nv = p->nv;
     for (i64 k = 0; k < nv; k++) u_corr[k] = 0.0;
     double *gE = arena_f(a, nc);
-    double worst = predicted_end_gaps(gap, nc, Wt_all, nv, s->jacobian_gap, is_active, uE, dt,
-                                      gE);
+    double worst = predicted_end_gaps(gap, nc, Wt_all, nv, s->jacobian_gap, is_active, uE, dt, gE);
     if (worst >= -tolerance || beta == 0.0) {
         *status = -1;
         return 0;
@@ -427,8 +427,8 @@ void contact_problem(const settings_t *s, const double *M, const double *uS, i64
                      const i64 *dof_parent, int factor, double *L, const double *last_impulse,
                      const u8 *last_active, double *timings, arena_t *a, problem_t *p) {
     double t = kclock(timings);
-    phase_minv(s, M, uS, nv, gap, nc, Wt_all, WtB, nb, bB, eps, dof_parent, factor, L,
-               last_impulse, last_active, a, p);
+    phase_minv(s, M, uS, nv, gap, nc, Wt_all, WtB, nb, bB, eps, dof_parent, factor, L, last_impulse,
+               last_active, a, p);
     p->mu = NULL;
     if (frames) { /* (copied: a prepared problem outlives the call) */
         double *mu = arena_f(a, nc);
@@ -488,9 +488,9 @@ complete_result_t complete_problem(const problem_t *p, const double *h, const do
         memcpy(u, t->u_free, (size_t)nv * sizeof(double));
     } else {
         double *uE, *lam;
-        t0 = phase_prox(s, p, t->u_free, M, x->last_impulse, x->last_active, bilateral_E,
-                        timings, t0, a, &uE, &lam, &res.iterations, &res.status,
-                        &res.residual, &res.retried);
+        t0 =
+            phase_prox(s, p, t->u_free, M, x->last_impulse, x->last_active, bilateral_E, timings,
+                       t0, a, &uE, &lam, &res.iterations, &res.status, &res.residual, &res.retried);
         memcpy(u, uE, (size_t)nv * sizeof(double));
         for (i64 r = 0; r < na; r++) {
             i64 i = p->active[r];
@@ -507,9 +507,9 @@ complete_result_t complete_problem(const problem_t *p, const double *h, const do
     }
     if (res.status != STATUS_NONFINITE && s->beta_projection > 0.0) {
         t0 = kclock(timings);
-        res.projection_iterations = phase_projection(s, p, x->is_active, t->gap, nc, t->Wt_all,
-                                                     t->dof_parent, t->L, M, u, t->u_corr, a,
-                                                     &res.projection_status);
+        res.projection_iterations =
+            phase_projection(s, p, x->is_active, t->gap, nc, t->Wt_all, t->dof_parent, t->L, M, u,
+                             t->u_corr, a, &res.projection_status);
         klap(timings, PHASE_PROX, t0);
     }
     return res;

@@ -19,17 +19,17 @@
 
 #define TERRAIN_HEADER 16
 #define TERRAIN_SECOND 14 /* header entries (terrain.SECOND_SURFACES, terrain.TOP) */
-#define TERRAIN_TOP 15
-#define BOX_STRIDE 11
+#define TERRAIN_TOP    15
+#define BOX_STRIDE     11
 /* terrain.BOX_REACH: the boxes of a bin are those within this of it in xy; a contact whose
  * lowest point is more than this above the terrain's top meets the plane alone [m] */
 #define BOX_REACH 0.1
 /* a contact's second surface (terrain.py SECOND_SURFACE_*): its normal more than 20° from
  * the first's (cos 20°), the two facing each other by more than 1 nm (second_ok), its gap
  * within the reach of the first's and its own [m]; none: a gap of SECOND_SURFACE_NONE */
-#define SECOND_SURFACE_COS 0.9396926207859084
-#define SECOND_SURFACE_REACH 0.1
-#define SECOND_SURFACE_NONE 1000.0
+#define SECOND_SURFACE_COS    0.9396926207859084
+#define SECOND_SURFACE_REACH  0.1
+#define SECOND_SURFACE_NONE   1000.0
 #define SECOND_SURFACE_FACING 1e-9
 
 int terrain_is_flat(const ground_t *g) {
@@ -78,7 +78,9 @@ static double plane_gap(const ground_t *g, const double *c, double r) {
 
 /* the surface codes of frame entry 10 (FRAME_STRIDE): 0 none (or not known), the plane,
  * the heightfield, box k */
-static double surface_code(i64 id) { return id == -1 ? 1.0 : id == -2 ? 2.0 : 3.0 + (double)id; }
+static double surface_code(i64 id) {
+    return id == -1 ? 1.0 : id == -2 ? 2.0 : 3.0 + (double)id;
+}
 
 /* box_distance: the signed distance of c to box b (negative inside) and the outward unit
  * normal at the closest point (inside: of the nearest face) */
@@ -124,8 +126,7 @@ static double box_distance(const double *b, const double *c, double *n) {
 
 /* heightfield: whether (c_x, c_y) lies over the grid; then h there (bilinear in the cell)
  * and the unit normal of the cell's surface at that point */
-static int heightfield(const double *hdr, const double *hs, const double *c, double *h,
-                       double *n) {
+static int heightfield(const double *hdr, const double *hs, const double *c, double *h, double *n) {
     i64 nx = (i64)hdr[1], ny = (i64)hdr[2];
     double x0 = hdr[3], y0 = hdr[4], cell = hdr[5];
     double u = (c[0] - x0) / cell, v = (c[1] - y0) / cell;
@@ -252,8 +253,8 @@ static double no_second_surface(const double *out, double *second) {
     return SECOND_SURFACE_NONE;
 }
 
-double terrain_contact(const ground_t *g, const double *c, double r, double *out,
-                       double *second, double *second_gap) {
+double terrain_contact(const ground_t *g, const double *c, double r, double *out, double *second,
+                       double *second_gap) {
     double nb[3], mu, n2[3], mu2;
     i64 id, id2;
     if (c[2] - r > g->terrain[TERRAIN_TOP] + BOX_REACH) {

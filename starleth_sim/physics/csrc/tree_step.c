@@ -33,8 +33,8 @@ const char *check_cut_model(const packed_model_t *c, i64 na, i64 nv) {
 
 /* impedance_torque: the law term by term in this order (τ_ff, then the kp term, then the kd
  * term), which impedance.py's description and its tests follow */
-void impedance_torque(const impedance_command_t *c, const double *q, const double *qd,
-                      double *tau, i64 n) {
+void impedance_torque(const impedance_command_t *c, const double *q, const double *qd, double *tau,
+                      i64 n) {
     for (i64 k = 0; k < n; k++) {
         double t = isnan(c->effort[k]) ? 0.0 : c->effort[k];
         if (!isnan(c->position[k])) t += c->kp[k] * (c->position[k] - q[k]);
@@ -49,8 +49,7 @@ void impedance_torque(const impedance_command_t *c, const double *q, const doubl
  * dampers into its damper: with an impedance command, the joints with a damper term whose
  * law at (q^S, u^S) is not saturated; 0 if the torques have a non-finite entry */
 static int applied_torque(int torque_mode, const double *tau, i64 n, const double *q,
-                          const double *u, const tree_model_t *t, const report_t *r,
-                          arena_t *a) {
+                          const double *u, const tree_model_t *t, const report_t *r, arena_t *a) {
     double *applied = r->explicit_torque;
     for (i64 k = 0; k < t->na; k++) r->damper[k] = 0.0;
     if (torque_mode == TORQUE_AS_GIVEN || torque_mode == TORQUE_REPLAY) {
@@ -63,7 +62,7 @@ static int applied_torque(int torque_mode, const double *tau, i64 n, const doubl
     }
     double *qd = arena_f(a, t->na);
     for (i64 k = 0; k < t->na; k++) qd[k] = u[t->joint_v[k]];
-    impedance_command_t c;  /* (the views are read only) */
+    impedance_command_t c; /* (the views are read only) */
     if (torque_mode == TORQUE_IMPEDANCE) {
         impedance_command_views((double *)tau, t->na, &c);
         double *qj = arena_f(a, t->na), *law = arena_f(a, t->na);
@@ -134,9 +133,9 @@ static void tree_midpoint(const step_arrays_t *x, const tree_model_t *t, int opt
                           double *timings) {
     if (options & STEP_PREPARED) return;
     double t0 = kclock(timings);
-    midpoint_dynamics(x->q, x->u, 0.5 * t->s.dt, &t->tree, &t->frames, &t->inertias,
-                      &t->contacts, &t->ground, t->s.jacobian_gap, t->qM, t->M, t->h, t->gap,
-                      t->position, t->Wt_all);
+    midpoint_dynamics(x->q, x->u, 0.5 * t->s.dt, &t->tree, &t->frames, &t->inertias, &t->contacts,
+                      &t->ground, t->s.jacobian_gap, t->qM, t->M, t->h, t->gap, t->position,
+                      t->Wt_all);
     klap(timings, PHASE_M_AND_H, t0);
 }
 
@@ -224,8 +223,8 @@ tree_step_result_t tree_step_hard(int options, int torque_mode, const step_array
         /* (no bilateral rows: Λ_B is empty, last_bilateral its own buffer) */
         complete_step(&p, h, implicit ? Md : t.M, &t, x, x->last_bilateral, &res, timings, a);
         if (!implicit || res.outcome != TREE_STEP_OK ||
-            !implicit_torques(&t, x->u, x->uE, &x->report, pass == 0 &&
-                              torque_mode == TORQUE_IMPEDANCE))
+            !implicit_torques(&t, x->u, x->uE, &x->report,
+                              pass == 0 && torque_mode == TORQUE_IMPEDANCE))
             break;
         for (i64 k = 0; k < 3 * nc; k++) x->last_impulse[k] = kept[k];
         for (i64 k = 0; k < nc; k++) x->last_active[k] = kept[3 * nc + k] != 0.0;
@@ -302,22 +301,22 @@ tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_
     double *h = with_forces(x, x->report.explicit_torque, &t, timings, a);
     double *h0 = arena_f(a, nv), *Md = arena_f(a, nv * nv);
     int implicit = damped(t.M, &t, x->report.damper, nv, Md);
-    for (i64 k = 0; k < nv; k++) h0[k] = h[k];   /* (solve_compliant adds the contacts) */
+    for (i64 k = 0; k < nv; k++) h0[k] = h[k]; /* (solve_compliant adds the contacts) */
     u8 *kept_flags;
     double *kept;
     keep_contacts(cs, nc, &kept_flags, &kept, a);
     i64 outcome = TREE_STEP_NOT_PD;
     for (int pass = 0; pass < 2; pass++) {
-        if (!solve_compliant(&t.law, implicit ? Md : t.M, h, x->u, nv, dt, nc, t.gap,
-                             t.position, t.Wt_all, cs->closed, cs->slip, cs->anchor,
-                             t.ground.frames, cs->lam, t.dof_parent, 1, t.L, t.u_free, timings)) {
+        if (!solve_compliant(&t.law, implicit ? Md : t.M, h, x->u, nv, dt, nc, t.gap, t.position,
+                             t.Wt_all, cs->closed, cs->slip, cs->anchor, t.ground.frames, cs->lam,
+                             t.dof_parent, 1, t.L, t.u_free, timings)) {
             outcome = TREE_STEP_NOT_PD;
             break;
         }
         for (i64 k = 0; k < nv; k++) x->uE[k] = t.u_free[k];
         outcome = TREE_STEP_OK;
-        if (!implicit || !implicit_torques(&t, x->u, x->uE, &x->report, pass == 0 &&
-                                           torque_mode == TORQUE_IMPEDANCE))
+        if (!implicit || !implicit_torques(&t, x->u, x->uE, &x->report,
+                                           pass == 0 && torque_mode == TORQUE_IMPEDANCE))
             break;
         restore_contacts(kept_flags, kept, nc, cs);
         for (i64 k = 0; k < nv; k++) h[k] = h0[k];
@@ -349,14 +348,14 @@ static const double *forest_midpoint(const step_arrays_t *x, const tree_model_t 
     double half_dt = 0.5 * t->s.dt, t0 = kclock(timings);
     if (c->constant) {
         integrate_forest(x->q, x->u, half_dt, &t->tree, t->qM);
-        rigid_body_forces(t->qM, x->u, c->nr, c->root_q, c->root_v, c->body_mass,
-                          c->body_inertia, c->body_gravity, t->h);
-        contact_kinematics(t->qM, &t->tree, &t->frames, &t->contacts, &t->ground,
-                           t->s.jacobian_gap, t->gap, t->position, t->Wt_all);
+        rigid_body_forces(t->qM, x->u, c->nr, c->root_q, c->root_v, c->body_mass, c->body_inertia,
+                          c->body_gravity, t->h);
+        contact_kinematics(t->qM, &t->tree, &t->frames, &t->contacts, &t->ground, t->s.jacobian_gap,
+                           t->gap, t->position, t->Wt_all);
     } else {
-        midpoint_dynamics(x->q, x->u, half_dt, &t->tree, &t->frames, &t->inertias,
-                          &t->contacts, &t->ground, t->s.jacobian_gap, t->qM, t->M, t->h,
-                          t->gap, t->position, t->Wt_all);
+        midpoint_dynamics(x->q, x->u, half_dt, &t->tree, &t->frames, &t->inertias, &t->contacts,
+                          &t->ground, t->s.jacobian_gap, t->qM, t->M, t->h, t->gap, t->position,
+                          t->Wt_all);
     }
     t0 = klap(timings, PHASE_M_AND_H, t0);
     double *u_zero = arena_zeros(a, x->nv); /* (the rates at q^M are not needed: u = 0) */
@@ -369,9 +368,8 @@ static const double *forest_midpoint(const step_arrays_t *x, const tree_model_t 
 
 /* forest_forces: h + Sᵀτ inside the trees, the cut joints' body torques (cut_joint_torques
  * with the kinematics of the midpoint's cut_joints call), + f_ext */
-static double *forest_forces(const double *applied, const tree_model_t *t,
-                             const cut_model_t *c, const step_arrays_t *x, double *timings,
-                             arena_t *a) {
+static double *forest_forces(const double *applied, const tree_model_t *t, const cut_model_t *c,
+                             const step_arrays_t *x, double *timings, arena_t *a) {
     double t0 = kclock(timings);
     double *h = arena_f(a, x->nv);
     for (i64 k = 0; k < x->nv; k++) h[k] = t->h[k];
@@ -393,9 +391,9 @@ static double *forest_forces(const double *applied, const tree_model_t *t,
  * the active set are +inf, the warm-start memory the caller's scratch, which stays zero) and
  * Eqn. (8); a failed step leaves the contact state as it was */
 static tree_step_result_t forest_compliant(int options, const step_arrays_t *x,
-                                           const compliant_state_t *cs, const double *M,
-                                           double *h, const tree_model_t *t,
-                                           const cut_model_t *c, double *timings, arena_t *a) {
+                                           const compliant_state_t *cs, const double *M, double *h,
+                                           const tree_model_t *t, const cut_model_t *c,
+                                           double *timings, arena_t *a) {
     i64 nv = x->nv, nc = t->contacts.nc;
     u8 *kept_flags;
     double *kept;
@@ -409,8 +407,8 @@ static tree_step_result_t forest_compliant(int options, const step_arrays_t *x,
     for (i64 i = 0; i < nc; i++) never[i] = INFINITY;
     problem_t p;
     contact_problem(&t->s, M, x->u, nv, never, nc, t->Wt_all, c->WtB, 5 * c->cuts.ncut, c->bB,
-                    t->eps, t->ground.frames, t->dof_parent, !(options & STEP_KEEP_FACTOR),
-                    t->L, x->last_impulse, x->last_active, timings, a, &p);
+                    t->eps, t->ground.frames, t->dof_parent, !(options & STEP_KEEP_FACTOR), t->L,
+                    x->last_impulse, x->last_active, timings, a, &p);
     tree_step_result_t res = result_of(p.ok ? TREE_STEP_OK : TREE_STEP_NOT_PD);
     if (p.ok) complete_step(&p, h, M, t, x, c->bilateral_E, &res, timings, a);
     if (res.outcome != TREE_STEP_OK) restore_contacts(kept_flags, kept, nc, cs);
@@ -425,9 +423,9 @@ static tree_step_result_t forest_compliant(int options, const step_arrays_t *x,
  * bilateral problem and Eqn. (8), with STEP_COMPLIANT forest_compliant. STEP_KEEP_FACTOR:
  * reuse a constant M's factor in L. A successful step also writes the cut joints' φ and φ̇
  * at (q^E, u^E) into angle_E and rate_E. options otherwise as tree_step_hard's. */
-tree_step_result_t forest_step(int options, const step_arrays_t *x,
-                               const compliant_state_t *cs, double *angle_E, double *rate_E,
-                               const packed_model_t *m, const packed_model_t *cm, arena_t *a) {
+tree_step_result_t forest_step(int options, const step_arrays_t *x, const compliant_state_t *cs,
+                               double *angle_E, double *rate_E, const packed_model_t *m,
+                               const packed_model_t *cm, arena_t *a) {
     tree_model_t t;
     unpack_tree_model(m, &t);
     cut_model_t c;
@@ -451,9 +449,9 @@ tree_step_result_t forest_step(int options, const step_arrays_t *x,
         res = forest_compliant(options, x, cs, M, h, &t, &c, timings, a);
     } else {
         problem_t p;
-        contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, c.WtB, 5 * c.cuts.ncut, c.bB,
-                        t.eps, t.ground.frames, t.dof_parent, !(options & STEP_KEEP_FACTOR),
-                        t.L, x->last_impulse, x->last_active, timings, a, &p);
+        contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, c.WtB, 5 * c.cuts.ncut, c.bB, t.eps,
+                        t.ground.frames, t.dof_parent, !(options & STEP_KEEP_FACTOR), t.L,
+                        x->last_impulse, x->last_active, timings, a, &p);
         if (!p.ok) return result_of(TREE_STEP_NOT_PD);
         res = result_of(TREE_STEP_OK);
         complete_step(&p, h, M, &t, x, c.bilateral_E, &res, timings, a);

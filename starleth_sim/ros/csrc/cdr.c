@@ -53,7 +53,7 @@ static int parse_joint_command(const uint8_t *buf, i64 nbuf, const uint8_t *name
     if (nbuf < 16 || buf[0] != 0 || buf[1] != 1) return FALLBACK;
     *sec = (int32_t)u32(buf, 4);
     *nsec = u32(buf, 8);
-    i64 o = align(16 + (i64)u32(buf, 12), 4);              /* after the frame id */
+    i64 o = align(16 + (i64)u32(buf, 12), 4); /* after the frame id */
     if (o + 4 > nbuf || (i64)u32(buf, o) != n) return FALLBACK;
     o += 4;
     for (i64 i = 0; i < n; i++) {
@@ -66,9 +66,9 @@ static int parse_joint_command(const uint8_t *buf, i64 nbuf, const uint8_t *name
         if (memcmp(buf + o, names + a, (size_t)(b - a)) != 0) return FALLBACK;
         o += slen;
     }
-    o = skip_empty_sequence(buf, o, nbuf);                 /* position */
+    o = skip_empty_sequence(buf, o, nbuf); /* position */
     if (o < 0) return FALLBACK;
-    o = skip_empty_sequence(buf, o, nbuf);                 /* velocity */
+    o = skip_empty_sequence(buf, o, nbuf); /* velocity */
     if (o < 0) return FALLBACK;
     o = align(o, 4);
     if (o + 4 > nbuf || (i64)u32(buf, o) != n) return FALLBACK;
@@ -83,22 +83,21 @@ static int parse_effort_array(const uint8_t *buf, i64 nbuf, i64 n, double *effor
     if (nbuf < 12 || buf[0] != 0 || buf[1] != 1) return FALLBACK;
     i64 ndim = u32(buf, 4);
     i64 o = 8;
-    for (i64 d = 0; d < ndim; d++) {                        /* label, size, stride */
+    for (i64 d = 0; d < ndim; d++) { /* label, size, stride */
         o = align(o, 4);
         if (o + 4 > nbuf) return FALLBACK;
         o += 4 + (i64)u32(buf, o);
         o = align(o, 4) + 8;
         if (o > nbuf) return FALLBACK;
     }
-    o = align(o, 4) + 4;                                   /* data_offset */
+    o = align(o, 4) + 4; /* data_offset */
     if (o + 4 > nbuf || (i64)u32(buf, o) != n) return FALLBACK;
     o = align(o + 4, 8);
     if (o + 8 * n > nbuf || !f64_into(buf, o, n, effort)) return FALLBACK;
     return OK;
 }
 
-static PyObject *py_parse_joint_command(PyObject *self, PyObject *const *args,
-                                        Py_ssize_t nargs) {
+static PyObject *py_parse_joint_command(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     args_t A = {.n = 0, .fn = "parse_joint_command"};
     Py_ssize_t nbuf, nnames, nptr, neff;
@@ -117,8 +116,7 @@ static PyObject *py_parse_joint_command(PyObject *self, PyObject *const *args,
         } else {
             int32_t sec = 0;
             uint32_t nsec = 0;
-            int status = parse_joint_command(buf, nbuf, names, ptr, nptr - 1, effort, &sec,
-                                             &nsec);
+            int status = parse_joint_command(buf, nbuf, names, ptr, nptr - 1, effort, &sec, &nsec);
             if (status != OK) sec = 0, nsec = 0;
             result = Py_BuildValue("(iik)", status, (int)sec, (unsigned long)nsec);
         }
@@ -127,8 +125,7 @@ static PyObject *py_parse_joint_command(PyObject *self, PyObject *const *args,
     return result;
 }
 
-static PyObject *py_parse_effort_array(PyObject *self, PyObject *const *args,
-                                       Py_ssize_t nargs) {
+static PyObject *py_parse_effort_array(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     args_t A = {.n = 0, .fn = "parse_effort_array"};
     Py_ssize_t nbuf, neff;
@@ -150,8 +147,15 @@ static PyMethodDef methods[] = {
 };
 
 static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "_cdr", "sim_node's command parsers in C (starleth_sim/ros/csrc).",
-    -1, methods, NULL, NULL, NULL, NULL,
+    PyModuleDef_HEAD_INIT,
+    "_cdr",
+    "sim_node's command parsers in C (starleth_sim/ros/csrc).",
+    -1,
+    methods,
+    NULL,
+    NULL,
+    NULL,
+    NULL,
 };
 
 PyMODINIT_FUNC PyInit__cdr(void) {
