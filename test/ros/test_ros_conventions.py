@@ -216,7 +216,11 @@ def test_controller_killed_and_restarted_mid_run_is_followed_without_reset(ros, 
         assert ros.spin_until(lambda: clock.t is not None and clock.t > 1.0, START_TIMEOUT,
                               procs=[sim, ctl])
         ctl.stop(signal.SIGKILL)
-        ros.spin_until(lambda: False, 1.5, procs=[sim])         # a few timeouts
+        t_kill = clock.t
+        # a few steps on the timeout policy (0.3 s each; counted in steps, not wall time:
+        # a loaded machine may run the sim slower)
+        assert ros.spin_until(lambda: clock.t >= t_kill + 4.5 * PERIOD_NS * 1e-9, 30.0,
+                              procs=[sim])
         t_dead = clock.t
         ctl2 = controller_process(tmp_path, "restart2")
         assert ros.spin_until(lambda: clock.t > t_dead + 2.0, START_TIMEOUT,
