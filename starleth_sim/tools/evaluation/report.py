@@ -77,15 +77,20 @@ def make_figures(results, out_dir):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     figs = {}
-    for key, draw in (("fig5", _fig5), ("fig6", _fig6), ("fig7", _fig7)):
-        name = draw(plt, results, out_dir)
-        if name is not None:
+    for key, name, draw in (("fig5", "fig5_contact_force.png", _fig5),
+                            ("fig6", "fig6_iterations_vs_alpha.png", _fig6),
+                            ("fig7", "fig7_time_breakdown.png", _fig7)):
+        fig = draw(plt, results)
+        if fig is not None:
+            fig.tight_layout()
+            fig.savefig(os.path.join(out_dir, name), dpi=120)
+            plt.close(fig)
             figs[key] = name
     return figs
 
 
-def _fig5(plt, results, out_dir):
-    """Fig. 5: the LF foot's normal force over one trot cycle."""
+def _fig5(plt, results):
+    """Fig. 5: the LF foot's normal force over one trot cycle (None: no run to draw)."""
     t1 = {r["preset"]: r for r in results_of_kind(results, "table1")}
     f5 = [r for r in results_of_kind(results, "fig5")]
     series = []
@@ -110,16 +115,12 @@ def _fig5(plt, results, out_dir):
         ax.set_title("Fig. 5: normal contact force of the LF foot, one trot cycle")
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
-        fig.tight_layout()
-        name = "fig5_contact_force.png"
-        fig.savefig(os.path.join(out_dir, name), dpi=120)
-        plt.close(fig)
-        return name
+        return fig
     return None
 
 
-def _fig6(plt, results, out_dir):
-    """Fig. 6: prox iterations against α, standing and trotting."""
+def _fig6(plt, results):
+    """Fig. 6: prox iterations against α, standing and trotting (None: no run)."""
     f6 = results_of_kind(results, "fig6")
     if f6:
         fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
@@ -146,16 +147,12 @@ def _fig6(plt, results, out_dir):
         axes[1].legend(fontsize=7, ncol=2)
         fig.suptitle("Fig. 6: prox iterations against α (points only where every step "
                      "converged; ★ α = auto)")
-        fig.tight_layout()
-        name = "fig6_iterations_vs_alpha.png"
-        fig.savefig(os.path.join(out_dir, name), dpi=120)
-        plt.close(fig)
-        return name
+        return fig
     return None
 
 
-def _fig7(plt, results, out_dir):
-    """Fig. 7: the time per step by phase."""
+def _fig7(plt, results):
+    """Fig. 7: the time per step by phase (None: no profiled run)."""
     f7 = in_table1_order(results, "fig7")
     if f7:
         labels = [PHASE_LABELS[p] for p in PHASES]
@@ -169,11 +166,7 @@ def _fig7(plt, results, out_dir):
         ax.set_title("Fig. 7: computation time of one step by phase (trotting, profiled run)")
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-        fig.tight_layout()
-        name = "fig7_time_breakdown.png"
-        fig.savefig(os.path.join(out_dir, name), dpi=120)
-        plt.close(fig)
-        return name
+        return fig
     return None
 
 
