@@ -187,6 +187,30 @@ static void complete_step(const problem_t *p, const double *h, const double *M,
     res->projection_status = c.projection_status;
 }
 
+/* tree_step_start: what a tree step does first, hard or compliant: the model unpacked into
+ * t, the timings (STEP_PROFILE; else NULL), then either only the midpoint (STEP_PREPARE:
+ * returns 1, *outcome TREE_STEP_OK) or the applied torques (non-finite: returns 1, *outcome
+ * TREE_STEP_NONFINITE_TORQUE), the midpoint (or its prepared values: STEP_PREPARED) and *h
+ * = h + Sᵀτ + f_ext; returns 0 when the step goes on. */
+static int tree_step_start(int options, int torque_mode, const step_arrays_t *x,
+                           const packed_model_t *m, tree_model_t *t, double **timings, double **h,
+                           i64 *outcome, arena_t *a) {
+    unpack_tree_model(m, t);
+    *timings = options & STEP_PROFILE ? t->timings : NULL;
+    if (options & STEP_PREPARE) {
+        tree_midpoint(x, t, 0, *timings);
+        *outcome = TREE_STEP_OK;
+        return 1;
+    }
+    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, t, &x->report, a)) {
+        *outcome = TREE_STEP_NONFINITE_TORQUE;
+        return 1;
+    }
+    tree_midpoint(x, t, options, *timings);
+    *h = with_forces(x, x->report.explicit_torque, t, *timings, a);
+    return 0;
+}
+
 /* tree_step_hard: the applied torques (of the step's start state), Eqn. (6) and M, h, W at
  * the midpoint, the contact problem (with M~ = M + Δt K_d of the implicit dampers) and its
  * solution, Eqn. (8); a damped joint whose torque at u^E would be saturated loses its damper,
@@ -196,17 +220,11 @@ static void complete_step(const problem_t *p, const double *h, const double *M,
 tree_step_result_t tree_step_hard(int options, int torque_mode, const step_arrays_t *x,
                                   const packed_model_t *m, arena_t *a) {
     tree_model_t t;
-    unpack_tree_model(m, &t);
-    double *timings = options & STEP_PROFILE ? t.timings : NULL;
-    if (options & STEP_PREPARE) {
-        tree_midpoint(x, &t, 0, timings);
-        return result_of(TREE_STEP_OK);
-    }
+    double *timings, *h;
+    i64 outcome;
+    if (tree_step_start(options, torque_mode, x, m, &t, &timings, &h, &outcome, a))
+        return result_of(outcome);
     i64 nv = x->nv, nc = t.contacts.nc;
-    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, &x->report, a))
-        return result_of(TREE_STEP_NONFINITE_TORQUE);
-    tree_midpoint(x, &t, options, timings);
-    double *h = with_forces(x, x->report.explicit_torque, &t, timings, a);
     double *Md = arena_f(a, nv * nv);
     double *kept = arena_f(a, 4 * nc); /* the warm-start memory, for a second solve */
     int implicit = damped(t.M, &t, x->report.damper, nv, Md);
@@ -287,25 +305,19 @@ tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_
                                        const compliant_state_t *cs, const packed_model_t *m,
                                        arena_t *a) {
     tree_model_t t;
-    unpack_tree_model(m, &t);
-    double *timings = options & STEP_PROFILE ? t.timings : NULL;
-    if (options & STEP_PREPARE) {
-        tree_midpoint(x, &t, 0, timings);
-        return result_of(TREE_STEP_OK);
-    }
+    double *timings, *h;
+    i64 outcome;
+    if (tree_step_start(options, torque_mode, x, m, &t, &timings, &h, &outcome, a))
+        return result_of(outcome);
     i64 nv = x->nv, nc = t.contacts.nc;
     double dt = t.s.dt;
-    if (!applied_torque(torque_mode, x->tau, x->n_tau, x->q, x->u, &t, &x->report, a))
-        return result_of(TREE_STEP_NONFINITE_TORQUE);
-    tree_midpoint(x, &t, options, timings);
-    double *h = with_forces(x, x->report.explicit_torque, &t, timings, a);
     double *h0 = arena_f(a, nv), *Md = arena_f(a, nv * nv);
     int implicit = damped(t.M, &t, x->report.damper, nv, Md);
     for (i64 k = 0; k < nv; k++) h0[k] = h[k]; /* (solve_compliant adds the contacts) */
     u8 *kept_flags;
     double *kept;
     keep_contacts(cs, nc, &kept_flags, &kept, a);
-    i64 outcome = TREE_STEP_NOT_PD;
+    outcome = TREE_STEP_NOT_PD;
     for (int pass = 0; pass < 2; pass++) {
         if (!solve_compliant(&t.law, implicit ? Md : t.M, h, x->u, nv, dt, nc, t.gap, t.position,
                              t.Wt_all, cs->closed, cs->slip, cs->anchor, t.ground.frames, cs->lam,
