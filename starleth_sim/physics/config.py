@@ -43,6 +43,7 @@ solver.tol_abs                 [0, 1000] N s                an impulse (and tol_
                                                             tol_abs > 0)
 solver.max_iterations          integer [1, 1 000 000]       a cap per solve that still ends
 solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
+solver.stall_window           integer [0, 1 000 000]       sweeps per stall test (0 = none)
 bilateral.stabilization        [0, 1]                       β of the drift correction
 terrain.boxes                  <= 10 000; centre within     positions near the robot; a box
                                +-1000 m, size (0, 1000] m,  has a volume; μ as ground.mu
@@ -212,6 +213,10 @@ class SolverConfig:
     warm_start: bool = True      # start from the last step's impulses of the same contacts
     #: on a non-converged solve, retry once with α·factor (0 disables)
     fallback_alpha_factor: float = 0.5
+    #: a try whose best residual does not improve by 1 % over this many sweeps cycles (as JOR
+    #: at α = 0.6 does on a robot lying at rest) and is retried at once with the fallback α
+    #: instead of at max_iterations (0: only the cap ends a try; no test without a fallback)
+    stall_window: int = 32
 
     def validate(self, p):
         self.scheme = _choice(f"{p}.scheme", self.scheme, {"jor", "sor"})
@@ -230,6 +235,7 @@ class SolverConfig:
         self.warm_start = _bool(f"{p}.warm_start", self.warm_start)
         self.fallback_alpha_factor = _num(f"{p}.fallback_alpha_factor",
                                           self.fallback_alpha_factor, 0.0, 1.0, hi_open=True)
+        self.stall_window = _int(f"{p}.stall_window", self.stall_window, 0, MAX_ITERATIONS)
 
 
 @dataclass

@@ -13,7 +13,7 @@ from . import prox
 NO_TIMINGS = MappingProxyType({})
 #: Diagnostics.status of each prox.STATUS_*
 STATUS_NAMES = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
-                prox.STATUS_NONFINITE: "non_finite"}
+                prox.STATUS_NONFINITE: "non_finite", prox.STATUS_STALLED: "stalled"}
 _CONVERGED = prox.STATUS_CONVERGED
 
 

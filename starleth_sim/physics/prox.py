@@ -82,6 +82,7 @@ from .kernels import (  # noqa: F401  (the constants are the kernels' own)
     STATUS_CONVERGED,
     STATUS_MAX_ITER,
     STATUS_NONFINITE,
+    STATUS_STALLED,
     auto_spectral_scale,
     col_pattern,
     delassus,

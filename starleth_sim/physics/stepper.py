@@ -181,7 +181,8 @@ class MoreauStepper:
             tol_rel=float(s.tol_rel), tol_abs=float(s.tol_abs),
             max_iterations=int(s.max_iterations), criterion=int(prox.CRITERIA[s.criterion]),
             bilateral_direct=config.bilateral.method == "direct",
-            alpha=prox.alpha_setting(s.alpha))      # solver.alpha: auto -> prox.ALPHA_AUTO
+            alpha=prox.alpha_setting(s.alpha),      # solver.alpha: auto -> prox.ALPHA_AUTO
+            stall_window=int(s.stall_window) if s.fallback_alpha_factor > 0 else 0)
         return StepSettings(
             prox=solver, activation_gap=float(activation_gap), mu=float(config.ground.mu),
             fallback_alpha_factor=float(s.fallback_alpha_factor),

@@ -92,7 +92,12 @@ static inline double klap(double *timings, int phase, double since) {
 enum { SCHEME_JOR = 0, SCHEME_SOR = 1 };
 enum { FORM_DELASSUS = 0, FORM_VELOCITY = 1 };
 enum { CRITERION_IMPULSE = 0, CRITERION_ENERGY = 1 };
-enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2 };
+enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2, STATUS_STALLED = 3 };
+/* a prox solve stalls when the best residual of a window of stall_window sweeps is not below
+ * STALL_FACTOR times the best of the window before (prox.c, stall_seen): 1 % better over a
+ * window, so that a slow but steady solve (the maximal coordinates' bilateral prox rows) goes
+ * on and only one that cycles (JOR at α = 0.6 on a robot at rest) ends early */
+#define STALL_FACTOR 0.99
 #define ALPHA_AUTO               (-1.0)
 #define AUTO_MAX_STEP            1.0e3
 #define AUTO_GUARD               1.0e3
@@ -108,7 +113,7 @@ enum { PHASE_M_AND_H = 0, PHASE_M_INVERSE = 1, PHASE_G = 2, PHASE_PROX = 3, PHAS
 typedef struct {
     double activation_gap, mu, alpha, tol_rel, tol_abs, fallback_alpha_factor, opening_gap, dt,
         beta_velocity, beta_projection, jacobian_gap, projection_tolerance;
-    i64 form, scheme, max_iterations, criterion;
+    i64 form, scheme, max_iterations, criterion, stall_window;
     int warm_start, bilateral_direct, hysteresis;
 } settings_t;
 

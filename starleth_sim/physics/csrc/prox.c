@@ -189,6 +189,32 @@ typedef struct {
     double *rhs;
 } direct_t;
 
+/* The stall test of a solve (stall_seen): the best residual so far, the best at the end of
+ * the last window, the sweep count that ends the current window */
+typedef struct {
+    i64 window, next;
+    double best, mark;
+} stall_t;
+
+static stall_t stall_start(const settings_t *s) {
+    stall_t t = {s->stall_window, s->stall_window, INFINITY, INFINITY};
+    return t;
+}
+
+/* stall_seen: after sweep k with residual res (max |ΔΛ|), 1 when a window of sweeps ended
+ * without its best residual getting below STALL_FACTOR x the last window's: the iteration
+ * cycles, as JOR at the paper's α does on a robot lying at rest; the caller ends the solve
+ * and the step retries with a smaller α at once instead of at the iteration cap */
+static inline int stall_seen(stall_t *t, i64 k, double res) {
+    if (t->window <= 0) return 0;
+    if (res < t->best) t->best = res;
+    if (k + 1 < t->next) return 0;
+    if (isfinite(t->mark) && !(t->best <= STALL_FACTOR * t->mark)) return 1;
+    t->mark = t->best;
+    t->next += t->window;
+    return 0;
+}
+
 static prox_result_t result(i64 it, i64 status, double res) {
     prox_result_t out = {it, status, res};
     return out;
@@ -278,6 +304,7 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     double T_old = initial_energy(&P->v, lam, criterion);
     i64 m_xi = (bilateral_direct && !autoa) ? o : m;
     double res = 0.0;
+    stall_t stall = stall_start(s);
     for (i64 k = 0; k < max_iter; k++) {
         check_t ck;
         delassus_apply(G, c, m, lam, xi, gp_ptr, gp_idx, m_xi);
@@ -311,6 +338,10 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
         prox_result_t out;
         if (delassus_sweep_end(&P->v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
             return out;
+        if (stall_seen(&stall, k, res)) {
+            velocity_of(&P->v, lam);
+            return result(k + 1, STATUS_STALLED, res);
+        }
     }
     velocity_of(&P->v, lam);
     return result(max_iter, STATUS_MAX_ITER, res);
@@ -332,6 +363,7 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
     double T_old = initial_energy(&P->v, lam, criterion);
     double res = 0.0;
+    stall_t stall = stall_start(s);
     for (i64 k = 0; k < max_iter; k++) {
         memcpy(old, lam, (size_t)m * sizeof(double));
         for (i64 i = 0; i < nc; i++) {
@@ -378,6 +410,10 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
         prox_result_t out;
         if (delassus_sweep_end(&P->v, lam, ck, k, criterion, &T_old, tol_rel, tol_abs, &out))
             return out;
+        if (stall_seen(&stall, k, res)) {
+            velocity_of(&P->v, lam);
+            return result(k + 1, STATUS_STALLED, res);
+        }
     }
     velocity_of(&P->v, lam);
     return result(max_iter, STATUS_MAX_ITER, res);
@@ -449,6 +485,7 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
     velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
     double T_old = criterion == CRITERION_ENERGY ? kinetic_energy(M, u, nv) : 0.0;
     double res = 0.0;
+    stall_t stall = stall_start(s);
     for (i64 k = 0; k < max_iter; k++) {
         for (i64 a = 0; a < m; a++) {
             double sm = bvec[a];
@@ -491,6 +528,7 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
         if (criterion == CRITERION_ENERGY)
             ok = energy_converged(M, u, nv, &T_old, tol_rel, tol_abs);
         if (ok) return result(k + 1, STATUS_CONVERGED, res);
+        if (stall_seen(&stall, k, res)) return result(k + 1, STATUS_STALLED, res);
     }
     return result(max_iter, STATUS_MAX_ITER, res);
 }
@@ -521,6 +559,7 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
     velocity_from_impulses(u_free, MinvW, nv, m, lam, u, mp_ptr, mp_idx);
     double T_old = criterion == CRITERION_ENERGY ? kinetic_energy(M, u, nv) : 0.0;
     double res = 0.0;
+    stall_t stall = stall_start(s);
     for (i64 k = 0; k < max_iter; k++) {
         memcpy(old, lam, (size_t)m * sizeof(double));
         for (i64 i = 0; i < nc; i++) {
@@ -582,6 +621,7 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
         if (criterion == CRITERION_ENERGY)
             ok = energy_converged(M, u, nv, &T_old, tol_rel, tol_abs);
         if (ok) return result(k + 1, STATUS_CONVERGED, res);
+        if (stall_seen(&stall, k, res)) return result(k + 1, STATUS_STALLED, res);
     }
     return result(max_iter, STATUS_MAX_ITER, res);
 }

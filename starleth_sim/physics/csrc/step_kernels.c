@@ -258,10 +258,12 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
     i64 it_sum = 0;
     prox_result_t res = {0, STATUS_CONVERGED, 0.0};
     int again = 0;
+    settings_t try_s = *s;
     for (int attempt = 0; attempt < attempts; attempt++) {
         prox_parameters(p->Gdiag, m, na, alpha, r);
         memcpy(lam, lam0, (size_t)m * sizeof(double));
-        res = prox_solve(s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec, r,
+        if (attempt + 1 == attempts) try_s.stall_window = 0; /* the last try runs to the cap */
+        res = prox_solve(&try_s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec, r,
                          lam, p->LB, p->nb_LB, M, u, a);
         it_sum += res.iterations;
         if (res.status == STATUS_CONVERGED) break;
@@ -412,8 +414,10 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     double *lam = arena_zeros(a, m);
     double *mu = arena_zeros(a, ncp);
     double *zero = arena_zeros(a, nv);
-    prox_result_t res = prox_solve(s, &full, Wp, Mp, zero, bp, Gp, bp, m, nv, ncp, mu, r, lam,
-                                   p->LB, p->nb_LB, M, u_corr, a);
+    settings_t proj_s = *s;
+    proj_s.stall_window = 0; /* no retry here: the projection's solve runs to the cap */
+    prox_result_t res = prox_solve(&proj_s, &full, Wp, Mp, zero, bp, Gp, bp, m, nv, ncp, mu, r,
+                                   lam, p->LB, p->nb_LB, M, u_corr, a);
     if (res.status == STATUS_NONFINITE)
         for (i64 k = 0; k < nv; k++) u_corr[k] = 0.0;
     *status = res.status;

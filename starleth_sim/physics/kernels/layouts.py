@@ -181,6 +181,11 @@ PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields"
     Number("bilateral_direct", "bool",
            "Λ_B by Eqn. 20 after each sweep (else prox rows, Eqn. 19)"),
     Number("alpha", "double", "α > 0: r as given; < 0 (ALPHA_AUTO): adaptive α", 0.5),
+    Number("stall_window", "i64",
+           "sweeps per window of the stall test: a solve whose best residual of a window is "
+           "not below STALL_FACTOR (0.99) x the window's before ends as STATUS_STALLED (0: no "
+           "test)",
+           0),
 ))
 
 STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (

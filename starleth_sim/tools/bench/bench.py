@@ -44,6 +44,7 @@ from ...physics.posture import PostureHold
 from ...physics.simulator import Simulator
 from ...physics.stepper import PHASES, StepperStats
 from ...robots import available_robots, robot_description
+from .states import print_states
 from .terrain import print_terrain_rounds
 from .timing import timed_steps
 
@@ -502,7 +503,7 @@ def _robots(value) -> list:
     return names
 
 
-def main(argv=None):
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="starleth-bench", description=__doc__.split("\n")[0])
     ap.add_argument("presets", nargs="*", default=None,
                     help=f"configurations (default: all of Table 1; with --vs-mujoco "
@@ -520,11 +521,20 @@ def main(argv=None):
                     help="the cost of the terrain's contact query (50 boxes, a 256x256 "
                          "heightfield) against the flat ground, interleaved (first preset, "
                          "default HmJ)")
+    ap.add_argument("--states", action="store_true",
+                    help="the step's cost standing, trotting and fallen (lying on the ground "
+                         "after a collapse), interleaved, per preset")
     ap.add_argument("--rounds", type=int, default=None,
-                    help="--vs-mujoco, --impedance, --terrain: interleaved rounds (default 5, "
-                         "5, 21)")
-    ap.add_argument("--steps", type=int, default=2000,
-                    help="--vs-mujoco: physics steps per round; --impedance: control steps")
+                    help="--vs-mujoco, --impedance, --terrain, --states: interleaved rounds "
+                         "(default 5, 5, 21, 5)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="--vs-mujoco: physics steps per round (default 2000); --impedance: "
+                         "control steps (2000); --states: control steps (400)")
+    return ap
+
+
+def main(argv=None):
+    ap = _parser()
     args = ap.parse_args(argv)
     terrain_preset = args.presets[0] if args.presets else "HmJ"
     if not args.presets:
@@ -540,6 +550,15 @@ def main(argv=None):
         if args.rounds is not None and args.rounds < 1:
             ap.error("--rounds must be positive")
         return print_terrain_rounds(terrain_preset, args.rounds or 21)
+    if args.states:
+        rounds = 5 if args.rounds is None else args.rounds
+        steps = 400 if args.steps is None else args.steps
+        if rounds < 1 or steps < 1:
+            ap.error("--rounds and --steps must be positive")
+        for robot in robots:
+            print_states(args.presets, rounds, steps, robot)
+        return 0
+    args.steps = 2000 if args.steps is None else args.steps
     if args.vs_mujoco:
         args.rounds = 5 if args.rounds is None else args.rounds
         if args.rounds < 1 or args.steps < 1:
