@@ -106,6 +106,13 @@ class ContactForceDistribution:
         self.solved = True
         self.failures = 0
 
+    def __getstate__(self):
+        """The state without the solver objects (proxsuite's QP cannot be copied or pickled:
+        a deep copy of it crashes); a copy builds its own at its next solve, cold-started."""
+        state = self.__dict__.copy()
+        state["_qp"] = {}
+        return state
+
     def _solve_qp(self, n, H, g, C, lo, up):
         qp = self._qp.get(n)
         if qp is None:

@@ -10,6 +10,7 @@ separately (it ends the run).
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -588,3 +589,19 @@ def main(argv):
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))
+
+
+def test_a_deep_copy_of_a_running_controller_runs_on():
+    """A copy (for rollouts from a saved state) carries the gait on without the original's
+    solver objects (proxsuite's QP cannot be copied: it crashed), cold-started: its torques
+    are the original's within the force distribution's tolerance."""
+    sim = Simulator.from_preset("HmJ")
+    ctrl = StarlethController()
+    trot = Command(mode="trot", forward=0.3)
+    for _ in range(200):
+        sim.step(ctrl.update(RobotState.from_simulator(sim), trot))
+    twin = copy.deepcopy(ctrl)
+    state = RobotState.from_simulator(sim)
+    tau, tau_twin = ctrl.update(state, trot), twin.update(state, trot)
+    assert np.all(np.isfinite(tau_twin))
+    assert np.abs(tau_twin - tau).max() < 0.05 * np.abs(tau).max()
