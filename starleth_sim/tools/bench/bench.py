@@ -33,7 +33,7 @@ import argparse
 import sys
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -127,6 +127,8 @@ FORCE_TOLERANCE = 0.02      # |Σ F_N − m g| / (m g) of each simulator, standi
 #: lets standing feet creep; the noslip pass removes that slip, as our Coulomb law sticks)
 NOSLIP_ITERATIONS = 10
 SETTLE_STEPS = 400          # physics steps before the rounds (the start's transient)
+#: physics steps under zero torques before the fallen round: the collapse comes to rest
+FALL_STEPS = 1200
 
 
 #: the radius MuJoCo gives a contact point of radius 0 (a box corner) [m]: a sphere needs one
@@ -174,7 +176,8 @@ def mujoco_model(desc, dt: float, mu: float, noslip_iterations: int = 0):
     free joint on the root body, and as collision geometry our contact points only (a
     sphere per point, in the body of its joint; box corners CORNER_RADIUS), colliding with
     a ground plane at z = 0; Δt, Newton solver, elliptic friction cones, μ on every geom,
-    MuJoCo's default soft contact (solref, solimp) and `noslip_iterations`.
+    MuJoCo's default soft contact (solref, solimp) and `noslip_iterations`; no joint
+    limits, as ours (the collapse of the fallen round then ends where ours does).
     Returns (mujoco, model); mujoco is None if not installed."""
     try:
         import mujoco
@@ -205,6 +208,8 @@ def mujoco_model(desc, dt: float, mu: float, noslip_iterations: int = 0):
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
     spec.option.noslip_iterations = noslip_iterations
+    for j in spec.joints:          # the URDF's joint ranges are not simulated by ours (nor by
+        j.limited = mujoco.mjtLimited.mjLIMITED_FALSE    # the paper): a fallen robot's legs
     return mujoco, spec.compile()
 
 
@@ -230,11 +235,19 @@ class MujocoStanding:
         self.weight = float(np.sum(model.body_mass)) * float(-model.opt.gravity[2])
         self.dt = float(model.opt.timestep)
         self.spheres = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_SPHERE)
+        self.limp = False           # zero torques (the fallen round) instead of the PD law
 
     def run(self, steps: int) -> float:
-        """`steps` physics steps with the PD law (effort-limited) each step; wall time [s]."""
+        """`steps` physics steps with the PD law (effort-limited) each step, or none when
+        limp; wall time [s]."""
         mj, m, d, hold = self.mj, self.model, self.data, self.hold
         qadr, vadr, limit = self.qadr, self.vadr, self.limit
+        if self.limp:
+            d.qfrc_applied[:] = 0.0
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                mj.mj_step(m, d)
+            return time.perf_counter() - t0
         t0 = time.perf_counter()
         for _ in range(steps):
             tau = hold(d.qpos[qadr], d.qvel[vadr])
@@ -286,15 +299,17 @@ class SimulatorStanding:
         d = self.sim.description
         self.weight = float(sum(i.mass for i in d.model.inertias)) * \
             float(np.linalg.norm(d.model.gravity.linear))
+        self.limp = False           # zero torques (the fallen round) instead of the PD law
 
     def run(self, steps: int) -> float:
         """At least `steps` physics steps (whole control periods, the PD law once per control
-        period); wall time [s]."""
+        period, or zero torques when limp); wall time [s]."""
         sim, hold = self.sim, self.hold
         n = -(-steps // self.per_control)
+        zero = np.zeros(len(sim.joint_names))
         t0 = time.perf_counter()
         for _ in range(n):
-            sim.step(hold.torque(sim))
+            sim.step(zero if self.limp else hold.torque(sim))
         return time.perf_counter() - t0
 
     def physics_steps(self, steps: int) -> int:
@@ -337,6 +352,13 @@ class VsMujocoRow:
     height: float              # base height at the end [m]
     sink: float                # mean penetration of the loaded contacts at the end [m]
     creep: float               # farthest a loaded contact moved over the rounds [m]
+    #: the fallen round: steps/s per round lying at rest after a collapse, base height [m]
+    fallen_rates: list = field(default_factory=list)
+    fallen_height: float = float("nan")
+
+    @property
+    def fallen_median(self) -> float:
+        return float(np.median(self.fallen_rates)) if self.fallen_rates else float("nan")
 
     @property
     def above_feet(self) -> float:
@@ -402,15 +424,28 @@ def measure_vs_mujoco(presets, rounds: int, steps: int, robot: str | None = None
     for n, r in runners.items():   # settle (and warm up: first calls, caches)
         r.run(SETTLE_STEPS)
         start[n] = r.contact_points()
+    rates = interleaved_rates(runners, rounds, steps)
+    rows = [VsMujocoRow(n, r.dt, rates[n], r.normal_force() / r.weight, r.height(), r.sink(),
+                        creep(r, start[n])) for n, r in runners.items()]
+    for r in runners.values():      # the fallen round: limp, collapsed, at rest
+        r.limp = True
+        r.run(FALL_STEPS)
+    fallen = interleaved_rates(runners, rounds, steps)
+    for row, r in zip(rows, runners.values(), strict=True):
+        row.fallen_rates, row.fallen_height = fallen[row.name], r.height()
+    return VsMujoco(desc.name, mujoco.__version__, float(model.opt.timestep),
+                    float(model.geom_friction[0, 0]), rounds, steps, rows, _problems(rows))
+
+
+def interleaved_rates(runners, rounds: int, steps: int) -> dict:
+    """{name: steps/s per round} of `rounds` rounds of `steps` physics steps, the runners
+    in turn in each round."""
     rates = {n: [] for n in runners}
     for _ in range(rounds):
         for n, r in runners.items():
             wall = r.run(steps)
             rates[n].append(r.physics_steps(steps) / wall)
-    rows = [VsMujocoRow(n, r.dt, rates[n], r.normal_force() / r.weight, r.height(), r.sink(),
-                        creep(r, start[n])) for n, r in runners.items()]
-    return VsMujoco(desc.name, mujoco.__version__, float(model.opt.timestep),
-                    float(model.geom_friction[0, 0]), rounds, steps, rows, _problems(rows))
+    return rates
 
 
 def _problems(rows) -> list:
@@ -449,6 +484,15 @@ def print_vs_mujoco(result: VsMujoco) -> None:
     for problem in result.problems:
         print("  " + problem)
     print("like with like: " + result.like_with_like())
+    print(f"fallen: zero torques for {FALL_STEPS} steps (the robot collapses onto knees and "
+          f"trunk and comes to rest), then {result.rounds} interleaved rounds of "
+          f"{result.steps} physics steps")
+    print(f"{'':13s} {'steps/s (median)':>17s} {'ratio':>6s} {'vs standing':>11s} "
+          f"{'base z [mm]':>11s}")
+    for row in result.rows:
+        print(f"{row.name:13s} {row.fallen_median:17.0f} "
+              f"{row.fallen_median / result.rows[0].fallen_median:6.2f} "
+              f"{row.median / row.fallen_median:11.2f} {row.fallen_height * 1e3:11.1f}")
 
 
 def robots_table(results) -> list:
