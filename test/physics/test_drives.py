@@ -20,7 +20,7 @@ from starleth_sim.physics.description import RobotDescription
 G = 9.81                    # pinocchio's gravity [m/s²]
 M, L = 1.0, 0.5             # the bob [kg], its distance from the joint [m]
 I_BOB = 1e-6                # the bob's own inertia [kg m²]
-I = M * L * L + I_BOB       # about the joint [kg m²]
+I_J = M * L * L + I_BOB     # about the joint [kg m²]
 DT = 1e-3                   # [s]
 
 
@@ -95,7 +95,7 @@ def test_armature_adds_to_the_joint_inertia(preset):
     i_a, tau, n = 0.05, 0.3, 100
     sim = pendulum(preset, axis="z", falling=True, armature=i_a)
     run(sim, tau, n)
-    assert sim.u[-1] / (n * DT) == pytest.approx(tau / (I + i_a), rel=1e-5)
+    assert sim.u[-1] / (n * DT) == pytest.approx(tau / (I_J + i_a), rel=1e-5)
 
 
 def test_pendulum_with_armature_and_viscous_damping_decays_as_the_closed_form():
@@ -104,7 +104,7 @@ def test_pendulum_with_armature_and_viscous_damping_decays_as_the_closed_form():
     peaks decay by e^{−π ζ / √(1 − ζ²)} per half period."""
     i_a, d = 0.05, 0.02
     theta = run(pendulum(angle=0.05, armature=i_a, viscous_damping=d), 0.0, 3000)
-    k, inertia = M * G * L, I + i_a
+    k, inertia = M * G * L, I_J + i_a
     zeta = d / (2.0 * np.sqrt(k * inertia))
     omega_d = np.sqrt(k / inertia) * np.sqrt(1.0 - zeta ** 2)
     t = DT * np.arange(1, theta.size + 1)
@@ -119,7 +119,7 @@ def test_pendulum_with_armature_and_viscous_damping_decays_as_the_closed_form():
 def test_viscous_damping_is_stable_at_any_step():
     """D Δt / I = 40 (an explicit damper is unstable beyond 2): the joint rate decays
     monotonically without changing sign, as the implicit law's 1 / (1 + D Δt / I) per step."""
-    sim = pendulum(axis="z", falling=True, viscous_damping=1e4 * I)
+    sim = pendulum(axis="z", falling=True, viscous_damping=1e4 * I_J)
     u = sim.u
     u[-1] = 1.0
     sim.reset(sim.q, u)
@@ -146,7 +146,7 @@ def test_coulomb_friction_sticks_below_and_slips_above_the_breakaway_torque(pres
         assert sim.state.last_bilateral[0] == pytest.approx(-0.8 * tc * DT, rel=1e-9)
     sim.reset(q0)
     run(sim, 1.6 * tc, 100)
-    assert sim.u[-1] / (100 * DT) == pytest.approx(0.6 * tc / I, rel=1e-5)
+    assert sim.u[-1] / (100 * DT) == pytest.approx(0.6 * tc / I_J, rel=1e-5)
     assert breakaway(sim, q0, 0.0, 2.0 * tc) == pytest.approx(tc, rel=1e-6)
 
 

@@ -407,9 +407,9 @@ static void envelope_columns_of(const patterns_t *pat, i64 nd, arena_t *ar, i64 
 static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_t *pat,
                                    const double *G, const double *c, i64 m, i64 nc,
                                    const double *mu, const double *r, const double *bound,
-                                   double *lam, const double *LB,
-                                   i64 nb_LB, const double *M, const double *u_free,
-                                   const double *MinvW, i64 nv, double *u, arena_t *ar) {
+                                   double *lam, const double *LB, i64 nb_LB, const double *M,
+                                   const double *u_free, const double *MinvW, i64 nv, double *u,
+                                   arena_t *ar) {
     i64 nd = s->bilateral_direct ? m - 3 * nc : 0;
     i64 nw = jor ? 2 * m : m;
     double *work = arena_f(ar, nw + nd);

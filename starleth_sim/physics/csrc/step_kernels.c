@@ -432,8 +432,8 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     double *lam = arena_zeros(a, m);
     double *mu = arena_zeros(a, ncp);
     double *zero = arena_zeros(a, nv);
-    prox_result_t res = prox_solve(s, &full, Wp, Mp, zero, bp, Gp, bp, m, nv, ncp, mu, r, NULL,
-                                   lam, p->LB, p->nb_LB, M, u_corr, a);
+    prox_result_t res = prox_solve(s, &full, Wp, Mp, zero, bp, Gp, bp, m, nv, ncp, mu, r, NULL, lam,
+                                   p->LB, p->nb_LB, M, u_corr, a);
     if (res.status == STATUS_NONFINITE)
         for (i64 k = 0; k < nv; k++) u_corr[k] = 0.0;
     *status = res.status;

@@ -409,8 +409,8 @@ tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_
             break;
         }
         for (i64 k = 0; k < nv; k++) x->uE[k] = t.u_free[k];
-        outcome = f.n ? compliant_friction(&t, x, implicit ? Md : t.M, &f, &solved, a)
-                      : TREE_STEP_OK;
+        outcome =
+            f.n ? compliant_friction(&t, x, implicit ? Md : t.M, &f, &solved, a) : TREE_STEP_OK;
         if (outcome != TREE_STEP_OK) break;
         if (!implicit || !implicit_torques(&t, x->u, x->uE, &x->report,
                                            pass == 0 && torque_mode == TORQUE_IMPEDANCE))
