@@ -234,7 +234,8 @@ class Simulator:
     @property
     def applied_torque(self):
         """The saturated torques applied during the last control step (of an impedance
-        command, those of the period's first physics step; all in applied_torques_per_step)."""
+        command, those of the period's first physics step; all in applied_torques_per_step;
+        with a torque bandwidth the lag's output: doc/drives.md)."""
         return self._tau.copy()
 
     @property
