@@ -132,13 +132,14 @@ def test_viscous_damping_is_stable_at_any_step():
 
 
 # -- Coulomb friction ------------------------------------------------------------------------
-@pytest.mark.parametrize("preset", ["HmJ", "HmS", "Cm"])
-def test_coulomb_friction_sticks_below_and_slips_above_the_breakaway_torque(preset):
+@pytest.mark.parametrize("preset,form", [("HmJ", "delassus"), ("HmS", "delassus"),
+                                         ("HmS", "velocity"), ("Cm", "delassus")])
+def test_coulomb_friction_sticks_below_and_slips_above_the_breakaway_torque(preset, form):
     """No gravity torque: the joint sticks while |τ| ≤ τ_c (hard contacts: the friction
     impulse Λ_f = −τ Δt), slips above with q̈ = (τ − τ_c) / I, and the breakaway torque found
-    by bisection is τ_c."""
+    by bisection is τ_c; in every prox (JOR, SOR; Delassus and velocity forms)."""
     tc = 0.5
-    sim = pendulum(preset, axis="z", falling=True, coulomb_friction=tc)
+    sim = pendulum(preset, axis="z", falling=True, coulomb_friction=tc, form=form)
     q0 = sim.q
     run(sim, 0.8 * tc, 100)
     assert abs(sim.u[-1]) < 1e-9 and abs(sim.q[-1]) < 1e-9
