@@ -58,8 +58,9 @@ static void lag_torques(const tree_model_t *t, const report_t *r) {
 
 /* applied_torque: the torques the motors apply for tau (torque_mode TORQUE_*: as given,
  * saturate_torque at the joint rates of u, the impedance law of the command tau at (q, u)
- * saturated, or a replay; then the drives' lag, not a replay's) into the report's
- * explicit_torque, and the kd of the implicit dampers into its damper: with an impedance command, the joints with a damper term whose
+ * saturated, or a replay; then the drives' lag of the latter two: as given and a replay
+ * are applied torques) into the report's explicit_torque, and the kd of the implicit
+ * dampers into its damper: with an impedance command, the joints with a damper term whose
  * law at (q^S, u^S) is not saturated; 0 if the torques have a non-finite entry */
 static int applied_torque(int torque_mode, const double *tau, i64 n, const double *q,
                           const double *u, const tree_model_t *t, const report_t *r, arena_t *a) {
@@ -71,8 +72,7 @@ static int applied_torque(int torque_mode, const double *tau, i64 n, const doubl
             if (torque_mode == TORQUE_REPLAY) r->damper[k] = tau[t->na + k];
             if (!isfinite(applied[k]) || !isfinite(r->damper[k])) return 0;
         }
-        if (torque_mode == TORQUE_AS_GIVEN) lag_torques(t, r); /* (a replay's are lagged) */
-        return 1;
+        return 1; /* (applied torques: a replay's are lagged already) */
     }
     double *qd = arena_f(a, t->na);
     for (i64 k = 0; k < t->na; k++) qd[k] = u[t->joint_v[k]];
