@@ -56,6 +56,7 @@ from .tree_step import (
     TREE_STEP_NONFINITE_STATE,
     TREE_STEP_NONFINITE_TORQUE,
     TREE_STEP_NOT_PD,
+    TREE_STEP_OK,
     CutModel,
     TreeStepModel,
     TreeStepResult,
@@ -136,6 +137,8 @@ class MoreauStepper:
         self._n_tau = {TORQUE_AS_GIVEN: na, TORQUE_SATURATED: na, TORQUE_REPLAY: 2 * na}
         self._unprofiled = self._forest_step if self._forest else \
             self._tree_hard if self.hard else self._tree_compliant
+        if self._lagged:
+            self._tree_kernel, self._unprofiled = self._unprofiled, self._lagged_step
         self._kernel = self._profiled if profile else self._unprofiled
         self._factored = False      # L holds the factor of a constant M
         self._prepared = None       # the (q, u) of the step prepared ahead (`prepare`)
@@ -272,15 +275,11 @@ class MoreauStepper:
             raise ValueError(f"tau must have {self._n_tau[mode]} entries, got {tau.shape[0]}")
         qE = _empty(q.shape[0])
         uE = _empty(u.shape[0])
-        if self._lagged:
-            self._lag_state[:] = state.drive_torque
         r = self._kernel(options, mode, state, tau, self._no_force if f_ext is None else f_ext,
                          report, is_active, qE, uE)
         if r.outcome or r.retried or r.status or r.projection_status >= 0 or \
                 not self._factored:
             self._count(r)
-        if self._lagged:
-            state.drive_torque[:] = report[self._explicit]
         self.stats.steps += 1
         state.q, state.u = qE, uE
         if self._forest:
@@ -313,6 +312,17 @@ class MoreauStepper:
                                      *compliant), tau, f_ext,
                            (report, is_active, qE, uE, *self._cut_motion), self._tree_model,
                            self._cut_model)
+
+    def _lagged_step(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
+        """The tree kernel with a torque lag: its state (SimState.drive_torque) copied into
+        the workspace's lag_state before, and the lag's output (the report's explicit
+        torques) back after a successful step."""
+        if not options & STEP_PREPARE:
+            self._lag_state[:] = state.drive_torque
+        r = self._tree_kernel(options, mode, state, tau, f_ext, report, is_active, qE, uE)
+        if r.outcome == TREE_STEP_OK and not options & STEP_PREPARE:
+            state.drive_torque[:] = report[self._explicit]
+        return r
 
     def _profiled(self, options, *args):
         """The kernel with STEP_PROFILE, its phase times moved into stats.timings (the stats
