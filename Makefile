@@ -180,7 +180,7 @@ ros2-control-configs: venv robots
 # tests with that module ($$STARLETH_KERNELS_SANITIZED) and the sanitizers' runtimes preloaded
 # (Python is not instrumented: leaks are not checked; an error or undefined behaviour fails).
 SANITIZE_DIR := build/sanitize
-SANITIZE_TESTS := test_bitexact test_adaptive_alpha test_coordinates test_hard_contacts \
+SANITIZE_TESTS := test_bitexact test_adaptive_alpha test_coordinates test_drives test_hard_contacts \
         test_impedance test_impedance_commands test_kernel_layouts test_kinematics_dynamics \
         test_physics_analytic test_physics_robot test_solvers test_state test_step_down \
         test_terrain test_terrain_walk

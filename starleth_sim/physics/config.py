@@ -45,6 +45,16 @@ solver.max_iterations          integer [1, 1 000 000]       a cap per solve that
 solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
 solver.stall_window           integer [0, 1 000 000]       sweeps per stall test (0 = none)
 bilateral.stabilization        [0, 1]                       β of the drift correction
+actuator.armature              [0, 100] kg m²               a reflected rotor inertia: a
+                                                            big drive's is < 10 (StarlETH's
+                                                            ~0.02, a 1 t excavator's ~10)
+actuator.viscous_damping       [0, 1e4] N m s/rad           implicit: stable at any Δt; more
+                                                            locks a joint
+actuator.coulomb_friction      [0, 1e4] N m                 a joint's breakaway torque; more
+                                                            than any drive's torque
+actuator.torque_bandwidth      [0, 1e5] Hz, 0 = off         a torque loop's; beyond the
+                                                            physics rate the lag is none
+(each also {joint: value})     joint names of the robot     checked at Simulator build
 terrain.boxes                  <= 10 000; centre within     positions near the robot; a box
                                +-1000 m, size (0, 1000] m,  has a volume; μ as ground.mu
                                yaw [-2π, 2π], μ [0, 10]
@@ -99,6 +109,10 @@ MAX_DAMPING = 1e6                                       # N s/m
 MAX_SLIP_VELOCITY = 1.0                                 # m/s
 MAX_GAP = 0.1                                           # m
 MAX_TOL_ABS = 1000.0                                    # N s
+MAX_ARMATURE = 100.0                                    # kg m²
+MAX_VISCOUS_DAMPING = 1e4                               # N m s/rad
+MAX_COULOMB_FRICTION = 1e4                              # N m
+MAX_BANDWIDTH = 1e5                                     # Hz
 
 
 @dataclass
@@ -258,10 +272,43 @@ class ActuatorConfig:
     #: torque-speed line, so a misbehaving controller cannot spin a leg up without bound) |
     #: "ignore" (ideal torque sources at any speed, as in the paper)
     velocity_limit: str = "derate"
+    #: the drive models (doc/drives.md; 0 = off), each a number for every actuated joint or
+    #: a mapping {joint name: value} (joints not named: 0; names checked by the Simulator):
+    #: I_a, the rotor's reflected inertia on M's joint diagonal [kg m²]
+    armature: float | dict = 0.0
+    #: D, viscous joint friction τ = −D q̇, implicit like the joint dampers [N m s/rad]
+    viscous_damping: float | dict = 0.0
+    #: τ_c, Coulomb joint friction |τ_f| ≤ τ_c, set-valued (sticks below τ_c) [N m]
+    coulomb_friction: float | dict = 0.0
+    #: f, the torque bandwidth: a first-order lag of the applied torque [Hz]
+    torque_bandwidth: float | dict = 0.0
+
+    #: the drive fields and their ranges (the table in the module docstring)
+    DRIVES = {"armature": MAX_ARMATURE, "viscous_damping": MAX_VISCOUS_DAMPING,
+              "coulomb_friction": MAX_COULOMB_FRICTION, "torque_bandwidth": MAX_BANDWIDTH}
 
     def validate(self, p):
         self.velocity_limit = _choice(f"{p}.velocity_limit", self.velocity_limit,
                                       {"derate", "ignore"})
+        for name, hi in self.DRIVES.items():
+            setattr(self, name, _per_joint(f"{p}.{name}", getattr(self, name), hi))
+
+    @property
+    def drives_on(self) -> bool:
+        """Whether any drive model is on (a nonzero value for some joint)."""
+        return any(any(v.values()) if isinstance(v, dict) else v != 0.0
+                   for v in (getattr(self, n) for n in self.DRIVES))
+
+
+def _per_joint(path, value, hi):
+    """A drive field: a number in [0, hi], or a mapping {joint name: number in [0, hi]}."""
+    if isinstance(value, dict):
+        return {_str(f"{path}: joint name", k): _num(f"{path}.{k}", v, 0.0, hi)
+                for k, v in value.items()}
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return _num(path, value, 0.0, hi)
+    raise ConfigError(f"{path}: expected a number or a mapping {{joint: number}}, got "
+                      f"{value!r:.60}")
 
 
 @dataclass

@@ -31,7 +31,7 @@ from time import perf_counter
 
 import numpy as np
 
-from .actuator import NonFiniteTorque, real_array
+from .actuator import NonFiniteTorque, drive_parameters, real_array
 from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, rest_on_ground
 from .coordinates import make_coordinates
@@ -93,7 +93,8 @@ class Simulator:
         if config.actuator.velocity_limit == "ignore":
             self._velocity_limit[:] = np.inf
         self.stepper = MoreauStepper(self.coords, config, profile=profile,
-                                     torque_limits=(self._effort_limit, self._velocity_limit))
+                                     torque_limits=(self._effort_limit, self._velocity_limit),
+                                     drives=drive_parameters(config.actuator, self.joint_names))
         #: the reports of the one-kernel steps of a control period are written into one of
         #: two sets of report buffers (one buffer per physics step, tree_step.report_views),
         #: the other set holding the last period's: nothing allocated per step, and a failed
@@ -233,7 +234,8 @@ class Simulator:
     @property
     def applied_torque(self):
         """The saturated torques applied during the last control step (of an impedance
-        command, those of the period's first physics step; all in applied_torques_per_step)."""
+        command, those of the period's first physics step; all in applied_torques_per_step;
+        with a torque bandwidth the lag's output: doc/drives.md)."""
         return self._tau.copy()
 
     @property
@@ -482,8 +484,9 @@ class Simulator:
                 tau = torques if torques.ndim == 1 else torques[len(figures)]
                 figures.append(stepper.step(state, tau, report, active, None if force is None
                                             else force(state, stepper.dt), mode))
-                if mode == TORQUE_SATURATED:    # (saturated once per period)
-                    torques, mode = views[3], TORQUE_AS_GIVEN
+                if mode == TORQUE_SATURATED and not stepper.drives:
+                    torques, mode = views[3], TORQUE_AS_GIVEN   # (saturated once per period;
+                    # with drives at every step: a lag's torques are not the command's)
         except NonFiniteTorque:
             if before is not None:
                 self.restore(before)

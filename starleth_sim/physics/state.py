@@ -12,7 +12,8 @@ What is what:
   next step depends on it — q, u, t, the hard contacts' memory (the last step's impulses Λ
   and active flags, which warm-start the prox iteration and decide the activation
   hysteresis, and Λ_B of the bilateral constraints), the compliant contacts' state of Alg. 1
-  (closed, slip, anchor P0, and the last forces λ) and the *timed* external wrenches
+  (closed, slip, anchor P0, and the last forces λ), the drives' lagged torques and the
+  *timed* external wrenches
   (`Simulator.apply_wrench`), whose remaining durations a step counts down. A copy of it is
   a snapshot; restoring one is an assignment (`Simulator.snapshot` / `Simulator.restore`).
 * **Workspace** (Data-like scratch, recomputed by every step, never part of a snapshot):
@@ -45,7 +46,8 @@ class SimState:
     #: hysteresis of I)
     last_impulse: np.ndarray | None = None
     last_active: np.ndarray | None = None
-    #: Λ_B of the bilateral constraints in the last physics step (nb) [N s] (warm start)
+    #: Λ_B of the bilateral constraints in the last physics step (nb) [N s] (warm start);
+    #: with Coulomb joint friction (hard contacts), then the joints' friction impulses Λ_f
     last_bilateral: np.ndarray | None = None
     #: compliant contacts (Alg. 1; None with hard ones): closed (g_N ≤ 0), slipping,
     #: anchor P0 (nc x 3) [m] and the last forces λ = (λ_N, λ_T1, λ_T2) (nc x 3) [N]
@@ -58,6 +60,9 @@ class SimState:
     #: on a terrain, the surface each contact slot held at the last step (nc; the stepper
     #: keeps it in its frames, column 10: Simulator.snapshot / restore carry it), else None
     surfaces: np.ndarray | None = None
+    #: with a torque bandwidth (actuator.torque_bandwidth), the lagged torques the drives
+    #: applied in the last physics step (one per actuated joint) [N m], else None
+    drive_torque: np.ndarray | None = None
 
     @classmethod
     def initial(cls, q, u, t: float, n_contacts: int, n_bilateral: int,
@@ -100,13 +105,15 @@ class SimState:
                                 for link, f, m, remaining in pending] if pending else []
         a = self.surfaces
         new.surfaces = None if a is None else a.copy()
+        a = self.drive_torque
+        new.drive_torque = None if a is None else a.copy()
         return new
 
     def restore_memory(self, other: "SimState"):
         """The contact memory of `other` (a copy of this state) copied back into this
         state's arrays, in place (a step solved again from the same memory)."""
         for name in ("last_impulse", "last_active", "last_bilateral", "closed", "slip",
-                     "anchor", "lam_compliant"):
+                     "anchor", "lam_compliant", "drive_torque"):
             a = getattr(self, name)
             if a is not None:
                 a[...] = getattr(other, name)

@@ -56,6 +56,7 @@ from .tree_step import (
     TREE_STEP_NONFINITE_STATE,
     TREE_STEP_NONFINITE_TORQUE,
     TREE_STEP_NOT_PD,
+    TREE_STEP_OK,
     CutModel,
     TreeStepModel,
     TreeStepResult,
@@ -90,9 +91,11 @@ class MoreauStepper:
     """Midpoint time-stepper shared by all coordinate sets and both contact models. It
     holds the model side and a workspace; the state it advances is a `SimState`."""
 
-    def __init__(self, coords, config, profile: bool = False, torque_limits=None):
+    def __init__(self, coords, config, profile: bool = False, torque_limits=None,
+                 drives=None):
         """torque_limits: (effort, velocity) limits per actuated joint, public order, for
-        the torque saturation (actuator.saturate_torque; default: none)."""
+        the torque saturation (actuator.saturate_torque; default: none); drives: the drive
+        models (actuator.DriveParameters, the tree kernels only), or None."""
         self.coords = coords
         self.cfg = config
         self.profile = profile
@@ -120,6 +123,7 @@ class MoreauStepper:
         #: joint dampers are implicit where every joint rate is an entry of u (the trees)
         self.implicit_dampers = not self._forest
         na = coords.joint_v.shape[0]
+        self._drives(drives, na)
         self._no_force = np.zeros(0)
         #: τ of no torque (one entry per actuated joint), for a step given none
         self._no_torque = np.zeros(na)
@@ -133,11 +137,27 @@ class MoreauStepper:
         self._n_tau = {TORQUE_AS_GIVEN: na, TORQUE_SATURATED: na, TORQUE_REPLAY: 2 * na}
         self._unprofiled = self._forest_step if self._forest else \
             self._tree_hard if self.hard else self._tree_compliant
+        if self._lagged:
+            self._tree_kernel, self._unprofiled = self._unprofiled, self._lagged_step
         self._kernel = self._profiled if profile else self._unprofiled
         self._factored = False      # L holds the factor of a constant M
         self._prepared = None       # the (q, u) of the step prepared ahead (`prepare`)
         #: report buffers for `prepare` (the kernel checks their lengths; nothing is written)
         self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
+
+    def _drives(self, drives, na):
+        """The drive models' parts the stepper keeps: the joint friction rows (Λ_f's memory
+        in SimState.last_bilateral, hard contacts) and whether the torques lag (their state
+        SimState.drive_torque: `_lag_state` in, the report's explicit torques out)."""
+        if drives is not None and self._forest:
+            raise ConfigError("actuator: the drive models (armature, viscous_damping, "
+                              "coulomb_friction, torque_bandwidth) need coordinates: minimal")
+        self.drives = drives
+        self.n_friction = 0 if drives is None or not self.hard else \
+            int(np.count_nonzero(drives.coulomb_friction > 0.0))
+        self._lagged = drives is not None and bool(np.any(drives.torque_bandwidth > 0.0))
+        o = 7 * self.nc + na      # (the report's explicit torques: tree_step.report_views)
+        self._explicit = slice(o, o + na)
 
     def _pack_model(self, coords, config):
         """The kernels' model packed once (TreeStepModel, and a forest's CutModel) and the
@@ -148,10 +168,12 @@ class MoreauStepper:
                                          coords.midpoint_model(), self.ground, self.eps,
                                          coords.joint_v, coords.tree.dof_parent, self.nv,
                                          self._effort_limit, self._velocity_limit,
-                                         coords.joint_q, coords.nq)
+                                         coords.joint_q, coords.nq,
+                                         None if self.drives is None else
+                                         self.drives.packed(config.dt))
         self._tree_model = tuple(pack)
         (self.gap, self.position, self.Wt_all, self.L, self.u_free, self.u_corr,
-         self.frames, self._timings) = views
+         self.frames, self._timings, self._lag_state) = views
         self._options = 0
         if self._forest:
             self._cut_model = tuple(CutModel.pack(coords, config.bilateral.stabilization
@@ -205,8 +227,12 @@ class MoreauStepper:
         return eps
 
     def initial_state(self, q, u, t: float = 0.0) -> SimState:
-        """The state (q, u, t) without contact memory or pending wrenches."""
-        return SimState.initial(q, u, t, self.nc, self.nb, self.hard)
+        """The state (q, u, t) without contact memory or pending wrenches (the drives'
+        lagged torques zero)."""
+        state = SimState.initial(q, u, t, self.nc, self.nb + self.n_friction, self.hard)
+        if self._lagged:
+            state.drive_torque = np.zeros(self._no_torque.shape[0])
+        return state
 
     # -- one step -------------------------------------------------------------------------
     def prepare(self, state: SimState):
@@ -287,6 +313,17 @@ class MoreauStepper:
                                      *compliant), tau, f_ext,
                            (report, is_active, qE, uE, *self._cut_motion), self._tree_model,
                            self._cut_model)
+
+    def _lagged_step(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
+        """The tree kernel with a torque lag: its state (SimState.drive_torque) copied into
+        the workspace's lag_state before, and the lag's output (the report's explicit
+        torques) back after a successful step."""
+        if not options & STEP_PREPARE:
+            self._lag_state[:] = state.drive_torque
+        r = self._tree_kernel(options, mode, state, tau, f_ext, report, is_active, qE, uE)
+        if r.outcome == TREE_STEP_OK and not options & STEP_PREPARE:
+            state.drive_torque[:] = report[self._explicit]
+        return r
 
     def _profiled(self, options, *args):
         """The kernel with STEP_PROFILE, its phase times moved into stats.timings (the stats

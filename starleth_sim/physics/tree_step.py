@@ -100,16 +100,18 @@ class TreeStepModel(NamedTuple):
 
     @staticmethod
     def pack(settings, law, model, ground, eps, joint_v, dof_parent, nv, effort_limit,
-             velocity_limit, joint_q, nq):
+             velocity_limit, joint_q, nq, drives=None):
         """Packs the StepSettings and CompliantLaw, midpoint_model()'s arrays, the
-        GroundPlane, ε, the torque limits (see actuator.saturate_torque) and the actuated
+        GroundPlane, ε, the torque limits (see actuator.saturate_torque), the actuated
         joints' entries of u and q (joint_v, joint_q: the impedance law reads q and u
-        there) and nq; returns the record and the workspace's views (gap, position, Wt_all,
-        L, u_free, u_corr, frames, timings), which the stepper keeps as its own arrays."""
+        there), nq and the drive models (DriveParameters.packed, or None: off); returns the
+        record and the workspace's views (gap, position, Wt_all, L, u_free, u_corr, frames,
+        timings, lag_state), which the stepper keeps as its own arrays."""
         ((parent, jtype, axis, pl_R, pl_p, idx_q, idx_v, support), (oR, op),
          (mass, lever, inertia, gravity), (c_joint, c_local, c_radius)) = model
         sizes = {"nj": parent.shape[0], "nc": c_joint.shape[0], "na": joint_v.shape[0],
-                 "nv": nv, "nt": ground.terrain.shape[0], "nq": nq}
+                 "nv": nv, "nt": ground.terrain.shape[0], "nq": nq,
+                 "drives": int(drives is not None)}
         values = dict(
             settings=STEP_SETTINGS.flatten(settings), law=[float(v) for v in law], axis=axis,
             pl_R=pl_R, pl_p=pl_p, oR=oR, op=op, mass=mass, lever=lever, inertia=inertia,
@@ -118,7 +120,8 @@ class TreeStepModel(NamedTuple):
             terrain=ground.terrain, eps=eps,
             effort_limit=effort_limit, velocity_limit=velocity_limit, parent=parent,
             jtype=jtype, idx_q=idx_q, idx_v=idx_v, c_joint=c_joint, joint_v=joint_v,
-            joint_q=joint_q, dof_parent=dof_parent, support=support)
+            joint_q=joint_q, dof_parent=dof_parent, support=support,
+            **(drives or dict.fromkeys(("armature", "viscous", "friction_bound", "lag"), [])))
         L = TREE_STEP_MODEL
         workspace = np.zeros(length(L, "workspace", sizes))
         views = buffer_views(L, "workspace", workspace, sizes)
@@ -127,7 +130,8 @@ class TreeStepModel(NamedTuple):
                               np.ascontiguousarray(pack_buffer(L, "support", values, sizes)),
                               workspace),
                 tuple(views[name] for name in ("gap", "position", "Wt_all", "L", "u_free",
-                                               "u_corr", "frames", "timings")))
+                                               "u_corr", "frames", "timings",
+                                               "lag_state")))
 
 
 TreeStepModel.__doc__ = TreeStepModel.__doc__.rstrip(" ") + describe(TREE_STEP_MODEL)

@@ -74,7 +74,7 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
     st, s = sim.stepper, sim.state
     nc, na = st.nc, sim.n_joints
     sizes = {"nj": st.coords.tree.parent.shape[0], "nc": nc, "na": na, "nv": st.nv,
-             "nt": st.ground.terrain.shape[0]}
+             "nt": st.ground.terrain.shape[0], "drives": 0}
 
     def step(floats):
         report = np.empty(report_size(nc, na))
@@ -104,6 +104,26 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
                     f"&out->{field.target});" in header, (layout.name, field.name)
 
 
+def test_pack_writes_the_drive_models_where_the_layout_says():
+    """With the drive models the header's flag is 1 and their fields hold I_a, D, τ_c Δt and
+    the lag's gain 1 − e^{−2π f Δt}; the workspace's lag_state is the stepper's."""
+    sim = Simulator.from_preset("HmJ", armature=0.01, viscous_damping={"LF_HAA": 0.2},
+                                coulomb_friction=0.5, torque_bandwidth=25.0)
+    st = sim.stepper
+    floats, ints, _, workspace = st._tree_model
+    c = st.coords
+    sizes = {"nj": c.tree.parent.shape[0], "nc": c.n_contacts, "na": c.joint_v.shape[0],
+             "nv": c.nv, "nt": st.ground.terrain.shape[0], "nq": c.nq, "drives": 1}
+    assert ints[6] == 1 and floats.shape[0] == length(TREE_STEP_MODEL, "floats", sizes)
+    f = buffer_views(TREE_STEP_MODEL, "floats", floats, sizes)
+    assert np.array_equal(f["armature"], np.full(12, 0.01))
+    assert np.array_equal(f["viscous"], np.r_[0.2, np.zeros(11)])
+    assert np.array_equal(f["friction_bound"], np.full(12, 0.5 * sim.dt))
+    assert np.allclose(f["lag"], 1.0 - np.exp(-2 * np.pi * 25.0 * sim.dt), rtol=1e-15)
+    w = buffer_views(TREE_STEP_MODEL, "workspace", workspace, sizes)
+    assert np.shares_memory(w["lag_state"], st._lag_state)
+
+
 @pytest.mark.parametrize("preset", ["HmJ", "Cm", "HEJD", "HMJD"])
 def test_pack_writes_each_field_where_the_layout_says(preset):
     sim = Simulator.from_preset(preset)
@@ -111,8 +131,9 @@ def test_pack_writes_each_field_where_the_layout_says(preset):
     floats, ints, support, workspace = st._tree_model
     c = st.coords
     sizes = {"nj": c.tree.parent.shape[0], "nc": c.n_contacts, "na": c.joint_v.shape[0],
-             "nv": c.nv, "nt": st.ground.terrain.shape[0], "nq": c.nq}
-    assert list(ints[:6]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt", "nq")]
+             "nv": c.nv, "nt": st.ground.terrain.shape[0], "nq": c.nq, "drives": 0}
+    assert list(ints[:7]) == [sizes[k] for k in ("nj", "nc", "na", "nv", "nt", "nq",
+                                                  "drives")]
     for name, array in (("floats", floats), ("ints", ints), ("support", support)):
         assert array.shape[0] == length(TREE_STEP_MODEL, name, sizes)
     f = buffer_views(TREE_STEP_MODEL, "floats", floats, sizes)

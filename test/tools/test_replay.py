@@ -258,6 +258,26 @@ def test_a_recording_cut_by_a_failure_replays_its_complete_steps(recorded, cut_r
         assert np.array_equal(a, whole.states[q][:K_CUT], equal_nan=True), q
 
 
+def lockstep_run(tmp_path, name, n_states, **params):
+    """A recorded lockstep run of sim_node (its `params`) under the PD echo controller, for
+    n_states states; the bag's path."""
+    ros = RosTestNode(DOMAIN_ID, f"replay_{name}_test", events=True)
+    ctl = EchoController(ros.node)
+    mcap = str(tmp_path / f"{name}.mcap")
+    sim = NodeProcess("starleth_sim.ros.sim_node", tmp_path / "sim.log", DOMAIN_ID,
+                      mode="lockstep", real_time_factor=0.0, record=mcap, **params)
+    try:
+        ok = ros.spin_until(lambda: len(ctl.stamps) >= n_states or not sim.alive(),
+                            START_TIMEOUT)
+        assert ok and sim.alive(), sim.log()[-3000:]
+    finally:
+        rc = sim.stop(signal.SIGINT)
+        ctl.close()
+        ros.close()
+    assert rc == 0, sim.log()[-3000:]
+    return mcap
+
+
 # a 1 cm plate under the LF foot (yawed) and rough ground (+-6 mm) under the hind feet
 TERRAIN = ("{boxes: [{centre: [0.252, 0.185, 0.005], size: [0.2, 0.2, 0.01], yaw: 0.3}], "
            "rough: {amplitude: 0.006, wavelength: 0.35, size: 1.4, seed: 2, "
@@ -271,20 +291,8 @@ def test_lockstep_run_on_a_terrain_and_its_replay_are_bit_identical(tmp_path):
     starleth-replay re-simulates it bit for bit."""
     from starleth_sim.physics.terrain import pack_terrain, terrain_height
     from starleth_sim.tools.common.bag import read_messages
-    ros = RosTestNode(DOMAIN_ID, "replay_terrain_test", events=True)
-    ctl = EchoController(ros.node)
-    mcap = str(tmp_path / "terrain.mcap")
-    sim = NodeProcess("starleth_sim.ros.sim_node", tmp_path / "sim.log", DOMAIN_ID,
-                      mode="lockstep", real_time_factor=0.0, record=mcap,
-                      physics_overrides=TERRAIN, contact_markers_rate=400.0)
-    try:
-        ok = ros.spin_until(lambda: len(ctl.stamps) >= 160 or not sim.alive(), START_TIMEOUT)
-        assert ok and sim.alive(), sim.log()[-3000:]
-    finally:
-        rc = sim.stop(signal.SIGINT)
-        ctl.close()
-        ros.close()
-    assert rc == 0, sim.log()[-3000:]
+    mcap = lockstep_run(tmp_path, "terrain", 160, physics_overrides=TERRAIN,
+                        contact_markers_rate=400.0)
     rec = replay_recording.load_recording(mcap)
     terrain = rec.config().terrain
     assert len(terrain.boxes) == 1 and terrain.rough is not None
@@ -304,6 +312,27 @@ def test_lockstep_run_on_a_terrain_and_its_replay_are_bit_identical(tmp_path):
     # the terrain is part of it: re-simulated on the plane alone, the run differs
     cfg = yaml.safe_load(rec.config_yaml)
     cfg["terrain"] = {}
+    rec.config_yaml = yaml.safe_dump(cfg)
+    assert not replay_resimulation.compare_exact(rec, replay_resimulation.resimulate(rec)) \
+        .identical
+
+
+def test_lockstep_run_with_drive_models_and_its_replay_are_bit_identical(tmp_path):
+    """A lockstep run (PD hold) with StarlETH's drive models (armature, viscous and Coulomb
+    joint friction, the torque lag, whose state the replay carries from the reset): the bag's
+    configuration holds them, and starleth-replay re-simulates the run bit for bit."""
+    drives = "{armature: 0.0012, viscous_damping: 0.05, coulomb_friction: 0.2, " \
+             "torque_bandwidth: 25.0}"
+    mcap = lockstep_run(tmp_path, "drives", 120, physics_overrides=drives)
+    rec = replay_recording.load_recording(mcap)
+    assert rec.config().actuator.torque_bandwidth == 25.0
+    out = tmp_path / "exact.json"
+    assert replay.main([mcap, "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["bit_identical"] and doc["steps"] >= 119
+    # the drives are part of it: re-simulated without them, the run differs
+    cfg = yaml.safe_load(rec.config_yaml)
+    cfg["actuator"] = {"velocity_limit": cfg["actuator"]["velocity_limit"]}
     rec.config_yaml = yaml.safe_dump(cfg)
     assert not replay_resimulation.compare_exact(rec, replay_resimulation.resimulate(rec)) \
         .identical

@@ -155,7 +155,7 @@ FN(prox_solve) {
     arena_t *a = scratch_arena();
     RUN(a, failed,
         res = prox_solve(&s, &pat, v[2].p, v[3].p, v[4].p, v[5].p, v[6].p, v[7].p, m, nv, nc,
-                         v[9].p, v[10].p, v[11].p, v[12].p, nb_LB, v[13].p, v[14].p, a));
+                         v[9].p, v[10].p, NULL, v[11].p, v[12].p, nb_LB, v[13].p, v[14].p, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return Py_BuildValue("(LLd)", (long long)res.iterations, (long long)res.status, res.residual);

@@ -265,6 +265,15 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     return 1;
 }
 
+/* last_bilateral of a tree step: Λ_f's memory, one entry per joint friction row */
+static int friction_memory_of(const char *fn, const packed_model_t *m, i64 nb) {
+    if (!m->ints[TREE_STEP_MODEL_DRIVES] && nb == 0) return 1;
+    tree_model_t t = {0};
+    unpack_tree_model(m, &t);
+    return need(nb == joint_friction_count(&t), fn,
+                "last_bilateral must have one entry per joint with Coulomb friction");
+}
+
 #define STEP_OUT                                                                \
     {"out", GROUP + 4}, {"report", F64W}, {"is_active", BOOLW}, {"qE", F64W}, { \
         "uE", F64W                                                              \
@@ -297,7 +306,9 @@ FN(tree_step_hard) {
     step_arrays_t x;
     if (!PARSE("tree_step_hard", spec, 7, v, &h) || !packed_of(&v[13], &m)) FAIL;
     val_t w[11] = {v[2], v[3], v[7], v[8], v[4], v[5], v[6], v[9], v[10], v[11], v[12]};
-    if (!step_arrays_of("tree_step_hard", w, &m, v[1].i, &x)) FAIL;
+    if (!step_arrays_of("tree_step_hard", w, &m, v[1].i, &x) ||
+        !friction_memory_of("tree_step_hard", &m, x.nb))
+        FAIL;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
     RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, (int)v[1].i, &x, &m, a));

@@ -97,7 +97,7 @@ enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2, STATUS_S
  * STALL_FACTOR times the best of the window before (prox.c, stall_seen): 1 % better over a
  * window, so that a slow but steady solve (the maximal coordinates' bilateral prox rows) goes
  * on and only one that cycles (JOR at α = 0.6 on a robot at rest) ends early */
-#define STALL_FACTOR 0.99
+#define STALL_FACTOR             0.99
 #define ALPHA_AUTO               (-1.0)
 #define AUTO_MAX_STEP            1.0e3
 #define AUTO_GUARD               1.0e3
@@ -210,6 +210,10 @@ typedef struct {
     patterns_t pat;
     i64 opened;
     const double *mu; /* nc: each contact's μ (a copy, from the arena; NULL: settings_t.mu) */
+    /* the rows after the contacts' as the prox projects them (m − 3 na; NULL: bilateral, Λ_B
+     * free): Λ onto [−bound, bound]; the last nf are joint friction rows (tree_step.c) */
+    const double *bound;
+    i64 nf;
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------
@@ -322,12 +326,13 @@ double auto_spectral_scale(const settings_t *s, const double *G, const double *W
                            const double *MinvW, const patterns_t *pat, i64 m, i64 nv, i64 nc,
                            const double *r, arena_t *a);
 /* prox.c: one prox solve (prox.prox_solve): Wt m x nv, MinvW nv x m, u_free nv, bvec m,
- * G m x m and c m (Delassus form), mu nc, r m, lam m (warm start in, Λ out), LB nb_LB x nb_LB,
- * M nv x nv (energy criterion), u nv (u^E out). */
+ * G m x m and c m (Delassus form), mu nc, r m, bound m − 3 nc (the rows after the contacts'
+ * projected onto [−bound, bound]: joint friction; NULL: bilateral rows), lam m (warm start in,
+ * Λ out), LB nb_LB x nb_LB, M nv x nv (energy criterion), u nv (u^E out). */
 prox_result_t prox_solve(const settings_t *s, const patterns_t *pat, const double *Wt,
                          const double *MinvW, const double *u_free, const double *bvec,
                          const double *G, const double *c, i64 m, i64 nv, i64 nc, const double *mu,
-                         const double *r, double *lam, const double *LB, i64 nb_LB, const double *M,
-                         double *u, arena_t *a);
+                         const double *r, const double *bound, double *lam, const double *LB,
+                         i64 nb_LB, const double *M, double *u, arena_t *a);
 
 #endif

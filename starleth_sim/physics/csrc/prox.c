@@ -40,6 +40,14 @@ static inline void project_contact(const double *lam, i64 b, double xi0, double 
     out[b + 2] = t2;
 }
 
+/* prox_row: a row after the contacts': a bilateral row's Λ_B as it is (bound NULL), a joint
+ * friction row's projected onto [−bound_k, bound_k] (|Λ_f| ≤ τ_c Δt: the joint sticks inside) */
+static inline double prox_row(double x, const double *bound, i64 k) {
+    if (!bound) return x;
+    double b = bound[k];
+    return x > b ? b : (x < -b ? -b : x);
+}
+
 /* kinetic_energy: ½ uᵀ M u */
 static double kinetic_energy(const double *M, const double *u, i64 nv) {
     double s = 0.0;
@@ -155,17 +163,19 @@ static void delassus_apply(const double *G, const double *c, i64 m, const double
 
 /* jor_project: a JOR update of Λ into new (Λ_B kept with the direct method) */
 static void jor_project(const double *lam, const double *xi, const double *r, const double *mu,
-                        i64 nc, i64 m, int bilateral_direct, double *new_) {
+                        const double *bound, i64 nc, i64 m, int bilateral_direct, double *new_) {
     for (i64 i = 0; i < nc; i++) {
         i64 b = 3 * i;
         project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new_);
     }
-    for (i64 l = 3 * nc; l < m; l++) new_[l] = bilateral_direct ? lam[l] : lam[l] - r[l] * xi[l];
+    for (i64 l = 3 * nc; l < m; l++)
+        new_[l] = bilateral_direct ? lam[l] : prox_row(lam[l] - r[l] * xi[l], bound, l - 3 * nc);
 }
 
 /* jor_update_in_place: fixed-α JOR update (bilateral prox rows) in place, with check */
 static check_t jor_update_in_place(double *lam, const double *xi, const double *r, const double *mu,
-                                   i64 nc, i64 m, double tol_rel, double tol_abs) {
+                                   const double *bound, i64 nc, i64 m, double tol_rel,
+                                   double tol_abs) {
     check_t c = {1, 0.0, 1};
     for (i64 i = 0; i < nc; i++) {
         i64 b = 3 * i;
@@ -176,7 +186,7 @@ static check_t jor_update_in_place(double *lam, const double *xi, const double *
         row_check(old2, lam[b + 2], &c, tol_rel, tol_abs);
     }
     for (i64 l = 3 * nc; l < m; l++) {
-        double v = lam[l] - r[l] * xi[l];
+        double v = prox_row(lam[l] - r[l] * xi[l], bound, l - 3 * nc);
         row_check(lam[l], v, &c, tol_rel, tol_abs);
         lam[l] = v;
     }
@@ -276,7 +286,7 @@ static double initial_energy(const velocity_t *v, const double *lam, i64 criteri
 typedef struct {
     const settings_t *s;
     const patterns_t *pat;
-    const double *G, *c, *mu, *r, *LB;
+    const double *G, *c, *mu, *r, *bound, *LB;
     double *lam; /* Λ: warm start in, solution out */
     i64 m, nc, nb_LB;
     dop_t D;         /* G as the adaptive α reads it */
@@ -288,7 +298,7 @@ typedef struct {
 /* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
 static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     const settings_t *s = P->s;
-    const double *G = P->G, *c = P->c, *mu = P->mu;
+    const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
     double *lam = P->lam;
     i64 m = P->m, nc = P->nc;
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
@@ -313,9 +323,9 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
             long_step = 0;
         }
         if (!(autoa || bilateral_direct)) {
-            ck = jor_update_in_place(lam, xi, rk, mu, nc, m, tol_rel, tol_abs);
+            ck = jor_update_in_place(lam, xi, rk, mu, bound, nc, m, tol_rel, tol_abs);
         } else {
-            jor_project(lam, xi, rk, mu, nc, m, bilateral_direct, new_);
+            jor_project(lam, xi, rk, mu, bound, nc, m, bilateral_direct, new_);
             if (bilateral_direct)
                 bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, new_, gp_ptr, gp_idx,
                                           P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
@@ -350,7 +360,7 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
 /* sor_prox_delassus: SOR on ξ = GΛ + c, work buffer old (m: Λ of the last sweep) */
 static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
     const settings_t *s = P->s;
-    const double *G = P->G, *c = P->c, *mu = P->mu;
+    const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
     double *lam = P->lam;
     i64 m = P->m, nc = P->nc;
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
@@ -394,7 +404,7 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
                     i64 l = gp_idx[p];
                     sm = sm + G[a * m + l] * lam[l];
                 }
-                lam[a] = lam[a] - rk[a] * sm;
+                lam[a] = prox_row(lam[a] - rk[a] * sm, bound, a - o);
             }
         }
         check_t ck = check(old, lam, m, tol_rel, tol_abs);
@@ -432,9 +442,10 @@ static void envelope_columns_of(const patterns_t *pat, i64 nd, arena_t *ar, i64 
 /* delassus_prox: JOR or SOR on ξ = GΛ + c with its work buffer from the arena */
 static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_t *pat,
                                    const double *G, const double *c, i64 m, i64 nc,
-                                   const double *mu, const double *r, double *lam, const double *LB,
-                                   i64 nb_LB, const double *M, const double *u_free,
-                                   const double *MinvW, i64 nv, double *u, arena_t *ar) {
+                                   const double *mu, const double *r, const double *bound,
+                                   double *lam, const double *LB, i64 nb_LB, const double *M,
+                                   const double *u_free, const double *MinvW, i64 nv, double *u,
+                                   arena_t *ar) {
     i64 nd = s->bilateral_direct ? m - 3 * nc : 0;
     i64 nw = jor ? 2 * m : m;
     double *work = arena_f(ar, nw + nd);
@@ -446,6 +457,7 @@ static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_
                     c,
                     mu,
                     r,
+                    bound,
                     LB,
                     lam,
                     m,
@@ -462,8 +474,9 @@ static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_
 static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pat, const double *Wt,
                                        const double *MinvW, const double *u_free,
                                        const double *bvec, i64 m, i64 nv, i64 nc, const double *mu,
-                                       const double *r, double *lam, const double *LB, i64 nb_LB,
-                                       const double *M, double *u, arena_t *ar) {
+                                       const double *r, const double *bound, double *lam,
+                                       const double *LB, i64 nb_LB, const double *M, double *u,
+                                       arena_t *ar) {
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
     i64 max_iter = s->max_iterations, criterion = s->criterion;
     int bilateral_direct = s->bilateral_direct;
@@ -499,7 +512,7 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
             auto_jor_long_step(s, nc, xi, rs, rk, w.dsave, w.xsave, m);
             long_step = 0;
         }
-        jor_project(lam, xi, rk, mu, nc, m, bilateral_direct, new_);
+        jor_project(lam, xi, rk, mu, bound, nc, m, bilateral_direct, new_);
         if (bilateral_direct)
             bilateral_direct_velocity(Wt, MinvW, u_free, m, nv, nc, LB, nb_LB, new_, pat, uu, rhs);
         check_t ck = check(lam, new_, m, tol_rel, tol_abs);
@@ -538,8 +551,9 @@ static prox_result_t jor_prox_velocity(const settings_t *s, const patterns_t *pa
 static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pat, const double *Wt,
                                        const double *MinvW, const double *u_free,
                                        const double *bvec, i64 m, i64 nv, i64 nc, const double *mu,
-                                       const double *r, double *lam, const double *LB, i64 nb_LB,
-                                       const double *M, double *u, arena_t *ar) {
+                                       const double *r, const double *bound, double *lam,
+                                       const double *LB, i64 nb_LB, const double *M, double *u,
+                                       arena_t *ar) {
     double tol_rel = s->tol_rel, tol_abs = s->tol_abs;
     i64 max_iter = s->max_iterations, criterion = s->criterion;
     int bilateral_direct = s->bilateral_direct;
@@ -598,6 +612,7 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
                     sm = sm + Wt[a * nv + j] * u[j];
                 }
                 double d_ = -rk[a] * sm;
+                if (bound) d_ = prox_row(lam[a] + d_, bound, a - o) - lam[a];
                 lam[a] = lam[a] + d_;
                 for (i64 p = mp_ptr[a]; p < mp_ptr[a + 1]; p++) {
                     i64 j = mp_idx[p];
@@ -630,14 +645,14 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
 prox_result_t prox_solve(const settings_t *s, const patterns_t *pat, const double *Wt,
                          const double *MinvW, const double *u_free, const double *bvec,
                          const double *G, const double *c, i64 m, i64 nv, i64 nc, const double *mu,
-                         const double *r, double *lam, const double *LB, i64 nb_LB, const double *M,
-                         double *u, arena_t *a) {
+                         const double *r, const double *bound, double *lam, const double *LB,
+                         i64 nb_LB, const double *M, double *u, arena_t *a) {
     if (s->form == FORM_DELASSUS)
-        return delassus_prox(s->scheme == SCHEME_JOR, s, pat, G, c, m, nc, mu, r, lam, LB, nb_LB, M,
-                             u_free, MinvW, nv, u, a);
+        return delassus_prox(s->scheme == SCHEME_JOR, s, pat, G, c, m, nc, mu, r, bound, lam, LB,
+                             nb_LB, M, u_free, MinvW, nv, u, a);
     if (s->scheme == SCHEME_JOR)
-        return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, lam, LB, nb_LB,
-                                 M, u, a);
-    return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, lam, LB, nb_LB, M,
-                             u, a);
+        return jor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, bound, lam, LB,
+                                 nb_LB, M, u, a);
+    return sor_prox_velocity(s, pat, Wt, MinvW, u_free, bvec, m, nv, nc, mu, r, bound, lam, LB,
+                             nb_LB, M, u, a);
 }

@@ -36,6 +36,11 @@ void contact_problem(const settings_t *s, const double *M, const double *uS, i64
                      const i64 *dof_parent, int factor, double *L, const double *last_impulse,
                      const u8 *last_active, double *timings, arena_t *a, problem_t *p);
 
+/* The joint friction rows' prox alone (the compliant step): Λ_f (warm start in lam_f, Λ_f
+ * out) and u^E; the prox's STATUS_* */
+i64 joint_friction_prox(const settings_t *s, const problem_t *p, const double *u_free,
+                        const double *M, double *lam_f, double *uE, i64 *iters, arena_t *a);
+
 /* The warm-start memory of a finished step */
 void remember_contacts(const u8 *is_active, const double *impulse, i64 nc, u8 *last_active,
                        double *last_impulse);
@@ -82,6 +87,9 @@ typedef struct {
 complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
                                    const tree_model_t *t, const step_arrays_t *x,
                                    double *bilateral_E, double *timings, arena_t *a);
+
+/* The joint friction rows of a tree step (a joint with τ_c > 0 each: drives only) */
+i64 joint_friction_count(const tree_model_t *t);
 
 /* Checks a packed TreeStepModel (and CutModel) against the sizes it claims; NULL if it is
  * consistent, else a message. */

@@ -97,6 +97,8 @@ static void phase_minv(const settings_t *s, const double *M, const double *uS, i
     p->opened = opened;
     p->G = p->Gdiag = p->LB = NULL;
     p->nb_LB = 0;
+    p->bound = NULL;
+    p->nf = 0;
     if (!ok || m == 0) {
         empty_patterns(&p->pat, a);
         return;
@@ -263,8 +265,8 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
         prox_parameters(p->Gdiag, m, na, alpha, r);
         memcpy(lam, lam0, (size_t)m * sizeof(double));
         if (attempt + 1 == attempts) try_s.stall_window = 0; /* the last try runs to the cap */
-        res = prox_solve(&try_s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec, r,
-                         lam, p->LB, p->nb_LB, M, u, a);
+        res = prox_solve(&try_s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec,
+                         r, p->bound, lam, p->LB, p->nb_LB, M, u, a);
         it_sum += res.iterations;
         if (res.status == STATUS_CONVERGED) break;
         if (attempt + 1 < attempts) {
@@ -279,6 +281,24 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
     *resid = res.residual;
     *retried = again;
     return t;
+}
+
+/* joint_friction_prox: Λ_f of a problem p of joint friction rows alone (the compliant step,
+ * whose contacts are forces in h; p->bound their bounds τ_c Δt), from Λ_f^0 in lam_f (out:
+ * Λ_f); u^E = u_free + M^{-1} W_f Λ_f into uE. The prox's status (STATUS_*), *iters its
+ * iterations. */
+i64 joint_friction_prox(const settings_t *s, const problem_t *p, const double *u_free,
+                        const double *M, double *lam_f, double *uE, i64 *iters, arena_t *a) {
+    double *u, *lam, resid;
+    i64 status;
+    int retried;
+    phase_prox(s, p, u_free, M, NULL, NULL, lam_f, NULL, 0.0, a, &u, &lam, iters, &status, &resid,
+               &retried);
+    memcpy(uE, u, (size_t)p->nv * sizeof(double));
+    memcpy(lam_f, lam, (size_t)p->m * sizeof(double));
+    for (i64 k = 0; k < p->nv; k++)
+        if (!isfinite(uE[k])) status = STATUS_NONFINITE;
+    return status;
 }
 
 /* predicted_end_gaps: g_N^E ≈ g_N(q^M) + ½Δt W_N^T u^E of the contacts whose Jacobian is
@@ -309,7 +329,7 @@ static i64 projection_problem(const problem_t *p, const i64 *extra, i64 ne, cons
                               patterns_t *pat) {
     i64 na = p->na, m0 = p->m, nv = p->nv;
     i64 o0 = 3 * na;
-    i64 nb = m0 - o0;
+    i64 nb = m0 - o0 - p->nf; /* (the joint friction rows left out: no position law) */
     i64 nc = na + ne;
     i64 o = 3 * nc;
     i64 m = o + nb;
@@ -377,7 +397,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     const double *Wp, *Mp, *Gp, *Gdp;
     patterns_t full;
     i64 m, ncp;
-    if (ne == 0) {
+    if (ne == 0 && p->nf == 0) {
         contacts = p->active;
         ncp = p->na;
         Wp = p->Wt;
@@ -417,7 +437,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     settings_t proj_s = *s;
     proj_s.stall_window = 0; /* no retry here: the projection's solve runs to the cap */
     prox_result_t res = prox_solve(&proj_s, &full, Wp, Mp, zero, bp, Gp, bp, m, nv, ncp, mu, r,
-                                   lam, p->LB, p->nb_LB, M, u_corr, a);
+                                   NULL, lam, p->LB, p->nb_LB, M, u_corr, a);
     if (res.status == STATUS_NONFINITE)
         for (i64 k = 0; k < nv; k++) u_corr[k] = 0.0;
     *status = res.status;

@@ -43,9 +43,23 @@ void impedance_torque(const impedance_command_t *c, const double *q, const doubl
     }
 }
 
+/* lag_torques: the drives' torque bandwidth, a first-order lag at the physics rate: τ_a =
+ * τ_a^S + (1 − e^{−2π f Δt}) (τ − τ_a^S) of the torques τ in explicit_torque, from the
+ * lag's state τ_a^S (lag_state); a lagged joint's damper is explicit (its law lags too) */
+static void lag_torques(const tree_model_t *t, const report_t *r) {
+    if (!t->drives) return;
+    for (i64 k = 0; k < t->na; k++)
+        if (t->lag[k] > 0.0) {
+            double s = t->lag_state[k];
+            r->explicit_torque[k] = s + t->lag[k] * (r->explicit_torque[k] - s);
+            r->damper[k] = 0.0;
+        }
+}
+
 /* applied_torque: the torques the motors apply for tau (torque_mode TORQUE_*: as given,
  * saturate_torque at the joint rates of u, the impedance law of the command tau at (q, u)
- * saturated, or a replay) into the report's explicit_torque, and the kd of the implicit
+ * saturated, or a replay; then the drives' lag of the latter two: as given and a replay
+ * are applied torques) into the report's explicit_torque, and the kd of the implicit
  * dampers into its damper: with an impedance command, the joints with a damper term whose
  * law at (q^S, u^S) is not saturated; 0 if the torques have a non-finite entry */
 static int applied_torque(int torque_mode, const double *tau, i64 n, const double *q,
@@ -58,7 +72,7 @@ static int applied_torque(int torque_mode, const double *tau, i64 n, const doubl
             if (torque_mode == TORQUE_REPLAY) r->damper[k] = tau[t->na + k];
             if (!isfinite(applied[k]) || !isfinite(r->damper[k])) return 0;
         }
-        return 1;
+        return 1; /* (applied torques: a replay's are lagged already) */
     }
     double *qd = arena_f(a, t->na);
     for (i64 k = 0; k < t->na; k++) qd[k] = u[t->joint_v[k]];
@@ -76,20 +90,26 @@ static int applied_torque(int torque_mode, const double *tau, i64 n, const doubl
         for (i64 k = 0; k < t->na; k++)
             if (!isnan(c.velocity[k]) && c.kd[k] > 0.0 && applied[k] == tau[k])
                 r->damper[k] = c.kd[k];
+    lag_torques(t, r);
     return 1;
 }
 
 /* damped: M~ = M + Δt K_d (K_d: the dampers on the actuated joints' diagonal entries) into
- * Md, from M; 0 if no joint has an implicit damper (Md then unused) */
+ * Md, from M; with the drive models M~ = M + I_a + Δt (K_d + D) (the armature I_a and the
+ * viscous friction D on the same entries: D as implicit as the dampers); 0 if no joint has
+ * an implicit damper and the drives are off (Md then unused) */
 static int damped(const double *M, const tree_model_t *t, const double *damper, i64 nv,
                   double *Md) {
-    int any = 0;
+    int any = (int)t->drives;
     for (i64 k = 0; k < t->na; k++) any |= damper[k] > 0.0;
     if (!any) return 0;
     for (i64 k = 0; k < nv * nv; k++) Md[k] = M[k];
     for (i64 k = 0; k < t->na; k++) {
         i64 j = t->joint_v[k];
-        Md[j * nv + j] += t->s.dt * damper[k];
+        if (t->drives)
+            Md[j * nv + j] += t->armature[k] + t->s.dt * (damper[k] + t->viscous[k]);
+        else
+            Md[j * nv + j] += t->s.dt * damper[k];
     }
     return 1;
 }
@@ -118,6 +138,57 @@ static int implicit_torques(const tree_model_t *t, const double *uS, const doubl
     return dropped;
 }
 
+/* The joint friction rows of a tree step (Coulomb friction, set-valued): W_f^T, a unit row
+ * at the entry of u of each joint with τ_c > 0 (ξ_f = q̇_j^E), b_f = 0 and the bounds τ_c Δt
+ * (|Λ_f| ≤ τ_c Δt: prox.c's prox_row); n = 0: none */
+typedef struct {
+    i64 n;
+    double *Wt, *b, *bound;
+} friction_t;
+
+i64 joint_friction_count(const tree_model_t *t) {
+    i64 n = 0;
+    if (t->drives)
+        for (i64 k = 0; k < t->na; k++) n += t->friction_bound[k] > 0.0;
+    return n;
+}
+
+static friction_t friction_rows(const tree_model_t *t, i64 nv, arena_t *a) {
+    friction_t f = {joint_friction_count(t), NULL, NULL, NULL};
+    if (!f.n) return f;
+    f.Wt = arena_zeros(a, f.n * nv);
+    f.b = arena_zeros(a, f.n);
+    f.bound = arena_f(a, f.n);
+    for (i64 k = 0, r = 0; k < t->na; k++)
+        if (t->friction_bound[k] > 0.0) {
+            f.Wt[r * nv + t->joint_v[k]] = 1.0;
+            f.bound[r++] = t->friction_bound[k];
+        }
+    return f;
+}
+
+/* compliant_friction: the compliant step's joint friction (its contacts are forces in h):
+ * the friction rows' own problem with M (its factor in L), their prox from Λ_f^0 = 0, u^E
+ * into x->uE; a TREE_STEP_* outcome, the prox's iterations and status into res */
+static i64 compliant_friction(const tree_model_t *t, const step_arrays_t *x, const double *M,
+                              const friction_t *f, tree_step_result_t *res, arena_t *a) {
+    i64 nc = t->contacts.nc, nv = x->nv;
+    double *never = arena_f(a, nc), *no_impulse = arena_zeros(a, 3 * nc);
+    u8 *no_active = arena_alloc(a, (size_t)nc);
+    for (i64 i = 0; i < nc; i++) {
+        never[i] = INFINITY; /* (no contact row) */
+        no_active[i] = 0;
+    }
+    problem_t p;
+    contact_problem(&t->s, M, x->u, nv, never, nc, t->Wt_all, f->Wt, f->n, f->b, t->eps, NULL,
+                    t->dof_parent, 0, t->L, no_impulse, no_active, NULL, a, &p);
+    p.bound = f->bound;
+    p.nf = f->n;
+    double *lam = arena_zeros(a, f->n);
+    res->status = joint_friction_prox(&t->s, &p, t->u_free, M, lam, x->uE, &res->iterations, a);
+    return res->status == STATUS_NONFINITE ? TREE_STEP_NONFINITE_IMPULSE : TREE_STEP_OK;
+}
+
 /* report_contacts: g_N and the contact points at q^M into the report buffer */
 static void report_contacts(const double *gap, const double *position, const report_t *report,
                             i64 nc) {
@@ -139,13 +210,17 @@ static void tree_midpoint(const step_arrays_t *x, const tree_model_t *t, int opt
     klap(timings, PHASE_M_AND_H, t0);
 }
 
-/* with_forces: h + Sᵀτ + f_ext (the midpoint's h, without τ, stays in the workspace) */
+/* with_forces: h + Sᵀτ + f_ext (the midpoint's h, without τ, stays in the workspace); with
+ * the drive models also the viscous friction's −D q̇^S (its −D (q̇^E − q̇^S): damped's M~) */
 static double *with_forces(const step_arrays_t *x, const double *tau, const tree_model_t *t,
                            double *timings, arena_t *a) {
     double t0 = kclock(timings);
     double *h = arena_f(a, x->nv);
     for (i64 k = 0; k < x->nv; k++) h[k] = t->h[k];
     for (i64 k = 0; k < t->na; k++) h[t->joint_v[k]] += tau[k];
+    if (t->drives)
+        for (i64 k = 0; k < t->na; k++)
+            if (t->viscous[k] > 0.0) h[t->joint_v[k]] -= t->viscous[k] * x->u[t->joint_v[k]];
     for (i64 k = 0; k < x->n_f_ext; k++) h[k] += x->f_ext[k];
     klap(timings, PHASE_M_AND_H, t0);
     return h;
@@ -225,27 +300,33 @@ tree_step_result_t tree_step_hard(int options, int torque_mode, const step_array
     if (tree_step_start(options, torque_mode, x, m, &t, &timings, &h, &outcome, a))
         return result_of(outcome);
     i64 nv = x->nv, nc = t.contacts.nc;
-    double *Md = arena_f(a, nv * nv);
-    double *kept = arena_f(a, 4 * nc); /* the warm-start memory, for a second solve */
+    friction_t f = friction_rows(&t, nv, a);
+    double *Md = arena_f(a, nv * nv), *friction_E = arena_f(a, f.n);
+    double *kept = arena_f(a, 4 * nc + f.n); /* the warm-start memory, for a second solve */
     int implicit = damped(t.M, &t, x->report.damper, nv, Md);
     for (i64 k = 0; k < 3 * nc; k++) kept[k] = x->last_impulse[k];
     for (i64 k = 0; k < nc; k++) kept[3 * nc + k] = x->last_active[k];
+    for (i64 k = 0; k < f.n; k++) kept[4 * nc + k] = x->last_bilateral[k];
     problem_t p;
     tree_step_result_t res;
     for (int pass = 0; pass < 2; pass++) {
-        contact_problem(&t.s, implicit ? Md : t.M, x->u, nv, t.gap, nc, t.Wt_all, NULL, 0, NULL,
+        /* (the joint friction rows, if any, in the place of the bilateral rows: Λ_f's memory
+         * is last_bilateral) */
+        contact_problem(&t.s, implicit ? Md : t.M, x->u, nv, t.gap, nc, t.Wt_all, f.Wt, f.n, f.b,
                         t.eps, t.ground.frames, t.dof_parent, 1, t.L, x->last_impulse,
                         x->last_active, timings, a, &p);
         if (!p.ok) return result_of(TREE_STEP_NOT_PD);
+        p.bound = f.bound;
+        p.nf = f.n;
         res = result_of(TREE_STEP_OK);
-        /* (no bilateral rows: Λ_B is empty, last_bilateral its own buffer) */
-        complete_step(&p, h, implicit ? Md : t.M, &t, x, x->last_bilateral, &res, timings, a);
+        complete_step(&p, h, implicit ? Md : t.M, &t, x, friction_E, &res, timings, a);
         if (!implicit || res.outcome != TREE_STEP_OK ||
             !implicit_torques(&t, x->u, x->uE, &x->report,
                               pass == 0 && torque_mode == TORQUE_IMPEDANCE))
             break;
         for (i64 k = 0; k < 3 * nc; k++) x->last_impulse[k] = kept[k];
         for (i64 k = 0; k < nc; k++) x->last_active[k] = kept[3 * nc + k] != 0.0;
+        for (i64 k = 0; k < f.n; k++) x->last_bilateral[k] = kept[4 * nc + k];
         implicit = damped(t.M, &t, x->report.damper, nv, Md);
     }
     if (!implicit) implicit_torques(&t, x->u, x->uE, &x->report, 0);
@@ -311,6 +392,8 @@ tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_
         return result_of(outcome);
     i64 nv = x->nv, nc = t.contacts.nc;
     double dt = t.s.dt;
+    friction_t f = friction_rows(&t, nv, a);
+    tree_step_result_t solved = result_of(TREE_STEP_OK);
     double *h0 = arena_f(a, nv), *Md = arena_f(a, nv * nv);
     int implicit = damped(t.M, &t, x->report.damper, nv, Md);
     for (i64 k = 0; k < nv; k++) h0[k] = h[k]; /* (solve_compliant adds the contacts) */
@@ -326,7 +409,9 @@ tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_
             break;
         }
         for (i64 k = 0; k < nv; k++) x->uE[k] = t.u_free[k];
-        outcome = TREE_STEP_OK;
+        outcome =
+            f.n ? compliant_friction(&t, x, implicit ? Md : t.M, &f, &solved, a) : TREE_STEP_OK;
+        if (outcome != TREE_STEP_OK) break;
         if (!implicit || !implicit_torques(&t, x->u, x->uE, &x->report,
                                            pass == 0 && torque_mode == TORQUE_IMPEDANCE))
             break;
@@ -343,6 +428,8 @@ tree_step_result_t tree_step_compliant(int options, int torque_mode, const step_
     if (outcome != TREE_STEP_OK) /* the contact state back to what it was */
         restore_contacts(kept_flags, kept, nc, cs);
     tree_step_result_t res = result_of(outcome);
+    res.iterations = solved.iterations;
+    res.status = solved.status;
     res.n_active = report_compliant(x, &t, cs);
     klap(timings, PHASE_REST, t0);
     return res;

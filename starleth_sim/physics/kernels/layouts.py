@@ -263,6 +263,14 @@ TREE_STEP_MODEL = Layout(
               "the actuators' effort limits (public joint order)"),
         Field("velocity_limit", "na", "velocity_limit",
               "the actuators' velocity limits (public joint order)"),
+        Field("armature", "drives * na", "armature",
+              "the drives' reflected rotor inertias I_a [kg m²] (drives only)"),
+        Field("viscous", "drives * na", "viscous",
+              "the drives' viscous friction D [N m s/rad] (drives only)"),
+        Field("friction_bound", "drives * na", "friction_bound",
+              "the bound τ_c Δt of each joint's Coulomb friction impulse [N m s]"),
+        Field("lag", "drives * na", "lag",
+              "the torque lag's gain 1 − e^{−2π f Δt} (0: no lag; drives only)"),
     )),
      Buffer("ints", "int64", (
          _header("nj", "tree.nj", "joints (joint 0 the world)"),
@@ -271,6 +279,8 @@ TREE_STEP_MODEL = Layout(
          _header("nv", "tree.nv", "velocities"),
          _header("nt", "ground.n_terrain", "the packed terrain's floats"),
          _header("nq", "nq", "positions (q)"),
+         Field("drives", "1", "drives", "1 with the drive models (actuator.py), else 0",
+               kind="flag"),
          Field("parent", "nj", "tree.parent", "each joint's parent"),
          Field("jtype", "nj", "tree.jtype", "each joint's type (JT_*)"),
          Field("idx_q", "nj", "tree.idx_q", "each joint's first entry of q"),
@@ -301,6 +311,8 @@ TREE_STEP_MODEL = Layout(
          Field("h", "nv", "h", "h at (q^M, u^S) without τ and f_ext"),
          Field("timings", "5", "timings",
                "the Fig. 7 phases' cumulative times when profiling (PHASES order) [s]"),
+         Field("lag_state", "drives * na", "lag_state",
+               "the lagged torques at the step's start (SimState.drive_torque, copied in)"),
      ), exact=False)))
 
 CUT_MODEL = Layout(
