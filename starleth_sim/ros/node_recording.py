@@ -56,6 +56,20 @@ def make_recorder(path, settings, on_failure, log):
         raise ConfigError(f"parameter record: cannot record to {e}") from None
 
 
+def sensor_metadata(sim, pubs) -> dict:
+    """The sensors' part of the metadata (their configuration and seed are physics_config's
+    sensors section): the sensor topics; with noisy sensors joint_states is measured and the
+    exact values are on the ground_truth/ topics ('' with ideal ones: joint_states is
+    exact)."""
+    def topic(key):
+        return pubs[key][1] if key in pubs else ""
+    return {"imu_topic": topic("imu"), "foot_contacts_topic": topic("foot_contacts"),
+            "sensors_seed": str(sim.config.sensors.seed),
+            "ground_truth_joint_states_topic": topic("gt_joint_states"),
+            "ground_truth_imu_topic": topic("gt_imu"),
+            "ground_truth_foot_contacts_topic": topic("gt_foot_contacts")}
+
+
 def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, pubs, subs,
                  tf_topics):
     """Declare the topics of a new recording `rec` (`pubs` and `subs`: {key: (endpoint,
@@ -90,17 +104,7 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
         "wrench_topic": subs["wrench"][1],
         "wrench_persistent_topic": subs["wrench_persistent"][1],
         "applied_torque_topic": pubs["applied_torque"][1],
-        # the sensors (their configuration and seed: physics_config's sensors section):
-        # with noisy ones joint_states is measured and the exact states are on the
-        # ground_truth/ topics ('' with ideal sensors: joint_states is exact)
-        "imu_topic": pubs["imu"][1],
-        "foot_contacts_topic": pubs["foot_contacts"][1],
-        "sensors_seed": str(sim.config.sensors.seed),
-        "ground_truth_joint_states_topic": pubs["gt_joint_states"][1]
-        if "gt_joint_states" in pubs else "",
-        "ground_truth_imu_topic": pubs["gt_imu"][1] if "gt_imu" in pubs else "",
-        "ground_truth_foot_contacts_topic": pubs["gt_foot_contacts"][1]
-        if "gt_foot_contacts" in pubs else "",
+        **sensor_metadata(sim, pubs),
         "replay": "torques: applied_torque_topic at log time t_(k+1) = the torques of each "
                   "physics step of step k -> k+1 (physics_steps x 3 x joints: the torques "
                   "applied, saturated, derated; the explicit torques; the kd of the implicit "
