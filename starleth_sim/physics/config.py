@@ -378,14 +378,15 @@ class SensorConfig:
             raise ConfigError(f"sensors.imu_delay: must be a whole number of control periods "
                               f"({_fmt(1e3 / control_rate)} ms), got {_fmt(self.imu_delay)} s")
 
-    @property
-    def ideal(self) -> bool:
-        """Every measured value is the exact one (no noise, bias, quantization, filter,
-        clipping, threshold, delay; the IMU at the control rate)."""
+    def is_ideal(self, control_rate: float) -> bool:
+        """Every measured value is the exact one: no noise, bias, quantization, filter,
+        clipping, threshold or delay, and the IMU samples at every control step (at the
+        control rate or faster)."""
         zero = [getattr(self, n) for n in SENSOR_RANGES if n not in
                 ("imu_rate", "encoder_velocity_cutoff")]
         return (not any(zero) and not self.encoder_counts and not self.contact_delay
                 and self.encoder_velocity == "exact"
+                and (not self.imu_rate or self.imu_rate >= control_rate * (1 - 1e-9))
                 and not any(self.imu_gyro_initial_bias + self.imu_accel_initial_bias))
 
     def to_dict(self) -> dict:

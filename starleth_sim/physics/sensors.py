@@ -185,7 +185,7 @@ class Sensors:
     def __init__(self, sim):
         self.sim = sim
         self.config = c = sim.config.sensors
-        self.ideal = c.ideal
+        self.ideal = c.is_ideal(sim.config.control_rate)
         self.n_feet = len(sim.description.foot_names)
         self.period = sim.control_period
         self.rng = np.random.default_rng(c.seed)

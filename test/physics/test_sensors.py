@@ -50,7 +50,10 @@ def _signals(readings):
 
 def test_ideal_sensors_return_the_exact_values_bit_for_bit():
     sim = Simulator.from_preset("HmJ")
-    assert sim.config.sensors.ideal
+    assert sim.config.sensors.is_ideal(400.0)
+    # the IMU at a lower rate holds its samples: not ideal; at a higher one it is
+    assert not replace(sim.config.sensors, imu_rate=200.0).is_ideal(400.0)
+    assert replace(sim.config.sensors, imu_rate=800.0).is_ideal(400.0)
     s, cmd = Sensors(sim), _holding(sim)
     g = np.array([0.0, 0.0, -9.81])
     v_prev = sim.base_state()["linear_velocity"]
@@ -232,7 +235,7 @@ def test_one_seed_one_run_bit_for_bit():
 
 def test_realistic_file_over_the_presets():
     cfg = load_preset("HmJ").with_overlay("realistic", "sensors")
-    assert not cfg.sensors.ideal and cfg.sensors.encoder_counts == 16384
+    assert not cfg.sensors.is_ideal(cfg.control_rate) and cfg.sensors.encoder_counts == 16384
     assert load_preset("Cm").with_overlay("realistic", "sensors").sensors == cfg.sensors
     # the section and its seed are in the recorded configuration
     assert cfg.to_dict()["sensors"]["seed"] == cfg.sensors.seed
@@ -258,3 +261,22 @@ def test_bad_sensor_files_name_file_and_field(tmp_path, text, message):
 def test_unknown_sensor_file_names_the_shipped_ones():
     with pytest.raises(ConfigError, match="unknown sensors file 'nosuch'.*realistic"):
         load_preset("HmJ").with_overlay("nosuch", "sensors")
+
+
+def test_imu_faster_than_the_control_rate():
+    """At 4 x the control rate the newest of 4 samples per control step: white noise of
+    σ = density √1600, the bias walked 4 samples' worth, σ = walk √(4/1600), per step."""
+    sim = FakeSim(imu_rate=1600.0, imu_gyro_noise_density=1e-3)
+    s = Sensors(sim)
+    gyro = [s.measured.imu_angular_velocity]
+    for _ in range(2000):
+        s.sample()
+        gyro.append(s.measured.imu_angular_velocity)
+    assert abs(np.std(gyro) / (1e-3 * 40.0) - 1) < 0.10
+    sim = FakeSim(imu_rate=1600.0, imu_accel_bias_random_walk=6e-3)
+    s = Sensors(sim)
+    acc = [s.measured.imu_linear_acceleration]
+    for _ in range(2000):
+        s.sample()
+        acc.append(s.measured.imu_linear_acceleration)
+    assert abs(np.diff(acc, axis=0).std() / (6e-3 * math.sqrt(4 / 1600)) - 1) < 0.10
