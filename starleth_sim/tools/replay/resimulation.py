@@ -61,7 +61,8 @@ def _measured(sensors) -> dict:
             "foot_contacts": np.concatenate((m.contact_flag, m.contact_force))}
 
 
-def _snapshot(sim, feet, sensors):
+def _snapshot(sim, feet, sensors=None):
+    """The recorded quantities of the current state (the sensor topics' with `sensors`)."""
     pub = public_state(sim)
     quat = [float(x) for x in pub["base_orientation"]]
     cs = {c.name: c for c in sim.contacts}
@@ -72,7 +73,7 @@ def _snapshot(sim, feet, sensors):
             "base_orientation": np.array(quat),
             "base_linear_velocity": _body_twist(quat, pub["base_linear_velocity"]),
             "base_angular_velocity": pub["base_angular_velocity"],
-            "foot_forces": forces, **_measured(sensors)}
+            "foot_forces": forces, **(_measured(sensors) if sensors is not None else {})}
 
 
 def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
