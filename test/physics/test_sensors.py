@@ -263,20 +263,20 @@ def test_unknown_sensor_file_names_the_shipped_ones():
         load_preset("HmJ").with_overlay("nosuch", "sensors")
 
 
+def _imu_run(steps, **fields):
+    """(gyro, accelerometer) of `steps` + 1 samples of the FakeSim at rest."""
+    s = Sensors(FakeSim(**fields))
+    rows = [(s.measured.imu_angular_velocity, s.measured.imu_linear_acceleration)]
+    for _ in range(steps):
+        s.sample()
+        rows.append((s.measured.imu_angular_velocity, s.measured.imu_linear_acceleration))
+    return np.array([g for g, _ in rows]), np.array([a for _, a in rows])
+
+
 def test_imu_faster_than_the_control_rate():
     """At 4 x the control rate the newest of 4 samples per control step: white noise of
     σ = density √1600, the bias walked 4 samples' worth, σ = walk √(4/1600), per step."""
-    sim = FakeSim(imu_rate=1600.0, imu_gyro_noise_density=1e-3)
-    s = Sensors(sim)
-    gyro = [s.measured.imu_angular_velocity]
-    for _ in range(2000):
-        s.sample()
-        gyro.append(s.measured.imu_angular_velocity)
+    gyro, _ = _imu_run(2000, imu_rate=1600.0, imu_gyro_noise_density=1e-3)
     assert abs(np.std(gyro) / (1e-3 * 40.0) - 1) < 0.10
-    sim = FakeSim(imu_rate=1600.0, imu_accel_bias_random_walk=6e-3)
-    s = Sensors(sim)
-    acc = [s.measured.imu_linear_acceleration]
-    for _ in range(2000):
-        s.sample()
-        acc.append(s.measured.imu_linear_acceleration)
+    _, acc = _imu_run(2000, imu_rate=1600.0, imu_accel_bias_random_walk=6e-3)
     assert abs(np.diff(acc, axis=0).std() / (6e-3 * math.sqrt(4 / 1600)) - 1) < 0.10

@@ -3,14 +3,13 @@ its measured topics differ from the ground_truth/ ones by the configured noise (
 10 %, starleth-analyze's sensor_noise); starleth-replay regenerates every measured message
 bit for bit from the recorded seed and configuration, and another seed does not."""
 import os
-import signal
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from ros_test_nodes import NodeProcess, RosTestNode
+from ros_test_nodes import RosTestNode, run_lockstep
 
 from starleth_sim.tools.analysis import analysis
 from starleth_sim.tools.analysis.sensor_noise import bag_noise
@@ -30,19 +29,9 @@ SEED = 5
 def noisy(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("noisy")
     ros = RosTestNode(DOMAIN_ID, "sensor_replay_test", events=True)
-    ctl = EchoController(ros.node)
     mcap = str(tmp / "noisy.mcap")
-    sim = NodeProcess("starleth_sim.ros.sim_node", tmp / "sim.log", DOMAIN_ID, mode="lockstep",
-                      real_time_factor=0.0, record=mcap, sensors="realistic", seed=SEED)
-    try:
-        ok = ros.spin_until(lambda: len(ctl.stamps) >= N_STATES or not sim.alive(),
-                            START_TIMEOUT)
-        assert ok and sim.alive(), sim.log()[-3000:]
-    finally:
-        rc = sim.stop(signal.SIGINT)
-        ctl.close()
-        ros.close()
-    assert rc == 0, sim.log()[-3000:]
+    run_lockstep(ros, EchoController(ros.node), tmp / "sim.log", DOMAIN_ID, N_STATES,
+                 START_TIMEOUT, record=mcap, sensors="realistic", seed=SEED)
     return mcap
 
 
