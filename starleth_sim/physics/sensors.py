@@ -9,11 +9,12 @@ doc/sensors.md).
     sensors.measured, sensors.truth   # SensorReading of the current state
     sensors.restart()                 # after sim.reset(): filters and delays start again
 
-Every random number comes from one numpy Generator (PCG64) seeded with ``sensors.seed``,
-drawn in a fixed order per control step (IMU: gyro noise, gyro bias step, accelerometer
-noise, accelerometer bias step, orientation; encoder noise; torque noise; contact force
-noise; each only where its σ > 0), so a run replays bit for bit from its seed and
-configuration. With the ideal configuration (the default) nothing is drawn and
+Every random number comes from one numpy Generator (PCG64) seeded with ``sensors.seed``
+(the initial IMU biases drawn first, where their σ > 0), then per control step two draws in
+a fixed layout: the IMU's sample (white noise of the gyro and accelerometer, their bias
+steps, the orientation's rotation vector) and the joints' and feet's (encoder noise, torque
+noise, contact force noise), each part only where its σ > 0; so a run replays bit for bit
+from its seed and configuration. With the ideal configuration (the default) nothing is drawn and
 ``measured`` is ``truth``, bit for bit.
 
 Timing (doc/sim_node.md's contract): the reading of control step k is delivered at step k;
@@ -80,9 +81,11 @@ def model_gravity(description) -> np.ndarray:
     return np.array([0.0, 0.0, -9.81])
 
 
-def exact_reading(sim, imu: ExactImu, n_feet: int) -> SensorReading:
-    """The exact values of `sim`'s current state (`imu`: its proper acceleration, called
-    once per control step); a foot is in contact when it carries a normal force."""
+def exact_reading(sim, imu: ExactImu, n_feet: int):
+    """(the exact values of `sim`'s current state, its base state, R): `imu` gives the
+    proper acceleration (called once per control step); a foot is in contact when it
+    carries a normal force; the base state (Simulator.base_state) and its rotation matrix R
+    for whoever publishes them too."""
     b = sim.base_state()
     quat = b["orientation_xyzw"]
     R = np.empty((3, 3))
@@ -93,7 +96,7 @@ def exact_reading(sim, imu: ExactImu, n_feet: int) -> SensorReading:
         np.asarray(sim.joint_velocities(), dtype=float), sim.applied_torque,
         np.asarray(quat, dtype=float), np.asarray(b["angular_velocity"], dtype=float),
         imu.proper_acceleration(b["linear_velocity"], R),
-        (f_n > 0.0).astype(float), f_n)
+        (f_n > 0.0).astype(float), f_n), b, R
 
 
 class DelayLine:
@@ -131,56 +134,57 @@ def quat_times_rotvec(q, theta) -> np.ndarray:
 
 
 class ImuModel:
-    """Gyro and accelerometer: white noise of σ = density √rate, a bias that starts at the
-    initial bias (a fixed vector plus one draw of σ per axis) and walks by σ_b = walk
-    √(1/rate) per sample, clipping at the range; the orientation (an AHRS's) the exact one
-    turned by a white rotation vector. Samples every `every` control steps (a rate below the
-    control rate), or the newest of m per control step (above it: the noise at the rate,
-    the bias walked m samples)."""
+    """Gyro and accelerometer (rows 0 and 1 of a 2 x 3 array): white noise of σ = density
+    √rate, a bias that starts at the initial bias (a fixed vector plus one draw of σ per
+    axis) and walks by σ_b = walk √(1/rate) after each sample, clipping at the range; the
+    orientation (an AHRS's) the exact one turned by a white rotation vector. Samples every
+    `every` control steps (a rate below the control rate), or the newest of m per control
+    step (above it: the noise at the rate, the bias walked m samples)."""
 
     def __init__(self, c, control_rate: float, rng):
         rate = c.imu_rate or control_rate
         self.every = max(1, round(control_rate / rate))
         m = max(1, round(rate / control_rate))
-        self.sigma = (c.imu_gyro_noise_density * math.sqrt(rate),
-                      c.imu_accel_noise_density * math.sqrt(rate))
-        self.walk = (c.imu_gyro_bias_random_walk * math.sqrt(m / rate),
-                     c.imu_accel_bias_random_walk * math.sqrt(m / rate))
-        self.range = (c.imu_gyro_range, c.imu_accel_range)
+        self.sigma = np.array([[c.imu_gyro_noise_density], [c.imu_accel_noise_density]]) \
+            * math.sqrt(rate)
+        self.walk = np.array([[c.imu_gyro_bias_random_walk], [c.imu_accel_bias_random_walk]]) \
+            * math.sqrt(m / rate)
+        self.range = np.array([[c.imu_gyro_range or np.inf], [c.imu_accel_range or np.inf]])
         self.orientation_noise = c.imu_orientation_noise
+        #: the numbers drawn per sample: white noise, bias steps, orientation
+        self.draws = (6 if self.sigma.any() else 0, 6 if self.walk.any() else 0,
+                      3 if self.orientation_noise else 0)
         self.rng = rng
-        self.bias = [np.array(v, dtype=float) for v in (c.imu_gyro_initial_bias,
-                                                       c.imu_accel_initial_bias)]
-        for b, s in zip(self.bias, (c.imu_gyro_initial_bias_sigma,
-                                    c.imu_accel_initial_bias_sigma), strict=True):
-            if s:
-                b += s * rng.standard_normal(3)
-        self.samples = 0
+        self.bias = np.array([c.imu_gyro_initial_bias, c.imu_accel_initial_bias], dtype=float)
+        drawn = np.array([[c.imu_gyro_initial_bias_sigma], [c.imu_accel_initial_bias_sigma]])
+        if drawn.any():
+            self.bias += drawn * rng.standard_normal((2, 3))
         self.line = DelayLine(round(c.imu_delay * control_rate))
 
     def sample(self, k: int, truth: SensorReading):
-        """Take the sample of step k (if the IMU samples at it) into the delay line."""
+        """Take the sample of step k (if the IMU samples at it) into the delay line: one
+        draw of the white noise, the bias steps and the orientation's rotation vector."""
         if k % self.every:
             return
-        rng, out = self.rng, []
-        for i, x in enumerate((truth.imu_angular_velocity, truth.imu_linear_acceleration)):
-            y = x + self.bias[i]
-            if self.sigma[i]:
-                y = y + self.sigma[i] * rng.standard_normal(3)
-            if self.walk[i] and self.samples:
-                self.bias[i] = self.bias[i] + self.walk[i] * rng.standard_normal(3)
-            out.append(np.clip(y, -self.range[i], self.range[i]) if self.range[i] else y)
+        n_white, n_walk, n_turn = self.draws
+        z = self.rng.standard_normal(n_white + n_walk + n_turn)
+        y = np.array([truth.imu_angular_velocity, truth.imu_linear_acceleration]) + self.bias
+        if n_white:
+            y += self.sigma * z[:6].reshape(2, 3)
+        if n_walk:
+            self.bias = self.bias + self.walk * z[n_white:n_white + 6].reshape(2, 3)
+        y = np.clip(y, -self.range, self.range)
         quat = truth.imu_orientation
-        if self.orientation_noise:
-            quat = quat_times_rotvec(quat, self.orientation_noise * rng.standard_normal(3))
-        self.samples += 1
-        self.line.put(k, (quat, out[0], out[1]))
+        if n_turn:
+            quat = quat_times_rotvec(quat, self.orientation_noise * z[n_white + n_walk:])
+        self.line.put(k, (quat, y[0], y[1]))
 
 
 class Sensors:
     """The sensors of one simulator `sim` (its config.sensors), sampled at its current
     state now and after every control step (:meth:`sample`); ``measured`` and ``truth``
-    the readings of the current state."""
+    the readings of the current state, ``base`` its base state and rotation matrix
+    (Simulator.base_state, R: read once for every topic of the state)."""
 
     def __init__(self, sim):
         self.sim = sim
@@ -194,6 +198,7 @@ class Sensors:
         self.step_size = 2 * math.pi / c.encoder_counts if c.encoder_counts else 0.0
         self.alpha = 1.0 - math.exp(-2 * math.pi * c.encoder_velocity_cutoff * self.period)
         self.contacts = DelayLine(c.contact_delay)
+        self._draw_layout(sim.n_joints)
         self.restart()
 
     def restart(self):
@@ -209,7 +214,8 @@ class Sensors:
 
     def sample(self):
         """The readings of the simulator's current state (once per control step)."""
-        self.truth = t = exact_reading(self.sim, self.exact_imu, self.n_feet)
+        t, b, R = exact_reading(self.sim, self.exact_imu, self.n_feet)
+        self.truth, self.base = t, (b, R)
         if self.ideal:
             self.measured = t
         else:
@@ -217,25 +223,37 @@ class Sensors:
         self.k += 1
 
     def _measure(self, t: SensorReading) -> SensorReading:
-        c, rng, k = self.config, self.rng, self.k
+        c, k = self.config, self.k
         self.imu.sample(k, t)
         quat, gyro, acc = self.imu.line.get(k)
-        angle = t.joint_position
-        if c.encoder_noise:
-            angle = angle + c.encoder_noise * rng.standard_normal(angle.shape[0])
+        # one draw for the encoders, the torques and the contact forces (those with σ > 0)
+        sigma = self._sigma
+        z = self.rng.standard_normal(self._draws) if self._draws else None
+        angle, effort, force = (t.joint_position, t.joint_effort, t.contact_force)
+        if sigma[0]:
+            angle = angle + sigma[0] * z[self._at[0]]
         if self.step_size:
             angle = np.round(angle / self.step_size) * self.step_size
         velocity = t.joint_velocity if c.encoder_velocity == "exact" else \
             self._filtered_velocity(angle)
-        effort = t.joint_effort
-        if c.torque_noise:
-            effort = effort + c.torque_noise * rng.standard_normal(effort.shape[0])
-        force = t.contact_force
-        if c.contact_force_noise:
-            force = force + c.contact_force_noise * rng.standard_normal(force.shape[0])
+        if sigma[1]:
+            effort = effort + sigma[1] * z[self._at[1]]
+        if sigma[2]:
+            force = force + sigma[2] * z[self._at[2]]
         self.contacts.put(k, ((force > c.contact_threshold).astype(float), force))
         flag, force = self.contacts.get(k)
         return SensorReading(angle, velocity, effort, quat, gyro, acc, flag, force)
+
+    def _draw_layout(self, n_joints: int):
+        """Where the encoders', torques' and contact forces' numbers sit in a step's draw
+        (only those with σ > 0 are drawn)."""
+        c = self.config
+        self._sigma = (c.encoder_noise, c.torque_noise, c.contact_force_noise)
+        self._at, i = [], 0
+        for s, n in zip(self._sigma, (n_joints, n_joints, self.n_feet), strict=True):
+            self._at.append(slice(i, i + n if s else i))
+            i += n if s else 0
+        self._draws = i
 
     def _filtered_velocity(self, angle) -> np.ndarray:
         """v_k = v_(k−1) + α ((φ_k − φ_(k−1))/T − v_(k−1)), α = 1 − exp(−2π f_c T): the

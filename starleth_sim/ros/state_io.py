@@ -209,13 +209,18 @@ def quat_to_matrix(qx, qy, qz, qw):
     return R
 
 
-def base_values(sim: Simulator):
+def base_values(sim: Simulator, base=None):
     """(position, orientation xyzw, world linear velocity, body rates, R, linear velocity in
     the base frame) of the base, as the state topics carry them (lists of floats; the world
-    velocity and R as arrays)."""
-    b = sim.base_state()
-    xyzw = b["orientation_xyzw"].tolist()
-    R = quat_to_matrix(*xyzw)
+    velocity and R as arrays); `base`: (Simulator.base_state(), R) of the current state
+    where already read (Sensors.base)."""
+    if base is None:
+        b = sim.base_state()
+        xyzw = b["orientation_xyzw"].tolist()
+        R = quat_to_matrix(*xyzw)
+    else:
+        b, R = base
+        xyzw = b["orientation_xyzw"].tolist()
     v = b["linear_velocity"]
     return (b["position"].tolist(), xyzw, v, b["angular_velocity"].tolist(), R,
             (R.T @ v).tolist())

@@ -168,7 +168,7 @@ class StatePublisher:
         if bundle:
             # what controller_node waits for, in one message; the public topics follow
             # while it computes
-            base = base_values(self.sim)
+            base = base_values(self.sim, self.sensors.base)
             forces = self.sim.contact_forces()
             self.publish_bundle(sec, nsec, base, joints, forces)
             if timing is not None:
@@ -181,7 +181,8 @@ class StatePublisher:
         if feet:
             self._publish_foot_wrenches(sec, nsec, feet, record, forces)
         if wanted("base_state", record):
-            self._publish_odometry(sec, nsec, base or base_values(self.sim), record)
+            self._publish_odometry(sec, nsec, base or base_values(self.sim, self.sensors.base),
+                                   record)
         if self._joint_states_wanted(first, record):
             self._publish_joint_states(sec, nsec, record, joints)
         if timing is not None and not bundle:

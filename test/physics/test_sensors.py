@@ -119,14 +119,14 @@ def _imu_samples(seed, n, **fields):
 
 
 def test_bias_random_walk_spread_is_in_its_chi_square_band():
-    """Bias after n samples: N(0, (n − 1) σ_b²) per axis, σ_b = walk √(1/rate); over 100
+    """Bias after n samples: N(0, n σ_b²) per axis, σ_b = walk √(1/rate); over 100
     seeds x 3 axes x (gyro, accel), Σ (b/σ)² is χ²(600): within ±5 standard deviations."""
     n, walk = 400, {"imu_gyro_bias_random_walk": 4e-5, "imu_accel_bias_random_walk": 6e-3}
     chi2 = 0.0
     for seed in range(100):
         imu = _imu_samples(seed, n, **walk)
         for b, w in zip(imu.bias, walk.values(), strict=True):
-            chi2 += float(((b / (w * math.sqrt((n - 1) / 400.0))) ** 2).sum())
+            chi2 += float(((b / (w * math.sqrt(n / 400.0))) ** 2).sum())
     dof = 600
     assert abs(chi2 - dof) < 5 * math.sqrt(2 * dof), chi2
 
@@ -147,6 +147,7 @@ class FakeSim:
             **{f"sensors.{k}": v for k, v in sensors.items()})
         self.control_period = PERIOD
         self.description = SimpleNamespace(foot_names=("a", "b"), model=None)
+        self.n_joints = 2
         self.angle = np.zeros(2)
         self.rate = np.zeros(2)
         self.force = np.zeros(2)
