@@ -1,15 +1,18 @@
 """A noisy run through the nodes (sim_node lockstep, sensors:=realistic, seed 5, recorded):
 its measured topics differ from the ground_truth/ ones by the configured noise (σ within
 10 %, starleth-analyze's sensor_noise); starleth-replay regenerates every measured message
-bit for bit from the recorded seed and configuration, and another seed does not."""
+bit for bit from the recorded seed and configuration, and another seed does not; so does a
+realtime run."""
 import os
+import signal
+import time
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from ros_test_nodes import RosTestNode, run_lockstep
+from ros_test_nodes import NodeProcess, RosTestNode, run_lockstep
 
 from starleth_sim.tools.analysis import analysis
 from starleth_sim.tools.analysis.sensor_noise import bag_noise
@@ -67,3 +70,22 @@ def test_noisy_run_noise_matches_the_configuration(noisy, capsys):
     assert analysis.main([noisy, "--no-plots"]) == 0
     out = capsys.readouterr().out
     assert f"sensors (measured - true, seed {SEED})" in out and "contact_force" in out
+
+
+def test_noisy_realtime_run_replays_bit_for_bit(tmp_path, capsys):
+    """The realtime loop (the drives holding the posture, no controller) with noisy sensors:
+    the ground_truth/ topics are recorded and the replay regenerates every measured one."""
+    mcap = str(tmp_path / "realtime.mcap")
+    sim = NodeProcess("starleth_sim.ros.sim_node", tmp_path / "sim.log", DOMAIN_ID,
+                      mode="realtime", real_time_factor=2.0, record=mcap, sensors="realistic")
+    try:
+        time.sleep(2.5)
+        assert sim.alive(), sim.log()[-3000:]
+    finally:
+        rc = sim.stop(signal.SIGINT)
+    assert rc == 0, sim.log()[-3000:]
+    assert replay.main([mcap]) == 0
+    out = capsys.readouterr().out
+    assert "bit-identical: all" in out and "IMU, foot contacts" in out
+    doc = bag_noise(mcap)
+    assert doc is not None and doc["signals"]["contact_force"]["n"] > 400
