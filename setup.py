@@ -74,10 +74,11 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),   # ros2_control
         ('share/' + package_name + '/msg_configs', glob('msg_configs/*.yaml')),
         ('share/' + package_name + '/msg_configs/terrain', glob('msg_configs/terrain/*.yaml')),
-        ('share/' + package_name + '/msg_configs/sensors', glob('msg_configs/sensors/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
         ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
         ('share/' + package_name + '/sweeps', glob('sweeps/*.yaml')),   # starleth-sweep specs
+        # the sensor models' sensors: overlays
+        ('share/' + package_name + '/msg_configs/sensors', glob('msg_configs/sensors/*.yaml')),
     ],
     install_requires=[
         'setuptools',

@@ -16,7 +16,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from geometry_msgs.msg import WrenchStamped
 from rclpy.qos import QoSProfile
-from ros_test_nodes import NodeProcess, RosTestNode, run_lockstep
+from ros_test_nodes import NodeProcess, RosTestNode
 from sensor_msgs.msg import JointState
 
 from starleth_sim.tools.bench.controllers import EchoController
@@ -272,10 +272,19 @@ def test_lockstep_run_on_a_terrain_and_its_replay_are_bit_identical(tmp_path):
     from starleth_sim.physics.terrain import pack_terrain, terrain_height
     from starleth_sim.tools.common.bag import read_messages
     ros = RosTestNode(DOMAIN_ID, "replay_terrain_test", events=True)
+    ctl = EchoController(ros.node)
     mcap = str(tmp_path / "terrain.mcap")
-    run_lockstep(ros, EchoController(ros.node), tmp_path / "sim.log", DOMAIN_ID, 160,
-                 START_TIMEOUT, record=mcap, physics_overrides=TERRAIN,
-                 contact_markers_rate=400.0)
+    sim = NodeProcess("starleth_sim.ros.sim_node", tmp_path / "sim.log", DOMAIN_ID,
+                      mode="lockstep", real_time_factor=0.0, record=mcap,
+                      physics_overrides=TERRAIN, contact_markers_rate=400.0)
+    try:
+        ok = ros.spin_until(lambda: len(ctl.stamps) >= 160 or not sim.alive(), START_TIMEOUT)
+        assert ok and sim.alive(), sim.log()[-3000:]
+    finally:
+        rc = sim.stop(signal.SIGINT)
+        ctl.close()
+        ros.close()
+    assert rc == 0, sim.log()[-3000:]
     rec = replay_recording.load_recording(mcap)
     terrain = rec.config().terrain
     assert len(terrain.boxes) == 1 and terrain.rough is not None
