@@ -99,7 +99,9 @@ def test_noise_of_a_run_has_the_configured_sigma():
     assert figures["gyro"][1] == pytest.approx(3e-4 * math.sqrt(200.0))
     for s, (sigma, expected) in figures.items():
         assert abs(sigma / expected - 1) < 0.10, (s, sigma, expected)
-    assert np.allclose(stats["gyro"]["mean"], [0.01, -0.02, 0.0], atol=4 * 4.3e-3 / 20)
+    # (the fixed bias is the mean: within 4 standard errors of 400 samples' mean)
+    assert np.allclose(stats["gyro"]["mean"], [0.01, -0.02, 0.0],
+                       atol=4 * figures["gyro"][1] / math.sqrt(400))
     assert stats["joint_velocity"]["rms"] == 0.0       # exact velocities
     # compared without the delay, the accelerometer's error holds the motion of two steps
     # (the finite-difference acceleration of a standing robot varies from step to step)
