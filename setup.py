@@ -79,6 +79,8 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.xml')),
         ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
         ('share/' + package_name + '/sweeps', glob('sweeps/*.yaml')),   # starleth-sweep specs
+        # the sensor models' sensors: overlays
+        ('share/' + package_name + '/msg_configs/sensors', glob('msg_configs/sensors/*.yaml')),
     ],
     install_requires=[
         'setuptools',

@@ -3,8 +3,9 @@
 ROS 2 nodes live in ``starleth_sim.ros``."""
 from .physics.config import PRESETS, ConfigError, PhysicsConfig, available_presets, load_preset
 from .physics.diagnostics import Diagnostics
+from .physics.sensors import Sensors
 from .physics.simulator import ContactInfo, Simulator
 from .physics.stepper import SimulationError
 
 __all__ = ["Simulator", "ContactInfo", "Diagnostics", "PhysicsConfig", "ConfigError",
-           "SimulationError", "load_preset", "available_presets", "PRESETS"]
+           "SimulationError", "Sensors", "load_preset", "available_presets", "PRESETS"]

@@ -69,6 +69,31 @@ rough                          m, count [1, 100]; angle     slopes up to 45°; a
                                slope and rough grids <=     a heightfield's bound (the
                                1024 points a side; rough:   slope's grid is checked before
                                size/wavelength <= 511.5     it is made); 2 points per wave
+sensors.seed                   integer [0, 2⁶³-1]           a ROS int64 parameter (seed)
+sensors.imu_rate               [0, 100 000] Hz; 0 or        samples at control steps (m per
+                               control_rate/m, m·control_   step above it): no state between
+                               rate (m whole)               control steps is kept
+sensors.imu_delay              [0, 1] s, whole control      delivered at a control step
+                               periods                      (the stamp contract)
+sensors.imu_gyro_*             density [0, 1] rad/s/√Hz,    beyond any MEMS or FOG gyro's
+                               walk [0, 1] rad/s²/√Hz, bias figures by orders of magnitude;
+                               σ [0, 10] and ±10 rad/s,     0 = unlimited range
+                               range [0, 1000] rad/s
+sensors.imu_accel_*            density [0, 10] m/s²/√Hz,    as the gyro's (100 m/s² = 10 g
+                               walk [0, 10] m/s³/√Hz, bias  of bias is no working sensor)
+                               σ [0, 100] and ±100 m/s²,
+                               range [0, 10 000] m/s²
+sensors.imu_orientation_       [0, π] rad                   a rotation vector's σ
+noise
+sensors.encoder_counts         integer [0, 2³²]             a 32-bit counter; 0 = exact
+sensors.encoder_noise          [0, 1] rad                   a radian of noise is no encoder
+sensors.encoder_velocity_      (0, 100 000] Hz              a low-pass cutoff; far above the
+cutoff                                                      control rate it is the raw
+                                                            difference
+sensors.torque_noise           [0, 1000] N m                above any drive's torque
+sensors.contact_threshold,     [0, 1e5] N                   a force sensor's scale (StarlETH
+contact_force_noise                                         weighs 250 N)
+sensors.contact_delay          integer [0, 1000] steps      2.5 s at 400 Hz
 paper                          names: finite numbers or     figures for reports only
                                strings
 =============================  ===========================  ================================
@@ -311,6 +336,119 @@ def _per_joint(path, value, hi):
                       f"{value!r:.60}")
 
 
+#: the numbers of the sensors section: field -> (lowest, highest) (the table above; the
+#: lower bound of encoder_velocity_cutoff is open)
+SENSOR_RANGES = {
+    "imu_rate": (0.0, MAX_CONTROL_RATE),                # Hz, 0: the control rate
+    "imu_delay": (0.0, 1.0),                            # s
+    "imu_gyro_noise_density": (0.0, 1.0),               # rad/s/√Hz
+    "imu_gyro_bias_random_walk": (0.0, 1.0),            # rad/s²/√Hz
+    "imu_gyro_initial_bias_sigma": (0.0, 10.0),         # rad/s
+    "imu_gyro_range": (0.0, 1000.0),                    # rad/s, 0: unlimited
+    "imu_accel_noise_density": (0.0, 10.0),             # m/s²/√Hz
+    "imu_accel_bias_random_walk": (0.0, 10.0),          # m/s³/√Hz
+    "imu_accel_initial_bias_sigma": (0.0, 100.0),       # m/s²
+    "imu_accel_range": (0.0, 10_000.0),                 # m/s², 0: unlimited
+    "imu_orientation_noise": (0.0, math.pi),            # rad
+    "encoder_noise": (0.0, 1.0),                        # rad
+    "encoder_velocity_cutoff": (0.0, MAX_CONTROL_RATE),  # Hz (> 0)
+    "torque_noise": (0.0, 1000.0),                      # N m
+    "contact_threshold": (0.0, 1e5),                    # N
+    "contact_force_noise": (0.0, 1e5),                  # N
+}
+#: initial biases: 3 numbers, each within +- this (rad/s, m/s²)
+SENSOR_BIAS_BOUND = {"imu_gyro_initial_bias": 10.0, "imu_accel_initial_bias": 100.0}
+MAX_SEED = 2 ** 63 - 1            # a ROS integer parameter (int64)
+MAX_ENCODER_COUNTS = 2 ** 32      # counts per revolution (a 32-bit counter)
+MAX_CONTACT_DELAY = 1000          # control steps
+
+
+@dataclass
+class SensorConfig:
+    """The sensors' models (physics/sensors.py; doc/sensors.md): all zero / off (the
+    default) is ideal, every measured value the exact one bit for bit."""
+
+    #: the one random stream of every sensor (numpy PCG64 seeded with it)
+    seed: int = 0
+    #: IMU sample rate [Hz]: 0 = the control rate; else control_rate / m or m x control_rate
+    imu_rate: float = 0.0
+    #: a sample is delivered this late [s]: a whole number of control periods
+    imu_delay: float = 0.0
+    imu_gyro_noise_density: float = 0.0        # white noise [rad/s/√Hz]: σ = density √rate
+    imu_gyro_bias_random_walk: float = 0.0     # [rad/s²/√Hz]: per sample σ = it √(1/rate)
+    imu_gyro_initial_bias: tuple = (0.0, 0.0, 0.0)   # [rad/s], base frame axes
+    imu_gyro_initial_bias_sigma: float = 0.0   # [rad/s], drawn once per axis, added
+    imu_gyro_range: float = 0.0                # clipped at +- this [rad/s]; 0: unlimited
+    imu_accel_noise_density: float = 0.0       # [m/s²/√Hz]
+    imu_accel_bias_random_walk: float = 0.0    # [m/s³/√Hz]
+    imu_accel_initial_bias: tuple = (0.0, 0.0, 0.0)  # [m/s²]
+    imu_accel_initial_bias_sigma: float = 0.0  # [m/s²]
+    imu_accel_range: float = 0.0               # [m/s²]; 0: unlimited
+    #: the AHRS orientation: the true one turned by a white rotation vector of this σ per
+    #: axis [rad] (base frame)
+    imu_orientation_noise: float = 0.0
+    encoder_counts: int = 0                    # counts per revolution; 0: exact angles
+    encoder_noise: float = 0.0                 # σ of the angle [rad], before quantization
+    #: joint velocity: "exact" | "filtered" (finite difference of the measured angles
+    #: through a first-order low-pass at encoder_velocity_cutoff)
+    encoder_velocity: str = "exact"
+    encoder_velocity_cutoff: float = 100.0     # [Hz]
+    torque_noise: float = 0.0                  # σ of the measured joint torque [N m]
+    contact_threshold: float = 0.0             # a foot in contact: measured F_N > this [N]
+    contact_force_noise: float = 0.0           # σ of the measured normal force [N]
+    contact_delay: int = 0                     # control steps
+
+    def validate(self, p):
+        self.seed = _int(f"{p}.seed", self.seed, 0, MAX_SEED)
+        for n, (lo, hi) in SENSOR_RANGES.items():
+            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo, hi,
+                                  lo_open=n == "encoder_velocity_cutoff"))
+        for n, bound in SENSOR_BIAS_BOUND.items():
+            v = getattr(self, n)
+            if not isinstance(v, (list, tuple)) or len(v) != 3:
+                raise ConfigError(f"{p}.{n}: expected a list of 3 numbers, got {v!r:.60}")
+            setattr(self, n, tuple(_num(f"{p}.{n}[{i}]", x, -bound, bound)
+                                   for i, x in enumerate(v)))
+        self.encoder_counts = _int(f"{p}.encoder_counts", self.encoder_counts, 0,
+                                   MAX_ENCODER_COUNTS)
+        self.encoder_velocity = _choice(f"{p}.encoder_velocity", self.encoder_velocity,
+                                        {"exact", "filtered"})
+        self.contact_delay = _int(f"{p}.contact_delay", self.contact_delay, 0,
+                                  MAX_CONTACT_DELAY)
+
+    def check_rates(self, control_rate: float):
+        """The rules with the control rate: the IMU samples at control steps or m per
+        control step, and delivers a sample a whole number of control periods late."""
+        r = self.imu_rate
+        if r:
+            ratio = max(r, control_rate) / min(r, control_rate)
+            if abs(ratio - round(ratio)) > 1e-9 * ratio:
+                raise ConfigError(f"sensors.imu_rate: must be control_rate / m or m x "
+                                  f"control_rate (m a whole number; control_rate "
+                                  f"{_fmt(control_rate)} Hz), got {_fmt(r)}")
+        steps = self.imu_delay * control_rate
+        if abs(steps - round(steps)) > 1e-9 * max(steps, 1.0):
+            raise ConfigError(f"sensors.imu_delay: must be a whole number of control periods "
+                              f"({_fmt(1e3 / control_rate)} ms), got {_fmt(self.imu_delay)} s")
+
+    def is_ideal(self, control_rate: float) -> bool:
+        """Every measured value is the exact one: no noise, bias, quantization, filter,
+        clipping, threshold or delay, and the IMU samples at every control step (at the
+        control rate or faster)."""
+        zero = [getattr(self, n) for n in SENSOR_RANGES if n not in
+                ("imu_rate", "encoder_velocity_cutoff")]
+        return (not any(zero) and not self.encoder_counts and not self.contact_delay
+                and self.encoder_velocity == "exact"
+                and (not self.imu_rate or self.imu_rate >= control_rate * (1 - 1e-9))
+                and not any(self.imu_gyro_initial_bias + self.imu_accel_initial_bias))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for n in SENSOR_BIAS_BOUND:
+            d[n] = list(d[n])
+        return d
+
+
 @dataclass
 class PhysicsConfig:
     name: str = "custom"
@@ -329,10 +467,12 @@ class PhysicsConfig:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     #: boxes and a heightfield on the ground plane (physics/terrain.py)
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    #: the sensors' models (physics/sensors.py): ideal by default
+    sensors: SensorConfig = field(default_factory=SensorConfig)
     #: paper's figures for this configuration (Table 1), for benchmarks and reports
     paper: dict = field(default_factory=dict)
 
-    _SECTIONS = ("ground", "contact", "solver", "bilateral", "actuator", "terrain")
+    _SECTIONS = ("ground", "contact", "solver", "bilateral", "actuator", "terrain", "sensors")
 
     @property
     def dt(self) -> float:
@@ -370,6 +510,7 @@ class PhysicsConfig:
                     f"{_fmt(1.0 / MIN_DT)} steps/s)")
             for s in self._SECTIONS:
                 getattr(self, s).validate(s)
+            self.sensors.check_rates(self.control_rate)
             if self.coordinates == "minimal" and self.bilateral.method != "none":
                 raise ConfigError("bilateral.method: the minimal coordinates have no bilateral "
                                   "constraints; use 'none'")
@@ -454,17 +595,69 @@ class PhysicsConfig:
                 raise ConfigError(f"override '{key}': no such field")
         return cfg.validate(f"{cfg.name} (with overrides)")
 
+    def with_overlay(self, name_or_path: str, kind: str) -> "PhysicsConfig":
+        """A validated copy with an overlay file's section applied over this configuration
+        (the fields it gives replace these; the others stay): kind "sensors"
+        (msg_configs/sensors/<name>.yaml, a `sensors:` section) or "actuators"
+        (msg_configs/actuators/<name>.yaml, an `actuator:` section); a name of those or a
+        path. ConfigError naming the file and the field."""
+        if kind not in OVERLAY_SECTIONS:
+            raise ConfigError(f"overlay kind {kind!r}: expected one of "
+                              f"{', '.join(OVERLAY_SECTIONS)}")
+        path = overlay_path(name_or_path, kind)
+        section = OVERLAY_SECTIONS[kind]
+        data = load_yaml_file(path)
+        if not isinstance(data, dict) or not isinstance(data.get(section), dict) or \
+                set(data) - {section, "description"}:
+            raise ConfigError(f"{path}: expected a mapping with a '{section}:' section (and "
+                              f"optionally a description), got keys "
+                              f"{sorted(data) if isinstance(data, dict) else data!r:.80}")
+        cfg = copy.deepcopy(self)
+        target = getattr(cfg, section)
+        names = {f.name for f in fields(target)}
+        for k, v in data[section].items():
+            if k not in names:
+                raise ConfigError(f"{path}: unknown field '{section}.{k}' (known: "
+                                  f"{', '.join(sorted(names))})")
+            setattr(target, k, v)
+        return cfg.validate(path)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["ground"]["normal"] = list(d["ground"]["normal"])
         d["contact"]["restitution_overrides"] = {k: list(v) for k, v in
                                                  d["contact"]["restitution_overrides"].items()}
         d["terrain"] = self.terrain.to_dict()
+        d["sensors"] = self.sensors.to_dict()
         return d
 
 
 def config_dir() -> str:
     return os.path.join(package_share_dir(), "msg_configs")
+
+
+#: the overlay files (PhysicsConfig.with_overlay): kind -> the section they hold; a kind's
+#: shipped files are msg_configs/<kind>/<name>.yaml
+OVERLAY_SECTIONS = {"sensors": "sensors", "actuators": "actuator"}
+
+
+def overlay_path(name_or_path: str, kind: str) -> str:
+    """The file of an overlay: a path (a relative one that is not a file here is looked for
+    in msg_configs/<kind>/), or the name of a shipped one (ConfigError naming those)."""
+    d = os.path.join(config_dir(), kind)
+    if os.path.sep in name_or_path or name_or_path.endswith((".yaml", ".yml")):
+        shipped = os.path.join(d, name_or_path)
+        if not os.path.isabs(name_or_path) and not os.path.exists(name_or_path) and \
+                os.path.isfile(shipped):
+            return shipped
+        return name_or_path
+    path = os.path.join(d, f"{name_or_path}.yaml")
+    if not os.path.isfile(path):
+        have = sorted(os.path.splitext(f)[0] for f in os.listdir(d)
+                      if f.endswith(".yaml")) if os.path.isdir(d) else []
+        raise ConfigError(f"unknown {kind} file '{name_or_path}' (available in "
+                          f"msg_configs/{kind}/: {', '.join(have) or 'none'})")
+    return path
 
 
 #: The 11 configurations of the paper's Table 1, in its order: the presets in msg_configs/

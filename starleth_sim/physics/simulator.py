@@ -335,6 +335,11 @@ class Simulator:
         (a ROS node reads them every step)."""
         return self.contact_impulses() / self.control_period
 
+    def contact_normal_forces(self) -> np.ndarray:
+        """F_N = Λ_N/T of every contact point over the last control period (nc) [N]: the
+        normal impulse along its surface's normal (a sphere's two surfaces' summed)."""
+        return self._spheres.sums(self._impulse[:, 0]) / self.control_period
+
     @property
     def contacts(self):
         world = self.contact_impulses()

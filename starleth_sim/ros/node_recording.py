@@ -56,6 +56,20 @@ def make_recorder(path, settings, on_failure, log):
         raise ConfigError(f"parameter record: cannot record to {e}") from None
 
 
+def sensor_metadata(sim, pubs) -> dict:
+    """The sensors' part of the metadata (their configuration and seed are physics_config's
+    sensors section): the sensor topics; with noisy sensors joint_states is measured and the
+    exact values are on the ground_truth/ topics ('' with ideal ones: joint_states is
+    exact)."""
+    def topic(key):
+        return pubs[key][1] if key in pubs else ""
+    return {"imu_topic": topic("imu"), "foot_contacts_topic": topic("foot_contacts"),
+            "sensors_seed": str(sim.config.sensors.seed),
+            "ground_truth_joint_states_topic": topic("gt_joint_states"),
+            "ground_truth_imu_topic": topic("gt_imu"),
+            "ground_truth_foot_contacts_topic": topic("gt_foot_contacts")}
+
+
 def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, pubs, subs,
                  tf_topics):
     """Declare the topics of a new recording `rec` (`pubs` and `subs`: {key: (endpoint,
@@ -90,6 +104,7 @@ def describe_run(rec, *, sim, settings, service, initial_state_spec, namespace, 
         "wrench_topic": subs["wrench"][1],
         "wrench_persistent_topic": subs["wrench_persistent"][1],
         "applied_torque_topic": pubs["applied_torque"][1],
+        **sensor_metadata(sim, pubs),
         "replay": "torques: applied_torque_topic at log time t_(k+1) = the torques of each "
                   "physics step of step k -> k+1 (physics_steps x 3 x joints: the torques "
                   "applied, saturated, derated; the explicit torques; the kd of the implicit "

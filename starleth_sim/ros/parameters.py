@@ -125,6 +125,20 @@ SIM_NODE_PARAMETERS = (
       "Physics preset in msg_configs/ (the 11 configurations of the paper's Table 1: Cm, HmJ, "
       "HmS, HEJD, HEJP, HESD, HESP, HMJD, HMJP, HMSD, HMSP) or the path of a preset YAML "
       "file."),
+    P("sensors", str, "",
+      "Sensor models over the preset's (ideal: every measured topic exact): a file of "
+      "msg_configs/sensors/ by name (realistic: an ADIS16448-class IMU, 14-bit encoders, "
+      "doc/sensors.md) or the path of a YAML file with a sensors: section; empty = the "
+      "preset's. With noisy sensors the exact values go out on ground_truth/joint_states, "
+      "ground_truth/imu and ground_truth/foot_contacts."),
+    P("actuators", str, "",
+      "Drive models over the preset's: a file of msg_configs/actuators/ by name or the path "
+      "of a YAML file with an actuator: section; empty = the preset's."),
+    P("seed", int, -1,
+      "The seed of the sensors' one random stream (sensors.seed): a noisy run replays bit "
+      "for bit from it (recorded with the physics configuration); -1 = the sensors "
+      "configuration's.", minimum=0, maximum=2 ** 63 - 1, off_value=-1,
+      off_meaning="the sensors configuration's seed"),
     P("physics_overrides", str, "",
       'Overrides of physics fields, a YAML mapping in a string, e.g. {mu: 0.0, alpha: 0.4}. '
       "On the command line quote it twice, so that ROS reads a string and not a mapping: "
@@ -288,6 +302,8 @@ SIM_NODE_PARAMETERS = (
 GAIN_PARAMETERS = {p.name: p for p in SIM_NODE_PARAMETERS if isinstance(p, GainSpec)}
 #: the other one settable while the node runs
 COMMAND_DELAY = next(p for p in SIM_NODE_PARAMETERS if p.name == "command_delay")
+#: the seed parameter (its off_value: the configuration's seed)
+SEED = next(p for p in SIM_NODE_PARAMETERS if p.name == "seed")
 
 YAML_HEADER = """\
 Default parameters of sim_node (a ROS 2 parameter file: pass it, or a copy, with

@@ -18,6 +18,7 @@ from starleth_interface.topics import (
 
 from ..physics.impedance import FIELDS as IMPEDANCE_FIELDS
 from ..physics.impedance import ImpedanceCommand
+from ..physics.sensors import Sensors
 from ..physics.simulator import Simulator
 from ..physics.stepper import SimulationError
 from .command_delay import DelayLine, delay_periods
@@ -127,6 +128,9 @@ class SimService:
         except (SimulationError, ValueError):
             pass
         sim.reset(q=self.q0, u=self.u0, t=0.0)
+        #: the sensors' readings of every state (physics/sensors.py): sampled after every
+        #: step, whoever listens, so that the seeded stream replays bit for bit
+        self.sensors = Sensors(sim)
         if self.hold_at_start:
             self.hold_position = sim.joint_positions().copy()
             self._start_hold()
@@ -559,6 +563,7 @@ class SimService:
             return self._fail(f"the base moved {moved:.4g} m in one control period at t="
                               f"{self.stamp_ns * 1e-9:.4f} s (more than {self.MAX_BASE_SPEED:g}"
                               f" m/s: not physics); that state is not published")
+        self.sensors.sample()
         self.k += 1
         self.counters["steps"] += 1
         self.answered = False
@@ -583,6 +588,7 @@ class SimService:
         self.k += 1
         self.sim.clear_wrenches()
         self.sim.reset(q=self.q0, u=self.u0, t=self.k * self.control_period)
+        self.sensors.restart()
         self.command = np.zeros(self.n)
         self.delay.clear()
         if self.hold_at_start:        # the drives hold the initial posture again

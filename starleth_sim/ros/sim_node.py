@@ -20,7 +20,6 @@ import sys
 import time
 from dataclasses import replace
 
-import numpy as np
 import yaml
 from geometry_msgs.msg import WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
@@ -63,6 +62,7 @@ from .node_recording import NodeRecording, describe_run, make_recorder
 from .parameters import (
     COMMAND_DELAY,
     GAIN_PARAMETERS,
+    SEED,
     SIM_NODE_PARAMETERS,
     Settings,
     load_default_parameters,
@@ -74,7 +74,7 @@ from .qos import COMMAND_QOS, LATCHED_QOS, SERVICE_QOS
 from .service import SimService
 from .sim_loops import SimLoops
 from .solver_diagnostics import SolverDiagnostics
-from .state_io import ImuEstimate, parse_initial_state
+from .state_io import parse_initial_state
 from .state_publisher import StatePublisher
 from .terrain_markers import TerrainTopic
 from .tf import TF_TYPE, base_link
@@ -117,14 +117,13 @@ class SimNode:
                                   error=self._log_error)
         self.context = node.context
         self.period_stats = PeriodStats(sim.control_period / max(s.real_time_factor, 1e-12))
-        self.imu = ImuEstimate(self._model_gravity(), sim.control_period)
         self.decoder = CommandDecoder(sim.joint_names)
         self.recording = NodeRecording(self.service.warnings.warn, self.log)
         self.output = TopicOutput(node, self.service, self.recording)
         self.diagnostics = SolverDiagnostics(sim, s, self.service, self.period_stats,
                                              self.recording)
         self.publisher = StatePublisher(node, sim, s, self.service, self.output,
-                                        self.diagnostics, self.imu, self.log)
+                                        self.diagnostics, self.log)
         self.loops = SimLoops(self.context, sim, s, self.service, self.period_stats,
                               self.publisher, self.diagnostics, self.log)
         # (its publisher before the recording and the live view, which take the topics)
@@ -171,7 +170,8 @@ class SimNode:
     # -- setup -----------------------------------------------------------------------------
     def _make_simulator(self) -> Simulator:
         """The simulator of the physics preset for the robot parameter's robot (a bad
-        robot: ConfigError naming the parameter)."""
+        robot: ConfigError naming the parameter), with the sensors and actuators files,
+        the physics overrides and the seed applied in that order."""
         s = self.settings
         try:
             config = config_with_robot(load_preset(s.physics), s.robot)
@@ -179,7 +179,15 @@ class SimNode:
             text = str(e)
             raise ConfigError(f"parameter {text}" if text.startswith("robot: ") else
                               f"parameter robot: {text}") from None
+        for kind in ("sensors", "actuators"):
+            if getattr(s, kind):
+                try:
+                    config = config.with_overlay(getattr(s, kind), kind)
+                except ConfigError as e:
+                    raise ConfigError(f"parameter {kind}: {e}") from None
         config = config.with_overrides(**s.physics_override_dict())
+        if s.seed != SEED.off_value:
+            config = config.with_overrides(**{"sensors.seed": s.seed})
         return Simulator(config)
 
     def _scale_default_gains(self, defaults):
@@ -215,15 +223,6 @@ class SimNode:
                 f"-> {root}, {root} -> its links) are those of any other robot on /tf; with "
                 f"several robots set tf_frame_prefix:={namespace_frame_prefix(ns)} (the launch "
                 "file does)")
-
-    def _model_gravity(self):
-        try:
-            g = np.array(self.sim.description.model.gravity.linear, dtype=float)
-            if g.shape == (3,) and np.all(np.isfinite(g)):
-                return g
-        except Exception:  # pragma: no cover
-            pass
-        return np.array([0.0, 0.0, -9.81])
 
     def _setup_subscriptions(self):
         node = self.node
@@ -394,7 +393,6 @@ class SimNode:
     # -- services ------------------------------------------------------------------------
     def _srv_reset(self, _request, response):
         self.service.reset()
-        self.imu.restart()
         self.publisher.publish_state()
         self.log.info(f"reset to the initial state at t={self.service.stamp_ns * 1e-9:.4f} s")
         response.success = True

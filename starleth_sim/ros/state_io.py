@@ -1,7 +1,7 @@
 """State conversions between the simulator and the ROS interface: the ``initial_state``
 parameter (YAML, a file, or a recording's initial_state.json) to (q, u), the record of the
-initial state stored in recordings, the public (convention-free) state, and the IMU's
-proper acceleration by finite differences. ROS-free."""
+initial state stored in recordings, the public (convention-free) state and the values of
+the state topics. ROS-free (the IMU's exact values: physics/sensors.py)."""
 from __future__ import annotations
 
 import math
@@ -209,13 +209,18 @@ def quat_to_matrix(qx, qy, qz, qw):
     return R
 
 
-def base_values(sim: Simulator):
+def base_values(sim: Simulator, base=None):
     """(position, orientation xyzw, world linear velocity, body rates, R, linear velocity in
     the base frame) of the base, as the state topics carry them (lists of floats; the world
-    velocity and R as arrays)."""
-    b = sim.base_state()
-    xyzw = b["orientation_xyzw"].tolist()
-    R = quat_to_matrix(*xyzw)
+    velocity and R as arrays); `base`: (Simulator.base_state(), R) of the current state
+    where already read (Sensors.base)."""
+    if base is None:
+        b = sim.base_state()
+        xyzw = b["orientation_xyzw"].tolist()
+        R = quat_to_matrix(*xyzw)
+    else:
+        b, R = base
+        xyzw = b["orientation_xyzw"].tolist()
     v = b["linear_velocity"]
     return (b["position"].tolist(), xyzw, v, b["angular_velocity"].tolist(), R,
             (R.T @ v).tolist())
@@ -234,32 +239,3 @@ def state_bundle_bytes(bundle_cdr, sec, nsec, base, joints, forces) -> bytes:
     p, quat, _, w, _, v_body = base
     return bundle_cdr.build(sec, nsec, *joints, (*p, *quat), (*v_body, *w),
                             forces.reshape(-1))
-
-
-class ImuEstimate:
-    """The IMU at the base origin: proper acceleration a = Rᵀ (dv/dt − g) in the base frame,
-    dv/dt by the difference of the world linear velocity with the previous step's (zero on
-    the first state, and on the first state after a reset or after nobody listened; a
-    re-sent state gets the same value again)."""
-
-    def __init__(self, gravity, control_period: float):
-        self.gravity = np.asarray(gravity, dtype=float)
-        self.dt = control_period
-        self._v_prev = None    # (step, world linear velocity)
-        self._acc = None       # (step, dv/dt) of the last estimate
-
-    def restart(self):
-        """Forget the previous velocity (after a reset)."""
-        self._v_prev = self._acc = None
-
-    def proper_acceleration(self, k: int, v, R) -> np.ndarray:
-        if self._v_prev is not None and self._v_prev[0] == k - 1:
-            acc = (v - self._v_prev[1]) / self.dt
-            self._acc = (k, acc)
-        elif self._acc is not None and self._acc[0] == k:    # re-sent state
-            acc = self._acc[1]
-        else:
-            acc = np.zeros(3)
-        if self._v_prev is None or self._v_prev[0] != k:
-            self._v_prev = (k, np.array(v, dtype=float))
-        return R.T @ (acc - self.gravity)

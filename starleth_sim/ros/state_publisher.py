@@ -1,7 +1,8 @@
 """The state sim_node publishes after every step, one publish path per topic: the state
-bundle, the foot wrenches, the base state, /joint_states, /clock, the IMU and /starleth/solver,
-in the order a controller waits for them, then (off the lockstep critical path) the
-preparation of the next step, TF and markers, and the hand-over to the recorder. Each
+bundle, the foot wrenches, the base state, /joint_states, /clock, the IMU, the foot contacts
+(with noisy sensors also the ground-truth joint states, IMU and foot contacts) and
+/starleth/solver, in the order a controller waits for them, then (off the lockstep critical
+path) the preparation of the next step, TF and markers, and the hand-over to the recorder. Each
 message is written as CDR bytes patched into a template (:mod:`starleth_interface.msg_cdr`),
 or filled in a message object where no template could be made."""
 from __future__ import annotations
@@ -30,6 +31,10 @@ from starleth_interface.topics import (
     TOPIC_APPLIED_TORQUE,
     TOPIC_BASE_STATE,
     TOPIC_CLOCK,
+    TOPIC_FOOT_CONTACTS,
+    TOPIC_GROUND_TRUTH_FOOT_CONTACTS,
+    TOPIC_GROUND_TRUTH_IMU,
+    TOPIC_GROUND_TRUTH_JOINT_STATES,
     TOPIC_IMU,
     TOPIC_JOINT_STATES,
     TOPIC_ROBOT_DESCRIPTION,
@@ -40,7 +45,7 @@ from starleth_interface.topics import (
 
 from .qos import CLOCK_QOS, LATCHED_QOS, STATE_QOS
 from .ros2_control_description import parse_command_interfaces, simulator_section, with_ros2_control
-from .state_io import base_values, joint_values, state_bundle_bytes
+from .state_io import base_values, state_bundle_bytes
 from .visualisation import Visualisation
 
 
@@ -52,15 +57,24 @@ def float_array(a) -> array.array:
 class StatePublisher:
     """The state topics of `sim` through `output` (a :class:`~.topic_output.TopicOutput`:
     their publishers are made here), at the stamps of `service`; /starleth/solver from
-    `diagnostics` (a :class:`~.solver_diagnostics.SolverDiagnostics`), the IMU's
-    acceleration from `imu` (a :class:`~.state_io.ImuEstimate`), TF and markers from a
+    `diagnostics` (a :class:`~.solver_diagnostics.SolverDiagnostics`), the sensor topics
+    (joint_states, the IMU, the foot contacts) from the service's sensors
+    (:class:`~starleth_sim.physics.sensors.Sensors`: measured, and with noisy sensors the
+    exact values on the ground_truth/ topics), TF and markers from a
     :class:`~.visualisation.Visualisation` made here. ``timing`` (a
     :class:`~starleth_interface.cycle_times.CycleTimes`, benchmarks only) times each
     part."""
 
-    def __init__(self, node, sim, settings, service, output, diagnostics, imu, log):
+    #: the sensor topics: (key, ground truth key) of joint_states, the IMU, foot contacts
+    SENSOR_KEYS = (("joint_states", "gt_joint_states"), ("imu", "gt_imu"),
+                   ("foot_contacts", "gt_foot_contacts"))
+
+    def __init__(self, node, sim, settings, service, output, diagnostics, log):
         self.sim, self.settings, self.service = sim, settings, service
-        self.output, self.diagnostics, self.imu = output, diagnostics, imu
+        self.output, self.diagnostics = output, diagnostics
+        self.sensors = service.sensors
+        #: with noisy sensors the exact values go out on the ground_truth/ topics too
+        self.ground_truth = not self.sensors.ideal
         self.recording = output.recording
         self.timing = None           # a CycleTimes, set by benchmarks
         #: the robot's feet (contact names, the description's order): a wrench topic each
@@ -78,6 +92,9 @@ class StatePublisher:
         self.js_msg = JointState()
         self.js_msg.name = list(sim.joint_names)
         self._js_cdr = JointStateCdr.create(list(sim.joint_names))
+        self.contacts_msg = JointState()
+        self.contacts_msg.name = list(self.feet)
+        self._contacts_cdr = JointStateCdr.create(list(self.feet), ("position", "effort"))
         self.wrench_msgs = {}
         for foot in self.feet:
             m = WrenchStamped()
@@ -115,6 +132,11 @@ class StatePublisher:
             add(foot, WrenchStamped, foot_wrench_topic(foot), STATE_QOS)
         add("base_state", Odometry, TOPIC_BASE_STATE, STATE_QOS)
         add("imu", Imu, TOPIC_IMU, STATE_QOS)
+        add("foot_contacts", JointState, TOPIC_FOOT_CONTACTS, STATE_QOS)
+        if self.ground_truth:
+            add("gt_joint_states", JointState, TOPIC_GROUND_TRUTH_JOINT_STATES, STATE_QOS)
+            add("gt_imu", Imu, TOPIC_GROUND_TRUTH_IMU, STATE_QOS)
+            add("gt_foot_contacts", JointState, TOPIC_GROUND_TRUTH_FOOT_CONTACTS, STATE_QOS)
         add("solver", DiagnosticArray, TOPIC_SOLVER, STATE_QOS)
         add("robot_description", String, TOPIC_ROBOT_DESCRIPTION, LATCHED_QOS)
         if self.bundle_cdr is not None:
@@ -139,12 +161,14 @@ class StatePublisher:
         wanted = out.wanted
         timing = self.timing
         first = not (svc.counters["steps"] or svc.counters["resets"])
-        base = joints = forces = None    # read from the simulator once, for every topic
+        base = forces = None    # read from the simulator once, for every topic
+        m = self.sensors.measured
+        joints = (m.joint_position, m.joint_velocity, m.joint_effort)
         bundle = self._bundle_wanted(first)
         if bundle:
             # what controller_node waits for, in one message; the public topics follow
             # while it computes
-            base, joints = base_values(self.sim), joint_values(self.sim)
+            base = base_values(self.sim, self.sensors.base)
             forces = self.sim.contact_forces()
             self.publish_bundle(sec, nsec, base, joints, forces)
             if timing is not None:
@@ -156,20 +180,16 @@ class StatePublisher:
         feet = [f for f in self.feet if wanted(f, record)]
         if feet:
             self._publish_foot_wrenches(sec, nsec, feet, record, forces)
-        want_odom, want_imu = wanted("base_state", record), wanted("imu", record)
-        if (want_odom or want_imu) and base is None:
-            base = base_values(self.sim)
-        if want_odom:
-            self._publish_odometry(sec, nsec, base, record)
+        if wanted("base_state", record):
+            self._publish_odometry(sec, nsec, base or base_values(self.sim, self.sensors.base),
+                                   record)
         if self._joint_states_wanted(first, record):
-            self._publish_joint_states(
-                sec, nsec, record, joints if joints is not None else joint_values(self.sim))
+            self._publish_joint_states(sec, nsec, record, joints)
         if timing is not None and not bundle:
             timing.row[2] = time.perf_counter()
         if "clock" in out.pubs and wanted("clock", record):
             self._publish_clock(sec, nsec, record)
-        if want_imu:
-            self._publish_imu(sec, nsec, base, record)
+        self._publish_sensors(sec, nsec, record)
         if wanted("solver", record):
             self.diagnostics.publish(out, sec, nsec, record)
         if not first and wanted("applied_torque", record):
@@ -255,17 +275,47 @@ class StatePublisher:
         if self.output.live_wants("state_bundle"):
             self.output.live.log(topic, data, self.service.stamp_ns)
 
-    def _publish_joint_states(self, sec, nsec, record, joints):
-        """joint_states: position, velocity and the applied torque as effort (joints:
-        state_io.joint_values)."""
+    def _publish_joint_states(self, sec, nsec, record, joints, key="joint_states"):
+        """joint_states (or `key`'s topic): position, velocity and the torque as effort
+        (joints: the sensors' φ, φ̇, τ: measured, or the applied torque where exact)."""
         cdr = self._js_cdr
         if cdr is not None:    # CDR bytes from a template: no per-step Python->C copy
-            self.output.emit_cdr("joint_states", cdr.build(sec, nsec, *joints), record)
+            self.output.emit_cdr(key, cdr.build(sec, nsec, *joints), record)
             return
         js = self.js_msg
         js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
         js.position, js.velocity, js.effort = (float_array(x) for x in joints)
-        self.output.emit("joint_states", js, record)
+        self.output.emit(key, js, record)
+
+    def _publish_sensors(self, sec, nsec, record):
+        """The IMU and the foot contacts (measured), and with noisy sensors the exact
+        joint states, IMU and foot contacts on the ground_truth/ topics."""
+        wanted = self.output.wanted
+        readings = ((self.sensors.measured, 0), (self.sensors.truth, 1)) \
+            if self.ground_truth else ((self.sensors.measured, 0),)
+        for r, i in readings:
+            (js, imu, contacts) = (keys[i] for keys in self.SENSOR_KEYS)
+            if i and wanted(js, record):
+                self._publish_joint_states(
+                    sec, nsec, record, (r.joint_position, r.joint_velocity, r.joint_effort),
+                    js)
+            if wanted(imu, record):
+                self._publish_imu(sec, nsec, r, record, imu)
+            if wanted(contacts, record):
+                self._publish_foot_contacts(sec, nsec, r, record, contacts)
+
+    def _publish_foot_contacts(self, sec, nsec, r, record, key):
+        """starleth/foot_contacts (or `key`'s topic): per foot the contact flag as position
+        (1.0 contact, 0.0 none) and the normal force [N] as effort."""
+        cdr = self._contacts_cdr
+        if cdr is not None:
+            self.output.emit_cdr(key, cdr.build(sec, nsec, r.contact_flag, r.contact_force),
+                                 record)
+            return
+        m = self.contacts_msg
+        m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+        m.position, m.effort = float_array(r.contact_flag), float_array(r.contact_force)
+        self.output.emit(key, m, record)
 
     def _publish_applied_torque(self, record):
         """starleth/applied_torque: the saturated torque of every physics step of the step
@@ -324,14 +374,13 @@ class StatePublisher:
             c.sec, c.nanosec = sec, nsec
             self.output.emit("clock", self.clock_msg, record)
 
-    def _publish_imu(self, sec, nsec, base, record):
-        """starleth/imu: orientation, body rates, proper acceleration."""
-        p, quat, v, w, R, _ = base
-        a_proper = self.imu.proper_acceleration(self.service.k, v, R)
+    def _publish_imu(self, sec, nsec, r, record, key="imu"):
+        """starleth/imu (or `key`'s topic) of the reading `r`: orientation, body rates
+        (gyro), proper acceleration (accelerometer), base frame."""
+        quat, w, a = (x.tolist() for x in (r.imu_orientation, r.imu_angular_velocity,
+                                           r.imu_linear_acceleration))
         if self._imu_cdr is not None:
-            self.output.emit_cdr("imu", self._imu_cdr.build(
-                sec, nsec, (*quat, *w, float(a_proper[0]), float(a_proper[1]),
-                            float(a_proper[2]))), record)
+            self.output.emit_cdr(key, self._imu_cdr.build(sec, nsec, (*quat, *w, *a)), record)
             return
         imu = self.imu_msg
         imu.header.stamp.sec, imu.header.stamp.nanosec = sec, nsec
@@ -339,8 +388,8 @@ class StatePublisher:
         io_.x, io_.y, io_.z, io_.w = quat
         iw, ia = imu.angular_velocity, imu.linear_acceleration
         iw.x, iw.y, iw.z = w
-        ia.x, ia.y, ia.z = float(a_proper[0]), float(a_proper[1]), float(a_proper[2])
-        self.output.emit("imu", imu, record)
+        ia.x, ia.y, ia.z = a
+        self.output.emit(key, imu, record)
 
     def _prepare_next_step(self):
         """The controller now works on its answer to the state just published: do the

@@ -187,3 +187,13 @@ def test_a_bad_robot_is_one_line_and_exit_2(args, want):
     """A robot the library does not have, or a robot inside physics_overrides (the robot
     parameter's place): exit 2 and one line naming the parameter, without a traceback."""
     assert_one_line_exit_2(args, want)
+
+
+def test_a_bad_sensors_file_is_one_line_and_exit_2(tmp_path):
+    """A sensors file with a field out of range: exit 2, one line naming the parameter, the
+    file and the field; an unknown name lists the shipped ones."""
+    bad = tmp_path / "noisy.yaml"
+    bad.write_text("sensors:\n  imu_delay: 0.001\n")
+    assert_one_line_exit_2(["-p", f"sensors:={bad}"],
+                           ["parameter sensors", str(bad), "sensors.imu_delay"])
+    assert_one_line_exit_2(["-p", "sensors:=nosuch"], ["parameter sensors", "realistic"])

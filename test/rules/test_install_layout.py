@@ -103,6 +103,7 @@ def test_executables_and_share(prefix):
     assert (share / "launch" / "starleth_ros2_control.launch.xml").is_file()
     assert (share / "config" / "starleth_controllers.yaml").is_file()
     assert (share / "urdf" / "starleth_ros2_control.xml").is_file()
+    assert (share / "msg_configs" / "sensors" / "realistic.yaml").is_file()
     for f in ("sim_node.yaml", "HmJ.yaml", "Cm.yaml", "HmS.yaml", "terrain/stairs.yaml",
               "terrain/rough.yaml", "actuators/starleth_sea.yaml"):
         assert (share / "msg_configs" / f).is_file(), f

@@ -70,6 +70,22 @@ class NodeProcess:
         return json.loads(m[-1]) if m else None
 
 
+def run_lockstep(ros, ctl, log_path, domain_id, n_states, timeout, **params):
+    """sim_node in lockstep as fast as `ctl` (an EchoController on `ros`'s node) answers,
+    with `params`, until `ctl` has seen n_states states; then stopped (SIGINT) and `ctl`
+    and `ros` closed. Asserts that it ran and exited with 0."""
+    sim = NodeProcess("starleth_sim.ros.sim_node", log_path, domain_id, mode="lockstep",
+                      real_time_factor=0.0, **params)
+    try:
+        ok = ros.spin_until(lambda: len(ctl.stamps) >= n_states or not sim.alive(), timeout)
+        assert ok and sim.alive(), sim.log()[-3000:]
+    finally:
+        rc = sim.stop(signal.SIGINT)
+        ctl.close()
+        ros.close()
+    assert rc == 0, sim.log()[-3000:]
+
+
 class RosTestNode:
     """A test node `name` in its own context on domain_id; events=True spins it with
     rclpy's C++ EventsExecutor (much less overhead per callback) where available."""

@@ -22,7 +22,10 @@ message of the bag):
   'iterations'; also converged, residual, step_time): ``solver_iterations.png``;
 * message times and the solver's step_time: ``real_time_factor.png``;
 * the URDF (/robot_description or the recording's attachment; else the package's): the
-  robot's weight and effort limits for the summary.
+  robot's weight and effort limits for the summary;
+* with noisy sensors, the measured topics against the ground_truth/ ones: per signal the
+  error's standard deviation and mean against the recorded configuration
+  (:mod:`.sensor_noise`).
 
 With two or more bags, ``normal_force_LF.png`` (``--foot``) overlays one foot's normal
 force, as in Fig. 5 of Gehring et al. (2014).
@@ -63,6 +66,7 @@ import time
 from ..common.console import run_console_script
 from .plots import PLOTS, feet_of, save_figures
 from .run import PROG, AnalysisError, Run, warn
+from .sensor_noise import bag_noise, format_noise
 from .summary import format_summary, jsonable, summarise
 
 
@@ -150,8 +154,12 @@ def run(argv=None) -> int:
     summaries = [summarise(r, a.threshold, a.min_phase, a.twist_frame) for r in runs]
     for r in empty:
         warn(f"{r.path}: no messages between --tmin and --tmax")
-    for S in summaries:
+    for S, path in zip(summaries, a.bags, strict=True):
         print(format_summary(S))
+        noise = bag_noise(path, a.salvage)      # measured against true (noisy sensors)
+        if noise is not None:
+            S["sensor_noise"] = noise
+            print(format_noise(noise))
     written = {}
     if not a.no_plots:
         out = a.out or _default_out(a.bags)

@@ -26,6 +26,10 @@ PROG = "starleth-replay"
 QUANTITIES = ("joint_positions", "joint_velocities", "base_position", "base_orientation",
               "base_linear_velocity", "base_angular_velocity", "foot_forces")
 STATE_QUANTITIES = QUANTITIES[:-1]
+#: the sensor topics, compared bit for bit where the bag has them: joint_states as measured
+#: (position, velocity, effort), the IMU (orientation x y z w, rates, proper acceleration),
+#: the foot contacts (flags, normal forces)
+MEASURED_QUANTITIES = ("measured_joint_states", "imu", "foot_contacts")
 
 
 class ReplayError(BagError):
@@ -114,12 +118,18 @@ def _metadata(bag, path):
 
 def _topics(md, probe, feet):
     """The namespace, the state topics {joints, base, foot: topic} (`feet`: the robot's foot
-    contact names), the wrench input topics
-    {topic: persistent} and the applied torque topic (or None) of a recording."""
+    contact names; joints: the exact ones, on ground_truth/joint_states with noisy sensors),
+    the sensor topics {measured quantity: topic}, the wrench input topics {topic:
+    persistent} and the applied torque topic (or None) of a recording."""
     ns = md.get("namespace", "")
     ns = "" if ns in ("", "/") else ns
+    measured = {"measured_joint_states": md.get("joint_states_topic")
+                or resolve("joint_states", ns),
+                "imu": md.get("imu_topic") or resolve("starleth/imu", ns),
+                "foot_contacts": md.get("foot_contacts_topic")}
     topics = {
-        "joints": md.get("joint_states_topic") or resolve("joint_states", ns),
+        "joints": md.get("ground_truth_joint_states_topic") or
+        measured["measured_joint_states"],
         "base": md.get("base_state_topic") or resolve("starleth/base_state", ns),
         **{f: resolve(foot_wrench_topic(f), ns) for f in feet}}
     wrench_topics = {md.get("wrench_topic"): False, md.get("wrench_persistent_topic"): True}
@@ -130,7 +140,7 @@ def _topics(md, probe, feet):
                 wrench_topics[t] = True
             elif t.endswith("/wrench") and "/starleth/" not in t:
                 wrench_topics[t] = False
-    return ns, topics, wrench_topics, md.get("applied_torque_topic")
+    return ns, topics, measured, wrench_topics, md.get("applied_torque_topic")
 
 
 def _control_period(md, path):
@@ -258,8 +268,9 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     md = _metadata(probe, path)
     desc = _description(probe, path, md["physics_config"])
     feet = desc.foot_names
-    ns, topics, wrench_topics, applied_topic = _topics(md, probe, feet)
-    wanted = set(topics.values()) | set(wrench_topics) | {applied_topic}
+    ns, topics, measured, wrench_topics, applied_topic = _topics(md, probe, feet)
+    wanted = set(topics.values()) | set(measured.values()) | set(wrench_topics) | \
+        {applied_topic}
     bag = read_messages(path, lambda t, _type: t in wanted, salvage=salvage, on_warning=warn)
     for key in ("joints", "base"):
         if not bag.messages.get(topics[key]):
@@ -282,6 +293,7 @@ def load_recording(path: str, salvage: bool = False) -> Recording:
     n = _complete_states(path, counted, _first_missing_step(applied_rows, period_ns), cut,
                          period_ns)
     states, effort = _states(path, rows, n, joint_names, feet)
+    states.update(_measured_states(bag, measured, n, period_ns, path))
     applied, replay = _applied_torques(applied_rows, period_ns, n, len(joint_names), path,
                                        applied_topic)
     summary = {}
@@ -348,6 +360,35 @@ def _states(path, rows, n, joint_names, feet):
                 forces[k, 3 * i:3 * i + 3] = (fm.x, fm.y, fm.z)
     states["foot_forces"] = forces
     return states, effort
+
+
+def _measured_states(bag, topics, n, period_ns, path) -> dict:
+    """{quantity: (n, width)} of the sensor topics the bag has (MEASURED_QUANTITIES; NaN
+    where a step has no message)."""
+    def joints(m):
+        return (*m.position, *m.velocity, *m.effort)
+
+    def imu(m):
+        o, w, a = m.orientation, m.angular_velocity, m.linear_acceleration
+        return (o.x, o.y, o.z, o.w, w.x, w.y, w.z, a.x, a.y, a.z)
+
+    def contacts(m):
+        return (*m.position, *m.effort)
+
+    out = {}
+    for q, values in (("measured_joint_states", joints), ("imu", imu),
+                      ("foot_contacts", contacts)):
+        msgs = bag.messages.get(topics[q]) if topics[q] else None
+        if not msgs:
+            continue
+        rows = _by_step(msgs, period_ns, path, topics[q], f"the {q} message")
+        width = len(values(rows[0]))
+        a = np.full((n, width), np.nan)
+        for k, m in rows.items():
+            if k < n and len(values(m)) == width:
+                a[k] = values(m)
+        out[q] = a
+    return out
 
 
 def _wrenches(bag, wrench_topics, period_ns):

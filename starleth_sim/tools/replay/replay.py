@@ -22,9 +22,12 @@ reset to the initial state, ``submit_wrench``, ``step``). With the recorded conf
 feeds the recorded applied torques with the actuator model off (``actuator.velocity_limit:
 ignore``: the torques are already those the motors applied; clipping them again at the
 effort limit changes nothing, derating them twice would), and it must reproduce the recording
-bit for bit: every step's joint positions and velocities, base pose and twist (as
-/starleth/base_state holds them) and the foot forces are compared exactly; the output says
-"bit-identical" or gives the first step that differs and by how much (exit status 0 or 3).
+bit for bit: every step's joint positions and velocities (exact: ground_truth/joint_states
+with noisy sensors), base pose and twist (as /starleth/base_state holds them) and the foot
+forces are compared exactly, and so are the sensor topics (joint_states as measured,
+starleth/imu, starleth/foot_contacts), which the replay's sensors regenerate from the
+recorded configuration and seed (physics/sensors.py); the output says "bit-identical" or
+gives the first step that differs and by how much (exit status 0 or 3).
 
 ``--preset NAME`` (repeatable, or a YAML path) runs the same torque stream through other
 configurations (the initial state converted through minimal coordinates; their motors
@@ -141,8 +144,12 @@ def format_comparison(rec: Recording, rep: Replay, c: Comparison) -> list:
     cp = rec.control_period
     if c.identical:
         some = f" (the first {c.steps} of {rec.steps})" if c.steps < rec.steps else ""
+        sensors = [name for q, name in (("measured_joint_states", "joint_states as measured"),
+                                          ("imu", "IMU"), ("foot_contacts", "foot contacts"))
+                   if q in rep.states]
         lines = [f"  bit-identical: all {c.steps} steps{some} (joint positions and velocities, "
-                 "base pose and twist" + (", foot forces" if c.forces_identical else "") + ")"]
+                 "base pose and twist" + (", foot forces" if c.forces_identical else "") +
+                 "".join(f", {name}" for name in sensors) + ")"]
         if not c.forces_identical:
             lines.append(f"  (foot forces differ by up to {c.max_abs['foot_forces']:.3g} N)")
         return lines

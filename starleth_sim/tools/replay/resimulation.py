@@ -18,7 +18,15 @@ from ...ros.parameters import Settings
 from ...ros.service import SimService
 from ...ros.state_io import public_state, quat_to_matrix
 from ..common.falls import fall_height
-from .recording import QUANTITIES, STATE_QUANTITIES, Recording, ReplayError, shortened, warn
+from .recording import (
+    MEASURED_QUANTITIES,
+    QUANTITIES,
+    STATE_QUANTITIES,
+    Recording,
+    ReplayError,
+    shortened,
+    warn,
+)
 
 #: a replayed StarlETH has fallen with its base below this [m] (falls.fall_height)
 FALL_HEIGHT = 0.3
@@ -43,7 +51,18 @@ def _body_twist(quat, v_world):
     return quat_to_matrix(*quat).T @ v_world
 
 
-def _snapshot(sim, feet):
+def _measured(sensors) -> dict:
+    """The sensor topics' values of the current state (MEASURED_QUANTITIES' layouts)."""
+    m = sensors.measured
+    return {"measured_joint_states": np.concatenate((m.joint_position, m.joint_velocity,
+                                                     m.joint_effort)),
+            "imu": np.concatenate((m.imu_orientation, m.imu_angular_velocity,
+                                   m.imu_linear_acceleration)),
+            "foot_contacts": np.concatenate((m.contact_flag, m.contact_force))}
+
+
+def _snapshot(sim, feet, sensors=None):
+    """The recorded quantities of the current state (the sensor topics' with `sensors`)."""
     pub = public_state(sim)
     quat = [float(x) for x in pub["base_orientation"]]
     cs = {c.name: c for c in sim.contacts}
@@ -54,7 +73,7 @@ def _snapshot(sim, feet):
             "base_orientation": np.array(quat),
             "base_linear_velocity": _body_twist(quat, pub["base_linear_velocity"]),
             "base_angular_velocity": pub["base_angular_velocity"],
-            "foot_forces": forces}
+            "foot_forces": forces, **(_measured(sensors) if sensors is not None else {})}
 
 
 def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
@@ -67,9 +86,10 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
     svc = _replay_service(rec, sim, cfg, warnings)
     n = rec.steps if steps is None else min(steps, rec.steps)
     applied = _applied_torques(rec, sim, cfg)
-    out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in QUANTITIES}
-    first = _snapshot(sim, rec.feet)
-    for q in QUANTITIES:
+    quantities = [q for q in QUANTITIES + MEASURED_QUANTITIES if q in rec.states]
+    out = {q: np.full((n + 1,) + rec.states[q].shape[1:], np.nan) for q in quantities}
+    first = _snapshot(sim, rec.feet, svc.sensors)
+    for q in quantities:
         out[q][0] = first[q]
     its = np.zeros(n)
     error = None
@@ -84,8 +104,8 @@ def resimulate(rec: Recording, config=None, label=None, steps=None) -> Replay:
             error = warnings[-1] if warnings else f"the physics failed at step {k}"
             break
         its[k] = d.iterations
-        snap = _snapshot(sim, rec.feet)
-        for q in QUANTITIES:
+        snap = _snapshot(sim, rec.feet, svc.sensors)
+        for q in quantities:
             out[q][k + 1] = snap[q]
     else:
         k = n
@@ -164,22 +184,26 @@ class Comparison:
 
 
 def compare_exact(rec: Recording, rep: Replay) -> Comparison:
-    """Bit for bit, state by state (NaN equals NaN: a foot wrench missing in both)."""
+    """Bit for bit, state by state (NaN equals NaN: a foot wrench missing in both); the
+    sensor topics (MEASURED_QUANTITIES) where the bag has them, as the state."""
     n = rep.steps
     first, maxabs = None, {}
-    for q in QUANTITIES:
+    compared = STATE_QUANTITIES + tuple(q for q in MEASURED_QUANTITIES if q in rep.states)
+    for q in QUANTITIES + MEASURED_QUANTITIES:
+        if q not in rep.states:
+            continue
         a, b = rec.states[q][:n + 1], rep.states[q][:n + 1]
         same = (a.view(np.int64) == b.view(np.int64)) | (np.isnan(a) & np.isnan(b))
         bad = np.flatnonzero(~same.all(axis=1))
         diff = np.abs(a - b)
         maxabs[q] = float(np.nanmax(diff)) if diff.size and np.isfinite(diff).any() else 0.0
-        if q in STATE_QUANTITIES and bad.size and (first is None or bad[0] < first):
+        if q in compared and bad.size and (first is None or bad[0] < first):
             first = int(bad[0])
     forces_same = np.array_equal(rec.states["foot_forces"][:n + 1],
                                  rep.states["foot_forces"][:n + 1], equal_nan=True)
     at = {}
     if first is not None:
-        for q in STATE_QUANTITIES:
+        for q in compared:
             d = np.abs(rec.states[q][first] - rep.states[q][first])
             if np.any(d > 0) or np.any(np.isnan(d)):
                 at[q] = float(np.nanmax(d))
