@@ -16,7 +16,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from geometry_msgs.msg import WrenchStamped
 from rclpy.qos import QoSProfile
-from ros_test_nodes import NodeProcess, RosTestNode
+from ros_test_nodes import NodeProcess, RosTestNode, run_lockstep
 from sensor_msgs.msg import JointState
 
 from starleth_sim.tools.bench.controllers import EchoController
@@ -262,19 +262,9 @@ def lockstep_run(tmp_path, name, n_states, **params):
     """A recorded lockstep run of sim_node (its `params`) under the PD echo controller, for
     n_states states; the bag's path."""
     ros = RosTestNode(DOMAIN_ID, f"replay_{name}_test", events=True)
-    ctl = EchoController(ros.node)
     mcap = str(tmp_path / f"{name}.mcap")
-    sim = NodeProcess("starleth_sim.ros.sim_node", tmp_path / "sim.log", DOMAIN_ID,
-                      mode="lockstep", real_time_factor=0.0, record=mcap, **params)
-    try:
-        ok = ros.spin_until(lambda: len(ctl.stamps) >= n_states or not sim.alive(),
-                            START_TIMEOUT)
-        assert ok and sim.alive(), sim.log()[-3000:]
-    finally:
-        rc = sim.stop(signal.SIGINT)
-        ctl.close()
-        ros.close()
-    assert rc == 0, sim.log()[-3000:]
+    run_lockstep(ros, EchoController(ros.node), tmp_path / "sim.log", DOMAIN_ID, n_states,
+                 START_TIMEOUT, record=mcap, **params)
     return mcap
 
 
