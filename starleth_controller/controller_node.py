@@ -95,15 +95,17 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
 from starleth_interface import state_bundle
 from starleth_interface.config_checks import ConfigError
 from starleth_interface.msg_cdr import (
+    IMU_FIELDS,
     ODOM_FIELDS,
     WRENCH_FIELDS,
+    FixedCdr,
     JointStateCdr,
     JointStateReader,
     StampedReader,
@@ -124,9 +126,16 @@ from starleth_interface.ros_helpers import (
 )
 
 from .controller import StarlethController
+from .estimator_intake import EstimatedState
 from .inputs import Command
 from .model import NotAQuadruped, RobotModel
-from .node_parameters import PARAMETERS, PARAMETERS_BY_NAME, check_parameters, default_wrench_topics
+from .node_parameters import (
+    PARAMETERS,
+    PARAMETERS_BY_NAME,
+    check_parameters,
+    default_wrench_topics,
+    estimator_params,
+)
 from .side_inputs import SideInputs
 from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
 
@@ -194,6 +203,12 @@ class ControllerNode(Node):
         self._js_reader = JointStateReader()
         self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
         self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
+        self._imu_reader = StampedReader(Imu, IMU_FIELDS)
+        # state_source estimator: the filter (made with the model) and its parameters
+        self._estimating = p["state_source"] == "estimator"
+        self._needed = 3 if self._estimating else 6     # messages of a complete stamp
+        self._estimate = None
+        self._estimator_params = estimator_params(p)
         self.timing = None                # a CycleTimes, set by benchmarks
 
     def _init_publishers(self, p):
@@ -208,6 +223,10 @@ class ControllerNode(Node):
         self._cmd_msg = JointState()
         self._cmd_cdr = None
         self._array_msg = Float64MultiArray()
+        self.pub_odom = (self.create_publisher(Odometry, p["estimator_odometry_topic"],
+                                               cmd_qos)
+                         if self._estimating and p["estimator_odometry_topic"] else None)
+        self._odom_msg = self._odom_cdr = None
 
     def _init_robot(self, p):
         """The robot: from its parameters now, or from robot_description when it comes (a
@@ -239,7 +258,8 @@ class ControllerNode(Node):
                else ReliabilityPolicy.RELIABLE)
         state_qos = QoSProfile(depth=10, reliability=rel, durability=DurabilityPolicy.VOLATILE,
                                history=HistoryPolicy.KEEP_LAST)
-        self.state_input = p["state_input"]
+        # the state bundle carries ground truth: the estimator reads the public topics
+        self.state_input = "topics" if self._estimating else p["state_input"]
         self._bundled = False     # reading the bundle alone (auto: after the first one)
         self.sub_bundle = (self.create_subscription(
             Float64MultiArray, p["state_bundle_topic"], self._on_bundle_cdr, state_qos,
@@ -249,13 +269,22 @@ class ControllerNode(Node):
             self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
                                                    self._on_joint_states_cdr, state_qos,
                                                    raw=True)
-            self._side = SideInputs(self, state_qos, p["base_state_topic"],
-                                    wrench_topics, self._on_base_state_cdr,
-                                    self._on_wrench_cdr, self._joint_state_waiting)
+            self._side = SideInputs(self, state_qos, self._side_inputs(p, wrench_topics),
+                                    self._joint_state_waiting)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
         self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot,
                                             qos_profile=service_qos())
+
+    def _side_inputs(self, p, wrench_topics):
+        """(type, topic, callback) of the inputs read beside the joint state: the IMU and the
+        foot contacts (state_source estimator), else the base state and the foot wrenches."""
+        if self._estimating:
+            return [(Imu, p["imu_topic"], self._on_imu_cdr),
+                    (JointState, p["foot_contacts_topic"], self._on_contacts_cdr)]
+        return [(Odometry, p["base_state_topic"], self._on_base_state_cdr)] + [
+            (WrenchStamped, topic, (lambda data, k=k: self._on_wrench_cdr(k, data)))
+            for k, topic in enumerate(wrench_topics)]
 
     def destroy_node(self):
         self._unroute_logging()
@@ -342,6 +371,11 @@ class ControllerNode(Node):
         self._cmd_msg.name = list(self._joint_names)
         # commands go out as CDR bytes patched into a template (None: as message objects)
         self._cmd_cdr = JointStateCdr.create(self._joint_names, ("effort",))
+        if self._estimating:
+            self._estimate = EstimatedState(m, self._estimator_params)
+            o = self._odom_msg = Odometry()
+            o.header.frame_id, o.child_frame_id = "odom", self._estimate.base_frame
+            self._odom_cdr = FixedCdr.create(o, ODOM_FIELDS)
         self.log.info(f"controller model from {what}: {m.mass:.2f} kg, legs "
                       f"{m.leg_length:.3f} m (scale λ {m.scale.length:g}, μ {m.scale.mass:g})")
 
@@ -377,7 +411,7 @@ class ControllerNode(Node):
 
     def _drop_incomplete(self, stamp, slot):
         self.counters["dropped_incomplete"] += 1
-        missing = ", ".join(slot.missing(self._foot_names or ("foot",) * 4))
+        missing = ", ".join(slot.missing(self._foot_names or ("foot",) * 4, self._estimating))
         self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
                    f"(missing: {missing})", missing)
 
@@ -489,6 +523,35 @@ class ControllerNode(Node):
         s.odom = vals
         self._received(stamp, s, new)
 
+    def _on_imu_cdr(self, data):
+        """starleth/imu (state_source estimator): orientation, angular velocity, proper
+        acceleration."""
+        r = self._imu_reader.decode(data)
+        if r is None:
+            msg = self._deserialise(data, Imu, "imu")
+            if msg is None:
+                return
+            o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+            st = msg.header.stamp
+            r = (st.sec, st.nanosec, (o.x, o.y, o.z, o.w, w.x, w.y, w.z, a.x, a.y, a.z))
+        sec, nsec, vals = r
+        stamp = sec * 1_000_000_000 + nsec
+        s = self._slot(stamp)
+        new = s.imu is None
+        s.imu = vals
+        self._received(stamp, s, new)
+
+    def _on_contacts_cdr(self, data):
+        """starleth/foot_contacts (state_source estimator): names and flags."""
+        msg = self._deserialise(data, JointState, "foot contacts")
+        if msg is None:
+            return
+        stamp = stamp_ns(msg.header)
+        s = self._slot(stamp)
+        new = s.contacts is None
+        s.contacts = (tuple(msg.name), msg.position)
+        self._received(stamp, s, new)
+
     def _on_wrench(self, k, msg):
         f = msg.wrench.force
         self._foot_wrench(k, stamp_ns(msg.header), (f.x, f.y, f.z))
@@ -504,7 +567,7 @@ class ControllerNode(Node):
         already in the slot); the controller runs once all 6 are in."""
         if new:
             s.n += 1
-        if s.n == 6:
+        if s.n == self._needed:
             self._complete(stamp, s)
 
     def _on_cmd_vel(self, msg):
@@ -535,7 +598,12 @@ class ControllerNode(Node):
             self._warn("no_model", "state received but no controller model yet (waiting for "
                        "/robot_description)")
             return
-        state, key, reason = self._assembler.robot_state(stamp, s)
+        if self._estimate is not None:
+            state, key, reason = self._estimate.robot_state(stamp, s)
+            if state is not None:
+                self._publish_estimate(s.js[:2])
+        else:
+            state, key, reason = self._assembler.robot_state(stamp, s)
         if state is None:
             self.counters["rejected"] += 1
             self._warn(key, f"ignored the state of t={stamp * 1e-9:.4f} s: {reason}",
@@ -571,6 +639,21 @@ class ControllerNode(Node):
         self._publish(sec_nsec, effort)
         if self.timing is not None:
             self.timing.add(stamp, s.t_first, t_complete, t_computed, time.perf_counter())
+
+    def _publish_estimate(self, sec_nsec):
+        """estimator/odometry: the estimate of the state just read, stamped with it."""
+        if self.pub_odom is None:
+            return
+        vals = self._estimate.odometry_values()
+        if self._odom_cdr is not None:
+            self.pub_odom.publish(self._odom_cdr.build(*sec_nsec, vals))
+            return
+        o = self._odom_msg
+        o.header.stamp.sec, o.header.stamp.nanosec = sec_nsec
+        pp, po = o.pose.pose.position, o.pose.pose.orientation
+        tl, ta = o.twist.twist.linear, o.twist.twist.angular
+        pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w, tl.x, tl.y, tl.z, ta.x, ta.y, ta.z = vals
+        self.pub_odom.publish(o)
 
     def _publish(self, sec_nsec, effort):
         self.counters["commands"] += 1

@@ -40,28 +40,47 @@ IR, IV, IPHI, IP0 = 0, 3, 6, 9
 
 @dataclass
 class EstimatorParams:
-    """Noise densities and initial standard deviations of ``LegOdometryEKF``.
+    """Noise densities and initial standard deviations of ``LegOdometryEKF`` (their meaning:
+    ESTIMATOR_PARAMETERS; controller_node's ``estimator.<name>`` parameters).
 
     Defaults: the white-noise densities of a MEMS IMU (datasheets of the class: gyroscope
-    1e-4–5e-4 rad/s/√Hz, accelerometer 1e-3–3e-3 m/s²/√Hz), raised by ~5× to cover what the
-    model leaves out (vibration, the control period's discretisation of f̃ and ω̃); bias
-    random walks of the same class; leg kinematics good to ~1 cm (encoders, the rolling
-    foot sphere, leg compliance). doc/estimator.md gives the reasoning."""
-    accel_noise: float = 0.02             # σ_f  [m/s²/√Hz]
-    gyro_noise: float = 0.002             # σ_ω  [rad/s/√Hz]
-    accel_bias_walk: float = 1e-3         # σ_bf [m/s³/√Hz]
-    gyro_bias_walk: float = 1e-4          # σ_bω [rad/s²/√Hz]
-    foot_contact_walk: float = 0.02       # σ_contact: a foot on the ground [m/√Hz]
-    foot_swing_walk: float = 10.0         # σ_swing: a foot in the air [m/√Hz]
-    kinematics_noise: float = 0.01        # σ_s: foot position measured by the legs [m]
+    1e-4–5e-4 rad/s/√Hz, accelerometer 1e-3–3e-3 m/s²/√Hz) raised to cover what the model
+    leaves out (vibration, the control period's discretisation of f̃ and ω̃); bias random
+    walks of the same class; leg kinematics good to ~1 cm (encoders, leg compliance,
+    contact flags a step late). doc/estimator.md gives the reasoning."""
+    accel_noise: float = 0.02
+    gyro_noise: float = 0.002
+    accel_bias_walk: float = 1e-3
+    gyro_bias_walk: float = 1e-4
+    foot_contact_walk: float = 0.02
+    foot_swing_walk: float = 10.0
+    kinematics_noise: float = 0.01
+    init_position: float = 1e-3
+    init_velocity: float = 0.1
+    init_orientation: float = 0.05
+    init_foot: float = 0.01
+    init_accel_bias: float = 0.1
+    init_gyro_bias: float = 0.01
     #: the feet in contact roll with their shanks (the sphere's centre moves ρ ω × e_z)
     rolling_feet: bool = True
-    init_position: float = 1e-3           # initial σ of r [m]
-    init_velocity: float = 0.1            # of v [m/s]
-    init_orientation: float = 0.05        # of δφ [rad]
-    init_foot: float = 0.01               # of p_i [m]
-    init_accel_bias: float = 0.1          # of b_f [m/s²]
-    init_gyro_bias: float = 0.01          # of b_ω [rad/s]
+
+
+#: the numbers of EstimatorParams: name, meaning (controller_node's estimator.<name>)
+ESTIMATOR_PARAMETERS = (
+    ("accel_noise", "σ_f, accelerometer white noise density [m/s²/√Hz]"),
+    ("gyro_noise", "σ_ω, gyroscope white noise density [rad/s/√Hz]"),
+    ("accel_bias_walk", "σ_bf, accelerometer bias random walk [m/s³/√Hz]"),
+    ("gyro_bias_walk", "σ_bω, gyroscope bias random walk [rad/s²/√Hz]"),
+    ("foot_contact_walk", "σ_contact, random walk of a foot in contact (slip) [m/√Hz]"),
+    ("foot_swing_walk", "σ_swing, random walk of a foot in the air (free) [m/√Hz]"),
+    ("kinematics_noise", "σ_s, noise of a foot position the legs measure [m]"),
+    ("init_position", "initial standard deviation of the base position [m]"),
+    ("init_velocity", "initial standard deviation of the base velocity [m/s]"),
+    ("init_orientation", "initial standard deviation of the orientation [rad]"),
+    ("init_foot", "initial standard deviation of the foot positions [m]"),
+    ("init_accel_bias", "initial standard deviation of the accelerometer bias [m/s²]"),
+    ("init_gyro_bias", "initial standard deviation of the gyroscope bias [rad/s]"),
+)
 
 
 def quat_to_rot(q) -> np.ndarray:

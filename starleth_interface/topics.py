@@ -14,6 +14,9 @@ TOPIC_CLOCK = "/clock"
 TOPIC_JOINT_STATES = "joint_states"
 TOPIC_BASE_STATE = "starleth/base_state"
 TOPIC_IMU = "starleth/imu"
+TOPIC_FOOT_CONTACTS = "starleth/foot_contacts"
+#: controller_node's state estimate (state_source:=estimator; nav_msgs/Odometry)
+TOPIC_ESTIMATOR_ODOMETRY = "estimator/odometry"
 TOPIC_SOLVER = "starleth/solver"
 #: the state of a step in one message, sim_node -> controller_node (starleth_interface.state_bundle)
 TOPIC_STATE_BUNDLE = "starleth/state_bundle"

@@ -32,14 +32,14 @@ class EstimatorRun:
     the true and estimated position, velocity (world), yaw and the filter's covariance
     diagonal."""
 
-    def __init__(self, preset="HmJ", noise=Noise(), params: EstimatorParams | None = None,
+    def __init__(self, preset="HmJ", noise=None, params: EstimatorParams | None = None,
                  drive="truth"):
         self.sim = Simulator.from_preset(preset)
         self.sim.reset()
         self.ctrl = StarlethController()
         self.ekf = LegOdometryEKF(self.ctrl.model, params)
-        self.noise, self.drive = noise, drive
-        self.rng = np.random.default_rng(noise.seed)
+        self.noise, self.drive = noise or Noise(), drive
+        self.rng = np.random.default_rng(self.noise.seed)
         self.feet = self.ctrl.model.foot_names
         self.g = np.array([0.0, 0.0, -self.ctrl.model.gravity])
         self.v_prev = None
