@@ -63,6 +63,8 @@ class EstimatorParams:
     init_gyro_bias: float = 0.01
     #: the feet in contact roll with their shanks (the sphere's centre moves ρ ω × e_z)
     rolling_feet: bool = True
+    #: Φ keeps yaw and position unobservable (LegOdometryEKF._constrain)
+    observability_constrained: bool = True
 
 
 #: the numbers of EstimatorParams: name, meaning (controller_node's estimator.<name>)
@@ -179,6 +181,7 @@ class LegOdometryEKF:
         self.P = np.diag(np.square(sig))
         self.t = float(t)
         self.w = np.zeros(3)
+        self._prior = None
         self.initialised = True
 
     # -- one control period ------------------------------------------------------------------
@@ -194,16 +197,15 @@ class LegOdometryEKF:
         q = np.asarray(joint_positions, dtype=float)
         if self._order is not None:
             q = q[self._order]
+        self.w = np.asarray(gyro, dtype=float) - self.bw
         if dt > 0.0:
-            self.predict(dt, np.asarray(gyro, dtype=float), np.asarray(accel, dtype=float),
-                         contact)
+            roll = None
             if joint_velocities is not None and self.params.rolling_feet:
                 dq = np.asarray(joint_velocities, dtype=float)
-                dq = dq if self._order is None else dq[self._order]
-                roll = self.rolling_velocities(q, dq)
-                self.feet[contact] += roll[contact] * dt
-        else:
-            self.w = np.asarray(gyro, dtype=float) - self.bw
+                roll = self.rolling_velocities(q, dq if self._order is None else
+                                               dq[self._order])
+                roll[~contact] = 0.0
+            self.predict(dt, self.w + self.bw, np.asarray(accel, dtype=float), contact, roll)
         if contact.any():
             self.update(self._fk(q), contact)
 
@@ -221,9 +223,10 @@ class LegOdometryEKF:
         rho = g[:, 3]
         return np.stack((rho * ww[:, 1], -rho * ww[:, 0], np.zeros(len(rho))), axis=1)
 
-    def predict(self, dt, gyro, accel, contact):
+    def predict(self, dt, gyro, accel, contact, foot_velocity=None):
         """The IMU's prediction over dt: the mean (R ← R Exp(ω dt), v ← v + (R f + g) dt,
-        r ← r + (v₀ + v) dt / 2) and the covariance P ← Φ P Φᵀ + Q (module docstring)."""
+        r ← r + (v₀ + v) dt / 2, p_i ← p_i + ṗ_i dt with `foot_velocity` ṗ, world) and the
+        covariance P ← Φ P Φᵀ + Q (module docstring)."""
         w = gyro - self.bw
         f = accel - self.bf
         self.w = w
@@ -231,11 +234,33 @@ class LegOdometryEKF:
         self.q /= math.sqrt(float(self.q @ self.q))
         R = quat_to_rot(self.q)
         a = R @ f
-        v0 = self.v
+        r0, v0, feet0 = self.r, self.v, self.feet
         self.v = v0 + (a + self.g) * dt
-        self.r = self.r + 0.5 * (v0 + self.v) * dt
+        self.r = r0 + 0.5 * (v0 + self.v) * dt
+        if foot_velocity is not None:
+            self.feet = feet0 + foot_velocity * dt
         Phi = self._transition(dt, R, a)
+        if self._prior is not None and self.params.observability_constrained:
+            self._constrain(Phi, dt, r0, v0)
+        self._prior = None
         self.P = Phi @ self.P @ Phi.T + self._process_noise(dt, contact)
+
+    def _constrain(self, Phi, dt, r0, v0):
+        """The observability constraint (Huang et al.'s OC-EKF, the remedy of Bloesch et
+        al. §V for the filter's spurious yaw information): Φ must carry the unobservable
+        direction N(x) = (δr, δv, δφ, δp_i) = ([e]× r, [e]× v, e, [e]× p_i) (a turn about
+        gravity e = e_z) of the predicted state the last update linearised at, x_{k|k−1},
+        onto the one of the next prediction, x_{k+1|k}: the yaw columns of the r, v and p
+        rows get ([e]× Δ) eᵀ, Δ the update's correction (r: plus its velocity's dt), the
+        least change of Φ that does it."""
+        r_p, v_p, feet_p = self._prior
+        dv = v0 - v_p
+        for row, d in ((IR, r0 - r_p + dv * dt), (IV, dv)):
+            Phi[row:row + 2, IPHI + 2] += (-d[1], d[0])
+        dp = self.feet - feet_p
+        for k in range(self.n_feet):
+            b = IP0 + 3 * k
+            Phi[b:b + 2, IPHI + 2] += (-dp[k, 1], dp[k, 0])
 
     def _transition(self, dt, R, a):
         """Φ = exp(F dt) to the order that matters (F: the error dynamics δṙ = δv,
@@ -289,6 +314,7 @@ class LegOdometryEKF:
             H[b:b + 3, IR:IR + 3] = -R.T
             H[b:b + 3, IPHI:IPHI + 3] = R.T @ skew(d)
             H[b:b + 3, IP0 + 3 * k:IP0 + 3 * k + 3] = R.T
+        self._prior = (self.r, self.v, self.feet)      # x_{k|k−1}: the constraint's
         PHt = self.P @ H.T
         S = H @ PHt
         S[np.diag_indices(m)] += self.params.kinematics_noise ** 2

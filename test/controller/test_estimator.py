@@ -1,0 +1,164 @@
+"""The state estimator (starleth_controller.estimator, Bloesch et al. RSS 2012) headless: its
+equations against finite differences and closed forms, and the filter on a simulated trot of
+StarlETH (preset HmJ) fed as a robot's drivers would feed it (test/support/estimator_run.py:
+the IMU's values from the simulator's state plus the test's noise and bias, the measured
+joint angles, the contact flags), the controller driving from ground truth or from the
+estimate.
+
+Criteria (issue #48): velocity RMS error ≤ 0.05 m/s and horizontal position drift ≤ 5 % of
+the distance walked with noisy sensors; yaw and position, unobservable, have a growing
+covariance while roll and pitch stay bounded; with ideal sensors the velocity follows the
+truth to a few mm/s; the controller walks on its own estimate.
+"""
+import math
+
+import numpy as np
+import pytest
+from estimator_run import EstimatorRun, Noise
+
+from starleth_controller import Command, RobotModel
+from starleth_controller.estimator import (
+    IP0,
+    IPHI,
+    IR,
+    LegOdometryEKF,
+    quat_exp,
+    quat_mul,
+    quat_to_rot,
+    skew,
+)
+
+#: per-sample noise at 400 Hz of a MEMS IMU (gyro 2.5e-4 rad/s/√Hz, accelerometer
+#: 2.5e-3 m/s²/√Hz) and 12-bit-class encoders, with constant biases
+NOISY = Noise(gyro=0.005, accel=0.05, joint=0.001, gyro_bias=(0.002, -0.001, 0.003),
+              accel_bias=(0.05, -0.03, 0.04), seed=7)
+STAND, TROT, SPEED = 1.0, 6.0, 0.3
+
+
+def errors(rec):
+    """(velocity RMS [m/s], horizontal drift per distance walked, yaw error at the end
+    [rad]) of a run's record; drift: the horizontal position error's change from the first
+    step to the last over the horizontal path length."""
+    ev = rec["v_hat"] - rec["v"]
+    rms = float(np.sqrt(np.mean(np.sum(ev * ev, axis=1))))
+    er = rec["r_hat"] - rec["r"]
+    dist = float(np.sum(np.linalg.norm(np.diff(rec["r"][:, :2], axis=0), axis=1)))
+    drift = float(np.linalg.norm(er[-1, :2] - er[0, :2])) / dist
+    yaw = math.remainder(rec["yaw_hat"][-1] - rec["yaw"][-1], 2 * math.pi)
+    return rms, drift, yaw
+
+
+def trot(noise, drive="truth"):
+    r = EstimatorRun("HmJ", noise, drive=drive)
+    r.run(Command("stand"), STAND)
+    r.run(Command("trot", forward=SPEED), TROT)
+    return r.arrays()
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    return trot(NOISY)
+
+
+# -- the equations -------------------------------------------------------------------------
+def test_quaternion_helpers_are_rotations():
+    """Exp(φ) turns by |φ| about φ (Rodrigues), ⊗ composes as R(a) R(b)."""
+    phi = np.array([0.3, -0.2, 0.5])
+    a = np.linalg.norm(phi)
+    K = skew(phi / a)
+    rodrigues = np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * K @ K
+    assert np.allclose(quat_to_rot(quat_exp(phi)), rodrigues, atol=1e-12)
+    b = quat_exp(np.array([-0.1, 0.4, 0.2]))
+    assert np.allclose(quat_to_rot(quat_mul(quat_exp(phi), b)),
+                       rodrigues @ quat_to_rot(b), atol=1e-12)
+
+
+def _filter():
+    model = RobotModel()
+    e = LegOdometryEKF(model)
+    q = model.nominal_joint_positions(0.41)
+    e.reset(0.0, quat_exp([0.1, -0.05, 0.7]), q, np.ones(4, bool))
+    e.r = np.array([0.3, -0.2, 0.45])
+    e.feet += np.random.default_rng(3).normal(0.0, 0.02, (4, 3))
+    return e
+
+
+def test_the_leg_measurement_jacobian_is_the_derivative():
+    """H of s_i = Rᵀ(p_i − r) (update's rows) against central differences of the error
+    state (R = Exp(δφ) R̂)."""
+    e = _filter()
+
+    def h(dx):
+        R = quat_to_rot(quat_mul(quat_exp(dx[IPHI:IPHI + 3]), e.q))
+        r = e.r + dx[IR:IR + 3]
+        feet = e.feet + dx[IP0:IP0 + 12].reshape(4, 3)
+        return ((feet - r) @ R).reshape(-1)
+
+    H = np.zeros((12, e.n))
+    for k in range(4):
+        d = e.feet[k] - e.r
+        RT = quat_to_rot(e.q).T
+        H[3 * k:3 * k + 3, IR:IR + 3] = -RT
+        H[3 * k:3 * k + 3, IPHI:IPHI + 3] = RT @ skew(d)
+        H[3 * k:3 * k + 3, IP0 + 3 * k:IP0 + 3 * k + 3] = RT
+    num = np.zeros_like(H)
+    for j in range(e.n):
+        dx = np.zeros(e.n)
+        dx[j] = 1e-6
+        num[:, j] = (h(dx) - h(-dx)) / 2e-6
+    assert np.abs(H - num).max() < 1e-8
+
+
+def test_the_prediction_integrates_a_constant_acceleration_exactly():
+    """No bias, constant f and ω = 0: v and r after n steps are the closed forms; P stays
+    symmetric and grows."""
+    e = _filter()
+    R = quat_to_rot(e.q)
+    a_w = np.array([0.5, -0.2, 0.1])
+    f = R.T @ (a_w - e.g)
+    r0, p0 = e.r.copy(), np.trace(e.P)
+    for _ in range(400):
+        e.predict(0.0025, np.zeros(3), f, np.zeros(4, bool))
+    assert np.allclose(e.v, a_w * 1.0, atol=1e-12)
+    assert np.allclose(e.r, r0 + 0.5 * a_w * 1.0, atol=1e-12)
+    assert np.allclose(e.P, e.P.T) and np.trace(e.P) > p0
+
+
+# -- on a simulated trot ---------------------------------------------------------------------
+def test_noisy_sensors_velocity_rms_and_drift(noisy):
+    rms, drift, yaw = errors(noisy)
+    print(f"\n[HmJ noisy] velocity RMS {rms:.4f} m/s, drift {100 * drift:.2f} % of "
+          f"distance, yaw error {math.degrees(yaw):.2f} deg")
+    assert rms <= 0.05 and drift <= 0.05
+
+
+def test_yaw_and_position_are_unobservable_roll_and_pitch_are_not(noisy):
+    """The covariance of yaw and of the horizontal position grows over the run (nothing
+    measures them); roll and pitch (gravity) and the velocity stay bounded."""
+    P = noisy["P"]
+    n = len(P)
+    early, late = P[n // 4], P[-1]
+    assert late[IPHI + 2] > 1.5 * early[IPHI + 2], (early[IPHI + 2], late[IPHI + 2])
+    assert late[IR] > 1.5 * early[IR] and late[IR + 1] > 1.5 * early[IR + 1]
+    for i in (IPHI, IPHI + 1, 3, 4, 5):
+        assert late[i] < 2.0 * early[i] and math.sqrt(late[i]) < 0.05, (i, early[i], late[i])
+
+
+def test_ideal_sensors_velocity_tracks_the_truth():
+    rms, drift, yaw = errors(trot(Noise()))
+    print(f"\n[HmJ ideal] velocity RMS {rms:.5f} m/s, drift {100 * drift:.3f} %, yaw error "
+          f"{math.degrees(yaw):.3f} deg")
+    assert rms < 0.003 and drift < 0.005 and abs(yaw) < math.radians(0.1)
+
+
+def test_the_controller_walks_on_its_own_estimate():
+    """The controller's state built from the filter alone (noisy sensors): no fall, the
+    commanded speed reached, the estimate as good as in the open loop."""
+    rec = trot(NOISY, drive="estimate")
+    rms, drift, _ = errors(rec)
+    walked = rec["r"][-1, 0] - rec["r"][int(STAND * 400), 0]
+    print(f"\n[HmJ on the estimate] walked {walked:.2f} m in {TROT:g} s, velocity RMS "
+          f"{rms:.4f} m/s, drift {100 * drift:.2f} %")
+    assert rec["r"][:, 2].min() > 0.3 and rec["tilt"].min() > math.cos(0.25)
+    assert walked > 0.8 * SPEED * (TROT - 1.0)
+    assert rms <= 0.05 and drift <= 0.05
