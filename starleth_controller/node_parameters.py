@@ -93,13 +93,17 @@ PARAMETERS = (
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
     *(P(f"estimator.{name}", float, getattr(EstimatorParams, name), text, minimum=0.0,
         maximum=1e6) for name, text in ESTIMATOR_PARAMETERS),
+    P("estimator.rolling_feet", bool, True, "the feet in contact roll with their shanks (the "
+      "foot sphere's centre moves ρ ω × e_z; hard contacts, the robot); false: they stand "
+      "still (the compliant preset Cm's feet, held by their tangential springs)"),
 )
 PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
 
 
 def estimator_params(p) -> EstimatorParams:
     """The estimator's parameters of the node's (`p`: name -> value)."""
-    return EstimatorParams(**{name: float(p[f"estimator.{name}"])
+    return EstimatorParams(rolling_feet=bool(p["estimator.rolling_feet"]),
+                           **{name: float(p[f"estimator.{name}"])
                               for name, _ in ESTIMATOR_PARAMETERS})
 
 

@@ -24,6 +24,7 @@ class Noise:
     joint: float = 0.0           # [rad]
     gyro_bias: tuple = (0.0, 0.0, 0.0)
     accel_bias: tuple = (0.0, 0.0, 0.0)
+    contact_delay: int = 0       # control steps the contact flags come late
     seed: int = 1
 
 
@@ -33,16 +34,17 @@ class EstimatorRun:
     diagonal."""
 
     def __init__(self, preset="HmJ", noise=None, params: EstimatorParams | None = None,
-                 drive="truth"):
-        self.sim = Simulator.from_preset(preset)
+                 drive="truth", robot=None):
+        self.sim = Simulator.from_preset(preset, robot=robot)
         self.sim.reset()
-        self.ctrl = StarlethController()
+        self.ctrl = StarlethController(robot=robot)
         self.ekf = LegOdometryEKF(self.ctrl.model, params)
         self.noise, self.drive = noise or Noise(), drive
         self.rng = np.random.default_rng(self.noise.seed)
         self.feet = self.ctrl.model.foot_names
         self.g = np.array([0.0, 0.0, -self.ctrl.model.gravity])
         self.v_prev = None
+        self.contacts = []
         self.rec = {k: [] for k in ("t", "r", "r_hat", "v", "v_hat", "yaw", "yaw_hat", "P",
                                     "tilt")}
 
@@ -59,18 +61,20 @@ class EstimatorRun:
         gyro = np.asarray(st.base_angular_velocity) + n.gyro_bias + \
             n.gyro * rng.standard_normal(3)
         q = np.asarray(st.joint_positions) + n.joint * rng.standard_normal(12)
-        return st, gyro, accel, q
+        self.contacts.append(np.array(st.foot_contact))
+        contact = self.contacts[max(0, len(self.contacts) - 1 - n.contact_delay)]
+        return st, gyro, accel, q, contact
 
     def run(self, command: Command, seconds: float):
         for _ in range(int(round(seconds / self.sim.control_period))):
-            st, gyro, accel, q = self._measure()
+            st, gyro, accel, q, contact = self._measure()
             if not self.ekf.initialised:
-                self.ekf.reset(st.t, st.base_orientation_xyzw, q, st.foot_contact)
+                self.ekf.reset(st.t, st.base_orientation_xyzw, q, contact)
             else:
-                self.ekf.step(st.t, gyro, accel, q, st.foot_contact, st.joint_velocities)
+                self.ekf.step(st.t, gyro, accel, q, contact, st.joint_velocities)
             self._record(st)
             drive = st if self.drive == "truth" else self.ekf.robot_state(
-                st.t, q, st.joint_velocities, st.foot_contact)
+                st.t, q, st.joint_velocities, contact)
             self.sim.step(self.ctrl.update(drive, command))
         return self
 
