@@ -21,12 +21,17 @@ them under /robot1, beside that robot's sim_node; remap them for another robot):
                                                                       name (topics.topic_token)
     cmd_vel                              geometry_msgs/Twist          linear.x, linear.y, angular.z
     robot_description                    std_msgs/String              with robot_description:=true
+    starleth/imu, starleth/foot_contacts sensor_msgs/Imu, JointState  state_source:=estimator,
+                                                                      instead of the base state,
+                                                                      wrenches and bundle
 
 Published:
 
     joint_commands                       sensor_msgs/JointState       names + effort; header.stamp
                                                                       = the state's stamp
     (effort_array_topic, off by default) std_msgs/Float64MultiArray   12 torques, joint order
+    estimator/odometry                   nav_msgs/Odometry            state_source:=estimator:
+                                                                      the estimate of each step
 
 Service ``~/trot`` (std_srvs/SetBool): true = trot, false = stand (sets the ``mode`` parameter).
 
@@ -38,8 +43,11 @@ in flight, and a lockstep simulator's clock stands still while it waits for the 
 
 The base state is taken from ``/starleth/base_state`` as *ground truth* (the simulator's
 Odometry: pose in the world frame, twist in the child (base) frame as REP 105 says; set
-``twist_frame:=parent`` for a source that gives the linear velocity in the world frame). A
-state estimator is out of scope.
+``twist_frame:=parent`` for a source that gives the linear velocity in the world frame).
+With ``state_source:=estimator`` the node reads no ground truth: the joint state, the IMU and
+the foot contact flags of a stamp (three messages) go through the state estimator
+(estimator.py, Bloesch et al. RSS 2012; doc/estimator.md), whose estimate is the
+controller's base state and is published on ``estimator/odometry``.
 
 State input (``state_input``): ``auto`` (the default) subscribes to the state bundle
 (:mod:`starleth_interface.state_bundle`: sim_node's joint state, base state and foot forces
@@ -102,10 +110,8 @@ from std_srvs.srv import SetBool
 from starleth_interface import state_bundle
 from starleth_interface.config_checks import ConfigError
 from starleth_interface.msg_cdr import (
-    IMU_FIELDS,
     ODOM_FIELDS,
     WRENCH_FIELDS,
-    FixedCdr,
     JointStateCdr,
     JointStateReader,
     StampedReader,
@@ -126,7 +132,7 @@ from starleth_interface.ros_helpers import (
 )
 
 from .controller import StarlethController
-from .estimator_intake import EstimatedState
+from .estimator_topics import EstimatorTopics
 from .inputs import Command
 from .model import NotAQuadruped, RobotModel
 from .node_parameters import (
@@ -203,12 +209,10 @@ class ControllerNode(Node):
         self._js_reader = JointStateReader()
         self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
         self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
-        self._imu_reader = StampedReader(Imu, IMU_FIELDS)
-        # state_source estimator: the filter (made with the model) and its parameters
+        # state_source estimator: its topics and the filter (made with the model)
         self._estimating = p["state_source"] == "estimator"
         self._needed = 3 if self._estimating else 6     # messages of a complete stamp
-        self._estimate = None
-        self._estimator_params = estimator_params(p)
+        self._estimator = None
         self.timing = None                # a CycleTimes, set by benchmarks
 
     def _init_publishers(self, p):
@@ -223,10 +227,10 @@ class ControllerNode(Node):
         self._cmd_msg = JointState()
         self._cmd_cdr = None
         self._array_msg = Float64MultiArray()
-        self.pub_odom = (self.create_publisher(Odometry, p["estimator_odometry_topic"],
-                                               cmd_qos)
-                         if self._estimating and p["estimator_odometry_topic"] else None)
-        self._odom_msg = self._odom_cdr = None
+        if self._estimating:
+            self._estimator = EstimatorTopics(self, estimator_params(p),
+                                              p["estimator_odometry_topic"], cmd_qos,
+                                              self._bad_message)
 
     def _init_robot(self, p):
         """The robot: from its parameters now, or from robot_description when it comes (a
@@ -280,8 +284,10 @@ class ControllerNode(Node):
         """(type, topic, callback) of the inputs read beside the joint state: the IMU and the
         foot contacts (state_source estimator), else the base state and the foot wrenches."""
         if self._estimating:
-            return [(Imu, p["imu_topic"], self._on_imu_cdr),
-                    (JointState, p["foot_contacts_topic"], self._on_contacts_cdr)]
+            e = self._estimator
+            return [(Imu, p["imu_topic"], lambda d: self._side_value("imu", e.imu(d))),
+                    (JointState, p["foot_contacts_topic"],
+                     lambda d: self._side_value("contacts", e.contacts(d)))]
         return [(Odometry, p["base_state_topic"], self._on_base_state_cdr)] + [
             (WrenchStamped, topic, (lambda data, k=k: self._on_wrench_cdr(k, data)))
             for k, topic in enumerate(wrench_topics)]
@@ -372,10 +378,7 @@ class ControllerNode(Node):
         # commands go out as CDR bytes patched into a template (None: as message objects)
         self._cmd_cdr = JointStateCdr.create(self._joint_names, ("effort",))
         if self._estimating:
-            self._estimate = EstimatedState(m, self._estimator_params)
-            o = self._odom_msg = Odometry()
-            o.header.frame_id, o.child_frame_id = "odom", self._estimate.base_frame
-            self._odom_cdr = FixedCdr.create(o, ODOM_FIELDS)
+            self._estimator.use_model(m)
         self.log.info(f"controller model from {what}: {m.mass:.2f} kg, legs "
                       f"{m.leg_length:.3f} m (scale λ {m.scale.length:g}, μ {m.scale.mass:g})")
 
@@ -419,9 +422,12 @@ class ControllerNode(Node):
         try:
             return deserialize_message(data, typ)
         except Exception as e:   # malformed CDR: ignore it, never die
-            self.counters["rejected"] += 1
-            self._warn("bad_cdr", f"ignored an undecodable {what}: {e}", what)
+            self._bad_message(what, e)
             return None
+
+    def _bad_message(self, what, e):
+        self.counters["rejected"] += 1
+        self._warn("bad_cdr", f"ignored an undecodable {what}: {e}", what)
 
     def _on_bundle_cdr(self, data):
         """A state bundle: the whole state of its stamp (starleth_interface.state_bundle),
@@ -523,34 +529,14 @@ class ControllerNode(Node):
         s.odom = vals
         self._received(stamp, s, new)
 
-    def _on_imu_cdr(self, data):
-        """starleth/imu (state_source estimator): orientation, angular velocity, proper
-        acceleration."""
-        r = self._imu_reader.decode(data)
-        if r is None:
-            msg = self._deserialise(data, Imu, "imu")
-            if msg is None:
-                return
-            o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
-            st = msg.header.stamp
-            r = (st.sec, st.nanosec, (o.x, o.y, o.z, o.w, w.x, w.y, w.z, a.x, a.y, a.z))
-        sec, nsec, vals = r
-        stamp = sec * 1_000_000_000 + nsec
-        s = self._slot(stamp)
-        new = s.imu is None
-        s.imu = vals
-        self._received(stamp, s, new)
-
-    def _on_contacts_cdr(self, data):
-        """starleth/foot_contacts (state_source estimator): names and flags."""
-        msg = self._deserialise(data, JointState, "foot contacts")
-        if msg is None:
-            return
-        stamp = stamp_ns(msg.header)
-        s = self._slot(stamp)
-        new = s.contacts is None
-        s.contacts = (tuple(msg.name), msg.position)
-        self._received(stamp, s, new)
+    def _side_value(self, field, r):
+        """A value of the state estimator's inputs: `field` ('imu', 'contacts') of its
+        stamp's slot; r = (stamp, value), None for a message that could not be read."""
+        if r is not None:
+            s = self._slot(r[0])
+            new = getattr(s, field) is None
+            setattr(s, field, r[1])
+            self._received(r[0], s, new)
 
     def _on_wrench(self, k, msg):
         f = msg.wrench.force
@@ -598,10 +584,10 @@ class ControllerNode(Node):
             self._warn("no_model", "state received but no controller model yet (waiting for "
                        "/robot_description)")
             return
-        if self._estimate is not None:
-            state, key, reason = self._estimate.robot_state(stamp, s)
+        if self._estimator is not None:
+            state, key, reason = self._estimator.estimate.robot_state(stamp, s)
             if state is not None:
-                self._publish_estimate(s.js[:2])
+                self._estimator.publish(s.js[:2])
         else:
             state, key, reason = self._assembler.robot_state(stamp, s)
         if state is None:
@@ -639,21 +625,6 @@ class ControllerNode(Node):
         self._publish(sec_nsec, effort)
         if self.timing is not None:
             self.timing.add(stamp, s.t_first, t_complete, t_computed, time.perf_counter())
-
-    def _publish_estimate(self, sec_nsec):
-        """estimator/odometry: the estimate of the state just read, stamped with it."""
-        if self.pub_odom is None:
-            return
-        vals = self._estimate.odometry_values()
-        if self._odom_cdr is not None:
-            self.pub_odom.publish(self._odom_cdr.build(*sec_nsec, vals))
-            return
-        o = self._odom_msg
-        o.header.stamp.sec, o.header.stamp.nanosec = sec_nsec
-        pp, po = o.pose.pose.position, o.pose.pose.orientation
-        tl, ta = o.twist.twist.linear, o.twist.twist.angular
-        pp.x, pp.y, pp.z, po.x, po.y, po.z, po.w, tl.x, tl.y, tl.z, ta.x, ta.y, ta.z = vals
-        self.pub_odom.publish(o)
 
     def _publish(self, sec_nsec, effort):
         self.counters["commands"] += 1
