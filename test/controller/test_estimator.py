@@ -155,10 +155,10 @@ def test_the_controller_walks_on_its_own_estimate():
     """The controller's state built from the filter alone (noisy sensors): no fall, the
     commanded speed reached, the estimate as good as in the open loop."""
     rec = trot(NOISY, drive="estimate")
-    rms, drift, _ = errors(rec)
+    rms, drift, yaw = errors(rec)
     walked = rec["r"][-1, 0] - rec["r"][int(STAND * 400), 0]
     print(f"\n[HmJ on the estimate] walked {walked:.2f} m in {TROT:g} s, velocity RMS "
-          f"{rms:.4f} m/s, drift {100 * drift:.2f} %")
+          f"{rms:.4f} m/s, drift {100 * drift:.2f} %, yaw error {math.degrees(yaw):.2f} deg")
     assert rec["r"][:, 2].min() > 0.3 and rec["tilt"].min() > math.cos(0.25)
     assert walked > 0.8 * SPEED * (TROT - 1.0)
     assert rms <= 0.05 and drift <= 0.05
