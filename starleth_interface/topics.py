@@ -14,12 +14,14 @@ TOPIC_CLOCK = "/clock"
 TOPIC_JOINT_STATES = "joint_states"
 TOPIC_BASE_STATE = "starleth/base_state"
 TOPIC_IMU = "starleth/imu"
+#: the feet's contact switches (sensor_msgs/JointState: name = the foot contact names,
+#: position = flag 1.0 contact / 0.0 none, effort = the measured normal force [N])
 TOPIC_FOOT_CONTACTS = "starleth/foot_contacts"
-#: controller_node's state estimate (state_source:=estimator; nav_msgs/Odometry)
-TOPIC_ESTIMATOR_ODOMETRY = "estimator/odometry"
 TOPIC_SOLVER = "starleth/solver"
 #: the state of a step in one message, sim_node -> controller_node (starleth_interface.state_bundle)
 TOPIC_STATE_BUNDLE = "starleth/state_bundle"
+#: controller_node's state estimate (state_source:=estimator; nav_msgs/Odometry)
+TOPIC_ESTIMATOR_ODOMETRY = "estimator/odometry"
 TOPIC_ROBOT_DESCRIPTION = "robot_description"
 TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
 #: ros2_control forward_command_controller topics: joint targets (joint order) that sim_node
