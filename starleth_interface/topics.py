@@ -17,6 +17,12 @@ TOPIC_IMU = "starleth/imu"
 #: the feet's contact switches (sensor_msgs/JointState: name = the foot contact names,
 #: position = flag 1.0 contact / 0.0 none, effort = the measured normal force [N])
 TOPIC_FOOT_CONTACTS = "starleth/foot_contacts"
+#: with noisy sensors, the exact values of the measured topics (Gazebo's convention): a
+#: controller must not need them
+GROUND_TRUTH_PREFIX = "ground_truth/"
+TOPIC_GROUND_TRUTH_JOINT_STATES = GROUND_TRUTH_PREFIX + "joint_states"
+TOPIC_GROUND_TRUTH_IMU = GROUND_TRUTH_PREFIX + "imu"
+TOPIC_GROUND_TRUTH_FOOT_CONTACTS = GROUND_TRUTH_PREFIX + "foot_contacts"
 TOPIC_SOLVER = "starleth/solver"
 #: the state of a step in one message, sim_node -> controller_node (starleth_interface.state_bundle)
 TOPIC_STATE_BUNDLE = "starleth/state_bundle"
