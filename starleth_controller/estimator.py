@@ -43,23 +43,24 @@ class EstimatorParams:
     """Noise densities and initial standard deviations of ``LegOdometryEKF`` (their meaning:
     ESTIMATOR_PARAMETERS; controller_node's ``estimator.<name>`` parameters).
 
-    Defaults: the white-noise densities of a MEMS IMU (datasheets of the class: gyroscope
-    1e-4–5e-4 rad/s/√Hz, accelerometer 1e-3–3e-3 m/s²/√Hz) raised to cover what the model
-    leaves out (vibration, the control period's discretisation of f̃ and ω̃); bias random
-    walks of the same class; leg kinematics good to ~1 cm (encoders, leg compliance,
-    contact flags a step late). doc/estimator.md gives the reasoning."""
+    Defaults: an ADIS16448-class MEMS IMU (msg_configs/sensors/realistic.yaml: gyroscope
+    3.4e-4 rad/s/√Hz, accelerometer 4e-3 m/s²/√Hz, turn-on biases 8.7e-3 rad/s and
+    0.2 m/s², bias walk 6e-3 m/s³/√Hz), the white-noise densities raised to cover what the
+    model leaves out (vibration, the control period's discretisation of f̃ and ω̃); leg
+    kinematics good to ~1 cm; feet on hard ground that slip a few mm per stance.
+    doc/estimator.md gives the reasoning."""
     accel_noise: float = 0.02
     gyro_noise: float = 0.002
-    accel_bias_walk: float = 1e-3
+    accel_bias_walk: float = 6e-3
     gyro_bias_walk: float = 1e-4
-    foot_contact_walk: float = 0.02
+    foot_contact_walk: float = 0.005
     foot_swing_walk: float = 10.0
     kinematics_noise: float = 0.01
     init_position: float = 1e-3
     init_velocity: float = 0.1
     init_orientation: float = 0.05
     init_foot: float = 0.01
-    init_accel_bias: float = 0.1
+    init_accel_bias: float = 0.2
     init_gyro_bias: float = 0.01
     #: the feet in contact roll with their shanks (the sphere's centre moves ρ ω × e_z)
     rolling_feet: bool = True
