@@ -13,6 +13,7 @@ truth to a few mm/s; the controller walks on its own estimate.
 import math
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from estimator_run import EstimatorRun, Noise
 
@@ -170,3 +171,61 @@ def test_the_controller_walks_on_its_own_estimate():
     assert rec["r"][:, 2].min() > 0.3 and rec["tilt"].min() > math.cos(0.25)
     assert walked > 0.8 * SPEED * (TROT - 1.0)
     assert rms <= 0.05 and drift <= 0.05
+
+
+def test_rolling_feet_turn_with_the_shank_as_pinocchio_says():
+    """rolling_velocities = ρ (ω_shank × e_z) with ω_shank the foot link's angular velocity
+    (world) that Pinocchio computes for the same base rate and joint rates, on StarlETH and
+    on Go1 (other joint axes and order)."""
+    rng = np.random.default_rng(5)
+    for robot in ("starleth", "go1"):
+        model = RobotModel(robot=robot)
+        e = LegOdometryEKF(model)
+        m, data = model.model, model.data
+        q = pin.neutral(m)
+        q[3:7] = quat_exp(rng.normal(0.0, 0.3, 3))
+        qj = model.nominal_joint_positions(0.7 * model.leg_length) + \
+            rng.normal(0.0, 0.1, 12)
+        dqj = rng.normal(0.0, 2.0, 12)
+        v = np.zeros(m.nv)
+        v[3:6] = rng.normal(0.0, 0.5, 3)            # base rate, base frame
+        q[model.iq], v[model.iv] = qj, dqj
+        pin.forwardKinematics(m, data, q, v)
+        pin.updateFramePlacements(m, data)
+        e.q, e.w = np.array(q[3:7]), v[3:6].copy()
+        roll = e.rolling_velocities(qj, dqj)
+        for k in range(4):
+            w = pin.getFrameVelocity(m, data, model.foot_frame[k],
+                                     pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).angular
+            want = model.foot_radius[k] * np.cross(w, [0.0, 0.0, 1.0])
+            assert np.allclose(roll[k], want, atol=1e-12), (robot, k, roll[k], want)
+
+
+def test_the_node_intake_rejects_bad_sensor_messages_with_a_reason():
+    """EstimatedState: a missing foot, flags of the wrong length, a NaN joint or IMU value,
+    a zero quaternion give (None, key, reason) and leave the filter untouched."""
+    from types import SimpleNamespace
+
+    from starleth_controller.estimator_intake import EstimatedState
+    model = RobotModel()
+    est = EstimatedState(model)
+    q = model.nominal_joint_positions(0.41)
+    names = model.public_joint_names
+    feet = list(model.foot_names)
+
+    def slot(q=q, imu=(0, 0, 0, 1, 0, 0, 0, 0, 0, 9.81), contacts=(feet, [1.0] * 4)):
+        return SimpleNamespace(js=(0, 0, names, list(q), [0.0] * 12), imu=imu,
+                               contacts=contacts)
+
+    bad = {"foot_contacts": slot(contacts=(feet[:3], [1.0] * 3)),
+           "foot_contacts ": slot(contacts=(feet, [1.0] * 3)),
+           "joint_states_nan": slot(q=[math.nan] + list(q[1:])),
+           "imu_nan": slot(imu=(0, 0, 0, 1, 0, math.nan, 0, 0, 0, 9.81)),
+           "imu_quat": slot(imu=(0, 0, 0, 0, 0, 0, 0, 0, 0, 9.81))}
+    for key, s in bad.items():
+        state, k, reason = est.robot_state(2_500_000, s)
+        assert state is None and k == key.strip() and reason, (key, k, reason)
+    assert not est.ekf.initialised
+    state, _, _ = est.robot_state(2_500_000, slot(contacts=(feet[::-1], [1.0, 0.0, 1.0, 1.0])))
+    assert list(state.foot_contact) == [True, True, False, True]     # by name
+    assert len(est.odometry_values()) == 13
