@@ -18,12 +18,13 @@ State x (world frame W = odometry frame, z up; base frame B):
 
 Process model (continuous, w_*: white noise of the densities in ``EstimatorParams``):
     ṙ = v,   v̇ = R (f̃ − b_f − w_f) + g,   Ṙ = R [ω̃ − b_ω − w_ω]×,
-    ṗ_i = w_p,i  (σ_contact in contact, σ_swing ≫ without: a foot in the air is free),
-    ḃ_f = w_bf,  ḃ_ω = w_bω.
+    ṗ_i = ρ ω_shank × e_z + w_p,i  (the foot sphere rolls; σ_contact in contact, σ_swing ≫
+    without: a foot in the air is free),   ḃ_f = w_bf,  ḃ_ω = w_bω.
 Measurement of each foot in contact (forward kinematics of the measured joint angles):
     s_i = Rᵀ (p_i − r) + n_s.
 Error state δx = (δr, δv, δφ, δp_i, δb_f, δb_ω) with the orientation error a rotation vector
-in the world frame: R = Exp(δφ) R̂.
+in the world frame: R = Exp(δφ) R̂. Beyond the paper's equations: the rolling feet and Φ
+constrained to keep yaw unobservable (``LegOdometryEKF._constrain``).
 """
 from __future__ import annotations
 
