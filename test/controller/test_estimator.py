@@ -229,3 +229,24 @@ def test_the_node_intake_rejects_bad_sensor_messages_with_a_reason():
     state, _, _ = est.robot_state(2_500_000, slot(contacts=(feet[::-1], [1.0, 0.0, 1.0, 1.0])))
     assert list(state.foot_contact) == [True, True, False, True]     # by name
     assert len(est.odometry_values()) == 13
+
+
+def test_node_parameters_give_the_filter_and_refuse_the_bundle():
+    """controller_node's estimator.* parameters are EstimatorParams' fields with its
+    defaults; state_source estimator with state_input bundle (ground truth) is refused."""
+    from dataclasses import asdict
+
+    from starleth_controller.node_parameters import (
+        PARAMETERS,
+        check_parameters,
+        estimator_params,
+    )
+    p = {spec.name: spec.default for spec in PARAMETERS}
+    want = asdict(EstimatorParams())
+    del want["observability_constrained"]           # (a Python option, not a parameter)
+    assert {k: v for k, v in asdict(estimator_params(p)).items() if k in want} == want
+    assert {s.name[len("estimator."):] for s in PARAMETERS
+            if s.name.startswith("estimator.")} == set(want)
+    check_parameters(dict(p, state_source="estimator"))
+    with pytest.raises(ValueError, match="state_input"):
+        check_parameters(dict(p, state_source="estimator", state_input="bundle"))
