@@ -11,6 +11,8 @@ covariance while roll and pitch stay bounded; with ideal sensors the velocity fo
 truth to a few mm/s; the controller walks on its own estimate.
 """
 import math
+from dataclasses import asdict
+from types import SimpleNamespace
 
 import numpy as np
 import pinocchio as pin
@@ -29,6 +31,8 @@ from starleth_controller.estimator import (
     quat_to_rot,
     skew,
 )
+from starleth_controller.estimator_intake import EstimatedState
+from starleth_controller.node_parameters import PARAMETERS, check_parameters, estimator_params
 
 #: per-sample noise at 400 Hz of a MEMS IMU (gyro 2.5e-4 rad/s/√Hz, accelerometer
 #: 2.5e-3 m/s²/√Hz) and 12-bit-class encoders, with constant biases
@@ -204,9 +208,6 @@ def test_rolling_feet_turn_with_the_shank_as_pinocchio_says():
 def test_the_node_intake_rejects_bad_sensor_messages_with_a_reason():
     """EstimatedState: a missing foot, flags of the wrong length, a NaN joint or IMU value,
     a zero quaternion give (None, key, reason) and leave the filter untouched."""
-    from types import SimpleNamespace
-
-    from starleth_controller.estimator_intake import EstimatedState
     model = RobotModel()
     est = EstimatedState(model)
     q = model.nominal_joint_positions(0.41)
@@ -234,13 +235,6 @@ def test_the_node_intake_rejects_bad_sensor_messages_with_a_reason():
 def test_node_parameters_give_the_filter_and_refuse_the_bundle():
     """controller_node's estimator.* parameters are EstimatorParams' fields with its
     defaults; state_source estimator with state_input bundle (ground truth) is refused."""
-    from dataclasses import asdict
-
-    from starleth_controller.node_parameters import (
-        PARAMETERS,
-        check_parameters,
-        estimator_params,
-    )
     p = {spec.name: spec.default for spec in PARAMETERS}
     want = asdict(EstimatorParams())
     del want["observability_constrained"]           # (a Python option, not a parameter)
