@@ -150,10 +150,11 @@ class LegOdometryEKF:
         """s_i: each foot's sphere centre in the base frame (n_feet, 3), from the joint
         angles (public order) by the model's forward kinematics."""
         q = np.asarray(joint_positions, dtype=float)
-        return self._fk(q if self._order is None else q[self._order])
+        return self._fk(q if self._order is None else q[self._order]).copy()
 
     def _fk(self, q) -> np.ndarray:
-        """foot_positions of joint angles in the controller's order."""
+        """foot_positions of joint angles in the controller's order (in a buffer the next
+        call overwrites)."""
         fk = self.model.leg_fk
         for k in range(self.n_feet):
             self._s[k] = fk(k, q[3 * k], q[3 * k + 1], q[3 * k + 2])
