@@ -169,8 +169,8 @@ def run(argv=None) -> int:
         else:
             warn("nothing to plot")
     estimates, plots = estimator_error.report(      # bags with estimator/odometry
-        a.bags, [r.label for r in runs],
-        None if a.no_plots else a.out or _default_out(a.bags), a.dpi, load_pyplot)
+        runs, None if a.no_plots else a.out or _default_out(a.bags), a.dpi, load_pyplot,
+        a.salvage)
     written.update(plots)
     print(f"read and decoded {sum(r.messages for r in runs)} messages in {t_read:.2f} s")
     if a.json:

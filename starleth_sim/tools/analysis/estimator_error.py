@@ -77,7 +77,7 @@ def error_series(truth: dict, estimate: dict) -> dict | None:
             "stamps": len(stamps)}
 
 
-def read_errors(path: str) -> dict | None:
+def read_errors(path: str, salvage: bool = False) -> dict | None:
     """error_series of a bag's estimator/odometry against its starleth/base_state (in one
     namespace); None when the bag has no estimate."""
     def select(topic, type_name):
@@ -85,7 +85,7 @@ def read_errors(path: str) -> dict | None:
             namespace_of(topic, rel) is not None
             for rel in (TOPIC_BASE_STATE, TOPIC_ESTIMATOR_ODOMETRY))
 
-    bag = read_messages(path, select, on_warning=lambda _: None)
+    bag = read_messages(path, select, salvage, on_warning=lambda _: None)
     by_ns = {}
     for topic, rows in bag.messages.items():
         for rel in (TOPIC_BASE_STATE, TOPIC_ESTIMATOR_ODOMETRY):
@@ -127,12 +127,16 @@ def plot_errors(plt, errors: dict):
     return fig
 
 
-def report(paths, labels, out_dir, dpi, load_pyplot) -> tuple[dict, dict]:
-    """starleth-analyze's part: prints one line per bag with an estimate, plots them into
-    `out_dir` (None: no plot); ({label: figures}, {plot name: path})."""
-    errors = {label: e for label, e in ((label, read_errors(p))
-                                        for p, label in zip(paths, labels, strict=True))
-              if e is not None}
+def report(runs, out_dir, dpi, load_pyplot, salvage=False) -> tuple[dict, dict]:
+    """starleth-analyze's part: prints one line per run (run.Run) whose bag has an estimate
+    (read again for its two topics; the others are not), plots them into `out_dir` (None:
+    no plot); ({label: figures}, {plot name: path})."""
+    errors = {}
+    for r in runs:
+        if any(namespace_of(t, TOPIC_ESTIMATOR_ODOMETRY) is not None for t in r.counts):
+            e = read_errors(r.path, salvage)
+            if e is not None:
+                errors[r.label] = e
     for label, e in errors.items():
         print(format_errors(label, e))
     if not errors or out_dir is None:
