@@ -21,12 +21,17 @@ them under /robot1, beside that robot's sim_node; remap them for another robot):
                                                                       name (topics.topic_token)
     cmd_vel                              geometry_msgs/Twist          linear.x, linear.y, angular.z
     robot_description                    std_msgs/String              with robot_description:=true
+    starleth/imu, starleth/foot_contacts sensor_msgs/Imu, JointState  state_source:=estimator,
+                                                                      instead of the base state,
+                                                                      wrenches and bundle
 
 Published:
 
     joint_commands                       sensor_msgs/JointState       names + effort; header.stamp
                                                                       = the state's stamp
     (effort_array_topic, off by default) std_msgs/Float64MultiArray   12 torques, joint order
+    estimator/odometry                   nav_msgs/Odometry            state_source:=estimator:
+                                                                      the estimate of each step
 
 Service ``~/trot`` (std_srvs/SetBool): true = trot, false = stand (sets the ``mode`` parameter).
 
@@ -38,8 +43,11 @@ in flight, and a lockstep simulator's clock stands still while it waits for the 
 
 The base state is taken from ``/starleth/base_state`` as *ground truth* (the simulator's
 Odometry: pose in the world frame, twist in the child (base) frame as REP 105 says; set
-``twist_frame:=parent`` for a source that gives the linear velocity in the world frame). A
-state estimator is out of scope.
+``twist_frame:=parent`` for a source that gives the linear velocity in the world frame).
+With ``state_source:=estimator`` the node reads no ground truth: the joint state, the IMU and
+the foot contact flags of a stamp (three messages) go through the state estimator
+(estimator.py, Bloesch et al. RSS 2012; doc/estimator.md), whose estimate is the
+controller's base state and is published on ``estimator/odometry``.
 
 State input (``state_input``): ``auto`` (the default) subscribes to the state bundle
 (:mod:`starleth_interface.state_bundle`: sim_node's joint state, base state and foot forces
@@ -95,7 +103,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool
 
@@ -124,9 +132,16 @@ from starleth_interface.ros_helpers import (
 )
 
 from .controller import StarlethController
+from .estimator_topics import EstimatorTopics
 from .inputs import Command
 from .model import NotAQuadruped, RobotModel
-from .node_parameters import PARAMETERS, PARAMETERS_BY_NAME, check_parameters, default_wrench_topics
+from .node_parameters import (
+    PARAMETERS,
+    PARAMETERS_BY_NAME,
+    check_parameters,
+    default_wrench_topics,
+    estimator_params,
+)
 from .side_inputs import SideInputs
 from .state_intake import StateAssembler, StateSlot, all_finite, stamp_ns
 
@@ -194,6 +209,10 @@ class ControllerNode(Node):
         self._js_reader = JointStateReader()
         self._odom_reader = StampedReader(Odometry, ODOM_FIELDS, n_strings=2)
         self._wrench_reader = StampedReader(WrenchStamped, WRENCH_FIELDS)
+        # state_source estimator: its topics and the filter (made with the model)
+        self._estimating = p["state_source"] == "estimator"
+        self._needed = 3 if self._estimating else 6     # messages of a complete stamp
+        self._estimator = None
         self.timing = None                # a CycleTimes, set by benchmarks
 
     def _init_publishers(self, p):
@@ -208,6 +227,10 @@ class ControllerNode(Node):
         self._cmd_msg = JointState()
         self._cmd_cdr = None
         self._array_msg = Float64MultiArray()
+        if self._estimating:
+            self._estimator = EstimatorTopics(self, estimator_params(p),
+                                              p["estimator_odometry_topic"], cmd_qos,
+                                              self._bad_message)
 
     def _init_robot(self, p):
         """The robot: from its parameters now, or from robot_description when it comes (a
@@ -239,7 +262,8 @@ class ControllerNode(Node):
                else ReliabilityPolicy.RELIABLE)
         state_qos = QoSProfile(depth=10, reliability=rel, durability=DurabilityPolicy.VOLATILE,
                                history=HistoryPolicy.KEEP_LAST)
-        self.state_input = p["state_input"]
+        # the state bundle carries ground truth: the estimator reads the public topics
+        self.state_input = "topics" if self._estimating else p["state_input"]
         self._bundled = False     # reading the bundle alone (auto: after the first one)
         self.sub_bundle = (self.create_subscription(
             Float64MultiArray, p["state_bundle_topic"], self._on_bundle_cdr, state_qos,
@@ -249,13 +273,24 @@ class ControllerNode(Node):
             self.sub_js = self.create_subscription(JointState, p["joint_states_topic"],
                                                    self._on_joint_states_cdr, state_qos,
                                                    raw=True)
-            self._side = SideInputs(self, state_qos, p["base_state_topic"],
-                                    wrench_topics, self._on_base_state_cdr,
-                                    self._on_wrench_cdr, self._joint_state_waiting)
+            self._side = SideInputs(self, state_qos, self._side_inputs(p, wrench_topics),
+                                    self._joint_state_waiting)
         self.sub_cmd_vel = self.create_subscription(Twist, p["cmd_vel_topic"], self._on_cmd_vel,
                                                     QoSProfile(depth=10))
         self.srv_trot = self.create_service(SetBool, "~/trot", self._srv_trot,
                                             qos_profile=service_qos())
+
+    def _side_inputs(self, p, wrench_topics):
+        """(type, topic, callback) of the inputs read beside the joint state: the IMU and the
+        foot contacts (state_source estimator), else the base state and the foot wrenches."""
+        if self._estimating:
+            e = self._estimator
+            return [(Imu, p["imu_topic"], lambda d: self._side_value("imu", e.imu(d))),
+                    (JointState, p["foot_contacts_topic"],
+                     lambda d: self._side_value("contacts", e.contacts(d)))]
+        return [(Odometry, p["base_state_topic"], self._on_base_state_cdr)] + [
+            (WrenchStamped, topic, (lambda data, k=k: self._on_wrench_cdr(k, data)))
+            for k, topic in enumerate(wrench_topics)]
 
     def destroy_node(self):
         self._unroute_logging()
@@ -342,6 +377,8 @@ class ControllerNode(Node):
         self._cmd_msg.name = list(self._joint_names)
         # commands go out as CDR bytes patched into a template (None: as message objects)
         self._cmd_cdr = JointStateCdr.create(self._joint_names, ("effort",))
+        if self._estimating:
+            self._estimator.use_model(m)
         self.log.info(f"controller model from {what}: {m.mass:.2f} kg, legs "
                       f"{m.leg_length:.3f} m (scale λ {m.scale.length:g}, μ {m.scale.mass:g})")
 
@@ -377,7 +414,7 @@ class ControllerNode(Node):
 
     def _drop_incomplete(self, stamp, slot):
         self.counters["dropped_incomplete"] += 1
-        missing = ", ".join(slot.missing(self._foot_names or ("foot",) * 4))
+        missing = ", ".join(slot.missing(self._foot_names or ("foot",) * 4, self._estimating))
         self._warn("incomplete", f"dropped the incomplete state of t={stamp * 1e-9:.4f} s "
                    f"(missing: {missing})", missing)
 
@@ -385,9 +422,12 @@ class ControllerNode(Node):
         try:
             return deserialize_message(data, typ)
         except Exception as e:   # malformed CDR: ignore it, never die
-            self.counters["rejected"] += 1
-            self._warn("bad_cdr", f"ignored an undecodable {what}: {e}", what)
+            self._bad_message(what, e)
             return None
+
+    def _bad_message(self, what, e):
+        self.counters["rejected"] += 1
+        self._warn("bad_cdr", f"ignored an undecodable {what}: {e}", what)
 
     def _on_bundle_cdr(self, data):
         """A state bundle: the whole state of its stamp (starleth_interface.state_bundle),
@@ -489,6 +529,15 @@ class ControllerNode(Node):
         s.odom = vals
         self._received(stamp, s, new)
 
+    def _side_value(self, field, r):
+        """A value of the state estimator's inputs: `field` ('imu', 'contacts') of its
+        stamp's slot; r = (stamp, value), None for a message that could not be read."""
+        if r is not None:
+            s = self._slot(r[0])
+            new = getattr(s, field) is None
+            setattr(s, field, r[1])
+            self._received(r[0], s, new)
+
     def _on_wrench(self, k, msg):
         f = msg.wrench.force
         self._foot_wrench(k, stamp_ns(msg.header), (f.x, f.y, f.z))
@@ -504,7 +553,7 @@ class ControllerNode(Node):
         already in the slot); the controller runs once all 6 are in."""
         if new:
             s.n += 1
-        if s.n == 6:
+        if s.n == self._needed:
             self._complete(stamp, s)
 
     def _on_cmd_vel(self, msg):
@@ -535,7 +584,12 @@ class ControllerNode(Node):
             self._warn("no_model", "state received but no controller model yet (waiting for "
                        "/robot_description)")
             return
-        state, key, reason = self._assembler.robot_state(stamp, s)
+        if self._estimator is not None:
+            state, key, reason = self._estimator.estimate.robot_state(stamp, s)
+            if state is not None:
+                self._estimator.publish(s.js[:2])
+        else:
+            state, key, reason = self._assembler.robot_state(stamp, s)
         if state is None:
             self.counters["rejected"] += 1
             self._warn(key, f"ignored the state of t={stamp * 1e-9:.4f} s: {reason}",

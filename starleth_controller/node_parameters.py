@@ -11,12 +11,16 @@ from starleth_interface.ros_helpers import (
 )
 from starleth_interface.topics import (
     TOPIC_BASE_STATE,
+    TOPIC_ESTIMATOR_ODOMETRY,
+    TOPIC_FOOT_CONTACTS,
+    TOPIC_IMU,
     TOPIC_JOINT_COMMANDS,
     TOPIC_JOINT_STATES,
     TOPIC_STATE_BUNDLE,
     foot_wrench_topic,
 )
 
+from .estimator import ESTIMATOR_PARAMETERS, EstimatorParams
 from .inputs import MODES, ControllerParams
 
 
@@ -51,7 +55,19 @@ PARAMETERS = (
     P("state_bundle_topic", str, TOPIC_STATE_BUNDLE, "std_msgs/Float64MultiArray state "
       "bundle input (sim_node's; layout in starleth_interface.state_bundle)"),
     P("joint_states_topic", str, TOPIC_JOINT_STATES, "sensor_msgs/JointState input"),
+    P("state_source", str, "ground_truth", "ground_truth: the base state of base_state_topic "
+      "(the simulator's) | estimator: the state estimator's (doc/estimator.md) from the "
+      "joint states, the IMU and the foot contacts alone (no base state, no state bundle)",
+      choices=("ground_truth", "estimator")),
     P("base_state_topic", str, TOPIC_BASE_STATE, "nav_msgs/Odometry input (ground truth)"),
+    P("imu_topic", str, TOPIC_IMU, "sensor_msgs/Imu input (state_source estimator): "
+      "orientation, angular velocity and proper acceleration, base frame"),
+    P("foot_contacts_topic", str, TOPIC_FOOT_CONTACTS, "sensor_msgs/JointState input "
+      "(state_source estimator): name = the feet's contact names, position = 1.0 contact / "
+      "0.0 none"),
+    P("estimator_odometry_topic", str, TOPIC_ESTIMATOR_ODOMETRY, "nav_msgs/Odometry output "
+      "of the estimate every control step (state_source estimator; twist in the base "
+      "frame); empty = off"),
     P("foot_wrench_topics", list, [], "geometry_msgs/WrenchStamped inputs, one per foot in "
       "the robot's foot order (its legs'); empty = starleth/<foot contact name>/wrench of "
       "each foot, sim_node's names"),
@@ -75,8 +91,20 @@ PARAMETERS = (
     P("executor", str, "events", "events (rclpy's C++ EventsExecutor) | single_threaded",
       choices=EXECUTORS),
     P("cpu_scheduling", str, "default", CPU_SCHEDULING_HELP, choices=CPU_SCHEDULING),
+    *(P(f"estimator.{name}", float, getattr(EstimatorParams, name), text, minimum=0.0,
+        maximum=1e6) for name, text in ESTIMATOR_PARAMETERS),
+    P("estimator.rolling_feet", bool, True, "the feet in contact roll with their shanks (the "
+      "foot sphere's centre moves ρ ω × e_z; hard contacts, the robot); false: they stand "
+      "still (the compliant preset Cm's feet, held by their tangential springs)"),
 )
 PARAMETERS_BY_NAME = {p.name: p for p in PARAMETERS}
+
+
+def estimator_params(p) -> EstimatorParams:
+    """The estimator's parameters of the node's (`p`: name -> value)."""
+    return EstimatorParams(rolling_feet=bool(p["estimator.rolling_feet"]),
+                           **{name: float(p[f"estimator.{name}"])
+                              for name, _ in ESTIMATOR_PARAMETERS})
 
 
 def check_parameters(p) -> None:
@@ -92,5 +120,8 @@ def check_parameters(p) -> None:
                                   not all(isinstance(t, str) and t for t in topics)):
         errors.append(f"parameter foot_wrench_topics: expected 4 topic names (the robot's "
                       f"feet in its legs' order) or none, got {topics!r}")
+    if not errors and p["state_source"] == "estimator" and p["state_input"] == "bundle":
+        errors.append("parameter state_input: bundle carries ground truth; state_source "
+                      "estimator reads the sensor topics (state_input auto or topics)")
     if errors:
         raise ValueError("; ".join(errors))

@@ -1,16 +1,14 @@
-"""The side inputs of ``controller_node``: the base state and the four foot wrenches, taken
-from their subscriptions' queues when the node wants them, not by an executor
-(``SideInputs``)."""
+"""The side inputs of ``controller_node``: the base state and the four foot wrenches (or, with
+``state_source:=estimator``, the IMU and the foot contacts), taken from their subscriptions'
+queues when the node wants them, not by an executor (``SideInputs``)."""
 from __future__ import annotations
 
-from geometry_msgs.msg import WrenchStamped
-from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 
 class SideInputs:
-    """The base state and the four foot wrenches ("side inputs") of `node`, subscribed (as CDR
+    """The inputs other than the joint state ("side inputs") of `node`, subscribed (as CDR
     bytes) on a hidden helper node (``_<name>_side_inputs``) that no executor spins: their
     messages wait in the subscriptions' queues and are taken when the joint state of a stamp
     arrives (``take``), so the executor thread wakes once per state instead of six times (a
@@ -18,15 +16,14 @@ class SideInputs:
     wait). Until a stamp is complete, the steady-clock timer `poll` (on `node`, started by
     the node) takes them every POLL_PERIOD, and stops itself once `waiting()` (a joint state
     waits for the rest of its stamp) is false: any order of arrival still works. Topic names
-    are resolved by `node` (its namespace and remappings). A message taken goes to
-    ``on_base_state(data)`` or ``on_wrench(k, data)`` (k: the foot, LF, RF, LH, RH)."""
+    are resolved by `node` (its namespace and remappings). `inputs`: (message type, topic,
+    callback) each; a message taken goes to its callback(data)."""
 
     #: s: while a joint state waits for the other messages of its stamp, the side inputs
     #: are looked at this often (steady clock)
     POLL_PERIOD = 0.0005
 
-    def __init__(self, node, qos, base_state_topic, wrench_topics, on_base_state, on_wrench,
-                 waiting):
+    def __init__(self, node, qos, inputs, waiting):
         self.node = Node(f"_{node.get_name()}_side_inputs", context=node.context,
                          namespace=node.get_namespace(), use_global_arguments=False,
                          enable_rosout=False, start_parameter_services=False)
@@ -34,10 +31,7 @@ class SideInputs:
         def sub(typ, topic):
             return self.node.create_subscription(typ, node.resolve_topic_name(topic),
                                                  lambda _: None, qos, raw=True)
-        self.sub_odom = sub(Odometry, base_state_topic)
-        self.sub_wrench = [sub(WrenchStamped, topic) for topic in wrench_topics]
-        self._inputs = [(self.sub_odom, on_base_state)] + [
-            (s, (lambda data, k=k: on_wrench(k, data))) for k, s in enumerate(self.sub_wrench)]
+        self._inputs = [(sub(typ, topic), on_data) for typ, topic, on_data in inputs]
         self._waiting = waiting
         self.poll = node.create_timer(self.POLL_PERIOD, self._on_poll,
                                       clock=Clock(clock_type=ClockType.STEADY_TIME),

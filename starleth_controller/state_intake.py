@@ -23,22 +23,26 @@ from .model import JOINT_NAMES
 class StateSlot:
     """The state of one stamp as read from its messages: joint state (sec, nanosec, names,
     position, velocity), base state (13 floats: position, orientation xyzw, linear and
-    angular velocity), 4 wrench forces (3 floats each)."""
-    __slots__ = ("js", "odom", "wrench", "n", "t_first")
+    angular velocity), 4 wrench forces (3 floats each); or, for the state estimator, the
+    IMU (10 floats: orientation xyzw, angular velocity, proper acceleration) and the foot
+    contacts (names, flags)."""
+    __slots__ = ("js", "odom", "wrench", "imu", "contacts", "n", "t_first")
 
     def __init__(self):
         self.t_first = time.perf_counter()
         self.js = None
         self.odom = None
         self.wrench = [None, None, None, None]
+        self.imu = self.contacts = None
         self.n = 0
 
-    def missing(self, feet) -> list:
-        """The names of the messages not in the slot (`feet`: the feet's names)."""
-        return [name for name, m in (("joint state", self.js), ("base state", self.odom),
-                                     *zip((f"{foot} wrench" for foot in feet), self.wrench,
-                                          strict=True))
-                if m is None]
+    def missing(self, feet, estimator=False) -> list:
+        """The names of the messages not in the slot (`feet`: the feet's names; estimator:
+        the state estimator's messages)."""
+        inputs = ((("imu", self.imu), ("foot contacts", self.contacts)) if estimator else
+                  (("base state", self.odom),
+                   *zip((f"{foot} wrench" for foot in feet), self.wrench, strict=True)))
+        return [name for name, m in (("joint state", self.js), *inputs) if m is None]
 
 
 def stamp_ns(header) -> int:

@@ -28,6 +28,8 @@ TOPIC_GROUND_TRUTH_FOOT_CONTACTS = GROUND_TRUTH_PREFIX + "foot_contacts"
 TOPIC_SOLVER = "starleth/solver"
 #: the state of a step in one message, sim_node -> controller_node (starleth_interface.state_bundle)
 TOPIC_STATE_BUNDLE = "starleth/state_bundle"
+#: controller_node's state estimate (state_source:=estimator; nav_msgs/Odometry)
+TOPIC_ESTIMATOR_ODOMETRY = "estimator/odometry"
 TOPIC_ROBOT_DESCRIPTION = "robot_description"
 TOPIC_EFFORT_COMMANDS = "joint_group_effort_controller/commands"
 #: ros2_control forward_command_controller topics: joint targets (joint order) that sim_node

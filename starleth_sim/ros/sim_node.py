@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import yaml
 from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -46,6 +47,7 @@ from starleth_interface.ros_helpers import (
 from starleth_interface.topics import (
     TOPIC_CLOCK,
     TOPIC_EFFORT_COMMANDS,
+    TOPIC_ESTIMATOR_ODOMETRY,
     TOPIC_JOINT_COMMANDS,
     TOPIC_POSITION_COMMANDS,
     TOPIC_VELOCITY_COMMANDS,
@@ -264,6 +266,9 @@ class SimNode:
         sub("wrench", WrenchStamped, TOPIC_WRENCH, self._on_wrench)
         sub("wrench_persistent", WrenchStamped, TOPIC_WRENCH_PERSISTENT,
             self._on_wrench_persistent)
+        if raw:     # a controller's state estimate: recorded for the analysis, not read
+            sub("estimator_odometry", Odometry, TOPIC_ESTIMATOR_ODOMETRY, None,
+                lambda _: True)
 
     def _setup_services(self):
         node = self.node

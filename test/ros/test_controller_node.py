@@ -35,11 +35,12 @@ from ros_test_nodes import NodeProcess, RosTestNode
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import SetBool
 from test_bitexact import DEMO_STEPS, demo_states, load_reference
 
+from starleth_controller import RobotModel
 from starleth_interface.state_bundle import LABEL, StateBundleCdr
 from starleth_sim.physics.simulator import Simulator
 from starleth_sim.ros.state_io import parse_initial_state
@@ -281,6 +282,9 @@ class FakeRobot:
         st = msg.header.stamp
         self.answers[st.sec * 1_000_000_000 + st.nanosec] = msg
 
+    def matched_js(self):
+        return self.pub_js.get_subscription_count() > 0 and self.sub.get_publisher_count() > 0
+
     def matched(self):
         return all(p.get_subscription_count() > 0 for p in [self.pub_js, self.pub_odom,
                                                            *self.pub_w]) \
@@ -350,6 +354,79 @@ def test_controller_node_drives_another_robot_by_its_names(tmp_path):
         assert tuple(a.name) == model.public_joint_names and a.name[0] == "FR_hip_joint"
         assert np.all(np.isfinite(a.effort))
         assert np.all(np.abs(a.effort) <= model.effort_limit + 1e-9)
+    finally:
+        ros.close()
+        ctrl.stop()
+
+
+class FakeSensors:
+    """Publishes one control step's sensor topics as a robot's drivers would (joint state,
+    IMU, foot contacts: standing still, level) and collects /joint_commands and
+    /estimator/odometry by stamp."""
+
+    def __init__(self, node, robot: FakeRobot):
+        qos = QoSProfile(depth=10)
+        self.robot = robot
+        self.pub_imu = node.create_publisher(Imu, "/starleth/imu", qos)
+        self.pub_contacts = node.create_publisher(JointState, "/starleth/foot_contacts", qos)
+        self.odometry = {}
+        self.sub = node.create_subscription(Odometry, "/estimator/odometry", self.on_odom, qos)
+
+    def on_odom(self, msg):
+        st = msg.header.stamp
+        self.odometry[st.sec * 1_000_000_000 + st.nanosec] = msg
+
+    def matched(self):
+        return self.robot.matched_js() and self.pub_imu.get_subscription_count() > 0 and \
+            self.pub_contacts.get_subscription_count() > 0 and \
+            self.sub.get_publisher_count() > 0
+
+    def publish(self, ns, accel_z=9.81):
+        """IMU (level, at rest: f = (0, 0, accel_z)), contacts (all four), joint state."""
+        imu = Imu()
+        imu.header.stamp = _stamp(ns)
+        imu.orientation.w = 1.0
+        imu.linear_acceleration.z = float(accel_z)
+        self.pub_imu.publish(imu)
+        c = JointState()
+        c.header.stamp = _stamp(ns)
+        c.name = [f"{leg}_foot" for leg in ("RH", "LH", "RF", "LF")]   # any order
+        c.position = [1.0] * 4
+        self.pub_contacts.publish(c)
+        self.robot.publish(ns, only="js")
+
+
+def test_estimator_mode_answers_the_sensor_topics_and_publishes_its_odometry(tmp_path):
+    """state_source:=estimator: controller_node reads joint_states, starleth/imu and
+    starleth/foot_contacts (never base_state, wrenches or the bundle), answers each stamp
+    and publishes estimator/odometry with its stamp: the legs' standing height, at rest;
+    a NaN in the IMU is rejected (no answer) and the next stamp answered."""
+    ctrl = Proc("starleth_controller.controller_node", str(tmp_path / "ctrl.log"),
+                state_source="estimator", warn_throttle_period=0.0)
+    ros = RosTestNode(DOMAIN_ID, "fake_sensors")
+    try:
+        robot = FakeRobot(ros.node)
+        sensors = FakeSensors(ros.node, robot)
+        assert ros.spin_until(sensors.matched, START_TIMEOUT, [ctrl]), ctrl.log()
+        ros.spin_for(0.2)
+        for p in (robot.pub_odom, robot.pub_bundle, *robot.pub_w):
+            assert p.get_subscription_count() == 0, p.topic_name
+        for k in range(1, 41):
+            sensors.publish(k * PERIOD_NS, accel_z=float("nan") if k == 20 else 9.81)
+            ok = ros.spin_until(lambda k=k: k * PERIOD_NS in robot.answers or k == 20 and
+                                "imu: non-finite" in ctrl.log(), 3.0, [ctrl])
+            assert ok, ctrl.log()
+        assert 20 * PERIOD_NS not in robot.answers and 21 * PERIOD_NS in robot.answers
+        assert ros.spin_until(lambda: len(sensors.odometry) == 39, 3.0, [ctrl])
+        o = sensors.odometry[40 * PERIOD_NS]
+        assert o.header.frame_id == "odom" and o.child_frame_id == "base"
+        model = RobotModel()
+        s = np.array([model.leg_fk(k, *robot.q[3 * k:3 * k + 3]) for k in range(4)])
+        z = model.foot_radius[0] - s[:, 2].mean()         # the legs' height above z = 0
+        p, v = o.pose.pose.position, o.twist.twist.linear
+        assert abs(p.z - z) < 1e-6 and abs(p.x) < 1e-6 and abs(p.y) < 1e-6, (p, z)
+        assert max(abs(v.x), abs(v.y), abs(v.z)) < 1e-6, v
+        assert np.all(np.isfinite(robot.answers[40 * PERIOD_NS].effort))
     finally:
         ros.close()
         ctrl.stop()

@@ -499,3 +499,38 @@ def test_joint_states_by_name(tmp_path):
     # (no robot recorded: the joints are those /joint_states names)
     assert J["max_abs"]["sensor_joint"] == 13.0 and "ignored_joints" not in J
     assert (out / "joint_torques.png").exists()
+
+
+def test_state_estimate_error_against_ground_truth(tmp_path, capsys):
+    """A bag with estimator/odometry: the truth walks 0.3 m/s along x for 4 s (1.2 m) while
+    the estimate runs 0.01 m/s fast in y from a 5 cm offset and turns 0.5 deg/s: velocity
+    RMS 0.01 m/s, drift 4 cm / 1.2 m = 3.33 %, yaw drift 2 deg (the closed forms), and the
+    plot (with --no-plots the figures alone)."""
+    path = tmp_path / "estimate.mcap"
+    w = BagWriter(path, skip=set(ALL_TOPICS) - {"/starleth/base_state"})
+    w.rec.add_topic("/estimator/odometry", Odometry)
+    n = 1601
+    for k in range(n):
+        t = k * PERIOD_NS * 1e-9
+        yaw = math.radians(0.5) * t
+        q = (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+        w.odometry(k, (0.3 * t, 0.0, 0.4), (0, 0, 0, 1), (0.3, 0.0, 0.0), (0.0, 0.0, 0.0))
+        o = Odometry()
+        o.header.stamp, o.header.frame_id, o.child_frame_id = stamp(k), "odom", "base"
+        o.pose.pose.position.x, o.pose.pose.position.y = 0.3 * t + 0.05, 0.01 * t
+        o.pose.pose.orientation.z, o.pose.pose.orientation.w = q[2], q[3]
+        v = rotation(q).T @ np.array([0.3, 0.01, 0.0])
+        o.twist.twist.linear.x, o.twist.twist.linear.y = float(v[0]), float(v[1])
+        w.write("/estimator/odometry", o, k)
+    w.close()
+    rc, out, doc = analyse(tmp_path, [path])
+    assert rc == 0
+    e = doc["estimator"]["estimate"]
+    assert e["velocity_rms"] == pytest.approx(0.01, rel=1e-6)
+    assert e["distance"] == pytest.approx(1.2, rel=1e-9)
+    assert e["drift"] == pytest.approx(0.04 / 1.2, rel=1e-6)
+    assert e["yaw_drift_deg"] == pytest.approx(2.0, rel=1e-6)
+    assert "velocity RMS 0.0100 m/s, position drift 3.33 %" in capsys.readouterr().out
+    assert (out / "estimator_error.png").stat().st_size > 0
+    rc, _, doc = analyse(tmp_path, [path], "--no-plots", name="plain")
+    assert rc == 0 and doc["estimator"]["estimate"]["stamps"] == n

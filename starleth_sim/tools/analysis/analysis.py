@@ -51,6 +51,10 @@ beyond 1e9 (``MAX_VALUE``), and such values of joint torques and solver figures 
 out. The real-time factor plot has at most ``MAX_RTF_WINDOWS`` windows per run, whatever
 the span of the stamps.
 
+A bag with a state estimate (``estimator/odometry``) also gets one line of the estimate's
+error against ``starleth/base_state`` (velocity RMS, position drift per metre walked, yaw
+drift) and the plot ``estimator_error.png`` (:mod:`.estimator_error`).
+
 This module is the command line; the run is read by :mod:`.run`, summarised by
 :mod:`.summary` and plotted by :mod:`.plots`.
 """
@@ -64,7 +68,8 @@ import sys
 import time
 
 from ..common.console import run_console_script
-from .plots import PLOTS, feet_of, save_figures
+from . import estimator_error
+from .plots import PLOTS, feet_of, load_pyplot, save_figures
 from .run import PROG, AnalysisError, Run, warn
 from .sensor_noise import bag_noise, format_noise
 from .summary import format_summary, jsonable, summarise
@@ -171,9 +176,13 @@ def run(argv=None) -> int:
                   + ", ".join(os.path.basename(p) for p in written.values()))
         else:
             warn("nothing to plot")
+    estimates, plots = estimator_error.report(      # bags with estimator/odometry
+        runs, None if a.no_plots else a.out or _default_out(a.bags), a.dpi, load_pyplot,
+        a.salvage)
+    written.update(plots)
     print(f"read and decoded {sum(r.messages for r in runs)} messages in {t_read:.2f} s")
     if a.json:
-        doc = {"runs": summaries, "plots": written}
+        doc = {"runs": summaries, "plots": written, "estimator": estimates}
         d = os.path.dirname(os.path.abspath(a.json))
         os.makedirs(d, exist_ok=True)
         with open(a.json, "w") as f:
