@@ -62,6 +62,7 @@ from starleth_interface.topics import (
 from ...physics.config import ConfigError
 from ...robots import robot_description
 from ...ros.live_view import live_view_lines
+from ..analysis.estimator_error import read_errors
 from ..bench.round_trips import measure_bare_round_trips
 from ..common.bag import BagError, stream_bag
 from ..common.child_process import start_child_as_node
@@ -79,6 +80,9 @@ STEPPING = 0.01                  # sim time [s] on /clock that shows the sim is 
 #: the issue's acceptance: the trot covers at least this fraction of the commanded distance
 ACCEPT_FRACTION = 0.8
 MIN_TROT_CHECKED = 4.0           # shorter trots (start-up dominated) are not checked [s]
+#: the state estimate's acceptance (issue #48): velocity RMS error [m/s], position drift as a
+#: share of the distance walked
+ESTIMATE_VELOCITY_RMS, ESTIMATE_DRIFT = 0.05, 0.05
 
 
 # =========================================================================================
@@ -200,6 +204,10 @@ class DemoResult:
     terrain: str = ""                    # the terrain course (demo/terrain.py), "" flat
     robot: str = "starleth"
     fall_height: float = FALL_HEIGHT     # a base height below this is a fall [m]
+    sensors: str = ""                    # sim_node's sensors file ("" ideal)
+    drives: str = ""                     # sim_node's actuators file ("" none)
+    state_source: str = "ground_truth"   # controller_node's: ground_truth | estimator
+    estimate: dict | None = None         # the estimate's errors (estimator_error.error_series)
 
     @property
     def cycles_per_s(self) -> float:
@@ -241,6 +249,24 @@ class DemoResult:
         if self.trot >= MIN_TROT_CHECKED and not self.trot_distance >= self.required_distance:
             p.append(f"trotted {self.trot_distance:.2f} m, expected >= "
                      f"{self.required_distance:.2f} m")
+        return p + self.estimate_problems()
+
+    def estimate_problems(self) -> list:
+        """The estimator's acceptance (state_source estimator): the recording carries the
+        estimate, its velocity RMS error and its position drift per metre walked within
+        ESTIMATE_VELOCITY_RMS and ESTIMATE_DRIFT."""
+        if self.state_source != "estimator":
+            return []
+        e = self.estimate
+        if e is None:
+            return ["the recording holds no estimator/odometry"]
+        p = []
+        if not e["velocity_rms"] <= ESTIMATE_VELOCITY_RMS:
+            p.append(f"the estimate's velocity error {e['velocity_rms']:.3f} m/s RMS exceeds "
+                     f"{ESTIMATE_VELOCITY_RMS:g} m/s")
+        if self.trot >= MIN_TROT_CHECKED and not e["drift"] <= ESTIMATE_DRIFT:
+            p.append(f"the estimate drifted {100 * e['drift']:.1f} % of the distance walked "
+                     f"(at most {100 * ESTIMATE_DRIFT:g} %)")
         return p
 
 
@@ -454,7 +480,8 @@ def read_bag(path, result: DemoResult):
 def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.mcap",
              domain_id=None, echo=print, startup_timeout=90.0, run_timeout=300.0,
              in_process=False, bare_seconds=2.0, precompile_first=True,
-             live_port=0, terrain="", robot="starleth") -> DemoResult:
+             live_port=0, terrain="", robot="starleth", sensors="", drives="",
+             state_source="ground_truth") -> DemoResult:
     """Run the trotting demo (see the module docstring) and return its figures. Raises
     DemoError if it could not run to the end; both nodes are always stopped.
     in_process: sim_node and controller_node in one process on one executor (the composed
@@ -465,7 +492,10 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
     ("" flat). startup_timeout counts silence: the nodes' build lines
     (compile_notice.shows_compiling) restart it. live_port > 0: the live view's port.
     robot: given to both nodes; speed None: the robot's trot speed (DemoRobot); a bad
-    robot: ConfigError."""
+    robot: ConfigError. sensors, drives: sim_node's sensors and actuators files (a name in
+    msg_configs/sensors/, msg_configs/actuators/ or a path; "" ideal sensors, no drive
+    model); state_source: controller_node's (estimator: it walks on its own estimate from
+    the sensor topics, recorded and checked against the ground truth)."""
     figures = DemoRobot.of(robot)
     speed = figures.speed if speed is None else speed
     if domain_id is None:
@@ -479,10 +509,13 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
     stem = os.path.splitext(bag)[0]
     result = DemoResult(bag=bag, domain_id=domain_id, physics=physics, stand=stand, trot=trot,
                         speed=speed, in_process=in_process, terrain=terrain, robot=robot,
-                        fall_height=figures.fall_height)
-    where = f"{physics}, {terrain}" if terrain else physics
+                        fall_height=figures.fall_height, sensors=sensors, drives=drives,
+                        state_source=state_source)
+    where = ", ".join(x for x in (physics, terrain, sensors and f"sensors {sensors}",
+                                  drives and f"drives {drives}") if x)
     label = "StarlETH" if robot == "starleth" else robot
-    echo(f"{label} demo: sim_node ({where}, lockstep) + controller_node over ROS 2 "
+    echo(f"{label} demo: sim_node ({where}, lockstep) + controller_node"
+         + (" on its state estimate" if state_source == "estimator" else "") + " over ROS 2 "
          + ("in one process " if in_process else "") + f"(ROS_DOMAIN_ID={domain_id})")
     keep_discovery_local()      # this process's own ROS context too
     _before_the_nodes(result, domain_id, precompile_first, bare_seconds, echo)
@@ -498,6 +531,8 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
         for p in sorted(procs, key=lambda p: p.name != "controller_node"):
             result.exit_codes[p.name] = p.stop()
     read_bag(bag, result)
+    if state_source == "estimator":
+        result.estimate = read_errors(bag)
     write_replay(result, stem + ".html")
     return result
 
@@ -528,7 +563,9 @@ def _start_demo_nodes(result, stem, live_port, echo, procs):
     physics, robot, domain_id, bag = result.physics, result.robot, result.domain_id, result.bag
     terrain, in_process = result.terrain, result.in_process
     sim_params = {"mode": "lockstep", "real_time_factor": 0.0, "physics": physics,
-                  "record": bag, "start_paused": True, "robot": robot}
+                  "record": bag, "start_paused": True, "robot": robot,
+                  "sensors": result.sensors, "actuators": result.drives}
+    controller = {"mode": "stand", "robot": robot, "state_source": result.state_source}
     if terrain:
         sim_params["physics_overrides"] = course_overrides(terrain)
     if live_port:
@@ -538,14 +575,14 @@ def _start_demo_nodes(result, stem, live_port, echo, procs):
     if in_process:
         procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
                                  domain_id, stem + ".sim_node.log",
-                                 pre_args=("--composed", "--controller-param",
-                                           "mode:=stand", "--controller-param",
-                                           f"robot:={robot}")))
+                                 pre_args=("--composed", *(
+                                     a for k, v in controller.items()
+                                     for a in ("--controller-param", f"{k}:={v}")))))
     else:
         procs.append(NodeProcess("sim_node", "starleth_sim.ros.sim_node", sim_params,
                                  domain_id, stem + ".sim_node.log"))
         procs.append(NodeProcess("controller_node", "starleth_controller.controller_node",
-                                 {"mode": "stand", "robot": robot}, domain_id,
+                                 controller, domain_id,
                                  stem + ".controller_node.log"))
 
 
@@ -582,6 +619,11 @@ def print_summary(r: DemoResult, echo=print):
          f"{r.steps_expected} steps, /joint_commands {r.joint_commands}")
     echo(f"  recording            {r.bag} ({r.bag_bytes / 1e6:.1f} MB); logs "
          + ", ".join(r.logs.values()))
+    if r.estimate is not None:
+        e = r.estimate
+        echo(f"  state estimate       velocity error {e['velocity_rms']:.4f} m/s RMS, drift "
+             f"{100 * e['drift']:.2f} % of {e['distance']:.2f} m walked, yaw drift "
+             f"{e['yaw_drift_deg']:+.2f} deg (against the ground truth, {e['stamps']} stamps)")
     if r.html:
         echo(f"  3D replay            {r.html} ({r.html_frames} frames, "
              f"{r.html_bytes / 1e6:.1f} MB): open it in a browser")
@@ -625,6 +667,16 @@ def main(argv=None):
                          "reference of the cycle rate (0: skip)")
     ap.add_argument("--live", nargs="?", type=int, const=8765, default=0, metavar="PORT",
                     help="demo: sim_node serves the Foxglove live view on PORT (8765)")
+    ap.add_argument("--sensors", default="", metavar="NAME|PATH",
+                    help="demo: sensor models (msg_configs/sensors/NAME.yaml, e.g. realistic, "
+                         "or a file); default ideal")
+    ap.add_argument("--drives", default="", metavar="NAME|PATH",
+                    help="demo: drive models (msg_configs/actuators/NAME.yaml, e.g. "
+                         "starleth_sea, or a file); default none")
+    ap.add_argument("--state-source", choices=("ground_truth", "estimator"),
+                    default="ground_truth",
+                    help="demo: what the controller walks on: the simulator's base state, or "
+                         "its own state estimate from the IMU, joints and foot contacts")
     args = ap.parse_args(argv)
     if args.drop:
         try:
@@ -638,7 +690,8 @@ def main(argv=None):
         result = run_demo(args.stand, args.trot, args.speed, args.preset, record,
                           args.domain_id, in_process=args.in_process,
                           bare_seconds=args.bare_seconds, live_port=args.live,
-                          terrain=args.terrain, robot=args.robot)
+                          terrain=args.terrain, robot=args.robot, sensors=args.sensors,
+                          drives=args.drives, state_source=args.state_source)
     except ConfigError as e:         # a bad robot, before any node starts
         print(f"starleth-demo: {e}", file=sys.stderr)
         return 2
