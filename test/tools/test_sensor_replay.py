@@ -12,6 +12,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
+from repo_root import ROOT
 from ros_test_nodes import NodeProcess, RosTestNode, run_lockstep
 
 from starleth_sim.tools.analysis import analysis
@@ -89,3 +90,35 @@ def test_noisy_realtime_run_replays_bit_for_bit(tmp_path, capsys):
     assert "bit-identical: all" in out and "IMU, foot contacts" in out
     doc = bag_noise(mcap)
     assert doc is not None and doc["signals"]["contact_force"]["n"] > 400
+
+
+#: a bias walk strong enough to stand out of the white noise in a short run (realistic's
+#: white noise; its walks x ~1000), and the run's length in states
+WALK_GYRO, WALK_ACCEL, WALK_STATES = 0.05, 0.5, 1260
+#: the 99.9 % band of the chi-square estimate q̂ / q of 36 window differences (3 axes x 12
+#: disjoint pairs of 0.125 s windows in 3 s): √(χ²₃₆(0.0005) / 36), √(χ²₃₆(0.9995) / 36)
+WALK_BAND = (0.63, 1.40)
+
+
+def test_recorded_bias_walk_matches_the_configuration(tmp_path):
+    """The IMU biases walk at the configured density: measured from a recorded lockstep run
+    (sensor_noise.bias_walk: window means of measured − true), within its chi-square band."""
+    with open(os.path.join(ROOT, "msg_configs", "sensors", "realistic.yaml")) as f:
+        text = f.read()
+    text = text.replace("imu_gyro_bias_random_walk: 3.8785e-5",
+                        f"imu_gyro_bias_random_walk: {WALK_GYRO}")
+    text = text.replace("imu_accel_bias_random_walk: 6.0e-3",
+                        f"imu_accel_bias_random_walk: {WALK_ACCEL}")
+    sensors = tmp_path / "walking.yaml"
+    sensors.write_text(text)
+    ros = RosTestNode(DOMAIN_ID, "sensor_walk_test", events=True)
+    mcap = str(tmp_path / "walk.mcap")
+    run_lockstep(ros, EchoController(ros.node), tmp_path / "sim.log", DOMAIN_ID, WALK_STATES,
+                 START_TIMEOUT, record=mcap, sensors=str(sensors), seed=SEED)
+    stats = bag_noise(mcap)["signals"]
+    for s, q in (("gyro", WALK_GYRO), ("accel", WALK_ACCEL)):
+        walk = stats[s]["walk"]
+        assert walk["expected_density"] == q and walk["resolved"], (s, walk)
+        assert walk["differences"] >= 36, (s, walk)
+        print(s, walk["density"] / q)
+        assert WALK_BAND[0] < walk["density"] / q < WALK_BAND[1], (s, walk)

@@ -11,6 +11,13 @@ constant bias shows in the mean and not in σ. Expected σ: the white noise's (I
 √rate; a bias random walk adds to it over long runs); encoders √(σ² + Δ²/12) with the
 quantum Δ = 2π/counts (exact when σ is well above Δ/4 or zero); the filtered velocity has no
 σ of its own (its error, the filter's lag and the noise, is given as RMS).
+
+The IMU's bias random walk (density q) is measured from the error's means over windows of
+WALK_WINDOW seconds: two adjacent windows' means differ by Var = q² 2W/3 (a Wiener process
+averaged over each) plus the white noise's 2σ²/n (n samples a window, σ from the
+sample-to-sample differences); disjoint pairs of windows give independent differences, so
+q̂² = (mean d² − 2σ²/n) 3/(2W) over 3 axes x the pairs is a chi-square estimate
+(``bias_walk``; the test's band: doc/sensors.md).
 """
 from __future__ import annotations
 
@@ -46,6 +53,31 @@ def expected_sigma(c, control_rate: float) -> dict:
             "joint_velocity": 0.0 if c.encoder_velocity == "exact" else None,
             "joint_effort": c.torque_noise, "contact_force": c.contact_force_noise,
             "contact_flag": None}
+
+
+#: the windows of the bias walk's estimate [s]
+WALK_WINDOW = 0.125
+
+
+def bias_walk(e, rate: float, window: float = WALK_WINDOW) -> dict | None:
+    """The bias random walk's density q̂ [unit/s/√Hz] of an error series `e` (samples x
+    axes at `rate` Hz, one row per distinct sample) and the number of independent window
+    differences it rests on (module docstring); None when the run is shorter than two
+    windows."""
+    n = max(1, int(round(window * rate)))
+    pairs = len(e) // (2 * n)
+    if pairs < 1:
+        return None
+    means = e[:2 * n * pairs].reshape(2 * pairs, n, -1).mean(axis=1)
+    d = means[1::2] - means[0::2]
+    white = np.diff(e, axis=0).var(axis=0).mean() / 2 if len(e) > 2 else 0.0
+    scale = 3 / (2 * n / rate)
+    q2 = (float((d * d).mean()) - 2 * white / n) * scale
+    # the white noise's share alone scatters q̂² by this much (chi-square, d.size terms): a
+    # walk below 3 of it is not resolved by the run
+    floor = 3 * 2 * white / n * math.sqrt(2 / d.size) * scale
+    return {"density": math.sqrt(max(q2, 0.0)), "differences": int(d.size),
+            "resolved": q2 > floor, "floor": math.sqrt(floor)}
 
 
 def sample_index(n: int, delay: int, every: int = 1) -> np.ndarray:
@@ -90,7 +122,17 @@ def noise_statistics(measured: dict, truth: dict, c, control_rate: float) -> dic
         out[s] = {"sigma": float(np.sqrt(e.var(axis=0).mean())),
                   "expected_sigma": expected[s], "mean": mean.tolist(),
                   "rms": float(np.sqrt((e ** 2).mean())), "n": int(e.size)}
+        if s in WALKS:
+            _, first = np.unique(at, return_index=True)     # each distinct sample once
+            walk = bias_walk(e[first], c.imu_rate or control_rate)
+            if walk is not None:
+                walk["expected_density"] = getattr(c, WALKS[s])
+                out[s]["walk"] = walk
     return out
+
+
+#: the signals with a bias random walk, and its field of the sensors section
+WALKS = {"gyro": "imu_gyro_bias_random_walk", "accel": "imu_accel_bias_random_walk"}
 
 
 def _rows(messages, period_ns, values) -> np.ndarray:
@@ -160,5 +202,12 @@ def format_noise(doc: dict) -> str:
         exp = f["expected_sigma"]
         exp_text = f"[{exp:.3g}]" if exp is not None else f"(rms {f['rms']:.3g})"
         big = max((abs(x) for x in f["mean"]), default=0.0)
-        lines.append(f"    {s:15s} {f['sigma']:.3g} {exp_text} {UNITS[s]}, mean {big:.3g}")
+        walk = f.get("walk")
+        walk_text = "" if walk is None else (
+            f", bias walk {walk['density']:.3g} [{walk['expected_density']:.3g}] "
+            f"{UNITS[s]}/s/sqrt(Hz) ({walk['differences']} window differences)"
+            if walk["resolved"] else f", bias walk below {walk['floor']:.2g} (not resolved "
+            f"by the run) [{walk['expected_density']:.3g}] {UNITS[s]}/s/sqrt(Hz)")
+        lines.append(f"    {s:15s} {f['sigma']:.3g} {exp_text} {UNITS[s]}, mean {big:.3g}"
+                     + walk_text)
     return "\n".join(lines)
