@@ -45,7 +45,8 @@ from starleth_interface.state_bundle import LABEL, StateBundleCdr
 from starleth_sim.physics.simulator import Simulator
 from starleth_sim.ros.state_io import parse_initial_state
 from starleth_sim.tools.analysis import analysis
-from starleth_sim.tools.demo.demo import DemoError, _call, print_summary, run_demo
+from starleth_sim.tools.demo.demo import _call, run_demo
+from starleth_sim.tools.demo.result import DemoError, print_summary
 
 # one ROS domain per test module and process (test_sim_node uses 50..89)
 DOMAIN_RANGE = (10, 40)       # first, span

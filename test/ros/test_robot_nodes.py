@@ -21,7 +21,8 @@ from starleth_sim.physics.config import ConfigError
 from starleth_sim.robots import recorded_description, robot_description
 from starleth_sim.ros.tf import base_link
 from starleth_sim.tools.common.bag import read_messages, recorded_robot
-from starleth_sim.tools.demo.demo import MIN_TROT_CHECKED, print_summary, run_demo
+from starleth_sim.tools.demo.demo import run_demo
+from starleth_sim.tools.demo.result import MIN_TROT_CHECKED, print_summary
 
 # shares the controller tests' range (conftest._free_ros_domain: one after another)
 DOMAIN_RANGE = (10, 40)       # first, span
