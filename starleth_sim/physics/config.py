@@ -93,6 +93,9 @@ cutoff                                                      control rate it is t
 sensors.torque_noise           [0, 1000] N m                above any drive's torque
 sensors.contact_threshold,     [0, 1e5] N                   a force sensor's scale (StarlETH
 contact_force_noise                                         weighs 250 N)
+sensors.contact_threshold_     [0, 1] of the weight m g;    a foot carrying the whole robot;
+weight                         0 where contact_threshold    one way to give the threshold
+                               > 0
 sensors.contact_delay          integer [0, 1000] steps      2.5 s at 400 Hz
 paper                          names: finite numbers or     figures for reports only
                                strings
@@ -354,6 +357,7 @@ SENSOR_RANGES = {
     "encoder_velocity_cutoff": (0.0, MAX_CONTROL_RATE),  # Hz (> 0)
     "torque_noise": (0.0, 1000.0),                      # N m
     "contact_threshold": (0.0, 1e5),                    # N
+    "contact_threshold_weight": (0.0, 1.0),             # share of the robot's weight m g
     "contact_force_noise": (0.0, 1e5),                  # N
 }
 #: initial biases: 3 numbers, each within +- this (rad/s, m/s²)
@@ -395,6 +399,9 @@ class SensorConfig:
     encoder_velocity_cutoff: float = 100.0     # [Hz]
     torque_noise: float = 0.0                  # σ of the measured joint torque [N m]
     contact_threshold: float = 0.0             # a foot in contact: measured F_N > this [N]
+    #: or the threshold as a share of the robot's weight m g (one of the two, not both): a
+    #: robot's contact sensing is tuned to its loads
+    contact_threshold_weight: float = 0.0
     contact_force_noise: float = 0.0           # σ of the measured normal force [N]
     contact_delay: int = 0                     # control steps
 
@@ -415,6 +422,10 @@ class SensorConfig:
                                         {"exact", "filtered"})
         self.contact_delay = _int(f"{p}.contact_delay", self.contact_delay, 0,
                                   MAX_CONTACT_DELAY)
+        if self.contact_threshold and self.contact_threshold_weight:
+            raise ConfigError(f"{p}.contact_threshold_weight: give the threshold in N "
+                              f"(contact_threshold) or as a share of the weight, not both "
+                              f"(set the other to 0)")
 
     def check_rates(self, control_rate: float):
         """The rules with the control rate: the IMU samples at control steps or m per

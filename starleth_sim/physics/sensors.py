@@ -99,6 +99,15 @@ def exact_reading(sim, imu: ExactImu, n_feet: int):
         (f_n > 0.0).astype(float), f_n), b, R
 
 
+def contact_threshold(c, description) -> float:
+    """The contact flag's force threshold [N]: `contact_threshold`, or
+    `contact_threshold_weight` times the robot's weight m g."""
+    if not c.contact_threshold_weight:
+        return c.contact_threshold
+    g = float(np.linalg.norm(model_gravity(description)))
+    return c.contact_threshold_weight * description.total_mass * g
+
+
 class DelayLine:
     """Samples (step, value) in step order; `get(k)` the newest at least `delay` steps old
     at step k (steps asked for never decrease), else the oldest."""
@@ -198,6 +207,7 @@ class Sensors:
         self.step_size = 2 * math.pi / c.encoder_counts if c.encoder_counts else 0.0
         self.alpha = 1.0 - math.exp(-2 * math.pi * c.encoder_velocity_cutoff * self.period)
         self.contacts = DelayLine(c.contact_delay)
+        self.contact_threshold = contact_threshold(c, sim.description)
         self._draw_layout(sim.n_joints)
         self.restart()
 
@@ -240,7 +250,7 @@ class Sensors:
             effort = effort + sigma[1] * z[self._at[1]]
         if sigma[2]:
             force = force + sigma[2] * z[self._at[2]]
-        self.contacts.put(k, ((force > c.contact_threshold).astype(float), force))
+        self.contacts.put(k, ((force > self.contact_threshold).astype(float), force))
         flag, force = self.contacts.get(k)
         return SensorReading(angle, velocity, effort, quat, gyro, acc, flag, force)
 

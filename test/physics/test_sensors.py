@@ -213,6 +213,20 @@ def test_contact_flag_threshold_and_delay():
     assert all(f1 == (100.0 if k >= 8 else 0.0) for k, _, _, f1, _ in flags)
 
 
+def test_contact_threshold_as_a_share_of_the_weight():
+    """contact_threshold_weight: the flag's threshold is that share of m g (a robot of
+    10 kg, g = 9.81: 0.1 -> 9.81 N); the threshold in N and the share exclude each other."""
+    sim = FakeSim(contact_threshold_weight=0.1)
+    sim.description.total_mass = 10.0
+    s = Sensors(sim)
+    assert s.contact_threshold == pytest.approx(9.81, rel=1e-12)
+    sim.force = np.array([9.8, 9.82])
+    s.sample()
+    assert s.measured.contact_flag.tolist() == [0.0, 1.0]
+    with pytest.raises(ConfigError, match="sensors.contact_threshold_weight: .*not both"):
+        FakeSim(contact_threshold=20.0, contact_threshold_weight=0.1)
+
+
 def test_imu_zero_order_hold_and_delay():
     """At a quarter of the control rate with two periods of delay, the gyro at step k is
     the rate of step k − 2 rounded down to a multiple of 4 (the first sample before)."""
