@@ -63,6 +63,9 @@ class EstimatorParams:
     init_foot: float = 0.01
     init_accel_bias: float = 0.2
     init_gyro_bias: float = 0.01
+    #: the controller's contact flag of a foot stays set this long after the sensor's drops
+    #: [s] (estimator_intake.ContactHold; the filter itself takes the sensor's flags)
+    contact_hold: float = 0.005
     #: the feet in contact roll with their shanks (the sphere's centre moves ρ ω × e_z)
     rolling_feet: bool = True
     #: Φ keeps yaw and position unobservable (LegOdometryEKF._constrain)
@@ -84,6 +87,8 @@ ESTIMATOR_PARAMETERS = (
     ("init_foot", "initial standard deviation of the foot positions [m]"),
     ("init_accel_bias", "initial standard deviation of the accelerometer bias [m/s²]"),
     ("init_gyro_bias", "initial standard deviation of the gyroscope bias [rad/s]"),
+    ("contact_hold", "the controller's contact flag stays set this long after the sensor's "
+     "drops [s]"),
 )
 
 

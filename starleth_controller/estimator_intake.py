@@ -19,6 +19,28 @@ from .estimator import LegOdometryEKF, quat_to_rot
 from .state_intake import StateAssembler, all_finite
 
 
+class ContactHold:
+    """The controller's contact flags from the sensor's: a foot's flag stays set for `hold`
+    seconds after the sensor's drops. The controller unloads a stance leg whose flag drops
+    (lost contact), and a sensor that thresholds the force one step late then drops it the
+    next steps too: a loop that, at a threshold near a light robot's stance loads (Go1
+    standing, 32 N a foot, under a 20 N threshold with 5 N of noise), sat the robot down
+    (doc/estimator.md, "Contact flags for the controller"). Holding the flag through such a
+    dropout breaks the loop; a touch-down is passed at once."""
+
+    def __init__(self, n_feet: int, hold: float):
+        self.hold = hold
+        self.last = np.full(n_feet, -np.inf)     # when each flag was last set [s]
+
+    def reset(self):
+        self.last[:] = -np.inf
+
+    def flags(self, t: float, contact) -> np.ndarray:
+        """The held flags at time t [s] of the sensor's `contact` (bools)."""
+        self.last[contact] = t
+        return (t - self.last) <= self.hold + 1e-9
+
+
 class EstimatedState:
     """The RobotState of a stamp's joint state, IMU values (10: orientation x, y, z, w,
     angular velocity, proper acceleration) and foot contacts ((names, flags)) through the
@@ -28,6 +50,7 @@ class EstimatedState:
     def __init__(self, model, params=None):
         self.model = model
         self.ekf = LegOdometryEKF(model, params)
+        self.hold = ContactHold(len(model.legs), self.ekf.params.contact_hold)
         self._joints = StateAssembler(0.0, True, model.public_joint_names)
         self._feet = {}                     # tuple(names) -> index array (the legs' order)
         #: the base link's name (the Odometry's child frame)
@@ -88,9 +111,10 @@ class EstimatedState:
         if not e.initialised or t < e.t - 1e-9:      # the first state, or time went back
             e.reset(t, imu[:4], q, contact)
             e.w = imu[4:7].copy()
+            self.hold.reset()
         elif t > e.t:
             e.step(t, imu[4:7], imu[7:10], q, contact, dq)
-        return e.robot_state(t, q, dq, contact), None, None
+        return e.robot_state(t, q, dq, self.hold.flags(t, contact)), None, None
 
     def odometry_values(self) -> tuple:
         """The estimate as nav_msgs/Odometry's 13 values (starleth_interface.msg_cdr

@@ -3,8 +3,12 @@
 values from the simulator's state (ω: the base's body rates; f: the proper acceleration
 Rᵀ(Δv/Δt − g), the base velocity's backward difference over the control period, as sim_node
 computes it) plus Gaussian white noise and a constant bias of the test's choosing, the
-measured joint angles (plus noise) and the simulator's foot contact flags. The controller
-drives from ground truth (``drive="truth"``) or from the estimate (``drive="estimate"``)."""
+measured joint angles (plus noise) and the simulator's foot contact flags; or, with
+``sensors`` (a msg_configs/sensors file), everything from the simulator's own sensor models
+(starleth_sim.physics.sensors, as sim_node publishes it: noise, biases, delays, contact flags
+from a force threshold). The controller drives from ground truth (``drive="truth"``) or from
+the estimate (``drive="estimate"``, with the measured joints and the contact flags held as
+controller_node holds them: estimator_intake.ContactHold)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -13,7 +17,11 @@ import numpy as np
 
 from starleth_controller import Command, RobotState, StarlethController
 from starleth_controller.estimator import EstimatorParams, LegOdometryEKF, quat_to_rot, yaw_of
+from starleth_controller.estimator_intake import ContactHold
 from starleth_sim import Simulator
+from starleth_sim.physics.config import load_preset
+from starleth_sim.physics.robot_build import config_with_robot
+from starleth_sim.physics.sensors import Sensors
 
 
 @dataclass
@@ -34,11 +42,15 @@ class EstimatorRun:
     diagonal."""
 
     def __init__(self, preset="HmJ", noise=None, params: EstimatorParams | None = None,
-                 drive="truth", robot=None):
-        self.sim = Simulator.from_preset(preset, robot=robot)
+                 drive="truth", robot=None, sensors=None):
+        cfg = load_preset(preset) if robot is None else config_with_robot(load_preset(preset),
+                                                                          robot)
+        self.sim = Simulator(cfg if sensors is None else cfg.with_overlay(sensors, "sensors"))
         self.sim.reset()
+        self.sensors = None if sensors is None else Sensors(self.sim)
         self.ctrl = StarlethController(robot=robot)
         self.ekf = LegOdometryEKF(self.ctrl.model, params)
+        self.hold = ContactHold(len(self.ctrl.model.legs), self.ekf.params.contact_hold)
         self.noise, self.drive = noise or Noise(), drive
         self.rng = np.random.default_rng(self.noise.seed)
         self.feet = self.ctrl.model.foot_names
@@ -49,8 +61,13 @@ class EstimatorRun:
                                     "tilt")}
 
     def _measure(self):
-        """(true RobotState, gyro, accel, measured joint angles) of the simulator now."""
+        """(true RobotState, gyro, accel, measured joint angles, joint velocities, contact
+        flags) of the simulator now."""
         st = RobotState.from_simulator(self.sim, self.feet)
+        if self.sensors is not None:
+            m = self.sensors.measured
+            return (st, m.imu_angular_velocity, m.imu_linear_acceleration, m.joint_position,
+                    m.joint_velocity, m.contact_flag > 0.5)
         n, rng = self.noise, self.rng
         R = quat_to_rot(st.base_orientation_xyzw)
         v = np.asarray(st.base_linear_velocity, dtype=float)
@@ -63,19 +80,21 @@ class EstimatorRun:
         q = np.asarray(st.joint_positions) + n.joint * rng.standard_normal(12)
         self.contacts.append(np.array(st.foot_contact))
         contact = self.contacts[max(0, len(self.contacts) - 1 - n.contact_delay)]
-        return st, gyro, accel, q, contact
+        return st, gyro, accel, q, st.joint_velocities, contact
 
     def run(self, command: Command, seconds: float):
         for _ in range(int(round(seconds / self.sim.control_period))):
-            st, gyro, accel, q, contact = self._measure()
+            st, gyro, accel, q, dq, contact = self._measure()
             if not self.ekf.initialised:
                 self.ekf.reset(st.t, st.base_orientation_xyzw, q, contact)
             else:
-                self.ekf.step(st.t, gyro, accel, q, contact, st.joint_velocities)
+                self.ekf.step(st.t, gyro, accel, q, contact, dq)
             self._record(st)
             drive = st if self.drive == "truth" else self.ekf.robot_state(
-                st.t, q, st.joint_velocities, contact)
+                st.t, q, dq, self.hold.flags(st.t, contact))
             self.sim.step(self.ctrl.update(drive, command))
+            if self.sensors is not None:
+                self.sensors.sample()
         return self
 
     def _record(self, st):
