@@ -91,11 +91,8 @@ sensors.encoder_velocity_      (0, 100 000] Hz              a low-pass cutoff; f
 cutoff                                                      control rate it is the raw
                                                             difference
 sensors.torque_noise           [0, 1000] N m                above any drive's torque
-sensors.contact_threshold,     [0, 1e5] N                   a force sensor's scale (StarlETH
-contact_force_noise                                         weighs 250 N)
-sensors.contact_threshold_     [0, 1] of the weight m g;    a foot carrying the whole robot;
-weight                         0 where contact_threshold    one way to give the threshold
-                               > 0
+sensors.contact_threshold(_    [0, 1e5] N; _weight: [0, 1]  a force sensor's scale (StarlETH
+weight), contact_force_noise   x m g (one of the two)       weighs 250 N)
 sensors.contact_delay          integer [0, 1000] steps      2.5 s at 400 Hz
 paper                          names: finite numbers or     figures for reports only
                                strings
@@ -388,20 +385,14 @@ class SensorConfig:
     imu_accel_initial_bias: tuple = (0.0, 0.0, 0.0)  # [m/s²]
     imu_accel_initial_bias_sigma: float = 0.0  # [m/s²]
     imu_accel_range: float = 0.0               # [m/s²]; 0: unlimited
-    #: the AHRS orientation: the true one turned by a white rotation vector of this σ per
-    #: axis [rad] (base frame)
-    imu_orientation_noise: float = 0.0
+    imu_orientation_noise: float = 0.0         # the AHRS's: a white rotation vector's σ [rad]
     encoder_counts: int = 0                    # counts per revolution; 0: exact angles
     encoder_noise: float = 0.0                 # σ of the angle [rad], before quantization
-    #: joint velocity: "exact" | "filtered" (finite difference of the measured angles
-    #: through a first-order low-pass at encoder_velocity_cutoff)
-    encoder_velocity: str = "exact"
+    encoder_velocity: str = "exact"            # or "filtered": the angles' low-passed difference
     encoder_velocity_cutoff: float = 100.0     # [Hz]
     torque_noise: float = 0.0                  # σ of the measured joint torque [N m]
     contact_threshold: float = 0.0             # a foot in contact: measured F_N > this [N]
-    #: or the threshold as a share of the robot's weight m g (one of the two, not both): a
-    #: robot's contact sensing is tuned to its loads
-    contact_threshold_weight: float = 0.0
+    contact_threshold_weight: float = 0.0      # or as a share of the weight m g (not both)
     contact_force_noise: float = 0.0           # σ of the measured normal force [N]
     contact_delay: int = 0                     # control steps
 
@@ -423,9 +414,8 @@ class SensorConfig:
         self.contact_delay = _int(f"{p}.contact_delay", self.contact_delay, 0,
                                   MAX_CONTACT_DELAY)
         if self.contact_threshold and self.contact_threshold_weight:
-            raise ConfigError(f"{p}.contact_threshold_weight: give the threshold in N "
-                              f"(contact_threshold) or as a share of the weight, not both "
-                              f"(set the other to 0)")
+            raise ConfigError(f"{p}.contact_threshold_weight: a threshold in N "
+                              f"(contact_threshold) or a share of the weight, not both")
 
     def check_rates(self, control_rate: float):
         """The rules with the control rate: the IMU samples at control steps or m per
