@@ -44,6 +44,7 @@ solver.tol_abs                 [0, 1000] N s                an impulse (and tol_
 solver.max_iterations          integer [1, 1 000 000]       a cap per solve that still ends
 solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
 solver.stall_window           integer [0, 1 000 000]       sweeps per stall test (0 = none)
+solver.fallback_hold          integer [0, 1 000 000]       steps a fallback α is kept (0 = none)
 bilateral.stabilization        [0, 1]                       β of the drift correction
 actuator.armature              [0, 100] kg m²               a reflected rotor inertia: a
                                                             big drive's is < 10 (StarlETH's
@@ -231,6 +232,11 @@ class SolverConfig:
     #: at α = 0.6 does on a robot lying at rest) and is retried at once with the fallback α
     #: instead of at max_iterations (0: only the cap ends a try; no test without a fallback)
     stall_window: int = 32
+    #: a step whose solve needed the fallback α starts the next one at that α while the
+    #: active set stays the same, for up to this many steps, then tries the paper's α again
+    #: (the α a contact configuration converges with is its own, Fig. 6: a robot lying at
+    #: rest cycles at the paper's α step after step); 0: every step starts at the paper's α
+    fallback_hold: int = 200
 
     def validate(self, p):
         self.scheme = _choice(f"{p}.scheme", self.scheme, {"jor", "sor"})
@@ -250,6 +256,7 @@ class SolverConfig:
         self.fallback_alpha_factor = _num(f"{p}.fallback_alpha_factor",
                                           self.fallback_alpha_factor, 0.0, 1.0, hi_open=True)
         self.stall_window = _int(f"{p}.stall_window", self.stall_window, 0, MAX_ITERATIONS)
+        self.fallback_hold = _int(f"{p}.fallback_hold", self.fallback_hold, 0, MAX_ITERATIONS)
 
 
 @dataclass

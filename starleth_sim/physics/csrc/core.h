@@ -113,7 +113,7 @@ enum { PHASE_M_AND_H = 0, PHASE_M_INVERSE = 1, PHASE_G = 2, PHASE_PROX = 3, PHAS
 typedef struct {
     double activation_gap, mu, alpha, tol_rel, tol_abs, fallback_alpha_factor, opening_gap, dt,
         beta_velocity, beta_projection, jacobian_gap, projection_tolerance;
-    i64 form, scheme, max_iterations, criterion, stall_window;
+    i64 form, scheme, max_iterations, criterion, stall_window, fallback_hold;
     int warm_start, bilateral_direct, hysteresis;
 } settings_t;
 

@@ -77,16 +77,19 @@ typedef struct {
     u8 *last_active;        /* nc */
     double *last_bilateral; /* nb */
     i64 nb;
-    report_t report; /* the report buffer's views */
-    u8 *is_active;   /* nc */
+    double *prox_alpha; /* 2: the α memory (SimState.prox_alpha), NULL: none */
+    report_t report;    /* the report buffer's views */
+    u8 *is_active;      /* nc */
     double *qE, *uE;
 } step_arrays_t;
 
 /* The torque-dependent rest of the hard-contact solve of the prepared problem p: the model
- * and workspace t, the state and outputs x, Λ_B into bilateral_E (warm start in) */
+ * and workspace t, the state and outputs x, Λ_B into bilateral_E (warm start in), the α
+ * memory after the solve into alpha_E (2) */
 complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
                                    const tree_model_t *t, const step_arrays_t *x,
-                                   double *bilateral_E, double *timings, arena_t *a);
+                                   double *bilateral_E, double *alpha_E, double *timings,
+                                   arena_t *a);
 
 /* The joint friction rows of a tree step (a joint with τ_c > 0 each: drives only) */
 i64 joint_friction_count(const tree_model_t *t);

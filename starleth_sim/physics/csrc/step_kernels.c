@@ -227,16 +227,40 @@ void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free, 
     }
 }
 
-/* phase_prox: c (timed as phase "G" from t), the warm start, the prox iteration and one
- * retry with α·fallback_alpha_factor. *uE, *lam point into the arena. Returns the time at
- * the end of phase "G". */
-static double phase_prox(const settings_t *s, const problem_t *p, const double *u_free,
-                         const double *M, const double *last_impulse, const u8 *last_active,
-                         const double *last_bilateral, double *timings, double t, arena_t *a,
-                         double **uE, double **lam_out, i64 *iters, i64 *status, double *resid,
-                         int *retried) {
+/* same_active_set: I of p is the last step's (last_active, nc flags) */
+static int same_active_set(const problem_t *p, const u8 *last_active, i64 nc) {
+    i64 n = 0;
+    for (i64 i = 0; i < nc; i++) n += last_active[i] != 0;
+    if (n != p->na) return 0;
+    for (i64 r = 0; r < p->na; r++)
+        if (!last_active[p->active[r]]) return 0;
+    return 1;
+}
+
+/* alpha_start: the scale of the paper's α the solve starts with, from the α memory
+ * (SimState.prox_alpha: [scale, steps held], NULL: none): the scale of the last step's
+ * converged fallback while I stays the same and it was held for fewer than fallback_hold
+ * steps, else 1 */
+static double alpha_start(const settings_t *s, const double *memory, const problem_t *p,
+                          const u8 *last_active, i64 nc) {
+    if (!memory || s->fallback_hold <= 0 || !(memory[0] < 1.0)) return 1.0;
+    if (memory[1] >= (double)s->fallback_hold || !same_active_set(p, last_active, nc)) return 1.0;
+    return memory[0];
+}
+
+/* phase_prox: c (timed as phase "G" from t), the warm start, the prox iteration from α
+ * times scale (alpha_start) and one retry with α·fallback_alpha_factor. *uE, *lam point
+ * into the arena. With memory (the α memory, NULL: none), the α memory after this solve
+ * into alpha_E: [the converged try's scale, steps held] ([1, 0]: the paper's α or not
+ * converged). Returns the time at the end of phase "G". (long: the tries' loop and its
+ * many outputs) */
+static double phase_prox(const settings_t *s, const problem_t *p, const u8 *last_active,
+                         double scale, const double *memory, const double *u_free, const double *M,
+                         const double *last_impulse, const double *last_bilateral, double *timings,
+                         double t, arena_t *a, double **uE, double **lam_out,
+                         complete_result_t *out, double *alpha_E) {
     const i64 *active = p->active;
-    double alpha = s->alpha;
+    double alpha = s->alpha * scale;
     double fallback_factor = s->fallback_alpha_factor;
     i64 na = p->na, o = 3 * na, m = p->m, nv = p->nv;
     double *buf = arena_f(a, 4 * m + nv + na);
@@ -272,14 +296,20 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
         if (attempt + 1 < attempts) {
             again = 1;
             alpha *= fallback_factor;
+            scale *= fallback_factor;
         }
+    }
+    if (memory) {
+        int kept = res.status == STATUS_CONVERGED && scale < 1.0;
+        alpha_E[0] = kept ? scale : 1.0;
+        alpha_E[1] = kept && !again && scale == memory[0] ? memory[1] + 1.0 : 0.0;
     }
     *uE = u;
     *lam_out = lam;
-    *iters = it_sum;
-    *status = res.status;
-    *resid = res.residual;
-    *retried = again;
+    out->iterations = it_sum;
+    out->status = res.status;
+    out->residual = res.residual;
+    out->retried = again;
     return t;
 }
 
@@ -289,11 +319,11 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
  * iterations. */
 i64 joint_friction_prox(const settings_t *s, const problem_t *p, const double *u_free,
                         const double *M, double *lam_f, double *uE, i64 *iters, arena_t *a) {
-    double *u, *lam, resid;
-    i64 status;
-    int retried;
-    phase_prox(s, p, u_free, M, NULL, NULL, lam_f, NULL, 0.0, a, &u, &lam, iters, &status, &resid,
-               &retried);
+    double *u, *lam;
+    complete_result_t res;
+    phase_prox(s, p, NULL, 1.0, NULL, u_free, M, NULL, lam_f, NULL, 0.0, a, &u, &lam, &res, NULL);
+    i64 status = res.status;
+    *iters = res.iterations;
     memcpy(uE, u, (size_t)p->nv * sizeof(double));
     memcpy(lam_f, lam, (size_t)p->m * sizeof(double));
     for (i64 k = 0; k < p->nv; k++)
@@ -493,11 +523,13 @@ static void no_contact_impulses(i64 nc, double *impulse, u8 *is_active) {
 
 /* complete_problem: u_free (phase "M^-1"), c (phase "G"), the prox iteration and the
  * post-step projection (phase "prox") of the prepared problem p with h and M (M or M~): the
- * model and workspace t, the state x (its u^S, warm-start memory; Λ into its report, u^E
- * into uE), Λ_B into bilateral_E (which comes in with the warm start) */
+ * model and workspace t, the state x (its u^S, warm-start and α memory; Λ into its report,
+ * u^E into uE), Λ_B into bilateral_E (which comes in with the warm start), the α memory
+ * after the solve into alpha_E (2) */
 complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
                                    const tree_model_t *t, const step_arrays_t *x,
-                                   double *bilateral_E, double *timings, arena_t *a) {
+                                   double *bilateral_E, double *alpha_E, double *timings,
+                                   arena_t *a) {
     const settings_t *s = &t->s;
     i64 nv = p->nv, nc = t->contacts.nc;
     double *impulse = x->report.impulse, *u = x->uE;
@@ -508,13 +540,15 @@ complete_result_t complete_problem(const problem_t *p, const double *h, const do
     i64 na = p->na, o = 3 * na;
     complete_result_t res = {0, STATUS_CONVERGED, 0.0, 0, 0, -1};
     for (i64 k = 0; k < nv; k++) t->u_corr[k] = 0.0;
+    alpha_E[0] = 1.0;
+    alpha_E[1] = 0.0;
     if (p->m == 0) {
         memcpy(u, t->u_free, (size_t)nv * sizeof(double));
     } else {
         double *uE, *lam;
-        t0 =
-            phase_prox(s, p, t->u_free, M, x->last_impulse, x->last_active, bilateral_E, timings,
-                       t0, a, &uE, &lam, &res.iterations, &res.status, &res.residual, &res.retried);
+        double scale = alpha_start(s, x->prox_alpha, p, x->last_active, nc);
+        t0 = phase_prox(s, p, x->last_active, scale, x->prox_alpha, t->u_free, M, x->last_impulse,
+                        bilateral_E, timings, t0, a, &uE, &lam, &res, alpha_E);
         memcpy(u, uE, (size_t)nv * sizeof(double));
         for (i64 r = 0; r < na; r++) {
             i64 i = p->active[r];

@@ -205,6 +205,10 @@ STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
     Number("warm_start", "bool", "Λ^0 = the last step's Λ of the contacts that stay in I"),
     Number("hysteresis", "bool",
            'contact.activation "hysteresis" (else the gap test alone)'),
+    Number("fallback_hold", "i64",
+           "steps a converged fallback α starts the solves while I stays the same (0: none; "
+           "SimState.prox_alpha)",
+           0),
 ))
 
 COMPLIANT_LAW = Record("CompliantLaw", "compliant_law_t", "compliant_law_from_fields", (
