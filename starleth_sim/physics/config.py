@@ -46,6 +46,7 @@ solver.fallback_alpha_factor   [0, 1)                       a smaller α on a re
 solver.stall_window           integer [0, 1 000 000]       sweeps per stall test (0 = none)
 solver.fallback_hold          integer [0, 1 000 000]       steps a fallback α is kept (0 = none)
 bilateral.stabilization        [0, 1]                       β of the drift correction
+bilateral.relaxation           [0, 2)                       ω_B: SOR converges in (0, 2)
 actuator.armature              [0, 100] kg m²               a reflected rotor inertia: a
                                                             big drive's is < 10 (StarlETH's
                                                             ~0.02, a 1 t excavator's ~10)
@@ -266,10 +267,18 @@ class BilateralConfig:
     #: which removes a position-level violation g_B over a few steps. β = 0 is the paper's law
     #: (ξ_B = γ_B^E), whose violation drifts at first order in Δt.
     stabilization: float = 0.0
+    #: ω_B ∈ (0, 2) of the bilateral prox rows, r_B = ω_B/G_BB, swept Gauss-Seidel after the
+    #: contacts' rows in either scheme (SOR on the linear bilateral system converges for any
+    #: ω_B in (0, 2), whatever its condition: the maximal coordinates' chains make JOR at the
+    #: paper's α crawl); 0: the paper's, the bilateral rows as the contacts' with α. Used by
+    #: bilateral prox rows at a fixed α only (the direct method has none; solver.alpha: auto
+    #: relaxes them itself)
+    relaxation: float = 0.0
 
     def validate(self, p):
         self.method = _choice(f"{p}.method", self.method, {"none", "prox", "direct"})
         self.stabilization = _num(f"{p}.stabilization", self.stabilization, 0.0, 1.0)
+        self.relaxation = _num(f"{p}.relaxation", self.relaxation, 0.0, 2.0, hi_open=True)
 
 
 @dataclass
@@ -383,6 +392,7 @@ class PhysicsConfig:
             if self.coordinates != "minimal" and self.bilateral.method == "none":
                 raise ConfigError(f"bilateral.method: coordinates '{self.coordinates}' need "
                                   "'prox' or 'direct'")
+            self._check_relaxation()
             if not isinstance(self.paper, dict):
                 raise ConfigError(f"paper: expected a mapping, got {self.paper!r}")
             for k, v in self.paper.items():
@@ -393,6 +403,13 @@ class PhysicsConfig:
         except ConfigError as e:
             raise ConfigError(f"{p}: {e}") from None
         return self
+
+    def _check_relaxation(self):
+        """bilateral.relaxation under JOR needs the Delassus form (whose velocity form has no
+        sweep over single rows)."""
+        s = self.solver
+        if self.bilateral.relaxation and s.scheme == "jor" and s.form == "velocity":
+            raise ConfigError("bilateral.relaxation: JOR needs solver.form: delassus")
 
     # -- construction ---------------------------------------------------------------------
     @classmethod

@@ -204,7 +204,9 @@ class MoreauStepper:
             max_iterations=int(s.max_iterations), criterion=int(prox.CRITERIA[s.criterion]),
             bilateral_direct=config.bilateral.method == "direct",
             alpha=prox.alpha_setting(s.alpha),      # solver.alpha: auto -> prox.ALPHA_AUTO
-            stall_window=int(s.stall_window) if s.fallback_alpha_factor > 0 else 0)
+            stall_window=int(s.stall_window) if s.fallback_alpha_factor > 0 else 0,
+            bilateral_relaxation=float(config.bilateral.relaxation)
+            if config.bilateral.method == "prox" and s.alpha != "auto" else 0.0)
         return StepSettings(
             prox=solver, activation_gap=float(activation_gap), mu=float(config.ground.mu),
             fallback_alpha_factor=float(s.fallback_alpha_factor),

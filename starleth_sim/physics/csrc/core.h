@@ -112,7 +112,7 @@ enum { PHASE_M_AND_H = 0, PHASE_M_INVERSE = 1, PHASE_G = 2, PHASE_PROX = 3, PHAS
  * max_iterations, criterion, bilateral_direct and alpha: prox.ProxSettings) */
 typedef struct {
     double activation_gap, mu, alpha, tol_rel, tol_abs, fallback_alpha_factor, opening_gap, dt,
-        beta_velocity, beta_projection, jacobian_gap, projection_tolerance;
+        beta_velocity, beta_projection, jacobian_gap, projection_tolerance, bilateral_relaxation;
     i64 form, scheme, max_iterations, criterion, stall_window, fallback_hold;
     int warm_start, bilateral_direct, hysteresis;
 } settings_t;
@@ -313,6 +313,10 @@ int saturate_torque(const double *tau, const double *limit, const double *qd,
  * ------------------------------------------------------------------------------------- */
 /* prox_delassus.c: r (m) from diag(G) (m) for nc contacts */
 void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r);
+/* r_B = ω_B scale/G_BB of the rows after the contacts' with a bilateral relaxation ω_B
+ * (settings_t.bilateral_relaxation > 0; scale: the α's scale of a fallback try) */
+void relax_bilateral_rows(const settings_t *s, const double *Gdiag, i64 m, i64 nc, double scale,
+                          double *r);
 /* the pattern of the rows of A (m x n) / of its columns, from the arena */
 void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);
 void col_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);

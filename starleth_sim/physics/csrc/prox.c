@@ -193,6 +193,26 @@ static check_t jor_update_in_place(double *lam, const double *xi, const double *
     return c;
 }
 
+/* bilateral_gauss_seidel: the rows after the contacts' (o = 3 nc to m) swept one after the
+ * other on ξ = GΛ + c with the Λ already updated (r_B = ω_B/G_BB: relax_bilateral_rows), with
+ * their check carried on in c: a linear bilateral system with G_BB positive definite converges
+ * so for any ω_B in (0, 2), whatever its condition (the maximal coordinates' chains: JOR's rate
+ * is 1 − α λ_min(R G_BB)) */
+static void bilateral_gauss_seidel(const double *G, const double *c, i64 m, i64 o, double *lam,
+                                   const double *r, const double *bound, const i64 *gp_ptr,
+                                   const i64 *gp_idx, check_t *ck, double tol_rel, double tol_abs) {
+    for (i64 a = o; a < m; a++) {
+        double sm = c[a];
+        for (i64 p = gp_ptr[a]; p < gp_ptr[a + 1]; p++) {
+            i64 l = gp_idx[p];
+            sm = sm + G[a * m + l] * lam[l];
+        }
+        double v = prox_row(lam[a] - r[a] * sm, bound, a - o);
+        row_check(lam[a], v, ck, tol_rel, tol_abs);
+        lam[a] = v;
+    }
+}
+
 /* the direct bilateral method's work of delassus_prox: L_B's envelope columns, rhs */
 typedef struct {
     const i64 *col_ptr, *col_idx;
@@ -295,7 +315,9 @@ typedef struct {
     arena_t *ar;
 } delassus_t;
 
-/* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
+/* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ); with a bilateral
+ * relaxation (fixed α) the bilateral prox rows are swept after the contacts'
+ * (bilateral_gauss_seidel) */
 static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
@@ -312,7 +334,8 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
     int long_step = 0;
     double T_old = initial_energy(&P->v, lam, criterion);
-    i64 m_xi = (bilateral_direct && !autoa) ? o : m;
+    int sweep_b = s->bilateral_relaxation > 0.0 && !bilateral_direct && !autoa;
+    i64 m_xi = ((bilateral_direct && !autoa) || sweep_b) ? o : m;
     double res = 0.0;
     stall_t stall = stall_start(s);
     for (i64 k = 0; k < max_iter; k++) {
@@ -323,7 +346,10 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
             long_step = 0;
         }
         if (!(autoa || bilateral_direct)) {
-            ck = jor_update_in_place(lam, xi, rk, mu, bound, nc, m, tol_rel, tol_abs);
+            ck = jor_update_in_place(lam, xi, rk, mu, bound, nc, sweep_b ? o : m, tol_rel, tol_abs);
+            if (sweep_b)
+                bilateral_gauss_seidel(G, c, m, o, lam, rk, bound, gp_ptr, gp_idx, &ck, tol_rel,
+                                       tol_abs);
         } else {
             jor_project(lam, xi, rk, mu, bound, nc, m, bilateral_direct, new_);
             if (bilateral_direct)

@@ -121,3 +121,10 @@ void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r
     }
     for (i64 l = 3 * nc; l < m; l++) r[l] = alpha / Gdiag[l];
 }
+
+void relax_bilateral_rows(const settings_t *s, const double *Gdiag, i64 m, i64 nc, double scale,
+                          double *r) {
+    double omega = s->bilateral_relaxation * scale;
+    if (omega > 0.0)
+        for (i64 l = 3 * nc; l < m; l++) r[l] = omega / Gdiag[l];
+}

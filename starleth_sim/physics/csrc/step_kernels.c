@@ -287,6 +287,7 @@ static double phase_prox(const settings_t *s, const problem_t *p, const u8 *last
     settings_t try_s = *s;
     for (int attempt = 0; attempt < attempts; attempt++) {
         prox_parameters(p->Gdiag, m, na, alpha, r);
+        relax_bilateral_rows(s, p->Gdiag, m, na, scale, r);
         memcpy(lam, lam0, (size_t)m * sizeof(double));
         if (attempt + 1 == attempts) try_s.stall_window = 0; /* the last try runs to the cap */
         res = prox_solve(&try_s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec,
@@ -461,6 +462,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     }
     double *r = arena_f(a, m);
     prox_parameters(Gdp, m, ncp, s->alpha, r);
+    relax_bilateral_rows(s, Gdp, m, ncp, 1.0, r);
     double *lam = arena_zeros(a, m);
     double *mu = arena_zeros(a, ncp);
     double *zero = arena_zeros(a, nv);

@@ -186,6 +186,10 @@ PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields"
            "not below STALL_FACTOR (0.99) x the window's before ends as STATUS_STALLED (0: no "
            "test)",
            0),
+    Number("bilateral_relaxation", "double",
+           "ω_B of the bilateral prox rows (0: the paper's, rows as the contacts' with α): "
+           "r_B = ω_B/G_BB, swept Gauss-Seidel after the contacts' rows (prox.c)",
+           0.0),
 ))
 
 STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
