@@ -294,7 +294,7 @@ class MoreauStepper:
         """tree_step_hard of `state`."""
         return tree_step_hard(options, mode, (state.q, state.u, state.last_impulse,
                                               state.last_active, state.last_bilateral,
-                                              state.prox_alpha),
+                                              state.prox_memory),
                               tau, f_ext, (report, is_active, qE, uE), self._tree_model)
 
     def _tree_compliant(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
@@ -314,7 +314,7 @@ class MoreauStepper:
             memory = self._no_memory
             compliant = (state.closed, state.slip, state.anchor, state.lam_compliant)
         return forest_step(options, (state.q, state.u, *memory, state.last_bilateral,
-                                     state.prox_alpha, *compliant), tau, f_ext,
+                                     state.prox_memory, *compliant), tau, f_ext,
                            (report, is_active, qE, uE, *self._cut_motion), self._tree_model,
                            self._cut_model)
 

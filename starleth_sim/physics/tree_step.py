@@ -7,7 +7,7 @@
   impedance law at the state, or replayed; the implicit joint dampers inside), Eqn. (6):
   q^M and M, h, W at the midpoint, the contact problem and its prox solution, Eqn. (8):
   u^E and q^E, the post-step projection. state = (q, u, Λ memory, active memory, Λ_B
-  memory, α memory (SimState.prox_alpha)): the memory is updated only when the step
+  memory, α memory (SimState.prox_memory)): the memory is updated only when the step
   succeeds (TREE_STEP_OK);
   out = (report, is_active, q^E, u^E): the report buffer (report_views: Λ, g_N and contact
   points at q^M, the torques) and the active flags.

@@ -2,7 +2,7 @@
 early and the fallback α solves it (solver.stall_window), while slow but steady solves and
 every converging one are left alone (test_bitexact: every preset unchanged); the fallback α
 that solved a step starts the next ones while the active set stays the same
-(solver.fallback_hold, SimState.prox_alpha)."""
+(solver.fallback_hold, SimState.prox_memory)."""
 import numpy as np
 import pytest
 
@@ -93,22 +93,39 @@ def test_the_paper_alpha_again_when_the_contacts_change_or_after_the_hold():
     for _ in range(50):
         sim.step(hold.torque(sim))
     start = sim.snapshot()
-    assert np.array_equal(start.prox_alpha, [1.0, 0.0])     # standing: the paper's α
-    start.prox_alpha[:] = (0.5, 2.0)                         # as if a fallback solved it
+    assert np.array_equal(start.prox_memory[:2], [1.0, 0.0])  # standing: the paper's α
+    start.prox_memory[:2] = (0.5, 2.0)                        # as if a fallback solved it
     sim.restore(start)
     sim.step(hold.torque(sim))                               # the same 4 feet: kept
-    assert np.array_equal(sim.state.prox_alpha, [0.5, 3.0])
-    start.prox_alpha[:] = (0.5, 5.0)                         # held for fallback_hold steps
+    assert np.array_equal(sim.state.prox_memory[:2], [0.5, 3.0])
+    start.prox_memory[:2] = (0.5, 5.0)                        # held for fallback_hold steps
     sim.restore(start)
     sim.step(hold.torque(sim))
-    assert np.array_equal(sim.state.prox_alpha, [1.0, 0.0])
-    start.prox_alpha[:] = (0.5, 2.0)
+    assert np.array_equal(sim.state.prox_memory[:2], [1.0, 0.0])
+    start.prox_memory[:2] = (0.5, 2.0)
     start.last_active[np.flatnonzero(start.last_active)[0]] = False   # another active set
     sim.restore(start)
     sim.step(hold.torque(sim))
-    assert np.array_equal(sim.state.prox_alpha, [1.0, 0.0])
+    assert np.array_equal(sim.state.prox_memory[:2], [1.0, 0.0])
 
 
 def test_fallback_hold_is_validated():
     with pytest.raises(ConfigError, match="solver.fallback_hold"):
         Simulator.from_preset("HmJ", fallback_hold=-1)
+
+
+def test_a_solve_of_a_few_sweeps_leaves_g_unformed_with_the_same_physics():
+    """With the same active set after a solve of a few sweeps, the next one tries them in
+    the velocity form first (G = WᵀM⁻¹W not formed; SimState.prox_memory[2]: the last
+    solve's sweeps): at rest it converges there, to the Delassus form's motion."""
+    sim, zero = fallen("HmJ")
+    start = sim.snapshot()
+    delassus = Simulator.from_preset("HmJ")
+    delassus.restore(start)
+    for _ in range(STEPS):
+        sim.step(zero)
+        delassus.state.prox_memory[2] = np.inf      # (no probe: G formed every step)
+        delassus.step(zero)
+    assert sim.state.prox_memory[2] <= 4 and sim.diagnostics.converged
+    assert np.abs(sim.q - delassus.q).max() < 1e-6
+    assert np.abs(sim.contact_impulses() - delassus.contact_impulses()).max() < 1e-5

@@ -43,7 +43,7 @@ def contact_memory(state):
     step; compliant: closed, slip, anchors and forces of Alg. 1) and Λ_B of the bilateral
     constraints (empty in the minimal coordinates), and the prox's α memory."""
     arrays = (state.last_impulse, state.last_active, state.closed, state.slip, state.anchor,
-              state.lam_compliant, state.last_bilateral, state.prox_alpha)
+              state.lam_compliant, state.last_bilateral, state.prox_memory)
     return [a.copy() for a in arrays if a is not None]
 
 
@@ -245,12 +245,12 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
     def step(tree, cut=None):
         if preset == "HmJ":
             return tree_step_hard(0, False, (s.q, s.u, s.last_impulse, s.last_active,
-                                             s.last_bilateral, s.prox_alpha), np.zeros(12),
+                                             s.last_bilateral, s.prox_memory), np.zeros(12),
                                   np.zeros(0),
                                   out, tuple(tree))
         no_compliant = (np.zeros(0, dtype=bool),) * 2 + (np.zeros(0),) * 2
         return forest_step(0, (s.q, s.u, s.last_impulse, s.last_active, s.last_bilateral,
-                               s.prox_alpha, *no_compliant), np.zeros(12), np.zeros(0),
+                               s.prox_memory, *no_compliant), np.zeros(12), np.zeros(0),
                            (*out, *st.coords.cut_motion_buffers()), tuple(tree),
                            tuple(cut or st._cut_model))
     q0 = s.q.copy()

@@ -170,7 +170,7 @@ FN(prepare_hard_contacts) {
     arena_t *a = &pr->arena;
     RUN(a, failed,
         contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p, v[7].p,
-                        v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, v[13].p, a,
+                        v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, NULL, v[13].p, a,
                         &pr->p));
     release(&h);
     if (failed) {
@@ -224,7 +224,7 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     x->last_active = v[5].p;
     x->last_bilateral = v[6].p;
     x->nb = v[6].len;
-    x->prox_alpha = NULL; /* (the caller's, where it has one) */
+    x->prox_memory = NULL; /* (the caller's, where it has one) */
     x->is_active = v[8].p;
     x->qE = v[9].p;
     x->uE = v[10].p;
@@ -285,7 +285,7 @@ static int friction_memory_of(const char *fn, const packed_model_t *m, i64 nb) {
     }
 
 /* tree_step_hard(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
- * last_impulse, last_active, last_bilateral, prox_alpha), out = (report, is_active, qE, uE),
+ * last_impulse, last_active, last_bilateral, prox_memory), out = (report, is_active, qE, uE),
  * model = the TreeStepModel's buffers */
 FN(tree_step_hard) {
     static const spec_t spec[] = {{"options", INT},
@@ -296,7 +296,7 @@ FN(tree_step_hard) {
                                   {"last_impulse", F64W},
                                   {"last_active", BOOLW},
                                   {"last_bilateral", F64W},
-                                  {"prox_alpha", F64W},
+                                  {"prox_memory", F64W},
                                   {"tau", F64},
                                   {"f_ext", F64},
                                   STEP_OUT,
@@ -310,9 +310,9 @@ FN(tree_step_hard) {
     val_t w[11] = {v[2], v[3], v[8], v[9], v[4], v[5], v[6], v[10], v[11], v[12], v[13]};
     if (!step_arrays_of("tree_step_hard", w, &m, v[1].i, &x) ||
         !friction_memory_of("tree_step_hard", &m, x.nb) ||
-        !need(v[7].len == 2, "tree_step_hard", "prox_alpha must have 2 entries"))
+        !need(v[7].len == 3, "tree_step_hard", "prox_memory must have 3 entries"))
         FAIL;
-    x.prox_alpha = v[7].p;
+    x.prox_memory = v[7].p;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
     RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, (int)v[1].i, &x, &m, a));
@@ -382,7 +382,7 @@ static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_
 }
 
 /* forest_step(options, state, tau, f_ext, out, model, cut): state = (q, u, last_impulse,
- * last_active, last_bilateral, prox_alpha, closed, slip, anchor, lam: the compliant arrays
+ * last_active, last_bilateral, prox_memory, closed, slip, anchor, lam: the compliant arrays
  * read with STEP_COMPLIANT only), out = (report, is_active, qE, uE, angle_E, rate_E), model the
  * TreeStepModel's buffers, cut the CutModel's */
 FN(forest_step) {
@@ -393,7 +393,7 @@ FN(forest_step) {
                                   {"last_impulse", F64W},
                                   {"last_active", BOOLW},
                                   {"last_bilateral", F64W},
-                                  {"prox_alpha", F64W},
+                                  {"prox_memory", F64W},
                                   COMPLIANT_ARRAYS,
                                   {"tau", F64},
                                   {"f_ext", F64},
@@ -423,12 +423,12 @@ FN(forest_step) {
         !compliant_of("forest_step", &v[7], m.ints[TREE_STEP_MODEL_NC], &cs))
         FAIL;
     i64 ncut = c.ints[CUT_MODEL_NCUT];
-    if (!need(x.nb == 5 * ncut && v[17].len == ncut && v[18].len == ncut && v[6].len == 2,
+    if (!need(x.nb == 5 * ncut && v[17].len == ncut && v[18].len == ncut && v[6].len == 3,
               "forest_step",
               "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints, "
-              "prox_alpha have 2 entries"))
+              "prox_memory have 3 entries"))
         FAIL;
-    x.prox_alpha = v[6].p;
+    x.prox_memory = v[6].p;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
     RUN_NOGIL(a, failed, r = forest_step((int)v[0].i, &x, &cs, v[17].p, v[18].p, &m, &c, a));

@@ -97,7 +97,11 @@ enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2, STATUS_S
  * STALL_FACTOR times the best of the window before (prox.c, stall_seen): 1 % better over a
  * window, so that a slow but steady solve (the maximal coordinates' bilateral prox rows) goes
  * on and only one that cycles (JOR at α = 0.6 on a robot at rest) ends early */
-#define STALL_FACTOR             0.99
+#define STALL_FACTOR 0.99
+/* a Delassus-form solve whose last step's solve took at most this many sweeps, with the
+ * same active set, first tries as many in the velocity form (G not formed: a robot at rest
+ * solves in one), and forms G only when they do not converge (step_kernels.c) */
+#define LAZY_DELASSUS_SWEEPS     4
 #define ALPHA_AUTO               (-1.0)
 #define AUTO_MAX_STEP            1.0e3
 #define AUTO_GUARD               1.0e3
@@ -214,6 +218,10 @@ typedef struct {
      * free): Λ onto [−bound, bound]; the last nf are joint friction rows (tree_step.c) */
     const double *bound;
     i64 nf;
+    /* G left unformed (Delassus form; contact_problem with a memory that expects a solve of
+     * a few sweeps): the solve tries the velocity form first (phase_prox), form_delassus
+     * forms G when it is needed */
+    int lazy_G;
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------

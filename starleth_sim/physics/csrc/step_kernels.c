@@ -238,7 +238,7 @@ static int same_active_set(const problem_t *p, const u8 *last_active, i64 nc) {
 }
 
 /* alpha_start: the scale of the paper's α the solve starts with, from the α memory
- * (SimState.prox_alpha: [scale, steps held], NULL: none): the scale of the last step's
+ * (SimState.prox_memory: [scale, steps held], NULL: none): the scale of the last step's
  * converged fallback while I stays the same and it was held for fewer than fallback_hold
  * steps, else 1 */
 static double alpha_start(const settings_t *s, const double *memory, const problem_t *p,
@@ -248,14 +248,46 @@ static double alpha_start(const settings_t *s, const double *memory, const probl
     return memory[0];
 }
 
+/* form_delassus: G of a problem left lazy (problem_t.lazy_G), its rows' pattern and diag(G)
+ * from it, as phase_delassus forms them */
+static void form_delassus(problem_t *p, arena_t *a) {
+    if (!p->lazy_G) return;
+    i64 m = p->m;
+    double *G = arena_f(a, m * m);
+    delassus(p->Wt, p->MinvW, G, m, p->nv, p->pat.wp_ptr, p->pat.wp_idx, p->pat.mp_ptr,
+             p->pat.mp_idx, a);
+    for (i64 r = 0; r < m; r++) p->Gdiag[r] = G[r * m + r];
+    row_pattern(G, m, m, a, &p->pat.gp_ptr, &p->pat.gp_idx);
+    p->G = G;
+    p->lazy_G = 0;
+}
+
+/* lazy_probe: a problem whose G is unformed tries LAZY_DELASSUS_SWEEPS sweeps of the velocity
+ * form (the same rows on u^k = u_free + M^{-1}WΛ^k, Eqn. 17-19) from Λ^0 in lam with r; 1 when
+ * they converge (*res), else G is formed (the solve then starts again in the Delassus form)
+ * and 0 */
+static int lazy_probe(const settings_t *s, problem_t *p, const double *u_free, const double *M,
+                      const double *mu, const double *r, double *lam, double *u, arena_t *a,
+                      prox_result_t *res) {
+    settings_t probe = *s;
+    probe.form = FORM_VELOCITY;
+    probe.max_iterations = LAZY_DELASSUS_SWEEPS;
+    probe.stall_window = 0;
+    *res = prox_solve(&probe, &p->pat, p->Wt, p->MinvW, u_free, p->b, NULL, NULL, p->m, p->nv,
+                      p->na, mu, r, p->bound, lam, p->LB, p->nb_LB, M, u, a);
+    if (res->status == STATUS_CONVERGED) return 1;
+    form_delassus(p, a);
+    return 0;
+}
+
 /* phase_prox: c (timed as phase "G" from t), the warm start, the prox iteration from α
  * times scale (alpha_start) and one retry with α·fallback_alpha_factor. *uE, *lam point
  * into the arena. With memory (the α memory, NULL: none), the α memory after this solve
  * into alpha_E: [the converged try's scale, steps held] ([1, 0]: the paper's α or not
- * converged). Returns the time at the end of phase "G". (long: the tries' loop and its
+ * converged), the sweeps of the solve. A problem with G unformed tries lazy_probe first. Returns the time at the end of phase "G". (long: the tries' loop and its
  * many outputs) */
-static double phase_prox(const settings_t *s, const problem_t *p, const u8 *last_active,
-                         double scale, const double *memory, const double *u_free, const double *M,
+static double phase_prox(const settings_t *s, problem_t *p, const u8 *last_active, double scale,
+                         const double *memory, const double *u_free, const double *M,
                          const double *last_impulse, const double *last_bilateral, double *timings,
                          double t, arena_t *a, double **uE, double **lam_out,
                          complete_result_t *out, double *alpha_E) {
@@ -285,6 +317,12 @@ static double phase_prox(const settings_t *s, const problem_t *p, const u8 *last
     prox_result_t res = {0, STATUS_CONVERGED, 0.0};
     int again = 0;
     settings_t try_s = *s;
+    if (p->lazy_G) {
+        prox_parameters(p->Gdiag, m, na, alpha, r);
+        relax_bilateral_rows(s, p->Gdiag, m, na, scale, r);
+        if (lazy_probe(s, p, u_free, M, mu_vec, r, lam, u, a, &res)) attempts = 0;
+        it_sum = res.iterations;
+    }
     for (int attempt = 0; attempt < attempts; attempt++) {
         prox_parameters(p->Gdiag, m, na, alpha, r);
         relax_bilateral_rows(s, p->Gdiag, m, na, scale, r);
@@ -304,6 +342,7 @@ static double phase_prox(const settings_t *s, const problem_t *p, const u8 *last
         int kept = res.status == STATUS_CONVERGED && scale < 1.0;
         alpha_E[0] = kept ? scale : 1.0;
         alpha_E[1] = kept && !again && scale == memory[0] ? memory[1] + 1.0 : 0.0;
+        alpha_E[2] = (double)it_sum;
     }
     *uE = u;
     *lam_out = lam;
@@ -318,8 +357,8 @@ static double phase_prox(const settings_t *s, const problem_t *p, const u8 *last
  * whose contacts are forces in h; p->bound their bounds τ_c Δt), from Λ_f^0 in lam_f (out:
  * Λ_f); u^E = u_free + M^{-1} W_f Λ_f into uE. The prox's status (STATUS_*), *iters its
  * iterations. */
-i64 joint_friction_prox(const settings_t *s, const problem_t *p, const double *u_free,
-                        const double *M, double *lam_f, double *uE, i64 *iters, arena_t *a) {
+i64 joint_friction_prox(const settings_t *s, problem_t *p, const double *u_free, const double *M,
+                        double *lam_f, double *uE, i64 *iters, arena_t *a) {
     double *u, *lam;
     complete_result_t res;
     phase_prox(s, p, NULL, 1.0, NULL, u_free, M, NULL, lam_f, NULL, 0.0, a, &u, &lam, &res, NULL);
@@ -407,7 +446,7 @@ static i64 projection_problem(const problem_t *p, const i64 *extra, i64 ne, cons
 /* phase_projection: the post-step projection (contact.penetration_correction
  * "projection"); u_corr receives Δu_p. Returns the iterations, *status the prox status
  * (−1: not needed). */
-static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *is_active,
+static i64 phase_projection(const settings_t *s, problem_t *p, const u8 *is_active,
                             const double *gap, i64 nc, const double *Wt_all, const i64 *dof_parent,
                             const double *L, const double *M, const double *uE, double *u_corr,
                             arena_t *a, i64 *status) {
@@ -429,6 +468,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     patterns_t full;
     i64 m, ncp;
     if (ne == 0 && p->nf == 0) {
+        form_delassus(p, a);
         contacts = p->active;
         ncp = p->na;
         Wp = p->Wt;
@@ -476,12 +516,24 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     return res.iterations;
 }
 
-/* contact_problem: phases "M^-1" and "G" (phase_minv, phase_delassus) */
+/* lazy_delassus: G may be left unformed (problem_t.lazy_G): the prox memory says the last
+ * solve took a few sweeps with the same active set, and the velocity form iterates the same
+ * rows (a fixed α, no direct bilateral method, no JOR bilateral sweep) */
+static int lazy_delassus(const settings_t *s, const double *memory, const problem_t *p,
+                         const u8 *last_active, i64 nc) {
+    if (!memory || s->form != FORM_DELASSUS || s->bilateral_direct || !(s->alpha > 0.0)) return 0;
+    if (s->scheme == SCHEME_JOR && s->bilateral_relaxation > 0.0) return 0;
+    return memory[2] <= (double)LAZY_DELASSUS_SWEEPS && same_active_set(p, last_active, nc);
+}
+
+/* contact_problem: phases "M^-1" and "G" (phase_minv, phase_delassus; G left to the solve
+ * where lazy_delassus) */
 void contact_problem(const settings_t *s, const double *M, const double *uS, i64 nv,
                      const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
                      const double *bB, const double *eps, const double *frames,
                      const i64 *dof_parent, int factor, double *L, const double *last_impulse,
-                     const u8 *last_active, double *timings, arena_t *a, problem_t *p) {
+                     const u8 *last_active, const double *memory, double *timings, arena_t *a,
+                     problem_t *p) {
     double t = kclock(timings);
     phase_minv(s, M, uS, nv, gap, nc, Wt_all, WtB, nb, bB, eps, dof_parent, factor, L, last_impulse,
                last_active, a, p);
@@ -492,10 +544,13 @@ void contact_problem(const settings_t *s, const double *M, const double *uS, i64
         p->mu = mu;
     }
     t = klap(timings, PHASE_M_INVERSE, t);
+    p->lazy_G = 0;
     if (p->ok && p->m != 0) {
         patterns_t full;
-        p->ok = phase_delassus(s->form, p->na, s->bilateral_direct, p->Wt, p->MinvW, p->m, nv,
-                               &p->pat, a, &p->G, &p->Gdiag, &p->LB, &p->nb_LB, &full);
+        p->lazy_G = lazy_delassus(s, memory, p, last_active, nc);
+        p->ok = phase_delassus(p->lazy_G ? FORM_VELOCITY : s->form, p->na, s->bilateral_direct,
+                               p->Wt, p->MinvW, p->m, nv, &p->pat, a, &p->G, &p->Gdiag, &p->LB,
+                               &p->nb_LB, &full);
         p->pat = full;
     } else {
         p->G = p->Gdiag = p->LB = NULL;
@@ -528,7 +583,7 @@ static void no_contact_impulses(i64 nc, double *impulse, u8 *is_active) {
  * model and workspace t, the state x (its u^S, warm-start and α memory; Λ into its report,
  * u^E into uE), Λ_B into bilateral_E (which comes in with the warm start), the α memory
  * after the solve into alpha_E (2) */
-complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
+complete_result_t complete_problem(problem_t *p, const double *h, const double *M,
                                    const tree_model_t *t, const step_arrays_t *x,
                                    double *bilateral_E, double *alpha_E, double *timings,
                                    arena_t *a) {
@@ -544,12 +599,13 @@ complete_result_t complete_problem(const problem_t *p, const double *h, const do
     for (i64 k = 0; k < nv; k++) t->u_corr[k] = 0.0;
     alpha_E[0] = 1.0;
     alpha_E[1] = 0.0;
+    alpha_E[2] = 0.0;
     if (p->m == 0) {
         memcpy(u, t->u_free, (size_t)nv * sizeof(double));
     } else {
         double *uE, *lam;
-        double scale = alpha_start(s, x->prox_alpha, p, x->last_active, nc);
-        t0 = phase_prox(s, p, x->last_active, scale, x->prox_alpha, t->u_free, M, x->last_impulse,
+        double scale = alpha_start(s, x->prox_memory, p, x->last_active, nc);
+        t0 = phase_prox(s, p, x->last_active, scale, x->prox_memory, t->u_free, M, x->last_impulse,
                         bilateral_E, timings, t0, a, &uE, &lam, &res, alpha_E);
         memcpy(u, uE, (size_t)nv * sizeof(double));
         for (i64 r = 0; r < na; r++) {

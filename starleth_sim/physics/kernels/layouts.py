@@ -211,7 +211,7 @@ STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
            'contact.activation "hysteresis" (else the gap test alone)'),
     Number("fallback_hold", "i64",
            "steps a converged fallback α starts the solves while I stays the same (0: none; "
-           "SimState.prox_alpha)",
+           "SimState.prox_memory)",
            0),
 ))
 
