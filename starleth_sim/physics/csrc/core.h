@@ -220,8 +220,11 @@ typedef struct {
     i64 nf;
     /* G left unformed (Delassus form; contact_problem with a memory that expects a solve of
      * a few sweeps): the solve tries the velocity form first (phase_prox), form_delassus
-     * forms G when it is needed */
-    int lazy_G;
+     * forms G when it is needed; under JOR M^{-1}W too (minv_w_ready 0: the velocity form
+     * then solves with the factor L of M, minv_w forms it when it is needed) */
+    int lazy_G, minv_w_ready;
+    const double *L;       /* the factor of M (L^T D L, tree_step's workspace) */
+    const i64 *dof_parent; /* its tree */
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------
@@ -333,6 +336,20 @@ void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv, c
               const i64 *wp_idx, const i64 *mp_ptr, const i64 *mp_idx, arena_t *a);
 void delassus_diagonal(const double *Wt, const double *MinvW, double *d, i64 m, i64 nv,
                        const i64 *wp_ptr, const i64 *wp_idx);
+/* JOR in the velocity form with M^{-1} applied by the factor L of M (dof_parent its tree)
+ * instead of M^{-1}W (not formed): at most s->max_iterations sweeps from Λ^0 in lam, u^E into
+ * u (prox.c; the impulse criterion) */
+prox_result_t jor_velocity_factored(const settings_t *s, const patterns_t *pat, const double *Wt,
+                                    const double *u_free, const double *bvec, i64 m, i64 nv, i64 nc,
+                                    const double *mu, const double *r, const double *bound,
+                                    double *lam, const double *L, const i64 *dof_parent, double *u,
+                                    arena_t *a);
+/* diag(G) = diag(W^T M^{-1} W) with the factor L of M (no M^{-1}W): w^T (L^T D L)^{-1} w =
+ * yᵀD^{-1}y with L^T y = w, every row's y at once in Y (nv x m, work) (prox_delassus.c) */
+void factored_delassus_diagonal(const double *Wt, i64 m, i64 nv, const i64 *wp_ptr,
+                                const i64 *wp_idx, const double *L, const i64 *dof_parent,
+                                double *d, double *Y);
+
 /* prox_alpha.c: auto_spectral_scale (adaptive α): G is m x m (Delassus form), else unused */
 double auto_spectral_scale(const settings_t *s, const double *G, const double *Wt,
                            const double *MinvW, const patterns_t *pat, i64 m, i64 nv, i64 nc,
