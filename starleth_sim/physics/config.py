@@ -236,8 +236,9 @@ class SolverConfig:
     #: a step whose solve needed the fallback α starts the next one at that α while the
     #: active set stays the same, for up to this many steps, then tries the paper's α again
     #: (the α a contact configuration converges with is its own, Fig. 6: a robot lying at
-    #: rest cycles at the paper's α step after step); 0: every step starts at the paper's α
-    fallback_hold: int = 200
+    #: rest cycles at the paper's α step after step; each try costs ~2 stall windows, so it
+    #: is seldom: 1000 steps = 2.5 s at 400 Hz); 0: every step starts at the paper's α
+    fallback_hold: int = 1000
 
     def validate(self, p):
         self.scheme = _choice(f"{p}.scheme", self.scheme, {"jor", "sor"})

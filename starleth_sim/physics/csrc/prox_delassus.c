@@ -14,8 +14,10 @@ static void strided_row_pattern(const double *A, i64 m, i64 n, i64 rs, i64 ks, a
     i64 cnt = 0;
     for (i64 r = 0; r < m; r++) {
         p[r] = cnt;
-        for (i64 k = 0; k < n; k++)
-            if (A[r * rs + k * ks] != 0.0) ix[cnt++] = k;
+        for (i64 k = 0; k < n; k++) { /* (branch-free: the nonzeros are scattered) */
+            ix[cnt] = k;
+            cnt += A[r * rs + k * ks] != 0.0;
+        }
     }
     p[m] = cnt;
     *ptr = p;
