@@ -87,7 +87,7 @@ static int lazy_delassus(const settings_t *s, const double *memory, const proble
     if (!memory || s->form != FORM_DELASSUS || s->bilateral_direct || !(s->alpha > 0.0)) return 0;
     if (s->scheme == SCHEME_JOR && s->bilateral_relaxation > 0.0) return 0;
     if (s->criterion != CRITERION_IMPULSE) return 0;
-    return memory[2] <= (double)LAZY_DELASSUS_SWEEPS && same_active_set(p, last_active, nc);
+    return memory[2] <= (double)LAZY_DELASSUS_LAST && same_active_set(p, last_active, nc);
 }
 
 /* minv_w: M^{-1}W of p (from its W^T, with the factor p->L of M) and the pattern of its
