@@ -7,7 +7,11 @@ machine, and those of the other 7 were added then. HMJP and HMSP were re-pinned 
 their bilateral prox rows are now swept Gauss-Seidel with ω_B = 1.5 (bilateral.relaxation),
 the same fixed point in 2-4x fewer sweeps; their states moved by < 2e-5 up to step 50, where
 the old pins and the new ones stand as close to a tightly solved HMJD (3e-4), and part
-chaotically after the push.
+chaotically after the push. HEJD, HESD, HMJD and HMSD were re-pinned for issue #49 too: after
+3 sweeps of a solve their direct bilateral method (Eqn. 20) applies the gain G_BB^{-1} [G_BU,
+c_B], solved once for all its columns, instead of one solve with L_B per sweep: the same Λ_B
+up to round-off (their states within 3e-13 of the old pins up to step 100, the same
+iterations), parting after the push's contact events.
 
 The torque law is a plain joint PD law on purpose: the physics alone is pinned here. The demo's
 closed loop (sim_node + controller_node, below) is pinned with a tolerance, because its

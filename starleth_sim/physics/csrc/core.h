@@ -103,7 +103,11 @@ enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2, STATUS_S
  * LAZY_DELASSUS_SWEEPS in the velocity form (G not formed), and forms G only when they do not
  * converge (step_kernels.c; a failed try's sweeps are lost: with a last of up to 4 sweeps,
  * HEJP standing at α 0.9 took 6.0 sweeps per step instead of 4.6) */
-#define LAZY_DELASSUS_SWEEPS     4
+#define LAZY_DELASSUS_SWEEPS 4
+/* the direct bilateral method in the Delassus form: after this many sweeps of a solve, Λ_B =
+ * −G_BB^{-1} (G_BU Λ_U + c_B) by the gain X = G_BB^{-1} [G_BU, c_B], solved once for every
+ * column, instead of one solve with L_B per sweep (prox.c, direct_bilateral) */
+#define DIRECT_GAIN_SWEEPS       3
 #define LAZY_DELASSUS_LAST       1
 #define ALPHA_AUTO               (-1.0)
 #define AUTO_MAX_STEP            1.0e3
@@ -238,6 +242,9 @@ void cholesky_solve_vec(const double *L, i64 n, const i64 *first, double *b);
 void envelope_columns(const i64 *first, i64 n, arena_t *a, i64 **ptr, i64 **idx);
 void cholesky_solve_envelope(const double *L, i64 n, const i64 *first, const i64 *col_ptr,
                              const i64 *col_idx, double *b);
+/* (L L^T) X = B for the q columns of X (n x q, row-major) at once, within the envelope */
+void cholesky_solve_envelope_cols(const double *L, i64 n, const i64 *first, const i64 *col_ptr,
+                                  const i64 *col_idx, double *X, i64 q);
 int ltdl(const double *A, i64 n, const i64 *dof_parent, double *L);
 void ltdl_solve_vec(const double *L, i64 n, const i64 *dof_parent, double *b);
 /* B: n x m, solved in place column by column */

@@ -217,6 +217,7 @@ static void bilateral_gauss_seidel(const double *G, const double *c, i64 m, i64 
 typedef struct {
     const i64 *col_ptr, *col_idx;
     double *rhs;
+    double *gain; /* X = G_BB^{-1} [G_BU, c_B] (nb x (3 nc + 1)) once formed, else NULL */
 } direct_t;
 
 /* The stall test of a solve (stall_seen): the best residual so far, the best at the end of
@@ -315,10 +316,41 @@ typedef struct {
     arena_t *ar;
 } delassus_t;
 
+/* direct_bilateral: Λ_B of Eqn. 20 into lam after sweep k: by one solve with L_B for the
+ * first DIRECT_GAIN_SWEEPS sweeps, then by the gain X = G_BB^{-1} [G_BU, c_B] (formed once:
+ * every column solved at once), Λ_B = −(X_U Λ_U + X_c) */
+static void direct_bilateral(delassus_t *P, double *lam, i64 k) {
+    i64 m = P->m, o = 3 * P->nc, nb = m - o, q = o + 1;
+    const double *G = P->G;
+    if (!P->direct.gain && k < DIRECT_GAIN_SWEEPS) {
+        bilateral_direct_delassus(G, P->c, m, P->nc, P->LB, P->nb_LB, lam, P->pat->gp_ptr,
+                                  P->pat->gp_idx, P->pat->lb_first, P->direct.col_ptr,
+                                  P->direct.col_idx, P->direct.rhs);
+        return;
+    }
+    if (!P->direct.gain) {
+        double *X = arena_f(P->ar, nb * q);
+        for (i64 a = 0; a < nb; a++) {
+            for (i64 u = 0; u < o; u++) X[a * q + u] = G[u * m + o + a];
+            X[a * q + o] = P->c[o + a];
+        }
+        cholesky_solve_envelope_cols(P->LB, nb, P->pat->lb_first, P->direct.col_ptr,
+                                     P->direct.col_idx, X, q);
+        P->direct.gain = X;
+    }
+    const double *X = P->direct.gain;
+    for (i64 a = 0; a < nb; a++) {
+        const double *xa = X + a * q;
+        double s = xa[o];
+        for (i64 u = 0; u < o; u++) s += xa[u] * lam[u];
+        lam[o + a] = -s;
+    }
+}
+
 /* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ); with a bilateral
  * relaxation (fixed α) the bilateral prox rows are swept after the contacts'
  * (bilateral_gauss_seidel) */
-static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
+static prox_result_t jor_prox_delassus(delassus_t *P, double *buf) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
     double *lam = P->lam;
@@ -352,10 +384,7 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
                                        tol_abs);
         } else {
             jor_project(lam, xi, rk, mu, bound, nc, m, bilateral_direct, new_);
-            if (bilateral_direct)
-                bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, new_, gp_ptr, gp_idx,
-                                          P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
-                                          P->direct.rhs);
+            if (bilateral_direct) direct_bilateral(P, new_, k);
             ck = check(lam, new_, m, tol_rel, tol_abs);
             if (autoa) {
                 if (!ck.finite && hist[1] != 1.0) { /* from Λ^0 again, spectral steps */
@@ -384,7 +413,7 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
 }
 
 /* sor_prox_delassus: SOR on ξ = GΛ + c, work buffer old (m: Λ of the last sweep) */
-static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
+static prox_result_t sor_prox_delassus(delassus_t *P, double *old) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
     double *lam = P->lam;
@@ -420,9 +449,7 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
             project_contact(lam, b, x0, x1, x2, rk, mu[i], lam);
         }
         if (bilateral_direct) {
-            bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, lam, gp_ptr, gp_idx,
-                                      P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
-                                      P->direct.rhs);
+            direct_bilateral(P, lam, k);
         } else {
             for (i64 a = o; a < m; a++) {
                 double sm = c[a];
@@ -491,7 +518,7 @@ static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_
                     nb_LB,
                     {s->form, G, G, MinvW, pat, m, nv},
                     {u_free, MinvW, M, pat->mp_ptr, pat->mp_idx, nv, m, u},
-                    {col_ptr, col_idx, work + nw},
+                    {col_ptr, col_idx, work + nw, NULL},
                     ar};
     return jor ? jor_prox_delassus(&P, work) : sor_prox_delassus(&P, work);
 }
