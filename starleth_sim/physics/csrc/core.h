@@ -348,14 +348,14 @@ void delassus_diagonal(const double *Wt, const double *MinvW, double *d, i64 m, 
                        const i64 *wp_ptr, const i64 *wp_idx);
 /* JOR in the velocity form with M^{-1} applied by the factor L of M (dof_parent its tree)
  * instead of M^{-1}W (not formed): at most s->max_iterations sweeps from Λ^0 in lam, u^E into
- * u (prox.c; the impulse criterion) */
+ * u (prox_factored.c; the impulse criterion) */
 prox_result_t jor_velocity_factored(const settings_t *s, const patterns_t *pat, const double *Wt,
                                     const double *u_free, const double *bvec, i64 m, i64 nv, i64 nc,
                                     const double *mu, const double *r, const double *bound,
                                     double *lam, const double *L, const i64 *dof_parent, double *u,
                                     arena_t *a);
 /* diag(G) = diag(W^T M^{-1} W) with the factor L of M (no M^{-1}W): w^T (L^T D L)^{-1} w =
- * yᵀD^{-1}y with L^T y = w, every row's y at once in Y (nv x m, work) (prox_delassus.c) */
+ * yᵀD^{-1}y with L^T y = w, every row's y at once in Y (nv x m, work) (prox_factored.c) */
 void factored_delassus_diagonal(const double *Wt, i64 m, i64 nv, const i64 *wp_ptr,
                                 const i64 *wp_idx, const double *L, const i64 *dof_parent,
                                 double *d, double *Y);

@@ -1,52 +1,12 @@
 /* The prox iterations (prox.py, Gehring et al. 2014, Eqn. 12-20): JOR and SOR on ξ = GΛ + c
  * (Delassus form; G from prox_delassus.c) or in the velocity (G never formed), the direct bilateral
- * method (Eqn. 20), the energy criterion; the adaptive α's steps: prox_alpha.c (prox.h).
+ * method (Eqn. 20), the energy criterion; the rows' laws: prox_rows.h; the adaptive α's steps:
+ * prox_alpha.c (prox.h); JOR with the factor of M instead of M^{-1}W: prox_factored.c.
  * Layouts: Wt m x nv, MinvW nv x m, G m x m, M nv x nv, LB nb_LB x nb_LB (row-major). */
 #include "prox.h"
+#include "prox_rows.h"
 
 #include <string.h>
-
-/* prox_normal: Λ_N = −prox_{R0−}(−x), projection onto [0, ∞) (NaN gives 0) */
-static inline double prox_normal(double x) {
-    return x > 0.0 ? x : 0.0;
-}
-
-/* prox_disc: projection of (x1, x2) onto the disc of the given radius */
-static inline void prox_disc(double x1, double x2, double radius, double *o1, double *o2) {
-    double n2 = x1 * x1 + x2 * x2;
-    if (n2 <= radius * radius) {
-        *o1 = x1;
-        *o2 = x2;
-        return;
-    }
-    if (radius <= 0.0) {
-        *o1 = 0.0;
-        *o2 = 0.0;
-        return;
-    }
-    double s = radius / sqrt(n2);
-    *o1 = x1 * s;
-    *o2 = x2 * s;
-}
-
-/* project_contact: prox of one contact's rows (out may be lam: all reads before writes) */
-static inline void project_contact(const double *lam, i64 b, double xi0, double xi1, double xi2,
-                                   const double *r, double mu_i, double *out) {
-    double ln = prox_normal(lam[b] - r[b] * xi0);
-    double t1, t2;
-    prox_disc(lam[b + 1] - r[b + 1] * xi1, lam[b + 2] - r[b + 2] * xi2, mu_i * ln, &t1, &t2);
-    out[b] = ln;
-    out[b + 1] = t1;
-    out[b + 2] = t2;
-}
-
-/* prox_row: a row after the contacts': a bilateral row's Λ_B as it is (bound NULL), a joint
- * friction row's projected onto [−bound_k, bound_k] (|Λ_f| ≤ τ_c Δt: the joint sticks inside) */
-static inline double prox_row(double x, const double *bound, i64 k) {
-    if (!bound) return x;
-    double b = bound[k];
-    return x > b ? b : (x < -b ? -b : x);
-}
 
 /* kinetic_energy: ½ uᵀ M u */
 static double kinetic_energy(const double *M, const double *u, i64 nv) {
@@ -122,29 +82,6 @@ static void bilateral_direct_velocity(const double *Wt, const double *MinvW, con
     for (i64 a = 0; a < nb_; a++) lam[o + a] = rhs[a];
 }
 
-/* (ok, res, finite) of check / row_check */
-typedef struct {
-    int ok;
-    double res;
-    int finite;
-} check_t;
-
-/* row_check: one row's test |ΔΛ| ≤ |Λ_old| tol_rel + tol_abs, carried on in c */
-static inline void row_check(double old, double new_, check_t *c, double tol_rel, double tol_abs) {
-    double d = fabs(new_ - old);
-    if (!isfinite(new_)) c->finite = 0;
-    if (d > c->res) c->res = d;
-    if (d > fabs(old) * tol_rel + tol_abs) c->ok = 0;
-}
-
-/* check: (converged by the impulse criterion, max |ΔΛ|, all finite) */
-static check_t check(const double *lam_old, const double *lam, i64 n, double tol_rel,
-                     double tol_abs) {
-    check_t c = {1, 0.0, 1};
-    for (i64 l = 0; l < n; l++) row_check(lam_old[l], lam[l], &c, tol_rel, tol_abs);
-    return c;
-}
-
 /* delassus_apply: ξ_a = c_a + Σ_l G_al Λ_l (a < n), column by column over each column's
  * envelope (its zeros inside included, as the Python) */
 static void delassus_apply(const double *G, const double *c, i64 m, const double *lam, double *xi,
@@ -159,17 +96,6 @@ static void delassus_apply(const double *G, const double *c, i64 m, const double
         const double *gs = G + l * m;
         for (i64 t = a0; t < a1; t++) xi[t] = xi[t] + gs[t] * x;
     }
-}
-
-/* jor_project: a JOR update of Λ into new (Λ_B kept with the direct method) */
-static void jor_project(const double *lam, const double *xi, const double *r, const double *mu,
-                        const double *bound, i64 nc, i64 m, int bilateral_direct, double *new_) {
-    for (i64 i = 0; i < nc; i++) {
-        i64 b = 3 * i;
-        project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new_);
-    }
-    for (i64 l = 3 * nc; l < m; l++)
-        new_[l] = bilateral_direct ? lam[l] : prox_row(lam[l] - r[l] * xi[l], bound, l - 3 * nc);
 }
 
 /* jor_update_in_place: fixed-α JOR update (bilateral prox rows) in place, with check */
@@ -244,11 +170,6 @@ static inline int stall_seen(stall_t *t, i64 k, double res) {
     t->mark = t->best;
     t->next += t->window;
     return 0;
-}
-
-static prox_result_t result(i64 it, i64 status, double res) {
-    prox_result_t out = {it, status, res};
-    return out;
 }
 
 /* The energy criterion: |T^{k+1} − T^k| ≤ |T^k| T_rel + T_abs with T = ½ uᵀMu; T^k in *T_old,
@@ -692,51 +613,6 @@ static prox_result_t sor_prox_velocity(const settings_t *s, const patterns_t *pa
         if (stall_seen(&stall, k, res)) return result(k + 1, STATUS_STALLED, res);
     }
     return result(max_iter, STATUS_MAX_ITER, res);
-}
-
-/* factored_impulse_velocity: f = M^{-1} W d (the rows' W^T by their pattern, then the factor
- * L of M), added to u */
-static void factored_impulse_velocity(const double *Wt, const patterns_t *pat, i64 m, i64 nv,
-                                      const double *d, const double *L, const i64 *dof_parent,
-                                      double *f, double *u) {
-    for (i64 k = 0; k < nv; k++) f[k] = 0.0;
-    for (i64 l = 0; l < m; l++)
-        if (d[l] != 0.0)
-            for (i64 p = pat->wp_ptr[l]; p < pat->wp_ptr[l + 1]; p++) {
-                i64 k = pat->wp_idx[p];
-                f[k] = f[k] + Wt[l * nv + k] * d[l];
-            }
-    ltdl_solve_vec(L, nv, dof_parent, f);
-    for (i64 k = 0; k < nv; k++) u[k] = u[k] + f[k];
-}
-
-prox_result_t jor_velocity_factored(const settings_t *s, const patterns_t *pat, const double *Wt,
-                                    const double *u_free, const double *bvec, i64 m, i64 nv, i64 nc,
-                                    const double *mu, const double *r, const double *bound,
-                                    double *lam, const double *L, const i64 *dof_parent, double *u,
-                                    arena_t *a) {
-    double *buf = arena_f(a, 3 * m + nv);
-    double *xi = buf, *new_ = buf + m, *d = buf + 2 * m, *f = buf + 3 * m;
-    memcpy(u, u_free, (size_t)nv * sizeof(double));
-    factored_impulse_velocity(Wt, pat, m, nv, lam, L, dof_parent, f, u);
-    double res = 0.0;
-    for (i64 k = 0; k < s->max_iterations; k++) {
-        for (i64 a_ = 0; a_ < m; a_++) {
-            double sm = bvec[a_];
-            for (i64 p = pat->wp_ptr[a_]; p < pat->wp_ptr[a_ + 1]; p++)
-                sm = sm + Wt[a_ * nv + pat->wp_idx[p]] * u[pat->wp_idx[p]];
-            xi[a_] = sm;
-        }
-        jor_project(lam, xi, r, mu, bound, nc, m, 0, new_);
-        check_t ck = check(lam, new_, m, s->tol_rel, s->tol_abs);
-        res = ck.res;
-        if (!ck.finite) return result(k + 1, STATUS_NONFINITE, res);
-        for (i64 l = 0; l < m; l++) d[l] = new_[l] - lam[l];
-        factored_impulse_velocity(Wt, pat, m, nv, d, L, dof_parent, f, u);
-        memcpy(lam, new_, (size_t)m * sizeof(double));
-        if (ck.ok) return result(k + 1, STATUS_CONVERGED, res);
-    }
-    return result(s->max_iterations, STATUS_MAX_ITER, res);
 }
 
 /* prox_solve: one prox solve with the settings' form and scheme */

@@ -111,29 +111,6 @@ void delassus_diagonal(const double *Wt, const double *MinvW, double *d, i64 m, 
     }
 }
 
-void factored_delassus_diagonal(const double *Wt, i64 m, i64 nv, const i64 *wp_ptr,
-                                const i64 *wp_idx, const double *L, const i64 *dof_parent,
-                                double *d, double *Y) {
-    for (i64 k = 0; k < nv * m; k++) Y[k] = 0.0;
-    for (i64 r = 0; r < m; r++)
-        for (i64 p = wp_ptr[r]; p < wp_ptr[r + 1]; p++)
-            Y[wp_idx[p] * m + r] = Wt[r * nv + wp_idx[p]];
-    for (i64 k = nv - 1; k >= 0; k--) { /* L^T Y = W: leaves to roots, all columns at once */
-        const double *yk = Y + k * m;
-        for (i64 j = dof_parent[k]; j != -1; j = dof_parent[j]) {
-            double l = L[k * nv + j];
-            double *yj = Y + j * m;
-            for (i64 c = 0; c < m; c++) yj[c] -= l * yk[c];
-        }
-    }
-    for (i64 c = 0; c < m; c++) d[c] = 0.0;
-    for (i64 k = 0; k < nv; k++) { /* d = Σ_k Y_k² / D_k, column by column */
-        const double *yk = Y + k * m;
-        double dinv = 1.0 / L[k * nv + k];
-        for (i64 c = 0; c < m; c++) d[c] += yk[c] * yk[c] * dinv;
-    }
-}
-
 /* prox_parameters: r_N = |α|/G_NN, r_T = |α|/max(G_T1T1, G_T2T2), r_B = |α|/G_BB */
 void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r) {
     alpha = fabs(alpha);

@@ -317,12 +317,11 @@ static int lazy_probe(const settings_t *s, problem_t *p, const double *u_free, c
     return 0;
 }
 
-/* phase_prox: c (timed as phase "G" from t), the warm start, the prox iteration from α
- * times scale (alpha_start) and one retry with α·fallback_alpha_factor. *uE, *lam point
- * into the arena. With memory (the α memory, NULL: none), the α memory after this solve
- * into alpha_E: [the converged try's scale, steps held] ([1, 0]: the paper's α or not
- * converged), the sweeps of the solve. A problem with G unformed tries lazy_probe first. Returns the time at the end of phase "G". (long: the tries' loop and its
- * many outputs) */
+/* phase_prox: c (timed as phase "G" from t), the warm start, lazy_probe where G is unformed,
+ * the prox iteration from α times scale (alpha_start) and one retry with α·fallback_alpha_factor.
+ * *uE, *lam point into the arena. With memory (the prox memory; NULL: none) its next value into
+ * alpha_E: [the converged try's scale, steps held] ([1, 0]: the paper's α or not converged), the
+ * solve's sweeps. Returns the time at the end of phase "G". (long: the tries, many outputs) */
 static double phase_prox(const settings_t *s, problem_t *p, const u8 *last_active, double scale,
                          const double *memory, const double *u_free, const double *M,
                          const double *last_impulse, const double *last_bilateral, double *timings,
