@@ -114,13 +114,14 @@ def test_fallback_hold_is_validated():
         Simulator.from_preset("HmJ", fallback_hold=-1)
 
 
-def test_a_solve_of_one_sweep_leaves_g_unformed_with_the_same_physics():
+@pytest.mark.parametrize("preset", ["HmJ", "HmS"])        # JOR (no M⁻¹W either) and SOR
+def test_a_solve_of_one_sweep_leaves_g_unformed_with_the_same_physics(preset):
     """With the same active set after a solve of one sweep, the next one tries a few in the
     velocity form first (G = WᵀM⁻¹W and M⁻¹W not formed; SimState.prox_memory[2]: the last
     solve's sweeps): at rest it converges there, to the Delassus form's motion."""
-    sim, zero = fallen("HmJ")
+    sim, zero = fallen(preset)
     start = sim.snapshot()
-    delassus = Simulator.from_preset("HmJ")
+    delassus = Simulator.from_preset(preset)
     delassus.restore(start)
     for _ in range(STEPS):
         sim.step(zero)
