@@ -183,7 +183,7 @@ SANITIZE_DIR := build/sanitize
 SANITIZE_TESTS := test_bitexact test_adaptive_alpha test_coordinates test_drives test_hard_contacts \
         test_impedance test_impedance_commands test_kernel_layouts test_kinematics_dynamics \
         test_physics_analytic test_physics_robot test_solvers test_state test_step_down \
-        test_terrain test_terrain_walk
+        test_terrain test_terrain_walk test_prox_stall test_bilateral_relaxation
 # Every C file of the tree in the style of .clang-format (make test checks it)
 C_FILES = $(shell git ls-files '*.c' '*.h' 2>/dev/null || find starleth_sim starleth_controller starleth_interface -name '*.[ch]')
 format: test-deps

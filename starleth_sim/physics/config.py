@@ -44,7 +44,9 @@ solver.tol_abs                 [0, 1000] N s                an impulse (and tol_
 solver.max_iterations          integer [1, 1 000 000]       a cap per solve that still ends
 solver.fallback_alpha_factor   [0, 1)                       a smaller α on a retry, 0 = none
 solver.stall_window           integer [0, 1 000 000]       sweeps per stall test (0 = none)
+solver.fallback_hold          integer [0, 1 000 000]       steps a fallback α is kept (0 = none)
 bilateral.stabilization        [0, 1]                       β of the drift correction
+bilateral.relaxation           [0, 2)                       ω_B: SOR converges in (0, 2)
 actuator.armature              [0, 100] kg m²               a reflected rotor inertia: a
                                                             big drive's is < 10 (StarlETH's
                                                             ~0.02, a 1 t excavator's ~10)
@@ -256,6 +258,12 @@ class SolverConfig:
     #: at α = 0.6 does on a robot lying at rest) and is retried at once with the fallback α
     #: instead of at max_iterations (0: only the cap ends a try; no test without a fallback)
     stall_window: int = 32
+    #: a step whose solve needed the fallback α starts the next one at that α while the
+    #: active set stays the same, for up to this many steps, then tries the paper's α again
+    #: (the α a contact configuration converges with is its own, Fig. 6: a robot lying at
+    #: rest cycles at the paper's α step after step; each try costs ~2 stall windows, so it
+    #: is seldom: 1000 steps = 2.5 s at 400 Hz); 0: every step starts at the paper's α
+    fallback_hold: int = 1000
 
     def validate(self, p):
         self.scheme = _choice(f"{p}.scheme", self.scheme, {"jor", "sor"})
@@ -275,6 +283,7 @@ class SolverConfig:
         self.fallback_alpha_factor = _num(f"{p}.fallback_alpha_factor",
                                           self.fallback_alpha_factor, 0.0, 1.0, hi_open=True)
         self.stall_window = _int(f"{p}.stall_window", self.stall_window, 0, MAX_ITERATIONS)
+        self.fallback_hold = _int(f"{p}.fallback_hold", self.fallback_hold, 0, MAX_ITERATIONS)
 
 
 @dataclass
@@ -284,10 +293,18 @@ class BilateralConfig:
     #: which removes a position-level violation g_B over a few steps. β = 0 is the paper's law
     #: (ξ_B = γ_B^E), whose violation drifts at first order in Δt.
     stabilization: float = 0.0
+    #: ω_B ∈ (0, 2) of the bilateral prox rows, r_B = ω_B/G_BB, swept Gauss-Seidel after the
+    #: contacts' rows in either scheme (SOR on the linear bilateral system converges for any
+    #: ω_B in (0, 2), whatever its condition: the maximal coordinates' chains make JOR at the
+    #: paper's α crawl); 0: the paper's, the bilateral rows as the contacts' with α. Used by
+    #: bilateral prox rows at a fixed α only (the direct method has none; solver.alpha: auto
+    #: relaxes them itself)
+    relaxation: float = 0.0
 
     def validate(self, p):
         self.method = _choice(f"{p}.method", self.method, {"none", "prox", "direct"})
         self.stabilization = _num(f"{p}.stabilization", self.stabilization, 0.0, 1.0)
+        self.relaxation = _num(f"{p}.relaxation", self.relaxation, 0.0, 2.0, hi_open=True)
 
 
 @dataclass
@@ -518,6 +535,7 @@ class PhysicsConfig:
             if self.coordinates != "minimal" and self.bilateral.method == "none":
                 raise ConfigError(f"bilateral.method: coordinates '{self.coordinates}' need "
                                   "'prox' or 'direct'")
+            self._check_relaxation()
             if not isinstance(self.paper, dict):
                 raise ConfigError(f"paper: expected a mapping, got {self.paper!r}")
             for k, v in self.paper.items():
@@ -528,6 +546,13 @@ class PhysicsConfig:
         except ConfigError as e:
             raise ConfigError(f"{p}: {e}") from None
         return self
+
+    def _check_relaxation(self):
+        """bilateral.relaxation under JOR needs the Delassus form (whose velocity form has no
+        sweep over single rows)."""
+        s = self.solver
+        if self.bilateral.relaxation and s.scheme == "jor" and s.form == "velocity":
+            raise ConfigError("bilateral.relaxation: JOR needs solver.form: delassus")
 
     # -- construction ---------------------------------------------------------------------
     @classmethod

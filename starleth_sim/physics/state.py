@@ -11,7 +11,8 @@ What is what:
 * **State** (`SimState`, this module): everything a step reads *and* writes, so that the
   next step depends on it — q, u, t, the hard contacts' memory (the last step's impulses Λ
   and active flags, which warm-start the prox iteration and decide the activation
-  hysteresis, and Λ_B of the bilateral constraints), the compliant contacts' state of Alg. 1
+  hysteresis, Λ_B of the bilateral constraints, and the α the prox starts with), the
+  compliant contacts' state of Alg. 1
   (closed, slip, anchor P0, and the last forces λ), the drives' lagged torques and the
   *timed* external wrenches
   (`Simulator.apply_wrench`), whose remaining durations a step counts down. A copy of it is
@@ -49,6 +50,12 @@ class SimState:
     #: Λ_B of the bilateral constraints in the last physics step (nb) [N s] (warm start);
     #: with Coulomb joint friction (hard contacts), then the joints' friction impulses Λ_f
     last_bilateral: np.ndarray | None = None
+    #: the prox's memory (3): the scale of the paper's α (solver.alpha) the last solve
+    #: converged with, when it needed the fallback (1: the paper's α), and the steps it has
+    #: started the solves since (the next solve starts there while the active set stays the
+    #: same: solver.fallback_hold); the last solve's sweeps (inf: none yet; a few, with the
+    #: same active set: the next one tries the velocity form before forming G)
+    prox_memory: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, np.inf]))
     #: compliant contacts (Alg. 1; None with hard ones): closed (g_N ≤ 0), slipping,
     #: anchor P0 (nc x 3) [m] and the last forces λ = (λ_N, λ_T1, λ_T2) (nc x 3) [N]
     closed: np.ndarray | None = None
@@ -92,6 +99,7 @@ class SimState:
         a = self.last_active
         new.last_active = None if a is None else a.copy()
         new.last_bilateral = self.last_bilateral.copy()
+        new.prox_memory = self.prox_memory.copy()
         a = self.closed
         if a is None:
             new.closed = new.slip = new.anchor = new.lam_compliant = None
@@ -112,8 +120,8 @@ class SimState:
     def restore_memory(self, other: "SimState"):
         """The contact memory of `other` (a copy of this state) copied back into this
         state's arrays, in place (a step solved again from the same memory)."""
-        for name in ("last_impulse", "last_active", "last_bilateral", "closed", "slip",
-                     "anchor", "lam_compliant", "drive_torque"):
+        for name in ("last_impulse", "last_active", "last_bilateral", "prox_memory", "closed",
+                     "slip", "anchor", "lam_compliant", "drive_torque"):
             a = getattr(self, name)
             if a is not None:
                 a[...] = getattr(other, name)

@@ -204,10 +204,13 @@ class MoreauStepper:
             max_iterations=int(s.max_iterations), criterion=int(prox.CRITERIA[s.criterion]),
             bilateral_direct=config.bilateral.method == "direct",
             alpha=prox.alpha_setting(s.alpha),      # solver.alpha: auto -> prox.ALPHA_AUTO
-            stall_window=int(s.stall_window) if s.fallback_alpha_factor > 0 else 0)
+            stall_window=int(s.stall_window) if s.fallback_alpha_factor > 0 else 0,
+            bilateral_relaxation=float(config.bilateral.relaxation)
+            if config.bilateral.method == "prox" and s.alpha != "auto" else 0.0)
         return StepSettings(
             prox=solver, activation_gap=float(activation_gap), mu=float(config.ground.mu),
             fallback_alpha_factor=float(s.fallback_alpha_factor),
+            fallback_hold=int(s.fallback_hold) if s.fallback_alpha_factor > 0 else 0,
             opening_gap=float(c.opening_gap), dt=float(config.dt),
             beta_velocity=float(beta_velocity), beta_projection=float(beta_projection),
             jacobian_gap=float(jacobian_gap),
@@ -290,7 +293,8 @@ class MoreauStepper:
     def _tree_hard(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
         """tree_step_hard of `state`."""
         return tree_step_hard(options, mode, (state.q, state.u, state.last_impulse,
-                                              state.last_active, state.last_bilateral),
+                                              state.last_active, state.last_bilateral,
+                                              state.prox_memory),
                               tau, f_ext, (report, is_active, qE, uE), self._tree_model)
 
     def _tree_compliant(self, options, mode, state, tau, f_ext, report, is_active, qE, uE):
@@ -310,7 +314,7 @@ class MoreauStepper:
             memory = self._no_memory
             compliant = (state.closed, state.slip, state.anchor, state.lam_compliant)
         return forest_step(options, (state.q, state.u, *memory, state.last_bilateral,
-                                     *compliant), tau, f_ext,
+                                     state.prox_memory, *compliant), tau, f_ext,
                            (report, is_active, qE, uE, *self._cut_motion), self._tree_model,
                            self._cut_model)
 

@@ -7,7 +7,8 @@
   impedance law at the state, or replayed; the implicit joint dampers inside), Eqn. (6):
   q^M and M, h, W at the midpoint, the contact problem and its prox solution, Eqn. (8):
   u^E and q^E, the post-step projection. state = (q, u, Λ memory, active memory, Λ_B
-  memory): the warm-start memory is updated only when the step succeeds (TREE_STEP_OK);
+  memory, α memory (SimState.prox_memory)): the memory is updated only when the step
+  succeeds (TREE_STEP_OK);
   out = (report, is_active, q^E, u^E): the report buffer (report_views: Λ, g_N and contact
   points at q^M, the torques) and the active flags.
 - ``tree_step_compliant(options, torque_mode, state, tau, f_ext, out, model)``: the same
@@ -15,7 +16,8 @@
   Λ is the compliant force times Δt, is_active the closed flags (g_N(q^M) ≤ 0).
 - ``forest_step(options, state, tau, f_ext, out, model, cut)``: a cut forest (the extended
   and maximal coordinates): the bilateral constraints of the cut joints at q^M (W_B, g_B,
-  b_B = (β/Δt) g_B) with the contacts, hard or compliant (STEP_COMPLIANT); tau the applied
+  b_B = (β/Δt) g_B) with the contacts, hard or compliant (STEP_COMPLIANT; state = (q, u,
+  the hard contacts' memory as above, closed, slip, anchor, λ)); tau the applied
   torques (a cut joint's rate needs the cut-joint kinematics of the state:
   MoreauStepper._forest_torques); out also receives the cut joints' φ and φ̇ at (q^E, u^E).
 

@@ -3,7 +3,15 @@ under a trotting joint PD law (diagonal leg pairs swing at 1.25 Hz, a push on th
 0.2 s) are pinned bit for bit (test/physics/data/bitexact_reference.json). Cm, HmJ, HEJD and HMSD
 carry digests recorded before the redesign of issue #15; when the kernels moved from numba
 to C (issue #32) the new kernels gave the numba kernels' digests on all 11 presets, on one
-machine, and those of the other 7 were added then.
+machine, and those of the other 7 were added then. HMJP and HMSP were re-pinned for issue #49:
+their bilateral prox rows are now swept Gauss-Seidel with ω_B = 1.5 (bilateral.relaxation),
+the same fixed point in 2-4x fewer sweeps; their states moved by < 2e-5 up to step 50, where
+the old pins and the new ones stand as close to a tightly solved HMJD (3e-4), and part
+chaotically after the push. HEJD, HESD, HMJD and HMSD were re-pinned for issue #49 too: after
+3 sweeps of a solve their direct bilateral method (Eqn. 20) applies the gain G_BB^{-1} [G_BU,
+c_B], solved once for all its columns, instead of one solve with L_B per sweep: the same Λ_B
+up to round-off (their states within 3e-13 of the old pins up to step 100, the same
+iterations), parting after the push's contact events.
 
 The torque law is a plain joint PD law on purpose: the physics alone is pinned here. The demo's
 closed loop (sim_node + controller_node, below) is pinned with a tolerance, because its

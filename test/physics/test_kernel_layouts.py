@@ -79,7 +79,8 @@ def test_the_kernel_reads_each_field_where_python_packs_it():
     def step(floats):
         report = np.empty(report_size(nc, na))
         r = kernels.tree_step_hard(0, True, (s.q, s.u, s.last_impulse.copy(),
-                                             s.last_active.copy(), s.last_bilateral.copy()),
+                                             s.last_active.copy(), s.last_bilateral.copy(),
+                                             s.prox_memory.copy()),
                                    np.full(na, 3.0), np.zeros(0),
                                    (report, np.empty(nc, dtype=bool), np.empty_like(s.q),
                                     np.empty_like(s.u)), (floats, *st._tree_model[1:]))

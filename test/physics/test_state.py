@@ -41,9 +41,9 @@ def test_restore_replays_bit_for_bit(preset):
 def contact_memory(state):
     """The contact memory of either contact model (hard: Λ and the active flags of the last
     step; compliant: closed, slip, anchors and forces of Alg. 1) and Λ_B of the bilateral
-    constraints (empty in the minimal coordinates)."""
+    constraints (empty in the minimal coordinates), and the prox's α memory."""
     arrays = (state.last_impulse, state.last_active, state.closed, state.slip, state.anchor,
-              state.lam_compliant, state.last_bilateral)
+              state.lam_compliant, state.last_bilateral, state.prox_memory)
     return [a.copy() for a in arrays if a is not None]
 
 
@@ -245,11 +245,12 @@ def test_a_packed_model_of_the_wrong_length_is_refused_not_read(preset):
     def step(tree, cut=None):
         if preset == "HmJ":
             return tree_step_hard(0, False, (s.q, s.u, s.last_impulse, s.last_active,
-                                             s.last_bilateral), np.zeros(12), np.zeros(0),
+                                             s.last_bilateral, s.prox_memory), np.zeros(12),
+                                  np.zeros(0),
                                   out, tuple(tree))
         no_compliant = (np.zeros(0, dtype=bool),) * 2 + (np.zeros(0),) * 2
         return forest_step(0, (s.q, s.u, s.last_impulse, s.last_active, s.last_bilateral,
-                               *no_compliant), np.zeros(12), np.zeros(0),
+                               s.prox_memory, *no_compliant), np.zeros(12), np.zeros(0),
                            (*out, *st.coords.cut_motion_buffers()), tuple(tree),
                            tuple(cut or st._cut_model))
     q0 = s.q.copy()

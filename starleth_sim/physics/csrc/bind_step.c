@@ -170,7 +170,7 @@ FN(prepare_hard_contacts) {
     arena_t *a = &pr->arena;
     RUN(a, failed,
         contact_problem(&s, v[1].p, v[2].p, nv, v[3].p, nc, v[4].p, v[5].p, nb, v[6].p, v[7].p,
-                        v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, v[13].p, a,
+                        v[14].p, v[8].p, (int)v[9].i, v[10].p, v[11].p, v[12].p, NULL, v[13].p, a,
                         &pr->p));
     release(&h);
     if (failed) {
@@ -224,6 +224,7 @@ static int step_arrays_of(const char *fn, const val_t *v, const packed_model_t *
     x->last_active = v[5].p;
     x->last_bilateral = v[6].p;
     x->nb = v[6].len;
+    x->prox_memory = NULL; /* (the caller's, where it has one) */
     x->is_active = v[8].p;
     x->qE = v[9].p;
     x->uE = v[10].p;
@@ -284,31 +285,34 @@ static int friction_memory_of(const char *fn, const packed_model_t *m, i64 nb) {
     }
 
 /* tree_step_hard(options, torque_mode, state, tau, f_ext, out, model): state = (q, u,
- * last_impulse, last_active, last_bilateral), out = (report, is_active, qE, uE), model =
- * the TreeStepModel's buffers */
+ * last_impulse, last_active, last_bilateral, prox_memory), out = (report, is_active, qE, uE),
+ * model = the TreeStepModel's buffers */
 FN(tree_step_hard) {
     static const spec_t spec[] = {{"options", INT},
                                   {"torque_mode", INT},
-                                  {"state", GROUP + 5},
+                                  {"state", GROUP + 6},
                                   {"q", F64},
                                   {"u", F64},
                                   {"last_impulse", F64W},
                                   {"last_active", BOOLW},
                                   {"last_bilateral", F64W},
+                                  {"prox_memory", F64W},
                                   {"tau", F64},
                                   {"f_ext", F64},
                                   STEP_OUT,
                                   MODEL_BUFFERS};
-    val_t v[17];
+    val_t v[18];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m;
     step_arrays_t x;
-    if (!PARSE("tree_step_hard", spec, 7, v, &h) || !packed_of(&v[13], &m)) FAIL;
-    val_t w[11] = {v[2], v[3], v[7], v[8], v[4], v[5], v[6], v[9], v[10], v[11], v[12]};
+    if (!PARSE("tree_step_hard", spec, 7, v, &h) || !packed_of(&v[14], &m)) FAIL;
+    val_t w[11] = {v[2], v[3], v[8], v[9], v[4], v[5], v[6], v[10], v[11], v[12], v[13]};
     if (!step_arrays_of("tree_step_hard", w, &m, v[1].i, &x) ||
-        !friction_memory_of("tree_step_hard", &m, x.nb))
+        !friction_memory_of("tree_step_hard", &m, x.nb) ||
+        !need(v[7].len == 3, "tree_step_hard", "prox_memory must have 3 entries"))
         FAIL;
+    x.prox_memory = v[7].p;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
     RUN_NOGIL(a, failed, r = tree_step_hard((int)v[0].i, (int)v[1].i, &x, &m, a));
@@ -378,17 +382,18 @@ static int cut_of(const val_t *v, const packed_model_t *m, i64 nv, packed_model_
 }
 
 /* forest_step(options, state, tau, f_ext, out, model, cut): state = (q, u, last_impulse,
- * last_active, last_bilateral, closed, slip, anchor, lam: the compliant arrays read with
- * STEP_COMPLIANT only), out = (report, is_active, qE, uE, angle_E, rate_E), model the
+ * last_active, last_bilateral, prox_memory, closed, slip, anchor, lam: the compliant arrays
+ * read with STEP_COMPLIANT only), out = (report, is_active, qE, uE, angle_E, rate_E), model the
  * TreeStepModel's buffers, cut the CutModel's */
 FN(forest_step) {
     static const spec_t spec[] = {{"options", INT},
-                                  {"state", GROUP + 9},
+                                  {"state", GROUP + 10},
                                   {"q", F64},
                                   {"u", F64},
                                   {"last_impulse", F64W},
                                   {"last_active", BOOLW},
                                   {"last_bilateral", F64W},
+                                  {"prox_memory", F64W},
                                   COMPLIANT_ARRAYS,
                                   {"tau", F64},
                                   {"f_ext", F64},
@@ -404,26 +409,29 @@ FN(forest_step) {
                                   {"cut_floats", F64},
                                   {"cut_ints", I64},
                                   {"cut_workspace", F64W}};
-    val_t v[25];
+    val_t v[26];
     held_t h = {.n = 0};
     volatile int failed = 0;
     packed_model_t m, c;
     step_arrays_t x;
     compliant_state_t cs = {NULL, NULL, NULL, NULL};
-    if (!PARSE("forest_step", spec, 7, v, &h) || !packed_of(&v[18], &m)) FAIL;
-    val_t w[11] = {v[1], v[2], v[10], v[11], v[3], v[4], v[5], v[12], v[13], v[14], v[15]};
-    if (!step_arrays_of("forest_step", w, &m, TORQUE_AS_GIVEN, &x) || !cut_of(&v[22], &m, x.nv, &c))
+    if (!PARSE("forest_step", spec, 7, v, &h) || !packed_of(&v[19], &m)) FAIL;
+    val_t w[11] = {v[1], v[2], v[11], v[12], v[3], v[4], v[5], v[13], v[14], v[15], v[16]};
+    if (!step_arrays_of("forest_step", w, &m, TORQUE_AS_GIVEN, &x) || !cut_of(&v[23], &m, x.nv, &c))
         FAIL;
     if ((v[0].i & STEP_COMPLIANT) &&
-        !compliant_of("forest_step", &v[6], m.ints[TREE_STEP_MODEL_NC], &cs))
+        !compliant_of("forest_step", &v[7], m.ints[TREE_STEP_MODEL_NC], &cs))
         FAIL;
     i64 ncut = c.ints[CUT_MODEL_NCUT];
-    if (!need(x.nb == 5 * ncut && v[16].len == ncut && v[17].len == ncut, "forest_step",
-              "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints"))
+    if (!need(x.nb == 5 * ncut && v[17].len == ncut && v[18].len == ncut && v[6].len == 3,
+              "forest_step",
+              "last_bilateral (5 per cut joint), angle_E and rate_E must match the cut joints, "
+              "prox_memory have 3 entries"))
         FAIL;
+    x.prox_memory = v[6].p;
     tree_step_result_t r = {0, 0, 0, 0, 0, 0.0, 0, 0, -1};
     arena_t *a = scratch_arena();
-    RUN_NOGIL(a, failed, r = forest_step((int)v[0].i, &x, &cs, v[16].p, v[17].p, &m, &c, a));
+    RUN_NOGIL(a, failed, r = forest_step((int)v[0].i, &x, &cs, v[17].p, v[18].p, &m, &c, a));
     release(&h);
     if (failed) return PyErr_NoMemory();
     return tree_step_result_to_py(&r);

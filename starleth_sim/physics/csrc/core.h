@@ -97,7 +97,18 @@ enum { STATUS_CONVERGED = 0, STATUS_MAX_ITER = 1, STATUS_NONFINITE = 2, STATUS_S
  * STALL_FACTOR times the best of the window before (prox.c, stall_seen): 1 % better over a
  * window, so that a slow but steady solve (the maximal coordinates' bilateral prox rows) goes
  * on and only one that cycles (JOR at α = 0.6 on a robot at rest) ends early */
-#define STALL_FACTOR             0.99
+#define STALL_FACTOR 0.99
+/* a Delassus-form solve whose last step's solve took LAZY_DELASSUS_LAST sweep (the warm
+ * start was its solution: a robot at rest), with the same active set, first tries up to
+ * LAZY_DELASSUS_SWEEPS in the velocity form (G not formed), and forms G only when they do not
+ * converge (step_kernels.c; a failed try's sweeps are lost: with a last of up to 4 sweeps,
+ * HEJP standing at α 0.9 took 6.0 sweeps per step instead of 4.6) */
+#define LAZY_DELASSUS_SWEEPS 4
+/* the direct bilateral method in the Delassus form: after this many sweeps of a solve, Λ_B =
+ * −G_BB^{-1} (G_BU Λ_U + c_B) by the gain X = G_BB^{-1} [G_BU, c_B], solved once for every
+ * column, instead of one solve with L_B per sweep (prox.c, direct_bilateral) */
+#define DIRECT_GAIN_SWEEPS       3
+#define LAZY_DELASSUS_LAST       1
 #define ALPHA_AUTO               (-1.0)
 #define AUTO_MAX_STEP            1.0e3
 #define AUTO_GUARD               1.0e3
@@ -112,8 +123,8 @@ enum { PHASE_M_AND_H = 0, PHASE_M_INVERSE = 1, PHASE_G = 2, PHASE_PROX = 3, PHAS
  * max_iterations, criterion, bilateral_direct and alpha: prox.ProxSettings) */
 typedef struct {
     double activation_gap, mu, alpha, tol_rel, tol_abs, fallback_alpha_factor, opening_gap, dt,
-        beta_velocity, beta_projection, jacobian_gap, projection_tolerance;
-    i64 form, scheme, max_iterations, criterion, stall_window;
+        beta_velocity, beta_projection, jacobian_gap, projection_tolerance, bilateral_relaxation;
+    i64 form, scheme, max_iterations, criterion, stall_window, fallback_hold;
     int warm_start, bilateral_direct, hysteresis;
 } settings_t;
 
@@ -214,6 +225,13 @@ typedef struct {
      * free): Λ onto [−bound, bound]; the last nf are joint friction rows (tree_step.c) */
     const double *bound;
     i64 nf;
+    /* G left unformed (Delassus form; contact_problem with a memory that expects a solve of
+     * a few sweeps): the solve tries the velocity form first (phase_prox), form_delassus
+     * forms G when it is needed; under JOR M^{-1}W too (minv_w_ready 0: the velocity form
+     * then solves with the factor L of M, minv_w forms it when it is needed) */
+    int lazy_G, minv_w_ready;
+    const double *L;       /* the factor of M (L^T D L, tree_step's workspace) */
+    const i64 *dof_parent; /* its tree */
 } problem_t;
 
 /* ---------------------------------------------------------------------------------------
@@ -224,6 +242,9 @@ void cholesky_solve_vec(const double *L, i64 n, const i64 *first, double *b);
 void envelope_columns(const i64 *first, i64 n, arena_t *a, i64 **ptr, i64 **idx);
 void cholesky_solve_envelope(const double *L, i64 n, const i64 *first, const i64 *col_ptr,
                              const i64 *col_idx, double *b);
+/* (L L^T) X = B for the q columns of X (n x q, row-major) at once, within the envelope */
+void cholesky_solve_envelope_cols(const double *L, i64 n, const i64 *first, const i64 *col_ptr,
+                                  const i64 *col_idx, double *X, i64 q);
 int ltdl(const double *A, i64 n, const i64 *dof_parent, double *L);
 void ltdl_solve_vec(const double *L, i64 n, const i64 *dof_parent, double *b);
 /* B: n x m, solved in place column by column */
@@ -313,6 +334,10 @@ int saturate_torque(const double *tau, const double *limit, const double *qd,
  * ------------------------------------------------------------------------------------- */
 /* prox_delassus.c: r (m) from diag(G) (m) for nc contacts */
 void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r);
+/* r_B = ω_B scale/G_BB of the rows after the contacts' with a bilateral relaxation ω_B
+ * (settings_t.bilateral_relaxation > 0; scale: the α's scale of a fallback try) */
+void relax_bilateral_rows(const settings_t *s, const double *Gdiag, i64 m, i64 nc, double scale,
+                          double *r);
 /* the pattern of the rows of A (m x n) / of its columns, from the arena */
 void row_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);
 void col_pattern(const double *A, i64 m, i64 n, arena_t *a, i64 **ptr, i64 **idx);
@@ -321,6 +346,20 @@ void delassus(const double *Wt, const double *MinvW, double *G, i64 m, i64 nv, c
               const i64 *wp_idx, const i64 *mp_ptr, const i64 *mp_idx, arena_t *a);
 void delassus_diagonal(const double *Wt, const double *MinvW, double *d, i64 m, i64 nv,
                        const i64 *wp_ptr, const i64 *wp_idx);
+/* JOR in the velocity form with M^{-1} applied by the factor L of M (dof_parent its tree)
+ * instead of M^{-1}W (not formed): at most s->max_iterations sweeps from Λ^0 in lam, u^E into
+ * u (prox_factored.c; the impulse criterion) */
+prox_result_t jor_velocity_factored(const settings_t *s, const patterns_t *pat, const double *Wt,
+                                    const double *u_free, const double *bvec, i64 m, i64 nv, i64 nc,
+                                    const double *mu, const double *r, const double *bound,
+                                    double *lam, const double *L, const i64 *dof_parent, double *u,
+                                    arena_t *a);
+/* diag(G) = diag(W^T M^{-1} W) with the factor L of M (no M^{-1}W): w^T (L^T D L)^{-1} w =
+ * yᵀD^{-1}y with L^T y = w, every row's y at once in Y (nv x m, work) (prox_factored.c) */
+void factored_delassus_diagonal(const double *Wt, i64 m, i64 nv, const i64 *wp_ptr,
+                                const i64 *wp_idx, const double *L, const i64 *dof_parent,
+                                double *d, double *Y);
+
 /* prox_alpha.c: auto_spectral_scale (adaptive α): G is m x m (Delassus form), else unused */
 double auto_spectral_scale(const settings_t *s, const double *G, const double *Wt,
                            const double *MinvW, const patterns_t *pat, i64 m, i64 nv, i64 nc,

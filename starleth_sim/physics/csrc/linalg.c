@@ -89,6 +89,31 @@ void cholesky_solve_envelope(const double *L, i64 n, const i64 *first, const i64
     }
 }
 
+void cholesky_solve_envelope_cols(const double *L, i64 n, const i64 *first, const i64 *col_ptr,
+                                  const i64 *col_idx, double *X, i64 q) {
+    for (i64 i = 0; i < n; i++) { /* L Y = B, by rows within the envelope */
+        double *xi = X + i * q;
+        for (i64 k = first[i]; k < i; k++) {
+            double l = L[i * n + k];
+            const double *xk = X + k * q;
+            for (i64 c = 0; c < q; c++) xi[c] -= l * xk[c];
+        }
+        double d = L[i * n + i];
+        for (i64 c = 0; c < q; c++) xi[c] /= d;
+    }
+    for (i64 i = n - 1; i >= 0; i--) { /* L^T X = Y, by the envelope's columns */
+        double *xi = X + i * q;
+        for (i64 p = col_ptr[i]; p < col_ptr[i + 1]; p++) {
+            i64 k = col_idx[p];
+            double l = L[k * n + i];
+            const double *xk = X + k * q;
+            for (i64 c = 0; c < q; c++) xi[c] -= l * xk[c];
+        }
+        double d = L[i * n + i];
+        for (i64 c = 0; c < q; c++) xi[c] /= d;
+    }
+}
+
 /* ltdl: M = L^T D L with the tree's sparsity (dof_parent[k] < k, -1 at a root), D on the
  * diagonal of L and the unit factor's entries L[k, i] at k's ancestors i. 0 if A is not
  * positive definite (or not finite). */

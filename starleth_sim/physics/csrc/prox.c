@@ -1,52 +1,12 @@
 /* The prox iterations (prox.py, Gehring et al. 2014, Eqn. 12-20): JOR and SOR on ξ = GΛ + c
  * (Delassus form; G from prox_delassus.c) or in the velocity (G never formed), the direct bilateral
- * method (Eqn. 20), the energy criterion; the adaptive α's steps: prox_alpha.c (prox.h).
+ * method (Eqn. 20), the energy criterion; the rows' laws: prox_rows.h; the adaptive α's steps:
+ * prox_alpha.c (prox.h); JOR with the factor of M instead of M^{-1}W: prox_factored.c.
  * Layouts: Wt m x nv, MinvW nv x m, G m x m, M nv x nv, LB nb_LB x nb_LB (row-major). */
 #include "prox.h"
+#include "prox_rows.h"
 
 #include <string.h>
-
-/* prox_normal: Λ_N = −prox_{R0−}(−x), projection onto [0, ∞) (NaN gives 0) */
-static inline double prox_normal(double x) {
-    return x > 0.0 ? x : 0.0;
-}
-
-/* prox_disc: projection of (x1, x2) onto the disc of the given radius */
-static inline void prox_disc(double x1, double x2, double radius, double *o1, double *o2) {
-    double n2 = x1 * x1 + x2 * x2;
-    if (n2 <= radius * radius) {
-        *o1 = x1;
-        *o2 = x2;
-        return;
-    }
-    if (radius <= 0.0) {
-        *o1 = 0.0;
-        *o2 = 0.0;
-        return;
-    }
-    double s = radius / sqrt(n2);
-    *o1 = x1 * s;
-    *o2 = x2 * s;
-}
-
-/* project_contact: prox of one contact's rows (out may be lam: all reads before writes) */
-static inline void project_contact(const double *lam, i64 b, double xi0, double xi1, double xi2,
-                                   const double *r, double mu_i, double *out) {
-    double ln = prox_normal(lam[b] - r[b] * xi0);
-    double t1, t2;
-    prox_disc(lam[b + 1] - r[b + 1] * xi1, lam[b + 2] - r[b + 2] * xi2, mu_i * ln, &t1, &t2);
-    out[b] = ln;
-    out[b + 1] = t1;
-    out[b + 2] = t2;
-}
-
-/* prox_row: a row after the contacts': a bilateral row's Λ_B as it is (bound NULL), a joint
- * friction row's projected onto [−bound_k, bound_k] (|Λ_f| ≤ τ_c Δt: the joint sticks inside) */
-static inline double prox_row(double x, const double *bound, i64 k) {
-    if (!bound) return x;
-    double b = bound[k];
-    return x > b ? b : (x < -b ? -b : x);
-}
 
 /* kinetic_energy: ½ uᵀ M u */
 static double kinetic_energy(const double *M, const double *u, i64 nv) {
@@ -122,29 +82,6 @@ static void bilateral_direct_velocity(const double *Wt, const double *MinvW, con
     for (i64 a = 0; a < nb_; a++) lam[o + a] = rhs[a];
 }
 
-/* (ok, res, finite) of check / row_check */
-typedef struct {
-    int ok;
-    double res;
-    int finite;
-} check_t;
-
-/* row_check: one row's test |ΔΛ| ≤ |Λ_old| tol_rel + tol_abs, carried on in c */
-static inline void row_check(double old, double new_, check_t *c, double tol_rel, double tol_abs) {
-    double d = fabs(new_ - old);
-    if (!isfinite(new_)) c->finite = 0;
-    if (d > c->res) c->res = d;
-    if (d > fabs(old) * tol_rel + tol_abs) c->ok = 0;
-}
-
-/* check: (converged by the impulse criterion, max |ΔΛ|, all finite) */
-static check_t check(const double *lam_old, const double *lam, i64 n, double tol_rel,
-                     double tol_abs) {
-    check_t c = {1, 0.0, 1};
-    for (i64 l = 0; l < n; l++) row_check(lam_old[l], lam[l], &c, tol_rel, tol_abs);
-    return c;
-}
-
 /* delassus_apply: ξ_a = c_a + Σ_l G_al Λ_l (a < n), column by column over each column's
  * envelope (its zeros inside included, as the Python) */
 static void delassus_apply(const double *G, const double *c, i64 m, const double *lam, double *xi,
@@ -159,17 +96,6 @@ static void delassus_apply(const double *G, const double *c, i64 m, const double
         const double *gs = G + l * m;
         for (i64 t = a0; t < a1; t++) xi[t] = xi[t] + gs[t] * x;
     }
-}
-
-/* jor_project: a JOR update of Λ into new (Λ_B kept with the direct method) */
-static void jor_project(const double *lam, const double *xi, const double *r, const double *mu,
-                        const double *bound, i64 nc, i64 m, int bilateral_direct, double *new_) {
-    for (i64 i = 0; i < nc; i++) {
-        i64 b = 3 * i;
-        project_contact(lam, b, xi[b], xi[b + 1], xi[b + 2], r, mu[i], new_);
-    }
-    for (i64 l = 3 * nc; l < m; l++)
-        new_[l] = bilateral_direct ? lam[l] : prox_row(lam[l] - r[l] * xi[l], bound, l - 3 * nc);
 }
 
 /* jor_update_in_place: fixed-α JOR update (bilateral prox rows) in place, with check */
@@ -193,10 +119,31 @@ static check_t jor_update_in_place(double *lam, const double *xi, const double *
     return c;
 }
 
+/* bilateral_gauss_seidel: the rows after the contacts' (o = 3 nc to m) swept one after the
+ * other on ξ = GΛ + c with the Λ already updated (r_B = ω_B/G_BB: relax_bilateral_rows), with
+ * their check carried on in c: a linear bilateral system with G_BB positive definite converges
+ * so for any ω_B in (0, 2), whatever its condition (the maximal coordinates' chains: JOR's rate
+ * is 1 − α λ_min(R G_BB)) */
+static void bilateral_gauss_seidel(const double *G, const double *c, i64 m, i64 o, double *lam,
+                                   const double *r, const double *bound, const i64 *gp_ptr,
+                                   const i64 *gp_idx, check_t *ck, double tol_rel, double tol_abs) {
+    for (i64 a = o; a < m; a++) {
+        double sm = c[a];
+        for (i64 p = gp_ptr[a]; p < gp_ptr[a + 1]; p++) {
+            i64 l = gp_idx[p];
+            sm = sm + G[a * m + l] * lam[l];
+        }
+        double v = prox_row(lam[a] - r[a] * sm, bound, a - o);
+        row_check(lam[a], v, ck, tol_rel, tol_abs);
+        lam[a] = v;
+    }
+}
+
 /* the direct bilateral method's work of delassus_prox: L_B's envelope columns, rhs */
 typedef struct {
     const i64 *col_ptr, *col_idx;
     double *rhs;
+    double *gain; /* X = G_BB^{-1} [G_BU, c_B] (nb x (3 nc + 1)) once formed, else NULL */
 } direct_t;
 
 /* The stall test of a solve (stall_seen): the best residual so far, the best at the end of
@@ -223,11 +170,6 @@ static inline int stall_seen(stall_t *t, i64 k, double res) {
     t->mark = t->best;
     t->next += t->window;
     return 0;
-}
-
-static prox_result_t result(i64 it, i64 status, double res) {
-    prox_result_t out = {it, status, res};
-    return out;
 }
 
 /* The energy criterion: |T^{k+1} − T^k| ≤ |T^k| T_rel + T_abs with T = ½ uᵀMu; T^k in *T_old,
@@ -295,8 +237,41 @@ typedef struct {
     arena_t *ar;
 } delassus_t;
 
-/* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ) */
-static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
+/* direct_bilateral: Λ_B of Eqn. 20 into lam after sweep k: by one solve with L_B for the
+ * first DIRECT_GAIN_SWEEPS sweeps, then by the gain X = G_BB^{-1} [G_BU, c_B] (formed once:
+ * every column solved at once), Λ_B = −(X_U Λ_U + X_c) */
+static void direct_bilateral(delassus_t *P, double *lam, i64 k) {
+    i64 m = P->m, o = 3 * P->nc, nb = m - o, q = o + 1;
+    const double *G = P->G;
+    if (!P->direct.gain && k < DIRECT_GAIN_SWEEPS) {
+        bilateral_direct_delassus(G, P->c, m, P->nc, P->LB, P->nb_LB, lam, P->pat->gp_ptr,
+                                  P->pat->gp_idx, P->pat->lb_first, P->direct.col_ptr,
+                                  P->direct.col_idx, P->direct.rhs);
+        return;
+    }
+    if (!P->direct.gain) {
+        double *X = arena_f(P->ar, nb * q);
+        for (i64 a = 0; a < nb; a++) {
+            for (i64 u = 0; u < o; u++) X[a * q + u] = G[u * m + o + a];
+            X[a * q + o] = P->c[o + a];
+        }
+        cholesky_solve_envelope_cols(P->LB, nb, P->pat->lb_first, P->direct.col_ptr,
+                                     P->direct.col_idx, X, q);
+        P->direct.gain = X;
+    }
+    const double *X = P->direct.gain;
+    for (i64 a = 0; a < nb; a++) {
+        const double *xa = X + a * q;
+        double s = xa[o];
+        for (i64 u = 0; u < o; u++) s += xa[u] * lam[u];
+        lam[o + a] = -s;
+    }
+}
+
+/* jor_prox_delassus: JOR on ξ = GΛ + c, work buf (2m: ξ and the new Λ); with a bilateral
+ * relaxation (fixed α) the bilateral prox rows are swept after the contacts'
+ * (bilateral_gauss_seidel) */
+static prox_result_t jor_prox_delassus(delassus_t *P, double *buf) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
     double *lam = P->lam;
@@ -312,7 +287,8 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
     double *rk = w.rk, *rs = w.rs, *hist = w.hist;
     int long_step = 0;
     double T_old = initial_energy(&P->v, lam, criterion);
-    i64 m_xi = (bilateral_direct && !autoa) ? o : m;
+    int sweep_b = s->bilateral_relaxation > 0.0 && !bilateral_direct && !autoa;
+    i64 m_xi = ((bilateral_direct && !autoa) || sweep_b) ? o : m;
     double res = 0.0;
     stall_t stall = stall_start(s);
     for (i64 k = 0; k < max_iter; k++) {
@@ -323,13 +299,13 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
             long_step = 0;
         }
         if (!(autoa || bilateral_direct)) {
-            ck = jor_update_in_place(lam, xi, rk, mu, bound, nc, m, tol_rel, tol_abs);
+            ck = jor_update_in_place(lam, xi, rk, mu, bound, nc, sweep_b ? o : m, tol_rel, tol_abs);
+            if (sweep_b)
+                bilateral_gauss_seidel(G, c, m, o, lam, rk, bound, gp_ptr, gp_idx, &ck, tol_rel,
+                                       tol_abs);
         } else {
             jor_project(lam, xi, rk, mu, bound, nc, m, bilateral_direct, new_);
-            if (bilateral_direct)
-                bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, new_, gp_ptr, gp_idx,
-                                          P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
-                                          P->direct.rhs);
+            if (bilateral_direct) direct_bilateral(P, new_, k);
             ck = check(lam, new_, m, tol_rel, tol_abs);
             if (autoa) {
                 if (!ck.finite && hist[1] != 1.0) { /* from Λ^0 again, spectral steps */
@@ -358,7 +334,7 @@ static prox_result_t jor_prox_delassus(const delassus_t *P, double *buf) {
 }
 
 /* sor_prox_delassus: SOR on ξ = GΛ + c, work buffer old (m: Λ of the last sweep) */
-static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
+static prox_result_t sor_prox_delassus(delassus_t *P, double *old) {
     const settings_t *s = P->s;
     const double *G = P->G, *c = P->c, *mu = P->mu, *bound = P->bound;
     double *lam = P->lam;
@@ -394,9 +370,7 @@ static prox_result_t sor_prox_delassus(const delassus_t *P, double *old) {
             project_contact(lam, b, x0, x1, x2, rk, mu[i], lam);
         }
         if (bilateral_direct) {
-            bilateral_direct_delassus(G, c, m, nc, P->LB, P->nb_LB, lam, gp_ptr, gp_idx,
-                                      P->pat->lb_first, P->direct.col_ptr, P->direct.col_idx,
-                                      P->direct.rhs);
+            direct_bilateral(P, lam, k);
         } else {
             for (i64 a = o; a < m; a++) {
                 double sm = c[a];
@@ -465,7 +439,7 @@ static prox_result_t delassus_prox(int jor, const settings_t *s, const patterns_
                     nb_LB,
                     {s->form, G, G, MinvW, pat, m, nv},
                     {u_free, MinvW, M, pat->mp_ptr, pat->mp_idx, nv, m, u},
-                    {col_ptr, col_idx, work + nw},
+                    {col_ptr, col_idx, work + nw, NULL},
                     ar};
     return jor ? jor_prox_delassus(&P, work) : sor_prox_delassus(&P, work);
 }

@@ -14,8 +14,10 @@ static void strided_row_pattern(const double *A, i64 m, i64 n, i64 rs, i64 ks, a
     i64 cnt = 0;
     for (i64 r = 0; r < m; r++) {
         p[r] = cnt;
-        for (i64 k = 0; k < n; k++)
-            if (A[r * rs + k * ks] != 0.0) ix[cnt++] = k;
+        for (i64 k = 0; k < n; k++) { /* (branch-free: the nonzeros are scattered) */
+            ix[cnt] = k;
+            cnt += A[r * rs + k * ks] != 0.0;
+        }
     }
     p[m] = cnt;
     *ptr = p;
@@ -120,4 +122,11 @@ void prox_parameters(const double *Gdiag, i64 m, i64 nc, double alpha, double *r
         r[b + 2] = rt;
     }
     for (i64 l = 3 * nc; l < m; l++) r[l] = alpha / Gdiag[l];
+}
+
+void relax_bilateral_rows(const settings_t *s, const double *Gdiag, i64 m, i64 nc, double scale,
+                          double *r) {
+    double omega = s->bilateral_relaxation * scale;
+    if (omega > 0.0)
+        for (i64 l = 3 * nc; l < m; l++) r[l] = omega / Gdiag[l];
 }

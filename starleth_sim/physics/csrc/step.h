@@ -29,17 +29,20 @@ void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free, 
 /* The torque-independent part of the hard-contact solve (contact_problem): the problem's
  * arrays from the arena. gap, Wt_all: nc contacts; WtB (nb x nv), bB (nb): the bilateral
  * rows; eps: nc x 2; frames: nc x FRAME_STRIDE, the contacts' μ (NULL: settings_t.mu);
- * last_impulse nc x 3, last_active nc. */
+ * last_impulse nc x 3, last_active nc; memory: the prox memory (SimState.prox_memory; NULL:
+ * G is formed), whose last solve of a few sweeps with the same active set leaves G unformed
+ * (problem_t.lazy_G). */
 void contact_problem(const settings_t *s, const double *M, const double *uS, i64 nv,
                      const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
                      const double *bB, const double *eps, const double *frames,
                      const i64 *dof_parent, int factor, double *L, const double *last_impulse,
-                     const u8 *last_active, double *timings, arena_t *a, problem_t *p);
+                     const u8 *last_active, const double *memory, double *timings, arena_t *a,
+                     problem_t *p);
 
 /* The joint friction rows' prox alone (the compliant step): Λ_f (warm start in lam_f, Λ_f
  * out) and u^E; the prox's STATUS_* */
-i64 joint_friction_prox(const settings_t *s, const problem_t *p, const double *u_free,
-                        const double *M, double *lam_f, double *uE, i64 *iters, arena_t *a);
+i64 joint_friction_prox(const settings_t *s, problem_t *p, const double *u_free, const double *M,
+                        double *lam_f, double *uE, i64 *iters, arena_t *a);
 
 /* The warm-start memory of a finished step */
 void remember_contacts(const u8 *is_active, const double *impulse, i64 nc, u8 *last_active,
@@ -77,16 +80,19 @@ typedef struct {
     u8 *last_active;        /* nc */
     double *last_bilateral; /* nb */
     i64 nb;
-    report_t report; /* the report buffer's views */
-    u8 *is_active;   /* nc */
+    double *prox_memory; /* 2: the α memory (SimState.prox_memory), NULL: none */
+    report_t report;     /* the report buffer's views */
+    u8 *is_active;       /* nc */
     double *qE, *uE;
 } step_arrays_t;
 
 /* The torque-dependent rest of the hard-contact solve of the prepared problem p: the model
- * and workspace t, the state and outputs x, Λ_B into bilateral_E (warm start in) */
-complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
+ * and workspace t, the state and outputs x, Λ_B into bilateral_E (warm start in), the α
+ * memory after the solve into alpha_E (2) */
+complete_result_t complete_problem(problem_t *p, const double *h, const double *M,
                                    const tree_model_t *t, const step_arrays_t *x,
-                                   double *bilateral_E, double *timings, arena_t *a);
+                                   double *bilateral_E, double *alpha_E, double *timings,
+                                   arena_t *a);
 
 /* The joint friction rows of a tree step (a joint with τ_c > 0 each: drives only) */
 i64 joint_friction_count(const tree_model_t *t);

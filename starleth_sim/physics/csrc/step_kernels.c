@@ -68,14 +68,65 @@ static void empty_patterns(patterns_t *pat, arena_t *a) {
     pat->n_lb = 0;
 }
 
+/* same_active_set: I of p is the last step's (last_active, nc flags) */
+static int same_active_set(const problem_t *p, const u8 *last_active, i64 nc) {
+    i64 n = 0;
+    for (i64 i = 0; i < nc; i++) n += last_active[i] != 0;
+    if (n != p->na) return 0;
+    for (i64 r = 0; r < p->na; r++)
+        if (!last_active[p->active[r]]) return 0;
+    return 1;
+}
+
+/* lazy_delassus: G may be left unformed (problem_t.lazy_G): the prox memory says the last
+ * solve took a few sweeps with the same active set, and the velocity form iterates the same
+ * rows (a fixed α, no direct bilateral method, no JOR bilateral sweep, the impulse
+ * criterion) */
+static int lazy_delassus(const settings_t *s, const double *memory, const problem_t *p,
+                         const u8 *last_active, i64 nc) {
+    if (!memory || s->form != FORM_DELASSUS || s->bilateral_direct || !(s->alpha > 0.0)) return 0;
+    if (s->scheme == SCHEME_JOR && s->bilateral_relaxation > 0.0) return 0;
+    if (s->criterion != CRITERION_IMPULSE) return 0;
+    return memory[2] <= (double)LAZY_DELASSUS_LAST && same_active_set(p, last_active, nc);
+}
+
+/* minv_w: M^{-1}W of p (from its W^T, with the factor p->L of M) and the pattern of its
+ * columns, unless formed already */
+static void minv_w(problem_t *p, arena_t *a) {
+    if (p->minv_w_ready) return;
+    i64 m = p->m, nv = p->nv;
+    const double *Wt = p->Wt, *L = p->L;
+    const i64 *dof_parent = p->dof_parent, *wp_ptr = p->pat.wp_ptr, *wp_idx = p->pat.wp_idx;
+    double *MinvW = p->MinvW;
+    i64 *mp_ptr, *mp_idx;
+    i64 trees = 1;
+    for (i64 k = 1; k < nv; k++)
+        if (dof_parent[k] == -1) trees++;
+    /* W = (W^T)^T into a zeroed M^{-1}W: its nonzeros only */
+    for (i64 k = 0; k < nv * m; k++) MinvW[k] = 0.0;
+    for (i64 r = 0; r < m; r++)
+        for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++)
+            MinvW[wp_idx[q] * m + r] = Wt[r * nv + wp_idx[q]];
+    if (trees > 2) {
+        ltdl_solve_cols_pattern(L, dof_parent, MinvW, nv, m, wp_ptr, wp_idx, a, &mp_ptr, &mp_idx);
+    } else {
+        ltdl_solve_cols(L, dof_parent, MinvW, nv, m, a);
+        col_pattern(MinvW, nv, m, a, &mp_ptr, &mp_idx);
+    }
+    p->pat.mp_ptr = mp_ptr;
+    p->pat.mp_idx = mp_idx;
+    p->minv_w_ready = 1;
+}
+
 /* phase_minv: the factor of M (unless factor is 0), the active set, W^T = [W_U^T of the
- * active contacts; W_B^T], M^{-1}W, b = [ε W_U^T u^S + gap terms; b_B] and the patterns of
- * W^T's rows and M^{-1}W's columns (G's still empty) into p */
+ * active contacts; W_B^T], M^{-1}W (left to minv_w where G is lazy under JOR: lazy_delassus
+ * with the prox memory), b = [ε W_U^T u^S + gap terms; b_B] and the patterns of W^T's rows and
+ * M^{-1}W's columns (G's still empty) into p */
 static void phase_minv(const settings_t *s, const double *M, const double *uS, i64 nv,
                        const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
                        const double *bB, const double *eps, const i64 *dof_parent, int factor,
-                       double *L, const double *last_impulse, const u8 *last_active, arena_t *a,
-                       problem_t *p) {
+                       double *L, const double *last_impulse, const u8 *last_active,
+                       const double *memory, arena_t *a, problem_t *p) {
     double dt = s->dt, beta_velocity = s->beta_velocity;
     int ok = 1;
     if (factor) ok = ltdl(M, nv, dof_parent, L);
@@ -99,6 +150,8 @@ static void phase_minv(const settings_t *s, const double *M, const double *uS, i
     p->nb_LB = 0;
     p->bound = NULL;
     p->nf = 0;
+    p->lazy_G = 0;
+    p->minv_w_ready = 1;
     if (!ok || m == 0) {
         empty_patterns(&p->pat, a);
         return;
@@ -110,22 +163,15 @@ static void phase_minv(const settings_t *s, const double *M, const double *uS, i
     }
     for (i64 r = 0; r < nb; r++)
         for (i64 j = 0; j < nv; j++) Wt[(o + r) * nv + j] = WtB[r * nv + j];
-    i64 *wp_ptr, *wp_idx, *mp_ptr, *mp_idx;
+    i64 *wp_ptr, *wp_idx;
     row_pattern(Wt, m, nv, a, &wp_ptr, &wp_idx);
-    i64 trees = 1;
-    for (i64 k = 1; k < nv; k++)
-        if (dof_parent[k] == -1) trees++;
-    /* W = (W^T)^T into a zeroed M^{-1}W: its nonzeros only */
-    for (i64 k = 0; k < nv * m; k++) MinvW[k] = 0.0;
-    for (i64 r = 0; r < m; r++)
-        for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++)
-            MinvW[wp_idx[q] * m + r] = Wt[r * nv + wp_idx[q]];
-    if (trees > 2) {
-        ltdl_solve_cols_pattern(L, dof_parent, MinvW, nv, m, wp_ptr, wp_idx, a, &mp_ptr, &mp_idx);
-    } else {
-        ltdl_solve_cols(L, dof_parent, MinvW, nv, m, a);
-        col_pattern(MinvW, nv, m, a, &mp_ptr, &mp_idx);
-    }
+    p->pat.wp_ptr = wp_ptr;
+    p->pat.wp_idx = wp_idx;
+    p->L = L;
+    p->dof_parent = dof_parent;
+    p->lazy_G = lazy_delassus(s, memory, p, last_active, nc);
+    p->minv_w_ready = 0;
+    if (!(p->lazy_G && s->scheme == SCHEME_JOR)) minv_w(p, a);
     for (i64 r = 0; r < o; r++) {
         double sum = 0.0;
         for (i64 q = wp_ptr[r]; q < wp_ptr[r + 1]; q++)
@@ -135,10 +181,6 @@ static void phase_minv(const settings_t *s, const double *M, const double *uS, i
     for (i64 r = 0; r < na; r++)
         bvec[3 * r] += normal_law_offset(gap[active[r]], dt, beta_velocity);
     for (i64 r = 0; r < nb; r++) bvec[o + r] = bB[r];
-    p->pat.wp_ptr = wp_ptr;
-    p->pat.wp_idx = wp_idx;
-    p->pat.mp_ptr = mp_ptr;
-    p->pat.mp_idx = mp_idx;
     p->pat.gp_ptr = wp_ptr; /* (G's pattern is still to come) */
     p->pat.gp_idx = wp_idx;
     p->pat.lb_first = wp_idx;
@@ -227,16 +269,66 @@ void constraint_velocity(const double *Wt, i64 m, i64 nv, const double *u_free, 
     }
 }
 
-/* phase_prox: c (timed as phase "G" from t), the warm start, the prox iteration and one
- * retry with α·fallback_alpha_factor. *uE, *lam point into the arena. Returns the time at
- * the end of phase "G". */
-static double phase_prox(const settings_t *s, const problem_t *p, const double *u_free,
-                         const double *M, const double *last_impulse, const u8 *last_active,
-                         const double *last_bilateral, double *timings, double t, arena_t *a,
-                         double **uE, double **lam_out, i64 *iters, i64 *status, double *resid,
-                         int *retried) {
+/* alpha_start: the scale of the paper's α the solve starts with, from the α memory
+ * (SimState.prox_memory: [scale, steps held], NULL: none): the scale of the last step's
+ * converged fallback while I stays the same and it was held for fewer than fallback_hold
+ * steps, else 1 */
+static double alpha_start(const settings_t *s, const double *memory, const problem_t *p,
+                          const u8 *last_active, i64 nc) {
+    if (!memory || s->fallback_hold <= 0 || !(memory[0] < 1.0)) return 1.0;
+    if (memory[1] >= (double)s->fallback_hold || !same_active_set(p, last_active, nc)) return 1.0;
+    return memory[0];
+}
+
+/* form_delassus: G of a problem left lazy (problem_t.lazy_G), its rows' pattern and diag(G)
+ * from it, as phase_delassus forms them */
+static void form_delassus(problem_t *p, arena_t *a) {
+    if (!p->lazy_G) return;
+    minv_w(p, a);
+    i64 m = p->m;
+    double *G = arena_f(a, m * m);
+    delassus(p->Wt, p->MinvW, G, m, p->nv, p->pat.wp_ptr, p->pat.wp_idx, p->pat.mp_ptr,
+             p->pat.mp_idx, a);
+    for (i64 r = 0; r < m; r++) p->Gdiag[r] = G[r * m + r];
+    row_pattern(G, m, m, a, &p->pat.gp_ptr, &p->pat.gp_idx);
+    p->G = G;
+    p->lazy_G = 0;
+}
+
+/* lazy_probe: a problem whose G is unformed tries LAZY_DELASSUS_SWEEPS sweeps of the velocity
+ * form (the same rows on u^k = u_free + M^{-1}WΛ^k, Eqn. 17-19; M^{-1} by the factor of M
+ * where M^{-1}W is unformed too) from Λ^0 in lam with r; 1 when they converge (*res), else G
+ * is formed (the solve then starts again in the Delassus form) and 0 */
+static int lazy_probe(const settings_t *s, problem_t *p, const double *u_free, const double *M,
+                      const double *mu, const double *r, double *lam, double *u, arena_t *a,
+                      prox_result_t *res) {
+    settings_t probe = *s;
+    probe.form = FORM_VELOCITY;
+    probe.max_iterations = LAZY_DELASSUS_SWEEPS;
+    probe.stall_window = 0;
+    if (p->minv_w_ready)
+        *res = prox_solve(&probe, &p->pat, p->Wt, p->MinvW, u_free, p->b, NULL, NULL, p->m, p->nv,
+                          p->na, mu, r, p->bound, lam, p->LB, p->nb_LB, M, u, a);
+    else
+        *res = jor_velocity_factored(&probe, &p->pat, p->Wt, u_free, p->b, p->m, p->nv, p->na, mu,
+                                     r, p->bound, lam, p->L, p->dof_parent, u, a);
+    if (res->status == STATUS_CONVERGED) return 1;
+    form_delassus(p, a);
+    return 0;
+}
+
+/* phase_prox: c (timed as phase "G" from t), the warm start, lazy_probe where G is unformed,
+ * the prox iteration from α times scale (alpha_start) and one retry with α·fallback_alpha_factor.
+ * *uE, *lam point into the arena. With memory (the prox memory; NULL: none) its next value into
+ * alpha_E: [the converged try's scale, steps held] ([1, 0]: the paper's α or not converged), the
+ * solve's sweeps. Returns the time at the end of phase "G". (long: the tries, many outputs) */
+static double phase_prox(const settings_t *s, problem_t *p, const u8 *last_active, double scale,
+                         const double *memory, const double *u_free, const double *M,
+                         const double *last_impulse, const double *last_bilateral, double *timings,
+                         double t, arena_t *a, double **uE, double **lam_out,
+                         complete_result_t *out, double *alpha_E) {
     const i64 *active = p->active;
-    double alpha = s->alpha;
+    double alpha = s->alpha * scale;
     double fallback_factor = s->fallback_alpha_factor;
     i64 na = p->na, o = 3 * na, m = p->m, nv = p->nv;
     double *buf = arena_f(a, 4 * m + nv + na);
@@ -261,8 +353,15 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
     prox_result_t res = {0, STATUS_CONVERGED, 0.0};
     int again = 0;
     settings_t try_s = *s;
+    if (p->lazy_G) {
+        prox_parameters(p->Gdiag, m, na, alpha, r);
+        relax_bilateral_rows(s, p->Gdiag, m, na, scale, r);
+        if (lazy_probe(s, p, u_free, M, mu_vec, r, lam, u, a, &res)) attempts = 0;
+        it_sum = res.iterations;
+    }
     for (int attempt = 0; attempt < attempts; attempt++) {
         prox_parameters(p->Gdiag, m, na, alpha, r);
+        relax_bilateral_rows(s, p->Gdiag, m, na, scale, r);
         memcpy(lam, lam0, (size_t)m * sizeof(double));
         if (attempt + 1 == attempts) try_s.stall_window = 0; /* the last try runs to the cap */
         res = prox_solve(&try_s, &p->pat, p->Wt, p->MinvW, u_free, p->b, p->G, c, m, nv, na, mu_vec,
@@ -272,14 +371,21 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
         if (attempt + 1 < attempts) {
             again = 1;
             alpha *= fallback_factor;
+            scale *= fallback_factor;
         }
+    }
+    if (memory) {
+        int kept = res.status == STATUS_CONVERGED && scale < 1.0;
+        alpha_E[0] = kept ? scale : 1.0;
+        alpha_E[1] = kept && !again && scale == memory[0] ? memory[1] + 1.0 : 0.0;
+        alpha_E[2] = (double)it_sum;
     }
     *uE = u;
     *lam_out = lam;
-    *iters = it_sum;
-    *status = res.status;
-    *resid = res.residual;
-    *retried = again;
+    out->iterations = it_sum;
+    out->status = res.status;
+    out->residual = res.residual;
+    out->retried = again;
     return t;
 }
 
@@ -287,13 +393,13 @@ static double phase_prox(const settings_t *s, const problem_t *p, const double *
  * whose contacts are forces in h; p->bound their bounds τ_c Δt), from Λ_f^0 in lam_f (out:
  * Λ_f); u^E = u_free + M^{-1} W_f Λ_f into uE. The prox's status (STATUS_*), *iters its
  * iterations. */
-i64 joint_friction_prox(const settings_t *s, const problem_t *p, const double *u_free,
-                        const double *M, double *lam_f, double *uE, i64 *iters, arena_t *a) {
-    double *u, *lam, resid;
-    i64 status;
-    int retried;
-    phase_prox(s, p, u_free, M, NULL, NULL, lam_f, NULL, 0.0, a, &u, &lam, iters, &status, &resid,
-               &retried);
+i64 joint_friction_prox(const settings_t *s, problem_t *p, const double *u_free, const double *M,
+                        double *lam_f, double *uE, i64 *iters, arena_t *a) {
+    double *u, *lam;
+    complete_result_t res;
+    phase_prox(s, p, NULL, 1.0, NULL, u_free, M, NULL, lam_f, NULL, 0.0, a, &u, &lam, &res, NULL);
+    i64 status = res.status;
+    *iters = res.iterations;
     memcpy(uE, u, (size_t)p->nv * sizeof(double));
     memcpy(lam_f, lam, (size_t)p->m * sizeof(double));
     for (i64 k = 0; k < p->nv; k++)
@@ -376,7 +482,7 @@ static i64 projection_problem(const problem_t *p, const i64 *extra, i64 ne, cons
 /* phase_projection: the post-step projection (contact.penetration_correction
  * "projection"); u_corr receives Δu_p. Returns the iterations, *status the prox status
  * (−1: not needed). */
-static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *is_active,
+static i64 phase_projection(const settings_t *s, problem_t *p, const u8 *is_active,
                             const double *gap, i64 nc, const double *Wt_all, const i64 *dof_parent,
                             const double *L, const double *M, const double *uE, double *u_corr,
                             arena_t *a, i64 *status) {
@@ -389,6 +495,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
         *status = -1;
         return 0;
     }
+    minv_w(p, a);
     i64 *extra = arena_i(a, nc);
     i64 ne = 0;
     for (i64 i = 0; i < nc; i++)
@@ -398,6 +505,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     patterns_t full;
     i64 m, ncp;
     if (ne == 0 && p->nf == 0) {
+        form_delassus(p, a);
         contacts = p->active;
         ncp = p->na;
         Wp = p->Wt;
@@ -431,6 +539,7 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     }
     double *r = arena_f(a, m);
     prox_parameters(Gdp, m, ncp, s->alpha, r);
+    relax_bilateral_rows(s, Gdp, m, ncp, 1.0, r);
     double *lam = arena_zeros(a, m);
     double *mu = arena_zeros(a, ncp);
     double *zero = arena_zeros(a, nv);
@@ -444,15 +553,36 @@ static i64 phase_projection(const settings_t *s, const problem_t *p, const u8 *i
     return res.iterations;
 }
 
-/* contact_problem: phases "M^-1" and "G" (phase_minv, phase_delassus) */
+/* lazy_diagonal: diag(G) alone of a problem whose G is left unformed (from M^{-1}W, or with
+ * the factor of M where that is unformed too), G's pattern empty */
+static void lazy_diagonal(problem_t *p, arena_t *a) {
+    i64 m = p->m;
+    p->Gdiag = arena_f(a, m);
+    if (p->minv_w_ready)
+        delassus_diagonal(p->Wt, p->MinvW, p->Gdiag, m, p->nv, p->pat.wp_ptr, p->pat.wp_idx);
+    else
+        factored_delassus_diagonal(p->Wt, m, p->nv, p->pat.wp_ptr, p->pat.wp_idx, p->L,
+                                   p->dof_parent, p->Gdiag, p->MinvW); /* (its buffer as work:
+                                                                          minv_w forms it anew) */
+    i64 *none = arena_i(a, m + 1);
+    for (i64 r = 0; r <= m; r++) none[r] = 0;
+    p->pat.gp_ptr = p->pat.gp_idx = p->pat.lb_first = none;
+    p->pat.n_lb = 0;
+    p->G = p->LB = NULL;
+    p->nb_LB = 0;
+}
+
+/* contact_problem: phases "M^-1" and "G" (phase_minv, phase_delassus; G left to the solve
+ * where lazy_delassus) */
 void contact_problem(const settings_t *s, const double *M, const double *uS, i64 nv,
                      const double *gap, i64 nc, const double *Wt_all, const double *WtB, i64 nb,
                      const double *bB, const double *eps, const double *frames,
                      const i64 *dof_parent, int factor, double *L, const double *last_impulse,
-                     const u8 *last_active, double *timings, arena_t *a, problem_t *p) {
+                     const u8 *last_active, const double *memory, double *timings, arena_t *a,
+                     problem_t *p) {
     double t = kclock(timings);
     phase_minv(s, M, uS, nv, gap, nc, Wt_all, WtB, nb, bB, eps, dof_parent, factor, L, last_impulse,
-               last_active, a, p);
+               last_active, memory, a, p);
     p->mu = NULL;
     if (frames) { /* (copied: a prepared problem outlives the call) */
         double *mu = arena_f(a, nc);
@@ -460,7 +590,9 @@ void contact_problem(const settings_t *s, const double *M, const double *uS, i64
         p->mu = mu;
     }
     t = klap(timings, PHASE_M_INVERSE, t);
-    if (p->ok && p->m != 0) {
+    if (p->ok && p->m != 0 && p->lazy_G) {
+        lazy_diagonal(p, a);
+    } else if (p->ok && p->m != 0) {
         patterns_t full;
         p->ok = phase_delassus(s->form, p->na, s->bilateral_direct, p->Wt, p->MinvW, p->m, nv,
                                &p->pat, a, &p->G, &p->Gdiag, &p->LB, &p->nb_LB, &full);
@@ -493,11 +625,13 @@ static void no_contact_impulses(i64 nc, double *impulse, u8 *is_active) {
 
 /* complete_problem: u_free (phase "M^-1"), c (phase "G"), the prox iteration and the
  * post-step projection (phase "prox") of the prepared problem p with h and M (M or M~): the
- * model and workspace t, the state x (its u^S, warm-start memory; Λ into its report, u^E
- * into uE), Λ_B into bilateral_E (which comes in with the warm start) */
-complete_result_t complete_problem(const problem_t *p, const double *h, const double *M,
+ * model and workspace t, the state x (its u^S, warm-start and α memory; Λ into its report,
+ * u^E into uE), Λ_B into bilateral_E (which comes in with the warm start), the α memory
+ * after the solve into alpha_E (2) */
+complete_result_t complete_problem(problem_t *p, const double *h, const double *M,
                                    const tree_model_t *t, const step_arrays_t *x,
-                                   double *bilateral_E, double *timings, arena_t *a) {
+                                   double *bilateral_E, double *alpha_E, double *timings,
+                                   arena_t *a) {
     const settings_t *s = &t->s;
     i64 nv = p->nv, nc = t->contacts.nc;
     double *impulse = x->report.impulse, *u = x->uE;
@@ -508,13 +642,16 @@ complete_result_t complete_problem(const problem_t *p, const double *h, const do
     i64 na = p->na, o = 3 * na;
     complete_result_t res = {0, STATUS_CONVERGED, 0.0, 0, 0, -1};
     for (i64 k = 0; k < nv; k++) t->u_corr[k] = 0.0;
+    alpha_E[0] = 1.0;
+    alpha_E[1] = 0.0;
+    alpha_E[2] = 0.0;
     if (p->m == 0) {
         memcpy(u, t->u_free, (size_t)nv * sizeof(double));
     } else {
         double *uE, *lam;
-        t0 =
-            phase_prox(s, p, t->u_free, M, x->last_impulse, x->last_active, bilateral_E, timings,
-                       t0, a, &uE, &lam, &res.iterations, &res.status, &res.residual, &res.retried);
+        double scale = alpha_start(s, x->prox_memory, p, x->last_active, nc);
+        t0 = phase_prox(s, p, x->last_active, scale, x->prox_memory, t->u_free, M, x->last_impulse,
+                        bilateral_E, timings, t0, a, &uE, &lam, &res, alpha_E);
         memcpy(u, uE, (size_t)nv * sizeof(double));
         for (i64 r = 0; r < na; r++) {
             i64 i = p->active[r];

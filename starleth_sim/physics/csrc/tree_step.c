@@ -181,7 +181,7 @@ static i64 compliant_friction(const tree_model_t *t, const step_arrays_t *x, con
     }
     problem_t p;
     contact_problem(&t->s, M, x->u, nv, never, nc, t->Wt_all, f->Wt, f->n, f->b, t->eps, NULL,
-                    t->dof_parent, 0, t->L, no_impulse, no_active, NULL, a, &p);
+                    t->dof_parent, 0, t->L, no_impulse, no_active, NULL, NULL, a, &p);
     p.bound = f->bound;
     p.nf = f->n;
     double *lam = arena_zeros(a, f->n);
@@ -232,15 +232,16 @@ static tree_step_result_t result_of(i64 outcome) {
 }
 
 /* complete_step: complete_problem (Λ into the report buffer, Λ_B into bilateral_E, which
- * comes in with the last step's Λ_B) and Eqn. (8); the warm-start memory is updated only
- * when the step ends finite */
-static void complete_step(const problem_t *p, const double *h, const double *M,
-                          const tree_model_t *t, const step_arrays_t *x, double *bilateral_E,
-                          tree_step_result_t *res, double *timings, arena_t *a) {
+ * comes in with the last step's Λ_B) and Eqn. (8); the warm-start and α memory are updated
+ * only when the step ends finite */
+static void complete_step(problem_t *p, const double *h, const double *M, const tree_model_t *t,
+                          const step_arrays_t *x, double *bilateral_E, tree_step_result_t *res,
+                          double *timings, arena_t *a) {
     i64 nc = t->contacts.nc;
     double *impulse = x->report.impulse;
     for (i64 k = 0; k < x->nb; k++) bilateral_E[k] = x->last_bilateral[k];
-    complete_result_t c = complete_problem(p, h, M, t, x, bilateral_E, timings, a);
+    double alpha_E[3];
+    complete_result_t c = complete_problem(p, h, M, t, x, bilateral_E, alpha_E, timings, a);
     double t0 = kclock(timings);
     i64 outcome = TREE_STEP_OK;
     if (c.status == STATUS_NONFINITE) {
@@ -251,6 +252,7 @@ static void complete_step(const problem_t *p, const double *h, const double *M,
     } else {
         remember_contacts(x->is_active, impulse, nc, x->last_active, x->last_impulse);
         for (i64 k = 0; k < x->nb; k++) x->last_bilateral[k] = bilateral_E[k];
+        if (x->prox_memory) memcpy(x->prox_memory, alpha_E, sizeof alpha_E);
     }
     klap(timings, PHASE_REST, t0);
     res->outcome = outcome;
@@ -302,11 +304,13 @@ tree_step_result_t tree_step_hard(int options, int torque_mode, const step_array
     i64 nv = x->nv, nc = t.contacts.nc;
     friction_t f = friction_rows(&t, nv, a);
     double *Md = arena_f(a, nv * nv), *friction_E = arena_f(a, f.n);
-    double *kept = arena_f(a, 4 * nc + f.n); /* the warm-start memory, for a second solve */
+    double *kept = arena_f(a, 4 * nc + f.n + 3); /* the warm-start and α memory, for a second
+                                                    solve */
     int implicit = damped(t.M, &t, x->report.damper, nv, Md);
     for (i64 k = 0; k < 3 * nc; k++) kept[k] = x->last_impulse[k];
     for (i64 k = 0; k < nc; k++) kept[3 * nc + k] = x->last_active[k];
     for (i64 k = 0; k < f.n; k++) kept[4 * nc + k] = x->last_bilateral[k];
+    for (i64 k = 0; k < 3; k++) kept[4 * nc + f.n + k] = x->prox_memory[k];
     problem_t p;
     tree_step_result_t res;
     for (int pass = 0; pass < 2; pass++) {
@@ -314,7 +318,7 @@ tree_step_result_t tree_step_hard(int options, int torque_mode, const step_array
          * is last_bilateral) */
         contact_problem(&t.s, implicit ? Md : t.M, x->u, nv, t.gap, nc, t.Wt_all, f.Wt, f.n, f.b,
                         t.eps, t.ground.frames, t.dof_parent, 1, t.L, x->last_impulse,
-                        x->last_active, timings, a, &p);
+                        x->last_active, x->prox_memory, timings, a, &p);
         if (!p.ok) return result_of(TREE_STEP_NOT_PD);
         p.bound = f.bound;
         p.nf = f.n;
@@ -327,6 +331,7 @@ tree_step_result_t tree_step_hard(int options, int torque_mode, const step_array
         for (i64 k = 0; k < 3 * nc; k++) x->last_impulse[k] = kept[k];
         for (i64 k = 0; k < nc; k++) x->last_active[k] = kept[3 * nc + k] != 0.0;
         for (i64 k = 0; k < f.n; k++) x->last_bilateral[k] = kept[4 * nc + k];
+        for (i64 k = 0; k < 3; k++) x->prox_memory[k] = kept[4 * nc + f.n + k];
         implicit = damped(t.M, &t, x->report.damper, nv, Md);
     }
     if (!implicit) implicit_torques(&t, x->u, x->uE, &x->report, 0);
@@ -507,7 +512,7 @@ static tree_step_result_t forest_compliant(int options, const step_arrays_t *x,
     problem_t p;
     contact_problem(&t->s, M, x->u, nv, never, nc, t->Wt_all, c->WtB, 5 * c->cuts.ncut, c->bB,
                     t->eps, t->ground.frames, t->dof_parent, !(options & STEP_KEEP_FACTOR), t->L,
-                    x->last_impulse, x->last_active, timings, a, &p);
+                    x->last_impulse, x->last_active, x->prox_memory, timings, a, &p);
     tree_step_result_t res = result_of(p.ok ? TREE_STEP_OK : TREE_STEP_NOT_PD);
     if (p.ok) complete_step(&p, h, M, t, x, c->bilateral_E, &res, timings, a);
     if (res.outcome != TREE_STEP_OK) restore_contacts(kept_flags, kept, nc, cs);
@@ -550,7 +555,7 @@ tree_step_result_t forest_step(int options, const step_arrays_t *x, const compli
         problem_t p;
         contact_problem(&t.s, M, x->u, nv, t.gap, nc, t.Wt_all, c.WtB, 5 * c.cuts.ncut, c.bB, t.eps,
                         t.ground.frames, t.dof_parent, !(options & STEP_KEEP_FACTOR), t.L,
-                        x->last_impulse, x->last_active, timings, a, &p);
+                        x->last_impulse, x->last_active, x->prox_memory, timings, a, &p);
         if (!p.ok) return result_of(TREE_STEP_NOT_PD);
         res = result_of(TREE_STEP_OK);
         complete_step(&p, h, M, &t, x, c.bilateral_E, &res, timings, a);

@@ -186,6 +186,10 @@ PROX_SETTINGS = Record("ProxSettings", "settings_t", "prox_settings_from_fields"
            "not below STALL_FACTOR (0.99) x the window's before ends as STATUS_STALLED (0: no "
            "test)",
            0),
+    Number("bilateral_relaxation", "double",
+           "ω_B of the bilateral prox rows (0: the paper's, rows as the contacts' with α): "
+           "r_B = ω_B/G_BB, swept Gauss-Seidel after the contacts' rows (prox.c)",
+           0.0),
 ))
 
 STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
@@ -205,6 +209,10 @@ STEP_SETTINGS = Record("StepSettings", "settings_t", "settings_from_fields", (
     Number("warm_start", "bool", "Λ^0 = the last step's Λ of the contacts that stay in I"),
     Number("hysteresis", "bool",
            'contact.activation "hysteresis" (else the gap test alone)'),
+    Number("fallback_hold", "i64",
+           "steps a converged fallback α starts the solves while I stays the same (0: none; "
+           "SimState.prox_memory)",
+           0),
 ))
 
 COMPLIANT_LAW = Record("CompliantLaw", "compliant_law_t", "compliant_law_from_fields", (
