@@ -546,8 +546,9 @@ def test_the_controller_torques_are_unchanged_bit_for_bit():
     recorded when the C kernels replaced the numba kernels and gave their torques on 23,200
     closed-loop calls; re-recorded for issue #49, whose stall test, α memory and one-sweep
     velocity-form tries changed the physics' round-off on the ledge's cycling steps; the
-    presets' own pins, test_bitexact, stayed): on the reference platform (test_bitexact.platform_fingerprint, and
-    the same proxsuite) bit for bit; elsewhere only the leg states are compared."""
+    presets' own pins, test_bitexact, stayed): on the reference platform
+    (test_bitexact.platform_fingerprint, and the same proxsuite) bit for bit; elsewhere only
+    the leg states are compared."""
     import proxsuite
     from test_bitexact import platform_fingerprint
     with open(TORQUES_REFERENCE) as f:
