@@ -27,11 +27,136 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from starleth_interface.config_checks import ConfigError
+from starleth_interface.config_checks import check_choice as _choice
+from starleth_interface.config_checks import check_int as _int
+from starleth_interface.config_checks import check_number as _num
+from starleth_interface.config_checks import fmt_bound as _fmt
+
 from .kinematics import quat_xyzw_to_rot
+
+# =========================================================================================
+# the sensors section of the physics configuration (config.py's table of ranges)
+# =========================================================================================
+MAX_RATE = 100_000.0              # Hz: the highest control rate (config.MAX_CONTROL_RATE)
+
+#: the numbers of the sensors section: field -> (lowest, highest) (the table above; the
+#: lower bound of encoder_velocity_cutoff is open)
+SENSOR_RANGES = {
+    "imu_rate": (0.0, MAX_RATE),                # Hz, 0: the control rate
+    "imu_delay": (0.0, 1.0),                            # s
+    "imu_gyro_noise_density": (0.0, 1.0),               # rad/s/√Hz
+    "imu_gyro_bias_random_walk": (0.0, 1.0),            # rad/s²/√Hz
+    "imu_gyro_initial_bias_sigma": (0.0, 10.0),         # rad/s
+    "imu_gyro_range": (0.0, 1000.0),                    # rad/s, 0: unlimited
+    "imu_accel_noise_density": (0.0, 10.0),             # m/s²/√Hz
+    "imu_accel_bias_random_walk": (0.0, 10.0),          # m/s³/√Hz
+    "imu_accel_initial_bias_sigma": (0.0, 100.0),       # m/s²
+    "imu_accel_range": (0.0, 10_000.0),                 # m/s², 0: unlimited
+    "imu_orientation_noise": (0.0, math.pi),            # rad
+    "encoder_noise": (0.0, 1.0),                        # rad
+    "encoder_velocity_cutoff": (0.0, MAX_RATE),  # Hz (> 0)
+    "torque_noise": (0.0, 1000.0),                      # N m
+    "contact_threshold": (0.0, 1e5),                    # N
+    "contact_threshold_weight": (0.0, 1.0),             # share of the robot's weight m g
+    "contact_force_noise": (0.0, 1e5),                  # N
+}
+#: initial biases: 3 numbers, each within +- this (rad/s, m/s²)
+SENSOR_BIAS_BOUND = {"imu_gyro_initial_bias": 10.0, "imu_accel_initial_bias": 100.0}
+MAX_SEED = 2 ** 63 - 1            # a ROS integer parameter (int64)
+MAX_ENCODER_COUNTS = 2 ** 32      # counts per revolution (a 32-bit counter)
+MAX_CONTACT_DELAY = 1000          # control steps
+
+
+@dataclass
+class SensorConfig:
+    """The sensors' models (physics/sensors.py; doc/sensors.md): all zero / off (the
+    default) is ideal, every measured value the exact one bit for bit."""
+
+    #: the one random stream of every sensor (numpy PCG64 seeded with it)
+    seed: int = 0
+    #: IMU sample rate [Hz]: 0 = the control rate; else control_rate / m or m x control_rate
+    imu_rate: float = 0.0
+    #: a sample is delivered this late [s]: a whole number of control periods
+    imu_delay: float = 0.0
+    imu_gyro_noise_density: float = 0.0        # white noise [rad/s/√Hz]: σ = density √rate
+    imu_gyro_bias_random_walk: float = 0.0     # [rad/s²/√Hz]: per sample σ = it √(1/rate)
+    imu_gyro_initial_bias: tuple = (0.0, 0.0, 0.0)   # [rad/s], base frame axes
+    imu_gyro_initial_bias_sigma: float = 0.0   # [rad/s], drawn once per axis, added
+    imu_gyro_range: float = 0.0                # clipped at +- this [rad/s]; 0: unlimited
+    imu_accel_noise_density: float = 0.0       # [m/s²/√Hz]
+    imu_accel_bias_random_walk: float = 0.0    # [m/s³/√Hz]
+    imu_accel_initial_bias: tuple = (0.0, 0.0, 0.0)  # [m/s²]
+    imu_accel_initial_bias_sigma: float = 0.0  # [m/s²]
+    imu_accel_range: float = 0.0               # [m/s²]; 0: unlimited
+    imu_orientation_noise: float = 0.0         # the AHRS's: a white rotation vector's σ [rad]
+    encoder_counts: int = 0                    # counts per revolution; 0: exact angles
+    encoder_noise: float = 0.0                 # σ of the angle [rad], before quantization
+    encoder_velocity: str = "exact"            # or "filtered": the angles' low-passed difference
+    encoder_velocity_cutoff: float = 100.0     # [Hz]
+    torque_noise: float = 0.0                  # σ of the measured joint torque [N m]
+    contact_threshold: float = 0.0             # a foot in contact: measured F_N > this [N]
+    contact_threshold_weight: float = 0.0      # or as a share of the weight m g (not both)
+    contact_force_noise: float = 0.0           # σ of the measured normal force [N]
+    contact_delay: int = 0                     # control steps
+
+    def validate(self, p):
+        self.seed = _int(f"{p}.seed", self.seed, 0, MAX_SEED)
+        for n, (lo, hi) in SENSOR_RANGES.items():
+            setattr(self, n, _num(f"{p}.{n}", getattr(self, n), lo, hi,
+                                  lo_open=n == "encoder_velocity_cutoff"))
+        for n, bound in SENSOR_BIAS_BOUND.items():
+            v = getattr(self, n)
+            if not isinstance(v, (list, tuple)) or len(v) != 3:
+                raise ConfigError(f"{p}.{n}: expected a list of 3 numbers, got {v!r:.60}")
+            setattr(self, n, tuple(_num(f"{p}.{n}[{i}]", x, -bound, bound)
+                                   for i, x in enumerate(v)))
+        self.encoder_counts = _int(f"{p}.encoder_counts", self.encoder_counts, 0,
+                                   MAX_ENCODER_COUNTS)
+        self.encoder_velocity = _choice(f"{p}.encoder_velocity", self.encoder_velocity,
+                                        {"exact", "filtered"})
+        self.contact_delay = _int(f"{p}.contact_delay", self.contact_delay, 0,
+                                  MAX_CONTACT_DELAY)
+        if self.contact_threshold and self.contact_threshold_weight:
+            raise ConfigError(f"{p}.contact_threshold_weight: a threshold in N "
+                              f"(contact_threshold) or a share of the weight, not both")
+
+    def check_rates(self, control_rate: float):
+        """The rules with the control rate: the IMU samples at control steps or m per
+        control step, and delivers a sample a whole number of control periods late."""
+        r = self.imu_rate
+        if r:
+            ratio = max(r, control_rate) / min(r, control_rate)
+            if abs(ratio - round(ratio)) > 1e-9 * ratio:
+                raise ConfigError(f"sensors.imu_rate: must be control_rate / m or m x "
+                                  f"control_rate (m a whole number; control_rate "
+                                  f"{_fmt(control_rate)} Hz), got {_fmt(r)}")
+        steps = self.imu_delay * control_rate
+        if abs(steps - round(steps)) > 1e-9 * max(steps, 1.0):
+            raise ConfigError(f"sensors.imu_delay: must be a whole number of control periods "
+                              f"({_fmt(1e3 / control_rate)} ms), got {_fmt(self.imu_delay)} s")
+
+    def is_ideal(self, control_rate: float) -> bool:
+        """Every measured value is the exact one: no noise, bias, quantization, filter,
+        clipping, threshold or delay, and the IMU samples at every control step (at the
+        control rate or faster)."""
+        zero = [getattr(self, n) for n in SENSOR_RANGES if n not in
+                ("imu_rate", "encoder_velocity_cutoff")]
+        return (not any(zero) and not self.encoder_counts and not self.contact_delay
+                and self.encoder_velocity == "exact"
+                and (not self.imu_rate or self.imu_rate >= control_rate * (1 - 1e-9))
+                and not any(self.imu_gyro_initial_bias + self.imu_accel_initial_bias))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for n in SENSOR_BIAS_BOUND:
+            d[n] = list(d[n])
+        return d
+
 
 
 @dataclass
