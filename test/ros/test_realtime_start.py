@@ -126,11 +126,11 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
           f"{commands[0]:.3f} s, {len(commands)} commands (every {rate * 1e3:.1f} ms of sim "
           f"time); diagonal pairs alone {pair_a:.2f} / {pair_b:.2f} of the time; trunk "
           f"{z[later].min():.3f} to {z[later].max():.3f} m")
-    # from the start (the clock ran before it): within 2 s of its publisher being known on
-    # the network (1 s on an idle machine; its subscriptions still have to discover /clock and
-    # the state on 2 loaded cores), and of the node itself within Fast DDS's announcement
-    # period (3 s)
-    assert t_appeared > 0.5 and commands[0] - t_discovered <= 2.0
+    # from the start (the clock ran before it): within Fast DDS's announcement period (3 s) of
+    # its publisher being known on the network (1 s on an idle machine; its subscriptions
+    # still have to discover /clock and the state: once 2.5 s on 2 loaded cores), not stuck
+    # waiting for a clock that only its commands would start
+    assert t_appeared > 0.5 and commands[0] - t_discovered <= 3.0
     assert commands[0] - t_appeared <= 3.0
     assert rate == pytest.approx(0.02, rel=0.1)         # 50 Hz of sim time
     assert pair_a > 0.33 and pair_b > 0.33
