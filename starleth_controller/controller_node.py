@@ -230,7 +230,7 @@ class ControllerNode(Node):
         if self._estimating:
             self._estimator = EstimatorTopics(self, estimator_params(p),
                                               p["estimator_odometry_topic"], cmd_qos,
-                                              self._bad_message)
+                                              self._deserialise)
 
     def _init_robot(self, p):
         """The robot: from its parameters now, or from robot_description when it comes (a

@@ -4,7 +4,6 @@ and foot contact messages read from their CDR bytes, and ``estimator/odometry`` 
 from __future__ import annotations
 
 from nav_msgs.msg import Odometry
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
 from starleth_interface.msg_cdr import IMU_FIELDS, ODOM_FIELDS, FixedCdr, StampedReader
@@ -15,14 +14,15 @@ from .state_intake import stamp_ns
 
 class EstimatorTopics:
     """The estimator's messages of `node`: ``imu(data)`` and ``contacts(data)`` -> (stamp ns,
-    values) or None for a message that cannot be decoded (`on_bad(what, error)` told);
+    values) or None for a message that cannot be decoded (`deserialise(data, type, what)`:
+    the node's, which reports such a message and gives None);
     ``use_model(model)`` makes the filter (``estimate``, an EstimatedState); ``publish``
     sends its estimate on `odometry_topic` (nav_msgs/Odometry: frame 'odom', child the base
     link, twist in the base frame; an empty topic: none)."""
 
-    def __init__(self, node, params, odometry_topic, qos, on_bad):
+    def __init__(self, node, params, odometry_topic, qos, deserialise):
         self.params = params
-        self.on_bad = on_bad
+        self._deserialise = deserialise
         self.estimate = None
         self._imu = StampedReader(Imu, IMU_FIELDS)
         self.pub = node.create_publisher(Odometry, odometry_topic, qos) if odometry_topic \
@@ -34,13 +34,6 @@ class EstimatorTopics:
         o = self._msg = Odometry()
         o.header.frame_id, o.child_frame_id = "odom", self.estimate.base_frame
         self._cdr = FixedCdr.create(o, ODOM_FIELDS)
-
-    def _deserialise(self, data, typ, what):
-        try:
-            return deserialize_message(data, typ)
-        except Exception as e:   # malformed CDR: ignore it, never die
-            self.on_bad(what, e)
-            return None
 
     def imu(self, data):
         """(stamp, the 10 values of IMU_FIELDS) of a sensor_msgs/Imu, or None."""
