@@ -52,7 +52,6 @@ from starleth_interface.ros_helpers import service_qos
 from ...physics.config import ConfigError
 from ...robots import robot_description
 from ...ros.live_view import live_view_lines
-from ..analysis.estimator_error import read_errors
 from ..bench.round_trips import measure_bare_round_trips
 from ..common.bag import BagError
 from ..common.child_process import start_child_as_node
@@ -341,8 +340,6 @@ def run_demo(stand=2.0, trot=18.0, speed=None, physics="HmJ", record="runs/demo.
         for p in sorted(procs, key=lambda p: p.name != "controller_node"):
             result.exit_codes[p.name] = p.stop()
     read_bag(bag, result)
-    if state_source == "estimator":
-        result.estimate = read_errors(bag)
     write_replay(result, stem + ".html")
     return result
 

@@ -12,12 +12,14 @@ import numpy as np
 
 from starleth_interface.topics import (
     TOPIC_BASE_STATE,
+    TOPIC_ESTIMATOR_ODOMETRY,
     TOPIC_JOINT_COMMANDS,
     TOPIC_JOINT_STATES,
     TOPIC_SOLVER,
     resolve,
 )
 
+from ..analysis.estimator_error import error_series, odometry_arrays
 from ..common.bag import BagError, stream_bag
 from .terrain import course_end
 
@@ -143,18 +145,29 @@ class DemoResult:
 
 
 def read_bag(path, result: DemoResult):
-    """Fill `result` from the recording: base trajectory, solver iterations, counts."""
+    """Fill `result` from the recording (read once): base trajectory, solver iterations,
+    counts, and with state_source estimator the estimate's errors against the ground truth
+    (estimator_error.error_series of estimator/odometry against the base state)."""
     if not os.path.exists(path):
         raise DemoError(f"the recording {path} does not exist")
     result.bag_bytes = os.path.getsize(path)
     js, base, solver = (resolve(t) for t in (TOPIC_JOINT_STATES, TOPIC_BASE_STATE,
                                               TOPIC_SOLVER))
     stamps, t, pos, its = [], [], [], []
+    estimating = result.state_source == "estimator"
+    estimator = resolve(TOPIC_ESTIMATOR_ODOMETRY)
+    odometry = {base: [], estimator: []}       # the messages the estimate is checked with
 
     def on_base(rec, decode):
-        p = decode(rec.data).pose.pose.position
+        m = decode(rec.data)
+        p = m.pose.pose.position
         t.append(rec.log_time * 1e-9)
         pos.append((p.x, p.y, p.z))
+        if estimating:
+            odometry[base].append(m)
+
+    def on_estimate(rec, decode):
+        odometry[estimator].append(decode(rec.data))
 
     def on_solver(rec, decode):
         if rec.log_time == 0:
@@ -166,7 +179,8 @@ def read_bag(path, result: DemoResult):
     def on_channel(topic, _type_name, make_decoder):
         if topic == js:
             return lambda rec: stamps.append(rec.log_time)
-        handler = {base: on_base, solver: on_solver}.get(topic)
+        handler = {base: on_base, solver: on_solver,
+                   estimator: on_estimate if estimating else None}.get(topic)
         decode = make_decoder() if handler else None
         return None if decode is None else (lambda rec: handler(rec, decode))
 
@@ -201,6 +215,9 @@ def read_bag(path, result: DemoResult):
     if its:
         result.solver_iterations_mean = float(np.mean(its))
         result.solver_iterations_max = int(np.max(its))
+    if estimating and odometry[estimator]:
+        result.estimate = error_series(odometry_arrays(odometry[base]),
+                                       odometry_arrays(odometry[estimator]))
     return result
 
 
