@@ -144,6 +144,20 @@ class DemoResult:
         return p
 
 
+def _trajectory_figures(result: DemoResult, t, pos):
+    """The base trajectory's figures: heights, displacement, the trot's distance and speed
+    (t: the base states' times [s], pos: their positions)."""
+    result.min_height, result.max_height = float(pos[:, 2].min()), float(pos[:, 2].max())
+    d = pos[-1, :2] - pos[0, :2]
+    result.displacement = (float(d[0]), float(d[1]))
+    result.distance = float(np.hypot(*d))
+    if math.isfinite(result.t_trot):
+        i0 = min(int(np.searchsorted(t, result.t_trot)), len(t) - 1)
+        dt = t[-1] - t[i0]
+        result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
+        result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
+
+
 def read_bag(path, result: DemoResult):
     """Fill `result` from the recording (read once): base trajectory, solver iterations,
     counts, and with state_source estimator the estimate's errors against the ground truth
@@ -200,18 +214,9 @@ def read_bag(path, result: DemoResult):
     result.steps_expected = last // PERIOD_NS + 1
     result.missing_steps = result.steps_expected - len(np.unique(stamps))
     result.t_end = last * 1e-9
-    t, pos = np.array(t), np.array(pos)
     if len(t) == 0:
         raise DemoError(f"the recording {path} holds no base state")
-    result.min_height, result.max_height = float(pos[:, 2].min()), float(pos[:, 2].max())
-    d = pos[-1, :2] - pos[0, :2]
-    result.displacement = (float(d[0]), float(d[1]))
-    result.distance = float(np.hypot(*d))
-    if math.isfinite(result.t_trot):
-        i0 = min(int(np.searchsorted(t, result.t_trot)), len(t) - 1)
-        dt = t[-1] - t[i0]
-        result.trot_distance = float(np.hypot(*(pos[-1, :2] - pos[i0, :2])))
-        result.trot_speed = result.trot_distance / dt if dt > 0 else math.nan
+    _trajectory_figures(result, np.array(t), np.array(pos))
     if its:
         result.solver_iterations_mean = float(np.mean(its))
         result.solver_iterations_max = int(np.max(its))
