@@ -144,6 +144,16 @@ class DemoResult:
         return p
 
 
+def _step_figures(result: DemoResult, stamps):
+    """The control steps' figures from the joint states' stamps [ns] (and the counts)."""
+    result.joint_states = len(stamps)
+    result.joint_commands = result.topic_counts.get(resolve(TOPIC_JOINT_COMMANDS), 0)
+    last = int(stamps.max()) if len(stamps) else 0
+    result.steps_expected = last // PERIOD_NS + 1
+    result.missing_steps = result.steps_expected - len(np.unique(stamps))
+    result.t_end = last * 1e-9
+
+
 def _trajectory_figures(result: DemoResult, t, pos):
     """The base trajectory's figures: heights, displacement, the trot's distance and speed
     (t: the base states' times [s], pos: their positions)."""
@@ -207,13 +217,7 @@ def read_bag(path, result: DemoResult):
     for topic in (js, base, solver):
         if topic not in bag.counts:
             raise DemoError(f"the recording {path} has no {topic}")
-    stamps = np.array(stamps, dtype=np.int64)
-    result.joint_states = len(stamps)
-    result.joint_commands = result.topic_counts.get(resolve(TOPIC_JOINT_COMMANDS), 0)
-    last = int(stamps.max()) if len(stamps) else 0
-    result.steps_expected = last // PERIOD_NS + 1
-    result.missing_steps = result.steps_expected - len(np.unique(stamps))
-    result.t_end = last * 1e-9
+    _step_figures(result, np.array(stamps, dtype=np.int64))
     if len(t) == 0:
         raise DemoError(f"the recording {path} holds no base state")
     _trajectory_figures(result, np.array(t), np.array(pos))
