@@ -3,7 +3,7 @@ steps (the kernels' TreeStepResults), continuing the cumulative counts of the la
 step. No ROS anywhere in here."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from types import MappingProxyType
 from typing import Mapping
 
@@ -15,11 +15,18 @@ NO_TIMINGS = MappingProxyType({})
 STATUS_NAMES = {prox.STATUS_CONVERGED: "converged", prox.STATUS_MAX_ITER: "max_iterations",
                 prox.STATUS_NONFINITE: "non_finite", prox.STATUS_STALLED: "stalled"}
 _CONVERGED = prox.STATUS_CONVERGED
+#: the cumulative counts before the first step: (physics_steps, nonconverged_steps,
+#: loaded_contacts_opened_total)
+NO_TOTALS = (0, 0, 0)
 
 
 @dataclass(slots=True)
 class Diagnostics:
-    """Solver figures of the last control step (summed / worst over its physics steps)."""
+    """Solver figures of the last control step (summed / worst over its physics steps).
+
+    One made by `pending_diagnostics` holds its physics steps' figures and works its fields
+    out when one is first read: a simulation loop that never reads them does not pay for
+    them (made on every step: figures in doc/performance.md)."""
 
     iterations: int = 0            # prox iterations, summed over the physics steps
     max_iterations_step: int = 0   # worst physics step
@@ -40,27 +47,58 @@ class Diagnostics:
     loaded_contacts_opened_total: int = 0  # cumulative
     #: cumulative per phase (profile=True) [s]; empty and read-only when not profiling
     timings: Mapping[str, float] = field(default_factory=lambda: NO_TIMINGS)
+    #: (totals before, figures, step_time, timings) until the fields are worked out
+    _pending: tuple | None = field(default=None, repr=False, compare=False)
+
+    def __getattr__(self, name):
+        """A field not set yet: those of the pending figures, worked out now."""
+        try:
+            pending = object.__getattribute__(self, "_pending")
+        except AttributeError:
+            pending = None
+        if pending is None or name not in FIELD_NAMES:
+            raise AttributeError(f"'Diagnostics' object has no attribute '{name}'")
+        self._pending = None
+        for n, v in zip(FIELD_NAMES, figures_of(*pending), strict=True):
+            object.__setattr__(self, n, v)
+        return object.__getattribute__(self, name)
+
+    def __getstate__(self):
+        """(copy and pickle: the fields worked out first; NO_TIMINGS, a read-only mapping,
+        as None)"""
+        values = [getattr(self, n) for n in FIELD_NAMES]
+        values[-1] = dict(values[-1]) if values[-1] else None
+        return tuple(values)
+
+    def __setstate__(self, state):
+        for n, v in zip(FIELD_NAMES, state, strict=True):
+            object.__setattr__(self, n, v)
+        if state[-1] is None:
+            self.timings = NO_TIMINGS
+        self._pending = None
 
 
-def one_step_diagnostics(prev: Diagnostics, r, step_time: float) -> Diagnostics:
-    """The Diagnostics of a control period of one physics step, whose figures are r's (a
-    TreeStepResult), continuing the cumulative counts of prev. (Made on every step: written
-    for speed; figures in doc/performance.md.)"""
-    iterations, status, residual, opened = r.iterations, r.status, r.residual, r.opened
-    converged = status == _CONVERGED
-    return Diagnostics(
-        iterations, iterations, converged, STATUS_NAMES[status],
-        residual if residual > 0.0 else 0.0, r.n_active, r.retried, opened,
-        r.projection_iterations, 1 if r.projection_status >= 0 else 0, step_time,
-        prev.physics_steps + 1, prev.nonconverged_steps + (0 if converged else 1),
-        prev.loaded_contacts_opened_total + opened, NO_TIMINGS)
+#: Diagnostics' fields in order (its _pending aside)
+FIELD_NAMES = tuple(f.name for f in fields(Diagnostics) if f.name != "_pending")
+_new = object.__new__
 
 
-def control_step_diagnostics(prev: Diagnostics, figures, step_time: float,
-                             timings=NO_TIMINGS) -> Diagnostics:
-    """The Diagnostics of a control step from its physics steps' figures (TreeStepResults:
-    sums and worst cases), continuing the cumulative counts of prev; timings:
-    the cumulative phase times when profiling."""
+def pending_diagnostics(totals, figures, step_time: float, timings=NO_TIMINGS) -> Diagnostics:
+    """The Diagnostics of a control step from its physics steps' figures (a TreeStepResult
+    or a list of them), continuing the cumulative `totals` of the steps before
+    (physics_steps, nonconverged_steps, loaded_contacts_opened_total); its fields are
+    worked out when first read."""
+    d = _new(Diagnostics)
+    d._pending = (totals, figures, step_time, timings)
+    return d
+
+
+def figures_of(totals, figures, step_time: float, timings) -> tuple:
+    """The values of Diagnostics' fields (FIELD_NAMES order) of a control step: its physics
+    steps' figures (a TreeStepResult, or a list of them: sums and worst cases) after the
+    cumulative `totals`."""
+    if type(figures) is not list:
+        figures = [figures]
     iterations = worst = projection_iterations = projections = opened = nonconverged = 0
     residual = 0.0
     retried = False
@@ -69,19 +107,27 @@ def control_step_diagnostics(prev: Diagnostics, figures, step_time: float,
         iterations += f.iterations
         worst = max(worst, f.iterations)
         residual = max(residual, f.residual)
-        retried |= f.retried
+        retried |= bool(f.retried)
         opened += f.opened
         projection_iterations += f.projection_iterations
         projections += f.projection_status >= 0
         if f.status != _CONVERGED:
             status = f.status
             nonconverged += 1
-    return Diagnostics(
-        iterations, worst, nonconverged == 0, STATUS_NAMES[status], residual,
-        figures[-1].n_active, retried, opened, projection_iterations, projections,
-        step_time, prev.physics_steps + len(figures),
-        prev.nonconverged_steps + nonconverged,
-        prev.loaded_contacts_opened_total + opened, timings)
+    return (iterations, worst, nonconverged == 0, STATUS_NAMES[status], residual,
+            figures[-1].n_active, retried, opened, projection_iterations, projections,
+            step_time, totals[0] + len(figures), totals[1] + nonconverged,
+            totals[2] + opened, timings)
+
+
+def totals_after(totals, figures) -> tuple:
+    """The cumulative counts (NO_TOTALS' order) after a control step of several physics
+    steps (a list of TreeStepResults)."""
+    steps, nonconverged, opened = totals
+    for f in figures:
+        nonconverged += f.status != _CONVERGED
+        opened += f.opened
+    return (steps + len(figures), nonconverged, opened)
 
 
 class StepWarnings:

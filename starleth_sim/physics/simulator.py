@@ -38,10 +38,11 @@ from .coordinates import make_coordinates
 from .description import RobotDescription
 from .diagnostics import (
     NO_TIMINGS,
+    NO_TOTALS,
     Diagnostics,
     StepWarnings,
-    control_step_diagnostics,
-    one_step_diagnostics,
+    pending_diagnostics,
+    totals_after,
 )
 from .impedance import (
     TORQUE_AS_GIVEN,
@@ -51,6 +52,7 @@ from .impedance import (
     ImpedanceCommand,
     replay_rows,
 )
+from .prox import STATUS_CONVERGED as _CONVERGED
 from .robot_build import config_with_robot, robot_description
 from .state import SimState, finite_time
 from .stepper import PHASES, MoreauStepper, SimulationError
@@ -92,6 +94,7 @@ class Simulator:
         self._velocity_limit = np.where(np.isfinite(vlim) & (vlim > 0), vlim, np.inf)
         if config.actuator.velocity_limit == "ignore":
             self._velocity_limit[:] = np.inf
+        self._profile = profile         # the phases' times in Diagnostics.timings
         self.stepper = MoreauStepper(self.coords, config, profile=profile,
                                      torque_limits=(self._effort_limit, self._velocity_limit),
                                      drives=drive_parameters(config.actuator, self.joint_names))
@@ -193,6 +196,7 @@ class Simulator:
         self._gap = np.zeros(nc)
         self._position = np.zeros((nc, 3))
         self.diagnostics = Diagnostics()
+        self._totals = NO_TOTALS        # the cumulative counts of Diagnostics
 
     def snapshot(self) -> SimState:
         """A copy of the current state (q, u, t, contact memory, timed wrenches), for
@@ -438,17 +442,29 @@ class Simulator:
         a = self._torque_array(tau)
         return self._control_period(a, a.copy(), TORQUE_SATURATED)
 
-    def _step_done(self, d, tau, impulse, active, gap, position):
-        """The end of a control step: t, the reports, the diagnostics and their log."""
+    def _step_done(self, figures, buffers, impulse, wall):
+        """The end of a control step: t, the reports, the cumulative counts, the diagnostics
+        (worked out when read: diagnostics.pending_diagnostics) and their log, which is
+        written only for a step that did not converge or opened loaded contacts."""
+        state = self.state
         self._state_version += 1
-        self.state.t += self.control_period
-        self._tau = tau
-        self._impulse = impulse
-        self._active = active
-        self._gap = gap
-        self._position = position
+        state.t += self.control_period
+        _, active, views = buffers[-1]
+        self._tau = buffers[0][2][3]
+        self._impulse, self._active, self._gap, self._position = \
+            impulse, active, views[1], views[2]
+        totals = self._totals
+        if type(figures) is list:       # several physics steps, or profiling
+            self._totals = after = totals_after(totals, figures)
+            d = pending_diagnostics(totals, figures, wall, self._timings())
+            warn = after[1] != totals[1] or after[2] != totals[2]
+        else:
+            status, opened = figures.status, figures.opened
+            self._totals = (totals[0] + 1, totals[1] + (status != _CONVERGED), totals[2] + opened)
+            d = pending_diagnostics(totals, figures, wall)
+            warn = status != _CONVERGED or opened
         self.diagnostics = d
-        return self._log_step(d, self.state.t)
+        return self._log_step(d, state.t) if warn else d
 
     def _timings(self):
         """Diagnostics.timings: the cumulative phase times when profiling."""
@@ -474,15 +490,38 @@ class Simulator:
         impedance command's law at each step's start state (TORQUE_IMPEDANCE), or rows,
         torques[i] at step i (TORQUE_AS_GIVEN, TORQUE_REPLAY); the wrenches' generalized
         force at each. The reports are written into the spare set of report buffers, which
-        then becomes the current one. On a SimulationError the state is restored from a
-        copy taken before (one step alone fails leaving it as it was)."""
+        then becomes the current one. A failed step leaves the state as it was."""
         t_wall = perf_counter()
-        state, stepper = self.state, self.stepper
+        state = self.state
         buffers = self._report_buffers[self._next_report]
+        if self._one_physics_step and not self._profile and not state.pending_wrenches \
+                and not self._wrenches.persistent:
+            figures = self._one_step(state, torques if torques.ndim == 1 else torques[0],
+                                     buffers[0], mode)
+            impulse = buffers[0][2][0]
+        else:
+            figures, impulse = self._physics_steps(state, torques, buffers, mode)
+        self._next_report ^= 1
+        self._command = command
+        self._applied_steps = None      # (in the current report buffers)
+        return self._step_done(figures, buffers, impulse, perf_counter() - t_wall)
+
+    def _one_step(self, state, tau, buffer, mode):
+        """The control period of one physics step without wrenches: its TreeStepResult (a
+        failing kernel leaves the state as it was: nothing to restore)."""
+        report, active, _ = buffer
+        try:
+            return self.stepper.step(state, tau, report, active, None, mode)
+        except NonFiniteTorque:
+            raise self._torque_error(mode, tau) from None
+
+    def _physics_steps(self, state, torques, buffers, mode):
+        """The physics steps of a control period (_control_period), the state restored from
+        a copy taken before when one fails: (their TreeStepResults, Λ summed over them)."""
+        stepper = self.stepper
         wrenches = self._wrenches
         force = None if wrenches.none_to_apply(state) else wrenches.generalized_force
-        one = self._one_physics_step
-        before = None if one and not state.pending_wrenches else state.copy(share_qu=True)
+        before = state.copy(share_qu=True)
         try:
             figures = []
             for report, active, views in buffers:
@@ -493,25 +532,18 @@ class Simulator:
                     torques, mode = views[3], TORQUE_AS_GIVEN   # (saturated once per period;
                     # with drives at every step: a lag's torques are not the command's)
         except NonFiniteTorque:
-            if before is not None:
-                self.restore(before)
-            if mode == TORQUE_IMPEDANCE:
-                raise ValueError("the impedance law gave non-finite torques") from None
-            raise self._non_finite_torque(torques) from None
+            self.restore(before)
+            raise self._torque_error(mode, torques) from None
         except SimulationError:
-            if before is not None:
-                self.restore(before)
+            self.restore(before)
             raise
-        self._next_report ^= 1
-        _, active, (impulse, gap, position, _, _, _) = buffers[-1]
-        if not one:
-            impulse = buffers[0][2][0]
-            for _, _, views in buffers[1:]:     # in step order (the sum's round-off)
-                impulse = impulse + views[0]
-        wall = perf_counter() - t_wall
-        d = one_step_diagnostics(self.diagnostics, figures[0], wall) \
-            if one and not stepper.profile else \
-            control_step_diagnostics(self.diagnostics, figures, wall, self._timings())
-        self._command = command
-        self._applied_steps = None      # (in the current report buffers)
-        return self._step_done(d, buffers[0][2][3], impulse, active, gap, position)
+        impulse = buffers[0][2][0]
+        for _, _, views in buffers[1:]:     # in step order (the sum's round-off)
+            impulse = impulse + views[0]
+        return figures, impulse
+
+    def _torque_error(self, mode, torques) -> ValueError:
+        """The error of a step given non-finite torques (or whose impedance law gave them)."""
+        if mode == TORQUE_IMPEDANCE:
+            return ValueError("the impedance law gave non-finite torques")
+        return self._non_finite_torque(torques)

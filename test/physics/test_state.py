@@ -1,10 +1,14 @@
 """The simulation state (starleth_sim.physics.state.SimState): a snapshot is a deep copy,
 restoring one replays the same steps bit for bit, and a SimulationError rolls the state
 back; the profiled and the prepared step (options of the one kernel) are the plain step."""
+import copy
+import pickle
+
 import numpy as np
 import pytest
 
 from starleth_sim import SimulationError, Simulator
+from starleth_sim.physics.diagnostics import FIELD_NAMES
 
 
 def pd(sim, q_stand):
@@ -287,3 +291,25 @@ def test_compliant_contacts_in_a_cut_forest_stand_as_in_the_minimal_coordinates(
                      / sim.control_period))
     (z0, f0), (z1, f1) = runs
     assert f0 > 200.0 and abs(f1 - f0) < 0.1 and abs(z1 - z0) < 1e-5
+
+
+def test_diagnostics_read_late_are_those_read_at_every_step():
+    """Diagnostics are worked out from a step's figures when first read: those of a
+    simulator read only at the end equal those of one read after every step (the
+    cumulative counts included, with steps that did not converge), and a copy or a pickle
+    holds the same fields."""
+    read, late = (Simulator.from_preset("HmJ", **{"solver.max_iterations": 3})
+                  for _ in range(2))
+    zero = np.zeros(read.n_joints)
+    for _ in range(40):
+        read.step(zero)
+        assert read.diagnostics.physics_steps >= 1
+        late.step(zero)
+    got, want = late.diagnostics, read.diagnostics
+    assert want.nonconverged_steps > 0 and want.iterations > 0
+    for name in FIELD_NAMES:
+        if name != "step_time":
+            assert getattr(got, name) == getattr(want, name), name
+    assert got.physics_steps == 40
+    for other in (copy.deepcopy(late.diagnostics), pickle.loads(pickle.dumps(got))):
+        assert other == got
