@@ -51,8 +51,13 @@ static void motion_subspace(const tree_t *t, const frames_t *f, double *S) {
     }
 }
 
-/* spatial_inertias: out[j] (6 x 6), body j's spatial inertia in the world frame at the world
- * origin, [[I_c − m [c]x², m [c]x]; [m [c]x^T, m 1]]. scratch: 21 floats. */
+/* A spatial inertia at the world origin, [[Ī, m [c]x]; [m [c]x^T, m 1]] with Ī = I_c − m [c]x²,
+ * held by its entries that are not zero by construction: Ī (3 x 3), mc = m c and m (a sum of
+ * such inertias, the composite one, keeps the zeros exact). INERTIA_STRIDE floats: Ī, mc, m. */
+enum { INERTIA_STRIDE = 13 };
+
+/* spatial_inertias: out[j] (INERTIA_STRIDE), body j's spatial inertia in the world frame at
+ * the world origin. scratch: 21 floats. */
 static void spatial_inertias(const tree_t *t, const frames_t *f, const inertias_t *b, double *out,
                              double *scratch) {
     const double *oR = f->oR, *op = f->op;
@@ -73,27 +78,35 @@ static void spatial_inertias(const tree_t *t, const frames_t *f, const inertias_
                                 RI[r * 3 + 2] * R[k * 3 + 2];
         /* −[c]x² = |c|² 1 − c c^T */
         double cc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
-        double *I6 = out + 36 * j;
-        for (int r = 0; r < 3; r++) {
-            for (int k = 0; k < 3; k++) {
-                I6[r * 6 + k] = Iw[r * 3 + k] + m * ((r == k ? cc : 0.0) - c[r] * c[k]);
-                I6[(3 + r) * 6 + 3 + k] = r == k ? m : 0.0;
-            }
-        }
-        double mc0 = m * c[0], mc1 = m * c[1], mc2 = m * c[2];
-        /* m [c]x (upper right) and its transpose (lower left) */
-        I6[0 * 6 + 3] = 0.0;
-        I6[0 * 6 + 4] = -mc2;
-        I6[0 * 6 + 5] = mc1;
-        I6[1 * 6 + 3] = mc2;
-        I6[1 * 6 + 4] = 0.0;
-        I6[1 * 6 + 5] = -mc0;
-        I6[2 * 6 + 3] = -mc1;
-        I6[2 * 6 + 4] = mc0;
-        I6[2 * 6 + 5] = 0.0;
+        double *I = out + INERTIA_STRIDE * j;
         for (int r = 0; r < 3; r++)
-            for (int k = 0; k < 3; k++) I6[(3 + r) * 6 + k] = I6[k * 6 + 3 + r];
+            for (int k = 0; k < 3; k++)
+                I[r * 3 + k] = Iw[r * 3 + k] + m * ((r == k ? cc : 0.0) - c[r] * c[k]);
+        I[9] = m * c[0];
+        I[10] = m * c[1];
+        I[11] = m * c[2];
+        I[12] = m;
     }
+}
+
+/* inertia_times: y = I x for a spatial inertia I (INERTIA_STRIDE) and a motion x, the products
+ * with I's zero entries left out (the sums' order that of the full 6 x 6 product's rows) */
+static inline void inertia_times(const double *I, const double *x, double *y) {
+    double mc0 = I[9], mc1 = I[10], mc2 = I[11], m = I[12];
+    y[0] = I[0] * x[0] + I[1] * x[1] + I[2] * x[2] + -mc2 * x[4] + mc1 * x[5];
+    y[1] = I[3] * x[0] + I[4] * x[1] + I[5] * x[2] + mc2 * x[3] + -mc0 * x[5];
+    y[2] = I[6] * x[0] + I[7] * x[1] + I[8] * x[2] + -mc1 * x[3] + mc0 * x[4];
+    y[3] = mc2 * x[1] + -mc1 * x[2] + m * x[3];
+    y[4] = -mc2 * x[0] + mc0 * x[2] + m * x[4];
+    y[5] = mc1 * x[0] + -mc0 * x[1] + m * x[5];
+}
+
+/* inertia_times_column: inertia_times of x = column col of S (6 x nv) */
+static inline void inertia_times_column(const double *I, const double *S, i64 nv, i64 col,
+                                        double *y) {
+    double x[6];
+    for (int r = 0; r < 6; r++) x[r] = S[r * nv + col];
+    inertia_times(I, x, y);
 }
 
 /* mass_matrix_and_forces: M (nv x nv, full) by the CRBA and h = −(C(q, u) u + g(q)) by the
@@ -102,20 +115,21 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
                             const inertias_t *b, double *M, double *h) {
     i64 nj = t->nj, nv = t->nv;
     const i64 *parent = t->parent, *jtype = t->jtype, *idx_v = t->idx_v;
-    /* I6, V, A, F, S, vj, hv, f and spatial_inertias' work space in one block; every entry
-     * is written before it is read but those of body 0 (the world), zeroed below */
-    double scratch[54 * nj + 6 * nv + 39];
-    double *I6 = scratch, *V = scratch + 36 * nj, *A = scratch + 42 * nj, *F = scratch + 48 * nj,
-           *S = scratch + 54 * nj;
+    /* I (INERTIA_STRIDE each), V, A, F, S, vj, hv, f and spatial_inertias' work space in one
+     * block; every entry is written before it is read but those of body 0 (the world),
+     * zeroed below */
+    enum { NI = INERTIA_STRIDE };
+    double scratch[(NI + 18) * nj + 6 * nv + 39];
+    double *I = scratch, *V = scratch + NI * nj, *A = V + 6 * nj, *F = A + 6 * nj, *S = F + 6 * nj;
     double *vj = S + 6 * nv, *hv = vj + 6, *fv = vj + 12, *work = vj + 18;
     motion_subspace(t, f, S);
-    spatial_inertias(t, f, b, I6, work);
+    spatial_inertias(t, f, b, I, work);
     for (int r = 0; r < 6; r++) {
         V[r] = 0.0;
         A[r] = 0.0;
         F[r] = 0.0;
-        for (int k = 0; k < 6; k++) I6[r * 6 + k] = 0.0;
     }
+    for (int r = 0; r < NI; r++) I[r] = 0.0;
     /* -- RNEA, forward pass: V_j = V_λ(j) + S_j u_j, A_j = A_λ(j) + Ṡ_j u_j, A_0 = −g */
     for (int r = 0; r < 3; r++) A[3 + r] = -b->gravity[r];
     double x[3], y[3], z[3];
@@ -153,16 +167,9 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
             Aj[5] = Ap[5] + y[2] + z[2];
         }
         /* F_j = I_j A_j + V_j ×* (I_j V_j),  [ω; v] ×* [n; f] = [ω × n + v × f; ω × f] */
-        const double *Ij = I6 + 36 * j;
-        for (int r = 0; r < 6; r++) {
-            double s = 0.0, tt = 0.0;
-            for (int k = 0; k < 6; k++) {
-                s += Ij[r * 6 + k] * Aj[k];
-                tt += Ij[r * 6 + k] * Vj[k];
-            }
-            Fj[r] = s;
-            hv[r] = tt;
-        }
+        const double *Ij = I + NI * j;
+        inertia_times(Ij, Aj, Fj);
+        inertia_times(Ij, Vj, hv);
         double v0 = Vj[3], v1 = Vj[4], v2 = Vj[5];
         double c[3];
         cross3(w0, w1, w2, hv[0], hv[1], hv[2], x);
@@ -175,8 +182,8 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
         Fj[4] += c[1];
         Fj[5] += c[2];
     }
-    /* -- backward pass: h_j = −S_j^T F_j, F_λ(j) += F_j; composite inertias Ic (in I6) */
-    double *Ic = I6;
+    /* -- backward pass: h_j = −S_j^T F_j, F_λ(j) += F_j; composite inertias Ic (in I) */
+    double *Ic = I;
     for (i64 j = nj - 1; j > 0; j--) {
         i64 iv = idx_v[j];
         int nd = jtype[j] == JT_FREEFLYER ? 6 : 1;
@@ -187,25 +194,19 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
         }
         i64 par = parent[j];
         if (par > 0) {
-            for (int r = 0; r < 6; r++) {
-                F[6 * par + r] += F[6 * j + r];
-                for (int k = 0; k < 6; k++) Ic[36 * par + r * 6 + k] += Ic[36 * j + r * 6 + k];
-            }
+            for (int r = 0; r < 6; r++) F[6 * par + r] += F[6 * j + r];
+            for (int r = 0; r < NI; r++) Ic[NI * par + r] += Ic[NI * j + r];
         }
     }
     /* -- CRBA: M[k, j] = S_k^T Ic_j S_j for k = j and the ancestors of j */
     for (i64 k = 0; k < nv * nv; k++) M[k] = 0.0;
     for (i64 j = 1; j < nj; j++) {
         i64 iv = idx_v[j];
-        const double *Icj = Ic + 36 * j;
+        const double *Icj = Ic + NI * j;
         int nd = jtype[j] == JT_FREEFLYER ? 6 : 1;
         for (int d = 0; d < nd; d++) {
             i64 col = iv + d;
-            for (int r = 0; r < 6; r++) {
-                double s = 0.0;
-                for (int k = 0; k < 6; k++) s += Icj[r * 6 + k] * S[k * nv + col];
-                fv[r] = s;
-            }
+            inertia_times_column(Icj, S, nv, col, fv);
             i64 a = j;
             while (a > 0) {
                 i64 ia = idx_v[a];
