@@ -94,7 +94,6 @@ class Simulator:
         self._velocity_limit = np.where(np.isfinite(vlim) & (vlim > 0), vlim, np.inf)
         if config.actuator.velocity_limit == "ignore":
             self._velocity_limit[:] = np.inf
-        self._profile = profile         # the phases' times in Diagnostics.timings
         self.stepper = MoreauStepper(self.coords, config, profile=profile,
                                      torque_limits=(self._effort_limit, self._velocity_limit),
                                      drives=drive_parameters(config.actuator, self.joint_names))
@@ -110,8 +109,12 @@ class Simulator:
             for _ in "ab"]
         self._next_report = 0
         self._one_physics_step = config.steps_per_control == 1
+        #: a control period is one kernel call with nothing to restore after a failure, and
+        #: no phase times to gather (without wrenches: _control_period)
+        self._one_step_periods = self._one_physics_step and not profile
         #: joint rates are u's entries (no cut joints): nothing to cache
         self._joint_rates_in_u = getattr(self.coords, "n_cut", 1) == 0
+        self._joint_q, self._joint_v = self.coords.joint_q, self.coords.joint_v
         #: bumped whenever the state changes (reset, step, restore): keys the cache of φ̇
         self._state_version = 0
         self._joint_velocity_cache = (-1, None)
@@ -272,11 +275,13 @@ class Simulator:
         return c if c is None or isinstance(c, ImpedanceCommand) else c.copy()
 
     def joint_positions(self):
+        if self._joint_rates_in_u:     # (one gather: a controller asks at every step)
+            return self.state.q[self._joint_q]
         return self.coords.joint_positions(self.state.q, self.state.u)
 
     def joint_velocities(self):
         if self._joint_rates_in_u:
-            return self.coords.joint_velocities(self.state.q, self.state.u)
+            return self.state.u[self._joint_v]
         return self._joint_velocities().copy()
 
     def _joint_velocities(self):
@@ -494,26 +499,22 @@ class Simulator:
         t_wall = perf_counter()
         state = self.state
         buffers = self._report_buffers[self._next_report]
-        if self._one_physics_step and not self._profile and not state.pending_wrenches \
-                and not self._wrenches.persistent:
-            figures = self._one_step(state, torques if torques.ndim == 1 else torques[0],
-                                     buffers[0], mode)
-            impulse = buffers[0][2][0]
+        if self._one_step_periods and not state.pending_wrenches and \
+                not self._wrenches.persistent:
+            # one physics step without wrenches: a failing kernel leaves the state as it was
+            report, active, views = buffers[0]
+            tau = torques if torques.ndim == 1 else torques[0]
+            try:
+                figures = self.stepper.step(state, tau, report, active, None, mode)
+            except NonFiniteTorque:
+                raise self._torque_error(mode, tau) from None
+            impulse = views[0]
         else:
             figures, impulse = self._physics_steps(state, torques, buffers, mode)
         self._next_report ^= 1
         self._command = command
         self._applied_steps = None      # (in the current report buffers)
         return self._step_done(figures, buffers, impulse, perf_counter() - t_wall)
-
-    def _one_step(self, state, tau, buffer, mode):
-        """The control period of one physics step without wrenches: its TreeStepResult (a
-        failing kernel leaves the state as it was: nothing to restore)."""
-        report, active, _ = buffer
-        try:
-            return self.stepper.step(state, tau, report, active, None, mode)
-        except NonFiniteTorque:
-            raise self._torque_error(mode, tau) from None
 
     def _physics_steps(self, state, torques, buffers, mode):
         """The physics steps of a control period (_control_period), the state restored from
