@@ -1,9 +1,12 @@
-/* The bindings' argument helpers: arrays through the buffer protocol, their kinds and
- * sizes checked, the records (settings, patterns, the tree, the contacts, ...) read from
- * them; new numpy arrays for the few results that are new. */
+/* The bindings' argument helpers: arrays, their kinds and sizes checked, read directly from
+ * numpy arrays where the build has numpy's C API (numpy_api.h) and through the buffer
+ * protocol otherwise (any buffer object, and every argument that is not a numpy array of the
+ * kind asked, whose error the buffer path gives); the records (settings, patterns, the tree,
+ * the contacts, ...) read from them; new numpy arrays for the few results that are new. */
 #include "bind.h"
 
 #include "buffer_format.h"
+#include "numpy_api.h"
 
 PyObject *np_empty;
 
@@ -17,12 +20,36 @@ static char type_of(int base) {
     return base == F64 ? 'd' : base == I64 ? 'q' : '?';
 }
 
-/* An array argument into v (its buffer kept in h); 0 with an exception set on error. */
+/* numpy_view: v of a numpy array (not a subclass) of the base kind, C-contiguous, aligned,
+ * writeable where asked and of at most 4 dimensions; 0 (nothing set) for anything else. The
+ * arguments' references keep the array for the call (a resize needs it unreferenced). */
+static int numpy_view(PyObject *o, int base, int writable, val_t *v) {
+#ifdef STARLETH_NUMPY_C_API
+    if (!PyArray_CheckExact(o)) return 0;
+    PyArrayObject *arr = (PyArrayObject *)o;
+    int type = base == F64 ? NPY_FLOAT64 : base == I64 ? NPY_INT64 : NPY_BOOL;
+    if (PyArray_TYPE(arr) != type || !PyArray_IS_C_CONTIGUOUS(arr) || !PyArray_ISALIGNED(arr) ||
+        (writable && !PyArray_ISWRITEABLE(arr)) || PyArray_NDIM(arr) > 4)
+        return 0;
+    v->p = PyArray_DATA(arr);
+    v->len = PyArray_SIZE(arr);
+    v->nd = PyArray_NDIM(arr);
+    for (int k = 0; k < v->nd; k++) v->shape[k] = PyArray_DIM(arr, k);
+    return 1;
+#else
+    (void)o, (void)base, (void)writable, (void)v;
+    return 0;
+#endif
+}
+
+/* An array argument into v (a buffer it needed kept in h); 0 with an exception set on
+ * error. */
 int get_array(PyObject *o, int kind, const char *fn, const char *name, held_t *h, val_t *v) {
     int writable = kind == F64W || kind == I64W || kind == BOOLW || kind == F64N;
     int base = (kind == F64 || kind == F64W || kind == F64N) ? F64
                : (kind == I64 || kind == I64W)               ? I64
                                                              : BOOL;
+    if (numpy_view(o, base, writable, v)) return 1;
     if (h->n >= MAX_BUFFERS) {
         PyErr_Format(PyExc_RuntimeError, "%s: too many arrays", fn);
         return 0;

@@ -2,14 +2,18 @@
  *
  * Each function takes the arguments of the Python function of the same name that
  * starleth_sim.physics documents (numpy arrays, C-contiguous, of float64, int64 or bool,
- * and scalars), checks their kinds, and calls the kernel. Arrays are read through the buffer
- * protocol (no numpy C API: the extension builds with Python's headers alone); the few
- * results that are new arrays are made by numpy.empty. The one-kernel steps, which run for
+ * and scalars), checks their kinds, and calls the kernel. A numpy array is read from the
+ * array itself where the build found numpy's headers (numpy_api.h), any other argument and
+ * every array of a build without them through the buffer protocol (bind.c); the few results
+ * that are new arrays are made by numpy.empty. The one-kernel steps, which run for
  * every physics step, check the sizes of everything they touch and release the GIL. Work
  * arrays come from the calling thread's scratch arena, emptied on every call. The argument
  * helpers are in bind.c (bind.h). */
 #define KERNEL_LAYOUTS_DEFINE_TYPES /* the result types' definitions (kernel_layouts.h) */
 #include "bind.h"
+
+#define STARLETH_NUMPY_IMPORT
+#include "numpy_api.h"
 
 /* The module: its functions (the bindings of bind_geometry.c, bind_prox.c and bind_step.c),
  * the constants the Python side shares with the kernels, the ContactProblem type. */
@@ -97,6 +101,9 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT,
 
 PyMODINIT_FUNC PyInit__kernels(void) {
     if (PyType_Ready(&ProblemType) < 0) return NULL;
+#ifdef STARLETH_NUMPY_C_API
+    import_array();
+#endif
     PyObject *numpy = PyImport_ImportModule("numpy");
     if (!numpy) return NULL;
     np_empty = PyObject_GetAttrString(numpy, "empty");
@@ -141,6 +148,11 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         {"STEP_PREPARED", STEP_PREPARED},
         {"STEP_COMPLIANT", STEP_COMPLIANT},
         {"STEP_KEEP_FACTOR", STEP_KEEP_FACTOR},
+#ifdef STARLETH_NUMPY_C_API /* numpy arrays read without the buffer protocol (bind.c) */
+        {"NUMPY_C_API", 1},
+#else
+        {"NUMPY_C_API", 0},
+#endif
     };
     static const struct {
         const char *name;
