@@ -1,7 +1,7 @@
 """Realtime mode as ROS controllers meet it: the clock runs from the start with the drives
 holding the initial posture (realtime_start hold, the default), so a controller on a sim-time
 timer runs from the start (doc/controllers.md's timer example, run as written, trots the robot in
-place), the robot stands for a minute with no controller, and a controller that connects
+place), the robot stands for 20 s with no controller, and a controller that connects
 late takes over without a jump; realtime_start first_command still waits with the clock at
 0; in lockstep a timer controller gets a hint in sim_node's log.
 
@@ -137,11 +137,16 @@ def test_timer_controller_example_trots_from_the_start(ros, tmp_path):
     assert z[later].min() > 0.37
 
 
-def test_robot_holds_its_posture_for_a_minute_without_controller(ros, tmp_path):
-    """sim_node in realtime mode with no controller for 60 s of sim time (real_time_factor
-    50, as fast as it goes): the drives hold the initial posture, the trunk within 2 cm of
-    its standing height throughout; the log says so once, and /starleth/solver reports
-    holding_initial_posture."""
+#: sim seconds of the hold without a controller: the trunk settles within 1 s (0.4022 m, 1.3
+#: cm below standing) and stays there to 10 µm through 60 s, so 20 s show the same figures
+HOLD_SECONDS = 20.0
+
+
+def test_robot_holds_its_posture_without_controller(ros, tmp_path):
+    """sim_node in realtime mode with no controller for HOLD_SECONDS of sim time
+    (real_time_factor 50, as fast as it goes): the drives hold the initial posture, the trunk
+    within 2 cm of its standing height throughout and still in the last second; the log says
+    so once, and /starleth/solver reports holding_initial_posture."""
     from diagnostic_msgs.msg import DiagnosticArray
     sim = NodeProcess("starleth_sim.ros.sim_node", str(tmp_path / "sim.log"), DOMAIN_ID,
                       real_time_factor=50.0, record=str(tmp_path / "hold.mcap"),
@@ -152,17 +157,20 @@ def test_robot_holds_its_posture_for_a_minute_without_controller(ros, tmp_path):
         DiagnosticArray, "starleth/solver",
         lambda m: status.update({kv.key: kv.value for s in m.status for kv in s.values}), 10)
     try:
-        clock.wait_for(60.0, [sim])
+        clock.wait_for(HOLD_SECONDS, [sim])
     finally:
         clock.close()
         ros.node.destroy_subscription(sub)
         code = sim.stop()
     assert code == 0, sim.log()[-3000:]
     t, z, _, commands = recorded(tmp_path / "hold.mcap")
-    print(f"60 s without a controller: trunk {z.min():.4f} to {z.max():.4f} m (standing "
-          f"{STARLETH_STANDING_HEIGHT} m), {len(t)} states to t={t[-1]:.2f} s")
-    assert t[-1] >= 60.0 and len(commands) == 0
+    last = z[t >= t[-1] - 1.0]
+    print(f"{HOLD_SECONDS:.0f} s without a controller: trunk {z.min():.4f} to {z.max():.4f} m "
+          f"(standing {STARLETH_STANDING_HEIGHT} m; the last second {np.ptp(last) * 1e6:.1f} µm "
+          f"apart), {len(t)} states to t={t[-1]:.2f} s")
+    assert t[-1] >= HOLD_SECONDS and len(commands) == 0
     assert np.all(np.abs(z - STARLETH_STANDING_HEIGHT) < 0.02)
+    assert np.ptp(last) < 1e-4                        # settled: no slow sag left
     assert status.get("holding_initial_posture") == "True", status
     assert sim.log().count("the joints hold the initial posture") == 1
 
