@@ -21,8 +21,10 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import random
 import select
+import signal
 import struct
 import subprocess
 import sys
@@ -109,33 +111,48 @@ for line in sys.stdin:
 _server = None
 
 
+def _stop_server(wait=10):
+    """The tools' server stopped (its end of input; killed with its processes after `wait`
+    seconds, or at once with wait=0)."""
+    global _server
+    if _server is None:
+        return
+    _server.stdin.close()
+    try:
+        _server.wait(timeout=wait)
+    except subprocess.TimeoutExpired:
+        os.killpg(_server.pid, signal.SIGKILL)
+        _server.wait()
+    _server = None
+
+
 @pytest.fixture(scope="module", autouse=True)
 def tools_server():
-    """The tools' server for this module's tests (SERVER), stopped after them."""
-    global _server
-    _server = subprocess.Popen(
-        ["bash", "-c", f'ulimit -v {MEMORY_LIMIT_KIB} && exec "$0" -c "$1"', sys.executable,
-         SERVER], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    """The tools' server of this module's tests (run_tools starts it), stopped after them."""
     try:
-        yield _server
+        yield
     finally:
-        _server.stdin.close()
-        try:
-            _server.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            _server.kill()
-            _server.wait()
-        _server = None
+        _stop_server()
 
 
 def run_tools(*cases, timeout=600):
     """[(tool, argv)] run by their main(), each in its own process forked from the tools'
     server, whose address space is limited to MEMORY_LIMIT_KIB (`ulimit -v`):
-    [{'rc', 'out', 'err'}]."""
+    [{'rc', 'out', 'err'}]. A server that does not answer within `timeout` is killed (the
+    next call starts another)."""
+    global _server
+    if _server is None:
+        _server = subprocess.Popen(
+            ["bash", "-c", f'ulimit -v {MEMORY_LIMIT_KIB} && exec "$0" -c "$1"',
+             sys.executable, SERVER], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+            start_new_session=True)
     _server.stdin.write(json.dumps([(t, [str(a) for a in argv]) for t, argv in cases]) + "\n")
     _server.stdin.flush()
     ready, _, _ = select.select([_server.stdout], [], [], timeout)
-    assert ready and _server.poll() is None, f"the tools' server: no answer ({_server.poll()})"
+    if not ready or _server.poll() is not None:
+        code = _server.poll()
+        _stop_server(wait=0)
+        pytest.fail(f"the tools' server: no answer in {timeout} s (exit status {code})")
     return json.loads(_server.stdout.readline())
 
 
