@@ -21,7 +21,10 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import random
+import select
+import signal
 import struct
 import subprocess
 import sys
@@ -60,34 +63,97 @@ PROGS = {"view": view.PROG, "analysis": analysis.PROG, "replay": "starleth-repla
 
 
 # -- running the tools in a child with bounded memory -----------------------------------------
-DRIVER = r"""
-import contextlib, importlib, io, json, sys, traceback
-out = []
-for tool, argv in json.loads(sys.argv[1]):
-    mod = importlib.import_module(f"starleth_sim.tools.{tool}.{tool}")
+#: The tools' server: a child under `ulimit -v` that imports the three tools (and the
+#: analysis' matplotlib, about 70 MB of the 1 GB) once, then runs each case in a process of
+#: its own forked from it (the same limit, a fresh copy of its memory: a few ms instead of
+#: the 0.4 s of a new interpreter importing a tool), and answers each request (a JSON line
+#: of cases) with a JSON line of results on its own descriptor (the tools' stdout and stderr
+#: are captured per case).
+SERVER = r"""
+import contextlib, importlib, io, json, os, sys, traceback
+tools = {t: importlib.import_module(f"starleth_sim.tools.{t}.{t}")
+         for t in ("view", "analysis", "replay")}
+tools["analysis"].load_pyplot()      # matplotlib on Agg (0.4 s), as the analysis loads it
+answers = os.fdopen(os.dup(1), "w")
+os.dup2(2, 1)                        # stray output of the tools' libraries: not the answers
+
+def run(tool, argv):
     o, e = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(o), contextlib.redirect_stderr(e):
         try:
-            rc = mod.main(argv)
+            rc = tools[tool].main(argv)
         except SystemExit as x:
             rc = x.code if isinstance(x.code, int) else 1
         except BaseException:
             traceback.print_exc()
             rc = "traceback"
-    out.append({"rc": rc, "out": o.getvalue(), "err": e.getvalue()})
-print(json.dumps(out))
+    return {"rc": rc, "out": o.getvalue(), "err": e.getvalue()}
+
+def forked(tool, argv):
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        with os.fdopen(w, "w") as f:
+            f.write(json.dumps(run(tool, argv)))
+        os._exit(0)
+    os.close(w)
+    with os.fdopen(r) as f:
+        text = f.read()
+    _, status = os.waitpid(pid, 0)
+    return json.loads(text) if text else {"rc": f"died (wait status {status})", "out": "",
+                                          "err": ""}
+
+for line in sys.stdin:
+    answers.write(json.dumps([forked(t, argv) for t, argv in json.loads(line)]) + "\n")
+    answers.flush()
 """
+_server = None
+
+
+def _stop_server(wait=10):
+    """The tools' server stopped (its end of input; killed with its processes after `wait`
+    seconds, or at once with wait=0)."""
+    global _server
+    if _server is None:
+        return
+    _server.stdin.close()
+    try:
+        _server.wait(timeout=wait)
+    except subprocess.TimeoutExpired:
+        os.killpg(_server.pid, signal.SIGKILL)
+        _server.wait()
+    _server = None
+
+
+@pytest.fixture(scope="module", autouse=True)
+def tools_server():
+    """The tools' server of this module's tests (run_tools starts it), stopped after them."""
+    try:
+        yield
+    finally:
+        _stop_server()
 
 
 def run_tools(*cases, timeout=600):
-    """[(tool, argv)] run by their main() in one child process whose address space is
-    limited to MEMORY_LIMIT_KIB (`ulimit -v`): [{'rc', 'out', 'err'}]."""
-    cases = json.dumps([(t, [str(a) for a in argv]) for t, argv in cases])
-    p = subprocess.run(["bash", "-c", f'ulimit -v {MEMORY_LIMIT_KIB} && exec "$0" -c "$1" "$2"',
-                        sys.executable, DRIVER, cases],
-                       capture_output=True, text=True, timeout=timeout)
-    assert p.returncode == 0, p.stderr[-3000:]
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    """[(tool, argv)] run by their main(), each in its own process forked from the tools'
+    server, whose address space is limited to MEMORY_LIMIT_KIB (`ulimit -v`):
+    [{'rc', 'out', 'err'}]. A server that does not answer within `timeout` is killed (the
+    next call starts another)."""
+    global _server
+    if _server is None:
+        _server = subprocess.Popen(
+            ["bash", "-c", f'ulimit -v {MEMORY_LIMIT_KIB} && exec "$0" -c "$1"',
+             sys.executable, SERVER], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+            start_new_session=True)
+    _server.stdin.write(json.dumps([(t, [str(a) for a in argv]) for t, argv in cases]) + "\n")
+    _server.stdin.flush()
+    ready, _, _ = select.select([_server.stdout], [], [], timeout)
+    if not ready or _server.poll() is not None:
+        code = _server.poll()
+        _stop_server(wait=0)
+        pytest.fail(f"the tools' server: no answer in {timeout} s (exit status {code})")
+    return json.loads(_server.stdout.readline())
 
 
 def assert_one_line_error(result, tool, *expect):
