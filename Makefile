@@ -22,9 +22,6 @@ venv: $(STAMP)
 # generated from venv_interfaces/ with the rosidl generator wheels of
 # requirements-interfaces.txt (venv_interfaces/generate.py; nothing to do where an installed
 # ROS provides them); where that fails, one line says so and the venv goes on.
-# The editable install builds in the venv itself (--no-build-isolation: numpy's headers for the
-# physics kernels' bindings, kernels/build.py; an isolated build would lack them, and the
-# kernels would compile again on first use).
 # The top-level package __init__ files are prerequisites because the editable
 # install only maps top-level packages that existed when it ran.
 $(STAMP): requirements.txt requirements-ros.txt requirements-live.txt \
@@ -54,7 +51,7 @@ $(STAMP): requirements.txt requirements-ros.txt requirements-live.txt \
 	  echo "venv: the live view's optional requirements-live.txt failed to install: no live view"; \
 	$(VPY) venv_interfaces/generate.py || true; \
 	echo "venv: installing starleth_sim (editable)"; \
-	$(PIP) install -e . --no-deps --no-build-isolation; \
+	$(PIP) install -e . --no-deps; \
 	touch $@
 
 # What the tests need beyond the venv (requirements-test.txt: pytest, colcon, ray, MuJoCo for
