@@ -108,11 +108,11 @@ class Simulator:
                        for _ in range(config.steps_per_control))]
             for _ in "ab"]
         self._next_report = 0
-        self._one_physics_step = config.steps_per_control == 1
         #: a control period is one kernel call with nothing to restore after a failure, and
         #: no phase times to gather (without wrenches: _control_period)
-        self._one_step_periods = self._one_physics_step and not profile
-        #: joint rates are u's entries (no cut joints): nothing to cache
+        self._one_step_periods = config.steps_per_control == 1 and not profile
+        #: joint angles and rates are q's and u's entries (no cut joints): one gather each,
+        #: nothing to cache
         self._joint_rates_in_u = getattr(self.coords, "n_cut", 1) == 0
         self._joint_q, self._joint_v = self.coords.joint_q, self.coords.joint_v
         #: bumped whenever the state changes (reset, step, restore): keys the cache of φ̇

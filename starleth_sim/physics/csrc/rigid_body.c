@@ -118,9 +118,9 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
     /* I (INERTIA_STRIDE each), V, A, F, S, vj, hv, f and spatial_inertias' work space in one
      * block; every entry is written before it is read but those of body 0 (the world),
      * zeroed below */
-    enum { NI = INERTIA_STRIDE };
-    double scratch[(NI + 18) * nj + 6 * nv + 39];
-    double *I = scratch, *V = scratch + NI * nj, *A = V + 6 * nj, *F = A + 6 * nj, *S = F + 6 * nj;
+    double scratch[(INERTIA_STRIDE + 18) * nj + 6 * nv + 39];
+    double *I = scratch, *V = scratch + INERTIA_STRIDE * nj, *A = V + 6 * nj, *F = A + 6 * nj,
+           *S = F + 6 * nj;
     double *vj = S + 6 * nv, *hv = vj + 6, *fv = vj + 12, *work = vj + 18;
     motion_subspace(t, f, S);
     spatial_inertias(t, f, b, I, work);
@@ -129,7 +129,7 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
         A[r] = 0.0;
         F[r] = 0.0;
     }
-    for (int r = 0; r < NI; r++) I[r] = 0.0;
+    for (int r = 0; r < INERTIA_STRIDE; r++) I[r] = 0.0;
     /* -- RNEA, forward pass: V_j = V_λ(j) + S_j u_j, A_j = A_λ(j) + Ṡ_j u_j, A_0 = −g */
     for (int r = 0; r < 3; r++) A[3 + r] = -b->gravity[r];
     double x[3], y[3], z[3];
@@ -167,7 +167,7 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
             Aj[5] = Ap[5] + y[2] + z[2];
         }
         /* F_j = I_j A_j + V_j ×* (I_j V_j),  [ω; v] ×* [n; f] = [ω × n + v × f; ω × f] */
-        const double *Ij = I + NI * j;
+        const double *Ij = I + INERTIA_STRIDE * j;
         inertia_times(Ij, Aj, Fj);
         inertia_times(Ij, Vj, hv);
         double v0 = Vj[3], v1 = Vj[4], v2 = Vj[5];
@@ -195,14 +195,15 @@ void mass_matrix_and_forces(const double *u, const tree_t *t, const frames_t *f,
         i64 par = parent[j];
         if (par > 0) {
             for (int r = 0; r < 6; r++) F[6 * par + r] += F[6 * j + r];
-            for (int r = 0; r < NI; r++) Ic[NI * par + r] += Ic[NI * j + r];
+            for (int r = 0; r < INERTIA_STRIDE; r++)
+                Ic[INERTIA_STRIDE * par + r] += Ic[INERTIA_STRIDE * j + r];
         }
     }
     /* -- CRBA: M[k, j] = S_k^T Ic_j S_j for k = j and the ancestors of j */
     for (i64 k = 0; k < nv * nv; k++) M[k] = 0.0;
     for (i64 j = 1; j < nj; j++) {
         i64 iv = idx_v[j];
-        const double *Icj = Ic + NI * j;
+        const double *Icj = Ic + INERTIA_STRIDE * j;
         int nd = jtype[j] == JT_FREEFLYER ? 6 : 1;
         for (int d = 0; d < nd; d++) {
             i64 col = iv + d;
