@@ -190,14 +190,15 @@ class Simulator:
         self.state = self.stepper.initial_state(q, u, t)
         self.stepper.frames[:, 10] = 0.0     # (no slot holds a surface yet)
         self._state_version += 1
-        self._tau = np.zeros(self.n_joints)
-        self._applied_steps = self._tau     # see applied_torques_per_step
+        self._applied_steps = np.zeros(self.n_joints)     # see applied_torques_per_step
         self._command = None
-        nc = self.coords.n_contacts
-        self._impulse = np.zeros((nc, 3))
-        self._active = np.zeros(nc, dtype=bool)
-        self._gap = np.zeros(nc)
-        self._position = np.zeros((nc, 3))
+        #: the report buffers of the last control step (all zero before the first):
+        #: _report_buffers; _impulse is Λ summed over its physics steps
+        self._reports = self._report_buffers[self._next_report ^ 1]
+        for report, active, _ in self._reports:
+            report[:] = 0.0
+            active[:] = False
+        self._impulse = self._reports[0][2][0]
         self.diagnostics = Diagnostics()
         self._totals = NO_TOTALS        # the cumulative counts of Diagnostics
 
@@ -243,7 +244,7 @@ class Simulator:
         """The saturated torques applied during the last control step (of an impedance
         command, those of the period's first physics step; all in applied_torques_per_step;
         with a torque bandwidth the lag's output: doc/drives.md)."""
-        return self._tau.copy()
+        return self._reports[0][2][3].copy()
 
     @property
     def applied_torques_per_step(self):
@@ -353,8 +354,9 @@ class Simulator:
     def contacts(self):
         world = self.contact_impulses()
         sp = self._spheres
-        pos, gap = sp.points(self._gap, self._position), sp.gaps(self._gap)
-        states, active = self.contact_states(), sp.active(self._active)
+        _, is_active, (_, g, p, *_) = self._reports[-1]
+        pos, gap = sp.points(g, p), sp.gaps(g)
+        states, active = self.contact_states(), sp.active(is_active)
         return [ContactInfo(n, bool(active[i]), float(gap[i]), world[i].copy(),
                             world[i] / self.control_period, pos[i].copy(),
                             CONTACT_STATES[states[i]])
@@ -363,7 +365,8 @@ class Simulator:
     def contact_points(self) -> np.ndarray:
         """The contact points (nc x 3, world) of the last control step: the positions of
         `contacts`, without building the records."""
-        return self._spheres.points(self._gap, self._position).copy()
+        _, _, (_, g, p, *_) = self._reports[-1]
+        return self._spheres.points(g, p).copy()
 
     def contact_states(self) -> np.ndarray:
         """Per contact point after the last control step, an index into CONTACT_STATES:
@@ -439,6 +442,9 @@ class Simulator:
         :mod:`starleth_sim.physics.impedance`). On a bad `tau` (wrong length, NaN/inf) a
         ValueError is raised and the state is unchanged; on a SimulationError the state is
         restored to what it was before the step."""
+        if type(tau) is np.ndarray and tau.dtype is _FLOAT64 and tau.ndim == 1 and \
+                tau.shape[0] == self.n_joints and tau.flags.c_contiguous:   # (the usual case)
+            return self._control_period(tau, tau.copy(), TORQUE_SATURATED)
         if type(tau) is ImpedanceCommand:      # (cheaper than isinstance, on every step)
             if tau.joint_names != self.joint_names:
                 raise ValueError("ImpedanceCommand: made for the joints "
@@ -448,28 +454,21 @@ class Simulator:
         return self._control_period(a, a.copy(), TORQUE_SATURATED)
 
     def _step_done(self, figures, buffers, impulse, wall):
-        """The end of a control step: t, the reports, the cumulative counts, the diagnostics
-        (worked out when read: diagnostics.pending_diagnostics) and their log, which is
-        written only for a step that did not converge or opened loaded contacts."""
+        """The end of a control step of several physics steps (or profiled): t, the reports,
+        the cumulative counts, the diagnostics (worked out when read:
+        diagnostics.pending_diagnostics) and their log, which is written only for a step
+        that did not converge or opened loaded contacts. (_control_period inlines it for
+        one physics step.)"""
         state = self.state
         self._state_version += 1
         state.t += self.control_period
-        _, active, views = buffers[-1]
-        self._tau = buffers[0][2][3]
-        self._impulse, self._active, self._gap, self._position = \
-            impulse, active, views[1], views[2]
+        self._reports, self._impulse = buffers, impulse
         totals = self._totals
-        if type(figures) is list:       # several physics steps, or profiling
-            self._totals = after = totals_after(totals, figures)
-            d = pending_diagnostics(totals, figures, wall, self._timings())
-            warn = after[1] != totals[1] or after[2] != totals[2]
-        else:
-            status, opened = figures.status, figures.opened
-            self._totals = (totals[0] + 1, totals[1] + (status != _CONVERGED), totals[2] + opened)
-            d = pending_diagnostics(totals, figures, wall)
-            warn = status != _CONVERGED or opened
-        self.diagnostics = d
-        return self._log_step(d, state.t) if warn else d
+        self._totals = after = totals_after(totals, figures)
+        self.diagnostics = d = pending_diagnostics(totals, figures, wall, self._timings())
+        if after[1] != totals[1] or after[2] != totals[2]:
+            return self._log_step(d, state.t)
+        return d
 
     def _timings(self):
         """Diagnostics.timings: the cumulative phase times when profiling."""
@@ -498,23 +497,35 @@ class Simulator:
         then becomes the current one. A failed step leaves the state as it was."""
         t_wall = perf_counter()
         state = self.state
-        buffers = self._report_buffers[self._next_report]
-        if self._one_step_periods and not state.pending_wrenches and \
-                not self._wrenches.persistent:
-            # one physics step without wrenches: a failing kernel leaves the state as it was
-            report, active, views = buffers[0]
-            tau = torques if torques.ndim == 1 else torques[0]
-            try:
-                figures = self.stepper.step(state, tau, report, active, None, mode)
-            except NonFiniteTorque:
-                raise self._torque_error(mode, tau) from None
-            impulse = views[0]
-        else:
+        k = self._next_report
+        buffers = self._report_buffers[k]
+        if not self._one_step_periods or state.pending_wrenches or self._wrenches.persistent:
             figures, impulse = self._physics_steps(state, torques, buffers, mode)
-        self._next_report ^= 1
+            self._next_report = k ^ 1
+            self._command = command
+            self._applied_steps = None      # (in the current report buffers)
+            return self._step_done(figures, buffers, impulse, perf_counter() - t_wall)
+        # one physics step without wrenches (a failing kernel leaves the state as it was):
+        # _step_done inlined, every step of a simulation loop goes through here
+        report, active, views = buffers[0]
+        tau = torques if torques.ndim == 1 else torques[0]
+        try:
+            r = self.stepper.step(state, tau, report, active, None, mode)
+        except NonFiniteTorque:
+            raise self._torque_error(mode, tau) from None
+        self._next_report = k ^ 1
         self._command = command
-        self._applied_steps = None      # (in the current report buffers)
-        return self._step_done(figures, buffers, impulse, perf_counter() - t_wall)
+        self._applied_steps = None
+        self._state_version += 1
+        state.t += self.control_period
+        self._reports, self._impulse = buffers, views[0]
+        totals = self._totals
+        status, opened = r.status, r.opened
+        self._totals = (totals[0] + 1, totals[1] + (status != _CONVERGED), totals[2] + opened)
+        self.diagnostics = d = pending_diagnostics(totals, r, perf_counter() - t_wall)
+        if status != _CONVERGED or opened:
+            return self._log_step(d, state.t)
+        return d
 
     def _physics_steps(self, state, torques, buffers, mode):
         """The physics steps of a control period (_control_period), the state restored from

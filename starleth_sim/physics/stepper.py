@@ -142,6 +142,7 @@ class MoreauStepper:
         self._kernel = self._profiled if profile else self._unprofiled
         self._factored = False      # L holds the factor of a constant M
         self._prepared = None       # the (q, u) of the step prepared ahead (`prepare`)
+        self._nq, self._nv = coords.nq, coords.nv
         #: report buffers for `prepare` (the kernel checks their lengths; nothing is written)
         self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
 
@@ -265,10 +266,9 @@ class MoreauStepper:
         kernel's TreeStepResult. A NonFiniteTorque or SimulationError leaves the state as it
         was."""
         q, u = state.q, state.u
-        p = self._prepared
         options = self._options
-        if p is not None:
-            self._prepared = None
+        if self._prepared is not None:
+            p, self._prepared = self._prepared, None
             if p[0] is q and p[1] is u:
                 options |= STEP_PREPARED
         if tau is None or tau.shape[0] == 0:
@@ -277,8 +277,7 @@ class MoreauStepper:
             tau, mode = self._forest_torques(tau, q, u, mode), TORQUE_AS_GIVEN
         elif mode != TORQUE_IMPEDANCE and tau.shape[0] != self._n_tau[mode]:
             raise ValueError(f"tau must have {self._n_tau[mode]} entries, got {tau.shape[0]}")
-        qE = _empty(q.shape[0])
-        uE = _empty(u.shape[0])
+        qE, uE = _empty(self._nq), _empty(self._nv)
         r = self._kernel(options, mode, state, tau, self._no_force if f_ext is None else f_ext,
                          report, is_active, qE, uE)
         if r.outcome or r.retried or r.status or r.projection_status >= 0 or \
