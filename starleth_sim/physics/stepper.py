@@ -47,7 +47,14 @@ from .impedance import (
     TORQUE_SATURATED,
     command_torques,
 )
-from .kernels import STEP_COMPLIANT, STEP_KEEP_FACTOR, STEP_PREPARE, STEP_PREPARED, STEP_PROFILE
+from .kernels import (
+    STEP_COMPLIANT,
+    STEP_KEEP_FACTOR,
+    STEP_PREPARE,
+    STEP_PREPARED,
+    STEP_PROFILE,
+    TreeStep,
+)
 from .state import SimState
 from .step_kernels import PHASES, PROJECTION_LOOKAHEAD, PROJECTION_TOLERANCE, StepSettings
 from .terrain import SECOND_SURFACES, pack_terrain
@@ -145,6 +152,12 @@ class MoreauStepper:
         self._nq, self._nv = coords.nq, coords.nv
         #: report buffers for `prepare` (the kernel checks their lengths; nothing is written)
         self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
+        if not self._forest and not profile and not self._lagged:
+            # a tree's step without phase times or a torque lag: `step` and `prepare` in one
+            # C call each (kernels.TreeStep: what the methods below do, bit for bit)
+            tree = TreeStep(self._options, self._tree_model, not self.hard, self._no_torque,
+                            self._no_force, self._spare, self)
+            self.step, self.prepare = tree.step, tree.prepare
 
     def _drives(self, drives, na):
         """The drive models' parts the stepper keeps: the joint friction rows (Λ_f's memory

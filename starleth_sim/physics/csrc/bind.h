@@ -138,6 +138,7 @@ FN(prox_solve);
 FN(free_velocity);
 FN(constraint_velocity);
 FN(prepare_hard_contacts);
+extern PyTypeObject TreeStepType; /* bind_step.c */
 FN(tree_step_hard);
 FN(tree_step_compliant);
 FN(forest_step);

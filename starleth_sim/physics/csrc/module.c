@@ -100,7 +100,7 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT,
                                     NULL};
 
 PyMODINIT_FUNC PyInit__kernels(void) {
-    if (PyType_Ready(&ProblemType) < 0) return NULL;
+    if (PyType_Ready(&ProblemType) < 0 || PyType_Ready(&TreeStepType) < 0) return NULL;
 #ifdef STARLETH_NUMPY_C_API
     import_array();
 #endif
@@ -182,6 +182,11 @@ PyMODINIT_FUNC PyInit__kernels(void) {
     }
     Py_INCREF(&ProblemType);
     if (PyModule_AddObject(m, "ContactProblem", (PyObject *)&ProblemType) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&TreeStepType);
+    if (PyModule_AddObject(m, "TreeStep", (PyObject *)&TreeStepType) < 0) {
         Py_DECREF(m);
         return NULL;
     }
