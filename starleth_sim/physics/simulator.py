@@ -64,6 +64,8 @@ log = logging.getLogger("starleth_sim")
 
 #: float64 (numpy's built-in dtypes are singletons: `is` is the cheap test)
 _FLOAT64 = np.dtype(np.float64)
+#: a Diagnostics without its fields set (pending_diagnostics inlined on every step)
+_new_object = object.__new__
 
 
 class Simulator:
@@ -115,9 +117,8 @@ class Simulator:
         #: nothing to cache
         self._joint_rates_in_u = getattr(self.coords, "n_cut", 1) == 0
         self._joint_q, self._joint_v = self.coords.joint_q, self.coords.joint_v
-        #: bumped whenever the state changes (reset, step, restore): keys the cache of φ̇
-        self._state_version = 0
-        self._joint_velocity_cache = (-1, None)
+        #: φ̇ of the state whose u is the first (a step, reset and restore give u anew)
+        self._joint_velocity_cache = (None, None)
         self.contact_names = tuple(description.contact_names())
         self.control_period = config.control_period
         #: the persistent wrenches: an input like the torques (not evolving state)
@@ -189,8 +190,6 @@ class Simulator:
             q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
         self.state = self.stepper.initial_state(q, u, t)
         self.stepper.frames[:, 10] = 0.0     # (no slot holds a surface yet)
-        self._state_version += 1
-        self._applied_steps = np.zeros(self.n_joints)     # see applied_torques_per_step
         self._command = None
         #: the report buffers of the last control step (all zero before the first):
         #: _report_buffers; _impulse is Λ summed over its physics steps
@@ -221,7 +220,6 @@ class Simulator:
         self.state = snapshot.copy()
         if self.coords.second_surfaces:
             self.stepper.frames[:, 10] = 0.0 if snapshot.surfaces is None else snapshot.surfaces
-        self._state_version += 1
 
     @property
     def q(self):
@@ -251,22 +249,14 @@ class Simulator:
         """The saturated torques applied at each physics step of the last control step,
         (steps_per_control x n_joints; with torques, every row is applied_torque; an
         implicit damper's at the step's end rates: replay_torques_per_step replays them)."""
-        s = self._applied_steps
-        if s is None:   # the one-kernel steps' reports (the current set of report buffers)
-            return np.array([v[3] for _, _, v in self._report_buffers[self._next_report ^ 1]])
-        return s[0].copy() if type(s) is tuple else np.tile(s, (self.config.steps_per_control, 1))
+        return np.array([v[3] for _, _, v in self._reports])
 
     @property
     def replay_torques_per_step(self):
         """What `step_applied` takes to replay the last control step bit for bit with the
         implicit dampers (steps_per_control x 2 n_joints): per physics step the explicit
         torques (a damped joint's: its law at the start state), then the dampers' kd."""
-        s = self._applied_steps
-        if s is None:
-            return np.array([np.concatenate((v[4], v[5]))
-                             for _, _, v in self._report_buffers[self._next_report ^ 1]])
-        return s[1].copy() if type(s) is tuple else \
-            np.tile(np.r_[s, np.zeros(self.n_joints)], (self.config.steps_per_control, 1))
+        return np.array([np.concatenate((v[4], v[5])) for _, _, v in self._reports])
 
     @property
     def last_command(self):
@@ -289,10 +279,11 @@ class Simulator:
         """φ̇ of the current state (computed once per state: the maximal coordinates recover
         it from the bodies' velocities, and both a controller and the torque saturation of
         the next step ask for it)."""
-        version, qd = self._joint_velocity_cache
-        if version != self._state_version:
-            qd = self.coords.joint_velocities(self.state.q, self.state.u)
-            self._joint_velocity_cache = (self._state_version, qd)
+        u, qd = self._joint_velocity_cache
+        if u is not self.state.u:
+            u = self.state.u
+            qd = self.coords.joint_velocities(self.state.q, u)
+            self._joint_velocity_cache = (u, qd)
         return qd
 
     def bilateral_violation(self):
@@ -453,19 +444,21 @@ class Simulator:
         a = self._torque_array(tau)
         return self._control_period(a, a.copy(), TORQUE_SATURATED)
 
-    def _step_done(self, figures, buffers, impulse, wall):
-        """The end of a control step of several physics steps (or profiled): t, the reports,
-        the cumulative counts, the diagnostics (worked out when read:
-        diagnostics.pending_diagnostics) and their log, which is written only for a step
-        that did not converge or opened loaded contacts. (_control_period inlines it for
-        one physics step.)"""
+    def _step_done(self, figures, buffers, impulse, command, t_wall):
+        """The end of a control step (figures: its physics steps' TreeStepResults, or the
+        one's): t, the reports, the command, the cumulative counts, the diagnostics (worked
+        out when read: diagnostics.pending_diagnostics) and their log, which is written only
+        for a step that did not converge or opened loaded contacts. (_control_period inlines
+        it for one converged physics step.)"""
         state = self.state
-        self._state_version += 1
         state.t += self.control_period
+        self._next_report ^= 1
+        self._command = command
         self._reports, self._impulse = buffers, impulse
         totals = self._totals
         self._totals = after = totals_after(totals, figures)
-        self.diagnostics = d = pending_diagnostics(totals, figures, wall, self._timings())
+        self.diagnostics = d = pending_diagnostics(totals, figures, perf_counter() - t_wall,
+                                                   self._timings())
         if after[1] != totals[1] or after[2] != totals[2]:
             return self._log_step(d, state.t)
         return d
@@ -497,34 +490,28 @@ class Simulator:
         then becomes the current one. A failed step leaves the state as it was."""
         t_wall = perf_counter()
         state = self.state
-        k = self._next_report
-        buffers = self._report_buffers[k]
+        buffers = self._report_buffers[self._next_report]
         if not self._one_step_periods or state.pending_wrenches or self._wrenches.persistent:
             figures, impulse = self._physics_steps(state, torques, buffers, mode)
-            self._next_report = k ^ 1
-            self._command = command
-            self._applied_steps = None      # (in the current report buffers)
-            return self._step_done(figures, buffers, impulse, perf_counter() - t_wall)
-        # one physics step without wrenches (a failing kernel leaves the state as it was):
-        # _step_done inlined, every step of a simulation loop goes through here
+            return self._step_done(figures, buffers, impulse, command, t_wall)
+        # one physics step without wrenches (a failing kernel leaves the state as it was),
+        # _step_done inlined: every step of a simulation loop goes through here
         report, active, views = buffers[0]
         tau = torques if torques.ndim == 1 else torques[0]
         try:
             r = self.stepper.step(state, tau, report, active, None, mode)
         except NonFiniteTorque:
             raise self._torque_error(mode, tau) from None
-        self._next_report = k ^ 1
+        if r.status != _CONVERGED or r.opened:
+            return self._step_done([r], buffers, views[0], command, t_wall)
+        self._next_report ^= 1
         self._command = command
-        self._applied_steps = None
-        self._state_version += 1
         state.t += self.control_period
         self._reports, self._impulse = buffers, views[0]
         totals = self._totals
-        status, opened = r.status, r.opened
-        self._totals = (totals[0] + 1, totals[1] + (status != _CONVERGED), totals[2] + opened)
-        self.diagnostics = d = pending_diagnostics(totals, r, perf_counter() - t_wall)
-        if status != _CONVERGED or opened:
-            return self._log_step(d, state.t)
+        self._totals = (totals[0] + 1, totals[1], totals[2])
+        self.diagnostics = d = _new_object(Diagnostics)
+        d._pending = (totals, r, perf_counter() - t_wall, NO_TIMINGS)
         return d
 
     def _physics_steps(self, state, torques, buffers, mode):
