@@ -52,7 +52,7 @@ from .impedance import (
     ImpedanceCommand,
     replay_rows,
 )
-from .prox import STATUS_CONVERGED as _CONVERGED
+from .kernels import ControlPeriod
 from .robot_build import config_with_robot, robot_description
 from .state import SimState, finite_time
 from .stepper import PHASES, MoreauStepper, SimulationError
@@ -64,8 +64,6 @@ log = logging.getLogger("starleth_sim")
 
 #: float64 (numpy's built-in dtypes are singletons: `is` is the cheap test)
 _FLOAT64 = np.dtype(np.float64)
-#: a Diagnostics without its fields set (pending_diagnostics inlined on every step)
-_new_object = object.__new__
 
 
 class Simulator:
@@ -104,15 +102,11 @@ class Simulator:
         #: the other set holding the last period's: nothing allocated per step, and a failed
         #: step leaves the reports as they were
         nc = self.coords.n_contacts
-        self._report_buffers = [
+        self._report_buffers = tuple(
             [(b, np.empty(nc, dtype=np.bool_), report_views(b, nc, self.n_joints))
              for b in (np.zeros(report_size(nc, self.n_joints))
                        for _ in range(config.steps_per_control))]
-            for _ in "ab"]
-        self._next_report = 0
-        #: a control period is one kernel call with nothing to restore after a failure, and
-        #: no phase times to gather (without wrenches: _control_period)
-        self._one_step_periods = config.steps_per_control == 1 and not profile
+            for _ in "ab")
         #: joint angles and rates are q's and u's entries (no cut joints): one gather each,
         #: nothing to cache
         self._joint_rates_in_u = getattr(self.coords, "n_cut", 1) == 0
@@ -125,6 +119,14 @@ class Simulator:
         self._wrenches = ExternalWrenches(self.coords)
         self.state: SimState | None = None
         self._log_step = StepWarnings(log, config.contact.activation)
+        #: what the last control period left (the report set in use, Λ, the command, the
+        #: cumulative counts, the Diagnostics), and a period of one physics step of a tree
+        #: without wrenches in one C call (kernels.ControlPeriod; _control_period: the rest)
+        one_kernel = config.steps_per_control == 1 and not profile
+        self._period = ControlPeriod(self._report_buffers, self.control_period, self.n_joints,
+                                     self.stepper.tree_step if one_kernel else None,
+                                     self._wrenches.persistent, Diagnostics, NO_TIMINGS,
+                                     self._log_step)
         self.reset()
 
     # -- construction ---------------------------------------------------------------------
@@ -190,16 +192,12 @@ class Simulator:
             q[iq + 3:iq + 7] /= np.linalg.norm(q[iq + 3:iq + 7])
         self.state = self.stepper.initial_state(q, u, t)
         self.stepper.frames[:, 10] = 0.0     # (no slot holds a surface yet)
-        self._command = None
-        #: the report buffers of the last control step (all zero before the first):
-        #: _report_buffers; _impulse is Λ summed over its physics steps
-        self._reports = self._report_buffers[self._next_report ^ 1]
-        for report, active, _ in self._reports:
+        p = self._period        # (the reports of the last period: zero before the first)
+        for report, active, _ in p.current:
             report[:] = 0.0
             active[:] = False
-        self._impulse = self._reports[0][2][0]
-        self.diagnostics = Diagnostics()
-        self._totals = NO_TOTALS        # the cumulative counts of Diagnostics
+        p.impulse, p.command = p.current[0][2][0], None
+        p.diagnostics, p.totals = Diagnostics(), NO_TOTALS
 
     def snapshot(self) -> SimState:
         """A copy of the current state (q, u, t, contact memory, timed wrenches), for
@@ -220,6 +218,21 @@ class Simulator:
         self.state = snapshot.copy()
         if self.coords.second_surfaces:
             self.stepper.frames[:, 10] = 0.0 if snapshot.surfaces is None else snapshot.surfaces
+
+    @property
+    def diagnostics(self) -> Diagnostics:
+        """The solver figures of the last control step (what `step` returned)."""
+        return self._period.diagnostics
+
+    @property
+    def _reports(self):
+        """The report buffers of the last control step (one per physics step)."""
+        return self._period.current
+
+    @property
+    def _impulse(self):
+        """Λ of the last control step (nc x 3, contact frames), summed over its steps."""
+        return self._period.impulse
 
     @property
     def q(self):
@@ -262,7 +275,7 @@ class Simulator:
     def last_command(self):
         """The command of the last control step as validated: an ImpedanceCommand, the
         joint torques (a copy), or the per-step torques of step_applied; None after reset."""
-        c = self._command
+        c = self._period.command
         return c if c is None or isinstance(c, ImpedanceCommand) else c.copy()
 
     def joint_positions(self):
@@ -417,7 +430,8 @@ class Simulator:
 
     def _non_finite_torque(self, a) -> ValueError:
         """The error of a torque vector with non-finite entries, naming their joints."""
-        bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(a))]
+        n = self.n_joints       # (a: a vector, or rows of a replay: n or 2 n per step)
+        bad = dict.fromkeys(self.joint_names[i % n] for i in np.flatnonzero(~np.isfinite(a)))
         return ValueError(f"tau has non-finite entries for {', '.join(bad)}")
 
     def prepare(self):
@@ -433,9 +447,12 @@ class Simulator:
         :mod:`starleth_sim.physics.impedance`). On a bad `tau` (wrong length, NaN/inf) a
         ValueError is raised and the state is unchanged; on a SimulationError the state is
         restored to what it was before the step."""
-        if type(tau) is np.ndarray and tau.dtype is _FLOAT64 and tau.ndim == 1 and \
-                tau.shape[0] == self.n_joints and tau.flags.c_contiguous:   # (the usual case)
-            return self._control_period(tau, tau.copy(), TORQUE_SATURATED)
+        try:        # the usual case first: a float64 vector, one kernel call (ControlPeriod)
+            d = self._period.step(self.state, tau)
+        except NonFiniteTorque:
+            raise self._non_finite_torque(tau) from None
+        if d is not NotImplemented:
+            return d
         if type(tau) is ImpedanceCommand:      # (cheaper than isinstance, on every step)
             if tau.joint_names != self.joint_names:
                 raise ValueError("ImpedanceCommand: made for the joints "
@@ -444,21 +461,22 @@ class Simulator:
         a = self._torque_array(tau)
         return self._control_period(a, a.copy(), TORQUE_SATURATED)
 
-    def _step_done(self, figures, buffers, impulse, command, t_wall):
-        """The end of a control step (figures: its physics steps' TreeStepResults, or the
-        one's): t, the reports, the command, the cumulative counts, the diagnostics (worked
-        out when read: diagnostics.pending_diagnostics) and their log, which is written only
-        for a step that did not converge or opened loaded contacts. (_control_period inlines
-        it for one converged physics step.)"""
+    def _step_done(self, figures, impulse, command, t_wall):
+        """The end of a control step of several physics steps, or profiled, or with
+        wrenches (figures: its physics steps' TreeStepResults): t, the record of the last
+        period (ControlPeriod: the report set in use, Λ, the command, the cumulative
+        counts, the Diagnostics, worked out when read: diagnostics.pending_diagnostics) and
+        the log, which is written only for a step that did not converge or opened loaded
+        contacts. (ControlPeriod.step does the same for a one-kernel period.)"""
         state = self.state
         state.t += self.control_period
-        self._next_report ^= 1
-        self._command = command
-        self._reports, self._impulse = buffers, impulse
-        totals = self._totals
-        self._totals = after = totals_after(totals, figures)
-        self.diagnostics = d = pending_diagnostics(totals, figures, perf_counter() - t_wall,
-                                                   self._timings())
+        p = self._period
+        p.next_report ^= 1
+        p.command, p.impulse = command, impulse
+        totals = p.totals
+        p.totals = after = totals_after(totals, figures)
+        p.diagnostics = d = pending_diagnostics(totals, figures, perf_counter() - t_wall,
+                                                self._timings())
         if after[1] != totals[1] or after[2] != totals[2]:
             return self._log_step(d, state.t)
         return d
@@ -488,31 +506,16 @@ class Simulator:
         torques[i] at step i (TORQUE_AS_GIVEN, TORQUE_REPLAY); the wrenches' generalized
         force at each. The reports are written into the spare set of report buffers, which
         then becomes the current one. A failed step leaves the state as it was."""
-        t_wall = perf_counter()
-        state = self.state
-        buffers = self._report_buffers[self._next_report]
-        if not self._one_step_periods or state.pending_wrenches or self._wrenches.persistent:
-            figures, impulse = self._physics_steps(state, torques, buffers, mode)
-            return self._step_done(figures, buffers, impulse, command, t_wall)
-        # one physics step without wrenches (a failing kernel leaves the state as it was),
-        # _step_done inlined: every step of a simulation loop goes through here
-        report, active, views = buffers[0]
-        tau = torques if torques.ndim == 1 else torques[0]
         try:
-            r = self.stepper.step(state, tau, report, active, None, mode)
+            d = self._period.step(self.state, torques, mode, command)   # one kernel call
         except NonFiniteTorque:
-            raise self._torque_error(mode, tau) from None
-        if r.status != _CONVERGED or r.opened:
-            return self._step_done([r], buffers, views[0], command, t_wall)
-        self._next_report ^= 1
-        self._command = command
-        state.t += self.control_period
-        self._reports, self._impulse = buffers, views[0]
-        totals = self._totals
-        self._totals = (totals[0] + 1, totals[1], totals[2])
-        self.diagnostics = d = _new_object(Diagnostics)
-        d._pending = (totals, r, perf_counter() - t_wall, NO_TIMINGS)
-        return d
+            raise self._torque_error(mode, torques) from None
+        if d is not NotImplemented:
+            return d
+        t_wall = perf_counter()
+        figures, impulse = self._physics_steps(
+            self.state, torques, self._report_buffers[self._period.next_report], mode)
+        return self._step_done(figures, impulse, command, t_wall)
 
     def _physics_steps(self, state, torques, buffers, mode):
         """The physics steps of a control period (_control_period), the state restored from
@@ -520,7 +523,8 @@ class Simulator:
         stepper = self.stepper
         wrenches = self._wrenches
         force = None if wrenches.none_to_apply(state) else wrenches.generalized_force
-        before = state.copy(share_qu=True)
+        # (a failing kernel leaves the state as it was: one step without wrenches needs no copy)
+        before = None if len(buffers) == 1 and force is None else state.copy(share_qu=True)
         try:
             figures = []
             for report, active, views in buffers:
@@ -531,10 +535,12 @@ class Simulator:
                     torques, mode = views[3], TORQUE_AS_GIVEN   # (saturated once per period;
                     # with drives at every step: a lag's torques are not the command's)
         except NonFiniteTorque:
-            self.restore(before)
+            if before is not None:
+                self.restore(before)
             raise self._torque_error(mode, torques) from None
         except SimulationError:
-            self.restore(before)
+            if before is not None:
+                self.restore(before)
             raise
         impulse = buffers[0][2][0]
         for _, _, views in buffers[1:]:     # in step order (the sum's round-off)

@@ -152,12 +152,17 @@ class MoreauStepper:
         self._nq, self._nv = coords.nq, coords.nv
         #: report buffers for `prepare` (the kernel checks their lengths; nothing is written)
         self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
-        if not self._forest and not profile and not self._lagged:
-            # a tree's step without phase times or a torque lag: `step` and `prepare` in one
-            # C call each (kernels.TreeStep: what the methods below do, bit for bit)
-            tree = TreeStep(self._options, self._tree_model, not self.hard, self._no_torque,
-                            self._no_force, self._spare, self)
-            self.step, self.prepare = tree.step, tree.prepare
+        self._bind_tree_step()
+
+    def _bind_tree_step(self):
+        """A tree's step without phase times or a torque lag, bound to its model
+        (kernels.TreeStep: `step` and `prepare` below in one C call each, bit for bit), as
+        `tree_step`; None for the other steps."""
+        self.tree_step = None
+        if not self._forest and not self.profile and not self._lagged:
+            self.tree_step = TreeStep(self._options, self._tree_model, not self.hard,
+                                      self._no_torque, self._no_force, self._spare, self)
+            self.step, self.prepare = self.tree_step.step, self.tree_step.prepare
 
     def _drives(self, drives, na):
         """The drive models' parts the stepper keeps: the joint friction rows (Λ_f's memory

@@ -138,7 +138,19 @@ FN(prox_solve);
 FN(free_velocity);
 FN(constraint_velocity);
 FN(prepare_hard_contacts);
-extern PyTypeObject TreeStepType; /* bind_step.c */
+/* packed_of: the TreeStepModel's four buffers (floats, ints, support, workspace) parsed
+ * into m; run_tree_step: the tree kernel of parsed arrays, checked against m (bind_step.c) */
+int packed_of(const val_t *v, packed_model_t *m);
+int run_tree_step(const char *fn, int compliant, i64 options, i64 mode, const val_t *st,
+                  const val_t *tau, const val_t *f_ext, const val_t *out, const packed_model_t *m,
+                  tree_step_result_t *r);
+extern PyTypeObject TreeStepType; /* bind_tree_step.c */
+/* TreeStep.step(state, tau, report, is_active, f_ext, mode) of a TreeStep, its result also
+ * into out where not NULL (bind_tree_step.c) */
+PyObject *tree_step_advance(PyObject *tree, PyObject *state, PyObject *tau, PyObject *report,
+                            PyObject *is_active, PyObject *f_ext, long long mode,
+                            tree_step_result_t *out);
+extern PyTypeObject ControlPeriodType; /* bind_period.c */
 FN(tree_step_hard);
 FN(tree_step_compliant);
 FN(forest_step);

@@ -100,7 +100,9 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT,
                                     NULL};
 
 PyMODINIT_FUNC PyInit__kernels(void) {
-    if (PyType_Ready(&ProblemType) < 0 || PyType_Ready(&TreeStepType) < 0) return NULL;
+    if (PyType_Ready(&ProblemType) < 0 || PyType_Ready(&TreeStepType) < 0 ||
+        PyType_Ready(&ControlPeriodType) < 0)
+        return NULL;
 #ifdef STARLETH_NUMPY_C_API
     import_array();
 #endif
@@ -186,7 +188,9 @@ PyMODINIT_FUNC PyInit__kernels(void) {
         return NULL;
     }
     Py_INCREF(&TreeStepType);
-    if (PyModule_AddObject(m, "TreeStep", (PyObject *)&TreeStepType) < 0) {
+    Py_INCREF(&ControlPeriodType);
+    if (PyModule_AddObject(m, "TreeStep", (PyObject *)&TreeStepType) < 0 ||
+        PyModule_AddObject(m, "ControlPeriod", (PyObject *)&ControlPeriodType) < 0) {
         Py_DECREF(m);
         return NULL;
     }
