@@ -131,6 +131,20 @@ static int one_kernel(ControlPeriodObject *self, PyObject *state) {
     return n < 0 ? -1 : n == 0;
 }
 
+/* (physics_steps, nonconverged_steps, loaded_contacts_opened_total) as a tuple */
+static PyObject *totals_tuple(const long long *totals) {
+    PyObject *t = PyTuple_New(3);
+    for (int k = 0; t && k < 3; k++) {
+        PyObject *n = PyLong_FromLongLong(totals[k]);
+        if (!n) {
+            Py_CLEAR(t);
+            break;
+        }
+        PyTuple_SET_ITEM(t, k, n);
+    }
+    return t;
+}
+
 static double seconds(void) {
     struct timespec ts;
     clock_gettime(CLOCK_MONOTONIC, &ts);
@@ -157,12 +171,15 @@ static PyObject *period_done(ControlPeriodObject *self, PyObject *state, PyObjec
     Py_SETREF(self->impulse, PyTuple_GET_ITEM(views, 0));
     Py_INCREF(command);
     Py_SETREF(self->command, command);
-    PyObject *before = Py_BuildValue("(LLL)", self->totals[0], self->totals[1], self->totals[2]);
+    PyObject *before = totals_tuple(self->totals);
     int quiet = res->status == STATUS_CONVERGED && res->opened == 0;
     self->totals[0] += 1;
     self->totals[1] += res->status != STATUS_CONVERGED;
     self->totals[2] += res->opened;
-    PyObject *pending = before ? Py_BuildValue("(NOdO)", before, r, wall, self->no_timings) : NULL;
+    PyObject *w = before ? PyFloat_FromDouble(wall) : NULL;
+    PyObject *pending = w ? PyTuple_Pack(4, before, r, w, self->no_timings) : NULL;
+    Py_XDECREF(before);
+    Py_XDECREF(w);
     PyTypeObject *type = (PyTypeObject *)self->diagnostics_new;
     PyObject *d = pending ? type->tp_new(type, empty_tuple, NULL) : NULL;
     ok = d && PyObject_SetAttr(d, s_pending, pending) == 0;
@@ -254,7 +271,7 @@ static PyObject *period_get_current(ControlPeriodObject *self, void *c) {
 
 static PyObject *period_get_totals(ControlPeriodObject *self, void *c) {
     (void)c;
-    return Py_BuildValue("(LLL)", self->totals[0], self->totals[1], self->totals[2]);
+    return totals_tuple(self->totals);
 }
 
 static int period_set_totals(ControlPeriodObject *self, PyObject *v, void *c) {
