@@ -219,6 +219,29 @@ class Simulator:
         if self.coords.second_surfaces:
             self.stepper.frames[:, 10] = 0.0 if snapshot.surfaces is None else snapshot.surfaces
 
+    def __reduce__(self):
+        """(pickle and copy.deepcopy) A simulator made anew from its configuration and
+        description, then given this one's state, wrenches, last reports and record (the
+        stepper's and the period's C objects and the views into their buffers are made by
+        the constructor, not copied)."""
+        p = self._period
+        reports = [(report.copy(), active.copy()) for report, active, _ in p.current]
+        record = (reports, np.array(p.impulse), p.command, p.diagnostics, p.totals,
+                  self.stepper.stats)
+        return (_unpickled_simulator, (self.config, self.description, self.stepper.profile,
+                                       self.snapshot(), dict(self._wrenches.persistent),
+                                       record))
+
+    def _restore_period(self, record):
+        """The last period's reports and record (`__reduce__`'s) taken over."""
+        reports, impulse, command, diagnostics, totals, stats = record
+        p = self._period
+        for (report, active, _), (r, a) in zip(p.current, reports, strict=True):
+            report[:] = r
+            active[:] = a
+        p.impulse, p.command, p.diagnostics, p.totals = impulse, command, diagnostics, totals
+        self.stepper.stats = stats
+
     @property
     def diagnostics(self) -> Diagnostics:
         """The solver figures of the last control step (what `step` returned)."""
@@ -552,3 +575,12 @@ class Simulator:
         if mode == TORQUE_IMPEDANCE:
             return ValueError("the impedance law gave non-finite torques")
         return self._non_finite_torque(torques)
+
+
+def _unpickled_simulator(config, description, profile, snapshot, persistent, record):
+    """A Simulator from what `Simulator.__reduce__` keeps."""
+    sim = Simulator(config, description, profile)
+    sim.restore(snapshot)
+    sim._wrenches.persistent.update(persistent)
+    sim._restore_period(record)
+    return sim

@@ -154,6 +154,12 @@ class MoreauStepper:
         self._spare = (np.empty(report_size(self.nc, na)), np.empty(self.nc, dtype=np.bool_))
         self._bind_tree_step()
 
+    def __reduce__(self):
+        """(pickle and copy) Not on its own: its kernels and workspace views are bound to its
+        model; a Simulator pickles and copies by making its stepper anew."""
+        raise TypeError("MoreauStepper: pickle or copy the Simulator that holds it (a "
+                        "stepper is made anew from the configuration, not copied)")
+
     def _bind_tree_step(self):
         """A tree's step without phase times or a torque lag, bound to its model
         (kernels.TreeStep: `step` and `prepare` below in one C call each, bit for bit), as
