@@ -24,9 +24,10 @@ NO_TOTALS = (0, 0, 0)
 class Diagnostics:
     """Solver figures of the last control step (summed / worst over its physics steps).
 
-    One made by `pending_diagnostics` holds its physics steps' figures and works its fields
-    out when one is first read: a simulation loop that never reads them does not pay for
-    them (made on every step: figures in doc/performance.md)."""
+    One made by kernels.ControlPeriod (a Simulator's record of its last period) holds its
+    physics steps' figures in `_pending` (totals before, figures, step_time, timings) and
+    works its fields out when one is first read: a simulation loop that never reads them
+    does not pay for them (made on every step: figures in doc/performance.md)."""
 
     iterations: int = 0            # prox iterations, summed over the physics steps
     max_iterations_step: int = 0   # worst physics step
@@ -80,17 +81,6 @@ class Diagnostics:
 
 #: Diagnostics' fields in order (its _pending aside)
 FIELD_NAMES = tuple(f.name for f in fields(Diagnostics) if f.name != "_pending")
-_new = object.__new__
-
-
-def pending_diagnostics(totals, figures, step_time: float, timings=NO_TIMINGS) -> Diagnostics:
-    """The Diagnostics of a control step from its physics steps' figures (a TreeStepResult
-    or a list of them), continuing the cumulative `totals` of the steps before
-    (physics_steps, nonconverged_steps, loaded_contacts_opened_total); its fields are
-    worked out when first read."""
-    d = _new(Diagnostics)
-    d._pending = (totals, figures, step_time, timings)
-    return d
 
 
 def figures_of(totals, figures, step_time: float, timings) -> tuple:
@@ -118,16 +108,6 @@ def figures_of(totals, figures, step_time: float, timings) -> tuple:
             figures[-1].n_active, retried, opened, projection_iterations, projections,
             step_time, totals[0] + len(figures), totals[1] + nonconverged,
             totals[2] + opened, timings)
-
-
-def totals_after(totals, figures) -> tuple:
-    """The cumulative counts (NO_TOTALS' order) after a control step of several physics
-    steps (a list of TreeStepResults)."""
-    steps, nonconverged, opened = totals
-    for f in figures:
-        nonconverged += f.status != _CONVERGED
-        opened += f.opened
-    return (steps + len(figures), nonconverged, opened)
 
 
 class StepWarnings:

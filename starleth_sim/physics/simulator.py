@@ -36,14 +36,7 @@ from .config import PhysicsConfig, load_preset
 from .contact import CONTACT_STATES, ContactInfo, SphereSlots, contact_states, rest_on_ground
 from .coordinates import make_coordinates
 from .description import RobotDescription
-from .diagnostics import (
-    NO_TIMINGS,
-    NO_TOTALS,
-    Diagnostics,
-    StepWarnings,
-    pending_diagnostics,
-    totals_after,
-)
+from .diagnostics import NO_TIMINGS, NO_TOTALS, Diagnostics, StepWarnings
 from .impedance import (
     TORQUE_AS_GIVEN,
     TORQUE_IMPEDANCE,
@@ -484,26 +477,6 @@ class Simulator:
         a = self._torque_array(tau)
         return self._control_period(a, a.copy(), TORQUE_SATURATED)
 
-    def _step_done(self, figures, impulse, command, t_wall):
-        """The end of a control step of several physics steps, or profiled, or with
-        wrenches (figures: its physics steps' TreeStepResults): t, the record of the last
-        period (ControlPeriod: the report set in use, Λ, the command, the cumulative
-        counts, the Diagnostics, worked out when read: diagnostics.pending_diagnostics) and
-        the log, which is written only for a step that did not converge or opened loaded
-        contacts. (ControlPeriod.step does the same for a one-kernel period.)"""
-        state = self.state
-        state.t += self.control_period
-        p = self._period
-        p.next_report ^= 1
-        p.command, p.impulse = command, impulse
-        totals = p.totals
-        p.totals = after = totals_after(totals, figures)
-        p.diagnostics = d = pending_diagnostics(totals, figures, perf_counter() - t_wall,
-                                                self._timings())
-        if after[1] != totals[1] or after[2] != totals[2]:
-            return self._log_step(d, state.t)
-        return d
-
     def _timings(self):
         """Diagnostics.timings: the cumulative phase times when profiling."""
         if not self.stepper.profile:
@@ -538,7 +511,9 @@ class Simulator:
         t_wall = perf_counter()
         figures, impulse = self._physics_steps(
             self.state, torques, self._report_buffers[self._period.next_report], mode)
-        return self._step_done(figures, impulse, command, t_wall)
+        # t, the record of the period and the log, as ControlPeriod.step writes them
+        return self._period.finish(self.state, figures, impulse, command,
+                                   perf_counter() - t_wall, self._timings())
 
     def _physics_steps(self, state, torques, buffers, mode):
         """The physics steps of a control period (_control_period), the state restored from

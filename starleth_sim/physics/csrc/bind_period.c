@@ -2,7 +2,8 @@
  * buffers in use, Λ summed over its physics steps, its command, the cumulative counts of
  * Diagnostics and its Diagnostics), and `step`, a control period of one physics step of a
  * tree without wrenches in one call: the kernel (TreeStep), the state's t, this record and
- * the Diagnostics, as Simulator._control_period does it for every other period. */
+ * the Diagnostics; `finish` writes the same record after every other period, whose physics
+ * steps Simulator._control_period runs. */
 #include <time.h>
 
 #include "bind.h"
@@ -26,15 +27,17 @@ typedef struct {
                                   converge */
 } ControlPeriodObject;
 
-static PyObject *s_t, *s_pending, *s_pending_wrenches, *empty_tuple;
+static PyObject *s_t, *s_pending, *s_pending_wrenches, *s_status, *s_opened, *empty_tuple;
 
 static int period_names(void) {
     if (s_t) return 1;
     s_t = PyUnicode_InternFromString("t");
     s_pending = PyUnicode_InternFromString("_pending");
     s_pending_wrenches = PyUnicode_InternFromString("pending_wrenches");
+    s_status = PyUnicode_InternFromString("status");
+    s_opened = PyUnicode_InternFromString("opened");
     empty_tuple = PyTuple_New(0);
-    return s_t && s_pending && s_pending_wrenches && empty_tuple;
+    return s_t && s_pending && s_pending_wrenches && s_status && s_opened && empty_tuple;
 }
 
 #define PERIOD_OBJECTS(X) \
@@ -151,13 +154,13 @@ static double seconds(void) {
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
 
-/* The record after a one-kernel period (r: its TreeStepResult, res its figures, views its
- * report's): t, the set in use, Λ, the command, the counts; its Diagnostics (pending: worked
- * out when read, diagnostics.pending_diagnostics), logged when the step did more than
- * converge */
-static PyObject *period_done(ControlPeriodObject *self, PyObject *state, PyObject *r,
-                             const tree_step_result_t *res, PyObject *views, PyObject *command,
-                             double wall) {
+/* The record after a period: t, the set in use, Λ (impulse), the command, the counts
+ * (steps physics steps, nonconverged of them not converged, opened loaded contacts
+ * opened); its Diagnostics of figures (a TreeStepResult or a list of them: pending, worked
+ * out when read, diagnostics.Diagnostics), logged when a step did more than converge */
+static PyObject *period_record(ControlPeriodObject *self, PyObject *state, PyObject *figures,
+                               const long long counts[3], PyObject *impulse, PyObject *command,
+                               double wall, PyObject *timings) {
     PyObject *t = PyObject_GetAttr(state, s_t);
     double t_end = t ? PyFloat_AsDouble(t) + self->period : -1.0;
     Py_XDECREF(t);
@@ -167,17 +170,15 @@ static PyObject *period_done(ControlPeriodObject *self, PyObject *state, PyObjec
     Py_XDECREF(t_new);
     if (!ok) return NULL;
     self->next ^= 1;
-    Py_INCREF(PyTuple_GET_ITEM(views, 0));
-    Py_SETREF(self->impulse, PyTuple_GET_ITEM(views, 0));
+    Py_INCREF(impulse);
+    Py_SETREF(self->impulse, impulse);
     Py_INCREF(command);
     Py_SETREF(self->command, command);
     PyObject *before = totals_tuple(self->totals);
-    int quiet = res->status == STATUS_CONVERGED && res->opened == 0;
-    self->totals[0] += 1;
-    self->totals[1] += res->status != STATUS_CONVERGED;
-    self->totals[2] += res->opened;
+    for (int k = 0; k < 3; k++) self->totals[k] += counts[k];
+    int quiet = counts[1] == 0 && counts[2] == 0;
     PyObject *w = before ? PyFloat_FromDouble(wall) : NULL;
-    PyObject *pending = w ? PyTuple_Pack(4, before, r, w, self->no_timings) : NULL;
+    PyObject *pending = w ? PyTuple_Pack(4, before, figures, w, timings) : NULL;
     Py_XDECREF(before);
     Py_XDECREF(w);
     PyTypeObject *type = (PyTypeObject *)self->diagnostics_new;
@@ -194,6 +195,34 @@ static PyObject *period_done(ControlPeriodObject *self, PyObject *state, PyObjec
     PyObject *logged = PyObject_CallFunction(self->log_step, "Od", d, t_end);
     Py_DECREF(d);
     return logged;
+}
+
+/* finish(state, figures, impulse, command, wall, timings) -> Diagnostics: the record after
+ * a period of the Python path (Simulator._control_period: several physics steps, wrenches,
+ * a cut forest, profiling), figures its physics steps' TreeStepResults (a list) */
+static PyObject *period_finish(ControlPeriodObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 6 || !PyList_Check(args[1])) {
+        PyErr_SetString(PyExc_TypeError,
+                        "ControlPeriod.finish(state, figures (a list), "
+                        "impulse, command, wall, timings)");
+        return NULL;
+    }
+    double wall = PyFloat_AsDouble(args[4]);
+    if (wall == -1.0 && PyErr_Occurred()) return NULL;
+    long long counts[3] = {PyList_GET_SIZE(args[1]), 0, 0};
+    for (Py_ssize_t k = 0; k < PyList_GET_SIZE(args[1]); k++) {
+        PyObject *f = PyList_GET_ITEM(args[1], k);
+        PyObject *status = PyObject_GetAttr(f, s_status);
+        PyObject *opened = status ? PyObject_GetAttr(f, s_opened) : NULL;
+        long long st = status ? PyLong_AsLongLong(status) : -1;
+        long long op = opened ? PyLong_AsLongLong(opened) : -1;
+        Py_XDECREF(status);
+        Py_XDECREF(opened);
+        if (PyErr_Occurred()) return NULL;
+        counts[1] += st != STATUS_CONVERGED;
+        counts[2] += op;
+    }
+    return period_record(self, args[0], args[1], counts, args[2], args[3], wall, args[5]);
 }
 
 /* step(state, tau, mode=TORQUE_SATURATED, command=None) -> Diagnostics, or NotImplemented
@@ -238,8 +267,10 @@ static PyObject *period_step(ControlPeriodObject *self, PyObject *const *args, P
         r = tree_step_advance(self->tree, state, tau, PyTuple_GET_ITEM(buffers, 0),
                               PyTuple_GET_ITEM(buffers, 1), Py_None, mode, &res);
     if (r)
-        d = period_done(self, state, r, &res, PyTuple_GET_ITEM(buffers, 2), copy ? copy : command,
-                        seconds() - t0);
+        d = period_record(self, state, r,
+                          (long long[3]){1, res.status != STATUS_CONVERGED, res.opened},
+                          PyTuple_GET_ITEM(PyTuple_GET_ITEM(buffers, 2), 0), copy ? copy : command,
+                          seconds() - t0, self->no_timings);
     Py_XDECREF(r);
     Py_XDECREF(copy);
     Py_DECREF(buffers);
@@ -326,6 +357,9 @@ static PyMethodDef period_methods[] = {
     {"step", (PyCFunction)(void (*)(void))period_step, METH_FASTCALL,
      "step(state, tau, mode=TORQUE_SATURATED, command=None) -> Diagnostics, or NotImplemented "
      "where the period is not one kernel call."},
+    {"finish", (PyCFunction)(void (*)(void))period_finish, METH_FASTCALL,
+     "finish(state, figures, impulse, command, wall, timings) -> Diagnostics: the record after "
+     "a period of the Python path (figures: its physics steps' TreeStepResults)."},
     {NULL, NULL, 0, NULL}};
 
 PyTypeObject ControlPeriodType = {
